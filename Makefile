@@ -1,0 +1,27 @@
+# Set-up and the two jobs of the README. Every target creates .venv and installs the project first
+# (once: the stamp is refreshed only when pyproject.toml changes). torch==2.13.0 is pinned, so pip
+# takes the CPU build already available to it and downloads no other torch.
+PYTHON ?= python3.11
+VENV := .venv
+STAMP := $(VENV)/.installed
+
+.PHONY: paper test setup lint clean
+
+paper: $(STAMP)
+	$(VENV)/bin/factorq paper $(ARGS)
+
+test: $(STAMP)
+	$(VENV)/bin/python -m pytest $(ARGS)
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/python -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check .
+
+clean:
+	rm -rf $(VENV) build *.egg-info

@@ -1,0 +1,1 @@
+"""envs: the FactoredGrid world of the paper, for torchrl and gymnasium."""

@@ -1,0 +1,315 @@
+"""The FactoredGrid world (SPEC sections 1-2) as pure, batched tensor functions.
+
+State lives in a ``WorldState`` of plain tensors with a leading batch dimension ``S`` of
+independent worlds; functions return new states and never mutate their inputs. The torchrl env
+(``envs.grid``), the gymnasium env (``envs.gym``) and the compiled fast path all run this logic.
+
+Cells are numbered ``row * size + col``; the start is cell 0 (top-left), the goal the last cell.
+Actions, in the paper's order: 0 north (row - 1), 1 west (col - 1), 2 south (row + 1), 3 east
+(col + 1). Randomness comes from each world's counter stream (``factorq_torch.rng``): scatter
+number ``m`` of a world uses counters ``m * num_obstacles .. (m + 1) * num_obstacles - 1``.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+
+from factorq_torch.rng import STREAM_LAYOUT, derive_keys, randint_from_bits, random_bits
+
+NUM_ACTIONS = 4
+ACTION_NAMES = ("north", "west", "south", "east")
+ROW_DELTA = (-1, 0, 1, 0)
+COL_DELTA = (0, -1, 0, 1)
+START_CELL = 0
+MAX_LAYOUT_ATTEMPTS = 10_000
+
+
+def _check_int(name: str, value, low: int, high: int | None = None, hint: str = "") -> None:
+    """Raise a ValueError/TypeError naming ``name``, ``value`` and the allowed range."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise TypeError(f"{name} must be an int, got {value!r} ({type(value).__name__})")
+    if value < low or (high is not None and value > high):
+        allowed = f">= {low}" if high is None else f"in [{low}, {high}]"
+        raise ValueError(f"{name}={value} is out of range: must be {allowed}{hint}")
+
+
+@dataclass(frozen=True)
+class WorldConfig:
+    """The parameters of one FactoredGrid world, validated on construction."""
+
+    size: int = 10
+    """Side of the square grid, in cells (the wall surrounds it)."""
+    num_obstacles: int = 10
+    """Single-cell obstacles; never on start, goal or the agent, never two on one cell."""
+    obstacle_period: int = 0
+    """0 static (one fixed layout), 10 semi-dynamic, 1 dynamic: scatter after every k-th action."""
+    max_steps: int = 10_000
+    """Actions after which an episode is truncated."""
+    layout_seed: int = 0
+    """Seed of the static layout (the same for every world of a batch)."""
+
+    def __post_init__(self) -> None:
+        _check_int("size", self.size, 2)
+        _check_int(
+            "num_obstacles",
+            self.num_obstacles,
+            0,
+            self.max_obstacles,
+            f" for a {self.size}x{self.size} grid with start, goal and agent kept free",
+        )
+        _check_int("obstacle_period", self.obstacle_period, 0, hint=" (0 static, k > 0 moving)")
+        _check_int("max_steps", self.max_steps, 1)
+        _check_int("layout_seed", self.layout_seed, 0)
+
+    @property
+    def num_cells(self) -> int:
+        return self.size * self.size
+
+    @property
+    def goal_cell(self) -> int:
+        return self.num_cells - 1
+
+    @property
+    def max_obstacles(self) -> int:
+        return self.size * self.size - 3
+
+
+class WorldState(NamedTuple):
+    """The state of ``S`` independent worlds (all tensors share the leading dimension ``S``)."""
+
+    cell: torch.Tensor  # [S] int64, the agent's cell
+    obstacles: torch.Tensor  # [S, N] bool, N = size * size
+    bump: torch.Tensor  # [S, 4] bool, the face that hit something on the last action
+    episode_step: torch.Tensor  # [S] int64, actions taken in the current episode
+    scatters: torch.Tensor  # [S] int64, obstacle scatters drawn so far (the stream's position)
+
+
+class StepOutcome(NamedTuple):
+    """What one step of ``S`` worlds produced (SPEC section 2)."""
+
+    step_reward: torch.Tensor  # [S] float, -1 on every action
+    goal_reward: torch.Tensor  # [S] float, +1 on the action that reaches the goal
+    collision: torch.Tensor  # [S, 4] float, -1 on the face that bumped
+    terminated: torch.Tensor  # [S] bool, the goal was reached
+    truncated: torch.Tensor  # [S] bool, max_steps reached without the goal
+
+    @property
+    def task_reward(self) -> torch.Tensor:
+        """step + goal: what Factor-Q's task table learns from."""
+        return self.step_reward + self.goal_reward
+
+    @property
+    def reward(self) -> torch.Tensor:
+        """The conventional scalar reward step + goal + sum(collision) (Q-learning, DQN)."""
+        return self.task_reward + self.collision.sum(dim=-1)
+
+
+def empty_state(batch: int, size: int, device: torch.device | str | None = None) -> WorldState:
+    """``batch`` worlds with the agent on the start cell and no obstacles (call ``reset_worlds``)."""
+    zeros = torch.zeros(batch, dtype=torch.int64, device=device)
+    return WorldState(
+        cell=zeros.clone(),
+        obstacles=torch.zeros(batch, size * size, dtype=torch.bool, device=device),
+        bump=torch.zeros(batch, NUM_ACTIONS, dtype=torch.bool, device=device),
+        episode_step=zeros.clone(),
+        scatters=zeros.clone(),
+    )
+
+
+def neighbours(cell: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The cell one move away in each direction and whether it is inside the grid.
+
+    Shapes: ``[...] -> ([..., 4] int64, [..., 4] bool)``; outside cells are clamped to the edge.
+    """
+    deltas_row = torch.tensor(ROW_DELTA, device=cell.device)
+    deltas_col = torch.tensor(COL_DELTA, device=cell.device)
+    row = (cell // size).unsqueeze(-1) + deltas_row  # [..., 4]
+    col = (cell % size).unsqueeze(-1) + deltas_col
+    inside = (row >= 0) & (row < size) & (col >= 0) & (col < size)
+    return row.clamp(0, size - 1) * size + col.clamp(0, size - 1), inside
+
+
+def proximity(cell: torch.Tensor, obstacles: torch.Tensor, size: int) -> torch.Tensor:
+    """Proximity sensors ``[S, 4]`` bool: the neighbouring cell is wall or obstacle."""
+    target, inside = neighbours(cell, size)
+    return ~inside | obstacles.gather(-1, target)
+
+
+def scatter_obstacles(
+    key: torch.Tensor,
+    scatter_index: torch.Tensor,
+    agent_cell: torch.Tensor,
+    size: int,
+    num_obstacles: int,
+) -> torch.Tensor:
+    """Obstacles ``[S, N]`` bool on ``num_obstacles`` distinct cells drawn uniformly at random.
+
+    The cells are drawn from those that are not the start, the goal or ``agent_cell`` by Floyd's
+    algorithm (``num_obstacles`` draws, a uniform subset, no permutation of all cells): index
+    ``j`` of the last ``K`` of ``M`` allowed positions draws ``t`` in ``[0, j]`` and takes ``t``,
+    or ``j`` itself if ``t`` was taken. Draw ``k`` uses counter ``scatter_index * K + k``.
+    """
+    num_cells = size * size
+    goal = num_cells - 1
+    batch = agent_cell.shape[0]
+    device = agent_cell.device
+    # The excluded cells, ascending: start (0), then the agent and the goal; an agent on the start
+    # or the goal adds no exclusion (it gets a sentinel beyond every cell).
+    agent_free = (agent_cell != START_CELL) & (agent_cell != goal)
+    agent_key = torch.where(agent_free, agent_cell, torch.full_like(agent_cell, 2 * num_cells))
+    excluded = (
+        torch.full_like(agent_cell, START_CELL),
+        torch.minimum(agent_key, torch.full_like(agent_key, goal)),
+        torch.maximum(agent_key, torch.full_like(agent_key, goal)),
+    )
+    allowed = num_cells - 2 - agent_free.to(torch.int64)  # [S], M
+    taken = torch.zeros(batch, num_cells, dtype=torch.bool, device=device)
+    obstacles = torch.zeros(batch, num_cells, dtype=torch.bool, device=device)
+    for k in range(num_obstacles):
+        j = allowed - num_obstacles + k  # [S]
+        t = randint_from_bits(random_bits(key, scatter_index * num_obstacles + k), j + 1)
+        pick = torch.where(taken.gather(1, t.unsqueeze(1)).squeeze(1), j, t)  # [S], in [0, M)
+        taken = taken.scatter(1, pick.unsqueeze(1), True)
+        cell = pick
+        for excluded_cell in excluded:  # ascending: skip each excluded cell at or below
+            cell = cell + (cell >= excluded_cell).to(torch.int64)
+        obstacles = obstacles.scatter(1, cell.unsqueeze(1), True)
+    return obstacles
+
+
+def is_reachable(obstacles: torch.Tensor, size: int) -> bool:
+    """Whether the goal can be reached from the start around ``obstacles`` ``[N]`` (BFS)."""
+    blocked = obstacles.tolist()
+    goal = size * size - 1
+    seen = {START_CELL}
+    frontier = deque([START_CELL])
+    while frontier:
+        cell = frontier.popleft()
+        if cell == goal:
+            return True
+        row, col = divmod(cell, size)
+        for d_row, d_col in zip(ROW_DELTA, COL_DELTA, strict=True):
+            r, c = row + d_row, col + d_col
+            nxt = r * size + c
+            if 0 <= r < size and 0 <= c < size and not blocked[nxt] and nxt not in seen:
+                seen.add(nxt)
+                frontier.append(nxt)
+    return False
+
+
+def static_layout(config: WorldConfig) -> torch.Tensor:
+    """The static world's obstacles ``[N]`` bool: drawn from ``layout_seed``, redrawn until the
+    goal is reachable from the start (SPEC section 1)."""
+    key = derive_keys(config.layout_seed, STREAM_LAYOUT, 1)
+    start = torch.zeros(1, dtype=torch.int64)
+    for attempt in range(MAX_LAYOUT_ATTEMPTS):
+        obstacles = scatter_obstacles(
+            key, torch.tensor([attempt]), start, config.size, config.num_obstacles
+        )[0]
+        if is_reachable(obstacles, config.size):
+            return obstacles
+    raise ValueError(
+        f"num_obstacles={config.num_obstacles}: no layout of a {config.size}x{config.size} grid "
+        f"with a path from start to goal was found in {MAX_LAYOUT_ATTEMPTS} draws; use fewer"
+    )
+
+
+def reset_worlds(
+    state: WorldState,
+    mask: torch.Tensor,
+    key: torch.Tensor,
+    period: torch.Tensor,
+    static_obstacles: torch.Tensor,
+    config: WorldConfig,
+) -> WorldState:
+    """Start a new episode in the worlds where ``mask`` ``[S]`` is True; the others are unchanged.
+
+    The agent goes to the start with no bump; a static world (``period == 0``) gets
+    ``static_obstacles`` ``[N]``, a moving one a fresh scatter.
+    """
+    moving = mask & (period > 0)
+    obstacles = torch.where((mask & (period == 0)).unsqueeze(1), static_obstacles, state.obstacles)
+    scatters = state.scatters
+    if config.num_obstacles and bool(moving.any()):
+        start = torch.full_like(state.cell, START_CELL)
+        fresh = scatter_obstacles(key, scatters, start, config.size, config.num_obstacles)
+        obstacles = torch.where(moving.unsqueeze(1), fresh, obstacles)
+        scatters = scatters + moving.to(torch.int64)
+    return WorldState(
+        cell=torch.where(mask, START_CELL, state.cell),
+        obstacles=obstacles,
+        bump=state.bump & ~mask.unsqueeze(1),
+        episode_step=torch.where(mask, 0, state.episode_step),
+        scatters=scatters,
+    )
+
+
+def step_worlds(
+    state: WorldState,
+    action: torch.Tensor,
+    key: torch.Tensor,
+    period: torch.Tensor,
+    config: WorldConfig,
+) -> tuple[WorldState, StepOutcome]:
+    """One action in each of ``S`` worlds (SPEC section 1's order).
+
+    read action -> move or collide -> reward -> (maybe) scatter -> new observation. A blocked
+    move (wall or obstacle) leaves the agent in place and sets the bump bit of that face. A world
+    with ``period = k > 0`` scatters after every ``k``-th action of the episode, except on the
+    step that reaches the goal. ``action`` is int64 ``[S]`` in ``[0, 4)``.
+    """
+    target, inside = neighbours(state.cell, config.size)  # [S, 4]
+    blocked = ~inside | state.obstacles.gather(1, target)
+    chosen = action.unsqueeze(1)
+    collided = blocked.gather(1, chosen).squeeze(1)  # [S]
+    cell = torch.where(collided, state.cell, target.gather(1, chosen).squeeze(1))
+    faces = torch.arange(NUM_ACTIONS, device=action.device)
+    bump = (faces == chosen) & collided.unsqueeze(1)  # [S, 4]
+    episode_step = state.episode_step + 1
+    terminated = cell == config.goal_cell
+    truncated = ~terminated & (episode_step >= config.max_steps)
+    outcome = StepOutcome(
+        step_reward=torch.full(cell.shape, -1.0, device=cell.device),
+        goal_reward=terminated.to(torch.float32),
+        collision=-bump.to(torch.float32),
+        terminated=terminated,
+        truncated=truncated,
+    )
+    obstacles, scatters = state.obstacles, state.scatters
+    scatter = (period > 0) & ~terminated & (episode_step % period.clamp(min=1) == 0)
+    if config.num_obstacles and bool(scatter.any()):
+        fresh = scatter_obstacles(key, scatters, cell, config.size, config.num_obstacles)
+        obstacles = torch.where(scatter.unsqueeze(1), fresh, obstacles)
+        scatters = scatters + scatter.to(torch.int64)
+    new_state = WorldState(cell, obstacles, bump, episode_step, scatters)
+    return new_state, outcome
+
+
+def render_world(cell: int, obstacles: torch.Tensor, size: int) -> str:
+    """A text picture of one world: ``#`` wall, ``o`` obstacle, ``A`` agent, ``G`` goal.
+
+    >>> print(render_world(0, torch.zeros(4, dtype=torch.bool), 2))
+    ####
+    #A.#
+    #.G#
+    ####
+    """
+    blocked = obstacles.tolist()
+    rows = ["#" * (size + 2)]
+    for row in range(size):
+        line = ""
+        for col in range(size):
+            index = row * size + col
+            if index == cell:
+                line += "A"
+            elif index == size * size - 1:
+                line += "G"
+            else:
+                line += "o" if blocked[index] else "."
+        rows.append("#" + line + "#")
+    rows.append("#" * (size + 2))
+    return "\n".join(rows)

@@ -1,0 +1,161 @@
+"""The paper's equations as pure, batched tensor functions (no TensorDict, inputs never mutated).
+
+Shapes: ``A`` is the number of actions (4 in the paper's world) and ``...`` any leading batch
+dimensions (experiments). Values are float tensors; actions are int64.
+
+Floating-point order is part of the contract: sums over actions are written as explicit
+left-to-right additions (``_left_sum``) and no step is fused, so the compiled fast path
+(``factorq_torch/_kernel.c``, which performs the same operations in the same order in float32)
+produces bit-identical tables. Keep it that way when you edit.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from factorq_torch.rng import probability_threshold, randint_from_bits
+
+
+def _left_sum(x: torch.Tensor) -> torch.Tensor:
+    """``x[..., 0] + x[..., 1] + ...`` in that order (``[..., A] -> [...]``)."""
+    total = x[..., 0]
+    for index in range(1, x.shape[-1]):
+        total = total + x[..., index]
+    return total
+
+
+def _mean_of_others(x: torch.Tensor, excluded: torch.Tensor) -> torch.Tensor:
+    """Mean of ``x[..., a]`` over ``a != excluded`` (``[..., A], [...] -> [...]``)."""
+    actions = torch.arange(x.shape[-1], device=x.device)
+    others = torch.where(actions == excluded.unsqueeze(-1), torch.zeros_like(x), x)  # [..., A]
+    return _left_sum(others) / (x.shape[-1] - 1)
+
+
+def normaliser(
+    q: torch.Tensor, rho: torch.Tensor, eta: float = 0.1, g_min: float = 0.01
+) -> torch.Tensor:
+    """Eq. 3, the normalisation factor ``G`` that scales local to task reward.
+
+    ``G = (Q(s, a_hat) - Q_bar) / (P_bar - rho[a_check]) * (1 + eta)`` with
+    ``a_hat = argmax_a Q(s, a)``, ``Q_bar`` the mean of the other ``A - 1`` task values,
+    ``a_check = argmin_a rho[a]`` and ``P_bar`` the mean of the other ``A - 1`` local values.
+    When the denominator is 0 (``rho`` cannot tell actions apart) or ``G < g_min`` (e.g. an
+    unvisited state, all ``Q`` equal), ``G = g_min``, so the local term still decides.
+
+    Args:
+        q: task values ``Q(s, .)``, ``[..., A]``.
+        rho: projected local rewards ``rho(o)``, ``[..., A]``.
+        eta: how much the local spread exceeds the task spread after scaling (paper: 0.1).
+        g_min: the floor of ``G`` (SPEC: 0.01).
+
+    Returns:
+        ``G``, ``[...]``.
+    """
+    a_hat = q.argmax(dim=-1)  # [...]; which maximum is taken does not change Q_bar
+    x = q.gather(-1, a_hat.unsqueeze(-1)).squeeze(-1) - _mean_of_others(q, a_hat)
+    a_check = rho.argmin(dim=-1)
+    y = _mean_of_others(rho, a_check) - rho.gather(-1, a_check.unsqueeze(-1)).squeeze(-1)
+    spread = y > 0
+    g = x / torch.where(spread, y, torch.ones_like(y)) * (1 + eta)
+    # `g >= g_min` is False for NaN too, so the floor also catches overflowed ratios.
+    return torch.where(spread & (g >= g_min), g, torch.full_like(g, g_min))
+
+
+def combined_values(q: torch.Tensor, rho: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """Eq. 2, ``C(s) = Q(s) + G rho``: ``[..., A], [..., A], [...] -> [..., A]``."""
+    return q + g.unsqueeze(-1) * rho
+
+
+def q_learning_target(
+    reward: torch.Tensor, q_next: torch.Tensor, terminated: torch.Tensor, gamma: float
+) -> torch.Tensor:
+    """Eq. 1's target ``r + gamma max_a' Q(s', a')``; ``r`` alone where ``terminated``.
+
+    Truncated transitions still bootstrap: only ``terminated`` stops it.
+    Shapes: ``[...], [..., A], [...] (bool) -> [...]``.
+    """
+    bootstrap = reward + gamma * q_next.max(dim=-1).values
+    return torch.where(terminated, reward, bootstrap)
+
+
+def factorq_target(
+    task_reward: torch.Tensor, c_next: torch.Tensor, terminated: torch.Tensor, gamma: float
+) -> torch.Tensor:
+    """Eq. 4's target ``r + gamma max_a' (Q(s', a') + G rho_a')``, with ``c_next = C(s')``.
+
+    ``C(s')`` is eq. 2 at the next state with its own ``G`` and ``rho``; the raw task value would
+    overestimate what the agent can get there (paper, 5.2.1). Same bootstrapping rule as eq. 1.
+    Shapes: ``[...], [..., A], [...] (bool) -> [...]``.
+    """
+    return q_learning_target(task_reward, c_next, terminated, gamma)
+
+
+def q_update(q_sa: torch.Tensor, target: torch.Tensor, alpha: float) -> torch.Tensor:
+    """Eqs. 1 and 4's update ``Q(s,a) <- (1 - alpha) Q(s,a) + alpha target``.
+
+    Written as ``Q + alpha (target - Q)``: algebraically the same, and exactly (bit for bit) one
+    SGD step of learning rate ``alpha`` on ``0.5 * (Q - target)**2``, which is how the losses
+    apply it to tables and networks alike. Shapes broadcast.
+    """
+    return q_sa + alpha * (target - q_sa)
+
+
+def running_mean_update(
+    rho: torch.Tensor, kappa: torch.Tensor, reward: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eq. 5 with the paper's ``alpha_L = 1 / kappa``: ``rho`` becomes the mean of all rewards seen.
+
+    ``kappa <- kappa + 1``, ``rho <- rho + (r - rho) / kappa``. Shapes broadcast; ``kappa`` is an
+    integer visit count. Returns the new ``(rho, kappa)``.
+    """
+    kappa = kappa + 1
+    return rho + (reward - rho) / kappa, kappa
+
+
+def greedy_action_from_bits(values: torch.Tensor, tie_bits: torch.Tensor) -> torch.Tensor:
+    """``argmax_a values[..., a]``, ties broken uniformly at random by 32 random bits.
+
+    The ``k``-th of the ``n`` maximal actions (in index order) is taken, ``k = bits * n >> 32``.
+    Shapes: ``[..., A], [...] -> [...]`` (int64).
+    """
+    is_max = values == values.max(dim=-1, keepdim=True).values  # [..., A]
+    count = is_max.sum(dim=-1)
+    k = randint_from_bits(tie_bits, count)
+    rank = is_max.cumsum(dim=-1) - 1  # rank of each maximal action among the maximal ones
+    return (is_max & (rank == k.unsqueeze(-1))).to(torch.int8).argmax(dim=-1)
+
+
+def epsilon_greedy_from_bits(
+    values: torch.Tensor,
+    epsilon: float,
+    explore_bits: torch.Tensor,
+    action_bits: torch.Tensor,
+    tie_bits: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Epsilon-greedy on ``values`` given its random bits (the deterministic core).
+
+    With probability ``epsilon`` (``explore_bits < epsilon * 2**32``) the action is uniform over
+    the ``A`` actions and flagged exploratory (even if it happens to be greedy); otherwise it is
+    the greedy action with random tie-breaking. Bits are int64 in ``[0, 2**32)``, shape ``[...]``.
+
+    Returns:
+        ``(action, exploratory)``: int64 ``[...]`` and bool ``[...]``.
+    """
+    exploratory = explore_bits < probability_threshold(epsilon)
+    random_action = randint_from_bits(action_bits, values.shape[-1])
+    action = torch.where(exploratory, random_action, greedy_action_from_bits(values, tie_bits))
+    return action, exploratory
+
+
+def epsilon_greedy(
+    values: torch.Tensor, epsilon: float, generator: torch.Generator | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Epsilon-greedy selection with uniform random tie-breaking, drawing from ``generator``.
+
+    The convenience form of ``epsilon_greedy_from_bits``: the three random words are drawn from
+    the given ``torch.Generator`` (the library's own modules use per-experiment counter streams
+    instead, see ``factorq_torch.rng``). Shapes: ``[..., A] -> ([...], [...])``.
+    """
+    shape = (3, *values.shape[:-1])
+    bits = torch.randint(0, 1 << 32, shape, generator=generator, device=values.device)
+    return epsilon_greedy_from_bits(values, epsilon, bits[0], bits[1], bits[2])

@@ -1,0 +1,102 @@
+"""Counter-based random numbers: one independent stream per experiment, identical everywhere.
+
+Every random decision of the project (the obstacle scatter of the world, exploration and
+tie-breaking of the policies) is a pure function of a 64-bit *key* and a *counter*:
+
+    bits = mix64(key + (counter + 1) * GOLDEN) >> 32        (SplitMix64, Steele et al. 2014)
+
+Each experiment of a batch owns its keys (derived from the seed and its index in the batch) and its
+counters, so
+
+- nothing is shared across the batch: experiment ``i`` draws the same numbers whatever the batch
+  size, the thread count or the order in which experiments are computed;
+- the state of a stream is one integer, which makes checkpoints and exact resumes trivial;
+- the compiled fast path (``factorq_torch/_kernel.c``) draws bit-identical numbers, so it can be
+  tested for equality with the pure-torch path, not merely for closeness.
+
+Tensors hold the unsigned 64-bit arithmetic in ``int64``: additions and products wrap modulo
+2**64 exactly as unsigned ones do, and right shifts are made logical by masking.
+"""
+
+from __future__ import annotations
+
+import torch
+
+MASK64 = (1 << 64) - 1
+GOLDEN = 0x9E3779B97F4A7C15
+_MIX1 = 0xBF58476D1CE4E5B9
+_MIX2 = 0x94D049BB133111EB
+
+# Streams: one constant per consumer, so that e.g. the world and the policy of one experiment
+# never draw the same numbers.
+STREAM_WORLD = 1
+STREAM_POLICY = 2
+STREAM_LAYOUT = 3
+STREAM_EXPERIMENT = 4
+
+#: Draws the policy makes per step: explore?, random action, tie-break.
+POLICY_DRAWS_PER_STEP = 3
+
+
+def _signed(value: int) -> int:
+    """The int64 with the same 64 bits as the unsigned ``value``."""
+    value &= MASK64
+    return value - (1 << 64) if value >= 1 << 63 else value
+
+
+def _shr(z: torch.Tensor, k: int) -> torch.Tensor:
+    """Logical right shift of int64 bit patterns."""
+    return (z >> k) & ((1 << (64 - k)) - 1)
+
+
+def mix64(z: torch.Tensor) -> torch.Tensor:
+    """SplitMix64's finaliser on int64 bit patterns (a bijection of 64-bit words)."""
+    z = (z ^ _shr(z, 30)) * _signed(_MIX1)
+    z = (z ^ _shr(z, 27)) * _signed(_MIX2)
+    return z ^ _shr(z, 31)
+
+
+def mix64_int(z: int) -> int:
+    """``mix64`` on a Python int (unsigned 64-bit), the reference for tests and key derivation."""
+    z &= MASK64
+    z = ((z ^ (z >> 30)) * _MIX1) & MASK64
+    z = ((z ^ (z >> 27)) * _MIX2) & MASK64
+    return z ^ (z >> 31)
+
+
+def random_bits(key: torch.Tensor, counter: torch.Tensor | int) -> torch.Tensor:
+    """32 uniformly random bits, as int64 in ``[0, 2**32)``, for each ``(key, counter)`` pair.
+
+    ``key`` and ``counter`` broadcast against each other. Inputs are not modified.
+    """
+    z = key + (counter + 1) * _signed(GOLDEN)
+    return _shr(mix64(z), 32)
+
+
+def random_bits_int(key: int, counter: int) -> int:
+    """``random_bits`` on Python ints: the slow reference the tensor version is tested against."""
+    return mix64_int(key + (counter + 1) * GOLDEN) >> 32
+
+
+def randint_from_bits(bits: torch.Tensor, n: torch.Tensor | int) -> torch.Tensor:
+    """An integer in ``[0, n)`` from 32 random bits (multiply-shift; ``n < 2**31``)."""
+    return (bits * n) >> 32
+
+
+def probability_threshold(probability: float) -> int:
+    """``bits < threshold`` happens with ``probability`` (to 2**-32) for 32 random bits.
+
+    Comparing integers keeps the decision identical in every implementation.
+    """
+    return round(probability * (1 << 32))
+
+
+def derive_keys(seed: int, stream: int, count: int, offset: int = 0) -> torch.Tensor:
+    """Keys ``[count]`` (int64) of ``stream`` for experiments ``offset .. offset + count - 1``.
+
+    A key depends on ``(seed, stream, index)`` only, so experiment ``i`` of a batch of 600 draws
+    exactly what it draws in a batch of one that starts at ``offset=i``.
+    """
+    base = mix64_int(mix64_int(seed * GOLDEN + stream) + stream * _MIX1)
+    keys = [_signed(mix64_int(base + (offset + i + 1) * GOLDEN)) for i in range(count)]
+    return torch.tensor(keys, dtype=torch.int64)

@@ -1,0 +1,1 @@
+"""trainers: what users run (the paper's experiment, reports, baselines, the `factorq` CLI)."""
