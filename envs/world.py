@@ -109,7 +109,7 @@ class StepOutcome(NamedTuple):
 
 
 def empty_state(batch: int, size: int, device: torch.device | str | None = None) -> WorldState:
-    """``batch`` worlds with the agent on the start cell and no obstacles (call ``reset_worlds``)."""
+    """``batch`` worlds, the agent on the start cell, no obstacles (then call ``reset_worlds``)."""
     zeros = torch.zeros(batch, dtype=torch.int64, device=device)
     return WorldState(
         cell=zeros.clone(),
@@ -167,18 +167,43 @@ def scatter_obstacles(
         torch.maximum(agent_key, torch.full_like(agent_key, goal)),
     )
     allowed = num_cells - 2 - agent_free.to(torch.int64)  # [S], M
+    # All K draws at once (counter scatter_index * K + k); only the cheap Floyd steps loop.
+    draws = torch.arange(num_obstacles, device=device)
+    bits = random_bits(key.unsqueeze(1), scatter_index.unsqueeze(1) * num_obstacles + draws)
     taken = torch.zeros(batch, num_cells, dtype=torch.bool, device=device)
-    obstacles = torch.zeros(batch, num_cells, dtype=torch.bool, device=device)
+    picks = torch.empty(batch, num_obstacles, dtype=torch.int64, device=device)
     for k in range(num_obstacles):
         j = allowed - num_obstacles + k  # [S]
-        t = randint_from_bits(random_bits(key, scatter_index * num_obstacles + k), j + 1)
+        t = randint_from_bits(bits[:, k], j + 1)  # [S], in [0, j]
         pick = torch.where(taken.gather(1, t.unsqueeze(1)).squeeze(1), j, t)  # [S], in [0, M)
-        taken = taken.scatter(1, pick.unsqueeze(1), True)
-        cell = pick
-        for excluded_cell in excluded:  # ascending: skip each excluded cell at or below
-            cell = cell + (cell >= excluded_cell).to(torch.int64)
-        obstacles = obstacles.scatter(1, cell.unsqueeze(1), True)
-    return obstacles
+        taken.scatter_(1, pick.unsqueeze(1), True)  # a local buffer, not an input
+        picks[:, k] = pick
+    cells = picks  # [S, K]: positions among the allowed cells -> cells
+    for excluded_cell in excluded:  # ascending: skip each excluded cell at or below
+        cells = cells + (cells >= excluded_cell.unsqueeze(1)).to(torch.int64)
+    obstacles = torch.zeros(batch, num_cells, dtype=torch.bool, device=device)
+    return obstacles.scatter(1, cells, True)
+
+
+def _scatter_where(
+    mask: torch.Tensor,
+    obstacles: torch.Tensor,
+    scatters: torch.Tensor,
+    key: torch.Tensor,
+    agent_cell: torch.Tensor,
+    config: WorldConfig,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """New obstacles and stream positions after scattering the worlds where ``mask`` is True.
+
+    Only those rows are drawn (a semi-dynamic batch scatters a tenth of its worlds per step).
+    """
+    rows = mask.nonzero().squeeze(1)
+    if rows.numel() == 0:
+        return obstacles, scatters
+    fresh = scatter_obstacles(
+        key[rows], scatters[rows], agent_cell[rows], config.size, config.num_obstacles
+    )
+    return obstacles.index_put((rows,), fresh), scatters.index_put((rows,), scatters[rows] + 1)
 
 
 def is_reachable(obstacles: torch.Tensor, size: int) -> bool:
@@ -204,6 +229,14 @@ def is_reachable(obstacles: torch.Tensor, size: int) -> bool:
 def static_layout(config: WorldConfig) -> torch.Tensor:
     """The static world's obstacles ``[N]`` bool: drawn from ``layout_seed``, redrawn until the
     goal is reachable from the start (SPEC section 1)."""
+    # A path from start to goal crosses at least 2 * size - 3 cells besides those two, so more
+    # obstacles than (size - 1)**2 can never leave one: fail at once instead of after every draw.
+    most = (config.size - 1) ** 2
+    if config.num_obstacles > most:
+        raise ValueError(
+            f"num_obstacles={config.num_obstacles} leaves no path from start to goal in a static "
+            f"{config.size}x{config.size} world: must be in [0, {most}]"
+        )
     key = derive_keys(config.layout_seed, STREAM_LAYOUT, 1)
     start = torch.zeros(1, dtype=torch.int64)
     for attempt in range(MAX_LAYOUT_ATTEMPTS):
@@ -234,11 +267,9 @@ def reset_worlds(
     moving = mask & (period > 0)
     obstacles = torch.where((mask & (period == 0)).unsqueeze(1), static_obstacles, state.obstacles)
     scatters = state.scatters
-    if config.num_obstacles and bool(moving.any()):
+    if config.num_obstacles:
         start = torch.full_like(state.cell, START_CELL)
-        fresh = scatter_obstacles(key, scatters, start, config.size, config.num_obstacles)
-        obstacles = torch.where(moving.unsqueeze(1), fresh, obstacles)
-        scatters = scatters + moving.to(torch.int64)
+        obstacles, scatters = _scatter_where(moving, obstacles, scatters, key, start, config)
     return WorldState(
         cell=torch.where(mask, START_CELL, state.cell),
         obstacles=obstacles,
@@ -275,16 +306,14 @@ def step_worlds(
     outcome = StepOutcome(
         step_reward=torch.full(cell.shape, -1.0, device=cell.device),
         goal_reward=terminated.to(torch.float32),
-        collision=-bump.to(torch.float32),
+        collision=torch.where(bump, -1.0, 0.0),  # not -bump: that prints (and stores) -0.0
         terminated=terminated,
         truncated=truncated,
     )
     obstacles, scatters = state.obstacles, state.scatters
     scatter = (period > 0) & ~terminated & (episode_step % period.clamp(min=1) == 0)
-    if config.num_obstacles and bool(scatter.any()):
-        fresh = scatter_obstacles(key, scatters, cell, config.size, config.num_obstacles)
-        obstacles = torch.where(scatter.unsqueeze(1), fresh, obstacles)
-        scatters = scatters + scatter.to(torch.int64)
+    if config.num_obstacles:
+        obstacles, scatters = _scatter_where(scatter, obstacles, scatters, key, cell, config)
     new_state = WorldState(cell, obstacles, bump, episode_step, scatters)
     return new_state, outcome
 

@@ -1,0 +1,357 @@
+"""``FactoredGridEnv``: ``S`` independent FactoredGrid worlds as one batched torchrl env.
+
+The world's rules live in ``envs.world`` (pure tensor functions); this module only validates
+arguments, holds the state of the worlds in tensors and moves it in and out of TensorDicts.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from envs.world import (
+    NUM_ACTIONS,
+    WorldConfig,
+    WorldState,
+    empty_state,
+    proximity,
+    render_world,
+    reset_worlds,
+    static_layout,
+    step_worlds,
+)
+from factorq_torch.rng import STREAM_WORLD, derive_keys
+
+_INTEGER_DTYPES = (torch.int8, torch.int16, torch.int32, torch.int64, torch.uint8)
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _check_batch_size(batch_size) -> torch.Size:
+    """``None`` -> ``()``, an int ``n`` -> ``(n,)``, a sequence of positive ints as it is."""
+    if batch_size is None:
+        return torch.Size(())
+    if _is_int(batch_size):
+        batch_size = (batch_size,)
+    if not isinstance(batch_size, Sequence) or not all(_is_int(d) for d in batch_size):
+        raise TypeError(
+            f"batch_size must be None, an int or a sequence of ints (e.g. (64,)), got "
+            f"{batch_size!r} ({type(batch_size).__name__})"
+        )
+    if any(d < 1 for d in batch_size):
+        raise ValueError(
+            f"batch_size={tuple(batch_size)} is out of range: every dimension must be >= 1"
+        )
+    return torch.Size(batch_size)
+
+
+def _check_periods(obstacle_period, num_worlds: int) -> tuple[torch.Tensor, int]:
+    """The period of every world ``[S]`` int64 and the one to record in the ``WorldConfig``.
+
+    ``obstacle_period`` is an int (every world) or a sequence / 1-D integer tensor of length
+    ``S`` (one per world, e.g. the paper's three worlds side by side in one batch).
+    """
+    if _is_int(obstacle_period):
+        if obstacle_period < 0:
+            raise ValueError(
+                f"obstacle_period={obstacle_period} is out of range: must be >= 0 "
+                f"(0 static, k > 0 moving)"
+            )
+        return torch.full((num_worlds,), obstacle_period, dtype=torch.int64), obstacle_period
+    if isinstance(obstacle_period, torch.Tensor):
+        if obstacle_period.dtype not in _INTEGER_DTYPES or obstacle_period.dim() != 1:
+            raise TypeError(
+                f"obstacle_period as a tensor must be 1-D with an integer dtype, got shape "
+                f"{tuple(obstacle_period.shape)} and dtype {obstacle_period.dtype}"
+            )
+        values = obstacle_period.tolist()
+    elif isinstance(obstacle_period, Sequence) and all(_is_int(p) for p in obstacle_period):
+        values = list(obstacle_period)
+    else:
+        raise TypeError(
+            f"obstacle_period must be an int or a sequence of ints (one per world), got "
+            f"{obstacle_period!r} ({type(obstacle_period).__name__})"
+        )
+    if len(values) != num_worlds:
+        raise ValueError(
+            f"obstacle_period has {len(values)} entries: a sequence must hold one period per "
+            f"world, {num_worlds} for this batch_size"
+        )
+    for index, period in enumerate(values):
+        if period < 0:
+            raise ValueError(
+                f"obstacle_period[{index}]={period} is out of range: must be >= 0 "
+                f"(0 static, k > 0 moving)"
+            )
+    # The config records one period only when the batch shares it; ``periods`` is the truth.
+    shared = values[0] if len(set(values)) == 1 else 0
+    return torch.tensor(values, dtype=torch.int64), shared
+
+
+class FactoredGridEnv(EnvBase):
+    """``S`` independent FactoredGrid worlds (SPEC sections 1-2), one per experiment of a batch.
+
+    Keyword Args:
+        size: side of the square grid (>= 2).
+        num_obstacles: single-cell obstacles, in ``[0, size**2 - 3]`` (at most ``(size - 1)**2``
+            when a world is static, so that a path can exist).
+        obstacle_period: 0 static, 10 semi-dynamic, 1 dynamic (scatter after every k-th action);
+            an int for every world, or a sequence / 1-D tensor of one period per world.
+        max_steps: actions after which an episode is truncated (>= 1).
+        layout_seed: seed of the static layout, shared by every static world of the batch.
+        batch_size: ``None`` / ``()`` for one world, ``(S,)`` (or any shape) for ``S`` worlds.
+        device: where the state and the TensorDicts live (``None``: CPU tensors).
+        seed: seed of the worlds' random streams; ``None`` means 0.
+        experiment_offset: index of this batch's first world among all experiments: world ``i``
+            gets the key of experiment ``experiment_offset + i``, so a batch of 1 at offset ``i``
+            replays world ``i`` of a larger batch exactly.
+
+    Keys (``B`` = ``batch_size``, ``N = size**2``):
+
+    - observation: ``cell`` ``[*B]`` int64 in ``[0, N)``; ``proximity`` ``[*B, 4]`` bool;
+      ``bump`` ``[*B, 4]`` bool; ``collision`` ``[*B, 4]`` float32, the collision reward vector
+      of the last action (-1 on the face that bumped; zeros after a reset), so that
+      ``SplitLocalReward`` splits the reward without recomputing it;
+    - action: ``action`` ``[*B]`` int64 in ``[0, 4)`` (N, W, S, E);
+    - reward: ``reward`` ``[*B, 1]`` float32, the conventional step + goal + sum(collision);
+    - done: ``done``, ``terminated``, ``truncated`` ``[*B, 1]`` bool.
+
+    State (read and written by the fast path and checkpoints; worlds flattened to ``S``):
+    ``world_state`` (``WorldState``, leading dim ``S``; ``S = 1`` when ``batch_size == ()``),
+    ``world_keys`` ``[S]`` int64, ``periods`` ``[S]`` int64, ``static_obstacles`` ``[N]`` bool,
+    ``world_seed`` (the seed the keys came from), ``config`` (the ``WorldConfig``; its
+    ``obstacle_period`` is meaningful only when the batch shares one period).
+    Randomness comes only from the worlds' counter streams, never from the global RNG.
+
+    Example:
+        >>> env = FactoredGridEnv(size=4, num_obstacles=2, obstacle_period=1, batch_size=(3,))
+        >>> td = env.reset()
+        >>> td["cell"], td["proximity"].shape
+        (tensor([0, 0, 0]), torch.Size([3, 4]))
+        >>> td["action"] = torch.tensor([0, 1, 2])  # north and west hit the wall
+        >>> td = env.step(td)
+        >>> td["next", "bump"][:, :2]
+        tensor([[ True, False],
+                [False,  True],
+                [False, False]])
+        >>> td["next", "reward"][:2].flatten()
+        tensor([-2., -2.])
+    """
+
+    def __init__(
+        self,
+        *,
+        size: int = 10,
+        num_obstacles: int = 10,
+        obstacle_period: int | Sequence[int] | torch.Tensor = 0,
+        max_steps: int = 10_000,
+        layout_seed: int = 0,
+        batch_size: Sequence[int] | int | None = None,
+        device: torch.device | str | None = None,
+        seed: int | None = None,
+        experiment_offset: int = 0,
+    ) -> None:
+        batch_size = _check_batch_size(batch_size)
+        if device is not None:
+            try:
+                device = torch.device(device)
+            except (RuntimeError, TypeError) as error:
+                raise ValueError(f"device={device!r} is not a torch device: {error}") from None
+        if not _is_int(experiment_offset):
+            raise TypeError(f"experiment_offset must be an int >= 0, got {experiment_offset!r}")
+        if experiment_offset < 0:
+            raise ValueError(f"experiment_offset={experiment_offset} is out of range: must be >= 0")
+        num_worlds = math.prod(batch_size)
+        periods, shared_period = _check_periods(obstacle_period, num_worlds)
+        # WorldConfig validates size, num_obstacles, max_steps and layout_seed with messages
+        # that name the argument, its value and the allowed range.
+        config = WorldConfig(
+            size=size,
+            num_obstacles=num_obstacles,
+            obstacle_period=shared_period,
+            max_steps=max_steps,
+            layout_seed=layout_seed,
+        )
+        super().__init__(device=device, batch_size=batch_size)
+        self.config = config
+        self.num_worlds = num_worlds
+        self.experiment_offset = experiment_offset
+        self.periods = periods.to(device)
+        # Only static worlds need the layout: drawing it for a moving-only batch would waste
+        # time and could refuse obstacle counts that moving worlds allow.
+        if bool((periods == 0).any()):
+            self.static_obstacles = static_layout(config).to(device)
+        else:
+            self.static_obstacles = torch.zeros(config.num_cells, dtype=torch.bool, device=device)
+        self.world_state = empty_state(num_worlds, size, device)
+        self._make_specs()
+        self._set_seed(seed)
+
+    def _make_specs(self) -> None:
+        batch, device = self.batch_size, self.device
+        faces = (*batch, NUM_ACTIONS)
+        self.observation_spec = Composite(
+            cell=Categorical(self.config.num_cells, shape=batch, dtype=torch.int64, device=device),
+            proximity=Binary(n=NUM_ACTIONS, shape=faces, dtype=torch.bool, device=device),
+            bump=Binary(n=NUM_ACTIONS, shape=faces, dtype=torch.bool, device=device),
+            collision=Bounded(low=-1.0, high=0.0, shape=faces, dtype=torch.float32, device=device),
+            shape=batch,
+            device=device,
+        )
+        self.action_spec = Categorical(NUM_ACTIONS, shape=batch, dtype=torch.int64, device=device)
+        self.reward_spec = Unbounded(shape=(*batch, 1), dtype=torch.float32, device=device)
+        flag = Categorical(2, shape=(*batch, 1), dtype=torch.bool, device=device)
+        self.full_done_spec = Composite(
+            done=flag.clone(),
+            terminated=flag.clone(),
+            truncated=flag.clone(),
+            shape=batch,
+            device=device,
+        )
+
+    # -- seeding -------------------------------------------------------------------------------
+
+    def _set_seed(self, seed: int | None) -> None:
+        """Re-derive the worlds' keys from ``seed`` (``None`` means 0) and rewind their streams."""
+        if seed is None:
+            seed = 0
+        if not _is_int(seed):
+            raise TypeError(f"seed must be an int or None, got {seed!r} ({type(seed).__name__})")
+        self.world_seed = seed
+        self.world_keys = derive_keys(
+            seed, STREAM_WORLD, self.num_worlds, self.experiment_offset
+        ).to(self.device)
+        # A new seed starts its streams at the beginning, so set_seed + reset replays exactly.
+        self.world_state = self.world_state._replace(
+            scatters=torch.zeros_like(self.world_state.scatters)
+        )
+
+    # -- reset and step ------------------------------------------------------------------------
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        """Start new episodes where ``"_reset"`` ``[*B, 1]`` is True (everywhere without it)."""
+        reset = None if tensordict is None else tensordict.get("_reset", None)
+        if reset is None:
+            mask = torch.ones(self.num_worlds, dtype=torch.bool, device=self.device)
+        else:
+            mask = reset.reshape(self.num_worlds)  # [S]
+        self.world_state = reset_worlds(
+            self.world_state,
+            mask,
+            self.world_keys,
+            self.periods,
+            self.static_obstacles,
+            self.config,
+        )
+        state = self.world_state
+        # Worlds left alone report their true status (a finished one stays done).
+        terminated = state.cell == self.config.goal_cell
+        truncated = ~terminated & (state.episode_step >= self.config.max_steps)
+        collision = torch.zeros(self.num_worlds, NUM_ACTIONS, device=self.device)
+        return self._output(state, collision, terminated, truncated, reward=None)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """One action per world: ``action`` ``[*B]`` -> the ``"next"`` TensorDict."""
+        action = self._check_action(tensordict.get("action", None))  # [S]
+        old = self.world_state
+        state, outcome = step_worlds(old, action, self.world_keys, self.periods, self.config)
+        reward, collision = outcome.reward, outcome.collision  # [S], [S, 4]
+        terminated, truncated = outcome.terminated, outcome.truncated  # [S]
+        partial = tensordict.get("_step", None)
+        if partial is not None:
+            # torchrl's rollout steps only the worlds still running: the others keep their state.
+            stepping = partial.reshape(self.num_worlds)  # [S]
+            state = WorldState(
+                *(
+                    torch.where(stepping.view(-1, *([1] * (new.dim() - 1))), new, kept)
+                    for new, kept in zip(state, old, strict=True)
+                )
+            )
+            reward = torch.where(stepping, reward, 0.0)
+            collision = torch.where(stepping.unsqueeze(1), collision, 0.0)
+            terminated, truncated = terminated & stepping, truncated & stepping
+        self.world_state = state
+        return self._output(state, collision, terminated, truncated, reward)
+
+    def _check_action(self, action: torch.Tensor | None) -> torch.Tensor:
+        """The action as int64 ``[S]``; a missing, misshapen or out-of-range one raises here."""
+        if action is None:
+            raise ValueError("action is missing: step needs an 'action' entry")
+        if action.dtype not in _INTEGER_DTYPES:
+            raise TypeError(
+                f"action must be an integer tensor (int64, values in [0, {NUM_ACTIONS - 1}]), "
+                f"got dtype {action.dtype}"
+            )
+        if action.shape != self.batch_size:
+            raise ValueError(
+                f"action has shape {tuple(action.shape)}: must be batch_size "
+                f"{tuple(self.batch_size)}, one action in [0, {NUM_ACTIONS - 1}] per world"
+            )
+        action = action.reshape(self.num_worlds).to(torch.int64)
+        # One op and one sync: a value outside [0, 3] has a bit set outside the lowest two.
+        if bool((action & ~(NUM_ACTIONS - 1)).any()):
+            bad = action[(action < 0) | (action >= NUM_ACTIONS)][0].item()
+            raise ValueError(
+                f"action={bad} is out of range: must be in [0, {NUM_ACTIONS - 1}] "
+                f"(0 north, 1 west, 2 south, 3 east)"
+            )
+        return action
+
+    def _output(
+        self,
+        state: WorldState,
+        collision: torch.Tensor,
+        terminated: torch.Tensor,
+        truncated: torch.Tensor,
+        reward: torch.Tensor | None,
+    ) -> TensorDictBase:
+        """The observation, reward and done entries of ``S`` worlds, shaped to ``batch_size``."""
+        batch = self.batch_size
+        faces = (*batch, NUM_ACTIONS)
+        flag = (*batch, 1)
+        entries = {
+            "cell": state.cell.reshape(batch),
+            "proximity": proximity(state.cell, state.obstacles, self.config.size).reshape(faces),
+            "bump": state.bump.reshape(faces),
+            "collision": collision.reshape(faces),
+            "terminated": terminated.reshape(flag),
+            "truncated": truncated.reshape(flag),
+            "done": (terminated | truncated).reshape(flag),
+        }
+        if reward is not None:
+            entries["reward"] = reward.reshape(flag)
+        # The entries are built right here with the right shapes: skip TensorDict's checks,
+        # which cost ~10x the construction itself on every step (DESIGN section 6).
+        return TensorDict._new_unsafe(entries, batch_size=batch, device=self.device)
+
+    def to(self, device: torch.device | str) -> FactoredGridEnv:
+        """Move the specs (torchrl) and the worlds' state tensors to ``device``."""
+        super().to(device)
+        device = self.device
+        self.world_state = WorldState(*(tensor.to(device) for tensor in self.world_state))
+        self.world_keys = self.world_keys.to(device)
+        self.periods = self.periods.to(device)
+        self.static_obstacles = self.static_obstacles.to(device)
+        return self
+
+    # -- inspection ----------------------------------------------------------------------------
+
+    def obstacle_map(self) -> torch.Tensor:
+        """The current obstacles, a bool copy ``[*B, size, size]`` (``[r, c]`` = row r, col c)."""
+        size = self.config.size
+        return self.world_state.obstacles.reshape(*self.batch_size, size, size).clone()
+
+    def render(self, index: int = 0) -> str:
+        """A text picture of world ``index`` (flat index in ``[0, S)``): ``#`` wall,
+        ``o`` obstacle, ``A`` agent, ``G`` goal."""
+        if not _is_int(index) or not 0 <= index < self.num_worlds:
+            raise ValueError(f"index={index!r} is out of range: must be in [0, {self.num_worlds})")
+        state = self.world_state
+        return render_world(int(state.cell[index]), state.obstacles[index], self.config.size)

@@ -1,0 +1,169 @@
+"""The FactoredGrid world as a gymnasium env (one world, numpy in and out).
+
+Registered as ``"FactoredGrid-v0"`` on ``import envs``. It runs the same pure functions as the
+torchrl env (``envs.world``) on tensors of one world, and draws from the same counter streams:
+``reset(seed=s)`` gives the trajectories of ``FactoredGridEnv(seed=s)`` for the same actions.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium
+import numpy as np
+import torch
+from gymnasium import spaces
+
+from envs.world import (
+    NUM_ACTIONS,
+    WorldConfig,
+    empty_state,
+    proximity,
+    render_world,
+    reset_worlds,
+    static_layout,
+    step_worlds,
+)
+from factorq_torch.rng import STREAM_WORLD, derive_keys
+
+
+class FactoredGridGym(gymnasium.Env):
+    """One FactoredGrid world (SPEC sections 1-2) for gymnasium.
+
+    Args:
+        size, num_obstacles, obstacle_period, max_steps, layout_seed: as ``WorldConfig``
+            (``obstacle_period``: 0 static, 10 semi-dynamic, 1 dynamic).
+        render_mode: ``None`` or ``"ansi"`` (``render()`` returns the text picture).
+
+    Spaces: observation ``Dict(cell=Discrete(N), proximity=MultiBinary(4), bump=MultiBinary(4))``
+    with ``N = size**2``; action ``Discrete(4)`` (0 north, 1 west, 2 south, 3 east). The reward is
+    the conventional step + goal + sum(collision); ``info`` holds ``"local_reward"`` (float32
+    ``[4]``, the collision vector) and ``"task_reward"`` (step + goal). Episodes end inside the
+    env: ``terminated`` at the goal, ``truncated`` after ``max_steps`` actions. Never seeded,
+    the world's stream starts from seed 0.
+
+    Example:
+        >>> import envs
+        >>> env = gymnasium.make("FactoredGrid-v0", size=3, num_obstacles=0)
+        >>> observation, info = env.reset(seed=0)
+        >>> int(observation["cell"]), observation["proximity"].tolist()
+        (0, [1, 1, 0, 0])
+        >>> observation, reward, terminated, truncated, info = env.step(0)  # north: the wall
+        >>> reward, info["task_reward"], info["local_reward"].tolist()
+        (-2.0, -1.0, [-1.0, 0.0, 0.0, 0.0])
+    """
+
+    metadata = {"render_modes": ["ansi"], "render_fps": 4}
+
+    def __init__(
+        self,
+        size: int = 10,
+        num_obstacles: int = 10,
+        obstacle_period: int = 0,
+        max_steps: int = 10_000,
+        layout_seed: int = 0,
+        render_mode: str | None = None,
+    ) -> None:
+        self.config = WorldConfig(
+            size=size,
+            num_obstacles=num_obstacles,
+            obstacle_period=obstacle_period,
+            max_steps=max_steps,
+            layout_seed=layout_seed,
+        )
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(
+                f"render_mode={render_mode!r} is not supported: must be None or one of "
+                f"{self.metadata['render_modes']}"
+            )
+        self.render_mode = render_mode
+        self.observation_space = spaces.Dict(
+            {
+                "cell": spaces.Discrete(self.config.num_cells),
+                "proximity": spaces.MultiBinary(NUM_ACTIONS),
+                "bump": spaces.MultiBinary(NUM_ACTIONS),
+            }
+        )
+        self.action_space = spaces.Discrete(NUM_ACTIONS)
+        self.periods = torch.tensor([obstacle_period], dtype=torch.int64)  # [1]
+        if obstacle_period == 0:
+            self.static_obstacles = static_layout(self.config)
+        else:
+            self.static_obstacles = torch.zeros(self.config.num_cells, dtype=torch.bool)
+        self.world_state = empty_state(1, size)
+        self._seed_world(0)
+
+    def _seed_world(self, seed: int) -> None:
+        """The world's key from ``seed`` (as ``FactoredGridEnv``), its stream rewound."""
+        self.world_keys = derive_keys(seed, STREAM_WORLD, 1)  # [1]
+        self.world_state = self.world_state._replace(
+            scatters=torch.zeros_like(self.world_state.scatters)
+        )
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, Any], dict[str, Any]]:
+        super().reset(seed=seed)
+        if seed is not None:
+            self._seed_world(seed)
+        start_all = torch.ones(1, dtype=torch.bool)
+        self.world_state = reset_worlds(
+            self.world_state,
+            start_all,
+            self.world_keys,
+            self.periods,
+            self.static_obstacles,
+            self.config,
+        )
+        return self._observation(), {}
+
+    def step(self, action) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
+        if isinstance(action, np.ndarray) and action.shape == ():
+            action = action.item()
+        if isinstance(action, bool | np.bool_) or not isinstance(action, int | np.integer):
+            raise TypeError(
+                f"action must be an int in [0, {NUM_ACTIONS - 1}], got {action!r} "
+                f"({type(action).__name__})"
+            )
+        if not 0 <= action < NUM_ACTIONS:
+            raise ValueError(
+                f"action={action} is out of range: must be in [0, {NUM_ACTIONS - 1}] "
+                f"(0 north, 1 west, 2 south, 3 east)"
+            )
+        action_tensor = torch.tensor([int(action)], dtype=torch.int64)  # [1]
+        self.world_state, outcome = step_worlds(
+            self.world_state, action_tensor, self.world_keys, self.periods, self.config
+        )
+        info = {
+            "local_reward": outcome.collision[0].numpy().copy(),  # [4] float32
+            "task_reward": float(outcome.task_reward[0]),
+        }
+        return (
+            self._observation(),
+            float(outcome.reward[0]),
+            bool(outcome.terminated[0]),
+            bool(outcome.truncated[0]),
+            info,
+        )
+
+    def _observation(self) -> dict[str, Any]:
+        state = self.world_state
+        sensors = proximity(state.cell, state.obstacles, self.config.size)[0]  # [4]
+        return {
+            "cell": np.int64(state.cell[0]),
+            "proximity": sensors.numpy().astype(np.int8),
+            "bump": state.bump[0].numpy().astype(np.int8),
+        }
+
+    def obstacle_map(self) -> np.ndarray:
+        """The current obstacles, a bool copy ``[size, size]``."""
+        size = self.config.size
+        return self.world_state.obstacles[0].reshape(size, size).numpy().copy()
+
+    def render(self) -> str | None:
+        """The text picture (``render_mode="ansi"``): ``#`` wall, ``o`` obstacle, ``A`` agent,
+        ``G`` goal."""
+        if self.render_mode != "ansi":
+            return None
+        state = self.world_state
+        return render_world(int(state.cell[0]), state.obstacles[0], self.config.size)
