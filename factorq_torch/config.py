@@ -44,5 +44,7 @@ class AgentConfig:
 def check_algorithm(algorithm: str) -> str:
     """Return ``algorithm`` if it is one of ``ALGORITHMS``, else raise a ValueError naming them."""
     if algorithm not in ALGORITHMS:
-        raise ValueError(f"algorithm={algorithm!r} is unknown: choose one of {', '.join(ALGORITHMS)}")
+        raise ValueError(
+            f"algorithm={algorithm!r} is unknown: choose one of {', '.join(ALGORITHMS)}"
+        )
     return algorithm

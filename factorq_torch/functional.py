@@ -57,13 +57,20 @@ def normaliser(
     y = _mean_of_others(rho, a_check) - rho.gather(-1, a_check.unsqueeze(-1)).squeeze(-1)
     spread = y > 0
     g = x / torch.where(spread, y, torch.ones_like(y)) * (1 + eta)
-    # `g >= g_min` is False for NaN too, so the floor also catches overflowed ratios.
-    return torch.where(spread & (g >= g_min), g, torch.full_like(g, g_min))
+    # `g >= g_min` is False for NaN (inf / inf) too; an overflowed ratio is capped at the largest
+    # finite value, so G stays finite for any finite input (never reached by real tables).
+    g = torch.where(spread & (g >= g_min), g, torch.full_like(g, g_min))
+    return g.clamp(max=torch.finfo(g.dtype).max)
 
 
 def combined_values(q: torch.Tensor, rho: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-    """Eq. 2, ``C(s) = Q(s) + G rho``: ``[..., A], [..., A], [...] -> [..., A]``."""
-    return q + g.unsqueeze(-1) * rho
+    """Eq. 2, ``C(s) = Q(s) + G rho``: ``[..., A], [..., A], [...] -> [..., A]``.
+
+    Values beyond the float range are capped at its ends (an identity for any real table), so the
+    argmax is still defined when huge tables overflow.
+    """
+    largest = torch.finfo(q.dtype).max
+    return (q + g.unsqueeze(-1) * rho).clamp(-largest, largest)
 
 
 def q_learning_target(

@@ -69,7 +69,10 @@ def random_bits(key: torch.Tensor, counter: torch.Tensor | int) -> torch.Tensor:
 
     ``key`` and ``counter`` broadcast against each other. Inputs are not modified.
     """
-    z = key + (counter + 1) * _signed(GOLDEN)
+    if isinstance(counter, int):  # a Python int would overflow int64 before wrapping
+        z = key + _signed((counter + 1) * GOLDEN)
+    else:
+        z = key + (counter + 1) * _signed(GOLDEN)
     return _shr(mix64(z), 32)
 
 

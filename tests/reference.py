@@ -17,6 +17,7 @@ from factorq_torch.config import AgentConfig
 from factorq_torch.rng import POLICY_DRAWS_PER_STEP, probability_threshold, random_bits_int
 
 F = np.float32
+FMAX = np.finfo(F).max
 A = 4
 
 
@@ -60,7 +61,11 @@ def normaliser(q: list, rho: list, eta: float, g_min: float):
     if not y > 0:
         return F(g_min)
     g = x / y * F(1 + eta)
-    return g if g >= F(g_min) else F(g_min)
+    return min(g, FMAX) if g >= F(g_min) else F(g_min)
+
+
+def combined(q: list, g, local: list) -> list:
+    return [min(max(q[a] + g * local[a], -FMAX), FMAX) for a in range(A)]
 
 
 def select(values: list, epsilon: float, key: int, counter: int) -> tuple[int, bool]:
@@ -129,7 +134,7 @@ def run_experiment(
                     state = cell
                     local = [rho[i][int(prox[i])] for i in range(A)]
                     g = normaliser(q[state], local, agent.eta, agent.g_min)
-                    values = [q[state][a] + g * local[a] for a in range(A)]
+                    values = combined(q[state], g, local)
                 action, exploratory = select(values, agent.epsilon, policy_key, policy_counter)
                 policy_counter += 1
                 # world step: move or collide, reward, maybe scatter, new observation
@@ -154,7 +159,7 @@ def run_experiment(
                     reward = task_reward
                     next_local = [rho[i][int(next_prox[i])] for i in range(A)]
                     g_next = normaliser(q[cell], next_local, agent.eta, agent.g_min)
-                    next_values = [q[cell][a] + g_next * next_local[a] for a in range(A)]
+                    next_values = combined(q[cell], g_next, next_local)
                 target = reward if terminated else reward + F(agent.gamma) * max(next_values)
                 q[state][action] = q[state][action] + F(agent.alpha) * (target - q[state][action])
                 if algorithm == "factor-q":  # eq. 5 after eq. 4, on the sensor read before acting

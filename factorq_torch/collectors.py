@@ -1,0 +1,304 @@
+"""The online collector: act, step, learn after every single step, for ``S`` experiments at once.
+
+The paper's algorithms are online: the tables change after every action and the next action
+already uses them, so a batch of frames gathered with a frozen policy would be another algorithm.
+``OnlineCollector`` therefore owns the whole loop of SPEC section 4 for a batched env of
+``S`` independent experiments:
+
+    policy (no grad) -> env.step (no grad) -> loss -> backward -> optimizer.step -> record
+    -> (task-table reset at run boundaries, env reset at episode ends) -> yield the transition
+
+Each experiment has its own run and episode counters. When experiment ``i`` ends the last
+episode of a run, the collector calls ``reset_task(mask)`` for ``i`` only (its local tables carry
+over, SPEC section 4); when it has finished ``runs x episodes`` it is *finished*: from then on it
+is masked everywhere (``("collector", "mask")`` False for the policy and the loss, ``"_step"``
+False for the env), so its tables, its policy stream and its world no longer change while the
+others go on. The collector stops when every experiment has finished.
+
+It is a torchrl ``BaseCollector``: iterate over it (``for td in collector``) to receive each
+step's transition (a TensorDict ``[S]`` with the ``"next"`` entries, after the update was applied,
+plus ``("collector", "mask" | "run" | "episode")``, the run and episode each experiment's step
+belonged to); or call ``run()`` to go to the end and get the metrics. Stopping an iteration early
+and resuming (iterating again, or ``run()``) continues exactly where it stopped.
+
+Per-episode metrics, ``collector.metrics`` (a TensorDict ``[S, runs, episodes]``):
+``steps`` (path length), ``collisions``, ``greedy_collisions`` (collisions on actions that were
+not exploratory) and ``task_return`` (sum of step + goal rewards, for both algorithms).
+
+Why ``BaseCollector`` and not torchrl's ``Collector``: ``Collector`` gathers ``frames_per_batch``
+frames with the policy frozen and leaves learning to the caller; here the update must happen
+inside the loop, between two actions, and the end is decided per experiment by run and episode
+counters rather than by a frame budget. ``BaseCollector``'s abstract interface (``iterator``,
+``shutdown``, ``set_seed``, ``state_dict``, ``load_state_dict``) fits that exactly.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections import OrderedDict
+from collections.abc import Callable, Iterator
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
+from torchrl.objectives import LossModule
+
+from factorq_torch.objectives import tabular_optimizer
+from factorq_torch.policy import MASK_KEY
+
+with warnings.catch_warnings():
+    # torchrl 0.14.1 warns about its own deprecated weight updaters when the package is imported.
+    warnings.filterwarnings("ignore", "Creating .*WeightUpdater", DeprecationWarning)
+    from torchrl.collectors import BaseCollector
+
+#: ``progress(episodes, experiments)``: episodes and experiments completed since the last call.
+ProgressCallback = Callable[[int, int], None]
+
+METRICS = ("steps", "collisions", "greedy_collisions", "task_return")
+
+
+def _check_positive_int(name: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise TypeError(f"{name} must be an int, got {value!r} ({type(value).__name__})")
+    if value < 1:
+        raise ValueError(f"{name}={value} is out of range: must be >= 1")
+    return value
+
+
+class OnlineCollector(BaseCollector):
+    """Runs ``S`` experiments of ``runs x episodes`` episodes, learning after every step.
+
+    Args:
+        env: a torchrl env of ``batch_size=(S,)`` (e.g. ``FactoredGridEnv``, with
+            ``SplitLocalReward`` for Factor-Q). Its ``("next", "bump")`` ``[S, 4]`` marks
+            collisions; the task reward is ``("next", "reward")`` when ``("next",
+            "local_reward")`` exists (the reward was split), else ``("next", "reward")`` minus
+            the sum of ``("next", "collision")``.
+        policy: writes ``action`` and ``exploratory`` from the env's observations, e.g.
+            ``TensorDictSequential(task_table, local_table, FactorQPolicy(...))``.
+        loss: ``FactorQLoss`` or ``TabularQLoss`` over the same tables; its task provider's
+            ``reset_task(mask)`` is called at run boundaries.
+        runs, episodes: per experiment (the paper: 10 x 200).
+        optimizer: applied to every ``loss_*`` entry that has a gradient; default
+            ``tabular_optimizer(loss)`` (SGD, learning rate 1: the exact tabular update).
+        progress: ``progress(episodes, experiments)`` with the episodes and experiments completed
+            since the previous call, called after each step that completed an episode.
+
+    Example:
+        >>> from tensordict.nn import TensorDictSequential
+        >>> from envs import FactoredGridEnv
+        >>> from factorq_torch.objectives import TabularQLoss
+        >>> from factorq_torch.policy import EpsilonGreedyPolicy
+        >>> from factorq_torch.tables import TaskQTable
+        >>> env = FactoredGridEnv(size=3, num_obstacles=1, batch_size=(2,))
+        >>> table = TaskQTable(2, num_cells=9, with_proximity=True)
+        >>> policy = TensorDictSequential(table, EpsilonGreedyPolicy(2, seed=0))
+        >>> collector = OnlineCollector(env, policy, TabularQLoss(table), runs=2, episodes=3)
+        >>> metrics = collector.run()
+        >>> metrics.batch_size, bool((metrics["steps"] >= 4).all())
+        (torch.Size([2, 2, 3]), True)
+    """
+
+    def __init__(
+        self,
+        env: EnvBase,
+        policy: TensorDictModuleBase,
+        loss: LossModule,
+        *,
+        runs: int,
+        episodes: int,
+        optimizer: torch.optim.Optimizer | None = None,
+        progress: ProgressCallback | None = None,
+    ) -> None:
+        super().__init__()
+        self.runs = _check_positive_int("runs", runs)
+        self.episodes = _check_positive_int("episodes", episodes)
+        if len(env.batch_size) != 1:
+            raise ValueError(
+                f"env.batch_size={list(env.batch_size)}: OnlineCollector needs one batch "
+                f"dimension of independent experiments, batch_size=(S,)"
+            )
+        self.num_experiments = env.batch_size[0]
+        for owner in (policy, loss):
+            for module in owner.modules():
+                held = getattr(module, "num_experiments", None)
+                if held is not None and held != self.num_experiments:
+                    raise ValueError(
+                        f"env has batch_size [{self.num_experiments}] but {type(module).__name__} "
+                        f"holds S={held} experiments: build them with the same S"
+                    )
+        self.env, self.policy, self.loss = env, policy, loss
+        self.optimizer = tabular_optimizer(loss) if optimizer is None else optimizer
+        self.progress = progress
+        self._reset_task = getattr(getattr(loss, "task_value_network", None), "reset_task", None)
+        if self._reset_task is None and self.runs > 1:
+            raise ValueError(
+                "runs > 1 needs a task value provider with reset_task(mask) (e.g. TaskQTable) "
+                "as loss.task_value_network, to reset it at every run boundary"
+            )
+        device = env.device
+        batch = self.num_experiments
+        shape = (batch, self.runs, self.episodes)
+        counts = {name: torch.zeros(shape, dtype=torch.int64, device=device) for name in METRICS}
+        counts["task_return"] = torch.zeros(shape, dtype=torch.float32, device=device)
+        self.metrics = TensorDict(counts, batch_size=shape, device=device)
+        zeros = torch.zeros(batch, dtype=torch.int64, device=device)
+        self.run_index = zeros.clone()  # [S], the run in progress
+        self.episode_index = zeros.clone()  # [S], the episode in progress within the run
+        self._episode = {name: zeros.clone() for name in METRICS}  # running sums, this episode
+        self._episode["task_return"] = torch.zeros(batch, device=device)
+        self.finished = torch.zeros(batch, dtype=torch.bool, device=device)
+        self._any_finished = False
+        self._td: TensorDictBase | None = None
+        self._frames = 0
+        self._iter = -1
+
+    @property
+    def done(self) -> bool:
+        """Whether every experiment has finished its ``runs x episodes`` episodes."""
+        return bool(self.finished.all())
+
+    def iterator(self) -> Iterator[TensorDictBase]:
+        """Yield the transition TensorDict ``[S]`` of every step until all experiments finish."""
+        while not self.done:
+            yield self.step()
+
+    def run(self) -> TensorDictBase:
+        """Step until every experiment has finished; return ``metrics`` ``[S, runs, episodes]``."""
+        while not self.done:
+            self.step()
+        return self.metrics
+
+    def step(self) -> TensorDictBase:
+        """One step of every running experiment: act, step the env, learn, record."""
+        if self.done:
+            raise RuntimeError("every experiment has finished: build a new collector to go on")
+        active = ~self.finished  # [S]
+        with torch.no_grad():
+            td = self.env.reset() if self._td is None else self._td
+            td.set(MASK_KEY, active)
+            if self._any_finished:  # finished worlds stay as they are
+                td.set("_step", active.unsqueeze(-1))
+            td = self.env.step(self.policy(td))
+        self._learn(td)
+        with torch.no_grad():
+            td.set(("collector", "run"), self.run_index)
+            td.set(("collector", "episode"), self.episode_index)
+            next_td = self.env.step_mdp(td)
+            restart = self._record(td, active)
+            if restart is not None:
+                next_td.set("_reset", restart.unsqueeze(-1))
+                next_td = self.env.reset(next_td)
+        self._td = next_td
+        self._frames += int(active.sum()) if self._any_finished else self.num_experiments
+        self._iter += 1
+        if self.post_collect_hook is not None:
+            self.post_collect_hook(td)
+        return td
+
+    def _learn(self, td: TensorDictBase) -> None:
+        """The loss (eq. 5 inside, in training mode) and one optimizer step on its gradients."""
+        losses = self.loss(td)
+        total = None
+        for key, value in losses.items():
+            if key.startswith("loss_") and value.requires_grad:
+                total = value if total is None else total + value
+        if total is not None:
+            total.backward()
+            self.optimizer.step()
+            self.optimizer.zero_grad(set_to_none=True)
+
+    def _record(self, td: TensorDictBase, active: torch.Tensor) -> torch.Tensor | None:
+        """Add the step to the episode sums; file finished episodes; advance the counters.
+
+        Returns the experiments whose env must start a new episode (``None``: none).
+        """
+        next_td = td.get("next")
+        collided = next_td.get("bump").any(dim=-1) & active  # [S]
+        reward = next_td.get("reward").squeeze(-1)  # [S]
+        if next_td.get("local_reward", None) is None:  # conventional reward: remove collisions
+            reward = reward - next_td.get("collision").sum(dim=-1)
+        sums = self._episode
+        sums["steps"] = sums["steps"] + active.to(torch.int64)
+        sums["collisions"] = sums["collisions"] + collided.to(torch.int64)
+        greedy = collided & ~td.get("exploratory")
+        sums["greedy_collisions"] = sums["greedy_collisions"] + greedy.to(torch.int64)
+        sums["task_return"] = sums["task_return"] + torch.where(active, reward, 0.0)
+        ended = next_td.get("done").squeeze(-1) & active  # [S]
+        if not bool(ended.any()):
+            return None
+        rows = ended.nonzero().squeeze(1)
+        runs, episodes = self.run_index[rows], self.episode_index[rows]
+        for name in METRICS:
+            self.metrics.get(name)[rows, runs, episodes] = sums[name][rows]
+            sums[name] = torch.where(ended, torch.zeros_like(sums[name]), sums[name])
+        episode = self.episode_index + ended.to(torch.int64)
+        run_ended = episode == self.episodes  # only experiments that just ended an episode
+        self.episode_index = torch.where(run_ended, 0, episode)
+        self.run_index = self.run_index + run_ended.to(torch.int64)
+        finishing = run_ended & (self.run_index == self.runs)
+        next_run = run_ended & ~finishing
+        if self._reset_task is not None and bool(next_run.any()):
+            self._reset_task(next_run)  # SPEC 4: task table to 0 at every run, local tables kept
+        if bool(finishing.any()):
+            self.finished = self.finished | finishing
+            self._any_finished = True
+        if self.progress is not None:
+            self.progress(int(rows.numel()), int(finishing.sum()))
+        restart = ended & ~self.finished
+        return restart if bool(restart.any()) else None
+
+    # -- BaseCollector's interface -------------------------------------------------------------
+
+    def shutdown(
+        self, timeout: float | None = None, close_env: bool = True, raise_on_error: bool = True
+    ) -> None:
+        """Close the env (nothing else runs in the background)."""
+        if close_env and not self.env.is_closed:
+            self.env.close()
+
+    def set_seed(self, seed: int, static_seed: bool = False) -> int:
+        """Reseed the env and every policy stream (before the first step)."""
+        if self._td is not None:
+            raise RuntimeError("set_seed must be called before the first step")
+        self.env.set_seed(seed, static_seed=static_seed)
+        for module in self.policy.modules():
+            if hasattr(module, "stream_keys"):
+                module.set_seed(seed)
+        return seed
+
+    def state_dict(self) -> OrderedDict:
+        """Counters, metrics, policy and loss state (tables, streams). The env's world state is
+        not included: restore between episodes of a static world, or rebuild the env."""
+        return OrderedDict(
+            policy=self.policy.state_dict(),
+            loss=self.loss.state_dict(),
+            optimizer=self.optimizer.state_dict(),
+            metrics=self.metrics.clone(),
+            run_index=self.run_index.clone(),
+            episode_index=self.episode_index.clone(),
+            episode_sums={name: value.clone() for name, value in self._episode.items()},
+            finished=self.finished.clone(),
+        )
+
+    def load_state_dict(self, state_dict: OrderedDict) -> None:
+        self.policy.load_state_dict(state_dict["policy"])
+        self.loss.load_state_dict(state_dict["loss"])
+        self.optimizer.load_state_dict(state_dict["optimizer"])
+        self.metrics.update_(state_dict["metrics"])
+        self.run_index = state_dict["run_index"].clone()
+        self.episode_index = state_dict["episode_index"].clone()
+        self._episode = {name: value.clone() for name, value in state_dict["episode_sums"].items()}
+        self.finished = state_dict["finished"].clone()
+        self._any_finished = bool(self.finished.any())
+
+    def __len__(self) -> int:
+        # TypeError (not torchrl's RuntimeError) so that list(collector) works.
+        raise TypeError("OnlineCollector stops by episodes, not frames: its length is unknown")
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(experiments={self.num_experiments}, runs={self.runs}, "
+            f"episodes={self.episodes}, finished={int(self.finished.sum())})"
+        )

@@ -1,0 +1,332 @@
+"""The learning rules as torchrl losses: ``TabularQLoss`` (eq. 1) and ``FactorQLoss`` (eqs. 4-5).
+
+Each loss reads a transition (``[S]`` experiments, one step each), computes the paper's target
+with the functions of ``factorq_torch.functional``, and writes a TensorDict of ``loss_*``
+entries. Inputs are never mutated.
+
+**How the task update (eqs. 1 and 4) is applied.** ``loss_task = alpha * 0.5 * sum(td_error**2)``
+over the experiments, with ``td_error = Q(s, a) - target`` and the target detached. Its gradient
+with respect to the visited entry ``Q(s, a)`` is exactly ``alpha * (Q - target)`` (one rounding:
+the factors 0.5 and 2 are exact), each experiment owns its own entry (a sum, not a mean), so one
+plain SGD step of learning rate 1 (``tabular_optimizer``) gives, bit for bit,
+``Q + alpha (target - Q)`` = ``functional.q_update``. The same loss trains a neural value
+provider unchanged (any optimizer, ``alpha`` then only scales the step).
+
+Why alpha sits in the loss and not in the optimizer: one SGD step of learning rate ``alpha`` on
+``0.5 * td_error**2`` is the same update in exact arithmetic, but not in float32 on CPUs with FMA:
+torch's vectorised ``param.add_(grad, alpha=-lr)`` (plain, foreach and fused SGD alike) rounds
+``Q - alpha * grad`` once instead of twice, and about 17% of random entries then differ from
+``Q + alpha (target - Q)`` in the last bit (measured on AVX2). With learning rate 1 the product
+``-1 * grad`` is exact, so the only multiplication by ``alpha`` is the loss's.
+
+**How the local update (eq. 5) is applied.** Eq. 5 is a running mean (``alpha_L = 1 / kappa``),
+not a gradient step. Like a BatchNorm's running statistics, it is applied by
+``FactorQLoss.forward`` in training mode (the default; ``loss.eval()`` turns it off): after the
+target has been computed with the local tables as they were (so eq. 4's ``C(s')`` sees them before
+this step's update, SPEC section 3), the loss calls the local provider's
+``update_running_mean(proximity, action, local_reward, mask)`` (``LocalRewardTable``), under
+``torch.no_grad()``. Call the loss once per step. A neural local provider without that method
+learns from ``loss_local = 0.5 * sum((rho(s)[a] - r_L[a])**2)`` instead (for the tables it is a
+constant, reported for monitoring).
+
+Bootstrapping uses ``("next", "terminated")`` only: a truncated transition still bootstraps.
+Experiments where the optional ``("collector", "mask")`` ``[S]`` is False contribute nothing and
+their tables do not change (the collector masks finished experiments this way).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import NestedKey, TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.objectives import LossModule
+
+from factorq_torch.config import AgentConfig
+from factorq_torch.functional import (
+    combined_values,
+    factorq_target,
+    normaliser,
+    q_learning_target,
+)
+from factorq_torch.tables import check_mask
+
+REDUCTIONS = ("sum", "mean")
+
+
+def tabular_optimizer(loss: LossModule) -> torch.optim.SGD:
+    """Plain SGD of learning rate 1 over ``loss.parameters()``: one ``step()`` after
+    ``loss(td)["loss_task"].backward()`` applies ``Q + alpha (target - Q)`` exactly."""
+    return torch.optim.SGD(loss.parameters(), lr=1.0)
+
+
+class _TransitionLoss(LossModule):
+    """Reading and checking one step of ``S`` experiments, shared by the two losses."""
+
+    def __init__(self, *, gamma: float, alpha: float, reduction: str) -> None:
+        super().__init__()
+        AgentConfig(gamma=gamma, alpha=alpha)  # validates both, naming the one out of range
+        if reduction not in REDUCTIONS:
+            raise ValueError(f"reduction={reduction!r} is unknown: choose one of {REDUCTIONS}")
+        self.gamma, self.alpha, self.reduction = float(gamma), float(alpha), reduction
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        """No value estimator: the target is computed here, from ``functional`` (DESIGN 5)."""
+
+    def _batch(self, tensordict: TensorDictBase) -> int:
+        if tensordict.batch_dims != 1:
+            raise ValueError(
+                f"{type(self).__name__} takes one step of S experiments, batch_size [S]; got "
+                f"batch_size {list(tensordict.batch_size)}"
+            )
+        return tensordict.batch_size[0]
+
+    def _read(self, tensordict: TensorDictBase, key: NestedKey, trailing: tuple) -> torch.Tensor:
+        """``tensordict[key]`` of shape ``[S, *trailing]`` (``[S, 1]`` is accepted for ``[S]``)."""
+        value = tensordict.get(key, None)
+        name = type(self).__name__
+        if value is None:
+            raise KeyError(f"{name} needs {key!r} in the tensordict (see loss.in_keys)")
+        shape = (tensordict.batch_size[0], *trailing)
+        if not trailing and tuple(value.shape) == (*shape, 1):
+            value = value.squeeze(-1)
+        if tuple(value.shape) != shape:
+            raise ValueError(
+                f"{name}: {key!r} has shape {list(value.shape)}, expected {list(shape)}"
+            )
+        return value
+
+    def _read_action(self, tensordict: TensorDictBase, num_actions: int) -> torch.Tensor:
+        action = self._read(tensordict, self.tensor_keys.action, ())
+        if action.dtype not in (torch.int64, torch.int32):
+            raise ValueError(
+                f"{type(self).__name__}: {self.tensor_keys.action!r} must be integer action "
+                f"indices in [0, {num_actions}), got dtype {action.dtype}"
+            )
+        return action.to(torch.int64)
+
+    def _read_terminated(self, tensordict: TensorDictBase) -> torch.Tensor:
+        terminated = self._read(tensordict, ("next", self.tensor_keys.terminated), ())
+        if terminated.dtype != torch.bool:
+            raise ValueError(f"{type(self).__name__}: terminated must be bool")
+        return terminated
+
+    def _mask(self, tensordict: TensorDictBase, batch: int) -> torch.Tensor | None:
+        return check_mask(tensordict.get(self.tensor_keys.mask, None), batch, type(self).__name__)
+
+    @staticmethod
+    def _provide(
+        provider: TensorDictModuleBase, tensordict: TensorDictBase, key: NestedKey
+    ) -> torch.Tensor:
+        """Run a value provider on a shallow copy of its inputs (the input is not mutated)."""
+        return provider(tensordict.select(*provider.in_keys)).get(key)
+
+    def _reduce(self, per_experiment: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+        """Sum (or mean) over the experiments that count."""
+        if mask is not None:
+            per_experiment = torch.where(mask, per_experiment, torch.zeros_like(per_experiment))
+        total = per_experiment.sum()
+        if self.reduction == "mean":
+            count = per_experiment.numel() if mask is None else mask.sum().clamp(min=1)
+            total = total / count
+        return total
+
+    def _task_loss(
+        self,
+        q: torch.Tensor,
+        action: torch.Tensor,
+        target: torch.Tensor,
+        mask: torch.Tensor | None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``alpha * 0.5 * sum(td_error**2)`` and ``td_error = Q(s, a) - target`` ``[S]``."""
+        q_sa = q.gather(1, action.unsqueeze(1)).squeeze(1)  # [S]
+        td_error = q_sa - target.detach()
+        return self._reduce(self.alpha * (0.5 * td_error.pow(2)), mask), td_error
+
+
+class TabularQLoss(_TransitionLoss):
+    """Q-learning's update (paper eq. 1) as a loss, for any provider of ``action_value``.
+
+    ``Q(s, a) <- Q(s, a) + alpha [r + gamma max_a' Q(s', a') - Q(s, a)]``, ``r`` alone where
+    ``("next", "terminated")``; ``r`` is the env's (conventional) reward. Applied by one step of
+    ``tabular_optimizer(loss)`` on ``loss_task`` (see the module docstring).
+
+    Args:
+        task_value_network: writes ``action_value`` ``[S, A]`` (e.g. ``TaskQTable`` with
+            ``with_proximity=True``); run with gradients at ``s``, without at ``s'``.
+        gamma: discount, in ``[0, 1)``.
+        alpha: learning rate of eq. 1, in ``(0, 1]``.
+        reduction: ``"sum"`` (exact tabular update) or ``"mean"`` over experiments.
+
+    Keys (``set_keys``): ``action_value``, ``action``, ``reward`` and ``terminated`` (both read
+    under ``"next"``), ``mask`` (``("collector", "mask")``, optional). Output: ``loss_task``
+    (scalar) and ``td_error`` ``[S]`` (detached).
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable input keys (``loss.set_keys(reward="conventional_reward")``)."""
+
+        action_value: NestedKey = "action_value"
+        action: NestedKey = "action"
+        reward: NestedKey = "reward"
+        terminated: NestedKey = "terminated"
+        mask: NestedKey = ("collector", "mask")
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+    out_keys = ["loss_task", "td_error"]
+
+    def __init__(
+        self,
+        task_value_network: TensorDictModuleBase,
+        *,
+        gamma: float = 0.9,
+        alpha: float = 0.2,
+        reduction: str = "sum",
+    ) -> None:
+        super().__init__(gamma=gamma, alpha=alpha, reduction=reduction)
+        self.task_value_network = task_value_network
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        keys = self.tensor_keys
+        provider = list(self.task_value_network.in_keys)
+        return [
+            *provider,
+            keys.action,
+            *(("next", key) if isinstance(key, str) else ("next", *key) for key in provider),
+            ("next", keys.reward),
+            ("next", keys.terminated),
+        ]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        # read
+        keys, batch = self.tensor_keys, self._batch(tensordict)
+        q = self._provide(self.task_value_network, tensordict, keys.action_value)  # [S, A]
+        action = self._read_action(tensordict, q.shape[-1])  # [S]
+        reward = self._read(tensordict, ("next", keys.reward), ())  # [S]
+        terminated = self._read_terminated(tensordict)  # [S]
+        mask = self._mask(tensordict, batch)
+        with torch.no_grad():
+            q_next = self._provide(
+                self.task_value_network, tensordict.get("next"), keys.action_value
+            )  # [S, A]
+        # compute: eq. 1's target and the loss whose SGD step is eq. 1's update
+        target = q_learning_target(reward, q_next, terminated, self.gamma)  # [S]
+        loss_task, td_error = self._task_loss(q, action, target, mask)
+        # write
+        return TensorDict(loss_task=loss_task, td_error=td_error.detach(), batch_size=[])
+
+
+class FactorQLoss(_TransitionLoss):
+    """Factor-Q's updates (paper eqs. 4 and 5) as a loss.
+
+    - eq. 4 (gradient, ``loss_task``): ``Q(s, a) <- Q(s, a) + alpha [r_task + gamma max_a' C(s')
+      - Q(s, a)]`` with ``C(s') = Q(s') + G(s') rho(s')`` (eqs. 2-3 at ``s'``, local values before
+      this step's eq. 5); ``r_task`` alone where ``("next", "terminated")``.
+    - eq. 5 (running mean, in ``forward`` in training mode): ``kappa_a[o_a] += 1``,
+      ``rho_a[o_a] += (r_L[a] - rho_a[o_a]) / kappa_a[o_a]`` for the fired actuator ``a`` and the
+      sensor reading ``o_a`` before acting.
+
+    See the module docstring for why ``loss_task`` carries ``alpha`` and how eq. 5 is applied.
+
+    Args:
+        task_value_network: writes ``action_value`` ``[S, A]`` (e.g. ``TaskQTable``).
+        local_value_network: writes ``local_value`` ``[S, A]`` (e.g. ``LocalRewardTable``).
+        gamma, alpha: discount and task learning rate (eq. 4).
+        eta, g_min: eq. 3's margin and floor of ``G`` (the policy's values).
+        reduction: ``"sum"`` (exact tabular update) or ``"mean"`` over experiments.
+
+    Keys (``set_keys``): ``action_value``, ``local_value``, ``action``, ``proximity`` (the
+    sensors before acting), ``reward`` (task reward), ``local_reward`` and ``terminated`` (the
+    last three read under ``"next"``), ``mask`` (optional). Output: ``loss_task``,
+    ``loss_local`` (scalars) and ``td_error`` ``[S]`` (detached).
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable input keys (``loss.set_keys(local_reward="collision")``)."""
+
+        action_value: NestedKey = "action_value"
+        local_value: NestedKey = "local_value"
+        action: NestedKey = "action"
+        proximity: NestedKey = "proximity"
+        reward: NestedKey = "reward"
+        local_reward: NestedKey = "local_reward"
+        terminated: NestedKey = "terminated"
+        mask: NestedKey = ("collector", "mask")
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+    out_keys = ["loss_task", "loss_local", "td_error"]
+
+    def __init__(
+        self,
+        task_value_network: TensorDictModuleBase,
+        local_value_network: TensorDictModuleBase,
+        *,
+        gamma: float = 0.9,
+        alpha: float = 0.2,
+        eta: float = 0.1,
+        g_min: float = 0.01,
+        reduction: str = "sum",
+    ) -> None:
+        super().__init__(gamma=gamma, alpha=alpha, reduction=reduction)
+        AgentConfig(eta=eta, g_min=g_min)
+        self.eta, self.g_min = float(eta), float(g_min)
+        self.task_value_network = task_value_network
+        self.local_value_network = local_value_network
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        keys = self.tensor_keys
+        providers = [*self.task_value_network.in_keys, *self.local_value_network.in_keys]
+        providers = list(dict.fromkeys(providers))
+        return [
+            *providers,
+            keys.action,
+            keys.proximity,
+            *(("next", key) if isinstance(key, str) else ("next", *key) for key in providers),
+            ("next", keys.reward),
+            ("next", keys.local_reward),
+            ("next", keys.terminated),
+        ]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        # read
+        keys, batch = self.tensor_keys, self._batch(tensordict)
+        q = self._provide(self.task_value_network, tensordict, keys.action_value)  # [S, A]
+        rho = self._provide(self.local_value_network, tensordict, keys.local_value)  # [S, A]
+        num_actions = q.shape[-1]
+        action = self._read_action(tensordict, num_actions)  # [S]
+        proximity = self._read(tensordict, keys.proximity, (num_actions,))  # [S, A], before acting
+        reward = self._read(tensordict, ("next", keys.reward), ())  # [S], task reward
+        local_reward = self._read(tensordict, ("next", keys.local_reward), (num_actions,))
+        terminated = self._read_terminated(tensordict)  # [S]
+        mask = self._mask(tensordict, batch)
+        with torch.no_grad():
+            next_td = tensordict.get("next")
+            q_next = self._provide(self.task_value_network, next_td, keys.action_value)
+            rho_next = self._provide(self.local_value_network, next_td, keys.local_value)
+        # compute: eq. 4's target from C(s') (eqs. 2-3 at s'), then the loss whose SGD step is
+        # eq. 4's update; the local regression error on the fired actuator
+        g_next = normaliser(q_next, rho_next, eta=self.eta, g_min=self.g_min)  # [S], eq. 3
+        c_next = combined_values(q_next, rho_next, g_next)  # [S, A], eq. 2
+        target = factorq_target(reward, c_next, terminated, self.gamma)  # [S], eq. 4
+        loss_task, td_error = self._task_loss(q, action, target, mask)
+        fired = action.unsqueeze(1)
+        local_error = rho.gather(1, fired).squeeze(1) - local_reward.gather(1, fired).squeeze(1)
+        loss_local = self._reduce(0.5 * local_error.pow(2), mask)
+        # eq. 5, after the target used the local tables as they were
+        update = getattr(self.local_value_network, "update_running_mean", None)
+        if self.training and update is not None:
+            update(proximity, action, local_reward, mask)
+        # write
+        return TensorDict(
+            loss_task=loss_task,
+            loss_local=loss_local,
+            td_error=td_error.detach(),
+            batch_size=[],
+        )

@@ -1,0 +1,194 @@
+"""Epsilon-greedy policies as TensorDict modules, with random tie-breaking (SPEC section 3).
+
+The policies read values written by any value provider (a table or a network) and write
+``action`` ``[S]`` int64 and ``exploratory`` ``[S]`` bool; ``FactorQPolicy`` also writes
+``combined_value`` ``[S, A]``, eq. 2's ``C(s)`` with eq. 3's ``G``. torchrl's ``QValueModule``
+always takes index 0 on an all-equal row and ``EGreedyModule`` does not report which actions
+explored, so neither fits (DESIGN section 6).
+
+Randomness: experiment ``i`` owns a counter-based stream (``factorq_torch.rng``) with key
+``stream_keys[i]`` (by default ``derive_keys(seed, STREAM_POLICY, S)[i]``) and a decision counter
+``counter[i]``. Its ``t``-th decision draws counters ``3t`` (explore?), ``3t + 1`` (the random
+action) and ``3t + 2`` (the tie-break). The module advances ``counter`` itself on every call, so
+there is no exploration schedule to step by hand; where the optional mask entry
+``("collector", "mask")`` ``[S]`` is False the experiment is finished: it draws nothing and its
+counter stays put (its ``action`` is computed but meaningless). Keys and counters are buffers, so
+``state_dict()`` captures the streams exactly.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+from factorq_torch.config import AgentConfig
+from factorq_torch.functional import combined_values, epsilon_greedy_from_bits, normaliser
+from factorq_torch.rng import POLICY_DRAWS_PER_STEP, STREAM_POLICY, derive_keys, random_bits
+from factorq_torch.tables import check_batch, check_mask
+
+#: The mask entry the collector writes: True where the experiment is still running.
+MASK_KEY = ("collector", "mask")
+
+
+class EpsilonGreedyPolicy(TensorDictModuleBase):
+    """Epsilon-greedy on ``action_value`` with uniform random tie-breaking (Q-learning, DQN).
+
+    Args:
+        num_experiments: ``S``, the experiments of the batch.
+        seed: seed of the policy streams (``derive_keys(seed, STREAM_POLICY, S, offset)``).
+        epsilon: probability of a uniformly random, exploratory action.
+        offset: index of this batch's first experiment among all experiments.
+        keys: explicit stream keys ``[S]`` int64 instead of ``seed`` / ``offset``.
+        device: where the keys and counters live.
+
+    Keys: reads ``action_value`` ``[S, A]`` (and ``("collector", "mask")`` ``[S]`` if present),
+    writes ``action`` ``[S]`` int64 and ``exploratory`` ``[S]`` bool.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> policy = EpsilonGreedyPolicy(2, seed=0, epsilon=0.0)
+        >>> td = TensorDict(action_value=torch.tensor([[0.0, 3.0, 1.0, 2.0]] * 2), batch_size=[2])
+        >>> policy(td)["action"], policy.counter
+        (tensor([1, 1]), tensor([1, 1]))
+    """
+
+    value_key = "action_value"
+
+    def __init__(
+        self,
+        num_experiments: int,
+        *,
+        seed: int = 0,
+        epsilon: float = 0.01,
+        offset: int = 0,
+        keys: torch.Tensor | None = None,
+        device: torch.device | str | None = None,
+    ) -> None:
+        super().__init__()
+        if isinstance(num_experiments, bool) or not isinstance(num_experiments, int):
+            raise TypeError(f"num_experiments must be an int, got {num_experiments!r}")
+        if num_experiments < 1:
+            raise ValueError(f"num_experiments={num_experiments} is out of range: must be >= 1")
+        AgentConfig(epsilon=epsilon)  # validates epsilon with a message naming it
+        self.num_experiments = num_experiments
+        self.epsilon = float(epsilon)
+        self.in_keys = [self.value_key]
+        self.out_keys = ["action", "exploratory"]
+        self.register_buffer(
+            "stream_keys", torch.zeros(num_experiments, dtype=torch.int64, device=device)
+        )
+        self.register_buffer(
+            "counter", torch.zeros(num_experiments, dtype=torch.int64, device=device)
+        )
+        if keys is None:
+            self.set_seed(seed, offset)
+        else:
+            self.set_stream_keys(keys)
+
+    def set_seed(self, seed: int, offset: int = 0) -> None:
+        """Derive the keys from ``seed`` (experiments ``offset ..``) and rewind the streams."""
+        self.set_stream_keys(derive_keys(seed, STREAM_POLICY, self.num_experiments, offset))
+
+    @torch.no_grad()
+    def set_stream_keys(self, keys: torch.Tensor) -> None:
+        """Use the given stream keys ``[S]`` int64 and rewind the streams to their start."""
+        if not isinstance(keys, torch.Tensor) or keys.dtype != torch.int64:
+            raise TypeError("keys must be an int64 tensor (see factorq_torch.rng.derive_keys)")
+        if tuple(keys.shape) != (self.num_experiments,):
+            raise ValueError(
+                f"keys has shape {list(keys.shape)}, expected [{self.num_experiments}] "
+                f"(one stream key per experiment)"
+            )
+        self.stream_keys.copy_(keys)
+        self.counter.zero_()
+
+    def _values(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """The values the greedy choice maximises, ``[S, A]``."""
+        return self._read_values(tensordict, self.value_key)
+
+    def _read_values(self, tensordict: TensorDictBase, key: str) -> torch.Tensor:
+        value = tensordict.get(key, None)
+        if value is None:
+            raise KeyError(
+                f"{type(self).__name__} needs {key!r} (written by a value provider such as "
+                f"TaskQTable); the tensordict has {list(tensordict.keys())}"
+            )
+        if value.dim() != 2 or value.shape[0] != self.num_experiments:
+            raise ValueError(
+                f"{type(self).__name__}: {key!r} has shape {list(value.shape)}, expected "
+                f"[{self.num_experiments}, num_actions]"
+            )
+        if not value.is_floating_point():
+            raise ValueError(f"{type(self).__name__}: {key!r} must be floating point")
+        return value
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        check_batch(tensordict, self.num_experiments, type(self).__name__)
+        values = self._values(tensordict)  # [S, A]
+        mask = check_mask(tensordict.get(MASK_KEY, None), self.num_experiments, "policy")
+        draws = torch.arange(POLICY_DRAWS_PER_STEP, device=self.counter.device).unsqueeze(1)
+        bits = random_bits(self.stream_keys, self.counter * POLICY_DRAWS_PER_STEP + draws)  # [3, S]
+        action, exploratory = epsilon_greedy_from_bits(
+            values.detach(), self.epsilon, bits[0], bits[1], bits[2]
+        )
+        # The stream advances with each decision (only where the experiment is still running).
+        self.counter += 1 if mask is None else mask.to(torch.int64)
+        tensordict.set("action", action)
+        tensordict.set("exploratory", exploratory)
+        return tensordict
+
+
+class FactorQPolicy(EpsilonGreedyPolicy):
+    """Factor-Q's action choice: epsilon-greedy on ``C(s) = Q(s) + G rho`` (eqs. 2-3).
+
+    Args: as ``EpsilonGreedyPolicy``, plus ``eta`` and ``g_min`` of eq. 3's normaliser.
+
+    Keys: reads ``action_value`` ``[S, A]`` and ``local_value`` ``[S, A]``, writes
+    ``combined_value`` ``[S, A]``, ``action`` ``[S]`` and ``exploratory`` ``[S]``.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> policy = FactorQPolicy(1, epsilon=0.0)
+        >>> td = TensorDict(
+        ...     action_value=torch.zeros(1, 4),  # unvisited state: G = g_min = 0.01
+        ...     local_value=torch.tensor([[-1.0, 0.0, 0.0, -1.0]]),  # north, east bump
+        ...     batch_size=[1],
+        ... )
+        >>> td = policy(td)
+        >>> td["combined_value"], td["action"] in (1, 2)
+        (tensor([[-0.0100,  0.0000,  0.0000, -0.0100]]), True)
+    """
+
+    def __init__(
+        self,
+        num_experiments: int,
+        *,
+        seed: int = 0,
+        epsilon: float = 0.01,
+        eta: float = 0.1,
+        g_min: float = 0.01,
+        offset: int = 0,
+        keys: torch.Tensor | None = None,
+        device: torch.device | str | None = None,
+    ) -> None:
+        super().__init__(
+            num_experiments, seed=seed, epsilon=epsilon, offset=offset, keys=keys, device=device
+        )
+        AgentConfig(eta=eta, g_min=g_min)
+        self.eta, self.g_min = float(eta), float(g_min)
+        self.in_keys = ["action_value", "local_value"]
+        self.out_keys = ["combined_value", "action", "exploratory"]
+
+    def _values(self, tensordict: TensorDictBase) -> torch.Tensor:
+        q = self._read_values(tensordict, "action_value")  # [S, A]
+        rho = self._read_values(tensordict, "local_value")  # [S, A]
+        if rho.shape != q.shape:
+            raise ValueError(
+                f"FactorQPolicy: local_value has shape {list(rho.shape)} but action_value has "
+                f"{list(q.shape)}: one local value per action is needed"
+            )
+        g = normaliser(q, rho, eta=self.eta, g_min=self.g_min)  # [S], eq. 3
+        combined = combined_values(q, rho, g)  # [S, A], eq. 2
+        tensordict.set("combined_value", combined)
+        return combined

@@ -1,0 +1,205 @@
+"""The paper's equations (factorq_torch.functional) against numbers worked out by hand."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from factorq_torch.functional import (
+    combined_values,
+    epsilon_greedy,
+    epsilon_greedy_from_bits,
+    factorq_target,
+    greedy_action_from_bits,
+    normaliser,
+    q_learning_target,
+    q_update,
+    running_mean_update,
+)
+
+TWO_32 = 1 << 32
+
+
+# -- eq. 3, the normaliser ---------------------------------------------------------------------
+
+
+def test_normaliser_scales_local_spread_to_task_spread():
+    q = torch.tensor([[2.0, 0.0, 0.0, 1.0]])  # a_hat = 0, Q_bar = 1/3, x = 5/3
+    rho = torch.tensor([[-1.0, 0.0, 0.0, 0.0]])  # a_check = 0, P_bar = 0,  y = 1
+    assert torch.allclose(normaliser(q, rho, eta=0.1, g_min=0.01), torch.tensor([5 / 3 * 1.1]))
+
+
+def test_normaliser_without_margin_equals_the_spread_ratio():
+    q = torch.tensor([2.0, 0.0, 0.0, 1.0])  # x = 2 - 1/3 = 5/3
+    rho = torch.tensor([-1.0, 0.0, -0.5, 0.0])  # a_check = 0, P_bar = -1/6, y = 5/6
+    # G = (5/3) / (5/6) * (1 + 0) = 2
+    assert torch.allclose(normaliser(q, rho, eta=0.0, g_min=0.01), torch.tensor(2.0))
+
+
+def test_normaliser_falls_to_g_min_in_an_unvisited_state_where_all_q_are_equal():
+    q = torch.zeros(1, 4)  # x = 0 - 0 = 0, so G = 0 < g_min
+    rho = torch.tensor([[-1.0, 0.0, 0.0, 0.0]])  # y = 1
+    assert torch.equal(normaliser(q, rho, eta=0.1, g_min=0.01), torch.tensor([0.01]))
+
+
+def test_normaliser_falls_to_g_min_when_all_rho_are_equal():
+    q = torch.tensor([[5.0, 0.0, 0.0, 0.0]])  # x = 5, a large task spread
+    rho = torch.full((1, 4), -0.5)  # P_bar = -0.5 = rho[a_check]: y = 0, no local spread
+    assert torch.equal(normaliser(q, rho, eta=0.1, g_min=0.01), torch.tensor([0.01]))
+
+
+def test_normaliser_applies_the_g_min_floor_only_below_it():
+    q = torch.tensor([[0.05, 0.0, 0.0, 0.0], [0.1, 0.0, 0.0, 0.0]])  # x = 0.05 and 0.1
+    rho = torch.tensor([[-10.0, 0.0, 0.0, 0.0]] * 2)  # y = 10
+    # G = 0.05 / 10 * 1.1 = 0.0055 < 0.01 -> 0.01;  0.1 / 10 * 1.1 = 0.011 >= 0.01 -> kept
+    assert torch.allclose(normaliser(q, rho, 0.1, 0.01), torch.tensor([0.01, 0.011]))
+    # with a lower floor the first one is kept too
+    assert torch.allclose(normaliser(q, rho, 0.1, 0.001), torch.tensor([0.0055, 0.011]))
+
+
+def test_normaliser_is_the_same_whichever_tied_maximum_or_minimum_is_taken():
+    q = torch.tensor([[1.0, 1.0, 0.0, 0.0]])  # a_hat 0 or 1: Q_bar = 1/3 either way, x = 2/3
+    rho = torch.tensor([[-1.0, -1.0, 0.0, 0.0]])  # a_check 0 or 1: P_bar = -1/3, y = 2/3
+    # G = (2/3) / (2/3) * 1.1 = 1.1
+    assert torch.allclose(normaliser(q, rho, 0.1, 0.01), torch.tensor([1.1]))
+
+
+def test_normaliser_keeps_leading_batch_dimensions_and_does_not_mutate_inputs():
+    q = torch.randn(2, 3, 4)
+    rho = -torch.rand(2, 3, 4)
+    q_before, rho_before = q.clone(), rho.clone()
+    assert normaliser(q, rho).shape == (2, 3)
+    assert torch.equal(q, q_before) and torch.equal(rho, rho_before)
+
+
+# -- eq. 2, combined values --------------------------------------------------------------------
+
+
+def test_combined_values_add_the_scaled_local_values_to_the_task_values():
+    q = torch.tensor([[1.0, 2.0, 3.0, 4.0], [0.0, 0.0, 0.0, 0.0]])
+    rho = torch.tensor([[-1.0, 0.0, -0.5, 0.0], [-1.0, 0.0, 0.0, 0.0]])
+    g = torch.tensor([2.0, 0.01])
+    # row 0: [1 - 2, 2, 3 - 1, 4];  row 1: [-0.01, 0, 0, 0]
+    expected = torch.tensor([[-1.0, 2.0, 2.0, 4.0], [-0.01, 0.0, 0.0, 0.0]])
+    assert torch.allclose(combined_values(q, rho, g), expected)
+
+
+# -- eqs. 1 and 4, targets and update ----------------------------------------------------------
+
+
+def test_q_learning_target_bootstraps_unless_terminated():
+    reward = torch.tensor([-1.0, -2.0, 0.0])
+    q_next = torch.tensor([[1.0, 2.0, 3.0, 4.0], [0.0, 0.0, 0.0, 0.0], [5.0, 5.0, 5.0, 5.0]])
+    terminated = torch.tensor([False, False, True])
+    # -1 + 0.9 * 4 = 2.6;  -2 + 0.9 * 0 = -2;  terminated: the reward alone, 0
+    expected = torch.tensor([2.6, -2.0, 0.0])
+    target = q_learning_target(reward, q_next, terminated, gamma=0.9)
+    assert torch.allclose(target, expected)
+
+
+def test_a_truncated_transition_still_bootstraps():
+    # truncation is not termination: only `terminated` is passed, and it is False here
+    reward, q_next = torch.tensor([-1.0]), torch.tensor([[0.0, 2.0, 0.0, 0.0]])
+    target = q_learning_target(reward, q_next, torch.tensor([False]), gamma=0.5)
+    assert torch.allclose(target, torch.tensor([0.0]))  # -1 + 0.5 * 2
+
+
+def test_factorq_target_bootstraps_on_the_combined_values_of_the_next_state():
+    task_reward = torch.tensor([-1.0, 0.0])
+    q_next = torch.tensor([[2.0, 0.0, 1.5, 0.0], [1.0, 1.0, 1.0, 1.0]])
+    rho_next = torch.tensor([[-1.0, 0.0, -0.5, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    # row 0: Q_bar = 1.5/3 = 0.5, x = 1.5; P_bar = -0.5/3 = -1/6, y = -1/6 + 1 = 5/6;
+    #   G = 1.5 / (5/6) * 1.1 = 1.98
+    #   C = [2 - 1.98, 0, 1.5 - 0.99, 0] = [0.02, 0, 0.51, 0]: target -1 + 0.9 * 0.51 = -0.541
+    # row 1 ends at the goal: the task reward alone, 0
+    g = normaliser(q_next, rho_next)
+    c_next = combined_values(q_next, rho_next, g)
+    target = factorq_target(task_reward, c_next, torch.tensor([False, True]), gamma=0.9)
+    assert torch.allclose(target, torch.tensor([-0.541, 0.0]))
+
+
+def test_q_update_moves_q_a_fraction_alpha_towards_the_target():
+    q = torch.tensor([1.0, 0.5, -1.0])
+    target = torch.tensor([2.0, -0.541, -1.0])
+    # 1 + 0.2 * (2 - 1) = 1.2;  0.5 + 0.2 * (-1.041) = 0.2918;  already there: unchanged
+    assert torch.allclose(q_update(q, target, alpha=0.2), torch.tensor([1.2, 0.2918, -1.0]))
+    # the paper's form (1 - alpha) Q + alpha target, in exact arithmetic the same
+    assert torch.allclose(q_update(q, target, 0.2), 0.8 * q + 0.2 * target)
+
+
+# -- eq. 5, the running mean -------------------------------------------------------------------
+
+
+def test_running_mean_update_keeps_rho_the_mean_of_the_rewards_seen():
+    rho, kappa = torch.tensor(0.0), torch.tensor(0)
+    rho, kappa = running_mean_update(rho, kappa, torch.tensor(-1.0))  # 0 + (-1 - 0) / 1 = -1
+    assert (rho.item(), kappa.item()) == (-1.0, 1)
+    rho, kappa = running_mean_update(rho, kappa, torch.tensor(0.0))  # -1 + (0 + 1) / 2 = -0.5
+    assert (rho.item(), kappa.item()) == (-0.5, 2)
+    rho, kappa = running_mean_update(rho, kappa, torch.tensor(-1.0))  # -0.5 - 0.5 / 3 = -2/3
+    assert kappa.item() == 3 and rho.item() == pytest.approx(-2 / 3)
+
+
+def test_running_mean_update_does_not_mutate_its_inputs():
+    rho, kappa, reward = torch.tensor([0.5]), torch.tensor([3]), torch.tensor([-1.0])
+    running_mean_update(rho, kappa, reward)
+    assert rho.item() == 0.5 and kappa.item() == 3 and reward.item() == -1.0
+
+
+# -- epsilon-greedy with random tie-breaking ---------------------------------------------------
+
+
+def test_greedy_action_takes_the_unique_maximum_whatever_the_bits():
+    values = torch.tensor([[0.0, 0.0, 5.0, 0.0]] * 3)
+    bits = torch.tensor([0, 1 << 31, TWO_32 - 1])
+    assert torch.equal(greedy_action_from_bits(values, bits), torch.tensor([2, 2, 2]))
+
+
+def test_greedy_action_breaks_ties_by_the_random_bits():
+    values = torch.tensor([[0.0, 3.0, 3.0, 1.0]] * 3 + [[0.0] * 4])
+    # two maxima (1, 2): k = bits * 2 >> 32 -> 0, 1, 1;  all four tied: k = 3 * 2**30 * 4 >> 32 = 3
+    bits = torch.tensor([0, 1 << 31, TWO_32 - 1, 3 << 30])
+    assert torch.equal(greedy_action_from_bits(values, bits), torch.tensor([1, 2, 2, 3]))
+
+
+def test_epsilon_greedy_explores_below_the_threshold_and_flags_it_even_when_greedy():
+    values = torch.tensor([[0.0, 0.0, 5.0, 0.0]] * 3)
+    # epsilon = 0.25: explore when explore_bits < 2**30
+    explore = torch.tensor([(1 << 30) - 1, (1 << 30) - 1, 1 << 30])
+    # random action = bits * 4 >> 32: 2**30 -> 1;  2**31 -> 2 (the greedy one, still flagged)
+    random_action = torch.tensor([1 << 30, 1 << 31, 0])
+    action, exploratory = epsilon_greedy_from_bits(
+        values, 0.25, explore, random_action, torch.zeros(3, dtype=torch.int64)
+    )
+    assert torch.equal(action, torch.tensor([1, 2, 2]))
+    assert torch.equal(exploratory, torch.tensor([True, True, False]))
+
+
+def test_epsilon_greedy_breaks_all_zero_ties_uniformly():
+    generator = torch.Generator().manual_seed(0)
+    action, exploratory = epsilon_greedy(torch.zeros(40_000, 4), 0.0, generator)
+    counts = torch.bincount(action, minlength=4)
+    # each count ~ Binomial(40000, 1/4): mean 10000, sd sqrt(40000 * 3/16) = 86.6; 5 sd = 433
+    assert ((counts - 10_000).abs() < 433).all(), counts
+    assert not exploratory.any()
+
+
+def test_epsilon_greedy_explores_a_fraction_epsilon_and_is_greedy_otherwise():
+    values = torch.tensor([[0.0, 0.0, 0.0, 1.0]]).expand(40_000, 4)
+    generator = torch.Generator().manual_seed(1)
+    action, exploratory = epsilon_greedy(values, 0.1, generator)
+    # fraction ~ 0.1 with sd sqrt(0.09 / 40000) = 0.0015; 5 sd = 0.0075
+    assert abs(exploratory.float().mean().item() - 0.1) < 0.0075
+    assert (action[~exploratory] == 3).all()
+    # exploratory actions are uniform over the 4 actions: ~1000 each of 4000, sd 27
+    counts = torch.bincount(action[exploratory], minlength=4)
+    assert ((counts - exploratory.sum() / 4).abs() < 140).all(), counts
+
+
+def test_epsilon_greedy_with_the_same_generator_seed_repeats_and_does_not_mutate_values():
+    values = torch.randn(100, 4)
+    before = values.clone()
+    first = epsilon_greedy(values, 0.5, torch.Generator().manual_seed(7))
+    second = epsilon_greedy(values, 0.5, torch.Generator().manual_seed(7))
+    assert torch.equal(first[0], second[0]) and torch.equal(first[1], second[1])
+    assert torch.equal(values, before)

@@ -1,0 +1,144 @@
+"""TaskQTable and LocalRewardTable: one table per experiment, read and reset as the SPEC says."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from factorq_torch.tables import LocalRewardTable, TaskQTable
+
+
+def test_task_table_writes_each_experiments_row_for_its_cell():
+    table = TaskQTable(2, num_cells=4)
+    with torch.no_grad():
+        table.table[0, 1] = torch.tensor([1.0, 2.0, 3.0, 4.0])
+        table.table[1, 1] = torch.tensor([5.0, 6.0, 7.0, 8.0])  # same cell, other experiment
+    td = TensorDict(cell=torch.tensor([1, 1]), batch_size=[2])
+    expected = torch.tensor([[1.0, 2.0, 3.0, 4.0], [5.0, 6.0, 7.0, 8.0]])
+    assert torch.equal(table(td)["action_value"], expected)
+
+
+def test_qlearning_table_indexes_cell_times_16_plus_the_proximity_pattern():
+    table = TaskQTable(1, num_cells=4, with_proximity=True)
+    assert table.table.shape == (1, 64, 4)
+    with torch.no_grad():
+        table.table[0, 3 * 16 + 9] = torch.tensor([1.0, 0.0, 0.0, 0.0])  # pattern N + E = 1 + 8
+    proximity = torch.tensor([[True, False, False, True]])
+    td = TensorDict(cell=torch.tensor([3]), proximity=proximity, batch_size=[1])
+    assert table(td)["action_value"].tolist() == [[1.0, 0.0, 0.0, 0.0]]
+    td["proximity"] = torch.tensor([[True, False, False, False]])  # pattern 1: another state
+    assert table(td)["action_value"].tolist() == [[0.0, 0.0, 0.0, 0.0]]
+
+
+def test_task_table_gradient_reaches_only_the_visited_entries():
+    table = TaskQTable(2, num_cells=3)
+    td = TensorDict(cell=torch.tensor([2, 0]), batch_size=[2])
+    table(td)["action_value"][:, 1].sum().backward()
+    expected = torch.zeros(2, 3, 4)
+    expected[0, 2, 1] = expected[1, 0, 1] = 1.0
+    assert torch.equal(table.table.grad, expected)
+
+
+def test_reset_task_zeroes_only_the_masked_experiments():
+    table = TaskQTable(3, num_cells=2)
+    with torch.no_grad():
+        table.table.fill_(1.5)
+    table.reset_task(torch.tensor([False, True, False]))
+    assert table.table[1].abs().sum() == 0
+    assert (table.table[[0, 2]] == 1.5).all()
+    table.reset_task()
+    assert table.table.abs().sum() == 0
+
+
+def test_local_table_reads_rho_of_each_sensor_at_its_reading():
+    local = LocalRewardTable(1)
+    with torch.no_grad():
+        local.rho[0] = torch.tensor([[0.0, -1.0], [-0.1, -0.2], [-0.3, -0.4], [-0.5, -0.6]])
+    proximity = torch.tensor([[True, False, True, False]])
+    td = TensorDict(proximity=proximity, batch_size=[1])
+    # sensor 0 reads 1 -> rho_0[1] = -1; sensor 1 reads 0 -> -0.1; -0.4; -0.5
+    assert torch.allclose(local(td)["local_value"], torch.tensor([[-1.0, -0.1, -0.4, -0.5]]))
+
+
+def test_local_update_is_a_running_mean_of_the_fired_actuator_at_its_reading_before_acting():
+    local = LocalRewardTable(2)
+    proximity = torch.tensor([[True, False, False, False], [True, False, False, False]])
+    action = torch.tensor([0, 2])  # 0 fires north with the sensor on; 1 fires south, sensor off
+    local.update_running_mean(proximity, action, torch.tensor([[-1.0, 0, 0, 0], [0.0] * 4]))
+    local.update_running_mean(proximity, action, torch.tensor([[0.0] * 4, [0.0] * 4]))
+    # experiment 0: rho_0[1] = mean(-1, 0) = -0.5 after 2 visits; experiment 1: rho_2[0] = 0
+    assert local.kappa[0, 0, 1] == 2 and local.rho[0, 0, 1] == -0.5
+    assert local.kappa[1, 2, 0] == 2 and local.rho[1, 2, 0] == 0.0
+    assert local.kappa.sum() == 4  # nothing else was visited
+
+
+def test_local_update_leaves_masked_experiments_alone():
+    local = LocalRewardTable(2)
+    proximity = torch.ones(2, 4, dtype=torch.bool)
+    collision = torch.tensor([[-1.0, 0, 0, 0]] * 2)
+    local.update_running_mean(
+        proximity, torch.tensor([0, 0]), collision, mask=torch.tensor([True, False])
+    )
+    assert local.rho[0, 0, 1] == -1.0 and local.kappa[0].sum() == 1
+    assert local.rho[1].abs().sum() == 0 and local.kappa[1].sum() == 0
+
+
+def test_local_tables_are_reset_only_explicitly_and_only_where_masked():
+    local = LocalRewardTable(2)
+    with torch.no_grad():
+        local.rho.fill_(-0.25)
+        local.kappa.fill_(3)
+    local.reset(torch.tensor([True, False]))
+    assert local.rho[0].abs().sum() == 0 and local.kappa[0].sum() == 0
+    assert (local.rho[1] == -0.25).all() and (local.kappa[1] == 3).all()
+
+
+def test_tables_round_trip_through_state_dict():
+    local, other = LocalRewardTable(1), LocalRewardTable(1)
+    local.update_running_mean(
+        torch.ones(1, 4, dtype=torch.bool), torch.tensor([3]), torch.tensor([[0, 0, 0, -1.0]])
+    )
+    other.load_state_dict(local.state_dict())
+    assert torch.equal(other.rho, local.rho) and torch.equal(other.kappa, local.kappa)
+
+
+# -- bad input ---------------------------------------------------------------------------------
+
+
+def test_a_tensordict_with_another_batch_size_is_refused_with_both_sizes_named():
+    table = TaskQTable(3, num_cells=4)
+    with pytest.raises(ValueError, match=r"S=3 experiments .* batch_size \[2\]"):
+        table(TensorDict(cell=torch.tensor([0, 1]), batch_size=[2]))
+    with pytest.raises(ValueError, match=r"S=3 experiments"):
+        LocalRewardTable(3)(
+            TensorDict(proximity=torch.ones(2, 4, dtype=torch.bool), batch_size=[2])
+        )
+
+
+def test_misshapen_or_mistyped_observations_are_refused():
+    table = TaskQTable(1, num_cells=4, with_proximity=True)
+    bad_proximity = TensorDict(
+        cell=torch.tensor([0]), proximity=torch.ones(1, 3, dtype=torch.bool), batch_size=[1]
+    )
+    with pytest.raises(ValueError, match="'proximity' has shape \\[1, 3\\]"):
+        table(bad_proximity)
+    with pytest.raises(ValueError, match="'cell' has shape \\[1\\] and dtype torch.float32"):
+        table(TensorDict(cell=torch.tensor([0.0]), batch_size=[1]))
+    with pytest.raises(KeyError, match="needs 'cell'"):
+        table(TensorDict(batch_size=[1]))
+
+
+def test_bad_sizes_and_masks_are_refused():
+    with pytest.raises(ValueError, match="num_experiments=0"):
+        TaskQTable(0, num_cells=4)
+    with pytest.raises(TypeError, match="num_cells must be an int"):
+        TaskQTable(1, num_cells=4.0)
+    with pytest.raises(ValueError, match="mask has shape \\[3\\], expected \\[2\\]"):
+        TaskQTable(2, num_cells=4).reset_task(torch.ones(3, dtype=torch.bool))
+    with pytest.raises(TypeError, match="bool tensor"):
+        LocalRewardTable(2).reset(torch.ones(2))
+    with pytest.raises(ValueError, match="action has shape \\[1\\], expected \\[2\\]"):
+        LocalRewardTable(2).update_running_mean(
+            torch.ones(2, 4, dtype=torch.bool), torch.tensor([0]), torch.zeros(2, 4)
+        )
