@@ -1,0 +1,284 @@
+"""Speed and memory of the fused fast path (``factorq_torch.fast``), printed as tables.
+
+- kernel build: compile time (into an empty cache) and load time from the cache;
+- throughput, env steps per second, at several batch sizes ``S`` (independent experiments), for
+  three loops: ``env-only`` (the world with uniformly random actions, no learning),
+  ``q-learning`` and ``factor-q`` (env step + policy + update), with 1 and 2 threads, and the
+  modular torchrl path (``factorq_torch.collectors``) alongside where it is importable;
+- wall time of the paper's default workload (SPEC section 4: 100 seeds x 3 worlds x 2 algorithms
+  x 10 runs x 200 episodes) through ``ExperimentBatch``, with 1 and 2 threads;
+- peak memory (RSS high-water mark) at the largest ``S``, each loop in a fresh process, and the
+  RSS growth between two equal chunks of work (0: no per-step allocation).
+
+Worlds are the paper's default 10x10 with 10 obstacles; the batch cycles through the three worlds
+(static, semi-dynamic, dynamic), like the paper's experiment. Run from the repository root:
+
+    .venv/bin/python benchmarks/bench_speed.py
+    .venv/bin/python benchmarks/bench_speed.py --sizes 1 1024 --seconds 0.3 --no-paper
+
+Timings are never asserted anywhere; not a package on purpose (the torchrl wheel installs a
+top-level ``benchmarks``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:  # run as a script from anywhere
+    sys.path.insert(0, str(ROOT))
+
+from envs.world import WorldConfig  # noqa: E402
+from factorq_torch import fast  # noqa: E402
+from factorq_torch.config import AgentConfig  # noqa: E402
+from factorq_torch.rng import STREAM_POLICY, STREAM_WORLD, derive_keys  # noqa: E402
+
+LOOPS = {"env-only": fast.RANDOM_WALK, "q-learning": "q-learning", "factor-q": "factor-q"}
+PAPER_PERIODS = (0, 10, 1)  # static, semi-dynamic, dynamic
+
+
+def _periods(count: int, offset: int = 0) -> torch.Tensor:
+    """[S] obstacle periods cycling static, semi-dynamic, dynamic, from world ``offset``."""
+    return torch.tensor(PAPER_PERIODS).roll(-offset).repeat(count // 3 + 1)[:count]
+
+
+def _batch(loop: str, count: int, seed: int, threads: int, runs: int, episodes: int):
+    return fast.ExperimentBatch(
+        LOOPS[loop],
+        _periods(count, offset=seed),  # a small S sees every world over successive batches
+        WorldConfig(),
+        AgentConfig(),
+        runs,
+        episodes,
+        derive_keys(seed, STREAM_WORLD, count),
+        derive_keys(seed, STREAM_POLICY, count),
+        threads=threads,
+    )
+
+
+def _shape(count: int) -> tuple[int, int, int]:
+    """(runs, episodes, steps per experiment per advance) for a batch of ``count``.
+
+    Small batches run whole experiments (fresh batches until the time is up); large ones one
+    long call (about 3000 steps per experiment, so that each experiment's tables are fetched
+    from memory once per call, not once every few hundred steps), with short metrics.
+    """
+    if count <= 1024:
+        return 10, 200, max(3000, 4_000_000 // count)
+    return 1, 100, 3000
+
+
+def fast_throughput(loop: str, count: int, threads: int, seconds: float) -> float:
+    """Env steps per second of ``count`` experiments (fresh batches until ``seconds`` of work)."""
+    runs, episodes, chunk = _shape(count)
+    steps, elapsed, seed = 0, 0.0, 0
+    while elapsed < seconds:
+        batch = _batch(loop, count, seed, threads, runs, episodes)
+        seed += 1
+        while not batch.done and elapsed < seconds:
+            before = batch.total_steps
+            start = time.perf_counter()
+            batch.advance(chunk)
+            elapsed += time.perf_counter() - start
+            steps += batch.total_steps - before
+    return steps / elapsed
+
+
+def modular_throughput(loop: str, count: int, threads: int, seconds: float) -> float | str:
+    """Env steps per second of the torchrl path (env + transform + policy + collector + loss)."""
+    if loop == "env-only":
+        return "-"  # see benchmarks/bench_env.py
+    try:
+        from tensordict.nn import TensorDictSequential
+        from torchrl.envs import TransformedEnv
+
+        from envs import FactoredGridEnv, SplitLocalReward
+        from factorq_torch.collectors import OnlineCollector
+        from factorq_torch.objectives import FactorQLoss, TabularQLoss
+        from factorq_torch.policy import EpsilonGreedyPolicy, FactorQPolicy
+        from factorq_torch.tables import LocalRewardTable, TaskQTable
+    except ImportError as error:
+        return f"n/a ({error.name})"
+    world, agent = WorldConfig(), AgentConfig()
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        env = FactoredGridEnv(
+            size=world.size,
+            num_obstacles=world.num_obstacles,
+            obstacle_period=_periods(count).tolist(),
+            max_steps=world.max_steps,
+            batch_size=(count,),
+            seed=0,
+        )
+        if loop == "factor-q":
+            env = TransformedEnv(env, SplitLocalReward())
+            task, local = TaskQTable(count, world.num_cells), LocalRewardTable(count)
+            chooser = FactorQPolicy(count, seed=0, epsilon=agent.epsilon)
+            policy = TensorDictSequential(task, local, chooser)
+            loss = FactorQLoss(task, local, gamma=agent.gamma, alpha=agent.alpha)
+        else:
+            task = TaskQTable(count, world.num_cells, with_proximity=True)
+            chooser = EpsilonGreedyPolicy(count, seed=0, epsilon=agent.epsilon)
+            policy = TensorDictSequential(task, chooser)
+            loss = TabularQLoss(task, gamma=agent.gamma, alpha=agent.alpha)
+        collector = OnlineCollector(env, policy, loss, runs=10, episodes=200)
+        for _ in range(3):  # warm-up
+            collector.step()
+        steps, start = 0, time.perf_counter()
+        while time.perf_counter() - start < seconds and not collector.done:
+            collector.step()
+            steps += count
+        return steps / (time.perf_counter() - start)
+    except Exception as error:  # the modular path is optional here: report, do not fail
+        return f"n/a ({type(error).__name__})"
+    finally:
+        torch.set_num_threads(previous)
+
+
+def build_times() -> tuple[float, float]:
+    """(seconds to compile into an empty cache, seconds to load the cached build)."""
+    with tempfile.TemporaryDirectory() as directory:
+        os.environ["FACTORQ_CACHE_DIR"] = directory
+        try:
+            _, built = fast._build()
+            start = time.perf_counter()
+            _, cached = fast._build()
+            load = time.perf_counter() - start
+        finally:
+            del os.environ["FACTORQ_CACHE_DIR"]
+    assert built["compiled"] and not cached["compiled"]
+    return built["seconds"], load
+
+
+def paper_workload(threads: int, seeds: int = 100) -> dict[str, tuple[float, int]]:
+    """{algorithm: (seconds, env steps)} for the paper's default experiment."""
+    periods = torch.tensor(PAPER_PERIODS).repeat_interleave(seeds)  # [3 * seeds]
+    results = {}
+    for algorithm in ("q-learning", "factor-q"):
+        start = time.perf_counter()
+        batch = fast.ExperimentBatch(
+            algorithm,
+            periods,
+            WorldConfig(),
+            AgentConfig(),
+            10,
+            200,
+            derive_keys(0, STREAM_WORLD, len(periods)),
+            derive_keys(0, STREAM_POLICY, len(periods)),
+            threads=threads,
+        )
+        while not batch.done:
+            batch.advance(1 << 40)
+        results[algorithm] = (time.perf_counter() - start, batch.total_steps)
+    return results
+
+
+def _status_bytes(field: str) -> int:
+    """A ``/proc/self/status`` memory figure (Linux; 0 elsewhere)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError):
+        pass
+    return 0
+
+
+def _peak_bytes() -> int:
+    """Peak RSS of this process image. ``getrusage``'s ``ru_maxrss`` also counts the parent's
+    RSS at fork time on Linux, so ``VmHWM`` (this image only) is preferred where it exists."""
+    return _status_bytes("VmHWM") or resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def memory_probe(loop: str, count: int) -> dict:
+    """Run in a fresh process: peak RSS for ``count`` experiments and growth between chunks."""
+    baseline = _peak_bytes()
+    runs, episodes, chunk = _shape(count)
+    batch = _batch(loop, count, 0, 2, runs, episodes)
+    state = sum(tensor.nbytes for tensor in batch._tensors.values())
+    batch.advance(chunk // 2)
+    after_first = _status_bytes("VmRSS")
+    batch.advance(chunk // 2)
+    growth = _status_bytes("VmRSS") - after_first
+    return {"baseline": baseline, "peak": _peak_bytes(), "state": state, "growth": growth}
+
+
+def _memory(loop: str, count: int) -> dict:
+    command = [sys.executable, __file__, "--memory-probe", loop, str(count)]
+    output = subprocess.run(command, capture_output=True, text=True, check=True).stdout
+    return json.loads(output.strip().splitlines()[-1])
+
+
+def _rate(value) -> str:
+    if not isinstance(value, float):
+        return str(value)
+    return f"{value / 1e6:.2f} M" if value >= 1e6 else f"{value / 1e3:.2f} k"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[1, 64, 1024, 16384])
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--seconds", type=float, default=0.5, help="work timed per cell")
+    parser.add_argument("--no-modular", action="store_true", help="skip the torchrl path")
+    parser.add_argument("--no-paper", action="store_true", help="skip the paper workload")
+    parser.add_argument("--memory-probe", nargs=2, metavar=("LOOP", "S"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.memory_probe:
+        print(json.dumps(memory_probe(args.memory_probe[0], int(args.memory_probe[1]))))
+        return
+    if not fast.is_available():
+        sys.exit(f"the fast path is unavailable: {fast.unavailable_reason()}")
+
+    compile_seconds, load_seconds = build_times()
+    print(f"kernel: compiled in {compile_seconds:.2f} s, loaded from the cache in "
+          f"{load_seconds * 1e3:.1f} ms (cc {' '.join(fast._FLAGS)})")  # fmt: skip
+    print(f"machine: {os.cpu_count()} CPUs, torch {torch.__version__}")
+
+    print("\nthroughput, env steps per second (10x10 worlds cycling static/semi/dynamic)")
+    columns = [f"fast {t} thr" for t in args.threads]
+    if not args.no_modular:
+        columns += [f"modular {t} thr" for t in args.threads]
+    print(f"{'loop':<11}{'S':>7}" + "".join(f"{name:>16}" for name in columns))
+    for loop in LOOPS:
+        for count in args.sizes:
+            cells = [fast_throughput(loop, count, t, args.seconds) for t in args.threads]
+            if not args.no_modular:
+                cells += [modular_throughput(loop, count, t, args.seconds) for t in args.threads]
+            print(f"{loop:<11}{count:>7}" + "".join(f"{_rate(cell):>16}" for cell in cells))
+
+    if not args.no_paper:
+        print("\npaper workload (100 seeds x 3 worlds x 10 runs x 200 episodes, per algorithm)")
+        print(f"{'threads':>7}{'q-learning':>14}{'factor-q':>14}{'total':>10}{'env steps':>13}"
+              f"{'steps/s':>12}")  # fmt: skip
+        for threads in args.threads:
+            results = paper_workload(threads)
+            seconds = sum(value[0] for value in results.values())
+            steps = sum(value[1] for value in results.values())
+            times = results["q-learning"][0], results["factor-q"][0]
+            print(f"{threads:>7}{times[0]:>12.2f} s{times[1]:>12.2f} s{seconds:>8.2f} s"
+                  f"{steps:>13,}{steps / seconds / 1e6:>10.1f} M")  # fmt: skip
+
+    count = max(args.sizes)
+    print(f"\nmemory at S={count} (fresh process per loop, 2 threads)")
+    print(f"{'loop':<11}{'import RSS':>12}{'peak RSS':>12}{'batch state':>13}{'RSS growth':>12}")
+    for loop in LOOPS:
+        memory = _memory(loop, count)
+        mib = {name: value / 2**20 for name, value in memory.items()}
+        print(f"{loop:<11}{mib['baseline']:>8.0f} MiB{mib['peak']:>8.0f} MiB"
+              f"{mib['state']:>9.0f} MiB{mib['growth']:>8.1f} MiB")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

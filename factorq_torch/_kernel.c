@@ -1,0 +1,524 @@
+/*
+ * The fused fast path of factorq_torch: whole experiments (SPEC section 4) in one tight C loop.
+ *
+ * This file mirrors, operation for operation, two Python sources and must stay identical to them:
+ *   - envs/world.py            the FactoredGrid world (SPEC sections 1-2): move or collide ->
+ *                              reward -> maybe scatter (Floyd's algorithm) -> observation;
+ *   - factorq_torch/functional.py  the paper's equations (eq. 1-5) with its float32 order
+ *                              contract: explicit left-to-right sums, no fused multiply-add
+ *                              (build with -ffp-contract=off), every operation rounded to float.
+ * Random numbers come from the counter streams of factorq_torch/rng.py (SplitMix64 finaliser), so
+ * experiment i draws exactly what the reference (tests/reference.py) and the torch modules draw.
+ * tests/test_fast.py checks equality bit for bit (metrics and final tables).
+ *
+ * Plain C99, no Python or torch headers: fast.py compiles it on first use and loads it through
+ * ctypes, passing the data pointers of contiguous tensors in an fq_batch struct. Each experiment
+ * is independent and sequential; threads share the batch and take whole experiments from an
+ * atomic counter, so the results do not depend on the thread count or on the scheduling.
+ *
+ * Where it saves time it computes the same floats by a shorter route, never other floats:
+ *   - one experiment runs many steps in a row, its tables hot in L1/L2 (measured: interleaving
+ *     2-4 experiments per thread to overlap their dependency chains was no faster);
+ *   - draws whose value cannot matter are skipped (the tie draw with a single maximum, the
+ *     random action when not exploring): counter-based streams make that free;
+ *   - C(s') computed for the eq. 4 target is reused for the next decision when nothing it read
+ *     has changed; the spread of rho (eq. 3's denominator) is kept per proximity pattern;
+ *   - walls are a ring of blocked cells around the obstacle map, so sensing is four loads.
+ */
+#include <float.h>
+#include <stdint.h>
+#include <string.h>
+
+#define NUM_ACTIONS 4
+#define FQ_ABI_VERSION 1
+
+/* rng.py's constants: key + (counter + 1) * GOLDEN, then the SplitMix64 finaliser. */
+#define GOLDEN 0x9E3779B97F4A7C15ULL
+#define MIX1 0xBF58476D1CE4E5B9ULL
+#define MIX2 0x94D049BB133111EBULL
+
+/* rng.py's POLICY_DRAWS_PER_STEP and the meaning of each draw of decision t. */
+#define POLICY_DRAWS 3
+#define DRAW_EXPLORE 0
+#define DRAW_ACTION 1
+#define DRAW_TIE 2
+
+enum { ALG_RANDOM_WALK = 0, ALG_Q_LEARNING = 1, ALG_FACTOR_Q = 2 };
+
+/*
+ * One batch of S experiments. Layouts (all C-contiguous, leading dimension S):
+ *   q [S, states, 4] float (states = N for Factor-Q, N * 16 for Q-learning, cell * 16 + pattern),
+ *   rho [S, 4, 2] float and kappa [S, 4, 2] int64 (actuator, sensor value),
+ *   grid [S, P] uint8: the obstacle map padded by a one-cell wall ring, P = (size + 2)^2, so that
+ *   a wall and an obstacle are the same thing (blocked = 1) and no bounds checks are needed,
+ *   obstacle_pads [S, K] int32: padded indices of the current obstacles (cleared on a scatter),
+ *   metrics [S, runs, episodes].
+ * Field order and types must match fast.py's _Batch (checked through fq_batch_size()).
+ */
+typedef struct {
+    int64_t algorithm;
+    int64_t num_experiments;
+    int64_t size;
+    int64_t num_obstacles;
+    int64_t max_steps;
+    int64_t runs;
+    int64_t episodes;
+    int64_t explore_threshold; /* rng.probability_threshold(epsilon), in [0, 2^32] */
+    const int64_t *periods;    /* [S] 0 static, k > 0 scatter after every k-th action */
+    const int64_t *world_keys; /* [S] */
+    const int64_t *policy_keys; /* [S] */
+    const uint8_t *static_grid; /* [P] the static layout, padded */
+    const int32_t *pad_of_cell; /* [N] padded index of each cell */
+    float *q;
+    float *rho;
+    int64_t *kappa;
+    uint8_t *grid;
+    int32_t *obstacle_pads;
+    int64_t *cell;
+    int64_t *episode_step;
+    int64_t *scatters;
+    int64_t *policy_counter;
+    int64_t *run;
+    int64_t *episode;
+    uint8_t *bump; /* [S, 4] */
+    int64_t *episode_collisions;
+    int64_t *episode_greedy_collisions;
+    float *episode_task_return;
+    int64_t *steps;
+    int64_t *collisions;
+    int64_t *greedy_collisions;
+    float *task_return;
+    float gamma;
+    float alpha;
+    float eta_factor; /* float32(1 + eta), as torch applies the Python scalar */
+    float g_min;
+} fq_batch;
+
+int64_t fq_abi_version(void) { return FQ_ABI_VERSION; }
+int64_t fq_batch_size(void) { return (int64_t)sizeof(fq_batch); }
+
+/* rng.random_bits: the top 32 bits of mix64(key + (counter + 1) * GOLDEN). */
+static inline uint64_t random_bits(uint64_t key, uint64_t counter) {
+    uint64_t z = key + (counter + 1) * GOLDEN;
+    z = (z ^ (z >> 30)) * MIX1;
+    z = (z ^ (z >> 27)) * MIX2;
+    z ^= z >> 31;
+    return z >> 32;
+}
+
+/* world.proximity: bit a is set when the neighbour in direction a is wall or obstacle. */
+static inline unsigned proximity(const uint8_t *grid, int64_t pos, int64_t width) {
+    return (unsigned)grid[pos - width] | (unsigned)grid[pos - 1] << 1 |
+           (unsigned)grid[pos + width] << 2 | (unsigned)grid[pos + 1] << 3;
+}
+
+/*
+ * world.scatter_obstacles: num_obstacles distinct cells, uniformly among those other than the
+ * start, the goal and the agent, by Floyd's algorithm. Position j of the last K of the M allowed
+ * positions draws t in [0, j] (counter scatter_index * K + k) and takes t, or j if t is taken.
+ * Positions map to cells in ascending order skipping the excluded cells, a bijection, so "t is
+ * taken" is read straight off the (cleared) obstacle map instead of a separate bitmap.
+ */
+static void scatter(uint8_t *grid, int32_t *obstacle_pads, const int32_t *pad_of_cell,
+                    int64_t num_cells, int64_t num_obstacles, uint64_t key, uint64_t scatter_index,
+                    int64_t agent) {
+    const int64_t goal = num_cells - 1;
+    const int64_t agent_free = agent != 0 && agent != goal;
+    const int64_t skip = agent_free ? agent : num_cells; /* excluded cell after the start */
+    const int64_t allowed = num_cells - 2 - agent_free;
+    const uint64_t first_counter = scatter_index * (uint64_t)num_obstacles;
+    for (int64_t k = 0; k < num_obstacles; k++) grid[obstacle_pads[k]] = 0;
+    for (int64_t k = 0; k < num_obstacles; k++) {
+        const int64_t j = allowed - num_obstacles + k;
+        const int64_t t = (int64_t)((random_bits(key, first_counter + (uint64_t)k) *
+                                     (uint64_t)(j + 1)) >> 32);
+        /* position -> cell: skip the start (cell 0), then the agent; the goal, the last cell,
+           is never reached because positions stop at allowed - 1. */
+        int64_t cell_t = t + 1, cell_j = j + 1;
+        cell_t += cell_t >= skip;
+        cell_j += cell_j >= skip;
+        const int32_t pad_t = pad_of_cell[cell_t], pad_j = pad_of_cell[cell_j];
+        const int32_t pad = grid[pad_t] ? pad_j : pad_t; /* t taken: take j */
+        grid[pad] = 1;
+        obstacle_pads[k] = pad;
+    }
+}
+
+/* Index of the k-th set bit (k counted from 0) of a 4-bit mask. */
+static inline int kth_set_bit(unsigned mask, uint64_t k) {
+    for (; k > 0; k--) mask &= mask - 1;
+    return __builtin_ctz(mask);
+}
+
+/*
+ * functional.greedy_action_from_bits inside epsilon_greedy_from_bits: the k-th maximal action in
+ * index order, k = bits * count >> 32. The tie draw is made only when there is a tie (with one
+ * maximum k = 0 whatever the bits; counter-based streams make skipping a draw free).
+ */
+static inline int greedy_action(const float values[NUM_ACTIONS], uint64_t key, uint64_t counter) {
+    float best = values[0];
+    for (int a = 1; a < NUM_ACTIONS; a++) best = values[a] > best ? values[a] : best;
+    unsigned is_max = 0;
+    for (int a = 0; a < NUM_ACTIONS; a++) is_max |= (unsigned)(values[a] == best) << a;
+    is_max |= is_max == 0; /* none equals the max (NaN): action 0, as functional does */
+    if ((is_max & (is_max - 1)) == 0) return __builtin_ctz(is_max);
+    const uint64_t count = (uint64_t)__builtin_popcount(is_max);
+    const uint64_t k = (random_bits(key, counter * POLICY_DRAWS + DRAW_TIE) * count) >> 32;
+    return kth_set_bit(is_max, k);
+}
+
+/* max_a values[a] as in q_learning_target (the sign of a zero never matters there). */
+static inline float max4(const float values[NUM_ACTIONS]) {
+    float best = values[0];
+    for (int a = 1; a < NUM_ACTIONS; a++) best = values[a] > best ? values[a] : best;
+    return best;
+}
+
+/*
+ * Eq. 3, functional.normaliser, in two halves:
+ *   G = (Q(s,a_hat) - Q_bar) / (P_bar - rho[a_check]) * (1 + eta),
+ * a_hat the first maximum of Q, a_check the first minimum of rho, the bars the mean of the other
+ * three (summed left to right, then divided by 3); G = g_min when the denominator is not > 0 or
+ * when G < g_min (also catches NaN). The denominator (the local spread) depends on rho(o) only,
+ * that is on the proximity pattern and the rho table, so it is computed for all 16 patterns when
+ * rho changes (rarely) rather than at every step; the result is the same float.
+ */
+static inline float local_spread(const float rho[NUM_ACTIONS]) {
+    int a_check = 0;
+    for (int a = 1; a < NUM_ACTIONS; a++)
+        if (rho[a] < rho[a_check]) a_check = a;
+    float rho_sum = 0.0f;
+    for (int a = 0; a < NUM_ACTIONS; a++)
+        if (a != a_check) rho_sum = rho_sum + rho[a];
+    return rho_sum / (float)(NUM_ACTIONS - 1) - rho[a_check];
+}
+
+static inline float normaliser(const float q[NUM_ACTIONS], float spread, float eta_factor,
+                               float g_min) {
+    if (!(spread > 0.0f)) return g_min;
+    int a_hat = 0;
+    for (int a = 1; a < NUM_ACTIONS; a++)
+        if (q[a] > q[a_hat]) a_hat = a;
+    float q_sum = 0.0f;
+    for (int a = 0; a < NUM_ACTIONS; a++)
+        if (a != a_hat) q_sum = q_sum + q[a];
+    const float x = q[a_hat] - q_sum / (float)(NUM_ACTIONS - 1);
+    const float g = x / spread * eta_factor;
+    /* an overflowed ratio is capped at the largest float, as functional.normaliser does */
+    return g >= g_min ? (g > FLT_MAX ? FLT_MAX : g) : g_min;
+}
+
+/* rho(o) (rho(o)_a = rho_a[o_a]) and its spread for each of the 16 proximity patterns o. */
+typedef struct {
+    float local[16][NUM_ACTIONS];
+    float spread[16];
+} local_patterns;
+
+static void project_local(const float rho_table[8], local_patterns *patterns) {
+    for (unsigned pattern = 0; pattern < 16; pattern++) {
+        for (int a = 0; a < NUM_ACTIONS; a++)
+            patterns->local[pattern][a] = rho_table[a * 2 + ((pattern >> a) & 1u)];
+        patterns->spread[pattern] = local_spread(patterns->local[pattern]);
+    }
+}
+
+/* Eq. 2, functional.combined_values: C = Q + G rho, capped to the float range. */
+static inline void combine(const float q[NUM_ACTIONS], float g, const float local[NUM_ACTIONS],
+                           float out[NUM_ACTIONS]) {
+    for (int a = 0; a < NUM_ACTIONS; a++) {
+        const float c = q[a] + g * local[a];
+        out[a] = c > FLT_MAX ? FLT_MAX : (c < -FLT_MAX ? -FLT_MAX : c);
+    }
+}
+
+/* C(s) for the rho(o) of proximity pattern prox. */
+static inline void combined_values(const float q[NUM_ACTIONS], const local_patterns *patterns,
+                                   unsigned prox, float eta_factor, float g_min,
+                                   float out[NUM_ACTIONS]) {
+    const float *local = patterns->local[prox];
+    combine(q, normaliser(q, patterns->spread[prox], eta_factor, g_min), local, out);
+}
+
+/* Run experiment i for up to budget steps; returns the episodes it completed. */
+static inline int64_t run_experiment(const fq_batch *b, int64_t i, int64_t budget,
+                                     const int algorithm) {
+    const int64_t size = b->size, width = size + 2, num_cells = size * size;
+    const int64_t goal = num_cells - 1, num_obstacles = b->num_obstacles;
+    const int64_t padded = width * width, max_steps = b->max_steps;
+    const int64_t runs = b->runs, episodes = b->episodes;
+    const int64_t period = b->periods[i];
+    const int moving = period > 0 && num_obstacles > 0;
+    const uint64_t world_key = (uint64_t)b->world_keys[i];
+    const uint64_t policy_key = (uint64_t)b->policy_keys[i];
+    const uint64_t explore_threshold = (uint64_t)b->explore_threshold;
+    const int64_t num_states = algorithm == ALG_Q_LEARNING ? num_cells * 16 : num_cells;
+    const float gamma = b->gamma, alpha = b->alpha, eta_factor = b->eta_factor, g_min = b->g_min;
+    const int32_t *pad_of_cell = b->pad_of_cell;
+    const int64_t move_pad[NUM_ACTIONS] = {-width, -1, width, 1};
+    const int64_t move_cell[NUM_ACTIONS] = {-size, -1, size, 1};
+
+    float *q = algorithm == ALG_RANDOM_WALK ? NULL : b->q + i * num_states * NUM_ACTIONS;
+    uint8_t *grid = b->grid + i * padded;
+    int32_t *obstacle_pads = num_obstacles > 0 ? b->obstacle_pads + i * num_obstacles : NULL;
+    uint8_t *bump = b->bump + i * NUM_ACTIONS;
+    int64_t *metric_steps = b->steps + i * runs * episodes;
+    int64_t *metric_collisions = b->collisions + i * runs * episodes;
+    int64_t *metric_greedy = b->greedy_collisions + i * runs * episodes;
+    float *metric_return = b->task_return + i * runs * episodes;
+
+    /* Eq. 5's tables live in registers/L1 for the call and are written back at the end. */
+    float rho[8];
+    int64_t kappa[8];
+    local_patterns patterns;
+    if (algorithm == ALG_FACTOR_Q) {
+        memcpy(rho, b->rho + i * 8, sizeof rho);
+        memcpy(kappa, b->kappa + i * 8, sizeof kappa);
+        project_local(rho, &patterns);
+    }
+
+    int64_t cell = b->cell[i], pos = pad_of_cell[cell];
+    int64_t episode_step = b->episode_step[i], scatters = b->scatters[i];
+    uint64_t counter = (uint64_t)b->policy_counter[i];
+    int64_t run = b->run[i], episode = b->episode[i];
+    int64_t episode_collisions = b->episode_collisions[i];
+    int64_t episode_greedy = b->episode_greedy_collisions[i];
+    float episode_return = b->episode_task_return[i];
+    int64_t until_scatter = period > 0 ? period - episode_step % period : 0;
+    int last_bump = -2; /* -2: no step taken in this call, bump unchanged */
+    int64_t completed = 0;
+
+    unsigned prox = proximity(grid, pos, width);
+    /* C(s) of the current state, computed for the previous target and still exact when neither
+       the Q row nor the rho entries it used have changed since (see the end of the step). */
+    float cached[NUM_ACTIONS];
+    int cache_valid = 0;
+
+    for (; budget > 0 && run < runs; budget--) {
+        /* --- act: epsilon-greedy on Q (eq. 1) or on C(s) (eq. 2-3) --- */
+        const int64_t state = algorithm == ALG_Q_LEARNING ? cell * 16 + prox : cell;
+        float values[NUM_ACTIONS];
+        int action, exploratory;
+        if (algorithm == ALG_RANDOM_WALK) {
+            action = (int)(random_bits(policy_key, counter * POLICY_DRAWS + DRAW_ACTION) >> 30);
+            exploratory = 1;
+        } else {
+            if (algorithm == ALG_Q_LEARNING) {
+                memcpy(values, q + state * NUM_ACTIONS, sizeof values);
+            } else if (cache_valid) {
+                memcpy(values, cached, sizeof values);
+            } else {
+                combined_values(q + state * NUM_ACTIONS, &patterns, prox, eta_factor, g_min, values);
+            }
+            exploratory =
+                random_bits(policy_key, counter * POLICY_DRAWS + DRAW_EXPLORE) < explore_threshold;
+            if (exploratory) {
+                /* randint_from_bits(bits, 4) = bits * 4 >> 32 */
+                action =
+                    (int)(random_bits(policy_key, counter * POLICY_DRAWS + DRAW_ACTION) >> 30);
+            } else {
+                action = greedy_action(values, policy_key, counter);
+            }
+        }
+        counter++;
+
+        /* --- world step (world.step_worlds): move or collide, reward, maybe scatter --- */
+        const int collided = (prox >> action) & 1u;
+        if (!collided) {
+            pos += move_pad[action];
+            cell += move_cell[action];
+        }
+        last_bump = collided ? action : -1;
+        episode_step++;
+        const int terminated = cell == goal;
+        const int truncated = !terminated && episode_step >= max_steps;
+        const float task_reward = -1.0f + (float)terminated; /* step + goal */
+        const float local_reward = collided ? -1.0f : 0.0f; /* collision[action] */
+        if (period > 0 && --until_scatter == 0) {
+            until_scatter = period;
+            if (moving && !terminated) {
+                scatter(grid, obstacle_pads, pad_of_cell, num_cells, num_obstacles, world_key,
+                        (uint64_t)scatters, cell);
+                scatters++;
+            }
+        }
+        const unsigned next_prox = proximity(grid, pos, width);
+
+        /* --- learn --- */
+        if (algorithm == ALG_Q_LEARNING) {
+            /* Eq. 1 with the conventional reward step + goal + sum(collision). */
+            const float reward = task_reward + local_reward;
+            float *q_sa = q + state * NUM_ACTIONS + action;
+            float target = reward;
+            if (!terminated) target = reward + gamma * max4(q + (cell * 16 + next_prox) * NUM_ACTIONS);
+            *q_sa = *q_sa + alpha * (target - *q_sa);
+        } else if (algorithm == ALG_FACTOR_Q) {
+            /* Eq. 4: target r_task + gamma max C(s'), C(s') with G and rho at s' (eq. 2-3). */
+            float next_values[NUM_ACTIONS];
+            float target = task_reward;
+            if (!terminated) {
+                combined_values(q + cell * NUM_ACTIONS, &patterns, next_prox, eta_factor, g_min,
+                                next_values);
+                target = task_reward + gamma * max4(next_values);
+            }
+            float *q_sa = q + state * NUM_ACTIONS + action;
+            *q_sa = *q_sa + alpha * (target - *q_sa);
+            /* Eq. 5 for the fired actuator on the sensor value read before acting (= collided):
+               kappa += 1, rho += (r_L - rho) / kappa. */
+            const int entry = action * 2 + collided;
+            const float old_rho = rho[entry];
+            kappa[entry] += 1;
+            rho[entry] = old_rho + (local_reward - old_rho) / (float)kappa[entry];
+            uint32_t old_bits, new_bits;
+            memcpy(&old_bits, &old_rho, sizeof old_bits);
+            memcpy(&new_bits, &rho[entry], sizeof new_bits);
+            /* C(s') stays exact for the next decision when the Q row of s' was not the one just
+               updated (it was only if the agent stayed, i.e. collided) and rho did not change. */
+            cache_valid = !terminated && !collided && old_bits == new_bits;
+            if (old_bits != new_bits) project_local(rho, &patterns);
+            if (cache_valid) memcpy(cached, next_values, sizeof cached);
+        }
+
+        /* --- episode bookkeeping (SPEC section 4) --- */
+        episode_collisions += collided;
+        episode_greedy += collided && !exploratory;
+        episode_return = episode_return + task_reward;
+        if (terminated || truncated) {
+            const int64_t slot = run * episodes + episode;
+            metric_steps[slot] = episode_step;
+            metric_collisions[slot] = episode_collisions;
+            metric_greedy[slot] = episode_greedy;
+            metric_return[slot] = episode_return;
+            completed++;
+            episode_collisions = 0;
+            episode_greedy = 0;
+            episode_return = 0.0f;
+            if (++episode == episodes) {
+                episode = 0;
+                run++;
+            }
+            /* world.reset_worlds: the agent to the start, no bump, a fresh scatter when moving;
+               Q tables restart at 0 every run, Factor-Q's local tables carry over. */
+            cell = 0;
+            pos = pad_of_cell[0];
+            episode_step = 0;
+            last_bump = -1;
+            until_scatter = period;
+            cache_valid = 0;
+            if (run < runs) {
+                if (episode == 0 && q != NULL)
+                    memset(q, 0, (size_t)num_states * NUM_ACTIONS * sizeof(float));
+                if (moving) {
+                    scatter(grid, obstacle_pads, pad_of_cell, num_cells, num_obstacles, world_key,
+                            (uint64_t)scatters, 0);
+                    scatters++;
+                }
+            }
+            prox = proximity(grid, pos, width);
+        } else {
+            prox = next_prox;
+        }
+    }
+
+    if (algorithm == ALG_FACTOR_Q) {
+        memcpy(b->rho + i * 8, rho, sizeof rho);
+        memcpy(b->kappa + i * 8, kappa, sizeof kappa);
+    }
+    b->cell[i] = cell;
+    b->episode_step[i] = episode_step;
+    b->scatters[i] = scatters;
+    b->policy_counter[i] = (int64_t)counter;
+    b->run[i] = run;
+    b->episode[i] = episode;
+    b->episode_collisions[i] = episode_collisions;
+    b->episode_greedy_collisions[i] = episode_greedy;
+    b->episode_task_return[i] = episode_return;
+    if (last_bump != -2) {
+        for (int a = 0; a < NUM_ACTIONS; a++) bump[a] = a == last_bump;
+    }
+    return completed;
+}
+
+/*
+ * Put experiments [0, S) at the start of their first episode: walls around every grid, the
+ * static layout or a first scatter, the agent on the start. Expects zeroed tables and counters.
+ */
+void fq_start(const fq_batch *b) {
+    const int64_t size = b->size, width = size + 2, num_cells = size * size;
+    const int64_t padded = width * width, num_obstacles = b->num_obstacles;
+    for (int64_t i = 0; i < b->num_experiments; i++) {
+        uint8_t *grid = b->grid + i * padded;
+        const int64_t period = b->periods[i];
+        if (period == 0) {
+            memcpy(grid, b->static_grid, (size_t)padded);
+        } else {
+            memset(grid, 1, (size_t)padded);
+            for (int64_t c = 0; c < num_cells; c++) grid[b->pad_of_cell[c]] = 0;
+            if (num_obstacles > 0) {
+                int32_t *obstacle_pads = b->obstacle_pads + i * num_obstacles;
+                for (int64_t k = 0; k < num_obstacles; k++) obstacle_pads[k] = b->pad_of_cell[0];
+                scatter(grid, obstacle_pads, b->pad_of_cell, num_cells, num_obstacles,
+                        (uint64_t)b->world_keys[i], (uint64_t)b->scatters[i], 0);
+                b->scatters[i] += 1;
+            }
+        }
+        b->cell[i] = 0;
+        b->episode_step[i] = 0;
+    }
+}
+
+/* One specialised loop per algorithm (the algorithm is a compile-time constant inside). */
+static int64_t run_random_walk(const fq_batch *b, int64_t i, int64_t budget) {
+    return run_experiment(b, i, budget, ALG_RANDOM_WALK);
+}
+static int64_t run_q_learning(const fq_batch *b, int64_t i, int64_t budget) {
+    return run_experiment(b, i, budget, ALG_Q_LEARNING);
+}
+static int64_t run_factor_q(const fq_batch *b, int64_t i, int64_t budget) {
+    return run_experiment(b, i, budget, ALG_FACTOR_Q);
+}
+
+/*
+ * Advance every unfinished experiment by up to max_steps steps. Any number of threads may call
+ * this at once with the same next_experiment counter (initially 0): each takes the next
+ * experiment from it until none is left. Returns the episodes completed by this caller.
+ */
+int64_t fq_advance(const fq_batch *b, int64_t max_steps, int64_t *next_experiment) {
+    if (max_steps <= 0) return 0;
+    int64_t (*run)(const fq_batch *, int64_t, int64_t) =
+        b->algorithm == ALG_Q_LEARNING ? run_q_learning
+        : b->algorithm == ALG_FACTOR_Q ? run_factor_q
+                                       : run_random_walk;
+    int64_t completed = 0;
+    for (;;) {
+        const int64_t i = __atomic_fetch_add(next_experiment, 1, __ATOMIC_RELAXED);
+        if (i >= b->num_experiments) break;
+        if (b->run[i] < b->runs) completed += run(b, i, max_steps);
+    }
+    return completed;
+}
+
+/* --- Entry points for differential tests (tests/test_fast.py) against the Python sources --- */
+
+/* Eq. 2-3 on n rows: g[r] = G and out[r] = C = Q + G rho, as functional.combined_values with
+   functional.normaliser (q, rho [n, 4] float32). */
+void fq_combined_values(const float *q, const float *rho, int64_t n, float eta_factor, float g_min,
+                        float *g, float *out) {
+    for (int64_t r = 0; r < n; r++) {
+        const float *local = rho + r * NUM_ACTIONS;
+        g[r] = normaliser(q + r * NUM_ACTIONS, local_spread(local), eta_factor, g_min);
+        combine(q + r * NUM_ACTIONS, g[r], local, out + r * NUM_ACTIONS);
+    }
+}
+
+/* world.scatter_obstacles for one world: blocked [size * size] uint8 (0/1). The caller gives
+   pad_of_cell [N] and scratch space grid [(size + 2)^2] and obstacle_pads [num_obstacles]. */
+void fq_scatter(int64_t size, int64_t num_obstacles, int64_t key, int64_t scatter_index,
+                int64_t agent, const int32_t *pad_of_cell, uint8_t *grid, int32_t *obstacle_pads,
+                uint8_t *blocked) {
+    const int64_t width = size + 2, num_cells = size * size;
+    memset(grid, 0, (size_t)(width * width));
+    for (int64_t k = 0; k < num_obstacles; k++) obstacle_pads[k] = pad_of_cell[0];
+    scatter(grid, obstacle_pads, pad_of_cell, num_cells, num_obstacles, (uint64_t)key,
+            (uint64_t)scatter_index, agent);
+    for (int64_t c = 0; c < num_cells; c++) blocked[c] = grid[pad_of_cell[c]];
+}

@@ -1,0 +1,608 @@
+"""The fused fast path: whole experiments (SPEC section 4) advanced by a small compiled C kernel.
+
+The kernel (``_kernel.c``, plain C99) performs exactly the operations of ``envs.world`` and
+``factorq_torch.functional`` in the same float32 order, with the same counter-based random streams
+(``factorq_torch.rng``), so its metrics and tables equal the modular torch path and the slow
+reference (``tests/reference.py``) bit for bit. It runs one experiment at a time for many steps
+(its tables stay in the L1/L2 cache) and leaves Python only once per ``advance`` call.
+
+The kernel is compiled on first use with the system C compiler (``cc``, ``gcc`` or ``clang``;
+``FACTORQ_CC`` overrides) and cached under ``$FACTORQ_CACHE_DIR``, else
+``$XDG_CACHE_HOME/factorq_torch``, else ``~/.cache/factorq_torch``. Where no compiler works,
+``is_available()`` is False and ``unavailable_reason()`` says why; callers fall back to the
+modular torchrl path.
+
+>>> from envs.world import WorldConfig
+>>> from factorq_torch.config import AgentConfig
+>>> from factorq_torch.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
+>>> if is_available():
+...     metrics = run_experiments(
+...         "factor-q", torch.tensor([0, 1]), WorldConfig(size=5, num_obstacles=3), AgentConfig(),
+...         runs=2, episodes=3, world_keys=derive_keys(0, STREAM_WORLD, 2),
+...         policy_keys=derive_keys(0, STREAM_POLICY, 2))
+...     print(tuple(metrics["steps"].shape))
+... else:
+...     print((2, 2, 3))
+(2, 2, 3)
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import shlex
+import shutil
+import subprocess
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import torch
+
+from envs.world import NUM_ACTIONS, WorldConfig, static_layout
+from factorq_torch.config import ALGORITHMS, AgentConfig
+from factorq_torch.rng import probability_threshold
+
+#: The env-only mode of the kernel (benchmarks): uniformly random actions (the policy stream's
+#: action draw), no learning, every action counted as exploratory.
+RANDOM_WALK = "random-walk"
+
+_ALGORITHM_CODES = {RANDOM_WALK: 0, "q-learning": 1, "factor-q": 2}
+_SOURCE = Path(__file__).with_name("_kernel.c")
+#: No FMA contraction and no fast-math: every float operation must round exactly as torch's
+#: separate ops do. -march=native is left out (measured no faster; keeps the cache portable).
+_FLAGS = ("-O3", "-std=c99", "-ffp-contract=off", "-fno-fast-math", "-fPIC", "-shared")
+_ABI_VERSION = 1
+_METRICS = ("steps", "collisions", "greedy_collisions", "task_return")
+
+
+# --------------------------------------------------------------------------------------------
+# Building and loading the kernel
+
+
+class _Batch(ctypes.Structure):
+    """The kernel's ``fq_batch`` (same field order and types; its size is checked on load)."""
+
+    _fields_ = (
+        [
+            (name, ctypes.c_int64)
+            for name in (
+                "algorithm",
+                "num_experiments",
+                "size",
+                "num_obstacles",
+                "max_steps",
+                "runs",
+                "episodes",
+                "explore_threshold",
+            )
+        ]
+        + [
+            (name, ctypes.c_void_p)
+            for name in (
+                "periods",
+                "world_keys",
+                "policy_keys",
+                "static_grid",
+                "pad_of_cell",
+                "q",
+                "rho",
+                "kappa",
+                "grid",
+                "obstacle_pads",
+                "cell",
+                "episode_step",
+                "scatters",
+                "policy_counter",
+                "run",
+                "episode",
+                "bump",
+                "episode_collisions",
+                "episode_greedy_collisions",
+                "episode_task_return",
+                "steps",
+                "collisions",
+                "greedy_collisions",
+                "task_return",
+            )
+        ]
+        + [(name, ctypes.c_float) for name in ("gamma", "alpha", "eta_factor", "g_min")]
+    )
+
+
+class _Unavailable(Exception):
+    """The kernel cannot be built or loaded; the message says why."""
+
+
+_lock = threading.Lock()
+_executor: ThreadPoolExecutor | None = None
+_executor_workers = 0
+_library: ctypes.CDLL | None = None
+_reason: str | None = None
+_build_info: dict = {}
+
+
+def cache_dir() -> Path:
+    """Where compiled kernels are kept (``FACTORQ_CACHE_DIR``, ``XDG_CACHE_HOME``, ``~/.cache``)."""
+    if os.environ.get("FACTORQ_CACHE_DIR"):
+        return Path(os.environ["FACTORQ_CACHE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "factorq_torch"
+
+
+def _compiler() -> list[str]:
+    """The compiler command: ``FACTORQ_CC`` (may carry arguments) or the first of cc, gcc, clang."""
+    override = os.environ.get("FACTORQ_CC")
+    if override is not None:
+        command = shlex.split(override)
+        if not command or shutil.which(command[0]) is None:
+            raise _Unavailable(f"FACTORQ_CC={override!r} is not an executable C compiler")
+        return command
+    for name in ("cc", "gcc", "clang"):
+        if shutil.which(name):
+            return [name]
+    raise _Unavailable("no C compiler found (looked for cc, gcc, clang; set FACTORQ_CC)")
+
+
+def _build() -> tuple[ctypes.CDLL, dict]:
+    """Compile (or find in the cache) and load the kernel: ``(library, info)`` with the info of
+    ``build_info()``; raise ``_Unavailable`` on failure."""
+    compiler = _compiler()
+    try:
+        version = subprocess.run(
+            [*compiler, "--version"], capture_output=True, text=True, timeout=60, check=True
+        ).stdout
+    except (OSError, subprocess.SubprocessError) as error:
+        raise _Unavailable(f"C compiler {' '.join(compiler)!r} does not run: {error}") from error
+    source = _SOURCE.read_bytes()
+    # Everything the binary depends on: a change in any of them builds a new file.
+    identity = "\0".join(
+        [hashlib.sha256(source).hexdigest(), " ".join(compiler), " ".join(_FLAGS), version]
+        + [platform.system(), platform.machine(), str(_ABI_VERSION)]
+    )
+    digest = hashlib.sha256(identity.encode()).hexdigest()[:20]
+    directory = cache_dir()
+    path = directory / f"_kernel-{digest}.so"
+    compile_seconds = None
+    if not path.exists():
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+        except OSError as error:
+            raise _Unavailable(f"cannot create the kernel cache {directory}: {error}") from error
+        # Build under a unique name, then rename: concurrent builders (pytest workers) never see
+        # a half-written file, and the last rename wins with identical content.
+        try:
+            handle, temporary = tempfile.mkstemp(
+                prefix=f"{path.stem}-", suffix=".tmp", dir=directory
+            )
+        except OSError as error:
+            raise _Unavailable(f"cannot write to the kernel cache {directory}: {error}") from error
+        os.close(handle)
+        try:
+            start = time.perf_counter()
+            result = subprocess.run(
+                [*compiler, *_FLAGS, str(_SOURCE), "-o", temporary],
+                capture_output=True,
+                text=True,
+                timeout=300,
+            )
+            compile_seconds = time.perf_counter() - start
+            if result.returncode != 0:
+                raise _Unavailable(
+                    f"compiling {_SOURCE.name} with {' '.join(compiler)!r} failed "
+                    f"(exit {result.returncode}): {result.stderr.strip()[-2000:]}"
+                )
+            os.chmod(temporary, 0o755)  # mkstemp made it private; a shared cache is readable
+            os.replace(temporary, path)
+        except (OSError, subprocess.SubprocessError) as error:
+            raise _Unavailable(f"compiling {_SOURCE.name} failed: {error}") from error
+        finally:
+            if os.path.exists(temporary):
+                os.unlink(temporary)
+    try:
+        library = ctypes.CDLL(str(path))
+    except OSError as error:
+        raise _Unavailable(f"loading the compiled kernel {path} failed: {error}") from error
+    _declare(library, path)
+    info = {"path": str(path), "compiled": compile_seconds is not None}
+    info["seconds"] = compile_seconds or 0.0
+    return library, info
+
+
+def _declare(library: ctypes.CDLL, path: Path) -> None:
+    """Check the kernel's ABI and declare its functions' argument types."""
+    int64, pointer = ctypes.c_int64, ctypes.c_void_p
+    library.fq_abi_version.restype = int64
+    library.fq_batch_size.restype = int64
+    if library.fq_abi_version() != _ABI_VERSION or library.fq_batch_size() != ctypes.sizeof(_Batch):
+        raise _Unavailable(f"the compiled kernel {path} does not match fast.py (stale build?)")
+    batch = ctypes.POINTER(_Batch)
+    library.fq_start.argtypes = [batch]
+    library.fq_start.restype = None
+    library.fq_advance.argtypes = [batch, int64, ctypes.POINTER(int64)]
+    library.fq_advance.restype = int64
+    library.fq_combined_values.argtypes = [pointer, pointer, int64, ctypes.c_float]
+    library.fq_combined_values.argtypes += [ctypes.c_float, pointer, pointer]
+    library.fq_combined_values.restype = None
+    library.fq_scatter.argtypes = [int64] * 5 + [pointer] * 4
+    library.fq_scatter.restype = None
+
+
+def _load() -> ctypes.CDLL | None:
+    """The loaded kernel, building it on the first call; None (with ``_reason``) if impossible."""
+    global _library, _reason
+    with _lock:
+        if _library is None and _reason is None:
+            try:
+                _library, info = _build()
+                _build_info.update(info)
+            except _Unavailable as error:
+                _reason = str(error)
+        return _library
+
+
+def is_available() -> bool:
+    """Whether the compiled kernel can be used here (builds it on the first call)."""
+    return _load() is not None
+
+
+def unavailable_reason() -> str | None:
+    """Why the kernel cannot be used, or None when it can."""
+    _load()
+    return _reason
+
+
+def build_info() -> dict:
+    """``path`` of the loaded kernel, whether this process ``compiled`` it, and in how many
+    ``seconds`` (empty when unavailable)."""
+    _load()
+    return dict(_build_info)
+
+
+def _require() -> ctypes.CDLL:
+    library = _load()
+    if library is None:
+        raise RuntimeError(f"the factorq_torch fast path is unavailable: {_reason}")
+    return library
+
+
+def kernel_combined_values(
+    q: torch.Tensor, rho: torch.Tensor, eta: float, g_min: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The kernel's eq. 2-3 on rows of ``q``, ``rho`` ``[n, 4]`` float32: ``(G [n], C [n, 4])``.
+
+    For differential tests against ``functional.normaliser`` and ``functional.combined_values``.
+    """
+    library = _require()
+    q = q.detach().to(torch.float32).contiguous().view(-1, NUM_ACTIONS)
+    rho = rho.detach().to(torch.float32).contiguous().view(-1, NUM_ACTIONS)
+    if q.shape != rho.shape:
+        raise ValueError(f"q {tuple(q.shape)} and rho {tuple(rho.shape)} must have one shape")
+    g = torch.empty(q.shape[0], dtype=torch.float32)
+    out = torch.empty_like(q)
+    eta_factor, rows = 1 + eta, q.shape[0]
+    library.fq_combined_values(
+        q.data_ptr(), rho.data_ptr(), rows, eta_factor, g_min, g.data_ptr(), out.data_ptr()
+    )
+    return g, out
+
+
+def kernel_scatter(
+    size: int, num_obstacles: int, key: int, scatter_index: int, agent: int
+) -> torch.Tensor:
+    """The kernel's obstacle scatter for one world: ``[size * size]`` bool.
+
+    For differential tests against ``envs.world.scatter_obstacles``.
+    """
+    library = _require()
+    WorldConfig(size=size, num_obstacles=num_obstacles)  # validates the pair
+    num_cells, width = size * size, size + 2
+    cells = torch.arange(num_cells)
+    pad_of_cell = ((cells // size + 1) * width + cells % size + 1).to(torch.int32)
+    grid = torch.empty(width * width, dtype=torch.uint8)
+    pads = torch.empty(max(num_obstacles, 1), dtype=torch.int32)
+    blocked = torch.empty(num_cells, dtype=torch.uint8)
+    library.fq_scatter(
+        size,
+        num_obstacles,
+        key,
+        scatter_index,
+        agent,
+        pad_of_cell.data_ptr(),
+        grid.data_ptr(),
+        pads.data_ptr(),
+        blocked.data_ptr(),
+    )
+    return blocked.bool()
+
+
+def _pool(workers: int) -> ThreadPoolExecutor:
+    """A process-wide pool of at least ``workers`` helper threads (kept between calls: starting
+    threads on every ``advance`` costs more than short chunks of work)."""
+    global _executor, _executor_workers
+    with _lock:
+        if _executor is None or _executor_workers < workers:
+            if _executor is not None:
+                _executor.shutdown(wait=False)
+            _executor = ThreadPoolExecutor(workers, thread_name_prefix="factorq-fast")
+            _executor_workers = workers
+        return _executor
+
+
+# --------------------------------------------------------------------------------------------
+# Argument checks
+
+
+def _check_positive_int(name: str, value, low: int = 1) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise TypeError(f"{name} must be an int, got {value!r} ({type(value).__name__})")
+    if value < low:
+        raise ValueError(f"{name}={value} is out of range: must be >= {low}")
+    return value
+
+
+def _check_vector(name: str, value, count: int | None) -> torch.Tensor:
+    """A 1-d int64 CPU tensor of ``count`` entries (any count when None), made contiguous."""
+    if not isinstance(value, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    if value.dtype != torch.int64:
+        raise TypeError(f"{name} must have dtype torch.int64, got {value.dtype}")
+    if value.dim() != 1 or value.numel() == 0:
+        raise ValueError(
+            f"{name} must be a non-empty 1-d tensor [S], got shape {tuple(value.shape)}"
+        )
+    if count is not None and value.numel() != count:
+        raise ValueError(f"{name} has {value.numel()} entries but periods has {count}")
+    if value.device.type != "cpu":
+        raise ValueError(f"{name} must be on the CPU, got device {value.device}")
+    return value.detach().contiguous().clone()
+
+
+def _check_threads(threads) -> int:
+    if threads is None:
+        return torch.get_num_threads()
+    return _check_positive_int("threads", threads)
+
+
+# --------------------------------------------------------------------------------------------
+# The batch
+
+
+class ExperimentBatch:
+    """S independent experiments of one algorithm, state in tensors, advanced by the C kernel.
+
+    Experiment ``i`` is ``runs`` x ``episodes`` episodes of ``algorithm`` in a world with obstacle
+    period ``periods[i]``, drawing from ``world_keys[i]`` and ``policy_keys[i]`` (from
+    ``rng.derive_keys``); it gives the same numbers alone or in any batch, whatever the thread
+    count and however ``advance`` is chunked. ``algorithm`` is ``"q-learning"``, ``"factor-q"`` or
+    ``RANDOM_WALK`` (env only, for benchmarks). Not safe to advance from two threads at once.
+    """
+
+    def __init__(
+        self,
+        algorithm: str,
+        periods: torch.Tensor,
+        world: WorldConfig,
+        agent: AgentConfig,
+        runs: int,
+        episodes: int,
+        world_keys: torch.Tensor,
+        policy_keys: torch.Tensor,
+        threads: int | None = None,
+    ) -> None:
+        if algorithm not in _ALGORITHM_CODES:
+            choices = ", ".join((*ALGORITHMS, RANDOM_WALK))
+            raise ValueError(f"algorithm={algorithm!r} is unknown: choose one of {choices}")
+        if not isinstance(world, WorldConfig):
+            raise TypeError(f"world must be a WorldConfig, got {type(world).__name__}")
+        if not isinstance(agent, AgentConfig):
+            raise TypeError(f"agent must be an AgentConfig, got {type(agent).__name__}")
+        periods = _check_vector("periods", periods, None)
+        if bool((periods < 0).any()):
+            raise ValueError(
+                f"periods must be >= 0 (0 static, k > 0 moving), got {periods.min().item()}"
+            )
+        count = periods.numel()
+        self.algorithm = algorithm
+        self.world = world
+        self.agent = agent
+        self.runs = _check_positive_int("runs", runs)
+        self.episodes = _check_positive_int("episodes", episodes)
+        self.threads = _check_threads(threads)
+        self._library = _require()
+        world_keys = _check_vector("world_keys", world_keys, count)
+        policy_keys = _check_vector("policy_keys", policy_keys, count)
+
+        size, num_cells = world.size, world.num_cells
+        width = size + 2
+        cells = torch.arange(num_cells)
+        pad_of_cell = ((cells // size + 1) * width + cells % size + 1).to(torch.int32)  # [N]
+        static_grid = torch.ones(width * width, dtype=torch.uint8)  # [P], the wall ring is 1
+        static_grid[pad_of_cell.long()] = 0
+        if bool((periods == 0).any()) and world.num_obstacles:
+            static_grid[pad_of_cell.long()] = static_layout(world).to(torch.uint8)
+        num_states = num_cells * 16 if algorithm == "q-learning" else num_cells
+        if algorithm == RANDOM_WALK:
+            num_states = 0
+        experiment_shape = (count, self.runs, self.episodes)
+
+        def zeros(*shape, dtype=torch.int64):
+            return torch.zeros(shape, dtype=dtype)
+
+        # Every tensor the kernel reads or writes, by its fq_batch field name.
+        self._tensors: dict[str, torch.Tensor] = {
+            "periods": periods,  # [S]
+            "world_keys": world_keys,  # [S]
+            "policy_keys": policy_keys,  # [S]
+            "static_grid": static_grid,  # [P]
+            "pad_of_cell": pad_of_cell,  # [N]
+            "q": zeros(count, num_states, NUM_ACTIONS, dtype=torch.float32),
+            "rho": zeros(count, NUM_ACTIONS, 2, dtype=torch.float32),  # [S, actuator, sensor]
+            "kappa": zeros(count, NUM_ACTIONS, 2),
+            "grid": zeros(count, width * width, dtype=torch.uint8),  # [S, P]
+            "obstacle_pads": zeros(count, world.num_obstacles, dtype=torch.int32),  # [S, K]
+            "cell": zeros(count),
+            "episode_step": zeros(count),
+            "scatters": zeros(count),
+            "policy_counter": zeros(count),
+            "run": zeros(count),
+            "episode": zeros(count),
+            "bump": zeros(count, NUM_ACTIONS, dtype=torch.uint8),
+            "episode_collisions": zeros(count),
+            "episode_greedy_collisions": zeros(count),
+            "episode_task_return": zeros(count, dtype=torch.float32),
+            "steps": zeros(*experiment_shape),
+            "collisions": zeros(*experiment_shape),
+            "greedy_collisions": zeros(*experiment_shape),
+            "task_return": zeros(*experiment_shape, dtype=torch.float32),
+        }
+        pointers = {name: tensor.data_ptr() for name, tensor in self._tensors.items()}
+        self._batch = _Batch(
+            algorithm=_ALGORITHM_CODES[algorithm],
+            num_experiments=count,
+            size=size,
+            num_obstacles=world.num_obstacles,
+            max_steps=world.max_steps,
+            runs=self.runs,
+            episodes=self.episodes,
+            explore_threshold=probability_threshold(agent.epsilon),
+            gamma=agent.gamma,
+            alpha=agent.alpha,
+            eta_factor=1 + agent.eta,
+            g_min=agent.g_min,
+            **pointers,
+        )
+        self._library.fq_start(ctypes.byref(self._batch))
+
+    @property
+    def num_experiments(self) -> int:
+        return self._batch.num_experiments
+
+    @property
+    def done(self) -> bool:
+        """All experiments have finished their runs x episodes."""
+        return bool((self._tensors["run"] >= self.runs).all())
+
+    @property
+    def episodes_completed(self) -> int:
+        """Episodes finished so far, summed over the experiments."""
+        run, episode = self._tensors["run"], self._tensors["episode"]
+        return int((run * self.episodes + episode).sum())
+
+    @property
+    def total_steps(self) -> int:
+        """Env steps taken so far, summed over the experiments (one policy decision per step)."""
+        return int(self._tensors["policy_counter"].sum())
+
+    def advance(self, max_steps: int) -> int:
+        """Run each unfinished experiment for up to ``max_steps`` more env steps (stopping early
+        at its end); return the number of episodes completed in this call (all experiments)."""
+        _check_positive_int("max_steps", max_steps, low=0)
+        if max_steps == 0 or self.done:
+            return 0
+        next_experiment = ctypes.c_int64(0)
+        arguments = (ctypes.byref(self._batch), max_steps, ctypes.byref(next_experiment))
+        threads = min(self.threads, self.num_experiments)
+        if threads == 1:
+            return self._library.fq_advance(*arguments)
+        # ctypes releases the GIL during the call: each thread takes whole experiments from the
+        # shared counter until none is left (results never depend on who ran what).
+        pool = _pool(threads - 1)
+        helpers = [pool.submit(self._library.fq_advance, *arguments) for _ in range(threads - 1)]
+        completed = self._library.fq_advance(*arguments)
+        return completed + sum(helper.result() for helper in helpers)
+
+    def metrics(self) -> dict[str, torch.Tensor]:
+        """Per-episode ``steps``, ``collisions``, ``greedy_collisions`` (int64) and
+        ``task_return`` (float32), each ``[S, runs, episodes]``; zeros where not yet played."""
+        return {name: self._tensors[name].clone() for name in _METRICS}
+
+    def tables(self) -> dict[str, torch.Tensor]:
+        """The learned tables: ``q`` ``[S, states, 4]``, ``rho`` ``[S, 4, 2]`` (float32) and
+        ``kappa`` ``[S, 4, 2]`` (int64; indexed by actuator, then sensor value)."""
+        return {name: self._tensors[name].clone() for name in ("q", "rho", "kappa")}
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """Everything needed to resume exactly: tables, world state, stream positions, counters,
+        partial metrics, and the batch's identity (periods and keys, checked on load)."""
+        state = {
+            name: tensor.clone()
+            for name, tensor in self._tensors.items()
+            if name not in ("static_grid", "pad_of_cell", "grid", "obstacle_pads", "bump")
+        }
+        pads = self._tensors["pad_of_cell"].long()
+        state["obstacles"] = self._tensors["grid"][:, pads].bool()  # [S, N]
+        state["bump"] = self._tensors["bump"].bool()  # [S, 4]
+        return state
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        """Restore a ``state_dict`` of a batch built with the same arguments."""
+        expected = self.state_dict()
+        missing = sorted(set(expected) - set(state))
+        unexpected = sorted(set(state) - set(expected))
+        if missing or unexpected:
+            raise KeyError(f"state_dict mismatch: missing {missing}, unexpected {unexpected}")
+        for name, reference in expected.items():
+            value = state[name]
+            if not isinstance(value, torch.Tensor):
+                raise TypeError(f"state[{name!r}] must be a tensor, got {type(value).__name__}")
+            if value.shape != reference.shape or value.dtype != reference.dtype:
+                raise ValueError(
+                    f"state[{name!r}] has shape {tuple(value.shape)} and dtype {value.dtype}, "
+                    f"expected {tuple(reference.shape)} and {reference.dtype}"
+                )
+        for name in ("periods", "world_keys", "policy_keys"):
+            if not torch.equal(state[name], expected[name]):
+                raise ValueError(f"state[{name!r}] belongs to a different batch")
+        obstacles = state["obstacles"]  # [S, N]
+        counts = obstacles.sum(dim=1)
+        if bool((counts != self.world.num_obstacles).any()):
+            raise ValueError(
+                f"state['obstacles'] must hold num_obstacles={self.world.num_obstacles} per world"
+            )
+        if bool((state["cell"] < 0).any()) or bool((state["cell"] >= self.world.num_cells).any()):
+            raise ValueError(f"state['cell'] must be in [0, {self.world.num_cells})")
+        # In place: the kernel holds these tensors' data pointers.
+        for name, tensor in self._tensors.items():
+            if name in state and name not in ("bump",):
+                tensor.copy_(state[name])
+        pads = self._tensors["pad_of_cell"].long()
+        grid = self._tensors["grid"]
+        grid[:, pads] = obstacles.to(torch.uint8)
+        cells = obstacles.nonzero()[:, 1].view(self.num_experiments, self.world.num_obstacles)
+        self._tensors["obstacle_pads"].copy_(pads[cells])
+        self._tensors["bump"].copy_(state["bump"])
+
+
+def run_experiments(
+    algorithm: str,
+    periods: torch.Tensor,
+    world: WorldConfig,
+    agent: AgentConfig,
+    runs: int,
+    episodes: int,
+    world_keys: torch.Tensor,
+    policy_keys: torch.Tensor,
+    *,
+    threads: int | None = None,
+    progress: Callable[[int], object] | None = None,
+) -> dict[str, torch.Tensor]:
+    """Run S experiments to the end (see ``ExperimentBatch``) and return their ``metrics()``.
+
+    ``progress(n)`` is called with the number of episodes completed since its last call.
+    """
+    batch = ExperimentBatch(
+        algorithm, periods, world, agent, runs, episodes, world_keys, policy_keys, threads
+    )
+    # Chunks only matter for progress reports (results do not depend on them).
+    chunk = 20_000 if progress is not None else 1 << 62
+    while not batch.done:
+        completed = batch.advance(chunk)
+        if progress is not None and completed:
+            progress(completed)
+    return batch.metrics()
