@@ -1,21 +1,31 @@
 """envs: the FactoredGrid world of the paper, for torchrl and gymnasium.
 
-Importing the package registers the gymnasium id ``"FactoredGrid-v0"``.
+Importing the package registers the gymnasium id ``"FactoredGrid-v0"``. The torchrl classes load
+on first use, so code that needs only the pure world functions (``envs.world``, the fast path)
+does not pay for importing torchrl and tensordict.
 """
+
+import importlib
 
 import gymnasium
 
-from envs.grid import FactoredGridEnv
-from envs.transforms import SplitLocalReward, proximity_pattern, qlearning_state
 from envs.world import WorldConfig
 
-__all__ = [
-    "FactoredGridEnv",
-    "SplitLocalReward",
-    "WorldConfig",
-    "proximity_pattern",
-    "qlearning_state",
-]
+_LAZY = {
+    "FactoredGridEnv": "envs.grid",
+    "SplitLocalReward": "envs.transforms",
+    "proximity_pattern": "envs.transforms",
+    "qlearning_state": "envs.transforms",
+}
+
+__all__ = ["WorldConfig", *_LAZY]
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'envs' has no attribute {name!r}")
+
 
 # Episodes end inside the env (truncated at max_steps), so no TimeLimit wrapper is added.
 if "FactoredGrid-v0" not in gymnasium.registry:

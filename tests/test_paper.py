@@ -1,0 +1,361 @@
+"""The paper's experiment: config validation, keys, run() on tiny budgets, and the claims' logic."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+from dataclasses import fields
+
+import numpy as np
+import pytest
+import torch
+
+from factorq_torch import fast
+from trainers import paper
+from trainers.paper import PaperConfig
+
+needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
+TINY = {"seeds": 2, "runs": 2, "episodes": 3, "size": 5, "obstacles": 3}
+
+
+# --------------------------------------------------------------------------------------------
+# Config
+
+
+@pytest.mark.parametrize(
+    ("options", "error", "message"),
+    [
+        ({"seeds": 0}, ValueError, "seeds=0 is out of range: must be >= 1"),
+        ({"seeds": -3}, ValueError, "seeds=-3"),
+        ({"runs": 0}, ValueError, "runs=0"),
+        ({"episodes": -1}, ValueError, "episodes=-1"),
+        ({"seed": -1}, ValueError, "seed=-1"),
+        ({"max_steps": 0}, ValueError, "max_steps=0"),
+        ({"seeds": 2.5}, TypeError, "seeds must be an int"),
+        ({"runs": True}, TypeError, "runs must be an int"),
+        ({"worlds": ("static", "windy")}, ValueError, "'windy' is unknown"),
+        ({"worlds": ("static", "static")}, ValueError, "static given more than once"),
+        ({"worlds": ()}, ValueError, "worlds is empty"),
+        ({"algorithms": ("sarsa",)}, ValueError, "'sarsa' is unknown"),
+        ({"size": 1}, ValueError, "size=1"),
+        ({"size": 3, "obstacles": 7}, ValueError, "obstacles=7 is out of range: must be in [0, 6]"),
+        ({"size": 3, "obstacles": 6}, ValueError, "obstacles=6"),  # no static layout with a path
+        ({"obstacles": -1}, ValueError, "obstacles=-1"),
+        ({"epsilon": 1.5}, ValueError, "epsilon=1.5"),
+        ({"gamma": 1.0}, ValueError, "gamma=1.0"),
+        ({"alpha": 0.0}, ValueError, "alpha=0.0"),
+        ({"g_min": 0.0}, ValueError, "g_min=0.0"),
+        ({"threads": 0}, ValueError, "threads=0"),
+        ({"backend": "gpu"}, ValueError, "backend='gpu' is unknown"),
+        ({"device": "toaster"}, ValueError, "device='toaster' is not a torch device"),
+        ({"backend": "fast", "device": "cuda"}, ValueError, "not supported by backend 'fast'"),
+    ],
+)
+def test_config_rejects_invalid_values_naming_option_and_range(options, error, message):
+    with pytest.raises(error) as raised:
+        PaperConfig(**options)
+    assert message in str(raised.value)
+
+
+def test_config_rejects_an_out_that_is_an_existing_file(tmp_path):
+    existing = tmp_path / "results.txt"
+    existing.write_text("not a directory")
+    with pytest.raises(ValueError, match="is an existing file"):
+        PaperConfig(out=str(existing))
+
+
+def test_config_defaults_are_the_papers_experiment_with_100_seeds():
+    config = PaperConfig()
+    assert (config.seeds, config.runs, config.episodes) == (100, 10, 200)
+    assert (config.size, config.obstacles, config.max_steps) == (10, 10, 10_000)
+    assert config.worlds == ("static", "semi-dynamic", "dynamic")
+    assert config.algorithms == ("q-learning", "factor-q")
+    assert config.agent.epsilon == 0.01 and config.agent.gamma == 0.9 and config.agent.alpha == 0.2
+
+
+def test_config_takes_names_in_any_order_or_comma_separated_and_keeps_canonical_order():
+    assert PaperConfig(worlds="dynamic, static").worlds == ("static", "dynamic")
+    assert PaperConfig(algorithms=["factor-q", "q-learning"]).algorithms == (
+        "q-learning",
+        "factor-q",
+    )
+
+
+def test_every_config_field_has_a_one_line_doc_for_help():
+    docs = paper.field_docs(PaperConfig)
+    for field in fields(PaperConfig):
+        assert docs.get(field.name), f"{field.name} has no docstring"
+        assert "\n" not in docs[field.name]
+
+
+def test_config_round_trips_through_its_json_dict():
+    config = PaperConfig(seeds=3, worlds=("static",), threads=2)
+    data = json.loads(json.dumps(paper.config_dict(config)))
+    assert paper.config_from_dict(data) == config
+
+
+# --------------------------------------------------------------------------------------------
+# Keys
+
+
+def test_keys_of_a_seed_and_world_do_not_depend_on_what_else_is_selected():
+    full = PaperConfig(seeds=3)
+    part = PaperConfig(seeds=5, worlds=("dynamic",))
+    for algorithm in ("q-learning", "factor-q"):
+        periods, world_keys, policy_keys = paper.experiment_keys(full, algorithm)
+        part_periods, part_world, part_policy = paper.experiment_keys(part, algorithm)
+        # full is ordered world-major: dynamic is the third block of 3 seeds
+        assert torch.equal(periods[6:], torch.ones(3, dtype=periods.dtype))
+        assert torch.equal(world_keys[6:], part_world[:3])
+        assert torch.equal(policy_keys[6:], part_policy[:3])
+        assert torch.equal(part_periods, torch.ones(5, dtype=periods.dtype))
+
+
+def test_both_algorithms_share_world_keys_but_not_policy_keys():
+    config = PaperConfig(seeds=4)
+    _, world_q, policy_q = paper.experiment_keys(config, "q-learning")
+    _, world_f, policy_f = paper.experiment_keys(config, "factor-q")
+    assert torch.equal(world_q, world_f)  # common random numbers for the worlds
+    assert len(set(policy_q.tolist()) | set(policy_f.tolist())) == 2 * policy_q.numel()
+    assert len(set(world_q.tolist())) == world_q.numel()
+
+
+# --------------------------------------------------------------------------------------------
+# run() on tiny budgets
+
+
+@pytest.fixture(scope="module")
+def tiny_results():
+    if not fast.is_available():
+        pytest.skip("fast backend unavailable")
+    return paper.run(PaperConfig(**TINY))
+
+
+@needs_fast
+def test_run_returns_the_results_schema(tiny_results):
+    seeds, episodes = TINY["seeds"], TINY["episodes"]
+    assert list(tiny_results) == ["config", "cells", "claims", "statistics", "software", "timing"]
+    assert tiny_results["config"] == paper.config_dict(PaperConfig(**TINY))
+    assert list(tiny_results["cells"]) == [
+        f"{world}/{algorithm}" for world in paper.WORLDS for algorithm in paper.ALGORITHMS
+    ]
+    for cell in tiny_results["cells"].values():
+        for name in ("total_steps", "collisions", "greedy_collisions", "task_return"):
+            assert len(cell["per_seed"][name]) == seeds
+            assert set(cell["summary"][name]) == {"mean", "ci95"}
+        for name in ("steps", "collisions", "greedy_collisions"):
+            for key in ("curves", "curves_ci_low", "curves_ci_high"):
+                assert len(cell[key][name]) == episodes
+        # a run's total steps is the sum of its episodes' steps: the curve sums to it
+        assert math.isclose(sum(cell["curves"]["steps"]), np.mean(cell["per_seed"]["total_steps"]))
+        greedy, collisions = cell["per_seed"]["greedy_collisions"], cell["per_seed"]["collisions"]
+        assert all(g <= c for g, c in zip(greedy, collisions, strict=True))
+    assert list(tiny_results["claims"]) == ["C1", "C2", "C3", "C4", "C5"]
+    for claim in tiny_results["claims"].values():
+        assert isinstance(claim["pass"], bool)
+        assert {"value", "ci95", "detail", "statement", "threshold", "measures"} <= set(claim)
+    assert tiny_results["timing"]["wall_s"] > 0
+    assert {"python", "torch", "torchrl", "numpy", "platform"} <= set(tiny_results["software"])
+
+
+@needs_fast
+def test_same_seed_gives_identical_results_apart_from_timing(tiny_results):
+    again = paper.run(PaperConfig(**TINY, threads=1))  # the thread count changes nothing either
+    first, second = dict(tiny_results), dict(again)
+    first.pop("timing"), second.pop("timing")
+    first["config"] = second["config"] = None  # threads differs in the config only
+    assert paper.dumps_results(first) == paper.dumps_results(second)
+
+
+@needs_fast
+def test_another_seed_gives_other_numbers(tiny_results):
+    other = paper.run(PaperConfig(**TINY, seed=1))
+    assert other["cells"] != tiny_results["cells"]
+
+
+@needs_fast
+def test_a_seeds_results_do_not_depend_on_the_number_of_seeds_or_worlds(tiny_results):
+    more = paper.run(PaperConfig(**{**TINY, "seeds": 3, "worlds": ("dynamic",)}))
+    for algorithm in ("q-learning", "factor-q"):
+        few = tiny_results["cells"][f"dynamic/{algorithm}"]["per_seed"]
+        many = more["cells"][f"dynamic/{algorithm}"]["per_seed"]
+        for name, values in few.items():
+            assert many[name][:2] == values
+
+
+@needs_fast
+def test_run_reports_progress_up_to_every_episode_and_experiment():
+    reports = []
+    paper.run(PaperConfig(**{**TINY, "worlds": ("static",)}), progress=reports.append)
+    total = 2 * TINY["seeds"] * TINY["runs"] * TINY["episodes"]
+    assert reports[0] == paper.Progress(0, total, 0, 2 * TINY["seeds"])
+    assert reports[-1] == paper.Progress(total, total, 2 * TINY["seeds"], 2 * TINY["seeds"])
+    completed = [report.episodes_completed for report in reports]
+    assert completed == sorted(completed)
+
+
+def test_modular_torchrl_backend_gives_the_same_results_as_the_fast_path(tiny_results):
+    # The same keys drive both: the collector (env + tables + policy + loss) and the C kernel
+    # must agree exactly on every per-seed number, curve and claim.
+    modular = paper.run(PaperConfig(**TINY, backend="modular"))
+    assert modular["timing"]["backend"] == "modular"
+    assert tiny_results["timing"]["backend"] == "fast"
+    first, second = dict(tiny_results), dict(modular)
+    for results in (first, second):
+        results.pop("timing")
+    first["config"] = second["config"] = None  # the backend field differs in the config only
+    assert paper.dumps_results(first) == paper.dumps_results(second)
+
+
+# --------------------------------------------------------------------------------------------
+# Claims on synthetic results
+
+# Means per run like SPEC section 5's table: (total steps, collisions, greedy collisions).
+PAPER_LIKE = {
+    "static/q-learning": (13245, 970, 950),
+    "static/factor-q": (12261, 18, 0.4),
+    "semi-dynamic/q-learning": (22456, 2878, 2837),
+    "semi-dynamic/factor-q": (13096, 41, 19),
+    "dynamic/q-learning": (22659, 2438, 2400),
+    "dynamic/factor-q": (12924, 29, 5.7),
+}
+
+
+def synthetic_cells(means=PAPER_LIKE, seeds=20, spread=0.01):
+    """Cells whose per-seed values scatter by ``spread`` (relative) around ``means``."""
+    generator = np.random.default_rng(0)
+    cells = {}
+    for name, values in means.items():
+        per_seed = {
+            measure: (value * (1 + spread * generator.standard_normal(seeds))).tolist()
+            for measure, value in zip(paper.MEASURES, values, strict=True)
+        }
+        cells[name] = {"per_seed": per_seed}
+    return cells
+
+
+def changed(cell, measure, value):
+    means = copy.deepcopy(PAPER_LIKE)
+    values = list(means[cell])
+    values[paper.MEASURES.index(measure)] = value
+    means[cell] = tuple(values)
+    return means
+
+
+def test_all_claims_pass_on_the_specs_reference_numbers():
+    claims = paper.compute_claims(synthetic_cells())
+    assert {name: claim["pass"] for name, claim in claims.items()} == dict.fromkeys(claims, True)
+    assert claims["C2"]["value"] == pytest.approx(13245 / 12261, rel=0.02)
+    low, high = claims["C2"]["ci95"]
+    assert low <= claims["C2"]["value"] <= high
+
+
+@pytest.mark.parametrize(
+    ("claim", "means"),
+    [
+        ("C1", changed("dynamic/factor-q", "collisions", 2500)),  # worse than Q-learning's 2438
+        ("C1", changed("semi-dynamic/factor-q", "total_steps", 23000)),
+        ("C2", changed("static/factor-q", "total_steps", 9000)),  # 13245 / 9000 = 1.47
+        ("C2", changed("static/q-learning", "total_steps", 9000)),  # 0.73
+        ("C3", changed("static/factor-q", "collisions", 200)),  # 970 / 200 = 4.9
+        ("C4", changed("dynamic/factor-q", "total_steps", 16000)),  # 12261 / 16000 = 0.77
+        (
+            "C4",
+            {
+                **PAPER_LIKE,
+                "semi-dynamic/q-learning": (14000, 2878, 2837),
+                "dynamic/q-learning": (14000, 2438, 2400),
+            },
+        ),  # Q-learning barely slows: 0.95
+        ("C4", changed("semi-dynamic/q-learning", "total_steps", 40000)),  # 0.33, too slow
+        ("C5", changed("semi-dynamic/factor-q", "greedy_collisions", 40)),  # 2837 / 40 = 71
+    ],
+)
+def test_a_claim_that_should_fail_fails(claim, means):
+    claims = paper.compute_claims(synthetic_cells(means))
+    assert claims[claim]["pass"] is False, claims[claim]["detail"]
+
+
+@pytest.mark.parametrize(
+    ("ratio", "passes"), [(0.79, False), (0.81, True), (1.24, True), (1.26, False)]
+)
+def test_c2_passes_exactly_inside_its_interval(ratio, passes):
+    means = changed("static/q-learning", "total_steps", 12261 * ratio)
+    claims = paper.compute_claims(synthetic_cells(means, spread=0.0))
+    assert claims["C2"]["pass"] is passes
+
+
+def test_c4_compares_learning_speed_as_inverse_total_steps():
+    claims = paper.compute_claims(synthetic_cells(spread=0.0))
+    assert claims["C4"]["value"]["factor-q"] == pytest.approx(12261 / 13096)  # worst moving
+    assert claims["C4"]["value"]["q-learning"] == pytest.approx(13245 / 22659)
+
+
+def test_claims_needing_cells_that_were_not_run_are_not_evaluated():
+    static_only = {name: cell for name, cell in synthetic_cells().items() if "static/" in name}
+    claims = paper.compute_claims(static_only)
+    for name in ("C1", "C4", "C5"):
+        assert claims[name]["pass"] is None and claims[name]["value"] is None
+        assert "not evaluated" in claims[name]["detail"]
+        assert "semi-dynamic/q-learning" in claims[name]["detail"]
+    assert claims["C2"]["pass"] is True and claims["C3"]["pass"] is True
+    one_algorithm = {k: v for k, v in synthetic_cells().items() if k.endswith("factor-q")}
+    assert all(c["pass"] is None for c in paper.compute_claims(one_algorithm).values())
+
+
+def test_a_single_seed_gives_values_without_intervals():
+    claims = paper.compute_claims(synthetic_cells(seeds=1))
+    assert all(claim["ci95"] is None and claim["pass"] is True for claim in claims.values())
+
+
+def test_a_zero_denominator_gives_null_not_infinity_and_still_passes():
+    means = changed("static/factor-q", "greedy_collisions", 0)
+    claims = paper.compute_claims(synthetic_cells(means, spread=0.0))
+    static = claims["C5"]["measures"][0]
+    assert static["value"] is None and static["pass"] is True
+    assert claims["C5"]["pass"] is True
+    json.dumps(claims, allow_nan=False)  # strict JSON: no Infinity or NaN anywhere
+
+
+def test_claim_intervals_are_reproducible_from_the_seed():
+    cells = synthetic_cells()
+    assert paper.compute_claims(cells, seed=3) == paper.compute_claims(cells, seed=3)
+    assert paper.compute_claims(cells, seed=3) != paper.compute_claims(cells, seed=4)
+
+
+# --------------------------------------------------------------------------------------------
+# Statistics and files
+
+
+def test_t_critical_matches_tables():
+    # Student's t table, two-sided 95%: df 1 -> 12.706, 2 -> 4.303, 10 -> 2.228, 30 -> 2.042
+    for df, expected in [(1, 12.706), (2, 4.303), (10, 2.228), (30, 2.042), (5000, 1.9604)]:
+        assert paper.t_critical(df) == pytest.approx(expected, abs=1e-3)
+
+
+def test_mean_ci_is_mean_plus_minus_t_times_standard_error():
+    samples = np.array([1.0, 2.0, 3.0])  # mean 2, sd 1, se 1/sqrt(3), t(2) = 4.303
+    mean, low, high = paper.mean_ci(samples)
+    assert mean == 2.0 and high - mean == pytest.approx(4.303 / math.sqrt(3), abs=1e-3)
+    assert paper.mean_ci(samples[:1])[1] is None
+
+
+def test_results_json_keeps_number_lists_on_one_line_and_is_strict_json():
+    text = paper.dumps_results({"a": [1.0, 2.5], "b": {"c": [float("inf"), 3]}, "d": "x"})
+    assert '"a": [1.0, 2.5]' in text
+    assert json.loads(text) == {"a": [1.0, 2.5], "b": {"c": [None, 3]}, "d": "x"}
+
+
+def test_write_atomic_leaves_the_old_file_when_writing_fails(tmp_path):
+    target = tmp_path / "results.json"
+    target.write_text("old")
+
+    def broken(path):
+        path.write_text("half")
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        paper.write_atomic(target, broken)
+    assert target.read_text() == "old"
+    assert [path.name for path in tmp_path.iterdir()] == ["results.json"]
