@@ -224,6 +224,8 @@ class FactoredGridEnv(EnvBase):
             seed = 0
         if not _is_int(seed):
             raise TypeError(f"seed must be an int or None, got {seed!r} ({type(seed).__name__})")
+        if seed < 0:
+            raise ValueError(f"seed={seed} is out of range: must be >= 0")
         self.world_seed = seed
         self.world_keys = derive_keys(
             seed, STREAM_WORLD, self.num_worlds, self.experiment_offset

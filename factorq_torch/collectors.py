@@ -112,6 +112,13 @@ class OnlineCollector(BaseCollector):
         progress: ProgressCallback | None = None,
     ) -> None:
         super().__init__()
+        for name, value, kind, what in (
+            ("env", env, EnvBase, "a torchrl env (EnvBase)"),
+            ("policy", policy, torch.nn.Module, "a TensorDict module"),
+            ("loss", loss, LossModule, "a torchrl LossModule"),
+        ):
+            if not isinstance(value, kind):
+                raise TypeError(f"{name} must be {what}, got {type(value).__name__}")
         self.runs = _check_positive_int("runs", runs)
         self.episodes = _check_positive_int("episodes", episodes)
         if len(env.batch_size) != 1:
@@ -269,17 +276,20 @@ class OnlineCollector(BaseCollector):
         return seed
 
     def state_dict(self) -> OrderedDict:
-        """Counters, metrics, policy and loss state (tables, streams). The env's world state is
-        not included: restore between episodes of a static world, or rebuild the env."""
+        """Counters, metrics, policy and loss state (tables, streams) and the observation the
+        next step acts on, as plain tensors and containers (``torch.load(weights_only=True)``
+        reads them back). The env's world state is not included: it belongs to the env (for
+        ``FactoredGridEnv``, save its ``world_state`` alongside to resume mid-episode)."""
         return OrderedDict(
             policy=self.policy.state_dict(),
             loss=self.loss.state_dict(),
             optimizer=self.optimizer.state_dict(),
-            metrics=self.metrics.clone(),
+            metrics=self.metrics.clone().to_dict(),
             run_index=self.run_index.clone(),
             episode_index=self.episode_index.clone(),
             episode_sums={name: value.clone() for name, value in self._episode.items()},
             finished=self.finished.clone(),
+            observation=None if self._td is None else self._td.clone().to_dict(),
         )
 
     def load_state_dict(self, state_dict: OrderedDict) -> None:
@@ -292,6 +302,12 @@ class OnlineCollector(BaseCollector):
         self._episode = {name: value.clone() for name, value in state_dict["episode_sums"].items()}
         self.finished = state_dict["finished"].clone()
         self._any_finished = bool(self.finished.any())
+        observation = state_dict.get("observation")
+        self._td = (
+            None
+            if observation is None
+            else TensorDict(observation, batch_size=[self.num_experiments], device=self.env.device)
+        )
 
     def __len__(self) -> int:
         # TypeError (not torchrl's RuntimeError) so that list(collector) works.

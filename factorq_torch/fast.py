@@ -489,6 +489,11 @@ class ExperimentBatch:
         return bool((self._tensors["run"] >= self.runs).all())
 
     @property
+    def experiments_finished(self) -> int:
+        """Experiments that have finished all their runs x episodes."""
+        return int((self._tensors["run"] >= self.runs).sum())
+
+    @property
     def episodes_completed(self) -> int:
         """Episodes finished so far, summed over the experiments."""
         run, episode = self._tensors["run"], self._tensors["episode"]

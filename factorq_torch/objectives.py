@@ -55,6 +55,15 @@ from factorq_torch.tables import check_mask
 REDUCTIONS = ("sum", "mean")
 
 
+def _check_provider(name: str, module: object) -> None:
+    """A value provider must be a TensorDict module (a table, a network, a sequence of them)."""
+    if not isinstance(module, TensorDictModuleBase):
+        raise TypeError(
+            f"{name} must be a TensorDict module (e.g. TaskQTable, LocalRewardTable or a "
+            f"network), got {type(module).__name__}"
+        )
+
+
 def tabular_optimizer(loss: LossModule) -> torch.optim.SGD:
     """Plain SGD of learning rate 1 over ``loss.parameters()``: one ``step()`` after
     ``loss(td)["loss_task"].backward()`` applies ``Q + alpha (target - Q)`` exactly."""
@@ -187,6 +196,7 @@ class TabularQLoss(_TransitionLoss):
         reduction: str = "sum",
     ) -> None:
         super().__init__(gamma=gamma, alpha=alpha, reduction=reduction)
+        _check_provider("task_value_network", task_value_network)
         self.task_value_network = task_value_network
 
     @property
@@ -276,7 +286,9 @@ class FactorQLoss(_TransitionLoss):
         super().__init__(gamma=gamma, alpha=alpha, reduction=reduction)
         AgentConfig(eta=eta, g_min=g_min)
         self.eta, self.g_min = float(eta), float(g_min)
+        _check_provider("task_value_network", task_value_network)
         self.task_value_network = task_value_network
+        _check_provider("local_value_network", local_value_network)
         self.local_value_network = local_value_network
 
     @property

@@ -18,6 +18,8 @@ counter stays put (its ``action`` is computed but meaningless). Keys and counter
 
 from __future__ import annotations
 
+import numbers
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
@@ -88,6 +90,11 @@ class EpsilonGreedyPolicy(TensorDictModuleBase):
 
     def set_seed(self, seed: int, offset: int = 0) -> None:
         """Derive the keys from ``seed`` (experiments ``offset ..``) and rewind the streams."""
+        for name, value in (("seed", seed), ("offset", offset)):
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+                raise TypeError(f"{name} must be an int, got {value!r} ({type(value).__name__})")
+            if value < 0:
+                raise ValueError(f"{name}={value} is out of range: must be >= 0")
         self.set_stream_keys(derive_keys(seed, STREAM_POLICY, self.num_experiments, offset))
 
     @torch.no_grad()

@@ -91,6 +91,8 @@ def probability_threshold(probability: float) -> int:
 
     Comparing integers keeps the decision identical in every implementation.
     """
+    if not 0.0 <= probability <= 1.0:  # False for NaN too
+        raise ValueError(f"probability={probability!r} is out of range: must be in [0, 1]")
     return round(probability * (1 << 32))
 
 
@@ -100,6 +102,9 @@ def derive_keys(seed: int, stream: int, count: int, offset: int = 0) -> torch.Te
     A key depends on ``(seed, stream, index)`` only, so experiment ``i`` of a batch of 600 draws
     exactly what it draws in a batch of one that starts at ``offset=i``.
     """
+    for name, value in (("count", count), ("offset", offset)):
+        if value < 0:
+            raise ValueError(f"{name}={value} is out of range: must be >= 0")
     base = mix64_int(mix64_int(seed * GOLDEN + stream) + stream * _MIX1)
     keys = [_signed(mix64_int(base + (offset + i + 1) * GOLDEN)) for i in range(count)]
     return torch.tensor(keys, dtype=torch.int64)

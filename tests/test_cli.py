@@ -110,7 +110,7 @@ def test_report_of_a_directory_without_results_is_an_error(tmp_path, capsys):
 
 
 def test_interrupt_during_the_run_exits_130_and_writes_nothing(tmp_path, capsys, monkeypatch):
-    def interrupted_run(config, progress=None):
+    def interrupted_run(config, progress=None, **checkpointing):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(paper, "run", interrupted_run)

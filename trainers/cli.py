@@ -12,8 +12,9 @@ from dataclasses import MISSING, fields
 from pathlib import Path
 from typing import Any
 
-from trainers import paper
+from trainers import checkpoint, paper
 
+EXIT_FAILURE = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, what shells report for Ctrl-C
 _LIST_FIELDS = {"worlds": paper.WORLDS, "algorithms": paper.ALGORITHMS}
@@ -85,9 +86,23 @@ def build_parser() -> argparse.ArgumentParser:
         "results.json, figure3.png and report.md to --out.",
     )
     _add_config_options(paper_parser)
+    paper_parser.add_argument(
+        "--checkpoint-every",
+        metavar="EVERY",
+        help="Save the run's whole state to OUT/checkpoint/ every EVERY episodes (summed over all "
+        "experiments, e.g. 5000) or seconds (e.g. 30s; also 10m, 1h), atomically, keeping the "
+        "previous checkpoint too; removed when the run finishes. (default: off)",
+        default=argparse.SUPPRESS,
+    )
+    paper_parser.add_argument(
+        "--resume",
+        metavar="DIR",
+        help="Continue the interrupted run whose --out is DIR from its last checkpoint, with the "
+        "config saved there (options repeated must match it; --threads and --checkpoint-every "
+        "may change) and the same numbers as an uninterrupted run.",
+        default=argparse.SUPPRESS,
+    )
     paper_parser.set_defaults(handler=_paper, command_parser=paper_parser)
-    # Checkpointing (a later issue): --checkpoint-every and --resume DIR are added here, next to
-    # the config options, and handled in `_paper` around `paper.run`.
     report_parser = commands.add_parser(
         "report",
         help="redraw figure3.png and report.md from a results directory",
@@ -98,8 +113,8 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _config_from_args(args: argparse.Namespace) -> paper.PaperConfig:
-    """A validated config from the parsed options (ValueError/TypeError when invalid)."""
+def _given_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The config fields given on the command line (field name -> value)."""
     values = {
         field.name: getattr(args, field.name)
         for field in fields(paper.PaperConfig)
@@ -108,14 +123,23 @@ def _config_from_args(args: argparse.Namespace) -> paper.PaperConfig:
     for name in _LIST_FIELDS:
         if name in values:  # repeated and/or comma-separated
             values[name] = [item for given in values[name] for item in given.split(",")]
-    return paper.PaperConfig(**values)
+    return values
+
+
+def _config_from_args(args: argparse.Namespace) -> paper.PaperConfig:
+    """A validated config from the parsed options (ValueError/TypeError when invalid)."""
+    return paper.PaperConfig(**_given_options(args))
 
 
 def _as_option(message: str) -> str:
-    """``seeds=0 is out of range`` -> ``--seeds=0 is out of range`` (the name the user typed)."""
-    names = {field.name for field in fields(paper.PaperConfig)}
+    """``seeds=0 is out of range`` -> ``--seeds=0 is out of range`` (the names the user typed):
+    a leading ``name:`` and every ``name=`` of an option."""
+    names = {field.name for field in fields(paper.PaperConfig)} | {"checkpoint_every", "resume"}
+    message = re.sub(
+        r"^(\w+)(?=:)", lambda m: _option(m[1]) if m[1] in names else m[1], message, count=1
+    )
     return re.sub(
-        r"^(\w+)(?=[=:])", lambda m: _option(m[1]) if m[1] in names else m[1], message, count=1
+        r"(?<![\w.'-])(\w+)(?==)", lambda m: _option(m[1]) if m[1] in names else m[1], message
     )
 
 
@@ -132,6 +156,7 @@ class _Bar:
         if self.bar is None:
             self.bar = self._tqdm(
                 total=progress.episodes_total,
+                initial=progress.episodes_completed,  # a resumed run starts part way
                 desc="factorq paper",
                 unit="episode",
                 unit_scale=True,
@@ -151,8 +176,17 @@ class _Bar:
 
 
 def _paper(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    resume = None
     try:
-        config = _config_from_args(args)
+        every = getattr(args, "checkpoint_every", None)
+        if every is not None:
+            every = checkpoint.parse_every(every)
+        if hasattr(args, "resume"):
+            resume = checkpoint.load(args.resume)
+            config = paper.resume_config(resume.config, _given_options(args), args.resume)
+        else:
+            config = _config_from_args(args)
+            checkpoint.check_none_in(config.out)
         backend = paper.resolve_backend(config)
         paper.backend_driver(backend)
     except (ValueError, TypeError, NotImplementedError) as error:
@@ -160,19 +194,35 @@ def _paper(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         return EXIT_USAGE
     bar = _Bar()
     try:
+        if resume is not None:
+            print(
+                f"resuming {args.resume} from {resume.path.name} of {resume.saved_utc} "
+                f"({resume.episodes_completed} episodes done)",
+                file=sys.stderr,
+            )
         print(
             f"{len(config.cells) * config.seeds} experiments ({config.seeds} seeds x "
             f"{len(config.worlds)} worlds x {len(config.algorithms)} algorithms), "
             f"{config.runs} runs x {config.episodes} episodes each, {backend} backend",
             file=sys.stderr,
         )
-        results = paper.run(config, progress=bar)
+        results = paper.run(config, progress=bar, checkpoint_every=every, resume=resume)
         bar.close()
         paths = paper.write_results(results, config.out)
+        checkpoint.remove(config.out)  # the results are complete: nothing left to resume
     except KeyboardInterrupt:
         bar.close()
-        print(f"{parser.prog}: interrupted", file=sys.stderr)
+        kept = f" (resume it with --resume {config.out})" if checkpoint.exists(config.out) else ""
+        print(f"{parser.prog}: interrupted{kept}", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except checkpoint.CheckpointError as error:
+        bar.close()
+        _error(parser, _as_option(str(error)))
+        return EXIT_USAGE
+    except OSError as error:  # a full disk, a directory that vanished: say so in one line
+        bar.close()
+        print(f"{parser.prog}: error: {error}", file=sys.stderr)
+        return EXIT_FAILURE
     from trainers.report import claim_value, verdict
 
     wall = results["timing"]["wall_s"]

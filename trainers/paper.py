@@ -43,6 +43,7 @@ import torch
 from envs.world import WorldConfig, static_layout
 from factorq_torch.config import ALGORITHMS, AgentConfig
 from factorq_torch.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
+from trainers import checkpoint
 
 #: The paper's three worlds and their obstacle periods (SPEC section 1), in canonical order; a
 #: world's index here is part of its experiments' keys.
@@ -280,8 +281,10 @@ def _run_fast(
     world_keys: torch.Tensor,
     policy_keys: torch.Tensor,
     report: Callable[[int, int], None],
+    checkpoints: checkpoint.Checkpointer,
 ) -> dict[str, torch.Tensor]:
-    """One algorithm's experiments on the compiled fast path, in chunks (progress, Ctrl-C)."""
+    """One algorithm's experiments on the compiled fast path, in chunks (progress, Ctrl-C,
+    checkpoints)."""
     from factorq_torch.fast import ExperimentBatch
 
     batch = ExperimentBatch(
@@ -295,14 +298,20 @@ def _run_fast(
         policy_keys,
         threads=config.threads,
     )
-    # Chunks of about a quarter of a second keep the progress bar alive and Ctrl-C prompt;
-    # results do not depend on the chunking.
+    checkpoints.restore(algorithm, batch.load_state_dict)
+    finished = batch.experiments_finished
+    # Chunks of about a quarter of a second keep the progress bar alive, Ctrl-C prompt and
+    # checkpoints on time; results do not depend on the chunking.
     chunk = 1_000
     while not batch.done:
         started = time.perf_counter()
         completed = batch.advance(chunk)
         elapsed = time.perf_counter() - started
-        report(completed, len(periods) if batch.done else 0)
+        now_finished = batch.experiments_finished
+        report(completed, now_finished - finished)
+        finished = now_finished
+        if checkpoints.due() and not batch.done:
+            checkpoints.save(algorithm, batch.state_dict())
         chunk = int(min(max(chunk * 0.25 / max(elapsed, 1e-3), 100), 1_000_000))
     return batch.metrics()
 
@@ -314,6 +323,7 @@ def _run_modular(
     world_keys: torch.Tensor,
     policy_keys: torch.Tensor,
     report: Callable[[int, int], None],
+    checkpoints: checkpoint.Checkpointer,
 ) -> dict[str, torch.Tensor]:
     """One algorithm's experiments on the modular torchrl path (env, tables, policy, loss,
     ``OnlineCollector``): the fallback where no C compiler is available, and the reference the
@@ -329,7 +339,7 @@ def _run_modular(
 
     world, agent, device = config.world, config.agent, torch.device(config.device)
     num = len(periods)
-    env = FactoredGridEnv(
+    env = grid = FactoredGridEnv(
         size=world.size,
         num_obstacles=world.num_obstacles,
         obstacle_period=periods,
@@ -363,55 +373,112 @@ def _run_modular(
     collector = OnlineCollector(
         env, policy, loss, runs=config.runs, episodes=config.episodes, progress=report
     )
-    return dict(collector.run().items())
+
+    def load_state(state: dict[str, Any]) -> None:
+        collector.load_state_dict(_to_device(state["collector"], device))
+        saved = state["world_state"]
+        for name, tensor in grid.world_state._asdict().items():
+            if saved[name].shape != tensor.shape or saved[name].dtype != tensor.dtype:
+                raise ValueError(f"world_state[{name!r}] does not fit this batch")
+        grid.world_state = type(grid.world_state)(**_to_device(saved, device))
+
+    checkpoints.restore(algorithm, load_state)
+    while not collector.done:
+        collector.step()
+        if checkpoints.due() and not collector.done:
+            state = {"collector": collector.state_dict(), "world_state": grid.world_state._asdict()}
+            checkpoints.save(algorithm, _to_device(state, torch.device("cpu")))
+    return dict(collector.metrics.items())
+
+
+def _to_device(tree: Any, device: torch.device) -> Any:
+    """``tree`` (nested dicts and lists of tensors) with every tensor on ``device``."""
+    if isinstance(tree, torch.Tensor):
+        return tree.to(device)
+    if isinstance(tree, dict):
+        return type(tree)((key, _to_device(value, device)) for key, value in tree.items())
+    if isinstance(tree, list):
+        return [_to_device(value, device) for value in tree]
+    return tree
 
 
 def backend_driver(backend: str) -> Callable[..., dict[str, torch.Tensor]]:
     """The function that runs one algorithm's experiments on ``backend``.
 
-    Its signature: ``(config, algorithm, periods, world_keys, policy_keys, report) -> metrics``,
-    where ``report(episodes_completed, experiments_finished)`` counts progress since its last call
-    and ``metrics`` are ``ExperimentBatch.metrics()`` (``[W * S, runs, episodes]`` each).
+    Its signature: ``(config, algorithm, periods, world_keys, policy_keys, report, checkpoints)
+    -> metrics``, where ``report(episodes_completed, experiments_finished)`` counts progress since
+    its last call, ``checkpoints`` (a ``checkpoint.Checkpointer``) restores a resumed state and
+    saves when due, and ``metrics`` are ``ExperimentBatch.metrics()`` (``[W * S, runs,
+    episodes]`` each).
     """
     return _run_fast if backend == "fast" else _run_modular
 
 
-def run(config: PaperConfig, progress: ProgressCallback | None = None) -> dict[str, Any]:
+def run(
+    config: PaperConfig,
+    progress: ProgressCallback | None = None,
+    *,
+    checkpoint_every: checkpoint.Every | str | int | None = None,
+    resume: checkpoint.Checkpoint | None = None,
+) -> dict[str, Any]:
     """Run the paper's experiment and return its results (the schema of ``results.json``).
 
     ``progress`` is called with a ``Progress`` after every chunk of work. Everything but the
-    ``"timing"`` section is a function of ``config`` alone (same config, same numbers).
+    ``"timing"`` section is a function of ``config`` alone (same config, same numbers), however
+    often the run was interrupted and resumed.
+
+    ``checkpoint_every`` (episodes summed over all experiments, or seconds: ``"30s"``) saves the
+    whole state to ``<config.out>/checkpoint/`` that often (see ``trainers.checkpoint``); the
+    caller removes it with ``checkpoint.remove(config.out)`` once the results are written.
+    ``resume`` (``checkpoint.load(out)``, with ``config`` from ``resume_config``) continues from
+    a checkpoint, saving at its interval unless ``checkpoint_every`` is given. A new run refuses
+    an ``out`` that holds an unfinished run's checkpoint.
     """
     started = time.perf_counter()
     backend = resolve_backend(config)
     driver = backend_driver(backend)
+    if resume is not None:
+        _check_same_config(resume.config, config_dict(config), f"resume='{resume.path.parents[1]}'")
+    if checkpoint_every is None and resume is not None:
+        checkpoint_every = resume.every  # a resumed run goes on saving as it did
+    checkpoints = checkpoint.Checkpointer(
+        config.out, config_dict(config), backend, every=checkpoint_every, resume=resume
+    )
     experiments_total = len(config.cells) * config.seeds
     episodes_total = experiments_total * config.runs * config.episodes
-    counts = {"episodes": 0, "experiments": 0}
 
-    def advance_progress(episodes: int, experiments: int) -> None:
-        counts["episodes"] += episodes
-        counts["experiments"] += experiments
+    def report_progress() -> None:
         if progress is not None:
             progress(
                 Progress(
-                    counts["episodes"], episodes_total, counts["experiments"], experiments_total
+                    checkpoints.episodes_completed,
+                    episodes_total,
+                    checkpoints.experiments_finished,
+                    experiments_total,
                 )
             )
 
-    if progress is not None:
-        progress(Progress(0, episodes_total, 0, experiments_total))
+    def advance_progress(episodes: int, experiments: int) -> None:
+        checkpoints.advance(episodes, experiments)
+        report_progress()
+
+    report_progress()
     metrics: dict[tuple[str, str], dict[str, np.ndarray]] = {}
     for algorithm in config.algorithms:
         periods, world_keys, policy_keys = experiment_keys(config, algorithm)
-        batch = driver(config, algorithm, periods, world_keys, policy_keys, advance_progress)
+        batch = checkpoints.finished.get(algorithm)
+        if batch is None:
+            batch = driver(
+                config, algorithm, periods, world_keys, policy_keys, advance_progress, checkpoints
+            )
+            checkpoints.finish(algorithm, batch)
         for position, world in enumerate(config.worlds):
             rows = slice(position * config.seeds, (position + 1) * config.seeds)
             metrics[world, algorithm] = {
                 name: batch[name][rows].cpu().numpy() for name in (*CURVES, "task_return")
             }
     results = summarise(config, metrics)
-    wall = time.perf_counter() - started
+    wall = checkpoints.elapsed_s
     env_steps = int(sum(cell["steps"].sum() for cell in metrics.values()))
     results["timing"] = {
         "wall_s": round(wall, 3),
@@ -421,7 +488,65 @@ def run(config: PaperConfig, progress: ProgressCallback | None = None) -> dict[s
         "env_steps_per_s": round(env_steps / max(wall, 1e-9)),
         "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
+    if checkpoint_every is not None or resume is not None:
+        results["timing"]["checkpoints"] = {
+            "every": None if checkpoints.every is None else str(checkpoints.every),
+            "saved": checkpoints.saves,
+            "save_s": round(checkpoints.save_seconds, 3),
+            "resumed_at_episode": None if resume is None else resume.episodes_completed,
+            "this_process_s": round(time.perf_counter() - started, 3),
+        }
     return results
+
+
+#: Config fields a resumed run may change: they do not change the numbers.
+RESUMABLE_CHANGES = ("out", "threads")
+
+
+def resume_config(
+    saved: dict[str, Any], given: dict[str, Any], directory: str | os.PathLike
+) -> PaperConfig:
+    """The config to resume the run of ``directory`` with: the checkpoint's ``saved`` config
+    dict, with the ``given`` options (field -> value) that may change (``RESUMABLE_CHANGES``).
+
+    Any other given option must equal the saved value (a ValueError names each that differs);
+    ``out`` must be ``directory`` (the saved spelling is kept when it names the same directory,
+    so the results repeat it).
+    """
+    out = saved.get("out", "")
+    if not out or Path(out).resolve() != Path(directory).resolve():
+        out = str(directory)
+    if "out" in given and Path(given["out"]).resolve() != Path(directory).resolve():
+        raise ValueError(
+            f"out='{given['out']}' differs from the resumed directory '{directory}': a resumed "
+            f"run writes where its checkpoint is (leave --out out)"
+        )
+    try:
+        checkpointed = config_from_dict({**saved, "out": out})
+    except (ValueError, TypeError) as error:
+        raise checkpoint.CheckpointError(
+            f"resume='{directory}': the checkpoint's config is unusable here ({error})"
+        ) from None
+    merged = config_from_dict({**config_dict(checkpointed), **given, "out": out})
+    _check_same_config(saved, config_dict(merged), f"resume='{directory}'")
+    return merged
+
+
+def _check_same_config(saved: dict[str, Any], config: dict[str, Any], what: str) -> None:
+    differing = [
+        f"{name}={_show(value)} given, {_show(saved.get(name))} in the checkpoint"
+        for name, value in config.items()
+        if name not in RESUMABLE_CHANGES and saved.get(name) != value
+    ]
+    if differing:
+        raise ValueError(
+            f"{what} has a checkpoint of a different config: {'; '.join(differing)} (leave "
+            f"these options out to resume it, or start a new run with another --out)"
+        )
+
+
+def _show(value: Any) -> str:
+    return ",".join(value) if isinstance(value, list | tuple) else repr(value)
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,0 +1,407 @@
+"""What was tried: every public entry point fed bad input, and the one message it answers with.
+
+One table, ``TRIED``: a row per fault with what was tried, the call, the exception and a pattern
+its message must match. Messages name the option (as the caller spelled it), the value and what
+is allowed. Command-line rows run ``factorq`` in process and pass when it exits 2 with exactly
+one error line and no traceback (``CommandFailed``, its message that line); ``{file}``,
+``{checkpoint}`` and the like in their arguments are made fresh for the row. The per-module tests
+check the same errors in context; this table is where the whole surface is seen at once.
+
+Not validated, by design: the pure equations of ``factorq_torch.functional`` (they take tensors
+from validated modules; the property tests cover their whole finite input range), and negative
+seeds in ``rng.derive_keys`` (a key is defined for any integer; user-facing seeds are checked
+where they enter).
+"""
+
+# ruff: noqa: E501  (the table below reads best one fault per line)
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import shlex
+import warnings
+from pathlib import Path
+
+import gymnasium
+import pytest
+import torch
+from tensordict.nn import TensorDictSequential
+
+from envs import FactoredGridEnv, WorldConfig
+from envs.world import static_layout
+from factorq_torch import fast, rng
+from factorq_torch.collectors import OnlineCollector
+from factorq_torch.config import AgentConfig, check_algorithm
+from factorq_torch.objectives import FactorQLoss, TabularQLoss
+from factorq_torch.policy import EpsilonGreedyPolicy, FactorQPolicy
+from factorq_torch.tables import LocalRewardTable, TaskQTable
+from trainers import checkpoint, cli, paper, report
+from trainers.checkpoint import CheckpointError
+from trainers.paper import PaperConfig
+
+needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
+# Prepended to `factorq paper` rows (later options win): should a check ever let a bad value
+# through, the row runs a tiny experiment in its own directory rather than the paper's.
+SMALL = ["--seeds", "1", "--runs", "1", "--episodes", "1", "--size", "4", "--obstacles", "1"]
+
+
+class CommandFailed(Exception):
+    """``factorq`` exited 2 with one error line (the message is that line)."""
+
+
+# -- things to feed the entry points ---------------------------------------------------------
+
+
+def a_file(tmp: Path) -> str:
+    path = tmp / "a_file.txt"
+    path.write_text("not a directory")
+    return str(path)
+
+
+def a_checkpoint(tmp: Path) -> str:
+    """An unfinished run's directory with a valid checkpoint (taken before any work) of the
+    config ``--seeds 3 --size 6 --obstacles 4``."""
+    out = tmp / "run"
+    config = PaperConfig(seeds=3, size=6, obstacles=4, out=str(out))
+    checkpoint.save(
+        out,
+        {
+            "config": paper.config_dict(config),
+            "backend": "fast",
+            "every": "30s",
+            "finished": {},
+            "running": None,
+            "episodes_completed": 0,
+            "experiments_finished": 0,
+            "elapsed_s": 0.0,
+            "saved_utc": "2026-01-01T00:00:00Z",
+        },
+    )
+    return str(out)
+
+
+def a_damaged_checkpoint(data: bytes):
+    def make(tmp: Path) -> str:
+        out = a_checkpoint(tmp)
+        a_checkpoint(tmp)  # a second save: the first becomes the previous checkpoint
+        (Path(out) / "checkpoint" / "checkpoint.pt").write_bytes(data)
+        return out
+
+    return make
+
+
+def only_a_damaged_previous_checkpoint(tmp: Path) -> str:
+    out = a_damaged_checkpoint(b"")(tmp)
+    directory = Path(out) / "checkpoint"
+    (directory / "checkpoint.pt").replace(directory / "checkpoint.prev.pt")
+    return out
+
+
+def a_finished_run(tmp: Path) -> str:
+    out = tmp / "finished"
+    out.mkdir()
+    (out / "results.json").write_text("{}")
+    return str(out)
+
+
+def bad_json(tmp: Path) -> str:
+    out = tmp / "bad"
+    out.mkdir()
+    (out / "results.json").write_text("{not json")
+    return str(out)
+
+
+MADE = {
+    "{tmp}": str,
+    "{missing}": lambda tmp: str(tmp / "missing"),
+    "{file}": a_file,
+    "{checkpoint}": a_checkpoint,
+    "{truncated-checkpoint}": a_damaged_checkpoint(b"PK\x03\x04"),
+    "{empty-checkpoint}": a_damaged_checkpoint(b""),
+    "{only-damaged-previous}": only_a_damaged_previous_checkpoint,
+    "{finished-run}": a_finished_run,
+    "{bad-results}": bad_json,
+}
+
+
+def factorq(command: str, pattern: str) -> tuple:
+    """A row: run ``factorq COMMAND`` in process, expect ``CommandFailed`` matching ``pattern``."""
+
+    def call(tmp: Path) -> None:
+        args = [MADE[arg](tmp) if arg in MADE else arg for arg in shlex.split(command)]
+        if args[0] == "paper" and "--resume" not in args:
+            args[1:1] = [*SMALL, "--out", str(tmp / "out")]
+        err, out = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
+            code = cli.main(args)
+        lines = err.getvalue().strip().splitlines()
+        if code == 2 and len(lines) == 1 and "Traceback" not in err.getvalue():
+            raise CommandFailed(lines[0])
+        raise AssertionError(f"exit {code}; stderr {err.getvalue()!r}; stdout {out.getvalue()!r}")
+
+    return (f"factorq {command}", call, CommandFailed, pattern)
+
+
+def env_step(action: int) -> None:
+    env = FactoredGridEnv(size=3, num_obstacles=1, batch_size=(1,))
+    td = env.reset()
+    td["action"] = torch.tensor([action])
+    env.step(td)
+
+
+def gym_make(**options) -> None:
+    with warnings.catch_warnings():  # gymnasium warns before the env itself refuses
+        warnings.simplefilter("ignore", UserWarning)
+        gymnasium.make("FactoredGrid-v0", **options)
+
+
+def gym_step(action: int) -> None:
+    env = gymnasium.make("FactoredGrid-v0", size=3, num_obstacles=0).unwrapped
+    env.reset(seed=0)
+    env.step(action)
+
+
+def collector(**options) -> OnlineCollector:
+    env = options.pop("env", FactoredGridEnv(size=3, num_obstacles=1, batch_size=(2,)))
+    table = TaskQTable(options.pop("tables", 2), num_cells=9, with_proximity=True)
+    policy = TensorDictSequential(table, EpsilonGreedyPolicy(table.num_experiments))
+    return OnlineCollector(
+        env, policy, TabularQLoss(table), **{"runs": 1, "episodes": 1, **options}
+    )
+
+
+def batch(algorithm="factor-q", periods=(0,), world=None, runs=1, keys=1, **options):
+    count = len(periods)
+    return fast.ExperimentBatch(
+        algorithm,
+        torch.tensor(periods),
+        WorldConfig(size=4, num_obstacles=2) if world is None else world,
+        AgentConfig(),
+        runs,
+        1,
+        rng.derive_keys(0, rng.STREAM_WORLD, keys * count),
+        rng.derive_keys(0, rng.STREAM_POLICY, count),
+        **options,
+    )
+
+
+def resume_config(tmp: Path, **given) -> None:
+    out = a_checkpoint(tmp)
+    paper.resume_config(checkpoint.load(out).config, given, out)
+
+
+def tiny_run(tmp: Path, **options) -> None:
+    config = PaperConfig(seeds=1, runs=1, episodes=1, size=4, obstacles=1, out=str(tmp / "out"))
+    paper.run(config, **options)
+
+
+def fast_row(what: str, call, error: type, pattern: str):
+    return pytest.param(what, call, error, pattern, marks=needs_fast, id=what)
+
+
+# -- the table -------------------------------------------------------------------------------
+
+RANGE = "is out of range: must be"
+UNUSABLE_CHECKPOINT = "is corrupted or truncated"
+TRIED = [
+    # factorq paper: every option
+    factorq("paper --seeds 0", rf"--seeds=0 {RANGE} >= 1"),
+    factorq("paper --seeds -3", rf"--seeds=-3 {RANGE} >= 1"),
+    factorq("paper --seeds 2.5", r"argument --seeds: invalid int value: '2.5'"),
+    factorq("paper --seed -1", rf"--seed=-1 {RANGE} in \[0, 9223372036854775807\]"),
+    factorq("paper --runs -2", rf"--runs=-2 {RANGE} >= 1"),
+    factorq("paper --episodes 0", rf"--episodes=0 {RANGE} >= 1"),
+    factorq("paper --episodes ten", r"argument --episodes: invalid int value: 'ten'"),
+    factorq("paper --max-steps 0", rf"--max-steps=0 {RANGE} >= 1"),
+    factorq("paper --layout-seed -1", rf"--layout-seed=-1 {RANGE} in \[0, "),
+    factorq("paper --size 1", rf"--size=1 {RANGE} >= 2"),
+    factorq("paper --obstacles -1", rf"--obstacles=-1 {RANGE} in \[0, 13\] for a 4x4 grid"),
+    factorq("paper --size 3 --obstacles 7", rf"--obstacles=7 {RANGE} in \[0, 6\] for a 3x3 grid"),
+    factorq(
+        "paper --size 3 --obstacles 6",
+        r"--obstacles=6 leaves no path from start to goal in a static 3x3 world: must be in \[0, 4\]",
+    ),
+    factorq("paper --epsilon 1.5", rf"--epsilon=1.5 {RANGE} in \[0.0, 1.0\]"),
+    factorq("paper --epsilon -0.1", rf"--epsilon=-0.1 {RANGE} in \[0.0, 1.0\]"),
+    factorq("paper --epsilon nan", rf"--epsilon=nan {RANGE} in \[0.0, 1.0\]"),
+    factorq("paper --gamma 1", rf"--gamma=1.0 {RANGE} in \[0.0, 1.0\)"),
+    factorq("paper --gamma -0.5", rf"--gamma=-0.5 {RANGE} in \[0.0, 1.0\)"),
+    factorq("paper --alpha 0", rf"--alpha=0.0 {RANGE} in \(0.0, 1.0\]"),
+    factorq("paper --alpha 1.5", rf"--alpha=1.5 {RANGE} in \(0.0, 1.0\]"),
+    factorq("paper --eta -1", rf"--eta=-1.0 {RANGE} in \[0.0, 1000000.0\]"),
+    factorq("paper --g-min 0", rf"--g-min=0.0 {RANGE} in \(0.0, 1000000.0\]"),
+    factorq("paper --g-min inf", rf"--g-min=inf {RANGE} in \(0.0, 1000000.0\]"),
+    factorq("paper --threads 0", rf"--threads=0 {RANGE} >= 1"),
+    factorq("paper --worlds static,windy", r"--worlds: 'windy' is unknown: choose from static, "),
+    factorq("paper --worlds static --worlds static", r"--worlds: static given more than once"),
+    factorq("paper --worlds ''", r"--worlds: '' is unknown: choose from static, semi-dynamic"),
+    factorq("paper --algorithms sarsa", r"--algorithms: 'sarsa' is unknown: choose from q-learn"),
+    factorq("paper --backend gpu", r"argument --backend: invalid choice: 'gpu'"),
+    factorq("paper --device toaster", r"--device='toaster' is not a torch device \(e.g. cpu, "),
+    factorq(
+        "paper --backend fast --device cuda",
+        r"--device='cuda' is not supported by backend 'fast' \(cpu\)",
+    ),
+    factorq("paper --out {file}", r"--out='.*a_file.txt' is an existing file: give a directory"),
+    factorq("paper --sides 4", r"unrecognized arguments: --sides 4"),
+    # factorq paper: checkpoints
+    factorq("paper --checkpoint-every 0", rf"--checkpoint-every='0' {RANGE} >= 1 episode"),
+    factorq("paper --checkpoint-every -5", rf"--checkpoint-every='-5' {RANGE} >= 1 episode"),
+    factorq(
+        "paper --checkpoint-every abc",
+        r"--checkpoint-every='abc' is not a number of episodes \(e.g. 5000\) "
+        r"or of seconds with a unit \(e.g. 30s, 10m, 1h\)",
+    ),
+    factorq("paper --checkpoint-every 2.5", r"--checkpoint-every='2.5' is not a number of epi"),
+    factorq("paper --checkpoint-every 0s", rf"--checkpoint-every='0s' {RANGE} > 0 seconds and fi"),
+    factorq("paper --checkpoint-every 1e400s", rf"--checkpoint-every='1e400s' {RANGE} > 0 second"),
+    factorq(
+        "paper --out {checkpoint}",
+        r"--out='.*run' holds the checkpoint of an unfinished run \(.*\): continue it with "
+        r"--resume .*run, or delete .*checkpoint to start afresh",
+    ),
+    factorq(
+        "paper --resume {missing}",
+        r"--resume='.*missing' does not exist: give the --out directory of an interrupted run",
+    ),
+    factorq(
+        "paper --resume {file}",
+        r"--resume='.*a_file.txt' is a file: give the --out directory of an interrupted run",
+    ),
+    factorq(
+        "paper --resume {tmp}",
+        r"--resume='.*' holds no checkpoint \(.*checkpoint.pt is missing\): was the run started "
+        r"with --checkpoint-every",
+    ),
+    factorq("paper --resume {finished-run}", r"holds no checkpoint: its run finished"),
+    factorq(
+        "paper --resume {checkpoint} --seeds 5 --worlds static",
+        r"--resume='.*run' has a checkpoint of a different config: --seeds=5 given, 3 in the "
+        r"checkpoint; --worlds=static given, static,semi-dynamic,dynamic in the checkpoint",
+    ),
+    factorq(
+        "paper --resume {checkpoint} --backend modular",
+        r"--backend='modular' given, 'auto' in the checkpoint",
+    ),
+    factorq("paper --resume {checkpoint} --out {missing}", r"differs from the resumed directory"),
+    factorq(
+        "paper --resume {checkpoint} --checkpoint-every soon",
+        r"--checkpoint-every='soon' is not a number",
+    ),
+    factorq(
+        "paper --resume {truncated-checkpoint}",
+        rf"checkpoint .*checkpoint.pt {UNUSABLE_CHECKPOINT} \(.*\); the previous checkpoint "
+        r".*checkpoint.prev.pt is intact \(0 episodes done\): move the damaged file away",
+    ),
+    factorq(
+        "paper --resume {empty-checkpoint}",
+        rf"checkpoint .*checkpoint.pt {UNUSABLE_CHECKPOINT} \(EOFError: file ends early\)",
+    ),
+    factorq(
+        "paper --resume {only-damaged-previous}",
+        rf"checkpoint .*checkpoint.prev.pt {UNUSABLE_CHECKPOINT} \(.*\); no other checkpoint is "
+        r"left: start the run again",
+    ),
+    # factorq report, factorq
+    factorq("report {tmp}", r"results.json does not exist: run `factorq paper --out"),
+    factorq("report {bad-results}", r"results.json is not valid JSON"),
+    factorq("train", r"argument COMMAND: invalid choice: 'train'"),
+    # trainers: the API under the commands
+    ("PaperConfig(seeds=2.5)", lambda _: PaperConfig(seeds=2.5), TypeError, r"seeds must be an int, got 2.5 \(float\)"),
+    ("PaperConfig(runs=True)", lambda _: PaperConfig(runs=True), TypeError, r"runs must be an int, got True \(bool\)"),
+    ("PaperConfig(worlds=())", lambda _: PaperConfig(worlds=()), ValueError, r"worlds is empty: choose one or more of static"),
+    ("PaperConfig(out='')", lambda _: PaperConfig(out=""), ValueError, r"out='' must be a directory path"),
+    ("config_from_dict(unknown field)", lambda _: paper.config_from_dict({"seedz": 1}), ValueError, r"unknown config fields: seedz"),
+    ("run(checkpoint_every='often')", lambda tmp: tiny_run(tmp, checkpoint_every="often"), ValueError, r"checkpoint_every='often' is not a number of episodes"),
+    ("resume_config(other config)", lambda tmp: resume_config(tmp, seeds=5), ValueError, r"resume='.*run' has a checkpoint of a different config: seeds=5 given, 3 in the"),
+    ("parse_every(2.5)", lambda _: checkpoint.parse_every(2.5), TypeError, r"checkpoint_every must be a number of episodes .* got 2.5"),
+    ("parse_every(True)", lambda _: checkpoint.parse_every(True), TypeError, r"checkpoint_every must be .* got True"),
+    ("checkpoint.read(a foreign file)", lambda tmp: checkpoint.read(a_file(tmp)), CheckpointError, rf"checkpoint .*a_file.txt {UNUSABLE_CHECKPOINT} \(UnpicklingError: "),
+    ("report.regenerate(missing dir)", lambda tmp: report.regenerate(tmp / "none"), FileNotFoundError, r"none/results.json does not exist"),
+    ("t_critical(0)", lambda _: paper.t_critical(0), ValueError, r"df=0 must be >= 1"),
+    ("compute_claims(seed counts differ)", lambda _: paper.compute_claims({"a": {"per_seed": {"total_steps": [1]}}, "b": {"per_seed": {"total_steps": [1, 2]}}}), ValueError, r"cells have different numbers of seeds: \[1, 2\]"),
+    # envs
+    ("WorldConfig(size=1)", lambda _: WorldConfig(size=1), ValueError, rf"size=1 {RANGE} >= 2"),
+    ("WorldConfig(size=3.0)", lambda _: WorldConfig(size=3.0), TypeError, r"size must be an int, got 3.0 \(float\)"),
+    ("WorldConfig(num_obstacles=98)", lambda _: WorldConfig(num_obstacles=98), ValueError, rf"num_obstacles=98 {RANGE} in \[0, 97\] for a 10x10 grid with start, goal and agent kept free"),
+    ("WorldConfig(obstacle_period=-1)", lambda _: WorldConfig(obstacle_period=-1), ValueError, rf"obstacle_period=-1 {RANGE} >= 0 \(0 static, k > 0 moving\)"),
+    ("WorldConfig(max_steps=0)", lambda _: WorldConfig(max_steps=0), ValueError, rf"max_steps=0 {RANGE} >= 1"),
+    ("WorldConfig(layout_seed=-1)", lambda _: WorldConfig(layout_seed=-1), ValueError, rf"layout_seed=-1 {RANGE} >= 0"),
+    ("static_layout(no path)", lambda _: static_layout(WorldConfig(size=3, num_obstacles=6)), ValueError, r"num_obstacles=6 leaves no path from start to goal in a static 3x3 world: must be in \[0, 4\]"),
+    ("FactoredGridEnv(batch_size=(0,))", lambda _: FactoredGridEnv(batch_size=(0,)), ValueError, rf"batch_size=\(0,\) {RANGE.replace('must be', 'every dimension must be')} >= 1"),
+    ("FactoredGridEnv(periods of another batch)", lambda _: FactoredGridEnv(batch_size=(3,), obstacle_period=[0, 1]), ValueError, r"obstacle_period has 2 entries: a sequence must hold one period per world, 3 for this"),
+    ("FactoredGridEnv(obstacle_period=-1)", lambda _: FactoredGridEnv(obstacle_period=-1), ValueError, rf"obstacle_period=-1 {RANGE} >= 0"),
+    ("FactoredGridEnv(seed=-1)", lambda _: FactoredGridEnv(seed=-1), ValueError, rf"seed=-1 {RANGE} >= 0"),
+    ("FactoredGridEnv(seed='a')", lambda _: FactoredGridEnv(seed="a"), TypeError, r"seed must be an int or None, got 'a' \(str\)"),
+    ("FactoredGridEnv.set_seed(-1)", lambda _: FactoredGridEnv().set_seed(-1), ValueError, rf"seed=-1 {RANGE} >= 0"),
+    ("FactoredGridEnv(experiment_offset=-1)", lambda _: FactoredGridEnv(experiment_offset=-1), ValueError, rf"experiment_offset=-1 {RANGE} >= 0"),
+    ("FactoredGridEnv(device='toaster')", lambda _: FactoredGridEnv(device="toaster"), ValueError, r"device='toaster' is not a torch device"),
+    ("FactoredGridEnv.step(action=7)", lambda _: env_step(7), ValueError, rf"action=7 {RANGE} in \[0, 3\] \(0 north, 1 west, 2 south, 3 east\)"),
+    ("FactoredGridEnv.step(action=-1)", lambda _: env_step(-1), ValueError, rf"action=-1 {RANGE} in \[0, 3\]"),
+    ("gymnasium.make(size=0)", lambda _: gym_make(size=0), ValueError, rf"size=0 {RANGE} >= 2"),
+    ("gymnasium.make(render_mode='human')", lambda _: gym_make(render_mode="human"), ValueError, r"render_mode='human' is not supported: must be None or one of \['ansi'\]"),
+    ("gymnasium env.step(7)", lambda _: gym_step(7), ValueError, rf"action=7 {RANGE} in \[0, 3\]"),
+    # factorq_torch: config, tables, policies, losses, collector, streams
+    ("AgentConfig(epsilon=1.5)", lambda _: AgentConfig(epsilon=1.5), ValueError, rf"epsilon=1.5 {RANGE} in \[0.0, 1.0\]"),
+    ("AgentConfig(epsilon='high')", lambda _: AgentConfig(epsilon="high"), TypeError, r"epsilon must be a number, got 'high' \(str\)"),
+    ("AgentConfig(gamma=1.0)", lambda _: AgentConfig(gamma=1.0), ValueError, rf"gamma=1.0 {RANGE} in \[0.0, 1.0\)"),
+    ("AgentConfig(gamma=nan)", lambda _: AgentConfig(gamma=math.nan), ValueError, rf"gamma=nan {RANGE} in \[0.0, 1.0\)"),
+    ("AgentConfig(alpha=0)", lambda _: AgentConfig(alpha=0.0), ValueError, rf"alpha=0.0 {RANGE} in \(0.0, 1.0\]"),
+    ("AgentConfig(eta=-1)", lambda _: AgentConfig(eta=-1.0), ValueError, rf"eta=-1.0 {RANGE} in \[0.0, 1000000.0\]"),
+    ("AgentConfig(g_min=0)", lambda _: AgentConfig(g_min=0.0), ValueError, rf"g_min=0.0 {RANGE} in \(0.0, 1000000.0\]"),
+    ("check_algorithm('sarsa')", lambda _: check_algorithm("sarsa"), ValueError, r"algorithm='sarsa' is unknown: choose one of q-learning, factor-q"),
+    ("TaskQTable(0, 4)", lambda _: TaskQTable(0, 4), ValueError, rf"num_experiments=0 {RANGE} >= 1"),
+    ("TaskQTable(1, num_cells=0)", lambda _: TaskQTable(1, 0), ValueError, rf"num_cells=0 {RANGE} >= 1"),
+    ("LocalRewardTable(-1)", lambda _: LocalRewardTable(-1), ValueError, rf"num_experiments=-1 {RANGE} >= 1"),
+    ("EpsilonGreedyPolicy(epsilon=2)", lambda _: EpsilonGreedyPolicy(1, epsilon=2.0), ValueError, rf"epsilon=2.0 {RANGE} in \[0.0, 1.0\]"),
+    ("EpsilonGreedyPolicy(seed=-1)", lambda _: EpsilonGreedyPolicy(1, seed=-1), ValueError, rf"seed=-1 {RANGE} >= 0"),
+    ("EpsilonGreedyPolicy(offset=-2)", lambda _: EpsilonGreedyPolicy(1, offset=-2), ValueError, rf"offset=-2 {RANGE} >= 0"),
+    ("EpsilonGreedyPolicy(keys of another S)", lambda _: EpsilonGreedyPolicy(2, keys=torch.zeros(3, dtype=torch.int64)), ValueError, r"keys has shape \[3\], expected \[2\] \(one stream key per experiment\)"),
+    ("FactorQPolicy(g_min=0)", lambda _: FactorQPolicy(1, g_min=0.0), ValueError, rf"g_min=0.0 {RANGE} in \(0.0, "),
+    ("TabularQLoss(gamma=1)", lambda _: TabularQLoss(TaskQTable(1, 4), gamma=1.0), ValueError, rf"gamma=1.0 {RANGE} in \[0.0, 1.0\)"),
+    ("TabularQLoss(reduction='max')", lambda _: TabularQLoss(TaskQTable(1, 4), reduction="max"), ValueError, r"reduction='max' is unknown: choose one of \('sum', 'mean'\)"),
+    ("TabularQLoss('table')", lambda _: TabularQLoss("table"), TypeError, r"task_value_network must be a TensorDict module .* got str"),
+    ("FactorQLoss(local='table')", lambda _: FactorQLoss(TaskQTable(1, 4), "table"), TypeError, r"local_value_network must be a TensorDict module .* got str"),
+    ("FactorQLoss(eta=-1)", lambda _: FactorQLoss(TaskQTable(1, 4), LocalRewardTable(1), eta=-1.0), ValueError, rf"eta=-1.0 {RANGE} in \[0.0, "),
+    ("OnlineCollector(runs=0)", lambda _: collector(runs=0), ValueError, rf"runs=0 {RANGE} >= 1"),
+    ("OnlineCollector(episodes=2.5)", lambda _: collector(episodes=2.5), TypeError, r"episodes must be an int, got 2.5"),
+    ("OnlineCollector(env='env')", lambda _: collector(env="env"), TypeError, r"env must be a torchrl env \(EnvBase\), got str"),
+    ("OnlineCollector(tables of another S)", lambda _: collector(tables=3), ValueError, r"env has batch_size \[2\] but TaskQTable holds S=3 experiments"),
+    ("derive_keys(count=-1)", lambda _: rng.derive_keys(0, rng.STREAM_WORLD, -1), ValueError, rf"count=-1 {RANGE} >= 0"),
+    ("probability_threshold(1.5)", lambda _: rng.probability_threshold(1.5), ValueError, rf"probability=1.5 {RANGE} in \[0, 1\]"),
+    # factorq_torch.fast
+    fast_row("ExperimentBatch('sarsa')", lambda _: batch("sarsa"), ValueError, r"algorithm='sarsa' is unknown: choose one of q-learning, factor-q, random-walk"),
+    fast_row("ExperimentBatch(runs=0)", lambda _: batch(runs=0), ValueError, rf"runs=0 {RANGE} >= 1"),
+    fast_row("ExperimentBatch(threads=0)", lambda _: batch(threads=0), ValueError, rf"threads=0 {RANGE} >= 1"),
+    fast_row("ExperimentBatch(periods=[-1])", lambda _: batch(periods=(-1,)), ValueError, r"periods must be >= 0 \(0 static, k > 0 moving\), got -1"),
+    fast_row("ExperimentBatch(keys of another S)", lambda _: batch(keys=2), ValueError, r"world_keys has 2 entries but periods has 1"),
+    fast_row("ExperimentBatch(world=dict)", lambda _: batch(world={"size": 4}), TypeError, r"world must be a WorldConfig, got dict"),
+    fast_row("ExperimentBatch.advance(-1)", lambda _: batch().advance(-1), ValueError, rf"max_steps=-1 {RANGE} >= 0"),
+    fast_row("ExperimentBatch.load_state_dict(other)", lambda _: batch(periods=(0, 1)).load_state_dict(batch(periods=(1, 0)).state_dict()), ValueError, r"state\['periods'\] belongs to a different batch"),
+]  # fmt: skip
+
+
+def _what(row) -> str:
+    return row.values[0] if hasattr(row, "values") else row[0]
+
+
+@pytest.mark.parametrize(("what", "call", "error", "pattern"), TRIED, ids=map(_what, TRIED))
+def test_bad_input_is_refused_with_one_message_naming_option_value_and_range(
+    what, call, error, pattern, tmp_path
+):
+    with pytest.raises(error, match=pattern) as raised:
+        call(tmp_path)
+    assert "\n" not in str(raised.value), what
+    assert not (tmp_path / "out").exists(), f"{what}: a run started despite the bad input"
+
+
+def test_the_table_tries_every_option_of_factorq_paper():
+    tried = " ".join(map(_what, TRIED))
+    parser = cli.build_parser()
+    commands = next(action for action in parser._actions if action.dest == "command")
+    for action in commands.choices["paper"]._actions:
+        for option in action.option_strings:
+            if option.startswith("--") and option != "--help":
+                assert option in tried, f"{option} has no row in the table"
