@@ -26,21 +26,18 @@ from envs.world import (
     step_worlds,
 )
 from factorq_torch.rng import STREAM_WORLD, derive_keys
+from factorq_torch.validation import is_int
 
 _INTEGER_DTYPES = (torch.int8, torch.int16, torch.int32, torch.int64, torch.uint8)
-
-
-def _is_int(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def _check_batch_size(batch_size) -> torch.Size:
     """``None`` -> ``()``, an int ``n`` -> ``(n,)``, a sequence of positive ints as it is."""
     if batch_size is None:
         return torch.Size(())
-    if _is_int(batch_size):
+    if is_int(batch_size):
         batch_size = (batch_size,)
-    if not isinstance(batch_size, Sequence) or not all(_is_int(d) for d in batch_size):
+    if not isinstance(batch_size, Sequence) or not all(is_int(d) for d in batch_size):
         raise TypeError(
             f"batch_size must be None, an int or a sequence of ints (e.g. (64,)), got "
             f"{batch_size!r} ({type(batch_size).__name__})"
@@ -58,7 +55,7 @@ def _check_periods(obstacle_period, num_worlds: int) -> tuple[torch.Tensor, int]
     ``obstacle_period`` is an int (every world) or a sequence / 1-D integer tensor of length
     ``S`` (one per world, e.g. the paper's three worlds side by side in one batch).
     """
-    if _is_int(obstacle_period):
+    if is_int(obstacle_period):
         if obstacle_period < 0:
             raise ValueError(
                 f"obstacle_period={obstacle_period} is out of range: must be >= 0 "
@@ -72,7 +69,7 @@ def _check_periods(obstacle_period, num_worlds: int) -> tuple[torch.Tensor, int]
                 f"{tuple(obstacle_period.shape)} and dtype {obstacle_period.dtype}"
             )
         values = obstacle_period.tolist()
-    elif isinstance(obstacle_period, Sequence) and all(_is_int(p) for p in obstacle_period):
+    elif isinstance(obstacle_period, Sequence) and all(is_int(p) for p in obstacle_period):
         values = list(obstacle_period)
     else:
         raise TypeError(
@@ -164,7 +161,7 @@ class FactoredGridEnv(EnvBase):
                 device = torch.device(device)
             except (RuntimeError, TypeError) as error:
                 raise ValueError(f"device={device!r} is not a torch device: {error}") from None
-        if not _is_int(experiment_offset):
+        if not is_int(experiment_offset):
             raise TypeError(f"experiment_offset must be an int >= 0, got {experiment_offset!r}")
         if experiment_offset < 0:
             raise ValueError(f"experiment_offset={experiment_offset} is out of range: must be >= 0")
@@ -222,7 +219,7 @@ class FactoredGridEnv(EnvBase):
         """Re-derive the worlds' keys from ``seed`` (``None`` means 0) and rewind their streams."""
         if seed is None:
             seed = 0
-        if not _is_int(seed):
+        if not is_int(seed):
             raise TypeError(f"seed must be an int or None, got {seed!r} ({type(seed).__name__})")
         if seed < 0:
             raise ValueError(f"seed={seed} is out of range: must be >= 0")
@@ -353,7 +350,7 @@ class FactoredGridEnv(EnvBase):
     def render(self, index: int = 0) -> str:
         """A text picture of world ``index`` (flat index in ``[0, S)``): ``#`` wall,
         ``o`` obstacle, ``A`` agent, ``G`` goal."""
-        if not _is_int(index) or not 0 <= index < self.num_worlds:
+        if not is_int(index) or not 0 <= index < self.num_worlds:
             raise ValueError(f"index={index!r} is out of range: must be in [0, {self.num_worlds})")
         state = self.world_state
         return render_world(int(state.cell[index]), state.obstacles[index], self.config.size)

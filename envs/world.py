@@ -19,6 +19,7 @@ from typing import NamedTuple
 import torch
 
 from factorq_torch.rng import STREAM_LAYOUT, derive_keys, randint_from_bits, random_bits
+from factorq_torch.validation import check_int
 
 NUM_ACTIONS = 4
 ACTION_NAMES = ("north", "west", "south", "east")
@@ -26,15 +27,6 @@ ROW_DELTA = (-1, 0, 1, 0)
 COL_DELTA = (0, -1, 0, 1)
 START_CELL = 0
 MAX_LAYOUT_ATTEMPTS = 10_000
-
-
-def _check_int(name: str, value, low: int, high: int | None = None, hint: str = "") -> None:
-    """Raise a ValueError/TypeError naming ``name``, ``value`` and the allowed range."""
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise TypeError(f"{name} must be an int, got {value!r} ({type(value).__name__})")
-    if value < low or (high is not None and value > high):
-        allowed = f">= {low}" if high is None else f"in [{low}, {high}]"
-        raise ValueError(f"{name}={value} is out of range: must be {allowed}{hint}")
 
 
 @dataclass(frozen=True)
@@ -53,17 +45,17 @@ class WorldConfig:
     """Seed of the static layout (the same for every world of a batch)."""
 
     def __post_init__(self) -> None:
-        _check_int("size", self.size, 2)
-        _check_int(
+        check_int("size", self.size, 2)
+        check_int(
             "num_obstacles",
             self.num_obstacles,
             0,
             self.max_obstacles,
             f" for a {self.size}x{self.size} grid with start, goal and agent kept free",
         )
-        _check_int("obstacle_period", self.obstacle_period, 0, hint=" (0 static, k > 0 moving)")
-        _check_int("max_steps", self.max_steps, 1)
-        _check_int("layout_seed", self.layout_seed, 0)
+        check_int("obstacle_period", self.obstacle_period, 0, hint=" (0 static, k > 0 moving)")
+        check_int("max_steps", self.max_steps, 1)
+        check_int("layout_seed", self.layout_seed, 0)
 
     @property
     def num_cells(self) -> int:

@@ -46,6 +46,7 @@ from torchrl.objectives import LossModule
 
 from factorq_torch.objectives import tabular_optimizer
 from factorq_torch.policy import MASK_KEY
+from factorq_torch.validation import check_int
 
 with warnings.catch_warnings():
     # torchrl 0.14.1 warns about its own deprecated weight updaters when the package is imported.
@@ -56,14 +57,6 @@ with warnings.catch_warnings():
 ProgressCallback = Callable[[int, int], None]
 
 METRICS = ("steps", "collisions", "greedy_collisions", "task_return")
-
-
-def _check_positive_int(name: str, value) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise TypeError(f"{name} must be an int, got {value!r} ({type(value).__name__})")
-    if value < 1:
-        raise ValueError(f"{name}={value} is out of range: must be >= 1")
-    return value
 
 
 class OnlineCollector(BaseCollector):
@@ -119,8 +112,8 @@ class OnlineCollector(BaseCollector):
         ):
             if not isinstance(value, kind):
                 raise TypeError(f"{name} must be {what}, got {type(value).__name__}")
-        self.runs = _check_positive_int("runs", runs)
-        self.episodes = _check_positive_int("episodes", episodes)
+        self.runs = check_int("runs", runs, 1)
+        self.episodes = check_int("episodes", episodes, 1)
         if len(env.batch_size) != 1:
             raise ValueError(
                 f"env.batch_size={list(env.batch_size)}: OnlineCollector needs one batch "

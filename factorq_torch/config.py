@@ -2,20 +2,11 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
+from factorq_torch.validation import check_float
+
 ALGORITHMS = ("q-learning", "factor-q")
-
-
-def _check_float(name: str, value, low: float, high: float, *, low_open=False, high_open=False):
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise TypeError(f"{name} must be a number, got {value!r} ({type(value).__name__})")
-    below = value <= low if low_open else value < low
-    above = value >= high if high_open else value > high
-    if not math.isfinite(value) or below or above:
-        interval = f"{'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
-        raise ValueError(f"{name}={value} is out of range: must be in {interval}")
 
 
 @dataclass(frozen=True)
@@ -34,11 +25,11 @@ class AgentConfig:
     """Floor of the normaliser G (eq. 3), so local reward decides in unvisited states."""
 
     def __post_init__(self) -> None:
-        _check_float("epsilon", self.epsilon, 0.0, 1.0)
-        _check_float("gamma", self.gamma, 0.0, 1.0, high_open=True)
-        _check_float("alpha", self.alpha, 0.0, 1.0, low_open=True)
-        _check_float("eta", self.eta, 0.0, 1e6)
-        _check_float("g_min", self.g_min, 0.0, 1e6, low_open=True)
+        check_float("epsilon", self.epsilon, 0.0, 1.0)
+        check_float("gamma", self.gamma, 0.0, 1.0, high_open=True)
+        check_float("alpha", self.alpha, 0.0, 1.0, low_open=True)
+        check_float("eta", self.eta, 0.0, 1e6)
+        check_float("g_min", self.g_min, 0.0, 1e6, low_open=True)
 
 
 def check_algorithm(algorithm: str) -> str:

@@ -47,6 +47,7 @@ import torch
 from envs.world import NUM_ACTIONS, WorldConfig, static_layout
 from factorq_torch.config import ALGORITHMS, AgentConfig
 from factorq_torch.rng import probability_threshold
+from factorq_torch.validation import check_int
 
 #: The env-only mode of the kernel (benchmarks): uniformly random actions (the policy stream's
 #: action draw), no learning, every action counted as exploratory.
@@ -338,14 +339,6 @@ def _pool(workers: int) -> ThreadPoolExecutor:
 # Argument checks
 
 
-def _check_positive_int(name: str, value, low: int = 1) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise TypeError(f"{name} must be an int, got {value!r} ({type(value).__name__})")
-    if value < low:
-        raise ValueError(f"{name}={value} is out of range: must be >= {low}")
-    return value
-
-
 def _check_vector(name: str, value, count: int | None) -> torch.Tensor:
     """A 1-d int64 CPU tensor of ``count`` entries (any count when None), made contiguous."""
     if not isinstance(value, torch.Tensor):
@@ -366,7 +359,7 @@ def _check_vector(name: str, value, count: int | None) -> torch.Tensor:
 def _check_threads(threads) -> int:
     if threads is None:
         return torch.get_num_threads()
-    return _check_positive_int("threads", threads)
+    return check_int("threads", threads, 1)
 
 
 # --------------------------------------------------------------------------------------------
@@ -411,8 +404,8 @@ class ExperimentBatch:
         self.algorithm = algorithm
         self.world = world
         self.agent = agent
-        self.runs = _check_positive_int("runs", runs)
-        self.episodes = _check_positive_int("episodes", episodes)
+        self.runs = check_int("runs", runs, 1)
+        self.episodes = check_int("episodes", episodes, 1)
         self.threads = _check_threads(threads)
         self._library = _require()
         world_keys = _check_vector("world_keys", world_keys, count)
@@ -507,7 +500,7 @@ class ExperimentBatch:
     def advance(self, max_steps: int) -> int:
         """Run each unfinished experiment for up to ``max_steps`` more env steps (stopping early
         at its end); return the number of episodes completed in this call (all experiments)."""
-        _check_positive_int("max_steps", max_steps, low=0)
+        check_int("max_steps", max_steps, 0)
         if max_steps == 0 or self.done:
             return 0
         next_experiment = ctypes.c_int64(0)

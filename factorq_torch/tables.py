@@ -22,16 +22,9 @@ from tensordict.nn import TensorDictModuleBase
 
 from envs.transforms import NUM_PATTERNS, qlearning_state
 from factorq_torch.functional import running_mean_update
+from factorq_torch.validation import check_int
 
 NUM_ACTIONS = 4
-
-
-def _check_count(name: str, value) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise TypeError(f"{name} must be an int, got {value!r} ({type(value).__name__})")
-    if value < 1:
-        raise ValueError(f"{name}={value} is out of range: must be >= 1")
-    return value
 
 
 def check_batch(tensordict: TensorDictBase, num_experiments: int, owner: str) -> None:
@@ -114,9 +107,9 @@ class TaskQTable(TensorDictModuleBase):
         device: torch.device | str | None = None,
     ) -> None:
         super().__init__()
-        self.num_experiments = _check_count("num_experiments", num_experiments)
-        self.num_cells = _check_count("num_cells", num_cells)
-        self.num_actions = _check_count("num_actions", num_actions)
+        self.num_experiments = check_int("num_experiments", num_experiments, 1)
+        self.num_cells = check_int("num_cells", num_cells, 1)
+        self.num_actions = check_int("num_actions", num_actions, 1)
         self.with_proximity = bool(with_proximity)
         self.num_states = num_cells * NUM_PATTERNS if with_proximity else num_cells
         self.in_keys = ["cell", "proximity"] if with_proximity else ["cell"]
@@ -183,8 +176,8 @@ class LocalRewardTable(TensorDictModuleBase):
         device: torch.device | str | None = None,
     ) -> None:
         super().__init__()
-        self.num_experiments = _check_count("num_experiments", num_experiments)
-        self.num_actions = _check_count("num_actions", num_actions)
+        self.num_experiments = check_int("num_experiments", num_experiments, 1)
+        self.num_actions = check_int("num_actions", num_actions, 1)
         self.in_keys = ["proximity"]
         self.out_keys = ["local_value"]
         shape = (num_experiments, num_actions, 2)

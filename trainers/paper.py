@@ -43,6 +43,7 @@ import torch
 from envs.world import WorldConfig, static_layout
 from factorq_torch.config import ALGORITHMS, AgentConfig
 from factorq_torch.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
+from factorq_torch.validation import check_int
 from trainers import checkpoint
 
 #: The paper's three worlds and their obstacle periods (SPEC section 1), in canonical order; a
@@ -110,14 +111,14 @@ class PaperConfig:
     """Torch device (the fast backend runs on cpu only)."""
 
     def __post_init__(self) -> None:
-        _check_int("seed", self.seed, 0, _MAX_SEED)
-        _check_int("seeds", self.seeds, 1)
-        _check_int("runs", self.runs, 1)
-        _check_int("episodes", self.episodes, 1)
-        _check_int("max_steps", self.max_steps, 1)
-        _check_int("layout_seed", self.layout_seed, 0, _MAX_SEED)
-        _check_int("size", self.size, 2)
-        _check_int(
+        check_int("seed", self.seed, 0, _MAX_SEED)
+        check_int("seeds", self.seeds, 1)
+        check_int("runs", self.runs, 1)
+        check_int("episodes", self.episodes, 1)
+        check_int("max_steps", self.max_steps, 1)
+        check_int("layout_seed", self.layout_seed, 0, _MAX_SEED)
+        check_int("size", self.size, 2)
+        check_int(
             "obstacles",
             self.obstacles,
             0,
@@ -130,7 +131,7 @@ class PaperConfig:
         )
         _ = self.agent  # AgentConfig validates epsilon, gamma, alpha, eta and g_min
         if self.threads is not None:
-            _check_int("threads", self.threads, 1)
+            check_int("threads", self.threads, 1)
         if self.backend not in BACKENDS:
             raise ValueError(f"backend={self.backend!r} is unknown: choose one of {BACKENDS}")
         try:
@@ -174,14 +175,6 @@ class PaperConfig:
     def cells(self) -> list[tuple[str, str]]:
         """The selected ``(world, algorithm)`` cells, in canonical order."""
         return [(world, algorithm) for world in self.worlds for algorithm in self.algorithms]
-
-
-def _check_int(name: str, value: Any, low: int, high: int | None = None, hint: str = "") -> None:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise TypeError(f"{name} must be an int, got {value!r} ({type(value).__name__})")
-    if value < low or (high is not None and value > high):
-        allowed = f">= {low}" if high is None else f"in [{low}, {high}]"
-        raise ValueError(f"{name}={value} is out of range: must be {allowed}{hint}")
 
 
 def _check_names(name: str, value: Any, allowed: tuple[str, ...]) -> tuple[str, ...]:
