@@ -27,6 +27,9 @@ ROW_DELTA = (-1, 0, 1, 0)
 COL_DELTA = (0, -1, 0, 1)
 START_CELL = 0
 MAX_LAYOUT_ATTEMPTS = 10_000
+#: The paper's three worlds by name and their obstacle periods (SPEC section 1).
+WORLD_PERIODS = {"static": 0, "semi-dynamic": 10, "dynamic": 1}
+WORLDS = tuple(WORLD_PERIODS)
 
 
 @dataclass(frozen=True)

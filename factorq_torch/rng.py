@@ -33,6 +33,8 @@ STREAM_WORLD = 1
 STREAM_POLICY = 2
 STREAM_LAYOUT = 3
 STREAM_EXPERIMENT = 4
+STREAM_TASK_NETWORK = 5  # initial weights of a task Q-network
+STREAM_LOCAL_NETWORK = 6  # initial weights of a local reward network
 
 #: Draws the policy makes per step: explore?, random action, tie-break.
 POLICY_DRAWS_PER_STEP = 3

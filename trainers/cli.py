@@ -16,6 +16,7 @@ from trainers import checkpoint, paper
 
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
+COMPARE_HELP = "compare tabular Factor-Q, Q-learning, DQN and neural Factor-Q on the three worlds"
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, what shells report for Ctrl-C
 _LIST_FIELDS = {"worlds": paper.WORLDS, "algorithms": paper.ALGORITHMS}
 
@@ -110,6 +111,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     report_parser.add_argument("results_dir", metavar="RESULTS_DIR", help="a `factorq paper` --out")
     report_parser.set_defaults(handler=_report, command_parser=report_parser)
+    # `main` hands `factorq compare ...` to trainers.compare before parsing, so that torchrl (which
+    # DQN needs) is imported only for that command; this entry lists it in `factorq --help`.
+    commands.add_parser("compare", help=COMPARE_HELP, add_help=False)
     return parser
 
 
@@ -251,6 +255,15 @@ def _report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Run ``factorq`` with ``argv`` (default: the command line); return the exit status."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["compare"]:
+        from trainers import compare
+
+        try:
+            return compare.main(argv[1:])
+        except KeyboardInterrupt:
+            print("factorq compare: interrupted", file=sys.stderr)
+            return EXIT_INTERRUPTED
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

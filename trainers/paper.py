@@ -40,7 +40,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from envs.world import WorldConfig, static_layout
+from envs.world import WORLD_PERIODS, WORLDS, WorldConfig, static_layout
 from factorq_torch.config import ALGORITHMS, AgentConfig
 from factorq_torch.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
 from factorq_torch.validation import check_int
@@ -48,8 +48,6 @@ from trainers import checkpoint
 
 #: The paper's three worlds and their obstacle periods (SPEC section 1), in canonical order; a
 #: world's index here is part of its experiments' keys.
-WORLDS = ("static", "semi-dynamic", "dynamic")
-WORLD_PERIODS = {"static": 0, "semi-dynamic": 10, "dynamic": 1}
 BACKENDS = ("auto", "fast", "modular")
 MEASURES = ("total_steps", "collisions", "greedy_collisions")
 CURVES = ("steps", "collisions", "greedy_collisions")

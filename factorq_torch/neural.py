@@ -1,0 +1,369 @@
+"""Neural value providers: the task Q-network and the local reward network (Factor-DQN).
+
+They write the same keys as the tables of ``factorq_torch.tables``, so the policies
+(``FactorQPolicy``, ``EpsilonGreedyPolicy``), the losses (``FactorQLoss``, ``TabularQLoss``) and
+the collector run unchanged with either (DESIGN section 1):
+
+- ``TaskQNetwork`` writes ``action_value`` ``[..., S, A]`` from the cell (one-hot) or, with
+  ``with_proximity=True`` (the DQN baseline's observation), from the cell one-hot concatenated with
+  the 4 proximity bits;
+- ``LocalRewardNetwork`` writes ``local_value`` ``[..., S, A]``: for every actuator ``i`` a small
+  network of its own sensor reading ``proximity[i]`` predicts the local reward of firing ``i``.
+  ``FactorQLoss`` trains it on ``loss_local = 0.5 * (rho[a] - r_L[a])**2`` of the fired actuator
+  ``a`` (it has no ``update_running_mean``, the tables' eq. 5).
+
+**One network per experiment.** A batch of ``S`` experiments holds ``S`` independent networks,
+stored as stacked weights ``[S, ..., in, out]`` and applied with one batched matmul. A loss summed
+over experiments gives each network the gradient of its own experiment only, and Adam keeps
+per-parameter moments, so nothing is shared across the batch. Experiment ``i``'s initial weights
+are drawn from a generator seeded with its own key (``derive_keys(seed, STREAM_TASK_NETWORK, S,
+offset)[i]``, ``STREAM_LOCAL_NETWORK`` for the local network): the same whatever the batch size.
+
+**Initial values.** ``zero_output=True`` (the default) zeroes the output layer, so every value
+starts at exactly 0, as the tables do (SPEC section 3); on this world's negative rewards that is
+the optimism that makes tabular Factor-Q explore. The DQN baseline uses PyTorch's default
+initialisation instead (as torchrl's and CleanRL's DQN examples).
+
+**The local network's architecture follows from eq. 3.** Eq. 3 divides the task spread by the
+local spread ``P_bar - min(rho)``, and its guarantee (a sensed obstacle is never the greedy
+choice) holds when every sensed actuator has the same ``rho`` and every free one exactly 0 -- what
+the tables' running means give (-1 and 0 in these worlds). A network only approximates both:
+
+- *no bias, tanh* (defaults): ``f(o) = W2 tanh(W1 o)`` is exactly 0 for the reading ``o = 0``, so
+  "nothing sensed" predicts exactly no local reward and the spread comes only from sensed
+  obstacles. With biases the free actuators' residuals differ slightly, and eq. 3 scales that
+  noise up to the size of the task spread (``G = spread_Q / residual * (1 + eta)``): the noise
+  then decides the action in every free cell. tanh rather than ReLU: a bias-free ReLU unit
+  whose input weight turns negative is dead for good (measured: with Adam at learning rate 0.1,
+  whole actuators stopped learning and collided thousands of times).
+- *shared across actuators* (default ``shared=True``): one network per experiment maps a sensor
+  bit to the local reward of its actuator, for all four pairs (they are the same kind of bump
+  sensor). With one network per actuator (``shared=False``, the literal counterpart of the
+  tables), Adam left the four ``rho_i(1)`` unequal (measured -0.8 to -1.9): where two obstacles
+  are sensed, eq. 3 scales to the more negative one and the other can stay the greedy choice,
+  which gave 5-100x more greedy collisions in the moving worlds.
+
+These are architectural priors, stated here; ``bias``, ``activation`` and ``shared`` are
+arguments so that the difference can be measured (``trainers.compare.FactorDQNConfig``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import nn
+
+from factorq_torch.rng import MASK64, STREAM_LOCAL_NETWORK, STREAM_TASK_NETWORK, derive_keys
+
+NUM_ACTIONS = 4
+ACTIVATIONS = ("relu", "tanh")
+
+#: Random streams of the networks' initial weights (the others are in ``factorq_torch.rng``).
+
+
+def _check_count(name: str, value, low: int = 1) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise TypeError(f"{name} must be an int, got {value!r} ({type(value).__name__})")
+    if value < low:
+        raise ValueError(f"{name}={value} is out of range: must be >= {low}")
+    return value
+
+
+def _check_hidden(hidden) -> tuple[int, ...]:
+    if isinstance(hidden, int) and not isinstance(hidden, bool):
+        hidden = (hidden,)
+    if not isinstance(hidden, Sequence) or isinstance(hidden, str):
+        raise TypeError(f"hidden must be a sequence of layer widths, e.g. (64, 64), got {hidden!r}")
+    for width in hidden:
+        _check_count("hidden layer width", width)
+    return tuple(hidden)
+
+
+class BatchedMLP(nn.Module):
+    """``S`` independent multilayer perceptrons (ReLU between layers), applied at once.
+
+    Weights ``[*lead, in, out]`` and biases ``[*lead, out]`` with ``lead = (S, *extra)``; the input
+    ``[..., *lead, in]`` gives ``[..., *lead, out]``: every leading index has its own network, and
+    any dimensions before ``lead`` (e.g. a replay minibatch) share it.
+
+    Args:
+        lead: the leading shape of independent networks, ``(S,)`` or ``(S, A)``.
+        in_features, out_features: input and output widths.
+        hidden: widths of the hidden layers (``()``: one linear layer).
+        keys: ``[S]`` int64, the key of each experiment's initialisation stream.
+        bias: whether the layers have biases.
+        zero_output: start the output layer at 0 (every output exactly 0).
+
+    Initialisation: as ``nn.Linear``, ``U(-1/sqrt(in), 1/sqrt(in))`` for weights and biases, drawn
+    for experiment ``i`` (all its ``extra`` networks, layer by layer) from a ``torch.Generator``
+    seeded with ``keys[i]``.
+    """
+
+    def __init__(
+        self,
+        lead: Sequence[int],
+        in_features: int,
+        out_features: int,
+        *,
+        hidden: Sequence[int] = (),
+        keys: torch.Tensor,
+        bias: bool = True,
+        activation: str = "relu",
+        zero_output: bool = False,
+        device: torch.device | str | None = None,
+    ) -> None:
+        super().__init__()
+        if activation not in ACTIVATIONS:
+            raise ValueError(f"activation={activation!r} is unknown: choose one of {ACTIVATIONS}")
+        self.activation = getattr(torch, activation)
+        self.lead = tuple(lead)
+        widths = (in_features, *hidden, out_features)
+        self.weights = nn.ParameterList()
+        self.biases = nn.ParameterList() if bias else None
+        for fan_in, fan_out in zip(widths[:-1], widths[1:], strict=True):
+            self.weights.append(nn.Parameter(torch.empty(*self.lead, fan_in, fan_out)))
+            if self.biases is not None:
+                self.biases.append(nn.Parameter(torch.empty(*self.lead, fan_out)))
+        self._initialise(keys, zero_output)
+        self.to(device)
+
+    @torch.no_grad()
+    def _initialise(self, keys: torch.Tensor, zero_output: bool) -> None:
+        if tuple(keys.shape) != (self.lead[0],):
+            raise ValueError(f"keys has shape {list(keys.shape)}, expected [{self.lead[0]}]")
+        last = len(self.weights) - 1
+        for experiment, key in enumerate(keys.tolist()):
+            generator = torch.Generator().manual_seed(key & MASK64)
+            for layer, weight in enumerate(self.weights):
+                bound = 1.0 / math.sqrt(weight.shape[-2])
+                tensors = [weight[experiment]]
+                if self.biases is not None:
+                    tensors.append(self.biases[layer][experiment])
+                for tensor in tensors:
+                    tensor.uniform_(-bound, bound, generator=generator)
+                    if zero_output and layer == last:
+                        tensor.zero_()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        lead = self.lead
+        if tuple(x.shape[-1 - len(lead) : -1]) != lead:
+            raise ValueError(
+                f"BatchedMLP of networks {list(lead)} got an input of shape {list(x.shape)}: "
+                f"expected [..., {', '.join(map(str, lead))}, in_features]"
+            )
+        before = x.shape[: -1 - len(lead)]
+        networks = math.prod(lead)
+        # One bmm per layer: [L, P, in] @ [L, in, out], L networks, P inputs each. A broadcast
+        # matmul would copy the weights once per input instead.
+        x = x.reshape(-1, networks, x.shape[-1]).transpose(0, 1)  # [L, P, in]
+        last = len(self.weights) - 1
+        for layer, weight in enumerate(self.weights):
+            x = torch.bmm(x, weight.reshape(networks, *weight.shape[-2:]))  # [L, P, out]
+            if self.biases is not None:
+                x = x + self.biases[layer].reshape(networks, 1, -1)
+            if layer < last:
+                x = self.activation(x)
+        return x.transpose(0, 1).reshape(*before, *lead, x.shape[-1])  # [..., *lead, out]
+
+
+def _keys(keys, seed: int, stream: int, count: int, offset: int) -> torch.Tensor:
+    """The given initialisation keys ``[S]`` int64, or those derived from ``seed``."""
+    if keys is None:
+        return derive_keys(seed, stream, count, offset)
+    if not isinstance(keys, torch.Tensor) or keys.dtype != torch.int64:
+        raise TypeError("keys must be an int64 tensor (see factorq_torch.rng.derive_keys)")
+    if tuple(keys.shape) != (count,):
+        raise ValueError(
+            f"keys has shape {list(keys.shape)}, expected [{count}] (one per experiment)"
+        )
+    return keys
+
+
+def _experiment_dim(value: torch.Tensor, trailing: int, num_experiments: int, owner: str, key):
+    """Check that ``value`` is ``[..., S, *trailing]`` with ``S = num_experiments``."""
+    dim = value.dim() - 1 - trailing
+    if dim < 0 or value.shape[dim] != num_experiments:
+        raise ValueError(
+            f"{owner} holds S={num_experiments} experiments but {key!r} has shape "
+            f"{list(value.shape)}: expected [..., {num_experiments}"
+            f"{', 4' if trailing else ''}] (build the env with batch_size=({num_experiments},))"
+        )
+
+
+class TaskQNetwork(TensorDictModuleBase):
+    """Task values ``Q(s, .)`` of ``S`` experiments from a network per experiment.
+
+    The input features (documented observation of the neural agents):
+
+    - ``with_proximity=False`` (Factor-DQN, like ``TaskQTable``'s Factor-Q state): the cell as a
+      one-hot vector ``[N]`` (float32);
+    - ``with_proximity=True`` (the DQN baseline, like Q-learning's state): the cell one-hot ``[N]``
+      concatenated with the 4 proximity bits as 0/1 floats, ``[N + 4]``.
+
+    Args:
+        num_experiments: ``S``, one network each.
+        num_cells: ``N``, cells of the grid (``size**2``).
+        with_proximity: add the proximity bits to the input.
+        hidden: hidden layer widths of each network.
+        activation: hidden activation, ``"relu"`` (default) or ``"tanh"``.
+        num_actions: ``A``, the outputs.
+        seed, offset: initialisation keys ``derive_keys(seed, STREAM_TASK_NETWORK, S, offset)``.
+        keys: explicit initialisation keys ``[S]`` int64 instead of ``seed`` / ``offset``.
+        zero_output: start every value at exactly 0 (as the tables).
+        device: where the weights live.
+
+    Keys: reads ``cell`` ``[..., S]`` (and ``proximity`` ``[..., S, 4]``), writes ``action_value``
+    ``[..., S, A]``: any leading dimensions (a replay minibatch ``[B, S]``) are allowed.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> network = TaskQNetwork(2, num_cells=9)
+        >>> td = network(TensorDict(cell=torch.tensor([0, 8]), batch_size=[2]))
+        >>> td["action_value"].detach()  # zero_output: every value starts at 0, as the tables
+        tensor([[0., 0., 0., 0.],
+                [0., 0., 0., 0.]])
+    """
+
+    def __init__(
+        self,
+        num_experiments: int,
+        num_cells: int,
+        *,
+        with_proximity: bool = False,
+        hidden: Sequence[int] = (64,),
+        activation: str = "relu",
+        num_actions: int = NUM_ACTIONS,
+        seed: int = 0,
+        offset: int = 0,
+        keys: torch.Tensor | None = None,
+        zero_output: bool = True,
+        device: torch.device | str | None = None,
+    ) -> None:
+        super().__init__()
+        self.num_experiments = _check_count("num_experiments", num_experiments)
+        self.num_cells = _check_count("num_cells", num_cells)
+        self.num_actions = _check_count("num_actions", num_actions)
+        self.with_proximity = bool(with_proximity)
+        self.in_keys = ["cell", "proximity"] if with_proximity else ["cell"]
+        self.out_keys = ["action_value"]
+        in_features = num_cells + (NUM_ACTIONS if with_proximity else 0)
+        self.network = BatchedMLP(
+            (num_experiments,),
+            in_features,
+            num_actions,
+            hidden=_check_hidden(hidden),
+            keys=_keys(keys, seed, STREAM_TASK_NETWORK, num_experiments, offset),
+            activation=activation,
+            zero_output=zero_output,
+            device=device,
+        )
+
+    def features(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """The network input ``[..., S, N]`` or ``[..., S, N + 4]`` float32."""
+        owner = type(self).__name__
+        cell = tensordict.get("cell", None)
+        if cell is None:
+            raise KeyError(
+                f"{owner} needs 'cell' in the tensordict; it has {list(tensordict.keys())}"
+            )
+        _experiment_dim(cell, 0, self.num_experiments, owner, "cell")
+        one_hot = nn.functional.one_hot(cell.to(torch.int64), self.num_cells).to(torch.float32)
+        if not self.with_proximity:
+            return one_hot
+        proximity = tensordict.get("proximity", None)
+        if proximity is None:
+            raise KeyError(f"{owner} with_proximity=True needs 'proximity' in the tensordict")
+        return torch.cat([one_hot, proximity.to(torch.float32)], dim=-1)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        tensordict.set("action_value", self.network(self.features(tensordict)))  # [..., S, A]
+        return tensordict
+
+
+class LocalRewardNetwork(TensorDictModuleBase):
+    """Factor-Q's projected local reward ``rho(o)`` from small networks of each sensor reading.
+
+    ``local_value[..., s, i] = f_s(proximity[..., s, i])`` (``shared=True``) or
+    ``f_{s,i}(proximity[..., s, i])`` (one network per actuator): experiment ``s``'s network maps
+    actuator ``i``'s own sensor reading (0 or 1, as a float) through ``hidden`` units to the
+    expected local reward of firing ``i`` -- the network counterpart of the table ``rho_i[o_i]``.
+    Trained by ``FactorQLoss``'s ``loss_local`` (regression on the fired actuator's local reward).
+    The defaults (no bias, tanh, shared) are explained in the module docstring.
+
+    Args:
+        num_experiments: ``S``.
+        hidden: hidden layer widths of each actuator's network.
+        num_actions: ``A``, one network (and one sensor) per actuator.
+        bias: layers with biases; ``False`` (default) maps the reading 0 to exactly 0.
+        activation: hidden activation, ``"tanh"`` (default) or ``"relu"``.
+        shared: one network per experiment for all actuators (default), else one per actuator.
+        seed, offset: initialisation keys ``derive_keys(seed, STREAM_LOCAL_NETWORK, S, offset)``.
+        keys: explicit initialisation keys ``[S]`` int64 instead of ``seed`` / ``offset``.
+        zero_output: start every value at exactly 0 (as the tables).
+        device: where the weights live.
+
+    Keys: reads ``proximity`` ``[..., S, A]`` bool, writes ``local_value`` ``[..., S, A]``.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> local = LocalRewardNetwork(1, zero_output=False)
+        >>> td = local(TensorDict(proximity=torch.tensor([[False] * 4]), batch_size=[1]))
+        >>> td["local_value"].detach()  # no bias: nothing sensed predicts exactly 0
+        tensor([[0., 0., 0., 0.]])
+    """
+
+    def __init__(
+        self,
+        num_experiments: int,
+        *,
+        hidden: Sequence[int] = (8,),
+        num_actions: int = NUM_ACTIONS,
+        bias: bool = False,
+        activation: str = "tanh",
+        shared: bool = True,
+        seed: int = 0,
+        offset: int = 0,
+        keys: torch.Tensor | None = None,
+        zero_output: bool = True,
+        device: torch.device | str | None = None,
+    ) -> None:
+        super().__init__()
+        self.num_experiments = _check_count("num_experiments", num_experiments)
+        self.num_actions = _check_count("num_actions", num_actions)
+        self.shared = bool(shared)
+        self.in_keys = ["proximity"]
+        self.out_keys = ["local_value"]
+        self.network = BatchedMLP(
+            (num_experiments,) if shared else (num_experiments, num_actions),
+            1,
+            1,
+            hidden=_check_hidden(hidden),
+            keys=_keys(keys, seed, STREAM_LOCAL_NETWORK, num_experiments, offset),
+            bias=bias,
+            activation=activation,
+            zero_output=zero_output,
+            device=device,
+        )
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        owner = type(self).__name__
+        proximity = tensordict.get("proximity", None)
+        if proximity is None:
+            raise KeyError(f"{owner} needs 'proximity' in the tensordict")
+        _experiment_dim(proximity, 1, self.num_experiments, owner, "proximity")
+        if proximity.shape[-1] != self.num_actions:
+            raise ValueError(
+                f"{owner}: 'proximity' has {proximity.shape[-1]} sensors, expected "
+                f"{self.num_actions} (one per actuator)"
+            )
+        reading = proximity.to(torch.float32).unsqueeze(-1)  # [..., S, A, 1]
+        if self.shared:  # one network per experiment, applied to each of its A sensors
+            value = self.network(reading.movedim(-2, -3)).movedim(-3, -2)  # [..., S, A, 1]
+        else:
+            value = self.network(reading)
+        tensordict.set("local_value", value.squeeze(-1))  # [..., S, A]
+        return tensordict

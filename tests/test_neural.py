@@ -1,0 +1,143 @@
+"""Neural value providers: independent networks per experiment, the tables' keys, the swap."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictSequential
+from torchrl.envs import TransformedEnv
+
+from envs import FactoredGridEnv, SplitLocalReward
+from factorq_torch.collectors import OnlineCollector
+from factorq_torch.neural import (
+    STREAM_TASK_NETWORK,
+    BatchedMLP,
+    LocalRewardNetwork,
+    TaskQNetwork,
+)
+from factorq_torch.objectives import FactorQLoss
+from factorq_torch.policy import FactorQPolicy
+from factorq_torch.rng import derive_keys
+from factorq_torch.tables import LocalRewardTable, TaskQTable
+
+
+def test_experiment_draws_the_same_initial_network_alone_or_in_a_batch():
+    batch = TaskQNetwork(3, num_cells=9, with_proximity=True, zero_output=False, seed=7)
+    alone = TaskQNetwork(1, num_cells=9, with_proximity=True, zero_output=False, seed=7, offset=2)
+    cells, proximity = torch.tensor([4, 4, 4]), torch.tensor([[True, False, True, False]] * 3)
+    together = batch(TensorDict(cell=cells, proximity=proximity, batch_size=[3]))["action_value"]
+    single = alone(TensorDict(cell=cells[:1], proximity=proximity[:1], batch_size=[1]))
+    assert torch.equal(together[2], single["action_value"][0])
+    assert not torch.equal(together[0], together[2])  # experiments get different networks
+
+
+def test_summed_loss_gives_each_network_only_its_own_experiments_gradient():
+    keys = derive_keys(0, STREAM_TASK_NETWORK, 3)
+    mlp = BatchedMLP((3,), 5, 4, hidden=(6,), keys=keys)
+    x = torch.randn(8, 3, 5)  # a minibatch of 8 inputs per experiment
+    mlp(x)[:, 1].sum().backward()  # a loss that involves experiment 1 only
+    for weight in mlp.weights:
+        assert weight.grad[1].abs().sum() > 0
+        assert torch.equal(weight.grad[0], torch.zeros_like(weight.grad[0]))
+        assert torch.equal(weight.grad[2], torch.zeros_like(weight.grad[2]))
+
+
+def test_batched_mlp_equals_each_experiments_own_linear_layers():
+    keys = derive_keys(3, STREAM_TASK_NETWORK, 2)
+    mlp = BatchedMLP((2,), 3, 2, hidden=(4,), keys=keys)
+    x = torch.randn(5, 2, 3)
+    for experiment in range(2):
+        w1, w2 = mlp.weights[0][experiment], mlp.weights[1][experiment]
+        b1, b2 = mlp.biases[0][experiment], mlp.biases[1][experiment]
+        expected = torch.relu(x[:, experiment] @ w1 + b1) @ w2 + b2
+        assert torch.allclose(mlp(x)[:, experiment], expected, atol=1e-6)
+
+
+def test_networks_start_at_zero_like_the_tables():
+    cells = torch.tensor([0, 5])
+    proximity = torch.tensor([[True, False, True, True], [False] * 4])
+    td = TensorDict(cell=cells, proximity=proximity, batch_size=[2])
+    task, local = TaskQNetwork(2, num_cells=9), LocalRewardNetwork(2)
+    assert torch.equal(task(td.clone())["action_value"], torch.zeros(2, 4))
+    assert torch.equal(local(td.clone())["local_value"], torch.zeros(2, 4))
+
+
+def test_local_network_without_bias_predicts_exactly_zero_where_nothing_is_sensed():
+    local = LocalRewardNetwork(2, zero_output=False, seed=1)
+    optimizer = torch.optim.Adam(local.parameters(), lr=0.05)
+    sensed = torch.tensor([[True, False, False, True]] * 2)
+    for _ in range(50):  # learn rho(1) = -1 on every actuator
+        rho = local(TensorDict(proximity=sensed, batch_size=[2]))["local_value"]
+        loss = ((rho[:, [0, 3]] + 1) ** 2).sum()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    rho = local(TensorDict(proximity=sensed, batch_size=[2]))["local_value"].detach()
+    assert torch.equal(rho[:, 1:3], torch.zeros(2, 2))  # eq. 3's spread stays exactly 0 there
+    assert (rho[:, [0, 3]] < -0.5).all()
+
+
+def test_task_network_reads_a_replay_minibatch_of_experiments():
+    network = TaskQNetwork(3, num_cells=4, with_proximity=True, zero_output=False)
+    td = TensorDict(
+        cell=torch.randint(0, 4, (5, 3)),
+        proximity=torch.zeros(5, 3, 4, dtype=torch.bool),
+        batch_size=[5, 3],
+    )
+    assert network(td)["action_value"].shape == (5, 3, 4)
+
+
+def test_networks_name_a_batch_that_does_not_match_their_experiments():
+    network = TaskQNetwork(3, num_cells=4)
+    with pytest.raises(ValueError, match="S=3 experiments but 'cell' has shape \\[2\\]"):
+        network(TensorDict(cell=torch.tensor([0, 1]), batch_size=[2]))
+    with pytest.raises(ValueError, match="hidden layer width=0 is out of range"):
+        LocalRewardNetwork(2, hidden=(0,))
+
+
+@pytest.fixture
+def one_thread():
+    """One intra-op thread: on tiny tensors more threads only contend (DESIGN section 6)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def _train_factor_q(task, local, optimizer, steps: int):
+    """The same env, policy, loss and collector, whatever the value providers are."""
+    env = TransformedEnv(
+        FactoredGridEnv(size=4, num_obstacles=3, obstacle_period=1, batch_size=(2,), seed=1),
+        SplitLocalReward(),
+    )
+    policy = TensorDictSequential(task, local, FactorQPolicy(2, seed=1))
+    loss = FactorQLoss(task, local)
+    collector = OnlineCollector(env, policy, loss, runs=1, episodes=steps, optimizer=optimizer)
+    greedy_collisions = torch.zeros(2, dtype=torch.int64)
+    for _ in range(steps):
+        td = collector.step()
+        collided = td["next", "bump"].any(-1) & ~td["exploratory"]
+        greedy_collisions += collided.to(torch.int64)
+    return td, greedy_collisions
+
+
+def test_swapping_tables_for_networks_needs_no_change_outside_the_value_providers(one_thread):
+    steps = 300
+    tables = (TaskQTable(2, num_cells=16), LocalRewardTable(2), None)
+    task, local = TaskQNetwork(2, num_cells=16), LocalRewardNetwork(2)
+    adam = torch.optim.Adam(
+        [{"params": task.parameters(), "lr": 1e-2}, {"params": local.parameters(), "lr": 5e-2}]
+    )
+    for providers in (tables, (task, local, adam)):
+        td, greedy_collisions = _train_factor_q(*providers, steps)
+        assert td["combined_value"].shape == (2, 4)  # eqs. 2-3 ran on either provider
+        north = torch.tensor([[True, False, False, False]] * 2)
+        sensed = TensorDict(proximity=north, batch_size=[2])
+        rho = providers[1](sensed)["local_value"].detach()
+        # Both learned eq. 5's fact of this world: a sensed obstacle costs about -1, nothing
+        # sensed costs nothing, and so they hardly collide on greedy actions.
+        assert (rho[:, 0] < -0.5).all() and torch.equal(rho[:, 1:], torch.zeros(2, 3))
+        assert (greedy_collisions < steps // 20).all()
+    # Adam moved the task network's output layer away from its zero start.
+    assert not torch.equal(task.network.weights[-1], torch.zeros_like(task.network.weights[-1]))
