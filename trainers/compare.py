@@ -691,13 +691,17 @@ def main(args: argparse.Namespace | list[str] | None = None) -> int:
         f"{config.steps:,} env steps each",
         file=sys.stderr,
     )
-    last = {}
+    bars: dict[str, Any] = {}
 
     def progress(method: str, done: int, total: int) -> None:
-        percent = 100 * done // total
-        if last.get(method, -1) // 25 != percent // 25 or done == total:
-            print(f"  {method}: {done:,}/{total:,} steps", file=sys.stderr)
-        last[method] = percent
+        from tqdm.auto import tqdm
+
+        if method not in bars:
+            bars[method] = tqdm(total=total, desc=f"factorq compare {method}", unit="step")
+        bar = bars[method]
+        bar.update(done - bar.n)
+        if done >= total:
+            bar.close()
 
     try:
         results = run(config, progress)
