@@ -36,3 +36,18 @@ def check_float(
         interval = f"{'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
         raise ValueError(f"{name}={value} is out of range: must be in {interval}")
     return value
+
+
+def check_names(name: str, value, allowed: tuple[str, ...] | list[str]) -> tuple[str, ...]:
+    """``value`` (names, or one comma-separated string) as a tuple in ``allowed``'s order."""
+    names = value.split(",") if isinstance(value, str) else list(value)
+    names = [item.strip() if isinstance(item, str) else item for item in names]
+    if not names:
+        raise ValueError(f"{name} is empty: choose one or more of {', '.join(allowed)}")
+    for item in names:
+        if item not in allowed:
+            raise ValueError(f"{name}: {item!r} is unknown: choose from {', '.join(allowed)}")
+    duplicates = sorted({item for item in names if names.count(item) > 1})
+    if duplicates:
+        raise ValueError(f"{name}: {', '.join(duplicates)} given more than once")
+    return tuple(item for item in allowed if item in names)

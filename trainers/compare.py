@@ -68,6 +68,7 @@ from factorq_torch.objectives import FactorQLoss, TabularQLoss
 from factorq_torch.policy import EpsilonGreedyPolicy, FactorQPolicy
 from factorq_torch.rng import STREAM_LOCAL_NETWORK, STREAM_POLICY, STREAM_TASK_NETWORK
 from factorq_torch.tables import LocalRewardTable, TaskQTable
+from factorq_torch.validation import check_float, check_int, check_names
 from trainers import dqn
 from trainers.cli import COMPARE_HELP
 from trainers.dqn import (
@@ -76,10 +77,7 @@ from trainers.dqn import (
     DQNConfig,
     EpisodeRecorder,
     ExperimentConfig,
-    check_float,
     check_hidden,
-    check_int,
-    check_names,
     experiment_keys,
     make_env,
 )

@@ -70,6 +70,7 @@ from envs.grid import FactoredGridEnv
 from envs.world import NUM_ACTIONS, WORLD_PERIODS, WORLDS, WorldConfig, static_layout
 from factorq_torch.neural import TaskQNetwork
 from factorq_torch.rng import STREAM_TASK_NETWORK, STREAM_WORLD, derive_keys
+from factorq_torch.validation import check_float, check_int, check_names
 
 with warnings.catch_warnings():
     # torchrl 0.14.1 warns about its own deprecated weight updaters when the package is imported.
@@ -93,42 +94,6 @@ _MAX_SEED = 2**63 - 1
 
 # --------------------------------------------------------------------------------------------
 # Validation
-
-
-def check_int(name: str, value: Any, low: int, high: int | None = None, hint: str = "") -> int:
-    """``value`` if it is an int in ``[low, high]``; else an error naming ``name`` and the range."""
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise TypeError(f"{name} must be an int, got {value!r} ({type(value).__name__})")
-    if value < low or (high is not None and value > high):
-        allowed = f">= {low}" if high is None else f"in [{low}, {high}]"
-        raise ValueError(f"{name}={value} is out of range: must be {allowed}{hint}")
-    return value
-
-
-def check_float(name: str, value: Any, low: float, high: float, *, low_open: bool = False) -> float:
-    """``value`` if it is a finite number in ``[low, high]`` (``(low, high]`` with ``low_open``)."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise TypeError(f"{name} must be a number, got {value!r} ({type(value).__name__})")
-    below = value <= low if low_open else value < low
-    if not math.isfinite(value) or below or value > high:
-        interval = f"{'(' if low_open else '['}{low}, {high}]"
-        raise ValueError(f"{name}={value} is out of range: must be in {interval}")
-    return float(value)
-
-
-def check_names(name: str, value: Any, allowed: Sequence[str]) -> tuple[str, ...]:
-    """``value`` (names, or one comma-separated string) as a tuple in ``allowed``'s order."""
-    names = value.split(",") if isinstance(value, str) else list(value)
-    names = [item.strip() if isinstance(item, str) else item for item in names]
-    if not names:
-        raise ValueError(f"{name} is empty: choose one or more of {', '.join(allowed)}")
-    for item in names:
-        if item not in allowed:
-            raise ValueError(f"{name}: {item!r} is unknown: choose from {', '.join(allowed)}")
-    duplicates = sorted({item for item in names if names.count(item) > 1})
-    if duplicates:
-        raise ValueError(f"{name}: {', '.join(duplicates)} given more than once")
-    return tuple(item for item in allowed if item in names)
 
 
 def check_hidden(name: str, value: Any) -> tuple[int, ...]:
@@ -384,9 +349,7 @@ class DQNConfig:
     """Fraction of the step budget over which epsilon anneals linearly to eps_end."""
 
     def __post_init__(self) -> None:
-        check_float("gamma", self.gamma, 0.0, 1.0)
-        if self.gamma == 1.0:
-            raise ValueError("gamma=1.0 is out of range: must be in [0, 1)")
+        check_float("gamma", self.gamma, 0.0, 1.0, high_open=True)
         object.__setattr__(self, "hidden", check_hidden("hidden", self.hidden))
         check_float("lr", self.lr, 0.0, 1.0, low_open=True)
         check_int("buffer_size", self.buffer_size, 1)

@@ -43,7 +43,7 @@ import torch
 from envs.world import WORLD_PERIODS, WORLDS, WorldConfig, static_layout
 from factorq_torch.config import ALGORITHMS, AgentConfig
 from factorq_torch.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
-from factorq_torch.validation import check_int
+from factorq_torch.validation import check_int, check_names
 from trainers import checkpoint
 
 #: The paper's three worlds and their obstacle periods (SPEC section 1), in canonical order; a
@@ -123,9 +123,9 @@ class PaperConfig:
             self.size * self.size - 3,
             f" for a {self.size}x{self.size} grid with start, goal and agent kept free",
         )
-        object.__setattr__(self, "worlds", _check_names("worlds", self.worlds, WORLDS))
+        object.__setattr__(self, "worlds", check_names("worlds", self.worlds, WORLDS))
         object.__setattr__(
-            self, "algorithms", _check_names("algorithms", self.algorithms, ALGORITHMS)
+            self, "algorithms", check_names("algorithms", self.algorithms, ALGORITHMS)
         )
         _ = self.agent  # AgentConfig validates epsilon, gamma, alpha, eta and g_min
         if self.threads is not None:
@@ -173,21 +173,6 @@ class PaperConfig:
     def cells(self) -> list[tuple[str, str]]:
         """The selected ``(world, algorithm)`` cells, in canonical order."""
         return [(world, algorithm) for world in self.worlds for algorithm in self.algorithms]
-
-
-def _check_names(name: str, value: Any, allowed: tuple[str, ...]) -> tuple[str, ...]:
-    """``value`` (names, or one comma-separated string) as a tuple in ``allowed``'s order."""
-    names = value.split(",") if isinstance(value, str) else list(value)
-    names = [item.strip() if isinstance(item, str) else item for item in names]
-    if not names:
-        raise ValueError(f"{name} is empty: choose one or more of {', '.join(allowed)}")
-    for item in names:
-        if item not in allowed:
-            raise ValueError(f"{name}: {item!r} is unknown: choose from {', '.join(allowed)}")
-    duplicates = sorted({item for item in names if names.count(item) > 1})
-    if duplicates:
-        raise ValueError(f"{name}: {', '.join(duplicates)} given more than once")
-    return tuple(item for item in allowed if item in names)
 
 
 def field_docs(cls: type) -> dict[str, str]:
