@@ -58,19 +58,12 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
 from factorq_torch.rng import MASK64, STREAM_LOCAL_NETWORK, STREAM_TASK_NETWORK, derive_keys
+from factorq_torch.validation import check_int
 
 NUM_ACTIONS = 4
 ACTIVATIONS = ("relu", "tanh")
 
 #: Random streams of the networks' initial weights (the others are in ``factorq_torch.rng``).
-
-
-def _check_count(name: str, value, low: int = 1) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise TypeError(f"{name} must be an int, got {value!r} ({type(value).__name__})")
-    if value < low:
-        raise ValueError(f"{name}={value} is out of range: must be >= {low}")
-    return value
 
 
 def _check_hidden(hidden) -> tuple[int, ...]:
@@ -79,7 +72,7 @@ def _check_hidden(hidden) -> tuple[int, ...]:
     if not isinstance(hidden, Sequence) or isinstance(hidden, str):
         raise TypeError(f"hidden must be a sequence of layer widths, e.g. (64, 64), got {hidden!r}")
     for width in hidden:
-        _check_count("hidden layer width", width)
+        check_int("hidden layer width", width, 1)
     return tuple(hidden)
 
 
@@ -244,9 +237,9 @@ class TaskQNetwork(TensorDictModuleBase):
         device: torch.device | str | None = None,
     ) -> None:
         super().__init__()
-        self.num_experiments = _check_count("num_experiments", num_experiments)
-        self.num_cells = _check_count("num_cells", num_cells)
-        self.num_actions = _check_count("num_actions", num_actions)
+        self.num_experiments = check_int("num_experiments", num_experiments, 1)
+        self.num_cells = check_int("num_cells", num_cells, 1)
+        self.num_actions = check_int("num_actions", num_actions, 1)
         self.with_proximity = bool(with_proximity)
         self.in_keys = ["cell", "proximity"] if with_proximity else ["cell"]
         self.out_keys = ["action_value"]
@@ -332,8 +325,8 @@ class LocalRewardNetwork(TensorDictModuleBase):
         device: torch.device | str | None = None,
     ) -> None:
         super().__init__()
-        self.num_experiments = _check_count("num_experiments", num_experiments)
-        self.num_actions = _check_count("num_actions", num_actions)
+        self.num_experiments = check_int("num_experiments", num_experiments, 1)
+        self.num_actions = check_int("num_actions", num_actions, 1)
         self.shared = bool(shared)
         self.in_keys = ["proximity"]
         self.out_keys = ["local_value"]
