@@ -81,6 +81,7 @@ from trainers.dqn import (
     experiment_keys,
     make_env,
 )
+from trainers.paper import mean_ci
 
 LOGGERS = ("csv", "tensorboard")
 THRESHOLD_FACTOR = 1.5
@@ -350,16 +351,10 @@ def steps_to_threshold(trace: dict[str, Any], threshold: float) -> int | None:
     return int(trace["env_steps"][reached[0]]) if reached.size else None
 
 
-def mean_ci(samples: np.ndarray) -> tuple[float, float | None, float | None]:
-    """Mean over seeds and its Student-t 95% interval (``None`` with one seed)."""
-    from trainers.paper import t_critical
-
-    samples = np.asarray(samples, dtype=np.float64)
-    mean = float(samples.mean(axis=0))
-    if samples.shape[0] < 2:
-        return mean, None, None
-    half = t_critical(samples.shape[0] - 1) * samples.std(axis=0, ddof=1) / math.sqrt(len(samples))
-    return mean, float(mean - half), float(mean + half)
+def _scalar_ci(samples: list[float]) -> tuple[float, float | None, float | None]:
+    """``paper.mean_ci`` of per-seed scalars, as plain floats for JSON."""
+    mean, low, high = mean_ci(samples)
+    return float(mean), None if low is None else float(low), None if high is None else float(high)
 
 
 def _curve(traces: list[dict[str, Any]], name: str, grid: np.ndarray) -> dict[str, list]:
@@ -381,13 +376,9 @@ def _curve(traces: list[dict[str, Any]], name: str, grid: np.ndarray) -> dict[st
     low, high = mean.copy(), mean.copy()
     complete = ~np.isnan(values).any(axis=0)
     if complete.any():
-        from trainers.paper import t_critical
-
-        mean[complete] = values[:, complete].mean(axis=0)
-        if len(traces) > 1:
-            spread = values[:, complete].std(axis=0, ddof=1) / math.sqrt(len(traces))
-            half = t_critical(len(traces) - 1) * spread
-            low[complete], high[complete] = mean[complete] - half, mean[complete] + half
+        mean[complete], band_low, band_high = mean_ci(values[:, complete])
+        if band_low is not None:
+            low[complete], high[complete] = band_low, band_high
     return {"mean": _json_list(mean), "low": _json_list(low), "high": _json_list(high)}
 
 
@@ -411,9 +402,9 @@ def summarise(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[st
             traces = [trace for trace in run["traces"] if trace["world"] == world]
             reached = [steps_to_threshold(t, thresholds[world]["threshold"]) for t in traces]
             hit = [value for value in reached if value is not None]
-            collisions = mean_ci([t["total_collisions"] for t in traces])
-            greedy = mean_ci([t["total_greedy_collisions"] for t in traces])
-            avoidable = mean_ci(
+            collisions = _scalar_ci([t["total_collisions"] for t in traces])
+            greedy = _scalar_ci([t["total_greedy_collisions"] for t in traces])
+            avoidable = _scalar_ci(
                 [
                     t["total_greedy_collisions"] - t["total_boxed_in_greedy_collisions"]
                     for t in traces
