@@ -205,15 +205,6 @@ def test_bad_budgets_and_env_shapes_are_refused():
         OnlineCollector(flat, policy, TabularQLoss(table), runs=1, episodes=1)
 
 
-@pytest.fixture
-def one_thread():
-    # Intra-op threads on tiny tensors slow the loop down many times on a busy machine.
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.mark.slow
 def test_factorq_avoids_collisions_far_better_than_qlearning_and_both_learn_the_path(one_thread):
     # 4 seeds of the paper's static world, 1 run of 20 episodes each (~25 s on one thread).

@@ -14,15 +14,6 @@ from trainers import compare
 from trainers.dqn import DQNConfig, ExperimentConfig
 
 
-@pytest.fixture
-def one_thread():
-    """One intra-op thread: on tiny tensors more threads only contend (DESIGN section 6)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def _trace(world: str, steps: list[int], collisions: int = 0, greedy: int = 0) -> dict:
     lengths = np.asarray(steps, dtype=np.int64)
     return {

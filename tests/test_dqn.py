@@ -11,15 +11,6 @@ from factorq_torch.rng import STREAM_WORLD
 from trainers import dqn
 
 
-@pytest.fixture
-def one_thread():
-    """One intra-op thread: on tiny tensors more threads only contend (DESIGN section 6)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def test_exploratory_egreedy_flags_exactly_the_actions_the_epsilon_branch_drew():
     torch.manual_seed(0)
     explore = dqn.ExploratoryEGreedy(eps_init=0.5, eps_end=0.5, annealing_num_steps=1)

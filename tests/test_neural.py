@@ -96,15 +96,6 @@ def test_networks_name_a_batch_that_does_not_match_their_experiments():
         LocalRewardNetwork(2, hidden=(0,))
 
 
-@pytest.fixture
-def one_thread():
-    """One intra-op thread: on tiny tensors more threads only contend (DESIGN section 6)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def _train_factor_q(task, local, optimizer, steps: int):
     """The same env, policy, loss and collector, whatever the value providers are."""
     env = TransformedEnv(

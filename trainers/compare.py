@@ -35,9 +35,7 @@ over the episode's steps), at step = that experiment's env steps.
 from __future__ import annotations
 
 import argparse
-import ast
 import importlib.util
-import inspect
 import json
 import math
 import os
@@ -81,7 +79,7 @@ from trainers.dqn import (
     experiment_keys,
     make_env,
 )
-from trainers.paper import mean_ci
+from trainers.paper import field_docs, mean_ci
 
 LOGGERS = ("csv", "tensorboard")
 THRESHOLD_FACTOR = 1.5
@@ -599,22 +597,6 @@ def run(config: CompareConfig, progress: Progress | None = None) -> dict[str, An
     results = summarise(config, runs)
     results["timing"] = {"wall_s": round(time.perf_counter() - started, 3)}
     return results
-
-
-def field_docs(cls: type) -> dict[str, str]:
-    """The one-line docstrings written under the fields of dataclass ``cls`` (for --help)."""
-    tree = ast.parse(inspect.getsource(cls))
-    body = tree.body[0].body
-    docs = {}
-    for node, following in zip(body, body[1:], strict=False):
-        if (
-            isinstance(node, ast.AnnAssign)
-            and isinstance(node.target, ast.Name)
-            and isinstance(following, ast.Expr)
-            and isinstance(following.value, ast.Constant)
-        ):
-            docs[node.target.id] = " ".join(str(following.value.value).split())
-    return docs
 
 
 _CLI_FIELDS = (
