@@ -143,3 +143,5 @@ def test_bad_command_line_input_is_a_usage_error_that_names_it(capsys):
     assert "seeds=0 is out of range" in capsys.readouterr().err
     assert compare.main(["--worlds", "windy"]) == 2
     assert "worlds: 'windy' is unknown" in capsys.readouterr().err
+    assert compare.main(["--bogus", "1"]) == 2
+    assert "factorq compare: error: unrecognized arguments: --bogus 1" in capsys.readouterr().err

@@ -646,7 +646,11 @@ def main(args: argparse.Namespace | list[str] | None = None) -> int:
         root = argparse.ArgumentParser(prog="factorq")
         parser = add_parser(root.add_subparsers(dest="command"))
         try:
-            args = root.parse_args(["compare", *(sys.argv[1:] if args is None else args)])
+            args, unknown = root.parse_known_args(
+                ["compare", *(sys.argv[1:] if args is None else args)]
+            )
+            if unknown:  # reported by the compare parser, not the stand-in root
+                parser.error(f"unrecognized arguments: {' '.join(unknown)}")
         except SystemExit as exit_:
             return exit_.code if isinstance(exit_.code, int) else 2
     else:
