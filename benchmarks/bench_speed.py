@@ -1,4 +1,4 @@
-"""Speed and memory of the fused fast path (``factorq_torch.fast``), printed as tables.
+"""Speed and memory of the fused fast path (``trainers.fast``), printed as tables.
 
 - kernel build: compile time (into an empty cache) and load time from the cache;
 - throughput, env steps per second, at several batch sizes ``S`` (independent experiments), for
@@ -39,9 +39,9 @@ if str(ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(ROOT))
 
 from envs.world import WorldConfig  # noqa: E402
-from factorq_torch import fast  # noqa: E402
-from factorq_torch.config import AgentConfig  # noqa: E402
-from factorq_torch.rng import STREAM_POLICY, STREAM_WORLD, derive_keys  # noqa: E402
+from factorq_torch.base.config import AgentConfig  # noqa: E402
+from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys  # noqa: E402
+from trainers import fast  # noqa: E402
 
 LOOPS = {"env-only": fast.RANDOM_WALK, "q-learning": "q-learning", "factor-q": "factor-q"}
 PAPER_PERIODS = (0, 10, 1)  # static, semi-dynamic, dynamic

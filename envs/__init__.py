@@ -14,8 +14,6 @@ from envs.world import WorldConfig
 _LAZY = {
     "FactoredGridEnv": "envs.grid",
     "SplitLocalReward": "envs.transforms",
-    "proximity_pattern": "envs.transforms",
-    "qlearning_state": "envs.transforms",
 }
 
 __all__ = ["WorldConfig", *_LAZY]

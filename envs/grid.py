@@ -25,8 +25,8 @@ from envs.world import (
     static_layout,
     step_worlds,
 )
-from factorq_torch.rng import STREAM_WORLD, derive_keys
-from factorq_torch.validation import is_int
+from factorq_torch.base.rng import STREAM_WORLD, derive_keys
+from factorq_torch.base.validation import is_int
 
 _INTEGER_DTYPES = (torch.int8, torch.int16, torch.int32, torch.int64, torch.uint8)
 

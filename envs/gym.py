@@ -24,7 +24,7 @@ from envs.world import (
     static_layout,
     step_worlds,
 )
-from factorq_torch.rng import STREAM_WORLD, derive_keys
+from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 
 
 class FactoredGridGym(gymnasium.Env):

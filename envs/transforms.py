@@ -1,4 +1,4 @@
-"""Env transforms and state-index helpers for the FactoredGrid world.
+"""Env transforms for the FactoredGrid world.
 
 ``SplitLocalReward`` turns the conventional reward of ``FactoredGridEnv`` into what Factor-Q
 learns from (SPEC section 2): the task reward (step + goal) under ``"reward"`` and the local
@@ -8,38 +8,9 @@ without it.
 
 from __future__ import annotations
 
-import torch
 from tensordict import TensorDictBase
 from torchrl.data import Composite
 from torchrl.envs.transforms import Transform
-
-from envs.world import NUM_ACTIONS
-
-#: Proximity patterns per cell: 4 binary sensors.
-NUM_PATTERNS = 1 << NUM_ACTIONS
-
-
-def proximity_pattern(proximity: torch.Tensor) -> torch.Tensor:
-    """The proximity sensors as one integer: ``sum_i bit_i << i``.
-
-    Shapes: ``[..., 4]`` (bool or integer 0/1) -> ``[...]`` int64 in ``[0, 16)``.
-
-    >>> proximity_pattern(torch.tensor([[True, False, False, True], [False] * 4]))
-    tensor([9, 0])
-    """
-    weights = 1 << torch.arange(NUM_ACTIONS, device=proximity.device)  # [4]: 1, 2, 4, 8
-    return (proximity.to(torch.int64) * weights).sum(dim=-1)
-
-
-def qlearning_state(cell: torch.Tensor, proximity: torch.Tensor) -> torch.Tensor:
-    """Q-learning's state index (SPEC section 3): ``cell * 16 + proximity_pattern``.
-
-    Shapes: ``cell [...]`` int64, ``proximity [..., 4]`` -> ``[...]`` int64 in ``[0, 16 N)``.
-
-    >>> qlearning_state(torch.tensor([0, 3]), torch.tensor([[1, 1, 0, 0], [0, 0, 1, 0]]))
-    tensor([ 3, 52])
-    """
-    return cell * NUM_PATTERNS + proximity_pattern(proximity)
 
 
 class SplitLocalReward(Transform):
@@ -54,6 +25,7 @@ class SplitLocalReward(Transform):
       second reward (so pass reward keys explicitly: ``env.reward_key`` is ambiguous).
 
     Example:
+        >>> import torch
         >>> from torchrl.envs import TransformedEnv
         >>> from envs.grid import FactoredGridEnv
         >>> env = TransformedEnv(FactoredGridEnv(size=3, num_obstacles=0), SplitLocalReward())

@@ -6,7 +6,7 @@ independent worlds; functions return new states and never mutate their inputs. T
 
 Cells are numbered ``row * size + col``; the start is cell 0 (top-left), the goal the last cell.
 Actions, in the paper's order: 0 north (row - 1), 1 west (col - 1), 2 south (row + 1), 3 east
-(col + 1). Randomness comes from each world's counter stream (``factorq_torch.rng``): scatter
+(col + 1). Randomness comes from each world's counter stream (``factorq_torch.base.rng``): scatter
 number ``m`` of a world uses counters ``m * num_obstacles .. (m + 1) * num_obstacles - 1``.
 """
 
@@ -18,8 +18,8 @@ from typing import NamedTuple
 
 import torch
 
-from factorq_torch.rng import STREAM_LAYOUT, derive_keys, randint_from_bits, random_bits
-from factorq_torch.validation import check_int
+from factorq_torch.base.rng import STREAM_LAYOUT, derive_keys, randint_from_bits, random_bits
+from factorq_torch.base.validation import check_int
 
 NUM_ACTIONS = 4
 ACTION_NAMES = ("north", "west", "south", "east")

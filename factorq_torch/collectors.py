@@ -44,9 +44,9 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule
 
+from factorq_torch.base.validation import check_int
 from factorq_torch.objectives import tabular_optimizer
 from factorq_torch.policy import MASK_KEY
-from factorq_torch.validation import check_int
 
 with warnings.catch_warnings():
     # torchrl 0.14.1 warns about its own deprecated weight updaters when the package is imported.

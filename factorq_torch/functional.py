@@ -5,7 +5,7 @@ dimensions (experiments). Values are float tensors; actions are int64.
 
 Floating-point order is part of the contract: sums over actions are written as explicit
 left-to-right additions (``_left_sum``) and no step is fused, so the compiled fast path
-(``factorq_torch/_kernel.c``, which performs the same operations in the same order in float32)
+(``trainers/_kernel.c``, which performs the same operations in the same order in float32)
 produces bit-identical tables. Keep it that way when you edit.
 """
 
@@ -13,7 +13,30 @@ from __future__ import annotations
 
 import torch
 
-from factorq_torch.rng import probability_threshold, randint_from_bits
+from factorq_torch.base.rng import probability_threshold, randint_from_bits
+
+
+def sensor_pattern(readings: torch.Tensor) -> torch.Tensor:
+    """Binary sensor readings as one integer: ``sum_i bit_i << i``.
+
+    Shapes: ``[..., K]`` (bool or integer 0/1) -> ``[...]`` int64 in ``[0, 2**K)``.
+
+    >>> sensor_pattern(torch.tensor([[True, False, False, True], [False] * 4]))
+    tensor([9, 0])
+    """
+    weights = 1 << torch.arange(readings.shape[-1], device=readings.device)  # [K]: 1, 2, 4, ...
+    return (readings.to(torch.int64) * weights).sum(dim=-1)
+
+
+def qlearning_state(cell: torch.Tensor, readings: torch.Tensor) -> torch.Tensor:
+    """Q-learning's state index (SPEC section 3): ``cell * 2**K + sensor_pattern(readings)``.
+
+    Shapes: ``cell [...]`` int64, ``readings [..., K]`` -> ``[...]`` int64 in ``[0, 2**K N)``.
+
+    >>> qlearning_state(torch.tensor([0, 3]), torch.tensor([[1, 1, 0, 0], [0, 0, 1, 0]]))
+    tensor([ 3, 52])
+    """
+    return cell * (1 << readings.shape[-1]) + sensor_pattern(readings)
 
 
 def _left_sum(x: torch.Tensor) -> torch.Tensor:
@@ -161,7 +184,7 @@ def epsilon_greedy(
 
     The convenience form of ``epsilon_greedy_from_bits``: the three random words are drawn from
     the given ``torch.Generator`` (the library's own modules use per-experiment counter streams
-    instead, see ``factorq_torch.rng``). Shapes: ``[..., A] -> ([...], [...])``.
+    instead, see ``factorq_torch.base.rng``). Shapes: ``[..., A] -> ([...], [...])``.
     """
     shape = (3, *values.shape[:-1])
     bits = torch.randint(0, 1 << 32, shape, generator=generator, device=values.device)

@@ -57,13 +57,13 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
-from factorq_torch.rng import MASK64, STREAM_LOCAL_NETWORK, STREAM_TASK_NETWORK, derive_keys
-from factorq_torch.validation import check_int
+from factorq_torch.base.rng import MASK64, STREAM_LOCAL_NETWORK, STREAM_TASK_NETWORK, derive_keys
+from factorq_torch.base.validation import check_int
 
 NUM_ACTIONS = 4
 ACTIVATIONS = ("relu", "tanh")
 
-#: Random streams of the networks' initial weights (the others are in ``factorq_torch.rng``).
+#: Random streams of the networks' initial weights (the others are in ``factorq_torch.base.rng``).
 
 
 def _check_hidden(hidden) -> tuple[int, ...]:
@@ -168,7 +168,7 @@ def _keys(keys, seed: int, stream: int, count: int, offset: int) -> torch.Tensor
     if keys is None:
         return derive_keys(seed, stream, count, offset)
     if not isinstance(keys, torch.Tensor) or keys.dtype != torch.int64:
-        raise TypeError("keys must be an int64 tensor (see factorq_torch.rng.derive_keys)")
+        raise TypeError("keys must be an int64 tensor (see factorq_torch.base.rng.derive_keys)")
     if tuple(keys.shape) != (count,):
         raise ValueError(
             f"keys has shape {list(keys.shape)}, expected [{count}] (one per experiment)"

@@ -43,7 +43,7 @@ from tensordict import NestedKey, TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.objectives import LossModule
 
-from factorq_torch.config import AgentConfig
+from factorq_torch.base.config import AgentConfig
 from factorq_torch.functional import (
     combined_values,
     factorq_target,

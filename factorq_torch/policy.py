@@ -6,7 +6,7 @@ The policies read values written by any value provider (a table or a network) an
 always takes index 0 on an all-equal row and ``EGreedyModule`` does not report which actions
 explored, so neither fits (DESIGN section 6).
 
-Randomness: experiment ``i`` owns a counter-based stream (``factorq_torch.rng``) with key
+Randomness: experiment ``i`` owns a counter-based stream (``factorq_torch.base.rng``) with key
 ``stream_keys[i]`` (by default ``derive_keys(seed, STREAM_POLICY, S)[i]``) and a decision counter
 ``counter[i]``. Its ``t``-th decision draws counters ``3t`` (explore?), ``3t + 1`` (the random
 action) and ``3t + 2`` (the tie-break). The module advances ``counter`` itself on every call, so
@@ -24,9 +24,9 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from factorq_torch.config import AgentConfig
+from factorq_torch.base.config import AgentConfig
+from factorq_torch.base.rng import POLICY_DRAWS_PER_STEP, STREAM_POLICY, derive_keys, random_bits
 from factorq_torch.functional import combined_values, epsilon_greedy_from_bits, normaliser
-from factorq_torch.rng import POLICY_DRAWS_PER_STEP, STREAM_POLICY, derive_keys, random_bits
 from factorq_torch.tables import check_batch, check_mask
 
 #: The mask entry the collector writes: True where the experiment is still running.
@@ -101,7 +101,7 @@ class EpsilonGreedyPolicy(TensorDictModuleBase):
     def set_stream_keys(self, keys: torch.Tensor) -> None:
         """Use the given stream keys ``[S]`` int64 and rewind the streams to their start."""
         if not isinstance(keys, torch.Tensor) or keys.dtype != torch.int64:
-            raise TypeError("keys must be an int64 tensor (see factorq_torch.rng.derive_keys)")
+            raise TypeError("keys must be an int64 tensor (see factorq_torch.base.rng.derive_keys)")
         if tuple(keys.shape) != (self.num_experiments,):
             raise ValueError(
                 f"keys has shape {list(keys.shape)}, expected [{self.num_experiments}] "

@@ -20,11 +20,12 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from envs.transforms import NUM_PATTERNS, qlearning_state
-from factorq_torch.functional import running_mean_update
-from factorq_torch.validation import check_int
+from factorq_torch.base.validation import check_int
+from factorq_torch.functional import qlearning_state, running_mean_update
 
 NUM_ACTIONS = 4
+#: Proximity patterns per cell: 4 binary sensors.
+NUM_PATTERNS = 1 << NUM_ACTIONS
 
 
 def check_batch(tensordict: TensorDictBase, num_experiments: int, owner: str) -> None:
@@ -72,7 +73,7 @@ class TaskQTable(TensorDictModuleBase):
 
     - Factor-Q (``with_proximity=False``): the state is the cell, ``table`` is ``[S, N, A]``.
     - Q-learning (``with_proximity=True``): the state is ``cell * 16 + proximity pattern``
-      (``envs.transforms.qlearning_state``), ``table`` is ``[S, 16 N, A]``.
+      (``functional.qlearning_state``), ``table`` is ``[S, 16 N, A]``.
 
     ``table`` is an ``nn.Parameter`` (zeros), so a loss can update it by a gradient step.
     ``reset_task(mask)`` zeroes it (SPEC section 4: at the start of every run).

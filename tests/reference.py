@@ -3,7 +3,7 @@
 Written straight from the SPEC with no tensors, so the batched modules and the compiled fast
 path can be tested against it for *equality*. Arithmetic on table values is done in numpy
 float32 scalars (the tables' dtype) and the random draws come from the same counter streams
-(``factorq_torch.rng``, Python-int version), so equal results are expected bit for bit.
+(``factorq_torch.base.rng``, Python-int version), so equal results are expected bit for bit.
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from envs.world import COL_DELTA, ROW_DELTA, WorldConfig
-from factorq_torch.config import AgentConfig
-from factorq_torch.rng import POLICY_DRAWS_PER_STEP, probability_threshold, random_bits_int
+from factorq_torch.base.config import AgentConfig
+from factorq_torch.base.rng import POLICY_DRAWS_PER_STEP, probability_threshold, random_bits_int
 
 F = np.float32
 FMAX = np.finfo(F).max

@@ -15,8 +15,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from factorq_torch import fast
-from trainers import checkpoint, cli, paper
+from trainers import checkpoint, cli, fast, paper
 from trainers.checkpoint import CheckpointError
 from trainers.paper import PaperConfig
 

@@ -12,8 +12,7 @@ from dataclasses import fields
 
 import pytest
 
-from factorq_torch import fast
-from trainers import cli, paper
+from trainers import cli, fast, paper
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 TINY = ["--seeds", "2", "--runs", "1", "--episodes", "2", "--size", "5", "--obstacles", "3"]

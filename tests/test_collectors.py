@@ -10,11 +10,11 @@ from torchrl.envs import TransformedEnv
 
 from envs import FactoredGridEnv, SplitLocalReward
 from envs.world import WorldConfig, static_layout
+from factorq_torch.base.config import AgentConfig
+from factorq_torch.base.rng import MASK64, STREAM_POLICY, STREAM_WORLD, derive_keys
 from factorq_torch.collectors import OnlineCollector
-from factorq_torch.config import AgentConfig
 from factorq_torch.objectives import FactorQLoss, TabularQLoss
 from factorq_torch.policy import EpsilonGreedyPolicy, FactorQPolicy
-from factorq_torch.rng import MASK64, STREAM_POLICY, STREAM_WORLD, derive_keys
 from factorq_torch.tables import LocalRewardTable, TaskQTable
 
 

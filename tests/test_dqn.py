@@ -7,7 +7,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from factorq_torch.rng import STREAM_WORLD
+from factorq_torch.base.rng import STREAM_WORLD
 from trainers import dqn
 
 

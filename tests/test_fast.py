@@ -1,4 +1,4 @@
-"""The fused fast path (factorq_torch.fast and its C kernel) against the slow reference and the
+"""The fused fast path (trainers.fast and its C kernel) against the slow reference and the
 pure-torch world and equations: equal bit for bit, whatever the chunking, threads and batch."""
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ from envs.world import (
     static_layout,
     step_worlds,
 )
-from factorq_torch import fast, functional
-from factorq_torch.config import AgentConfig
-from factorq_torch.rng import (
+from factorq_torch import functional
+from factorq_torch.base.config import AgentConfig
+from factorq_torch.base.rng import (
     MASK64,
     POLICY_DRAWS_PER_STEP,
     STREAM_POLICY,
@@ -31,6 +31,7 @@ from factorq_torch.rng import (
     randint_from_bits,
     random_bits,
 )
+from trainers import fast
 
 pytestmark = pytest.mark.skipif(
     not fast.is_available(), reason=f"fast path unavailable: {fast.unavailable_reason()}"

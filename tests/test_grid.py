@@ -9,7 +9,7 @@ from torchrl.envs.utils import check_env_specs, step_mdp
 
 from envs import FactoredGridEnv
 from envs.world import COL_DELTA, ROW_DELTA
-from factorq_torch.rng import MASK64, STREAM_WORLD, derive_keys
+from factorq_torch.base.rng import MASK64, STREAM_WORLD, derive_keys
 
 
 def expected_proximity(obstacle_map: torch.Tensor, cell: torch.Tensor) -> torch.Tensor:

@@ -9,6 +9,7 @@ from tensordict.nn import TensorDictSequential
 from torchrl.envs import TransformedEnv
 
 from envs import FactoredGridEnv, SplitLocalReward
+from factorq_torch.base.rng import derive_keys
 from factorq_torch.collectors import OnlineCollector
 from factorq_torch.neural import (
     STREAM_TASK_NETWORK,
@@ -18,7 +19,6 @@ from factorq_torch.neural import (
 )
 from factorq_torch.objectives import FactorQLoss
 from factorq_torch.policy import FactorQPolicy
-from factorq_torch.rng import derive_keys
 from factorq_torch.tables import LocalRewardTable, TaskQTable
 
 

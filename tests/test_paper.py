@@ -11,8 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from factorq_torch import fast
-from trainers import paper
+from trainers import fast, paper
 from trainers.paper import PaperConfig
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")

@@ -7,8 +7,8 @@ import reference  # tests/reference.py: pytest puts tests/ on sys.path (no __ini
 import torch
 from tensordict import TensorDict
 
+from factorq_torch.base.rng import MASK64, STREAM_POLICY, derive_keys
 from factorq_torch.policy import MASK_KEY, EpsilonGreedyPolicy, FactorQPolicy
-from factorq_torch.rng import MASK64, STREAM_POLICY, derive_keys
 
 
 def values_td(values: torch.Tensor, **entries) -> TensorDict:

@@ -17,9 +17,9 @@ from envs.world import (
     static_layout,
     step_worlds,
 )
-from factorq_torch import fast
+from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 from factorq_torch.functional import combined_values, normaliser, running_mean_update
-from factorq_torch.rng import STREAM_WORLD, derive_keys
+from trainers import fast
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 finite32 = st.floats(

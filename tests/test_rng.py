@@ -1,9 +1,9 @@
-"""Counter-based random streams (factorq_torch/rng.py): tensor version == Python-int version."""
+"""Counter-based random streams (base/rng.py): tensor version == Python-int version."""
 
 import pytest
 import torch
 
-from factorq_torch.rng import (
+from factorq_torch.base.rng import (
     MASK64,
     STREAM_POLICY,
     STREAM_WORLD,

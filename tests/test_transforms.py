@@ -5,7 +5,9 @@ import torch
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import check_env_specs, step_mdp
 
-from envs import FactoredGridEnv, SplitLocalReward, proximity_pattern, qlearning_state
+from envs import FactoredGridEnv, SplitLocalReward
+from factorq_torch.functional import qlearning_state
+from factorq_torch.functional import sensor_pattern as proximity_pattern
 
 NORTH, WEST, SOUTH, EAST = range(4)
 

@@ -31,13 +31,13 @@ from tensordict.nn import TensorDictSequential
 
 from envs import FactoredGridEnv, WorldConfig
 from envs.world import static_layout
-from factorq_torch import fast, rng
+from factorq_torch.base import rng
+from factorq_torch.base.config import AgentConfig, check_algorithm
 from factorq_torch.collectors import OnlineCollector
-from factorq_torch.config import AgentConfig, check_algorithm
 from factorq_torch.objectives import FactorQLoss, TabularQLoss
 from factorq_torch.policy import EpsilonGreedyPolicy, FactorQPolicy
 from factorq_torch.tables import LocalRewardTable, TaskQTable
-from trainers import checkpoint, cli, paper, report
+from trainers import checkpoint, cli, fast, paper, report
 from trainers.checkpoint import CheckpointError
 from trainers.paper import PaperConfig
 
@@ -371,7 +371,7 @@ TRIED = [
     ("OnlineCollector(tables of another S)", lambda _: collector(tables=3), ValueError, r"env has batch_size \[2\] but TaskQTable holds S=3 experiments"),
     ("derive_keys(count=-1)", lambda _: rng.derive_keys(0, rng.STREAM_WORLD, -1), ValueError, rf"count=-1 {RANGE} >= 0"),
     ("probability_threshold(1.5)", lambda _: rng.probability_threshold(1.5), ValueError, rf"probability=1.5 {RANGE} in \[0, 1\]"),
-    # factorq_torch.fast
+    # trainers.fast
     fast_row("ExperimentBatch('sarsa')", lambda _: batch("sarsa"), ValueError, r"algorithm='sarsa' is unknown: choose one of q-learning, factor-q, random-walk"),
     fast_row("ExperimentBatch(runs=0)", lambda _: batch(runs=0), ValueError, rf"runs=0 {RANGE} >= 1"),
     fast_row("ExperimentBatch(threads=0)", lambda _: batch(threads=0), ValueError, rf"threads=0 {RANGE} >= 1"),

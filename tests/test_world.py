@@ -21,7 +21,7 @@ from envs.world import (
     static_layout,
     step_worlds,
 )
-from factorq_torch.rng import MASK64, STREAM_LAYOUT, STREAM_WORLD, derive_keys
+from factorq_torch.base.rng import MASK64, STREAM_LAYOUT, STREAM_WORLD, derive_keys
 
 NORTH, WEST, SOUTH, EAST = range(4)
 

@@ -55,8 +55,10 @@ from torchrl.envs import TransformedEnv
 
 from envs.transforms import SplitLocalReward
 from envs.world import START_CELL, static_layout
+from factorq_torch.base.config import AgentConfig
+from factorq_torch.base.rng import STREAM_LOCAL_NETWORK, STREAM_POLICY, STREAM_TASK_NETWORK
+from factorq_torch.base.validation import check_float, check_int, check_names
 from factorq_torch.collectors import OnlineCollector
-from factorq_torch.config import AgentConfig
 from factorq_torch.neural import (
     ACTIVATIONS,
     LocalRewardNetwork,
@@ -64,9 +66,7 @@ from factorq_torch.neural import (
 )
 from factorq_torch.objectives import FactorQLoss, TabularQLoss
 from factorq_torch.policy import EpsilonGreedyPolicy, FactorQPolicy
-from factorq_torch.rng import STREAM_LOCAL_NETWORK, STREAM_POLICY, STREAM_TASK_NETWORK
 from factorq_torch.tables import LocalRewardTable, TaskQTable
-from factorq_torch.validation import check_float, check_int, check_names
 from trainers import dqn
 from trainers.cli import COMPARE_HELP
 from trainers.dqn import (

@@ -68,9 +68,9 @@ from torchrl.objectives import DQNLoss, HardUpdate
 
 from envs.grid import FactoredGridEnv
 from envs.world import NUM_ACTIONS, WORLD_PERIODS, WORLDS, WorldConfig, static_layout
+from factorq_torch.base.rng import STREAM_TASK_NETWORK, STREAM_WORLD, derive_keys
+from factorq_torch.base.validation import check_float, check_int, check_names
 from factorq_torch.neural import TaskQNetwork
-from factorq_torch.rng import STREAM_TASK_NETWORK, STREAM_WORLD, derive_keys
-from factorq_torch.validation import check_float, check_int, check_names
 
 with warnings.catch_warnings():
     # torchrl 0.14.1 warns about its own deprecated weight updaters when the package is imported.

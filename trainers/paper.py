@@ -41,9 +41,9 @@ import numpy as np
 import torch
 
 from envs.world import WORLD_PERIODS, WORLDS, WorldConfig, static_layout
-from factorq_torch.config import ALGORITHMS, AgentConfig
-from factorq_torch.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
-from factorq_torch.validation import check_int, check_names
+from factorq_torch.base.config import ALGORITHMS, AgentConfig
+from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
+from factorq_torch.base.validation import check_int, check_names
 from trainers import checkpoint
 
 #: The paper's three worlds and their obstacle periods (SPEC section 1), in canonical order; a
@@ -217,7 +217,7 @@ def resolve_backend(config: PaperConfig) -> str:
     This is the one place where the backend is chosen. ``auto`` takes the compiled fast path when
     it is available on this machine and the device is the cpu, the modular torchrl path otherwise.
     """
-    from factorq_torch import fast
+    from trainers import fast
 
     on_cpu = torch.device(config.device).type == "cpu"
     if config.backend == "fast" and not fast.is_available():
@@ -261,7 +261,7 @@ def _run_fast(
 ) -> dict[str, torch.Tensor]:
     """One algorithm's experiments on the compiled fast path, in chunks (progress, Ctrl-C,
     checkpoints)."""
-    from factorq_torch.fast import ExperimentBatch
+    from trainers.fast import ExperimentBatch
 
     batch = ExperimentBatch(
         algorithm,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from factorq_torch.validation import check_float
+from factorq_torch.base.validation import check_float
 
 ALGORITHMS = ("q-learning", "factor-q")
 

@@ -2,7 +2,7 @@
 
 The kernel (``_kernel.c``, plain C99) performs exactly the operations of ``envs.world`` and
 ``factorq_torch.functional`` in the same float32 order, with the same counter-based random streams
-(``factorq_torch.rng``), so its metrics and tables equal the modular torch path and the slow
+(``factorq_torch.base.rng``), so its metrics and tables equal the modular torch path and the slow
 reference (``tests/reference.py``) bit for bit. It runs one experiment at a time for many steps
 (its tables stay in the L1/L2 cache) and leaves Python only once per ``advance`` call.
 
@@ -13,8 +13,8 @@ The kernel is compiled on first use with the system C compiler (``cc``, ``gcc`` 
 modular torchrl path.
 
 >>> from envs.world import WorldConfig
->>> from factorq_torch.config import AgentConfig
->>> from factorq_torch.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
+>>> from factorq_torch.base.config import AgentConfig
+>>> from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
 >>> if is_available():
 ...     metrics = run_experiments(
 ...         "factor-q", torch.tensor([0, 1]), WorldConfig(size=5, num_obstacles=3), AgentConfig(),
@@ -45,9 +45,9 @@ from pathlib import Path
 import torch
 
 from envs.world import NUM_ACTIONS, WorldConfig, static_layout
-from factorq_torch.config import ALGORITHMS, AgentConfig
-from factorq_torch.rng import probability_threshold
-from factorq_torch.validation import check_int
+from factorq_torch.base.config import ALGORITHMS, AgentConfig
+from factorq_torch.base.rng import probability_threshold
+from factorq_torch.base.validation import check_int
 
 #: The env-only mode of the kernel (benchmarks): uniformly random actions (the policy stream's
 #: action draw), no learning, every action counted as exploratory.
