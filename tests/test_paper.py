@@ -13,6 +13,7 @@ import torch
 
 from trainers import fast, paper
 from trainers.paper import PaperConfig
+from trainers.schema import SCHEMA_VERSION, check_results
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 TINY = {"seeds": 2, "runs": 2, "episodes": 3, "size": 5, "obstacles": 3}
@@ -134,7 +135,17 @@ def tiny_results():
 @needs_fast
 def test_run_returns_the_results_schema(tiny_results):
     seeds, episodes = TINY["seeds"], TINY["episodes"]
-    assert list(tiny_results) == ["config", "cells", "claims", "statistics", "software", "timing"]
+    assert list(tiny_results) == [
+        "schema_version",
+        "config",
+        "cells",
+        "claims",
+        "statistics",
+        "software",
+        "timing",
+    ]
+    assert tiny_results["schema_version"] == SCHEMA_VERSION
+    assert check_results(tiny_results) is tiny_results
     assert tiny_results["config"] == paper.config_dict(PaperConfig(**TINY))
     assert list(tiny_results["cells"]) == [
         f"{world}/{algorithm}" for world in paper.WORLDS for algorithm in paper.ALGORITHMS

@@ -45,6 +45,7 @@ from factorq_torch.base.config import ALGORITHMS, AgentConfig
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
 from factorq_torch.base.validation import check_int, check_names
 from trainers import checkpoint
+from trainers.schema import SCHEMA_VERSION
 
 #: The paper's three worlds and their obstacle periods (SPEC section 1), in canonical order; a
 #: world's index here is part of its experiments' keys.
@@ -657,6 +658,7 @@ def summarise(
             "curves_ci_high": highs,
         }
     return {
+        "schema_version": SCHEMA_VERSION,
         "config": config_dict(config),
         "cells": cells,
         "claims": compute_claims(cells, config.seed),

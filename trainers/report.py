@@ -6,7 +6,6 @@ computes nothing new: the numbers in the report are the numbers in the file.
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Any
@@ -29,6 +28,7 @@ from trainers.paper import (
     format_number,
     write_all_atomic,
 )
+from trainers.schema import escape_markdown, load_results_file, markdown_code
 
 COLOURS = {"q-learning": "#D55E00", "factor-q": "#0072B2"}  # colour-blind safe (Okabe-Ito)
 # Greedy collisions: a darker shade of the algorithm's colour, dashed, drawn over all collisions
@@ -163,16 +163,18 @@ def report_markdown(results: dict[str, Any]) -> str:
     ]
     for name, claim in claims.items():
         lines.append(
-            f"| {name} | {claim['statement']} | {claim_value(claim)} | {claim['threshold']} "
+            f"| {name} | {escape_markdown(claim['statement'])} | {claim_value(claim)} "
+            f"| {escape_markdown(claim['threshold'])} "
             f"| {verdict(claim)} |"
         )
     lines += ["", "Details:", ""]
     for name, claim in claims.items():
-        lines.append(f"- **{name}** ({verdict(claim)}): {claim['detail']}")
+        lines.append(f"- **{name}** ({verdict(claim)}): {escape_markdown(claim['detail'])}")
         for measure in claim["measures"]:
             mark = {True: "", False: " (fails)", None: ""}[measure["pass"]]
             lines.append(
-                f"  - {measure['name']}: {_with_ci(measure['value'], measure['ci95'])}{mark}"
+                f"  - {escape_markdown(measure['name'])}: "
+                f"{_with_ci(measure['value'], measure['ci95'])}{mark}"
             )
     lines += [
         "",
@@ -220,18 +222,22 @@ def report_markdown(results: dict[str, Any]) -> str:
         "| --- | --- |",
     ]
     for key, value in config.items():
-        shown = ",".join(value) if isinstance(value, list) else value
-        lines.append(f"| `--{key.replace('_', '-')}` | `{shown}` |")
+        shown = ",".join(map(str, value)) if isinstance(value, list) else value
+        lines.append(f"| {markdown_code('--' + key.replace('_', '-'))} | {markdown_code(shown)} |")
     lines += ["", "## Software", "", "| package | version |", "| --- | --- |"]
     for package, version in results.get("software", {}).items():
-        lines.append(f"| {package} | {version} |")
+        lines.append(f"| {escape_markdown(package)} | {escape_markdown(version)} |")
     timing = results.get("timing", {})
     lines += ["", "## Timing", ""]
     if timing:
+        backend, finished = (
+            escape_markdown(timing["backend"]),
+            escape_markdown(timing["finished_utc"]),
+        )
         lines.append(
-            f"Wall time {timing['wall_s']:.1f} s on the {timing['backend']} backend with "
+            f"Wall time {timing['wall_s']:.1f} s on the {backend} backend with "
             f"{timing['threads']} thread(s): {timing['env_steps']} environment steps, "
-            f"{timing['env_steps_per_s']} steps/s (finished {timing['finished_utc']})."
+            f"{timing['env_steps_per_s']} steps/s (finished {finished})."
         )
     else:
         lines.append("not recorded")
@@ -239,18 +245,11 @@ def report_markdown(results: dict[str, Any]) -> str:
 
 
 def load_results(results_dir: str | os.PathLike) -> dict[str, Any]:
-    """The results stored in ``results_dir/results.json`` (a clear error when missing or bad)."""
+    """The results in ``results_dir/results.json``, checked against the schema (one-line errors)."""
     path = Path(results_dir) / RESULTS_FILE
     if not path.is_file():
         raise FileNotFoundError(f"{path} does not exist: run `factorq paper --out {results_dir}`")
-    try:
-        results = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise ValueError(f"{path} is not valid JSON ({error})") from None
-    missing = [key for key in ("config", "cells", "claims") if key not in results]
-    if missing:
-        raise ValueError(f"{path} is not a results file: {', '.join(missing)} missing")
-    return results
+    return load_results_file(path)
 
 
 def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:

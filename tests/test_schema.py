@@ -1,0 +1,142 @@
+"""The results file is untrusted input: checked field by field before the report reads it."""
+
+from __future__ import annotations
+
+import copy
+import json
+import random
+
+import pytest
+from test_report import synthetic_results
+
+from trainers import report
+from trainers.schema import (
+    MAX_DEPTH,
+    SCHEMA_VERSION,
+    ResultsFileError,
+    check_results,
+    escape_markdown,
+    load_results_file,
+    markdown_code,
+)
+
+BAD_VALUES = (None, "x", -1, 0, 2.5, True, [], {}, [1, 2], {"a": 1}, float("nan"), 10**30)
+
+
+@pytest.fixture(scope="module")
+def results():
+    return json.loads(json.dumps(synthetic_results(seeds=3, runs=1, episodes=4)))
+
+
+def paths_of(value, prefix=()):
+    """Every path to a field of a JSON tree (lists: the first, a middle and the last item)."""
+    if isinstance(value, dict):
+        for key, item in value.items():
+            yield (*prefix, key)
+            yield from paths_of(item, (*prefix, key))
+    elif isinstance(value, list) and value:
+        for index in sorted({0, len(value) // 2, len(value) - 1}):
+            yield (*prefix, index)
+            yield from paths_of(value[index], (*prefix, index))
+
+
+def set_at(tree, path, value):
+    mutated = copy.deepcopy(tree)
+    node = mutated
+    for step in path[:-1]:
+        node = node[step]
+    if value is KeyError:
+        if isinstance(node, dict):
+            del node[path[-1]]
+        else:
+            node.pop(path[-1])
+    else:
+        node[path[-1]] = value
+    return mutated
+
+
+def test_a_real_results_file_passes(results):
+    assert check_results(results) is results
+
+
+def test_every_mutated_field_is_refused_cleanly_or_still_renders(results):
+    """Each field replaced by each wrong value, or deleted: a ResultsFileError, or a report."""
+    refused = rendered = 0
+    for path in paths_of(results):
+        for value in (*BAD_VALUES, KeyError):
+            mutated = set_at(results, path, value)
+            try:
+                check_results(mutated)
+            except ResultsFileError as error:
+                assert "\n" not in str(error)
+                refused += 1
+                continue
+            report.report_markdown(mutated)  # must not raise: the check let it through
+            rendered += 1
+    assert refused > 1000 and rendered > 0
+
+
+def test_a_sample_of_accepted_mutations_draws_the_figure(results, tmp_path):
+    chooser = random.Random(0)
+    drawn = 0
+    candidates = list(paths_of(results))
+    while drawn < 5:
+        mutated = set_at(results, chooser.choice(candidates), chooser.choice(BAD_VALUES))
+        try:
+            check_results(mutated)
+        except ResultsFileError:
+            continue
+        report.figure3(mutated, tmp_path / f"{drawn}.png")
+        drawn += 1
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        ("5", "the file must be an object, got 5"),
+        ("[]", "the file must be an object"),
+        ('{"config": {}}', "cells, claims missing in the file"),
+        ("{", "is not valid JSON"),
+        ("[" * (MAX_DEPTH + 1) + "]" * (MAX_DEPTH + 1), f"nests deeper than {MAX_DEPTH} levels"),
+        ("[" * 100_000, f"nests deeper than {MAX_DEPTH} levels"),
+    ],
+)
+def test_malformed_files_get_one_line_naming_the_file(tmp_path, content, message):
+    path = tmp_path / "results.json"
+    path.write_text(content)
+    with pytest.raises(ResultsFileError, match=message) as error:
+        load_results_file(path)
+    assert str(error.value).startswith(f"{path}: ") and "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "message"),
+    [
+        (("config", "seeds"), 0, r"config.seeds must be an integer in \[1, "),
+        (("cells",), [], "cells must be an object"),
+        (("cells", "static/q-learning", "curves", "steps"), [1.0], "must be a list of 4 numbers"),
+        (("claims", "C9"), {}, "claims keys must be claim names"),
+        (("config", "worlds"), ["lava"], r"config.worlds\[0\] must be one of static"),
+        (("schema_version",), SCHEMA_VERSION + 1, "newer than this factorq-torch reads"),
+        (("schema_version",), "1", "schema_version must be a positive integer"),
+    ],
+)
+def test_wrong_fields_are_named_with_what_was_expected(results, path, value, message):
+    with pytest.raises(ResultsFileError, match=message):
+        check_results(set_at(results, path, value))
+
+
+def test_a_file_without_schema_version_reads_as_version_1(results):
+    legacy = {key: value for key, value in results.items() if key != "schema_version"}
+    assert check_results(legacy) is legacy
+
+
+def test_markdown_specials_are_escaped_and_lines_joined():
+    assert escape_markdown("a|b `c` <script>\n*d* <= 1") == r"a\|b \`c\` &lt;script> \*d\* <= 1"
+    assert escape_markdown("in [0.8, 1.25] ![x](http://e)") == r"in [0.8, 1.25] ![x]\(http://e)"
+
+
+def test_code_spans_hold_backticks_and_pipes():
+    assert markdown_code("a") == "`a`"
+    assert markdown_code("x`` | y") == r"```x`` \| y```"
+    assert markdown_code("`start") == "`` `start ``"

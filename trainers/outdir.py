@@ -1,0 +1,122 @@
+"""One writer per output directory, checked before any work starts.
+
+``claim(out, outputs=...)`` is what every command that writes a results directory enters first:
+
+- ``out`` is created if missing and proven writable (a probe file is written and removed), so an
+  unwritable ``--out`` (under a file, on a read-only or pseudo file system) is refused in a
+  second, not after the whole experiment has run;
+- an exclusive, non-blocking ``flock`` on ``out/.factorq.lock`` makes the run the only writer:
+  a second run, or a ``--resume`` of a run that is still alive, is refused with the pid of the
+  holder. The kernel drops the lock when its process dies (even by SIGKILL), so a crashed run
+  never leaves a stale lock behind. ``flock`` is local to one machine: on a network file system
+  shared by several machines it may not exclude writers on other machines;
+- results of an earlier run are not overwritten unless ``force`` (or ``resume``, which continues
+  the run that owns them) is given;
+- temporaries left by writers that were killed mid-write (``.NAME.PID.tmp``) are removed: no one
+  else can be writing them while we hold the lock.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import os
+import re
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+
+LOCK_FILE = ".factorq.lock"
+#: What ``write_all_atomic`` and the checkpoint writer leave behind when killed mid-write.
+_TEMPORARY = re.compile(r"^\..+\.\d+\.tmp$")
+
+
+class OutputDirError(ValueError):
+    """An output directory that cannot be used, with the reason and what to do instead."""
+
+
+def _prepare(path: Path, what: str) -> None:
+    """Create ``path`` and prove it writable, or raise an OutputDirError naming why."""
+    if path.exists() and not path.is_dir():
+        raise OutputDirError(f"{what}='{path}' is not a directory")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe = path / f".factorq-probe.{os.getpid()}.tmp"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as error:
+        reason = error.strerror or type(error).__name__
+        raise OutputDirError(f"{what}='{path}' is not writable: {reason}") from None
+
+
+def _holder(lock_path: Path) -> str:
+    """The pid recorded by the run that holds the lock, for the message."""
+    try:
+        text = lock_path.read_text().strip()
+    except OSError:
+        return "another factorq run"
+    return f"another factorq run (pid {text})" if text.isdigit() else "another factorq run"
+
+
+def remove_temporaries(path: Path) -> list[Path]:
+    """Delete the ``.NAME.PID.tmp`` files directly in ``path``; return what was deleted."""
+    removed = []
+    for entry in path.iterdir():
+        if _TEMPORARY.match(entry.name) and entry.is_file():
+            entry.unlink(missing_ok=True)
+            removed.append(entry)
+    return removed
+
+
+@contextlib.contextmanager
+def claim(
+    out: str | os.PathLike,
+    *,
+    outputs: Iterable[str] = (),
+    force: bool = False,
+    resume: bool = False,
+    what: str = "out",
+) -> Iterator[Path]:
+    """Hold ``out`` as its only writer for the duration of the ``with`` block.
+
+    Args:
+        out: the output directory (created if missing).
+        outputs: file names the run will write; if one exists already the claim is refused unless
+            ``force`` or ``resume``.
+        force: replace the results of an earlier run.
+        resume: the run continues the one that wrote ``out`` (its files are its own).
+        what: the option's name in messages (``out`` -> ``--out`` on the command line).
+
+    Raises:
+        OutputDirError: ``out`` is not a writable directory, another run holds it, or it holds
+            results that ``force`` was not given to replace.
+    """
+    path = Path(out)
+    _prepare(path, what)
+    lock_path = path / LOCK_FILE
+    descriptor = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            if error.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise OutputDirError(
+                    f"{what}='{path}' cannot be locked: {error.strerror}"
+                ) from None
+            action = "resume it" if resume else "write to it"
+            raise OutputDirError(
+                f"{what}='{path}' is in use by {_holder(lock_path)}: wait for it to finish, or "
+                f"choose another --{what.replace('_', '-')} (refusing to {action} at the same time)"
+            ) from None
+        os.ftruncate(descriptor, 0)
+        os.write(descriptor, str(os.getpid()).encode())
+        existing = [name for name in outputs if (path / name).exists()]
+        if existing and not (force or resume):
+            raise OutputDirError(
+                f"{what}='{path}' already holds {', '.join(existing)} from an earlier run: pass "
+                f"--force to replace them, or choose another --{what.replace('_', '-')}"
+            )
+        remove_temporaries(path)
+        yield path
+    finally:
+        os.close(descriptor)  # closing releases the lock
