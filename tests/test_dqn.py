@@ -8,7 +8,7 @@ import torch
 from tensordict import TensorDict
 
 from factorq_torch.base.rng import STREAM_WORLD
-from trainers import dqn
+from trainers import dqn, experiment
 
 
 def test_exploratory_egreedy_flags_exactly_the_actions_the_epsilon_branch_drew():
@@ -33,7 +33,7 @@ def test_exploratory_egreedy_anneals_itself_once_per_call():
 
 
 def test_recorder_counts_greedy_collisions_only_on_non_exploratory_actions():
-    recorder = dqn.EpisodeRecorder([("static", 0), ("dynamic", 0)])
+    recorder = experiment.EpisodeRecorder([("static", 0), ("dynamic", 0)])
 
     def step(bump, exploratory, done, reward, boxed_in=(False, False)):
         next_td = TensorDict(
@@ -64,11 +64,11 @@ def test_recorder_counts_greedy_collisions_only_on_non_exploratory_actions():
 
 
 def test_experiment_keys_do_not_depend_on_what_else_is_selected():
-    everything = dqn.ExperimentConfig(seed=4, seeds=3)
-    dynamic_only = dqn.ExperimentConfig(seed=4, seeds=3, worlds=("dynamic",))
-    all_keys = dqn.experiment_keys(everything, STREAM_WORLD, "dqn")
-    assert torch.equal(dqn.experiment_keys(dynamic_only, STREAM_WORLD, "dqn"), all_keys[6:])
-    other_method = dqn.experiment_keys(everything, STREAM_WORLD, "factor-dqn")
+    everything = experiment.ExperimentConfig(seed=4, seeds=3)
+    dynamic_only = experiment.ExperimentConfig(seed=4, seeds=3, worlds=("dynamic",))
+    all_keys = dqn.batch_keys(everything, STREAM_WORLD, "dqn")
+    assert torch.equal(dqn.batch_keys(dynamic_only, STREAM_WORLD, "dqn"), all_keys[6:])
+    other_method = dqn.batch_keys(everything, STREAM_WORLD, "factor-dqn")
     assert not torch.equal(other_method, all_keys)
 
 
@@ -78,15 +78,15 @@ def test_configs_name_the_option_and_its_range():
     with pytest.raises(ValueError, match="eps_end=0.5 is out of range: must be <= eps_start=0.2"):
         dqn.DQNConfig(eps_start=0.2, eps_end=0.5)
     with pytest.raises(ValueError, match="worlds: 'windy' is unknown"):
-        dqn.ExperimentConfig(worlds=("static", "windy"))
+        experiment.ExperimentConfig(worlds=("static", "windy"))
     with pytest.raises(ValueError, match="obstacles=200 is out of range"):
-        dqn.ExperimentConfig(obstacles=200)
+        experiment.ExperimentConfig(obstacles=200)
     with pytest.raises(TypeError, match="batch_size must be an int"):
         dqn.DQNConfig(batch_size=1.5)
 
 
 def test_dqn_learns_a_tiny_static_world_better_than_random(one_thread):
-    experiments = dqn.ExperimentConfig(
+    experiments = experiment.ExperimentConfig(
         seeds=2, worlds=("static",), steps=1500, size=4, obstacles=2, seed=3
     )
     config = dqn.DQNConfig(learning_starts=100, train_every=1, exploration_fraction=0.3)

@@ -39,7 +39,9 @@ from factorq_torch.policy import EpsilonGreedyPolicy, FactorQPolicy
 from factorq_torch.tables import LocalRewardTable, TaskQTable
 from trainers import checkpoint, cli, fast, paper, report
 from trainers.checkpoint import CheckpointError
+from trainers.claims import compute_claims
 from trainers.paper import PaperConfig
+from trainers.stats import t_critical
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 # Prepended to `factorq paper` rows (later options win): should a check ever let a bad value
@@ -320,8 +322,8 @@ TRIED = [
     ("parse_every(True)", lambda _: checkpoint.parse_every(True), TypeError, r"checkpoint_every must be .* got True"),
     ("checkpoint.read(a foreign file)", lambda tmp: checkpoint.read(a_file(tmp)), CheckpointError, rf"checkpoint .*a_file.txt {UNUSABLE_CHECKPOINT} \(UnpicklingError: "),
     ("report.regenerate(missing dir)", lambda tmp: report.regenerate(tmp / "none"), FileNotFoundError, r"none/results.json does not exist"),
-    ("t_critical(0)", lambda _: paper.t_critical(0), ValueError, r"df=0 must be >= 1"),
-    ("compute_claims(seed counts differ)", lambda _: paper.compute_claims({"a": {"per_seed": {"total_steps": [1]}}, "b": {"per_seed": {"total_steps": [1, 2]}}}), ValueError, r"cells have different numbers of seeds: \[1, 2\]"),
+    ("t_critical(0)", lambda _: t_critical(0), ValueError, r"df=0 must be >= 1"),
+    ("compute_claims(seed counts differ)", lambda _: compute_claims({"a": {"per_seed": {"total_steps": [1]}}, "b": {"per_seed": {"total_steps": [1, 2]}}}), ValueError, r"cells have different numbers of seeds: \[1, 2\]"),
     # envs
     ("WorldConfig(size=1)", lambda _: WorldConfig(size=1), ValueError, rf"size=1 {RANGE} >= 2"),
     ("WorldConfig(size=3.0)", lambda _: WorldConfig(size=3.0), TypeError, r"size must be an int, got 3.0 \(float\)"),

@@ -1,12 +1,13 @@
-"""Figure 3 and the claims report, made from results alone (``factorq report`` regenerates them).
+"""The paper's output files: ``results.json``, Figure 3 and the claims report.
 
-Everything here reads the results dict of ``trainers.paper.run`` (or its ``results.json``) and
-computes nothing new: the numbers in the report are the numbers in the file.
+``write_results`` writes all three from the results dict of ``trainers.paper.run``;
+``factorq report`` (``regenerate``) redraws the figure and the report from ``results.json`` alone.
+Everything here reads the results and computes nothing new: the numbers in the report are the
+numbers in the file.
 """
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Any
@@ -17,18 +18,14 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-from trainers.paper import (
-    ALGORITHM_LABELS,
-    FIGURE_FILE,
-    MEASURE_LABELS,
-    MEASURES,
-    REPORT_FILE,
-    RESULTS_FILE,
-    WORLD_PERIODS,
-    WORLDS,
-    format_number,
-    write_all_atomic,
-)
+from envs.world import WORLD_PERIODS, WORLDS
+from trainers.claims import ALGORITHM_LABELS, MEASURE_LABELS, MEASURES
+from trainers.results import dumps, read_json, write_all_atomic
+from trainers.stats import format_number
+
+RESULTS_FILE = "results.json"
+FIGURE_FILE = "figure3.png"
+REPORT_FILE = "report.md"
 
 COLOURS = {"q-learning": "#D55E00", "factor-q": "#0072B2"}  # colour-blind safe (Okabe-Ito)
 # Greedy collisions: a darker shade of the algorithm's colour, dashed, drawn over all collisions
@@ -240,27 +237,41 @@ def report_markdown(results: dict[str, Any]) -> str:
 
 def load_results(results_dir: str | os.PathLike) -> dict[str, Any]:
     """The results stored in ``results_dir/results.json`` (a clear error when missing or bad)."""
-    path = Path(results_dir) / RESULTS_FILE
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} does not exist: run `factorq paper --out {results_dir}`")
-    try:
-        results = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise ValueError(f"{path} is not valid JSON ({error})") from None
-    missing = [key for key in ("config", "cells", "claims") if key not in results]
-    if missing:
-        raise ValueError(f"{path} is not a results file: {', '.join(missing)} missing")
-    return results
+    return read_json(
+        Path(results_dir) / RESULTS_FILE,
+        required=("config", "cells", "claims"),
+        missing_hint=f"run `factorq paper --out {results_dir}`",
+    )
+
+
+def write_results(results: dict[str, Any], out_dir: str | os.PathLike) -> dict[str, Path]:
+    """Write ``results.json``, ``figure3.png`` and ``report.md`` to ``out_dir``, atomically.
+
+    ``results.json`` is renamed into place first: a results file on disk is always complete, and
+    ``factorq report`` can redraw the other two from it.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / RESULTS_FILE
+    return {"results": path, **_write_figure_and_report(results, out, {path: dumps(results)})}
 
 
 def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
     """Rewrite ``figure3.png`` and ``report.md`` in ``results_dir`` from its ``results.json``."""
-    results = load_results(results_dir)
-    paths = {"figure": Path(results_dir) / FIGURE_FILE, "report": Path(results_dir) / REPORT_FILE}
-    write_all_atomic(
-        {
-            paths["figure"]: lambda path: figure3(results, path),
-            paths["report"]: lambda path: path.write_text(report_markdown(results)),
-        }
-    )
+    return _write_figure_and_report(load_results(results_dir), Path(results_dir))
+
+
+def _write_figure_and_report(
+    results: dict[str, Any], out: Path, texts: dict[Path, str] | None = None
+) -> dict[str, Path]:
+    """The figure and the report of ``results`` in ``out``, renamed into place after ``texts``
+    (more files: path -> content), all atomically."""
+    paths = {"figure": out / FIGURE_FILE, "report": out / REPORT_FILE}
+    writers = {
+        path: (lambda target, text=text: target.write_text(text))
+        for path, text in (texts or {}).items()
+    }
+    writers[paths["figure"]] = lambda target: figure3(results, target)
+    writers[paths["report"]] = lambda target: target.write_text(report_markdown(results))
+    write_all_atomic(writers)
     return paths
