@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from trainers import cli, compare, options
+from trainers import cli, compare, compare_report, options
 from trainers.dqn import DQNConfig
 from trainers.experiment import ExperimentConfig
 
@@ -38,7 +38,7 @@ def test_compare_writes_the_comparison_schema_of_issue_7(tmp_path, one_thread):
         dqn=DQNConfig(learning_starts=40, batch_size=16),
     )
     results = compare.run(config)
-    paths = compare.write_outputs(results, config.out)
+    paths = compare_report.write_outputs(results, config.out)
     saved = json.loads(paths["json"].read_text())
     assert saved["config"]["seeds"] == 2 and saved["config"]["steps"] == 120
     assert list(saved["results"]) == ["factor-q", "q-learning", "dqn", "factor-dqn"]

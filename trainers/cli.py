@@ -211,7 +211,7 @@ def _report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
 
 def _compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
-    from trainers import compare
+    from trainers import compare, compare_report
 
     try:
         config = compare.CompareConfig(**options.given_options(args, compare.CompareConfig))
@@ -237,11 +237,11 @@ def _compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
     try:
         results = compare.run(config, progress)
-        paths = compare.write_outputs(results, config.out)
+        paths = compare_report.write_outputs(results, config.out)
     except KeyboardInterrupt:
         print(f"{parser.prog}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
-    print(compare.report_markdown(results))
+    print(compare_report.report_markdown(results))
     for path in paths.values():
         print(path)
     return 0
