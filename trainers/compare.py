@@ -74,16 +74,8 @@ METHOD_LABELS = {
 @dataclass(frozen=True)
 class FactorDQNConfig:
     """Neural Factor-Q's networks, optimiser and exploration (eqs. 2-4 use ``AgentConfig``'s
-    gamma, alpha, eta and g_min; the local network's defaults are explained in
-    ``factorq_torch.neural``).
-
-    ``epsilon`` is 0.05, not the paper's 0.01: with 0.01, about one experiment in nine (measured
-    on the default comparison) had its task network settle on the value of never arriving,
-    ``-1 / (1 - gamma) = -10`` in every cell, and loop between two cells for 1,000-3,000 steps.
-    The hidden layer spreads every update to cells not yet visited, so the optimistic zero start
-    that makes tabular Factor-Q explore is soon gone, and 0.01 rarely breaks such a loop. 0.05 did
-    in every run measured, at the price of more exploratory collisions (greedy ones unchanged).
-    """
+    gamma, alpha, eta and g_min). Why the local networks have no bias and tanh, and why
+    ``epsilon`` is 0.05 rather than the paper's 0.01: ``docs/decisions.md`` (Factor-DQN)."""
 
     hidden: tuple[int, ...] = option(
         (64,), "Hidden layer widths of each experiment's task Q-network (input: the cell one-hot)."

@@ -164,9 +164,27 @@ def resolve_backend(config: PaperConfig) -> str:
     return config.backend
 
 
-def experiment_keys(
-    config: PaperConfig, algorithm: str
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+class BatchKeys(NamedTuple):
+    """One algorithm's experiments, world-major and seed-minor: ``[W * S]`` each."""
+
+    periods: torch.Tensor
+    world_keys: torch.Tensor
+    policy_keys: torch.Tensor
+
+
+class Job(NamedTuple):
+    """One algorithm's experiments, as a backend driver runs them."""
+
+    config: PaperConfig
+    algorithm: str
+    keys: BatchKeys
+    #: ``report(episodes, experiments)``: episodes and experiments completed since its last call.
+    report: Callable[[int, int], None]
+    #: Restores a resumed state (``restore``) and saves when due (``due``, ``save``).
+    checkpoints: checkpoint.Checkpointer
+
+
+def experiment_keys(config: PaperConfig, algorithm: str) -> BatchKeys:
     """Obstacle periods, world keys and policy keys ``[W * S]`` of one algorithm's experiments.
 
     Experiments are ordered world-major (``config.worlds``), seed-minor. The key of seed index
@@ -178,21 +196,15 @@ def experiment_keys(
     policy_keys = experiment.experiment_keys(
         config.seed, STREAM_POLICY, labels, ALGORITHMS, algorithm
     )
-    return periods, world_keys, policy_keys
+    return BatchKeys(periods, world_keys, policy_keys)
 
 
-def _run_fast(
-    config: PaperConfig,
-    algorithm: str,
-    periods: torch.Tensor,
-    world_keys: torch.Tensor,
-    policy_keys: torch.Tensor,
-    report: Callable[[int, int], None],
-    checkpoints: checkpoint.Checkpointer,
-) -> dict[str, torch.Tensor]:
+def _run_fast(job: Job) -> dict[str, torch.Tensor]:
     """One algorithm's experiments on the compiled fast path, in chunks (progress, Ctrl-C,
     checkpoints)."""
     from trainers.fast import ExperimentBatch
+
+    config, algorithm, (periods, world_keys, policy_keys), report, checkpoints = job
 
     batch = ExperimentBatch(
         algorithm,
@@ -223,19 +235,13 @@ def _run_fast(
     return batch.metrics()
 
 
-def _run_modular(
-    config: PaperConfig,
-    algorithm: str,
-    periods: torch.Tensor,
-    world_keys: torch.Tensor,
-    policy_keys: torch.Tensor,
-    report: Callable[[int, int], None],
-    checkpoints: checkpoint.Checkpointer,
-) -> dict[str, torch.Tensor]:
+def _run_modular(job: Job) -> dict[str, torch.Tensor]:
     """One algorithm's experiments on the modular torchrl path (env, tables, policy, loss,
     ``OnlineCollector``): the fallback where no C compiler is available, and the reference the
     fast path is tested against. Same keys, so the same numbers as ``_run_fast``."""
     from factorq_torch.collectors import OnlineCollector
+
+    config, algorithm, (periods, world_keys, policy_keys), report, checkpoints = job
 
     device = torch.device(config.device)
     grid = experiment.make_env(config.world, periods, world_keys, device=device)
@@ -285,15 +291,9 @@ def _to_device(tree: Any, device: torch.device) -> Any:
     return tree
 
 
-def backend_driver(backend: str) -> Callable[..., dict[str, torch.Tensor]]:
-    """The function that runs one algorithm's experiments on ``backend``.
-
-    Its signature: ``(config, algorithm, periods, world_keys, policy_keys, report, checkpoints)
-    -> metrics``, where ``report(episodes_completed, experiments_finished)`` counts progress since
-    its last call, ``checkpoints`` (a ``checkpoint.Checkpointer``) restores a resumed state and
-    saves when due, and ``metrics`` are ``ExperimentBatch.metrics()`` (``[W * S, runs,
-    episodes]`` each).
-    """
+def backend_driver(backend: str) -> Callable[[Job], dict[str, torch.Tensor]]:
+    """The function that runs one algorithm's experiments (a ``Job``) on ``backend`` and returns
+    their metrics, ``ExperimentBatch.metrics()`` (``[W * S, runs, episodes]`` each)."""
     return _run_fast if backend == "fast" else _run_modular
 
 
@@ -348,12 +348,10 @@ def run(
     report_progress()
     metrics: dict[tuple[str, str], dict[str, np.ndarray]] = {}
     for algorithm in config.algorithms:
-        periods, world_keys, policy_keys = experiment_keys(config, algorithm)
         batch = checkpoints.finished.get(algorithm)
         if batch is None:
-            batch = driver(
-                config, algorithm, periods, world_keys, policy_keys, advance_progress, checkpoints
-            )
+            keys = experiment_keys(config, algorithm)
+            batch = driver(Job(config, algorithm, keys, advance_progress, checkpoints))
             checkpoints.finish(algorithm, batch)
         for position, world in enumerate(config.worlds):
             rows = slice(position * config.seeds, (position + 1) * config.seeds)

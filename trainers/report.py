@@ -9,6 +9,7 @@ numbers in the file.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -252,26 +253,22 @@ def write_results(results: dict[str, Any], out_dir: str | os.PathLike) -> dict[s
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    path = out / RESULTS_FILE
-    return {"results": path, **_write_figure_and_report(results, out, {path: dumps(results)})}
+    return _write(results, out, with_results_file=True)
 
 
 def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
     """Rewrite ``figure3.png`` and ``report.md`` in ``results_dir`` from its ``results.json``."""
-    return _write_figure_and_report(load_results(results_dir), Path(results_dir))
+    return _write(load_results(results_dir), Path(results_dir), with_results_file=False)
 
 
-def _write_figure_and_report(
-    results: dict[str, Any], out: Path, texts: dict[Path, str] | None = None
-) -> dict[str, Path]:
-    """The figure and the report of ``results`` in ``out``, renamed into place after ``texts``
-    (more files: path -> content), all atomically."""
-    paths = {"figure": out / FIGURE_FILE, "report": out / REPORT_FILE}
-    writers = {
-        path: (lambda target, text=text: target.write_text(text))
-        for path, text in (texts or {}).items()
+def _write(results: dict[str, Any], out: Path, *, with_results_file: bool) -> dict[str, Path]:
+    """The files of ``results`` in ``out``, in this order, all atomically."""
+    writers: dict[str, tuple[Path, Callable[[Path], Any]]] = {
+        "results": (out / RESULTS_FILE, lambda path: path.write_text(dumps(results))),
+        "figure": (out / FIGURE_FILE, lambda path: figure3(results, path)),
+        "report": (out / REPORT_FILE, lambda path: path.write_text(report_markdown(results))),
     }
-    writers[paths["figure"]] = lambda target: figure3(results, target)
-    writers[paths["report"]] = lambda target: target.write_text(report_markdown(results))
-    write_all_atomic(writers)
-    return paths
+    if not with_results_file:
+        del writers["results"]
+    write_all_atomic(dict(writers.values()))
+    return {name: path for name, (path, _) in writers.items()}
