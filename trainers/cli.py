@@ -153,8 +153,7 @@ def _paper(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             config = paper.PaperConfig(**_given_options(args))
             checkpoint.check_none_in(config.out)
         backend = paper.resolve_backend(config)
-        paper.backend_driver(backend)
-    except (ValueError, TypeError, NotImplementedError) as error:
+    except (ValueError, TypeError) as error:
         _error(parser, _as_option(str(error)))
         return EXIT_USAGE
     bar = _Bar()
