@@ -356,7 +356,7 @@ def run(
         for position, world in enumerate(config.worlds):
             rows = slice(position * config.seeds, (position + 1) * config.seeds)
             metrics[world, algorithm] = {
-                name: batch[name][rows].cpu().numpy() for name in (*CURVES, "task_return")
+                name: values[rows].cpu().numpy() for name, values in batch.items()
             }
     results = summarise(config, metrics)
     wall = checkpoints.elapsed_s
