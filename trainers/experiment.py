@@ -19,17 +19,21 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
-from tensordict import TensorDictBase
 
 from envs.world import WORLD_PERIODS, WORLDS, WorldConfig, static_layout
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import derive_keys
 from factorq_torch.base.validation import check_int, check_names
 from trainers.options import option
+
+if TYPE_CHECKING:  # torchrl and tensordict load only on the paths that step an env
+    from tensordict import TensorDictBase
+
+    from envs.grid import FactoredGridEnv
 
 #: The largest seed a config accepts (keys are derived in 64-bit arithmetic).
 MAX_SEED = 2**63 - 1
@@ -91,7 +95,7 @@ def make_env(
     *,
     device: torch.device | str | None = None,
     seed: int | None = None,
-):
+) -> FactoredGridEnv:
     """The batch's worlds: one ``FactoredGridEnv`` experiment per entry of ``periods``, each
     drawing its obstacles from its own ``world_keys`` entry (``experiment_keys``)."""
     from envs.grid import FactoredGridEnv  # torchrl: only for the paths that step the env
