@@ -14,10 +14,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
-from matplotlib.lines import Line2D
-from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 from envs.world import WORLD_PERIODS, WORLDS
 from trainers.claims import ALGORITHM_LABELS, MEASURE_LABELS, MEASURES
@@ -32,7 +28,6 @@ COLOURS = {"q-learning": "#D55E00", "factor-q": "#0072B2"}  # colour-blind safe 
 # Greedy collisions: a darker shade of the algorithm's colour, dashed, drawn over all collisions
 # (for Q-learning the two nearly coincide, and the dashes must stay visible).
 GREEDY_COLOURS = {"q-learning": "#7A3500", "factor-q": "#003A5C"}
-PLAIN = FuncFormatter(lambda value, _: f"{value:g}")  # 0.01, 1, 300 rather than 10^-2, 3x10^2
 WORLD_TITLES = {
     "static": "static world",
     "semi-dynamic": "semi-dynamic world (obstacles move every 10 steps)",
@@ -55,6 +50,13 @@ def figure3(results: dict[str, Any], path: str | os.PathLike) -> None:
     episode (solid: all, dashed: greedy) on a log scale, each the mean over seeds and runs with
     its 95% confidence band across seeds.
     """
+    # matplotlib loads here, not with the module: `factorq` starts faster without it.
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    plain = FuncFormatter(lambda value, _: f"{value:g}")  # 0.01, 1, 300 rather than 10^-2, 3x10^2
     worlds, algorithms = _ordered_cells(results)
     config = results["config"]
     figure = Figure(figsize=(max(4.4 * len(worlds) + 0.6, 6.0), 7.4), dpi=150, layout="constrained")
@@ -82,7 +84,7 @@ def figure3(results: dict[str, Any], path: str | os.PathLike) -> None:
         for axis in (steps_axis, collisions_axis):
             axis.grid(True, which="major", alpha=0.3)
             axis.set_xlim(1, config["episodes"])
-            axis.yaxis.set_major_formatter(PLAIN)
+            axis.yaxis.set_major_formatter(plain)
             axis.yaxis.set_minor_formatter(NullFormatter())
     axes[1, 0].set_ylim(0, max(highest, resolution) * 1.5)  # the row shares its y axis
     axes[0, 0].set_ylabel("steps per episode (log)")
