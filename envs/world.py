@@ -202,23 +202,29 @@ def _scatter_where(
 
 
 def is_reachable(obstacles: torch.Tensor, size: int) -> bool:
-    """Whether the goal can be reached from the start around ``obstacles`` ``[N]`` (BFS)."""
+    """Whether the goal can be reached from the start around ``obstacles`` ``[N]``."""
+    return shortest_path_length(obstacles, size) is not None
+
+
+def shortest_path_length(obstacles: torch.Tensor, size: int) -> int | None:
+    """Actions from start to goal on a shortest path around ``obstacles`` ``[N]`` (BFS), or
+    ``None`` when the goal cannot be reached."""
     blocked = obstacles.tolist()
     goal = size * size - 1
-    seen = {START_CELL}
+    distance = {START_CELL: 0}
     frontier = deque([START_CELL])
     while frontier:
         cell = frontier.popleft()
         if cell == goal:
-            return True
+            return distance[cell]
         row, col = divmod(cell, size)
         for d_row, d_col in zip(ROW_DELTA, COL_DELTA, strict=True):
             r, c = row + d_row, col + d_col
             nxt = r * size + c
-            if 0 <= r < size and 0 <= c < size and not blocked[nxt] and nxt not in seen:
-                seen.add(nxt)
+            if 0 <= r < size and 0 <= c < size and not blocked[nxt] and nxt not in distance:
+                distance[nxt] = distance[cell] + 1
                 frontier.append(nxt)
-    return False
+    return None
 
 
 def static_layout(config: WorldConfig) -> torch.Tensor:

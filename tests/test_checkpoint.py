@@ -18,6 +18,7 @@ import torch
 from trainers import checkpoint, cli, fast, paper
 from trainers.checkpoint import CheckpointError
 from trainers.paper import PaperConfig
+from trainers.results import dumps as dumps_results
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 # Every episode takes at least 10 steps on a 6x6 grid, so each algorithm needs more than the
@@ -29,7 +30,7 @@ MODULAR = {"seeds": 1, "runs": 2, "episodes": 3, "size": 3, "obstacles": 1, "thr
 
 def numbers(results: dict) -> dict:
     """Everything a resumed run must reproduce: all but the timing and the output directory."""
-    results = json.loads(paper.dumps_results(results))
+    results = json.loads(dumps_results(results))
     results.pop("timing")
     results["config"].pop("out")
     return results
@@ -467,7 +468,7 @@ def test_a_run_killed_at_random_moments_and_resumed_writes_the_same_results(tmp_
     # their own directories), so results.json must match byte for byte up to "timing".
     options = dict(zip(KILLED[::2], KILLED[1::2], strict=True))
     config = PaperConfig(out="run", **{key[2:]: int(value) for key, value in options.items()})
-    reference = paper.dumps_results(paper.run(config))
+    reference = dumps_results(paper.run(config))
     work = tmp_path / "killed"
     work.mkdir()
     out = work / "run"

@@ -12,7 +12,7 @@ from dataclasses import fields
 
 import pytest
 
-from trainers import cli, fast, paper
+from trainers import cli, fast, options, paper
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 TINY = ["--seeds", "2", "--runs", "1", "--episodes", "2", "--size", "5", "--obstacles", "3"]
@@ -37,7 +37,7 @@ def test_help_lists_both_commands(capsys):
 def test_paper_help_has_every_config_field_with_its_doc(capsys):
     assert cli.main(["paper", "--help"]) == 0
     out = " ".join(capsys.readouterr().out.split())  # undo argparse's line wrapping
-    docs = paper.field_docs(paper.PaperConfig)
+    docs = options.field_docs(paper.PaperConfig)
     for field in fields(paper.PaperConfig):
         assert "--" + field.name.replace("_", "-") in out
         assert " ".join(docs[field.name].split()[:4]) in out

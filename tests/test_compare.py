@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import importlib.util
 import json
 
@@ -10,8 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from trainers import compare
-from trainers.dqn import DQNConfig, ExperimentConfig
+from trainers import cli, compare, compare_report, options
+from trainers.dqn import DQNConfig
+from trainers.experiment import ExperimentConfig
 
 
 def _trace(world: str, steps: list[int], collisions: int = 0, greedy: int = 0) -> dict:
@@ -38,7 +38,7 @@ def test_compare_writes_the_comparison_schema_of_issue_7(tmp_path, one_thread):
         dqn=DQNConfig(learning_starts=40, batch_size=16),
     )
     results = compare.run(config)
-    paths = compare.write_outputs(results, config.out)
+    paths = compare_report.write_outputs(results, config.out)
     saved = json.loads(paths["json"].read_text())
     assert saved["config"]["seeds"] == 2 and saved["config"]["steps"] == 120
     assert list(saved["results"]) == ["factor-q", "q-learning", "dqn", "factor-dqn"]
@@ -126,22 +126,22 @@ def test_tensorboard_logger_without_the_package_says_how_to_install_it():
 
 
 def test_command_line_options_become_the_config():
-    parser = argparse.ArgumentParser()
-    command = compare.add_parser(parser.add_subparsers(dest="command"))
-    assert "--steps STEPS" in command.format_help()  # every field's docstring is its help
+    parser = cli.build_parser()
+    command = next(action for action in parser._actions if action.dest == "command")
+    assert "--steps STEPS" in command.choices["compare"].format_help()  # field docs: the help
     args = parser.parse_args(
         "compare --seeds 2 --steps 500 --worlds dynamic,static --methods dqn,factor-dqn "
         "--out somewhere --seed 7 --logger csv".split()
     )
-    config = compare.config_from_args(args)
+    config = compare.CompareConfig(**options.given_options(args, compare.CompareConfig))
     assert (config.seeds, config.steps, config.seed, config.out) == (2, 500, 7, "somewhere")
     assert config.worlds == ("static", "dynamic") and config.methods == ("dqn", "factor-dqn")
 
 
 def test_bad_command_line_input_is_a_usage_error_that_names_it(capsys):
-    assert compare.main(["--seeds", "0"]) == 2
+    assert cli.main(["compare", "--seeds", "0"]) == 2
     assert "seeds=0 is out of range" in capsys.readouterr().err
-    assert compare.main(["--worlds", "windy"]) == 2
+    assert cli.main(["compare", "--worlds", "windy"]) == 2
     assert "worlds: 'windy' is unknown" in capsys.readouterr().err
-    assert compare.main(["--bogus", "1"]) == 2
+    assert cli.main(["compare", "--bogus", "1"]) == 2
     assert "factorq compare: error: unrecognized arguments: --bogus 1" in capsys.readouterr().err

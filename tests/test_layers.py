@@ -80,23 +80,13 @@ def test_every_package_has_modules_in_the_walk():
     } <= set(MODULES)
 
 
-TRAINER_CIRCLES = {"trainers.compare"}  # issue 10: compare <-> cli, paper <-> report; being cut
-
-
-@pytest.mark.parametrize(
-    "name",
-    [
-        pytest.param(n, marks=pytest.mark.xfail(strict=True)) if n in TRAINER_CIRCLES else n
-        for n in sorted(MODULES)
-    ],
-)
+@pytest.mark.parametrize("name", sorted(MODULES))
 def test_module_imports_only_its_layer_or_below(name):
     own = LAYERS.index(layer_of(name))
     upward = sorted(t for t in GRAPH[name] if LAYERS.index(layer_of(t)) > own)
     assert not upward, f"{name} ({layer_of(name)}) imports upwards: {upward}"
 
 
-@pytest.mark.xfail(strict=True, reason="issue 10: trainers circles, being cut")
 def test_no_module_imports_itself_through_a_chain():
     def reach(start):
         seen, stack = set(), list(GRAPH[start])

@@ -98,7 +98,7 @@ def test_report_marks_claims_that_were_not_evaluated(tmp_path):
 
 
 def test_regenerate_rebuilds_figure_and_report_from_results_json_alone(results, tmp_path):
-    paths = paper.write_results(results, tmp_path)
+    paths = report.write_results(results, tmp_path)
     original = paths["report"].read_text()
     paths["figure"].unlink()
     paths["report"].unlink()

@@ -39,12 +39,15 @@ from factorq_torch.policy import EpsilonGreedyPolicy, FactorQPolicy
 from factorq_torch.tables import LocalRewardTable, TaskQTable
 from trainers import checkpoint, cli, fast, paper, report
 from trainers.checkpoint import CheckpointError
+from trainers.claims import compute_claims
 from trainers.paper import PaperConfig
+from trainers.stats import t_critical
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
-# Prepended to `factorq paper` rows (later options win): should a check ever let a bad value
-# through, the row runs a tiny experiment in its own directory rather than the paper's.
+# Prepended to `factorq paper` and `factorq compare` rows (later options win): should a check ever
+# let a bad value through, the row runs a tiny experiment in its own directory, not the default.
 SMALL = ["--seeds", "1", "--runs", "1", "--episodes", "1", "--size", "4", "--obstacles", "1"]
+SMALL_COMPARE = ["--seeds", "1", "--steps", "1", "--size", "4", "--obstacles", "1"]
 
 
 class CommandFailed(Exception):
@@ -133,6 +136,8 @@ def factorq(command: str, pattern: str) -> tuple:
         args = [MADE[arg](tmp) if arg in MADE else arg for arg in shlex.split(command)]
         if args[0] == "paper" and "--resume" not in args:
             args[1:1] = [*SMALL, "--out", str(tmp / "out")]
+        if args[0] == "compare":
+            args[1:1] = [*SMALL_COMPARE, "--methods", "q-learning", "--out", str(tmp / "out")]
         err, out = io.StringIO(), io.StringIO()
         with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
             code = cli.main(args)
@@ -304,6 +309,22 @@ TRIED = [
         rf"checkpoint .*checkpoint.prev.pt {UNUSABLE_CHECKPOINT} \(.*\); no other checkpoint is "
         r"left: start the run again",
     ),
+    # factorq compare: every option
+    factorq("compare --seed -1", rf"--seed=-1 {RANGE} in \[0, 9223372036854775807\]"),
+    factorq("compare --seeds 0", rf"--seeds=0 {RANGE} >= 1"),
+    factorq("compare --seeds 1.5", r"argument --seeds: invalid int value: '1.5'"),
+    factorq("compare --steps 0", rf"--steps=0 {RANGE} >= 1"),
+    factorq("compare --worlds windy", r"--worlds: 'windy' is unknown: choose from static, "),
+    factorq("compare --methods sarsa", r"--methods: 'sarsa' is unknown: choose from factor-q, "),
+    factorq("compare --out ''", r"--out='' must be a directory path"),
+    factorq("compare --logger wandb", r"argument --logger: invalid choice: 'wandb'"),
+    factorq("compare --size 1", rf"--size=1 {RANGE} >= 2"),
+    factorq("compare --obstacles 99", rf"--obstacles=99 {RANGE} in \[0, 13\] for a 4x4 grid"),
+    factorq("compare --size 3 --obstacles 6", r"--obstacles=6 leaves no path from start to goal"),
+    factorq("compare --max-steps 0", rf"--max-steps=0 {RANGE} >= 1"),
+    factorq("compare --layout-seed -1", rf"--layout-seed=-1 {RANGE} in \[0, "),
+    factorq("compare --threads 0", rf"--threads=0 {RANGE} >= 1"),
+    factorq("compare --sides 4", r"factorq compare: error: unrecognized arguments: --sides 4"),
     # factorq report, factorq
     factorq("report {tmp}", r"results.json does not exist: run `factorq paper --out"),
     factorq("report {bad-results}", r"results.json is not valid JSON"),
@@ -320,8 +341,8 @@ TRIED = [
     ("parse_every(True)", lambda _: checkpoint.parse_every(True), TypeError, r"checkpoint_every must be .* got True"),
     ("checkpoint.read(a foreign file)", lambda tmp: checkpoint.read(a_file(tmp)), CheckpointError, rf"checkpoint .*a_file.txt {UNUSABLE_CHECKPOINT} \(UnpicklingError: "),
     ("report.regenerate(missing dir)", lambda tmp: report.regenerate(tmp / "none"), FileNotFoundError, r"none/results.json does not exist"),
-    ("t_critical(0)", lambda _: paper.t_critical(0), ValueError, r"df=0 must be >= 1"),
-    ("compute_claims(seed counts differ)", lambda _: paper.compute_claims({"a": {"per_seed": {"total_steps": [1]}}, "b": {"per_seed": {"total_steps": [1, 2]}}}), ValueError, r"cells have different numbers of seeds: \[1, 2\]"),
+    ("t_critical(0)", lambda _: t_critical(0), ValueError, r"df=0 must be >= 1"),
+    ("compute_claims(seed counts differ)", lambda _: compute_claims({"a": {"per_seed": {"total_steps": [1]}}, "b": {"per_seed": {"total_steps": [1, 2]}}}), ValueError, r"cells have different numbers of seeds: \[1, 2\]"),
     # envs
     ("WorldConfig(size=1)", lambda _: WorldConfig(size=1), ValueError, rf"size=1 {RANGE} >= 2"),
     ("WorldConfig(size=3.0)", lambda _: WorldConfig(size=3.0), TypeError, r"size must be an int, got 3.0 \(float\)"),
@@ -397,11 +418,12 @@ def test_bad_input_is_refused_with_one_message_naming_option_value_and_range(
     assert not (tmp_path / "out").exists(), f"{what}: a run started despite the bad input"
 
 
-def test_the_table_tries_every_option_of_factorq_paper():
-    tried = " ".join(map(_what, TRIED))
+@pytest.mark.parametrize("command", ["paper", "compare"])
+def test_the_table_tries_every_option_of_factorq_paper_and_compare(command):
+    tried = " ".join(what for what in map(_what, TRIED) if what.startswith(f"factorq {command}"))
     parser = cli.build_parser()
     commands = next(action for action in parser._actions if action.dest == "command")
-    for action in commands.choices["paper"]._actions:
+    for action in commands.choices[command]._actions:
         for option in action.option_strings:
             if option.startswith("--") and option != "--help":
                 assert option in tried, f"{option} has no row in the table"

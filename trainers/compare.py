@@ -11,10 +11,11 @@ a replay buffer, comparable with the online methods. Tabular methods and Factor-
 project's ``OnlineCollector`` (one run, stepped ``steps`` times), DQN in torchrl's ``Collector``
 (``trainers.dqn``).
 
-**The swap.** Factor-Q and Factor-DQN run the very same code (``run_online``): env with
-``SplitLocalReward``, ``FactorQPolicy`` (eqs. 2-3), ``FactorQLoss`` (eq. 4, and eq. 5 or its
-regression), ``OnlineCollector``. Only ``value_providers`` differs: tables and SGD(lr 1), or
-networks (``factorq_torch.neural``) and Adam.
+**The swap.** Factor-Q and Factor-DQN run the very same code (``run_online``, with the agent of
+``trainers.experiment.online_agent``): env with ``SplitLocalReward``, ``FactorQPolicy``
+(eqs. 2-3), ``FactorQLoss`` (eq. 4, and eq. 5 or its regression), ``OnlineCollector``. Only
+``value_providers`` differs: tables and SGD(lr 1), or networks (``factorq_torch.neural``) and
+Adam.
 
 **Threshold.** ``steps_to_threshold`` is the env steps at the end of the first episode whose path
 length is within 1.5x the shortest path: the BFS distance from start to goal in the static layout;
@@ -34,15 +35,10 @@ over the episode's steps), at step = that experiment's env steps.
 
 from __future__ import annotations
 
-import argparse
 import importlib.util
 import json
-import math
 import os
-import sys
 import time
-import typing
-from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -50,42 +46,22 @@ from typing import Any
 
 import numpy as np
 import torch
-from tensordict.nn import TensorDictSequential
-from torchrl.envs import TransformedEnv
 
-from envs.transforms import SplitLocalReward
-from envs.world import START_CELL, static_layout
+from envs.world import shortest_path_length as path_length_around
+from envs.world import static_layout
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import STREAM_LOCAL_NETWORK, STREAM_POLICY, STREAM_TASK_NETWORK
 from factorq_torch.base.validation import check_float, check_int, check_names
 from factorq_torch.collectors import OnlineCollector
-from factorq_torch.neural import (
-    ACTIVATIONS,
-    LocalRewardNetwork,
-    TaskQNetwork,
-)
-from factorq_torch.objectives import FactorQLoss, TabularQLoss
-from factorq_torch.policy import EpsilonGreedyPolicy, FactorQPolicy
-from factorq_torch.tables import LocalRewardTable, TaskQTable
-from trainers import dqn
-from trainers.cli import COMPARE_HELP
-from trainers.dqn import (
-    METHODS,
-    WORLDS,
-    DQNConfig,
-    EpisodeRecorder,
-    ExperimentConfig,
-    check_hidden,
-    experiment_keys,
-    make_env,
-)
-from trainers.paper import field_docs, mean_ci
+from factorq_torch.neural import ACTIVATIONS, LocalRewardNetwork, TaskQNetwork
+from trainers import dqn, experiment
+from trainers.dqn import METHODS, DQNConfig, batch_keys, check_hidden
+from trainers.experiment import WORLDS, EpisodeRecorder, ExperimentConfig
+from trainers.options import option
+from trainers.stats import finite_or_none, mean_ci, scalar_ci
 
 LOGGERS = ("csv", "tensorboard")
 THRESHOLD_FACTOR = 1.5
-JSON_FILE = "comparison.json"
-FIGURE_FILE = "comparison.png"
-REPORT_FILE = "comparison.md"
 CURVE_POINTS = 100
 METHOD_LABELS = {
     "factor-q": "Factor-Q (tabular)",
@@ -93,47 +69,35 @@ METHOD_LABELS = {
     "dqn": "DQN",
     "factor-dqn": "Factor-DQN (neural Factor-Q)",
 }
-COLOURS = {
-    "factor-q": "#0072B2",
-    "q-learning": "#D55E00",
-    "dqn": "#009E73",
-    "factor-dqn": "#CC79A7",
-}
-_MAX_SEED = 2**63 - 1
 
 
 @dataclass(frozen=True)
 class FactorDQNConfig:
     """Neural Factor-Q's networks, optimiser and exploration (eqs. 2-4 use ``AgentConfig``'s
-    gamma, alpha, eta and g_min; the local network's defaults are explained in
-    ``factorq_torch.neural``).
+    gamma, alpha, eta and g_min). Why the local networks have no bias and tanh, and why
+    ``epsilon`` is 0.05 rather than the paper's 0.01: ``docs/decisions.md`` (Factor-DQN)."""
 
-    ``epsilon`` is 0.05, not the paper's 0.01: with 0.01, about one experiment in nine (measured
-    on the default comparison) had its task network settle on the value of never arriving,
-    ``-1 / (1 - gamma) = -10`` in every cell, and loop between two cells for 1,000-3,000 steps.
-    The hidden layer spreads every update to cells not yet visited, so the optimistic zero start
-    that makes tabular Factor-Q explore is soon gone, and 0.01 rarely breaks such a loop. 0.05 did
-    in every run measured, at the price of more exploratory collisions (greedy ones unchanged).
-    """
-
-    hidden: tuple[int, ...] = (64,)
-    """Hidden layer widths of each experiment's task Q-network (input: the cell one-hot)."""
-    activation: str = "relu"
-    """Hidden activation of the task Q-network: tanh or relu."""
-    local_hidden: tuple[int, ...] = (8,)
-    """Hidden layer widths of each actuator's local reward network (input: its sensor bit)."""
-    local_bias: bool = False
-    """Biases in the local networks (False: nothing sensed predicts exactly 0; see neural.py)."""
-    lr: float = 1e-3
-    """Adam learning rate of the task Q-network."""
-    local_lr: float = 1e-2
-    """Adam learning rate of the local reward networks."""
-    local_activation: str = "tanh"
-    """Hidden activation of the local networks: tanh or relu."""
-    local_shared: bool = True
-    """One local network per experiment shared by its four actuators (else one per actuator)."""
-    epsilon: float = 0.05
-    """Exploration probability of FactorQPolicy (tabular Factor-Q: the paper's 0.01)."""
+    hidden: tuple[int, ...] = option(
+        (64,), "Hidden layer widths of each experiment's task Q-network (input: the cell one-hot)."
+    )
+    activation: str = option("relu", "Hidden activation of the task Q-network: tanh or relu.")
+    local_hidden: tuple[int, ...] = option(
+        (8,), "Hidden layer widths of each actuator's local reward network (input: its sensor bit)."
+    )
+    local_bias: bool = option(
+        False,
+        "Biases in the local networks (False: nothing sensed predicts exactly 0; see neural.py).",
+    )
+    lr: float = option(1e-3, "Adam learning rate of the task Q-network.")
+    local_lr: float = option(1e-2, "Adam learning rate of the local reward networks.")
+    local_activation: str = option("tanh", "Hidden activation of the local networks: tanh or relu.")
+    local_shared: bool = option(
+        True,
+        "One local network per experiment shared by its four actuators (else one per actuator).",
+    )
+    epsilon: float = option(
+        0.05, "Exploration probability of FactorQPolicy (tabular Factor-Q: the paper's 0.01)."
+    )
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "hidden", check_hidden("hidden", self.hidden))
@@ -156,36 +120,40 @@ class FactorDQNConfig:
 class CompareConfig:
     """The comparison: methods x worlds, ``seeds`` experiments each, ``steps`` env steps each."""
 
-    seed: int = 0
-    """Master seed: worlds, policies and network initialisations derive from it."""
-    seeds: int = 3
-    """Independent experiments per method and world; 95% intervals are across them."""
-    steps: int = 15_000
-    """Budget of env steps per experiment."""
-    worlds: tuple[str, ...] = WORLDS
-    """Worlds to run: static, semi-dynamic, dynamic (comma-separated)."""
-    methods: tuple[str, ...] = METHODS
-    """Methods to run: factor-q, q-learning, dqn, factor-dqn (comma-separated)."""
-    out: str = "results/compare"
-    """Directory for comparison.json, comparison.png, comparison.md and logs/."""
-    logger: str = "csv"
-    """Per-episode logs: csv (torchrl CSVLogger) or tensorboard (needs the tensorboard package)."""
-    size: int = 10
-    """Side of the square grid, in cells."""
-    obstacles: int = 10
-    """Number of single-cell obstacles."""
-    max_steps: int = 10_000
-    """Actions after which an episode is truncated."""
-    layout_seed: int = 0
-    """Seed of the static world's obstacle layout."""
-    threads: int = 1
-    """CPU threads for torch (1 is fastest on these tiny tensors)."""
-    agent: AgentConfig = AgentConfig()
-    """Tabular and Factor-DQN parameters: epsilon, gamma, alpha, eta, g_min (the paper's)."""
-    dqn: DQNConfig = DQNConfig()
-    """DQN's hyperparameters (trainers.dqn)."""
-    factor_dqn: FactorDQNConfig = FactorDQNConfig()
-    """Factor-DQN's networks and learning rates."""
+    seed: int = option(
+        0, "Master seed: worlds, policies and network initialisations derive from it."
+    )
+    seeds: int = option(
+        3, "Independent experiments per method and world; 95% intervals are across them."
+    )
+    steps: int = option(15_000, "Budget of env steps per experiment.")
+    worlds: tuple[str, ...] = option(
+        WORLDS, "Worlds to run: static, semi-dynamic, dynamic (comma-separated)."
+    )
+    methods: tuple[str, ...] = option(
+        METHODS, "Methods to run: factor-q, q-learning, dqn, factor-dqn (comma-separated)."
+    )
+    out: str = option(
+        "results/compare", "Directory for comparison.json, comparison.png, comparison.md and logs/."
+    )
+    logger: str = option(
+        "csv",
+        "Per-episode logs: csv (torchrl CSVLogger) or tensorboard (needs the tensorboard package).",
+        choices=LOGGERS,
+    )
+    size: int = option(10, "Side of the square grid, in cells.")
+    obstacles: int = option(10, "Number of single-cell obstacles.")
+    max_steps: int = option(10_000, "Actions after which an episode is truncated.")
+    layout_seed: int = option(0, "Seed of the static world's obstacle layout.")
+    threads: int = option(1, "CPU threads for torch (1 is fastest on these tiny tensors).")
+    agent: AgentConfig = option(
+        AgentConfig(),
+        "Tabular and Factor-DQN parameters: epsilon, gamma, alpha, eta, g_min (the paper's).",
+    )
+    dqn: DQNConfig = option(DQNConfig(), "DQN's hyperparameters (trainers.dqn).")
+    factor_dqn: FactorDQNConfig = option(
+        FactorDQNConfig(), "Factor-DQN's networks and learning rates."
+    )
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "methods", check_names("methods", self.methods, METHODS))
@@ -242,10 +210,8 @@ def value_providers(
     """
     experiments = config.experiments
     cells = experiments.size**2
-    if method == "q-learning":
-        return TaskQTable(count, cells, with_proximity=True), None, None
-    if method == "factor-q":
-        return TaskQTable(count, cells), LocalRewardTable(count), None
+    if method in ("q-learning", "factor-q"):
+        return (*experiment.tabular_values(method, count, cells), None)
     if method == "factor-dqn":
         settings = config.factor_dqn
         task = TaskQNetwork(
@@ -253,7 +219,7 @@ def value_providers(
             cells,
             hidden=settings.hidden,
             activation=settings.activation,
-            keys=experiment_keys(experiments, STREAM_TASK_NETWORK, method),
+            keys=batch_keys(experiments, STREAM_TASK_NETWORK, method),
         )
         local = LocalRewardNetwork(
             count,
@@ -261,7 +227,7 @@ def value_providers(
             bias=settings.local_bias,
             activation=settings.local_activation,
             shared=settings.local_shared,
-            keys=experiment_keys(experiments, STREAM_LOCAL_NETWORK, method),
+            keys=batch_keys(experiments, STREAM_LOCAL_NETWORK, method),
         )
         optimizer = torch.optim.Adam(
             [
@@ -283,23 +249,16 @@ def run_online(method: str, config: CompareConfig, logger=None, progress=None) -
     started = time.perf_counter()
     experiments, agent = config.experiments, config.agent
     count, steps = experiments.num_experiments, experiments.steps
-    env = make_env(experiments)
     task, local, optimizer = value_providers(method, config, count)
-    policy_keys = experiment_keys(experiments, STREAM_POLICY, method)
     epsilon = config.factor_dqn.epsilon if method == "factor-dqn" else agent.epsilon
-    if local is None:
-        chooser = EpsilonGreedyPolicy(count, epsilon=epsilon, keys=policy_keys)
-        policy = TensorDictSequential(task, chooser)
-        loss = TabularQLoss(task, gamma=agent.gamma, alpha=agent.alpha)
-    else:
-        env = TransformedEnv(env, SplitLocalReward())
-        chooser = FactorQPolicy(
-            count, epsilon=epsilon, eta=agent.eta, g_min=agent.g_min, keys=policy_keys
-        )
-        policy = TensorDictSequential(task, local, chooser)
-        loss = FactorQLoss(
-            task, local, gamma=agent.gamma, alpha=agent.alpha, eta=agent.eta, g_min=agent.g_min
-        )
+    env, policy, loss = experiment.online_agent(
+        dqn.batch_env(experiments),
+        task,
+        local,
+        agent,
+        batch_keys(experiments, STREAM_POLICY, method),
+        epsilon=epsilon,
+    )
     # An episode takes at least the Manhattan distance, so this many always fit the budget.
     episodes = steps // (2 * (experiments.size - 1)) + 1
     collector = OnlineCollector(env, policy, loss, runs=1, episodes=episodes, optimizer=optimizer)
@@ -325,34 +284,16 @@ def shortest_path_length(experiments: ExperimentConfig, world: str) -> int:
     size = experiments.size
     if world != "static":
         return 2 * (size - 1)
-    blocked = static_layout(experiments.world).tolist()  # [N] bool
-    goal = size * size - 1
-    distance = {START_CELL: 0}
-    queue = deque([START_CELL])
-    while queue:
-        cell = queue.popleft()
-        if cell == goal:
-            return distance[cell]
-        row, col = divmod(cell, size)
-        for d_row, d_col in ((-1, 0), (0, -1), (1, 0), (0, 1)):
-            r, c = row + d_row, col + d_col
-            nxt = r * size + c
-            if 0 <= r < size and 0 <= c < size and not blocked[nxt] and nxt not in distance:
-                distance[nxt] = distance[cell] + 1
-                queue.append(nxt)
-    raise ValueError(f"the static layout (layout_seed={experiments.layout_seed}) has no path")
+    length = path_length_around(static_layout(experiments.world), size)
+    if length is None:
+        raise ValueError(f"the static layout (layout_seed={experiments.layout_seed}) has no path")
+    return length
 
 
 def steps_to_threshold(trace: dict[str, Any], threshold: float) -> int | None:
     """Env steps at the end of the first episode with path length <= ``threshold`` (or None)."""
     reached = np.flatnonzero(trace["steps"] <= threshold)
     return int(trace["env_steps"][reached[0]]) if reached.size else None
-
-
-def _scalar_ci(samples: list[float]) -> tuple[float, float | None, float | None]:
-    """``paper.mean_ci`` of per-seed scalars, as plain floats for JSON."""
-    mean, low, high = mean_ci(samples)
-    return float(mean), None if low is None else float(low), None if high is None else float(high)
 
 
 def _curve(traces: list[dict[str, Any]], name: str, grid: np.ndarray) -> dict[str, list]:
@@ -381,7 +322,7 @@ def _curve(traces: list[dict[str, Any]], name: str, grid: np.ndarray) -> dict[st
 
 
 def _json_list(values: np.ndarray) -> list[float | None]:
-    return [float(value) if math.isfinite(value) else None for value in values]
+    return [finite_or_none(value) for value in values]
 
 
 def summarise(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
@@ -400,9 +341,9 @@ def summarise(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[st
             traces = [trace for trace in run["traces"] if trace["world"] == world]
             reached = [steps_to_threshold(t, thresholds[world]["threshold"]) for t in traces]
             hit = [value for value in reached if value is not None]
-            collisions = _scalar_ci([t["total_collisions"] for t in traces])
-            greedy = _scalar_ci([t["total_greedy_collisions"] for t in traces])
-            avoidable = _scalar_ci(
+            collisions = scalar_ci([t["total_collisions"] for t in traces])
+            greedy = scalar_ci([t["total_greedy_collisions"] for t in traces])
+            avoidable = scalar_ci(
                 [
                     t["total_greedy_collisions"] - t["total_boxed_in_greedy_collisions"]
                     for t in traces
@@ -438,122 +379,6 @@ def summarise(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[st
 def config_dict(config: CompareConfig) -> dict[str, Any]:
     """``config`` as JSON-ready values (tuples as lists, nested configs as dicts)."""
     return json.loads(json.dumps(asdict(config)))
-
-
-# --------------------------------------------------------------------------------------------
-# Output
-
-
-def write_figure(results: dict[str, Any], path: str | os.PathLike) -> None:
-    """Steps and collisions per episode against env steps, mean and 95% band, one column a world."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    worlds = list(results["thresholds"])
-    grid = np.asarray(results["curves"]["env_steps"])
-    figure = Figure(figsize=(4.2 * len(worlds), 7.0), layout="constrained")
-    FigureCanvasAgg(figure)
-    axes = figure.subplots(2, len(worlds), squeeze=False, sharex=True)
-    rows = (("steps", "steps per episode"), ("collisions", "collisions per episode"))
-    for column, world in enumerate(worlds):
-        for row, (name, label) in enumerate(rows):
-            axis = axes[row][column]
-            for method in results["results"]:
-                curve = results["curves"][method][world][name]
-                mean = np.array([np.nan if v is None else v for v in curve["mean"]])
-                low = np.array([np.nan if v is None else v for v in curve["low"]])
-                high = np.array([np.nan if v is None else v for v in curve["high"]])
-                colour = COLOURS[method]
-                floor = 1.0 if name == "steps" else 0.0  # a path takes >= 1 step
-                axis.plot(grid, mean, color=colour, label=METHOD_LABELS[method], linewidth=1.4)
-                axis.fill_between(grid, np.maximum(low, floor), high, color=colour, alpha=0.2)
-            if name == "steps":
-                axis.axhline(
-                    results["thresholds"][world]["threshold"],
-                    color="grey",
-                    linestyle=":",
-                    linewidth=1.0,
-                    label=f"{THRESHOLD_FACTOR}x shortest path",
-                )
-                axis.set_title(f"{world} world")
-                axis.set_yscale("log")
-            else:  # symlog: linear near 0, where the Factor-Q curves end up
-                axis.set_yscale("symlog", linthresh=1.0)
-                axis.set_ylim(bottom=0.0)
-            axis.set_xlim(0, grid[-1])
-            axis.set_ylabel(label)
-            if row == len(rows) - 1:
-                axis.set_xlabel("env steps per experiment")
-    axes[0][0].legend(fontsize="small")
-    figure.suptitle(
-        f"per-episode means over each 1/{grid.size} of the budget; mean over "
-        f"{results['config']['seeds']} seeds with 95% bands",
-        fontsize="medium",
-    )
-    figure.savefig(path, dpi=110)
-
-
-def _number(value: float | None, digits: int = 0) -> str:
-    if value is None:
-        return "never"
-    return f"{value:,.{digits}f}"
-
-
-def report_markdown(results: dict[str, Any]) -> str:
-    """``comparison.md``: one row per method and world."""
-    config = results["config"]
-    lines = [
-        "# factorq compare",
-        "",
-        f"{config['seeds']} seeds x {config['steps']:,} env steps per experiment, "
-        f"{config['size']}x{config['size']} grid, {config['obstacles']} obstacles, "
-        f"master seed {config['seed']}. Means over seeds (95% interval in brackets).",
-        "",
-        "- **steps to threshold**: env steps until the first episode whose path is within "
-        f"{THRESHOLD_FACTOR}x the shortest path (static: BFS in the layout; moving worlds: the "
-        "Manhattan distance); `never` unless every seed reached it (reached: seeds that did).",
-        "- **collisions**, **greedy collisions** (on non-exploratory actions): totals over the "
-        "budget; **avoidable**: the greedy collisions where some direction was free (not boxed in "
-        "by walls and obstacles on all four sides). **final path**: mean path length of the "
-        "episodes ending in the last 20% of the budget.",
-        "- **wall s**: the method's batch (all worlds and seeds at once).",
-        "",
-        "| method | world | steps to threshold | reached | collisions | greedy collisions "
-        "| avoidable | final path | wall s |",
-        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
-    ]
-    for method, worlds in results["results"].items():
-        for world, cell in worlds.items():
-            low, high = cell["collisions_ci95"]
-            g_low, g_high = cell["greedy_collisions_ci95"]
-            collisions = _number(cell["collisions"], 1)
-            greedy = _number(cell["greedy_collisions"], 1)
-            if low is not None:
-                collisions += f" [{max(low, 0):,.0f}, {high:,.0f}]"
-                greedy += f" [{max(g_low, 0):,.0f}, {g_high:,.0f}]"
-            lines.append(
-                f"| {METHOD_LABELS[method]} | {world} | {_number(cell['steps_to_threshold'])} "
-                f"| {cell['seeds_reached']}/{config['seeds']} | {collisions} | {greedy} "
-                f"| {_number(cell['avoidable_greedy_collisions'], 1)} "
-                f"| {_number(cell['final_path_length'], 1)} | {cell['wall_s']:.0f} |"
-            )
-    thresholds = ", ".join(
-        f"{world} {entry['shortest_path']} -> {entry['threshold']:g}"
-        for world, entry in results["thresholds"].items()
-    )
-    lines += ["", f"Shortest path -> threshold: {thresholds}.", ""]
-    return "\n".join(lines)
-
-
-def write_outputs(results: dict[str, Any], out: str | os.PathLike) -> dict[str, Path]:
-    """Write comparison.json, comparison.png and comparison.md to ``out``."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {"json": out / JSON_FILE, "figure": out / FIGURE_FILE, "report": out / REPORT_FILE}
-    paths["json"].write_text(json.dumps(results, indent=1, allow_nan=False) + "\n")
-    write_figure(results, paths["figure"])
-    paths["report"].write_text(report_markdown(results))
-    return paths
 
 
 # --------------------------------------------------------------------------------------------
@@ -597,98 +422,3 @@ def run(config: CompareConfig, progress: Progress | None = None) -> dict[str, An
     results = summarise(config, runs)
     results["timing"] = {"wall_s": round(time.perf_counter() - started, 3)}
     return results
-
-
-_CLI_FIELDS = (
-    "seeds", "steps", "worlds", "methods", "out", "seed", "logger",
-    "size", "obstacles", "max_steps", "layout_seed", "threads",
-)  # fmt: skip
-
-
-def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Add the ``compare`` command to ``subparsers``; its options are CompareConfig's fields."""
-    parser = subparsers.add_parser(
-        "compare",
-        help=COMPARE_HELP,
-        description="Run factor-q, q-learning, dqn and factor-dqn for --seeds experiments of "
-        "--steps env steps per world; write comparison.json, comparison.png and comparison.md "
-        "to --out.",
-    )
-    docs = field_docs(CompareConfig)
-    hints = typing.get_type_hints(CompareConfig)
-    defaults = CompareConfig()
-    for name in _CLI_FIELDS:
-        default = getattr(defaults, name)
-        kwargs: dict[str, Any] = {"default": argparse.SUPPRESS}
-        if name in ("worlds", "methods"):
-            kwargs.update(metavar="NAME[,NAME]", type=str)
-            shown = ",".join(default)
-        else:
-            kwargs.update(metavar=name.upper(), type=hints[name])
-            shown = default
-        if name == "logger":
-            kwargs["choices"] = LOGGERS
-        help_text = f"{docs[name]} (default: {shown})".replace("%", "%%")  # argparse formats it
-        parser.add_argument("--" + name.replace("_", "-"), help=help_text, **kwargs)
-    return parser
-
-
-def config_from_args(args: argparse.Namespace) -> CompareConfig:
-    """A validated CompareConfig from parsed options (ValueError / TypeError when invalid)."""
-    return CompareConfig(
-        **{name: getattr(args, name) for name in _CLI_FIELDS if hasattr(args, name)}
-    )
-
-
-def main(args: argparse.Namespace | list[str] | None = None) -> int:
-    """Run ``factorq compare`` from parsed ``args`` (or an argv list); return the exit status."""
-    if not isinstance(args, argparse.Namespace):
-        root = argparse.ArgumentParser(prog="factorq")
-        parser = add_parser(root.add_subparsers(dest="command"))
-        try:
-            args, unknown = root.parse_known_args(
-                ["compare", *(sys.argv[1:] if args is None else args)]
-            )
-            if unknown:  # reported by the compare parser, not the stand-in root
-                parser.error(f"unrecognized arguments: {' '.join(unknown)}")
-        except SystemExit as exit_:
-            return exit_.code if isinstance(exit_.code, int) else 2
-    else:
-        parser = None
-    try:
-        config = config_from_args(args)
-    except (ValueError, TypeError) as error:
-        prog = parser.prog if parser is not None else "factorq compare"
-        print(f"{prog}: error: {error}", file=sys.stderr)
-        return 2
-    print(
-        f"{len(config.methods)} methods x {len(config.worlds)} worlds x {config.seeds} seeds, "
-        f"{config.steps:,} env steps each",
-        file=sys.stderr,
-    )
-    bars: dict[str, Any] = {}
-
-    def progress(method: str, done: int, total: int) -> None:
-        from tqdm.auto import tqdm
-
-        if method not in bars:
-            bars[method] = tqdm(total=total, desc=f"factorq compare {method}", unit="step")
-        bar = bars[method]
-        bar.update(done - bar.n)
-        if done >= total:
-            bar.close()
-
-    try:
-        results = run(config, progress)
-        paths = write_outputs(results, config.out)
-    except KeyboardInterrupt:
-        print("factorq compare: interrupted", file=sys.stderr)
-        return 130
-    print(report_markdown(results))
-    for path in paths.values():
-        print(path)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -18,7 +18,7 @@ steps the batched env; the replay buffer (``ReplayBuffer`` + ``LazyTensorStorage
 What the experiments do share: the minibatch's time indices and the position in torch's global
 random stream (``EGreedyModule`` and the sampler draw from it), which is why a DQN experiment's
 numbers depend on the batch it ran in (the network initialisation, the world and the env's
-obstacles do not; see ``experiment_keys``).
+obstacles do not; see ``batch_keys``).
 
 **Exploration.** torchrl's ``EGreedyModule``, epsilon annealed linearly from ``eps_start`` to
 ``eps_end`` over ``exploration_fraction`` of the step budget. ``EGreedyModule`` does not record
@@ -28,24 +28,12 @@ which actions it drew (DESIGN section 6), and greedy collisions need that flag;
 restores the greedy action elsewhere and writes ``exploratory``. The wrapper also steps the
 annealing itself, once per call that explores (no schedule to step by hand, DESIGN section 5).
 
-**Defaults and their source.** CleanRL's ``dqn.py`` and torchrl's ``sota-implementations/dqn``
-(CartPole) agree on Adam, replay buffer 10,000, minibatch 128, epsilon 1.0 -> 0.05 over half the
-budget and a hard target update every 50 gradient steps (CleanRL: every 500 env steps at one
-update per 10 steps; torchrl: ``hard_update_freq: 50``). Those are kept. Scaled to this tiny
-world and a budget of thousands rather than 500,000 steps: learning starts after 500 env steps
-(both: 10,000), one gradient step every 4 env steps (the Nature DQN's update frequency; both
-examples: every 10), learning rate 1e-3 (both: 2.5e-4, over some 50,000 updates; the default
-budget here allows 3,750), hidden layers (64, 64) (torchrl: (120, 84)) and ``gamma = 0.9``, the
-SPEC's discount, shared by all methods here. No gradient clipping (CleanRL has none; torchrl's
-example clips the global norm, which would couple the experiments of a batch). Measured at a
-10,000-step budget (3 seeds x 3 worlds): a gradient step every 2 env steps instead of 4 learned
-about as well (final paths 19-21 steps either way) at about twice the cost; annealing epsilon over
-20% of the budget instead of 50% reached short paths about twice as early with fewer collisions in
-total, but three times the greedy collisions.
+**Defaults** follow CleanRL's ``dqn.py`` and torchrl's DQN example, scaled to this world; their
+sources and the measurements behind the scaling are in ``docs/decisions.md`` (Baselines).
 
-Per episode of every experiment (``EpisodeRecorder``): path length, collisions, greedy collisions
-(collisions on non-exploratory actions), task return (step + goal rewards, as the tabular
-trainers record it), env steps so far, epsilon and loss.
+Per episode of every experiment (``trainers.experiment.EpisodeRecorder``): path length,
+collisions, greedy collisions (collisions on non-exploratory actions), task return (step + goal
+rewards, as the tabular trainers record it), env steps so far, epsilon and loss.
 """
 
 from __future__ import annotations
@@ -57,7 +45,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
-import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
@@ -67,10 +54,12 @@ from torchrl.modules import EGreedyModule, QValueModule
 from torchrl.objectives import DQNLoss, HardUpdate
 
 from envs.grid import FactoredGridEnv
-from envs.world import NUM_ACTIONS, WORLD_PERIODS, WORLDS, WorldConfig, static_layout
-from factorq_torch.base.rng import STREAM_TASK_NETWORK, STREAM_WORLD, derive_keys
-from factorq_torch.base.validation import check_float, check_int, check_names
+from envs.world import NUM_ACTIONS
+from factorq_torch.base.rng import STREAM_TASK_NETWORK, STREAM_WORLD
+from factorq_torch.base.validation import check_float, check_int
 from factorq_torch.neural import TaskQNetwork
+from trainers.experiment import EpisodeRecorder, ExperimentConfig, experiment_keys, make_env
+from trainers.options import option
 
 with warnings.catch_warnings():
     # torchrl 0.14.1 warns about its own deprecated weight updaters when the package is imported.
@@ -79,19 +68,6 @@ with warnings.catch_warnings():
 
 #: Methods of ``trainers.compare``; a method's index is part of its experiments' keys.
 METHODS = ("factor-q", "q-learning", "dqn", "factor-dqn")
-#: Per-episode records of ``EpisodeRecorder``.
-EPISODE_FIELDS = (
-    "steps",
-    "collisions",
-    "greedy_collisions",
-    "task_return",
-    "env_steps",
-    "epsilon",
-    "loss",
-)
-_MAX_SEED = 2**63 - 1
-
-
 # --------------------------------------------------------------------------------------------
 # Validation
 
@@ -107,246 +83,54 @@ def check_hidden(name: str, value: Any) -> tuple[int, ...]:
     return tuple(value)
 
 
-# --------------------------------------------------------------------------------------------
-# The experiments: worlds x seeds in one batch
-
-
-@dataclass(frozen=True)
-class ExperimentConfig:
-    """Which experiments run, and their budget: ``seeds`` per world, ``steps`` env steps each."""
-
-    seed: int = 0
-    """Master seed: worlds, policies and network initialisations derive from it."""
-    seeds: int = 3
-    """Independent experiments per world (and method)."""
-    worlds: tuple[str, ...] = WORLDS
-    """Worlds to run: static, semi-dynamic, dynamic (comma-separated)."""
-    steps: int = 15_000
-    """Budget of env steps per experiment (episodes are as many as fit)."""
-    size: int = 10
-    """Side of the square grid, in cells."""
-    obstacles: int = 10
-    """Number of single-cell obstacles."""
-    max_steps: int = 10_000
-    """Actions after which an episode is truncated."""
-    layout_seed: int = 0
-    """Seed of the static world's obstacle layout."""
-
-    def __post_init__(self) -> None:
-        check_int("seed", self.seed, 0, _MAX_SEED)
-        check_int("seeds", self.seeds, 1)
-        object.__setattr__(self, "worlds", check_names("worlds", self.worlds, WORLDS))
-        check_int("steps", self.steps, 1)
-        check_int("size", self.size, 2)
-        check_int("max_steps", self.max_steps, 1)
-        check_int("layout_seed", self.layout_seed, 0, _MAX_SEED)
-        try:
-            world = self.world
-            if "static" in self.worlds:
-                static_layout(world)
-        except ValueError as error:
-            raise ValueError(str(error).replace("num_obstacles", "obstacles")) from None
-
-    @property
-    def world(self) -> WorldConfig:
-        """The world of every experiment; the obstacle period is set per experiment."""
-        return WorldConfig(
-            size=self.size,
-            num_obstacles=self.obstacles,
-            max_steps=self.max_steps,
-            layout_seed=self.layout_seed,
-        )
-
-    @property
-    def num_experiments(self) -> int:
-        return len(self.worlds) * self.seeds
-
-    @property
-    def labels(self) -> list[tuple[str, int]]:
-        """``(world, seed index)`` of every experiment of the batch, world-major."""
-        return [(world, index) for world in self.worlds for index in range(self.seeds)]
-
-
-def experiment_keys(
-    config: ExperimentConfig, stream: int, method: str | None = None
+def batch_keys(
+    experiments: ExperimentConfig, stream: int, method: str | None = None
 ) -> torch.Tensor:
-    """Keys ``[E]`` of ``stream`` for the batch's experiments (world-major, seed-minor).
-
-    Experiment (seed index ``i``, world ``w`` = index in ``WORLDS``) takes key number ``3 i + w``
-    (as ``trainers.paper``: every method meets the same worlds, common random numbers), or with a
-    ``method`` number ``4 (3 i + w) + m`` (``m`` its index in ``METHODS``). Neither depends on what
-    else is selected.
-    """
-    per_method = method is not None
-    slots = []
-    for world, index in config.labels:
-        slot = len(WORLDS) * index + WORLDS.index(world)
-        slots.append(len(METHODS) * slot + METHODS.index(method) if per_method else slot)
-    count = max(slots) + 1
-    return derive_keys(config.seed, stream, count)[torch.tensor(slots)]
-
-
-def make_env(config: ExperimentConfig, device: torch.device | str | None = None) -> FactoredGridEnv:
-    """The batch's worlds: ``E`` experiments, one obstacle period each, keyed per experiment."""
-    env = FactoredGridEnv(
-        size=config.size,
-        num_obstacles=config.obstacles,
-        obstacle_period=[WORLD_PERIODS[world] for world, _ in config.labels],
-        max_steps=config.max_steps,
-        layout_seed=config.layout_seed,
-        batch_size=(config.num_experiments,),
-        seed=config.seed,
-        device=device,
-    )
-    env.world_keys = experiment_keys(config, STREAM_WORLD).to(env.device)
-    return env
-
-
-# --------------------------------------------------------------------------------------------
-# Recording
-
-
-class EpisodeRecorder:
-    """Per-episode records of ``E`` experiments, fed one transition ``[E]`` at a time.
-
-    ``update(td, epsilon, loss)`` reads ``("next", "bump")`` (a collision), ``exploratory``,
-    ``("next", "done")`` and the task reward: ``("next", "reward")`` when ``("next",
-    "local_reward")`` exists (the reward was split), else the conventional reward minus the sum of
-    ``("next", "collision")``. ``epsilon`` and ``loss`` are per-experiment values of this step
-    (``loss`` NaN where there was none); an episode records the epsilon at its end and the mean
-    finite loss over its steps. ``logger`` (a torchrl ``Logger``) receives every finished
-    episode's records under ``"{world}/seed_{i}/{name}"`` at step = that experiment's env steps.
-
-    ``totals`` counts collisions and greedy collisions over every step, including an episode left
-    unfinished by the budget, and the *boxed-in* greedy collisions among them: those where all
-    four sensors read an obstacle or wall before acting, so that every action collided (in the
-    moving worlds a scatter can box the agent in; no policy avoids those).
-    """
-
-    def __init__(self, labels: Sequence[tuple[str, int]], logger=None) -> None:
-        self.labels = list(labels)
-        count = len(self.labels)
-        self.logger = logger
-        self.env_steps = np.zeros(count, dtype=np.int64)
-        self._sums = {name: np.zeros(count) for name in ("steps", "collisions", "greedy", "task")}
-        self._loss_sum, self._loss_count = np.zeros(count), np.zeros(count)
-        self.episodes: list[dict[str, list[float]]] = [
-            {name: [] for name in EPISODE_FIELDS} for _ in range(count)
-        ]
-        self.totals = {
-            "collisions": np.zeros(count, dtype=np.int64),
-            "greedy_collisions": np.zeros(count, dtype=np.int64),
-            "boxed_in_greedy_collisions": np.zeros(count, dtype=np.int64),
-        }
-
-    def update(
-        self,
-        td: TensorDictBase,
-        epsilon: float | torch.Tensor | np.ndarray,
-        loss: torch.Tensor | np.ndarray | None = None,
-    ) -> None:
-        next_td = td.get("next")
-        collided = next_td.get("bump").any(dim=-1).cpu().numpy()  # [E]
-        greedy = collided & ~td.get("exploratory").cpu().numpy()
-        boxed_in = greedy & td.get("proximity").all(dim=-1).cpu().numpy()
-        reward = next_td.get("reward").squeeze(-1)
-        if next_td.get("local_reward", None) is None:
-            reward = reward - next_td.get("collision").sum(dim=-1)
-        done = next_td.get("done").squeeze(-1).cpu().numpy()
-        sums = self._sums
-        sums["steps"] += 1
-        sums["collisions"] += collided
-        sums["greedy"] += greedy
-        sums["task"] += reward.cpu().numpy()
-        self.env_steps += 1
-        self.totals["collisions"] += collided
-        self.totals["greedy_collisions"] += greedy
-        self.totals["boxed_in_greedy_collisions"] += boxed_in
-        if loss is not None:
-            loss = loss.detach().cpu().numpy() if isinstance(loss, torch.Tensor) else loss
-            finite = np.isfinite(loss)
-            self._loss_sum += np.where(finite, loss, 0.0)
-            self._loss_count += finite
-        if not done.any():
-            return
-        epsilon = np.broadcast_to(
-            epsilon.detach().cpu().numpy() if isinstance(epsilon, torch.Tensor) else epsilon,
-            done.shape,
-        )
-        for row in np.flatnonzero(done).tolist():
-            count = self._loss_count[row]
-            record = {
-                "steps": int(sums["steps"][row]),
-                "collisions": int(sums["collisions"][row]),
-                "greedy_collisions": int(sums["greedy"][row]),
-                "task_return": float(sums["task"][row]),
-                "env_steps": int(self.env_steps[row]),
-                "epsilon": float(epsilon[row]),
-                "loss": float(self._loss_sum[row] / count) if count else math.nan,
-            }
-            for name, value in record.items():
-                self.episodes[row][name].append(value)
-            if self.logger is not None:
-                self._log(row, record)
-            for values in (*sums.values(), self._loss_sum, self._loss_count):
-                values[row] = 0
-
-    def _log(self, row: int, record: dict[str, float]) -> None:
-        world, index = self.labels[row]
-        step = record["env_steps"]
-        names = {"steps": "path_length", "task_return": "return"}
-        for name, value in record.items():
-            if name != "env_steps" and math.isfinite(value):
-                self.logger.log_scalar(f"{world}/seed_{index}/{names.get(name, name)}", value, step)
-
-    def traces(self) -> list[dict[str, Any]]:
-        """One dict per experiment: the per-episode arrays, totals and label."""
-        out = []
-        for row, (world, index) in enumerate(self.labels):
-            trace: dict[str, Any] = {"world": world, "seed_index": index}
-            for name in EPISODE_FIELDS:
-                dtype = np.float64 if name in ("task_return", "epsilon", "loss") else np.int64
-                trace[name] = np.asarray(self.episodes[row][name], dtype=dtype)
-            trace["total_collisions"] = int(self.totals["collisions"][row])
-            trace["total_greedy_collisions"] = int(self.totals["greedy_collisions"][row])
-            trace["total_boxed_in_greedy_collisions"] = int(
-                self.totals["boxed_in_greedy_collisions"][row]
-            )
-            trace["total_env_steps"] = int(self.env_steps[row])
-            out.append(trace)
-        return out
+    """Keys ``[E]`` of ``stream`` for the experiments of ``factorq compare``'s batch: number
+    ``3 i + w`` (as ``trainers.paper``'s worlds), or with a ``method`` number ``4 (3 i + w) + m``
+    (``m`` its index in ``METHODS``); see ``trainers.experiment.experiment_keys``."""
+    return experiment_keys(experiments.seed, stream, experiments.labels, METHODS, method)
 
 
 # --------------------------------------------------------------------------------------------
 # DQN
 
 
+def batch_env(
+    experiments: ExperimentConfig, device: torch.device | str | None = None
+) -> FactoredGridEnv:
+    """The batch's worlds: ``E`` experiments, one obstacle period and world key each."""
+    world_keys = batch_keys(experiments, STREAM_WORLD)
+    return make_env(
+        experiments.world, experiments.periods, world_keys, device=device, seed=experiments.seed
+    )
+
+
 @dataclass(frozen=True)
 class DQNConfig:
     """DQN's hyperparameters (sources in the module docstring)."""
 
-    gamma: float = 0.9
-    """Discount of future reward, in [0, 1) (the SPEC's, shared by every method)."""
-    hidden: tuple[int, ...] = (64, 64)
-    """Hidden layer widths of each experiment's Q-network."""
-    lr: float = 1e-3
-    """Adam learning rate."""
-    buffer_size: int = 10_000
-    """Replay buffer capacity, in env steps (each holds one transition per experiment)."""
-    batch_size: int = 128
-    """Transitions per experiment in a minibatch."""
-    learning_starts: int = 500
-    """Env steps before the first gradient step."""
-    train_every: int = 4
-    """Env steps per gradient step."""
-    target_update_interval: int = 50
-    """Gradient steps between hard copies of the network into the target network."""
-    eps_start: float = 1.0
-    """Initial exploration probability of EGreedyModule."""
-    eps_end: float = 0.05
-    """Final exploration probability."""
-    exploration_fraction: float = 0.5
-    """Fraction of the step budget over which epsilon anneals linearly to eps_end."""
+    gamma: float = option(
+        0.9, "Discount of future reward, in [0, 1) (the SPEC's, shared by every method)."
+    )
+    hidden: tuple[int, ...] = option(
+        (64, 64), "Hidden layer widths of each experiment's Q-network."
+    )
+    lr: float = option(1e-3, "Adam learning rate.")
+    buffer_size: int = option(
+        10_000, "Replay buffer capacity, in env steps (each holds one transition per experiment)."
+    )
+    batch_size: int = option(128, "Transitions per experiment in a minibatch.")
+    learning_starts: int = option(500, "Env steps before the first gradient step.")
+    train_every: int = option(4, "Env steps per gradient step.")
+    target_update_interval: int = option(
+        50, "Gradient steps between hard copies of the network into the target network."
+    )
+    eps_start: float = option(1.0, "Initial exploration probability of EGreedyModule.")
+    eps_end: float = option(0.05, "Final exploration probability.")
+    exploration_fraction: float = option(
+        0.5, "Fraction of the step budget over which epsilon anneals linearly to eps_end."
+    )
 
     def __post_init__(self) -> None:
         check_float("gamma", self.gamma, 0.0, 1.0, high_open=True)
@@ -460,7 +244,7 @@ def build_dqn(config: DQNConfig, experiments: ExperimentConfig, device=None) -> 
         experiments.size**2,
         with_proximity=True,
         hidden=config.hidden,
-        keys=experiment_keys(experiments, STREAM_TASK_NETWORK, "dqn"),
+        keys=batch_keys(experiments, STREAM_TASK_NETWORK, "dqn"),
         zero_output=False,  # PyTorch's default initialisation, as the DQN examples
         device=device,
     )
@@ -510,7 +294,7 @@ def run(
     started = time.perf_counter()
     device = torch.device("cpu" if device is None else device)
     torch.manual_seed(experiments.seed)  # EGreedyModule and the sampler draw from it
-    env = make_env(experiments, device)
+    env = batch_env(experiments, device)
     agent = build_dqn(config, experiments, device)
     count, steps = experiments.num_experiments, experiments.steps
     frames_per_step = count  # one env step of the batch is E frames

@@ -1,4 +1,4 @@
-"""The paper's experiment (SPEC section 4) and its claims (SPEC section 5): config -> results.
+"""The paper's experiment (SPEC section 4): config -> results.
 
 One *experiment* is one world x one algorithm: ``runs`` runs of ``episodes`` episodes. We run
 ``seeds`` independent experiments per cell of the paper's table and summarise them across seeds:
@@ -8,123 +8,90 @@ One *experiment* is one world x one algorithm: ``runs`` runs of ``episodes`` epi
 
 Keys make experiment ``(seed index i, world w, algorithm a)`` draw the same numbers whatever else is
 selected: its world key is number ``3 i + w`` of the world stream (shared by both algorithms:
-common random numbers) and its policy key number ``2 (3 i + w) + a`` of the policy stream.
+common random numbers) and its policy key number ``2 (3 i + w) + a`` of the policy stream
+(``trainers.experiment.experiment_keys``).
 
-Confidence intervals (95%, across seeds; every seed is one independent experiment):
-
-- a mean (a cell's measure, a point of a curve): Student's t interval,
-  ``mean +- t(0.975, S - 1) * sd / sqrt(S)``;
-- a claim's statistic (a ratio of means, its minimum or maximum over worlds): percentile bootstrap
-  over seeds, ``BOOTSTRAP_RESAMPLES`` resamples of the seed indices, paired across cells (the
-  cells of one seed index share their world's random numbers), drawn from a generator seeded with
-  ``config.seed``, so the intervals are as reproducible as the rest.
-
-With a single seed there is no interval (``null``).
+The intervals are ``trainers.stats``' (Student's t for means, a paired bootstrap over seeds for
+the claims, seeded with ``config.seed``), the claims ``trainers.claims``', and the files
+``trainers.report.write_results``'.
 """
 
 from __future__ import annotations
 
-import ast
-import inspect
-import json
-import math
 import os
-import platform
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
-from importlib import metadata
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 
-from envs.world import WORLD_PERIODS, WORLDS, WorldConfig, static_layout
+from envs.world import WORLD_PERIODS, WORLDS, WorldConfig
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
-from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
+from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
 from factorq_torch.base.validation import check_int, check_names
-from trainers import checkpoint
-from trainers.schema import SCHEMA_VERSION
+from trainers import checkpoint, experiment, stats
+from trainers.claims import compute_claims
+from trainers.experiment import MAX_SEED, check_world_options
+from trainers.options import option
+from trainers.results import SCHEMA_VERSION, software_versions
+from trainers.stats import interval, mean_ci
 
-#: The paper's three worlds and their obstacle periods (SPEC section 1), in canonical order; a
-#: world's index here is part of its experiments' keys.
+#: Experiment drivers: the compiled kernel, the modular torchrl path, or the first available.
 BACKENDS = ("auto", "fast", "modular")
-MEASURES = ("total_steps", "collisions", "greedy_collisions")
 CURVES = ("steps", "collisions", "greedy_collisions")
-MEASURE_LABELS = {
-    "total_steps": "total steps",
-    "collisions": "collisions",
-    "greedy_collisions": "greedy collisions",
-}
-ALGORITHM_LABELS = {"q-learning": "Q-learning", "factor-q": "Factor-Q"}
-BOOTSTRAP_RESAMPLES = 10_000
-CONFIDENCE = 0.95
-RESULTS_FILE = "results.json"
-FIGURE_FILE = "figure3.png"
-REPORT_FILE = "report.md"
-_MAX_SEED = 2**63 - 1
 
 
 @dataclass(frozen=True)
 class PaperConfig:
     """The paper's experiment (SPEC section 4); defaults reproduce it with 100 seeds."""
 
-    seed: int = 0
-    """Master seed: every random number of the experiment derives from it."""
-    seeds: int = 100
-    """Independent experiments per cell (world x algorithm); CIs are across them."""
-    runs: int = 10
-    """Runs per experiment (task tables reset each run; Factor-Q's local tables carry over)."""
-    episodes: int = 200
-    """Episodes per run."""
-    size: int = 10
-    """Side of the square grid, in cells."""
-    obstacles: int = 10
-    """Number of single-cell obstacles."""
-    worlds: tuple[str, ...] = WORLDS
-    """Worlds to run: static, semi-dynamic, dynamic (comma-separated)."""
-    algorithms: tuple[str, ...] = ALGORITHMS
-    """Algorithms to run: q-learning, factor-q (comma-separated)."""
-    max_steps: int = 10_000
-    """Actions after which an episode is truncated."""
-    layout_seed: int = 0
-    """Seed of the static world's obstacle layout."""
-    epsilon: float = 0.01
-    """Probability of a uniformly random (exploratory) action."""
-    gamma: float = 0.9
-    """Discount of future reward, in [0, 1)."""
-    alpha: float = 0.2
-    """Task learning rate (eqs. 1 and 4), in (0, 1]."""
-    eta: float = 0.1
-    """Margin by which scaled local reward dominates task reward (eq. 3)."""
-    g_min: float = 0.01
-    """Floor of the normaliser G (eq. 3), > 0."""
-    out: str = "results/paper"
-    """Directory for results.json, figure3.png and report.md."""
-    threads: int | None = None
-    """CPU threads for the experiments (default: all available); results do not depend on it."""
-    backend: str = "auto"
-    """Experiment driver: fast (compiled), modular (torchrl), auto (fast if it is available)."""
-    device: str = "cpu"
-    """Torch device (the fast backend runs on cpu only)."""
+    seed: int = option(0, "Master seed: every random number of the experiment derives from it.")
+    seeds: int = option(
+        100, "Independent experiments per cell (world x algorithm); CIs are across them."
+    )
+    runs: int = option(
+        10, "Runs per experiment (task tables reset each run; Factor-Q's local tables carry over)."
+    )
+    episodes: int = option(200, "Episodes per run.")
+    size: int = option(10, "Side of the square grid, in cells.")
+    obstacles: int = option(10, "Number of single-cell obstacles.")
+    worlds: tuple[str, ...] = option(
+        WORLDS, "Worlds to run: static, semi-dynamic, dynamic (comma-separated)."
+    )
+    algorithms: tuple[str, ...] = option(
+        ALGORITHMS, "Algorithms to run: q-learning, factor-q (comma-separated)."
+    )
+    max_steps: int = option(10_000, "Actions after which an episode is truncated.")
+    layout_seed: int = option(0, "Seed of the static world's obstacle layout.")
+    epsilon: float = option(0.01, "Probability of a uniformly random (exploratory) action.")
+    gamma: float = option(0.9, "Discount of future reward, in [0, 1).")
+    alpha: float = option(0.2, "Task learning rate (eqs. 1 and 4), in (0, 1].")
+    eta: float = option(0.1, "Margin by which scaled local reward dominates task reward (eq. 3).")
+    g_min: float = option(0.01, "Floor of the normaliser G (eq. 3), > 0.")
+    out: str = option("results/paper", "Directory for results.json, figure3.png and report.md.")
+    threads: int | None = option(
+        None,
+        "CPU threads for the experiments (default: all available); results do not depend on it.",
+    )
+    backend: str = option(
+        "auto",
+        "Experiment driver: fast (compiled), modular (torchrl), auto (fast if it is available).",
+        choices=BACKENDS,
+    )
+    device: str = option("cpu", "Torch device (the fast backend runs on cpu only).")
 
     def __post_init__(self) -> None:
-        check_int("seed", self.seed, 0, _MAX_SEED)
+        check_int("seed", self.seed, 0, MAX_SEED)
         check_int("seeds", self.seeds, 1)
         check_int("runs", self.runs, 1)
         check_int("episodes", self.episodes, 1)
-        check_int("max_steps", self.max_steps, 1)
-        check_int("layout_seed", self.layout_seed, 0, _MAX_SEED)
-        check_int("size", self.size, 2)
-        check_int(
-            "obstacles",
-            self.obstacles,
-            0,
-            self.size * self.size - 3,
-            f" for a {self.size}x{self.size} grid with start, goal and agent kept free",
-        )
         object.__setattr__(self, "worlds", check_names("worlds", self.worlds, WORLDS))
+        check_world_options(
+            self.size, self.obstacles, self.max_steps, self.layout_seed, self.worlds
+        )
         object.__setattr__(
             self, "algorithms", check_names("algorithms", self.algorithms, ALGORITHMS)
         )
@@ -146,11 +113,6 @@ class PaperConfig:
         object.__setattr__(self, "out", str(self.out))
         if Path(self.out).exists() and not Path(self.out).is_dir():
             raise ValueError(f"out={self.out!r} is an existing file: give a directory")
-        if "static" in self.worlds:
-            try:
-                static_layout(self.world)
-            except ValueError as error:
-                raise ValueError(str(error).replace("num_obstacles", "obstacles")) from None
 
     @property
     def agent(self) -> AgentConfig:
@@ -162,38 +124,12 @@ class PaperConfig:
     @property
     def world(self) -> WorldConfig:
         """The world of every experiment; the obstacle period is set per experiment."""
-        return WorldConfig(
-            size=self.size,
-            num_obstacles=self.obstacles,
-            obstacle_period=0,
-            max_steps=self.max_steps,
-            layout_seed=self.layout_seed,
-        )
+        return check_world_options(self.size, self.obstacles, self.max_steps, self.layout_seed, ())
 
     @property
     def cells(self) -> list[tuple[str, str]]:
         """The selected ``(world, algorithm)`` cells, in canonical order."""
         return [(world, algorithm) for world in self.worlds for algorithm in self.algorithms]
-
-
-def field_docs(cls: type) -> dict[str, str]:
-    """The one-line docstrings written under the fields of dataclass ``cls`` (for --help)."""
-    try:
-        tree = ast.parse(inspect.getsource(cls))
-    except (OSError, TypeError):
-        return {}
-    docs = {}
-    body = tree.body[0].body
-    for node, following in zip(body, body[1:], strict=False):
-        if (
-            isinstance(node, ast.AnnAssign)
-            and isinstance(node.target, ast.Name)
-            and isinstance(following, ast.Expr)
-            and isinstance(following.value, ast.Constant)
-            and isinstance(following.value.value, str)
-        ):
-            docs[node.target.id] = " ".join(following.value.value.split())
-    return docs
 
 
 # --------------------------------------------------------------------------------------------
@@ -228,41 +164,47 @@ def resolve_backend(config: PaperConfig) -> str:
     return config.backend
 
 
-def experiment_keys(
-    config: PaperConfig, algorithm: str
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+class BatchKeys(NamedTuple):
+    """One algorithm's experiments, world-major and seed-minor: ``[W * S]`` each."""
+
+    periods: torch.Tensor
+    world_keys: torch.Tensor
+    policy_keys: torch.Tensor
+
+
+class Job(NamedTuple):
+    """One algorithm's experiments, as a backend driver runs them."""
+
+    config: PaperConfig
+    algorithm: str
+    keys: BatchKeys
+    #: ``report(episodes, experiments)``: episodes and experiments completed since its last call.
+    report: Callable[[int, int], None]
+    #: Restores a resumed state (``restore``) and saves when due (``due``, ``save``).
+    checkpoints: checkpoint.Checkpointer
+
+
+def experiment_keys(config: PaperConfig, algorithm: str) -> BatchKeys:
     """Obstacle periods, world keys and policy keys ``[W * S]`` of one algorithm's experiments.
 
     Experiments are ordered world-major (``config.worlds``), seed-minor. The key of seed index
     ``i`` in world ``w`` (index in ``WORLDS``) does not depend on what else is selected.
     """
-    seeds = config.seeds
-    world_index = torch.tensor([WORLDS.index(world) for world in config.worlds])  # [W]
-    algorithm_index = ALGORITHMS.index(algorithm)
-    world_keys = derive_keys(config.seed, STREAM_WORLD, seeds * len(WORLDS))
-    world_keys = world_keys.view(seeds, len(WORLDS))  # [S, 3]: offset 3 i + w
-    policy_keys = derive_keys(config.seed, STREAM_POLICY, seeds * len(WORLDS) * len(ALGORITHMS))
-    policy_keys = policy_keys.view(seeds, len(WORLDS), len(ALGORITHMS))  # offset 2 (3 i + w) + a
-    periods = torch.tensor([WORLD_PERIODS[world] for world in config.worlds])
-    return (
-        periods.repeat_interleave(seeds),  # [W * S]
-        world_keys[:, world_index].T.reshape(-1),
-        policy_keys[:, world_index, algorithm_index].T.reshape(-1),
+    labels = [(world, index) for world in config.worlds for index in range(config.seeds)]
+    periods = torch.tensor([WORLD_PERIODS[world] for world, _ in labels])  # [W * S]
+    world_keys = experiment.experiment_keys(config.seed, STREAM_WORLD, labels)
+    policy_keys = experiment.experiment_keys(
+        config.seed, STREAM_POLICY, labels, ALGORITHMS, algorithm
     )
+    return BatchKeys(periods, world_keys, policy_keys)
 
 
-def _run_fast(
-    config: PaperConfig,
-    algorithm: str,
-    periods: torch.Tensor,
-    world_keys: torch.Tensor,
-    policy_keys: torch.Tensor,
-    report: Callable[[int, int], None],
-    checkpoints: checkpoint.Checkpointer,
-) -> dict[str, torch.Tensor]:
+def _run_fast(job: Job) -> dict[str, torch.Tensor]:
     """One algorithm's experiments on the compiled fast path, in chunks (progress, Ctrl-C,
     checkpoints)."""
     from trainers.fast import ExperimentBatch
+
+    config, algorithm, (periods, world_keys, policy_keys), report, checkpoints = job
 
     batch = ExperimentBatch(
         algorithm,
@@ -293,60 +235,20 @@ def _run_fast(
     return batch.metrics()
 
 
-def _run_modular(
-    config: PaperConfig,
-    algorithm: str,
-    periods: torch.Tensor,
-    world_keys: torch.Tensor,
-    policy_keys: torch.Tensor,
-    report: Callable[[int, int], None],
-    checkpoints: checkpoint.Checkpointer,
-) -> dict[str, torch.Tensor]:
+def _run_modular(job: Job) -> dict[str, torch.Tensor]:
     """One algorithm's experiments on the modular torchrl path (env, tables, policy, loss,
     ``OnlineCollector``): the fallback where no C compiler is available, and the reference the
     fast path is tested against. Same keys, so the same numbers as ``_run_fast``."""
-    from tensordict.nn import TensorDictSequential
-    from torchrl.envs import TransformedEnv
-
-    from envs import FactoredGridEnv, SplitLocalReward
     from factorq_torch.collectors import OnlineCollector
-    from factorq_torch.objectives import FactorQLoss, TabularQLoss
-    from factorq_torch.policy import EpsilonGreedyPolicy, FactorQPolicy
-    from factorq_torch.tables import LocalRewardTable, TaskQTable
 
-    world, agent, device = config.world, config.agent, torch.device(config.device)
-    num = len(periods)
-    env = grid = FactoredGridEnv(
-        size=world.size,
-        num_obstacles=world.num_obstacles,
-        obstacle_period=periods,
-        max_steps=world.max_steps,
-        layout_seed=world.layout_seed,
-        batch_size=(num,),
-        device=device,
+    config, algorithm, (periods, world_keys, policy_keys), report, checkpoints = job
+
+    device = torch.device(config.device)
+    grid = experiment.make_env(config.world, periods, world_keys, device=device)
+    task, local = experiment.tabular_values(algorithm, len(periods), grid.config.num_cells, device)
+    env, policy, loss = experiment.online_agent(
+        grid, task, local, config.agent, policy_keys, device=device
     )
-    env.world_keys = world_keys.to(device)
-    factorq = algorithm == "factor-q"
-    task = TaskQTable(num, world.num_cells, with_proximity=not factorq, device=device)
-    if factorq:
-        local = LocalRewardTable(num, device=device)
-        chooser = FactorQPolicy(
-            num,
-            keys=policy_keys,
-            epsilon=agent.epsilon,
-            eta=agent.eta,
-            g_min=agent.g_min,
-            device=device,
-        )
-        policy = TensorDictSequential(task, local, chooser)
-        loss = FactorQLoss(
-            task, local, gamma=agent.gamma, alpha=agent.alpha, eta=agent.eta, g_min=agent.g_min
-        )
-        env = TransformedEnv(env, SplitLocalReward())
-    else:
-        chooser = EpsilonGreedyPolicy(num, keys=policy_keys, epsilon=agent.epsilon, device=device)
-        policy = TensorDictSequential(task, chooser)
-        loss = TabularQLoss(task, gamma=agent.gamma, alpha=agent.alpha)
     collector = OnlineCollector(
         env, policy, loss, runs=config.runs, episodes=config.episodes, progress=report
     )
@@ -389,15 +291,9 @@ def _to_device(tree: Any, device: torch.device) -> Any:
     return tree
 
 
-def backend_driver(backend: str) -> Callable[..., dict[str, torch.Tensor]]:
-    """The function that runs one algorithm's experiments on ``backend``.
-
-    Its signature: ``(config, algorithm, periods, world_keys, policy_keys, report, checkpoints)
-    -> metrics``, where ``report(episodes_completed, experiments_finished)`` counts progress since
-    its last call, ``checkpoints`` (a ``checkpoint.Checkpointer``) restores a resumed state and
-    saves when due, and ``metrics`` are ``ExperimentBatch.metrics()`` (``[W * S, runs,
-    episodes]`` each).
-    """
+def backend_driver(backend: str) -> Callable[[Job], dict[str, torch.Tensor]]:
+    """The function that runs one algorithm's experiments (a ``Job``) on ``backend`` and returns
+    their metrics, ``ExperimentBatch.metrics()`` (``[W * S, runs, episodes]`` each)."""
     return _run_fast if backend == "fast" else _run_modular
 
 
@@ -452,17 +348,15 @@ def run(
     report_progress()
     metrics: dict[tuple[str, str], dict[str, np.ndarray]] = {}
     for algorithm in config.algorithms:
-        periods, world_keys, policy_keys = experiment_keys(config, algorithm)
         batch = checkpoints.finished.get(algorithm)
         if batch is None:
-            batch = driver(
-                config, algorithm, periods, world_keys, policy_keys, advance_progress, checkpoints
-            )
+            keys = experiment_keys(config, algorithm)
+            batch = driver(Job(config, algorithm, keys, advance_progress, checkpoints))
             checkpoints.finish(algorithm, batch)
         for position, world in enumerate(config.worlds):
             rows = slice(position * config.seeds, (position + 1) * config.seeds)
             metrics[world, algorithm] = {
-                name: batch[name][rows].cpu().numpy() for name in (*CURVES, "task_return")
+                name: values[rows].cpu().numpy() for name, values in batch.items()
             }
     results = summarise(config, metrics)
     wall = checkpoints.elapsed_s
@@ -537,89 +431,6 @@ def _show(value: Any) -> str:
 
 
 # --------------------------------------------------------------------------------------------
-# Statistics
-
-
-def t_critical(df: int, confidence: float = CONFIDENCE) -> float:
-    """The two-sided Student's t critical value: ``P(|T| <= t) = confidence`` with ``df`` dof.
-
-    Exact for integer ``df`` (Abramowitz & Stegun 26.7.3-4, a finite series), solved by bisection.
-
-    >>> round(t_critical(1), 3), round(t_critical(9), 3), round(t_critical(99), 3)
-    (12.706, 2.262, 1.984)
-    """
-    if df < 1:
-        raise ValueError(f"df={df} must be >= 1")
-    if df > 2000:  # Cornish-Fisher expansion around the normal quantile, error < 1e-12 here
-        z = 1.959963984540054 if confidence == CONFIDENCE else _normal_quantile(confidence)
-        return (
-            z
-            + (z**3 + z) / (4 * df)
-            + (5 * z**5 + 16 * z**3 + 3 * z) / (96 * df**2)
-            + (3 * z**7 + 19 * z**5 + 17 * z**3 - 15 * z) / (384 * df**3)
-        )
-
-    def central_probability(t: float) -> float:
-        theta = math.atan(t / math.sqrt(df))
-        cos2 = math.cos(theta) ** 2
-        if df % 2 == 1:
-            total, term = 0.0, math.cos(theta)
-            for k in range(1, (df - 1) // 2 + 1):
-                total += term
-                term *= cos2 * (2 * k) / (2 * k + 1)
-            return 2 / math.pi * (theta + math.sin(theta) * total)
-        total, term = 0.0, 1.0
-        for k in range(1, df // 2 + 1):
-            total += term
-            term *= cos2 * (2 * k - 1) / (2 * k)
-        return math.sin(theta) * total
-
-    low, high = 0.0, 1e6
-    for _ in range(200):
-        middle = (low + high) / 2
-        if central_probability(middle) < confidence:
-            low = middle
-        else:
-            high = middle
-    return (low + high) / 2
-
-
-def _normal_quantile(confidence: float) -> float:
-    from statistics import NormalDist
-
-    return NormalDist().inv_cdf(0.5 + confidence / 2)
-
-
-def mean_ci(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """Mean over axis 0 and its Student-t 95% interval (``None`` with fewer than 2 samples)."""
-    samples = np.asarray(samples, dtype=np.float64)
-    mean = samples.mean(axis=0)
-    count = samples.shape[0]
-    if count < 2:
-        return mean, None, None
-    half = t_critical(count - 1) * samples.std(axis=0, ddof=1) / math.sqrt(count)
-    return mean, mean - half, mean + half
-
-
-def _bootstrap_indices(seed: int, count: int) -> np.ndarray:
-    """``[BOOTSTRAP_RESAMPLES, count]`` resampled seed indices, reproducible from ``seed``."""
-    generator = np.random.Generator(np.random.PCG64([seed, 0xB007]))
-    return generator.integers(0, count, size=(BOOTSTRAP_RESAMPLES, count))
-
-
-def _quantiles(values: np.ndarray) -> list[float | None]:
-    """The 2.5% and 97.5% order statistics of the bootstrap values (inf kept, NaN -> None)."""
-    tail = (1 - CONFIDENCE) / 2
-    bounds = np.quantile(values, [tail, 1 - tail], method="inverted_cdf")
-    return [_finite_or_none(bound) for bound in bounds]
-
-
-def _finite_or_none(value: Any) -> float | None:
-    value = float(value)
-    return value if math.isfinite(value) else None
-
-
-# --------------------------------------------------------------------------------------------
 # Summaries
 
 
@@ -639,7 +450,7 @@ def summarise(
         summary = {}
         for name, values in per_run.items():
             mean, low, high = mean_ci(values)
-            summary[name] = {"mean": float(mean), "ci95": _interval(low, high)}
+            summary[name] = {"mean": float(mean), "ci95": interval(low, high)}
         curves, lows, highs = {}, {}, {}
         for name in CURVES:
             per_episode = cell[name].mean(axis=1)  # [S, E], mean over runs
@@ -662,18 +473,9 @@ def summarise(
         "config": config_dict(config),
         "cells": cells,
         "claims": compute_claims(cells, config.seed),
-        "statistics": {
-            "confidence": CONFIDENCE,
-            "means": "Student's t interval across seeds",
-            "claims": f"percentile bootstrap over seeds, paired across cells, "
-            f"{BOOTSTRAP_RESAMPLES} resamples, generator PCG64([seed, 0xB007])",
-        },
+        "statistics": dict(stats.DESCRIPTION),
         "software": software_versions(),
     }
-
-
-def _interval(low: Any, high: Any) -> list[float | None] | None:
-    return None if low is None else [_finite_or_none(low), _finite_or_none(high)]
 
 
 def config_dict(config: PaperConfig) -> dict[str, Any]:
@@ -693,341 +495,3 @@ def config_from_dict(data: dict[str, Any]) -> PaperConfig:
     return PaperConfig(
         **{key: tuple(value) if isinstance(value, list) else value for key, value in data.items()}
     )
-
-
-def software_versions() -> dict[str, str]:
-    """Versions of python, the libraries that computed the results, and the platform."""
-    versions = {"python": platform.python_version()}
-    for package in (
-        "factorq-torch",
-        "torch",
-        "torchrl",
-        "tensordict",
-        "gymnasium",
-        "numpy",
-        "matplotlib",
-    ):
-        try:
-            versions[package] = metadata.version(package)
-        except metadata.PackageNotFoundError:
-            versions[package] = "not installed"
-    versions["platform"] = platform.platform()
-    return versions
-
-
-# --------------------------------------------------------------------------------------------
-# Claims (SPEC section 5)
-
-CLAIM_STATEMENTS = {
-    "C1": "Factor-Q beats Q-learning on every measure, in every world",
-    "C2": "in the static world learning speed is not significantly different",
-    "C3": "static-world collision avoidance is dramatically better",
-    "C4": "Factor-Q learns dynamic worlds nearly as fast as the static one; "
-    "Q-learning falls to about 57% in the worst case",
-    "C5": "greedy collisions improved by over two orders of magnitude",
-}
-CLAIM_THRESHOLDS = {
-    "C1": "Factor-Q / Q-learning <= 1 for all 3 measures in all 3 worlds",
-    "C2": "Q-learning / Factor-Q total steps in [0.8, 1.25]",
-    "C3": "Q-learning / Factor-Q collisions > 10",
-    "C4": "Factor-Q moving/static speed >= 0.85 in both moving worlds; "
-    "Q-learning worst in [0.45, 0.70]",
-    "C5": "Q-learning / Factor-Q greedy collisions > 100 in every world",
-}
-MOVING = ("semi-dynamic", "dynamic")
-
-
-class _Means:
-    """Means per (world, algorithm, measure): point estimates, or bootstrap resamples ``[B]``."""
-
-    def __init__(self, cells: dict[str, Any], indices: np.ndarray | None) -> None:
-        self.cells = cells
-        self.indices = indices
-
-    def __call__(self, world: str, algorithm: str, measure: str) -> Any:
-        values = np.asarray(self.cells[f"{world}/{algorithm}"]["per_seed"][measure], np.float64)
-        if self.indices is None:
-            return values.mean()
-        return values[self.indices].mean(axis=1)  # [B]
-
-
-def _ratio(numerator: Any, denominator: Any) -> Any:
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.divide(numerator, denominator)
-
-
-def _c1(means: _Means) -> dict[str, Any]:
-    measures = {}
-    for world in WORLDS:
-        for measure in MEASURES:
-            factor_q = means(world, "factor-q", measure)
-            q_learning = means(world, "q-learning", measure)
-            measures[f"{world} {MEASURE_LABELS[measure]}, Factor-Q / Q-learning"] = (
-                _ratio(factor_q, q_learning),
-                factor_q <= q_learning,
-            )
-    return measures
-
-
-def _c2(means: _Means) -> dict[str, Any]:
-    ratio = _ratio(
-        means("static", "q-learning", "total_steps"), means("static", "factor-q", "total_steps")
-    )
-    return {"static total steps, Q-learning / Factor-Q": (ratio, (ratio >= 0.8) & (ratio <= 1.25))}
-
-
-def _c3(means: _Means) -> dict[str, Any]:
-    ratio = _ratio(
-        means("static", "q-learning", "collisions"), means("static", "factor-q", "collisions")
-    )
-    return {"static collisions, Q-learning / Factor-Q": (ratio, ratio > 10)}
-
-
-def _c4(means: _Means) -> dict[str, Any]:
-    measures = {}
-    for algorithm in ALGORITHMS:
-        static = means("static", algorithm, "total_steps")
-        for world in MOVING:
-            # speed = 1 / mean total steps, so moving/static speed = static steps / moving steps
-            ratio = _ratio(static, means(world, algorithm, "total_steps"))
-            label = f"{ALGORITHM_LABELS[algorithm]} speed, {world} / static"
-            passed = ratio >= 0.85 if algorithm == "factor-q" else None
-            measures[label] = (ratio, passed)
-    return measures
-
-
-def _c5(means: _Means) -> dict[str, Any]:
-    measures = {}
-    for world in WORLDS:
-        ratio = _ratio(
-            means(world, "q-learning", "greedy_collisions"),
-            means(world, "factor-q", "greedy_collisions"),
-        )
-        measures[f"{world} greedy collisions, Q-learning / Factor-Q"] = (ratio, ratio > 100)
-    return measures
-
-
-def _worst(measures: dict[str, Any], pick: Callable, keys: list[str] | None = None) -> Any:
-    values = [measures[key][0] for key in (keys or list(measures))]
-    return pick(np.stack(np.broadcast_arrays(*values)), axis=0)
-
-
-def _headline(claim: str, measures: dict[str, Any]) -> tuple[Any, Any]:
-    """The claim's headline statistic (from its measures) and whether it passes."""
-    if claim == "C1":
-        return _worst(measures, np.max), np.all(np.stack([m[1] for m in measures.values()]), 0)
-    if claim in ("C2", "C3"):
-        (value, passed), *_ = measures.values()
-        return value, passed
-    if claim == "C4":
-        factor_q = _worst(measures, np.min, [key for key in measures if "Factor-Q" in key])
-        q_learning = _worst(measures, np.min, [key for key in measures if "Q-learning" in key])
-        passed = (factor_q >= 0.85) & (q_learning >= 0.45) & (q_learning <= 0.70)
-        return {"factor-q": factor_q, "q-learning": q_learning}, passed
-    return _worst(measures, np.min), np.all(np.stack([m[1] for m in measures.values()]), 0)
-
-
-_CLAIM_MEASURES = {"C1": _c1, "C2": _c2, "C3": _c3, "C4": _c4, "C5": _c5}
-_CLAIM_CELLS = {
-    "C1": [(world, algorithm) for world in WORLDS for algorithm in ALGORITHMS],
-    "C2": [("static", algorithm) for algorithm in ALGORITHMS],
-    "C3": [("static", algorithm) for algorithm in ALGORITHMS],
-    "C4": [(world, algorithm) for world in WORLDS for algorithm in ALGORITHMS],
-    "C5": [(world, algorithm) for world in WORLDS for algorithm in ALGORITHMS],
-}
-
-
-def compute_claims(cells: dict[str, Any], seed: int = 0) -> dict[str, Any]:
-    """Claims C1-C5 of SPEC section 5 from ``cells`` (only their ``per_seed`` lists are read).
-
-    Each claim: ``statement``, ``threshold``, ``value`` (its statistic; C4 has one per algorithm),
-    ``ci95`` (bootstrap interval of ``value``, ``None`` with one seed), ``pass`` (``None`` when a
-    cell it needs was not run), ``detail`` and ``measures`` (the comparisons it is made of).
-    """
-    seeds = {len(cell["per_seed"]["total_steps"]) for cell in cells.values()}
-    if len(seeds) > 1:
-        raise ValueError(f"cells have different numbers of seeds: {sorted(seeds)}")
-    count = seeds.pop() if seeds else 0
-    indices = _bootstrap_indices(seed, count) if count >= 2 else None
-    claims = {}
-    for claim, measure_fn in _CLAIM_MEASURES.items():
-        entry = {
-            "statement": CLAIM_STATEMENTS[claim],
-            "threshold": CLAIM_THRESHOLDS[claim],
-            "value": None,
-            "ci95": None,
-            "pass": None,
-            "detail": "",
-            "measures": [],
-        }
-        claims[claim] = entry
-        missing = [f"{w}/{a}" for w, a in _CLAIM_CELLS[claim] if f"{w}/{a}" not in cells]
-        if missing:
-            entry["detail"] = f"not evaluated: needs {', '.join(missing)}, which were not run"
-            continue
-        point = measure_fn(_Means(cells, None))
-        value, passed = _headline(claim, point)
-        boot_value = None
-        if indices is not None:
-            boot = measure_fn(_Means(cells, indices))
-            boot_value, _ = _headline(claim, boot)
-        for name, (measure_value, measure_pass) in point.items():
-            entry["measures"].append(
-                {
-                    "name": name,
-                    "value": _finite_or_none(measure_value),
-                    "ci95": None if indices is None else _quantiles(boot[name][0]),
-                    "pass": None if measure_pass is None else bool(measure_pass),
-                }
-            )
-        if isinstance(value, dict):
-            entry["value"] = {key: _finite_or_none(item) for key, item in value.items()}
-            if boot_value is not None:
-                entry["ci95"] = {key: _quantiles(item) for key, item in boot_value.items()}
-        else:
-            entry["value"] = _finite_or_none(value)
-            entry["ci95"] = None if boot_value is None else _quantiles(boot_value)
-        entry["pass"] = bool(passed)
-        entry["detail"] = _detail(claim, entry, value)
-    return claims
-
-
-def _detail(claim: str, entry: dict[str, Any], value: Any) -> str:
-    """One sentence: what was compared, the outcome, and why."""
-    measures = {measure["name"]: measure for measure in entry["measures"]}
-    undefined = [name for name, measure in measures.items() if measure["value"] is None]
-    note = (
-        f"; undefined (0 in a denominator, reported as null): {', '.join(undefined)}"
-        if undefined
-        else ""
-    )
-    if claim == "C1":
-        failing = [name for name, measure in measures.items() if not measure["pass"]]
-        if failing:
-            return "Factor-Q > Q-learning on: " + "; ".join(failing) + note
-        closest = max(measures, key=lambda name: _sortable(measures[name]["value"]))
-        return (
-            f"Factor-Q <= Q-learning in all {len(measures)} comparisons; closest: {closest} = "
-            f"{format_number(value)}{note}"
-        )
-    if claim == "C2":
-        inside = "inside" if entry["pass"] else "outside"
-        ratio = format_number(value)
-        return f"static total steps, Q-learning / Factor-Q = {ratio}, {inside} [0.8, 1.25]{note}"
-    if claim == "C3":
-        return (
-            f"static collisions, Q-learning / Factor-Q = {format_number(value)} "
-            f"({'>' if entry['pass'] else 'not >'} 10){note}"
-        )
-    if claim == "C4":
-        factor_q, q_learning = value["factor-q"], value["q-learning"]
-        return (
-            f"Factor-Q worst moving/static speed {format_number(factor_q)} "
-            f"({'>=' if factor_q >= 0.85 else 'below'} 0.85); Q-learning worst "
-            f"{format_number(q_learning)} ({'in' if 0.45 <= q_learning <= 0.70 else 'outside'} "
-            f"[0.45, 0.70]){note}"
-        )
-    smallest = min(measures, key=lambda name: _sortable(measures[name]["value"]))
-    failing = [name.split(" ")[0] for name, measure in measures.items() if not measure["pass"]]
-    outcome = f"not > 100 in: {', '.join(failing)}" if failing else "> 100 in every world"
-    return f"smallest ratio {format_number(value)} ({smallest.split(' ')[0]}); {outcome}{note}"
-
-
-def _sortable(value: float | None) -> float:
-    return math.inf if value is None else value
-
-
-def format_number(value: float | None) -> str:
-    """A number for people: 3 significant digits, thousands unseparated, ``inf``/``n/a``."""
-    if value is None:
-        return "n/a"
-    value = float(value)
-    if math.isinf(value):
-        return "inf" if value > 0 else "-inf"
-    if math.isnan(value):
-        return "n/a"
-    if value == 0:
-        return "0"
-    magnitude = math.floor(math.log10(abs(value)))
-    if magnitude >= 3:
-        return f"{value:.0f}"
-    return f"{value:.{max(2 - magnitude, 0)}f}"
-
-
-# --------------------------------------------------------------------------------------------
-# Writing results
-
-
-def dumps_results(results: dict[str, Any]) -> str:
-    """``results`` as JSON: indented, lists of numbers on one line, non-finite numbers as null."""
-    return _dumps(results, 0) + "\n"
-
-
-def _dumps(value: Any, level: int) -> str:
-    if isinstance(value, float | np.floating):
-        return json.dumps(_finite_or_none(value))
-    if isinstance(value, dict):
-        if not value:
-            return "{}"
-        inner = "  " * (level + 1)
-        items = [f"{inner}{json.dumps(str(k))}: {_dumps(v, level + 1)}" for k, v in value.items()]
-        return "{\n" + ",\n".join(items) + "\n" + "  " * level + "}"
-    if isinstance(value, list | tuple):
-        if all(not isinstance(item, dict | list | tuple) for item in value):
-            return "[" + ", ".join(_dumps(item, level) for item in value) + "]"
-        inner = "  " * (level + 1)
-        items = [f"{inner}{_dumps(item, level + 1)}" for item in value]
-        return "[\n" + ",\n".join(items) + "\n" + "  " * level + "]"
-    if isinstance(value, np.integer | np.bool_):
-        return json.dumps(value.item())
-    return json.dumps(value)
-
-
-def write_atomic(path: str | os.PathLike, write: Callable[[Path], None]) -> None:
-    """Call ``write(temporary)`` next to ``path``, then rename it to ``path`` (all or nothing).
-
-    A reader never sees a partial file; an interrupted write leaves the old file (if any) intact.
-    """
-    write_all_atomic({Path(path): write})
-
-
-def write_all_atomic(writers: dict[Path, Callable[[Path], None]]) -> None:
-    """Write every file to a temporary next to it, then rename them all into place, in order.
-
-    The slow part (drawing, serialising) happens before any rename, so an interruption leaves
-    either all the old files or, but for a few renames' time, all the new ones.
-    """
-    temporaries = {path: path.with_name(f".{path.name}.{os.getpid()}.tmp") for path in writers}
-    try:
-        for path, write in writers.items():
-            write(temporaries[path])
-        for path, temporary in temporaries.items():
-            os.replace(temporary, path)
-    finally:
-        for temporary in temporaries.values():
-            temporary.unlink(missing_ok=True)
-
-
-def write_results(results: dict[str, Any], out_dir: str | os.PathLike) -> dict[str, Path]:
-    """Write ``results.json``, ``figure3.png`` and ``report.md`` to ``out_dir``, atomically.
-
-    ``results.json`` is renamed into place first: a results file on disk is always complete, and
-    ``factorq report`` can redraw the other two from it.
-    """
-    from trainers import report
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {
-        "results": out / RESULTS_FILE,
-        "figure": out / FIGURE_FILE,
-        "report": out / REPORT_FILE,
-    }
-    write_all_atomic(
-        {
-            paths["results"]: lambda path: path.write_text(dumps_results(results)),
-            paths["figure"]: lambda path: report.figure3(results, path),
-            paths["report"]: lambda path: path.write_text(report.report_markdown(results)),
-        }
-    )
-    return paths

@@ -1,40 +1,34 @@
-"""Figure 3 and the claims report, made from results alone (``factorq report`` regenerates them).
+"""The paper's output files: ``results.json``, Figure 3 and the claims report.
 
-Everything here reads the results dict of ``trainers.paper.run`` (or its ``results.json``) and
-computes nothing new: the numbers in the report are the numbers in the file.
+``write_results`` writes all three from the results dict of ``trainers.paper.run``;
+``factorq report`` (``regenerate``) redraws the figure and the report from ``results.json`` alone.
+Everything here reads the results and computes nothing new: the numbers in the report are the
+numbers in the file.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
-from matplotlib.lines import Line2D
-from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-from trainers.paper import (
-    ALGORITHM_LABELS,
-    FIGURE_FILE,
-    MEASURE_LABELS,
-    MEASURES,
-    REPORT_FILE,
-    RESULTS_FILE,
-    WORLD_PERIODS,
-    WORLDS,
-    format_number,
-    write_all_atomic,
-)
+from envs.world import WORLD_PERIODS, WORLDS
+from trainers.claims import ALGORITHM_LABELS, MEASURE_LABELS, MEASURES
+from trainers.results import dumps, write_all_atomic
 from trainers.schema import escape_markdown, load_results_file, markdown_code
+from trainers.stats import format_number
+
+RESULTS_FILE = "results.json"
+FIGURE_FILE = "figure3.png"
+REPORT_FILE = "report.md"
 
 COLOURS = {"q-learning": "#D55E00", "factor-q": "#0072B2"}  # colour-blind safe (Okabe-Ito)
 # Greedy collisions: a darker shade of the algorithm's colour, dashed, drawn over all collisions
 # (for Q-learning the two nearly coincide, and the dashes must stay visible).
 GREEDY_COLOURS = {"q-learning": "#7A3500", "factor-q": "#003A5C"}
-PLAIN = FuncFormatter(lambda value, _: f"{value:g}")  # 0.01, 1, 300 rather than 10^-2, 3x10^2
 WORLD_TITLES = {
     "static": "static world",
     "semi-dynamic": "semi-dynamic world (obstacles move every 10 steps)",
@@ -57,6 +51,13 @@ def figure3(results: dict[str, Any], path: str | os.PathLike) -> None:
     episode (solid: all, dashed: greedy) on a log scale, each the mean over seeds and runs with
     its 95% confidence band across seeds.
     """
+    # matplotlib loads here, not with the module: `factorq` starts faster without it.
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    plain = FuncFormatter(lambda value, _: f"{value:g}")  # 0.01, 1, 300 rather than 10^-2, 3x10^2
     worlds, algorithms = _ordered_cells(results)
     config = results["config"]
     figure = Figure(figsize=(max(4.4 * len(worlds) + 0.6, 6.0), 7.4), dpi=150, layout="constrained")
@@ -84,7 +85,7 @@ def figure3(results: dict[str, Any], path: str | os.PathLike) -> None:
         for axis in (steps_axis, collisions_axis):
             axis.grid(True, which="major", alpha=0.3)
             axis.set_xlim(1, config["episodes"])
-            axis.yaxis.set_major_formatter(PLAIN)
+            axis.yaxis.set_major_formatter(plain)
             axis.yaxis.set_minor_formatter(NullFormatter())
     axes[1, 0].set_ylim(0, max(highest, resolution) * 1.5)  # the row shares its y axis
     axes[0, 0].set_ylabel("steps per episode (log)")
@@ -252,14 +253,30 @@ def load_results(results_dir: str | os.PathLike) -> dict[str, Any]:
     return load_results_file(path)
 
 
+def write_results(results: dict[str, Any], out_dir: str | os.PathLike) -> dict[str, Path]:
+    """Write ``results.json``, ``figure3.png`` and ``report.md`` to ``out_dir``, atomically.
+
+    ``results.json`` is renamed into place first: a results file on disk is always complete, and
+    ``factorq report`` can redraw the other two from it.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    return _write(results, out, with_results_file=True)
+
+
 def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
     """Rewrite ``figure3.png`` and ``report.md`` in ``results_dir`` from its ``results.json``."""
-    results = load_results(results_dir)
-    paths = {"figure": Path(results_dir) / FIGURE_FILE, "report": Path(results_dir) / REPORT_FILE}
-    write_all_atomic(
-        {
-            paths["figure"]: lambda path: figure3(results, path),
-            paths["report"]: lambda path: path.write_text(report_markdown(results)),
-        }
-    )
-    return paths
+    return _write(load_results(results_dir), Path(results_dir), with_results_file=False)
+
+
+def _write(results: dict[str, Any], out: Path, *, with_results_file: bool) -> dict[str, Path]:
+    """The files of ``results`` in ``out``, in this order, all atomically."""
+    writers: dict[str, tuple[Path, Callable[[Path], Any]]] = {
+        "results": (out / RESULTS_FILE, lambda path: path.write_text(dumps(results))),
+        "figure": (out / FIGURE_FILE, lambda path: figure3(results, path)),
+        "report": (out / REPORT_FILE, lambda path: path.write_text(report_markdown(results))),
+    }
+    if not with_results_file:
+        del writers["results"]
+    write_all_atomic(dict(writers.values()))
+    return {name: path for name, (path, _) in writers.items()}

@@ -13,24 +13,21 @@ is refused (this program cannot know its shape).
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import re
 from pathlib import Path
 from typing import Any
 
-SCHEMA_VERSION = 1
-#: A results file of the default run is about 200 kB; 1,000 seeds x 10,000 episodes stay far below.
-MAX_FILE_BYTES = 256 * 1024 * 1024
-#: JSON nesting deeper than this is refused before parsing (the file's real depth is 6).
-MAX_DEPTH = 32
+from envs.world import WORLDS as WORLD_NAMES
+from factorq_torch.base.config import ALGORITHMS as ALGORITHM_NAMES
+from trainers.claims import CLAIM_STATEMENTS, MEASURES
+from trainers.paper import CURVES as CURVE_NAMES
+from trainers.results import SCHEMA_VERSION, read_json
 
-WORLD_NAMES = ("static", "semi-dynamic", "dynamic")
-ALGORITHM_NAMES = ("q-learning", "factor-q")
-SUMMARY_MEASURES = ("total_steps", "collisions", "greedy_collisions", "task_return")
-CURVE_NAMES = ("steps", "collisions", "greedy_collisions")
-CLAIM_NAMES = ("C1", "C2", "C3", "C4", "C5")
+CLAIM_NAMES = tuple(CLAIM_STATEMENTS)
+
+SUMMARY_MEASURES = (*MEASURES, "task_return")
 
 
 class ResultsFileError(ValueError):
@@ -219,48 +216,15 @@ def check_results(results: Any) -> dict[str, Any]:
     return results
 
 
-def _depth_ok(text: str) -> bool:
-    """Whether no ``[``/``{`` nesting in ``text`` is deeper than ``MAX_DEPTH`` (strings skipped)."""
-    depth, in_string, escaped = 0, False, False
-    for char in text:
-        if in_string:
-            escaped = not escaped and char == "\\"
-            if char == '"' and not escaped:
-                in_string = False
-            elif char != "\\":
-                escaped = False
-        elif char == '"':
-            in_string = True
-        elif char in "[{":
-            depth += 1
-            if depth > MAX_DEPTH:
-                return False
-        elif char in "]}":
-            depth -= 1
-    return True
-
-
 def load_results_file(path: str | os.PathLike) -> dict[str, Any]:
-    """Read and check a results file; every problem is one ResultsFileError naming ``path``."""
+    """Read (``results.read_json``: size, depth, JSON, version) and check a results file; every
+    problem is one ValueError naming ``path``."""
     path = Path(path)
+    results = read_json(path, ("config", "cells", "claims"), "run `factorq paper`")
     try:
-        size = path.stat().st_size
-        if size > MAX_FILE_BYTES:
-            raise ResultsFileError(f"is {size} bytes, more than a results file's {MAX_FILE_BYTES}")
-        text = path.read_bytes().decode("utf-8")
-        if not _depth_ok(text):
-            raise ResultsFileError(f"nests deeper than {MAX_DEPTH} levels: not a results file")
-        try:
-            results = json.loads(text)
-        except json.JSONDecodeError as error:
-            raise ResultsFileError(f"is not valid JSON ({error})") from None
         return check_results(results)
     except ResultsFileError as error:
         raise ResultsFileError(f"{path}: {error}") from None
-    except UnicodeDecodeError:
-        raise ResultsFileError(f"{path}: is not UTF-8 text") from None
-    except OSError as error:
-        raise ResultsFileError(f"{path}: cannot be read ({error.strerror})") from None
 
 
 _MARKDOWN_SPECIAL = str.maketrans({char: "\\" + char for char in "\\`*_|"})

@@ -1,0 +1,59 @@
+"""Command-line options from config dataclasses: docs from field metadata, lists, choices."""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+
+import pytest
+
+from trainers import options
+from trainers.compare import CompareConfig
+from trainers.options import option
+from trainers.paper import PaperConfig
+
+
+@dataclass(frozen=True)
+class Inner:
+    rate: float = option(0.5, "A nested rate.")
+
+
+@dataclass(frozen=True)
+class Example:
+    count: int = option(3, "How many, at 100% or less.")
+    names: tuple[str, ...] = option(("a", "b"), "Names to use.")
+    mode: str = option("fast", "How to run.", choices=("fast", "slow"))
+    threads: int | None = option(None, "Threads.")
+    inner: Inner = option(Inner(), "Not an option: a nested config.")
+
+
+def parser() -> argparse.ArgumentParser:
+    made = argparse.ArgumentParser(prog="example", exit_on_error=False)
+    options.add_options(made, Example)
+    return made
+
+
+def test_every_plain_field_is_an_option_with_its_doc_and_default():
+    text = " ".join(parser().format_help().split())
+    assert "--count COUNT How many, at 100% or less. (default: 3)" in text
+    assert "--names NAME[,NAME] Names to use. Repeatable. (default: a,b)" in text
+    assert "--threads THREADS Threads. (default: auto)" in text
+    assert "--inner" not in text and "--rate" not in text
+
+
+def test_only_given_options_are_returned_with_lists_split_and_typed():
+    args = parser().parse_args(["--names", "c,d", "--names", "e", "--count", "4"])
+    assert options.given_options(args, Example) == {"count": 4, "names": ["c", "d", "e"]}
+    assert options.given_options(parser().parse_args([]), Example) == {}
+
+
+def test_choices_come_from_the_field():
+    with pytest.raises(argparse.ArgumentError, match="invalid choice: 'medium'"):
+        parser().parse_args(["--mode", "medium"])
+
+
+@pytest.mark.parametrize("config", [PaperConfig, CompareConfig])
+def test_every_option_of_the_commands_has_a_one_line_doc(config):
+    docs = options.field_docs(config)
+    for field in options.option_fields(config):
+        assert docs[field.name] and "\n" not in docs[field.name], field.name
