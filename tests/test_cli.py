@@ -46,7 +46,7 @@ def test_paper_help_has_every_config_field_with_its_doc(capsys):
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--seeds", "0"], "--seeds=0 is out of range: must be >= 1"),
+        (["--seeds", "0"], "--seeds=0 is out of range: must be in [1, 2147483647]"),
         (["--runs", "-2"], "--runs=-2 is out of range"),
         (["--episodes", "ten"], "argument --episodes: invalid int value: 'ten'"),
         (["--worlds", "static,windy"], "--worlds: 'windy' is unknown"),
@@ -81,7 +81,8 @@ def test_invalid_option_in_a_real_process_exits_2_without_traceback():
     out, err = process.communicate(timeout=60)
     assert process.returncode == 2
     assert err.decode().strip() == (
-        "factorq paper: error: --seeds=-1 is out of range: must be >= 1 (see factorq paper --help)"
+        "factorq paper: error: --seeds=-1 is out of range: must be in [1, 2147483647] "
+        "(see factorq paper --help)"
     )
     assert b"Traceback" not in err + out
 

@@ -26,7 +26,7 @@ TINY = {"seeds": 2, "runs": 2, "episodes": 3, "size": 5, "obstacles": 3}
 @pytest.mark.parametrize(
     ("options", "error", "message"),
     [
-        ({"seeds": 0}, ValueError, "seeds=0 is out of range: must be >= 1"),
+        ({"seeds": 0}, ValueError, "seeds=0 is out of range: must be in [1, 2147483647]"),
         ({"seeds": -3}, ValueError, "seeds=-3"),
         ({"runs": 0}, ValueError, "runs=0"),
         ({"episodes": -1}, ValueError, "episodes=-1"),

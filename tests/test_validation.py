@@ -40,6 +40,8 @@ from factorq_torch.tables import LocalRewardTable, TaskQTable
 from trainers import checkpoint, cli, fast, paper, report
 from trainers.checkpoint import CheckpointError
 from trainers.claims import compute_claims
+from trainers.dqn import DQNConfig
+from trainers.experiment import ExperimentConfig
 from trainers.paper import PaperConfig
 from trainers.stats import t_critical
 
@@ -48,6 +50,14 @@ needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend un
 # let a bad value through, the row runs a tiny experiment in its own directory, not the default.
 SMALL = ["--seeds", "1", "--runs", "1", "--episodes", "1", "--size", "4", "--obstacles", "1"]
 SMALL_COMPARE = ["--seeds", "1", "--steps", "1", "--size", "4", "--obstacles", "1"]
+
+
+def _device_exists(device: str) -> bool:
+    try:
+        torch.empty(0, device=device)
+    except Exception:
+        return False
+    return True
 
 
 class CommandFailed(Exception):
@@ -212,16 +222,21 @@ RANGE = "is out of range: must be"
 UNUSABLE_CHECKPOINT = "is corrupted or truncated"
 TRIED = [
     # factorq paper: every option
-    factorq("paper --seeds 0", rf"--seeds=0 {RANGE} >= 1"),
-    factorq("paper --seeds -3", rf"--seeds=-3 {RANGE} >= 1"),
+    factorq("paper --seeds 0", rf"--seeds=0 {RANGE} in \[1, 2147483647\]"),
+    factorq("paper --seeds -3", rf"--seeds=-3 {RANGE} in \[1, 2147483647\]"),
+    factorq("paper --seeds 2147483648", rf"--seeds=2147483648 {RANGE} in \[1, 2147483647\]"),
     factorq("paper --seeds 2.5", r"argument --seeds: invalid int value: '2.5'"),
     factorq("paper --seed -1", rf"--seed=-1 {RANGE} in \[0, 9223372036854775807\]"),
-    factorq("paper --runs -2", rf"--runs=-2 {RANGE} >= 1"),
-    factorq("paper --episodes 0", rf"--episodes=0 {RANGE} >= 1"),
+    factorq("paper --runs -2", rf"--runs=-2 {RANGE} in \[1, 2147483647\]"),
+    factorq("paper --runs 1000000000000000000000000000000", rf"--runs=1000000000000000000000000000000 {RANGE} in \[1, 2147483647\]"),
+    factorq("paper --episodes 0", rf"--episodes=0 {RANGE} in \[1, 2147483647\]"),
+    factorq("paper --episodes 2147483648", rf"--episodes=2147483648 {RANGE} in \[1, 2147483647\]"),
     factorq("paper --episodes ten", r"argument --episodes: invalid int value: 'ten'"),
-    factorq("paper --max-steps 0", rf"--max-steps=0 {RANGE} >= 1"),
+    factorq("paper --max-steps 0", rf"--max-steps=0 {RANGE} in \[1, 9223372036854775807\]"),
+    factorq("paper --max-steps 18446744073709551616", rf"--max-steps=18446744073709551616 {RANGE} in \[1, 9223372036854775807\]"),
     factorq("paper --layout-seed -1", rf"--layout-seed=-1 {RANGE} in \[0, "),
-    factorq("paper --size 1", rf"--size=1 {RANGE} >= 2"),
+    factorq("paper --size 1", rf"--size=1 {RANGE} in \[2, 1024\]"),
+    factorq("paper --size 1000000000000000000000000000000", rf"--size=1000000000000000000000000000000 {RANGE} in \[2, 1024\]"),
     factorq("paper --obstacles -1", rf"--obstacles=-1 {RANGE} in \[0, 13\] for a 4x4 grid"),
     factorq("paper --size 3 --obstacles 7", rf"--obstacles=7 {RANGE} in \[0, 6\] for a 3x3 grid"),
     factorq(
@@ -238,13 +253,16 @@ TRIED = [
     factorq("paper --eta -1", rf"--eta=-1.0 {RANGE} in \[0.0, 1000000.0\]"),
     factorq("paper --g-min 0", rf"--g-min=0.0 {RANGE} in \(0.0, 1000000.0\]"),
     factorq("paper --g-min inf", rf"--g-min=inf {RANGE} in \(0.0, 1000000.0\]"),
-    factorq("paper --threads 0", rf"--threads=0 {RANGE} >= 1"),
+    factorq("paper --threads 0", rf"--threads=0 {RANGE} in \[1, 256\]"),
+    factorq("paper --threads 100000", rf"--threads=100000 {RANGE} in \[1, 256\]"),
     factorq("paper --worlds static,windy", r"--worlds: 'windy' is unknown: choose from static, "),
     factorq("paper --worlds static --worlds static", r"--worlds: static given more than once"),
     factorq("paper --worlds ''", r"--worlds: '' is unknown: choose from static, semi-dynamic"),
     factorq("paper --algorithms sarsa", r"--algorithms: 'sarsa' is unknown: choose from q-learn"),
     factorq("paper --backend gpu", r"argument --backend: invalid choice: 'gpu'"),
     factorq("paper --device toaster", r"--device='toaster' is not a torch device \(e.g. cpu, "),
+    factorq("paper --device meta", r"--device='meta' holds no data \(meta tensors have shapes only\): use cpu"),
+    *[factorq(f"paper --device {device}", rf"--device='{device}' is not available on this machine \(.+\): use --device='cpu'") for device in ("cuda", "cuda:1", "mps") if not _device_exists(device)],
     factorq(
         "paper --backend fast --device cuda",
         r"--device='cuda' is not supported by backend 'fast' \(cpu\)",
@@ -252,8 +270,9 @@ TRIED = [
     factorq("paper --out {file}", r"--out='.*a_file.txt' is an existing file: give a directory"),
     factorq("paper --sides 4", r"unrecognized arguments: --sides 4"),
     # factorq paper: checkpoints
-    factorq("paper --checkpoint-every 0", rf"--checkpoint-every='0' {RANGE} >= 1 episode"),
-    factorq("paper --checkpoint-every -5", rf"--checkpoint-every='-5' {RANGE} >= 1 episode"),
+    factorq("paper --checkpoint-every 0", rf"--checkpoint-every='0' {RANGE} in \[1, 2\*\*63 - 1\] episodes"),
+    factorq("paper --checkpoint-every -5", rf"--checkpoint-every='-5' {RANGE} in \[1, 2\*\*63 - 1\] episodes"),
+    factorq("paper --checkpoint-every 9223372036854775808", rf"--checkpoint-every='9223372036854775808' {RANGE} in \[1, 2\*\*63 - 1\]"),
     factorq(
         "paper --checkpoint-every abc",
         r"--checkpoint-every='abc' is not a number of episodes \(e.g. 5000\) "
@@ -311,19 +330,24 @@ TRIED = [
     ),
     # factorq compare: every option
     factorq("compare --seed -1", rf"--seed=-1 {RANGE} in \[0, 9223372036854775807\]"),
-    factorq("compare --seeds 0", rf"--seeds=0 {RANGE} >= 1"),
+    factorq("compare --seeds 0", rf"--seeds=0 {RANGE} in \[1, 2147483647\]"),
+    factorq("compare --seeds 2147483648", rf"--seeds=2147483648 {RANGE} in \[1, 2147483647\]"),
     factorq("compare --seeds 1.5", r"argument --seeds: invalid int value: '1.5'"),
-    factorq("compare --steps 0", rf"--steps=0 {RANGE} >= 1"),
+    factorq("compare --steps 0", rf"--steps=0 {RANGE} in \[1, 2147483647\]"),
+    factorq("compare --steps 18446744073709551616", rf"--steps=18446744073709551616 {RANGE} in \[1, 2147483647\]"),
     factorq("compare --worlds windy", r"--worlds: 'windy' is unknown: choose from static, "),
     factorq("compare --methods sarsa", r"--methods: 'sarsa' is unknown: choose from factor-q, "),
     factorq("compare --out ''", r"--out='' must be a directory path"),
     factorq("compare --logger wandb", r"argument --logger: invalid choice: 'wandb'"),
-    factorq("compare --size 1", rf"--size=1 {RANGE} >= 2"),
+    factorq("compare --size 1", rf"--size=1 {RANGE} in \[2, 1024\]"),
+    factorq("compare --size 1025", rf"--size=1025 {RANGE} in \[2, 1024\]"),
     factorq("compare --obstacles 99", rf"--obstacles=99 {RANGE} in \[0, 13\] for a 4x4 grid"),
     factorq("compare --size 3 --obstacles 6", r"--obstacles=6 leaves no path from start to goal"),
-    factorq("compare --max-steps 0", rf"--max-steps=0 {RANGE} >= 1"),
+    factorq("compare --max-steps 0", rf"--max-steps=0 {RANGE} in \[1, 9223372036854775807\]"),
+    factorq("compare --max-steps 9223372036854775808", rf"--max-steps=9223372036854775808 {RANGE} in \[1, 9223372036854775807\]"),
     factorq("compare --layout-seed -1", rf"--layout-seed=-1 {RANGE} in \[0, "),
-    factorq("compare --threads 0", rf"--threads=0 {RANGE} >= 1"),
+    factorq("compare --threads 0", rf"--threads=0 {RANGE} in \[1, 256\]"),
+    factorq("compare --threads 20000", rf"--threads=20000 {RANGE} in \[1, 256\]"),
     factorq("compare --sides 4", r"factorq compare: error: unrecognized arguments: --sides 4"),
     # factorq report, factorq
     factorq("report {tmp}", r"results.json does not exist: run `factorq paper --out"),
@@ -334,6 +358,10 @@ TRIED = [
     ("PaperConfig(runs=True)", lambda _: PaperConfig(runs=True), TypeError, r"runs must be an int, got True \(bool\)"),
     ("PaperConfig(worlds=())", lambda _: PaperConfig(worlds=()), ValueError, r"worlds is empty: choose one or more of static"),
     ("PaperConfig(out='')", lambda _: PaperConfig(out=""), ValueError, r"out='' must be a directory path"),
+    ("PaperConfig(device='meta')", lambda _: PaperConfig(device="meta"), ValueError, r"device='meta' holds no data"),
+    ("DQNConfig(buffer_size=2**31)", lambda _: DQNConfig(buffer_size=2**31), ValueError, rf"buffer_size=2147483648 {RANGE} in \[1, 2147483647\]"),
+    ("DQNConfig(hidden=(10**6,))", lambda _: DQNConfig(hidden=(10**6,)), ValueError, rf"hidden width=1000000 {RANGE} in \[1, 65536\]"),
+    ("ExperimentConfig(steps=2**31)", lambda _: ExperimentConfig(steps=2**31), ValueError, rf"steps=2147483648 {RANGE} in \[1, 2147483647\]"),
     ("config_from_dict(unknown field)", lambda _: paper.config_from_dict({"seedz": 1}), ValueError, r"unknown config fields: seedz"),
     ("run(checkpoint_every='often')", lambda tmp: tiny_run(tmp, checkpoint_every="often"), ValueError, r"checkpoint_every='often' is not a number of episodes"),
     ("resume_config(other config)", lambda tmp: resume_config(tmp, seeds=5), ValueError, r"resume='.*run' has a checkpoint of a different config: seeds=5 given, 3 in the"),

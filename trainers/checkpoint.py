@@ -90,8 +90,10 @@ def parse_every(value: Any) -> Every:
     text = str(value).strip().lower()
     if re.fullmatch(r"[+-]?\d+", text):
         episodes = int(text)
-        if episodes < 1:
-            raise ValueError(f"checkpoint_every={value!r} is out of range: must be >= 1 episode")
+        if not 1 <= episodes <= 2**63 - 1:  # counted in int64 alongside the kernel's counters
+            raise ValueError(
+                f"checkpoint_every={value!r} is out of range: must be in [1, 2**63 - 1] episodes"
+            )
         return Every(episodes=episodes)
     match = re.fullmatch(r"([+-]?[0-9.e+-]+)\s*([smh])", text)
     try:

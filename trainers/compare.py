@@ -51,7 +51,7 @@ from envs.world import shortest_path_length as path_length_around
 from envs.world import static_layout
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import STREAM_LOCAL_NETWORK, STREAM_POLICY, STREAM_TASK_NETWORK
-from factorq_torch.base.validation import check_float, check_int, check_names
+from factorq_torch.base.validation import check_float, check_names, check_threads
 from factorq_torch.collectors import OnlineCollector
 from factorq_torch.neural import ACTIVATIONS, LocalRewardNetwork, TaskQNetwork
 from trainers import dqn, experiment
@@ -170,7 +170,7 @@ class CompareConfig:
         if not isinstance(self.out, str | os.PathLike) or not str(self.out):
             raise ValueError(f"out={self.out!r} must be a directory path")
         object.__setattr__(self, "out", str(self.out))
-        check_int("threads", self.threads, 1)
+        check_threads("threads", self.threads)
         for name, kind in (
             ("agent", AgentConfig),
             ("dqn", DQNConfig),

@@ -56,7 +56,7 @@ from torchrl.objectives import DQNLoss, HardUpdate
 from envs.grid import FactoredGridEnv
 from envs.world import NUM_ACTIONS
 from factorq_torch.base.rng import STREAM_TASK_NETWORK, STREAM_WORLD
-from factorq_torch.base.validation import check_float, check_int
+from factorq_torch.base.validation import INT32_MAX, check_float, check_int
 from factorq_torch.neural import TaskQNetwork
 from trainers.experiment import EpisodeRecorder, ExperimentConfig, experiment_keys, make_env
 from trainers.options import option
@@ -66,6 +66,8 @@ with warnings.catch_warnings():
     warnings.filterwarnings("ignore", "Creating .*WeightUpdater", DeprecationWarning)
     from torchrl.collectors import Collector
 
+#: The widest hidden layer a config accepts (a layer's weights are [E, width, width] float32).
+MAX_WIDTH = 65_536
 #: Methods of ``trainers.compare``; a method's index is part of its experiments' keys.
 METHODS = ("factor-q", "q-learning", "dqn", "factor-dqn")
 # --------------------------------------------------------------------------------------------
@@ -79,7 +81,7 @@ def check_hidden(name: str, value: Any) -> tuple[int, ...]:
             f"{name} must be a sequence of layer widths such as (64, 64), got {value!r}"
         )
     for width in value:
-        check_int(f"{name} width", width, 1)
+        check_int(f"{name} width", width, 1, MAX_WIDTH)
     return tuple(value)
 
 
@@ -136,11 +138,11 @@ class DQNConfig:
         check_float("gamma", self.gamma, 0.0, 1.0, high_open=True)
         object.__setattr__(self, "hidden", check_hidden("hidden", self.hidden))
         check_float("lr", self.lr, 0.0, 1.0, low_open=True)
-        check_int("buffer_size", self.buffer_size, 1)
-        check_int("batch_size", self.batch_size, 1)
-        check_int("learning_starts", self.learning_starts, 0)
-        check_int("train_every", self.train_every, 1)
-        check_int("target_update_interval", self.target_update_interval, 1)
+        check_int("buffer_size", self.buffer_size, 1, INT32_MAX)
+        check_int("batch_size", self.batch_size, 1, INT32_MAX)
+        check_int("learning_starts", self.learning_starts, 0, INT32_MAX)
+        check_int("train_every", self.train_every, 1, INT32_MAX)
+        check_int("target_update_interval", self.target_update_interval, 1, INT32_MAX)
         check_float("eps_start", self.eps_start, 0.0, 1.0)
         check_float("eps_end", self.eps_end, 0.0, 1.0)
         if self.eps_end > self.eps_start:

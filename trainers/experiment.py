@@ -27,7 +27,13 @@ import torch
 from envs.world import WORLD_PERIODS, WORLDS, WorldConfig, static_layout
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import derive_keys
-from factorq_torch.base.validation import check_int, check_names
+from factorq_torch.base.validation import (
+    INT32_MAX,
+    INT64_MAX,
+    MAX_SIZE,
+    check_int,
+    check_names,
+)
 from trainers.options import option
 
 if TYPE_CHECKING:  # torchrl and tensordict load only on the paths that step an env
@@ -76,6 +82,10 @@ def check_world_options(
     """The world of a trainer's config (obstacle period 0: it is set per experiment), with
     errors that name the options as the config spells them (``obstacles``); checks that the
     static layout has a path when the static world is among ``worlds``."""
+    # Upper bounds are those of the types the values reach (docs/decisions.md, "Ranges"); the
+    # size is checked before the static layout, whose search grows with it.
+    check_int("size", size, 2, MAX_SIZE)
+    check_int("max_steps", max_steps, 1, INT64_MAX)
     check_int("layout_seed", layout_seed, 0, MAX_SEED)
     try:
         world = WorldConfig(
@@ -190,9 +200,9 @@ class ExperimentConfig:
 
     def __post_init__(self) -> None:
         check_int("seed", self.seed, 0, MAX_SEED)
-        check_int("seeds", self.seeds, 1)
+        check_int("seeds", self.seeds, 1, INT32_MAX)
         object.__setattr__(self, "worlds", check_names("worlds", self.worlds, WORLDS))
-        check_int("steps", self.steps, 1)
+        check_int("steps", self.steps, 1, INT32_MAX)
         check_world_options(
             self.size, self.obstacles, self.max_steps, self.layout_seed, self.worlds
         )

@@ -31,7 +31,13 @@ import torch
 from envs.world import WORLD_PERIODS, WORLDS, WorldConfig
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
-from factorq_torch.base.validation import check_int, check_names
+from factorq_torch.base.validation import (
+    INT32_MAX,
+    check_device,
+    check_int,
+    check_names,
+    check_threads,
+)
 from trainers import checkpoint, experiment, stats
 from trainers.claims import compute_claims
 from trainers.experiment import MAX_SEED, check_world_options
@@ -85,9 +91,9 @@ class PaperConfig:
 
     def __post_init__(self) -> None:
         check_int("seed", self.seed, 0, MAX_SEED)
-        check_int("seeds", self.seeds, 1)
-        check_int("runs", self.runs, 1)
-        check_int("episodes", self.episodes, 1)
+        check_int("seeds", self.seeds, 1, INT32_MAX)
+        check_int("runs", self.runs, 1, INT32_MAX)
+        check_int("episodes", self.episodes, 1, INT32_MAX)
         object.__setattr__(self, "worlds", check_names("worlds", self.worlds, WORLDS))
         check_world_options(
             self.size, self.obstacles, self.max_steps, self.layout_seed, self.worlds
@@ -97,17 +103,16 @@ class PaperConfig:
         )
         _ = self.agent  # AgentConfig validates epsilon, gamma, alpha, eta and g_min
         if self.threads is not None:
-            check_int("threads", self.threads, 1)
+            check_threads("threads", self.threads)
         if self.backend not in BACKENDS:
             raise ValueError(f"backend={self.backend!r} is unknown: choose one of {BACKENDS}")
         try:
-            device = torch.device(self.device)
+            kind = torch.device(self.device).type
         except (RuntimeError, TypeError):
-            raise ValueError(
-                f"device={self.device!r} is not a torch device (e.g. cpu, cuda, cuda:1)"
-            ) from None
-        if self.backend == "fast" and device.type != "cpu":
+            kind = None  # check_device says why
+        if self.backend == "fast" and kind not in (None, "cpu"):
             raise ValueError(f"device={self.device!r} is not supported by backend 'fast' (cpu)")
+        check_device("device", self.device)  # exists here: refused now, not once the run began
         if not isinstance(self.out, str | os.PathLike) or not str(self.out):
             raise ValueError(f"out={self.out!r} must be a directory path")
         object.__setattr__(self, "out", str(self.out))

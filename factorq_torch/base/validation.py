@@ -8,6 +8,18 @@ from __future__ import annotations
 
 import math
 
+#: The largest value of a C ``int64_t`` (and of a torch int64 tensor entry).
+INT64_MAX = 2**63 - 1
+#: The largest value of a C ``int``: the cap of every count (seeds, runs, episodes, steps, buffer
+#: sizes), so that the kernel's index products of counts stay far inside int64.
+INT32_MAX = 2**31 - 1
+#: The most threads any entry point starts (libgomp aborts and the kernel's thread pool runs out
+#: of memory far above it; no machine this runs on has more cores).
+MAX_THREADS = 256
+#: The largest grid side: the padded cell index ``(size + 2)**2`` is a C int32 in the kernel with
+#: a wide margin, and the static layout's reachability search takes about a second at this size.
+MAX_SIZE = 1024
+
 
 def is_int(value) -> bool:
     """An ``int`` that is not a ``bool``."""
@@ -22,6 +34,11 @@ def check_int(name: str, value, low: int, high: int | None = None, hint: str = "
         allowed = f">= {low}" if high is None else f"in [{low}, {high}]"
         raise ValueError(f"{name}={value} is out of range: must be {allowed}{hint}")
     return value
+
+
+def check_threads(name: str, value) -> int:
+    """A thread count in ``[1, MAX_THREADS]``."""
+    return check_int(name, value, 1, MAX_THREADS)
 
 
 def check_float(
@@ -51,3 +68,36 @@ def check_names(name: str, value, allowed: tuple[str, ...] | list[str]) -> tuple
     if duplicates:
         raise ValueError(f"{name}: {', '.join(duplicates)} given more than once")
     return tuple(item for item in allowed if item in names)
+
+
+def check_device(name: str, value):
+    """``value`` as a ``torch.device`` that exists on this machine and can hold tensors.
+
+    Checked by allocating an empty tensor there, so a missing CUDA, MPS or other backend (or a
+    ``cuda:N`` past the device count) is one line at config time rather than a traceback once the
+    run has begun. ``meta`` is refused: its tensors hold no data, so nothing could be computed.
+    """
+    import torch
+
+    try:
+        device = torch.device(value)
+    except (RuntimeError, TypeError):
+        raise ValueError(
+            f"{name}={value!r} is not a torch device (e.g. cpu, cuda, cuda:1)"
+        ) from None
+    if device.type == "meta":
+        raise ValueError(
+            f"{name}={value!r} holds no data (meta tensors have shapes only): use cpu or an "
+            f"accelerator"
+        )
+    try:
+        torch.empty(0, device=device)
+    except Exception as error:  # torch raises RuntimeError, AssertionError, ... per backend
+        text = str(error).strip()
+        reason = text.splitlines()[0].split(". ")[0].rstrip(".") if text else type(error).__name__
+        if len(reason) > 100:
+            reason = reason[:97] + "..."
+        raise ValueError(
+            f"{name}={value!r} is not available on this machine ({reason}): use {name}='cpu'"
+        ) from None
+    return device
