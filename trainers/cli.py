@@ -17,7 +17,7 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
-from trainers import checkpoint, options, paper, report
+from trainers import checkpoint, options, paper, report, resources
 
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
@@ -153,9 +153,14 @@ def _paper(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             config = paper.PaperConfig(**_given_options(args))
             checkpoint.check_none_in(config.out)
         backend = paper.resolve_backend(config)
+        checkpointing = every is not None or resume is not None
+        estimate = resources.paper_estimate(config, checkpointing=checkpointing)
+        large = resources.check(estimate, "run", resources.PAPER_HINT)
     except (ValueError, TypeError) as error:
         _error(parser, _as_option(str(error)))
         return EXIT_USAGE
+    if large is not None:
+        print(large, file=sys.stderr)
     bar = _Bar()
     try:
         if resume is not None:
@@ -214,9 +219,14 @@ def _compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
     try:
         config = compare.CompareConfig(**options.given_options(args, compare.CompareConfig))
+        large = resources.check(
+            resources.compare_estimate(config), "comparison", resources.COMPARE_HINT
+        )
     except (ValueError, TypeError) as error:
         _error(parser, _as_option(str(error), compare.CompareConfig))
         return EXIT_USAGE
+    if large is not None:
+        print(large, file=sys.stderr)
     print(
         f"{len(config.methods)} methods x {len(config.worlds)} worlds x {config.seeds} seeds, "
         f"{config.steps:,} env steps each",

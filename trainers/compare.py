@@ -54,7 +54,7 @@ from factorq_torch.base.rng import STREAM_LOCAL_NETWORK, STREAM_POLICY, STREAM_T
 from factorq_torch.base.validation import check_float, check_names, check_threads
 from factorq_torch.collectors import OnlineCollector
 from factorq_torch.neural import ACTIVATIONS, LocalRewardNetwork, TaskQNetwork
-from trainers import dqn, experiment
+from trainers import dqn, experiment, resources
 from trainers.dqn import METHODS, DQNConfig, batch_keys, check_hidden
 from trainers.experiment import WORLDS, EpisodeRecorder, ExperimentConfig
 from trainers.options import option
@@ -404,6 +404,8 @@ Progress = Callable[[str, int, int], None]
 def run(config: CompareConfig, progress: Progress | None = None) -> dict[str, Any]:
     """Run every selected method on every selected world; return the ``comparison.json`` dict."""
     started = time.perf_counter()
+    estimate = resources.compare_estimate(config)
+    resources.check(estimate, "comparison", resources.COMPARE_HINT)  # before any allocation
     threads = torch.get_num_threads()
     torch.set_num_threads(config.threads)
     try:

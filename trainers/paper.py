@@ -38,7 +38,7 @@ from factorq_torch.base.validation import (
     check_names,
     check_threads,
 )
-from trainers import checkpoint, experiment, stats
+from trainers import checkpoint, experiment, resources, stats
 from trainers.claims import compute_claims
 from trainers.experiment import MAX_SEED, check_world_options
 from trainers.options import option
@@ -323,6 +323,8 @@ def run(
     an ``out`` that holds an unfinished run's checkpoint.
     """
     started = time.perf_counter()
+    estimate = resources.paper_estimate(config, checkpointing=checkpoint_every is not None)
+    resources.check(estimate, "run", resources.PAPER_HINT)  # before anything is allocated
     backend = resolve_backend(config)
     driver = backend_driver(backend)
     if resume is not None:
