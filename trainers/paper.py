@@ -73,6 +73,8 @@ class PaperConfig:
     """Master seed: every random number of the experiment derives from it."""
     seeds: int = 100
     """Independent experiments per cell (world x algorithm); CIs are across them."""
+    first_seed: int = 0
+    """Index of the first seed: a run of seeds first_seed .. first_seed + seeds - 1 (a shard)."""
     runs: int = 10
     """Runs per experiment (task tables reset each run; Factor-Q's local tables carry over)."""
     episodes: int = 200
@@ -111,6 +113,7 @@ class PaperConfig:
     def __post_init__(self) -> None:
         check_int("seed", self.seed, 0, _MAX_SEED)
         check_int("seeds", self.seeds, 1)
+        check_int("first_seed", self.first_seed, 0)
         check_int("runs", self.runs, 1)
         check_int("episodes", self.episodes, 1)
         check_int("max_steps", self.max_steps, 1)
@@ -233,14 +236,18 @@ def experiment_keys(
     """Obstacle periods, world keys and policy keys ``[W * S]`` of one algorithm's experiments.
 
     Experiments are ordered world-major (``config.worlds``), seed-minor. The key of seed index
-    ``i`` in world ``w`` (index in ``WORLDS``) does not depend on what else is selected.
+    ``i`` (row ``i - config.first_seed``) in world ``w`` (index in ``WORLDS``) does not depend on
+    what else is selected, so seeds ``[a, b)`` run alone draw what they draw in a larger run.
     """
-    seeds = config.seeds
+    seeds, first = config.seeds, config.first_seed
     world_index = torch.tensor([WORLDS.index(world) for world in config.worlds])  # [W]
     algorithm_index = ALGORITHMS.index(algorithm)
-    world_keys = derive_keys(config.seed, STREAM_WORLD, seeds * len(WORLDS))
+    cells_per_seed = len(WORLDS) * len(ALGORITHMS)
+    world_keys = derive_keys(config.seed, STREAM_WORLD, seeds * len(WORLDS), first * len(WORLDS))
     world_keys = world_keys.view(seeds, len(WORLDS))  # [S, 3]: offset 3 i + w
-    policy_keys = derive_keys(config.seed, STREAM_POLICY, seeds * len(WORLDS) * len(ALGORITHMS))
+    policy_keys = derive_keys(
+        config.seed, STREAM_POLICY, seeds * cells_per_seed, first * cells_per_seed
+    )
     policy_keys = policy_keys.view(seeds, len(WORLDS), len(ALGORITHMS))  # offset 2 (3 i + w) + a
     periods = torch.tensor([WORLD_PERIODS[world] for world in config.worlds])
     return (
