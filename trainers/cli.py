@@ -12,7 +12,7 @@ from dataclasses import MISSING, fields
 from pathlib import Path
 from typing import Any
 
-from trainers import checkpoint, paper
+from trainers import checkpoint, paper, sweep
 
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
@@ -103,6 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
         "may change) and the same numbers as an uninterrupted run.",
         default=argparse.SUPPRESS,
     )
+    sweep.add_paper_options(paper_parser)  # --cluster, --scheduler, --shard-seeds
     paper_parser.set_defaults(handler=_paper, command_parser=paper_parser)
     report_parser = commands.add_parser(
         "report",
@@ -114,6 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
     # `main` hands `factorq compare ...` to trainers.compare before parsing, so that torchrl (which
     # DQN needs) is imported only for that command; this entry lists it in `factorq --help`.
     commands.add_parser("compare", help=COMPARE_HELP, add_help=False)
+    commands.add_parser("sweep", help=sweep.HELP, add_help=False)  # main hands it to trainers.sweep
     return parser
 
 
@@ -193,6 +195,7 @@ def _paper(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             checkpoint.check_none_in(config.out)
         backend = paper.resolve_backend(config)
         paper.backend_driver(backend)
+        executor = sweep.paper_executor(args)  # None: in-process, as always
     except (ValueError, TypeError, NotImplementedError) as error:
         _error(parser, _as_option(str(error)))
         return EXIT_USAGE
@@ -210,7 +213,10 @@ def _paper(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             f"{config.runs} runs x {config.episodes} episodes each, {backend} backend",
             file=sys.stderr,
         )
-        results = paper.run(config, progress=bar, checkpoint_every=every, resume=resume)
+        if executor is None:
+            results = paper.run(config, progress=bar, checkpoint_every=every, resume=resume)
+        else:
+            results = sweep.run_paper_on(executor, config, args, progress=bar)
         bar.close()
         paths = paper.write_results(results, config.out)
         checkpoint.remove(config.out)  # the results are complete: nothing left to resume
@@ -256,6 +262,8 @@ def _report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Run ``factorq`` with ``argv`` (default: the command line); return the exit status."""
     argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["sweep"]:
+        return sweep.main(argv[1:])
     if argv[:1] == ["compare"]:
         from trainers import compare
 
