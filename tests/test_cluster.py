@@ -153,3 +153,29 @@ def test_a_worker_killed_mid_shard_loses_only_that_shard_and_the_numbers_stay(ex
     expected = shards.results(config, [shards.run_shard(config)], results["timing"])
     assert _without_timing(results) == _without_timing(expected)
     assert len(list((tmp_path / "killed" / "shards").rglob("*.npz"))) == 2
+
+
+def test_factorq_compare_on_the_cluster_repeats_every_method_in_process(executor, tmp_path):
+    from trainers import compare
+    from trainers.dqn import DQNConfig
+
+    config = compare.CompareConfig(
+        seeds=2,
+        steps=120,
+        size=4,
+        obstacles=2,
+        worlds=("static", "dynamic"),
+        out=str(tmp_path / "here"),
+        dqn=DQNConfig(learning_starts=40, batch_size=16),
+    )
+    expected = compare.run(config)
+    remote = replace(config, out=str(tmp_path / "cluster"))
+    results = sweep.run_compare_on(executor, remote, compare.run_method, compare.summarise)
+    assert results["timing"]["where"].endswith("(2 workers)")
+    for summary in (expected, results):
+        summary.pop("timing")
+        summary["config"].pop("out")
+        for worlds in summary["results"].values():
+            for cell in worlds.values():
+                cell.pop("wall_s")
+    assert json.dumps(results, sort_keys=True) == json.dumps(expected, sort_keys=True)

@@ -67,7 +67,7 @@ from factorq_torch.neural import (
 from factorq_torch.objectives import FactorQLoss, TabularQLoss
 from factorq_torch.policy import EpsilonGreedyPolicy, FactorQPolicy
 from factorq_torch.tables import LocalRewardTable, TaskQTable
-from trainers import dqn
+from trainers import dqn, sweep
 from trainers.cli import COMPARE_HELP
 from trainers.dqn import (
     METHODS,
@@ -576,6 +576,18 @@ def make_logger(config: CompareConfig, method: str):
 Progress = Callable[[str, int, int], None]
 
 
+def run_method(
+    config: CompareConfig, method: str, progress: Callable[[int, int], None] | None = None
+) -> dict[str, Any]:
+    """One method's batch (all selected worlds and seeds): ``{"traces", "wall_s"}``. A method's
+    numbers do not depend on the others (DQN seeds torch's global stream first), so methods may
+    run in any order, in any process (``factorq compare --cluster``)."""
+    logger = make_logger(config, method)
+    if method == "dqn":
+        return dqn.run(config.dqn, config.experiments, logger=logger, progress=progress)
+    return run_online(method, config, logger=logger, progress=progress)
+
+
 def run(config: CompareConfig, progress: Progress | None = None) -> dict[str, Any]:
     """Run every selected method on every selected world; return the ``comparison.json`` dict."""
     started = time.perf_counter()
@@ -584,14 +596,8 @@ def run(config: CompareConfig, progress: Progress | None = None) -> dict[str, An
     try:
         runs = {}
         for method in config.methods:
-            logger = make_logger(config, method)
             report = None if progress is None else (lambda d, t, m=method: progress(m, d, t))
-            if method == "dqn":
-                runs[method] = dqn.run(
-                    config.dqn, config.experiments, logger=logger, progress=report
-                )
-            else:
-                runs[method] = run_online(method, config, logger=logger, progress=report)
+            runs[method] = run_method(config, method, report)
     finally:
         torch.set_num_threads(threads)
     results = summarise(config, runs)
@@ -630,6 +636,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
             kwargs["choices"] = LOGGERS
         help_text = f"{docs[name]} (default: {shown})".replace("%", "%%")  # argparse formats it
         parser.add_argument("--" + name.replace("_", "-"), help=help_text, **kwargs)
+    sweep.add_cluster_options(parser)  # --cluster, --scheduler: one task per method
     return parser
 
 
@@ -657,6 +664,7 @@ def main(args: argparse.Namespace | list[str] | None = None) -> int:
         parser = None
     try:
         config = config_from_args(args)
+        executor = sweep.executor_from_args(args)  # None: in-process, as always
     except (ValueError, TypeError) as error:
         prog = parser.prog if parser is not None else "factorq compare"
         print(f"{prog}: error: {error}", file=sys.stderr)
@@ -679,7 +687,10 @@ def main(args: argparse.Namespace | list[str] | None = None) -> int:
             bar.close()
 
     try:
-        results = run(config, progress)
+        if executor is None:
+            results = run(config, progress)
+        else:
+            results = sweep.run_compare_on(executor, config, run_method, summarise)
         paths = write_outputs(results, config.out)
     except KeyboardInterrupt:
         print("factorq compare: interrupted", file=sys.stderr)

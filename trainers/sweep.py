@@ -490,13 +490,15 @@ def write_axis_figure(sweep: dict[str, Any], axis: str, path: Path) -> None:
     figure = Figure(figsize=(13, 4), layout="constrained")
     FigureCanvasAgg(figure)
     panels = figure.subplots(1, len(MEASURES))
-    cells = list(rows[0]["cells"]) if rows else []
+    cells = list(dict.fromkeys(cell for row in rows for cell in row["cells"]))  # e.g. worlds axis
     for panel, measure in zip(panels, MEASURES, strict=True):
         for cell in cells:
-            mean = np.array([row["cells"][cell][measure]["mean"] for row in rows], float)
-            interval = [row["cells"][cell][measure]["ci95"] for row in rows]
-            low = np.array([mean[i] if c is None else c[0] for i, c in enumerate(interval)], float)
-            high = np.array([mean[i] if c is None else c[1] for i, c in enumerate(interval)], float)
+            entries = [row["cells"].get(cell, {}).get(measure) for row in rows]
+            mean = np.array([np.nan if e is None else e["mean"] for e in entries], float)
+            low = np.array([m if e is None or e["ci95"] is None else e["ci95"][0]
+                            for m, e in zip(mean, entries, strict=True)], float)  # fmt: skip
+            high = np.array([m if e is None or e["ci95"] is None else e["ci95"][1]
+                             for m, e in zip(mean, entries, strict=True)], float)  # fmt: skip
             errors = np.stack([np.maximum(mean - low, 0), np.maximum(high - mean, 0)])
             panel.errorbar(x, mean, yerr=errors, marker="o", capsize=3, label=cell)
         panel.set_xlabel(axis)
@@ -596,7 +598,7 @@ def paper_executor(args: argparse.Namespace) -> cluster.InProcess | cluster.Dask
                 f"OUT/{SHARDS_DIRECTORY}/, are what a rerun resumes from (leave {option} out)"
             )
     check_int("shard_seeds", getattr(args, "shard_seeds", DEFAULT_PAPER_SHARD_SEEDS), 1)
-    return cluster.open_executor(where_from_args(args))
+    return executor_from_args(args) or cluster.InProcess()
 
 
 def run_paper_on(
@@ -611,6 +613,51 @@ def run_paper_on(
         return run_paper(config, executor, shard_seeds, progress)
     finally:
         executor.close()
+
+
+def executor_from_args(
+    args: argparse.Namespace,
+) -> cluster.InProcess | cluster.DaskExecutor | None:
+    """The executor of ``add_cluster_options``' options: ``None`` when none was given."""
+    if not any(hasattr(args, name) for name in ("cluster", "scheduler", "connect_timeout")):
+        return None
+    return cluster.open_executor(where_from_args(args))
+
+
+def _compare_method(run_method: Callable[..., Any], config: Any, method: str) -> Any:
+    import torch
+
+    torch.set_num_threads(config.threads)
+    return run_method(config, method)
+
+
+def run_compare_on(
+    executor: cluster.InProcess | cluster.DaskExecutor,
+    config: Any,
+    run_method: Callable[..., dict[str, Any]],
+    summarise: Callable[[Any, dict[str, Any]], dict[str, Any]],
+) -> dict[str, Any]:
+    """``factorq compare`` with one task per method on ``executor`` (closed afterwards): a
+    method's batch is the unit, so every method, DQN included, repeats its in-process numbers.
+    ``run_method`` and ``summarise`` are ``trainers.compare``'s (passed in: this module does not
+    import it). Seeds are not sharded: DQN's seeds share a random stream within their batch."""
+    started = time.perf_counter()
+    methods = list(config.methods)
+    bar = _ShardBar("factorq compare", "method")
+    try:
+        bar(0, len(methods))
+        function = functools.partial(_compare_method, run_method, config)
+        runs: dict[str, Any] = {}
+        for index, result in executor.map(function, methods, [f"compare-{m}" for m in methods]):
+            runs[methods[index]] = result
+            bar(len(runs), len(methods))
+        bar.close()
+        where = executor.description
+    finally:
+        executor.close()
+    results = summarise(config, {method: runs[method] for method in methods})
+    results["timing"] = {"wall_s": round(time.perf_counter() - started, 3), "where": where}
+    return results
 
 
 def where_from_args(args: argparse.Namespace) -> cluster.Where:
@@ -697,10 +744,12 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
 
 
 class _ShardBar:
-    """A tqdm bar of shards done, with the time left."""
+    """A tqdm bar of shards (or other tasks) done, with the time left."""
 
-    def __init__(self) -> None:
+    def __init__(self, description: str = "factorq sweep", unit: str = "shard") -> None:
         self.bar = None
+        self.description = description
+        self.unit = unit
 
     def __call__(self, done: int, total: int) -> None:
         from tqdm import tqdm
@@ -709,8 +758,8 @@ class _ShardBar:
             self.bar = tqdm(
                 total=total,
                 initial=done,
-                desc="factorq sweep",
-                unit="shard",
+                desc=self.description,
+                unit=self.unit,
                 dynamic_ncols=True,
                 mininterval=0.5 if sys.stderr.isatty() else 30.0,
                 file=sys.stderr,
