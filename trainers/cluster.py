@@ -59,13 +59,13 @@ class Where:
         if self.local_workers is not None and self.scheduler is not None:
             raise ClusterError("give --cluster or --scheduler, not both")
         if self.local_workers is not None and self.local_workers < 0:
-            raise ClusterError(f"cluster workers={self.local_workers} must be >= 1")
+            raise ClusterError(f"--cluster workers={self.local_workers} must be >= 1")
         if self.scheduler is not None and "://" not in self.scheduler:
             raise ClusterError(
-                f"scheduler={self.scheduler!r} is not an address like tcp://host:8786"
+                f"--scheduler={self.scheduler!r} is not an address like tcp://host:8786"
             )
         if not self.connect_timeout_s > 0:
-            raise ClusterError(f"connect timeout={self.connect_timeout_s!r} must be > 0 seconds")
+            raise ClusterError(f"--connect-timeout={self.connect_timeout_s!r} must be > 0 seconds")
 
     @property
     def in_process(self) -> bool:
@@ -81,7 +81,7 @@ def parse_cluster(text: str) -> int:
     match = _LOCAL.match(text)
     if match is None or match[1] == "0":
         raise ClusterError(
-            f"cluster={text!r} is not local or local:N with N >= 1 (for a running cluster, "
+            f"--cluster={text!r} is not local or local:N with N >= 1 (for a running cluster, "
             f"use --scheduler tcp://host:port)"
         )
     return int(match[1] or 0)

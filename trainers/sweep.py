@@ -597,7 +597,7 @@ def paper_executor(args: argparse.Namespace) -> cluster.InProcess | cluster.Dask
                 f"{option} does not apply to a sharded run: its finished shards, kept in "
                 f"OUT/{SHARDS_DIRECTORY}/, are what a rerun resumes from (leave {option} out)"
             )
-    check_int("shard_seeds", getattr(args, "shard_seeds", DEFAULT_PAPER_SHARD_SEEDS), 1)
+    check_int("--shard-seeds", getattr(args, "shard_seeds", DEFAULT_PAPER_SHARD_SEEDS), 1)
     return executor_from_args(args) or cluster.InProcess()
 
 
