@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import builtins
 import json
+import signal
+import subprocess
+import sys
+import time
 from dataclasses import fields, replace
 
 import pytest
@@ -194,3 +198,29 @@ def test_paper_shard_seeds_in_process_writes_the_same_results_as_a_plain_run(tmp
         results["config"].pop("out")
     assert cut == plain
     assert len(list((tmp_path / "cut" / "shards").rglob("*.npz"))) == 3
+
+
+@needs_fast
+def test_a_sweep_killed_with_sigkill_resumes_from_its_shard_files_with_the_same_numbers(tmp_path):
+    out = tmp_path / "killed"
+    argv = ["--grid", "eta=0.05,0.1", "--seeds", "40", "--shard-seeds", "5", "--out", str(out)]
+    command = [sys.executable, "-m", "trainers.cli", "sweep", *argv]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while not list(out.rglob("*.npz")) and time.monotonic() < deadline:
+            assert process.poll() is None, "the sweep ended before any shard was written"
+            time.sleep(0.05)
+        process.send_signal(signal.SIGKILL)
+    finally:
+        process.wait(timeout=60)
+    finished = list(out.rglob("*.npz"))
+    assert 1 <= len(finished) < 16 and not (out / "sweep.json").exists()
+    assert cli.main(["sweep", *argv]) == 0  # the same command again resumes
+    resumed = json.loads((out / "sweep.json").read_text())
+    assert resumed["timing"]["shards_run_now"] == 16 - len(finished)
+    spec = sweep.SweepSpec(grid=(("eta", (0.05, 0.1)),), seeds=40, shard_seeds=5, out=str(out))
+    fresh = sweep.run_sweep(replace(spec, out=str(tmp_path / "fresh")), cluster.InProcess())
+    for row in (*resumed["configurations"], *fresh["configurations"]):
+        row["config"].pop("out")
+    assert resumed["configurations"] == json.loads(paper.dumps_results(fresh))["configurations"]
