@@ -193,6 +193,7 @@ def test_paper_shard_seeds_in_process_writes_the_same_results_as_a_plain_run(tmp
     assert cli.main(["paper", *options, "--shard-seeds", "2", "--out", str(tmp_path / "cut")]) == 0
     plain = json.loads((tmp_path / "plain" / "results.json").read_text())
     cut = json.loads((tmp_path / "cut" / "results.json").read_text())
+    assert isinstance(cut["timing"]["threads"], int) and cut["timing"]["threads"] >= 1
     for results in (plain, cut):
         results.pop("timing")
         results["config"].pop("out")

@@ -53,6 +53,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from factorq_torch.base.validation import check_int
 from trainers import cluster, paper, shards
@@ -326,7 +327,9 @@ def run_paper(
     timing = {
         "wall_s": round(wall, 3),
         "backend": paper.resolve_backend(config),
-        "threads": 1 if isinstance(executor, cluster.DaskExecutor) else config.threads,
+        "threads": 1  # a worker's, or this process's as paper.run reports it
+        if isinstance(executor, cluster.DaskExecutor)
+        else config.threads or torch.get_num_threads(),
         "env_steps": env_steps,
         "env_steps_per_s": round(env_steps / max(wall, 1e-9)),
         "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
