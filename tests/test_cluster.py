@@ -179,3 +179,21 @@ def test_factorq_compare_on_the_cluster_repeats_every_method_in_process(executor
             for cell in worlds.values():
                 cell.pop("wall_s")
     assert json.dumps(results, sort_keys=True) == json.dumps(expected, sort_keys=True)
+
+
+def test_factorq_sweep_on_a_running_scheduler_writes_what_it_writes_in_process(
+    local_cluster, tmp_path, capsys
+):
+    argv = ["sweep", "--grid", "obstacles=2,3", "--set", "runs=1", "--set", "episodes=3"]
+    argv += ["--set", "size=5", "--seeds", "3", "--shard-seeds", "2"]
+    address = local_cluster.scheduler_address
+    assert cli.main([*argv, "--scheduler", address, "--out", str(tmp_path / "joined")]) == 0
+    assert cli.main([*argv, "--out", str(tmp_path / "here")]) == 0
+    joined = json.loads((tmp_path / "joined" / "sweep.json").read_text())
+    here = json.loads((tmp_path / "here" / "sweep.json").read_text())
+    assert joined["timing"]["where"].startswith(f"Dask scheduler {address}")
+    for sweep_json in (joined, here):
+        for row in sweep_json["configurations"]:
+            row["config"].pop("out")
+    assert joined["configurations"] == here["configurations"]
+    assert (tmp_path / "joined" / "sweep-obstacles.png").stat().st_size > 10_000
