@@ -111,3 +111,9 @@ def test_the_digest_ignores_fields_that_do_not_change_the_numbers():
     same = replace(config, out="x", threads=2, backend="modular", first_seed=5, seeds=1)
     assert shards.digest(same) == shards.digest(config)
     assert shards.digest(replace(config, obstacles=5)) != shards.digest(config)
+
+
+def test_a_checkpoint_config_from_before_first_seed_still_resumes(tmp_path):
+    saved = paper.config_dict(PaperConfig(seeds=3, out=str(tmp_path)))
+    del saved["first_seed"]  # as written before shards existed
+    assert paper.resume_config(saved, {}, tmp_path) == PaperConfig(seeds=3, out=str(tmp_path))

@@ -526,6 +526,7 @@ def resume_config(
 
 
 def _check_same_config(saved: dict[str, Any], config: dict[str, Any], what: str) -> None:
+    saved = {"first_seed": 0, **saved}  # checkpoints from before shards had no first_seed
     differing = [
         f"{name}={_show(value)} given, {_show(saved.get(name))} in the checkpoint"
         for name, value in config.items()
