@@ -269,6 +269,16 @@ TRIED = [
     ),
     factorq("paper --out {file}", r"--out='.*a_file.txt' is an existing file: give a directory"),
     factorq("paper --sides 4", r"unrecognized arguments: --sides 4"),
+    # factorq paper: shards and clusters (trainers.sweep, trainers.cluster)
+    factorq("paper --first-seed -1", rf"--first-seed=-1 {RANGE} in \[0, 2147483647\]"),
+    factorq("paper --first-seed 2147483648", rf"--first-seed=2147483648 {RANGE} in \[0, 2147483647\]"),
+    factorq("paper --shard-seeds 0", rf"--shard-seeds=0 {RANGE} in \[1, 2147483647\]"),
+    factorq("paper --cluster local:100000", r"--cluster='local:100000' is out of range: at most local:256 workers"),
+    factorq("paper --cluster remote", r"--cluster='remote' is not local or local:N with N >= 1"),
+    factorq("paper --scheduler host:8786", r"--scheduler='host:8786' is not an address like tcp://"),
+    factorq("paper --connect-timeout 0", r"--connect-timeout=0.0 must be > 0 seconds"),
+    factorq("paper --scheduler tcp://127.0.0.1:9 --connect-timeout 0.5", r"scheduler tcp://127.0.0.1:9 is unreachable within 0.5 s"),
+    factorq("paper --cluster local:2 --checkpoint-every 5", r"--checkpoint-every does not apply to a sharded run"),
     # factorq paper: checkpoints
     factorq("paper --checkpoint-every 0", rf"--checkpoint-every='0' {RANGE} in \[1, 2\*\*63 - 1\] episodes"),
     factorq("paper --checkpoint-every -5", rf"--checkpoint-every='-5' {RANGE} in \[1, 2\*\*63 - 1\] episodes"),
@@ -348,6 +358,9 @@ TRIED = [
     factorq("compare --layout-seed -1", rf"--layout-seed=-1 {RANGE} in \[0, "),
     factorq("compare --threads 0", rf"--threads=0 {RANGE} in \[1, 256\]"),
     factorq("compare --threads 20000", rf"--threads=20000 {RANGE} in \[1, 256\]"),
+    factorq("compare --cluster remote", r"--cluster='remote' is not local or local:N with N >= 1"),
+    factorq("compare --scheduler host:8786", r"--scheduler='host:8786' is not an address like tcp://"),
+    factorq("compare --connect-timeout 0", r"--connect-timeout=0.0 must be > 0 seconds"),
     factorq("compare --sides 4", r"factorq compare: error: unrecognized arguments: --sides 4"),
     # factorq report, factorq
     factorq("report {tmp}", r"results.json does not exist: run `factorq paper --out"),

@@ -17,7 +17,7 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
-from trainers import checkpoint, options, paper, report, resources
+from trainers import checkpoint, options, paper, report, resources, sweep
 
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
@@ -68,6 +68,7 @@ def build_parser(*, compare_options: bool = True) -> argparse.ArgumentParser:
         "may change) and the same numbers as an uninterrupted run.",
         default=argparse.SUPPRESS,
     )
+    sweep.add_paper_options(paper_parser)  # --cluster, --scheduler, --shard-seeds
     paper_parser.set_defaults(handler=_paper, command_parser=paper_parser)
     report_parser = commands.add_parser(
         "report",
@@ -87,7 +88,9 @@ def build_parser(*, compare_options: bool = True) -> argparse.ArgumentParser:
         from trainers import compare
 
         options.add_options(compare_parser, compare.CompareConfig)
+        sweep.add_cluster_options(compare_parser)
     compare_parser.set_defaults(handler=_compare, command_parser=compare_parser)
+    commands.add_parser("sweep", help=sweep.HELP, add_help=False)  # main hands it to trainers.sweep
     return parser
 
 
@@ -156,7 +159,8 @@ def _paper(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         checkpointing = every is not None or resume is not None
         estimate = resources.paper_estimate(config, checkpointing=checkpointing)
         large = resources.check(estimate, "run", resources.PAPER_HINT)
-    except (ValueError, TypeError) as error:
+        executor = sweep.paper_executor(args)  # None: in-process, as always
+    except (ValueError, TypeError, NotImplementedError) as error:
         _error(parser, _as_option(str(error)))
         return EXIT_USAGE
     if large is not None:
@@ -175,7 +179,10 @@ def _paper(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             f"{config.runs} runs x {config.episodes} episodes each, {backend} backend",
             file=sys.stderr,
         )
-        results = paper.run(config, progress=bar, checkpoint_every=every, resume=resume)
+        if executor is None:
+            results = paper.run(config, progress=bar, checkpoint_every=every, resume=resume)
+        else:
+            results = sweep.run_paper_on(executor, config, args, progress=bar)
         bar.close()
         paths = report.write_results(results, config.out)
         checkpoint.remove(config.out)  # the results are complete: nothing left to resume
@@ -222,6 +229,7 @@ def _compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         large = resources.check(
             resources.compare_estimate(config), "comparison", resources.COMPARE_HINT
         )
+        executor = sweep.executor_from_args(args)  # None: in-process, as always
     except (ValueError, TypeError) as error:
         _error(parser, _as_option(str(error), compare.CompareConfig))
         return EXIT_USAGE
@@ -245,7 +253,10 @@ def _compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             bar.close()
 
     try:
-        results = compare.run(config, progress)
+        if executor is None:
+            results = compare.run(config, progress)
+        else:  # one task per method
+            results = sweep.run_compare_on(executor, config, compare.run_method, compare.summarise)
         paths = compare_report.write_outputs(results, config.out)
     except KeyboardInterrupt:
         print(f"{parser.prog}: interrupted", file=sys.stderr)
@@ -259,6 +270,8 @@ def _compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Run ``factorq`` with ``argv`` (default: the command line); return the exit status."""
     argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["sweep"]:
+        return sweep.main(argv[1:])
     parser = build_parser(compare_options=argv[:1] == ["compare"])
     try:
         args, unknown = parser.parse_known_args(argv)

@@ -401,6 +401,18 @@ def make_logger(config: CompareConfig, method: str):
 Progress = Callable[[str, int, int], None]
 
 
+def run_method(
+    config: CompareConfig, method: str, progress: Callable[[int, int], None] | None = None
+) -> dict[str, Any]:
+    """One method's batch (all selected worlds and seeds): ``{"traces", "wall_s"}``. A method's
+    numbers do not depend on the others (DQN seeds torch's global stream first), so methods may
+    run in any order, in any process (``factorq compare --cluster``)."""
+    logger = make_logger(config, method)
+    if method == "dqn":
+        return dqn.run(config.dqn, config.experiments, logger=logger, progress=progress)
+    return run_online(method, config, logger=logger, progress=progress)
+
+
 def run(config: CompareConfig, progress: Progress | None = None) -> dict[str, Any]:
     """Run every selected method on every selected world; return the ``comparison.json`` dict."""
     started = time.perf_counter()
@@ -411,14 +423,8 @@ def run(config: CompareConfig, progress: Progress | None = None) -> dict[str, An
     try:
         runs = {}
         for method in config.methods:
-            logger = make_logger(config, method)
             report = None if progress is None else (lambda d, t, m=method: progress(m, d, t))
-            if method == "dqn":
-                runs[method] = dqn.run(
-                    config.dqn, config.experiments, logger=logger, progress=report
-                )
-            else:
-                runs[method] = run_online(method, config, logger=logger, progress=report)
+            runs[method] = run_method(config, method, report)
     finally:
         torch.set_num_threads(threads)
     results = summarise(config, runs)

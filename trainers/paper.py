@@ -58,6 +58,9 @@ class PaperConfig:
     seeds: int = option(
         100, "Independent experiments per cell (world x algorithm); CIs are across them."
     )
+    first_seed: int = option(
+        0, "Index of the first seed: a run of seeds first_seed .. first_seed + seeds - 1 (a shard)."
+    )
     runs: int = option(
         10, "Runs per experiment (task tables reset each run; Factor-Q's local tables carry over)."
     )
@@ -92,6 +95,7 @@ class PaperConfig:
     def __post_init__(self) -> None:
         check_int("seed", self.seed, 0, MAX_SEED)
         check_int("seeds", self.seeds, 1, INT32_MAX)
+        check_int("first_seed", self.first_seed, 0, INT32_MAX)
         check_int("runs", self.runs, 1, INT32_MAX)
         check_int("episodes", self.episodes, 1, INT32_MAX)
         object.__setattr__(self, "worlds", check_names("worlds", self.worlds, WORLDS))
@@ -193,9 +197,11 @@ def experiment_keys(config: PaperConfig, algorithm: str) -> BatchKeys:
     """Obstacle periods, world keys and policy keys ``[W * S]`` of one algorithm's experiments.
 
     Experiments are ordered world-major (``config.worlds``), seed-minor. The key of seed index
-    ``i`` in world ``w`` (index in ``WORLDS``) does not depend on what else is selected.
+    ``i`` (row ``i - config.first_seed``) in world ``w`` (index in ``WORLDS``) does not depend on
+    what else is selected, so seeds ``[a, b)`` run alone draw what they draw in a larger run.
     """
-    labels = [(world, index) for world in config.worlds for index in range(config.seeds)]
+    seeds = range(config.first_seed, config.first_seed + config.seeds)
+    labels = [(world, index) for world in config.worlds for index in seeds]
     periods = torch.tensor([WORLD_PERIODS[world] for world, _ in labels])  # [W * S]
     world_keys = experiment.experiment_keys(config.seed, STREAM_WORLD, labels)
     policy_keys = experiment.experiment_keys(
@@ -421,6 +427,7 @@ def resume_config(
 
 
 def _check_same_config(saved: dict[str, Any], config: dict[str, Any], what: str) -> None:
+    saved = {"first_seed": 0, **saved}  # checkpoints from before shards had no first_seed
     differing = [
         f"{name}={_show(value)} given, {_show(saved.get(name))} in the checkpoint"
         for name, value in config.items()

@@ -1,0 +1,200 @@
+"""Shards on a real 2-worker Dask ``LocalCluster``: the same numbers as one process, bit for bit,
+also when a worker is killed (SIGKILL) in the middle of a shard."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from trainers import cli, cluster, fast, paper, shards, sweep
+from trainers import results as result_files
+
+distributed = pytest.importorskip("distributed")
+pytestmark = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
+SMALL = {"seeds": 7, "runs": 2, "episodes": 6, "size": 6, "obstacles": 4}
+
+
+@pytest.fixture(scope="module")
+def local_cluster():
+    """One 2-worker cluster for the module (processes, one thread each): it starts in seconds."""
+    with distributed.LocalCluster(
+        n_workers=2,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=None,
+        silence_logs=50,
+    ) as started:
+        yield started
+
+
+@pytest.fixture
+def executor(local_cluster):
+    client = distributed.Client(local_cluster.scheduler_address, set_as_default=False)
+    client.wait_for_workers(2, timeout=60)
+    running = cluster.DaskExecutor(client)  # closes the client only, not the cluster
+    yield running
+    running.close()
+
+
+def _shards_lost_with_a_worker(dask_scheduler) -> list[str]:
+    return [
+        str(key)
+        for key, start, finish, _, stimulus, _ in dask_scheduler.transition_log
+        if str(key).startswith("shard-")
+        and (start, finish) == ("processing", "released")
+        and stimulus.startswith("handle-worker-cleanup")
+    ]
+
+
+def _without_timing(results: dict) -> str:
+    return result_files.dumps({**results, "timing": None})
+
+
+def test_shards_on_two_workers_equal_one_process_bit_for_bit(executor, tmp_path):
+    config = paper.PaperConfig(**SMALL, threads=2, out=str(tmp_path / "cluster"))
+    expected = paper.run(replace(config, out=str(tmp_path / "plain")))
+    gathered = sweep.run_paper(config, executor, shard_seeds=2)  # 4 shards: 2, 2, 2, 1 seeds
+    assert gathered["timing"]["shards"]["where"].endswith("(2 workers)")
+    assert gathered["timing"]["threads"] == 1
+    expected["config"]["out"] = gathered["config"]["out"]
+    assert _without_timing(gathered) == _without_timing(expected)
+    for shard in shards.split(config, 2):  # and each shard file holds its rows of the full run
+        saved = shards.load(shards.shard_path(tmp_path / "cluster" / "shards", shard), shard)
+        alone = shards.run_shard(shard)
+        assert all(np.array_equal(saved[key], alone[key]) for key in alone)
+
+
+def test_a_sweep_on_the_cluster_equals_the_sweep_in_process(executor, tmp_path):
+    spec = sweep.SweepSpec(
+        base=(("runs", 1), ("episodes", 5), ("size", 5)),
+        grid=(("obstacles", (2, 4)), ("epsilon", (0.01, 0.05))),
+        seeds=3,
+        shard_seeds=2,
+        out=str(tmp_path / "cluster"),
+    )
+    on_cluster = sweep.run_sweep(spec, executor)
+    in_process = sweep.run_sweep(replace(spec, out=str(tmp_path / "here")), cluster.InProcess())
+    strip = [
+        {**row, "config": {**row["config"], "out": None}} for row in on_cluster["configurations"]
+    ]
+    local = [
+        {**row, "config": {**row["config"], "out": None}} for row in in_process["configurations"]
+    ]
+    assert strip == local
+
+
+def test_factorq_paper_joins_a_running_scheduler(local_cluster, tmp_path, capsys):
+    options = ["--seeds", "4", "--runs", "1", "--episodes", "3", "--size", "5"]
+    assert cli.main(["paper", *options, "--out", str(tmp_path / "plain")]) == 0
+    address = local_cluster.scheduler_address
+    argv = ["paper", *options, "--scheduler", address, "--shard-seeds", "3"]
+    assert cli.main([*argv, "--out", str(tmp_path / "joined")]) == 0
+    plain = json.loads((tmp_path / "plain" / "results.json").read_text())
+    joined = json.loads((tmp_path / "joined" / "results.json").read_text())
+    assert joined["timing"]["shards"]["where"].startswith(f"Dask scheduler {address}")
+    for results in (plain, joined):
+        results.pop("timing")
+        results["config"].pop("out")
+    assert joined == plain
+
+
+def test_an_unreachable_scheduler_is_one_line_exit_2_within_the_timeout(tmp_path, capsys):
+    out = tmp_path / "sweep"
+    started = time.monotonic()
+    argv = ["sweep", "--grid", "eta=0.1,0.2", "--scheduler", "tcp://127.0.0.1:9"]
+    assert cli.main([*argv, "--connect-timeout", "1", "--out", str(out)]) == 2
+    assert time.monotonic() - started < 10
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1
+    assert "scheduler tcp://127.0.0.1:9 is unreachable within 1 s" in error
+    assert not out.exists()
+
+
+def test_a_worker_killed_mid_shard_loses_only_that_shard_and_the_numbers_stay(executor, tmp_path):
+    # Shards of about a second each on one thread, so the kill lands inside one.
+    config = paper.PaperConfig(seeds=60, out=str(tmp_path / "killed"))
+    client = executor.client
+    pids = client.run(os.getpid)  # worker address -> process id
+    outcome: dict = {}
+
+    def run() -> None:
+        try:
+            outcome["results"] = sweep.run_paper(config, executor, shard_seeds=30)
+        except BaseException as error:  # reported by the assertion below
+            outcome["error"] = error
+
+    runner = threading.Thread(target=run)
+    runner.start()
+    killed = None
+    deadline = time.monotonic() + 60
+    while killed is None and time.monotonic() < deadline and runner.is_alive():
+        for address, keys in client.processing().items():
+            if any(str(key).startswith("shard-") for key in keys) and address in pids:
+                time.sleep(0.3)  # well inside the shard's second of work
+                os.kill(pids[address], signal.SIGKILL)
+                killed = address
+                break
+        time.sleep(0.02)
+    runner.join(timeout=120)
+    assert killed is not None, "no shard was seen running: nothing was killed"
+    assert "error" not in outcome, outcome.get("error")
+    assert pids[killed] not in client.run(os.getpid).values()  # that process is gone
+    # The scheduler's log: exactly one shard was lost with its worker (processing -> released on
+    # the worker's clean-up) and computed again; the other ran once.
+    lost = client.run_on_scheduler(_shards_lost_with_a_worker)
+    assert len(lost) == 1, lost
+    results = outcome["results"]
+    expected = shards.results(config, [shards.run_shard(config)], results["timing"])
+    assert _without_timing(results) == _without_timing(expected)
+    assert len(list((tmp_path / "killed" / "shards").rglob("*.npz"))) == 2
+
+
+def test_factorq_compare_on_the_cluster_repeats_every_method_in_process(executor, tmp_path):
+    from trainers import compare
+    from trainers.dqn import DQNConfig
+
+    config = compare.CompareConfig(
+        seeds=2,
+        steps=120,
+        size=4,
+        obstacles=2,
+        worlds=("static", "dynamic"),
+        out=str(tmp_path / "here"),
+        dqn=DQNConfig(learning_starts=40, batch_size=16),
+    )
+    expected = compare.run(config)
+    remote = replace(config, out=str(tmp_path / "cluster"))
+    results = sweep.run_compare_on(executor, remote, compare.run_method, compare.summarise)
+    assert results["timing"]["where"].endswith("(2 workers)")
+    for summary in (expected, results):
+        summary.pop("timing")
+        summary["config"].pop("out")
+        for worlds in summary["results"].values():
+            for cell in worlds.values():
+                cell.pop("wall_s")
+    assert json.dumps(results, sort_keys=True) == json.dumps(expected, sort_keys=True)
+
+
+def test_factorq_sweep_on_a_running_scheduler_writes_what_it_writes_in_process(
+    local_cluster, tmp_path, capsys
+):
+    argv = ["sweep", "--grid", "obstacles=2,3", "--set", "runs=1", "--set", "episodes=3"]
+    argv += ["--set", "size=5", "--seeds", "3", "--shard-seeds", "2"]
+    address = local_cluster.scheduler_address
+    assert cli.main([*argv, "--scheduler", address, "--out", str(tmp_path / "joined")]) == 0
+    assert cli.main([*argv, "--out", str(tmp_path / "here")]) == 0
+    joined = json.loads((tmp_path / "joined" / "sweep.json").read_text())
+    here = json.loads((tmp_path / "here" / "sweep.json").read_text())
+    assert joined["timing"]["where"].startswith(f"Dask scheduler {address}")
+    for sweep_json in (joined, here):
+        for row in sweep_json["configurations"]:
+            row["config"].pop("out")
+    assert joined["configurations"] == here["configurations"]
+    assert (tmp_path / "joined" / "sweep-obstacles.png").stat().st_size > 10_000

@@ -1,0 +1,228 @@
+"""``factorq sweep`` in-process: the spec, bad input, resumption, outputs, and ``paper`` options."""
+
+from __future__ import annotations
+
+import builtins
+import json
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import fields, replace
+
+import pytest
+
+from trainers import cli, cluster, fast, paper, shards, sweep
+from trainers import results as result_files
+from trainers.sweep import SweepError, SweepSpec
+
+needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
+BASE = (("runs", 1), ("episodes", 4), ("size", 5), ("obstacles", 3))
+SPEC_TOML = """
+seeds = 3
+shard_seeds = 2
+[base]
+runs = 1
+episodes = 4
+size = 5
+[grid]
+obstacles = [2, 3]
+eta = [0.05, 0.1]
+"""
+
+
+class CountingExecutor(cluster.InProcess):
+    """In-process, counting the items it runs."""
+
+    def __init__(self) -> None:
+        self.items: list = []
+
+    def map(self, function, items, names):
+        self.items += list(items)
+        return super().map(function, items, names)
+
+
+def _spec(tmp_path, **changes) -> SweepSpec:
+    values = {
+        "base": BASE,
+        "grid": (("eta", (0.05, 0.1)),),
+        "seeds": 3,
+        "shard_seeds": 2,
+        "out": str(tmp_path / "sweep"),
+    }
+    return SweepSpec(**{**values, **changes})
+
+
+def test_every_paper_config_field_but_the_sweeps_own_is_sweepable():
+    names = [f.name for f in fields(paper.PaperConfig) if f.name not in sweep.RESERVED]
+    assert list(sweep.sweepable_fields()) == names
+    assert "seeds" not in sweep.sweepable_fields()
+
+
+def test_grid_axes_are_crossed_with_the_configs_list(tmp_path):
+    spec = _spec(
+        tmp_path,
+        grid=(("eta", (0.05, 0.1)), ("obstacles", (2, 3))),
+        configs=((("size", 5),), (("size", 6),)),
+        base=(("runs", 1), ("episodes", 2)),
+    )
+    points = spec.points()
+    assert len(points) == 8
+    assert points[0] == {"size": 5, "eta": 0.05, "obstacles": 2}
+    assert points[-1] == {"size": 6, "eta": 0.1, "obstacles": 3}
+    assert spec.axes == ["eta", "obstacles", "size"]
+    assert [c.seeds for c in spec.configurations()] == [3] * 8
+
+
+@pytest.mark.parametrize(
+    ("document", "message"),
+    [
+        ({"grid": {"etta": [0.1]}}, "unknown field 'etta' in grid; sweepable: seed, runs"),
+        ({"base": {"seeds": 4}, "grid": {"eta": [0.1]}}, "'seeds' in base (the sweep sets it"),
+        ({"grid": {"eta": [0.1, -1.0]}}, "configuration 1 (eta=-1.0): eta=-1.0"),
+        ({"grid": {"obstacles": [2.5]}}, "obstacles must be an int"),
+        ({"grid": {"eta": []}}, "grid axis 'eta' needs a non-empty list"),
+        ({"grid": {"eta": [0.1, 0.1]}}, "grid axis 'eta' repeats a value"),
+        ({"grid": {"eta": 0.1}}, "grid axis 'eta' must be a list"),
+        ({"grid": {"eta": [0.1]}, "colour": "red"}, "unknown key(s) colour"),
+        ({"grid": {"eta": [0.1]}, "command": "compare"}, "command='compare' cannot be swept yet"),
+        ({"grid": {"eta": [0.1]}, "shard_seeds": 0}, "shard_seeds=0 is out of range"),
+    ],
+)
+def test_a_bad_spec_is_refused_naming_the_field_or_value(document, message):
+    with pytest.raises((SweepError, ValueError, TypeError)) as raised:
+        sweep.spec_from_mapping(document, "sweep.toml")
+    assert message in str(raised.value)
+
+
+def test_bad_input_on_the_command_line_is_one_line_exit_2_and_nothing_written(tmp_path, capsys):
+    spec_file = tmp_path / "bad.toml"
+    spec_file.write_text('[grid]\nworlds = [["static"], ["windy"]]\n')
+    out = tmp_path / "sweep"
+    for argv in (
+        [str(spec_file), "--out", str(out)],
+        ["--grid", "eta=0.1,abc", "--out", str(out)],
+        ["--grid", "colour=red", "--out", str(out)],
+        ["--set", "eta", "--grid", "eta=0.1", "--out", str(out)],
+        ["--out", str(out)],
+        [str(tmp_path / "missing.toml")],
+        ["--grid", "eta=0.1", "--cluster", "remote", "--out", str(out)],
+        ["--grid", "eta=0.1", "--cluster", "local:2", "--scheduler", "tcp://x:1"],
+    ):
+        assert cli.main(["sweep", *argv]) == 2, argv
+        error = capsys.readouterr().err
+        assert error.count("\n") == 1 and error.startswith("factorq sweep: error: "), error
+    assert not out.exists()
+
+
+def test_a_cluster_without_the_extra_names_the_extra(tmp_path, capsys, monkeypatch):
+    real_import = builtins.__import__
+
+    def no_dask(name, *args, **kwargs):
+        if name == "distributed" or name.startswith("distributed."):
+            raise ImportError(f"No module named {name!r}")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_dask)
+    out = tmp_path / "sweep"
+    argv = ["sweep", "--grid", "eta=0.1,0.2", "--cluster", "local:2", "--out", str(out)]
+    assert cli.main(argv) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1
+    assert "needs the 'distributed' extra: pip install 'factorq-torch[distributed]'" in error
+    assert not out.exists()
+    paper_out = tmp_path / "paper"
+    assert cli.main(["paper", "--cluster", "local", "--out", str(paper_out)]) == 2
+    assert "'distributed' extra" in capsys.readouterr().err
+    assert not paper_out.exists()
+
+
+def test_a_sharded_paper_run_refuses_checkpoint_options(tmp_path, capsys):
+    out = tmp_path / "paper"
+    argv = ["paper", "--shard-seeds", "2", "--checkpoint-every", "30s", "--out", str(out)]
+    assert cli.main(argv) == 2
+    assert "--checkpoint-every does not apply to a sharded run" in capsys.readouterr().err
+    assert not out.exists()
+
+
+@needs_fast
+def test_a_sweep_writes_its_table_and_a_figure_per_axis(tmp_path, capsys):
+    spec_file = tmp_path / "sweep.toml"
+    spec_file.write_text(SPEC_TOML)
+    out = tmp_path / "sweep"
+    assert cli.main(["sweep", str(spec_file), "--out", str(out)]) == 0
+    written = sorted(path.name for path in out.iterdir())
+    assert written == ["shards", "sweep-eta.png", "sweep-obstacles.png", "sweep.json", "sweep.md"]
+    result = json.loads((out / "sweep.json").read_text())
+    assert result["axes"] == ["obstacles", "eta"]
+    assert [row["values"] for row in result["configurations"]][1] == {"obstacles": 2, "eta": 0.1}
+    assert result["timing"]["shards_total"] == 8  # 4 configurations x 2 shards (2 + 1 seeds)
+    row = (out / "sweep.md").read_text().splitlines()[6]
+    assert row.startswith("| 2 | 0.05 | static | q-learning | ")
+
+
+@needs_fast
+def test_a_sweep_cell_equals_the_paper_run_of_its_configuration(tmp_path):
+    spec = _spec(tmp_path)
+    result = sweep.run_sweep(spec, cluster.InProcess())
+    config = spec.configurations()[1]
+    expected = paper.run(replace(config, out=str(tmp_path / "paper")))
+    cell = result["configurations"][1]["cells"]["dynamic/factor-q"]
+    assert cell["per_seed"] == expected["cells"]["dynamic/factor-q"]["per_seed"]
+    assert cell["collisions"] == expected["cells"]["dynamic/factor-q"]["summary"]["collisions"]
+
+
+@needs_fast
+def test_a_killed_sweep_resumes_running_only_the_missing_shards_with_the_same_numbers(tmp_path):
+    spec = _spec(tmp_path)
+    first = CountingExecutor()
+    complete = sweep.run_sweep(spec, first)
+    assert len(first.items) == 4  # 2 configurations x shards of seeds [0, 2) and [2, 3)
+    lost = shards.shard_path(tmp_path / "sweep" / "shards", first.items[1])
+    lost.unlink()  # as if the sweep had been killed before this shard finished
+    again = CountingExecutor()
+    resumed = sweep.run_sweep(spec, again)
+    assert again.items == [first.items[1]]
+    assert resumed["configurations"] == complete["configurations"]
+    assert resumed["timing"]["shards_run_now"] == 1
+
+
+@needs_fast
+def test_paper_shard_seeds_in_process_writes_the_same_results_as_a_plain_run(tmp_path, capsys):
+    options = ["--seeds", "5", "--runs", "1", "--episodes", "4", "--size", "5"]
+    assert cli.main(["paper", *options, "--out", str(tmp_path / "plain")]) == 0
+    assert cli.main(["paper", *options, "--shard-seeds", "2", "--out", str(tmp_path / "cut")]) == 0
+    plain = json.loads((tmp_path / "plain" / "results.json").read_text())
+    cut = json.loads((tmp_path / "cut" / "results.json").read_text())
+    assert isinstance(cut["timing"]["threads"], int) and cut["timing"]["threads"] >= 1
+    for results in (plain, cut):
+        results.pop("timing")
+        results["config"].pop("out")
+    assert cut == plain
+    assert len(list((tmp_path / "cut" / "shards").rglob("*.npz"))) == 3
+
+
+@needs_fast
+def test_a_sweep_killed_with_sigkill_resumes_from_its_shard_files_with_the_same_numbers(tmp_path):
+    out = tmp_path / "killed"
+    argv = ["--grid", "eta=0.05,0.1", "--seeds", "40", "--shard-seeds", "5", "--out", str(out)]
+    command = [sys.executable, "-m", "trainers.cli", "sweep", *argv]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while not list(out.rglob("*.npz")) and time.monotonic() < deadline:
+            assert process.poll() is None, "the sweep ended before any shard was written"
+            time.sleep(0.05)
+        process.send_signal(signal.SIGKILL)
+    finally:
+        process.wait(timeout=60)
+    finished = list(out.rglob("*.npz"))
+    assert 1 <= len(finished) < 16 and not (out / "sweep.json").exists()
+    assert cli.main(["sweep", *argv]) == 0  # the same command again resumes
+    resumed = json.loads((out / "sweep.json").read_text())
+    assert resumed["timing"]["shards_run_now"] == 16 - len(finished)
+    spec = sweep.SweepSpec(grid=(("eta", (0.05, 0.1)),), seeds=40, shard_seeds=5, out=str(out))
+    fresh = sweep.run_sweep(replace(spec, out=str(tmp_path / "fresh")), cluster.InProcess())
+    for row in (*resumed["configurations"], *fresh["configurations"]):
+        row["config"].pop("out")
+    assert resumed["configurations"] == json.loads(result_files.dumps(fresh))["configurations"]
