@@ -37,8 +37,10 @@ def test_compare_writes_the_comparison_schema_of_issue_7(tmp_path, one_thread):
         out=str(tmp_path),
         dqn=DQNConfig(learning_starts=40, batch_size=16),
     )
-    results = compare.run(config)
-    paths = compare_report.write_outputs(results, config.out)
+    logs = compare_report.staging_logs(config.out)
+    results = compare.run(config, logs_dir=logs)
+    paths = compare_report.write_outputs(results, config.out, logs=logs)
+    assert not logs.exists() and paths["logs"].is_dir()
     saved = json.loads(paths["json"].read_text())
     assert saved["config"]["seeds"] == 2 and saved["config"]["steps"] == 120
     assert list(saved["results"]) == ["factor-q", "q-learning", "dqn", "factor-dqn"]

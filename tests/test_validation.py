@@ -126,7 +126,40 @@ def bad_json(tmp: Path) -> str:
     return str(out)
 
 
+_HELD: list[int] = []  # descriptors of locks held by this process for the rows below
+
+
+def locked(make):
+    """``make``'s directory with its output lock held by this process, as a live run holds it
+    (``flock`` locks of two opens conflict even within one process)."""
+
+    def made(tmp: Path) -> str:
+        import fcntl
+        import os
+
+        out = Path(make(tmp))
+        out.mkdir(exist_ok=True)
+        (out / ".factorq.lock").write_text("4242")
+        descriptor = os.open(out / ".factorq.lock", os.O_RDWR)
+        fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        _HELD.append(descriptor)
+        return str(out)
+
+    return made
+
+
+def a_finished_comparison(tmp: Path) -> str:
+    out = tmp / "compared"
+    out.mkdir()
+    (out / "comparison.json").write_text("{}")
+    return str(out)
+
+
 MADE = {
+    "{locked}": locked(lambda tmp: str(tmp / "live")),
+    "{locked-checkpoint}": locked(a_checkpoint),
+    "{finished-comparison}": a_finished_comparison,
+    "{under-file}": lambda tmp: a_file(tmp) + "/out",
     "{tmp}": str,
     "{missing}": lambda tmp: str(tmp / "missing"),
     "{file}": a_file,
@@ -269,6 +302,13 @@ TRIED = [
     ),
     factorq("paper --out {file}", r"--out='.*a_file.txt' is an existing file: give a directory"),
     factorq("paper --sides 4", r"unrecognized arguments: --sides 4"),
+    # factorq paper: one writer per --out, checked before any work (trainers.outdir)
+    factorq("paper --out {finished-run}", r"--out='.*finished' already holds results.json from an earlier run: pass --force to replace them, or choose another --out"),
+    factorq("paper --force --seeds 0", rf"--seeds=0 {RANGE} in \[1, 2147483647\]"),
+    factorq("paper --out {locked}", r"--out='.*live' is in use by another factorq run \(pid 4242\): wait for it to finish, or choose another --out \(refusing to write to it at the same time\)"),
+    factorq("paper --resume {locked-checkpoint}", r"--out='.*run' is in use by another factorq run \(pid 4242\): .* \(refusing to resume it at the same time\)"),
+    factorq("paper --out {under-file}", r"--out='.*a_file.txt/out' is not writable: Not a directory"),
+    factorq("paper --out /proc/factorq-out", r"--out='/proc/factorq-out' is not writable: "),
     # factorq paper: shards and clusters (trainers.sweep, trainers.cluster)
     factorq("paper --first-seed -1", rf"--first-seed=-1 {RANGE} in \[0, 2147483647\]"),
     factorq("paper --first-seed 2147483648", rf"--first-seed=2147483648 {RANGE} in \[0, 2147483647\]"),
@@ -361,6 +401,10 @@ TRIED = [
     factorq("compare --cluster remote", r"--cluster='remote' is not local or local:N with N >= 1"),
     factorq("compare --scheduler host:8786", r"--scheduler='host:8786' is not an address like tcp://"),
     factorq("compare --connect-timeout 0", r"--connect-timeout=0.0 must be > 0 seconds"),
+    factorq("compare --out {finished-comparison}", r"--out='.*compared' already holds comparison.json from an earlier run: pass --force"),
+    factorq("compare --force --seeds 0", rf"--seeds=0 {RANGE} in \[1, 2147483647\]"),
+    factorq("compare --out {locked}", r"--out='.*live' is in use by another factorq run \(pid 4242\)"),
+    factorq("compare --out /proc/factorq-out", r"--out='/proc/factorq-out' is not writable: "),
     factorq("compare --sides 4", r"factorq compare: error: unrecognized arguments: --sides 4"),
     # factorq report, factorq
     factorq("report {tmp}", r"results.json does not exist: run `factorq paper --out"),

@@ -11,17 +11,22 @@ from __future__ import annotations
 
 import argparse
 import re
+import shutil
 import sys
 import typing
 from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
-from trainers import checkpoint, options, paper, report, resources, sweep
+from trainers import checkpoint, options, outdir, paper, report, resources, sweep
 
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, what shells report for Ctrl-C
+FORCE_HELP = (
+    "Replace the results of an earlier run in --out (they are kept until the new ones are "
+    "written, all at once). Without it, an --out holding results is refused before any work."
+)
 COMPARE_HELP = "compare tabular Factor-Q, Q-learning, DQN and neural Factor-Q on the three worlds"
 
 
@@ -68,6 +73,9 @@ def build_parser(*, compare_options: bool = True) -> argparse.ArgumentParser:
         "may change) and the same numbers as an uninterrupted run.",
         default=argparse.SUPPRESS,
     )
+    paper_parser.add_argument(
+        "--force", action="store_true", default=argparse.SUPPRESS, help=FORCE_HELP
+    )
     sweep.add_paper_options(paper_parser)  # --cluster, --scheduler, --shard-seeds
     paper_parser.set_defaults(handler=_paper, command_parser=paper_parser)
     report_parser = commands.add_parser(
@@ -89,6 +97,9 @@ def build_parser(*, compare_options: bool = True) -> argparse.ArgumentParser:
 
         options.add_options(compare_parser, compare.CompareConfig)
         sweep.add_cluster_options(compare_parser)
+        compare_parser.add_argument(
+            "--force", action="store_true", default=argparse.SUPPRESS, help=FORCE_HELP
+        )
     compare_parser.set_defaults(handler=_compare, command_parser=compare_parser)
     commands.add_parser("sweep", help=sweep.HELP, add_help=False)  # main hands it to trainers.sweep
     return parser
@@ -154,7 +165,6 @@ def _paper(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             config = paper.resume_config(resume.config, _given_options(args), args.resume)
         else:
             config = paper.PaperConfig(**_given_options(args))
-            checkpoint.check_none_in(config.out)
         backend = paper.resolve_backend(config)
         checkpointing = every is not None or resume is not None
         estimate = resources.paper_estimate(config, checkpointing=checkpointing)
@@ -165,6 +175,22 @@ def _paper(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         return EXIT_USAGE
     if large is not None:
         print(large, file=sys.stderr)
+    outputs = (report.RESULTS_FILE, report.FIGURE_FILE, report.REPORT_FILE)
+    try:  # the only writer of --out from here on: checked before any work
+        with outdir.claim(
+            config.out, outputs=outputs, force=hasattr(args, "force"), resume=resume is not None
+        ):
+            if resume is None:
+                checkpoint.check_none_in(config.out)  # under the lock: no live run is writing it
+            return _run_paper(parser, args, config, backend, every, resume, executor)
+    except (outdir.OutputDirError, checkpoint.CheckpointError) as error:
+        if executor is not None:
+            executor.close()
+        _error(parser, _as_option(str(error)))
+        return EXIT_USAGE
+
+
+def _run_paper(parser, args, config, backend, every, resume, executor) -> int:
     bar = _Bar()
     try:
         if resume is not None:
@@ -235,11 +261,6 @@ def _compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         return EXIT_USAGE
     if large is not None:
         print(large, file=sys.stderr)
-    print(
-        f"{len(config.methods)} methods x {len(config.worlds)} worlds x {config.seeds} seeds, "
-        f"{config.steps:,} env steps each",
-        file=sys.stderr,
-    )
     bars: dict[str, Any] = {}
 
     def progress(method: str, done: int, total: int) -> None:
@@ -252,15 +273,41 @@ def _compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         if done >= total:
             bar.close()
 
+    outputs = (*compare_report.OUTPUT_FILES, compare_report.LOGS_DIRECTORY)
     try:
-        if executor is None:
-            results = compare.run(config, progress)
-        else:  # one task per method
-            results = sweep.run_compare_on(executor, config, compare.run_method, compare.summarise)
-        paths = compare_report.write_outputs(results, config.out)
+        with outdir.claim(config.out, outputs=outputs, force=hasattr(args, "force")):
+            print(
+                f"{len(config.methods)} methods x {len(config.worlds)} worlds x {config.seeds} "
+                f"seeds, {config.steps:,} env steps each",
+                file=sys.stderr,
+            )
+            # Logs are written from the traces when the run is over, beside the other outputs
+            # and renamed into place with them: one run's logs, never appended to another's.
+            logs = compare_report.staging_logs(config.out)
+            try:
+                if executor is None:
+                    results = compare.run(config, progress, logs_dir=logs)
+                else:  # one task per method
+
+                    def summarise(config, runs):
+                        compare.write_logs(config, runs, logs)
+                        return compare.summarise(config, runs)
+
+                    results = sweep.run_compare_on(executor, config, compare.run_method, summarise)
+                paths = compare_report.write_outputs(results, config.out, logs=logs)
+            finally:
+                shutil.rmtree(logs, ignore_errors=True)  # renamed away unless the run failed
+    except outdir.OutputDirError as error:
+        if executor is not None:
+            executor.close()
+        _error(parser, _as_option(str(error), compare.CompareConfig))
+        return EXIT_USAGE
     except KeyboardInterrupt:
         print(f"{parser.prog}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except OSError as error:  # a full disk, a directory that vanished: say so in one line
+        print(f"{parser.prog}: error: {error}", file=sys.stderr)
+        return EXIT_FAILURE
     print(compare_report.report_markdown(results))
     for path in paths.values():
         print(path)

@@ -385,9 +385,10 @@ def config_dict(config: CompareConfig) -> dict[str, Any]:
 # Running
 
 
-def make_logger(config: CompareConfig, method: str):
-    """torchrl's CSVLogger or TensorboardLogger for ``method`` under ``out/logs/``."""
-    log_dir = str(Path(config.out) / "logs")
+def make_logger(config: CompareConfig, method: str, log_dir: str | os.PathLike | None = None):
+    """torchrl's CSVLogger or TensorboardLogger for ``method`` under ``log_dir`` (default
+    ``out/logs/``)."""
+    log_dir = str(Path(config.out) / "logs" if log_dir is None else log_dir)
     if config.logger == "tensorboard":
         from torchrl.record.loggers.tensorboard import TensorboardLogger
 
@@ -407,14 +408,31 @@ def run_method(
     """One method's batch (all selected worlds and seeds): ``{"traces", "wall_s"}``. A method's
     numbers do not depend on the others (DQN seeds torch's global stream first), so methods may
     run in any order, in any process (``factorq compare --cluster``)."""
-    logger = make_logger(config, method)
     if method == "dqn":
-        return dqn.run(config.dqn, config.experiments, logger=logger, progress=progress)
-    return run_online(method, config, logger=logger, progress=progress)
+        return dqn.run(config.dqn, config.experiments, progress=progress)
+    return run_online(method, config, progress=progress)
 
 
-def run(config: CompareConfig, progress: Progress | None = None) -> dict[str, Any]:
-    """Run every selected method on every selected world; return the ``comparison.json`` dict."""
+def write_logs(
+    config: CompareConfig, runs: dict[str, dict[str, Any]], log_dir: str | os.PathLike
+) -> None:
+    """Every method's per-episode records, from its traces, as ``config.logger`` logs under
+    ``log_dir`` (written once a run is over: one run's logs, the same after a resume)."""
+    for method, run in runs.items():
+        experiment.log_traces(make_logger(config, method, log_dir), run["traces"])
+
+
+def run(
+    config: CompareConfig,
+    progress: Progress | None = None,
+    *,
+    logs_dir: str | os.PathLike | None = None,
+) -> dict[str, Any]:
+    """Run every selected method on every selected world; return the ``comparison.json`` dict.
+
+    ``logs_dir``: where to write the per-episode logs (``write_logs``) when the run is over
+    (``factorq compare`` gives a staging directory that ``compare_report.write_outputs`` renames
+    to ``out/logs`` with the other outputs); None writes none."""
     started = time.perf_counter()
     estimate = resources.compare_estimate(config)
     resources.check(estimate, "comparison", resources.COMPARE_HINT)  # before any allocation
@@ -427,6 +445,8 @@ def run(config: CompareConfig, progress: Progress | None = None) -> dict[str, An
             runs[method] = run_method(config, method, report)
     finally:
         torch.set_num_threads(threads)
+    if logs_dir is not None:
+        write_logs(config, runs, logs_dir)
     results = summarise(config, runs)
     results["timing"] = {"wall_s": round(time.perf_counter() - started, 3)}
     return results

@@ -6,6 +6,7 @@ Everything here reads the results dict of ``trainers.compare.run`` and computes 
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,8 @@ from trainers.results import dumps, write_all_atomic
 JSON_FILE = "comparison.json"
 FIGURE_FILE = "comparison.png"
 REPORT_FILE = "comparison.md"
+OUTPUT_FILES = (JSON_FILE, FIGURE_FILE, REPORT_FILE)
+LOGS_DIRECTORY = "logs"
 COLOURS = {
     "factor-q": "#0072B2",
     "q-learning": "#D55E00",
@@ -126,16 +129,44 @@ def report_markdown(results: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def write_outputs(results: dict[str, Any], out: str | os.PathLike) -> dict[str, Path]:
-    """Write comparison.json, comparison.png and comparison.md to ``out``, atomically."""
+def staging_logs(out: str | os.PathLike) -> Path:
+    """A fresh directory in ``out`` for this run's logs until ``write_outputs`` renames it to
+    ``out/logs`` (named like the temporaries ``trainers.outdir`` cleans up after a kill)."""
+    staging = Path(out) / f".{LOGS_DIRECTORY}.{os.getpid()}.tmp"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    return staging
+
+
+def write_outputs(
+    results: dict[str, Any], out: str | os.PathLike, logs: str | os.PathLike | None = None
+) -> dict[str, Path]:
+    """Write comparison.json, comparison.png and comparison.md to ``out`` as a set: each is
+    written to a temporary first, then all are renamed into place; ``logs`` (a staging
+    directory, ``staging_logs``) replaces ``out/logs`` in the same step, so the files of two
+    runs never mix (a kill during the few renames can leave the old logs removed, never mixed)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"json": out / JSON_FILE, "figure": out / FIGURE_FILE, "report": out / REPORT_FILE}
+
+    def swap_logs() -> None:
+        if logs is None:
+            return
+        target = out / LOGS_DIRECTORY
+        if target.exists():
+            old = out / f".{LOGS_DIRECTORY}.old.{os.getpid()}.tmp"
+            os.replace(target, old)
+            shutil.rmtree(old, ignore_errors=True)
+        os.replace(logs, target)
+
     write_all_atomic(
         {
             paths["json"]: lambda path: path.write_text(dumps(results)),
             paths["figure"]: lambda path: write_figure(results, path),
             paths["report"]: lambda path: path.write_text(report_markdown(results)),
-        }
+        },
+        before_rename=swap_logs,
     )
+    if logs is not None:
+        paths["logs"] = out / LOGS_DIRECTORY
     return paths

@@ -314,12 +314,7 @@ class EpisodeRecorder:
                 values[row] = 0
 
     def _log(self, row: int, record: dict[str, float]) -> None:
-        world, index = self.labels[row]
-        step = record["env_steps"]
-        names = {"steps": "path_length", "task_return": "return"}
-        for name, value in record.items():
-            if name != "env_steps" and math.isfinite(value):
-                self.logger.log_scalar(f"{world}/seed_{index}/{names.get(name, name)}", value, step)
+        _log_record(self.logger, *self.labels[row], record)
 
     def traces(self) -> list[dict[str, Any]]:
         """One dict per experiment: the per-episode arrays, totals and label."""
@@ -337,3 +332,23 @@ class EpisodeRecorder:
             trace["total_env_steps"] = int(self.env_steps[row])
             out.append(trace)
         return out
+
+
+#: Logged names of the episode records that differ from their field names.
+LOG_NAMES = {"steps": "path_length", "task_return": "return"}
+
+
+def _log_record(logger, world: str, index: int, record: dict[str, float]) -> None:
+    step = record["env_steps"]
+    for name, value in record.items():
+        if name != "env_steps" and math.isfinite(value):
+            logger.log_scalar(f"{world}/seed_{index}/{LOG_NAMES.get(name, name)}", value, step)
+
+
+def log_traces(logger, traces: list[dict[str, Any]]) -> None:
+    """Send ``EpisodeRecorder.traces()`` to ``logger`` as its live ``logger`` would have:
+    every finished episode's records under ``"{world}/seed_{i}/{name}"`` at step = env steps."""
+    for trace in traces:
+        for episode in range(len(trace["steps"])):
+            record = {name: trace[name][episode].item() for name in EPISODE_FIELDS}
+            _log_record(logger, trace["world"], trace["seed_index"], record)

@@ -23,6 +23,7 @@ import errno
 import fcntl
 import os
 import re
+import shutil
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
@@ -59,12 +60,19 @@ def _holder(lock_path: Path) -> str:
 
 
 def remove_temporaries(path: Path) -> list[Path]:
-    """Delete the ``.NAME.PID.tmp`` files directly in ``path``; return what was deleted."""
+    """Delete the ``.NAME.PID.tmp`` files (and directories) directly in ``path``; return what was
+    deleted."""
     removed = []
     for entry in path.iterdir():
-        if _TEMPORARY.match(entry.name) and entry.is_file():
+        if not _TEMPORARY.match(entry.name) or entry.is_symlink():
+            continue
+        if entry.is_file():
             entry.unlink(missing_ok=True)
-            removed.append(entry)
+        elif entry.is_dir():  # factorq compare's staging logs (.logs.PID.tmp/)
+            shutil.rmtree(entry, ignore_errors=True)
+        else:
+            continue
+        removed.append(entry)
     return removed
 
 
@@ -92,6 +100,7 @@ def claim(
             results that ``force`` was not given to replace.
     """
     path = Path(out)
+    created = not path.exists()
     _prepare(path, what)
     lock_path = path / LOCK_FILE
     descriptor = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
@@ -117,6 +126,14 @@ def claim(
                 f"--force to replace them, or choose another --{what.replace('_', '-')}"
             )
         remove_temporaries(path)
-        yield path
+        try:
+            yield path
+        finally:
+            # A run that made the directory and wrote nothing in it (it failed, or was
+            # interrupted, before any output) leaves no directory holding just a lock file.
+            with contextlib.suppress(OSError):
+                if created and [entry.name for entry in path.iterdir()] == [LOCK_FILE]:
+                    lock_path.unlink()
+                    path.rmdir()
     finally:
         os.close(descriptor)  # closing releases the lock

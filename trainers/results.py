@@ -66,16 +66,22 @@ def write_atomic(path: str | os.PathLike, write: Callable[[Path], None]) -> None
     write_all_atomic({Path(path): write})
 
 
-def write_all_atomic(writers: dict[Path, Callable[[Path], None]]) -> None:
+def write_all_atomic(
+    writers: dict[Path, Callable[[Path], None]], before_rename: Callable[[], None] | None = None
+) -> None:
     """Write every file to a temporary next to it, then rename them all into place, in order.
 
     The slow part (drawing, serialising) happens before any rename, so an interruption leaves
     either all the old files or, but for a few renames' time, all the new ones.
+    ``before_rename`` runs once every temporary is complete, just before the renames (e.g. to
+    swap in a directory written beside them).
     """
     temporaries = {path: path.with_name(f".{path.name}.{os.getpid()}.tmp") for path in writers}
     try:
         for path, write in writers.items():
             write(temporaries[path])
+        if before_rename is not None:
+            before_rename()
         for path, temporary in temporaries.items():
             os.replace(temporary, path)
     finally:

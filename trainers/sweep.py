@@ -56,7 +56,7 @@ import numpy as np
 import torch
 
 from factorq_torch.base.validation import INT32_MAX, check_int
-from trainers import claims, cluster, paper, shards, stats
+from trainers import claims, cluster, outdir, paper, shards, stats
 from trainers import results as result_files
 
 EXIT_USAGE = 2
@@ -706,6 +706,12 @@ def build_parser(prog: str = "factorq sweep") -> argparse.ArgumentParser:
                         help=f"Seeds per shard. (default: {DEFAULT_SHARD_SEEDS})")  # fmt: skip
     parser.add_argument("--out", metavar="DIR", default=argparse.SUPPRESS,
                         help=f"Output directory. (default: {DEFAULT_OUT})")  # fmt: skip
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="Replace the sweep.json and sweep.md of an earlier sweep in --out (its finished "
+        "shards are reused either way). Without it, an --out holding them is refused.",
+    )
     add_cluster_options(parser)
     return parser
 
@@ -791,6 +797,16 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, TypeError) as error:
         print(f"{parser.prog}: error: {error}", file=sys.stderr)
         return EXIT_USAGE
+    try:  # the only writer of --out from here on, checked before any work
+        with outdir.claim(spec.out, outputs=(JSON_FILE, REPORT_FILE), force=args.force):
+            return _run_sweep_command(parser, spec, executor)
+    except outdir.OutputDirError as error:
+        executor.close()
+        print(f"{parser.prog}: error: {str(error).replace('out=', '--out=')}", file=sys.stderr)
+        return EXIT_USAGE
+
+
+def _run_sweep_command(parser, spec: SweepSpec, executor) -> int:
     configs = spec.configurations()
     shards_total = len(configs) * math.ceil(spec.seeds / spec.shard_seeds)
     print(
