@@ -259,9 +259,56 @@ def read(path: str | os.PathLike) -> Checkpoint:
             f"checkpoint {path} is corrupted or truncated (its content does not match its digest)"
         )
     try:
-        return Checkpoint(path=path, **{field: content[field] for field in Checkpoint._fields[1:]})
+        loaded = Checkpoint(
+            path=path, **{field: content[field] for field in Checkpoint._fields[1:]}
+        )
     except (KeyError, TypeError) as error:
         raise CheckpointError(f"checkpoint {path} lacks a field: {error}") from None
+    _check_field_types(loaded)
+    return loaded
+
+
+#: The type of every field of a checkpoint's content (its digest proves integrity, not origin:
+#: anyone can edit a file and sign it again, so nothing in it is trusted before these checks and
+#: the run's own, ``paper.check_checkpoint``, against its config).
+_FIELD_TYPES: dict[str, tuple[type, ...]] = {
+    "config": (dict,),
+    "backend": (str,),
+    "every": (str, type(None)),
+    "finished": (dict,),
+    "running": (dict, type(None)),
+    "episodes_completed": (int,),
+    "experiments_finished": (int,),
+    "elapsed_s": (float, int),
+    "saved_utc": (str,),
+}
+
+
+def _check_field_types(loaded: Checkpoint) -> None:
+    for field, types in _FIELD_TYPES.items():
+        value = getattr(loaded, field)
+        if isinstance(value, bool) or not isinstance(value, types):
+            expected = " or ".join(
+                "None" if kind is type(None) else kind.__name__ for kind in types
+            )
+            raise CheckpointError(
+                f"checkpoint {loaded.path} is not usable: its {field} is a "
+                f"{type(value).__name__}, not a {expected}"
+            )
+    if not all(isinstance(key, str) for key in loaded.config):
+        raise CheckpointError(
+            f"checkpoint {loaded.path} is not usable: its config has non-text keys"
+        )
+    if loaded.every is not None:
+        try:
+            parse_every(loaded.every)
+        except (ValueError, TypeError) as error:
+            raise CheckpointError(f"checkpoint {loaded.path} is not usable: {error}") from None
+    if not math.isfinite(loaded.elapsed_s) or loaded.elapsed_s < 0:
+        raise CheckpointError(
+            f"checkpoint {loaded.path} is not usable: elapsed_s={loaded.elapsed_s!r} must be a "
+            f"finite number >= 0"
+        )
 
 
 def _why(error: BaseException) -> str:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import os
 import time
+import typing
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -335,6 +336,7 @@ def run(
     driver = backend_driver(backend)
     if resume is not None:
         _check_same_config(resume.config, config_dict(config), f"resume='{resume.path.parents[1]}'")
+        check_checkpoint(resume, config)
     if checkpoint_every is None and resume is not None:
         checkpoint_every = resume.every  # a resumed run goes on saving as it did
     checkpoints = checkpoint.Checkpointer(
@@ -391,6 +393,102 @@ def run(
             "this_process_s": round(time.perf_counter() - started, 3),
         }
     return results
+
+
+def check_checkpoint(resume: checkpoint.Checkpoint, config: PaperConfig) -> None:
+    """Refuse (``CheckpointError``, one line) a checkpoint whose content does not fit ``config``:
+    the progress counters, the finished algorithms' metrics (names, shapes, dtypes, ranges,
+    finiteness), which algorithm was running, and every float in its saved state finite. The
+    backend's own loader then checks the state's fields (``ExperimentBatch.load_state_dict``,
+    ``OnlineCollector.load_state_dict``) before anything reaches the kernel."""
+
+    def refuse(what: str) -> typing.NoReturn:
+        raise checkpoint.CheckpointError(f"checkpoint {resume.path} is not usable: {what}")
+
+    count = len(config.worlds) * config.seeds
+    experiments_total = count * len(config.algorithms)
+    episodes_total = experiments_total * config.runs * config.episodes
+    if resume.backend not in BACKENDS[1:]:
+        refuse(f"backend={resume.backend!r} is not one of {', '.join(BACKENDS[1:])}")
+    if not 0 <= resume.episodes_completed <= episodes_total:
+        refuse(f"episodes_completed={resume.episodes_completed} is not in [0, {episodes_total}]")
+    if not 0 <= resume.experiments_finished <= experiments_total:
+        refuse(
+            f"experiments_finished={resume.experiments_finished} is not in [0, {experiments_total}]"
+        )
+    finished = list(resume.finished)
+    if finished != list(config.algorithms[: len(finished)]):
+        refuse(f"finished={finished} are not the first algorithms of {list(config.algorithms)}")
+    shape = (count, config.runs, config.episodes)
+    for algorithm, metrics in resume.finished.items():
+        if not isinstance(metrics, dict) or sorted(metrics) != sorted(METRIC_DTYPES):
+            refuse(f"finished[{algorithm!r}] must hold the metrics {', '.join(METRIC_DTYPES)}")
+        for name, dtype in METRIC_DTYPES.items():
+            check_metric(f"finished[{algorithm!r}][{name!r}]", metrics[name], shape, dtype,
+                         config.max_steps, refuse)  # fmt: skip
+    running = resume.running
+    if running is not None:
+        if set(running) != {"algorithm", "state"} or not isinstance(running["state"], dict):
+            refuse("running must hold an algorithm and its state")
+        expected = (
+            config.algorithms[len(finished)] if len(finished) < len(config.algorithms) else None
+        )
+        if running["algorithm"] != expected:
+            refuse(f"running algorithm {running['algorithm']!r} is not the next one, {expected!r}")
+        for where, tensor in _tensors(running["state"], "running state"):
+            if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+                refuse(f"{where} holds NaN or infinite values")
+
+
+#: dtype of every per-episode metric ``[S, runs, episodes]``.
+METRIC_DTYPES = {
+    "steps": torch.int64,
+    "collisions": torch.int64,
+    "greedy_collisions": torch.int64,
+    "task_return": torch.float32,
+}
+
+
+def check_metric(
+    where: str,
+    value: Any,
+    shape: tuple[int, ...],
+    dtype: torch.dtype,
+    max_steps: int,
+    refuse: Callable[[str], typing.NoReturn],
+) -> None:
+    """Refuse a per-episode metric that is not a ``shape`` tensor of ``dtype`` with values an
+    episode of at most ``max_steps`` steps can have (counts in ``[0, max_steps]``, returns
+    finite and in ``[-max_steps, 0]``)."""
+    if not isinstance(value, torch.Tensor):
+        refuse(f"{where} is a {type(value).__name__}, not a tensor")
+    if tuple(value.shape) != shape or value.dtype != dtype:
+        refuse(
+            f"{where} has shape {tuple(value.shape)} and dtype {value.dtype}, expected {shape} "
+            f"and {dtype}"
+        )
+    if value.numel() == 0:
+        return
+    if dtype.is_floating_point:
+        if not bool(torch.isfinite(value).all()):
+            refuse(f"{where} holds NaN or infinite values")
+        low, high = -float(max_steps), 0.0
+    else:
+        low, high = 0, max_steps
+    if bool((value < low).any()) or bool((value > high).any()):
+        refuse(f"{where} holds values outside [{low:g}, {high:g}]")
+
+
+def _tensors(tree: Any, where: str):
+    """``(path, tensor)`` for every tensor in nested dicts and lists."""
+    if isinstance(tree, torch.Tensor):
+        yield where, tree
+    elif isinstance(tree, dict):
+        for key, value in tree.items():
+            yield from _tensors(value, f"{where}[{key!r}]")
+    elif isinstance(tree, list | tuple):
+        for index, value in enumerate(tree):
+            yield from _tensors(value, f"{where}[{index}]")
 
 
 #: Config fields a resumed run may change: they do not change the numbers.
