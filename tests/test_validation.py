@@ -405,6 +405,8 @@ TRIED = [
     factorq("compare --force --seeds 0", rf"--seeds=0 {RANGE} in \[1, 2147483647\]"),
     factorq("compare --out {locked}", r"--out='.*live' is in use by another factorq run \(pid 4242\)"),
     factorq("compare --out /proc/factorq-out", r"--out='/proc/factorq-out' is not writable: "),
+    factorq("compare --resume {missing}", r"--resume='.*missing' does not exist: give the --out directory of an interrupted run"),
+    factorq("compare --resume {checkpoint}", r"checkpoint .*checkpoint.pt is not a factorq compare checkpoint"),
     factorq("compare --sides 4", r"factorq compare: error: unrecognized arguments: --sides 4"),
     # factorq report, factorq
     factorq("report {tmp}", r"results.json does not exist: run `factorq paper --out"),

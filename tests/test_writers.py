@@ -109,3 +109,53 @@ def test_compare_replaces_its_files_and_logs_as_a_set(tmp_path, monkeypatch):
     assert all(len(lines) == len(set(lines)) for lines in rows)  # nothing appended twice
     assert not [path for path in out.iterdir() if path.name.endswith(".tmp")]
     assert Path(out / "logs").is_dir()
+
+
+COMPARED = ["--methods", "factor-q,q-learning,dqn", "--seeds", "2", "--steps", "1500"]
+COMPARED += ["--size", "5", "--obstacles", "2", "--out", "run"]
+
+
+def without_wall_time(text: str) -> dict:
+    results = json.loads(text)
+    results.pop("timing")
+    for worlds in results["results"].values():
+        for cell in worlds.values():
+            cell.pop("wall_s")
+    return results
+
+
+def test_a_comparison_killed_and_resumed_writes_the_same_results(tmp_path, monkeypatch):
+    reference_dir, killed_dir = tmp_path / "reference", tmp_path / "killed"
+    reference_dir.mkdir()
+    killed_dir.mkdir()
+    process = subprocess.Popen(
+        [sys.executable, "-m", "trainers.cli", "compare", *COMPARED],
+        cwd=killed_dir,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    saved = killed_dir / "run" / "checkpoint" / "checkpoint.pt"
+    try:
+        deadline = time.monotonic() + 300
+        while not saved.exists():
+            assert process.poll() is None and time.monotonic() < deadline, "no checkpoint"
+            time.sleep(0.01)
+        process.send_signal(signal.SIGKILL)
+        process.wait(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    assert not (killed_dir / "run" / "comparison.json").exists()
+    monkeypatch.chdir(killed_dir)
+    code, err = factorq("compare", "--resume", "run")
+    assert code == 0, err
+    assert not (killed_dir / "run" / "checkpoint").exists()
+    monkeypatch.chdir(reference_dir)
+    assert factorq("compare", *COMPARED)[0] == 0
+    resumed = (killed_dir / "run" / "comparison.json").read_text()
+    reference = (reference_dir / "run" / "comparison.json").read_text()
+    assert without_wall_time(resumed) == without_wall_time(reference)
+    for path in sorted((reference_dir / "run" / "logs").rglob("*.csv")):
+        twin = killed_dir / "run" / path.relative_to(reference_dir / "run")
+        assert twin.read_text() == path.read_text(), path  # the logs, row for row

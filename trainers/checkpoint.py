@@ -53,6 +53,8 @@ from typing import Any, NamedTuple
 import torch
 
 FORMAT = "factorq-paper-checkpoint"
+#: ``factorq compare``'s checkpoints: the traces of the methods finished so far.
+COMPARE_FORMAT = "factorq-compare-checkpoint"
 FORMAT_VERSION = 1
 DIRECTORY = "checkpoint"
 LATEST = "checkpoint.pt"
@@ -158,15 +160,16 @@ def _feed(hasher: Any, value: Any) -> None:
         hasher.update(f"{type(value).__name__}:{value!r};".encode())
 
 
-def save(out: str | os.PathLike, content: dict[str, Any]) -> Path:
-    """Write ``content`` as the newest checkpoint of ``out``, keeping the one before it."""
+def save(out: str | os.PathLike, content: dict[str, Any], kind: str = FORMAT) -> Path:
+    """Write ``content`` as the newest checkpoint of ``out``, keeping the one before it
+    (``kind``: the file's format name, ``FORMAT`` or ``COMPARE_FORMAT``)."""
     directory = directory_of(out)
     directory.mkdir(parents=True, exist_ok=True)
     latest, previous = directory / LATEST, directory / PREVIOUS
     pid = os.getpid()
     temporary = directory / f".{LATEST}.{pid}.tmp"
     link = directory / f".{PREVIOUS}.{pid}.tmp"
-    record = {"format": FORMAT, "version": FORMAT_VERSION, "sha256": digest(content)}
+    record = {"format": kind, "version": FORMAT_VERSION, "sha256": digest(content)}
     try:
         with open(temporary, "wb") as file:
             torch.save({**record, "content": content}, file)
@@ -238,6 +241,19 @@ class Checkpoint(NamedTuple):
 def read(path: str | os.PathLike) -> Checkpoint:
     """Read and check one checkpoint file; ``CheckpointError`` saying why it is unusable."""
     path = Path(path)
+    content = read_content(path, FORMAT)
+    try:
+        loaded = Checkpoint(
+            path=path, **{field: content[field] for field in Checkpoint._fields[1:]}
+        )
+    except (KeyError, TypeError) as error:
+        raise CheckpointError(f"checkpoint {path} lacks a field: {error}") from None
+    _check_field_types(loaded)
+    return loaded
+
+
+def read_content(path: Path, kind: str) -> dict[str, Any]:
+    """The content of the checkpoint file ``path`` of format ``kind``, its digest checked."""
     try:
         record = torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
@@ -246,8 +262,9 @@ def read(path: str | os.PathLike) -> Checkpoint:
         raise CheckpointError(
             f"checkpoint {path} is corrupted or truncated ({_why(error)})"
         ) from None
-    if not isinstance(record, dict) or record.get("format") != FORMAT:
-        raise CheckpointError(f"checkpoint {path} is not a factorq paper checkpoint")
+    if not isinstance(record, dict) or record.get("format") != kind:
+        command = "compare" if kind == COMPARE_FORMAT else "paper"
+        raise CheckpointError(f"checkpoint {path} is not a factorq {command} checkpoint")
     if record.get("version") != FORMAT_VERSION:
         raise CheckpointError(
             f"checkpoint {path} has format version {record.get('version')!r}; this factorq "
@@ -258,14 +275,7 @@ def read(path: str | os.PathLike) -> Checkpoint:
         raise CheckpointError(
             f"checkpoint {path} is corrupted or truncated (its content does not match its digest)"
         )
-    try:
-        loaded = Checkpoint(
-            path=path, **{field: content[field] for field in Checkpoint._fields[1:]}
-        )
-    except (KeyError, TypeError) as error:
-        raise CheckpointError(f"checkpoint {path} lacks a field: {error}") from None
-    _check_field_types(loaded)
-    return loaded
+    return content
 
 
 #: The type of every field of a checkpoint's content (its digest proves integrity, not origin:
@@ -320,7 +330,7 @@ def _why(error: BaseException) -> str:
     return f"{type(error).__name__}: {text}" if text else f"{type(error).__name__}: file ends early"
 
 
-def load(out: str | os.PathLike) -> Checkpoint:
+def load(out: str | os.PathLike, reader: Callable[[Path], Any] = read) -> Any:
     """The checkpoint to resume the run of ``out`` from (its newest one).
 
     Raises ``CheckpointError`` with one line saying what is wrong and what to do: ``out`` is not a
@@ -347,25 +357,25 @@ def load(out: str | os.PathLike) -> Checkpoint:
         )
     if not latest.exists():  # the newest was moved away (or a save was cut between renames)
         try:
-            return read(previous)
+            return reader(previous)
         except CheckpointError as error:
             raise CheckpointError(
                 f"{error}; no other checkpoint is left: start the run again"
             ) from None
     try:
-        return read(latest)
+        return reader(latest)
     except CheckpointError as error:
         if not previous.exists():
             raise CheckpointError(
                 f"{error}; there is no previous checkpoint ({previous}): start the run again"
             ) from None
         try:
-            fallback = read(previous)
+            fallback = reader(previous)
         except CheckpointError as second:
             raise CheckpointError(
                 f"{error}; the previous one is unusable too ({second}): start the run again"
             ) from None
-        done = f"{fallback.episodes_completed} episodes done"
+        done = getattr(fallback, "progress", None) or f"{fallback.episodes_completed} episodes done"
         raise CheckpointError(
             f"{error}; the previous checkpoint {previous} is intact ({done}): move the damaged "
             f"file away (e.g. mv {latest} {latest}.damaged) and resume again to continue from it"

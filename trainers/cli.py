@@ -100,6 +100,15 @@ def build_parser(*, compare_options: bool = True) -> argparse.ArgumentParser:
         compare_parser.add_argument(
             "--force", action="store_true", default=argparse.SUPPRESS, help=FORCE_HELP
         )
+        compare_parser.add_argument(
+            "--resume",
+            metavar="DIR",
+            help="Continue the interrupted comparison whose --out is DIR: the methods it had "
+            "finished (saved to DIR/checkpoint/ after each one) are not rerun, the others run "
+            "from their start, with the same numbers as an uninterrupted run (options repeated "
+            "must match; --threads may change).",
+            default=argparse.SUPPRESS,
+        )
     compare_parser.set_defaults(handler=_compare, command_parser=compare_parser)
     commands.add_parser("sweep", help=sweep.HELP, add_help=False)  # main hands it to trainers.sweep
     return parser
@@ -250,12 +259,24 @@ def _report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 def _compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     from trainers import compare, compare_report
 
+    resume = None
     try:
-        config = compare.CompareConfig(**options.given_options(args, compare.CompareConfig))
+        given = options.given_options(args, compare.CompareConfig)
+        if hasattr(args, "resume"):
+            resume = compare.load_checkpoint(args.resume)
+            config = compare.resume_config(resume.config, given, args.resume)
+        else:
+            config = compare.CompareConfig(**given)
         large = resources.check(
             resources.compare_estimate(config), "comparison", resources.COMPARE_HINT
         )
         executor = sweep.executor_from_args(args)  # None: in-process, as always
+        if executor is not None and resume is not None:
+            executor.close()
+            raise ValueError(
+                "resume does not apply to a run on a cluster: rerun it there (each method is "
+                "one task), or resume without --cluster and --scheduler"
+            )
     except (ValueError, TypeError) as error:
         _error(parser, _as_option(str(error), compare.CompareConfig))
         return EXIT_USAGE
@@ -275,7 +296,9 @@ def _compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
     outputs = (*compare_report.OUTPUT_FILES, compare_report.LOGS_DIRECTORY)
     try:
-        with outdir.claim(config.out, outputs=outputs, force=hasattr(args, "force")):
+        with outdir.claim(
+            config.out, outputs=outputs, force=hasattr(args, "force"), resume=resume is not None
+        ):
             print(
                 f"{len(config.methods)} methods x {len(config.worlds)} worlds x {config.seeds} "
                 f"seeds, {config.steps:,} env steps each",
@@ -285,8 +308,10 @@ def _compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             # and renamed into place with them: one run's logs, never appended to another's.
             logs = compare_report.staging_logs(config.out)
             try:
-                if executor is None:
-                    results = compare.run(config, progress, logs_dir=logs)
+                if executor is None:  # checkpoints after every method: a kill loses one at most
+                    results = compare.run(
+                        config, progress, logs_dir=logs, checkpoints=True, resume=resume
+                    )
                 else:  # one task per method
 
                     def summarise(config, runs):
@@ -295,15 +320,17 @@ def _compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
                     results = sweep.run_compare_on(executor, config, compare.run_method, summarise)
                 paths = compare_report.write_outputs(results, config.out, logs=logs)
+                checkpoint.remove(config.out)  # the outputs are complete: nothing to resume
             finally:
                 shutil.rmtree(logs, ignore_errors=True)  # renamed away unless the run failed
-    except outdir.OutputDirError as error:
+    except (outdir.OutputDirError, checkpoint.CheckpointError) as error:
         if executor is not None:
             executor.close()
         _error(parser, _as_option(str(error), compare.CompareConfig))
         return EXIT_USAGE
     except KeyboardInterrupt:
-        print(f"{parser.prog}: interrupted", file=sys.stderr)
+        kept = f" (resume it with --resume {config.out})" if checkpoint.exists(config.out) else ""
+        print(f"{parser.prog}: interrupted{kept}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except OSError as error:  # a full disk, a directory that vanished: say so in one line
         print(f"{parser.prog}: error: {error}", file=sys.stderr)

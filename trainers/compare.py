@@ -37,12 +37,14 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import os
 import time
+import typing
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -54,7 +56,7 @@ from factorq_torch.base.rng import STREAM_LOCAL_NETWORK, STREAM_POLICY, STREAM_T
 from factorq_torch.base.validation import check_float, check_names, check_threads
 from factorq_torch.collectors import OnlineCollector
 from factorq_torch.neural import ACTIVATIONS, LocalRewardNetwork, TaskQNetwork
-from trainers import dqn, experiment, resources
+from trainers import checkpoint, dqn, experiment, resources
 from trainers.dqn import METHODS, DQNConfig, batch_keys, check_hidden
 from trainers.experiment import WORLDS, EpisodeRecorder, ExperimentConfig
 from trainers.options import option
@@ -381,6 +383,197 @@ def config_dict(config: CompareConfig) -> dict[str, Any]:
     return json.loads(json.dumps(asdict(config)))
 
 
+_NESTED = {"agent": AgentConfig, "dqn": DQNConfig, "factor_dqn": FactorDQNConfig}
+
+
+def config_from_dict(data: dict[str, Any]) -> CompareConfig:
+    """The inverse of ``config_dict`` (unknown or malformed fields: ValueError or TypeError)."""
+    known = {field.name for field in fields(CompareConfig)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise ValueError(f"unknown config fields: {', '.join(unknown)}")
+
+    def plain(values: dict[str, Any]) -> dict[str, Any]:
+        return {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
+
+    values = plain(data)
+    for name, kind in _NESTED.items():
+        if name in values:
+            if not isinstance(values[name], dict):
+                raise TypeError(f"{name} must be a table of {kind.__name__} fields")
+            values[name] = kind(**plain(values[name]))
+    return CompareConfig(**values)
+
+
+# --------------------------------------------------------------------------------------------
+# Checkpoints: the finished methods' traces
+
+
+#: Config fields a resumed comparison may change: they do not change the numbers.
+RESUMABLE_CHANGES = ("out", "threads")
+_TRACE_ARRAYS = {
+    "steps": torch.int64,
+    "collisions": torch.int64,
+    "greedy_collisions": torch.int64,
+    "task_return": torch.float64,
+    "env_steps": torch.int64,
+    "epsilon": torch.float64,
+    "loss": torch.float64,
+}
+_TRACE_TOTALS = (
+    "total_collisions",
+    "total_greedy_collisions",
+    "total_boxed_in_greedy_collisions",
+    "total_env_steps",
+)
+
+
+class CompareCheckpoint(NamedTuple):
+    """A loaded ``factorq compare`` checkpoint: the config and the finished methods' runs."""
+
+    path: Path
+    config: dict[str, Any]
+    finished: dict[str, dict[str, Any]]
+
+    @property
+    def progress(self) -> str:
+        return f"{len(self.finished)} methods done"
+
+
+def save_checkpoint(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> Path:
+    """Save the finished methods' traces to ``out/checkpoint/`` (``trainers.checkpoint``)."""
+    finished = {}
+    for method, run in runs.items():
+        traces = [
+            {
+                key: torch.from_numpy(np.asarray(value)) if key in _TRACE_ARRAYS else value
+                for key, value in trace.items()
+            }
+            for trace in run["traces"]
+        ]
+        finished[method] = {"traces": traces, "wall_s": float(run["wall_s"])}
+    content = {"config": config_dict(config), "finished": finished}
+    return checkpoint.save(config.out, content, kind=checkpoint.COMPARE_FORMAT)
+
+
+def read_checkpoint(path: Path) -> CompareCheckpoint:
+    """One compare checkpoint file, its fields' types checked (``CheckpointError``)."""
+    content = checkpoint.read_content(path, checkpoint.COMPARE_FORMAT)
+    config, finished = content.get("config"), content.get("finished")
+    if not isinstance(config, dict) or not isinstance(finished, dict):
+        raise checkpoint.CheckpointError(
+            f"checkpoint {path} is not usable: it needs a config and the finished methods"
+        )
+    return CompareCheckpoint(path, config, finished)
+
+
+def load_checkpoint(out: str | os.PathLike) -> CompareCheckpoint:
+    """The newest checkpoint of the comparison writing to ``out`` (see ``checkpoint.load``)."""
+    return checkpoint.load(out, reader=read_checkpoint)
+
+
+def check_checkpoint(resume: CompareCheckpoint, config: CompareConfig) -> None:
+    """Refuse (``CheckpointError``, one line) a checkpoint that is not of ``config``'s run or
+    whose traces are malformed: every field's type, shape, dtype, range and finiteness."""
+
+    def refuse(what: str) -> typing.NoReturn:
+        raise checkpoint.CheckpointError(f"checkpoint {resume.path} is not usable: {what}")
+
+    if resume.config != {**config_dict(config), "out": resume.config.get("out"),
+                         "threads": resume.config.get("threads")}:  # fmt: skip
+        refuse("it was written by a run of another config")
+    experiments = config.experiments
+    labels = experiments.labels
+    for method, run in resume.finished.items():
+        if method not in config.methods:
+            refuse(f"finished method {method!r} is not one of {', '.join(config.methods)}")
+        if not isinstance(run, dict) or not isinstance(run.get("traces"), list):
+            refuse(f"finished[{method!r}] must hold traces")
+        wall = run.get("wall_s")
+        if not isinstance(wall, float) or not math.isfinite(wall) or wall < 0:
+            refuse(f"finished[{method!r}]['wall_s'] must be a finite number >= 0")
+        if len(run["traces"]) != len(labels):
+            refuse(f"finished[{method!r}] holds {len(run['traces'])} traces, not {len(labels)}")
+        converted = []
+        for (world, index), trace in zip(labels, run["traces"], strict=True):
+            converted.append(_check_trace(trace, world, index, experiments, refuse))
+        resume.finished[method] = {"traces": converted, "wall_s": wall}
+
+
+def _check_trace(trace, world, index, experiments, refuse) -> dict[str, Any]:
+    where = f"the trace of {world}/seed_{index}"
+    if (
+        not isinstance(trace, dict)
+        or trace.get("world") != world
+        or (trace.get("seed_index") != index)
+    ):
+        refuse(f"{where} is missing or out of order")
+    episodes = None
+    out: dict[str, Any] = {"world": world, "seed_index": index}
+    for name, dtype in _TRACE_ARRAYS.items():
+        value = trace.get(name)
+        if not isinstance(value, torch.Tensor) or value.dtype != dtype or value.dim() != 1:
+            refuse(f"{where}: {name} must be a 1-d {dtype} tensor")
+        episodes = value.numel() if episodes is None else episodes
+        if value.numel() != episodes:
+            refuse(f"{where}: {name} has {value.numel()} episodes, not {episodes}")
+        if name != "loss" and value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            refuse(f"{where}: {name} holds NaN or infinite values")
+        out[name] = value.numpy().copy()
+    limits = {
+        "steps": (1, experiments.max_steps),
+        "collisions": (0, experiments.max_steps),
+        "greedy_collisions": (0, experiments.max_steps),
+        "env_steps": (1, experiments.steps),
+        "epsilon": (0.0, 1.0),
+        "task_return": (-experiments.max_steps, 0),
+    }
+    for name, (low, high) in limits.items():
+        if episodes and (out[name].min() < low or out[name].max() > high):
+            refuse(f"{where}: {name} holds values outside [{low}, {high}]")
+    for name in _TRACE_TOTALS:
+        value = trace.get(name)
+        if not checkpoint_int(value) or not 0 <= value <= experiments.steps:
+            refuse(f"{where}: {name} must be an int in [0, {experiments.steps}]")
+        out[name] = value
+    return out
+
+
+def checkpoint_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def resume_config(
+    saved: dict[str, Any], given: dict[str, Any], directory: str | os.PathLike
+) -> CompareConfig:
+    """The config to resume the comparison of ``directory`` with: the checkpoint's, with the
+    ``given`` options that may change (``RESUMABLE_CHANGES``); any other must equal the saved
+    value."""
+    if "out" in given and Path(given["out"]).resolve() != Path(directory).resolve():
+        raise ValueError(
+            f"out='{given['out']}' differs from the resumed directory '{directory}': a resumed "
+            f"run writes where its checkpoint is (leave --out out)"
+        )
+    try:
+        checkpointed = config_from_dict({**saved, "out": str(directory)})
+    except (ValueError, TypeError) as error:
+        raise checkpoint.CheckpointError(
+            f"resume='{directory}': the checkpoint's config is unusable here ({error})"
+        ) from None
+    merged = config_from_dict({**config_dict(checkpointed), **given, "out": str(directory)})
+    differing = [
+        f"{name}={value!r} given, {saved.get(name)!r} in the checkpoint"
+        for name, value in config_dict(merged).items()
+        if name not in RESUMABLE_CHANGES and saved.get(name) != value
+    ]
+    if differing:
+        raise ValueError(
+            f"resume='{directory}' has a checkpoint of a different config: "
+            f"{'; '.join(differing)} (leave these options out to resume it)"
+        )
+    return merged
+
+
 # --------------------------------------------------------------------------------------------
 # Running
 
@@ -427,22 +620,37 @@ def run(
     progress: Progress | None = None,
     *,
     logs_dir: str | os.PathLike | None = None,
+    checkpoints: bool = False,
+    resume: CompareCheckpoint | None = None,
 ) -> dict[str, Any]:
     """Run every selected method on every selected world; return the ``comparison.json`` dict.
 
     ``logs_dir``: where to write the per-episode logs (``write_logs``) when the run is over
     (``factorq compare`` gives a staging directory that ``compare_report.write_outputs`` renames
-    to ``out/logs`` with the other outputs); None writes none."""
+    to ``out/logs`` with the other outputs); None writes none.
+
+    ``checkpoints``: save the traces of the finished methods to ``out/checkpoint/`` after each
+    method (the caller removes them once the outputs are written); ``resume``
+    (``load_checkpoint(out)``) skips the methods it holds. A method's numbers do not depend on
+    the others (``run_method``), so a resumed run gives the numbers of an uninterrupted one."""
     started = time.perf_counter()
     estimate = resources.compare_estimate(config)
     resources.check(estimate, "comparison", resources.COMPARE_HINT)  # before any allocation
     threads = torch.get_num_threads()
     torch.set_num_threads(config.threads)
+    if resume is not None:
+        check_checkpoint(resume, config)
+    elif checkpoints:
+        checkpoint.check_none_in(config.out)
     try:
-        runs = {}
+        runs = {} if resume is None else dict(resume.finished)
         for method in config.methods:
+            if method in runs:
+                continue
             report = None if progress is None else (lambda d, t, m=method: progress(m, d, t))
             runs[method] = run_method(config, method, report)
+            if checkpoints and len(runs) < len(config.methods):
+                save_checkpoint(config, runs)
     finally:
         torch.set_num_threads(threads)
     if logs_dir is not None:
