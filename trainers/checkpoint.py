@@ -242,6 +242,11 @@ def read(path: str | os.PathLike) -> Checkpoint:
     """Read and check one checkpoint file; ``CheckpointError`` saying why it is unusable."""
     path = Path(path)
     content = read_content(path, FORMAT)
+    unknown = sorted(map(str, set(content) - set(Checkpoint._fields[1:])))
+    if unknown:
+        raise CheckpointError(
+            f"checkpoint {path} is not usable: unknown fields {', '.join(unknown)}"
+        )
     try:
         loaded = Checkpoint(
             path=path, **{field: content[field] for field in Checkpoint._fields[1:]}

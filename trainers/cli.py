@@ -172,6 +172,7 @@ def _paper(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         if hasattr(args, "resume"):
             resume = checkpoint.load(args.resume)
             config = paper.resume_config(resume.config, _given_options(args), args.resume)
+            paper.check_checkpoint(resume, config)  # the whole content, before any output
         else:
             config = paper.PaperConfig(**_given_options(args))
         backend = paper.resolve_backend(config)
