@@ -159,3 +159,18 @@ def test_a_comparison_killed_and_resumed_writes_the_same_results(tmp_path, monke
     for path in sorted((reference_dir / "run" / "logs").rglob("*.csv")):
         twin = killed_dir / "run" / path.relative_to(reference_dir / "run")
         assert twin.read_text() == path.read_text(), path  # the logs, row for row
+
+
+@needs_fast
+def test_a_finished_sweep_is_replaced_only_with_force(tmp_path):
+    out = tmp_path / "sweep"
+    args = ["sweep", "--grid", "eta=0.05,0.1", "--set", "runs=1", "--set", "episodes=3"]
+    args += ["--set", "size=4", "--set", "obstacles=1", "--seeds", "2", "--out", str(out)]
+    assert factorq(*args)[0] == 0
+    before = (out / "sweep.json").read_bytes()
+    code, err = factorq(*args)
+    assert code == 2 and "already holds sweep.json, sweep.md from an earlier run" in err, err
+    assert "--out=" in err and len(err.strip().splitlines()) == 1
+    assert (out / "sweep.json").read_bytes() == before
+    assert factorq(*args, "--force")[0] == 0  # its shards are reused: the same numbers
+    assert json.loads((out / "sweep.json").read_text())["configurations"]

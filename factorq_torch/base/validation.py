@@ -101,3 +101,27 @@ def check_device(name: str, value):
             f"{name}={value!r} is not available on this machine ({reason}): use {name}='cpu'"
         ) from None
     return device
+
+
+def check_finite(owner: str, name: str, values):
+    """Return ``values`` (a tensor ``[S, ...]``) if every entry is finite, else raise a
+    ValueError naming ``owner``, the key and the first experiment (leading index) at fault.
+
+    Cheap enough to stay on (one fused reduction over a few entries per experiment; on an
+    accelerator it waits for the values once per call): a NaN or infinite value fed to a policy
+    or a loss would otherwise spread silently through argmax ties and targets.
+    """
+    import torch
+
+    if values.is_floating_point() and not bool(torch.isfinite(values).all()):
+        bad = (
+            (~torch.isfinite(values)).reshape(values.shape[0], -1).any(dim=1)
+            if values.dim()
+            else None
+        )
+        where = "" if bad is None else f" (experiment {int(bad.nonzero()[0, 0])} first)"
+        raise ValueError(
+            f"{owner}: {name} holds NaN or infinite values{where}: a table or network diverged "
+            f"or was loaded from a bad state"
+        )
+    return values
