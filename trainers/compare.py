@@ -460,6 +460,11 @@ def read_checkpoint(path: Path) -> CompareCheckpoint:
     """One compare checkpoint file, its fields' types checked (``CheckpointError``)."""
     content = checkpoint.read_content(path, checkpoint.COMPARE_FORMAT)
     config, finished = content.get("config"), content.get("finished")
+    if set(content) != {"config", "finished"}:
+        raise checkpoint.CheckpointError(
+            f"checkpoint {path} is not usable: it must hold exactly a config and the finished "
+            f"methods, not {', '.join(sorted(map(str, content)))}"
+        )
     if not isinstance(config, dict) or not isinstance(finished, dict):
         raise checkpoint.CheckpointError(
             f"checkpoint {path} is not usable: it needs a config and the finished methods"
@@ -487,8 +492,10 @@ def check_checkpoint(resume: CompareCheckpoint, config: CompareConfig) -> None:
     for method, run in resume.finished.items():
         if method not in config.methods:
             refuse(f"finished method {method!r} is not one of {', '.join(config.methods)}")
-        if not isinstance(run, dict) or not isinstance(run.get("traces"), list):
-            refuse(f"finished[{method!r}] must hold traces")
+        if not isinstance(run, dict) or set(run) != {"traces", "wall_s"}:
+            refuse(f"finished[{method!r}] must hold exactly traces and wall_s")
+        if not isinstance(run["traces"], list):
+            refuse(f"finished[{method!r}]['traces'] must be a list")
         wall = run.get("wall_s")
         if not isinstance(wall, float) or not math.isfinite(wall) or wall < 0:
             refuse(f"finished[{method!r}]['wall_s'] must be a finite number >= 0")
@@ -508,6 +515,9 @@ def _check_trace(trace, world, index, experiments, refuse) -> dict[str, Any]:
         or (trace.get("seed_index") != index)
     ):
         refuse(f"{where} is missing or out of order")
+    known = {"world", "seed_index", *_TRACE_ARRAYS, *_TRACE_TOTALS}
+    if set(trace) != known:
+        refuse(f"{where} must hold exactly {', '.join(sorted(known))}")
     episodes = None
     out: dict[str, Any] = {"world": world, "seed_index": index}
     for name, dtype in _TRACE_ARRAYS.items():
@@ -517,8 +527,8 @@ def _check_trace(trace, world, index, experiments, refuse) -> dict[str, Any]:
         episodes = value.numel() if episodes is None else episodes
         if value.numel() != episodes:
             refuse(f"{where}: {name} has {value.numel()} episodes, not {episodes}")
-        if name != "loss" and value.is_floating_point() and not bool(torch.isfinite(value).all()):
-            refuse(f"{where}: {name} holds NaN or infinite values")
+        if bool(torch.isinf(value).any()) or (name != "loss" and bool(torch.isnan(value).any())):
+            refuse(f"{where}: {name} holds NaN or infinite values")  # a loss is NaN w/o updates
         out[name] = value.numpy().copy()
     limits = {
         "steps": (1, experiments.max_steps),
