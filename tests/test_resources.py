@@ -94,3 +94,13 @@ def test_a_malformed_memory_limit_is_one_line(value, monkeypatch):
 def test_the_least_limit_wins(monkeypatch):
     monkeypatch.setenv(resources.LIMIT_VARIABLE, "12345")
     assert resources.available_memory() == (12345, resources.LIMIT_VARIABLE)
+
+
+def test_a_sweep_that_does_not_fit_is_refused_before_any_work(tmp_path, monkeypatch):
+    monkeypatch.setenv(resources.LIMIT_VARIABLE, str(16 * 2**30))
+    out = tmp_path / "sweep"
+    code, err = run_cli(f"sweep --grid eta=0.1,0.2 --seeds 10000000 --out {out}", tmp_path)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, err
+    assert re.search(r"factorq sweep: error: this sweep needs about .* TiB .* but 16.0 GiB", err)
+    assert not out.exists()

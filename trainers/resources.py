@@ -24,6 +24,7 @@ True
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -137,6 +138,29 @@ def paper_estimate(config: Any, checkpointing: bool = False) -> Estimate:
     return Estimate(parts, episodes * len(config.algorithms) * shortest, exact_steps=False)
 
 
+def sweep_estimate(configs: list[Any], shard_seeds: int, workers: int) -> Estimate:
+    """Peak memory of a sweep on this machine: ``workers`` shards of the largest configuration
+    at once (``shard_seeds`` seeds each; ``workers`` local processes, 1 in-process), plus the
+    metrics and curves of the largest configuration, gathered here for its summary."""
+    shard = max(
+        (
+            paper_estimate(replace(config, seeds=min(shard_seeds, config.seeds)))
+            for config in configs
+        ),
+        key=lambda estimate: estimate.bytes,
+    )
+    gathered = max(
+        (paper_estimate(config) for config in configs),
+        key=lambda estimate: estimate.parts["metrics"],
+    )
+    parts = {
+        "shards at once": shard.bytes * max(workers, 1),
+        "gathered metrics": gathered.parts["metrics"] + gathered.parts["curves"],
+    }
+    steps = sum(paper_estimate(config).env_steps for config in configs)
+    return Estimate(parts, steps, exact_steps=False)
+
+
 def compare_estimate(config: Any) -> Estimate:
     """Peak memory of ``factorq compare`` with ``config`` (a ``CompareConfig``): the largest
     method's tables, networks and replay buffer, and every method's per-episode records (kept
@@ -222,3 +246,4 @@ def info(estimate: Estimate) -> dict[str, Any]:
 #: What to make smaller, per command.
 PAPER_HINT = "use fewer --seeds, --runs or --episodes, or a smaller --size"
 COMPARE_HINT = "use fewer --seeds or --steps, or a smaller --size"
+SWEEP_HINT = "use fewer --seeds, --shard-seeds or --cluster workers, or smaller configurations"

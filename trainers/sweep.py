@@ -42,6 +42,7 @@ import argparse
 import functools
 import itertools
 import math
+import os
 import sys
 import time
 import tomllib
@@ -56,7 +57,7 @@ import numpy as np
 import torch
 
 from factorq_torch.base.validation import INT32_MAX, check_int
-from trainers import claims, cluster, outdir, paper, shards, stats
+from trainers import claims, cluster, outdir, paper, resources, shards, stats
 from trainers import results as result_files
 
 EXIT_USAGE = 2
@@ -793,6 +794,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         spec = spec_from_args(args)
         where = where_from_args(args)
+        workers = 1 if where.local_workers is None else where.local_workers or os.cpu_count() or 1
+        estimate = resources.sweep_estimate(spec.configurations(), spec.shard_seeds, workers)
+        large = resources.check(estimate, "sweep", resources.SWEEP_HINT)
+        if large is not None:
+            print(large, file=sys.stderr)
         executor = cluster.open_executor(where)  # before anything is written
     except (ValueError, TypeError) as error:
         print(f"{parser.prog}: error: {error}", file=sys.stderr)
