@@ -29,7 +29,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from envs.world import WORLD_PERIODS, WORLDS, WorldConfig
+from envs.world import NUM_ACTIONS, WORLD_PERIODS, WORLDS, WorldConfig
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
 from factorq_torch.base.validation import (
@@ -229,7 +229,13 @@ def _run_fast(job: Job) -> dict[str, torch.Tensor]:
         policy_keys,
         threads=config.threads,
     )
-    checkpoints.restore(algorithm, batch.load_state_dict)
+    fresh = batch.state_dict()
+
+    def load_state(state: dict[str, Any]) -> None:
+        check_state(state, fresh, config, periods)  # before anything reaches the kernel
+        batch.load_state_dict(state)
+
+    checkpoints.restore(algorithm, load_state)
     finished = batch.experiments_finished
     # Chunks of about a quarter of a second keep the progress bar alive, Ctrl-C prompt and
     # checkpoints on time; results do not depend on the chunking.
@@ -265,7 +271,18 @@ def _run_modular(job: Job) -> dict[str, torch.Tensor]:
         env, policy, loss, runs=config.runs, episodes=config.episodes, progress=report
     )
 
+    fresh = {
+        "collector": _to_device(collector.state_dict(), torch.device("cpu")),
+        "world_state": _to_device(grid.world_state._asdict(), torch.device("cpu")),
+    }
+    # A new collector has not stepped: the observation the next step acts on is made here from
+    # the world state's shapes, the env's keys and the policy's outputs.
+    fresh["collector"]["observation"] = _observation_like(
+        fresh["world_state"], with_local=local is not None
+    )
+
     def load_state(state: dict[str, Any]) -> None:
+        check_state(state, fresh, config, periods)
         collector.load_state_dict(_to_device(state["collector"], device))
         saved = state["world_state"]
         for name, tensor in grid.world_state._asdict().items():
@@ -438,6 +455,135 @@ def check_checkpoint(resume: checkpoint.Checkpoint, config: PaperConfig) -> None
         for where, tensor in _tensors(running["state"], "running state"):
             if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
                 refuse(f"{where} holds NaN or infinite values")
+
+
+def check_state(
+    saved: Any, fresh: Any, config: PaperConfig, periods: torch.Tensor, where: str = "state"
+) -> None:
+    """Refuse (ValueError naming the entry) a saved driver state that is not shaped like
+    ``fresh`` (the state of a new batch of this run: same keys, list lengths, tensor shapes and
+    dtypes, equal constants, equal stream keys) or holds a value no run of ``config`` can reach:
+    a cell off the grid, a counter below 0 or above what ``runs x episodes x max_steps`` steps
+    can count, a run or an episode past the end, a local reward outside ``[-1, 0]``, NaN or
+    infinite numbers, obstacles that are not ``config.obstacles`` cells off the start and goal
+    and the agent (the static layout in a static world)."""
+    if isinstance(fresh, dict) and where.endswith("['observation']") and saved is None:
+        return  # saved before the first step
+    if isinstance(fresh, dict):
+        if fresh.keys() != (saved.keys() if isinstance(saved, dict) else None):
+            raise ValueError(f"{where} must hold exactly the entries {sorted(map(str, fresh))}")
+        for key in fresh:
+            check_state(saved[key], fresh[key], config, periods, f"{where}[{key!r}]")
+        _check_world(saved, config, periods, where)
+    elif isinstance(fresh, list):
+        if not isinstance(saved, list) or len(saved) != len(fresh):
+            raise ValueError(f"{where} must be a list of {len(fresh)} entries")
+        for index, (item, reference) in enumerate(zip(saved, fresh, strict=True)):
+            check_state(item, reference, config, periods, f"{where}[{index}]")
+    elif isinstance(fresh, torch.Tensor):
+        if not isinstance(saved, torch.Tensor):
+            raise ValueError(f"{where} must be a tensor, got {type(saved).__name__}")
+        if saved.shape != fresh.shape or saved.dtype != fresh.dtype:
+            raise ValueError(
+                f"{where} has shape {tuple(saved.shape)} and dtype {saved.dtype}, expected "
+                f"{tuple(fresh.shape)} and {fresh.dtype}"
+            )
+        _check_values(saved, fresh, config, where)
+    elif type(saved) is not type(fresh) or saved != fresh:
+        raise ValueError(f"{where}={saved!r} differs from this run's {fresh!r}")
+
+
+def _observation_like(world_state: dict[str, torch.Tensor], with_local: bool) -> dict[str, Any]:
+    """Zeros shaped like the observation ``OnlineCollector.state_dict`` saves for this batch."""
+    count, actions = world_state["bump"].shape
+
+    def zeros(dtype, *shape):
+        return torch.zeros(count, *shape, dtype=dtype)
+
+    observation = {
+        "cell": zeros(torch.int64),
+        "proximity": zeros(torch.bool, actions),
+        "bump": zeros(torch.bool, actions),
+        "collision": zeros(torch.float32, actions),
+        "collector": {
+            "mask": zeros(torch.bool),
+            "run": zeros(torch.int64),
+            "episode": zeros(torch.int64),
+        },
+        "action_value": zeros(torch.float32, actions),
+        "action": zeros(torch.int64),
+        "exploratory": zeros(torch.bool),
+        "done": zeros(torch.bool, 1),
+        "terminated": zeros(torch.bool, 1),
+        "truncated": zeros(torch.bool, 1),
+    }
+    if with_local:
+        observation["local_value"] = zeros(torch.float32, actions)
+        observation["combined_value"] = zeros(torch.float32, actions)
+    return observation
+
+
+def _check_values(value: torch.Tensor, fresh: torch.Tensor | None, config, where: str) -> None:
+    name = where.rsplit("[", 1)[-1].strip("]'").rsplit(".", 1)[-1].rsplit("/", 1)[-1]
+    if value.numel() == 0 or value.dtype == torch.bool:
+        return
+    if "keys" in name or name == "periods":  # the batch's identity: the run's own streams
+        if fresh is None or not torch.equal(value, fresh):
+            raise ValueError(f"{where} belongs to a different batch")
+        return
+    if value.is_floating_point():
+        if not bool(torch.isfinite(value).all()):
+            raise ValueError(f"{where} holds NaN or infinite values")
+        low, high = {"rho": (-1.0, 0.0), "local_value": (-1.0, 0.0)}.get(name, (None, None))
+        if "return" in name:
+            low, high = -float(config.max_steps), 0.0
+    else:
+        steps = config.runs * config.episodes * (config.max_steps + 1) + 1
+        cells = config.size**2
+        low, high = (
+            0,
+            {
+                "cell": cells - 1,
+                "action": NUM_ACTIONS - 1,
+                "run": config.runs,
+                "run_index": config.runs,
+                "episode": config.episodes - 1,
+                "episode_index": config.episodes - 1,
+                "episode_step": config.max_steps - 1,
+            }.get(
+                name, config.max_steps if name in METRIC_NAMES or "collisions" in name else steps
+            ),
+        )
+    if low is not None and (bool((value < low).any()) or bool((value > high).any())):
+        raise ValueError(f"{where} holds values outside [{low}, {high}]")
+
+
+#: Names of per-episode counts (metrics and the running episode's sums): at most max_steps.
+METRIC_NAMES = ("steps", "collisions", "greedy_collisions")
+
+
+def _check_world(state: dict[str, Any], config: PaperConfig, periods: torch.Tensor, where) -> None:
+    """The obstacles and the agent of a saved world state (``obstacles`` ``[S, N]`` bool beside
+    ``cell`` ``[S]``): ``config.obstacles`` cells per world, never the start, the goal or the
+    agent's cell, the static layout where the world is static."""
+    obstacles, cell = state.get("obstacles"), state.get("cell")
+    if not isinstance(obstacles, torch.Tensor) or not isinstance(cell, torch.Tensor):
+        return
+    if obstacles.dtype != torch.bool or obstacles.dim() != 2 or cell.shape != obstacles.shape[:1]:
+        return  # the shape checks name it
+    if bool((obstacles.sum(dim=1) != config.obstacles).any()):
+        raise ValueError(f"{where}['obstacles'] must hold obstacles={config.obstacles} per world")
+    if bool(obstacles[:, 0].any()) or bool(obstacles[:, -1].any()):
+        raise ValueError(f"{where}['obstacles'] covers the start or the goal")
+    inside = (cell >= 0) & (cell < obstacles.shape[1])
+    if bool(inside.all()) and bool(obstacles.gather(1, cell.unsqueeze(1)).any()):
+        raise ValueError(f"{where}['cell'] is on an obstacle")
+    static = periods == 0
+    if bool(static.any()) and config.obstacles:
+        from envs.world import static_layout
+
+        if not bool((obstacles[static] == static_layout(config.world)).all()):
+            raise ValueError(f"{where}['obstacles'] of a static world is not its layout")
 
 
 #: dtype of every per-episode metric ``[S, runs, episodes]``.
