@@ -322,6 +322,19 @@ def kernel_scatter(
     return blocked.bool()
 
 
+def unsupported_reason(world: WorldConfig) -> str | None:
+    """Why the kernel cannot run ``world`` (its body, sensors or noise), or None when it can."""
+    if world.is_paper_body:
+        return None
+    return (
+        f"it runs the paper's body only (translate, cross, no distractors, permutation or "
+        f"noise), not body={world.body}, sensors={world.sensors}, "
+        f"num_distractors={world.num_distractors}, sensor_noise={world.sensor_noise}, "
+        f"actuator_noise={world.actuator_noise}"
+        + ("" if world.sensor_permutation is None else ", permuted")
+    )
+
+
 def _pool(workers: int) -> ThreadPoolExecutor:
     """A process-wide pool of at least ``workers`` helper threads (kept between calls: starting
     threads on every ``advance`` costs more than short chunks of work)."""
@@ -395,6 +408,9 @@ class ExperimentBatch:
             raise TypeError(f"world must be a WorldConfig, got {type(world).__name__}")
         if not isinstance(agent, AgentConfig):
             raise TypeError(f"agent must be an AgentConfig, got {type(agent).__name__}")
+        unsupported = unsupported_reason(world)
+        if unsupported is not None:
+            raise ValueError(f"world: the fast path cannot run this world: {unsupported}")
         periods = _check_vector("periods", periods, None)
         if bool((periods < 0).any()):
             raise ValueError(

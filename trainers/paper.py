@@ -30,6 +30,7 @@ import json
 import math
 import os
 import platform
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
@@ -107,6 +108,18 @@ class PaperConfig:
     """Experiment driver: fast (compiled), modular (torchrl), auto (fast if it is available)."""
     device: str = "cpu"
     """Torch device (the fast backend runs on cpu only)."""
+    body: str = "translate"
+    """Agent body: translate (the paper: moves N/W/S/E) or heading (forward, turn left/right)."""
+    sensors: str = "cross"
+    """Sensor layout: cross (the paper: 4 neighbours) or ring (8 neighbours)."""
+    distractors: int = 0
+    """Extra sensor bits that carry no information (fresh fair coins at every observation)."""
+    sensor_permutation: int | None = None
+    """Seed of a random order in which the agent receives its sensors (default: layout order)."""
+    sensor_noise: float = 0.0
+    """Probability that each sensor bit is flipped at each observation, in [0, 1]."""
+    actuator_noise: float = 0.0
+    """Probability that another actuator fires than the chosen one, in [0, 1]."""
 
     def __post_init__(self) -> None:
         check_int("seed", self.seed, 0, _MAX_SEED)
@@ -128,6 +141,10 @@ class PaperConfig:
             self, "algorithms", check_names("algorithms", self.algorithms, ALGORITHMS)
         )
         _ = self.agent  # AgentConfig validates epsilon, gamma, alpha, eta and g_min
+        try:
+            _ = self.world  # WorldConfig validates the body, sensors, permutation and noise
+        except (ValueError, TypeError) as error:
+            raise type(error)(str(error).replace("num_distractors", "distractors")) from None
         if self.threads is not None:
             check_int("threads", self.threads, 1)
         if self.backend not in BACKENDS:
@@ -167,6 +184,12 @@ class PaperConfig:
             obstacle_period=0,
             max_steps=self.max_steps,
             layout_seed=self.layout_seed,
+            body=self.body,
+            sensors=self.sensors,
+            num_distractors=self.distractors,
+            sensor_permutation=self.sensor_permutation,
+            sensor_noise=self.sensor_noise,
+            actuator_noise=self.actuator_noise,
         )
 
     @property
@@ -222,8 +245,12 @@ def resolve_backend(config: PaperConfig) -> str:
     on_cpu = torch.device(config.device).type == "cpu"
     if config.backend == "fast" and not fast.is_available():
         raise ValueError(f"backend='fast' is unavailable here: {fast.unavailable_reason()}")
+    unsupported = fast.unsupported_reason(config.world)
+    if config.backend == "fast" and unsupported is not None:
+        raise ValueError(f"backend='fast' cannot run this config: {unsupported}")
     if config.backend == "auto":
-        return "fast" if on_cpu and fast.is_available() else "modular"
+        usable = on_cpu and fast.is_available() and unsupported is None
+        return "fast" if usable else "modular"
     return config.backend
 
 
@@ -323,12 +350,26 @@ def _run_modular(
         layout_seed=world.layout_seed,
         batch_size=(num,),
         device=device,
+        body=world.body,
+        sensors=world.sensors,
+        num_distractors=world.num_distractors,
+        sensor_permutation=world.sensor_permutation,
+        sensor_noise=world.sensor_noise,
+        actuator_noise=world.actuator_noise,
     )
     env.world_keys = world_keys.to(device)
     factorq = algorithm == "factor-q"
-    task = TaskQTable(num, world.num_cells, with_proximity=not factorq, device=device)
-    if factorq:
-        local = LocalRewardTable(num, device=device)
+    task = TaskQTable(
+        num,
+        world.num_cells,
+        with_sensors=not factorq,
+        num_sensors=world.num_sensors,
+        num_headings=world.num_headings,
+        num_actions=world.num_actuators,
+        device=device,
+    )
+    if factorq:  # the oracle: the local tables are given the body's true dependency
+        local = LocalRewardTable(num, dependency=grid.dependency, device=device)
         chooser = FactorQPolicy(
             num,
             keys=policy_keys,
@@ -423,6 +464,16 @@ def run(
     started = time.perf_counter()
     backend = resolve_backend(config)
     driver = backend_driver(backend)
+    if backend == "modular" and config.backend == "auto":
+        from trainers import fast
+
+        unsupported = fast.unsupported_reason(config.world)
+        if unsupported is not None:  # the one-line notice of a fall-back (issue 11)
+            print(
+                f"factorq: the fast path cannot run this config ({unsupported}): running on "
+                f"the modular torchrl path",
+                file=sys.stderr,
+            )
     if resume is not None:
         _check_same_config(resume.config, config_dict(config), f"resume='{resume.path.parents[1]}'")
     if checkpoint_every is None and resume is not None:
