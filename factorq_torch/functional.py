@@ -92,10 +92,13 @@ def project_local(
     each actuator's local reward table read at the pattern of its parent sensors.
 
     Shapes: ``rho [..., A, P]`` (``P >= 2**max_a |D(a)|``), ``readings [..., K]`` bool,
-    ``dependency [A, K]`` bool -> ``[..., A]``. The paper's body: ``rho(o) = (rho_0[o_0], ...,
-    rho_3[o_3])``.
+    ``dependency [A, K]`` bool -> ``[..., A]`` (leading dimensions broadcast). The paper's body:
+    ``rho(o) = (rho_0[o_0], ..., rho_3[o_3])``.
     """
     pattern = local_patterns(readings, dependency)  # [..., A]
+    leading = torch.broadcast_shapes(rho.shape[:-2], pattern.shape[:-1])
+    rho = rho.expand(*leading, *rho.shape[-2:])
+    pattern = pattern.expand(*leading, pattern.shape[-1])
     return rho.gather(-1, pattern.unsqueeze(-1)).squeeze(-1)
 
 
