@@ -205,6 +205,8 @@ def fast_row(what: str, call, error: type, pattern: str):
 
 RANGE = "is out of range: must be"
 UNUSABLE_CHECKPOINT = "is corrupted or truncated"
+
+
 def env_action(action: int):
     from tensordict import TensorDict
 
