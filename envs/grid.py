@@ -272,7 +272,8 @@ class FactoredGridEnv(EnvBase):
         ).to(self.device)
         # A new seed starts its streams at the beginning, so set_seed + reset replays exactly.
         self.world_state = self.world_state._replace(
-            scatters=torch.zeros_like(self.world_state.scatters)
+            scatters=torch.zeros_like(self.world_state.scatters),
+            ticks=torch.zeros_like(self.world_state.ticks),
         )
 
     # -- reset and step ------------------------------------------------------------------------

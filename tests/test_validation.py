@@ -261,7 +261,6 @@ TRIED = [
     factorq("paper --sensor-permutation -1", rf"--sensor-permutation=-1 {RANGE} >= 0"),
     factorq("paper --sensor-noise 1.5", rf"--sensor-noise=1.5 {RANGE} in \[0.0, 1.0\]"),
     factorq("paper --actuator-noise -0.1", rf"--actuator-noise=-0.1 {RANGE} in \[0.0, 1.0\]"),
-    factorq("paper --backend fast --body heading", r"backend='fast' cannot run this config: it runs the paper's body only"),
     factorq("paper --device toaster", r"--device='toaster' is not a torch device \(e.g. cpu, "),
     factorq(
         "paper --backend fast --device cuda",
