@@ -428,9 +428,11 @@ class ExploratoryEGreedy(TensorDictModuleBase):
 _STORED = (
     "cell",
     "proximity",
+    "sensors",
     "action",
     ("next", "cell"),
     ("next", "proximity"),
+    ("next", "sensors"),
     ("next", "reward"),
     ("next", "done"),
     ("next", "terminated"),
