@@ -572,3 +572,51 @@ def render_world(cell: int, obstacles: torch.Tensor, size: int) -> str:
         rows.append("#" + line + "#")
     rows.append("#" * (size + 2))
     return "\n".join(rows)
+
+
+class FactoredGrid:
+    """The FactoredGrid world behind the ``envs.protocol.World`` interface: the functions of
+    this module bound to one ``WorldConfig`` (the static layout drawn once, when needed).
+
+    >>> from envs.protocol import World
+    >>> grid = FactoredGrid(WorldConfig(size=3, num_obstacles=0, body="heading"))
+    >>> isinstance(grid, World), grid.dependency.nonzero().tolist()
+    (True, [[0, 0]])
+    """
+
+    def __init__(self, config: WorldConfig) -> None:
+        if not isinstance(config, WorldConfig):
+            raise TypeError(f"config must be a WorldConfig, got {type(config).__name__}")
+        self.config = config
+        self._static: torch.Tensor | None = None
+
+    @property
+    def dependency(self) -> torch.Tensor:
+        return self.config.dependency
+
+    @property
+    def static_obstacles(self) -> torch.Tensor:
+        """The static layout ``[N]`` (drawn on first use)."""
+        if self._static is None:
+            self._static = static_layout(self.config)
+        return self._static
+
+    def initial_state(self, batch: int, device: torch.device | str | None = None) -> WorldState:
+        return empty_state(batch, self.config.size, device, self.config.num_actuators)
+
+    def reset(
+        self, state: WorldState, mask: torch.Tensor, key: torch.Tensor, period: torch.Tensor
+    ) -> WorldState:
+        static = self.static_obstacles if bool((period == 0).any()) else state.obstacles[0]
+        return reset_worlds(state, mask, key, period, static.to(state.cell.device), self.config)
+
+    def step(
+        self, state: WorldState, action: torch.Tensor, key: torch.Tensor, period: torch.Tensor
+    ) -> tuple[WorldState, StepOutcome]:
+        return step_worlds(state, action, key, period, self.config)
+
+    def observe(self, state: WorldState, key: torch.Tensor) -> torch.Tensor:
+        return observe(state, key, self.config)
+
+    def render(self, state: WorldState, index: int = 0) -> str:
+        return render_world(int(state.cell[index]), state.obstacles[index], self.config.size)

@@ -21,6 +21,13 @@ from factorq_torch import functional
 from factorq_torch.base import keys
 from factorq_torch.tables import LocalRewardTable, TaskQTable
 
+
+def fast_available() -> bool:
+    from trainers import fast
+
+    return fast.is_available()
+
+
 #: Row and column steps of the four directions, in the paper's order (north, west, south, east).
 STEPS = {0: (-1, 0), 1: (0, -1), 2: (1, 0), 3: (0, 1)}
 #: A direction name -> quarter turns to the left of the heading (translate: of north).
@@ -300,3 +307,46 @@ def test_the_paper_experiment_runs_other_bodies_on_the_modular_path(options):
     assert len(results["cells"]) == 6
     again = paper.run(config)
     assert again["cells"] == results["cells"]  # deterministic
+
+
+def test_factored_grid_implements_the_world_protocol_with_the_world_functions():
+    from envs.protocol import World
+    from envs.world import FactoredGrid, reset_worlds, static_layout
+    from factorq_torch.base.rng import STREAM_WORLD, derive_keys
+
+    config = WorldConfig(size=5, num_obstacles=4, body="heading", sensors="ring", sensor_noise=0.1)
+    grid = FactoredGrid(config)
+    assert isinstance(grid, World)
+    key, period = derive_keys(0, STREAM_WORLD, 3), torch.tensor([0, 10, 1])
+    mask = torch.ones(3, dtype=torch.bool)
+    state = grid.reset(grid.initial_state(3), mask, key, period)
+    direct = reset_worlds(grid.initial_state(3), mask, key, period, static_layout(config), config)
+    assert all(torch.equal(a, b) for a, b in zip(state, direct, strict=True))
+    action = torch.tensor([0, 1, 2])
+    new, outcome = grid.step(state, action, key, period)
+    want, want_outcome = step_worlds(state, action, key, period, config)
+    assert all(torch.equal(a, b) for a, b in zip(new, want, strict=True))
+    assert grid.observe(new, key).shape == (3, 8)
+    assert "A" in grid.render(new, 1)
+
+
+@pytest.mark.skipif(not fast_available(), reason="fast backend unavailable")
+def test_factorq_with_the_oracle_dependency_ignores_diagonals_distractors_and_order():
+    # The tables only read each actuator's parent sensor: on ring + distractors, permuted, Factor-Q
+    # makes exactly the paper body's decisions (same world and policy streams), bit for bit.
+    from trainers import paper
+    from trainers.paper import PaperConfig
+
+    small = {
+        "seeds": 2,
+        "runs": 2,
+        "episodes": 5,
+        "size": 5,
+        "obstacles": 4,
+        "algorithms": ("factor-q",),
+    }
+    plain = paper.run(PaperConfig(**small))
+    other = paper.run(
+        PaperConfig(**small, sensors="ring", distractors=3, sensor_permutation=9, backend="modular")
+    )
+    assert paper.dumps_results(plain["cells"]) == paper.dumps_results(other["cells"])
