@@ -350,3 +350,26 @@ def test_factorq_with_the_oracle_dependency_ignores_diagonals_distractors_and_or
         PaperConfig(**small, sensors="ring", distractors=3, sensor_permutation=9, backend="modular")
     )
     assert paper.dumps_results(plain["cells"]) == paper.dumps_results(other["cells"])
+
+
+def test_gymnasium_env_gives_the_torchrl_envs_sensors_and_heading_for_the_same_actions():
+    import gymnasium
+
+    import envs  # noqa: F401  (registers the id)
+
+    options = {"body": "heading", "sensors": "ring", "num_distractors": 2, "sensor_noise": 0.2}
+    world = {"size": 5, "num_obstacles": 4, "obstacle_period": 1}
+    gym_env = gymnasium.make("FactoredGrid-v0", **world, **options).unwrapped
+    torch_env = FactoredGridEnv(**world, **options, batch_size=(1,), seed=5)
+    observation, _ = gym_env.reset(seed=5)
+    td = torch_env.reset()
+    generator = torch.Generator().manual_seed(0)
+    for _ in range(40):
+        assert observation["sensors"].tolist() == td["sensors"][0].long().tolist()
+        assert int(observation["heading"]) == int(td["heading"][0])
+        action = int(torch.randint(0, 3, (), generator=generator))
+        observation, _, terminated, truncated, _ = gym_env.step(action)
+        td["action"] = torch.tensor([action])
+        td = torch_env.step(td)["next"]
+        if terminated or truncated:
+            break
