@@ -55,3 +55,37 @@ def test_kernel_results_for_a_body_do_not_depend_on_threads_or_chunking():
     one = paper.run(PaperConfig(**options, backend="fast", threads=1))
     two = paper.run(PaperConfig(**options, backend="fast", threads=2))
     assert paper.dumps_results(one["cells"]) == paper.dumps_results(two["cells"])
+
+
+def test_a_body_batch_resumes_exactly_from_its_state_dict():
+    import torch
+
+    from envs.world import WorldConfig
+    from factorq_torch.base.config import AgentConfig
+    from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
+
+    world = WorldConfig(
+        size=5, num_obstacles=3, max_steps=100, body="heading", sensors="ring",
+        num_distractors=2, sensor_permutation=4, sensor_noise=0.1, actuator_noise=0.1,
+    )  # fmt: skip
+    periods = torch.tensor([0, 10, 1])
+    keys = derive_keys(0, STREAM_WORLD, 3), derive_keys(0, STREAM_POLICY, 3)
+
+    def batch():
+        return fast.ExperimentBatch(
+            "factor-q", periods, world, AgentConfig(), 2, 4, *keys, threads=1
+        )
+
+    whole = batch()
+    while not whole.done:
+        whole.advance(1 << 40)
+    first = batch()
+    first.advance(97)
+    resumed = batch()
+    resumed.load_state_dict(first.state_dict())
+    while not resumed.done:
+        resumed.advance(50)
+    for name, value in whole.metrics().items():
+        assert torch.equal(value, resumed.metrics()[name]), name
+    for name, value in whole.tables().items():
+        assert torch.equal(value, resumed.tables()[name]), name
