@@ -260,6 +260,7 @@ TRIED = [
     factorq("paper --distractors -1", rf"--distractors=-1 {RANGE} in \[0, 32\]"),
     factorq("paper --sensor-permutation -1", rf"--sensor-permutation=-1 {RANGE} >= 0"),
     factorq("paper --sensor-noise 1.5", rf"--sensor-noise=1.5 {RANGE} in \[0.0, 1.0\]"),
+    factorq("paper --sensors ring --distractors 20", r"q-learning: a Q-table of 16 cells x 1 headings x 2\*\*28 sensor patterns x 4 actions needs 17179869184 values per experiment, past the cap of 16777216"),
     factorq("paper --actuator-noise -0.1", rf"--actuator-noise=-0.1 {RANGE} in \[0.0, 1.0\]"),
     factorq("paper --device toaster", r"--device='toaster' is not a torch device \(e.g. cpu, "),
     factorq(

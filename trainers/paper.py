@@ -145,6 +145,16 @@ class PaperConfig:
             _ = self.world  # WorldConfig validates the body, sensors, permutation and noise
         except (ValueError, TypeError) as error:
             raise type(error)(str(error).replace("num_distractors", "distractors")) from None
+        if "q-learning" in self.algorithms:  # its state holds the pattern of all sensors
+            from factorq_torch.tables import check_table_size
+
+            world = self.world
+            check_table_size(
+                "q-learning",
+                f"a Q-table of {world.num_cells} cells x {world.num_headings} headings x "
+                f"2**{world.num_sensors} sensor patterns x {world.num_actuators} actions",
+                (world.num_cells * world.num_headings << world.num_sensors) * world.num_actuators,
+            )
         if self.threads is not None:
             check_int("threads", self.threads, 1)
         if self.backend not in BACKENDS:
