@@ -373,3 +373,18 @@ def test_gymnasium_env_gives_the_torchrl_envs_sensors_and_heading_for_the_same_a
         td = torch_env.step(td)["next"]
         if terminated or truncated:
             break
+
+
+def test_local_network_sees_only_each_actuators_parents():
+    from factorq_torch.neural import LocalRewardNetwork
+
+    dependency = torch.tensor([[True, False, True], [False, False, False], [False, True, False]])
+    local = LocalRewardNetwork(2, dependency=dependency, zero_output=False, hidden=(5,))
+    assert local.parent_index.tolist() == [[0, 2], [3, 3], [1, 3]]  # 3: the zero column
+    readings = torch.tensor([[True, False, True], [True, True, False]])
+    value = local(TensorDict(sensors=readings, batch_size=[2]))["local_value"].detach()
+    assert value[:, 1].tolist() == [0.0, 0.0]  # no parents: a bias-free network predicts 0
+    flipped = readings.clone()
+    flipped[:, 1] = ~flipped[:, 1]  # sensor 1 is a parent of actuator 2 only
+    again = local(TensorDict(sensors=flipped, batch_size=[2]))["local_value"].detach()
+    assert torch.equal(again[:, 0], value[:, 0]) and not torch.equal(again[:, 2], value[:, 2])
