@@ -388,3 +388,18 @@ def test_local_network_sees_only_each_actuators_parents():
     flipped[:, 1] = ~flipped[:, 1]  # sensor 1 is a parent of actuator 2 only
     again = local(TensorDict(sensors=flipped, batch_size=[2]))["local_value"].detach()
     assert torch.equal(again[:, 0], value[:, 0]) and not torch.equal(again[:, 2], value[:, 2])
+
+
+def test_factorq_paper_command_runs_another_body_and_records_it(tmp_path, capsys):
+    import json
+
+    from trainers import cli
+
+    out = tmp_path / "heading"
+    args = ["paper", "--seeds", "1", "--runs", "1", "--episodes", "2", "--size", "4"]
+    args += ["--obstacles", "1", "--body", "heading", "--sensors", "ring", "--distractors", "1"]
+    args += ["--sensor-permutation", "3", "--sensor-noise", "0.05", "--actuator-noise", "0.05"]
+    assert cli.main([*args, "--out", str(out)]) == 0
+    config = json.loads((out / "results.json").read_text())["config"]
+    assert (config["body"], config["sensors"], config["distractors"]) == ("heading", "ring", 1)
+    assert (config["sensor_permutation"], config["sensor_noise"]) == (3, 0.05)
