@@ -16,15 +16,11 @@ from torchrl.envs import EnvBase
 
 from envs.world import (
     NUM_ACTIONS,
+    FactoredGrid,
     WorldConfig,
     WorldState,
-    empty_state,
-    observe,
     proximity,
-    render_world,
-    reset_worlds,
     static_layout,
-    step_worlds,
 )
 from factorq_torch.base import keys
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
@@ -128,7 +124,9 @@ class FactoredGridEnv(EnvBase):
     - reward: ``reward`` ``[*B, 1]`` float32, the conventional step + goal + sum(collision);
     - done: ``done``, ``terminated``, ``truncated`` ``[*B, 1]`` bool.
 
-    State (read and written by the fast path and checkpoints; worlds flattened to ``S``):
+    The rules are called through ``world`` (``envs.world.FactoredGrid``, an
+    ``envs.protocol.World``). State (read and written by the fast path and checkpoints; worlds
+    flattened to ``S``):
     ``world_state`` (``WorldState``, leading dim ``S``; ``S = 1`` when ``batch_size == ()``),
     ``world_keys`` ``[S]`` int64, ``periods`` ``[S]`` int64, ``static_obstacles`` ``[N]`` bool,
     ``world_seed`` (the seed the keys came from), ``config`` (the ``WorldConfig``; its
@@ -207,7 +205,9 @@ class FactoredGridEnv(EnvBase):
             self.static_obstacles = static_layout(config).to(device)
         else:
             self.static_obstacles = torch.zeros(config.num_cells, dtype=torch.bool, device=device)
-        self.world_state = empty_state(num_worlds, size, device, config.num_actuators)
+        # The world behind the envs.protocol.World interface: every rule is called through it.
+        self.world = FactoredGrid(config, self.static_obstacles)
+        self.world_state = self.world.initial_state(num_worlds, device)
         self._make_specs()
         self._set_seed(seed)
 
@@ -285,14 +285,7 @@ class FactoredGridEnv(EnvBase):
             mask = torch.ones(self.num_worlds, dtype=torch.bool, device=self.device)
         else:
             mask = reset.reshape(self.num_worlds)  # [S]
-        self.world_state = reset_worlds(
-            self.world_state,
-            mask,
-            self.world_keys,
-            self.periods,
-            self.static_obstacles,
-            self.config,
-        )
+        self.world_state = self.world.reset(self.world_state, mask, self.world_keys, self.periods)
         state = self.world_state
         # Worlds left alone report their true status (a finished one stays done).
         terminated = state.cell == self.config.goal_cell
@@ -304,7 +297,7 @@ class FactoredGridEnv(EnvBase):
         """One action per world: ``action`` ``[*B]`` -> the ``"next"`` TensorDict."""
         action = self._check_action(tensordict.get("action", None))  # [S]
         old = self.world_state
-        state, outcome = step_worlds(old, action, self.world_keys, self.periods, self.config)
+        state, outcome = self.world.step(old, action, self.world_keys, self.periods)
         reward, collision = outcome.reward, outcome.collision  # [S], [S, 4]
         terminated, truncated = outcome.terminated, outcome.truncated  # [S]
         partial = tensordict.get("_step", None)
@@ -362,7 +355,7 @@ class FactoredGridEnv(EnvBase):
         flag = (*batch, 1)
         near = proximity(state.cell, state.obstacles, config.size)  # [S, 4]
         # The paper's body receives exactly its proximity bits: skip recomputing them.
-        sensors = near if config.is_paper_body else observe(state, self.world_keys, config)
+        sensors = near if config.is_paper_body else self.world.observe(state, self.world_keys)
         entries = {
             keys.CELL: state.cell.reshape(batch),
             keys.SENSORS: sensors.reshape(*batch, config.num_sensors),
@@ -389,6 +382,7 @@ class FactoredGridEnv(EnvBase):
         self.world_keys = self.world_keys.to(device)
         self.periods = self.periods.to(device)
         self.static_obstacles = self.static_obstacles.to(device)
+        self.world.static_obstacles = self.static_obstacles
         return self
 
     # -- inspection ----------------------------------------------------------------------------
@@ -404,4 +398,4 @@ class FactoredGridEnv(EnvBase):
         if not is_int(index) or not 0 <= index < self.num_worlds:
             raise ValueError(f"index={index!r} is out of range: must be in [0, {self.num_worlds})")
         state = self.world_state
-        return render_world(int(state.cell[index]), state.obstacles[index], self.config.size)
+        return self.world.render(state, index)

@@ -16,14 +16,10 @@ from gymnasium import spaces
 
 from envs.world import (
     NUM_ACTIONS,
+    FactoredGrid,
     WorldConfig,
-    empty_state,
-    observe,
     proximity,
-    render_world,
-    reset_worlds,
     static_layout,
-    step_worlds,
 )
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 
@@ -110,7 +106,9 @@ class FactoredGridGym(gymnasium.Env):
             self.static_obstacles = static_layout(self.config)
         else:
             self.static_obstacles = torch.zeros(self.config.num_cells, dtype=torch.bool)
-        self.world_state = empty_state(1, size, None, config.num_actuators)
+        # The world behind the envs.protocol.World interface: every rule is called through it.
+        self.world = FactoredGrid(config, self.static_obstacles)
+        self.world_state = self.world.initial_state(1)
         self._seed_world(0)
 
     def _seed_world(self, seed: int) -> None:
@@ -128,13 +126,8 @@ class FactoredGridGym(gymnasium.Env):
         if seed is not None:
             self._seed_world(seed)
         start_all = torch.ones(1, dtype=torch.bool)
-        self.world_state = reset_worlds(
-            self.world_state,
-            start_all,
-            self.world_keys,
-            self.periods,
-            self.static_obstacles,
-            self.config,
+        self.world_state = self.world.reset(
+            self.world_state, start_all, self.world_keys, self.periods
         )
         return self._observation(), {}
 
@@ -153,8 +146,8 @@ class FactoredGridGym(gymnasium.Env):
                 f"action={action} is out of range: must be in [0, {count - 1}] ({names})"
             )
         action_tensor = torch.tensor([int(action)], dtype=torch.int64)  # [1]
-        self.world_state, outcome = step_worlds(
-            self.world_state, action_tensor, self.world_keys, self.periods, self.config
+        self.world_state, outcome = self.world.step(
+            self.world_state, action_tensor, self.world_keys, self.periods
         )
         info = {
             "local_reward": outcome.collision[0].numpy().copy(),  # [A] float32
@@ -173,7 +166,7 @@ class FactoredGridGym(gymnasium.Env):
         near = proximity(state.cell, state.obstacles, self.config.size)[0]  # [4]
         observation = {
             "cell": np.int64(state.cell[0]),
-            "sensors": observe(state, self.world_keys, self.config)[0].numpy().astype(np.int8),
+            "sensors": self.world.observe(state, self.world_keys)[0].numpy().astype(np.int8),
             "proximity": near.numpy().astype(np.int8),
             "bump": state.bump[0].numpy().astype(np.int8),
         }
@@ -192,4 +185,4 @@ class FactoredGridGym(gymnasium.Env):
         if self.render_mode != "ansi":
             return None
         state = self.world_state
-        return render_world(int(state.cell[0]), state.obstacles[0], self.config.size)
+        return self.world.render(state, 0)

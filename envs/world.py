@@ -584,11 +584,11 @@ class FactoredGrid:
     (True, [[0, 0]])
     """
 
-    def __init__(self, config: WorldConfig) -> None:
+    def __init__(self, config: WorldConfig, static_obstacles: torch.Tensor | None = None) -> None:
         if not isinstance(config, WorldConfig):
             raise TypeError(f"config must be a WorldConfig, got {type(config).__name__}")
         self.config = config
-        self._static: torch.Tensor | None = None
+        self._static = static_obstacles
 
     @property
     def dependency(self) -> torch.Tensor:
@@ -596,10 +596,14 @@ class FactoredGrid:
 
     @property
     def static_obstacles(self) -> torch.Tensor:
-        """The static layout ``[N]`` (drawn on first use)."""
+        """The static layout ``[N]`` (given, or drawn on first use)."""
         if self._static is None:
             self._static = static_layout(self.config)
         return self._static
+
+    @static_obstacles.setter
+    def static_obstacles(self, value: torch.Tensor) -> None:
+        self._static = value
 
     def initial_state(self, batch: int, device: torch.device | str | None = None) -> WorldState:
         return empty_state(batch, self.config.size, device, self.config.num_actuators)
@@ -607,8 +611,11 @@ class FactoredGrid:
     def reset(
         self, state: WorldState, mask: torch.Tensor, key: torch.Tensor, period: torch.Tensor
     ) -> WorldState:
-        static = self.static_obstacles if bool((period == 0).any()) else state.obstacles[0]
-        return reset_worlds(state, mask, key, period, static.to(state.cell.device), self.config)
+        if self._static is None and not bool((period == 0).any()):
+            static = torch.zeros_like(state.obstacles[0])  # no static world: no layout to draw
+        else:
+            static = self.static_obstacles.to(state.cell.device)
+        return reset_worlds(state, mask, key, period, static, self.config)
 
     def step(
         self, state: WorldState, action: torch.Tensor, key: torch.Tensor, period: torch.Tensor
