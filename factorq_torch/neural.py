@@ -205,6 +205,7 @@ class TaskQNetwork(TensorDictModuleBase):
         num_cells: ``N``, cells of the grid (``size**2``).
         with_proximity: add the sensor bits to the input.
         num_sensors: ``K`` (4 in the paper's body).
+        num_headings: ``H``; above 1 the one-hot is over (cell, heading) pairs, ``[N H]``.
         hidden: hidden layer widths of each network.
         activation: hidden activation, ``"relu"`` (default) or ``"tanh"``.
         num_actions: ``A``, the outputs.
@@ -232,6 +233,7 @@ class TaskQNetwork(TensorDictModuleBase):
         *,
         with_proximity: bool = False,
         num_sensors: int = NUM_ACTIONS,
+        num_headings: int = 1,
         hidden: Sequence[int] = (64,),
         activation: str = "relu",
         num_actions: int = NUM_ACTIONS,
@@ -247,9 +249,11 @@ class TaskQNetwork(TensorDictModuleBase):
         self.num_actions = check_int("num_actions", num_actions, 1)
         self.with_proximity = bool(with_proximity)
         self.num_sensors = check_int("num_sensors", num_sensors, 0)
-        self.in_keys = [names.CELL, names.SENSORS] if with_proximity else [names.CELL]
+        self.num_headings = check_int("num_headings", num_headings, 1)
+        self.in_keys = [names.CELL] + ([names.HEADING] if num_headings > 1 else [])
+        self.in_keys += [names.SENSORS] if with_proximity else []
         self.out_keys = [names.ACTION_VALUE]
-        in_features = num_cells + (num_sensors if with_proximity else 0)
+        in_features = num_cells * num_headings + (num_sensors if with_proximity else 0)
         self.network = BatchedMLP(
             (num_experiments,),
             in_features,
@@ -270,7 +274,14 @@ class TaskQNetwork(TensorDictModuleBase):
                 f"{owner} needs 'cell' in the tensordict; it has {list(tensordict.keys())}"
             )
         _experiment_dim(cell, 0, self.num_experiments, owner, "cell")
-        one_hot = nn.functional.one_hot(cell.to(torch.int64), self.num_cells).to(torch.float32)
+        position = cell.to(torch.int64)
+        if self.num_headings > 1:  # the state is (cell, heading): one-hot over both
+            heading = tensordict.get(names.HEADING, None)
+            if heading is None:
+                raise KeyError(f"{owner} with num_headings > 1 needs 'heading' in the tensordict")
+            position = position * self.num_headings + heading.to(torch.int64)
+        positions = self.num_cells * self.num_headings
+        one_hot = nn.functional.one_hot(position, positions).to(torch.float32)
         if not self.with_proximity:
             return one_hot
         sensors = tensordict.get(names.SENSORS, None)

@@ -403,3 +403,16 @@ def test_factorq_paper_command_runs_another_body_and_records_it(tmp_path, capsys
     config = json.loads((out / "results.json").read_text())["config"]
     assert (config["body"], config["sensors"], config["distractors"]) == ("heading", "ring", 1)
     assert (config["sensor_permutation"], config["sensor_noise"]) == (3, 0.05)
+
+
+def test_factorq_compare_runs_every_method_on_another_body(tmp_path):
+    from trainers import compare
+    from trainers.compare import CompareConfig
+
+    config = CompareConfig(
+        seeds=1, steps=300, size=4, obstacles=1, out=str(tmp_path / "compare"),
+        body="heading", sensors="ring", distractors=1, sensor_permutation=2,
+    )  # fmt: skip
+    results = compare.run(config)
+    assert set(results["config"]["methods"]) == set(compare.METHODS)
+    assert results["config"]["body"] == "heading"

@@ -178,6 +178,18 @@ class CompareConfig:
     """Actions after which an episode is truncated."""
     layout_seed: int = 0
     """Seed of the static world's obstacle layout."""
+    body: str = "translate"
+    """Agent body: translate (the paper) or heading (forward, turn left/right)."""
+    sensors: str = "cross"
+    """Sensor layout: cross (the paper: 4 neighbours) or ring (8 neighbours)."""
+    distractors: int = 0
+    """Extra sensor bits that carry no information."""
+    sensor_permutation: int | None = None
+    """Seed of a random order in which the agent receives its sensors."""
+    sensor_noise: float = 0.0
+    """Probability that each sensor bit is flipped at each observation, in [0, 1]."""
+    actuator_noise: float = 0.0
+    """Probability that another actuator fires than the chosen one, in [0, 1]."""
     threads: int = 1
     """CPU threads for torch (1 is fastest on these tiny tensors)."""
     agent: AgentConfig = AgentConfig()
@@ -224,6 +236,12 @@ class CompareConfig:
             obstacles=self.obstacles,
             max_steps=self.max_steps,
             layout_seed=self.layout_seed,
+            body=self.body,
+            sensors=self.sensors,
+            distractors=self.distractors,
+            sensor_permutation=self.sensor_permutation,
+            sensor_noise=self.sensor_noise,
+            actuator_noise=self.actuator_noise,
         )
 
 
@@ -242,21 +260,30 @@ def value_providers(
     """
     experiments = config.experiments
     cells = experiments.size**2
+    world = experiments.world  # the body: tables and networks get its shapes and dependency
+    shapes = {"num_headings": world.num_headings, "num_actions": world.num_actuators}
     if method == "q-learning":
-        return TaskQTable(count, cells, with_proximity=True), None, None
+        table = TaskQTable(count, cells, with_sensors=True, num_sensors=world.num_sensors, **shapes)
+        return table, None, None
     if method == "factor-q":
-        return TaskQTable(count, cells), LocalRewardTable(count), None
+        return (
+            TaskQTable(count, cells, **shapes),
+            LocalRewardTable(count, dependency=world.dependency),
+            None,
+        )
     if method == "factor-dqn":
         settings = config.factor_dqn
         task = TaskQNetwork(
             count,
             cells,
+            **shapes,
             hidden=settings.hidden,
             activation=settings.activation,
             keys=experiment_keys(experiments, STREAM_TASK_NETWORK, method),
         )
         local = LocalRewardNetwork(
             count,
+            dependency=world.dependency,
             hidden=settings.local_hidden,
             bias=settings.local_bias,
             activation=settings.local_activation,
@@ -602,6 +629,7 @@ def run(config: CompareConfig, progress: Progress | None = None) -> dict[str, An
 _CLI_FIELDS = (
     "seeds", "steps", "worlds", "methods", "out", "seed", "logger",
     "size", "obstacles", "max_steps", "layout_seed", "threads",
+    "body", "sensors", "distractors", "sensor_permutation", "sensor_noise", "actuator_noise",
 )  # fmt: skip
 
 
@@ -624,7 +652,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
             kwargs.update(metavar="NAME[,NAME]", type=str)
             shown = ",".join(default)
         else:
-            kwargs.update(metavar=name.upper(), type=hints[name])
+            kind = hints[name]
+            if typing.get_origin(kind) is not None:  # int | None -> int
+                kind = next(arg for arg in typing.get_args(kind) if arg is not type(None))
+            kwargs.update(metavar=name.upper(), type=kind)
             shown = default
         if name == "logger":
             kwargs["choices"] = LOGGERS

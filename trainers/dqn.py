@@ -131,6 +131,18 @@ class ExperimentConfig:
     """Actions after which an episode is truncated."""
     layout_seed: int = 0
     """Seed of the static world's obstacle layout."""
+    body: str = "translate"
+    """Agent body: translate (the paper) or heading (forward, turn left/right)."""
+    sensors: str = "cross"
+    """Sensor layout: cross (the paper: 4 neighbours) or ring (8 neighbours)."""
+    distractors: int = 0
+    """Extra sensor bits that carry no information."""
+    sensor_permutation: int | None = None
+    """Seed of a random order in which the agent receives its sensors."""
+    sensor_noise: float = 0.0
+    """Probability that each sensor bit is flipped at each observation, in [0, 1]."""
+    actuator_noise: float = 0.0
+    """Probability that another actuator fires than the chosen one, in [0, 1]."""
 
     def __post_init__(self) -> None:
         check_int("seed", self.seed, 0, _MAX_SEED)
@@ -155,6 +167,12 @@ class ExperimentConfig:
             num_obstacles=self.obstacles,
             max_steps=self.max_steps,
             layout_seed=self.layout_seed,
+            body=self.body,
+            sensors=self.sensors,
+            num_distractors=self.distractors,
+            sensor_permutation=self.sensor_permutation,
+            sensor_noise=self.sensor_noise,
+            actuator_noise=self.actuator_noise,
         )
 
     @property
@@ -197,6 +215,12 @@ def make_env(config: ExperimentConfig, device: torch.device | str | None = None)
         batch_size=(config.num_experiments,),
         seed=config.seed,
         device=device,
+        body=config.body,
+        sensors=config.sensors,
+        num_distractors=config.distractors,
+        sensor_permutation=config.sensor_permutation,
+        sensor_noise=config.sensor_noise,
+        actuator_noise=config.actuator_noise,
     )
     env.world_keys = experiment_keys(config, STREAM_WORLD).to(env.device)
     return env
@@ -429,10 +453,12 @@ _STORED = (
     "cell",
     "proximity",
     "sensors",
+    "heading",
     "action",
     ("next", "cell"),
     ("next", "proximity"),
     ("next", "sensors"),
+    ("next", "heading"),
     ("next", "reward"),
     ("next", "done"),
     ("next", "terminated"),
@@ -457,19 +483,24 @@ def build_dqn(config: DQNConfig, experiments: ExperimentConfig, device=None) -> 
     """Q-network, exploration, DQNLoss with a target network, Adam and a replay buffer."""
     device = torch.device("cpu" if device is None else device)
     count = experiments.num_experiments
+    world = experiments.world
     q_network = TaskQNetwork(
         count,
         experiments.size**2,
         with_proximity=True,
+        num_sensors=world.num_sensors,
+        num_headings=world.num_headings,
+        num_actions=world.num_actuators,
         hidden=config.hidden,
         keys=experiment_keys(experiments, STREAM_TASK_NETWORK, "dqn"),
         zero_output=False,  # PyTorch's default initialisation, as the DQN examples
         device=device,
     )
     # QValueModule's spec is per sample (one action), not per batch.
-    value_network = TensorDictSequential(q_network, QValueModule(spec=Categorical(NUM_ACTIONS)))
+    actions = world.num_actuators
+    value_network = TensorDictSequential(q_network, QValueModule(spec=Categorical(actions)))
     annealing = max(1, round(config.exploration_fraction * experiments.steps))
-    exploration = ExploratoryEGreedy(config.eps_start, config.eps_end, annealing)
+    exploration = ExploratoryEGreedy(config.eps_start, config.eps_end, annealing, actions)
     policy = TensorDictSequential(value_network, exploration)
     # Summed over the [B, E] minibatch and divided by B below: each experiment's network gets the
     # gradient of its own mean squared TD error, as in a single-seed DQN.
@@ -528,14 +559,16 @@ def run(
     loss_per_experiment = torch.full((count,), math.nan)
     done_steps, gradient_steps = 0, 0
     for data in collector:  # [E, T]
-        data = data.select(*_STORED, "exploratory", ("next", "bump"), ("next", "collision"))
+        data = data.select(
+            *_STORED, "exploratory", ("next", "bump"), ("next", "collision"), strict=False
+        )
         for t in range(data.shape[1]):
             if done_steps >= steps:
                 break
             done_steps += 1
             recorder.update(data[:, t], agent.exploration.eps, loss_per_experiment)
         # One row [E] per env step: a minibatch [B, E] holds B transitions of every experiment.
-        agent.buffer.extend(data.select(*_STORED).transpose(0, 1).contiguous())
+        agent.buffer.extend(data.select(*_STORED, strict=False).transpose(0, 1).contiguous())
         due = done_steps // config.train_every - gradient_steps
         if done_steps >= config.learning_starts and len(agent.buffer) > 0:
             for _ in range(due):
