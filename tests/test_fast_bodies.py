@@ -89,3 +89,47 @@ def test_a_body_batch_resumes_exactly_from_its_state_dict():
         assert torch.equal(value, resumed.metrics()[name]), name
     for name, value in whole.tables().items():
         assert torch.equal(value, resumed.tables()[name]), name
+
+
+NOISY = {
+    "size": 5, "obstacles": 3, "max_steps": 150, "body": "heading", "sensors": "ring",
+    "distractors": 2, "sensor_permutation": 5, "sensor_noise": 0.1, "actuator_noise": 0.1,
+    "epsilon": 0.05, "episodes": 8,
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("draw", [0, 1, 2, 3, "noisy"])
+def test_kernel_equals_the_reference_written_from_the_sensor_names(draw):
+    import torch
+    from reference import run_body_experiment  # tests/reference.py
+
+    from envs.world import static_layout
+    from factorq_torch.base.config import AgentConfig
+    from factorq_torch.base.rng import MASK64, STREAM_POLICY, STREAM_WORLD, derive_keys
+
+    if draw == "noisy":
+        options = {**draw_config(random.Random(50)), **NOISY}
+    else:
+        options = draw_config(random.Random(50 + draw))
+    world = PaperConfig(**options).world
+    agent = AgentConfig(epsilon=options["epsilon"])
+    runs, episodes = 2, options["episodes"]
+    periods = torch.tensor([0, 10, 1])
+    world_keys = derive_keys(7, STREAM_WORLD, 3)
+    policy_keys = derive_keys(7, STREAM_POLICY, 3)
+    static = static_layout(world).tolist()
+    for algorithm in ("q-learning", "factor-q"):
+        batch = fast.ExperimentBatch(
+            algorithm, periods, world, agent, runs, episodes, world_keys, policy_keys, threads=1
+        )
+        while not batch.done:
+            batch.advance(1 << 40)
+        metrics = batch.metrics()
+        for index, period in enumerate(periods.tolist()):
+            want = run_body_experiment(
+                algorithm, period, world, agent, runs, episodes,
+                int(world_keys[index]) & MASK64, int(policy_keys[index]) & MASK64, static,
+            )  # fmt: skip
+            for name in ("steps", "collisions", "greedy_collisions", "task_return"):
+                got = metrics[name][index].tolist()
+                assert got == getattr(want, name), (algorithm, period, name, options)
