@@ -19,6 +19,7 @@ the claims, seeded with ``config.seed``), the claims ``trainers.claims``', and t
 from __future__ import annotations
 
 import os
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
@@ -34,7 +35,12 @@ from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
 from factorq_torch.base.validation import check_int, check_names
 from trainers import checkpoint, experiment, stats
 from trainers.claims import compute_claims
-from trainers.experiment import MAX_SEED, check_world_options
+from trainers.experiment import (
+    MAX_SEED,
+    body_options,
+    check_qlearning_table,
+    check_world_options,
+)
 from trainers.options import option
 from trainers.results import SCHEMA_VERSION, software_versions
 from trainers.stats import interval, mean_ci
@@ -85,6 +91,26 @@ class PaperConfig:
         choices=BACKENDS,
     )
     device: str = option("cpu", "Torch device (the fast backend runs on cpu only).")
+    body: str = option(
+        "translate",
+        "Agent body: translate (the paper: moves N/W/S/E) or heading (forward, turn left/right).",
+    )
+    sensors: str = option(
+        "cross", "Sensor layout: cross (the paper: 4 neighbours) or ring (8 neighbours)."
+    )
+    distractors: int = option(
+        0, "Extra sensor bits that carry no information (fresh fair coins at every observation)."
+    )
+    sensor_permutation: int | None = option(
+        None,
+        "Seed of a random order in which the agent receives its sensors (default: layout order).",
+    )
+    sensor_noise: float = option(
+        0.0, "Probability that each sensor bit is flipped at each observation, in [0, 1]."
+    )
+    actuator_noise: float = option(
+        0.0, "Probability that another actuator fires than the chosen one, in [0, 1]."
+    )
 
     def __post_init__(self) -> None:
         check_int("seed", self.seed, 0, MAX_SEED)
@@ -93,13 +119,20 @@ class PaperConfig:
         check_int("runs", self.runs, 1)
         check_int("episodes", self.episodes, 1)
         object.__setattr__(self, "worlds", check_names("worlds", self.worlds, WORLDS))
-        check_world_options(
-            self.size, self.obstacles, self.max_steps, self.layout_seed, self.worlds
+        world = check_world_options(
+            self.size,
+            self.obstacles,
+            self.max_steps,
+            self.layout_seed,
+            self.worlds,
+            body_options(self),
         )
         object.__setattr__(
             self, "algorithms", check_names("algorithms", self.algorithms, ALGORITHMS)
         )
         _ = self.agent  # AgentConfig validates epsilon, gamma, alpha, eta and g_min
+        if "q-learning" in self.algorithms:  # its state holds the pattern of all sensors
+            check_qlearning_table(world)
         if self.threads is not None:
             check_int("threads", self.threads, 1)
         if self.backend not in BACKENDS:
@@ -128,7 +161,9 @@ class PaperConfig:
     @property
     def world(self) -> WorldConfig:
         """The world of every experiment; the obstacle period is set per experiment."""
-        return check_world_options(self.size, self.obstacles, self.max_steps, self.layout_seed, ())
+        return check_world_options(
+            self.size, self.obstacles, self.max_steps, self.layout_seed, (), body_options(self)
+        )
 
     @property
     def cells(self) -> list[tuple[str, str]]:
@@ -163,8 +198,12 @@ def resolve_backend(config: PaperConfig) -> str:
     on_cpu = torch.device(config.device).type == "cpu"
     if config.backend == "fast" and not fast.is_available():
         raise ValueError(f"backend='fast' is unavailable here: {fast.unavailable_reason()}")
+    unsupported = fast.unsupported_reason(config.world)
+    if config.backend == "fast" and unsupported is not None:
+        raise ValueError(f"backend='fast' cannot run this config: {unsupported}")
     if config.backend == "auto":
-        return "fast" if on_cpu and fast.is_available() else "modular"
+        usable = on_cpu and fast.is_available() and unsupported is None
+        return "fast" if usable else "modular"
     return config.backend
 
 
@@ -251,7 +290,7 @@ def _run_modular(job: Job) -> dict[str, torch.Tensor]:
 
     device = torch.device(config.device)
     grid = experiment.make_env(config.world, periods, world_keys, device=device)
-    task, local = experiment.tabular_values(algorithm, len(periods), grid.config.num_cells, device)
+    task, local = experiment.tabular_values(algorithm, len(periods), config.world, device)
     env, policy, loss = experiment.online_agent(
         grid, task, local, config.agent, policy_keys, device=device
     )
@@ -326,6 +365,16 @@ def run(
     started = time.perf_counter()
     backend = resolve_backend(config)
     driver = backend_driver(backend)
+    if backend == "modular" and config.backend == "auto":
+        from trainers import fast
+
+        unsupported = fast.unsupported_reason(config.world)
+        if unsupported is not None:  # the one-line notice of a fall-back (issue 11)
+            print(
+                f"factorq: the fast path cannot run this config ({unsupported}): running on "
+                f"the modular torchrl path",
+                file=sys.stderr,
+            )
     if resume is not None:
         _check_same_config(resume.config, config_dict(config), f"resume='{resume.path.parents[1]}'")
     if checkpoint_every is None and resume is not None:
