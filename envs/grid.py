@@ -16,15 +16,13 @@ from torchrl.envs import EnvBase
 
 from envs.world import (
     NUM_ACTIONS,
+    FactoredGrid,
     WorldConfig,
     WorldState,
-    empty_state,
     proximity,
-    render_world,
-    reset_worlds,
     static_layout,
-    step_worlds,
 )
+from factorq_torch.base import keys
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 from factorq_torch.base.validation import is_int
 
@@ -109,18 +107,26 @@ class FactoredGridEnv(EnvBase):
         experiment_offset: index of this batch's first world among all experiments: world ``i``
             gets the key of experiment ``experiment_offset + i``, so a batch of 1 at offset ``i``
             replays world ``i`` of a larger batch exactly.
+        body, sensors, num_distractors, sensor_permutation, sensor_noise, actuator_noise: the
+            agent's body and sensors, as ``WorldConfig`` (defaults: the paper's). ``dependency``
+            is the resulting ground truth, bool ``[actuators, sensors]``.
 
     Keys (``B`` = ``batch_size``, ``N = size**2``):
 
-    - observation: ``cell`` ``[*B]`` int64 in ``[0, N)``; ``proximity`` ``[*B, 4]`` bool;
-      ``bump`` ``[*B, 4]`` bool; ``collision`` ``[*B, 4]`` float32, the collision reward vector
-      of the last action (-1 on the face that bumped; zeros after a reset), so that
-      ``SplitLocalReward`` splits the reward without recomputing it;
-    - action: ``action`` ``[*B]`` int64 in ``[0, 4)`` (N, W, S, E);
+    - observation: ``cell`` ``[*B]`` int64 in ``[0, N)``; ``sensors`` ``[*B, K]`` bool, every
+      sensor as the agent receives it (what the agents read; for the paper's body equal to
+      ``proximity``); ``heading`` ``[*B]`` int64 (bodies with a heading only); ``proximity``
+      ``[*B, 4]`` bool, the noise-free N, W, S, E neighbours; ``bump`` ``[*B, A]`` bool;
+      ``collision`` ``[*B, A]`` float32, the collision reward vector of the last action (-1 on
+      the actuator that bumped; zeros after a reset), so that ``SplitLocalReward`` splits the
+      reward without recomputing it (keys: ``factorq_torch.base.keys``);
+    - action: ``action`` ``[*B]`` int64 in ``[0, A)`` (the paper's body: N, W, S, E);
     - reward: ``reward`` ``[*B, 1]`` float32, the conventional step + goal + sum(collision);
     - done: ``done``, ``terminated``, ``truncated`` ``[*B, 1]`` bool.
 
-    State (read and written by the fast path and checkpoints; worlds flattened to ``S``):
+    The rules are called through ``world`` (``envs.world.FactoredGrid``, an
+    ``envs.protocol.World``). State (read and written by the fast path and checkpoints; worlds
+    flattened to ``S``):
     ``world_state`` (``WorldState``, leading dim ``S``; ``S = 1`` when ``batch_size == ()``),
     ``world_keys`` ``[S]`` int64, ``periods`` ``[S]`` int64, ``static_obstacles`` ``[N]`` bool,
     ``world_seed`` (the seed the keys came from), ``config`` (the ``WorldConfig``; its
@@ -154,6 +160,12 @@ class FactoredGridEnv(EnvBase):
         device: torch.device | str | None = None,
         seed: int | None = None,
         experiment_offset: int = 0,
+        body: str = "translate",
+        sensors: str = "cross",
+        num_distractors: int = 0,
+        sensor_permutation: Sequence[int] | int | None = None,
+        sensor_noise: float = 0.0,
+        actuator_noise: float = 0.0,
     ) -> None:
         batch_size = _check_batch_size(batch_size)
         if device is not None:
@@ -175,6 +187,12 @@ class FactoredGridEnv(EnvBase):
             obstacle_period=shared_period,
             max_steps=max_steps,
             layout_seed=layout_seed,
+            body=body,
+            sensors=sensors,
+            num_distractors=num_distractors,
+            sensor_permutation=sensor_permutation,
+            sensor_noise=sensor_noise,
+            actuator_noise=actuator_noise,
         )
         super().__init__(device=device, batch_size=batch_size)
         self.config = config
@@ -187,22 +205,47 @@ class FactoredGridEnv(EnvBase):
             self.static_obstacles = static_layout(config).to(device)
         else:
             self.static_obstacles = torch.zeros(config.num_cells, dtype=torch.bool, device=device)
-        self.world_state = empty_state(num_worlds, size, device)
+        # The world behind the envs.protocol.World interface: every rule is called through it.
+        self.world = FactoredGrid(config, self.static_obstacles)
+        self.world_state = self.world.initial_state(num_worlds, device)
         self._make_specs()
         self._set_seed(seed)
 
+    @property
+    def dependency(self) -> torch.Tensor:
+        """Ground truth bool ``[actuators, sensors]``: which of the sensors the agent receives
+        decide each actuator's local reward (``WorldConfig.dependency``). Tests and experiments
+        read it; an agent gets it only in an explicit oracle mode."""
+        return self.config.dependency.to(self.device)
+
     def _make_specs(self) -> None:
-        batch, device = self.batch_size, self.device
+        batch, device, config = self.batch_size, self.device, self.config
         faces = (*batch, NUM_ACTIONS)
-        self.observation_spec = Composite(
-            cell=Categorical(self.config.num_cells, shape=batch, dtype=torch.int64, device=device),
-            proximity=Binary(n=NUM_ACTIONS, shape=faces, dtype=torch.bool, device=device),
-            bump=Binary(n=NUM_ACTIONS, shape=faces, dtype=torch.bool, device=device),
-            collision=Bounded(low=-1.0, high=0.0, shape=faces, dtype=torch.float32, device=device),
-            shape=batch,
-            device=device,
+        actuators = (*batch, config.num_actuators)
+        entries = {
+            keys.CELL: Categorical(config.num_cells, shape=batch, dtype=torch.int64, device=device),
+            keys.SENSORS: Binary(
+                n=config.num_sensors,
+                shape=(*batch, config.num_sensors),
+                dtype=torch.bool,
+                device=device,
+            ),
+            keys.PROXIMITY: Binary(n=NUM_ACTIONS, shape=faces, dtype=torch.bool, device=device),
+            keys.BUMP: Binary(
+                n=config.num_actuators, shape=actuators, dtype=torch.bool, device=device
+            ),
+            keys.COLLISION: Bounded(
+                low=-1.0, high=0.0, shape=actuators, dtype=torch.float32, device=device
+            ),
+        }
+        if config.body_spec.has_heading:
+            entries[keys.HEADING] = Categorical(
+                config.num_headings, shape=batch, dtype=torch.int64, device=device
+            )
+        self.observation_spec = Composite(entries, shape=batch, device=device)
+        self.action_spec = Categorical(
+            config.num_actuators, shape=batch, dtype=torch.int64, device=device
         )
-        self.action_spec = Categorical(NUM_ACTIONS, shape=batch, dtype=torch.int64, device=device)
         self.reward_spec = Unbounded(shape=(*batch, 1), dtype=torch.float32, device=device)
         flag = Categorical(2, shape=(*batch, 1), dtype=torch.bool, device=device)
         self.full_done_spec = Composite(
@@ -229,7 +272,8 @@ class FactoredGridEnv(EnvBase):
         ).to(self.device)
         # A new seed starts its streams at the beginning, so set_seed + reset replays exactly.
         self.world_state = self.world_state._replace(
-            scatters=torch.zeros_like(self.world_state.scatters)
+            scatters=torch.zeros_like(self.world_state.scatters),
+            ticks=torch.zeros_like(self.world_state.ticks),
         )
 
     # -- reset and step ------------------------------------------------------------------------
@@ -241,26 +285,19 @@ class FactoredGridEnv(EnvBase):
             mask = torch.ones(self.num_worlds, dtype=torch.bool, device=self.device)
         else:
             mask = reset.reshape(self.num_worlds)  # [S]
-        self.world_state = reset_worlds(
-            self.world_state,
-            mask,
-            self.world_keys,
-            self.periods,
-            self.static_obstacles,
-            self.config,
-        )
+        self.world_state = self.world.reset(self.world_state, mask, self.world_keys, self.periods)
         state = self.world_state
         # Worlds left alone report their true status (a finished one stays done).
         terminated = state.cell == self.config.goal_cell
         truncated = ~terminated & (state.episode_step >= self.config.max_steps)
-        collision = torch.zeros(self.num_worlds, NUM_ACTIONS, device=self.device)
+        collision = torch.zeros(self.num_worlds, self.config.num_actuators, device=self.device)
         return self._output(state, collision, terminated, truncated, reward=None)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         """One action per world: ``action`` ``[*B]`` -> the ``"next"`` TensorDict."""
         action = self._check_action(tensordict.get("action", None))  # [S]
         old = self.world_state
-        state, outcome = step_worlds(old, action, self.world_keys, self.periods, self.config)
+        state, outcome = self.world.step(old, action, self.world_keys, self.periods)
         reward, collision = outcome.reward, outcome.collision  # [S], [S, 4]
         terminated, truncated = outcome.terminated, outcome.truncated  # [S]
         partial = tensordict.get("_step", None)
@@ -285,22 +322,22 @@ class FactoredGridEnv(EnvBase):
             raise ValueError("action is missing: step needs an 'action' entry")
         if action.dtype not in _INTEGER_DTYPES:
             raise TypeError(
-                f"action must be an integer tensor (int64, values in [0, {NUM_ACTIONS - 1}]), "
+                f"action must be an integer tensor (int64, values in "
+                f"[0, {self.config.num_actuators - 1}]), "
                 f"got dtype {action.dtype}"
             )
         if action.shape != self.batch_size:
             raise ValueError(
                 f"action has shape {tuple(action.shape)}: must be batch_size "
-                f"{tuple(self.batch_size)}, one action in [0, {NUM_ACTIONS - 1}] per world"
+                f"{tuple(self.batch_size)}, one action in [0, {self.config.num_actuators - 1}] "
+                f"per world"
             )
         action = action.reshape(self.num_worlds).to(torch.int64)
-        # One op and one sync: a value outside [0, 3] has a bit set outside the lowest two.
-        if bool((action & ~(NUM_ACTIONS - 1)).any()):
-            bad = action[(action < 0) | (action >= NUM_ACTIONS)][0].item()
-            raise ValueError(
-                f"action={bad} is out of range: must be in [0, {NUM_ACTIONS - 1}] "
-                f"(0 north, 1 west, 2 south, 3 east)"
-            )
+        count = self.config.num_actuators
+        if bool(((action < 0) | (action >= count)).any()):
+            bad = action[(action < 0) | (action >= count)][0].item()
+            names = ", ".join(f"{i} {name}" for i, name in enumerate(self.config.actuator_names))
+            raise ValueError(f"action={bad} is out of range: must be in [0, {count - 1}] ({names})")
         return action
 
     def _output(
@@ -312,18 +349,25 @@ class FactoredGridEnv(EnvBase):
         reward: torch.Tensor | None,
     ) -> TensorDictBase:
         """The observation, reward and done entries of ``S`` worlds, shaped to ``batch_size``."""
-        batch = self.batch_size
+        batch, config = self.batch_size, self.config
         faces = (*batch, NUM_ACTIONS)
+        actuators = (*batch, config.num_actuators)
         flag = (*batch, 1)
+        near = proximity(state.cell, state.obstacles, config.size)  # [S, 4]
+        # The paper's body receives exactly its proximity bits: skip recomputing them.
+        sensors = near if config.is_paper_body else self.world.observe(state, self.world_keys)
         entries = {
-            "cell": state.cell.reshape(batch),
-            "proximity": proximity(state.cell, state.obstacles, self.config.size).reshape(faces),
-            "bump": state.bump.reshape(faces),
-            "collision": collision.reshape(faces),
+            keys.CELL: state.cell.reshape(batch),
+            keys.SENSORS: sensors.reshape(*batch, config.num_sensors),
+            keys.PROXIMITY: near.reshape(faces),
+            keys.BUMP: state.bump.reshape(actuators),
+            keys.COLLISION: collision.reshape(actuators),
             "terminated": terminated.reshape(flag),
             "truncated": truncated.reshape(flag),
             "done": (terminated | truncated).reshape(flag),
         }
+        if config.body_spec.has_heading:
+            entries[keys.HEADING] = state.heading.reshape(batch)
         if reward is not None:
             entries["reward"] = reward.reshape(flag)
         # The entries are built right here with the right shapes: skip TensorDict's checks,
@@ -338,6 +382,7 @@ class FactoredGridEnv(EnvBase):
         self.world_keys = self.world_keys.to(device)
         self.periods = self.periods.to(device)
         self.static_obstacles = self.static_obstacles.to(device)
+        self.world.static_obstacles = self.static_obstacles
         return self
 
     # -- inspection ----------------------------------------------------------------------------
@@ -353,4 +398,4 @@ class FactoredGridEnv(EnvBase):
         if not is_int(index) or not 0 <= index < self.num_worlds:
             raise ValueError(f"index={index!r} is out of range: must be in [0, {self.num_worlds})")
         state = self.world_state
-        return render_world(int(state.cell[index]), state.obstacles[index], self.config.size)
+        return self.world.render(state, index)

@@ -16,13 +16,10 @@ from gymnasium import spaces
 
 from envs.world import (
     NUM_ACTIONS,
+    FactoredGrid,
     WorldConfig,
-    empty_state,
     proximity,
-    render_world,
-    reset_worlds,
     static_layout,
-    step_worlds,
 )
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 
@@ -33,10 +30,14 @@ class FactoredGridGym(gymnasium.Env):
     Args:
         size, num_obstacles, obstacle_period, max_steps, layout_seed: as ``WorldConfig``
             (``obstacle_period``: 0 static, 10 semi-dynamic, 1 dynamic).
+        body, sensors, num_distractors, sensor_permutation, sensor_noise, actuator_noise: the
+            body and its sensors, as ``WorldConfig`` (observation ``sensors`` ``[K]``, and
+            ``heading`` for a body with a heading; ``Discrete(A)`` actions).
         render_mode: ``None`` or ``"ansi"`` (``render()`` returns the text picture).
 
-    Spaces: observation ``Dict(cell=Discrete(N), proximity=MultiBinary(4), bump=MultiBinary(4))``
-    with ``N = size**2``; action ``Discrete(4)`` (0 north, 1 west, 2 south, 3 east). The reward is
+    Spaces (the paper's body): observation ``Dict(cell=Discrete(N), sensors=MultiBinary(4),
+    proximity=MultiBinary(4), bump=MultiBinary(4))`` with ``N = size**2``; action ``Discrete(4)``
+    (0 north, 1 west, 2 south, 3 east). The reward is
     the conventional step + goal + sum(collision); ``info`` holds ``"local_reward"`` (float32
     ``[4]``, the collision vector) and ``"task_reward"`` (step + goal). Episodes end inside the
     env: ``terminated`` at the goal, ``truncated`` after ``max_steps`` actions. Never seeded,
@@ -63,6 +64,12 @@ class FactoredGridGym(gymnasium.Env):
         max_steps: int = 10_000,
         layout_seed: int = 0,
         render_mode: str | None = None,
+        body: str = "translate",
+        sensors: str = "cross",
+        num_distractors: int = 0,
+        sensor_permutation=None,
+        sensor_noise: float = 0.0,
+        actuator_noise: float = 0.0,
     ) -> None:
         self.config = WorldConfig(
             size=size,
@@ -70,6 +77,12 @@ class FactoredGridGym(gymnasium.Env):
             obstacle_period=obstacle_period,
             max_steps=max_steps,
             layout_seed=layout_seed,
+            body=body,
+            sensors=sensors,
+            num_distractors=num_distractors,
+            sensor_permutation=sensor_permutation,
+            sensor_noise=sensor_noise,
+            actuator_noise=actuator_noise,
         )
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
@@ -77,27 +90,33 @@ class FactoredGridGym(gymnasium.Env):
                 f"{self.metadata['render_modes']}"
             )
         self.render_mode = render_mode
-        self.observation_space = spaces.Dict(
-            {
-                "cell": spaces.Discrete(self.config.num_cells),
-                "proximity": spaces.MultiBinary(NUM_ACTIONS),
-                "bump": spaces.MultiBinary(NUM_ACTIONS),
-            }
-        )
-        self.action_space = spaces.Discrete(NUM_ACTIONS)
+        config = self.config
+        entries = {
+            "cell": spaces.Discrete(config.num_cells),
+            "sensors": spaces.MultiBinary(config.num_sensors),
+            "proximity": spaces.MultiBinary(NUM_ACTIONS),
+            "bump": spaces.MultiBinary(config.num_actuators),
+        }
+        if config.body_spec.has_heading:
+            entries["heading"] = spaces.Discrete(config.num_headings)
+        self.observation_space = spaces.Dict(entries)
+        self.action_space = spaces.Discrete(config.num_actuators)
         self.periods = torch.tensor([obstacle_period], dtype=torch.int64)  # [1]
         if obstacle_period == 0:
             self.static_obstacles = static_layout(self.config)
         else:
             self.static_obstacles = torch.zeros(self.config.num_cells, dtype=torch.bool)
-        self.world_state = empty_state(1, size)
+        # The world behind the envs.protocol.World interface: every rule is called through it.
+        self.world = FactoredGrid(config, self.static_obstacles)
+        self.world_state = self.world.initial_state(1)
         self._seed_world(0)
 
     def _seed_world(self, seed: int) -> None:
         """The world's key from ``seed`` (as ``FactoredGridEnv``), its stream rewound."""
         self.world_keys = derive_keys(seed, STREAM_WORLD, 1)  # [1]
         self.world_state = self.world_state._replace(
-            scatters=torch.zeros_like(self.world_state.scatters)
+            scatters=torch.zeros_like(self.world_state.scatters),
+            ticks=torch.zeros_like(self.world_state.ticks),
         )
 
     def reset(
@@ -107,35 +126,31 @@ class FactoredGridGym(gymnasium.Env):
         if seed is not None:
             self._seed_world(seed)
         start_all = torch.ones(1, dtype=torch.bool)
-        self.world_state = reset_worlds(
-            self.world_state,
-            start_all,
-            self.world_keys,
-            self.periods,
-            self.static_obstacles,
-            self.config,
+        self.world_state = self.world.reset(
+            self.world_state, start_all, self.world_keys, self.periods
         )
         return self._observation(), {}
 
     def step(self, action) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
         if isinstance(action, np.ndarray) and action.shape == ():
             action = action.item()
+        count = self.config.num_actuators
         if isinstance(action, bool | np.bool_) or not isinstance(action, int | np.integer):
             raise TypeError(
-                f"action must be an int in [0, {NUM_ACTIONS - 1}], got {action!r} "
+                f"action must be an int in [0, {count - 1}], got {action!r} "
                 f"({type(action).__name__})"
             )
-        if not 0 <= action < NUM_ACTIONS:
+        if not 0 <= action < count:
+            names = ", ".join(f"{i} {name}" for i, name in enumerate(self.config.actuator_names))
             raise ValueError(
-                f"action={action} is out of range: must be in [0, {NUM_ACTIONS - 1}] "
-                f"(0 north, 1 west, 2 south, 3 east)"
+                f"action={action} is out of range: must be in [0, {count - 1}] ({names})"
             )
         action_tensor = torch.tensor([int(action)], dtype=torch.int64)  # [1]
-        self.world_state, outcome = step_worlds(
-            self.world_state, action_tensor, self.world_keys, self.periods, self.config
+        self.world_state, outcome = self.world.step(
+            self.world_state, action_tensor, self.world_keys, self.periods
         )
         info = {
-            "local_reward": outcome.collision[0].numpy().copy(),  # [4] float32
+            "local_reward": outcome.collision[0].numpy().copy(),  # [A] float32
             "task_reward": float(outcome.task_reward[0]),
         }
         return (
@@ -148,12 +163,16 @@ class FactoredGridGym(gymnasium.Env):
 
     def _observation(self) -> dict[str, Any]:
         state = self.world_state
-        sensors = proximity(state.cell, state.obstacles, self.config.size)[0]  # [4]
-        return {
+        near = proximity(state.cell, state.obstacles, self.config.size)[0]  # [4]
+        observation = {
             "cell": np.int64(state.cell[0]),
-            "proximity": sensors.numpy().astype(np.int8),
+            "sensors": self.world.observe(state, self.world_keys)[0].numpy().astype(np.int8),
+            "proximity": near.numpy().astype(np.int8),
             "bump": state.bump[0].numpy().astype(np.int8),
         }
+        if self.config.body_spec.has_heading:
+            observation["heading"] = np.int64(state.heading[0])
+        return observation
 
     def obstacle_map(self) -> np.ndarray:
         """The current obstacles, a bool copy ``[size, size]``."""
@@ -166,4 +185,4 @@ class FactoredGridGym(gymnasium.Env):
         if self.render_mode != "ansi":
             return None
         state = self.world_state
-        return render_world(int(state.cell[0]), state.obstacles[0], self.config.size)
+        return self.world.render(state, 0)

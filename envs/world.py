@@ -14,22 +14,70 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
+from functools import cached_property
 from typing import NamedTuple
 
 import torch
 
-from factorq_torch.base.rng import STREAM_LAYOUT, derive_keys, randint_from_bits, random_bits
-from factorq_torch.base.validation import check_int
+from envs.body import (
+    BODIES,
+    NUM_HEADINGS,
+    SENSOR_LAYOUTS,
+    Body,
+    SensorLayout,
+    base_dependency,
+    draw_permutation,
+    sensor_offsets,
+)
+from factorq_torch.base.rng import (
+    STREAM_LAYOUT,
+    SUBSTREAM_ACTUATOR_NOISE,
+    SUBSTREAM_DISTRACTOR,
+    SUBSTREAM_SENSOR_NOISE,
+    derive_keys,
+    probability_threshold,
+    randint_from_bits,
+    random_bits,
+    substream_key,
+)
+from factorq_torch.base.validation import check_float, check_int, is_int
 
 NUM_ACTIONS = 4
 ACTION_NAMES = ("north", "west", "south", "east")
 ROW_DELTA = (-1, 0, 1, 0)
 COL_DELTA = (0, -1, 0, 1)
 START_CELL = 0
+#: Every episode starts facing north (bodies with a heading).
+START_HEADING = 0
 MAX_LAYOUT_ATTEMPTS = 10_000
+#: The most distractor bits a world may add.
+MAX_DISTRACTORS = 32
 #: The paper's three worlds by name and their obstacle periods (SPEC section 1).
 WORLD_PERIODS = {"static": 0, "semi-dynamic": 10, "dynamic": 1}
 WORLDS = tuple(WORLD_PERIODS)
+
+
+def check_choice(name: str, value, allowed) -> str:
+    """``value`` if it is one of the names ``allowed``, else a ValueError naming them."""
+    if not isinstance(value, str) or value not in allowed:
+        raise ValueError(f"{name}={value!r} is unknown: choose one of {', '.join(allowed)}")
+    return value
+
+
+def check_permutation(name: str, value, count: int) -> tuple[int, ...]:
+    """``value`` as a tuple if it is a permutation of ``range(count)``, else an error naming it."""
+    if isinstance(value, str) or not hasattr(value, "__iter__"):
+        raise TypeError(
+            f"{name} must be None, an int seed or a sequence of ints, got {value!r} "
+            f"({type(value).__name__})"
+        )
+    values = tuple(value.tolist() if isinstance(value, torch.Tensor) else value)
+    if not all(is_int(v) for v in values) or sorted(values) != list(range(count)):
+        raise ValueError(
+            f"{name}={values!r} is not a permutation: must hold each of 0..{count - 1} once "
+            f"({count} sensors)"
+        )
+    return values
 
 
 @dataclass(frozen=True)
@@ -46,6 +94,20 @@ class WorldConfig:
     """Actions after which an episode is truncated."""
     layout_seed: int = 0
     """Seed of the static layout (the same for every world of a batch)."""
+    body: str = "translate"
+    """The agent's body: translate (the paper: 4 moves N/W/S/E) or heading (forward, turn-left,
+    turn-right; sensors turn with the heading)."""
+    sensors: str = "cross"
+    """Sensor layout: cross (the paper: the 4 neighbours) or ring (the 8 neighbours)."""
+    num_distractors: int = 0
+    """Extra sensor bits that carry no information: fair coins drawn afresh at every observation."""
+    sensor_permutation: tuple[int, ...] | int | None = None
+    """The order the agent receives the sensors in: None (layout order, distractors last), a
+    permutation (agent's sensor j = sensor permutation[j]) or an int seed to draw one from."""
+    sensor_noise: float = 0.0
+    """Probability that each sensor bit is flipped, independently at every observation."""
+    actuator_noise: float = 0.0
+    """Probability that another actuator (uniform among the others) fires than the chosen one."""
 
     def __post_init__(self) -> None:
         check_int("size", self.size, 2)
@@ -59,6 +121,95 @@ class WorldConfig:
         check_int("obstacle_period", self.obstacle_period, 0, hint=" (0 static, k > 0 moving)")
         check_int("max_steps", self.max_steps, 1)
         check_int("layout_seed", self.layout_seed, 0)
+        check_choice("body", self.body, BODIES)
+        check_choice("sensors", self.sensors, SENSOR_LAYOUTS)
+        check_int("num_distractors", self.num_distractors, 0, MAX_DISTRACTORS)
+        check_float("sensor_noise", self.sensor_noise, 0.0, 1.0)
+        check_float("actuator_noise", self.actuator_noise, 0.0, 1.0)
+        count = SENSOR_LAYOUTS[self.sensors].num_sensors + self.num_distractors
+        permutation = self.sensor_permutation
+        if permutation is not None:
+            if is_int(permutation):
+                permutation = draw_permutation(count, permutation)
+            permutation = check_permutation("sensor_permutation", permutation, count)
+            if permutation == tuple(range(count)):
+                permutation = None  # the identity is the layout order: one spelling only
+        object.__setattr__(self, "sensor_permutation", permutation)
+
+    @property
+    def body_spec(self) -> Body:
+        """The declaration of ``body`` (``envs.body``)."""
+        return BODIES[self.body]
+
+    @property
+    def layout(self) -> SensorLayout:
+        """The declaration of the sensor layout ``sensors`` (``envs.body``)."""
+        return SENSOR_LAYOUTS[self.sensors]
+
+    @property
+    def num_actuators(self) -> int:
+        return self.body_spec.num_actuators
+
+    @property
+    def num_headings(self) -> int:
+        """4 for a body with a heading, else 1."""
+        return self.body_spec.num_headings
+
+    @property
+    def num_sensors(self) -> int:
+        """``K``: layout sensors plus distractors, all of which the agent receives."""
+        return self.layout.num_sensors + self.num_distractors
+
+    @property
+    def permutation(self) -> tuple[int, ...]:
+        """Agent's sensor ``j`` is sensor ``permutation[j]`` of the layout order (identity when
+        ``sensor_permutation`` is None)."""
+        if self.sensor_permutation is None:
+            return tuple(range(self.num_sensors))
+        return self.sensor_permutation
+
+    @property
+    def sensor_names(self) -> tuple[str, ...]:
+        """The names of the sensors in the order the agent receives them."""
+        names = self.layout.names(self.body_spec)
+        names += tuple(f"distractor-{d}" for d in range(self.num_distractors))
+        return tuple(names[k] for k in self.permutation)
+
+    @property
+    def actuator_names(self) -> tuple[str, ...]:
+        return self.body_spec.actuators
+
+    @property
+    def dependency(self) -> torch.Tensor:
+        """Ground truth bool ``[actuators, sensors]`` (sensors in the agent's order): True where
+        the sensor decides the actuator's local (collision) reward."""
+        return base_dependency(self.body_spec, self.layout, self.num_distractors)[
+            :, list(self.permutation)
+        ]
+
+    @property
+    def is_paper_body(self) -> bool:
+        """The paper's body and sensors exactly: translate, cross, no distractors, no
+        permutation, no noise (what the compiled fast path runs)."""
+        return (
+            self.body == "translate"
+            and self.sensors == "cross"
+            and self.num_distractors == 0
+            and self.sensor_permutation is None
+            and self.sensor_noise == 0.0
+            and self.actuator_noise == 0.0
+        )
+
+    @cached_property
+    def _tables(self) -> dict[str, torch.Tensor]:
+        """Constant tensors of the body (CPU; moved to the state's device where used)."""
+        body = self.body_spec
+        return {
+            "offsets": sensor_offsets(self.layout),  # [4, layout sensors, 2]
+            "moves": torch.tensor([-1 if m is None else m for m in body.moves]),  # [A]
+            "turns": torch.tensor(body.turns),  # [A]
+            "permutation": torch.tensor(self.permutation),  # [K]
+        }
 
     @property
     def num_cells(self) -> int:
@@ -78,9 +229,11 @@ class WorldState(NamedTuple):
 
     cell: torch.Tensor  # [S] int64, the agent's cell
     obstacles: torch.Tensor  # [S, N] bool, N = size * size
-    bump: torch.Tensor  # [S, 4] bool, the face that hit something on the last action
+    bump: torch.Tensor  # [S, A] bool, the actuator whose last firing hit something
     episode_step: torch.Tensor  # [S] int64, actions taken in the current episode
     scatters: torch.Tensor  # [S] int64, obstacle scatters drawn so far (the stream's position)
+    heading: torch.Tensor  # [S] int64, the direction faced (always 0 without a heading body)
+    ticks: torch.Tensor  # [S] int64, index of the current observation (sensor streams' position)
 
 
 class StepOutcome(NamedTuple):
@@ -88,9 +241,10 @@ class StepOutcome(NamedTuple):
 
     step_reward: torch.Tensor  # [S] float, -1 on every action
     goal_reward: torch.Tensor  # [S] float, +1 on the action that reaches the goal
-    collision: torch.Tensor  # [S, 4] float, -1 on the face that bumped
+    collision: torch.Tensor  # [S, A] float, -1 on the chosen actuator when the step bumped
     terminated: torch.Tensor  # [S] bool, the goal was reached
     truncated: torch.Tensor  # [S] bool, max_steps reached without the goal
+    fired: torch.Tensor  # [S] int64, the actuator that actually fired (actuator noise)
 
     @property
     def task_reward(self) -> torch.Tensor:
@@ -103,15 +257,22 @@ class StepOutcome(NamedTuple):
         return self.task_reward + self.collision.sum(dim=-1)
 
 
-def empty_state(batch: int, size: int, device: torch.device | str | None = None) -> WorldState:
+def empty_state(
+    batch: int,
+    size: int,
+    device: torch.device | str | None = None,
+    num_actuators: int = NUM_ACTIONS,
+) -> WorldState:
     """``batch`` worlds, the agent on the start cell, no obstacles (then call ``reset_worlds``)."""
     zeros = torch.zeros(batch, dtype=torch.int64, device=device)
     return WorldState(
         cell=zeros.clone(),
         obstacles=torch.zeros(batch, size * size, dtype=torch.bool, device=device),
-        bump=torch.zeros(batch, NUM_ACTIONS, dtype=torch.bool, device=device),
+        bump=torch.zeros(batch, num_actuators, dtype=torch.bool, device=device),
         episode_step=zeros.clone(),
         scatters=zeros.clone(),
+        heading=zeros.clone(),
+        ticks=zeros.clone(),
     )
 
 
@@ -132,6 +293,53 @@ def proximity(cell: torch.Tensor, obstacles: torch.Tensor, size: int) -> torch.T
     """Proximity sensors ``[S, 4]`` bool: the neighbouring cell is wall or obstacle."""
     target, inside = neighbours(cell, size)
     return ~inside | obstacles.gather(-1, target)
+
+
+def sense(
+    cell: torch.Tensor, heading: torch.Tensor, obstacles: torch.Tensor, config: WorldConfig
+) -> torch.Tensor:
+    """The layout's sensors ``[S, L]`` bool, in layout order, noise-free: sensor ``k`` is 1 when
+    the cell at its offset, turned with ``heading``, is wall or obstacle."""
+    size = config.size
+    offsets = config._tables["offsets"].to(cell.device)[heading]  # [S, L, 2]
+    row = (cell // size).unsqueeze(-1) + offsets[..., 0]  # [S, L]
+    col = (cell % size).unsqueeze(-1) + offsets[..., 1]
+    inside = (row >= 0) & (row < size) & (col >= 0) & (col < size)
+    target = row.clamp(0, size - 1) * size + col.clamp(0, size - 1)
+    return ~inside | obstacles.gather(-1, target)
+
+
+def observe(state: WorldState, key: torch.Tensor, config: WorldConfig) -> torch.Tensor:
+    """All sensors as the agent receives them, ``[S, K]`` bool (a pure function of the state).
+
+    1. the layout's sensors (``sense``), then ``num_distractors`` fair coins: distractor ``d`` of
+       observation ``t = ticks`` is the top bit of draw ``t * D + d`` of the world's distractor
+       sub-stream (``substream_key(key, SUBSTREAM_DISTRACTOR)``), independent of everything else;
+    2. sensor noise: bit ``k`` (in that order) is flipped when draw ``t * K + k`` of the
+       sensor-noise sub-stream is below ``probability_threshold(sensor_noise)``;
+    3. the permutation: the agent's sensor ``j`` is bit ``permutation[j]``.
+
+    The paper's body draws nothing here, so its world stream is untouched.
+    """
+    readings = sense(state.cell, state.heading, state.obstacles, config)  # [S, L]
+    tick = state.ticks.unsqueeze(1)  # [S, 1]
+    if config.num_distractors:
+        draws = torch.arange(config.num_distractors, device=key.device)
+        bits = random_bits(
+            substream_key(key, SUBSTREAM_DISTRACTOR).unsqueeze(1),
+            tick * config.num_distractors + draws,
+        )  # [S, D]
+        readings = torch.cat([readings, (bits >> 31).to(torch.bool)], dim=1)  # [S, K]
+    if config.sensor_noise > 0:
+        draws = torch.arange(config.num_sensors, device=key.device)
+        bits = random_bits(
+            substream_key(key, SUBSTREAM_SENSOR_NOISE).unsqueeze(1),
+            tick * config.num_sensors + draws,
+        )
+        readings = readings ^ (bits < probability_threshold(config.sensor_noise))
+    if config.sensor_permutation is not None:
+        readings = readings[:, config._tables["permutation"].to(readings.device)]
+    return readings
 
 
 def scatter_obstacles(
@@ -277,6 +485,8 @@ def reset_worlds(
         bump=state.bump & ~mask.unsqueeze(1),
         episode_step=torch.where(mask, 0, state.episode_step),
         scatters=scatters,
+        heading=torch.where(mask, START_HEADING, state.heading),
+        ticks=state.ticks + mask.to(torch.int64),  # a new episode is a new observation
     )
 
 
@@ -289,18 +499,42 @@ def step_worlds(
 ) -> tuple[WorldState, StepOutcome]:
     """One action in each of ``S`` worlds (SPEC section 1's order).
 
-    read action -> move or collide -> reward -> (maybe) scatter -> new observation. A blocked
-    move (wall or obstacle) leaves the agent in place and sets the bump bit of that face. A world
-    with ``period = k > 0`` scatters after every ``k``-th action of the episode, except on the
-    step that reaches the goal. ``action`` is int64 ``[S]`` in ``[0, 4)``.
+    read action -> (actuator noise) -> move or collide, turn -> reward -> (maybe) scatter -> new
+    observation. A moving actuator goes one cell in its direction turned with the heading; a
+    blocked move (wall or obstacle) leaves the agent in place and sets the bump bit of the chosen
+    actuator. Turning actuators change the heading and never move or collide. A world with
+    ``period = k > 0`` scatters after every ``k``-th action of the episode, except on the step
+    that reaches the goal. ``action`` is int64 ``[S]`` in ``[0, A)``.
+
+    Actuator noise: with probability ``actuator_noise`` (draw ``2t`` of the actuator-noise
+    sub-stream, ``t = ticks``, below the threshold) actuator ``(action + 1 + r) % A`` fires
+    instead, ``r`` uniform in ``[0, A - 1)`` from draw ``2t + 1``. The collision is attributed
+    to the *chosen* actuator (``collision``, ``bump``): the local reward then measures what
+    choosing it under the observation costs, which is what eq. 2 ranks actions by, and the agent
+    never sees which actuator fired (``StepOutcome.fired`` records it for tests).
     """
+    tables = config._tables
+    num_actuators = config.num_actuators
+    fired = action
+    if config.actuator_noise > 0:
+        noise_key = substream_key(key, SUBSTREAM_ACTUATOR_NOISE)
+        slip = random_bits(noise_key, 2 * state.ticks) < probability_threshold(
+            config.actuator_noise
+        )
+        other = randint_from_bits(random_bits(noise_key, 2 * state.ticks + 1), num_actuators - 1)
+        fired = torch.where(slip, (action + 1 + other) % num_actuators, action)
+    move = tables["moves"].to(action.device)[fired]  # [S], -1: no move
+    moving = move >= 0
+    direction = (move.clamp(min=0) + state.heading) % NUM_HEADINGS  # [S]
     target, inside = neighbours(state.cell, config.size)  # [S, 4]
     blocked = ~inside | state.obstacles.gather(1, target)
-    chosen = action.unsqueeze(1)
-    collided = blocked.gather(1, chosen).squeeze(1)  # [S]
-    cell = torch.where(collided, state.cell, target.gather(1, chosen).squeeze(1))
-    faces = torch.arange(NUM_ACTIONS, device=action.device)
-    bump = (faces == chosen) & collided.unsqueeze(1)  # [S, 4]
+    chosen = direction.unsqueeze(1)
+    collided = moving & blocked.gather(1, chosen).squeeze(1)  # [S]
+    stays = collided | ~moving
+    cell = torch.where(stays, state.cell, target.gather(1, chosen).squeeze(1))
+    heading = (state.heading + tables["turns"].to(action.device)[fired]) % NUM_HEADINGS
+    actuators = torch.arange(num_actuators, device=action.device)
+    bump = (actuators == action.unsqueeze(1)) & collided.unsqueeze(1)  # [S, A]
     episode_step = state.episode_step + 1
     terminated = cell == config.goal_cell
     truncated = ~terminated & (episode_step >= config.max_steps)
@@ -310,12 +544,13 @@ def step_worlds(
         collision=torch.where(bump, -1.0, 0.0),  # not -bump: that prints (and stores) -0.0
         terminated=terminated,
         truncated=truncated,
+        fired=fired,
     )
     obstacles, scatters = state.obstacles, state.scatters
     scatter = (period > 0) & ~terminated & (episode_step % period.clamp(min=1) == 0)
     if config.num_obstacles:
         obstacles, scatters = _scatter_where(scatter, obstacles, scatters, key, cell, config)
-    new_state = WorldState(cell, obstacles, bump, episode_step, scatters)
+    new_state = WorldState(cell, obstacles, bump, episode_step, scatters, heading, state.ticks + 1)
     return new_state, outcome
 
 
@@ -343,3 +578,58 @@ def render_world(cell: int, obstacles: torch.Tensor, size: int) -> str:
         rows.append("#" + line + "#")
     rows.append("#" * (size + 2))
     return "\n".join(rows)
+
+
+class FactoredGrid:
+    """The FactoredGrid world behind the ``envs.protocol.World`` interface: the functions of
+    this module bound to one ``WorldConfig`` (the static layout drawn once, when needed).
+
+    >>> from envs.protocol import World
+    >>> grid = FactoredGrid(WorldConfig(size=3, num_obstacles=0, body="heading"))
+    >>> isinstance(grid, World), grid.dependency.nonzero().tolist()
+    (True, [[0, 0]])
+    """
+
+    def __init__(self, config: WorldConfig, static_obstacles: torch.Tensor | None = None) -> None:
+        if not isinstance(config, WorldConfig):
+            raise TypeError(f"config must be a WorldConfig, got {type(config).__name__}")
+        self.config = config
+        self._static = static_obstacles
+
+    @property
+    def dependency(self) -> torch.Tensor:
+        return self.config.dependency
+
+    @property
+    def static_obstacles(self) -> torch.Tensor:
+        """The static layout ``[N]`` (given, or drawn on first use)."""
+        if self._static is None:
+            self._static = static_layout(self.config)
+        return self._static
+
+    @static_obstacles.setter
+    def static_obstacles(self, value: torch.Tensor) -> None:
+        self._static = value
+
+    def initial_state(self, batch: int, device: torch.device | str | None = None) -> WorldState:
+        return empty_state(batch, self.config.size, device, self.config.num_actuators)
+
+    def reset(
+        self, state: WorldState, mask: torch.Tensor, key: torch.Tensor, period: torch.Tensor
+    ) -> WorldState:
+        if self._static is None and not bool((period == 0).any()):
+            static = torch.zeros_like(state.obstacles[0])  # no static world: no layout to draw
+        else:
+            static = self.static_obstacles.to(state.cell.device)
+        return reset_worlds(state, mask, key, period, static, self.config)
+
+    def step(
+        self, state: WorldState, action: torch.Tensor, key: torch.Tensor, period: torch.Tensor
+    ) -> tuple[WorldState, StepOutcome]:
+        return step_worlds(state, action, key, period, self.config)
+
+    def observe(self, state: WorldState, key: torch.Tensor) -> torch.Tensor:
+        return observe(state, key, self.config)
+
+    def render(self, state: WorldState, index: int = 0) -> str:
+        return render_world(int(state.cell[index]), state.obstacles[index], self.config.size)

@@ -39,6 +39,69 @@ def qlearning_state(cell: torch.Tensor, readings: torch.Tensor) -> torch.Tensor:
     return cell * (1 << readings.shape[-1]) + sensor_pattern(readings)
 
 
+def check_dependency(dependency, num_sensors: int | None = None) -> torch.Tensor:
+    """``dependency`` as a bool ``[A, K]`` tensor, else a TypeError / ValueError naming it.
+
+    ``num_sensors``: the ``K`` it must have (``None``: any). Row ``a`` marks the parent sensors
+    ``D(a)`` of actuator ``a``: those that decide its local reward.
+    """
+    if not isinstance(dependency, torch.Tensor) or dependency.dtype != torch.bool:
+        raise TypeError(
+            f"dependency must be a bool tensor [actuators, sensors], got "
+            f"{getattr(dependency, 'dtype', type(dependency).__name__)}"
+        )
+    if dependency.dim() != 2 or dependency.shape[0] < 1 or dependency.shape[1] < 1:
+        raise ValueError(
+            f"dependency has shape {list(dependency.shape)}: must be [actuators, sensors], both "
+            f">= 1"
+        )
+    if num_sensors is not None and dependency.shape[1] != num_sensors:
+        raise ValueError(
+            f"dependency has shape {list(dependency.shape)}: it names {dependency.shape[1]} "
+            f"sensors but there are {num_sensors}"
+        )
+    return dependency
+
+
+def parent_weights(dependency: torch.Tensor) -> torch.Tensor:
+    """``[A, K]`` int64: ``2**r`` where sensor ``k`` is the ``r``-th parent of actuator ``a`` (in
+    sensor order), 0 where it is no parent; ``local_patterns`` sums them over the set bits."""
+    ranks = dependency.to(torch.int64).cumsum(dim=-1) - 1  # [A, K]
+    return torch.where(dependency, 1 << ranks.clamp(min=0), 0)
+
+
+def local_patterns(readings: torch.Tensor, dependency: torch.Tensor) -> torch.Tensor:
+    """The reading of each actuator's parent sensors as one integer ``o_D(a)``:
+    ``sum_r readings[k_r] << r`` over the parents ``k_0 < k_1 < ...`` of ``a``.
+
+    Shapes: ``readings [..., K]`` (bool), ``dependency [A, K]`` -> ``[..., A]`` int64 in
+    ``[0, 2**|D(a)|)``. The paper's body (``dependency = eye(4)``): ``o_D(a) = readings[a]``.
+
+    >>> dependency = torch.tensor([[True, False, True], [False, False, False]])
+    >>> local_patterns(torch.tensor([True, False, True]), dependency)
+    tensor([3, 0])
+    """
+    weights = parent_weights(dependency)  # [A, K]
+    return (readings.to(torch.int64).unsqueeze(-2) * weights).sum(dim=-1)
+
+
+def project_local(
+    rho: torch.Tensor, readings: torch.Tensor, dependency: torch.Tensor
+) -> torch.Tensor:
+    """The projection ``rho(o)`` of section 5.2 (SPEC section 3): ``rho(o)_a = rho_a[o_D(a)]``,
+    each actuator's local reward table read at the pattern of its parent sensors.
+
+    Shapes: ``rho [..., A, P]`` (``P >= 2**max_a |D(a)|``), ``readings [..., K]`` bool,
+    ``dependency [A, K]`` bool -> ``[..., A]`` (leading dimensions broadcast). The paper's body:
+    ``rho(o) = (rho_0[o_0], ..., rho_3[o_3])``.
+    """
+    pattern = local_patterns(readings, dependency)  # [..., A]
+    leading = torch.broadcast_shapes(rho.shape[:-2], pattern.shape[:-1])
+    rho = rho.expand(*leading, *rho.shape[-2:])
+    pattern = pattern.expand(*leading, pattern.shape[-1])
+    return rho.gather(-1, pattern.unsqueeze(-1)).squeeze(-1)
+
+
 def _left_sum(x: torch.Tensor) -> torch.Tensor:
     """``x[..., 0] + x[..., 1] + ...`` in that order (``[..., A] -> [...]``)."""
     total = x[..., 0]

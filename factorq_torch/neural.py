@@ -7,8 +7,9 @@ the collector run unchanged with either (DESIGN section 1):
 - ``TaskQNetwork`` writes ``action_value`` ``[..., S, A]`` from the cell (one-hot) or, with
   ``with_proximity=True`` (the DQN baseline's observation), from the cell one-hot concatenated with
   the 4 proximity bits;
-- ``LocalRewardNetwork`` writes ``local_value`` ``[..., S, A]``: for every actuator ``i`` a small
-  network of its own sensor reading ``proximity[i]`` predicts the local reward of firing ``i``.
+- ``LocalRewardNetwork`` writes ``local_value`` ``[..., S, A]``: for every actuator ``a`` a small
+  network of the readings of its parent sensors (``dependency``; the paper: its own proximity
+  bit) predicts the local reward of firing ``a``.
   ``FactorQLoss`` trains it on ``loss_local = 0.5 * (rho[a] - r_L[a])**2`` of the fired actuator
   ``a`` (it has no ``update_running_mean``, the tables' eq. 5).
 
@@ -57,8 +58,10 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
+from factorq_torch.base import keys as names
 from factorq_torch.base.rng import MASK64, STREAM_LOCAL_NETWORK, STREAM_TASK_NETWORK, derive_keys
 from factorq_torch.base.validation import check_int
+from factorq_torch.functional import check_dependency
 
 NUM_ACTIONS = 4
 ACTIVATIONS = ("relu", "tanh")
@@ -195,12 +198,14 @@ class TaskQNetwork(TensorDictModuleBase):
     - ``with_proximity=False`` (Factor-DQN, like ``TaskQTable``'s Factor-Q state): the cell as a
       one-hot vector ``[N]`` (float32);
     - ``with_proximity=True`` (the DQN baseline, like Q-learning's state): the cell one-hot ``[N]``
-      concatenated with the 4 proximity bits as 0/1 floats, ``[N + 4]``.
+      concatenated with the ``K`` sensor bits (``sensors``) as 0/1 floats, ``[N + K]``.
 
     Args:
         num_experiments: ``S``, one network each.
         num_cells: ``N``, cells of the grid (``size**2``).
-        with_proximity: add the proximity bits to the input.
+        with_proximity: add the sensor bits to the input.
+        num_sensors: ``K`` (4 in the paper's body).
+        num_headings: ``H``; above 1 the one-hot is over (cell, heading) pairs, ``[N H]``.
         hidden: hidden layer widths of each network.
         activation: hidden activation, ``"relu"`` (default) or ``"tanh"``.
         num_actions: ``A``, the outputs.
@@ -209,7 +214,7 @@ class TaskQNetwork(TensorDictModuleBase):
         zero_output: start every value at exactly 0 (as the tables).
         device: where the weights live.
 
-    Keys: reads ``cell`` ``[..., S]`` (and ``proximity`` ``[..., S, 4]``), writes ``action_value``
+    Keys: reads ``cell`` ``[..., S]`` (and ``sensors`` ``[..., S, K]``), writes ``action_value``
     ``[..., S, A]``: any leading dimensions (a replay minibatch ``[B, S]``) are allowed.
 
     Example:
@@ -227,6 +232,8 @@ class TaskQNetwork(TensorDictModuleBase):
         num_cells: int,
         *,
         with_proximity: bool = False,
+        num_sensors: int = NUM_ACTIONS,
+        num_headings: int = 1,
         hidden: Sequence[int] = (64,),
         activation: str = "relu",
         num_actions: int = NUM_ACTIONS,
@@ -241,9 +248,12 @@ class TaskQNetwork(TensorDictModuleBase):
         self.num_cells = check_int("num_cells", num_cells, 1)
         self.num_actions = check_int("num_actions", num_actions, 1)
         self.with_proximity = bool(with_proximity)
-        self.in_keys = ["cell", "proximity"] if with_proximity else ["cell"]
-        self.out_keys = ["action_value"]
-        in_features = num_cells + (NUM_ACTIONS if with_proximity else 0)
+        self.num_sensors = check_int("num_sensors", num_sensors, 0)
+        self.num_headings = check_int("num_headings", num_headings, 1)
+        self.in_keys = [names.CELL] + ([names.HEADING] if num_headings > 1 else [])
+        self.in_keys += [names.SENSORS] if with_proximity else []
+        self.out_keys = [names.ACTION_VALUE]
+        in_features = num_cells * num_headings + (num_sensors if with_proximity else 0)
         self.network = BatchedMLP(
             (num_experiments,),
             in_features,
@@ -264,13 +274,20 @@ class TaskQNetwork(TensorDictModuleBase):
                 f"{owner} needs 'cell' in the tensordict; it has {list(tensordict.keys())}"
             )
         _experiment_dim(cell, 0, self.num_experiments, owner, "cell")
-        one_hot = nn.functional.one_hot(cell.to(torch.int64), self.num_cells).to(torch.float32)
+        position = cell.to(torch.int64)
+        if self.num_headings > 1:  # the state is (cell, heading): one-hot over both
+            heading = tensordict.get(names.HEADING, None)
+            if heading is None:
+                raise KeyError(f"{owner} with num_headings > 1 needs 'heading' in the tensordict")
+            position = position * self.num_headings + heading.to(torch.int64)
+        positions = self.num_cells * self.num_headings
+        one_hot = nn.functional.one_hot(position, positions).to(torch.float32)
         if not self.with_proximity:
             return one_hot
-        proximity = tensordict.get("proximity", None)
-        if proximity is None:
-            raise KeyError(f"{owner} with_proximity=True needs 'proximity' in the tensordict")
-        return torch.cat([one_hot, proximity.to(torch.float32)], dim=-1)
+        sensors = tensordict.get(names.SENSORS, None)
+        if sensors is None:
+            raise KeyError(f"{owner} with_proximity=True needs 'sensors' in the tensordict")
+        return torch.cat([one_hot, sensors.to(torch.float32)], dim=-1)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         tensordict.set("action_value", self.network(self.features(tensordict)))  # [..., S, A]
@@ -278,19 +295,22 @@ class TaskQNetwork(TensorDictModuleBase):
 
 
 class LocalRewardNetwork(TensorDictModuleBase):
-    """Factor-Q's projected local reward ``rho(o)`` from small networks of each sensor reading.
+    """Factor-Q's projected local reward ``rho(o)`` from small networks of each actuator's parents.
 
-    ``local_value[..., s, i] = f_s(proximity[..., s, i])`` (``shared=True``) or
-    ``f_{s,i}(proximity[..., s, i])`` (one network per actuator): experiment ``s``'s network maps
-    actuator ``i``'s own sensor reading (0 or 1, as a float) through ``hidden`` units to the
-    expected local reward of firing ``i`` -- the network counterpart of the table ``rho_i[o_i]``.
-    Trained by ``FactorQLoss``'s ``loss_local`` (regression on the fired actuator's local reward).
-    The defaults (no bias, tanh, shared) are explained in the module docstring.
+    ``local_value[..., s, a] = f_s(x_a)`` (``shared=True``) or ``f_{s,a}(x_a)`` (one network per
+    actuator), where ``x_a`` ``[P]`` holds the readings (0 or 1, as floats) of actuator ``a``'s
+    parent sensors ``D(a)`` (row ``a`` of ``dependency``) in sensor order, zero-padded to
+    ``P = max(1, max_a |D(a)|)``: the dependency-masked input, the network counterpart of the
+    table ``rho_a[o_D(a)]`` (the paper's body: ``x_a = proximity[a]``, ``P = 1``). An actuator
+    without parents always sees zeros, so a bias-free network predicts exactly 0 for it.
+    Trained by ``FactorQLoss``'s ``loss_local`` (regression on the chosen actuator's local
+    reward). The defaults (no bias, tanh, shared) are explained in the module docstring.
 
     Args:
         num_experiments: ``S``.
+        dependency: bool ``[A, K]``, the parents of each actuator (default ``eye(num_actions)``).
         hidden: hidden layer widths of each actuator's network.
-        num_actions: ``A``, one network (and one sensor) per actuator.
+        num_actions: ``A`` when ``dependency`` is not given.
         bias: layers with biases; ``False`` (default) maps the reading 0 to exactly 0.
         activation: hidden activation, ``"tanh"`` (default) or ``"relu"``.
         shared: one network per experiment for all actuators (default), else one per actuator.
@@ -299,12 +319,12 @@ class LocalRewardNetwork(TensorDictModuleBase):
         zero_output: start every value at exactly 0 (as the tables).
         device: where the weights live.
 
-    Keys: reads ``proximity`` ``[..., S, A]`` bool, writes ``local_value`` ``[..., S, A]``.
+    Keys: reads ``sensors`` ``[..., S, K]`` bool, writes ``local_value`` ``[..., S, A]``.
 
     Example:
         >>> from tensordict import TensorDict
         >>> local = LocalRewardNetwork(1, zero_output=False)
-        >>> td = local(TensorDict(proximity=torch.tensor([[False] * 4]), batch_size=[1]))
+        >>> td = local(TensorDict(sensors=torch.tensor([[False] * 4]), batch_size=[1]))
         >>> td["local_value"].detach()  # no bias: nothing sensed predicts exactly 0
         tensor([[0., 0., 0., 0.]])
     """
@@ -313,6 +333,7 @@ class LocalRewardNetwork(TensorDictModuleBase):
         self,
         num_experiments: int,
         *,
+        dependency: torch.Tensor | None = None,
         hidden: Sequence[int] = (8,),
         num_actions: int = NUM_ACTIONS,
         bias: bool = False,
@@ -326,13 +347,23 @@ class LocalRewardNetwork(TensorDictModuleBase):
     ) -> None:
         super().__init__()
         self.num_experiments = check_int("num_experiments", num_experiments, 1)
-        self.num_actions = check_int("num_actions", num_actions, 1)
+        if dependency is None:
+            dependency = torch.eye(check_int("num_actions", num_actions, 1), dtype=torch.bool)
+        dependency = check_dependency(dependency)
+        self.num_actions, self.num_sensors = dependency.shape
         self.shared = bool(shared)
-        self.in_keys = ["proximity"]
-        self.out_keys = ["local_value"]
+        self.in_keys = [names.SENSORS]
+        self.out_keys = [names.LOCAL_VALUE]
+        parents = max(1, int(dependency.sum(dim=1).max()))
+        # parent_index[a, r]: the r-th parent of a, or K (a zero column) past its last parent.
+        parent_index = torch.full((self.num_actions, parents), self.num_sensors)
+        for actuator in range(self.num_actions):
+            found = dependency[actuator].nonzero().squeeze(1)
+            parent_index[actuator, : found.numel()] = found
+        self.register_buffer("parent_index", parent_index.to(device))
         self.network = BatchedMLP(
-            (num_experiments,) if shared else (num_experiments, num_actions),
-            1,
+            (num_experiments,) if shared else (num_experiments, self.num_actions),
+            parents,
             1,
             hidden=_check_hidden(hidden),
             keys=_keys(keys, seed, STREAM_LOCAL_NETWORK, num_experiments, offset),
@@ -344,19 +375,26 @@ class LocalRewardNetwork(TensorDictModuleBase):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         owner = type(self).__name__
-        proximity = tensordict.get("proximity", None)
-        if proximity is None:
-            raise KeyError(f"{owner} needs 'proximity' in the tensordict")
-        _experiment_dim(proximity, 1, self.num_experiments, owner, "proximity")
-        if proximity.shape[-1] != self.num_actions:
+        sensors = tensordict.get(names.SENSORS, None)
+        if sensors is None:
+            raise KeyError(f"{owner} needs 'sensors' in the tensordict")
+        _experiment_dim(sensors, 1, self.num_experiments, owner, "sensors")
+        if sensors.shape[-1] != self.num_sensors:
             raise ValueError(
-                f"{owner}: 'proximity' has {proximity.shape[-1]} sensors, expected "
-                f"{self.num_actions} (one per actuator)"
+                f"{owner}: 'sensors' has {sensors.shape[-1]} sensors, expected "
+                f"{self.num_sensors} (the dependency's)"
             )
-        reading = proximity.to(torch.float32).unsqueeze(-1)  # [..., S, A, 1]
-        if self.shared:  # one network per experiment, applied to each of its A sensors
+        padded = torch.cat(  # [..., S, K + 1]: a zero column for missing parents
+            [
+                sensors.to(torch.float32),
+                sensors.new_zeros(*sensors.shape[:-1], 1, dtype=torch.float32),
+            ],
+            dim=-1,
+        )
+        reading = padded[..., self.parent_index]  # [..., S, A, P]
+        if self.shared:  # one network per experiment, applied to each of its A actuators
             value = self.network(reading.movedim(-2, -3)).movedim(-3, -2)  # [..., S, A, 1]
         else:
             value = self.network(reading)
-        tensordict.set("local_value", value.squeeze(-1))  # [..., S, A]
+        tensordict.set(names.LOCAL_VALUE, value.squeeze(-1))  # [..., S, A]
         return tensordict

@@ -24,7 +24,7 @@ not a gradient step. Like a BatchNorm's running statistics, it is applied by
 ``FactorQLoss.forward`` in training mode (the default; ``loss.eval()`` turns it off): after the
 target has been computed with the local tables as they were (so eq. 4's ``C(s')`` sees them before
 this step's update, SPEC section 3), the loss calls the local provider's
-``update_running_mean(proximity, action, local_reward, mask)`` (``LocalRewardTable``), under
+``update_running_mean(sensors, action, local_reward, mask)`` (``LocalRewardTable``), under
 ``torch.no_grad()``. Call the loss once per step. A neural local provider without that method
 learns from ``loss_local = 0.5 * sum((rho(s)[a] - r_L[a])**2)`` instead (for the tables it is a
 constant, reported for monitoring).
@@ -236,9 +236,10 @@ class FactorQLoss(_TransitionLoss):
     - eq. 4 (gradient, ``loss_task``): ``Q(s, a) <- Q(s, a) + alpha [r_task + gamma max_a' C(s')
       - Q(s, a)]`` with ``C(s') = Q(s') + G(s') rho(s')`` (eqs. 2-3 at ``s'``, local values before
       this step's eq. 5); ``r_task`` alone where ``("next", "terminated")``.
-    - eq. 5 (running mean, in ``forward`` in training mode): ``kappa_a[o_a] += 1``,
-      ``rho_a[o_a] += (r_L[a] - rho_a[o_a]) / kappa_a[o_a]`` for the fired actuator ``a`` and the
-      sensor reading ``o_a`` before acting.
+    - eq. 5 (running mean, in ``forward`` in training mode): ``kappa_a[o] += 1``,
+      ``rho_a[o] += (r_L[a] - rho_a[o]) / kappa_a[o]`` for the chosen actuator ``a`` and the
+      pattern ``o = o_D(a)`` of its parent sensors before acting (the local provider knows the
+      dependency).
 
     See the module docstring for why ``loss_task`` carries ``alpha`` and how eq. 5 is applied.
 
@@ -249,10 +250,10 @@ class FactorQLoss(_TransitionLoss):
         eta, g_min: eq. 3's margin and floor of ``G`` (the policy's values).
         reduction: ``"sum"`` (exact tabular update) or ``"mean"`` over experiments.
 
-    Keys (``set_keys``): ``action_value``, ``local_value``, ``action``, ``proximity`` (the
-    sensors before acting), ``reward`` (task reward), ``local_reward`` and ``terminated`` (the
-    last three read under ``"next"``), ``mask`` (optional). Output: ``loss_task``,
-    ``loss_local`` (scalars) and ``td_error`` ``[S]`` (detached).
+    Keys (``set_keys``): ``action_value``, ``local_value``, ``action``, ``sensors`` (all
+    sensors before acting, ``[S, K]``), ``reward`` (task reward), ``local_reward`` and
+    ``terminated`` (the last three read under ``"next"``), ``mask`` (optional). Output:
+    ``loss_task``, ``loss_local`` (scalars) and ``td_error`` ``[S]`` (detached).
     """
 
     @dataclass
@@ -262,7 +263,7 @@ class FactorQLoss(_TransitionLoss):
         action_value: NestedKey = "action_value"
         local_value: NestedKey = "local_value"
         action: NestedKey = "action"
-        proximity: NestedKey = "proximity"
+        sensors: NestedKey = "sensors"
         reward: NestedKey = "reward"
         local_reward: NestedKey = "local_reward"
         terminated: NestedKey = "terminated"
@@ -299,7 +300,7 @@ class FactorQLoss(_TransitionLoss):
         return [
             *providers,
             keys.action,
-            keys.proximity,
+            keys.sensors,
             *(("next", key) if isinstance(key, str) else ("next", *key) for key in providers),
             ("next", keys.reward),
             ("next", keys.local_reward),
@@ -313,7 +314,10 @@ class FactorQLoss(_TransitionLoss):
         rho = self._provide(self.local_value_network, tensordict, keys.local_value)  # [S, A]
         num_actions = q.shape[-1]
         action = self._read_action(tensordict, num_actions)  # [S]
-        proximity = self._read(tensordict, keys.proximity, (num_actions,))  # [S, A], before acting
+        num_sensors = getattr(self.local_value_network, "num_sensors", None)
+        if num_sensors is None:  # a provider that does not declare K: take the entry's own
+            num_sensors = getattr(tensordict.get(keys.sensors, None), "shape", (0,))[-1]
+        sensors = self._read(tensordict, keys.sensors, (num_sensors,))  # [S, K], before acting
         reward = self._read(tensordict, ("next", keys.reward), ())  # [S], task reward
         local_reward = self._read(tensordict, ("next", keys.local_reward), (num_actions,))
         terminated = self._read_terminated(tensordict)  # [S]
@@ -334,7 +338,7 @@ class FactorQLoss(_TransitionLoss):
         # eq. 5, after the target used the local tables as they were
         update = getattr(self.local_value_network, "update_running_mean", None)
         if self.training and update is not None:
-            update(proximity, action, local_reward, mask)
+            update(sensors, action, local_reward, mask)
         # write
         return TensorDict(
             loss_task=loss_task,

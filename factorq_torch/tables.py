@@ -4,11 +4,19 @@ Every table holds a leading dimension ``S``: one independent table per experimen
 ``S`` experiments (seeds, worlds) learn side by side in one module and nothing is shared across
 the batch. A tensordict given to a table must have ``batch_size == [S]``.
 
-- ``TaskQTable`` writes ``action_value`` ``[S, A]``: Factor-Q's task values ``Q(s, .)`` over cells,
-  or Q-learning's values over (cell, proximity pattern) states (SPEC section 3).
+- ``TaskQTable`` writes ``action_value`` ``[S, A]``: Factor-Q's task values ``Q(s, .)`` over cells
+  (x headings), or Q-learning's values over (cell (x heading), pattern of all sensors) states
+  (SPEC section 3).
 - ``LocalRewardTable`` writes ``local_value`` ``[S, A]``: the projected local reward
-  ``rho = (rho_0[o_0], ..., rho_3[o_3])`` of the current proximity reading, and owns eq. 5's
-  running-mean update of ``rho`` and its visit counts ``kappa``.
+  ``rho(o)_a = rho_a[o_D(a)]`` of the current sensor reading (``functional.project_local``, each
+  actuator's table indexed by the pattern of its parent sensors ``D(a)`` given by ``dependency``;
+  the paper: ``rho = (rho_0[o_0], ..., rho_3[o_3])``), and owns eq. 5's running-mean update of
+  ``rho`` and its visit counts ``kappa``.
+
+**Size caps.** A table of one experiment holds at most ``MAX_TABLE_ENTRIES`` (2**24) values: a
+Q-learning state space of cells x headings x ``2**K`` sensor patterns grows fast (ring + 4
+distractors: 100 x 4096 states x 4 actions = 1.6 M), and past the cap a batch of 100 experiments
+would need tens of GB. An actuator may have at most ``MAX_PARENTS`` (16) parent sensors.
 
 A neural value provider that writes the same key can replace either table: the policies, the
 losses and the collector only read ``action_value`` / ``local_value``.
@@ -20,12 +28,33 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
+from factorq_torch.base import keys
 from factorq_torch.base.validation import check_int
-from factorq_torch.functional import qlearning_state, running_mean_update
+from factorq_torch.functional import (
+    check_dependency,
+    local_patterns,
+    project_local,
+    qlearning_state,
+    running_mean_update,
+)
 
+#: The paper's body: 4 actuators and 4 sensors (the defaults; other bodies pass theirs).
 NUM_ACTIONS = 4
-#: Proximity patterns per cell: 4 binary sensors.
+#: Proximity patterns per cell of the paper's body: 4 binary sensors.
 NUM_PATTERNS = 1 << NUM_ACTIONS
+#: Values one experiment's table may hold (see the module docstring).
+MAX_TABLE_ENTRIES = 1 << 24
+#: Parent sensors one actuator's local table may be indexed by (2**16 entries).
+MAX_PARENTS = 16
+
+
+def check_table_size(owner: str, what: str, entries: int) -> None:
+    """Raise a ValueError when a table of ``entries`` values per experiment passes the cap."""
+    if entries > MAX_TABLE_ENTRIES:
+        raise ValueError(
+            f"{owner}: {what} needs {entries} values per experiment, past the cap of "
+            f"{MAX_TABLE_ENTRIES} (2**24): use fewer sensors or distractors"
+        )
 
 
 def check_batch(tensordict: TensorDictBase, num_experiments: int, owner: str) -> None:
@@ -71,22 +100,28 @@ def _check_entry(
 class TaskQTable(TensorDictModuleBase):
     """Task values ``Q(s, .)`` of ``S`` experiments, one row of ``A`` actions per state.
 
-    - Factor-Q (``with_proximity=False``): the state is the cell, ``table`` is ``[S, N, A]``.
-    - Q-learning (``with_proximity=True``): the state is ``cell * 16 + proximity pattern``
-      (``functional.qlearning_state``), ``table`` is ``[S, 16 N, A]``.
+    - Factor-Q (``with_sensors=False``): the state is the cell (x the heading when
+      ``num_headings > 1``), ``table`` is ``[S, N H, A]``.
+    - Q-learning (``with_sensors=True``): the state is ``(cell H + heading) 2**K + pattern`` of
+      all ``K`` sensors (``functional.qlearning_state``), ``table`` is ``[S, 2**K N H, A]``.
 
     ``table`` is an ``nn.Parameter`` (zeros), so a loss can update it by a gradient step.
-    ``reset_task(mask)`` zeroes it (SPEC section 4: at the start of every run).
+    ``reset_task(mask)`` zeroes it (SPEC section 4: at the start of every run). A table past
+    ``MAX_TABLE_ENTRIES`` values per experiment is refused.
 
     Args:
         num_experiments: ``S``, the experiments of the batch.
         num_cells: ``N``, cells of the grid (``size**2``).
-        with_proximity: add the proximity pattern to the state (Q-learning).
-        num_actions: ``A`` (4 in the paper's world).
+        with_sensors: add the pattern of all sensors to the state (Q-learning);
+            ``with_proximity`` is its older name.
+        num_sensors: ``K`` (4 in the paper's body).
+        num_headings: ``H``, 1 without a heading, 4 with one (read from ``heading``).
+        num_actions: ``A`` (4 in the paper's body).
+        sensors_key: where the sensors are read (``keys.SENSORS``).
         device: where the table lives.
 
-    Keys: reads ``cell`` ``[S]`` int64 (and ``proximity`` ``[S, 4]`` bool), writes
-    ``action_value`` ``[S, A]`` float32.
+    Keys: reads ``cell`` ``[S]`` int64 (``heading`` ``[S]`` int64, ``sensors`` ``[S, K]`` bool),
+    writes ``action_value`` ``[S, A]`` float32.
 
     Example:
         >>> from tensordict import TensorDict
@@ -103,18 +138,37 @@ class TaskQTable(TensorDictModuleBase):
         num_experiments: int,
         num_cells: int,
         *,
+        with_sensors: bool = False,
         with_proximity: bool = False,
+        num_sensors: int = NUM_ACTIONS,
+        num_headings: int = 1,
         num_actions: int = NUM_ACTIONS,
+        sensors_key: str = keys.SENSORS,
         device: torch.device | str | None = None,
     ) -> None:
         super().__init__()
         self.num_experiments = check_int("num_experiments", num_experiments, 1)
         self.num_cells = check_int("num_cells", num_cells, 1)
         self.num_actions = check_int("num_actions", num_actions, 1)
-        self.with_proximity = bool(with_proximity)
-        self.num_states = num_cells * NUM_PATTERNS if with_proximity else num_cells
-        self.in_keys = ["cell", "proximity"] if with_proximity else ["cell"]
-        self.out_keys = ["action_value"]
+        self.num_sensors = check_int("num_sensors", num_sensors, 0, 62)
+        self.num_headings = check_int("num_headings", num_headings, 1)
+        self.with_sensors = bool(with_sensors or with_proximity)
+        self.with_proximity = self.with_sensors  # the older name
+        self.sensors_key = sensors_key
+        positions = num_cells * num_headings
+        self.num_states = positions << num_sensors if self.with_sensors else positions
+        what = (
+            f"a Q-table of {num_cells} cells x {num_headings} headings"
+            + (f" x 2**{num_sensors} sensor patterns" if self.with_sensors else "")
+            + f" x {num_actions} actions"
+        )
+        check_table_size(type(self).__name__, what, self.num_states * num_actions)
+        self.in_keys = [keys.CELL]
+        if num_headings > 1:
+            self.in_keys.append(keys.HEADING)
+        if self.with_sensors:
+            self.in_keys.append(sensors_key)
+        self.out_keys = [keys.ACTION_VALUE]
         self.table = torch.nn.Parameter(
             torch.zeros(num_experiments, self.num_states, num_actions, device=device)
         )
@@ -122,21 +176,24 @@ class TaskQTable(TensorDictModuleBase):
     def state_index(self, tensordict: TensorDictBase) -> torch.Tensor:
         """The row of each experiment's table, ``[S]`` int64 (validated)."""
         owner = type(self).__name__
+        batch = (self.num_experiments,)
         check_batch(tensordict, self.num_experiments, owner)
-        cell = _check_entry(
-            tensordict, "cell", (self.num_experiments,), (torch.int64, torch.int32), owner
+        integers = (torch.int64, torch.int32)
+        state = _check_entry(tensordict, keys.CELL, batch, integers, owner).to(torch.int64)
+        if self.num_headings > 1:
+            heading = _check_entry(tensordict, keys.HEADING, batch, integers, owner)
+            state = state * self.num_headings + heading.to(torch.int64)
+        if not self.with_sensors:
+            return state
+        readings = _check_entry(
+            tensordict, self.sensors_key, (*batch, self.num_sensors), (torch.bool,), owner
         )
-        if not self.with_proximity:
-            return cell.to(torch.int64)
-        proximity = _check_entry(
-            tensordict, "proximity", (self.num_experiments, 4), (torch.bool,), owner
-        )
-        return qlearning_state(cell.to(torch.int64), proximity)
+        return qlearning_state(state, readings)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         state = self.state_index(tensordict)  # [S]
         index = state.view(-1, 1, 1).expand(-1, 1, self.num_actions)  # [S, 1, A]
-        tensordict.set("action_value", self.table.gather(1, index).squeeze(1))  # [S, A]
+        tensordict.set(keys.ACTION_VALUE, self.table.gather(1, index).squeeze(1))  # [S, A]
         return tensordict
 
     @torch.no_grad()
@@ -150,22 +207,32 @@ class TaskQTable(TensorDictModuleBase):
 
 
 class LocalRewardTable(TensorDictModuleBase):
-    """Factor-Q's local reward tables ``rho_i[o_i]`` and visit counts ``kappa_i[o_i]`` (SPEC 3).
+    """Factor-Q's local reward tables ``rho_a[o_D(a)]`` and visit counts ``kappa_a[o_D(a)]``.
 
-    One table per sensor/actuator pair ``i`` (proximity sensor ``i`` and the move in direction
-    ``i``), indexed by the sensor's binary reading: ``rho`` ``[S, A, 2]`` float32 and ``kappa``
-    ``[S, A, 2]`` int64, both buffers (eq. 5 is a running mean, not a gradient step). They are
+    One table per actuator ``a``, indexed by the pattern ``o_D(a)`` of its parent sensors
+    ``D(a)`` (row ``a`` of ``dependency``; ``functional.local_patterns``): ``2**|D(a)|`` entries
+    (the paper: one sensor, 2 entries). Stored as ``rho`` ``[S, A, P]`` float32 and ``kappa``
+    ``[S, A, P]`` int64 with ``P = 2**max_a |D(a)|`` (an actuator with fewer parents uses the
+    first ``2**|D(a)|``), both buffers (eq. 5 is a running mean, not a gradient step). They are
     reset only by an explicit ``reset()`` (SPEC section 4: once per experiment).
 
-    Keys: reads ``proximity`` ``[S, A]`` bool, writes ``local_value`` ``[S, A]`` float32 with
-    ``local_value[s, i] = rho[s, i, proximity[s, i]]``.
+    Args:
+        num_experiments: ``S``.
+        dependency: bool ``[A, K]``, the parents of each actuator (the oracle's
+            ``env.dependency``); default the paper's pairing ``eye(num_actions)``.
+        num_actions: ``A`` when ``dependency`` is not given.
+        sensors_key: where the sensors are read (``keys.SENSORS``).
+        device: where the tables live.
+
+    Keys: reads ``sensors`` ``[S, K]`` bool, writes ``local_value`` ``[S, A]`` float32 with
+    ``local_value[s, a] = rho[s, a, o_D(a)]`` (``functional.project_local``).
 
     Example:
         >>> from tensordict import TensorDict
         >>> local = LocalRewardTable(1)
-        >>> proximity = torch.tensor([[True, False, False, False]])  # a wall to the north
-        >>> local.update_running_mean(proximity, torch.tensor([0]), torch.tensor([[-1.0, 0, 0, 0]]))
-        >>> local(TensorDict(proximity=proximity, batch_size=[1]))["local_value"]
+        >>> sensors = torch.tensor([[True, False, False, False]])  # a wall to the north
+        >>> local.update_running_mean(sensors, torch.tensor([0]), torch.tensor([[-1.0, 0, 0, 0]]))
+        >>> local(TensorDict(sensors=sensors, batch_size=[1]))["local_value"]
         tensor([[-1.,  0.,  0.,  0.]])
     """
 
@@ -173,53 +240,66 @@ class LocalRewardTable(TensorDictModuleBase):
         self,
         num_experiments: int,
         *,
+        dependency: torch.Tensor | None = None,
         num_actions: int = NUM_ACTIONS,
+        sensors_key: str = keys.SENSORS,
         device: torch.device | str | None = None,
     ) -> None:
         super().__init__()
         self.num_experiments = check_int("num_experiments", num_experiments, 1)
-        self.num_actions = check_int("num_actions", num_actions, 1)
-        self.in_keys = ["proximity"]
-        self.out_keys = ["local_value"]
-        shape = (num_experiments, num_actions, 2)
+        if dependency is None:
+            dependency = torch.eye(check_int("num_actions", num_actions, 1), dtype=torch.bool)
+        dependency = check_dependency(dependency)
+        parents = int(dependency.sum(dim=1).max())
+        if parents > MAX_PARENTS:
+            raise ValueError(
+                f"dependency gives an actuator {parents} parent sensors: at most {MAX_PARENTS} "
+                f"(a table of 2**{MAX_PARENTS} entries) are allowed"
+            )
+        self.num_actions, self.num_sensors = dependency.shape
+        self.sensors_key = sensors_key
+        self.in_keys = [sensors_key]
+        self.out_keys = [keys.LOCAL_VALUE]
+        self.register_buffer("dependency", dependency.to(device=device).clone())
+        shape = (num_experiments, self.num_actions, 1 << parents)
         self.register_buffer("rho", torch.zeros(shape, device=device))
         self.register_buffer("kappa", torch.zeros(shape, dtype=torch.int64, device=device))
-
-    def _reading(self, proximity: torch.Tensor) -> torch.Tensor:
-        """The sensor readings ``[S, A]`` bool as indices ``[S, A, 1]`` int64 into the tables."""
-        return proximity.to(torch.int64).unsqueeze(-1)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         owner = type(self).__name__
         check_batch(tensordict, self.num_experiments, owner)
-        proximity = _check_entry(
-            tensordict, "proximity", (self.num_experiments, self.num_actions), (torch.bool,), owner
+        readings = _check_entry(
+            tensordict,
+            self.sensors_key,
+            (self.num_experiments, self.num_sensors),
+            (torch.bool,),
+            owner,
         )
-        local_value = self.rho.gather(2, self._reading(proximity)).squeeze(2)  # [S, A]
-        tensordict.set("local_value", local_value)
+        local_value = project_local(self.rho, readings, self.dependency)  # [S, A]
+        tensordict.set(keys.LOCAL_VALUE, local_value)
         return tensordict
 
     @torch.no_grad()
     def update_running_mean(
         self,
-        proximity: torch.Tensor,
+        readings: torch.Tensor,
         action: torch.Tensor,
         local_reward: torch.Tensor,
         mask: torch.Tensor | None = None,
     ) -> None:
-        """Eq. 5 for the fired actuator ``a``: ``kappa_a[o_a] += 1`` and ``rho_a[o_a]`` moves to
-        the running mean of the local rewards ``r_L[a]`` seen there
+        """Eq. 5 for the fired actuator ``a``: ``kappa_a[o] += 1`` and ``rho_a[o]`` moves to the
+        running mean of the local rewards ``r_L[a]`` seen there, ``o = o_D(a)``
         (``functional.running_mean_update``).
 
         Args:
-            proximity: ``[S, A]`` bool, the readings *before* acting (under which ``a`` fired).
-            action: ``[S]`` int64, the fired actuator.
+            readings: ``[S, K]`` bool, the sensors *before* acting (under which ``a`` fired).
+            action: ``[S]`` int64, the chosen actuator.
             local_reward: ``[S, A]`` float, the local reward vector of the step.
             mask: ``[S]`` bool, update only these experiments (``None``: all).
         """
         batch = self.num_experiments
         mask = check_mask(mask, batch, "LocalRewardTable.update_running_mean")
-        shapes = {"proximity": (proximity, (batch, self.num_actions)), "action": (action, (batch,))}
+        shapes = {"readings": (readings, (batch, self.num_sensors)), "action": (action, (batch,))}
         shapes["local_reward"] = (local_reward, (batch, self.num_actions))
         for name, (value, shape) in shapes.items():
             if tuple(value.shape) != shape:
@@ -228,7 +308,8 @@ class LocalRewardTable(TensorDictModuleBase):
                     f"{list(value.shape)}, expected {list(shape)}"
                 )
         rows = torch.arange(batch, device=action.device)
-        reading = proximity.gather(1, action.unsqueeze(1)).squeeze(1).to(torch.int64)  # [S], o_a
+        patterns = local_patterns(readings, self.dependency)  # [S, A]
+        reading = patterns.gather(1, action.unsqueeze(1)).squeeze(1)  # [S], o_D(a)
         reward = local_reward.gather(1, action.unsqueeze(1)).squeeze(1)  # [S], r_L[a]
         rho, kappa = self.rho[rows, action, reading], self.kappa[rows, action, reading]  # [S]
         new_rho, new_kappa = running_mean_update(rho, kappa, reward)

@@ -37,7 +37,8 @@ HARMLESS = (
 #: Config fields that enter neither the saved state's shapes nor its keys: another valid value
 #: is a checkpoint of another valid run, which resumes (the digest proves no origin).
 OTHER_RUN = ("config/max_steps", "config/epsilon", "config/gamma", "config/alpha", "config/eta",
-             "config/g_min", "config/backend", "config/device")  # fmt: skip
+             "config/g_min", "config/backend", "config/device", "config/sensor_permutation",
+             "config/sensor_noise", "config/actuator_noise")  # fmt: skip
 
 
 def mutations(value):

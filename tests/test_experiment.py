@@ -50,7 +50,7 @@ def test_factor_q_learns_from_the_split_reward_and_q_learning_from_the_plain_one
         ("factor-q", FactorQLoss, True),
     ):
         env = experiment.make_env(world, [0, 1], keys)
-        task, local = experiment.tabular_values(algorithm, 2, world.num_cells)
+        task, local = experiment.tabular_values(algorithm, 2, world)
         assert (local is not None) == split
         env, policy, loss = experiment.online_agent(env, task, local, AgentConfig(), keys)
         assert isinstance(env, TransformedEnv) == split and isinstance(loss, loss_type)

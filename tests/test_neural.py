@@ -26,8 +26,8 @@ def test_experiment_draws_the_same_initial_network_alone_or_in_a_batch():
     batch = TaskQNetwork(3, num_cells=9, with_proximity=True, zero_output=False, seed=7)
     alone = TaskQNetwork(1, num_cells=9, with_proximity=True, zero_output=False, seed=7, offset=2)
     cells, proximity = torch.tensor([4, 4, 4]), torch.tensor([[True, False, True, False]] * 3)
-    together = batch(TensorDict(cell=cells, proximity=proximity, batch_size=[3]))["action_value"]
-    single = alone(TensorDict(cell=cells[:1], proximity=proximity[:1], batch_size=[1]))
+    together = batch(TensorDict(cell=cells, sensors=proximity, batch_size=[3]))["action_value"]
+    single = alone(TensorDict(cell=cells[:1], sensors=proximity[:1], batch_size=[1]))
     assert torch.equal(together[2], single["action_value"][0])
     assert not torch.equal(together[0], together[2])  # experiments get different networks
 
@@ -57,7 +57,7 @@ def test_batched_mlp_equals_each_experiments_own_linear_layers():
 def test_networks_start_at_zero_like_the_tables():
     cells = torch.tensor([0, 5])
     proximity = torch.tensor([[True, False, True, True], [False] * 4])
-    td = TensorDict(cell=cells, proximity=proximity, batch_size=[2])
+    td = TensorDict(cell=cells, sensors=proximity, batch_size=[2])
     task, local = TaskQNetwork(2, num_cells=9), LocalRewardNetwork(2)
     assert torch.equal(task(td.clone())["action_value"], torch.zeros(2, 4))
     assert torch.equal(local(td.clone())["local_value"], torch.zeros(2, 4))
@@ -68,12 +68,12 @@ def test_local_network_without_bias_predicts_exactly_zero_where_nothing_is_sense
     optimizer = torch.optim.Adam(local.parameters(), lr=0.05)
     sensed = torch.tensor([[True, False, False, True]] * 2)
     for _ in range(50):  # learn rho(1) = -1 on every actuator
-        rho = local(TensorDict(proximity=sensed, batch_size=[2]))["local_value"]
+        rho = local(TensorDict(sensors=sensed, batch_size=[2]))["local_value"]
         loss = ((rho[:, [0, 3]] + 1) ** 2).sum()
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
-    rho = local(TensorDict(proximity=sensed, batch_size=[2]))["local_value"].detach()
+    rho = local(TensorDict(sensors=sensed, batch_size=[2]))["local_value"].detach()
     assert torch.equal(rho[:, 1:3], torch.zeros(2, 2))  # eq. 3's spread stays exactly 0 there
     assert (rho[:, [0, 3]] < -0.5).all()
 
@@ -82,7 +82,7 @@ def test_task_network_reads_a_replay_minibatch_of_experiments():
     network = TaskQNetwork(3, num_cells=4, with_proximity=True, zero_output=False)
     td = TensorDict(
         cell=torch.randint(0, 4, (5, 3)),
-        proximity=torch.zeros(5, 3, 4, dtype=torch.bool),
+        sensors=torch.zeros(5, 3, 4, dtype=torch.bool),
         batch_size=[5, 3],
     )
     assert network(td)["action_value"].shape == (5, 3, 4)
@@ -124,7 +124,7 @@ def test_swapping_tables_for_networks_needs_no_change_outside_the_value_provider
         td, greedy_collisions = _train_factor_q(*providers, steps)
         assert td["combined_value"].shape == (2, 4)  # eqs. 2-3 ran on either provider
         north = torch.tensor([[True, False, False, False]] * 2)
-        sensed = TensorDict(proximity=north, batch_size=[2])
+        sensed = TensorDict(sensors=north, batch_size=[2])
         rho = providers[1](sensed)["local_value"].detach()
         # Both learned eq. 5's fact of this world: a sensed obstacle costs about -1, nothing
         # sensed costs nothing, and so they hardly collide on greedy actions.

@@ -36,7 +36,7 @@ def transition(
     truncated = torch.zeros(batch, dtype=torch.bool) if truncated is None else truncated
     following = {
         "cell": torch.as_tensor(next_cell),
-        "proximity": torch.as_tensor(next_proximity),
+        "sensors": torch.as_tensor(next_proximity),
         "reward": torch.as_tensor(reward, dtype=torch.float32).reshape(batch, 1),
         "terminated": terminated.reshape(batch, 1),
         "truncated": truncated.reshape(batch, 1),
@@ -47,7 +47,7 @@ def transition(
     return TensorDict(
         {
             "cell": torch.as_tensor(cell),
-            "proximity": torch.as_tensor(proximity),
+            "sensors": torch.as_tensor(proximity),
             "action": torch.as_tensor(action),
             "next": TensorDict(following, [batch]),
         },
@@ -158,13 +158,13 @@ def test_one_sgd_step_of_learning_rate_1_on_the_factorq_loss_equals_q_update_bit
     # the expected update, straight from functional
     table, rho, kappa = task.table.detach().clone(), local.rho.clone(), local.kappa.clone()
     q_next = table[rows, td["next", "cell"]]
-    rho_next = rho.gather(2, td["next", "proximity"].long().unsqueeze(-1)).squeeze(-1)
+    rho_next = rho.gather(2, td["next", "sensors"].long().unsqueeze(-1)).squeeze(-1)
     c_next = combined_values(q_next, rho_next, normaliser(q_next, rho_next, 0.3, 0.02))
     reward, terminated = td["next", "reward"].squeeze(-1), td["next", "terminated"].squeeze(-1)
     target = factorq_target(reward, c_next, terminated, gamma=0.8)
     cell = td["cell"]
     table[rows, cell, action] = q_update(table[rows, cell, action], target, alpha=0.3)
-    reading = td["proximity"][rows, action].long()
+    reading = td["sensors"][rows, action].long()
     reward_local = td["next", "local_reward"][rows, action]
     rho[rows, action, reading], kappa[rows, action, reading] = running_mean_update(
         rho[rows, action, reading], kappa[rows, action, reading], reward_local
@@ -186,8 +186,8 @@ def test_one_sgd_step_of_learning_rate_1_on_the_tabular_loss_equals_q_update_bit
     td = random_batch(batch, num_cells, generator, local=False)
     rows, action = torch.arange(batch), td["action"]
     table = task.table.detach().clone()
-    pattern = (td["proximity"].long() * torch.tensor([1, 2, 4, 8])).sum(-1)
-    next_pattern = (td["next", "proximity"].long() * torch.tensor([1, 2, 4, 8])).sum(-1)
+    pattern = (td["sensors"].long() * torch.tensor([1, 2, 4, 8])).sum(-1)
+    next_pattern = (td["next", "sensors"].long() * torch.tensor([1, 2, 4, 8])).sum(-1)
     state, next_state = td["cell"] * 16 + pattern, td["next", "cell"] * 16 + next_pattern
     reward, terminated = td["next", "reward"].squeeze(-1), td["next", "terminated"].squeeze(-1)
     target = q_learning_target(reward, table[rows, next_state], terminated, gamma=0.9)
@@ -251,8 +251,8 @@ def test_a_neural_value_provider_learns_from_the_same_loss_unchanged():
         torch.nn.Linear(4, 4), in_keys=["features"], out_keys=["local_value"]
     )
     _, _, td = hand_example()
-    td["features"] = td["proximity"].float()
-    td["next", "features"] = td["next", "proximity"].float()
+    td["features"] = td["sensors"].float()
+    td["next", "features"] = td["next", "sensors"].float()
     out = FactorQLoss(task_net, local_net, reduction="mean")(td)
     (out["loss_task"] + out["loss_local"]).backward()
     assert task_net.module.weight.grad.abs().sum() > 0

@@ -23,11 +23,15 @@ REFUSED = [
     ("paper --seeds 10000000", r"metrics [\d.]+ TiB", PAPER_HINT),
     ("paper --episodes 100000000", r"metrics [\d.]+ TiB, curves", PAPER_HINT),
     ("paper --runs 2000000000", r"metrics [\d.]+ PiB", PAPER_HINT),
-    ("paper --size 1000", r"tables [\d.]+ GiB", PAPER_HINT),
-    ("paper --size 1000 --backend modular", r"tables [\d.]+ GiB", PAPER_HINT),
+    ("paper --size 1000 --algorithms factor-q --seeds 1000", r"tables [\d.]+ GiB", PAPER_HINT),
+    (
+        "paper --size 1000 --algorithms factor-q --seeds 1000 --backend modular",
+        r"tables [\d.]+ GiB",
+        PAPER_HINT,
+    ),
     ("compare --seeds 10000000", r"episode records [\d.]+ TiB", COMPARE_HINT),
     ("compare --steps 2000000000", r"episode records [\d.]+ TiB", COMPARE_HINT),
-    ("compare --size 1000 --seeds 100", r"tables|networks", COMPARE_HINT),
+    ("compare --size 1000 --seeds 1000 --methods factor-q", r"tables [\d.]+ GiB", COMPARE_HINT),
 ]
 
 

@@ -25,9 +25,9 @@ def test_qlearning_table_indexes_cell_times_16_plus_the_proximity_pattern():
     with torch.no_grad():
         table.table[0, 3 * 16 + 9] = torch.tensor([1.0, 0.0, 0.0, 0.0])  # pattern N + E = 1 + 8
     proximity = torch.tensor([[True, False, False, True]])
-    td = TensorDict(cell=torch.tensor([3]), proximity=proximity, batch_size=[1])
+    td = TensorDict(cell=torch.tensor([3]), sensors=proximity, batch_size=[1])
     assert table(td)["action_value"].tolist() == [[1.0, 0.0, 0.0, 0.0]]
-    td["proximity"] = torch.tensor([[True, False, False, False]])  # pattern 1: another state
+    td["sensors"] = torch.tensor([[True, False, False, False]])  # pattern 1: another state
     assert table(td)["action_value"].tolist() == [[0.0, 0.0, 0.0, 0.0]]
 
 
@@ -56,7 +56,7 @@ def test_local_table_reads_rho_of_each_sensor_at_its_reading():
     with torch.no_grad():
         local.rho[0] = torch.tensor([[0.0, -1.0], [-0.1, -0.2], [-0.3, -0.4], [-0.5, -0.6]])
     proximity = torch.tensor([[True, False, True, False]])
-    td = TensorDict(proximity=proximity, batch_size=[1])
+    td = TensorDict(sensors=proximity, batch_size=[1])
     # sensor 0 reads 1 -> rho_0[1] = -1; sensor 1 reads 0 -> -0.1; -0.4; -0.5
     assert torch.allclose(local(td)["local_value"], torch.tensor([[-1.0, -0.1, -0.4, -0.5]]))
 
@@ -111,17 +111,15 @@ def test_a_tensordict_with_another_batch_size_is_refused_with_both_sizes_named()
     with pytest.raises(ValueError, match=r"S=3 experiments .* batch_size \[2\]"):
         table(TensorDict(cell=torch.tensor([0, 1]), batch_size=[2]))
     with pytest.raises(ValueError, match=r"S=3 experiments"):
-        LocalRewardTable(3)(
-            TensorDict(proximity=torch.ones(2, 4, dtype=torch.bool), batch_size=[2])
-        )
+        LocalRewardTable(3)(TensorDict(sensors=torch.ones(2, 4, dtype=torch.bool), batch_size=[2]))
 
 
 def test_misshapen_or_mistyped_observations_are_refused():
     table = TaskQTable(1, num_cells=4, with_proximity=True)
     bad_proximity = TensorDict(
-        cell=torch.tensor([0]), proximity=torch.ones(1, 3, dtype=torch.bool), batch_size=[1]
+        cell=torch.tensor([0]), sensors=torch.ones(1, 3, dtype=torch.bool), batch_size=[1]
     )
-    with pytest.raises(ValueError, match="'proximity' has shape \\[1, 3\\]"):
+    with pytest.raises(ValueError, match="'sensors' has shape \\[1, 3\\]"):
         table(bad_proximity)
     with pytest.raises(ValueError, match="'cell' has shape \\[1\\] and dtype torch.float32"):
         table(TensorDict(cell=torch.tensor([0.0]), batch_size=[1]))

@@ -253,6 +253,22 @@ def fast_row(what: str, call, error: type, pattern: str):
 
 RANGE = "is out of range: must be"
 UNUSABLE_CHECKPOINT = "is corrupted or truncated"
+
+
+def env_action(action: int):
+    from tensordict import TensorDict
+
+    return TensorDict(action=torch.tensor(action))
+
+
+def local_step(dependency: torch.Tensor) -> None:
+    from tensordict import TensorDict
+
+    LocalRewardTable(1, dependency=dependency)(
+        TensorDict(sensors=torch.ones(1, 4, dtype=torch.bool), batch_size=[1])
+    )
+
+
 TRIED = [
     # factorq paper: every option
     factorq("paper --seeds 0", rf"--seeds=0 {RANGE} in \[1, 2147483647\]"),
@@ -293,6 +309,14 @@ TRIED = [
     factorq("paper --worlds ''", r"--worlds: '' is unknown: choose from static, semi-dynamic"),
     factorq("paper --algorithms sarsa", r"--algorithms: 'sarsa' is unknown: choose from q-learn"),
     factorq("paper --backend gpu", r"argument --backend: invalid choice: 'gpu'"),
+    factorq("paper --body walker", r"--body='walker' is unknown: choose one of translate, heading"),
+    factorq("paper --sensors eyes", r"--sensors='eyes' is unknown: choose one of cross, ring"),
+    factorq("paper --distractors -1", rf"--distractors=-1 {RANGE} in \[0, 32\]"),
+    factorq("paper --sensor-permutation -1", rf"--sensor-permutation=-1 {RANGE} in \[0, 9223372036854775807\]"),
+    factorq("paper --sensor-permutation 100000000000000000000000000", rf"--sensor-permutation=100000000000000000000000000 {RANGE} in \[0, 9223372036854775807\]"),
+    factorq("paper --sensor-noise 1.5", rf"--sensor-noise=1.5 {RANGE} in \[0.0, 1.0\]"),
+    factorq("paper --sensors ring --distractors 20", r"q-learning: a Q-table of 16 cells x 1 headings x 2\*\*28 sensor patterns x 4 actions needs 17179869184 values per experiment, past the cap of 16777216"),
+    factorq("paper --actuator-noise -0.1", rf"--actuator-noise=-0.1 {RANGE} in \[0.0, 1.0\]"),
     factorq("paper --device toaster", r"--device='toaster' is not a torch device \(e.g. cpu, "),
     factorq("paper --device meta", r"--device='meta' holds no data \(meta tensors have shapes only\): use cpu"),
     *[factorq(f"paper --device {device}", rf"--device='{device}' is not available on this machine \(.+\): use --device='cpu'") for device in ("cuda", "cuda:1", "mps") if not _device_exists(device)],
@@ -398,6 +422,14 @@ TRIED = [
     factorq("compare --layout-seed -1", rf"--layout-seed=-1 {RANGE} in \[0, "),
     factorq("compare --threads 0", rf"--threads=0 {RANGE} in \[1, 256\]"),
     factorq("compare --threads 20000", rf"--threads=20000 {RANGE} in \[1, 256\]"),
+    factorq("compare --body walker", r"--body='walker' is unknown: choose one of translate, heading"),
+    factorq("compare --sensors eyes", r"--sensors='eyes' is unknown: choose one of cross, ring"),
+    factorq("compare --distractors 33", rf"--distractors=33 {RANGE} in \[0, 32\]"),
+    factorq("compare --sensor-permutation -1", rf"--sensor-permutation=-1 {RANGE} in \[0, 9223372036854775807\]"),
+    factorq("compare --sensor-permutation 9223372036854775808", rf"--sensor-permutation=9223372036854775808 {RANGE} in \[0, 9223372036854775807\]"),
+    factorq("compare --sensor-noise 1.5", rf"--sensor-noise=1.5 {RANGE} in \[0.0, 1.0\]"),
+    factorq("compare --actuator-noise -0.1", rf"--actuator-noise=-0.1 {RANGE} in \[0.0, 1.0\]"),
+    factorq("compare --sensors ring --distractors 20", r"q-learning: a Q-table of 16 cells x 1 headings x 2\*\*28 sensor patterns x 4 actions needs"),
     factorq("compare --cluster remote", r"--cluster='remote' is not local or local:N with N >= 1"),
     factorq("compare --scheduler host:8786", r"--scheduler='host:8786' is not an address like tcp://"),
     factorq("compare --connect-timeout 0", r"--connect-timeout=0.0 must be > 0 seconds"),
@@ -445,6 +477,20 @@ TRIED = [
     ("FactoredGridEnv(seed='a')", lambda _: FactoredGridEnv(seed="a"), TypeError, r"seed must be an int or None, got 'a' \(str\)"),
     ("FactoredGridEnv.set_seed(-1)", lambda _: FactoredGridEnv().set_seed(-1), ValueError, rf"seed=-1 {RANGE} >= 0"),
     ("FactoredGridEnv(experiment_offset=-1)", lambda _: FactoredGridEnv(experiment_offset=-1), ValueError, rf"experiment_offset=-1 {RANGE} >= 0"),
+    ("FactoredGridEnv(body='walker')", lambda _: FactoredGridEnv(body="walker"), ValueError, r"body='walker' is unknown: choose one of translate, heading"),
+    ("FactoredGridEnv(sensors='eyes')", lambda _: FactoredGridEnv(sensors="eyes"), ValueError, r"sensors='eyes' is unknown: choose one of cross, ring"),
+    ("FactoredGridEnv(num_distractors=33)", lambda _: FactoredGridEnv(num_distractors=33), ValueError, rf"num_distractors=33 {RANGE} in \[0, 32\]"),
+    ("FactoredGridEnv(sensor_permutation=(0, 0, 1, 2))", lambda _: FactoredGridEnv(sensor_permutation=(0, 0, 1, 2)), ValueError, r"sensor_permutation=\(0, 0, 1, 2\) is not a permutation: must hold each of 0..3 once \(4 sensors\)"),
+    ("FactoredGridEnv(sensor_permutation='0123')", lambda _: FactoredGridEnv(sensor_permutation="0123"), TypeError, r"sensor_permutation must be None, an int seed or a sequence of ints, got '0123' \(str\)"),
+    ("FactoredGridEnv(sensor_noise=nan)", lambda _: FactoredGridEnv(sensor_noise=math.nan), ValueError, rf"sensor_noise=nan {RANGE} in \[0.0, 1.0\]"),
+    ("FactoredGridEnv(actuator_noise=2)", lambda _: FactoredGridEnv(actuator_noise=2), ValueError, rf"actuator_noise=2 {RANGE} in \[0.0, 1.0\]"),
+    ("FactoredGridEnv(actuator_noise='a')", lambda _: FactoredGridEnv(actuator_noise="a"), TypeError, r"actuator_noise must be a number, got 'a' \(str\)"),
+    ("FactoredGridEnv(body=heading).step(action=3)", lambda _: FactoredGridEnv(body="heading").step(env_action(3)), ValueError, rf"action=3 {RANGE} in \[0, 2\] \(0 forward, 1 turn-left, 2 turn-right\)"),
+    ("LocalRewardTable(dependency=int)", lambda _: LocalRewardTable(1, dependency=torch.eye(4, dtype=torch.int64)), TypeError, r"dependency must be a bool tensor \[actuators, sensors\], got torch.int64"),
+    ("LocalRewardTable(dependency=[4])", lambda _: LocalRewardTable(1, dependency=torch.ones(4, dtype=torch.bool)), ValueError, r"dependency has shape \[4\]: must be \[actuators, sensors\]"),
+    ("LocalRewardTable(dependency of 17 parents)", lambda _: LocalRewardTable(1, dependency=torch.ones(1, 17, dtype=torch.bool)), ValueError, r"dependency gives an actuator 17 parent sensors: at most 16"),
+    ("LocalRewardTable(dependency naming a missing sensor)", lambda _: local_step(torch.ones(4, 5, dtype=torch.bool)), ValueError, r"'sensors' has shape \[1, 4\] and dtype torch.bool, expected shape \[1, 5\]"),
+    ("TaskQTable(2**24 states)", lambda _: TaskQTable(1, 100, with_sensors=True, num_sensors=20), ValueError, r"TaskQTable: a Q-table of 100 cells x 1 headings x 2\*\*20 sensor patterns x 4 actions needs 419430400 values per experiment, past the cap of 16777216"),
     ("FactoredGridEnv(device='toaster')", lambda _: FactoredGridEnv(device="toaster"), ValueError, r"device='toaster' is not a torch device"),
     ("FactoredGridEnv.step(action=7)", lambda _: env_step(7), ValueError, rf"action=7 {RANGE} in \[0, 3\] \(0 north, 1 west, 2 south, 3 east\)"),
     ("FactoredGridEnv.step(action=-1)", lambda _: env_step(-1), ValueError, rf"action=-1 {RANGE} in \[0, 3\]"),

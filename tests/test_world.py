@@ -347,6 +347,8 @@ def test_reset_restarts_only_the_masked_worlds_with_the_layout_of_their_kind():
         bump=torch.ones(3, 4, dtype=torch.bool),
         episode_step=torch.tensor([3, 4, 5]),
         scatters=torch.tensor([2, 2, 2]),
+        heading=torch.zeros(3, dtype=torch.int64),
+        ticks=torch.tensor([5, 6, 7]),
     )
     new = reset_worlds(state, torch.tensor([True, True, False]), keys, periods, layout, config)
     assert new.cell.tolist() == [0, 0, 9]
@@ -357,6 +359,7 @@ def test_reset_restarts_only_the_masked_worlds_with_the_layout_of_their_kind():
     assert new.obstacles[1].tolist() == expected
     assert not new.obstacles[2].any()
     assert new.scatters.tolist() == [2, 3, 2]
+    assert new.ticks.tolist() == [6, 7, 7]
 
 
 def test_render_world_shows_walls_obstacles_agent_and_goal():

@@ -30,7 +30,9 @@
 #include <string.h>
 
 #define NUM_ACTIONS 4
-#define FQ_ABI_VERSION 1
+#define FQ_ABI_VERSION 2
+/* Most actuators of a body the generic loop handles (bit masks, small stack arrays). */
+#define MAX_ACTUATORS 32
 
 /* rng.py's constants: key + (counter + 1) * GOLDEN, then the SplitMix64 finaliser. */
 #define GOLDEN 0x9E3779B97F4A7C15ULL
@@ -92,6 +94,23 @@ typedef struct {
     float alpha;
     float eta_factor; /* float32(1 + eta), as torch applies the Python scalar */
     float g_min;
+    /* The body (envs/body.py) for the generic loop (generic != 0); the paper's body runs the
+       specialised loop above and ignores these. */
+    int64_t generic;
+    int64_t num_actuators;   /* A */
+    int64_t num_sensors;     /* K: layout sensors + distractors, all received by the agent */
+    int64_t num_layout;      /* L: layout sensors */
+    int64_t num_headings;    /* 1, or 4 with a heading */
+    int64_t table_width;     /* P = 2^max |D(a)|: entries per actuator in rho and kappa */
+    int64_t sensor_noise_threshold;   /* rng.probability_threshold(sensor_noise) */
+    int64_t actuator_noise_threshold; /* rng.probability_threshold(actuator_noise) */
+    const int64_t *moves;          /* [A] direction relative to the heading, -1: no move */
+    const int64_t *turns;          /* [A] quarter turns to the left */
+    const int64_t *offsets;        /* [4, L] padded-grid offset of layout sensor k at heading h */
+    const int64_t *permutation;    /* [K] agent's sensor j = sensor permutation[j] */
+    const int64_t *parent_weights; /* [A, K] functional.parent_weights(dependency) */
+    int64_t *heading;              /* [S] */
+    int64_t *ticks;                /* [S] index of the current observation (world.WorldState) */
 } fq_batch;
 
 int64_t fq_abi_version(void) { return FQ_ABI_VERSION; }
@@ -463,6 +482,10 @@ void fq_start(const fq_batch *b) {
         }
         b->cell[i] = 0;
         b->episode_step[i] = 0;
+        if (b->generic) {
+            b->heading[i] = 0;
+            b->ticks[i] += 1; /* the first reset is the first observation */
+        }
     }
 }
 
@@ -477,6 +500,321 @@ static int64_t run_factor_q(const fq_batch *b, int64_t i, int64_t budget) {
     return run_experiment(b, i, budget, ALG_FACTOR_Q);
 }
 
+
+/* ----------------------------------------------------------------------------------------------
+ * The generic loop: any body and sensor layout of envs/body.py, with distractors, a permutation
+ * and noise (issue 11). The same equations and float order as the paper's loop above, without
+ * its caches: observations are bit masks of the K sensors in the agent's order (K <= 62).
+ */
+
+/* rng.substream_key: mix64(key + substream * MIX1). */
+static inline uint64_t substream_key(uint64_t key, uint64_t substream) {
+    uint64_t z = key + substream * MIX1;
+    z = (z ^ (z >> 30)) * MIX1;
+    z = (z ^ (z >> 27)) * MIX2;
+    return z ^ (z >> 31);
+}
+#define SUBSTREAM_DISTRACTOR 1
+#define SUBSTREAM_SENSOR_NOISE 2
+#define SUBSTREAM_ACTUATOR_NOISE 3
+
+/* world.observe: layout sensors at the heading, distractor coins, noise flips, permutation. */
+static uint64_t observe(const fq_batch *b, const uint8_t *grid, int64_t pos, int64_t heading,
+                        uint64_t tick, uint64_t distractor_key, uint64_t noise_key) {
+    const int64_t layout = b->num_layout, count = b->num_sensors, distractors = count - layout;
+    const int64_t *offsets = b->offsets + heading * layout;
+    uint64_t raw = 0; /* layout order, distractors last */
+    for (int64_t k = 0; k < layout; k++) raw |= (uint64_t)grid[pos + offsets[k]] << k;
+    for (int64_t d = 0; d < distractors; d++)
+        raw |= (random_bits(distractor_key, tick * (uint64_t)distractors + (uint64_t)d) >> 31)
+               << (layout + d);
+    const uint64_t threshold = (uint64_t)b->sensor_noise_threshold;
+    if (threshold > 0)
+        for (int64_t k = 0; k < count; k++)
+            raw ^= (uint64_t)(random_bits(noise_key, tick * (uint64_t)count + (uint64_t)k) <
+                              threshold)
+                   << k;
+    uint64_t readings = 0;
+    for (int64_t j = 0; j < count; j++) readings |= ((raw >> b->permutation[j]) & 1u) << j;
+    return readings;
+}
+
+/* functional.local_patterns for one actuator: sum of parent_weights[a, k] over the set bits. */
+static inline int64_t local_pattern(const fq_batch *b, int64_t actuator, uint64_t readings) {
+    const int64_t *weights = b->parent_weights + actuator * b->num_sensors;
+    int64_t pattern = 0;
+    for (int64_t k = 0; k < b->num_sensors; k++)
+        if ((readings >> k) & 1u) pattern += weights[k];
+    return pattern;
+}
+
+/* functional.project_local: rho(o)_a = rho_a[o_D(a)]. */
+static inline void project_local_body(const fq_batch *b, const float *rho, uint64_t readings,
+                                      float *local) {
+    for (int64_t a = 0; a < b->num_actuators; a++)
+        local[a] = rho[a * b->table_width + local_pattern(b, a, readings)];
+}
+
+/* Eq. 3 (functional.normaliser) for A actions: the halves of local_spread / normaliser. */
+static inline float local_spread_n(const float *rho, int64_t n) {
+    int64_t a_check = 0;
+    for (int64_t a = 1; a < n; a++)
+        if (rho[a] < rho[a_check]) a_check = a;
+    float rho_sum = 0.0f;
+    for (int64_t a = 0; a < n; a++)
+        if (a != a_check) rho_sum = rho_sum + rho[a];
+    return rho_sum / (float)(n - 1) - rho[a_check];
+}
+
+static inline float normaliser_n(const float *q, float spread, int64_t n, float eta_factor,
+                                 float g_min) {
+    if (!(spread > 0.0f)) return g_min;
+    int64_t a_hat = 0;
+    for (int64_t a = 1; a < n; a++)
+        if (q[a] > q[a_hat]) a_hat = a;
+    float q_sum = 0.0f;
+    for (int64_t a = 0; a < n; a++)
+        if (a != a_hat) q_sum = q_sum + q[a];
+    const float x = q[a_hat] - q_sum / (float)(n - 1);
+    const float g = x / spread * eta_factor;
+    return g >= g_min ? (g > FLT_MAX ? FLT_MAX : g) : g_min;
+}
+
+/* Eq. 2-3 (functional.combined_values with functional.normaliser) for A actions. */
+static inline void combined_values_n(const float *q, const float *local, int64_t n,
+                                     float eta_factor, float g_min, float *out) {
+    const float g = normaliser_n(q, local_spread_n(local, n), n, eta_factor, g_min);
+    for (int64_t a = 0; a < n; a++) {
+        const float c = q[a] + g * local[a];
+        out[a] = c > FLT_MAX ? FLT_MAX : (c < -FLT_MAX ? -FLT_MAX : c);
+    }
+}
+
+static inline float max_n(const float *values, int64_t n) {
+    float best = values[0];
+    for (int64_t a = 1; a < n; a++) best = values[a] > best ? values[a] : best;
+    return best;
+}
+
+/* functional.greedy_action_from_bits for A actions (tie draw only when there is a tie). */
+static inline int64_t greedy_action_n(const float *values, int64_t n, uint64_t key,
+                                      uint64_t counter) {
+    const float best = max_n(values, n);
+    uint64_t is_max = 0;
+    for (int64_t a = 0; a < n; a++) is_max |= (uint64_t)(values[a] == best) << a;
+    is_max |= is_max == 0;
+    if ((is_max & (is_max - 1)) == 0) return __builtin_ctzll(is_max);
+    const uint64_t count = (uint64_t)__builtin_popcountll(is_max);
+    uint64_t k = (random_bits(key, counter * POLICY_DRAWS + DRAW_TIE) * count) >> 32;
+    for (; k > 0; k--) is_max &= is_max - 1;
+    return __builtin_ctzll(is_max);
+}
+
+/* Run experiment i of any body for up to budget steps; returns the episodes it completed. */
+static inline int64_t run_experiment_body(const fq_batch *b, int64_t i, int64_t budget,
+                                          const int algorithm) {
+    const int64_t size = b->size, width = size + 2, num_cells = size * size;
+    const int64_t goal = num_cells - 1, num_obstacles = b->num_obstacles;
+    const int64_t padded = width * width, max_steps = b->max_steps;
+    const int64_t runs = b->runs, episodes = b->episodes;
+    const int64_t period = b->periods[i];
+    const int moving = period > 0 && num_obstacles > 0;
+    const int64_t A = b->num_actuators, K = b->num_sensors, H = b->num_headings;
+    const int64_t P = b->table_width;
+    const uint64_t world_key = (uint64_t)b->world_keys[i];
+    const uint64_t policy_key = (uint64_t)b->policy_keys[i];
+    const uint64_t distractor_key = substream_key(world_key, SUBSTREAM_DISTRACTOR);
+    const uint64_t noise_key = substream_key(world_key, SUBSTREAM_SENSOR_NOISE);
+    const uint64_t actuator_key = substream_key(world_key, SUBSTREAM_ACTUATOR_NOISE);
+    const uint64_t explore_threshold = (uint64_t)b->explore_threshold;
+    const uint64_t slip_threshold = (uint64_t)b->actuator_noise_threshold;
+    const int64_t num_states =
+        algorithm == ALG_Q_LEARNING ? (num_cells * H) << K : num_cells * H;
+    const float gamma = b->gamma, alpha = b->alpha, eta_factor = b->eta_factor, g_min = b->g_min;
+    const int32_t *pad_of_cell = b->pad_of_cell;
+    const int64_t move_pad[4] = {-width, -1, width, 1};
+    const int64_t move_cell[4] = {-size, -1, size, 1};
+
+    float *q = algorithm == ALG_RANDOM_WALK ? NULL : b->q + i * num_states * A;
+    float *rho = b->rho + i * A * P;
+    int64_t *kappa = b->kappa + i * A * P;
+    uint8_t *grid = b->grid + i * padded;
+    int32_t *obstacle_pads = num_obstacles > 0 ? b->obstacle_pads + i * num_obstacles : NULL;
+    uint8_t *bump = b->bump + i * A;
+    int64_t *metric_steps = b->steps + i * runs * episodes;
+    int64_t *metric_collisions = b->collisions + i * runs * episodes;
+    int64_t *metric_greedy = b->greedy_collisions + i * runs * episodes;
+    float *metric_return = b->task_return + i * runs * episodes;
+
+    int64_t cell = b->cell[i], pos = pad_of_cell[cell], heading = b->heading[i];
+    int64_t episode_step = b->episode_step[i], scatters = b->scatters[i];
+    uint64_t tick = (uint64_t)b->ticks[i];
+    uint64_t counter = (uint64_t)b->policy_counter[i];
+    int64_t run = b->run[i], episode = b->episode[i];
+    int64_t episode_collisions = b->episode_collisions[i];
+    int64_t episode_greedy = b->episode_greedy_collisions[i];
+    float episode_return = b->episode_task_return[i];
+    int64_t last_bump = -2, last_action = 0;
+    int64_t completed = 0;
+    uint64_t readings = observe(b, grid, pos, heading, tick, distractor_key, noise_key);
+
+    for (; budget > 0 && run < runs; budget--) {
+        /* --- act --- */
+        const int64_t position = cell * H + heading;
+        const int64_t state =
+            algorithm == ALG_Q_LEARNING ? (position << K) + (int64_t)readings : position;
+        float values[MAX_ACTUATORS], local[MAX_ACTUATORS];
+        int64_t action;
+        int exploratory;
+        if (algorithm == ALG_RANDOM_WALK) {
+            action = (int64_t)((random_bits(policy_key, counter * POLICY_DRAWS + DRAW_ACTION) *
+                                (uint64_t)A) >> 32);
+            exploratory = 1;
+        } else {
+            if (algorithm == ALG_Q_LEARNING) {
+                memcpy(values, q + state * A, (size_t)A * sizeof(float));
+            } else {
+                project_local_body(b, rho, readings, local);
+                combined_values_n(q + state * A, local, A, eta_factor, g_min, values);
+            }
+            exploratory =
+                random_bits(policy_key, counter * POLICY_DRAWS + DRAW_EXPLORE) < explore_threshold;
+            if (exploratory)
+                action = (int64_t)((random_bits(policy_key, counter * POLICY_DRAWS + DRAW_ACTION) *
+                                    (uint64_t)A) >> 32);
+            else
+                action = greedy_action_n(values, A, policy_key, counter);
+        }
+        counter++;
+
+        /* --- world step (world.step_worlds): actuator noise, move or collide, turn --- */
+        int64_t fired = action;
+        if (slip_threshold > 0 &&
+            random_bits(actuator_key, 2 * tick) < slip_threshold) {
+            const int64_t other =
+                (int64_t)((random_bits(actuator_key, 2 * tick + 1) * (uint64_t)(A - 1)) >> 32);
+            fired = (action + 1 + other) % A;
+        }
+        const int64_t move = b->moves[fired];
+        int collided = 0;
+        if (move >= 0) {
+            const int64_t direction = (move + heading) % 4;
+            collided = grid[pos + move_pad[direction]];
+            if (!collided) {
+                pos += move_pad[direction];
+                cell += move_cell[direction];
+            }
+        }
+        heading = (heading + b->turns[fired]) % 4;
+        last_bump = collided ? action : -1;
+        last_action = action;
+        episode_step++;
+        const int terminated = cell == goal;
+        const int truncated = !terminated && episode_step >= max_steps;
+        const float task_reward = -1.0f + (float)terminated;
+        const float local_reward = collided ? -1.0f : 0.0f; /* collision[action] */
+        if (period > 0 && !terminated && episode_step % period == 0 && moving) {
+            scatter(grid, obstacle_pads, pad_of_cell, num_cells, num_obstacles, world_key,
+                    (uint64_t)scatters, cell);
+            scatters++;
+        }
+        tick++;
+        const uint64_t next_readings =
+            observe(b, grid, pos, heading, tick, distractor_key, noise_key);
+        const int64_t next_position = cell * H + heading;
+
+        /* --- learn --- */
+        if (algorithm == ALG_Q_LEARNING) {
+            const float reward = task_reward + local_reward;
+            float *q_sa = q + state * A + action;
+            float target = reward;
+            const int64_t next_state = (next_position << K) + (int64_t)next_readings;
+            if (!terminated) target = reward + gamma * max_n(q + next_state * A, A);
+            *q_sa = *q_sa + alpha * (target - *q_sa);
+        } else if (algorithm == ALG_FACTOR_Q) {
+            float target = task_reward;
+            if (!terminated) {
+                float next_local[MAX_ACTUATORS], next_values[MAX_ACTUATORS];
+                project_local_body(b, rho, next_readings, next_local);
+                combined_values_n(q + next_position * A, next_local, A, eta_factor, g_min,
+                                  next_values);
+                target = task_reward + gamma * max_n(next_values, A);
+            }
+            float *q_sa = q + state * A + action;
+            *q_sa = *q_sa + alpha * (target - *q_sa);
+            /* Eq. 5 for the chosen actuator at the pattern of its parents before acting. */
+            const int64_t entry = action * P + local_pattern(b, action, readings);
+            kappa[entry] += 1;
+            rho[entry] = rho[entry] + (local_reward - rho[entry]) / (float)kappa[entry];
+        }
+
+        /* --- episode bookkeeping (SPEC section 4) --- */
+        episode_collisions += collided;
+        episode_greedy += collided && !exploratory;
+        episode_return = episode_return + task_reward;
+        if (terminated || truncated) {
+            const int64_t slot = run * episodes + episode;
+            metric_steps[slot] = episode_step;
+            metric_collisions[slot] = episode_collisions;
+            metric_greedy[slot] = episode_greedy;
+            metric_return[slot] = episode_return;
+            completed++;
+            episode_collisions = 0;
+            episode_greedy = 0;
+            episode_return = 0.0f;
+            if (++episode == episodes) {
+                episode = 0;
+                run++;
+            }
+            /* world.reset_worlds: start cell, heading north, a new observation */
+            cell = 0;
+            pos = pad_of_cell[0];
+            heading = 0;
+            episode_step = 0;
+            last_bump = -1;
+            tick++;
+            if (run < runs) {
+                if (episode == 0 && q != NULL)
+                    memset(q, 0, (size_t)num_states * (size_t)A * sizeof(float));
+                if (moving) {
+                    scatter(grid, obstacle_pads, pad_of_cell, num_cells, num_obstacles, world_key,
+                            (uint64_t)scatters, 0);
+                    scatters++;
+                }
+            }
+            readings = observe(b, grid, pos, heading, tick, distractor_key, noise_key);
+        } else {
+            readings = next_readings;
+        }
+    }
+    (void)last_action;
+    b->cell[i] = cell;
+    b->heading[i] = heading;
+    b->ticks[i] = (int64_t)tick;
+    b->episode_step[i] = episode_step;
+    b->scatters[i] = scatters;
+    b->policy_counter[i] = (int64_t)counter;
+    b->run[i] = run;
+    b->episode[i] = episode;
+    b->episode_collisions[i] = episode_collisions;
+    b->episode_greedy_collisions[i] = episode_greedy;
+    b->episode_task_return[i] = episode_return;
+    if (last_bump != -2) {
+        for (int64_t a = 0; a < A; a++) bump[a] = a == last_bump;
+    }
+    return completed;
+}
+
+static int64_t run_random_walk_body(const fq_batch *b, int64_t i, int64_t budget) {
+    return run_experiment_body(b, i, budget, ALG_RANDOM_WALK);
+}
+static int64_t run_q_learning_body(const fq_batch *b, int64_t i, int64_t budget) {
+    return run_experiment_body(b, i, budget, ALG_Q_LEARNING);
+}
+static int64_t run_factor_q_body(const fq_batch *b, int64_t i, int64_t budget) {
+    return run_experiment_body(b, i, budget, ALG_FACTOR_Q);
+}
+
 /*
  * Advance every unfinished experiment by up to max_steps steps. Any number of threads may call
  * this at once with the same next_experiment counter (initially 0): each takes the next
@@ -485,9 +823,12 @@ static int64_t run_factor_q(const fq_batch *b, int64_t i, int64_t budget) {
 int64_t fq_advance(const fq_batch *b, int64_t max_steps, int64_t *next_experiment) {
     if (max_steps <= 0) return 0;
     int64_t (*run)(const fq_batch *, int64_t, int64_t) =
-        b->algorithm == ALG_Q_LEARNING ? run_q_learning
-        : b->algorithm == ALG_FACTOR_Q ? run_factor_q
-                                       : run_random_walk;
+        b->generic ? (b->algorithm == ALG_Q_LEARNING ? run_q_learning_body
+                      : b->algorithm == ALG_FACTOR_Q ? run_factor_q_body
+                                                     : run_random_walk_body)
+        : b->algorithm == ALG_Q_LEARNING ? run_q_learning
+        : b->algorithm == ALG_FACTOR_Q   ? run_factor_q
+                                         : run_random_walk;
     int64_t completed = 0;
     for (;;) {
         const int64_t i = __atomic_fetch_add(next_experiment, 1, __ATOMIC_RELAXED);

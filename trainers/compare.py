@@ -147,6 +147,14 @@ class CompareConfig:
     obstacles: int = option(10, "Number of single-cell obstacles.")
     max_steps: int = option(10_000, "Actions after which an episode is truncated.")
     layout_seed: int = option(0, "Seed of the static world's obstacle layout.")
+    body: str = option("translate", "Agent body: translate (the paper) or heading.")
+    sensors: str = option("cross", "Sensor layout: cross (the paper: 4 neighbours) or ring (8).")
+    distractors: int = option(0, "Extra sensor bits that carry no information.")
+    sensor_permutation: int | None = option(
+        None, "Seed of a random order in which the agent receives its sensors."
+    )
+    sensor_noise: float = option(0.0, "Probability that each sensor bit flips at each observation.")
+    actuator_noise: float = option(0.0, "Probability that another actuator fires than the chosen.")
     threads: int = option(1, "CPU threads for torch (1 is fastest on these tiny tensors).")
     agent: AgentConfig = option(
         AgentConfig(),
@@ -182,6 +190,8 @@ class CompareConfig:
                 raise TypeError(f"{name} must be a {kind.__name__}, got {getattr(self, name)!r}")
         # ExperimentConfig validates seed, seeds, steps, worlds and the world, naming the option.
         object.__setattr__(self, "worlds", self.experiments.worlds)
+        if "q-learning" in self.methods:  # its state holds the pattern of all sensors
+            experiment.check_qlearning_table(self.experiments.world)
 
     @property
     def experiments(self) -> ExperimentConfig:
@@ -194,6 +204,7 @@ class CompareConfig:
             obstacles=self.obstacles,
             max_steps=self.max_steps,
             layout_seed=self.layout_seed,
+            **experiment.body_options(self),
         )
 
 
@@ -212,19 +223,23 @@ def value_providers(
     """
     experiments = config.experiments
     cells = experiments.size**2
+    world = experiments.world  # the body: tables and networks get its shapes and dependency
+    shapes = {"num_headings": world.num_headings, "num_actions": world.num_actuators}
     if method in ("q-learning", "factor-q"):
-        return (*experiment.tabular_values(method, count, cells), None)
+        return (*experiment.tabular_values(method, count, world), None)
     if method == "factor-dqn":
         settings = config.factor_dqn
         task = TaskQNetwork(
             count,
             cells,
+            **shapes,
             hidden=settings.hidden,
             activation=settings.activation,
             keys=batch_keys(experiments, STREAM_TASK_NETWORK, method),
         )
         local = LocalRewardNetwork(
             count,
+            dependency=world.dependency,
             hidden=settings.local_hidden,
             bias=settings.local_bias,
             activation=settings.local_activation,

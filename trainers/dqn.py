@@ -214,9 +214,13 @@ class ExploratoryEGreedy(TensorDictModuleBase):
 _STORED = (
     "cell",
     "proximity",
+    "sensors",
+    "heading",
     "action",
     ("next", "cell"),
     ("next", "proximity"),
+    ("next", "sensors"),
+    ("next", "heading"),
     ("next", "reward"),
     ("next", "done"),
     ("next", "terminated"),
@@ -241,19 +245,24 @@ def build_dqn(config: DQNConfig, experiments: ExperimentConfig, device=None) -> 
     """Q-network, exploration, DQNLoss with a target network, Adam and a replay buffer."""
     device = torch.device("cpu" if device is None else device)
     count = experiments.num_experiments
+    world = experiments.world
     q_network = TaskQNetwork(
         count,
         experiments.size**2,
         with_proximity=True,
+        num_sensors=world.num_sensors,
+        num_headings=world.num_headings,
+        num_actions=world.num_actuators,
         hidden=config.hidden,
         keys=batch_keys(experiments, STREAM_TASK_NETWORK, "dqn"),
         zero_output=False,  # PyTorch's default initialisation, as the DQN examples
         device=device,
     )
     # QValueModule's spec is per sample (one action), not per batch.
-    value_network = TensorDictSequential(q_network, QValueModule(spec=Categorical(NUM_ACTIONS)))
+    actions = world.num_actuators
+    value_network = TensorDictSequential(q_network, QValueModule(spec=Categorical(actions)))
     annealing = max(1, round(config.exploration_fraction * experiments.steps))
-    exploration = ExploratoryEGreedy(config.eps_start, config.eps_end, annealing)
+    exploration = ExploratoryEGreedy(config.eps_start, config.eps_end, annealing, actions)
     policy = TensorDictSequential(value_network, exploration)
     # Summed over the [B, E] minibatch and divided by B below: each experiment's network gets the
     # gradient of its own mean squared TD error, as in a single-seed DQN.
@@ -312,14 +321,16 @@ def run(
     loss_per_experiment = torch.full((count,), math.nan)
     done_steps, gradient_steps = 0, 0
     for data in collector:  # [E, T]
-        data = data.select(*_STORED, "exploratory", ("next", "bump"), ("next", "collision"))
+        data = data.select(
+            *_STORED, "exploratory", ("next", "bump"), ("next", "collision"), strict=False
+        )
         for t in range(data.shape[1]):
             if done_steps >= steps:
                 break
             done_steps += 1
             recorder.update(data[:, t], agent.exploration.eps, loss_per_experiment)
         # One row [E] per env step: a minibatch [B, E] holds B transitions of every experiment.
-        agent.buffer.extend(data.select(*_STORED).transpose(0, 1).contiguous())
+        agent.buffer.extend(data.select(*_STORED, strict=False).transpose(0, 1).contiguous())
         due = done_steps // config.train_every - gradient_steps
         if done_steps >= config.learning_starts and len(agent.buffer) > 0:
             for _ in range(due):

@@ -77,26 +77,72 @@ def experiment_keys(
     return derive_keys(seed, stream, max(slots) - low + 1, low)[torch.tensor(slots) - low]
 
 
+#: The body options of a trainer's config (field name -> ``WorldConfig`` argument), issue 11.
+BODY_OPTIONS = {
+    "body": "body",
+    "sensors": "sensors",
+    "distractors": "num_distractors",
+    "sensor_permutation": "sensor_permutation",
+    "sensor_noise": "sensor_noise",
+    "actuator_noise": "actuator_noise",
+}
+
+
+def body_options(config: Any) -> dict[str, Any]:
+    """The body options of a config that has ``BODY_OPTIONS``' fields, as config names."""
+    return {name: getattr(config, name) for name in BODY_OPTIONS}
+
+
 def check_world_options(
-    size: int, obstacles: int, max_steps: int, layout_seed: int, worlds: Sequence[str]
+    size: int,
+    obstacles: int,
+    max_steps: int,
+    layout_seed: int,
+    worlds: Sequence[str],
+    body: dict[str, Any] | None = None,
 ) -> WorldConfig:
     """The world of a trainer's config (obstacle period 0: it is set per experiment), with
-    errors that name the options as the config spells them (``obstacles``); checks that the
-    static layout has a path when the static world is among ``worlds``."""
-    # Upper bounds are those of the types the values reach (docs/decisions.md, "Ranges"); the
+    errors that name the options as the config spells them (``obstacles``, ``distractors``);
+    checks that the static layout has a path when the static world is among ``worlds``.
+    ``body``: the config's body options (``body_options``), default the paper's body."""
+    # Upper bounds are those of the types the values reach (docs/decisions.md, "Hardening"); the
     # size is checked before the static layout, whose search grows with it.
     check_int("size", size, 2, MAX_SIZE)
     check_int("max_steps", max_steps, 1, INT64_MAX)
+    permutation = (body or {}).get("sensor_permutation")
+    if isinstance(permutation, int) and not isinstance(permutation, bool):  # a seed: int64 keys
+        check_int("sensor_permutation", permutation, 0, MAX_SEED)
     check_int("layout_seed", layout_seed, 0, MAX_SEED)
+    renames = {"num_obstacles": "obstacles", **{v: k for k, v in BODY_OPTIONS.items() if k != v}}
     try:
         world = WorldConfig(
-            size=size, num_obstacles=obstacles, max_steps=max_steps, layout_seed=layout_seed
+            size=size,
+            num_obstacles=obstacles,
+            max_steps=max_steps,
+            layout_seed=layout_seed,
+            **{BODY_OPTIONS[name]: value for name, value in (body or {}).items()},
         )
         if "static" in worlds:
             static_layout(world)
     except (ValueError, TypeError) as error:
-        raise type(error)(str(error).replace("num_obstacles", "obstacles")) from None
+        message = str(error)
+        for world_name, config_name in renames.items():
+            message = message.replace(world_name, config_name)
+        raise type(error)(message) from None
     return world
+
+
+def check_qlearning_table(world: WorldConfig) -> None:
+    """Refuse a Q-learning table past ``tables.MAX_TABLE_ENTRIES``: its state is the cell (x
+    heading) x the pattern of all the body's sensors."""
+    from factorq_torch.tables import check_table_size
+
+    check_table_size(
+        "q-learning",
+        f"a Q-table of {world.num_cells} cells x {world.num_headings} headings x "
+        f"2**{world.num_sensors} sensor patterns x {world.num_actuators} actions",
+        (world.num_cells * world.num_headings << world.num_sensors) * world.num_actuators,
+    )
 
 
 def make_env(
@@ -120,6 +166,12 @@ def make_env(
         batch_size=(len(periods),),
         seed=seed,
         device=device,
+        body=world.body,
+        sensors=world.sensors,
+        num_distractors=world.num_distractors,
+        sensor_permutation=world.sensor_permutation,
+        sensor_noise=world.sensor_noise,
+        actuator_noise=world.actuator_noise,
     )
     # The keys are not a contiguous range of the world stream (key 3 i + w), which the env's
     # seed and experiment_offset describe, so they are set after construction.
@@ -128,15 +180,27 @@ def make_env(
 
 
 def tabular_values(
-    algorithm: str, count: int, num_cells: int, device: torch.device | str | None = None
+    algorithm: str, count: int, world: WorldConfig, device: torch.device | str | None = None
 ) -> tuple[Any, Any]:
-    """The tables of ``count`` experiments of ``algorithm``: Q-learning's task table over cell x
-    proximity and no local table, or Factor-Q's task table over cells and its local tables."""
+    """The tables of ``count`` experiments of ``algorithm`` in ``world``'s body: Q-learning's
+    task table over cell (x heading) x the pattern of all sensors and no local table, or
+    Factor-Q's task table over cells (x heading) and its local tables, given the body's true
+    dependency (the oracle pairing, as in the paper)."""
     from factorq_torch.tables import LocalRewardTable, TaskQTable
 
-    if algorithm == "q-learning":
-        return TaskQTable(count, num_cells, with_proximity=True, device=device), None
-    return TaskQTable(count, num_cells, device=device), LocalRewardTable(count, device=device)
+    factorq = algorithm == "factor-q"
+    task = TaskQTable(
+        count,
+        world.num_cells,
+        with_sensors=not factorq,
+        num_sensors=world.num_sensors,
+        num_headings=world.num_headings,
+        num_actions=world.num_actuators,
+        device=device,
+    )
+    if not factorq:
+        return task, None
+    return task, LocalRewardTable(count, dependency=world.dependency, device=device)
 
 
 def online_agent(
@@ -198,6 +262,14 @@ class ExperimentConfig:
     obstacles: int = option(10, "Number of single-cell obstacles.")
     max_steps: int = option(10_000, "Actions after which an episode is truncated.")
     layout_seed: int = option(0, "Seed of the static world's obstacle layout.")
+    body: str = option("translate", "Agent body: translate (the paper) or heading.")
+    sensors: str = option("cross", "Sensor layout: cross (the paper: 4 neighbours) or ring (8).")
+    distractors: int = option(0, "Extra sensor bits that carry no information.")
+    sensor_permutation: int | None = option(
+        None, "Seed of a random order in which the agent receives its sensors."
+    )
+    sensor_noise: float = option(0.0, "Probability that each sensor bit flips at each observation.")
+    actuator_noise: float = option(0.0, "Probability that another actuator fires than the chosen.")
 
     def __post_init__(self) -> None:
         check_int("seed", self.seed, 0, MAX_SEED)
@@ -205,13 +277,20 @@ class ExperimentConfig:
         object.__setattr__(self, "worlds", check_names("worlds", self.worlds, WORLDS))
         check_int("steps", self.steps, 1, INT32_MAX)
         check_world_options(
-            self.size, self.obstacles, self.max_steps, self.layout_seed, self.worlds
+            self.size,
+            self.obstacles,
+            self.max_steps,
+            self.layout_seed,
+            self.worlds,
+            body_options(self),
         )
 
     @property
     def world(self) -> WorldConfig:
         """The world of every experiment; the obstacle period is set per experiment."""
-        return check_world_options(self.size, self.obstacles, self.max_steps, self.layout_seed, ())
+        return check_world_options(
+            self.size, self.obstacles, self.max_steps, self.layout_seed, (), body_options(self)
+        )
 
     @property
     def num_experiments(self) -> int:

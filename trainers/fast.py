@@ -48,6 +48,8 @@ from envs.world import NUM_ACTIONS, WorldConfig, static_layout
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
 from factorq_torch.base.rng import probability_threshold
 from factorq_torch.base.validation import check_int
+from factorq_torch.functional import parent_weights
+from factorq_torch.tables import check_table_size
 
 #: The env-only mode of the kernel (benchmarks): uniformly random actions (the policy stream's
 #: action draw), no learning, every action counted as exploratory.
@@ -58,7 +60,7 @@ _SOURCE = Path(__file__).with_name("_kernel.c")
 #: No FMA contraction and no fast-math: every float operation must round exactly as torch's
 #: separate ops do. -march=native is left out (measured no faster; keeps the cache portable).
 _FLAGS = ("-O3", "-std=c99", "-ffp-contract=off", "-fno-fast-math", "-fPIC", "-shared")
-_ABI_VERSION = 1
+_ABI_VERSION = 2
 _METRICS = ("steps", "collisions", "greedy_collisions", "task_return")
 
 
@@ -113,6 +115,31 @@ class _Batch(ctypes.Structure):
             )
         ]
         + [(name, ctypes.c_float) for name in ("gamma", "alpha", "eta_factor", "g_min")]
+        + [
+            (name, ctypes.c_int64)
+            for name in (
+                "generic",
+                "num_actuators",
+                "num_sensors",
+                "num_layout",
+                "num_headings",
+                "table_width",
+                "sensor_noise_threshold",
+                "actuator_noise_threshold",
+            )
+        ]
+        + [
+            (name, ctypes.c_void_p)
+            for name in (
+                "moves",
+                "turns",
+                "offsets",
+                "permutation",
+                "parent_weights",
+                "heading",
+                "ticks",
+            )
+        ]
     )
 
 
@@ -322,6 +349,21 @@ def kernel_scatter(
     return blocked.bool()
 
 
+#: The generic loop's limits (bit masks of the sensors, stack arrays of the actuators).
+MAX_KERNEL_SENSORS = 62
+MAX_KERNEL_ACTUATORS = 32
+
+
+def unsupported_reason(world: WorldConfig) -> str | None:
+    """Why the kernel cannot run ``world``, or None when it can (every body and layout of
+    ``envs.body`` up to ``MAX_KERNEL_SENSORS`` sensors and ``MAX_KERNEL_ACTUATORS`` actuators)."""
+    if world.num_sensors > MAX_KERNEL_SENSORS:
+        return f"{world.num_sensors} sensors, more than its {MAX_KERNEL_SENSORS}"
+    if world.num_actuators > MAX_KERNEL_ACTUATORS:
+        return f"{world.num_actuators} actuators, more than its {MAX_KERNEL_ACTUATORS}"
+    return None
+
+
 def _pool(workers: int) -> ThreadPoolExecutor:
     """A process-wide pool of at least ``workers`` helper threads (kept between calls: starting
     threads on every ``advance`` costs more than short chunks of work)."""
@@ -395,6 +437,9 @@ class ExperimentBatch:
             raise TypeError(f"world must be a WorldConfig, got {type(world).__name__}")
         if not isinstance(agent, AgentConfig):
             raise TypeError(f"agent must be an AgentConfig, got {type(agent).__name__}")
+        unsupported = unsupported_reason(world)
+        if unsupported is not None:
+            raise ValueError(f"world: the fast path cannot run this world: {unsupported}")
         periods = _check_vector("periods", periods, None)
         if bool((periods < 0).any()):
             raise ValueError(
@@ -419,9 +464,28 @@ class ExperimentBatch:
         static_grid[pad_of_cell.long()] = 0
         if bool((periods == 0).any()) and world.num_obstacles:
             static_grid[pad_of_cell.long()] = static_layout(world).to(torch.uint8)
-        num_states = num_cells * 16 if algorithm == "q-learning" else num_cells
+        # The body as data (envs.body): the paper's body runs the specialised loop.
+        generic = not world.is_paper_body
+        num_actuators, num_sensors = world.num_actuators, world.num_sensors
+        positions = num_cells * world.num_headings
+        num_states = positions << num_sensors if algorithm == "q-learning" else positions
+        if algorithm == "q-learning":
+            check_table_size(
+                "ExperimentBatch", f"a Q-table of {num_states} states", num_states * num_actuators
+            )
         if algorithm == RANDOM_WALK:
             num_states = 0
+        dependency = world.dependency
+        parents = int(dependency.sum(dim=1).max())
+        table_width = 1 << parents
+        offsets = world._tables["offsets"]  # [4, L, 2]
+        body_tensors = {
+            "moves": world._tables["moves"].to(torch.int64).contiguous(),
+            "turns": world._tables["turns"].to(torch.int64).contiguous(),
+            "offsets": (offsets[..., 0] * width + offsets[..., 1]).contiguous(),  # [4, L]
+            "permutation": world._tables["permutation"].to(torch.int64).contiguous(),
+            "parent_weights": parent_weights(dependency).contiguous(),  # [A, K]
+        }
         experiment_shape = (count, self.runs, self.episodes)
 
         def zeros(*shape, dtype=torch.int64):
@@ -434,9 +498,10 @@ class ExperimentBatch:
             "policy_keys": policy_keys,  # [S]
             "static_grid": static_grid,  # [P]
             "pad_of_cell": pad_of_cell,  # [N]
-            "q": zeros(count, num_states, NUM_ACTIONS, dtype=torch.float32),
-            "rho": zeros(count, NUM_ACTIONS, 2, dtype=torch.float32),  # [S, actuator, sensor]
-            "kappa": zeros(count, NUM_ACTIONS, 2),
+            "q": zeros(count, num_states, num_actuators, dtype=torch.float32),
+            # [S, actuator, pattern of its parents]
+            "rho": zeros(count, num_actuators, table_width, dtype=torch.float32),
+            "kappa": zeros(count, num_actuators, table_width),
             "grid": zeros(count, width * width, dtype=torch.uint8),  # [S, P]
             "obstacle_pads": zeros(count, world.num_obstacles, dtype=torch.int32),  # [S, K]
             "cell": zeros(count),
@@ -445,7 +510,9 @@ class ExperimentBatch:
             "policy_counter": zeros(count),
             "run": zeros(count),
             "episode": zeros(count),
-            "bump": zeros(count, NUM_ACTIONS, dtype=torch.uint8),
+            "bump": zeros(count, num_actuators, dtype=torch.uint8),
+            "heading": zeros(count),
+            "ticks": zeros(count),
             "episode_collisions": zeros(count),
             "episode_greedy_collisions": zeros(count),
             "episode_task_return": zeros(count, dtype=torch.float32),
@@ -454,7 +521,11 @@ class ExperimentBatch:
             "greedy_collisions": zeros(*experiment_shape),
             "task_return": zeros(*experiment_shape, dtype=torch.float32),
         }
-        pointers = {name: tensor.data_ptr() for name, tensor in self._tensors.items()}
+        self._body = body_tensors  # read-only; kept alive for the kernel's pointers
+        pointers = {
+            name: tensor.data_ptr()
+            for name, tensor in (*self._tensors.items(), *body_tensors.items())
+        }
         self._batch = _Batch(
             algorithm=_ALGORITHM_CODES[algorithm],
             num_experiments=count,
@@ -468,6 +539,14 @@ class ExperimentBatch:
             alpha=agent.alpha,
             eta_factor=1 + agent.eta,
             g_min=agent.g_min,
+            generic=int(generic),
+            num_actuators=num_actuators,
+            num_sensors=num_sensors,
+            num_layout=world.layout.num_sensors,
+            num_headings=world.num_headings,
+            table_width=table_width,
+            sensor_noise_threshold=probability_threshold(world.sensor_noise),
+            actuator_noise_threshold=probability_threshold(world.actuator_noise),
             **pointers,
         )
         self._library.fq_start(ctypes.byref(self._batch))

@@ -19,6 +19,7 @@ the claims, seeded with ``config.seed``), the claims ``trainers.claims``', and t
 from __future__ import annotations
 
 import os
+import sys
 import time
 import typing
 from collections.abc import Callable
@@ -41,7 +42,12 @@ from factorq_torch.base.validation import (
 )
 from trainers import checkpoint, experiment, resources, stats
 from trainers.claims import compute_claims
-from trainers.experiment import MAX_SEED, check_world_options
+from trainers.experiment import (
+    MAX_SEED,
+    body_options,
+    check_qlearning_table,
+    check_world_options,
+)
 from trainers.options import option
 from trainers.results import SCHEMA_VERSION, software_versions
 from trainers.stats import interval, mean_ci
@@ -92,6 +98,26 @@ class PaperConfig:
         choices=BACKENDS,
     )
     device: str = option("cpu", "Torch device (the fast backend runs on cpu only).")
+    body: str = option(
+        "translate",
+        "Agent body: translate (the paper: moves N/W/S/E) or heading (forward, turn left/right).",
+    )
+    sensors: str = option(
+        "cross", "Sensor layout: cross (the paper: 4 neighbours) or ring (8 neighbours)."
+    )
+    distractors: int = option(
+        0, "Extra sensor bits that carry no information (fresh fair coins at every observation)."
+    )
+    sensor_permutation: int | None = option(
+        None,
+        "Seed of a random order in which the agent receives its sensors (default: layout order).",
+    )
+    sensor_noise: float = option(
+        0.0, "Probability that each sensor bit is flipped at each observation, in [0, 1]."
+    )
+    actuator_noise: float = option(
+        0.0, "Probability that another actuator fires than the chosen one, in [0, 1]."
+    )
 
     def __post_init__(self) -> None:
         check_int("seed", self.seed, 0, MAX_SEED)
@@ -100,13 +126,20 @@ class PaperConfig:
         check_int("runs", self.runs, 1, INT32_MAX)
         check_int("episodes", self.episodes, 1, INT32_MAX)
         object.__setattr__(self, "worlds", check_names("worlds", self.worlds, WORLDS))
-        check_world_options(
-            self.size, self.obstacles, self.max_steps, self.layout_seed, self.worlds
+        world = check_world_options(
+            self.size,
+            self.obstacles,
+            self.max_steps,
+            self.layout_seed,
+            self.worlds,
+            body_options(self),
         )
         object.__setattr__(
             self, "algorithms", check_names("algorithms", self.algorithms, ALGORITHMS)
         )
         _ = self.agent  # AgentConfig validates epsilon, gamma, alpha, eta and g_min
+        if "q-learning" in self.algorithms:  # its state holds the pattern of all sensors
+            check_qlearning_table(world)
         if self.threads is not None:
             check_threads("threads", self.threads)
         if self.backend not in BACKENDS:
@@ -134,7 +167,9 @@ class PaperConfig:
     @property
     def world(self) -> WorldConfig:
         """The world of every experiment; the obstacle period is set per experiment."""
-        return check_world_options(self.size, self.obstacles, self.max_steps, self.layout_seed, ())
+        return check_world_options(
+            self.size, self.obstacles, self.max_steps, self.layout_seed, (), body_options(self)
+        )
 
     @property
     def cells(self) -> list[tuple[str, str]]:
@@ -169,8 +204,12 @@ def resolve_backend(config: PaperConfig) -> str:
     on_cpu = torch.device(config.device).type == "cpu"
     if config.backend == "fast" and not fast.is_available():
         raise ValueError(f"backend='fast' is unavailable here: {fast.unavailable_reason()}")
+    unsupported = fast.unsupported_reason(config.world)
+    if config.backend == "fast" and unsupported is not None:
+        raise ValueError(f"backend='fast' cannot run this config: {unsupported}")
     if config.backend == "auto":
-        return "fast" if on_cpu and fast.is_available() else "modular"
+        usable = on_cpu and fast.is_available() and unsupported is None
+        return "fast" if usable else "modular"
     return config.backend
 
 
@@ -263,7 +302,7 @@ def _run_modular(job: Job) -> dict[str, torch.Tensor]:
 
     device = torch.device(config.device)
     grid = experiment.make_env(config.world, periods, world_keys, device=device)
-    task, local = experiment.tabular_values(algorithm, len(periods), grid.config.num_cells, device)
+    task, local = experiment.tabular_values(algorithm, len(periods), config.world, device)
     env, policy, loss = experiment.online_agent(
         grid, task, local, config.agent, policy_keys, device=device
     )
@@ -275,11 +314,8 @@ def _run_modular(job: Job) -> dict[str, torch.Tensor]:
         "collector": _to_device(collector.state_dict(), torch.device("cpu")),
         "world_state": _to_device(grid.world_state._asdict(), torch.device("cpu")),
     }
-    # A new collector has not stepped: the observation the next step acts on is made here from
-    # the world state's shapes, the env's keys and the policy's outputs.
-    fresh["collector"]["observation"] = _observation_like(
-        fresh["world_state"], with_local=local is not None
-    )
+    # A new collector has not stepped: its observation is None; a saved one is checked by
+    # _check_observation (its entries depend on the body, the env and the policy).
 
     def load_state(state: dict[str, Any]) -> None:
         check_state(state, fresh, config, periods)
@@ -351,6 +387,16 @@ def run(
     resources.check(estimate, "run", resources.PAPER_HINT)  # before anything is allocated
     backend = resolve_backend(config)
     driver = backend_driver(backend)
+    if backend == "modular" and config.backend == "auto":
+        from trainers import fast
+
+        unsupported = fast.unsupported_reason(config.world)
+        if unsupported is not None:  # the one-line notice of a fall-back (issue 11)
+            print(
+                f"factorq: the fast path cannot run this config ({unsupported}): running on "
+                f"the modular torchrl path",
+                file=sys.stderr,
+            )
     if resume is not None:
         _check_same_config(resume.config, config_dict(config), f"resume='{resume.path.parents[1]}'")
         check_checkpoint(resume, config)
@@ -467,8 +513,10 @@ def check_state(
     can count, a run or an episode past the end, a local reward outside ``[-1, 0]``, NaN or
     infinite numbers, obstacles that are not ``config.obstacles`` cells off the start and goal
     and the agent (the static layout in a static world)."""
-    if isinstance(fresh, dict) and where.endswith("['observation']") and saved is None:
-        return  # saved before the first step
+    if where.endswith("['observation']") and fresh is None:
+        count = periods.numel()
+        _check_observation(saved, count, config, where)
+        return
     if isinstance(fresh, dict):
         if fresh.keys() != (saved.keys() if isinstance(saved, dict) else None):
             raise ValueError(f"{where} must hold exactly the entries {sorted(map(str, fresh))}")
@@ -493,34 +541,50 @@ def check_state(
         raise ValueError(f"{where}={saved!r} differs from this run's {fresh!r}")
 
 
-def _observation_like(world_state: dict[str, torch.Tensor], with_local: bool) -> dict[str, Any]:
-    """Zeros shaped like the observation ``OnlineCollector.state_dict`` saves for this batch."""
-    count, actions = world_state["bump"].shape
+#: dtype of the observation entries a saved collector state must have (others may be there too:
+#: the env's keys depend on the body), and those it must hold.
+OBSERVATION_DTYPES = {
+    **dict.fromkeys(("cell", "action", "run", "episode", "heading"), torch.int64),
+    **dict.fromkeys(
+        ("proximity", "sensors", "bump", "mask", "exploratory", "done", "terminated", "truncated"),
+        torch.bool,
+    ),
+    **dict.fromkeys(("collision", "action_value", "local_value", "combined_value"), torch.float32),
+}
+OBSERVATION_REQUIRED = ("cell", "bump", "collector", "action", "done", "terminated", "truncated")
 
-    def zeros(dtype, *shape):
-        return torch.zeros(count, *shape, dtype=dtype)
 
-    observation = {
-        "cell": zeros(torch.int64),
-        "proximity": zeros(torch.bool, actions),
-        "bump": zeros(torch.bool, actions),
-        "collision": zeros(torch.float32, actions),
-        "collector": {
-            "mask": zeros(torch.bool),
-            "run": zeros(torch.int64),
-            "episode": zeros(torch.int64),
-        },
-        "action_value": zeros(torch.float32, actions),
-        "action": zeros(torch.int64),
-        "exploratory": zeros(torch.bool),
-        "done": zeros(torch.bool, 1),
-        "terminated": zeros(torch.bool, 1),
-        "truncated": zeros(torch.bool, 1),
-    }
-    if with_local:
-        observation["local_value"] = zeros(torch.float32, actions)
-        observation["combined_value"] = zeros(torch.float32, actions)
-    return observation
+def _check_observation(saved: Any, count: int, config: PaperConfig, where: str) -> None:
+    """The observation a collector's next step acts on: None (saved before its first step) or
+    a table of ``[S, ...]`` tensors with the entries and dtypes it needs, values in range."""
+    if saved is None:
+        return
+    if not isinstance(saved, dict) or not set(OBSERVATION_REQUIRED) <= set(saved):
+        raise ValueError(f"{where} must hold {', '.join(OBSERVATION_REQUIRED)}")
+    if not isinstance(saved["collector"], dict) or set(saved["collector"]) != {
+        "mask",
+        "run",
+        "episode",
+    }:
+        raise ValueError(f"{where}['collector'] must hold exactly mask, run and episode")
+    for name, value in _tensors(saved, where):
+        leaf = name.rsplit("[", 1)[-1].strip("]'")
+        if value.dim() == 0 or value.shape[0] != count:
+            raise ValueError(f"{name} must have {count} rows")
+        if leaf in OBSERVATION_DTYPES and value.dtype != OBSERVATION_DTYPES[leaf]:
+            raise ValueError(f"{name} has dtype {value.dtype}, expected {OBSERVATION_DTYPES[leaf]}")
+        _check_values(value, None, config, name)
+    for name, value in _leaves(saved, where):
+        if not isinstance(value, torch.Tensor):
+            raise ValueError(f"{name} must be a tensor, got {type(value).__name__}")
+
+
+def _leaves(tree: Any, where: str):
+    if isinstance(tree, dict):
+        for key, value in tree.items():
+            yield from _leaves(value, f"{where}[{key!r}]")
+    else:
+        yield where, tree
 
 
 def _check_values(value: torch.Tensor, fresh: torch.Tensor | None, config, where: str) -> None:

@@ -110,13 +110,18 @@ def paper_estimate(config: Any, checkpointing: bool = False) -> Estimate:
     algorithm's tables, state and metrics, the finished algorithms' metrics, the results' curves
     (and, with ``checkpointing``, a copy of the running state being saved)."""
     count = len(config.worlds) * config.seeds  # experiments of one algorithm
+    world = config.world  # the body: sensors, actuators, headings (issue 11)
     cells = config.size**2
+    positions = cells * world.num_headings
+    actions = world.num_actuators
     episodes = count * config.runs * config.episodes
     metrics = episodes * _METRIC_BYTES
     tables, state = 0, 0
     for algorithm in config.algorithms:
-        states = cells * 16 if algorithm == "q-learning" else cells
-        tables = max(tables, count * states * 4 * 4)
+        states = positions << world.num_sensors if algorithm == "q-learning" else positions
+        # Q [E, states, A] float32, and Factor-Q's rho and kappa [E, A, 2**parents] (12 bytes)
+        local = 0 if algorithm == "q-learning" else actions * (2 << world.num_sensors) * 12
+        tables = max(tables, count * (states * actions * 4 + local))
     # The kernel's padded grid, obstacle positions and counters; the modular env holds the
     # obstacles [E, N] bool and a few observation TensorDicts besides.
     state = count * ((config.size + 2) ** 2 + 4 * config.obstacles + _EXPERIMENT_BYTES)
@@ -167,7 +172,9 @@ def compare_estimate(config: Any) -> Estimate:
     until the summary; counted as if every episode were as short as possible)."""
     experiments = config.experiments
     count = experiments.num_experiments
-    cells = experiments.size**2
+    world = experiments.world
+    cells = experiments.size**2 * world.num_headings
+    sensors, actions = world.num_sensors, world.num_actuators
     # An episode takes at least the Manhattan distance: at most this many fit the budget.
     episodes = experiments.steps // (2 * (experiments.size - 1)) + 1
     # Per episode: 7 records as Python floats in lists, their numpy copies, the collector's
@@ -177,21 +184,20 @@ def compare_estimate(config: Any) -> Estimate:
     for method in config.methods:
         parts: dict[str, int] = {}
         if method == "q-learning":
-            parts["tables"] = count * cells * 16 * 4 * 4
+            parts["tables"] = count * (cells << sensors) * actions * 4
         elif method == "factor-q":
-            parts["tables"] = count * (cells * 4 * 4 + 4 * 2 * 12)
+            parts["tables"] = count * (cells * actions * 4 + actions * (2 << sensors) * 12)
         elif method == "factor-dqn":
             settings = config.factor_dqn
-            weights = _mlp_weights(cells, settings.hidden, 4)
-            weights += _mlp_weights(1, settings.local_hidden, 1) * (
-                1 if settings.local_shared else 4
-            )
+            weights = _mlp_weights(cells, settings.hidden, actions)
+            copies = 1 if settings.local_shared else actions
+            weights += _mlp_weights(sensors, settings.local_hidden, 1) * copies
             # weights, gradients, Adam's two moments; activations of one step
             parts["networks"] = count * (4 * weights * 4 + 4 * (cells + sum(settings.hidden)) * 3)
         else:  # dqn
             settings = config.dqn
-            weights = _mlp_weights(cells + 4, settings.hidden, 4)
-            width = cells + 4 + sum(settings.hidden) + 4
+            weights = _mlp_weights(cells + sensors, settings.hidden, actions)
+            width = cells + sensors + sum(settings.hidden) + actions
             parts["networks"] = count * 5 * weights * 4  # + gradients, Adam moments, target copy
             # A minibatch [B, E]: its one-hot features and activations, forward and backward,
             # for the network and the target network.

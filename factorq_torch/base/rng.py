@@ -110,3 +110,22 @@ def derive_keys(seed: int, stream: int, count: int, offset: int = 0) -> torch.Te
     base = mix64_int(mix64_int(seed * GOLDEN + stream) + stream * _MIX1)
     keys = [_signed(mix64_int(base + (offset + i + 1) * GOLDEN)) for i in range(count)]
     return torch.tensor(keys, dtype=torch.int64)
+
+
+# Sub-streams of a world key (``substream_key``): the sensors' and actuators' randomness of a
+# world never overlaps its obstacle scatter, and the paper's world (which draws none of them)
+# keeps its stream positions exactly.
+SUBSTREAM_DISTRACTOR = 1
+SUBSTREAM_SENSOR_NOISE = 2
+SUBSTREAM_ACTUATOR_NOISE = 3
+SUBSTREAM_PERMUTATION = 4
+
+
+def substream_key(key: torch.Tensor, substream: int) -> torch.Tensor:
+    """The key of ``substream`` of each key ``[...]`` int64: ``mix64(key + substream * MIX1)``."""
+    return mix64(key + _signed(substream * _MIX1))
+
+
+def substream_key_int(key: int, substream: int) -> int:
+    """``substream_key`` on a Python int (unsigned 64-bit result)."""
+    return mix64_int(key + substream * _MIX1)

@@ -1,0 +1,55 @@
+"""The paper's defaults stay bit for bit: figures recorded before the body was made data.
+
+``tests/data/paper_figures.json`` was written by the code of commit eee16a6 (before issue 11):
+
+- ``small``: ``PaperConfig(seeds=3, runs=2, episodes=30)``, every per-seed number of every cell
+  and every claim's value (both backends must reproduce them exactly);
+- ``defaults``: ``factorq paper`` with its defaults (100 seeds, 10 x 200): the SHA-256 of
+  ``dumps_results({"cells", "claims"})`` and the cell means (slow: about 4 s on the fast path).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import pytest
+
+from trainers import fast, paper
+from trainers.paper import PaperConfig
+from trainers.results import dumps as dumps_results
+
+FIGURES = json.loads((Path(__file__).parent / "data" / "paper_figures.json").read_text())
+
+
+def _check_small(results: dict) -> None:
+    for name, per_seed in FIGURES["small"]["per_seed"].items():
+        assert results["cells"][name]["per_seed"] == per_seed, name
+    values = {claim: entry["value"] for claim, entry in results["claims"].items()}
+    assert values == FIGURES["small"]["claims"]
+
+
+@pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
+def test_the_fast_path_gives_the_figures_recorded_before_bodies_were_data():
+    _check_small(paper.run(PaperConfig(**FIGURES["small"]["config"], threads=1, backend="fast")))
+
+
+@pytest.mark.slow
+def test_the_modular_path_gives_the_figures_recorded_before_bodies_were_data():
+    small = {**FIGURES["small"]["config"], "seeds": 1}
+    results = paper.run(PaperConfig(**small, backend="modular"))
+    for name, per_seed in FIGURES["small"]["per_seed"].items():
+        for measure, values in per_seed.items():
+            assert results["cells"][name]["per_seed"][measure] == values[:1], (name, measure)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
+def test_factorq_paper_defaults_give_the_recorded_results():
+    results = paper.run(PaperConfig())
+    text = dumps_results({"cells": results["cells"], "claims": results["claims"]})
+    assert (
+        hashlib.sha256(text.encode()).hexdigest()
+        == FIGURES["defaults"]["sha256_of_cells_and_claims"]
+    )
