@@ -258,3 +258,52 @@ def _valid_compare_config(data) -> bool:
     except Exception:  # noqa: BLE001 - whatever it is, it is not a valid config
         return False
     return True
+
+
+#: Fields of the kernel's state and a value out of its buffers' range, set behind
+#: ``load_state_dict``'s back: the kernel itself refuses them (never an out-of-bounds access).
+KERNEL_STATE = [
+    ("cell", -100_000),
+    ("cell", 10**12),
+    ("run", -100_000),
+    ("episode", 10**12),
+    ("episode", -(10**9)),
+    ("episode_step", -5),
+    ("episode_step", 10**12),
+    ("scatters", -1),
+    ("policy_counter", -1),
+    ("periods", -3),
+    ("obstacle_pads", -7),
+    ("obstacle_pads", 10**6),
+    ("heading", 9),
+    ("ticks", -1),
+    ("kappa", -2),
+    ("episode_collisions", -1),
+]
+
+
+@needs_fast
+@pytest.mark.parametrize(
+    ("field", "value"), KERNEL_STATE, ids=[f"{f}={v}" for f, v in KERNEL_STATE]
+)
+@pytest.mark.parametrize("threads", [1, 2])
+def test_the_kernel_refuses_a_state_out_of_range_whatever_its_source(field, value, threads):
+    from envs.world import WorldConfig
+    from factorq_torch.base.config import AgentConfig
+    from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
+
+    batch = fast.ExperimentBatch(
+        "factor-q",
+        torch.tensor([0, 1, 1]),
+        WorldConfig(size=5, num_obstacles=3),
+        AgentConfig(),
+        2,
+        3,
+        derive_keys(0, STREAM_WORLD, 3),
+        derive_keys(0, STREAM_POLICY, 3),
+        threads=threads,
+    )
+    batch.advance(7)
+    batch._tensors[field].view(-1)[-1] = value  # the last experiment's (or its last entry)
+    with pytest.raises(ValueError, match=rf"the fast kernel refused experiment 2: its {field} is"):
+        batch.advance(1_000)

@@ -30,7 +30,7 @@
 #include <string.h>
 
 #define NUM_ACTIONS 4
-#define FQ_ABI_VERSION 2
+#define FQ_ABI_VERSION 3
 /* Most actuators of a body the generic loop handles (bit masks, small stack arrays). */
 #define MAX_ACTUATORS 32
 
@@ -820,6 +820,41 @@ static int64_t run_factor_q_body(const fq_batch *b, int64_t i, int64_t budget) {
  * this at once with the same next_experiment counter (initially 0): each takes the next
  * experiment from it until none is left. Returns the episodes completed by this caller.
  */
+/*
+ * The state of experiment i as the loops index with it, checked on entry whatever its source (a
+ * checkpoint is signed, not trusted): 0 when every index stays inside its buffer, else the code of
+ * the first field out of range (fast.py's _STATE_FIELDS names them). Cheap: a few compares per
+ * experiment per advance call, none in the step loop.
+ */
+int64_t fq_check_experiment(const fq_batch *b, int64_t i) {
+    const int64_t num_cells = b->size * b->size, padded = (b->size + 2) * (b->size + 2);
+    if (b->cell[i] < 0 || b->cell[i] >= num_cells) return 1;
+    if (b->run[i] < 0 || b->run[i] > b->runs) return 2;
+    if (b->episode[i] < 0 || b->episode[i] >= b->episodes) return 3;
+    if (b->episode_step[i] < 0 || b->episode_step[i] >= b->max_steps) return 4;
+    if (b->scatters[i] < 0) return 5;
+    if (b->policy_counter[i] < 0) return 6;
+    if (b->periods[i] < 0) return 7;
+    for (int64_t k = 0; k < b->num_obstacles; k++) {
+        const int32_t pad = b->obstacle_pads[i * b->num_obstacles + k];
+        if (pad < 0 || pad >= padded) return 8;
+    }
+    if (b->heading != NULL && (b->heading[i] < 0 || b->heading[i] >= b->num_headings)) return 9;
+    if (b->ticks != NULL && b->ticks[i] < 0) return 10;
+    if (b->algorithm == ALG_FACTOR_Q) {
+        const int64_t entries = b->num_actuators * b->table_width;
+        for (int64_t e = 0; e < entries; e++) {
+            const int64_t kappa = b->kappa[i * entries + e];
+            if (kappa < 0 || kappa > INT64_MAX / 2) return 11;
+        }
+    }
+    if (b->episode_collisions[i] < 0 || b->episode_greedy_collisions[i] < 0) return 12;
+    return 0;
+}
+
+/* Codes of fq_advance's refusals: -(1 + i * FQ_CHECK_CODES + code) for experiment i. */
+#define FQ_CHECK_CODES 64
+
 int64_t fq_advance(const fq_batch *b, int64_t max_steps, int64_t *next_experiment) {
     if (max_steps <= 0) return 0;
     int64_t (*run)(const fq_batch *, int64_t, int64_t) =
@@ -833,6 +868,8 @@ int64_t fq_advance(const fq_batch *b, int64_t max_steps, int64_t *next_experimen
     for (;;) {
         const int64_t i = __atomic_fetch_add(next_experiment, 1, __ATOMIC_RELAXED);
         if (i >= b->num_experiments) break;
+        const int64_t code = fq_check_experiment(b, i);
+        if (code != 0) return -(1 + i * FQ_CHECK_CODES + code); /* nothing of i was touched */
         if (b->run[i] < b->runs) completed += run(b, i, max_steps);
     }
     return completed;

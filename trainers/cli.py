@@ -227,7 +227,7 @@ def _run_paper(parser, args, config, backend, every, resume, executor) -> int:
         kept = f" (resume it with --resume {config.out})" if checkpoint.exists(config.out) else ""
         print(f"{parser.prog}: interrupted{kept}", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except checkpoint.CheckpointError as error:
+    except (checkpoint.CheckpointError, ValueError) as error:  # incl. the kernel's refusal
         bar.close()
         _error(parser, _as_option(str(error)))
         return EXIT_USAGE

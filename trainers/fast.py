@@ -60,7 +60,23 @@ _SOURCE = Path(__file__).with_name("_kernel.c")
 #: No FMA contraction and no fast-math: every float operation must round exactly as torch's
 #: separate ops do. -march=native is left out (measured no faster; keeps the cache portable).
 _FLAGS = ("-O3", "-std=c99", "-ffp-contract=off", "-fno-fast-math", "-fPIC", "-shared")
-_ABI_VERSION = 2
+_ABI_VERSION = 3
+#: The fields ``fq_check_experiment`` refuses, by code (1-based), and ``fq_advance``'s encoding.
+_STATE_FIELDS = (
+    "cell",
+    "run",
+    "episode",
+    "episode_step",
+    "scatters",
+    "policy_counter",
+    "periods",
+    "obstacle_pads",
+    "heading",
+    "ticks",
+    "kappa",
+    "episode_collisions",
+)
+_CHECK_CODES = 64
 _METRICS = ("steps", "collisions", "greedy_collisions", "task_return")
 
 
@@ -254,6 +270,8 @@ def _declare(library: ctypes.CDLL, path: Path) -> None:
     library.fq_start.restype = None
     library.fq_advance.argtypes = [batch, int64, ctypes.POINTER(int64)]
     library.fq_advance.restype = int64
+    library.fq_check_experiment.argtypes = [batch, int64]
+    library.fq_check_experiment.restype = int64
     library.fq_combined_values.argtypes = [pointer, pointer, int64, ctypes.c_float]
     library.fq_combined_values.argtypes += [ctypes.c_float, pointer, pointer]
     library.fq_combined_values.restype = None
@@ -586,13 +604,25 @@ class ExperimentBatch:
         arguments = (ctypes.byref(self._batch), max_steps, ctypes.byref(next_experiment))
         threads = min(self.threads, self.num_experiments)
         if threads == 1:
-            return self._library.fq_advance(*arguments)
+            return self._checked([self._library.fq_advance(*arguments)])
         # ctypes releases the GIL during the call: each thread takes whole experiments from the
         # shared counter until none is left (results never depend on who ran what).
         pool = _pool(threads - 1)
         helpers = [pool.submit(self._library.fq_advance, *arguments) for _ in range(threads - 1)]
         completed = self._library.fq_advance(*arguments)
-        return completed + sum(helper.result() for helper in helpers)
+        return self._checked([completed, *(helper.result() for helper in helpers)])
+
+    def _checked(self, results: list[int]) -> int:
+        """The episodes completed, or the kernel's refusal of a state out of range (ValueError)."""
+        refused = [result for result in results if result < 0]
+        if refused:
+            experiment, code = divmod(-refused[0] - 1, _CHECK_CODES)
+            field = _STATE_FIELDS[code - 1] if 0 < code <= len(_STATE_FIELDS) else f"code {code}"
+            raise ValueError(
+                f"the fast kernel refused experiment {experiment}: its {field} is out of range "
+                f"(the state was loaded from a bad checkpoint or edited)"
+            )
+        return sum(results)
 
     def metrics(self) -> dict[str, torch.Tensor]:
         """Per-episode ``steps``, ``collisions``, ``greedy_collisions`` (int64) and
