@@ -44,6 +44,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.objectives import LossModule
 
 from factorq_torch.base.config import AgentConfig
+from factorq_torch.base.validation import check_finite
 from factorq_torch.functional import (
     combined_values,
     factorq_target,
@@ -128,8 +129,10 @@ class _TransitionLoss(LossModule):
     def _provide(
         provider: TensorDictModuleBase, tensordict: TensorDictBase, key: NestedKey
     ) -> torch.Tensor:
-        """Run a value provider on a shallow copy of its inputs (the input is not mutated)."""
-        return provider(tensordict.select(*provider.in_keys)).get(key)
+        """Run a value provider on a shallow copy of its inputs (the input is not mutated); its
+        values must be finite (a NaN or an infinity would spread through every target)."""
+        value = provider(tensordict.select(*provider.in_keys)).get(key)
+        return check_finite(f"{type(provider).__name__} (read by the loss)", repr(key), value)
 
     def _reduce(self, per_experiment: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
         """Sum (or mean) over the experiments that count."""

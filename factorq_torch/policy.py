@@ -26,6 +26,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import POLICY_DRAWS_PER_STEP, STREAM_POLICY, derive_keys, random_bits
+from factorq_torch.base.validation import check_finite
 from factorq_torch.functional import combined_values, epsilon_greedy_from_bits, normaliser
 from factorq_torch.tables import check_batch, check_mask
 
@@ -128,7 +129,7 @@ class EpsilonGreedyPolicy(TensorDictModuleBase):
             )
         if not value.is_floating_point():
             raise ValueError(f"{type(self).__name__}: {key!r} must be floating point")
-        return value
+        return check_finite(type(self).__name__, repr(key), value)  # a NaN would choose silently
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         check_batch(tensordict, self.num_experiments, type(self).__name__)

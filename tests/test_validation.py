@@ -235,6 +235,36 @@ def batch(algorithm="factor-q", periods=(0,), world=None, runs=1, keys=1, **opti
     )
 
 
+def nan_table_to(what: str) -> None:
+    """Feed a policy or a loss the tables of 2 experiments, experiment 1's holding NaN (task) or
+    -inf (local)."""
+    env = FactoredGridEnv(size=3, num_obstacles=1, batch_size=(2,))
+    factor = what.startswith("factor")
+    task = TaskQTable(2, num_cells=9, with_proximity=not factor)
+    local = LocalRewardTable(2)
+    with torch.no_grad():
+        if factor:
+            local.rho[1] = -math.inf
+        else:
+            task.table[1] = math.nan
+    td = env.reset()
+    if what == "policy":
+        TensorDictSequential(task, EpsilonGreedyPolicy(2))(td)
+    elif what == "factor-policy":
+        TensorDictSequential(task, local, FactorQPolicy(2))(td)
+    else:
+        from torchrl.envs import TransformedEnv
+
+        from envs.transforms import SplitLocalReward
+
+        env = TransformedEnv(env, SplitLocalReward()) if factor else env
+        td = env.reset()
+        td["action"] = torch.zeros(2, dtype=torch.int64)
+        td["exploratory"] = torch.zeros(2, dtype=torch.bool)
+        td = env.step(td)
+        (FactorQLoss(task, local) if factor else TabularQLoss(task))(td)
+
+
 def resume_config(tmp: Path, **given) -> None:
     out = a_checkpoint(tmp)
     paper.resume_config(checkpoint.load(out).config, given, out)
@@ -514,6 +544,10 @@ TRIED = [
     ("EpsilonGreedyPolicy(offset=-2)", lambda _: EpsilonGreedyPolicy(1, offset=-2), ValueError, rf"offset=-2 {RANGE} >= 0"),
     ("EpsilonGreedyPolicy(keys of another S)", lambda _: EpsilonGreedyPolicy(2, keys=torch.zeros(3, dtype=torch.int64)), ValueError, r"keys has shape \[3\], expected \[2\] \(one stream key per experiment\)"),
     ("FactorQPolicy(g_min=0)", lambda _: FactorQPolicy(1, g_min=0.0), ValueError, rf"g_min=0.0 {RANGE} in \(0.0, "),
+    ("EpsilonGreedyPolicy(NaN table)", lambda _: nan_table_to("policy"), ValueError, r"EpsilonGreedyPolicy: 'action_value' holds NaN or infinite values \(experiment 1 first\): a table or network diverged"),
+    ("FactorQPolicy(infinite local table)", lambda _: nan_table_to("factor-policy"), ValueError, r"FactorQPolicy: 'local_value' holds NaN or infinite values \(experiment 1 first\)"),
+    ("TabularQLoss(NaN table)", lambda _: nan_table_to("loss"), ValueError, r"TaskQTable \(read by the loss\): 'action_value' holds NaN or infinite values \(experiment 1 first\)"),
+    ("FactorQLoss(infinite local table)", lambda _: nan_table_to("factor-loss"), ValueError, r"LocalRewardTable \(read by the loss\): 'local_value' holds NaN or infinite values"),
     ("TabularQLoss(gamma=1)", lambda _: TabularQLoss(TaskQTable(1, 4), gamma=1.0), ValueError, rf"gamma=1.0 {RANGE} in \[0.0, 1.0\)"),
     ("TabularQLoss(reduction='max')", lambda _: TabularQLoss(TaskQTable(1, 4), reduction="max"), ValueError, r"reduction='max' is unknown: choose one of \('sum', 'mean'\)"),
     ("TabularQLoss('table')", lambda _: TabularQLoss("table"), TypeError, r"task_value_network must be a TensorDict module .* got str"),
