@@ -39,6 +39,7 @@ from tensordict.nn.probabilistic import InteractionType, interaction_type
 from factorq_torch.base import keys as names
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import POLICY_DRAWS_PER_STEP, STREAM_POLICY, derive_keys, random_bits
+from factorq_torch.base.validation import check_device
 from factorq_torch.functional import combined_values, epsilon_greedy_from_bits, normaliser
 from factorq_torch.tables import check_mask, experiment_index
 
@@ -99,6 +100,7 @@ class EpsilonGreedyPolicy(TensorDictModuleBase):
         if num_experiments < 1:
             raise ValueError(f"num_experiments={num_experiments} is out of range: must be >= 1")
         AgentConfig(epsilon=epsilon)  # validates epsilon with a message naming it
+        device = check_device("device", device)
         self.num_experiments = num_experiments
         self.epsilon = float(epsilon)
         self.in_keys = [self.value_key]

@@ -31,7 +31,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from factorq_torch.base import keys
-from factorq_torch.base.validation import check_int
+from factorq_torch.base.validation import check_device, check_int
 from factorq_torch.functional import (
     check_dependency,
     local_patterns,
@@ -198,6 +198,7 @@ class TaskQTable(TensorDictModuleBase):
     ) -> None:
         super().__init__()
         self.num_experiments = check_int("num_experiments", num_experiments, 1)
+        device = check_device("device", device)
         self.num_cells = check_int("num_cells", num_cells, 1)
         self.num_actions = check_int("num_actions", num_actions, 1)
         self.num_sensors = check_int("num_sensors", num_sensors, 0, 62)
@@ -242,8 +243,22 @@ class TaskQTable(TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         experiment = experiment_index(tensordict, self.num_experiments, type(self).__name__)
         state = self.state_index(tensordict)  # [*B]
-        tensordict.set(keys.ACTION_VALUE, self.table[experiment, state])  # [*B, A]
+        try:
+            values = self.table[experiment, state]  # [*B, A]
+        except IndexError:
+            raise ValueError(self._misfit(state)) from None
+        tensordict.set(keys.ACTION_VALUE, values)
         return tensordict
+
+    def _misfit(self, state: torch.Tensor) -> str:
+        """The message for a state past the table (an env larger than ``num_cells``)."""
+        cells = int(state.max()) // ((1 << self.num_sensors) if self.with_sensors else 1)
+        cells = cells // self.num_headings + 1
+        return (
+            f"TaskQTable was built for num_cells={self.num_cells} but received cell "
+            f"{cells - 1}: the env has more cells (size**2) than the table; build "
+            f"TaskQTable(..., num_cells=size**2) of the env"
+        )
 
     @torch.no_grad()
     def reset_task(self, mask: torch.Tensor | None = None) -> None:
@@ -296,6 +311,7 @@ class LocalRewardTable(TensorDictModuleBase):
     ) -> None:
         super().__init__()
         self.num_experiments = check_int("num_experiments", num_experiments, 1)
+        device = check_device("device", device)
         if dependency is None:
             dependency = torch.eye(check_int("num_actions", num_actions, 1), dtype=torch.bool)
         dependency = check_dependency(dependency)

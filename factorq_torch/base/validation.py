@@ -51,3 +51,33 @@ def check_names(name: str, value, allowed: tuple[str, ...] | list[str]) -> tuple
     if duplicates:
         raise ValueError(f"{name}: {', '.join(duplicates)} given more than once")
     return tuple(item for item in allowed if item in names)
+
+
+def check_device(name: str, device):
+    """``device`` as a ``torch.device`` (``None`` stays ``None``), refused with one message when it
+    is no device or names an accelerator this torch cannot use (e.g. ``cuda`` on a CPU build)."""
+    if device is None:
+        return None
+    import torch  # the base layer's checks stay importable without torch for plain numbers
+
+    try:
+        device = torch.device(device)
+    except (RuntimeError, TypeError) as error:
+        raise ValueError(
+            f"{name}={device!r} is not a torch device (e.g. cpu, cuda, cuda:1): {error}"
+        ) from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            build = "a CPU-only build" if torch.version.cuda is None else "no visible GPU"
+            raise ValueError(
+                f"{name}={str(device)!r} but this torch ({torch.__version__}) has no CUDA "
+                f"device ({build}): use {name}='cpu'"
+            )
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ValueError(
+                f"{name}={str(device)!r} but only {torch.cuda.device_count()} CUDA device(s) "
+                f"are visible"
+            )
+    elif device.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"{name}={str(device)!r} but MPS is not available here: use 'cpu'")
+    return device
