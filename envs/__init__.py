@@ -15,6 +15,7 @@ _LAZY = {
     "FactoredGridEnv": "envs.grid",
     "SplitLocalReward": "envs.transforms",
     "ExperimentIndex": "envs.transforms",
+    "RenderPixels": "envs.transforms",
 }
 
 __all__ = ["WorldConfig", *_LAZY]

@@ -9,11 +9,13 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from envs.render import bumped_faces, render_rgb
 from envs.world import (
     NUM_ACTIONS,
     FactoredGrid,
@@ -303,12 +305,12 @@ class FactoredGridEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         """One action per world: ``action`` ``[*B]`` -> the ``"next"`` TensorDict."""
+        action = self._check_action(tensordict.get("action", None))  # [S]
         if not self._started:
             raise RuntimeError(
                 "FactoredGridEnv.step was called before any reset: the worlds hold no episode "
                 "yet (no obstacles, no position); call env.reset() first"
             )
-        action = self._check_action(tensordict.get("action", None))  # [S]
         old = self.world_state
         state, outcome = self.world.step(old, action, self.world_keys, self.periods)
         reward, collision = outcome.reward, outcome.collision  # [S], [S, 4]
@@ -404,6 +406,22 @@ class FactoredGridEnv(EnvBase):
         """The current obstacles, a bool copy ``[*B, size, size]`` (``[r, c]`` = row r, col c)."""
         size = self.config.size
         return self.world_state.obstacles.reshape(*self.batch_size, size, size).clone()
+
+    def render_rgb(self, index: int = 0) -> np.ndarray:
+        """World ``index`` (flat, in ``[0, S)``) as an image ``uint8 [H, W, 3]``: walls, obstacles,
+        the agent with its heading, the goal, the last collision (``envs.render``; the same
+        picture as the gymnasium env's ``rgb_array``). ``RenderPixels`` writes it as ``pixels``."""
+        if not is_int(index) or not 0 <= index < self.num_worlds:
+            raise ValueError(f"index={index!r} is out of range: must be in [0, {self.num_worlds})")
+        state, body = self.world_state, self.config.body_spec
+        heading = int(state.heading[index])
+        return render_rgb(
+            int(state.cell[index]),
+            state.obstacles[index].cpu().numpy(),
+            self.config.size,
+            heading=heading if body.has_heading else None,
+            bumped=bumped_faces(state.bump[index].tolist(), heading, body),
+        )
 
     def render(self, index: int = 0) -> str:
         """A text picture of world ``index`` (flat index in ``[0, S)``): ``#`` wall,

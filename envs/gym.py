@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
+from envs.render import bumped_faces, render_rgb
 from envs.world import (
     NUM_ACTIONS,
     FactoredGrid,
@@ -33,7 +34,10 @@ class FactoredGridGym(gymnasium.Env):
         body, sensors, num_distractors, sensor_permutation, sensor_noise, actuator_noise: the
             body and its sensors, as ``WorldConfig`` (observation ``sensors`` ``[K]``, and
             ``heading`` for a body with a heading; ``Discrete(A)`` actions).
-        render_mode: ``None`` or ``"ansi"`` (``render()`` returns the text picture).
+        render_mode: ``None``, ``"ansi"`` (``render()`` returns the text picture) or
+            ``"rgb_array"`` (``render()`` returns ``uint8 [H, W, 3]``, ``envs.render``: walls,
+            obstacles, the agent with its heading, the goal, the last collision in red; what
+            gymnasium's ``RecordVideo`` and SB3's ``make_vec_env`` ask for).
 
     Spaces (the paper's body): observation ``Dict(cell=Discrete(N), sensors=MultiBinary(4),
     proximity=MultiBinary(4), bump=MultiBinary(4))`` with ``N = size**2``; action ``Discrete(4)``
@@ -54,7 +58,7 @@ class FactoredGridGym(gymnasium.Env):
         (-2.0, -1.0, [-1.0, 0.0, 0.0, 0.0])
     """
 
-    metadata = {"render_modes": ["ansi"], "render_fps": 4}
+    metadata = {"render_modes": ["ansi", "rgb_array"], "render_fps": 4}
 
     def __init__(
         self,
@@ -179,10 +183,24 @@ class FactoredGridGym(gymnasium.Env):
         size = self.config.size
         return self.world_state.obstacles[0].reshape(size, size).numpy().copy()
 
-    def render(self) -> str | None:
-        """The text picture (``render_mode="ansi"``): ``#`` wall, ``o`` obstacle, ``A`` agent,
-        ``G`` goal."""
+    def render(self) -> str | np.ndarray | None:
+        """The text picture (``render_mode="ansi"``: ``#`` wall, ``o`` obstacle, ``A`` agent,
+        ``G`` goal) or the image (``"rgb_array"``, ``uint8 [(size + 2) 16, (size + 2) 16, 3]``)."""
+        state = self.world_state
+        if self.render_mode == "rgb_array":
+            return self.render_rgb()
         if self.render_mode != "ansi":
             return None
-        state = self.world_state
         return self.world.render(state, 0)
+
+    def render_rgb(self) -> np.ndarray:
+        """The world as an image, ``uint8 [H, W, 3]`` (``envs.render.render_rgb``)."""
+        state, body = self.world_state, self.config.body_spec
+        heading = int(state.heading[0])
+        return render_rgb(
+            int(state.cell[0]),
+            state.obstacles[0].numpy(),
+            self.config.size,
+            heading=heading if body.has_heading else None,
+            bumped=bumped_faces(state.bump[0].tolist(), heading, body),
+        )

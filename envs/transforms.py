@@ -12,9 +12,10 @@ import math
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.data import Categorical, Composite, Unbounded
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
+from envs.render import SCALE
 from factorq_torch.base import keys
 
 
@@ -119,7 +120,8 @@ class ExperimentIndex(Transform):
     Example:
         >>> from torchrl.envs import TransformedEnv
         >>> from envs.grid import FactoredGridEnv
-        >>> env = TransformedEnv(FactoredGridEnv(size=3, batch_size=(2, 2)), ExperimentIndex())
+        >>> world = FactoredGridEnv(size=3, num_obstacles=1, batch_size=(2, 2))
+        >>> env = TransformedEnv(world, ExperimentIndex())
         >>> env.reset()["experiment"]
         tensor([[0, 1],
                 [2, 3]])
@@ -149,5 +151,61 @@ class ExperimentIndex(Transform):
         shape = observation_spec.shape
         observation_spec[self.key] = Categorical(
             max(1, math.prod(shape)), shape=shape, dtype=torch.int64, device=observation_spec.device
+        )
+        return observation_spec
+
+
+class RenderPixels(Transform):
+    """Write every world's picture as ``pixels`` ``[*B, H, W, 3]`` uint8 on reset and step
+    (``FactoredGridEnv.render_rgb``: the gymnasium env's ``rgb_array`` frames), for torchrl's
+    ``VideoRecorder`` or any frame consumer. Costs a picture per world per step: for
+    evaluation and videos, not for training.
+
+    Example:
+        >>> from torchrl.envs import TransformedEnv
+        >>> from envs.grid import FactoredGridEnv
+        >>> env = TransformedEnv(FactoredGridEnv(size=3, num_obstacles=1), RenderPixels())
+        >>> env.reset()["pixels"].shape
+        torch.Size([80, 80, 3])
+    """
+
+    def __init__(self, key: str = "pixels") -> None:
+        super().__init__(in_keys=[], out_keys=[key])
+        self.key = key
+
+    def _base(self):
+        env = self.parent
+        base = getattr(env, "base_env", env)
+        if not hasattr(base, "render_rgb"):
+            raise TypeError(
+                f"RenderPixels needs an env with render_rgb(index) (FactoredGridEnv), got "
+                f"{type(base).__name__}"
+            )
+        return base
+
+    def _frames(self, tensordict: TensorDictBase) -> torch.Tensor:
+        base = self._base()
+        frames = [torch.from_numpy(base.render_rgb(i)) for i in range(base.num_worlds)]
+        stacked = torch.stack(frames).to(tensordict.device or "cpu")
+        return stacked.reshape(*tensordict.batch_size, *stacked.shape[1:])
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        next_tensordict.set(self.key, self._frames(next_tensordict))
+        return next_tensordict
+
+    def _reset(
+        self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
+    ) -> TensorDictBase:
+        return self._call(tensordict_reset)
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        base = self._base()
+        side = (base.config.size + 2) * SCALE
+        observation_spec[self.key] = Bounded(
+            low=0,
+            high=255,
+            shape=(*observation_spec.shape, side, side, 3),
+            dtype=torch.uint8,
+            device=observation_spec.device,
         )
         return observation_spec

@@ -273,3 +273,104 @@ def test_a_two_by_four_env_batch_given_to_eight_tables_names_the_batch_and_the_r
         data = indexed.rollout(5, actor, break_when_any_done=False)  # [2, 4, T]
     learn(loss, data)
     assert int(local.kappa.sum()) == 8 * 5
+
+
+# -- 4. pictures ---------------------------------------------------------------------------------
+
+
+def test_gymnasium_rgb_array_frames_show_the_world_and_pass_the_env_checker():
+    import gymnasium
+    from gymnasium.utils.env_checker import check_env
+
+    import envs  # noqa: F401  (registers FactoredGrid-v0)
+
+    env = gymnasium.make("FactoredGrid-v0", size=4, num_obstacles=3, render_mode="rgb_array")
+    check_env(env.unwrapped)
+    env.reset(seed=0)
+    frame = env.render()
+    assert frame.shape == (96, 96, 3) and frame.dtype == "uint8"
+    env.step(0)  # north from the start: into the wall, a red bar on the north face
+    bumped = env.render()
+    assert (bumped[16:18, 16:32] == (220, 40, 40)).all()
+    vector = gymnasium.make_vec("FactoredGrid-v0", num_envs=2, size=4, num_obstacles=3)
+    assert vector.reset(seed=0)[0]["cell"].tolist() == [0, 0]
+    vector.close()
+
+
+def test_gymnasium_record_video_writes_a_clip(tmp_path):
+    pytest.importorskip("moviepy", reason="gymnasium's RecordVideo writes with moviepy")
+    import gymnasium
+    from gymnasium.wrappers import RecordVideo
+
+    import envs  # noqa: F401
+
+    env = gymnasium.make("FactoredGrid-v0", size=4, num_obstacles=3, render_mode="rgb_array")
+    env = RecordVideo(env, str(tmp_path), episode_trigger=lambda episode: True)
+    env.reset(seed=0)
+    for action in (2, 2, 2, 3, 3, 3):
+        env.step(action)
+    env.close()
+    assert list(tmp_path.glob("*.mp4"))
+
+
+def test_stable_baselines3_make_vec_env_renders_rgb_arrays():
+    pytest.importorskip("stable_baselines3", reason="stable-baselines3 is not installed")
+    from stable_baselines3.common.env_checker import check_env
+    from stable_baselines3.common.env_util import make_vec_env
+
+    import envs  # noqa: F401
+
+    vector = make_vec_env("FactoredGrid-v0", n_envs=2, env_kwargs=dict(size=4, num_obstacles=3))
+    vector.reset()
+    assert vector.render().ndim == 3  # tiled rgb frames
+    check_env(envs.gym.FactoredGridGym(size=4, num_obstacles=3, render_mode="rgb_array"))
+
+
+def test_torchrl_pixels_are_the_gymnasium_frames():
+    import gymnasium
+
+    import envs  # noqa: F401
+    from envs import RenderPixels
+
+    torchrl_env = TransformedEnv(FactoredGridEnv(size=4, num_obstacles=3, seed=0), RenderPixels())
+    gym_env = gymnasium.make("FactoredGrid-v0", size=4, num_obstacles=3, render_mode="rgb_array")
+    td = torchrl_env.reset()
+    gym_env.reset(seed=0)
+    for action in (0, 2, 3, 3):
+        assert torch.equal(td["pixels"], torch.from_numpy(gym_env.render()))
+        td["action"] = torch.tensor(action)
+        td = torchrl_env.step(td)["next"]
+        gym_env.step(action)
+    check_env_specs(torchrl_env)
+
+
+def test_the_video_example_writes_a_gif_of_greedy_frames(tmp_path):
+    record = runpy.run_path(str(ROOT / "examples" / "video.py"))["record"]
+    path = tmp_path / "clip.gif"
+    frames = record(str(path), size=4, num_obstacles=2, episodes=3, max_frames=4)
+    from PIL import Image
+
+    with Image.open(path) as clip:
+        assert clip.n_frames == frames and 2 <= frames <= 5
+        assert clip.size == (2 * 6 * 16, 2 * 6 * 16)
+
+
+# -- 5. imports and packaging --------------------------------------------------------------------
+
+
+def test_the_package_exports_a_flat_public_api_loaded_on_first_use():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, factorq_torch.base.rng\n"
+        "assert 'torchrl' not in sys.modules, 'the base layer pulled in torchrl'\n"
+        "import factorq_torch\n"
+        "from factorq_torch import FactorQLoss, TaskQTable, LocalRewardTable, FactorQPolicy\n"
+        "from factorq_torch import OnlineCollector, EpsilonGreedyPolicy, TabularQLoss, keys\n"
+        "assert all(hasattr(factorq_torch, name) for name in factorq_torch.__all__)\n"
+        "assert 'envs' not in sys.modules, 'the agent imported the worlds'\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT, timeout=120)
+    for package in ("factorq_torch", "envs", "trainers"):
+        assert (ROOT / package / "py.typed").exists()
