@@ -43,7 +43,8 @@ class FactoredGridGym(gymnasium.Env):
     proximity=MultiBinary(4), bump=MultiBinary(4))`` with ``N = size**2``; action ``Discrete(4)``
     (0 north, 1 west, 2 south, 3 east). The reward is
     the conventional step + goal + sum(collision); ``info`` holds ``"local_reward"`` (float32
-    ``[4]``, the collision vector) and ``"task_reward"`` (step + goal). Episodes end inside the
+    ``[4]``, the collision vector) and ``"task_reward"`` (step + goal, a float32 scalar, so that
+    torchrl's ``GymEnv(..., info_dict_reader)`` can read both). Episodes end inside the
     env: ``terminated`` at the goal, ``truncated`` after ``max_steps`` actions. Never seeded,
     the world's stream starts from seed 0.
 
@@ -54,7 +55,7 @@ class FactoredGridGym(gymnasium.Env):
         >>> int(observation["cell"]), observation["proximity"].tolist()
         (0, [1, 1, 0, 0])
         >>> observation, reward, terminated, truncated, info = env.step(0)  # north: the wall
-        >>> reward, info["task_reward"], info["local_reward"].tolist()
+        >>> reward, float(info["task_reward"]), info["local_reward"].tolist()
         (-2.0, -1.0, [-1.0, 0.0, 0.0, 0.0])
     """
 
@@ -133,7 +134,12 @@ class FactoredGridGym(gymnasium.Env):
         self.world_state = self.world.reset(
             self.world_state, start_all, self.world_keys, self.periods
         )
-        return self._observation(), {}
+        # the step's info keys, zero at a reset (torchrl's info_dict_reader reads both alike)
+        info = {
+            "local_reward": np.zeros(self.config.num_actuators, dtype=np.float32),
+            "task_reward": np.float32(0.0),
+        }
+        return self._observation(), info
 
     def step(self, action) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
         if isinstance(action, np.ndarray) and action.shape == ():
@@ -155,7 +161,7 @@ class FactoredGridGym(gymnasium.Env):
         )
         info = {
             "local_reward": outcome.collision[0].numpy().copy(),  # [A] float32
-            "task_reward": float(outcome.task_reward[0]),
+            "task_reward": np.float32(outcome.task_reward[0]),  # with a dtype, for torchrl
         }
         return (
             self._observation(),

@@ -15,6 +15,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.envs import (
     Compose,
     InitTracker,
+    ParallelEnv,
     RewardSum,
     SerialEnv,
     StepCounter,
@@ -216,6 +217,13 @@ def test_serial_env_of_single_worlds_passes_check_env_specs():
     env.close()
 
 
+def test_parallel_env_of_single_worlds_passes_check_env_specs():
+    makers = [lambda seed=seed: composed(seed, None) for seed in range(2)]
+    env = ParallelEnv(2, makers, mp_start_method="fork")  # fork: no re-import of torch
+    check_env_specs(env, seed=0)
+    env.close()
+
+
 def test_split_local_reward_as_a_replay_buffer_transform_splits_sampled_transitions():
     env = FactoredGridEnv(size=3, num_obstacles=1, batch_size=(2,))
     data = env.rollout(30, break_when_any_done=False).reshape(-1)
@@ -374,3 +382,22 @@ def test_the_package_exports_a_flat_public_api_loaded_on_first_use():
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT, timeout=120)
     for package in ("factorq_torch", "envs", "trainers"):
         assert (ROOT / package / "py.typed").exists()
+
+
+def test_torchrl_gym_env_reads_the_task_and_local_rewards_from_info():
+    from torchrl.data import Unbounded
+    from torchrl.envs import GymEnv
+    from torchrl.envs.libs.gym import default_info_dict_reader
+
+    import envs  # noqa: F401
+
+    env = GymEnv("FactoredGrid-v0", size=4, num_obstacles=3)
+    spec = {
+        "task_reward": Unbounded(shape=(), dtype=torch.float32),
+        "local_reward": Unbounded(shape=(4,), dtype=torch.float32),
+    }
+    env.set_info_dict_reader(default_info_dict_reader(list(spec), spec=spec))
+    check_env_specs(env)
+    data = env.rollout(20, break_when_any_done=False)
+    conventional = data["next", "task_reward"] + data["next", "local_reward"].sum(-1)
+    assert torch.equal(conventional, data["next", "reward"].squeeze(-1))
