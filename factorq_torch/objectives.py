@@ -96,12 +96,14 @@ class _TransitionLoss(LossModule):
         """Each transition's experiment ``[*B]``, or ``None`` for the online step: a ``[S]``
         batch without ``keys.EXPERIMENT``, one transition per experiment (nothing to merge).
 
-        ``S`` is the task provider's ``num_experiments``; a provider that does not declare it
-        (a network, ``[..., S]`` inputs) gets its batch as it is.
+        ``S`` is the task provider's ``num_experiments``; a provider without ``state_index``
+        (a network: ``[..., S]`` inputs, the experiment last) gets its batch as it is.
         """
         count = getattr(self._task_provider, "num_experiments", None)
         batch = tuple(tensordict.batch_size)
-        if count is None or (batch == (count,) and names.EXPERIMENT not in tensordict.keys()):
+        if count is None or not hasattr(self._task_provider, "state_index"):
+            return None
+        if batch == (count,) and names.EXPERIMENT not in tensordict.keys():
             return None
         return experiment_index(tensordict, count, type(self).__name__)
 
