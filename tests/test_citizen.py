@@ -96,6 +96,19 @@ def test_an_s_by_t_rollout_needs_no_experiment_key_and_equals_its_flattened_form
     assert int(local.kappa.sum()) == S * 20
 
 
+def test_the_online_collector_gives_the_same_numbers_with_experiment_keys():
+    results = []
+    for transforms in (SplitLocalReward(), Compose(SplitLocalReward(), ExperimentIndex())):
+        env = FactoredGridEnv(size=3, num_obstacles=2, obstacle_period=1, batch_size=(3,))
+        task, local, actor, loss = factorq(3, cells=9)
+        collector = OnlineCollector(
+            TransformedEnv(env, transforms), actor, loss, runs=2, episodes=1
+        )
+        results.append((collector.run().clone(), *tables_of(task, local)))
+    assert (results[0][0] == results[1][0]).all()
+    assert_same_tables(results[0][1:], results[1][1:])
+
+
 def test_duplicates_of_one_entry_move_it_by_the_mean_td_error_and_merge_the_running_mean():
     task, local = TaskQTable(1, num_cells=4), LocalRewardTable(1)
     with torch.no_grad():
