@@ -414,3 +414,20 @@ def test_torchrl_gym_env_reads_the_task_and_local_rewards_from_info():
     data = env.rollout(20, break_when_any_done=False)
     conventional = data["next", "task_reward"] + data["next", "local_reward"].sum(-1)
     assert torch.equal(conventional, data["next", "reward"].squeeze(-1))
+
+
+def test_torchrl_video_recorder_records_the_pixels(tmp_path):
+    from torchrl.record import VideoRecorder
+    from torchrl.record.loggers.csv import CSVLogger
+
+    from envs import RenderPixels
+
+    logger = CSVLogger("run", log_dir=str(tmp_path), video_format="pt")  # no codec needed
+    recorder = VideoRecorder(logger, tag="grid")
+    world = FactoredGridEnv(size=4, num_obstacles=3)
+    env = TransformedEnv(world, Compose(RenderPixels(), recorder))
+    env.rollout(5)
+    recorder.dump()
+    (clip,) = (tmp_path / "run" / "videos").glob("grid_*.pt")
+    video = torch.load(clip, weights_only=True)
+    assert video.dtype == torch.uint8 and video.shape[-3:] == (3, 96, 96)  # [.., T, C, H, W]
