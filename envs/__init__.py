@@ -14,6 +14,8 @@ from envs.world import WorldConfig
 _LAZY = {
     "FactoredGridEnv": "envs.grid",
     "SplitLocalReward": "envs.transforms",
+    "ExperimentIndex": "envs.transforms",
+    "RenderPixels": "envs.transforms",
 }
 
 __all__ = ["WorldConfig", *_LAZY]

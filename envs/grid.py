@@ -9,11 +9,13 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from envs.render import bumped_faces, render_rgb
 from envs.world import (
     NUM_ACTIONS,
     FactoredGrid,
@@ -24,7 +26,7 @@ from envs.world import (
 )
 from factorq_torch.base import keys
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
-from factorq_torch.base.validation import is_int
+from factorq_torch.base.validation import check_device, is_int
 
 _INTEGER_DTYPES = (torch.int8, torch.int16, torch.int32, torch.int64, torch.uint8)
 
@@ -168,11 +170,7 @@ class FactoredGridEnv(EnvBase):
         actuator_noise: float = 0.0,
     ) -> None:
         batch_size = _check_batch_size(batch_size)
-        if device is not None:
-            try:
-                device = torch.device(device)
-            except (RuntimeError, TypeError) as error:
-                raise ValueError(f"device={device!r} is not a torch device: {error}") from None
+        device = check_device("device", device)
         if not is_int(experiment_offset):
             raise TypeError(f"experiment_offset must be an int >= 0, got {experiment_offset!r}")
         if experiment_offset < 0:
@@ -207,9 +205,21 @@ class FactoredGridEnv(EnvBase):
             self.static_obstacles = torch.zeros(config.num_cells, dtype=torch.bool, device=device)
         # The world behind the envs.protocol.World interface: every rule is called through it.
         self.world = FactoredGrid(config, self.static_obstacles)
-        self.world_state = self.world.initial_state(num_worlds, device)
+        self._world_state = self.world.initial_state(num_worlds, device)
+        self._started = False  # set by the first reset (or by assigning world_state)
         self._make_specs()
         self._set_seed(seed)
+
+    @property
+    def world_state(self) -> WorldState:
+        """The worlds' state (``WorldState``, leading dim ``S``). Assigning it (a restored
+        checkpoint, the fast path) counts as a reset: the env may be stepped from it."""
+        return self._world_state
+
+    @world_state.setter
+    def world_state(self, value: WorldState) -> None:
+        self._world_state = value
+        self._started = True
 
     @property
     def dependency(self) -> torch.Tensor:
@@ -271,9 +281,9 @@ class FactoredGridEnv(EnvBase):
             seed, STREAM_WORLD, self.num_worlds, self.experiment_offset
         ).to(self.device)
         # A new seed starts its streams at the beginning, so set_seed + reset replays exactly.
-        self.world_state = self.world_state._replace(
-            scatters=torch.zeros_like(self.world_state.scatters),
-            ticks=torch.zeros_like(self.world_state.ticks),
+        self._world_state = self._world_state._replace(
+            scatters=torch.zeros_like(self._world_state.scatters),
+            ticks=torch.zeros_like(self._world_state.ticks),
         )
 
     # -- reset and step ------------------------------------------------------------------------
@@ -296,6 +306,11 @@ class FactoredGridEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         """One action per world: ``action`` ``[*B]`` -> the ``"next"`` TensorDict."""
         action = self._check_action(tensordict.get("action", None))  # [S]
+        if not self._started:
+            raise RuntimeError(
+                "FactoredGridEnv.step was called before any reset: the worlds hold no episode "
+                "yet (no obstacles, no position); call env.reset() first"
+            )
         old = self.world_state
         state, outcome = self.world.step(old, action, self.world_keys, self.periods)
         reward, collision = outcome.reward, outcome.collision  # [S], [S, 4]
@@ -378,7 +393,7 @@ class FactoredGridEnv(EnvBase):
         """Move the specs (torchrl) and the worlds' state tensors to ``device``."""
         super().to(device)
         device = self.device
-        self.world_state = WorldState(*(tensor.to(device) for tensor in self.world_state))
+        self._world_state = WorldState(*(tensor.to(device) for tensor in self._world_state))
         self.world_keys = self.world_keys.to(device)
         self.periods = self.periods.to(device)
         self.static_obstacles = self.static_obstacles.to(device)
@@ -391,6 +406,22 @@ class FactoredGridEnv(EnvBase):
         """The current obstacles, a bool copy ``[*B, size, size]`` (``[r, c]`` = row r, col c)."""
         size = self.config.size
         return self.world_state.obstacles.reshape(*self.batch_size, size, size).clone()
+
+    def render_rgb(self, index: int = 0) -> np.ndarray:
+        """World ``index`` (flat, in ``[0, S)``) as an image ``uint8 [H, W, 3]``: walls, obstacles,
+        the agent with its heading, the goal, the last collision (``envs.render``; the same
+        picture as the gymnasium env's ``rgb_array``). ``RenderPixels`` writes it as ``pixels``."""
+        if not is_int(index) or not 0 <= index < self.num_worlds:
+            raise ValueError(f"index={index!r} is out of range: must be in [0, {self.num_worlds})")
+        state, body = self.world_state, self.config.body_spec
+        heading = int(state.heading[index])
+        return render_rgb(
+            int(state.cell[index]),
+            state.obstacles[index].cpu().numpy(),
+            self.config.size,
+            heading=heading if body.has_heading else None,
+            bumped=bumped_faces(state.bump[index].tolist(), heading, body),
+        )
 
     def render(self, index: int = 0) -> str:
         """A text picture of world ``index`` (flat index in ``[0, S)``): ``#`` wall,

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
+from envs.render import bumped_faces, render_rgb
 from envs.world import (
     NUM_ACTIONS,
     FactoredGrid,
@@ -33,13 +34,17 @@ class FactoredGridGym(gymnasium.Env):
         body, sensors, num_distractors, sensor_permutation, sensor_noise, actuator_noise: the
             body and its sensors, as ``WorldConfig`` (observation ``sensors`` ``[K]``, and
             ``heading`` for a body with a heading; ``Discrete(A)`` actions).
-        render_mode: ``None`` or ``"ansi"`` (``render()`` returns the text picture).
+        render_mode: ``None``, ``"ansi"`` (``render()`` returns the text picture) or
+            ``"rgb_array"`` (``render()`` returns ``uint8 [H, W, 3]``, ``envs.render``: walls,
+            obstacles, the agent with its heading, the goal, the last collision in red; what
+            gymnasium's ``RecordVideo`` and SB3's ``make_vec_env`` ask for).
 
     Spaces (the paper's body): observation ``Dict(cell=Discrete(N), sensors=MultiBinary(4),
     proximity=MultiBinary(4), bump=MultiBinary(4))`` with ``N = size**2``; action ``Discrete(4)``
     (0 north, 1 west, 2 south, 3 east). The reward is
     the conventional step + goal + sum(collision); ``info`` holds ``"local_reward"`` (float32
-    ``[4]``, the collision vector) and ``"task_reward"`` (step + goal). Episodes end inside the
+    ``[4]``, the collision vector) and ``"task_reward"`` (step + goal, a float32 scalar, so that
+    torchrl's ``GymEnv(..., info_dict_reader)`` can read both). Episodes end inside the
     env: ``terminated`` at the goal, ``truncated`` after ``max_steps`` actions. Never seeded,
     the world's stream starts from seed 0.
 
@@ -50,11 +55,11 @@ class FactoredGridGym(gymnasium.Env):
         >>> int(observation["cell"]), observation["proximity"].tolist()
         (0, [1, 1, 0, 0])
         >>> observation, reward, terminated, truncated, info = env.step(0)  # north: the wall
-        >>> reward, info["task_reward"], info["local_reward"].tolist()
+        >>> reward, float(info["task_reward"]), info["local_reward"].tolist()
         (-2.0, -1.0, [-1.0, 0.0, 0.0, 0.0])
     """
 
-    metadata = {"render_modes": ["ansi"], "render_fps": 4}
+    metadata = {"render_modes": ["ansi", "rgb_array"], "render_fps": 4}
 
     def __init__(
         self,
@@ -129,7 +134,12 @@ class FactoredGridGym(gymnasium.Env):
         self.world_state = self.world.reset(
             self.world_state, start_all, self.world_keys, self.periods
         )
-        return self._observation(), {}
+        # the step's info keys, zero at a reset (torchrl's info_dict_reader reads both alike)
+        info = {
+            "local_reward": np.zeros(self.config.num_actuators, dtype=np.float32),
+            "task_reward": np.float32(0.0),
+        }
+        return self._observation(), info
 
     def step(self, action) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
         if isinstance(action, np.ndarray) and action.shape == ():
@@ -151,7 +161,7 @@ class FactoredGridGym(gymnasium.Env):
         )
         info = {
             "local_reward": outcome.collision[0].numpy().copy(),  # [A] float32
-            "task_reward": float(outcome.task_reward[0]),
+            "task_reward": np.float32(outcome.task_reward[0]),  # with a dtype, for torchrl
         }
         return (
             self._observation(),
@@ -179,10 +189,24 @@ class FactoredGridGym(gymnasium.Env):
         size = self.config.size
         return self.world_state.obstacles[0].reshape(size, size).numpy().copy()
 
-    def render(self) -> str | None:
-        """The text picture (``render_mode="ansi"``): ``#`` wall, ``o`` obstacle, ``A`` agent,
-        ``G`` goal."""
+    def render(self) -> str | np.ndarray | None:
+        """The text picture (``render_mode="ansi"``: ``#`` wall, ``o`` obstacle, ``A`` agent,
+        ``G`` goal) or the image (``"rgb_array"``, ``uint8 [(size + 2) 16, (size + 2) 16, 3]``)."""
+        state = self.world_state
+        if self.render_mode == "rgb_array":
+            return self.render_rgb()
         if self.render_mode != "ansi":
             return None
-        state = self.world_state
         return self.world.render(state, 0)
+
+    def render_rgb(self) -> np.ndarray:
+        """The world as an image, ``uint8 [H, W, 3]`` (``envs.render.render_rgb``)."""
+        state, body = self.world_state, self.config.body_spec
+        heading = int(state.heading[0])
+        return render_rgb(
+            int(state.cell[0]),
+            state.obstacles[0].numpy(),
+            self.config.size,
+            heading=heading if body.has_heading else None,
+            bumped=bumped_faces(state.bump[0].tolist(), heading, body),
+        )

@@ -8,9 +8,15 @@ without it.
 
 from __future__ import annotations
 
+import math
+
+import torch
 from tensordict import TensorDictBase
-from torchrl.data import Composite
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.transforms import Transform
+
+from envs.render import SCALE
+from factorq_torch.base import keys
 
 
 class SplitLocalReward(Transform):
@@ -53,6 +59,12 @@ class SplitLocalReward(Transform):
         reward = next_tensordict.get(self.reward_key, None)  # [*B, 1]
         if reward is None:  # a reset carries no reward: nothing to split
             return next_tensordict
+        if self.local_reward_key in next_tensordict.keys():
+            raise ValueError(
+                f"SplitLocalReward: {self.local_reward_key!r} is already there, so the reward "
+                f"was already split (by the env's SplitLocalReward); splitting again would "
+                f"subtract the collisions twice"
+            )
         collision = next_tensordict.get(self.collision_key)  # [*B, 4]
         next_tensordict.set(self.reward_key, reward - collision.sum(dim=-1, keepdim=True))
         # A copy, so that editing one entry in place never changes the other.
@@ -60,11 +72,31 @@ class SplitLocalReward(Transform):
         return next_tensordict
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Split a TensorDict offline (e.g. in a replay buffer) holding the root-level keys."""
+        """Split transitions offline, e.g. as a replay buffer's transform
+        (``ReplayBuffer(..., transform=SplitLocalReward())``, applied to every sample): the
+        ``"next"`` entries of a transition of the plain env (or root-level keys) are split.
+        Transitions already split (``local_reward`` present) are refused with a ValueError."""
+        next_tensordict = tensordict.get("next", None)
+        if isinstance(next_tensordict, TensorDictBase):
+            if self.reward_key not in next_tensordict.keys():
+                raise KeyError(
+                    f"SplitLocalReward needs ('next', {self.reward_key!r}) and ('next', "
+                    f"{self.collision_key!r}) in the transitions; they have "
+                    f"{list(next_tensordict.keys())}"
+                )
+            self._call(next_tensordict)
+            return tensordict
+        if self.reward_key not in tensordict.keys():
+            raise KeyError(
+                f"SplitLocalReward needs {self.reward_key!r} and {self.collision_key!r} (root "
+                f"level) or a 'next' entry holding them; the tensordict has "
+                f"{list(tensordict.keys())}"
+            )
         return self._call(tensordict)
 
     def transform_output_spec(self, output_spec: Composite) -> Composite:
-        """Add ``local_reward`` to the reward specs, with the collision entry's spec."""
+        """Add ``local_reward`` to the reward specs: float32, unbounded (a sum of local rewards,
+        e.g. torchrl's ``RewardSum`` over an episode, goes below -1)."""
         output_spec = output_spec.clone()
         observation_spec = output_spec["full_observation_spec"]
         if self.collision_key not in observation_spec.keys():
@@ -72,7 +104,108 @@ class SplitLocalReward(Transform):
                 f"SplitLocalReward needs the observation {self.collision_key!r} (the collision "
                 f"vector written by FactoredGridEnv); the env has {list(observation_spec.keys())}"
             )
-        output_spec["full_reward_spec"][self.local_reward_key] = observation_spec[
-            self.collision_key
-        ].clone()
+        collision = observation_spec[self.collision_key]
+        output_spec["full_reward_spec"][self.local_reward_key] = Unbounded(
+            shape=collision.shape, dtype=collision.dtype, device=collision.device
+        )
         return super().transform_output_spec(output_spec)
+
+
+class ExperimentIndex(Transform):
+    """Write each world's experiment index ``keys.EXPERIMENT`` (``[*B]`` int64, ``0 .. S-1`` in
+    the env's flattened batch order), so transitions keep their experiment through a replay
+    buffer (``rb.extend(data.reshape(-1))``) and the tables, policies and losses can take any
+    minibatch of them.
+
+    Example:
+        >>> from torchrl.envs import TransformedEnv
+        >>> from envs.grid import FactoredGridEnv
+        >>> world = FactoredGridEnv(size=3, num_obstacles=1, batch_size=(2, 2))
+        >>> env = TransformedEnv(world, ExperimentIndex())
+        >>> env.reset()["experiment"]
+        tensor([[0, 1],
+                [2, 3]])
+    """
+
+    def __init__(self, key: str = keys.EXPERIMENT) -> None:
+        super().__init__(in_keys=[], out_keys=[key])
+        self.key = key
+
+    def _index(self, tensordict: TensorDictBase) -> torch.Tensor:
+        batch = tensordict.batch_size
+        return torch.arange(math.prod(batch), device=tensordict.device).reshape(batch)
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        next_tensordict.set(self.key, self._index(next_tensordict))
+        return next_tensordict
+
+    def _reset(
+        self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
+    ) -> TensorDictBase:
+        return self._call(tensordict_reset)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return self._call(tensordict)
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        shape = observation_spec.shape
+        observation_spec[self.key] = Categorical(
+            max(1, math.prod(shape)), shape=shape, dtype=torch.int64, device=observation_spec.device
+        )
+        return observation_spec
+
+
+class RenderPixels(Transform):
+    """Write every world's picture as ``pixels`` ``[*B, H, W, 3]`` uint8 on reset and step
+    (``FactoredGridEnv.render_rgb``: the gymnasium env's ``rgb_array`` frames), for torchrl's
+    ``VideoRecorder`` or any frame consumer. Costs a picture per world per step: for
+    evaluation and videos, not for training.
+
+    Example:
+        >>> from torchrl.envs import TransformedEnv
+        >>> from envs.grid import FactoredGridEnv
+        >>> env = TransformedEnv(FactoredGridEnv(size=3, num_obstacles=1), RenderPixels())
+        >>> env.reset()["pixels"].shape
+        torch.Size([80, 80, 3])
+    """
+
+    def __init__(self, key: str = "pixels") -> None:
+        super().__init__(in_keys=[], out_keys=[key])
+        self.key = key
+
+    def _base(self):
+        env = self.parent
+        base = getattr(env, "base_env", env)
+        if not hasattr(base, "render_rgb"):
+            raise TypeError(
+                f"RenderPixels needs an env with render_rgb(index) (FactoredGridEnv), got "
+                f"{type(base).__name__}"
+            )
+        return base
+
+    def _frames(self, tensordict: TensorDictBase) -> torch.Tensor:
+        base = self._base()
+        frames = [torch.from_numpy(base.render_rgb(i)) for i in range(base.num_worlds)]
+        stacked = torch.stack(frames).to(tensordict.device or "cpu")
+        return stacked.reshape(*tensordict.batch_size, *stacked.shape[1:])
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        next_tensordict.set(self.key, self._frames(next_tensordict))
+        return next_tensordict
+
+    def _reset(
+        self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
+    ) -> TensorDictBase:
+        return self._call(tensordict_reset)
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        base = self._base()
+        side = (base.config.size + 2) * SCALE
+        observation_spec[self.key] = Bounded(
+            low=0,
+            high=255,
+            shape=(*observation_spec.shape, side, side, 3),
+            dtype=torch.uint8,
+            device=observation_spec.device,
+        )
+        return observation_spec

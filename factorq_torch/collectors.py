@@ -44,6 +44,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule
 
+from factorq_torch.base import keys
 from factorq_torch.base.validation import check_int
 from factorq_torch.objectives import tabular_optimizer
 from factorq_torch.policy import MASK_KEY
@@ -128,6 +129,16 @@ class OnlineCollector(BaseCollector):
                         f"env has batch_size [{self.num_experiments}] but {type(module).__name__} "
                         f"holds S={held} experiments: build them with the same S"
                     )
+        cells = getattr(
+            getattr(env.observation_spec.get(keys.CELL, None), "space", None), "n", None
+        )
+        for module in (*policy.modules(), *loss.modules()):
+            held = getattr(module, "num_cells", None)
+            if cells is not None and held is not None and held != cells:
+                raise ValueError(
+                    f"{type(module).__name__} was built for num_cells={held} but the env has "
+                    f"{cells} cells: build it with num_cells={cells} (size**2 of the env)"
+                )
         self.env, self.policy, self.loss = env, policy, loss
         self.optimizer = tabular_optimizer(loss) if optimizer is None else optimizer
         self.progress = progress

@@ -205,6 +205,23 @@ def running_mean_update(
     return rho + (reward - rho) / kappa, kappa
 
 
+def running_mean_add(
+    rho: torch.Tensor, kappa: torch.Tensor, step_sum: torch.Tensor, count: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eq. 5 for ``n = count`` rewards at once (a minibatch hitting one entry ``n`` times):
+    ``kappa <- kappa + n``, ``rho <- rho + sum_i (r_i - rho) / kappa``, with
+    ``step_sum = sum_i (r_i - rho)``. The running mean of every reward seen (equal, up to
+    rounding, to ``running_mean_update`` applied ``n`` times); with ``n = 1`` it *is*
+    ``running_mean_update``, bit for bit. Where ``count == 0`` nothing changes. Shapes broadcast.
+
+    >>> running_mean_add(torch.tensor([0.0]), torch.tensor([0]), torch.tensor([-2.0]),
+    ...                  torch.tensor([4]))
+    (tensor([-0.5000]), tensor([4]))
+    """
+    kappa = kappa + count
+    return torch.where(count > 0, rho + step_sum / kappa.clamp(min=1), rho), kappa
+
+
 def greedy_action_from_bits(values: torch.Tensor, tie_bits: torch.Tensor) -> torch.Tensor:
     """``argmax_a values[..., a]``, ties broken uniformly at random by 32 random bits.
 

@@ -43,6 +43,7 @@ from tensordict import NestedKey, TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.objectives import LossModule
 
+from factorq_torch.base import keys as names
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.validation import check_finite
 from factorq_torch.functional import (
@@ -51,7 +52,7 @@ from factorq_torch.functional import (
     normaliser,
     q_learning_target,
 )
-from factorq_torch.tables import check_mask
+from factorq_torch.tables import experiment_index
 
 REDUCTIONS = ("sum", "mean")
 
@@ -81,24 +82,57 @@ class _TransitionLoss(LossModule):
             raise ValueError(f"reduction={reduction!r} is unknown: choose one of {REDUCTIONS}")
         self.gamma, self.alpha, self.reduction = float(gamma), float(alpha), reduction
 
+    @property
+    def _task_provider(self) -> TensorDictModuleBase:
+        return self.task_value_network
+
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         """No value estimator: the target is computed here, from ``functional`` (DESIGN 5)."""
 
-    def _batch(self, tensordict: TensorDictBase) -> int:
-        if tensordict.batch_dims != 1:
-            raise ValueError(
-                f"{type(self).__name__} takes one step of S experiments, batch_size [S]; got "
-                f"batch_size {list(tensordict.batch_size)}"
-            )
-        return tensordict.batch_size[0]
+    def _batch(self, tensordict: TensorDictBase) -> tuple[int, ...]:
+        """The batch ``[*B]`` of transitions (any shape; see ``_experiment``)."""
+        return tuple(tensordict.batch_size)
+
+    def _experiment(self, tensordict: TensorDictBase) -> torch.Tensor | None:
+        """Each transition's experiment ``[*B]``, or ``None`` for the online step: a ``[S]``
+        batch without ``keys.EXPERIMENT``, one transition per experiment (nothing to merge).
+
+        ``S`` is the task provider's ``num_experiments``; a provider without ``state_index``
+        (a network: ``[..., S]`` inputs, the experiment last) gets its batch as it is.
+        """
+        count = getattr(self._task_provider, "num_experiments", None)
+        batch = tuple(tensordict.batch_size)
+        if count is None or not hasattr(self._task_provider, "state_index"):
+            return None
+        if batch == (count,) and names.EXPERIMENT not in tensordict.keys():
+            return None
+        return experiment_index(tensordict, count, type(self).__name__)
+
+    def _entry_weight(
+        self, tensordict: TensorDictBase, experiment: torch.Tensor | None, action: torch.Tensor
+    ) -> torch.Tensor | None:
+        """``1 / n`` per transition, ``n`` the transitions of the batch on its table entry
+        ``(experiment, state, action)``: the minibatch update moves ``Q(s, a)`` by ``alpha`` times
+        the *mean* TD error of its transitions. ``None`` (weight 1) for the online step and for
+        providers without ``state_index`` (networks: a plain sum)."""
+        state_index = getattr(self._task_provider, "state_index", None)
+        if experiment is None or state_index is None:
+            return None
+        provider = self._task_provider
+        state = state_index(tensordict).reshape(-1)  # [M]
+        row = experiment.reshape(-1) * provider.num_states + state  # [M]
+        entry = row * provider.num_actions + action.reshape(-1)  # [M]
+        _, inverse, counts = torch.unique(entry, return_inverse=True, return_counts=True)
+        weight = 1.0 / counts[inverse].to(torch.float32)  # [M]
+        return weight.reshape(action.shape)
 
     def _read(self, tensordict: TensorDictBase, key: NestedKey, trailing: tuple) -> torch.Tensor:
-        """``tensordict[key]`` of shape ``[S, *trailing]`` (``[S, 1]`` is accepted for ``[S]``)."""
+        """``tensordict[key]`` of shape ``[*B, *trailing]`` (``[*B, 1]`` accepted for ``[*B]``)."""
         value = tensordict.get(key, None)
         name = type(self).__name__
         if value is None:
             raise KeyError(f"{name} needs {key!r} in the tensordict (see loss.in_keys)")
-        shape = (tensordict.batch_size[0], *trailing)
+        shape = (*tensordict.batch_size, *trailing)
         if not trailing and tuple(value.shape) == (*shape, 1):
             value = value.squeeze(-1)
         if tuple(value.shape) != shape:
@@ -122,20 +156,39 @@ class _TransitionLoss(LossModule):
             raise ValueError(f"{type(self).__name__}: terminated must be bool")
         return terminated
 
-    def _mask(self, tensordict: TensorDictBase, batch: int) -> torch.Tensor | None:
-        return check_mask(tensordict.get(self.tensor_keys.mask, None), batch, type(self).__name__)
+    def _mask(self, tensordict: TensorDictBase, batch: tuple) -> torch.Tensor | None:
+        """The optional mask ``[*B]`` bool (``[*B, 1]`` accepted), else None."""
+        mask = tensordict.get(self.tensor_keys.mask, None)
+        if mask is None:
+            return None
+        if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
+            raise TypeError(f"{type(self).__name__}: mask must be a bool tensor [{list(batch)}]")
+        if tuple(mask.shape) == (*batch, 1):
+            mask = mask.squeeze(-1)
+        if tuple(mask.shape) != batch:
+            raise ValueError(
+                f"{type(self).__name__}: mask has shape {list(mask.shape)}, expected "
+                f"{list(batch)} (one flag per transition)"
+            )
+        return mask
 
     @staticmethod
     def _provide(
-        provider: TensorDictModuleBase, tensordict: TensorDictBase, key: NestedKey
+        provider: TensorDictModuleBase,
+        tensordict: TensorDictBase,
+        key: NestedKey,
+        experiment: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Run a value provider on a shallow copy of its inputs (the input is not mutated); its
         values must be finite (a NaN or an infinity would spread through every target)."""
-        value = provider(tensordict.select(*provider.in_keys)).get(key)
+        inputs = tensordict.select(*provider.in_keys)
+        if experiment is not None:
+            inputs.set(names.EXPERIMENT, experiment)
+        value = provider(inputs).get(key)
         return check_finite(f"{type(provider).__name__} (read by the loss)", repr(key), value)
 
     def _reduce(self, per_experiment: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
-        """Sum (or mean) over the experiments that count."""
+        """Sum (or mean) over the transitions that count."""
         if mask is not None:
             per_experiment = torch.where(mask, per_experiment, torch.zeros_like(per_experiment))
         total = per_experiment.sum()
@@ -150,11 +203,16 @@ class _TransitionLoss(LossModule):
         action: torch.Tensor,
         target: torch.Tensor,
         mask: torch.Tensor | None,
+        weight: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``alpha * 0.5 * sum(td_error**2)`` and ``td_error = Q(s, a) - target`` ``[S]``."""
-        q_sa = q.gather(1, action.unsqueeze(1)).squeeze(1)  # [S]
+        """``alpha * 0.5 * sum(weight * td_error**2)`` and ``td_error = Q(s, a) - target``
+        ``[*B]`` (``weight``: ``_entry_weight``, None for 1)."""
+        q_sa = q.gather(-1, action.unsqueeze(-1)).squeeze(-1)  # [*B]
         td_error = q_sa - target.detach()
-        return self._reduce(self.alpha * (0.5 * td_error.pow(2)), mask), td_error
+        per_transition = self.alpha * (0.5 * td_error.pow(2))
+        if weight is not None:
+            per_transition = per_transition * weight
+        return self._reduce(per_transition, mask), td_error
 
 
 class TabularQLoss(_TransitionLoss):
@@ -217,18 +275,20 @@ class TabularQLoss(_TransitionLoss):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         # read
         keys, batch = self.tensor_keys, self._batch(tensordict)
-        q = self._provide(self.task_value_network, tensordict, keys.action_value)  # [S, A]
-        action = self._read_action(tensordict, q.shape[-1])  # [S]
-        reward = self._read(tensordict, ("next", keys.reward), ())  # [S]
-        terminated = self._read_terminated(tensordict)  # [S]
+        experiment = self._experiment(tensordict)  # [*B] (None: the online [S] step)
+        provider = self.task_value_network
+        q = self._provide(provider, tensordict, keys.action_value, experiment)  # [*B, A]
+        action = self._read_action(tensordict, q.shape[-1])  # [*B]
+        reward = self._read(tensordict, ("next", keys.reward), ())  # [*B]
+        terminated = self._read_terminated(tensordict)  # [*B]
         mask = self._mask(tensordict, batch)
+        weight = self._entry_weight(tensordict, experiment, action)
         with torch.no_grad():
-            q_next = self._provide(
-                self.task_value_network, tensordict.get("next"), keys.action_value
-            )  # [S, A]
+            next_td = tensordict.get("next")
+            q_next = self._provide(provider, next_td, keys.action_value, experiment)  # [*B, A]
         # compute: eq. 1's target and the loss whose SGD step is eq. 1's update
-        target = q_learning_target(reward, q_next, terminated, self.gamma)  # [S]
-        loss_task, td_error = self._task_loss(q, action, target, mask)
+        target = q_learning_target(reward, q_next, terminated, self.gamma)  # [*B]
+        loss_task, td_error = self._task_loss(q, action, target, mask, weight)
         # write
         return TensorDict(loss_task=loss_task, td_error=td_error.detach(), batch_size=[])
 
@@ -313,35 +373,41 @@ class FactorQLoss(_TransitionLoss):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         # read
         keys, batch = self.tensor_keys, self._batch(tensordict)
-        q = self._provide(self.task_value_network, tensordict, keys.action_value)  # [S, A]
-        rho = self._provide(self.local_value_network, tensordict, keys.local_value)  # [S, A]
+        experiment = self._experiment(tensordict)  # [*B] (None: the online [S] step)
+        task, local = self.task_value_network, self.local_value_network
+        q = self._provide(task, tensordict, keys.action_value, experiment)  # [*B, A]
+        rho = self._provide(local, tensordict, keys.local_value, experiment)  # [*B, A]
         num_actions = q.shape[-1]
-        action = self._read_action(tensordict, num_actions)  # [S]
+        action = self._read_action(tensordict, num_actions)  # [*B]
         num_sensors = getattr(self.local_value_network, "num_sensors", None)
         if num_sensors is None:  # a provider that does not declare K: take the entry's own
             num_sensors = getattr(tensordict.get(keys.sensors, None), "shape", (0,))[-1]
-        sensors = self._read(tensordict, keys.sensors, (num_sensors,))  # [S, K], before acting
-        reward = self._read(tensordict, ("next", keys.reward), ())  # [S], task reward
+        sensors = self._read(tensordict, keys.sensors, (num_sensors,))  # [*B, K], before acting
+        reward = self._read(tensordict, ("next", keys.reward), ())  # [*B], task reward
         local_reward = self._read(tensordict, ("next", keys.local_reward), (num_actions,))
-        terminated = self._read_terminated(tensordict)  # [S]
+        terminated = self._read_terminated(tensordict)  # [*B]
         mask = self._mask(tensordict, batch)
+        weight = self._entry_weight(tensordict, experiment, action)
         with torch.no_grad():
             next_td = tensordict.get("next")
-            q_next = self._provide(self.task_value_network, next_td, keys.action_value)
-            rho_next = self._provide(self.local_value_network, next_td, keys.local_value)
+            q_next = self._provide(task, next_td, keys.action_value, experiment)
+            rho_next = self._provide(local, next_td, keys.local_value, experiment)
         # compute: eq. 4's target from C(s') (eqs. 2-3 at s'), then the loss whose SGD step is
         # eq. 4's update; the local regression error on the fired actuator
-        g_next = normaliser(q_next, rho_next, eta=self.eta, g_min=self.g_min)  # [S], eq. 3
-        c_next = combined_values(q_next, rho_next, g_next)  # [S, A], eq. 2
-        target = factorq_target(reward, c_next, terminated, self.gamma)  # [S], eq. 4
-        loss_task, td_error = self._task_loss(q, action, target, mask)
-        fired = action.unsqueeze(1)
-        local_error = rho.gather(1, fired).squeeze(1) - local_reward.gather(1, fired).squeeze(1)
+        g_next = normaliser(q_next, rho_next, eta=self.eta, g_min=self.g_min)  # [*B], eq. 3
+        c_next = combined_values(q_next, rho_next, g_next)  # [*B, A], eq. 2
+        target = factorq_target(reward, c_next, terminated, self.gamma)  # [*B], eq. 4
+        loss_task, td_error = self._task_loss(q, action, target, mask, weight)
+        fired = action.unsqueeze(-1)
+        local_error = rho.gather(-1, fired).squeeze(-1) - local_reward.gather(-1, fired).squeeze(-1)
         loss_local = self._reduce(0.5 * local_error.pow(2), mask)
         # eq. 5, after the target used the local tables as they were
-        update = getattr(self.local_value_network, "update_running_mean", None)
+        update = getattr(local, "update_running_mean", None)
         if self.training and update is not None:
-            update(sensors, action, local_reward, mask)
+            if experiment is None:  # the online step: the provider's own [S] form
+                update(sensors, action, local_reward, mask)
+            else:
+                update(sensors, action, local_reward, mask, experiment=experiment)
         # write
         return TensorDict(
             loss_task=loss_task,

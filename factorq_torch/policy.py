@@ -14,6 +14,17 @@ there is no exploration schedule to step by hand; where the optional mask entry
 ``("collector", "mask")`` ``[S]`` is False the experiment is finished: it draws nothing and its
 counter stays put (its ``action`` is computed but meaningless). Keys and counters are buffers, so
 ``state_dict()`` captures the streams exactly.
+
+**Evaluation.** The policies follow torchrl's exploration switch: under
+``set_exploration_type(ExplorationType.DETERMINISTIC)`` (or ``MODE``, ``MEAN``, ``MEDIAN``) they
+act greedily, ties still broken at random by the same tie draw, and write ``exploratory`` all
+False; under ``RANDOM`` or with no type set (the default, as in torchrl's collectors) they are
+epsilon-greedy. A greedy decision consumes its counters like an exploring one.
+
+**Any batch.** A tensordict of any batch shape ``[*B]`` is taken, each entry acting for the
+experiment ``keys.EXPERIMENT`` names (absent: ``arange(S)`` over ``[S]``, 0 when ``S = 1``;
+``tables.experiment_index``). Entries of one experiment in one call take its consecutive
+decisions in flattened order.
 """
 
 from __future__ import annotations
@@ -23,15 +34,30 @@ import numbers
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from tensordict.nn.probabilistic import InteractionType, interaction_type
 
+from factorq_torch.base import keys as names
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import POLICY_DRAWS_PER_STEP, STREAM_POLICY, derive_keys, random_bits
-from factorq_torch.base.validation import check_finite
+from factorq_torch.base.validation import check_device, check_finite
 from factorq_torch.functional import combined_values, epsilon_greedy_from_bits, normaliser
-from factorq_torch.tables import check_batch, check_mask
+from factorq_torch.tables import check_mask, experiment_index
 
 #: The mask entry the collector writes: True where the experiment is still running.
 MASK_KEY = ("collector", "mask")
+#: torchrl exploration types (``set_exploration_type``) under which the policies act greedily.
+GREEDY_TYPES = (
+    InteractionType.DETERMINISTIC,
+    InteractionType.MODE,
+    InteractionType.MEAN,
+    InteractionType.MEDIAN,
+)
+
+
+def explores() -> bool:
+    """Whether the policies explore now: under torchrl's ``RANDOM`` exploration type or none set
+    (the default), not under ``DETERMINISTIC``, ``MODE``, ``MEAN`` or ``MEDIAN``."""
+    return interaction_type() not in GREEDY_TYPES
 
 
 class EpsilonGreedyPolicy(TensorDictModuleBase):
@@ -74,6 +100,7 @@ class EpsilonGreedyPolicy(TensorDictModuleBase):
         if num_experiments < 1:
             raise ValueError(f"num_experiments={num_experiments} is out of range: must be >= 1")
         AgentConfig(epsilon=epsilon)  # validates epsilon with a message naming it
+        device = check_device("device", device)
         self.num_experiments = num_experiments
         self.epsilon = float(epsilon)
         self.in_keys = [self.value_key]
@@ -112,7 +139,7 @@ class EpsilonGreedyPolicy(TensorDictModuleBase):
         self.counter.zero_()
 
     def _values(self, tensordict: TensorDictBase) -> torch.Tensor:
-        """The values the greedy choice maximises, ``[S, A]``."""
+        """The values the greedy choice maximises, ``[*B, A]``."""
         return self._read_values(tensordict, self.value_key)
 
     def _read_values(self, tensordict: TensorDictBase, key: str) -> torch.Tensor:
@@ -122,28 +149,46 @@ class EpsilonGreedyPolicy(TensorDictModuleBase):
                 f"{type(self).__name__} needs {key!r} (written by a value provider such as "
                 f"TaskQTable); the tensordict has {list(tensordict.keys())}"
             )
-        if value.dim() != 2 or value.shape[0] != self.num_experiments:
+        batch = tuple(tensordict.batch_size)
+        if value.dim() != len(batch) + 1 or tuple(value.shape[:-1]) != batch:
             raise ValueError(
                 f"{type(self).__name__}: {key!r} has shape {list(value.shape)}, expected "
-                f"[{self.num_experiments}, num_actions]"
+                f"[{', '.join(map(str, (*batch, 'num_actions')))}] (the tensordict's batch_size "
+                f"{list(batch)} and one value per action)"
             )
         if not value.is_floating_point():
             raise ValueError(f"{type(self).__name__}: {key!r} must be floating point")
         return check_finite(type(self).__name__, repr(key), value)  # a NaN would choose silently
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        check_batch(tensordict, self.num_experiments, type(self).__name__)
-        values = self._values(tensordict)  # [S, A]
-        mask = check_mask(tensordict.get(MASK_KEY, None), self.num_experiments, "policy")
+        owner = type(self).__name__
+        batch = tuple(tensordict.batch_size)
+        experiment = experiment_index(tensordict, self.num_experiments, owner)  # [*B]
+        values = self._values(tensordict)  # [*B, A]
+        epsilon = self.epsilon if explores() else 0.0
         draws = torch.arange(POLICY_DRAWS_PER_STEP, device=self.counter.device).unsqueeze(1)
-        bits = random_bits(self.stream_keys, self.counter * POLICY_DRAWS_PER_STEP + draws)  # [3, S]
+        online = batch == (self.num_experiments,) and names.EXPERIMENT not in tensordict.keys()
+        if online:  # one decision per experiment, in experiment order (the online step)
+            mask = check_mask(tensordict.get(MASK_KEY, None), self.num_experiments, "policy")
+            keys, position = self.stream_keys, self.counter  # [S]
+            advance = 1 if mask is None else mask.to(torch.int64)
+        else:  # experiment e's entries take its next decisions, in flattened order
+            mask = tensordict.get(MASK_KEY, None)
+            flat = experiment.reshape(-1)  # [M]
+            taken = torch.nn.functional.one_hot(flat, self.num_experiments)  # [M, S]
+            if mask is not None:
+                taken = taken * mask.reshape(-1, 1).to(torch.int64)
+            rank = (taken.cumsum(0) - taken).gather(1, flat.unsqueeze(1)).squeeze(1)  # [M]
+            keys, position = self.stream_keys[flat], self.counter[flat] + rank
+            advance = taken.sum(0)  # [S]
+        bits = random_bits(keys, position * POLICY_DRAWS_PER_STEP + draws)  # [3, M]
         action, exploratory = epsilon_greedy_from_bits(
-            values.detach(), self.epsilon, bits[0], bits[1], bits[2]
+            values.detach().reshape(-1, values.shape[-1]), epsilon, bits[0], bits[1], bits[2]
         )
         # The stream advances with each decision (only where the experiment is still running).
-        self.counter += 1 if mask is None else mask.to(torch.int64)
-        tensordict.set("action", action)
-        tensordict.set("exploratory", exploratory)
+        self.counter += advance
+        tensordict.set("action", action.reshape(batch))
+        tensordict.set("exploratory", exploratory.reshape(batch))
         return tensordict
 
 

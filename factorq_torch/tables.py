@@ -2,7 +2,9 @@
 
 Every table holds a leading dimension ``S``: one independent table per experiment of a batch, so
 ``S`` experiments (seeds, worlds) learn side by side in one module and nothing is shared across
-the batch. A tensordict given to a table must have ``batch_size == [S]``.
+the batch. A tensordict given to a table holds transitions of any batch shape ``[*B]``, each with
+its experiment index (``keys.EXPERIMENT``; absent: ``arange(S)`` over a ``[S]`` batch, 0 when
+``S = 1``, see ``experiment_index``).
 
 - ``TaskQTable`` writes ``action_value`` ``[S, A]``: Factor-Q's task values ``Q(s, .)`` over cells
   (x headings), or Q-learning's values over (cell (x heading), pattern of all sensors) states
@@ -29,13 +31,13 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from factorq_torch.base import keys
-from factorq_torch.base.validation import check_int
+from factorq_torch.base.validation import check_device, check_int
 from factorq_torch.functional import (
     check_dependency,
     local_patterns,
     project_local,
     qlearning_state,
-    running_mean_update,
+    running_mean_add,
 )
 
 #: The paper's body: 4 actuators and 4 sensors (the defaults; other bodies pass theirs).
@@ -65,6 +67,54 @@ def check_batch(tensordict: TensorDictBase, num_experiments: int, owner: str) ->
             f"{list(tensordict.batch_size)}: it must be [{num_experiments}] (one row per "
             f"experiment; build the env with batch_size=({num_experiments},))"
         )
+
+
+def experiment_index(tensordict: TensorDictBase, num_experiments: int, owner: str) -> torch.Tensor:
+    """The experiment of every transition, int64 ``[*B]`` for a tensordict of batch ``[*B]``.
+
+    Read from ``keys.EXPERIMENT`` when present (values in ``[0, S)``); absent, it is
+    ``arange(S)`` over a ``[S]`` batch (broadcast over the trailing dimensions of ``[S, *T]``,
+    a rollout of a ``[S]`` env) and 0 everywhere when ``S = 1``. Anything else is a ValueError
+    naming the batch and the remedy, raised here, where the transitions enter.
+    """
+    batch = tuple(tensordict.batch_size)
+    index = tensordict.get(keys.EXPERIMENT, None)
+    if index is not None:
+        return check_experiment(index, batch, num_experiments, owner)
+    if batch == (num_experiments,):
+        return torch.arange(num_experiments, device=tensordict.device)
+    if num_experiments == 1:
+        return torch.zeros(batch, dtype=torch.int64, device=tensordict.device)
+    if batch and batch[0] == num_experiments:
+        rows = torch.arange(num_experiments, device=tensordict.device)
+        return rows.view(-1, *([1] * (len(batch) - 1))).expand(batch)
+    raise ValueError(
+        f"{owner} holds S={num_experiments} experiments but the tensordict has batch_size "
+        f"{list(batch)} and no {keys.EXPERIMENT!r} entry: give each transition its experiment "
+        f"index under {keys.EXPERIMENT!r} (envs.transforms.ExperimentIndex writes it), or use "
+        f"batch_size [{num_experiments}] / [{num_experiments}, T] (build the env with "
+        f"batch_size=({num_experiments},))"
+    )
+
+
+def check_experiment(
+    index: torch.Tensor, batch: tuple, num_experiments: int, owner: str
+) -> torch.Tensor:
+    """``index`` as int64 ``batch`` with values in ``[0, S)``, else a ValueError naming it."""
+    if tuple(index.shape) == (*batch, 1):
+        index = index.squeeze(-1)
+    if tuple(index.shape) != tuple(batch) or index.is_floating_point() or index.is_complex():
+        raise ValueError(
+            f"{owner}: {keys.EXPERIMENT!r} has shape {list(index.shape)} and dtype "
+            f"{index.dtype}, expected integer experiment indices of shape {list(batch)}"
+        )
+    index = index.to(torch.int64)
+    if index.numel() and bool(((index < 0) | (index >= num_experiments)).any()):
+        raise ValueError(
+            f"{owner}: {keys.EXPERIMENT!r} holds indices outside [0, {num_experiments}): the "
+            f"module holds S={num_experiments} experiments"
+        )
+    return index
 
 
 def check_mask(mask: torch.Tensor | None, num_experiments: int, owner: str) -> torch.Tensor | None:
@@ -148,6 +198,7 @@ class TaskQTable(TensorDictModuleBase):
     ) -> None:
         super().__init__()
         self.num_experiments = check_int("num_experiments", num_experiments, 1)
+        device = check_device("device", device)
         self.num_cells = check_int("num_cells", num_cells, 1)
         self.num_actions = check_int("num_actions", num_actions, 1)
         self.num_sensors = check_int("num_sensors", num_sensors, 0, 62)
@@ -174,10 +225,9 @@ class TaskQTable(TensorDictModuleBase):
         )
 
     def state_index(self, tensordict: TensorDictBase) -> torch.Tensor:
-        """The row of each experiment's table, ``[S]`` int64 (validated)."""
+        """The row of each transition's table, ``[*B]`` int64 (validated)."""
         owner = type(self).__name__
-        batch = (self.num_experiments,)
-        check_batch(tensordict, self.num_experiments, owner)
+        batch = tuple(tensordict.batch_size)
         integers = (torch.int64, torch.int32)
         state = _check_entry(tensordict, keys.CELL, batch, integers, owner).to(torch.int64)
         if self.num_headings > 1:
@@ -191,10 +241,24 @@ class TaskQTable(TensorDictModuleBase):
         return qlearning_state(state, readings)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        state = self.state_index(tensordict)  # [S]
-        index = state.view(-1, 1, 1).expand(-1, 1, self.num_actions)  # [S, 1, A]
-        tensordict.set(keys.ACTION_VALUE, self.table.gather(1, index).squeeze(1))  # [S, A]
+        experiment = experiment_index(tensordict, self.num_experiments, type(self).__name__)
+        state = self.state_index(tensordict)  # [*B]
+        try:
+            values = self.table[experiment, state]  # [*B, A]
+        except IndexError:
+            raise ValueError(self._misfit(state)) from None
+        tensordict.set(keys.ACTION_VALUE, values)
         return tensordict
+
+    def _misfit(self, state: torch.Tensor) -> str:
+        """The message for a state past the table (an env larger than ``num_cells``)."""
+        cells = int(state.max()) // ((1 << self.num_sensors) if self.with_sensors else 1)
+        cells = cells // self.num_headings + 1
+        return (
+            f"TaskQTable was built for num_cells={self.num_cells} but received cell "
+            f"{cells - 1}: the env has more cells (size**2) than the table; build "
+            f"TaskQTable(..., num_cells=size**2) of the env"
+        )
 
     @torch.no_grad()
     def reset_task(self, mask: torch.Tensor | None = None) -> None:
@@ -247,6 +311,7 @@ class LocalRewardTable(TensorDictModuleBase):
     ) -> None:
         super().__init__()
         self.num_experiments = check_int("num_experiments", num_experiments, 1)
+        device = check_device("device", device)
         if dependency is None:
             dependency = torch.eye(check_int("num_actions", num_actions, 1), dtype=torch.bool)
         dependency = check_dependency(dependency)
@@ -267,15 +332,22 @@ class LocalRewardTable(TensorDictModuleBase):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         owner = type(self).__name__
-        check_batch(tensordict, self.num_experiments, owner)
+        experiment = experiment_index(tensordict, self.num_experiments, owner)  # [*B]
         readings = _check_entry(
             tensordict,
             self.sensors_key,
-            (self.num_experiments, self.num_sensors),
+            (*tensordict.batch_size, self.num_sensors),
             (torch.bool,),
             owner,
         )
-        local_value = project_local(self.rho, readings, self.dependency)  # [S, A]
+        if tuple(tensordict.batch_size) == (self.num_experiments,) and keys.EXPERIMENT not in (
+            tensordict.keys()
+        ):
+            local_value = project_local(self.rho, readings, self.dependency)  # [S, A]
+        else:  # rho_a[o_D(a)] of each transition's experiment (project_local, gathered)
+            pattern = local_patterns(readings, self.dependency)  # [*B, A]
+            actuators = torch.arange(self.num_actions, device=pattern.device)
+            local_value = self.rho[experiment.unsqueeze(-1), actuators, pattern]  # [*B, A]
         tensordict.set(keys.LOCAL_VALUE, local_value)
         return tensordict
 
@@ -286,40 +358,80 @@ class LocalRewardTable(TensorDictModuleBase):
         action: torch.Tensor,
         local_reward: torch.Tensor,
         mask: torch.Tensor | None = None,
+        experiment: torch.Tensor | None = None,
     ) -> None:
         """Eq. 5 for the fired actuator ``a``: ``kappa_a[o] += 1`` and ``rho_a[o]`` moves to the
         running mean of the local rewards ``r_L[a]`` seen there, ``o = o_D(a)``
         (``functional.running_mean_update``).
 
+        Any batch ``[*B]`` of transitions is taken. Where ``n`` transitions of a batch hit the
+        same entry ``(experiment, a, o)``, they are added at once:
+        ``kappa += n``, ``rho += sum_i (r_i - rho) / kappa``, which is the running mean of every
+        reward seen (equal, up to rounding, to adding them one by one). With one transition
+        per entry (``n = 1``, e.g. one step of ``S`` experiments) this is exactly eq. 5.
+
         Args:
-            readings: ``[S, K]`` bool, the sensors *before* acting (under which ``a`` fired).
-            action: ``[S]`` int64, the chosen actuator.
-            local_reward: ``[S, A]`` float, the local reward vector of the step.
-            mask: ``[S]`` bool, update only these experiments (``None``: all).
+            readings: ``[*B, K]`` bool, the sensors *before* acting (under which ``a`` fired).
+            action: ``[*B]`` int64, the chosen actuator.
+            local_reward: ``[*B, A]`` float, the local reward vector of the step.
+            mask: ``[*B]`` bool, update only these transitions (``None``: all).
+            experiment: ``[*B]`` int64, each transition's experiment (``None``: ``arange(S)``
+                over a ``[S]`` batch, 0 when ``S = 1``; see ``experiment_index``).
         """
-        batch = self.num_experiments
-        mask = check_mask(mask, batch, "LocalRewardTable.update_running_mean")
-        shapes = {"readings": (readings, (batch, self.num_sensors)), "action": (action, (batch,))}
-        shapes["local_reward"] = (local_reward, (batch, self.num_actions))
+        owner = "LocalRewardTable.update_running_mean"
+        batch = tuple(readings.shape[:-1])
+        if readings.dim() < 1 or readings.shape[-1] != self.num_sensors:
+            raise ValueError(
+                f"{owner}: readings has shape {list(readings.shape)}, expected "
+                f"[..., {self.num_sensors}]"
+            )
+        shapes = {"action": (action, batch)}
+        shapes["local_reward"] = (local_reward, (*batch, self.num_actions))
         for name, (value, shape) in shapes.items():
             if tuple(value.shape) != shape:
                 raise ValueError(
-                    f"LocalRewardTable.update_running_mean: {name} has shape "
-                    f"{list(value.shape)}, expected {list(shape)}"
+                    f"{owner}: {name} has shape {list(value.shape)}, expected {list(shape)}"
                 )
-        rows = torch.arange(batch, device=action.device)
-        patterns = local_patterns(readings, self.dependency)  # [S, A]
-        reading = patterns.gather(1, action.unsqueeze(1)).squeeze(1)  # [S], o_D(a)
-        reward = local_reward.gather(1, action.unsqueeze(1)).squeeze(1)  # [S], r_L[a]
-        rho, kappa = self.rho[rows, action, reading], self.kappa[rows, action, reading]  # [S]
-        new_rho, new_kappa = running_mean_update(rho, kappa, reward)
+        if experiment is None:
+            if batch == (self.num_experiments,):
+                experiment = torch.arange(self.num_experiments, device=action.device)
+            elif self.num_experiments == 1:
+                experiment = torch.zeros(batch, dtype=torch.int64, device=action.device)
+            else:
+                raise ValueError(
+                    f"{owner}: action has shape {list(batch)} but the table holds "
+                    f"S={self.num_experiments} experiments: pass experiment=[*B] indices"
+                )
+        else:
+            experiment = check_experiment(experiment, batch, self.num_experiments, owner)
         if mask is not None:
-            new_rho, new_kappa = (
-                torch.where(mask, new_rho, rho),
-                torch.where(mask, new_kappa, kappa),
-            )
-        self.rho[rows, action, reading] = new_rho
-        self.kappa[rows, action, reading] = new_kappa
+            if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
+                raise TypeError(f"{owner}: mask must be a bool tensor of shape {list(batch)}")
+            mask = mask.squeeze(-1) if tuple(mask.shape) == (*batch, 1) else mask
+            if tuple(mask.shape) != batch:
+                raise ValueError(
+                    f"{owner}: mask has shape {list(mask.shape)}, expected {list(batch)}"
+                )
+        action = action.reshape(-1)  # [M]
+        patterns = local_patterns(readings.reshape(-1, self.num_sensors), self.dependency)
+        reading = patterns.gather(1, action.unsqueeze(1)).squeeze(1)  # [M], o_D(a)
+        rewards = local_reward.reshape(-1, self.num_actions)
+        reward = rewards.gather(1, action.unsqueeze(1)).squeeze(1)  # [M], r_L[a]
+        entry = (experiment.reshape(-1) * self.num_actions + action) * self.rho.shape[-1]
+        entry = entry + reading  # [M], flat index into rho / kappa
+        rho_flat, kappa_flat = self.rho.view(-1), self.kappa.view(-1)
+        rho, kappa = rho_flat[entry], kappa_flat[entry]  # [M]
+        step = reward - rho  # r_L[a] - rho_a[o]
+        visits = torch.ones_like(kappa)
+        if mask is not None:
+            mask = mask.reshape(-1)
+            step, visits = torch.where(mask, step, 0.0), mask.to(torch.int64)
+        # Sums per entry (n transitions on one entry add n visits and their n steps).
+        count = torch.zeros_like(kappa_flat).index_add_(0, entry, visits)[entry]  # [M]
+        total = torch.zeros_like(rho_flat).index_add_(0, entry, step)[entry]  # [M]
+        new_rho, new_kappa = running_mean_add(rho, kappa, total, count)  # eq. 5, n at once
+        rho_flat[entry] = new_rho  # every transition of an entry writes the same value
+        kappa_flat[entry] = new_kappa
 
     @torch.no_grad()
     def reset(self, mask: torch.Tensor | None = None) -> None:

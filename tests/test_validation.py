@@ -525,7 +525,7 @@ TRIED = [
     ("FactoredGridEnv.step(action=7)", lambda _: env_step(7), ValueError, rf"action=7 {RANGE} in \[0, 3\] \(0 north, 1 west, 2 south, 3 east\)"),
     ("FactoredGridEnv.step(action=-1)", lambda _: env_step(-1), ValueError, rf"action=-1 {RANGE} in \[0, 3\]"),
     ("gymnasium.make(size=0)", lambda _: gym_make(size=0), ValueError, rf"size=0 {RANGE} >= 2"),
-    ("gymnasium.make(render_mode='human')", lambda _: gym_make(render_mode="human"), ValueError, r"render_mode='human' is not supported: must be None or one of \['ansi'\]"),
+    ("gymnasium.make(render_mode='rgb')", lambda _: gym_make(render_mode="rgb"), ValueError, r"render_mode='rgb' is not supported: must be None or one of \['ansi', 'rgb_array'\]"),
     ("gymnasium env.step(7)", lambda _: gym_step(7), ValueError, rf"action=7 {RANGE} in \[0, 3\]"),
     # factorq_torch: config, tables, policies, losses, collector, streams
     ("AgentConfig(epsilon=1.5)", lambda _: AgentConfig(epsilon=1.5), ValueError, rf"epsilon=1.5 {RANGE} in \[0.0, 1.0\]"),

@@ -31,3 +31,9 @@ EXPLORATORY = "exploratory"
 ACTION_VALUE = "action_value"
 LOCAL_VALUE = "local_value"
 COMBINED_VALUE = "combined_value"
+EXPERIMENT = "experiment"
+"""``[*B]`` int64 in ``[0, S)``: which experiment of the agent's batch a transition belongs to, so
+tables, policies and losses take transitions of any batch shape (replay minibatches, ``[S, T]``
+rollouts). Absent, it is ``arange(S)`` over a ``[S]`` batch (leading dimension ``S`` of a
+``[S, *T]`` batch) and 0 when ``S = 1`` (``factorq_torch.tables.experiment_index``); written by
+``envs.transforms.ExperimentIndex``."""

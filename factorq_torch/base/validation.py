@@ -70,14 +70,18 @@ def check_names(name: str, value, allowed: tuple[str, ...] | list[str]) -> tuple
     return tuple(item for item in allowed if item in names)
 
 
-def check_device(name: str, value):
-    """``value`` as a ``torch.device`` that exists on this machine and can hold tensors.
+def check_device(name: str, value, *, allow_meta: bool = True):
+    """``value`` as a ``torch.device`` that exists on this machine (``None`` stays ``None``).
 
     Checked by allocating an empty tensor there, so a missing CUDA, MPS or other backend (or a
-    ``cuda:N`` past the device count) is one line at config time rather than a traceback once the
-    run has begun. ``meta`` is refused: its tensors hold no data, so nothing could be computed.
+    ``cuda:N`` past the device count) is one line where it enters (a module's constructor, a
+    trainer's config) rather than a traceback once the run has begun. ``meta`` (shapes only) is
+    fine for modules, which can be traced there, and refused with ``allow_meta=False`` (a run:
+    nothing could be computed).
     """
-    import torch
+    if value is None:
+        return None
+    import torch  # the base layer's checks stay importable without torch for plain numbers
 
     try:
         device = torch.device(value)
@@ -86,6 +90,8 @@ def check_device(name: str, value):
             f"{name}={value!r} is not a torch device (e.g. cpu, cuda, cuda:1)"
         ) from None
     if device.type == "meta":
+        if allow_meta:
+            return device
         raise ValueError(
             f"{name}={value!r} holds no data (meta tensors have shapes only): use cpu or an "
             f"accelerator"
