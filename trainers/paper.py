@@ -150,9 +150,8 @@ class PaperConfig:
             kind = None  # check_device says why
         if self.backend == "fast" and kind not in (None, "cpu"):
             raise ValueError(f"device={self.device!r} is not supported by backend 'fast' (cpu)")
-        check_device(
-            "device", self.device, allow_meta=False
-        )  # exists here: refused now, not once the run began
+        # The device must exist here: refused now, not once the run began.
+        check_device("device", self.device, allow_meta=False)
         if not isinstance(self.out, str | os.PathLike) or not str(self.out):
             raise ValueError(f"out={self.out!r} must be a directory path")
         object.__setattr__(self, "out", str(self.out))
