@@ -140,10 +140,7 @@ class _Batch(ctypes.Structure):
                 "ticks",
             )
         ]
-        + [
-            (f"{name}_stride", ctypes.c_int64)
-            for name in ("q", "rho", "kappa", "grid", "obstacle")
-        ]
+        + [(f"{name}_stride", ctypes.c_int64) for name in ("q", "rho", "kappa", "grid", "obstacle")]
     )
 
 
@@ -516,9 +513,7 @@ class ExperimentBatch:
         rho, rho_stride = _padded_zeros(count, (num_actuators, table_width), torch.float32)
         kappa, kappa_stride = _padded_zeros(count, (num_actuators, table_width), torch.int64)
         grid, grid_stride = _padded_zeros(count, (width * width,), torch.uint8)
-        obstacle_pads, obstacle_stride = _padded_zeros(
-            count, (world.num_obstacles,), torch.int32
-        )
+        obstacle_pads, obstacle_stride = _padded_zeros(count, (world.num_obstacles,), torch.int32)
 
         # Every tensor the kernel reads or writes, by its fq_batch field name.
         self._tensors: dict[str, torch.Tensor] = {
