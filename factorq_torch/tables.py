@@ -29,7 +29,11 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from factorq_torch.base import keys
-from factorq_torch.base.validation import check_int
+from factorq_torch.base.validation import (  # MAX_TABLE_ENTRIES: re-exported
+    MAX_TABLE_ENTRIES,  # noqa: F401
+    check_int,
+    check_table_size,
+)
 from factorq_torch.functional import (
     check_dependency,
     local_patterns,
@@ -42,19 +46,8 @@ from factorq_torch.functional import (
 NUM_ACTIONS = 4
 #: Proximity patterns per cell of the paper's body: 4 binary sensors.
 NUM_PATTERNS = 1 << NUM_ACTIONS
-#: Values one experiment's table may hold (see the module docstring).
-MAX_TABLE_ENTRIES = 1 << 24
 #: Parent sensors one actuator's local table may be indexed by (2**16 entries).
 MAX_PARENTS = 16
-
-
-def check_table_size(owner: str, what: str, entries: int) -> None:
-    """Raise a ValueError when a table of ``entries`` values per experiment passes the cap."""
-    if entries > MAX_TABLE_ENTRIES:
-        raise ValueError(
-            f"{owner}: {what} needs {entries} values per experiment, past the cap of "
-            f"{MAX_TABLE_ENTRIES} (2**24): use fewer sensors or distractors"
-        )
 
 
 def check_batch(tensordict: TensorDictBase, num_experiments: int, owner: str) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import re
 import sys
+import threading
 import typing
 from dataclasses import fields
 from pathlib import Path
@@ -161,6 +162,8 @@ def _paper(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         _error(parser, _as_option(str(error)))
         return EXIT_USAGE
     bar = _Bar()
+    # matplotlib loads while the experiment runs (its kernel releases the GIL), not after it.
+    threading.Thread(target=report.preload_figure, name="factorq-preload", daemon=True).start()
     try:
         if resume is not None:
             print(

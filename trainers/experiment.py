@@ -27,7 +27,7 @@ import torch
 from envs.world import WORLD_PERIODS, WORLDS, WorldConfig, static_layout
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import derive_keys
-from factorq_torch.base.validation import check_int, check_names
+from factorq_torch.base.validation import check_int, check_names, check_table_size
 from trainers.options import option
 
 if TYPE_CHECKING:  # torchrl and tensordict load only on the paths that step an env
@@ -122,8 +122,6 @@ def check_world_options(
 def check_qlearning_table(world: WorldConfig) -> None:
     """Refuse a Q-learning table past ``tables.MAX_TABLE_ENTRIES``: its state is the cell (x
     heading) x the pattern of all the body's sensors."""
-    from factorq_torch.tables import check_table_size
-
     check_table_size(
         "q-learning",
         f"a Q-table of {world.num_cells} cells x {world.num_headings} headings x "

@@ -47,9 +47,8 @@ import torch
 from envs.world import NUM_ACTIONS, WorldConfig, static_layout
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
 from factorq_torch.base.rng import probability_threshold
-from factorq_torch.base.validation import check_int
+from factorq_torch.base.validation import check_int, check_table_size
 from factorq_torch.functional import parent_weights
-from factorq_torch.tables import check_table_size
 
 #: The env-only mode of the kernel (benchmarks): uniformly random actions (the policy stream's
 #: action draw), no learning, every action counted as exploratory.

@@ -8,6 +8,19 @@ from __future__ import annotations
 
 import math
 
+#: Values one experiment's table may hold (``factorq_torch.tables``, the fast path). Kept here, free
+#: of tensordict, so that the fast path and the config checks import it cheaply.
+MAX_TABLE_ENTRIES = 1 << 24
+
+
+def check_table_size(owner: str, what: str, entries: int) -> None:
+    """Raise a ValueError when a table of ``entries`` values per experiment passes the cap."""
+    if entries > MAX_TABLE_ENTRIES:
+        raise ValueError(
+            f"{owner}: {what} needs {entries} values per experiment, past the cap of "
+            f"{MAX_TABLE_ENTRIES} (2**24): use fewer sensors or distractors"
+        )
+
 
 def is_int(value) -> bool:
     """An ``int`` that is not a ``bool``."""
