@@ -140,13 +140,15 @@ def modular_throughput(
         )
         if loop == "factor-q":
             env = TransformedEnv(env, SplitLocalReward())
-            task = TaskQTable(count, world.num_cells, device=device)
+            task = TaskQTable(count, world.num_cells, device=device, sparse_grad=True)
             local = LocalRewardTable(count, device=device)
             chooser = FactorQPolicy(count, seed=0, epsilon=agent.epsilon, device=device)
             policy = TensorDictSequential(task, local, chooser)
             loss = FactorQLoss(task, local, gamma=agent.gamma, alpha=agent.alpha)
         else:
-            task = TaskQTable(count, world.num_cells, with_proximity=True, device=device)
+            task = TaskQTable(
+                count, world.num_cells, with_proximity=True, device=device, sparse_grad=True
+            )
             chooser = EpsilonGreedyPolicy(count, seed=0, epsilon=agent.epsilon, device=device)
             policy = TensorDictSequential(task, chooser)
             loss = TabularQLoss(task, gamma=agent.gamma, alpha=agent.alpha)

@@ -112,6 +112,11 @@ class TaskQTable(TensorDictModuleBase):
         num_actions: ``A`` (4 in the paper's body).
         sensors_key: where the sensors are read (``keys.SENSORS``).
         device: where the table lives.
+        sparse_grad: give ``table`` a sparse gradient (one row ``[A]`` per experiment, the
+            state it read) instead of a dense ``[S, states, A]`` one: the same update through
+            ``objectives.tabular_optimizer`` (plain SGD takes sparse gradients), bit for bit, at
+            a cost independent of the table's size (Q-learning at S = 16384: a dense gradient
+            of 100 M values per step). Optimizers without sparse support (Adam) need False.
 
     Keys: reads ``cell`` ``[S]`` int64 (``heading`` ``[S]`` int64, ``sensors`` ``[S, K]`` bool),
     writes ``action_value`` ``[S, A]`` float32.
@@ -138,8 +143,10 @@ class TaskQTable(TensorDictModuleBase):
         num_actions: int = NUM_ACTIONS,
         sensors_key: str = keys.SENSORS,
         device: torch.device | str | None = None,
+        sparse_grad: bool = False,
     ) -> None:
         super().__init__()
+        self.sparse_grad = bool(sparse_grad)
         self.num_experiments = check_int("num_experiments", num_experiments, 1)
         self.num_cells = check_int("num_cells", num_cells, 1)
         self.num_actions = check_int("num_actions", num_actions, 1)
@@ -185,8 +192,12 @@ class TaskQTable(TensorDictModuleBase):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         state = self.state_index(tensordict)  # [S]
-        index = state.view(-1, 1, 1).expand(-1, 1, self.num_actions)  # [S, 1, A]
-        tensordict.set(keys.ACTION_VALUE, self.table.gather(1, index).squeeze(1))  # [S, A]
+        if self.sparse_grad and torch.is_grad_enabled() and self.table.requires_grad:
+            values = _RowsWithSparseGrad.apply(self.table, state)
+        else:
+            index = state.view(-1, 1, 1).expand(-1, 1, self.num_actions)  # [S, 1, A]
+            values = self.table.gather(1, index).squeeze(1)
+        tensordict.set(keys.ACTION_VALUE, values)  # [S, A]
         return tensordict
 
     @torch.no_grad()
@@ -197,6 +208,33 @@ class TaskQTable(TensorDictModuleBase):
             self.table.zero_()
         else:
             self.table.masked_fill_(mask.view(-1, 1, 1), 0.0)
+
+
+class _RowsWithSparseGrad(torch.autograd.Function):
+    """``table[s, state[s]]`` ``[S, A]`` (the values of a gather) whose backward is a sparse COO
+    gradient of ``table``'s shape with the rows read: the entries a dense gradient would hold,
+    the same floats, without materialising the zeros."""
+
+    @staticmethod
+    def forward(ctx, table: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(state)
+        ctx.table_shape = table.shape
+        index = state.view(-1, 1, 1).expand(-1, 1, table.shape[2])
+        return table.gather(1, index).squeeze(1)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        (state,) = ctx.saved_tensors
+        rows = torch.arange(state.shape[0], device=state.device)
+        # One entry per experiment, rows ascending: coalesced by construction.
+        gradient = torch.sparse_coo_tensor(
+            torch.stack((rows, state)),
+            grad.contiguous(),
+            ctx.table_shape,
+            is_coalesced=True,
+            check_invariants=False,
+        )
+        return gradient, None
 
 
 class LocalRewardTable(TensorDictModuleBase):

@@ -182,6 +182,7 @@ def tabular_values(
         num_headings=world.num_headings,
         num_actions=world.num_actuators,
         device=device,
+        sparse_grad=True,  # SGD steps it; no dense [S, states, A] gradient per step
     )
     if not factorq:
         return task, None
