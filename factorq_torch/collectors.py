@@ -239,11 +239,14 @@ class OnlineCollector(BaseCollector):
         episodes_ended, runs_started, experiments_finishing = counts
         if not episodes_ended:
             return None
+        # Each experiment's slot (run, episode) in the flat [S * runs * episodes] metrics; the
+        # finished ones (run == runs) point at their last slot and write back what it holds.
         rows = torch.arange(ended.shape[0], device=ended.device)
-        slot = (rows, self.run_index.clamp(max=self.runs - 1), self.episode_index)
+        run = self.run_index.clamp(max=self.runs - 1)
+        slot = (rows * self.runs + run) * self.episodes + self.episode_index
         for name in METRICS:
-            metric = self.metrics.get(name)
-            metric[slot] = torch.where(ended, sums[name], metric[slot])
+            metric = self.metrics.get(name).view(-1)
+            metric.scatter_(0, slot, torch.where(ended, sums[name], metric.gather(0, slot)))
             sums[name] = torch.where(ended, torch.zeros_like(sums[name]), sums[name])
         self.episode_index = torch.where(run_ended, 0, episode)
         self.run_index = run_index
