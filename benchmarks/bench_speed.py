@@ -11,10 +11,17 @@
   RSS growth between two equal chunks of work (0: no per-step allocation).
 
 Worlds are the paper's default 10x10 with 10 obstacles; the batch cycles through the three worlds
-(static, semi-dynamic, dynamic), like the paper's experiment. Run from the repository root:
+(static, semi-dynamic, dynamic), like the paper's experiment (``--world dynamic``: every world
+dynamic, the README loop of issue 17's torchrl targets). The fast path's 2-thread Factor-Q and
+paper-workload figures are also given as a ratio to ``NUMBA_ANCHOR``, the throughput of an
+independent numba implementation of the same experiment measured on the project's 2-core machine
+(issue 17; numba is not a dependency, so the anchor is that figure, not a measurement of this
+run). The torchrl path runs on ``--device`` (default ``cuda`` where one is present, else ``cpu``);
+on a GPU try ``--sizes 4096 16384 65536 262144 --no-paper``. Run from the repository root:
 
     .venv/bin/python benchmarks/bench_speed.py
     .venv/bin/python benchmarks/bench_speed.py --sizes 1 1024 --seconds 0.3 --no-paper
+    .venv/bin/python benchmarks/bench_speed.py --world dynamic --loops factor-q --no-memory
 
 Timings are never asserted anywhere; not a package on purpose (the torchrl wheel installs a
 top-level ``benchmarks``).
@@ -45,11 +52,17 @@ from trainers import fast  # noqa: E402
 
 LOOPS = {"env-only": fast.RANDOM_WALK, "q-learning": "q-learning", "factor-q": "factor-q"}
 PAPER_PERIODS = (0, 10, 1)  # static, semi-dynamic, dynamic
+#: Env steps per second of an independent numba implementation of the paper workload and of
+#: Factor-Q at S = 1024 on 2 threads, on the project's 2-core machine (issue 17).
+NUMBA_ANCHOR = 60.7e6
+#: Worlds of a benchmark batch: "paper" cycles static/semi-dynamic/dynamic, "dynamic" is all 1.
+WORLD = {"periods": PAPER_PERIODS}
 
 
 def _periods(count: int, offset: int = 0) -> torch.Tensor:
-    """[S] obstacle periods cycling static, semi-dynamic, dynamic, from world ``offset``."""
-    return torch.tensor(PAPER_PERIODS).roll(-offset).repeat(count // 3 + 1)[:count]
+    """[S] obstacle periods cycling the benchmark's worlds, from world ``offset``."""
+    periods = torch.tensor(WORLD["periods"])
+    return periods.roll(-offset).repeat(count // len(periods) + 1)[:count]
 
 
 def _batch(loop: str, count: int, seed: int, threads: int, runs: int, episodes: int):
@@ -94,8 +107,11 @@ def fast_throughput(loop: str, count: int, threads: int, seconds: float) -> floa
     return steps / elapsed
 
 
-def modular_throughput(loop: str, count: int, threads: int, seconds: float) -> float | str:
-    """Env steps per second of the torchrl path (env + transform + policy + collector + loss)."""
+def modular_throughput(
+    loop: str, count: int, threads: int, seconds: float, device: str = "cpu"
+) -> float | str:
+    """Env steps per second of the torchrl path (env + transform + policy + collector + loss) on
+    ``device`` (``threads``: torch's intra-op threads, CPU only)."""
     if loop == "env-only":
         return "-"  # see benchmarks/bench_env.py
     try:
@@ -120,30 +136,41 @@ def modular_throughput(loop: str, count: int, threads: int, seconds: float) -> f
             max_steps=world.max_steps,
             batch_size=(count,),
             seed=0,
+            device=device,
         )
         if loop == "factor-q":
             env = TransformedEnv(env, SplitLocalReward())
-            task, local = TaskQTable(count, world.num_cells), LocalRewardTable(count)
-            chooser = FactorQPolicy(count, seed=0, epsilon=agent.epsilon)
+            task = TaskQTable(count, world.num_cells, device=device, sparse_grad=True)
+            local = LocalRewardTable(count, device=device)
+            chooser = FactorQPolicy(count, seed=0, epsilon=agent.epsilon, device=device)
             policy = TensorDictSequential(task, local, chooser)
             loss = FactorQLoss(task, local, gamma=agent.gamma, alpha=agent.alpha)
         else:
-            task = TaskQTable(count, world.num_cells, with_proximity=True)
-            chooser = EpsilonGreedyPolicy(count, seed=0, epsilon=agent.epsilon)
+            task = TaskQTable(
+                count, world.num_cells, with_proximity=True, device=device, sparse_grad=True
+            )
+            chooser = EpsilonGreedyPolicy(count, seed=0, epsilon=agent.epsilon, device=device)
             policy = TensorDictSequential(task, chooser)
             loss = TabularQLoss(task, gamma=agent.gamma, alpha=agent.alpha)
         collector = OnlineCollector(env, policy, loss, runs=10, episodes=200)
         for _ in range(3):  # warm-up
             collector.step()
+        _synchronize(device)
         steps, start = 0, time.perf_counter()
         while time.perf_counter() - start < seconds and not collector.done:
             collector.step()
             steps += count
+        _synchronize(device)
         return steps / (time.perf_counter() - start)
     except Exception as error:  # the modular path is optional here: report, do not fail
         return f"n/a ({type(error).__name__})"
     finally:
         torch.set_num_threads(previous)
+
+
+def _synchronize(device: str) -> None:
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def build_times() -> tuple[float, float]:
@@ -233,6 +260,16 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=0.5, help="work timed per cell")
     parser.add_argument("--no-modular", action="store_true", help="skip the torchrl path")
     parser.add_argument("--no-paper", action="store_true", help="skip the paper workload")
+    parser.add_argument("--no-memory", action="store_true", help="skip the memory table")
+    parser.add_argument("--loops", nargs="+", choices=list(LOOPS), default=list(LOOPS))
+    parser.add_argument(
+        "--world", choices=("paper", "dynamic"), default="paper", help="worlds of the batches"
+    )
+    parser.add_argument(
+        "--device",
+        default="cuda" if torch.cuda.is_available() else "cpu",
+        help="device of the torchrl path (the fast path is CPU only)",
+    )
     parser.add_argument("--memory-probe", nargs=2, metavar=("LOOP", "S"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.memory_probe:
@@ -240,36 +277,52 @@ def main() -> None:
         return
     if not fast.is_available():
         sys.exit(f"the fast path is unavailable: {fast.unavailable_reason()}")
+    if args.world == "dynamic":
+        WORLD["periods"] = (1,)
 
     compile_seconds, load_seconds = build_times()
     print(f"kernel: compiled in {compile_seconds:.2f} s, loaded from the cache in "
           f"{load_seconds * 1e3:.1f} ms (cc {' '.join(fast._FLAGS)})")  # fmt: skip
-    print(f"machine: {os.cpu_count()} CPUs, torch {torch.__version__}")
-
-    print("\nthroughput, env steps per second (10x10 worlds cycling static/semi/dynamic)")
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+    print(f"machine: {os.cpu_count()} CPUs, load average {load[0]:.2f}, torch {torch.__version__}"
+          f", torchrl path on {args.device}")  # fmt: skip
+    worlds = "cycling static/semi/dynamic" if args.world == "paper" else "all dynamic"
+    print(f"\nthroughput, env steps per second (10x10 worlds {worlds})")
     columns = [f"fast {t} thr" for t in args.threads]
+    modular_threads = args.threads if torch.device(args.device).type == "cpu" else [1]
     if not args.no_modular:
-        columns += [f"modular {t} thr" for t in args.threads]
+        columns += [f"torchrl {t} thr" for t in modular_threads]
+    if 2 in args.threads:
+        columns.append("fast 2 / numba")
     print(f"{'loop':<11}{'S':>7}" + "".join(f"{name:>16}" for name in columns))
-    for loop in LOOPS:
+    for loop in args.loops:
         for count in args.sizes:
             cells = [fast_throughput(loop, count, t, args.seconds) for t in args.threads]
             if not args.no_modular:
-                cells += [modular_throughput(loop, count, t, args.seconds) for t in args.threads]
+                cells += [
+                    modular_throughput(loop, count, t, args.seconds, args.device)
+                    for t in modular_threads
+                ]
+            if 2 in args.threads:
+                ratio = cells[args.threads.index(2)] / NUMBA_ANCHOR
+                cells.append(f"{ratio:.2f}x" if loop == "factor-q" else "-")
             print(f"{loop:<11}{count:>7}" + "".join(f"{_rate(cell):>16}" for cell in cells))
 
     if not args.no_paper:
         print("\npaper workload (100 seeds x 3 worlds x 10 runs x 200 episodes, per algorithm)")
         print(f"{'threads':>7}{'q-learning':>14}{'factor-q':>14}{'total':>10}{'env steps':>13}"
-              f"{'steps/s':>12}")  # fmt: skip
+              f"{'steps/s':>12}{'/ numba':>9}")  # fmt: skip
         for threads in args.threads:
             results = paper_workload(threads)
             seconds = sum(value[0] for value in results.values())
             steps = sum(value[1] for value in results.values())
             times = results["q-learning"][0], results["factor-q"][0]
             print(f"{threads:>7}{times[0]:>12.2f} s{times[1]:>12.2f} s{seconds:>8.2f} s"
-                  f"{steps:>13,}{steps / seconds / 1e6:>10.1f} M")  # fmt: skip
+                  f"{steps:>13,}{steps / seconds / 1e6:>10.1f} M"
+                  f"{steps / seconds / NUMBA_ANCHOR:>8.2f}x")  # fmt: skip
 
+    if args.no_memory:
+        return
     count = max(args.sizes)
     print(f"\nmemory at S={count} (fresh process per loop, 2 threads)")
     print(f"{'loop':<11}{'import RSS':>12}{'peak RSS':>12}{'batch state':>13}{'RSS growth':>12}")

@@ -349,8 +349,13 @@ class FactoredGridEnv(EnvBase):
             )
         action = action.reshape(self.num_worlds).to(torch.int64)
         count = self.config.num_actuators
-        if bool(((action < 0) | (action >= count)).any()):
-            bad = action[(action < 0) | (action >= count)][0].item()
+        out_of_range = (action < 0) | (action >= count)
+        if action.device.type != "cpu":  # checked on the device: the step never waits for it
+            message = f"action out of range: must be in [0, {count})"
+            torch._assert_async(~out_of_range.any(), message)
+            return action
+        if bool(out_of_range.any()):
+            bad = action[out_of_range][0].item()
             names = ", ".join(f"{i} {name}" for i, name in enumerate(self.config.actuator_names))
             raise ValueError(f"action={bad} is out of range: must be in [0, {count - 1}] ({names})")
         return action

@@ -370,17 +370,26 @@ def scatter_obstacles(
         torch.maximum(agent_key, torch.full_like(agent_key, goal)),
     )
     allowed = num_cells - 2 - agent_free.to(torch.int64)  # [S], M
-    # All K draws at once (counter scatter_index * K + k); only the cheap Floyd steps loop.
-    draws = torch.arange(num_obstacles, device=device)
-    bits = random_bits(key.unsqueeze(1), scatter_index.unsqueeze(1) * num_obstacles + draws)
-    taken = torch.zeros(batch, num_cells, dtype=torch.bool, device=device)
-    picks = torch.empty(batch, num_obstacles, dtype=torch.int64, device=device)
-    for k in range(num_obstacles):
-        j = allowed - num_obstacles + k  # [S]
-        t = randint_from_bits(bits[:, k], j + 1)  # [S], in [0, j]
-        pick = torch.where(taken.gather(1, t.unsqueeze(1)).squeeze(1), j, t)  # [S], in [0, M)
-        taken.scatter_(1, pick.unsqueeze(1), True)  # a local buffer, not an input
-        picks[:, k] = pick
+    # All K draws at once (counter scatter_index * K + k), and Floyd's K steps without a loop over
+    # them (a handful of ops on [S, K] tensors, no data-dependent branch or shape). Step k draws
+    # t_k in [0, j_k], j_k = M - K + k, and takes j_k when t_k was taken before ("collides"),
+    # else t_k. t_k was taken iff it equals an earlier t_i (an earlier collision took t_i too),
+    # or it equals j_i for the one i = t_k - (M - K) < k and step i collided (j_k exceeds every
+    # earlier pick, so only these can match). The second case chains through i < k: resolved by
+    # pointer jumping, ceil(log2 K) rounds.
+    steps = torch.arange(num_obstacles, device=device)
+    base = (allowed - num_obstacles).unsqueeze(1)  # [S, 1]
+    j = base + steps  # [S, K]
+    bits = random_bits(key.unsqueeze(1), scatter_index.unsqueeze(1) * num_obstacles + steps)
+    t = randint_from_bits(bits, j + 1)  # [S, K], t_k in [0, j_k]
+    earlier = steps.unsqueeze(1) > steps  # [K, K]: [k, i] = i < k
+    collided = ((t.unsqueeze(2) == t.unsqueeze(1)) & earlier).any(dim=2)  # [S, K]
+    link = t - base  # the i with j_i = t_k, where 0 <= i < k; else k itself (a fixed point)
+    link = torch.where((link >= 0) & (link < steps), link, steps)
+    for _ in range(max(num_obstacles - 1, 0).bit_length()):
+        collided = collided | collided.gather(1, link)
+        link = link.gather(1, link)
+    picks = torch.where(collided, j, t)  # [S, K], distinct positions in [0, M)
     cells = picks  # [S, K]: positions among the allowed cells -> cells
     for excluded_cell in excluded:  # ascending: skip each excluded cell at or below
         cells = cells + (cells >= excluded_cell.unsqueeze(1)).to(torch.int64)
@@ -398,15 +407,12 @@ def _scatter_where(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """New obstacles and stream positions after scattering the worlds where ``mask`` is True.
 
-    Only those rows are drawn (a semi-dynamic batch scatters a tenth of its worlds per step).
+    Every world is drawn and the masked ones kept (``torch.where``): no host synchronisation and
+    no data-dependent shape, so a step runs the same ops whatever the mask (CUDA graphs,
+    ``torch.compile``). Counter-based streams make the unused draws free of side effects.
     """
-    rows = mask.nonzero().squeeze(1)
-    if rows.numel() == 0:
-        return obstacles, scatters
-    fresh = scatter_obstacles(
-        key[rows], scatters[rows], agent_cell[rows], config.size, config.num_obstacles
-    )
-    return obstacles.index_put((rows,), fresh), scatters.index_put((rows,), scatters[rows] + 1)
+    fresh = scatter_obstacles(key, scatters, agent_cell, config.size, config.num_obstacles)
+    return torch.where(mask.unsqueeze(1), fresh, obstacles), scatters + mask.to(torch.int64)
 
 
 def is_reachable(obstacles: torch.Tensor, size: int) -> bool:
@@ -617,11 +623,19 @@ class FactoredGrid:
     def reset(
         self, state: WorldState, mask: torch.Tensor, key: torch.Tensor, period: torch.Tensor
     ) -> WorldState:
-        if self._static is None and not bool((period == 0).any()):
+        if self._static is None and not self._has_static_world(period):
             static = torch.zeros_like(state.obstacles[0])  # no static world: no layout to draw
         else:
             static = self.static_obstacles.to(state.cell.device)
         return reset_worlds(state, mask, key, period, static, self.config)
+
+    def _has_static_world(self, period: torch.Tensor) -> bool:
+        """Whether ``period`` holds a static world: read once per ``period`` tensor (a host
+        synchronisation on a GPU), not at every reset."""
+        if getattr(self, "_period_checked", None) is not period:
+            self._period_checked = period
+            self._period_has_static = bool((period == 0).any())
+        return self._period_has_static
 
     def step(
         self, state: WorldState, action: torch.Tensor, key: torch.Tensor, period: torch.Tensor

@@ -161,6 +161,7 @@ class OnlineCollector(BaseCollector):
         self._episode["task_return"] = torch.zeros(batch, device=device)
         self.finished = torch.zeros(batch, dtype=torch.bool, device=device)
         self._any_finished = False
+        self._finished_count = 0  # = int(self.finished.sum()), kept on the host
         self._td: TensorDictBase | None = None
         self._frames = 0
         self._iter = -1
@@ -168,7 +169,7 @@ class OnlineCollector(BaseCollector):
     @property
     def done(self) -> bool:
         """Whether every experiment has finished its ``runs x episodes`` episodes."""
-        return bool(self.finished.all())
+        return self._finished_count == self.num_experiments
 
     def iterator(self) -> Iterator[TensorDictBase]:
         """Yield the transition TensorDict ``[S]`` of every step until all experiments finish."""
@@ -186,6 +187,7 @@ class OnlineCollector(BaseCollector):
         if self.done:
             raise RuntimeError("every experiment has finished: build a new collector to go on")
         active = ~self.finished  # [S]
+        finished_before = self._finished_count
         with torch.no_grad():
             td = self.env.reset() if self._td is None else self._td
             td.set(MASK_KEY, active)
@@ -202,7 +204,7 @@ class OnlineCollector(BaseCollector):
                 next_td.set("_reset", restart.unsqueeze(-1))
                 next_td = self.env.reset(next_td)
         self._td = next_td
-        self._frames += int(active.sum()) if self._any_finished else self.num_experiments
+        self._frames += self.num_experiments - finished_before
         self._iter += 1
         if self.post_collect_hook is not None:
             self.post_collect_hook(td)
@@ -237,28 +239,38 @@ class OnlineCollector(BaseCollector):
         sums["greedy_collisions"] = sums["greedy_collisions"] + greedy.to(torch.int64)
         sums["task_return"] = sums["task_return"] + torch.where(active, reward, 0.0)
         ended = next_td.get("done").squeeze(-1) & active  # [S]
-        if not bool(ended.any()):
-            return None
-        rows = ended.nonzero().squeeze(1)
-        runs, episodes = self.run_index[rows], self.episode_index[rows]
-        for name in METRICS:
-            self.metrics.get(name)[rows, runs, episodes] = sums[name][rows]
-            sums[name] = torch.where(ended, torch.zeros_like(sums[name]), sums[name])
+        # Everything below is computed for every experiment and selected with torch.where, and
+        # the host reads one small tensor of counts per step (a GPU waits once, not five times).
         episode = self.episode_index + ended.to(torch.int64)
         run_ended = episode == self.episodes  # only experiments that just ended an episode
-        self.episode_index = torch.where(run_ended, 0, episode)
-        self.run_index = self.run_index + run_ended.to(torch.int64)
-        finishing = run_ended & (self.run_index == self.runs)
+        run_index = self.run_index + run_ended.to(torch.int64)
+        finishing = run_ended & (run_index == self.runs)
         next_run = run_ended & ~finishing
-        if self._reset_task is not None and bool(next_run.any()):
+        counts = torch.stack((ended.sum(), next_run.sum(), finishing.sum())).tolist()
+        episodes_ended, runs_started, experiments_finishing = counts
+        if not episodes_ended:
+            return None
+        # Each experiment's slot (run, episode) in the flat [S * runs * episodes] metrics; the
+        # finished ones (run == runs) point at their last slot and write back what it holds.
+        rows = torch.arange(ended.shape[0], device=ended.device)
+        run = self.run_index.clamp(max=self.runs - 1)
+        slot = (rows * self.runs + run) * self.episodes + self.episode_index
+        for name in METRICS:
+            metric = self.metrics.get(name).view(-1)
+            metric.scatter_(0, slot, torch.where(ended, sums[name], metric.gather(0, slot)))
+            sums[name] = torch.where(ended, torch.zeros_like(sums[name]), sums[name])
+        self.episode_index = torch.where(run_ended, 0, episode)
+        self.run_index = run_index
+        if self._reset_task is not None and runs_started:
             self._reset_task(next_run)  # SPEC 4: task table to 0 at every run, local tables kept
-        if bool(finishing.any()):
+        if experiments_finishing:
             self.finished = self.finished | finishing
             self._any_finished = True
+            self._finished_count += experiments_finishing
         if self.progress is not None:
-            self.progress(int(rows.numel()), int(finishing.sum()))
+            self.progress(episodes_ended, experiments_finishing)
         restart = ended & ~self.finished
-        return restart if bool(restart.any()) else None
+        return None if episodes_ended == experiments_finishing else restart
 
     # -- BaseCollector's interface -------------------------------------------------------------
 
@@ -305,7 +317,8 @@ class OnlineCollector(BaseCollector):
         self.episode_index = state_dict["episode_index"].clone()
         self._episode = {name: value.clone() for name, value in state_dict["episode_sums"].items()}
         self.finished = state_dict["finished"].clone()
-        self._any_finished = bool(self.finished.any())
+        self._finished_count = int(self.finished.sum())
+        self._any_finished = self._finished_count > 0
         observation = state_dict.get("observation")
         self._td = (
             None

@@ -31,7 +31,12 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from factorq_torch.base import keys
-from factorq_torch.base.validation import check_device, check_int
+from factorq_torch.base.validation import (  # MAX_TABLE_ENTRIES: re-exported
+    MAX_TABLE_ENTRIES,  # noqa: F401
+    check_device,
+    check_int,
+    check_table_size,
+)
 from factorq_torch.functional import (
     check_dependency,
     local_patterns,
@@ -44,19 +49,8 @@ from factorq_torch.functional import (
 NUM_ACTIONS = 4
 #: Proximity patterns per cell of the paper's body: 4 binary sensors.
 NUM_PATTERNS = 1 << NUM_ACTIONS
-#: Values one experiment's table may hold (see the module docstring).
-MAX_TABLE_ENTRIES = 1 << 24
 #: Parent sensors one actuator's local table may be indexed by (2**16 entries).
 MAX_PARENTS = 16
-
-
-def check_table_size(owner: str, what: str, entries: int) -> None:
-    """Raise a ValueError when a table of ``entries`` values per experiment passes the cap."""
-    if entries > MAX_TABLE_ENTRIES:
-        raise ValueError(
-            f"{owner}: {what} needs {entries} values per experiment, past the cap of "
-            f"{MAX_TABLE_ENTRIES} (2**24): use fewer sensors or distractors"
-        )
 
 
 def check_batch(tensordict: TensorDictBase, num_experiments: int, owner: str) -> None:
@@ -169,6 +163,11 @@ class TaskQTable(TensorDictModuleBase):
         num_actions: ``A`` (4 in the paper's body).
         sensors_key: where the sensors are read (``keys.SENSORS``).
         device: where the table lives.
+        sparse_grad: give ``table`` a sparse gradient (one row ``[A]`` per experiment, the
+            state it read) instead of a dense ``[S, states, A]`` one: the same update through
+            ``objectives.tabular_optimizer`` (plain SGD takes sparse gradients), bit for bit, at
+            a cost independent of the table's size (Q-learning at S = 16384: a dense gradient
+            of 100 M values per step). Optimizers without sparse support (Adam) need False.
 
     Keys: reads ``cell`` ``[S]`` int64 (``heading`` ``[S]`` int64, ``sensors`` ``[S, K]`` bool),
     writes ``action_value`` ``[S, A]`` float32.
@@ -195,8 +194,10 @@ class TaskQTable(TensorDictModuleBase):
         num_actions: int = NUM_ACTIONS,
         sensors_key: str = keys.SENSORS,
         device: torch.device | str | None = None,
+        sparse_grad: bool = False,
     ) -> None:
         super().__init__()
+        self.sparse_grad = bool(sparse_grad)
         self.num_experiments = check_int("num_experiments", num_experiments, 1)
         device = check_device("device", device)
         self.num_cells = check_int("num_cells", num_cells, 1)
@@ -244,7 +245,10 @@ class TaskQTable(TensorDictModuleBase):
         experiment = experiment_index(tensordict, self.num_experiments, type(self).__name__)
         state = self.state_index(tensordict)  # [*B]
         try:
-            values = self.table[experiment, state]  # [*B, A]
+            if self.sparse_grad and torch.is_grad_enabled() and self.table.requires_grad:
+                values = _RowsWithSparseGrad.apply(self.table, experiment, state)  # [*B, A]
+            else:
+                values = self.table[experiment, state]  # [*B, A]
         except IndexError:
             raise ValueError(self._misfit(state)) from None
         tensordict.set(keys.ACTION_VALUE, values)
@@ -268,6 +272,27 @@ class TaskQTable(TensorDictModuleBase):
             self.table.zero_()
         else:
             self.table.masked_fill_(mask.view(-1, 1, 1), 0.0)
+
+
+class _RowsWithSparseGrad(torch.autograd.Function):
+    """``table[experiment, state]`` ``[*B, A]`` whose backward is a sparse COO gradient of
+    ``table``'s shape holding the rows read: the entries a dense gradient would hold (duplicates
+    summed), the same floats, without materialising the zeros."""
+
+    @staticmethod
+    def forward(ctx, table: torch.Tensor, experiment: torch.Tensor, state: torch.Tensor):
+        ctx.save_for_backward(experiment, state)
+        ctx.table_shape = table.shape
+        return table[experiment, state]
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        experiment, state = ctx.saved_tensors
+        indices = torch.stack((experiment.reshape(-1), state.reshape(-1)))  # [2, M]
+        gradient = torch.sparse_coo_tensor(
+            indices, grad.reshape(-1, grad.shape[-1]).contiguous(), ctx.table_shape
+        ).coalesce()  # the online step reads one row per experiment: nothing to sum
+        return gradient, None, None
 
 
 class LocalRewardTable(TensorDictModuleBase):

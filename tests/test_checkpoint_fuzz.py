@@ -304,6 +304,6 @@ def test_the_kernel_refuses_a_state_out_of_range_whatever_its_source(field, valu
         threads=threads,
     )
     batch.advance(7)
-    batch._tensors[field].view(-1)[-1] = value  # the last experiment's (or its last entry)
+    batch._tensors[field][-1].view(-1)[-1] = value  # the last experiment's (or its last entry)
     with pytest.raises(ValueError, match=rf"the fast kernel refused experiment 2: its {field} is"):
         batch.advance(1_000)

@@ -220,3 +220,47 @@ def test_factorq_avoids_collisions_far_better_than_qlearning_and_both_learn_the_
         steps = metrics["steps"][:, 0].float()  # [seeds, episodes]
         # measured: first five ~220 steps, last five ~90-105
         assert steps[:, -5:].mean() < 0.75 * steps[:, :5].mean(), (name, steps.mean(0))
+
+
+HOST_READS = ("item", "__bool__", "nonzero", "tolist", "__int__", "__float__", "__index__")
+
+
+@pytest.mark.parametrize("algorithm", ["factor-q", "q-learning"])
+def test_no_host_synchronisation_creeps_into_the_step(algorithm, monkeypatch):
+    # Every read of a tensor's value on the host (a device-to-host sync on a GPU) made by our own
+    # code while the loop runs is recorded by its function. Allowed: the collector's one read of
+    # its counts per step, and the CPU-only exact action check and finite-value checks of the
+    # policy and the loss (on a GPU: device-side asserts, no host read).
+    # torchrl's own env machinery is not ours to change and is not counted.
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    ours = tuple(str(root / folder) for folder in ("envs", "factorq_torch"))
+    reads: dict[str, int] = {}
+    collector, _, _ = small(algorithm, periods=(0, 10, 1, 1), runs=2, episodes=3)
+    collector.step()  # the first reset and the static layout are set-up, not the step
+
+    def recording(name):
+        original = getattr(torch.Tensor, name)
+
+        def read(self, *args, **kwargs):
+            caller = sys._getframe(1).f_code
+            if caller.co_filename.startswith(ours):
+                where = f"{Path(caller.co_filename).name}:{caller.co_name}"
+                reads[where] = reads.get(where, 0) + 1
+            return original(self, *args, **kwargs)
+
+        return read
+
+    for name in HOST_READS:
+        monkeypatch.setattr(torch.Tensor, name, recording(name))
+    steps = 0
+    while not collector.done:
+        collector.step()
+        steps += 1
+    monkeypatch.undo()
+    assert reads.pop("collectors.py:_record") == steps
+    assert reads.pop("grid.py:_check_action", 0) <= steps
+    assert reads.pop("validation.py:check_finite", 0) <= 6 * steps  # policy; loss at s and s'
+    assert reads == {}

@@ -216,3 +216,18 @@ def test_modular_torchrl_backend_gives_the_same_results_as_the_fast_path(tiny_re
         results.pop("timing")
     first["config"] = second["config"] = None  # the backend field differs in the config only
     assert dumps_results(first) == dumps_results(second)
+
+
+def test_without_a_compiler_auto_says_why_once_and_records_what_ran(monkeypatch, capsys):
+    # No compiler: auto runs the modular path, says so once at the start (why, how long, how to
+    # get the fast path) and results.json records the backend and the threads actually used.
+    monkeypatch.setattr(fast, "_load", lambda: None)
+    monkeypatch.setattr(fast, "_reason", "no C compiler found (test)")
+    results = paper.run(PaperConfig(**{**TINY, "worlds": ("static",), "threads": None}))
+    err = capsys.readouterr().err
+    assert err.count("the compiled fast path is unavailable (no C compiler found (test))") == 1
+    assert "roughly" in err and "FACTORQ_CC" in err
+    timing = results["timing"]
+    assert timing["backend"] == "modular" and timing["threads"] == 1
+    assert timing["fast_unavailable"] == "no C compiler found (test)"
+    check_results(results)

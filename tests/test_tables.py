@@ -40,6 +40,36 @@ def test_task_table_gradient_reaches_only_the_visited_entries():
     assert torch.equal(table.table.grad, expected)
 
 
+def test_sparse_grad_table_holds_the_same_gradient_and_sgd_step_bit_for_bit():
+    # sparse_grad=True: no dense [S, states, A] gradient; the same entries, the same update.
+    generator = torch.Generator().manual_seed(0)
+    count, cells = 64, 25
+    start = torch.randn(count, cells * 16, 4, generator=generator)
+    tables = []
+    for sparse in (False, True):
+        table = TaskQTable(count, num_cells=cells, with_sensors=True, sparse_grad=sparse)
+        with torch.no_grad():
+            table.table.copy_(start)
+        tables.append(table)
+    optimizers = [torch.optim.SGD(table.parameters(), lr=1.0) for table in tables]
+    for _ in range(5):
+        cell = torch.randint(0, cells, (count,), generator=generator)
+        sensors = torch.randint(0, 2, (count, 4), generator=generator).bool()
+        action = torch.randint(0, 4, (count,), generator=generator)
+        target = torch.randn(count, generator=generator)
+        gradients = []
+        for table, optimizer in zip(tables, optimizers, strict=True):
+            td = TensorDict(cell=cell, sensors=sensors, batch_size=[count])
+            q_sa = table(td)["action_value"].gather(1, action.unsqueeze(1)).squeeze(1)
+            (0.2 * (0.5 * (q_sa - target).pow(2))).sum().backward()
+            gradients.append(table.table.grad)
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+        assert gradients[1].is_sparse and not gradients[0].is_sparse
+        assert torch.equal(gradients[1].to_dense(), gradients[0])
+    assert torch.equal(tables[0].table, tables[1].table)
+
+
 def test_reset_task_zeroes_only_the_masked_experiments():
     table = TaskQTable(3, num_cells=2)
     with torch.no_grad():

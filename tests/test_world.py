@@ -21,7 +21,7 @@ from envs.world import (
     static_layout,
     step_worlds,
 )
-from factorq_torch.base.rng import MASK64, STREAM_LAYOUT, STREAM_WORLD, derive_keys
+from factorq_torch.base.rng import MASK64, STREAM_LAYOUT, STREAM_WORLD, derive_keys, random_bits
 
 NORTH, WEST, SOUTH, EAST = range(4)
 
@@ -367,3 +367,64 @@ def test_render_world_shows_walls_obstacles_agent_and_goal():
         4, torch.tensor([False, True, False, False, False, False, False, False, False]), 3
     )
     assert picture == "#####\n#.o.#\n#.A.#\n#..G#\n#####"
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {},
+        {"body": "heading", "sensors": "ring", "num_distractors": 2, "sensor_permutation": 3},
+        {"sensor_noise": 0.1, "actuator_noise": 0.2, "size": 4, "num_obstacles": 9},
+    ],
+)
+def test_reset_step_and_observe_run_on_the_meta_device_so_never_synchronise_with_the_host(
+    options,
+):
+    # A meta tensor has no data: .item(), bool(), nonzero() and data-dependent shapes raise on it.
+    # The world's functions running on meta is the proof that a step never waits for the device
+    # (GPU readiness: CUDA graphs, torch.compile without graph breaks).
+    from envs.world import FactoredGrid
+
+    config = WorldConfig(**options)
+    count = 6
+    static = torch.zeros(config.num_cells, dtype=torch.bool, device="meta")
+    world = FactoredGrid(config, static_obstacles=static)
+    state = world.initial_state(count, device="meta")
+    key = derive_keys(0, STREAM_WORLD, count).to("meta")
+    period = torch.tensor([0, 10, 1] * 2, device="meta")
+    state = world.reset(state, torch.ones(count, dtype=torch.bool, device="meta"), key, period)
+    for _ in range(2):
+        action = torch.zeros(count, dtype=torch.int64, device="meta")
+        state, outcome = world.step(state, action, key, period)
+        state = world.reset(state, outcome.terminated | outcome.truncated, key, period)
+    readings = world.observe(state, key)
+    assert readings.device.type == "meta" and state.obstacles.shape == (count, config.num_cells)
+
+
+@pytest.mark.parametrize("size", [2, 3, 5, 10])
+def test_scatter_equals_floyds_sequential_loop_in_crowded_and_sparse_worlds(size):
+    # The scatter resolves Floyd's steps without a loop over them; the plain loop is the spec.
+    cells = size * size
+    generator = torch.Generator().manual_seed(size)
+    count = 500
+    for num_obstacles in range(cells - 2):
+        key = torch.randint(-(2**62), 2**62, (count,), generator=generator)
+        index = torch.randint(0, 1000, (count,), generator=generator)
+        agent = torch.randint(0, cells, (count,), generator=generator)
+        fast = scatter_obstacles(key, index, agent, size, num_obstacles)
+        for row in range(0, count, 50):
+            agent_cell = int(agent[row])
+            excluded = {0, cells - 1, agent_cell}
+            allowed = [cell for cell in range(cells) if cell not in excluded]
+            bits = random_bits(
+                key[row : row + 1].unsqueeze(1),
+                index[row] * num_obstacles + torch.arange(num_obstacles),
+            )[0].tolist()
+            taken: list[int] = []
+            for k in range(num_obstacles):
+                j = len(allowed) - num_obstacles + k
+                t = (bits[k] * (j + 1)) >> 32
+                taken.append(j if t in taken else t)
+            expected = torch.zeros(cells, dtype=torch.bool)
+            expected[[allowed[position] for position in taken]] = True
+            assert torch.equal(fast[row], expected), (size, num_obstacles, row)

@@ -13,6 +13,7 @@ import argparse
 import re
 import shutil
 import sys
+import threading
 import typing
 from dataclasses import fields
 from pathlib import Path
@@ -202,6 +203,8 @@ def _paper(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
 def _run_paper(parser, args, config, backend, every, resume, executor) -> int:
     bar = _Bar()
+    # matplotlib loads while the experiment runs (its kernel releases the GIL), not after it.
+    threading.Thread(target=report.preload_figure, name="factorq-preload", daemon=True).start()
     try:
         if resume is not None:
             print(

@@ -33,6 +33,7 @@ from factorq_torch.base.validation import (
     MAX_SIZE,
     check_int,
     check_names,
+    check_table_size,
 )
 from trainers.options import option
 
@@ -135,8 +136,6 @@ def check_world_options(
 def check_qlearning_table(world: WorldConfig) -> None:
     """Refuse a Q-learning table past ``tables.MAX_TABLE_ENTRIES``: its state is the cell (x
     heading) x the pattern of all the body's sensors."""
-    from factorq_torch.tables import check_table_size
-
     check_table_size(
         "q-learning",
         f"a Q-table of {world.num_cells} cells x {world.num_headings} headings x "
@@ -197,6 +196,7 @@ def tabular_values(
         num_headings=world.num_headings,
         num_actions=world.num_actuators,
         device=device,
+        sparse_grad=True,  # SGD steps it; no dense [S, states, A] gradient per step
     )
     if not factorq:
         return task, None

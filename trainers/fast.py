@@ -47,9 +47,8 @@ import torch
 from envs.world import NUM_ACTIONS, WorldConfig, static_layout
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
 from factorq_torch.base.rng import probability_threshold
-from factorq_torch.base.validation import check_int
+from factorq_torch.base.validation import check_int, check_table_size
 from factorq_torch.functional import parent_weights
-from factorq_torch.tables import check_table_size
 
 #: The env-only mode of the kernel (benchmarks): uniformly random actions (the policy stream's
 #: action draw), no learning, every action counted as exploratory.
@@ -60,7 +59,7 @@ _SOURCE = Path(__file__).with_name("_kernel.c")
 #: No FMA contraction and no fast-math: every float operation must round exactly as torch's
 #: separate ops do. -march=native is left out (measured no faster; keeps the cache portable).
 _FLAGS = ("-O3", "-std=c99", "-ffp-contract=off", "-fno-fast-math", "-fPIC", "-shared")
-_ABI_VERSION = 3
+_ABI_VERSION = 4
 #: The fields ``fq_check_experiment`` refuses, by code (1-based), and ``fq_advance``'s encoding.
 _STATE_FIELDS = (
     "cell",
@@ -156,6 +155,7 @@ class _Batch(ctypes.Structure):
                 "ticks",
             )
         ]
+        + [(f"{name}_stride", ctypes.c_int64) for name in ("q", "rho", "kappa", "grid", "obstacle")]
     )
 
 
@@ -399,6 +399,22 @@ def _pool(workers: int) -> ThreadPoolExecutor:
 # Argument checks
 
 
+#: Bytes of a cache line. Each experiment's blocks that the kernel writes in its inner loop start
+#: on a line of their own, so that two threads never write one line (false sharing).
+CACHE_LINE = 64
+
+
+def _padded_zeros(count: int, shape: tuple[int, ...], dtype: torch.dtype):
+    """``(view, stride)``: zeros ``[count, *shape]`` as a view of a ``[count, stride]`` storage
+    whose rows are whole cache lines (torch's CPU allocator aligns the storage itself to 64)."""
+    per_line = CACHE_LINE // torch.empty((), dtype=dtype).element_size()
+    numel = 1
+    for extent in shape:
+        numel *= extent
+    stride = max(-(-numel // per_line) * per_line, per_line)
+    return torch.zeros(count, stride, dtype=dtype)[:, :numel].unflatten(1, shape), stride
+
+
 def _check_vector(name: str, value, count: int | None) -> torch.Tensor:
     """A 1-d int64 CPU tensor of ``count`` entries (any count when None), made contiguous."""
     if not isinstance(value, torch.Tensor):
@@ -509,6 +525,13 @@ class ExperimentBatch:
         def zeros(*shape, dtype=torch.int64):
             return torch.zeros(shape, dtype=dtype)
 
+        # Written in the kernel's inner loop: one cache-line-aligned block per experiment.
+        q, q_stride = _padded_zeros(count, (num_states, num_actuators), torch.float32)
+        rho, rho_stride = _padded_zeros(count, (num_actuators, table_width), torch.float32)
+        kappa, kappa_stride = _padded_zeros(count, (num_actuators, table_width), torch.int64)
+        grid, grid_stride = _padded_zeros(count, (width * width,), torch.uint8)
+        obstacle_pads, obstacle_stride = _padded_zeros(count, (world.num_obstacles,), torch.int32)
+
         # Every tensor the kernel reads or writes, by its fq_batch field name.
         self._tensors: dict[str, torch.Tensor] = {
             "periods": periods,  # [S]
@@ -516,12 +539,11 @@ class ExperimentBatch:
             "policy_keys": policy_keys,  # [S]
             "static_grid": static_grid,  # [P]
             "pad_of_cell": pad_of_cell,  # [N]
-            "q": zeros(count, num_states, num_actuators, dtype=torch.float32),
-            # [S, actuator, pattern of its parents]
-            "rho": zeros(count, num_actuators, table_width, dtype=torch.float32),
-            "kappa": zeros(count, num_actuators, table_width),
-            "grid": zeros(count, width * width, dtype=torch.uint8),  # [S, P]
-            "obstacle_pads": zeros(count, world.num_obstacles, dtype=torch.int32),  # [S, K]
+            "q": q,  # [S, states, actuator]
+            "rho": rho,  # [S, actuator, pattern of its parents]
+            "kappa": kappa,
+            "grid": grid,  # [S, P]
+            "obstacle_pads": obstacle_pads,  # [S, K]
             "cell": zeros(count),
             "episode_step": zeros(count),
             "scatters": zeros(count),
@@ -565,6 +587,11 @@ class ExperimentBatch:
             table_width=table_width,
             sensor_noise_threshold=probability_threshold(world.sensor_noise),
             actuator_noise_threshold=probability_threshold(world.actuator_noise),
+            q_stride=q_stride,
+            rho_stride=rho_stride,
+            kappa_stride=kappa_stride,
+            grid_stride=grid_stride,
+            obstacle_stride=obstacle_stride,
             **pointers,
         )
         self._library.fq_start(ctypes.byref(self._batch))

@@ -151,7 +151,7 @@ class PaperConfig:
         if self.backend == "fast" and kind not in (None, "cpu"):
             raise ValueError(f"device={self.device!r} is not supported by backend 'fast' (cpu)")
         # The device must exist here: refused now, not once the run began.
-        check_device("device", self.device, allow_meta=False)
+        check_device("device", self.device, allow_meta=False, optional=False)
         if not isinstance(self.out, str | os.PathLike) or not str(self.out):
             raise ValueError(f"out={self.out!r} must be a directory path")
         object.__setattr__(self, "out", str(self.out))
@@ -212,6 +212,45 @@ def resolve_backend(config: PaperConfig) -> str:
         usable = on_cpu and fast.is_available() and unsupported is None
         return "fast" if usable else "modular"
     return config.backend
+
+
+#: Seconds per batched step of the modular path and per (algorithm, run, episode) of the
+#: default batch, measured on a 2-core CPU: the defaults took 15 min 36 s there (issue 17).
+MODULAR_SECONDS_PER_EPISODE = 936.0 / (2 * 10 * 200)
+
+
+def fallback_notice(config: PaperConfig, backend: str) -> str | None:
+    """The one-line notice of ``auto`` falling back to the modular path: why, about how long the
+    run will take, how to get the fast path (None when nothing fell back)."""
+    from trainers import fast
+
+    if backend != "modular" or config.backend != "auto":
+        return None
+    unsupported = fast.unsupported_reason(config.world)
+    if unsupported is not None:  # the one-line notice of a fall-back (issue 11)
+        return (
+            f"factorq: the fast path cannot run this config ({unsupported}): running on "
+            f"the modular torchrl path"
+        )
+    if torch.device(config.device).type != "cpu":
+        return None  # asked for: a device the compiled path does not run on
+    estimate = MODULAR_SECONDS_PER_EPISODE * len(config.algorithms) * config.runs * config.episodes
+    duration = f"{estimate / 60:.0f} min" if estimate >= 90 else f"{max(estimate, 1):.0f} s"
+    return (
+        f"factorq: the compiled fast path is unavailable ({fast.unavailable_reason()}): running "
+        f"on the modular torchrl path, roughly {duration} on a 2-core CPU rather than "
+        f"seconds. For the fast path install a C compiler (cc, gcc or clang; e.g. "
+        f"`apt-get install gcc`) or point FACTORQ_CC at one, then run again."
+    )
+
+
+def threads_used(config: PaperConfig, backend: str) -> int:
+    """CPU threads the experiment actually runs on: the fast path's workers (at most one per
+    experiment), or the modular path's torch intra-op threads (1 unless --threads says more)."""
+    if backend == "fast":
+        threads = config.threads if config.threads is not None else torch.get_num_threads()
+        return max(1, min(threads, len(config.worlds) * config.seeds))
+    return config.threads or 1
 
 
 class BatchKeys(NamedTuple):
@@ -388,16 +427,9 @@ def run(
     resources.check(estimate, "run", resources.PAPER_HINT)  # before anything is allocated
     backend = resolve_backend(config)
     driver = backend_driver(backend)
-    if backend == "modular" and config.backend == "auto":
-        from trainers import fast
-
-        unsupported = fast.unsupported_reason(config.world)
-        if unsupported is not None:  # the one-line notice of a fall-back (issue 11)
-            print(
-                f"factorq: the fast path cannot run this config ({unsupported}): running on "
-                f"the modular torchrl path",
-                file=sys.stderr,
-            )
+    notice = fallback_notice(config, backend)
+    if notice is not None:
+        print(notice, file=sys.stderr)
     if resume is not None:
         _check_same_config(resume.config, config_dict(config), f"resume='{resume.path.parents[1]}'")
         check_checkpoint(resume, config)
@@ -443,11 +475,18 @@ def run(
     results["timing"] = {
         "wall_s": round(wall, 3),
         "backend": backend,
-        "threads": config.threads if config.threads is not None else torch.get_num_threads(),
+        "threads": threads_used(config, backend),
         "env_steps": env_steps,
         "env_steps_per_s": round(env_steps / max(wall, 1e-9)),
         "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
+    if backend == "modular" and config.backend == "auto":
+        from trainers import fast
+
+        # Why the compiled path did not run (a missing compiler, an unsupported body).
+        reason = fast.unsupported_reason(config.world) or fast.unavailable_reason()
+        if reason is not None:
+            results["timing"]["fast_unavailable"] = reason
     if checkpoint_every is not None or resume is not None:
         results["timing"]["checkpoints"] = {
             "every": None if checkpoints.every is None else str(checkpoints.every),

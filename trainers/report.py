@@ -44,6 +44,15 @@ def _ordered_cells(results: dict[str, Any]) -> tuple[list[str], list[str]]:
     return worlds, algorithms
 
 
+def preload_figure() -> None:
+    """Import matplotlib's modules for ``figure3`` (about 0.4 s). ``factorq paper`` calls it in a
+    background thread while the experiment runs, so that the figure does not wait for them."""
+    import matplotlib.backends.backend_agg
+    import matplotlib.figure
+    import matplotlib.lines
+    import matplotlib.ticker  # noqa: F401
+
+
 def figure3(results: dict[str, Any], path: str | os.PathLike) -> None:
     """Draw the paper's Figure 3 from ``results`` and save it as a PNG at ``path``.
 
@@ -60,9 +69,26 @@ def figure3(results: dict[str, Any], path: str | os.PathLike) -> None:
     plain = FuncFormatter(lambda value, _: f"{value:g}")  # 0.01, 1, 300 rather than 10^-2, 3x10^2
     worlds, algorithms = _ordered_cells(results)
     config = results["config"]
-    figure = Figure(figsize=(max(4.4 * len(worlds) + 0.6, 6.0), 7.4), dpi=150, layout="constrained")
+    width, height = max(4.4 * len(worlds) + 0.6, 6.0), 7.4
+    figure = Figure(figsize=(width, height), dpi=150)
     FigureCanvasAgg(figure)
-    axes = figure.subplots(2, len(worlds), sharex=True, sharey="row", squeeze=False)
+    # Fixed margins (inches) rather than a constrained layout, which draws every tick twice
+    # (half of the figure's time): room for the y labels, the title above, the legend below.
+    axes = figure.subplots(
+        2,
+        len(worlds),
+        sharex=True,
+        sharey="row",
+        squeeze=False,
+        gridspec_kw={
+            "left": 0.75 / width,
+            "right": 1 - 0.3 / width,
+            "top": 1 - 0.95 / height,
+            "bottom": 1.0 / height,
+            "wspace": 0.06,
+            "hspace": 0.06,
+        },
+    )
     # The smallest non-zero mean over seeds x runs; below it a log axis turns linear, so episodes
     # with no collision at all stay on the plot.
     resolution = 1.0 / (config["seeds"] * config["runs"])
@@ -98,15 +124,24 @@ def figure3(results: dict[str, Any], path: str | os.PathLike) -> None:
         Line2D([], [], color="0.15", lw=1.1, ls="--", label="greedy collisions (not exploratory)"),
     ]
     columns = len(handles) if len(worlds) > 1 else 2
-    figure.legend(handles=handles, loc="outside lower center", ncols=columns, frameon=False)
+    figure.legend(
+        handles=handles,
+        loc="lower center",
+        bbox_to_anchor=(0.5, 0.0),
+        ncols=columns,
+        frameon=False,
+    )
     size = config["size"]
     figure.suptitle(
         f"Q-learning vs Factor-Q, {size}\u00d7{size} grid with {config['obstacles']} obstacles\n"
         f"mean of {config['seeds']} seeds \u00d7 {config['runs']} runs per episode, "
         "95% confidence bands across seeds",
         fontsize=11,
+        y=1 - 0.08 / height,
+        va="top",
     )
-    figure.savefig(path, format="png", dpi=150)
+    # zlib level 1: a slightly larger file, encoded several times faster.
+    figure.savefig(path, format="png", dpi=150, pil_kwargs={"compress_level": 1})
 
 
 def _curve(axis, cell, name: str, colour: str, style: str, width: float, band_alpha: float) -> None:

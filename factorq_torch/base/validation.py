@@ -19,6 +19,18 @@ MAX_THREADS = 256
 #: The largest grid side: the padded cell index ``(size + 2)**2`` is a C int32 in the kernel with
 #: a wide margin, and the static layout's reachability search takes about a second at this size.
 MAX_SIZE = 1024
+#: Values one experiment's table may hold (``factorq_torch.tables``, the fast path). Kept here, free
+#: of tensordict, so that the fast path and the config checks import it cheaply.
+MAX_TABLE_ENTRIES = 1 << 24
+
+
+def check_table_size(owner: str, what: str, entries: int) -> None:
+    """Raise a ValueError when a table of ``entries`` values per experiment passes the cap."""
+    if entries > MAX_TABLE_ENTRIES:
+        raise ValueError(
+            f"{owner}: {what} needs {entries} values per experiment, past the cap of "
+            f"{MAX_TABLE_ENTRIES} (2**24): use fewer sensors or distractors"
+        )
 
 
 def is_int(value) -> bool:
@@ -70,16 +82,16 @@ def check_names(name: str, value, allowed: tuple[str, ...] | list[str]) -> tuple
     return tuple(item for item in allowed if item in names)
 
 
-def check_device(name: str, value, *, allow_meta: bool = True):
+def check_device(name: str, value, *, allow_meta: bool = True, optional: bool = True):
     """``value`` as a ``torch.device`` that exists on this machine (``None`` stays ``None``).
 
     Checked by allocating an empty tensor there, so a missing CUDA, MPS or other backend (or a
     ``cuda:N`` past the device count) is one line where it enters (a module's constructor, a
     trainer's config) rather than a traceback once the run has begun. ``meta`` (shapes only) is
     fine for modules, which can be traced there, and refused with ``allow_meta=False`` (a run:
-    nothing could be computed).
+    nothing could be computed). ``optional=False`` refuses ``None`` as no device.
     """
-    if value is None:
+    if value is None and optional:
         return None
     import torch  # the base layer's checks stay importable without torch for plain numbers
 
@@ -113,13 +125,21 @@ def check_finite(owner: str, name: str, values):
     """Return ``values`` (a tensor ``[S, ...]``) if every entry is finite, else raise a
     ValueError naming ``owner``, the key and the first experiment (leading index) at fault.
 
-    Cheap enough to stay on (one fused reduction over a few entries per experiment; on an
-    accelerator it waits for the values once per call): a NaN or infinite value fed to a policy
-    or a loss would otherwise spread silently through argmax ties and targets.
+    Cheap enough to stay on: one fused reduction. On the CPU it reads the verdict (a memory read,
+    no synchronisation); on an accelerator it is a device-side assert (``torch._assert_async``)
+    so that it never stalls the step with a device-to-host copy; on ``meta`` there is no data.
+    A NaN or infinite value fed to a policy or a loss would otherwise spread silently through
+    argmax ties and targets.
     """
     import torch
 
-    if values.is_floating_point() and not bool(torch.isfinite(values).all()):
+    if not values.is_floating_point() or values.device.type == "meta":
+        return values
+    finite = torch.isfinite(values).all()
+    if values.device.type != "cpu":
+        torch._assert_async(finite, f"{owner}: {name} holds NaN or infinite values")
+        return values
+    if not bool(finite):
         bad = (
             (~torch.isfinite(values)).reshape(values.shape[0], -1).any(dim=1)
             if values.dim()
