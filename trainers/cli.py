@@ -17,7 +17,7 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
-from trainers import checkpoint, options, paper, report, sweep
+from trainers import checkpoint, dependencies, options, paper, report, sweep
 
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
@@ -90,6 +90,15 @@ def build_parser(*, compare_options: bool = True) -> argparse.ArgumentParser:
         options.add_options(compare_parser, compare.CompareConfig)
         sweep.add_cluster_options(compare_parser)
     compare_parser.set_defaults(handler=_compare, command_parser=compare_parser)
+    dependencies_parser = commands.add_parser(
+        "dependencies",
+        help="learn which sensors each actuator depends on, against the oracle pairing",
+        description="Run the structure learner (issue 12) against the oracle pairing, the full "
+        "joint table and Q-learning on the settings; write dependencies.json, dependencies.png "
+        "and dependencies.md to --out.",
+    )
+    options.add_options(dependencies_parser, dependencies.DependenciesConfig)
+    dependencies_parser.set_defaults(handler=_dependencies, command_parser=dependencies_parser)
     commands.add_parser("sweep", help=sweep.HELP, add_help=False)  # main hands it to trainers.sweep
     return parser
 
@@ -252,6 +261,29 @@ def _compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         print(f"{parser.prog}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     print(compare_report.report_markdown(results))
+    for path in paths.values():
+        print(path)
+    return 0
+
+
+def _dependencies(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    config_type = dependencies.DependenciesConfig
+    try:
+        config = config_type(**options.given_options(args, config_type))
+    except (ValueError, TypeError) as error:
+        _error(parser, _as_option(str(error), config_type))
+        return EXIT_USAGE
+
+    def progress(setting: str, method: str) -> None:
+        print(f"factorq dependencies: {setting}: {method}", file=sys.stderr, flush=True)
+
+    try:
+        results = dependencies.run(config, progress)
+        paths = dependencies.write_outputs(results, config.out)
+    except KeyboardInterrupt:
+        print(f"{parser.prog}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    print(dependencies.report_markdown(results))
     for path in paths.values():
         print(path)
     return 0
