@@ -490,11 +490,10 @@ def write_figure(results: dict[str, Any], path: Path) -> None:
         top.set_xlabel("env steps")
         if column == 0:
             top.set_ylabel("fraction with the right structure")
-        for index, (method, entry) in enumerate(summary["methods"].items()):
+        for method, entry in summary["methods"].items():
             values = entry["collisions_per_episode"]
-            bottom.plot(
-                range(1, len(values) + 1), values, label=METHOD_LABELS[method], color=f"C{index}"
-            )
+            color = f"C{METHODS.index(method)}"  # one colour per method in every panel
+            bottom.plot(range(1, len(values) + 1), values, label=METHOD_LABELS[method], color=color)
         bottom.set_yscale("symlog", linthresh=1.0)
         bottom.set_xlabel("episode")
         if column == 0:
