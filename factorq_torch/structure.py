@@ -46,9 +46,10 @@ at most ``window`` firings of each actuator (restarted every ``window`` firings)
 change-point test compares "nothing changed": the committed candidate ``c*`` predicting the block
 from the data before it, ``p(block | c*, earlier) = p(all | c*) / p(earlier | c*)``, against "a
 change before the block": the best candidate (``c*`` included) fitted afresh to the block alone,
-both with their prior. When the change wins by ``bayes_factor``, the actuator reopens: its counts
-are replaced by the block's (what came before the change is forgotten) and it commits again by
-the rule above. Comparing only fresh fits on the block would not do: an agent that keeps
+both with their prior. When the change wins by ``bayes_factor``, the actuator reopens: it forgets
+all its counts (the block's too: the block may straddle the change, and restarting from it
+recommitted to the old structure in most experiments of the ``change`` setting) and commits
+again by the rule above. Comparing only fresh fits on the block would not do: an agent that keeps
 repeating one action in one place (into a wall its stale table calls safe) produces data every
 candidate fits equally well, while the stale prediction is refuted after a few collisions.
 
@@ -390,11 +391,12 @@ class StructureLearner(TensorDictModuleBase):
         new = torch.where(commit, best, committed)
         new = torch.where(reopen, torch.full_like(new, -1), new)
         self.committed[rows, action] = new
-        if bool(reopen.any()):
+        if bool(reopen.any()):  # forget everything: the block may straddle the change
             lost_rows, lost_actions = rows[reopen], action[reopen]
-            for name in ("count", "successes", "reward_sum", "log_marginal"):
-                block = getattr(self, "block_" + name)
-                getattr(self, name)[lost_rows, lost_actions] = block[lost_rows, lost_actions]
+            for prefix in ("", "block_"):
+                for name in ("count", "successes", "reward_sum", "log_marginal"):
+                    getattr(self, prefix + name)[lost_rows, lost_actions] = 0.0
+            self.block_samples[lost_rows, lost_actions] = 0
             self.reopened[lost_rows, lost_actions] += 1
         full = self.block_samples[rows, action] >= self.window
         if bool(full.any()):
