@@ -32,6 +32,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from factorq_torch.base import keys
 from factorq_torch.base.validation import (  # MAX_TABLE_ENTRIES: re-exported
+    MAX_PARENTS,
     MAX_TABLE_ENTRIES,  # noqa: F401
     check_device,
     check_int,
@@ -50,7 +51,6 @@ NUM_ACTIONS = 4
 #: Proximity patterns per cell of the paper's body: 4 binary sensors.
 NUM_PATTERNS = 1 << NUM_ACTIONS
 #: Parent sensors one actuator's local table may be indexed by (2**16 entries).
-MAX_PARENTS = 16
 
 
 def check_batch(tensordict: TensorDictBase, num_experiments: int, owner: str) -> None:

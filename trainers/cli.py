@@ -19,7 +19,7 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
-from trainers import checkpoint, options, outdir, paper, report, resources, sweep
+from trainers import checkpoint, dependencies, options, outdir, paper, report, resources, sweep
 
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
@@ -111,6 +111,18 @@ def build_parser(*, compare_options: bool = True) -> argparse.ArgumentParser:
             default=argparse.SUPPRESS,
         )
     compare_parser.set_defaults(handler=_compare, command_parser=compare_parser)
+    dependencies_parser = commands.add_parser(
+        "dependencies",
+        help="learn which sensors each actuator depends on, against the oracle pairing",
+        description="Run the structure learner (issue 12) against the oracle pairing, the full "
+        "joint table and Q-learning on the settings; write dependencies.json, dependencies.png "
+        "and dependencies.md to --out.",
+    )
+    options.add_options(dependencies_parser, dependencies.DependenciesConfig)
+    dependencies_parser.add_argument(
+        "--force", action="store_true", default=argparse.SUPPRESS, help=FORCE_HELP
+    )
+    dependencies_parser.set_defaults(handler=_dependencies, command_parser=dependencies_parser)
     commands.add_parser("sweep", help=sweep.HELP, add_help=False)  # main hands it to trainers.sweep
     return parser
 
@@ -340,6 +352,34 @@ def _compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         print(f"{parser.prog}: error: {error}", file=sys.stderr)
         return EXIT_FAILURE
     print(compare_report.report_markdown(results))
+    for path in paths.values():
+        print(path)
+    return 0
+
+
+def _dependencies(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    config_type = dependencies.DependenciesConfig
+    try:
+        config = config_type(**options.given_options(args, config_type))
+    except (ValueError, TypeError) as error:
+        _error(parser, _as_option(str(error), config_type))
+        return EXIT_USAGE
+
+    def progress(setting: str, method: str) -> None:
+        print(f"factorq dependencies: {setting}: {method}", file=sys.stderr, flush=True)
+
+    outputs = (dependencies.JSON_FILE, dependencies.FIGURE_FILE, dependencies.REPORT_FILE)
+    try:
+        with outdir.claim(config.out, outputs=outputs, force=hasattr(args, "force")):
+            results = dependencies.run(config, progress)
+            paths = dependencies.write_outputs(results, config.out)
+    except outdir.OutputDirError as error:
+        _error(parser, str(error))
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print(f"{parser.prog}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    print(dependencies.report_markdown(results))
     for path in paths.values():
         print(path)
     return 0

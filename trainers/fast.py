@@ -47,8 +47,8 @@ import torch
 from envs.world import NUM_ACTIONS, WorldConfig, static_layout
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
 from factorq_torch.base.rng import probability_threshold
-from factorq_torch.base.validation import check_int, check_table_size
-from factorq_torch.functional import parent_weights
+from factorq_torch.base.validation import MAX_PARENTS, check_int, check_table_size
+from factorq_torch.functional import check_dependency, parent_weights
 
 #: The env-only mode of the kernel (benchmarks): uniformly random actions (the policy stream's
 #: action draw), no learning, every action counted as exploratory.
@@ -463,6 +463,7 @@ class ExperimentBatch:
         world_keys: torch.Tensor,
         policy_keys: torch.Tensor,
         threads: int | None = None,
+        dependency: torch.Tensor | None = None,
     ) -> None:
         if algorithm not in _ALGORITHM_CODES:
             choices = ", ".join((*ALGORITHMS, RANDOM_WALK))
@@ -499,7 +500,9 @@ class ExperimentBatch:
         if bool((periods == 0).any()) and world.num_obstacles:
             static_grid[pad_of_cell.long()] = static_layout(world).to(torch.uint8)
         # The body as data (envs.body): the paper's body runs the specialised loop.
-        generic = not world.is_paper_body
+        # ``dependency`` (bool [A, K]) replaces the world's true one in Factor-Q's local tables,
+        # e.g. the full joint table over all sensors (trainers.dependencies); generic loop only.
+        generic = not world.is_paper_body or dependency is not None
         num_actuators, num_sensors = world.num_actuators, world.num_sensors
         positions = num_cells * world.num_headings
         num_states = positions << num_sensors if algorithm == "q-learning" else positions
@@ -509,8 +512,17 @@ class ExperimentBatch:
             )
         if algorithm == RANDOM_WALK:
             num_states = 0
-        dependency = world.dependency
+        if dependency is None:
+            dependency = world.dependency
+        else:
+            dependency = check_dependency(dependency, world.num_sensors)
+            if dependency.shape[0] != world.num_actuators:
+                raise ValueError(
+                    f"dependency has {dependency.shape[0]} actuators, the body has "
+                    f"{world.num_actuators}"
+                )
         parents = int(dependency.sum(dim=1).max())
+        check_int("parents of an actuator (dependency)", parents, 0, MAX_PARENTS)
         table_width = 1 << parents
         offsets = world._tables["offsets"]  # [4, L, 2]
         body_tensors = {
@@ -725,13 +737,24 @@ def run_experiments(
     *,
     threads: int | None = None,
     progress: Callable[[int], object] | None = None,
+    dependency: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
     """Run S experiments to the end (see ``ExperimentBatch``) and return their ``metrics()``.
 
-    ``progress(n)`` is called with the number of episodes completed since its last call.
+    ``progress(n)`` is called with the number of episodes completed since its last call;
+    ``dependency`` replaces the world's in Factor-Q's local tables (``ExperimentBatch``).
     """
     batch = ExperimentBatch(
-        algorithm, periods, world, agent, runs, episodes, world_keys, policy_keys, threads
+        algorithm,
+        periods,
+        world,
+        agent,
+        runs,
+        episodes,
+        world_keys,
+        policy_keys,
+        threads,
+        dependency=dependency,
     )
     # Chunks only matter for progress reports (results do not depend on them).
     chunk = 20_000 if progress is not None else 1 << 62

@@ -22,6 +22,8 @@ MAX_SIZE = 1024
 #: Values one experiment's table may hold (``factorq_torch.tables``, the fast path). Kept here, free
 #: of tensordict, so that the fast path and the config checks import it cheaply.
 MAX_TABLE_ENTRIES = 1 << 24
+#: Parent sensors one actuator's local table may have (a table of ``2**MAX_PARENTS`` entries).
+MAX_PARENTS = 16
 
 
 def check_table_size(owner: str, what: str, entries: int) -> None:

@@ -1,0 +1,425 @@
+"""Learned sensor-actuator dependencies: Factor-Q that finds its own pairing (issue 12).
+
+The paper hand-pairs each actuator with its sensor (section 5.2, footnote 2) and names learning
+that pairing as future work. ``StructureLearner`` is a local value provider (it writes
+``local_value`` ``[S, A]`` like ``LocalRewardTable`` and owns an ``update_running_mean`` that
+``FactorQLoss`` applies as eq. 5), told nothing about the body but ``A`` and ``K``.
+
+**Candidates.** For every actuator ``a`` the candidate parent sets are "no sensor", every single
+sensor ``j`` and, with ``max_parents=2`` (the default and the cap), every pair ``{j, k}``:
+``C = 1 + K + K (K - 1) / 2`` candidates (529 for 32 sensors). Larger sets are refused
+(``MAX_CANDIDATE_PARENTS``): triples would be ``O(K**3)`` tables per actuator and experiment.
+
+**Counts.** Per (experiment, actuator, candidate, pattern of the candidate's sensors read
+*before* acting): the times the actuator fired ``n``, the sum of its "successes" ``y`` and the sum
+of its local rewards ``r``. Every firing updates one pattern of every candidate of the fired
+actuator.
+
+**Likelihood.** The local reward of the collision world is 0 or -1: ``y = -r`` is a Bernoulli
+outcome. A local reward outside ``{0, -1}`` is read as the fractional success ``y = clip(-r, 0,
+1)`` (a Beta-Bernoulli likelihood with fractional counts, still a proper conjugate update:
+``lgamma`` takes real arguments); rewards above 0 count as 0 and below -1 as -1 for the structure
+only, while the prediction uses the real rewards (their running mean). Each pattern of a
+candidate has its own rate with a ``Beta(prior_a, prior_b)`` prior, so the marginal likelihood of
+candidate ``c`` is
+
+    log p(D | c) = sum_patterns [ lgamma(a + s) + lgamma(b + n - s) - lgamma(a + b + n)
+                                  - lgamma(a) - lgamma(b) + lgamma(a + b) ]
+
+in float64 (``beta_bernoulli_log_marginal``). The prior over candidates gives each size (0, 1,
+2 parents) the same mass, uniform within a size (``candidate_log_prior``).
+
+**Commitment.** Until it commits, actuator ``a``'s local value is the posterior-weighted running
+mean ``sum_c p(c | D) rho_c[o_c]`` (an unvisited pattern predicts 0, as an unvisited table entry
+does). It commits to the maximum a posteriori candidate ``c*`` when ``c*`` beats every
+*competitor* by the Bayes factor ``bayes_factor`` (default 100; posterior odds, the prior
+included). The competitors of ``c*`` are all candidates but its strict supersets; the competitors
+of "no sensor" are the single sensors. Why supersets are left out: a superset ``c* + {x}`` with
+an irrelevant ``x`` predicts what ``c*`` predicts, and its Occam penalty grows only like
+``log n`` (about ``n0 n1 / 16`` for a deterministic single sensor seen ``n0`` and ``n1`` times per
+reading), so requiring it would delay every commitment to hundreds of samples; a superset whose
+extra sensor matters overtakes ``c*`` at a rate linear in ``n`` and becomes the MAP itself. Once
+committed, the actuator's local value is the committed candidate's running mean.
+
+**Reopening.** Alongside the counts, the learner keeps the same counts over a *block* of the last
+at most ``window`` firings of each actuator (restarted every ``window`` firings). A Bayesian
+change-point test compares "nothing changed": the committed candidate ``c*`` predicting the block
+from the data before it, ``p(block | c*, earlier) = p(all | c*) / p(earlier | c*)``, against "a
+change before the block": the best candidate (``c*`` included) fitted afresh to the block alone,
+both with their prior. When the change wins by ``bayes_factor``, the actuator reopens: it forgets
+all its counts (the block's too: the block may straddle the change, and restarting from it
+recommitted to the old structure in most experiments of the ``change`` setting) and commits
+again by the rule above. Comparing only fresh fits on the block would not do: an agent that keeps
+repeating one action in one place (into a wall its stale table calls safe) produces data every
+candidate fits equally well, while the stale prediction is refuted after a few collisions.
+
+Keys: reads ``sensors`` ``[S, K]`` bool, writes ``local_value`` ``[S, A]`` float32.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+from factorq_torch.base import keys
+from factorq_torch.base.validation import check_int
+from factorq_torch.tables import _check_entry, check_batch, check_mask
+
+#: The largest candidate parent set (pairs): see the module docstring.
+MAX_CANDIDATE_PARENTS = 2
+#: Sensors the learner accepts (patterns are computed in int64 bit masks).
+MAX_SENSORS = 62
+#: Priors over the candidate parent sets (``candidate_log_prior``).
+PRIORS = ("size", "uniform")
+
+
+def beta_bernoulli_log_marginal(
+    count: torch.Tensor, successes: torch.Tensor, prior_a: float = 1.0, prior_b: float = 1.0
+) -> torch.Tensor:
+    """``log p(y_1..y_n)`` of ``n`` Bernoulli outcomes with ``s`` successes under a rate drawn
+    from ``Beta(a, b)``: ``log B(a + s, b + n - s) - log B(a, b)``, elementwise, in float64.
+
+    ``B(x, y) = Gamma(x) Gamma(y) / Gamma(x + y)``; ``n = s = 0`` gives 0. Fractional ``s`` (and
+    ``n``) are allowed (a fractional success). Shapes broadcast.
+
+    >>> beta_bernoulli_log_marginal(torch.tensor([2.0]), torch.tensor([1.0]))  # 1!1!/3! = 1/6
+    tensor([-1.7918], dtype=torch.float64)
+    """
+    n = count.to(torch.float64)
+    s = successes.to(torch.float64)
+    a, b = float(prior_a), float(prior_b)
+    log_beta_prior = math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b)
+    return torch.lgamma(a + s) + torch.lgamma(b + n - s) - torch.lgamma(a + b + n) - log_beta_prior
+
+
+def candidate_sets(num_sensors: int, max_parents: int = MAX_CANDIDATE_PARENTS) -> list[tuple]:
+    """The candidate parent sets: ``()``, then ``(j,)`` for every sensor, then ``(j, k)``,
+    ``j < k`` (with ``max_parents=2``), in that order."""
+    check_int("num_sensors", num_sensors, 1, MAX_SENSORS)
+    if not isinstance(max_parents, int) or isinstance(max_parents, bool) or max_parents < 0:
+        raise ValueError(f"max_parents={max_parents!r} must be an integer >= 0")
+    if max_parents > MAX_CANDIDATE_PARENTS:
+        raise ValueError(
+            f"max_parents={max_parents} is past the cap of {MAX_CANDIDATE_PARENTS}: candidate "
+            f"sets of {max_parents} sensors would be C({num_sensors}, {max_parents}) tables per "
+            f"actuator and experiment"
+        )
+    sets: list[tuple] = []
+    for size in range(min(max_parents, num_sensors) + 1):
+        sets.extend(itertools.combinations(range(num_sensors), size))
+    return sets
+
+
+def candidate_log_prior(sets: list[tuple], prior: str = "size") -> torch.Tensor:
+    """``[C]`` float64 log prior of the candidates: ``"size"``, every size of parent set has the
+    same mass, uniform within a size; ``"uniform"``, every candidate the same."""
+    if prior not in PRIORS:
+        raise ValueError(f"prior={prior!r} is unknown: choose one of {PRIORS}")
+    if prior == "uniform":
+        return torch.full((len(sets),), -math.log(len(sets)), dtype=torch.float64)
+    sizes = torch.tensor([len(s) for s in sets])
+    per_size = torch.bincount(sizes).to(torch.float64)  # candidates of each size
+    return -torch.log(per_size[sizes]) - math.log(len(per_size))
+
+
+def competitor_mask(sets: list[tuple]) -> torch.Tensor:
+    """``[C, C]`` bool: ``[c, c']`` True where ``c'`` competes with ``c`` for commitment: every
+    other candidate but the strict supersets of ``c``; for "no sensor", the single sensors."""
+    members = [frozenset(s) for s in sets]
+    mask = torch.zeros(len(sets), len(sets), dtype=torch.bool)
+    for i, best in enumerate(members):
+        for j, other in enumerate(members):
+            if i == j:
+                continue
+            if not best:
+                mask[i, j] = len(other) == 1
+            else:
+                mask[i, j] = not (best < other)
+    return mask
+
+
+def posterior_weights(log_posterior: torch.Tensor) -> torch.Tensor:
+    """``softmax`` over the last dimension (candidates): ``p(c | D)``, float64."""
+    return torch.softmax(log_posterior, dim=-1)
+
+
+class StructureLearner(TensorDictModuleBase):
+    """A local value provider that learns each actuator's parent sensors (module docstring).
+
+    Args:
+        num_experiments: ``S``.
+        num_actions: ``A``, the actuators.
+        num_sensors: ``K``, the sensors the agent receives.
+        max_parents: the largest candidate parent set, 0..2 (default 2: pairs).
+        bayes_factor: the posterior odds at which the best candidate is committed to (and at
+            which evidence on the recent block reopens it); must be > 1.
+        window: firings per actuator in the block the reopening test reads.
+        prior_a, prior_b: the Beta prior of every pattern's rate.
+        prior: the prior over candidates, ``"size"`` or ``"uniform"`` (``candidate_log_prior``).
+        sensors_key: where the sensors are read.
+        device: where the counts live.
+
+    Buffers: ``count``, ``successes``, ``reward_sum`` ``[S, A, C, 4]`` float64 (and their
+    ``block_*`` twins), ``committed`` ``[S, A]`` int64 (candidate index, -1 while open),
+    ``samples`` ``[S, A]`` int64 (firings so far), ``reopened`` ``[S, A]`` int64 (how often).
+
+    Example:
+        >>> learner = StructureLearner(1, num_actions=1, num_sensors=3)
+        >>> generator = torch.Generator().manual_seed(0)
+        >>> for step in range(60):  # sensor 1 decides the collision
+        ...     sensors = torch.rand(1, 3, generator=generator) < 0.5
+        ...     reward = -sensors[:, 1:2].float()
+        ...     learner.update_running_mean(sensors, torch.tensor([0]), reward)
+        >>> learner.structure()[0].nonzero().tolist()
+        [[0, 1]]
+    """
+
+    def __init__(
+        self,
+        num_experiments: int,
+        *,
+        num_actions: int,
+        num_sensors: int,
+        max_parents: int = MAX_CANDIDATE_PARENTS,
+        bayes_factor: float = 100.0,
+        window: int = 100,
+        prior_a: float = 1.0,
+        prior_b: float = 1.0,
+        prior: str = "size",
+        sensors_key: str = keys.SENSORS,
+        device: torch.device | str | None = None,
+    ) -> None:
+        super().__init__()
+        self.num_experiments = check_int("num_experiments", num_experiments, 1)
+        self.num_actions = check_int("num_actions", num_actions, 1)
+        self.num_sensors = check_int("num_sensors", num_sensors, 1, MAX_SENSORS)
+        self.sets = candidate_sets(num_sensors, max_parents)
+        self.max_parents = max_parents
+        if not isinstance(bayes_factor, (int, float)) or not bayes_factor > 1:
+            raise ValueError(
+                f"bayes_factor={bayes_factor!r} must be > 1: a commitment needs evidence for the "
+                f"best candidate over the runner-up"
+            )
+        if not math.isfinite(bayes_factor):
+            raise ValueError(f"bayes_factor={bayes_factor!r} must be finite")
+        for name, value in (("prior_a", prior_a), ("prior_b", prior_b)):
+            if not isinstance(value, (int, float)) or not value > 0 or not math.isfinite(value):
+                raise ValueError(f"{name}={value!r} must be a finite number > 0")
+        self.bayes_factor = float(bayes_factor)
+        self.log_bayes_factor = math.log(self.bayes_factor)
+        self.window = check_int("window", window, 1)
+        self.prior_a, self.prior_b = float(prior_a), float(prior_b)
+        self.sensors_key = sensors_key
+        self.in_keys = [sensors_key]
+        self.out_keys = [keys.LOCAL_VALUE]
+        num_candidates = len(self.sets)
+        self.num_candidates = num_candidates
+        patterns = 1 << min(max_parents, num_sensors)
+        # Weights [C, K]: 2**r where sensor k is the r-th member of candidate c (parent_weights).
+        weights = torch.zeros(num_candidates, num_sensors, dtype=torch.int64)
+        members = torch.zeros(num_candidates, num_sensors, dtype=torch.bool)
+        for index, parents in enumerate(self.sets):
+            for rank, sensor in enumerate(parents):
+                weights[index, sensor] = 1 << rank
+                members[index, sensor] = True
+        self.register_buffer("weights", weights.to(device))
+        self.register_buffer("members", members.to(device))
+        self.register_buffer("log_prior", candidate_log_prior(self.sets, prior).to(device))
+        self.register_buffer("competitors", competitor_mask(self.sets).to(device))
+        shape = (num_experiments, num_actions, num_candidates, patterns)
+        for prefix in ("", "block_"):
+            for name in ("count", "successes", "reward_sum", "log_marginal"):
+                self.register_buffer(
+                    prefix + name, torch.zeros(shape, dtype=torch.float64, device=device)
+                )
+        # caches: the running mean of every pattern, the posterior of every candidate
+        self.register_buffer("mean", torch.zeros(shape, dtype=torch.float64, device=device))
+        self.register_buffer(
+            "weights_cache",
+            torch.full(shape[:3], 1.0 / num_candidates, dtype=torch.float64, device=device),
+        )
+        self._refresh_cache(slice(None), slice(None))
+        self.register_buffer(
+            "committed", torch.full((num_experiments, num_actions), -1, device=device)
+        )
+        for name in ("samples", "block_samples", "reopened"):
+            self.register_buffer(
+                name, torch.zeros(num_experiments, num_actions, dtype=torch.int64, device=device)
+            )
+
+    # -- what it holds -----------------------------------------------------------------------
+
+    def log_posterior(self, block: bool = False) -> torch.Tensor:
+        """``[S, A, C]`` float64: ``log p(c) + log p(D | c)`` (up to a constant per actuator)."""
+        log_marginal = self.block_log_marginal if block else self.log_marginal
+        return self.log_prior + log_marginal.sum(dim=-1)
+
+    def posterior(self) -> torch.Tensor:
+        """``[S, A, C]`` float64: ``p(c | D)`` over the candidates of each actuator."""
+        return posterior_weights(self.log_posterior())
+
+    def structure(self) -> torch.Tensor:
+        """``[S, A, K]`` bool: the committed parents of each actuator (none while open)."""
+        committed = self.committed.clamp(min=0)
+        parents = self.members[committed]  # [S, A, K]
+        return parents & (self.committed >= 0).unsqueeze(-1)
+
+    def is_committed(self) -> torch.Tensor:
+        """``[S, A]`` bool: the actuator has committed to a candidate."""
+        return self.committed >= 0
+
+    def patterns(self, readings: torch.Tensor) -> torch.Tensor:
+        """``[S, C]`` int64: the pattern of each candidate's sensors in ``readings`` ``[S, K]``."""
+        return readings.to(torch.int64) @ self.weights.T
+
+    # -- the provider --------------------------------------------------------------------------
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        owner = type(self).__name__
+        check_batch(tensordict, self.num_experiments, owner)
+        readings = _check_entry(
+            tensordict,
+            self.sensors_key,
+            (self.num_experiments, self.num_sensors),
+            (torch.bool,),
+            owner,
+        )
+        tensordict.set(keys.LOCAL_VALUE, self.local_values(readings))
+        return tensordict
+
+    def local_values(self, readings: torch.Tensor) -> torch.Tensor:
+        """``[S, A]`` float32: each actuator's predicted local reward under ``readings``."""
+        pattern = self.patterns(readings)  # [S, C]
+        index = pattern[:, None, :, None].expand(-1, self.num_actions, -1, 1)  # [S, A, C, 1]
+        mean = self.mean.gather(-1, index).squeeze(-1)  # [S, A, C]
+        weighted = (self.weights_cache * mean).sum(dim=-1)  # [S, A]
+        committed = self.committed.clamp(min=0).unsqueeze(-1)
+        chosen = mean.gather(-1, committed).squeeze(-1)
+        return torch.where(self.committed >= 0, chosen, weighted).to(torch.float32)
+
+    @torch.no_grad()
+    def update_running_mean(
+        self,
+        readings: torch.Tensor,
+        action: torch.Tensor,
+        local_reward: torch.Tensor,
+        mask: torch.Tensor | None = None,
+    ) -> None:
+        """Count the firing of ``action`` under ``readings`` (before acting) with its local reward
+        (for every candidate), then commit or reopen (module docstring). Same arguments as
+        ``LocalRewardTable.update_running_mean``."""
+        batch = self.num_experiments
+        mask = check_mask(mask, batch, "StructureLearner.update_running_mean")
+        shapes = {"readings": (readings, (batch, self.num_sensors)), "action": (action, (batch,))}
+        shapes["local_reward"] = (local_reward, (batch, self.num_actions))
+        for name, (value, shape) in shapes.items():
+            if tuple(value.shape) != shape:
+                raise ValueError(
+                    f"StructureLearner.update_running_mean: {name} has shape "
+                    f"{list(value.shape)}, expected {list(shape)}"
+                )
+        rows = torch.arange(batch, device=action.device)
+        if mask is not None:
+            rows, action = rows[mask], action[mask]
+            readings, local_reward = readings[mask], local_reward[mask]
+        if rows.numel() == 0:
+            return
+        reward = local_reward.gather(1, action.unsqueeze(1)).squeeze(1).to(torch.float64)  # [R]
+        success = (-reward).clamp(0.0, 1.0)  # [R], a fractional success outside {0, -1}
+        pattern = self.patterns(readings)  # [R, C]
+        candidates = torch.arange(self.num_candidates, device=action.device)
+        width = self.count.shape[-1]
+        # one flat index per (row, candidate) into [S, A, C, P]: no entry appears twice
+        where = (
+            ((rows * self.num_actions + action)[:, None] * self.num_candidates + candidates) * width
+            + pattern
+        ).reshape(-1)  # [R C]
+        success = success[:, None].expand(-1, self.num_candidates).reshape(-1)
+        reward = reward[:, None].expand(-1, self.num_candidates).reshape(-1)
+        for prefix in ("", "block_"):
+            count = getattr(self, prefix + "count").view(-1)
+            successes = getattr(self, prefix + "successes").view(-1)
+            new_count = count[where] + 1.0
+            new_successes = successes[where] + success
+            count[where] = new_count
+            successes[where] = new_successes
+            reward_sum = getattr(self, prefix + "reward_sum").view(-1)
+            reward_sum[where] = reward_sum[where] + reward
+            getattr(self, prefix + "log_marginal").view(-1)[where] = beta_bernoulli_log_marginal(
+                new_count, new_successes, self.prior_a, self.prior_b
+            )
+        self.samples[rows, action] += 1
+        self.block_samples[rows, action] += 1
+        self._decide(rows, action)
+        self._refresh_cache(rows, action)
+
+    def _refresh_cache(self, rows, action) -> None:
+        """Recompute the running means and posterior weights of the given (rows, actuators)."""
+        count, total = self.count[rows, action], self.reward_sum[rows, action]
+        self.mean[rows, action] = torch.where(count > 0, total / count.clamp(min=1.0), 0.0)
+        log_posterior = self.log_prior + self.log_marginal[rows, action].sum(dim=-1)
+        self.weights_cache[rows, action] = posterior_weights(log_posterior)
+
+    def _decide(self, rows: torch.Tensor, action: torch.Tensor) -> None:
+        """Commit open actuators that have the evidence; reopen committed ones that lost it."""
+        log_posterior = self.log_prior + self.log_marginal[rows, action].sum(dim=-1)  # [R, C]
+        committed = self.committed[rows, action]  # [R]
+        best = log_posterior.argmax(dim=-1)  # [R]
+        margin = self._margin(log_posterior, best)
+        commit = (committed < 0) & (margin >= self.log_bayes_factor)
+        # reopening, a change-point test on the block: the commitment's prediction of the block
+        # from the data before it, p(block | c*, earlier) = p(all | c*) / p(earlier | c*), against
+        # any candidate (c* too) fitted afresh to the block alone
+        held = committed.clamp(min=0)
+        index = (rows, action, held)
+        count, successes = self.count[index], self.successes[index]  # [R, P]
+        earlier = beta_bernoulli_log_marginal(
+            count - self.block_count[index],
+            successes - self.block_successes[index],
+            self.prior_a,
+            self.prior_b,
+        )
+        predicted = (self.log_marginal[index] - earlier).sum(dim=-1)  # [R]
+        lead = self.log_prior[held] + predicted
+        block_posterior = self.log_prior + self.block_log_marginal[rows, action].sum(dim=-1)
+        rival = block_posterior.max(dim=-1).values  # [R]
+        reopen = (committed >= 0) & (rival - lead >= self.log_bayes_factor)
+        new = torch.where(commit, best, committed)
+        new = torch.where(reopen, torch.full_like(new, -1), new)
+        self.committed[rows, action] = new
+        if bool(reopen.any()):  # forget everything: the block may straddle the change
+            lost_rows, lost_actions = rows[reopen], action[reopen]
+            for prefix in ("", "block_"):
+                for name in ("count", "successes", "reward_sum", "log_marginal"):
+                    getattr(self, prefix + name)[lost_rows, lost_actions] = 0.0
+            self.block_samples[lost_rows, lost_actions] = 0
+            self.reopened[lost_rows, lost_actions] += 1
+        full = self.block_samples[rows, action] >= self.window
+        if bool(full.any()):
+            full_rows, full_actions = rows[full], action[full]
+            for name in ("count", "successes", "reward_sum", "log_marginal"):
+                getattr(self, "block_" + name)[full_rows, full_actions] = 0.0
+            self.block_samples[full_rows, full_actions] = 0
+
+    def _margin(self, log_posterior: torch.Tensor, best: torch.Tensor) -> torch.Tensor:
+        """``[R]``: log posterior odds of ``best`` over its strongest competitor."""
+        rivals = self.competitors[best]  # [R, C]
+        lead = log_posterior.gather(1, best[:, None]).squeeze(1)
+        return lead - torch.where(rivals, log_posterior, -math.inf).max(dim=-1).values
+
+    @torch.no_grad()
+    def reset(self, mask: torch.Tensor | None = None) -> None:
+        """Forget everything (of every experiment, or only where ``mask`` ``[S]``)."""
+        mask = check_mask(mask, self.num_experiments, "StructureLearner.reset")
+        rows = slice(None) if mask is None else mask
+        for prefix in ("", "block_"):
+            for name in ("count", "successes", "reward_sum", "log_marginal"):
+                getattr(self, prefix + name)[rows] = 0.0
+        self.committed[rows] = -1
+        for name in ("samples", "block_samples", "reopened"):
+            getattr(self, name)[rows] = 0
+        self._refresh_cache(rows, slice(None))

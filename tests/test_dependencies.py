@@ -1,0 +1,106 @@
+"""``factorq dependencies`` (issue 12): the experiment, its files, its options, its env hook."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from torchrl.envs import TransformedEnv
+
+from envs import FactoredGridEnv
+from envs.permutation import PermuteSensors, permuted_dependency
+from envs.world import WorldConfig
+from factorq_torch.base.config import AgentConfig
+from factorq_torch.base.rng import derive_keys
+from trainers import cli, dependencies, fast
+
+TINY = dict(seeds=2, size=4, obstacles=2, runs=2, episodes=1, change_run=1, max_steps=200)
+
+
+def test_permute_sensors_reorders_each_experiment_and_can_be_redrawn():
+    base = FactoredGridEnv(size=3, num_obstacles=0, batch_size=(2,))
+    orders = torch.tensor([[1, 2, 3, 0], [0, 1, 2, 3]])
+    transform = PermuteSensors(orders)
+    env = TransformedEnv(base, transform)
+    raw = base.reset()["sensors"]
+    assert torch.equal(env.reset()["sensors"], raw.gather(-1, orders))
+    transform.set_permutations(torch.tensor([[0, 1, 2, 3], [3, 2, 1, 0]]), torch.tensor([0, 1]) > 0)
+    assert torch.equal(env.reset()["sensors"][1], raw[1].flip(0))
+    with pytest.raises(ValueError, match="permutation"):
+        PermuteSensors(torch.tensor([[0, 0, 1, 2]]))
+
+
+def test_permuted_dependency_follows_the_order():
+    dependency = torch.eye(3, dtype=torch.bool)
+    got = permuted_dependency(dependency, torch.tensor([[2, 0, 1]]))
+    # agent's sensor j is sensor order[j]: actuator 2's sensor 2 arrives as sensor 0
+    assert got[0].nonzero().tolist() == [[0, 1], [1, 2], [2, 0]]
+
+
+def test_compiled_path_takes_a_dependency_and_the_true_one_changes_nothing():
+    world = WorldConfig(size=5, num_obstacles=3, sensors="ring")
+    arguments = (torch.zeros(3, dtype=torch.int64), world, AgentConfig(), 2, 2)
+    keys = (derive_keys(0, 1, 3), derive_keys(0, 2, 3))
+    plain = fast.run_experiments("factor-q", *arguments, *keys)
+    same = fast.run_experiments("factor-q", *arguments, *keys, dependency=world.dependency)
+    assert all(torch.equal(plain[name], same[name]) for name in plain)
+    joint = fast.run_experiments(
+        "factor-q", *arguments, *keys, dependency=torch.ones(4, 8, dtype=torch.bool)
+    )
+    assert int(joint["steps"].sum()) > 0
+
+
+def test_a_tiny_experiment_writes_its_three_files(tmp_path):
+    config = dependencies.DependenciesConfig(
+        **TINY, settings=("cross", "ring-24", "change"), out=str(tmp_path)
+    )
+    results = dependencies.run(config)
+    paths = dependencies.write_outputs(results, tmp_path)
+    assert {path.name for path in paths.values()} == {
+        "dependencies.json",
+        "dependencies.md",
+        "dependencies.png",
+    }
+    saved = json.loads(paths["json"].read_text())
+    cross = saved["settings"]["cross"]
+    assert set(cross["methods"]) == {"learned", "oracle", "joint", "q-learning"}
+    assert "samples_until_right_median" in cross["structure"]
+    assert "collisions" in cross["against_oracle"]
+    assert "joint" in saved["skipped"]["ring-24"] and "q-learning" in saved["skipped"]["ring-24"]
+    assert "joint" in saved["skipped"]["change"]
+    assert "| cross |" in paths["report"].read_text()
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"bayes_factor": 1.0}, "bayes_factor=1.0 must be > 1"),
+        ({"max_parents": 3}, "max_parents=3 is past the cap"),
+        ({"settings": ("nope",)}, "settings"),
+        ({"change_run": 5, "runs": 5}, "change_run"),
+    ],
+)
+def test_bad_options_are_one_clear_error(options, message):
+    with pytest.raises(ValueError, match=message):
+        dependencies.DependenciesConfig(**options)
+
+
+def test_a_body_without_local_rewards_is_refused(monkeypatch):
+    monkeypatch.setitem(dependencies.SETTINGS, "cross", {"body": "translate", "sensors": "cross"})
+    no_collisions = torch.zeros(4, 4, dtype=torch.bool)
+    monkeypatch.setattr(WorldConfig, "dependency", property(lambda self: no_collisions))
+    with pytest.raises(ValueError, match="without local rewards"):
+        dependencies.DependenciesConfig(settings=("cross",))
+
+
+def test_cli_refuses_a_bayes_factor_of_one(capsys):
+    assert cli.main(["dependencies", "--bayes-factor", "1"]) == 2
+    assert "--bayes-factor=1.0 must be > 1" in capsys.readouterr().err
+
+
+def test_cli_keeps_earlier_results_unless_forced(tmp_path, capsys):
+    (tmp_path / "dependencies.json").write_text("{}")
+    assert cli.main(["dependencies", "--out", str(tmp_path)]) == 2
+    assert "already holds dependencies.json from an earlier run" in capsys.readouterr().err
+    assert (tmp_path / "dependencies.json").read_text() == "{}"

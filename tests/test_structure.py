@@ -1,0 +1,176 @@
+"""The structure learner (issue 12): marginal likelihoods, posterior, commitment, reopening."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from tensordict.nn import TensorDictSequential
+from torchrl.envs import TransformedEnv
+
+from envs import FactoredGridEnv, SplitLocalReward
+from factorq_torch.collectors import OnlineCollector
+from factorq_torch.objectives import FactorQLoss
+from factorq_torch.policy import FactorQPolicy
+from factorq_torch.structure import (
+    StructureLearner,
+    beta_bernoulli_log_marginal,
+    candidate_log_prior,
+    candidate_sets,
+    competitor_mask,
+)
+from factorq_torch.tables import TaskQTable
+
+
+def test_beta_bernoulli_log_marginal_matches_hand_computation():
+    # Beta(1, 1): n = 3, s = 1 -> B(2, 3) / B(1, 1) = 1! 2! / 4! = 1/12
+    # Beta(2, 1): n = 3, s = 1 -> B(3, 3) / B(2, 1) = (2! 2! / 5!) / (1! 0! / 2!) = (4/120) * 2
+    # n = s = 0 -> 0 (no data); a fractional success s = 0.5 of n = 1 with Beta(1, 1):
+    # Gamma(1.5) Gamma(1.5) / Gamma(3) = (sqrt(pi) / 2)**2 / 2 = pi / 8
+    count = torch.tensor([3.0, 0.0, 1.0])
+    successes = torch.tensor([1.0, 0.0, 0.5])
+    got = beta_bernoulli_log_marginal(count, successes)
+    assert got.dtype == torch.float64
+    expected = torch.tensor([math.log(1 / 12), 0.0, math.log(math.pi / 8)], dtype=torch.float64)
+    assert torch.allclose(got, expected, atol=1e-12)
+    got = beta_bernoulli_log_marginal(torch.tensor([3.0]), torch.tensor([1.0]), 2.0, 1.0)
+    assert math.isclose(got.item(), math.log(4 / 120 * 2), abs_tol=1e-12)
+
+
+def test_candidates_are_none_singles_then_pairs_and_larger_sets_are_refused():
+    assert candidate_sets(3) == [(), (0,), (1,), (2,), (0, 1), (0, 2), (1, 2)]
+    assert candidate_sets(3, max_parents=1) == [(), (0,), (1,), (2,)]
+    with pytest.raises(ValueError, match="max_parents=3 is past the cap of 2"):
+        candidate_sets(3, max_parents=3)
+    with pytest.raises(ValueError, match="max_parents=3"):
+        StructureLearner(1, num_actions=1, num_sensors=4, max_parents=3)
+
+
+def test_each_size_has_the_same_prior_mass():
+    prior = candidate_log_prior(candidate_sets(3)).exp()  # sizes 0, 1, 2: 1, 3, 3 candidates
+    expected = torch.tensor([1 / 3] + [1 / 9] * 6, dtype=torch.float64)
+    assert torch.allclose(prior, expected)
+    assert torch.allclose(
+        candidate_log_prior(candidate_sets(3), "uniform").exp(), prior * 0 + 1 / 7
+    )
+
+
+def test_competitors_are_all_but_the_strict_supersets_and_singles_compete_with_none():
+    sets = candidate_sets(2)  # (), (0,), (1,), (0, 1)
+    mask = competitor_mask(sets)
+    assert mask[0].tolist() == [False, True, True, False]  # none: the singles
+    assert mask[1].tolist() == [True, False, True, False]  # (0,): not its superset (0, 1)
+    assert mask[3].tolist() == [True, True, True, False]  # the pair: everything else
+
+
+def test_bad_options_are_refused_by_name():
+    with pytest.raises(ValueError, match="bayes_factor=1"):
+        StructureLearner(1, num_actions=1, num_sensors=2, bayes_factor=1)
+    with pytest.raises(ValueError, match="bayes_factor=0.5"):
+        StructureLearner(1, num_actions=1, num_sensors=2, bayes_factor=0.5)
+    with pytest.raises(ValueError, match="prior_a"):
+        StructureLearner(1, num_actions=1, num_sensors=2, prior_a=0.0)
+
+
+def test_posterior_and_weighted_prediction_match_hand_computation():
+    # Two firings of actuator 0 with K = 2: readings (1, 0) collided, readings (0, 1) did not.
+    # log p(D | c): none n=2, s=1: 1!1!/3! = 1/6; (0,): patterns 1 and 0 once each: 1/2 * 1/2;
+    # (1,) and (0, 1): likewise 1/4. Prior by size: 1/3, 1/6, 1/6, 1/3.
+    # Posterior ~ 1/18, 1/24, 1/24, 1/12 = (2, 1.5, 1.5, 3) / 8.
+    learner = StructureLearner(1, num_actions=2, num_sensors=2, bayes_factor=1e9)
+    learner.update_running_mean(
+        torch.tensor([[True, False]]), torch.tensor([0]), torch.tensor([[-1.0, 0.0]])
+    )
+    learner.update_running_mean(
+        torch.tensor([[False, True]]), torch.tensor([0]), torch.tensor([[0.0, 0.0]])
+    )
+    expected = torch.tensor([2.0, 1.5, 1.5, 3.0], dtype=torch.float64) / 8
+    assert torch.allclose(learner.posterior()[0, 0], expected)
+    # Under (1, 0): none predicts -1/2, every other candidate -1 (its pattern's one collision):
+    # 0.25 * -0.5 + 0.75 * -1 = -0.875; actuator 1 never fired: 0.
+    values = learner.local_values(torch.tensor([[True, False]]))
+    assert values.tolist() == [[-0.875, 0.0]]
+    assert learner.samples.tolist() == [[2, 0]]
+
+
+def _feed(learner, steps, parent, generator, noise=0.0):
+    """``steps`` firings of actuator 0 under random readings; sensor ``parent`` decides."""
+    for _ in range(steps):
+        sensors = (
+            torch.rand(learner.num_experiments, learner.num_sensors, generator=generator) < 0.5
+        )
+        collided = sensors[:, parent]
+        if noise:
+            flip = torch.rand(learner.num_experiments, generator=generator) < noise
+            collided = collided ^ flip
+        reward = torch.zeros(learner.num_experiments, learner.num_actions)
+        reward[:, 0] = -collided.float()
+        action = torch.zeros(learner.num_experiments, dtype=torch.int64)
+        learner.update_running_mean(sensors, action, reward)
+
+
+def test_commits_to_the_deciding_sensor_and_reopens_when_the_body_changes():
+    generator = torch.Generator().manual_seed(0)
+    learner = StructureLearner(16, num_actions=1, num_sensors=8, window=50)
+    _feed(learner, 60, parent=3, generator=generator)
+    assert learner.is_committed().all()
+    assert (learner.structure()[:, 0].nonzero()[:, 1] == 3).all()
+    _feed(learner, 150, parent=5, generator=generator)  # the body changed
+    assert (learner.reopened >= 1).all()
+    assert learner.is_committed().all()
+    assert (learner.structure()[:, 0].nonzero()[:, 1] == 5).all()
+
+
+def test_masked_experiments_do_not_learn():
+    learner = StructureLearner(2, num_actions=1, num_sensors=2)
+    learner.update_running_mean(
+        torch.tensor([[True, False]] * 2),
+        torch.tensor([0, 0]),
+        torch.tensor([[-1.0], [-1.0]]),
+        mask=torch.tensor([True, False]),
+    )
+    assert learner.samples.tolist() == [[1], [0]]
+    assert learner.count[1].sum() == 0
+    learner.reset()
+    assert learner.samples.sum() == 0 and learner.count.sum() == 0
+
+
+def test_static_world_location_tied_sensors_do_not_fool_it():
+    # Random walk in the static world; the learner sees the four proximity bits *and* the four
+    # bump bits of the previous step (tied to the location: the same face's bump, the opposite
+    # proximity bit); only proximity bit a decides actuator a's collision.
+    count = 16
+    env = FactoredGridEnv(size=6, num_obstacles=5, obstacle_period=0, batch_size=(count,), seed=1)
+    learner = StructureLearner(count, num_actions=4, num_sensors=8)
+    generator = torch.Generator().manual_seed(1)
+    td = env.reset()
+    wrong = torch.zeros(count, 4, dtype=torch.bool)
+    truth = torch.cat([torch.eye(4, dtype=torch.bool), torch.zeros(4, 4, dtype=torch.bool)], 1)
+    for _ in range(500):
+        readings = torch.cat([td["sensors"], td["bump"]], dim=-1)  # [S, 8], before acting
+        td["action"] = torch.randint(0, 4, (count,), generator=generator)
+        td = env.step(td)
+        learner.update_running_mean(readings, td["action"], td["next", "collision"])
+        wrong |= learner.is_committed() & ~(learner.structure() == truth).all(-1)
+        td = env.step_mdp(td)
+        done = td["done"].squeeze(-1)
+        if done.any():
+            td["_reset"] = done.unsqueeze(-1)
+            td = env.reset(td)
+    assert not wrong.any()
+    assert learner.is_committed().float().mean() >= 0.9
+
+
+def test_it_is_a_local_value_provider_for_the_factorq_loss_policy_and_collector():
+    count = 3
+    base = FactoredGridEnv(size=4, num_obstacles=2, obstacle_period=1, batch_size=(count,), seed=0)
+    env = TransformedEnv(base, SplitLocalReward())
+    task = TaskQTable(count, num_cells=16)
+    learner = StructureLearner(count, num_actions=4, num_sensors=4)
+    policy = TensorDictSequential(task, learner, FactorQPolicy(count, seed=0))
+    collector = OnlineCollector(env, policy, FactorQLoss(task, learner), runs=2, episodes=2)
+    metrics = collector.run()
+    assert int(learner.samples.sum()) == int(metrics["steps"].sum())
+    td = policy(env.reset())
+    assert td["local_value"].shape == (count, 4) and td["local_value"].dtype == torch.float32

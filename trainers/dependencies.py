@@ -1,0 +1,517 @@
+"""``factorq dependencies``: Factor-Q that learns its own sensor-actuator pairing (issue 12).
+
+Per *setting* (a body, a sensor layout, noise, a change), ``seeds`` experiments of ``runs`` x
+``episodes`` episodes (task tables reset per run, local knowledge kept, SPEC section 4) for four
+methods on the same worlds (common random numbers: the same world keys):
+
+- ``learned``: ``factorq_torch.structure.StructureLearner`` as the local value provider, through
+  ``FactorQPolicy``, ``FactorQLoss`` and ``OnlineCollector`` (the modular torchrl path), told
+  nothing of the body; every experiment receives its sensors in its own random order
+  (``envs.permutation.PermuteSensors``), redrawn at run ``change_run`` in the ``change`` setting;
+- ``oracle``: ``LocalRewardTable`` with the true dependency (the paper), on the compiled path;
+- ``joint``: Factor-Q with one local table per actuator over the pattern of *all* sensors (the
+  paper's footnote 2), compiled, where ``2**K`` entries fit (``tables.MAX_PARENTS``);
+- ``q-learning``: compiled, where its table fits (``tables.MAX_TABLE_ENTRIES``).
+
+The oracle, the joint table and Q-learning do not depend on the order of the sensors (a
+permutation relabels their table entries), so they run without the transform and give exactly
+the numbers they would give with it; the exception is a change *mid-experiment* for the joint
+table (its table outlives the change), which the compiled path cannot run: it is reported as not
+run in that setting.
+
+Structure metrics (``learned`` only), per experiment: the local samples (firings) per actuator
+until it holds the right parents and keeps them to the end (the experiment's value: the largest
+over its actuators; in the ``change`` setting counted from the change), wrong commitments
+(commitments to a parent set other than the truth of that moment), the structural Hamming
+distance at the end (parents missing or extra, an open actuator counting as "no parents").
+
+Writes ``dependencies.json``, ``dependencies.png`` and ``dependencies.md`` to ``out``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from envs.world import WORLD_PERIODS, WORLDS, WorldConfig
+from factorq_torch.base.config import AgentConfig
+from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
+from factorq_torch.base.validation import check_int, check_names
+from trainers.experiment import MAX_SEED, check_world_options, experiment_keys
+from trainers.options import option
+from trainers.results import dumps, write_all_atomic
+from trainers.stats import bootstrap_indices, format_number, quantiles
+
+#: The settings of the issue: name -> body options (the sensor order is drawn per experiment).
+SETTINGS: dict[str, dict[str, Any]] = {
+    "cross": {"body": "translate", "sensors": "cross"},
+    "ring-24": {"body": "translate", "sensors": "ring", "num_distractors": 24},
+    "heading": {"body": "heading", "sensors": "cross"},
+    "noise-5": {"body": "translate", "sensors": "cross", "sensor_noise": 0.05},
+    "noise-10": {"body": "translate", "sensors": "cross", "sensor_noise": 0.10},
+    "change": {"body": "translate", "sensors": "cross"},
+}
+METHODS = ("learned", "oracle", "joint", "q-learning")
+METHOD_LABELS = {
+    "learned": "learned structure",
+    "oracle": "oracle pairing",
+    "joint": "full joint table",
+    "q-learning": "Q-learning",
+}
+#: Substream of the experiment key that draws the sensor orders (first, then after the change).
+STREAM_ORDER = 7
+#: The issue's thresholds: local samples per actuator.
+SAMPLES_TARGET = 100
+SAMPLES_TARGET_CHANGE = 200
+#: Env steps between two points of the "right structure" curve.
+CURVE_EVERY = 10
+JSON_FILE, FIGURE_FILE, REPORT_FILE = "dependencies.json", "dependencies.png", "dependencies.md"
+
+
+@dataclass(frozen=True)
+class DependenciesConfig:
+    """The structure-learning experiment; defaults run in about a minute on 2 cores."""
+
+    seed: int = option(0, "Master seed: worlds, sensor orders and policies derive from it.")
+    seeds: int = option(20, "Independent experiments per setting (and method).")
+    settings: tuple[str, ...] = option(
+        tuple(SETTINGS), "Settings to run: " + ", ".join(SETTINGS) + " (comma-separated)."
+    )
+    world: str = option("static", "World: static, semi-dynamic or dynamic.", choices=WORLDS)
+    runs: int = option(10, "Runs per experiment (task tables reset at each).")
+    episodes: int = option(1, "Episodes per run.")
+    size: int = option(6, "Side of the square grid, in cells.")
+    obstacles: int = option(4, "Number of single-cell obstacles.")
+    max_steps: int = option(1_000, "Actions after which an episode is truncated.")
+    layout_seed: int = option(0, "Seed of the static world's obstacle layout.")
+    bayes_factor: float = option(100.0, "Posterior odds at which a parent set is committed to.")
+    max_parents: int = option(2, "Largest candidate parent set (0, 1 or 2: pairs).")
+    window: int = option(100, "Firings per actuator in the block the reopening test reads.")
+    change_run: int = option(5, "Run at which the change setting redraws the sensor order.")
+    out: str = option("results/dependencies", "Directory for the json, figure and report.")
+
+    def __post_init__(self) -> None:
+        check_int("seed", self.seed, 0, MAX_SEED)
+        check_int("seeds", self.seeds, 1)
+        object.__setattr__(self, "settings", check_names("settings", self.settings, SETTINGS))
+        check_int("runs", self.runs, 1)
+        check_int("episodes", self.episodes, 1)
+        check_int("max_parents", self.max_parents, 0)
+        check_int("window", self.window, 1)
+        if not isinstance(self.bayes_factor, (int, float)) or not self.bayes_factor > 1:
+            raise ValueError(
+                f"bayes_factor={self.bayes_factor!r} must be > 1 (a commitment needs evidence "
+                f"for the best candidate over the runner-up)"
+            )
+        from factorq_torch.structure import candidate_sets
+
+        candidate_sets(4, self.max_parents)  # the cap on the candidate sets, named
+        if "change" in self.settings:
+            check_int("change_run", self.change_run, 1, self.runs - 1)
+        for name in self.settings:
+            world = self.world_of(name)
+            if not bool(world.dependency.any()):
+                raise ValueError(
+                    f"settings: {name!r} has a body without local rewards (no actuator can "
+                    f"collide): there is no structure to learn"
+                )
+
+    def world_of(self, setting: str) -> WorldConfig:
+        options = {"body": "translate", "sensors": "cross", **SETTINGS[setting]}
+        renamed = {"num_distractors": "distractors"}
+        body = {renamed.get(name, name): value for name, value in options.items()}
+        return check_world_options(
+            self.size, self.obstacles, self.max_steps, self.layout_seed, (self.world,), body
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# One setting
+
+
+def sensor_orders(
+    seed: int, setting: str, count: int, num_sensors: int, redraw: int
+) -> torch.Tensor:
+    """``[count, K]``: experiment ``i``'s sensor order (``redraw`` 0: the first, 1: after the
+    change), drawn from its own generator seeded by ``(seed, setting, i, redraw)``."""
+    orders = []
+    setting_index = list(SETTINGS).index(setting)
+    for index in range(count):
+        generator = torch.Generator().manual_seed(
+            hash((seed, STREAM_ORDER, setting_index, index, redraw)) & (2**63 - 1)
+        )
+        orders.append(torch.randperm(num_sensors, generator=generator))
+    return torch.stack(orders)
+
+
+def _keys(config: DependenciesConfig, method: str) -> tuple[torch.Tensor, torch.Tensor]:
+    labels = [(config.world, index) for index in range(config.seeds)]
+    world_keys = experiment_keys(config.seed, STREAM_WORLD, labels)
+    policy_keys = experiment_keys(config.seed, STREAM_POLICY, labels, METHODS, method)
+    return world_keys, policy_keys
+
+
+def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
+    """The learned structure on the modular torchrl path, with its structure metrics."""
+    from tensordict.nn import TensorDictSequential
+    from torchrl.envs import Compose, TransformedEnv
+
+    from envs.permutation import PermuteSensors, permuted_dependency
+    from envs.transforms import SplitLocalReward
+    from factorq_torch.collectors import OnlineCollector
+    from factorq_torch.objectives import FactorQLoss
+    from factorq_torch.policy import FactorQPolicy
+    from factorq_torch.structure import StructureLearner
+    from factorq_torch.tables import TaskQTable
+    from trainers.experiment import make_env
+
+    world, agent = config.world_of(setting), AgentConfig()
+    count, num_sensors = config.seeds, world.num_sensors
+    world_keys, policy_keys = _keys(config, "learned")
+    periods = [WORLD_PERIODS[config.world]] * count
+    orders = sensor_orders(config.seed, setting, count, num_sensors, 0)
+    permute = PermuteSensors(orders)
+    env = TransformedEnv(make_env(world, periods, world_keys), Compose(SplitLocalReward(), permute))
+    task = TaskQTable(
+        count, world.num_cells, num_headings=world.num_headings, num_actions=world.num_actuators
+    )
+    learner = StructureLearner(
+        count,
+        num_actions=world.num_actuators,
+        num_sensors=num_sensors,
+        max_parents=config.max_parents,
+        bayes_factor=config.bayes_factor,
+        window=config.window,
+    )
+    policy = FactorQPolicy(count, keys=policy_keys, epsilon=agent.epsilon)
+    loss = FactorQLoss(task, learner, gamma=agent.gamma, alpha=agent.alpha)
+    collector = OnlineCollector(
+        env,
+        TensorDictSequential(task, learner, policy),
+        loss,
+        runs=config.runs,
+        episodes=config.episodes,
+    )
+    truth = permuted_dependency(world.dependency, orders)  # [S, A, K]
+    actuators = world.num_actuators
+    right_since = torch.full((count, actuators), -1)  # samples when it last became right
+    samples_at_change = torch.zeros(count, actuators, dtype=torch.int64)
+    changed = torch.zeros(count, dtype=torch.bool)
+    wrong_commitments = torch.zeros(count, dtype=torch.int64)
+    previous = learner.committed.clone()
+    steps = torch.zeros(count, dtype=torch.int64)
+    curve_steps, curve_right = [], []
+    step = 0
+    for td in collector:
+        step += 1
+        steps += td.get(("collector", "mask")).to(torch.int64)
+        if setting == "change":
+            due = (collector.run_index >= config.change_run) & ~changed
+            if bool(due.any()):
+                new_orders = sensor_orders(config.seed, setting, count, num_sensors, 1)
+                permute.set_permutations(new_orders, due)
+                truth[due] = permuted_dependency(world.dependency, new_orders)[due]
+                samples_at_change[due] = learner.samples[due]
+                changed |= due
+        right = (learner.structure() == truth).all(dim=-1)  # [S, A]
+        right_since = torch.where(
+            right, torch.where(right_since < 0, learner.samples, right_since), -1
+        )
+        committed = learner.committed
+        new_commit = (committed >= 0) & (committed != previous)
+        wrong_commitments += (new_commit & ~right).sum(dim=-1)
+        previous = committed.clone()
+        if step % CURVE_EVERY == 0:
+            curve_steps.append(int(steps.float().mean()))
+            curve_right.append(float(right.all(dim=-1).float().mean()))
+    metrics = {name: collector.metrics.get(name) for name in collector.metrics.keys()}
+    final_right = right.all(dim=-1)
+    since = right_since - (samples_at_change if setting == "change" else 0)
+    since = since.clamp(min=0).to(torch.float64)
+    until_right = torch.where(final_right, since.max(dim=-1).values, math.inf)
+    structure = learner.structure()
+    hamming = (structure != truth).sum(dim=(1, 2))
+    return {
+        "metrics": metrics,
+        "samples_until_right": until_right.tolist(),
+        "wrong_commitments": wrong_commitments.tolist(),
+        "hamming_at_end": hamming.tolist(),
+        "reopened": learner.reopened.sum(dim=-1).tolist(),
+        "samples_per_actuator": learner.samples.tolist(),
+        "curve": {"env_steps": curve_steps, "fraction_right": curve_right},
+    }
+
+
+def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[str, Any] | None:
+    """The oracle, the joint table or Q-learning on the compiled path (``None``: does not fit
+    or cannot run this setting; the reason is in ``skipped``)."""
+    from trainers import fast
+
+    world = config.world_of(setting)
+    world_keys, policy_keys = _keys(config, method)
+    periods = torch.full((config.seeds,), WORLD_PERIODS[config.world], dtype=torch.int64)
+    dependency, algorithm = None, "factor-q"
+    if method == "joint":
+        dependency = torch.ones(world.num_actuators, world.num_sensors, dtype=torch.bool)
+    if method == "q-learning":
+        algorithm = "q-learning"
+    metrics = fast.run_experiments(
+        algorithm,
+        periods,
+        world,
+        AgentConfig(),
+        config.runs,
+        config.episodes,
+        world_keys,
+        policy_keys,
+        threads=1,
+        dependency=dependency,
+    )
+    return {"metrics": metrics}
+
+
+def skipped_reason(config: DependenciesConfig, setting: str, method: str) -> str | None:
+    """Why ``method`` does not run in ``setting`` (``None``: it runs)."""
+    from factorq_torch.tables import MAX_PARENTS, MAX_TABLE_ENTRIES
+    from trainers import fast
+
+    world = config.world_of(setting)
+    if method == "learned":
+        return None
+    if not fast.is_available():
+        return f"the compiled path is unavailable ({fast.unavailable_reason()})"
+    if method == "joint" and world.num_sensors > MAX_PARENTS:
+        return (
+            f"a joint table over {world.num_sensors} sensors needs 2**{world.num_sensors} "
+            f"entries per actuator, past the cap of 2**{MAX_PARENTS}"
+        )
+    if method == "joint" and setting == "change":
+        return "the compiled path cannot change the sensor order mid-experiment"
+    if method == "q-learning":
+        entries = (world.num_cells * world.num_headings << world.num_sensors) * world.num_actuators
+        if entries > MAX_TABLE_ENTRIES:
+            return f"its table needs {entries} values per experiment, past 2**24"
+    return None
+
+
+# --------------------------------------------------------------------------------------------
+# Statistics
+
+
+def _ratio(numerator: np.ndarray, denominator: np.ndarray, seed: int) -> dict[str, Any]:
+    """Ratio of means with a paired bootstrap 95% interval over the seeds."""
+    value = float(numerator.mean() / denominator.mean()) if denominator.mean() else math.inf
+    if numerator.size < 2:
+        return {"ratio": value, "ci": None}
+    index = bootstrap_indices(seed, numerator.size)
+    top, bottom = numerator[index].mean(axis=1), denominator[index].mean(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratios = np.where(bottom > 0, top / np.where(bottom > 0, bottom, 1), np.inf)
+    return {"ratio": value, "ci": quantiles(ratios)}
+
+
+def _percentile(values: np.ndarray, q: float) -> float | None:
+    value = float(np.quantile(values, q, method="inverted_cdf"))
+    return value if math.isfinite(value) else None
+
+
+def summarise_setting(
+    config: DependenciesConfig, setting: str, runs: dict[str, dict[str, Any]]
+) -> dict[str, Any]:
+    """Per method its totals; for ``learned`` the structure metrics and the ratios to the
+    oracle."""
+    summary: dict[str, Any] = {"methods": {}}
+    totals = {}
+    for method, result in runs.items():
+        metrics = result["metrics"]
+        steps = metrics["steps"].to(torch.float64)  # [S, runs, episodes]
+        collisions = metrics["collisions"].sum(dim=(1, 2)).double().numpy()
+        greedy = metrics["greedy_collisions"].sum(dim=(1, 2)).double().numpy()
+        per_run = steps.sum(dim=2).mean(dim=1).numpy()
+        totals[method] = {"collisions": collisions, "greedy": greedy, "steps": per_run}
+        summary["methods"][method] = {
+            "collisions_per_experiment": float(collisions.mean()),
+            "greedy_collisions_per_experiment": float(greedy.mean()),
+            "steps_per_run": float(per_run.mean()),
+            "collisions_per_episode": metrics["collisions"]
+            .double()
+            .flatten(1)
+            .mean(dim=0)
+            .tolist(),
+        }
+    learned = runs.get("learned")
+    if learned is None:
+        return summary
+    until = np.asarray(learned["samples_until_right"], dtype=np.float64)
+    target = SAMPLES_TARGET_CHANGE if setting == "change" else SAMPLES_TARGET
+    summary["structure"] = {
+        "samples_until_right_median": _percentile(until, 0.5),
+        "samples_until_right_p90": _percentile(until, 0.9),
+        "samples_target": target,
+        "fraction_right_within_target": float((until <= target).mean()),
+        "fraction_right_at_end": float(np.isfinite(until).mean()),
+        "wrong_commitments_per_1000": 1000 * float(np.mean(learned["wrong_commitments"])),
+        "hamming_at_end_mean": float(np.mean(learned["hamming_at_end"])),
+        "reopened_per_experiment": float(np.mean(learned["reopened"])),
+        "curve": learned["curve"],
+    }
+    if "oracle" in totals:
+        mine, oracle = totals["learned"], totals["oracle"]
+        summary["against_oracle"] = {
+            "collisions": _ratio(mine["collisions"], oracle["collisions"], config.seed),
+            "greedy_collisions": _ratio(mine["greedy"], oracle["greedy"], config.seed),
+            # learning speed = 1 / steps per run: learned speed / oracle speed
+            "learning_speed": _ratio(oracle["steps"], mine["steps"], config.seed),
+        }
+    return summary
+
+
+# --------------------------------------------------------------------------------------------
+# The experiment
+
+
+def run(
+    config: DependenciesConfig, progress: Callable[[str, str], None] | None = None
+) -> dict[str, Any]:
+    """Every setting x method; returns the results (what ``dependencies.json`` holds)."""
+    started = time.perf_counter()
+    results: dict[str, Any] = {"config": asdict(config), "settings": {}, "skipped": {}}
+    for setting in config.settings:
+        runs: dict[str, dict[str, Any]] = {}
+        for method in METHODS:
+            reason = skipped_reason(config, setting, method)
+            if reason is not None:
+                results["skipped"].setdefault(setting, {})[method] = reason
+                continue
+            if progress is not None:
+                progress(setting, method)
+            if method == "learned":
+                runs[method] = run_learned(config, setting)
+            else:
+                runs[method] = run_compiled(config, setting, method)
+        results["settings"][setting] = summarise_setting(config, setting, runs)
+    results["timing"] = {"wall_seconds": time.perf_counter() - started}
+    return results
+
+
+# --------------------------------------------------------------------------------------------
+# Files
+
+
+def _ratio_text(entry: dict[str, Any] | None) -> str:
+    if entry is None:
+        return "n/a"
+    text = format_number(entry["ratio"])
+    if entry.get("ci"):
+        low, high = entry["ci"]
+        text += f" [{format_number(low)}, {format_number(high)}]"
+    return text
+
+
+def report_markdown(results: dict[str, Any]) -> str:
+    """The table of the issue's metrics, one row per setting, and the baselines' totals."""
+    config = results["config"]
+    lines = [
+        "# Learned sensor-actuator dependencies",
+        "",
+        f"{config['seeds']} experiments per setting, {config['runs']} runs x {config['episodes']} "
+        f"episodes each, {config['world']} world {config['size']}x{config['size']} with "
+        f"{config['obstacles']} obstacles, Bayes factor {format_number(config['bayes_factor'])}; "
+        f"wall time {results['timing']['wall_seconds']:.1f} s.",
+        "",
+        "| setting | samples until right (median, p90) | right within target | wrong commitments "
+        "/ 1000 | SHD at end | collisions vs oracle | greedy collisions vs oracle | learning speed "
+        "vs oracle |",
+        "| --- | --- | --- | ---: | ---: | --- | --- | --- |",
+    ]
+    for setting, summary in results["settings"].items():
+        structure = summary.get("structure")
+        if structure is None:
+            continue
+        against = summary.get("against_oracle", {})
+        lines.append(
+            f"| {setting} | {format_number(structure['samples_until_right_median'])}, "
+            f"{format_number(structure['samples_until_right_p90'])} | "
+            f"{100 * structure['fraction_right_within_target']:.0f}% "
+            f"(<= {structure['samples_target']}) | "
+            f"{format_number(structure['wrong_commitments_per_1000'])} | "
+            f"{format_number(structure['hamming_at_end_mean'])} | "
+            f"{_ratio_text(against.get('collisions'))} | "
+            f"{_ratio_text(against.get('greedy_collisions'))} | "
+            f"{_ratio_text(against.get('learning_speed'))} |"
+        )
+    lines += [
+        "",
+        "Per experiment (means): collisions, greedy collisions, env steps per run.",
+        "",
+        "| setting | method | collisions | greedy collisions | steps per run |",
+        "| --- | --- | ---: | ---: | ---: |",
+    ]
+    for setting, summary in results["settings"].items():
+        for method, entry in summary["methods"].items():
+            lines.append(
+                f"| {setting} | {METHOD_LABELS[method]} | "
+                f"{format_number(entry['collisions_per_experiment'])} | "
+                f"{format_number(entry['greedy_collisions_per_experiment'])} | "
+                f"{format_number(entry['steps_per_run'])} |"
+            )
+    for setting, skipped in results.get("skipped", {}).items():
+        for method, reason in skipped.items():
+            lines.append(f"\nNot run: {METHOD_LABELS[method]} in {setting}: {reason}.")
+    return "\n".join(lines) + "\n"
+
+
+def write_figure(results: dict[str, Any], path: Path) -> None:
+    """Top: fraction of experiments holding the right structure against env steps, per setting;
+    bottom: collisions per episode per method."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    settings = list(results["settings"])
+    figure = Figure(figsize=(3.2 * max(len(settings), 1), 6.0), layout="constrained")
+    FigureCanvasAgg(figure)
+    axes = figure.subplots(2, max(len(settings), 1), squeeze=False)
+    for column, setting in enumerate(settings):
+        summary = results["settings"][setting]
+        top, bottom = axes[0, column], axes[1, column]
+        structure = summary.get("structure")
+        if structure is not None:
+            curve = structure["curve"]
+            top.plot(curve["env_steps"], curve["fraction_right"], color="C0")
+        top.set_title(setting)
+        top.set_ylim(-0.02, 1.02)
+        top.set_xlabel("env steps")
+        if column == 0:
+            top.set_ylabel("fraction with the right structure")
+        for method, entry in summary["methods"].items():
+            values = entry["collisions_per_episode"]
+            color = f"C{METHODS.index(method)}"  # one colour per method in every panel
+            bottom.plot(range(1, len(values) + 1), values, label=METHOD_LABELS[method], color=color)
+        bottom.set_yscale("symlog", linthresh=1.0)
+        bottom.set_xlabel("episode")
+        if column == 0:
+            bottom.set_ylabel("collisions per episode")
+            bottom.legend(fontsize="small")
+    figure.savefig(path, format="png", dpi=110)
+
+
+def write_outputs(results: dict[str, Any], out: str | Path) -> dict[str, Path]:
+    """Write dependencies.json, dependencies.png and dependencies.md to ``out``, atomically."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"json": out / JSON_FILE, "figure": out / FIGURE_FILE, "report": out / REPORT_FILE}
+    write_all_atomic(
+        {
+            paths["json"]: lambda path: path.write_text(dumps(results)),
+            paths["figure"]: lambda path: write_figure(results, path),
+            paths["report"]: lambda path: path.write_text(report_markdown(results)),
+        }
+    )
+    return paths
