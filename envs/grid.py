@@ -109,6 +109,9 @@ class FactoredGridEnv(EnvBase):
         experiment_offset: index of this batch's first world among all experiments: world ``i``
             gets the key of experiment ``experiment_offset + i``, so a batch of 1 at offset ``i``
             replays world ``i`` of a larger batch exactly.
+        world_keys: int64 ``[S]``, the worlds' stream keys given outright (a trainer's keys,
+            e.g. ``3 i + w`` of a mixed batch, that no ``seed`` / ``experiment_offset`` range
+            describes); ``set_seed`` replaces them.
         body, sensors, num_distractors, sensor_permutation, sensor_noise, actuator_noise: the
             agent's body and sensors, as ``WorldConfig`` (defaults: the paper's). ``dependency``
             is the resulting ground truth, bool ``[actuators, sensors]``.
@@ -162,6 +165,7 @@ class FactoredGridEnv(EnvBase):
         device: torch.device | str | None = None,
         seed: int | None = None,
         experiment_offset: int = 0,
+        world_keys: torch.Tensor | None = None,
         body: str = "translate",
         sensors: str = "cross",
         num_distractors: int = 0,
@@ -209,6 +213,17 @@ class FactoredGridEnv(EnvBase):
         self._started = False  # set by the first reset (or by assigning world_state)
         self._make_specs()
         self._set_seed(seed)
+        if world_keys is not None:
+            if (
+                not isinstance(world_keys, torch.Tensor)
+                or world_keys.dtype != torch.int64
+                or tuple(world_keys.shape) != (num_worlds,)
+            ):
+                raise ValueError(
+                    f"world_keys must be an int64 tensor of shape [{num_worlds}] (one key per "
+                    f"world), got {world_keys!r:.80}"
+                )
+            self.world_keys = world_keys.to(self.device)
 
     @property
     def world_state(self) -> WorldState:

@@ -57,7 +57,7 @@ with warnings.catch_warnings():
 #: ``progress(episodes, experiments)``: episodes and experiments completed since the last call.
 ProgressCallback = Callable[[int, int], None]
 
-METRICS = ("steps", "collisions", "greedy_collisions", "task_return")
+METRICS = keys.EPISODE_METRICS
 
 
 class OnlineCollector(BaseCollector):

@@ -60,23 +60,13 @@ from torch import nn
 
 from factorq_torch.base import keys as names
 from factorq_torch.base.rng import MASK64, STREAM_LOCAL_NETWORK, STREAM_TASK_NETWORK, derive_keys
-from factorq_torch.base.validation import check_int
+from factorq_torch.base.validation import check_hidden, check_int
 from factorq_torch.functional import check_dependency
 
 NUM_ACTIONS = 4
 ACTIVATIONS = ("relu", "tanh")
 
 #: Random streams of the networks' initial weights (the others are in ``factorq_torch.base.rng``).
-
-
-def _check_hidden(hidden) -> tuple[int, ...]:
-    if isinstance(hidden, int) and not isinstance(hidden, bool):
-        hidden = (hidden,)
-    if not isinstance(hidden, Sequence) or isinstance(hidden, str):
-        raise TypeError(f"hidden must be a sequence of layer widths, e.g. (64, 64), got {hidden!r}")
-    for width in hidden:
-        check_int("hidden layer width", width, 1)
-    return tuple(hidden)
 
 
 class BatchedMLP(nn.Module):
@@ -258,7 +248,7 @@ class TaskQNetwork(TensorDictModuleBase):
             (num_experiments,),
             in_features,
             num_actions,
-            hidden=_check_hidden(hidden),
+            hidden=check_hidden("hidden layer", hidden),
             keys=_keys(keys, seed, STREAM_TASK_NETWORK, num_experiments, offset),
             activation=activation,
             zero_output=zero_output,
@@ -365,7 +355,7 @@ class LocalRewardNetwork(TensorDictModuleBase):
             (num_experiments,) if shared else (num_experiments, self.num_actions),
             parents,
             1,
-            hidden=_check_hidden(hidden),
+            hidden=check_hidden("hidden layer", hidden),
             keys=_keys(keys, seed, STREAM_LOCAL_NETWORK, num_experiments, offset),
             bias=bias,
             activation=activation,

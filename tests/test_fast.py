@@ -22,6 +22,7 @@ from envs.world import (
 )
 from factorq_torch import functional
 from factorq_torch.base.config import AgentConfig
+from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_torch.base.rng import (
     MASK64,
     POLICY_DRAWS_PER_STEP,
@@ -37,7 +38,7 @@ pytestmark = pytest.mark.skipif(
     not fast.is_available(), reason=f"fast path unavailable: {fast.unavailable_reason()}"
 )
 
-METRICS = ("steps", "collisions", "greedy_collisions", "task_return")
+METRICS = EPISODE_METRICS
 SMALL_WORLD = WorldConfig(size=6, num_obstacles=5, max_steps=150)
 
 

@@ -414,3 +414,15 @@ def test_missing_action_raises_naming_it():
     env = FactoredGridEnv()
     with pytest.raises(ValueError, match="action is missing"):
         env.step(env.reset())
+
+
+def test_world_keys_given_outright_replay_that_world_of_a_larger_batch():
+    large = FactoredGridEnv(size=5, num_obstacles=4, obstacle_period=1, batch_size=(3,), seed=5)
+    alone = FactoredGridEnv(
+        size=5, num_obstacles=4, obstacle_period=1, batch_size=(1,), world_keys=large.world_keys[2:]
+    )
+    first, second = large.reset(), alone.reset()
+    assert torch.equal(large.obstacle_map()[2:], alone.obstacle_map())
+    assert torch.equal(first["sensors"][2:], second["sensors"])
+    with pytest.raises(ValueError, match=r"world_keys must be an int64 tensor of shape \[2\]"):
+        FactoredGridEnv(batch_size=(2,), world_keys=torch.zeros(3, dtype=torch.int64))

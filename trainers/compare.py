@@ -53,11 +53,11 @@ from envs.world import shortest_path_length as path_length_around
 from envs.world import static_layout
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import STREAM_LOCAL_NETWORK, STREAM_POLICY, STREAM_TASK_NETWORK
-from factorq_torch.base.validation import check_float, check_names, check_threads
+from factorq_torch.base.validation import check_float, check_hidden, check_names, check_threads
 from factorq_torch.collectors import OnlineCollector
 from factorq_torch.neural import ACTIVATIONS, LocalRewardNetwork, TaskQNetwork
 from trainers import checkpoint, dqn, experiment, resources
-from trainers.dqn import METHODS, DQNConfig, batch_keys, check_hidden
+from trainers.dqn import METHODS, DQNConfig, batch_keys
 from trainers.experiment import WORLDS, EpisodeRecorder, ExperimentConfig
 from trainers.options import option
 from trainers.stats import finite_or_none, mean_ci, scalar_ci

@@ -41,7 +41,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -56,7 +56,7 @@ from torchrl.objectives import DQNLoss, HardUpdate
 from envs.grid import FactoredGridEnv
 from envs.world import NUM_ACTIONS
 from factorq_torch.base.rng import STREAM_TASK_NETWORK, STREAM_WORLD
-from factorq_torch.base.validation import INT32_MAX, check_float, check_int
+from factorq_torch.base.validation import INT32_MAX, check_float, check_hidden, check_int
 from factorq_torch.neural import TaskQNetwork
 from trainers.experiment import EpisodeRecorder, ExperimentConfig, experiment_keys, make_env
 from trainers.options import option
@@ -67,22 +67,10 @@ with warnings.catch_warnings():
     from torchrl.collectors import Collector
 
 #: The widest hidden layer a config accepts (a layer's weights are [E, width, width] float32).
-MAX_WIDTH = 65_536
 #: Methods of ``trainers.compare``; a method's index is part of its experiments' keys.
 METHODS = ("factor-q", "q-learning", "dqn", "factor-dqn")
 # --------------------------------------------------------------------------------------------
 # Validation
-
-
-def check_hidden(name: str, value: Any) -> tuple[int, ...]:
-    """Hidden layer widths as a tuple of ints >= 1."""
-    if isinstance(value, str) or not isinstance(value, Sequence):
-        raise TypeError(
-            f"{name} must be a sequence of layer widths such as (64, 64), got {value!r}"
-        )
-    for width in value:
-        check_int(f"{name} width", width, 1, MAX_WIDTH)
-    return tuple(value)
 
 
 def batch_keys(

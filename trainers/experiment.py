@@ -171,10 +171,9 @@ def make_env(
         sensor_permutation=world.sensor_permutation,
         sensor_noise=world.sensor_noise,
         actuator_noise=world.actuator_noise,
+        # not a contiguous range of the world stream (key 3 i + w): given outright
+        world_keys=world_keys,
     )
-    # The keys are not a contiguous range of the world stream (key 3 i + w), which the env's
-    # seed and experiment_offset describe, so they are set after construction.
-    env.world_keys = world_keys.to(env.device)
     return env
 
 

@@ -46,6 +46,7 @@ import torch
 
 from envs.world import NUM_ACTIONS, WorldConfig, static_layout
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
+from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_torch.base.rng import probability_threshold
 from factorq_torch.base.validation import MAX_PARENTS, check_int, check_table_size
 from factorq_torch.functional import check_dependency, parent_weights
@@ -76,7 +77,6 @@ _STATE_FIELDS = (
     "episode_collisions",
 )
 _CHECK_CODES = 64
-_METRICS = ("steps", "collisions", "greedy_collisions", "task_return")
 
 
 # --------------------------------------------------------------------------------------------
@@ -666,7 +666,7 @@ class ExperimentBatch:
     def metrics(self) -> dict[str, torch.Tensor]:
         """Per-episode ``steps``, ``collisions``, ``greedy_collisions`` (int64) and
         ``task_return`` (float32), each ``[S, runs, episodes]``; zeros where not yet played."""
-        return {name: self._tensors[name].clone() for name in _METRICS}
+        return {name: self._tensors[name].clone() for name in EPISODE_METRICS}
 
     def tables(self) -> dict[str, torch.Tensor]:
         """The learned tables: ``q`` ``[S, states, 4]``, ``rho`` ``[S, 4, 2]`` (float32) and

@@ -32,6 +32,7 @@ import torch
 
 from envs.world import NUM_ACTIONS, WORLD_PERIODS, WORLDS, WorldConfig
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
+from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
 from factorq_torch.base.validation import (
     INT32_MAX,
@@ -54,7 +55,7 @@ from trainers.stats import interval, mean_ci
 
 #: Experiment drivers: the compiled kernel, the modular torchrl path, or the first available.
 BACKENDS = ("auto", "fast", "modular")
-CURVES = ("steps", "collisions", "greedy_collisions")
+CURVES = EPISODE_METRICS[:3]  # per-episode curves; task return is reported per run
 
 
 @dataclass(frozen=True)

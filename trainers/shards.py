@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_torch.base.validation import check_int
 from trainers import checkpoint, paper
 from trainers import results as result_files
@@ -36,7 +37,7 @@ from trainers import results as result_files
 #: identical results), left out of its digest so that they may differ between a run and its resume.
 NUMBER_FREE_FIELDS = ("out", "threads", "backend", "device", "first_seed", "seeds")
 #: Metrics of a shard, per world and algorithm: ``[seeds, runs, episodes]`` each.
-METRICS = (*paper.CURVES, "task_return")
+METRICS = EPISODE_METRICS
 SHARD_SUFFIX = ".npz"
 
 #: A shard's result: ``{"world/algorithm/metric": array [seeds, runs, episodes]}``.

@@ -7,6 +7,7 @@ Errors name the argument, the value and the allowed range, e.g.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 #: The largest value of a C ``int64_t`` (and of a torch int64 tensor entry).
 INT64_MAX = 2**63 - 1
@@ -33,6 +34,24 @@ def check_table_size(owner: str, what: str, entries: int) -> None:
             f"{owner}: {what} needs {entries} values per experiment, past the cap of "
             f"{MAX_TABLE_ENTRIES} (2**24): use fewer sensors or distractors"
         )
+
+
+#: The widest hidden layer a network may ask for (far past any use; keeps allocations sane).
+MAX_WIDTH = 65_536
+
+
+def check_hidden(name: str, value) -> tuple[int, ...]:
+    """Hidden layer widths (one int, or a sequence such as ``(64, 64)``) as a tuple of ints in
+    ``[1, MAX_WIDTH]``; errors name ``name`` (``hidden width=0 is out of range ...``)."""
+    if is_int(value):
+        value = (value,)
+    if isinstance(value, str) or not isinstance(value, Sequence):
+        raise TypeError(
+            f"{name} must be a sequence of layer widths such as (64, 64), got {value!r}"
+        )
+    for width in value:
+        check_int(f"{name} width", width, 1, MAX_WIDTH)
+    return tuple(value)
 
 
 def is_int(value) -> bool:
