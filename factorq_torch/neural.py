@@ -25,24 +25,10 @@ starts at exactly 0, as the tables do (SPEC section 3); on this world's negative
 the optimism that makes tabular Factor-Q explore. The DQN baseline uses PyTorch's default
 initialisation instead (as torchrl's and CleanRL's DQN examples).
 
-**The local network's architecture follows from eq. 3.** Eq. 3 divides the task spread by the
-local spread ``P_bar - min(rho)``, and its guarantee (a sensed obstacle is never the greedy
-choice) holds when every sensed actuator has the same ``rho`` and every free one exactly 0 -- what
-the tables' running means give (-1 and 0 in these worlds). A network only approximates both:
-
-- *no bias, tanh* (defaults): ``f(o) = W2 tanh(W1 o)`` is exactly 0 for the reading ``o = 0``, so
-  "nothing sensed" predicts exactly no local reward and the spread comes only from sensed
-  obstacles. With biases the free actuators' residuals differ slightly, and eq. 3 scales that
-  noise up to the size of the task spread (``G = spread_Q / residual * (1 + eta)``): the noise
-  then decides the action in every free cell. tanh rather than ReLU: a bias-free ReLU unit
-  whose input weight turns negative is dead for good (measured: with Adam at learning rate 0.1,
-  whole actuators stopped learning and collided thousands of times).
-- *shared across actuators* (default ``shared=True``): one network per experiment maps a sensor
-  bit to the local reward of its actuator, for all four pairs (they are the same kind of bump
-  sensor). With one network per actuator (``shared=False``, the literal counterpart of the
-  tables), Adam left the four ``rho_i(1)`` unequal (measured -0.8 to -1.9): where two obstacles
-  are sensed, eq. 3 scales to the more negative one and the other can stay the greedy choice,
-  which gave 5-100x more greedy collisions in the moving worlds.
+**The local network's architecture follows from eq. 3**: no bias and tanh (so "nothing sensed"
+predicts exactly no local reward), one network shared across actuators (equal ``rho`` for every
+sensed obstacle). Why, with the measurements behind it: ``docs/decisions.md``, "Neural
+Factor-Q's local network".
 
 These are architectural priors, stated here; ``bias``, ``activation`` and ``shared`` are
 arguments so that the difference can be measured (``trainers.compare.FactorDQNConfig``).
@@ -66,11 +52,8 @@ from factorq_torch.functional import check_dependency
 NUM_ACTIONS = 4
 ACTIVATIONS = ("relu", "tanh")
 
-#: Random streams of the networks' initial weights (the others are in ``factorq_torch.base.rng``).
-
-
 class BatchedMLP(nn.Module):
-    """``S`` independent multilayer perceptrons (ReLU between layers), applied at once.
+    """``S`` independent multilayer perceptrons (``activation`` between layers), applied at once.
 
     Weights ``[*lead, in, out]`` and biases ``[*lead, out]`` with ``lead = (S, *extra)``; the input
     ``[..., *lead, in]`` gives ``[..., *lead, out]``: every leading index has its own network, and
