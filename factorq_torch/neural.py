@@ -52,6 +52,7 @@ from factorq_torch.functional import check_dependency
 NUM_ACTIONS = 4
 ACTIVATIONS = ("relu", "tanh")
 
+
 class BatchedMLP(nn.Module):
     """``S`` independent multilayer perceptrons (``activation`` between layers), applied at once.
 
