@@ -23,6 +23,7 @@ from envs.body import (
     BODIES,
     NUM_HEADINGS,
     SENSOR_LAYOUTS,
+    TRANSLATE,
     Body,
     SensorLayout,
     base_dependency,
@@ -42,8 +43,9 @@ from factorq_torch.base.rng import (
 )
 from factorq_torch.base.validation import check_float, check_int, is_int
 
-NUM_ACTIONS = 4
-ACTION_NAMES = ("north", "west", "south", "east")
+#: The paper's body (``envs.body.TRANSLATE``): its actions, in the paper's order.
+ACTION_NAMES = TRANSLATE.actuators
+NUM_ACTIONS = len(ACTION_NAMES)
 ROW_DELTA = (-1, 0, 1, 0)
 COL_DELTA = (0, -1, 0, 1)
 START_CELL = 0

@@ -45,11 +45,12 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
 from factorq_torch.base import keys as names
+from factorq_torch.base.config import PAPER_NUM_ACTIONS
 from factorq_torch.base.rng import MASK64, STREAM_LOCAL_NETWORK, STREAM_TASK_NETWORK, derive_keys
 from factorq_torch.base.validation import check_hidden, check_int
 from factorq_torch.functional import check_dependency
 
-NUM_ACTIONS = 4
+NUM_ACTIONS = PAPER_NUM_ACTIONS  # the default body (base.config)
 ACTIVATIONS = ("relu", "tanh")
 
 

@@ -31,6 +31,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from factorq_torch.base import keys
+from factorq_torch.base.config import PAPER_NUM_ACTIONS
 from factorq_torch.base.validation import (  # MAX_TABLE_ENTRIES: re-exported
     MAX_PARENTS,
     MAX_TABLE_ENTRIES,  # noqa: F401
@@ -47,9 +48,7 @@ from factorq_torch.functional import (
 )
 
 #: The paper's body: 4 actuators and 4 sensors (the defaults; other bodies pass theirs).
-NUM_ACTIONS = 4
-#: Proximity patterns per cell of the paper's body: 4 binary sensors.
-NUM_PATTERNS = 1 << NUM_ACTIONS
+NUM_ACTIONS = PAPER_NUM_ACTIONS  # the default body (base.config)
 #: Parent sensors one actuator's local table may be indexed by (2**16 entries).
 
 

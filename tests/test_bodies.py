@@ -417,3 +417,13 @@ def test_factorq_compare_runs_every_method_on_another_body(tmp_path):
     results = compare.run(config)
     assert set(results["config"]["methods"]) == set(compare.METHODS)
     assert results["config"]["body"] == "heading"
+
+
+def test_the_agent_default_body_is_the_paper_body_declared_in_envs():
+    from envs.body import CROSS, TRANSLATE, base_dependency
+    from factorq_torch.base.config import PAPER_NUM_ACTIONS
+
+    assert PAPER_NUM_ACTIONS == len(TRANSLATE.actuators) == CROSS.num_sensors
+    paper = base_dependency(TRANSLATE, CROSS, 0)
+    assert torch.equal(paper, torch.eye(PAPER_NUM_ACTIONS, dtype=torch.bool))
+    assert torch.equal(LocalRewardTable(1).dependency, paper)

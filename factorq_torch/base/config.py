@@ -7,6 +7,10 @@ from dataclasses import dataclass
 from factorq_torch.base.validation import check_float
 
 ALGORITHMS = ("q-learning", "factor-q")
+#: Actuators of the paper's body (4 translations, each paired with its own proximity sensor), the
+#: default of the agent's constructors; the body itself is declared in ``envs/body.py``
+#: (``TRANSLATE``), which a test keeps in step with this number.
+PAPER_NUM_ACTIONS = 4
 
 
 @dataclass(frozen=True)
