@@ -198,3 +198,32 @@ def test_factorq_sweep_on_a_running_scheduler_writes_what_it_writes_in_process(
             row["config"].pop("out")
     assert joined["configurations"] == here["configurations"]
     assert (tmp_path / "joined" / "sweep-obstacles.png").stat().st_size > 10_000
+
+
+def test_a_compare_sweep_on_the_cluster_writes_what_it_writes_in_process(
+    local_cluster, tmp_path, capsys
+):
+    argv = ["sweep", "--command", "compare", "--grid", "obstacles=1,2", "--seeds", "2"]
+    argv += ["--set", "steps=200", "--set", "size=4", "--set", "worlds=static,dynamic"]
+    argv += ["--set", "methods=factor-q,q-learning"]
+    address = ["--scheduler", local_cluster.scheduler_address]  # what --cluster local:2 starts
+    assert cli.main([*argv, *address, "--out", str(tmp_path / "cluster")]) == 0
+    assert cli.main([*argv, "--out", str(tmp_path / "here")]) == 0
+    on_cluster = json.loads((tmp_path / "cluster" / "sweep.json").read_text())
+    here = json.loads((tmp_path / "here" / "sweep.json").read_text())
+    assert on_cluster["timing"]["where"].startswith("Dask scheduler")
+    for sweep_json in (on_cluster, here):
+        for row in sweep_json["configurations"]:
+            row["config"].pop("out")
+    assert on_cluster["configurations"] == here["configurations"]
+    for row in here["configurations"]:  # and each configuration's file is factorq compare's
+        stored = json.loads((tmp_path / "here" / row["results_file"]).read_text())
+        cluster_file = tmp_path / "cluster" / row["results_file"]
+        remote = json.loads(cluster_file.read_text())
+        for results in (stored, remote):
+            results.pop("timing")
+            results["config"].pop("out")
+            for worlds in results["results"].values():
+                for cell in worlds.values():
+                    cell.pop("wall_s")
+        assert remote == stored

@@ -85,7 +85,15 @@ def test_grid_axes_are_crossed_with_the_configs_list(tmp_path):
         ({"grid": {"eta": [0.1, 0.1]}}, "grid axis 'eta' repeats a value"),
         ({"grid": {"eta": 0.1}}, "grid axis 'eta' must be a list"),
         ({"grid": {"eta": [0.1]}, "colour": "red"}, "unknown key(s) colour"),
-        ({"grid": {"eta": [0.1]}, "command": "compare"}, "command='compare' cannot be swept yet"),
+        ({"grid": {"eta": [0.1]}, "command": "dependencies"}, "'dependencies' cannot be swept"),
+        ({"grid": {"eta": [0.1]}, "command": "tune"}, "command='tune' is not one of paper"),
+        ({"grid": {"stepz": [1]}, "command": "compare"}, "unknown field 'stepz' in grid"),
+        ({"grid": {"eta": [0.1]}, "command": "compare"}, "unknown field 'eta' in grid"),
+        ({"base": {"dqn": {}}, "command": "compare"}, "'dqn' in base is a nested config"),
+        ({"grid": {"steps": [1, 0]}, "command": "compare"}, "configuration 1 (steps=0)"),
+        ({"grid": {"methods": [["sarsa"]]}, "command": "compare"}, "configuration 0 (methods"),
+        ({"base": {"logger": "csv"}, "command": "compare"}, "'logger' in base (the sweep sets"),
+        ({"grid": {"steps": [9]}, "command": "compare", "shard_seeds": 1}, "shard_seeds does not"),
         ({"grid": {"eta": [0.1]}, "shard_seeds": 0}, "shard_seeds=0 is out of range"),
     ],
 )
@@ -226,3 +234,85 @@ def test_a_sweep_killed_with_sigkill_resumes_from_its_shard_files_with_the_same_
     for row in (*resumed["configurations"], *fresh["configurations"]):
         row["config"].pop("out")
     assert resumed["configurations"] == json.loads(result_files.dumps(fresh))["configurations"]
+
+
+COMPARE_TOML = """
+command = "compare"
+seeds = 1
+[base]
+steps = 300
+worlds = ["static"]
+methods = ["factor-q", "q-learning"]
+size = 5
+obstacles = 2
+"""
+
+
+def _without_wall_s(value):
+    if isinstance(value, dict):
+        return {k: _without_wall_s(v) for k, v in value.items() if k not in ("wall_s", "timing")}
+    if isinstance(value, list):
+        return [_without_wall_s(v) for v in value]
+    return value
+
+
+def test_every_compare_config_field_but_nested_and_the_sweeps_own_is_sweepable():
+    from trainers import compare
+
+    skipped = {*sweep.COMPARE_RESERVED, "agent", "dqn", "factor_dqn"}
+    names = [f.name for f in fields(compare.CompareConfig) if f.name not in skipped]
+    assert list(sweep.sweepable_fields("compare")) == names
+    assert sweep.nested_fields("compare") == ["agent", "dqn", "factor_dqn"]
+
+
+def test_a_compare_sweep_cell_equals_factorq_compare_and_resumes(tmp_path, capsys):
+    from trainers import compare
+
+    spec_file = tmp_path / "compare.toml"
+    spec_file.write_text(COMPARE_TOML)
+    out = tmp_path / "sweep"
+    assert cli.main(["sweep", str(spec_file), "--grid", "seed=0,1", "--out", str(out)]) == 0
+    written = sorted(path.name for path in out.iterdir() if path.name != ".factorq.lock")
+    assert written == ["configs", "sweep-seed.png", "sweep.json", "sweep.md"]
+    result = json.loads((out / "sweep.json").read_text())
+    assert result["command"] == "compare" and result["axes"] == ["seed"]
+    spec = sweep.spec_from_mapping({**sweep.read_spec_file(spec_file), "grid": {"seed": [0, 1]}})
+    config = spec.configurations()[1]
+    expected = json.loads(result_files.dumps(compare.run(replace(config, out=str(tmp_path / "c")))))
+    row = result["configurations"][1]
+    stored = json.loads((out / row["results_file"]).read_text())
+    assert stored["config"].pop("out") == str(out) and expected["config"].pop("out")
+    assert _without_wall_s(stored) == _without_wall_s(expected)
+    cell = row["cells"]["static/factor-q"]
+    assert cell["collisions"]["mean"] == expected["results"]["factor-q"]["static"]["collisions"]
+    assert set(cell) >= {"steps_to_threshold", "greedy_collisions", "avoidable_greedy_collisions"}
+    table = (out / "sweep.md").read_text()
+    header = "| seed | world | algorithm | steps to threshold | collisions | greedy collisions |\n"
+    assert header in table
+    # resumption: a lost configuration file is the only work of the next run
+    (out / row["results_file"]).unlink()
+    again = CountingExecutor()
+    resumed = sweep.run_sweep(replace(spec, out=str(out)), again)
+    assert [method for _, method in again.items] == ["factor-q", "q-learning"]
+    assert resumed["timing"]["configurations_run_now"] == 1
+    assert _without_wall_s(json.loads(result_files.dumps(resumed))["configurations"]) == (
+        _without_wall_s(result["configurations"])
+    )
+
+
+def test_bad_compare_input_on_the_command_line_is_one_line_exit_2_and_nothing_written(
+    tmp_path, capsys
+):
+    out = tmp_path / "sweep"
+    for argv in (
+        ["--command", "compare", "--grid", "eta=0.1", "--out", str(out)],
+        ["--command", "compare", "--grid", "steps=100,abc", "--out", str(out)],
+        ["--command", "compare", "--set", "agent=x", "--grid", "steps=9", "--out", str(out)],
+        ["--command", "compare", "--grid", "methods=factor-q,sarsa", "--out", str(out)],
+        ["--command", "compare", "--grid", "steps=9", "--shard-seeds", "2", "--out", str(out)],
+        ["--command", "dependencies", "--grid", "steps=9", "--out", str(out)],
+    ):
+        assert cli.main(["sweep", *argv]) == 2, argv
+        error = capsys.readouterr().err
+        assert error.count("\n") == 1 and error.startswith("factorq sweep: error: "), error
+    assert not out.exists()

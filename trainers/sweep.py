@@ -39,8 +39,11 @@ on any number of workers, and after any number of interruptions.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
+import hashlib
 import itertools
+import json
 import math
 import os
 import sys
@@ -75,16 +78,79 @@ DEFAULT_OUT = "results/sweep"
 RESERVED = ("seeds", "first_seed", "out")
 SPEC_KEYS = ("command", "seeds", "shard_seeds", "out", "base", "grid", "configs")
 MEASURES = ("total_steps", "collisions", "greedy_collisions")
+#: The commands whose configs a sweep runs (``command = "..."`` in a sweep file, ``--command``).
+COMMANDS = ("paper", "compare")
+#: ``CompareConfig`` fields the sweep sets itself (``logger``: a sweep writes no per-episode logs).
+COMPARE_RESERVED = ("seeds", "out", "logger")
+#: What a compare sweep reports per method and world (``compare.summarise``'s measures).
+COMPARE_MEASURES = ("steps_to_threshold", "collisions", "greedy_collisions")
+MEASURE_LABELS = {
+    **claims.MEASURE_LABELS,
+    "steps_to_threshold": "steps to threshold",
+    "avoidable_greedy_collisions": "avoidable greedy collisions",
+}
+#: Where a compare sweep keeps each finished configuration's ``comparison.json`` dict.
+CONFIGS_DIRECTORY = "configs"
 
 
 class SweepError(ValueError):
     """A sweep spec or value that cannot be used; the message says which and why."""
 
 
-def sweepable_fields() -> dict[str, Any]:
-    """Field name -> type annotation of every ``PaperConfig`` field a sweep may set."""
-    hints = typing.get_type_hints(paper.PaperConfig)
-    return {f.name: hints[f.name] for f in fields(paper.PaperConfig) if f.name not in RESERVED}
+def check_command(command: Any, source: str = "sweep file") -> str:
+    """``command`` if a sweep can run its configs, else a ``SweepError`` saying which can."""
+    if command == "dependencies":
+        raise SweepError(
+            f"{source}: command='dependencies' cannot be swept yet (sweepable: "
+            f"{', '.join(COMMANDS)}); run `factorq dependencies` once per configuration"
+        )
+    if command not in COMMANDS:
+        raise SweepError(f"{source}: command={command!r} is not one of {', '.join(COMMANDS)}")
+    return command
+
+
+def config_class(command: str = "paper") -> type:
+    """The config dataclass of ``command``: ``PaperConfig`` or ``CompareConfig``."""
+    if command == "compare":
+        from trainers import compare  # not at import: compare is heavier and imports this one's
+
+        return compare.CompareConfig
+    return paper.PaperConfig
+
+
+def reserved_fields(command: str = "paper") -> tuple[str, ...]:
+    """The fields of ``command``'s config that the sweep sets itself."""
+    return COMPARE_RESERVED if command == "compare" else RESERVED
+
+
+def nested_fields(command: str = "paper") -> list[str]:
+    """The fields of ``command``'s config that are configs themselves: not sweepable."""
+    hints = typing.get_type_hints(config_class(command))
+    return [name for name, hint in hints.items() if dataclasses.is_dataclass(hint)]
+
+
+def sweepable_fields(command: str = "paper") -> dict[str, Any]:
+    """Field name -> type annotation of every field of ``command``'s config a sweep may set
+    (``PaperConfig`` or ``CompareConfig``; nested configs and the sweep's own fields left out)."""
+    kind = config_class(command)
+    hints = typing.get_type_hints(kind)
+    skipped = {*reserved_fields(command), *nested_fields(command)}
+    return {f.name: hints[f.name] for f in fields(kind) if f.name not in skipped}
+
+
+def config_digest(config: Any) -> str:
+    """A short hash of the fields that decide ``config``'s numbers: a paper config's shard
+    digest, or for a compare config every field but ``out``, ``threads`` and ``logger``."""
+    if isinstance(config, paper.PaperConfig):
+        return shards.digest(config)
+    from trainers import compare
+
+    relevant = {
+        key: value
+        for key, value in compare.config_dict(config).items()
+        if key not in ("out", "threads", "logger")
+    }
+    return hashlib.sha256(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def _plain(value: Any) -> Any:
@@ -108,24 +174,33 @@ class SweepSpec:
     shard_seeds: int = DEFAULT_SHARD_SEEDS
     """Seeds per shard."""
     out: str = DEFAULT_OUT
-    """Directory for sweep.json, sweep.md, the figures and shards/."""
+    """Directory for sweep.json, sweep.md, the figures and shards/ (configs/ for compare)."""
+    command: str = "paper"
+    """Whose configs are swept: ``paper`` (sharded seeds) or ``compare`` (whole configs)."""
 
     def __post_init__(self) -> None:
+        check_command(self.command, "sweep")
         check_int("seeds", self.seeds, 1, INT32_MAX)
         check_int("shard_seeds", self.shard_seeds, 1, INT32_MAX)
         if not isinstance(self.out, str) or not self.out:
             raise SweepError(f"out={self.out!r} must be a directory path")
         if Path(self.out).exists() and not Path(self.out).is_dir():
             raise SweepError(f"out={self.out!r} is an existing file: give a directory")
-        known = sweepable_fields()
+        known = sweepable_fields(self.command)
+        reserved, nested = reserved_fields(self.command), nested_fields(self.command)
         for where, names in (
             ("base", [name for name, _ in self.base]),
             ("grid", [name for name, _ in self.grid]),
             ("configs", [name for entry in self.configs for name, _ in entry]),
         ):
             for name in names:
+                if name in nested:
+                    raise SweepError(
+                        f"field {name!r} in {where} is a nested config of {self.command}'s "
+                        f"({', '.join(nested)}): not sweepable; sweepable: {', '.join(known)}"
+                    )
                 if name not in known:
-                    hint = " (the sweep sets it: a top-level key)" if name in RESERVED else ""
+                    hint = " (the sweep sets it: a top-level key)" if name in reserved else ""
                     raise SweepError(
                         f"unknown field {name!r} in {where}{hint}; sweepable: {', '.join(known)}"
                     )
@@ -141,7 +216,7 @@ class SweepSpec:
                 raise SweepError(f"{', '.join(sorted(clash))} is both a grid axis and in configs")
         seen: dict[str, int] = {}
         for index, config in enumerate(self.configurations()):
-            key = shards.digest(config)
+            key = config_digest(config)
             if key in seen:
                 raise SweepError(f"configurations {seen[key]} and {index} are the same")
             seen[key] = index
@@ -164,13 +239,15 @@ class SweepSpec:
         return [{**dict(entry), **point} for entry in self.configs for point in grid]
 
     @functools.cache  # noqa: B019 - the spec is frozen and small
-    def configurations(self) -> list[paper.PaperConfig]:
-        """The validated config of every point (a ``SweepError`` names the point and the value)."""
+    def configurations(self) -> list[Any]:
+        """The validated config of every point (a ``SweepError`` names the point and the value):
+        ``PaperConfig``s, or ``CompareConfig``s for ``command="compare"``."""
+        kind = config_class(self.command)
         configs = []
         for index, point in enumerate(self.points()):
             values = {**dict(self.base), **point, "seeds": self.seeds, "out": self.out}
             try:
-                configs.append(paper.PaperConfig(**{k: _plain(v) for k, v in values.items()}))
+                configs.append(kind(**{k: _plain(v) for k, v in values.items()}))
             except (ValueError, TypeError) as error:
                 shown = ", ".join(f"{k}={v!r}" for k, v in point.items()) or "base"
                 raise SweepError(f"configuration {index} ({shown}): {error}") from None
@@ -186,9 +263,12 @@ def spec_from_mapping(data: dict[str, Any], source: str = "sweep file") -> Sweep
         raise SweepError(
             f"{source}: unknown key(s) {', '.join(unknown)}; known: {', '.join(SPEC_KEYS)}"
         )
-    command = data.get("command", "paper")
-    if command != "paper":
-        raise SweepError(f"{source}: command={command!r} cannot be swept yet (only 'paper')")
+    command = check_command(data.get("command", "paper"), source)
+    if command == "compare" and "shard_seeds" in data:
+        raise SweepError(
+            f"{source}: shard_seeds does not apply to command='compare': its unit of work is a "
+            "whole configuration (DQN's seeds share a random stream within their batch)"
+        )
     for key in ("base", "grid"):
         if not isinstance(data.get(key, {}), dict):
             raise SweepError(f"{source}: [{key}] must be a table")
@@ -210,6 +290,7 @@ def spec_from_mapping(data: dict[str, Any], source: str = "sweep file") -> Sweep
             base=tuple((k, _plain(v)) for k, v in data.get("base", {}).items()),
             grid=tuple(grid),
             configs=tuple(tuple((k, _plain(v)) for k, v in entry.items()) for entry in configs),
+            command=command,
             **extra,
         )
     except (ValueError, TypeError) as error:
@@ -240,11 +321,13 @@ def read_spec_file(path: str | Path) -> dict[str, Any]:
         raise SweepError(f"{path}: not valid TOML ({error})") from None
 
 
-def parse_value(name: str, text: str) -> Any:
-    """An option's ``text`` as the type of field ``name`` (tuples: comma-separated)."""
-    annotation = sweepable_fields().get(name)
+def parse_value(name: str, text: str, command: str = "paper") -> Any:
+    """An option's ``text`` as the type of field ``name`` of ``command``'s config (tuples:
+    comma-separated)."""
+    known = sweepable_fields(command)
+    annotation = known.get(name)
     if annotation is None:
-        raise SweepError(f"unknown field {name!r}; sweepable: {', '.join(sweepable_fields())}")
+        raise SweepError(f"unknown field {name!r}; sweepable: {', '.join(known)}")
     if isinstance(annotation, types.UnionType):  # int | None -> int
         annotation = next(a for a in typing.get_args(annotation) if a is not type(None))
     if typing.get_origin(annotation) is tuple:
@@ -345,6 +428,142 @@ def run_paper(
     return shards.results(config, parts, timing)
 
 
+def compare_result_path(directory: str | os.PathLike, config: Any) -> Path:
+    """``directory/<digest>.json``: where a compare configuration's results are kept."""
+    return Path(directory) / f"{config_digest(config)}.json"
+
+
+def _compare_task(run_method: Callable[..., Any], item: tuple[Any, str]) -> Any:
+    config, method = item
+    return _compare_method(run_method, config, method)
+
+
+def run_compare_configs(
+    configs: Sequence[Any],
+    directory: Path,
+    executor: cluster.InProcess | cluster.DaskExecutor,
+    done: Callable[[], None],
+) -> None:
+    """Run every method of every compare config in ``configs`` as one task each on
+    ``executor``; when a config's methods are all in, write its ``compare.summarise`` dict
+    (what ``compare.run`` returns, ``timing`` aside) to ``compare_result_path``, atomically.
+    ``done()`` is called per method finished."""
+    from trainers import compare
+
+    items = [(config, method) for config in configs for method in config.methods]
+    owner = [index for index, config in enumerate(configs) for _ in config.methods]
+    names = [f"compare-{config_digest(config)}-{method}" for config, method in items]
+    runs: list[dict[str, Any]] = [{} for _ in configs]
+    function = functools.partial(_compare_task, compare.run_method)
+    for task, result in executor.map(function, items, names):
+        index = owner[task]
+        config = configs[index]
+        runs[index][items[task][1]] = result
+        done()
+        if len(runs[index]) == len(config.methods):
+            results = compare.summarise(config, {m: runs[index][m] for m in config.methods})
+            results["timing"] = {
+                "method_wall_s": round(sum(float(r["wall_s"]) for r in runs[index].values()), 3),
+                "where": executor.description,
+            }
+            text = result_files.dumps(results)
+            directory.mkdir(parents=True, exist_ok=True)
+            result_files.write_atomic(
+                compare_result_path(directory, config), lambda path, t=text: path.write_text(t)
+            )
+            runs[index] = {}
+
+
+def _ci(interval: Sequence[Any]) -> list[float] | None:
+    return None if any(value is None for value in interval) else [float(v) for v in interval]
+
+
+def compare_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per method and world of a ``comparison.json`` dict: its measures as means with 95%
+    intervals across seeds (``steps_to_threshold`` only where every seed reached it)."""
+    cells = {}
+    for method, worlds in results["results"].items():
+        for world, entry in worlds.items():
+            reached = entry["steps_to_threshold_per_seed"]
+            steps = {"mean": entry["steps_to_threshold"], "ci95": None}
+            if entry["steps_to_threshold"] is not None:
+                steps["ci95"] = _ci(stats.scalar_ci(reached)[1:])
+            cells[f"{world}/{method}"] = {
+                "world": world,
+                "algorithm": method,
+                "steps_to_threshold": steps,
+                **{
+                    measure: {"mean": entry[measure], "ci95": _ci(entry[f"{measure}_ci95"])}
+                    for measure in (
+                        "collisions",
+                        "greedy_collisions",
+                        "avoidable_greedy_collisions",
+                    )
+                },
+                "seeds_reached": entry["seeds_reached"],
+                "per_seed": {"steps_to_threshold": reached},
+            }
+    return cells
+
+
+def run_compare_sweep(
+    spec: SweepSpec,
+    executor: cluster.InProcess | cluster.DaskExecutor,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict[str, Any]:
+    """``run_sweep`` of a compare spec: every configuration not already in ``OUT/configs/``
+    run whole (one task per method), then gathered into ``sweep.json``'s dict."""
+    from trainers import compare
+
+    started = time.perf_counter()
+    directory = Path(spec.out) / CONFIGS_DIRECTORY
+    configs = spec.configurations()
+    pending = [c for c in configs if not compare_result_path(directory, c).is_file()]
+    total = sum(len(config.methods) for config in configs)
+    count = {"done": total - sum(len(config.methods) for config in pending)}
+    if progress is not None:
+        progress(count["done"], total)
+
+    def done() -> None:
+        count["done"] += 1
+        if progress is not None:
+            progress(count["done"], total)
+
+    run_compare_configs(pending, directory, executor, done)
+    computed = time.perf_counter() - started
+    rows = []
+    for config, point in zip(configs, spec.points(), strict=True):
+        path = compare_result_path(directory, config)
+        results = json.loads(path.read_text())
+        rows.append(
+            {
+                "values": point,
+                "digest": config_digest(config),
+                "config": compare.config_dict(config),
+                "results_file": f"{CONFIGS_DIRECTORY}/{path.name}",
+                "cells": compare_cells(results),
+                "claims": {},
+            }
+        )
+    return {
+        "command": "compare",
+        "measures": list(COMPARE_MEASURES),
+        "axes": spec.axes,
+        "base": {name: _json(value) for name, value in spec.base},
+        "seeds": spec.seeds,
+        "shard_seeds": None,
+        "configurations": [_json(row) for row in rows],
+        "timing": {
+            "wall_s": round(time.perf_counter() - started, 3),
+            "compute_s": round(computed, 3),
+            "where": executor.description,
+            "configurations_total": len(configs),
+            "configurations_run_now": len(pending),
+        },
+        "software": paper.software_versions(),
+    }
+
+
 def run_sweep(
     spec: SweepSpec,
     executor: cluster.InProcess | cluster.DaskExecutor,
@@ -352,8 +571,11 @@ def run_sweep(
 ) -> dict[str, Any]:
     """Run every shard of ``spec`` not already on disk, then gather ``sweep.json``'s dict.
 
-    ``progress(done, total)`` counts shards (those found on disk are done from the start).
+    ``progress(done, total)`` counts shards (those found on disk are done from the start); for
+    a compare spec, ``run_compare_sweep``, counting methods.
     """
+    if spec.command == "compare":
+        return run_compare_sweep(spec, executor, progress)
     started = time.perf_counter()
     directory = Path(spec.out) / SHARDS_DIRECTORY
     configs = spec.configurations()
@@ -398,6 +620,8 @@ def run_sweep(
             }
         )
     return {
+        "command": "paper",
+        "measures": list(MEASURES),
         "axes": spec.axes,
         "base": {name: _json(value) for name, value in spec.base},
         "seeds": spec.seeds,
@@ -433,25 +657,32 @@ def _shown(value: Any) -> str:
 def report_markdown(sweep: dict[str, Any]) -> str:
     """``sweep.md``: one row per configuration and cell, means with 95% intervals."""
     axes = sweep["axes"]
+    measures = _measures(sweep)
+    is_paper = sweep.get("command", "paper") == "paper"
+    unit = f"shards of {sweep['shard_seeds']}" if is_paper else "one task per method"
+    per = "Per run" if is_paper else "Per experiment"
+    claims_column = ["claims passed"] if is_paper else []
     lines = [
-        "# factorq sweep",
+        f"# factorq sweep ({sweep.get('command', 'paper')})",
         "",
         f"{len(sweep['configurations'])} configurations x {sweep['seeds']} seeds "
-        f"(shards of {sweep['shard_seeds']}); base: "
+        f"({unit}); base: "
         + (", ".join(f"{k}={_shown(v)}" for k, v in sweep["base"].items()) or "defaults")
-        + f"; computed {sweep['timing']['where']}. Per run: means over seeds [95% interval].",
+        + f"; computed {sweep['timing']['where']}. {per}: means over seeds [95% interval].",
         "",
-        "| " + " | ".join([*axes, "world", "algorithm", "total steps", "collisions",
-                          "greedy collisions", "claims passed"]) + " |",
-        "| " + " | ".join(["---"] * (len(axes) + 2) + ["---:"] * 4) + " |",
+        "| " + " | ".join([*axes, "world", "algorithm",
+                          *(MEASURE_LABELS[m] for m in measures), *claims_column]) + " |",
+        "| " + " | ".join(["---"] * (len(axes) + 2)
+                          + ["---:"] * (len(measures) + len(claims_column))) + " |",
     ]  # fmt: skip
     for row in sweep["configurations"]:
         claims = row["claims"].values()
         evaluated = [claim for claim in claims if claim["pass"] is not None]
         passed = f"{sum(c['pass'] for c in evaluated)}/{len(evaluated)}" if evaluated else "n/a"
+        passed_column = [passed] if is_paper else []
         for cell in row["cells"].values():
             numbers = []
-            for measure in MEASURES:
+            for measure in measures:
                 entry = cell[measure]
                 text = stats.format_number(entry["mean"])
                 if entry["ci95"] is not None:
@@ -461,11 +692,15 @@ def report_markdown(sweep: dict[str, Any]) -> str:
             values = [_shown(row["values"].get(axis, "")) for axis in axes]
             lines.append(
                 "| "
-                + " | ".join([*values, cell["world"], cell["algorithm"], *numbers, passed])
+                + " | ".join([*values, cell["world"], cell["algorithm"], *numbers, *passed_column])
                 + " |"
             )
     lines.append("")
     return "\n".join(lines)
+
+
+def _measures(sweep: dict[str, Any]) -> list[str]:
+    return list(sweep.get("measures", MEASURES))
 
 
 def figure_path(out: Path, axis: str) -> Path:
@@ -492,11 +727,12 @@ def write_axis_figure(sweep: dict[str, Any], axis: str, path: Path) -> None:
     labels = [_shown(row["values"][axis]) for row in rows]
     numeric = all(isinstance(row["values"][axis], int | float) for row in rows)
     x = np.array([row["values"][axis] for row in rows], float) if numeric else np.arange(len(rows))
+    measures = _measures(sweep)
     figure = Figure(figsize=(13, 4), layout="constrained")
     FigureCanvasAgg(figure)
-    panels = figure.subplots(1, len(MEASURES))
+    panels = figure.subplots(1, len(measures))
     cells = list(dict.fromkeys(cell for row in rows for cell in row["cells"]))  # e.g. worlds axis
-    for panel, measure in zip(panels, MEASURES, strict=True):
+    for panel, measure in zip(panels, measures, strict=True):
         for cell in cells:
             entries = [row["cells"].get(cell, {}).get(measure) for row in rows]
             mean = np.array([np.nan if e is None else e["mean"] for e in entries], float)
@@ -507,8 +743,9 @@ def write_axis_figure(sweep: dict[str, Any], axis: str, path: Path) -> None:
             errors = np.stack([np.maximum(mean - low, 0), np.maximum(high - mean, 0)])
             panel.errorbar(x, mean, yerr=errors, marker="o", capsize=3, label=cell)
         panel.set_xlabel(axis)
-        panel.set_ylabel(f"{claims.MEASURE_LABELS[measure]} per run")
-        if measure != "total_steps":
+        per = " per run" if sweep.get("command", "paper") == "paper" else ""
+        panel.set_ylabel(f"{MEASURE_LABELS[measure]}{per}")
+        if measure not in ("total_steps", "steps_to_threshold"):
             panel.set_yscale("symlog", linthresh=1.0)
         if not numeric:
             panel.set_xticks(x, labels)
@@ -634,8 +871,12 @@ def executor_from_args(
 def _compare_method(run_method: Callable[..., Any], config: Any, method: str) -> Any:
     import torch
 
+    threads = torch.get_num_threads()
     torch.set_num_threads(config.threads)
-    return run_method(config, method)
+    try:
+        return run_method(config, method)
+    finally:
+        torch.set_num_threads(threads)
 
 
 def run_compare_on(
@@ -688,6 +929,13 @@ def build_parser(prog: str = "factorq sweep") -> argparse.ArgumentParser:
     )
     parser.add_argument("spec", nargs="?", metavar="SPEC", help="a .toml (or .yaml) sweep file")
     parser.add_argument(
+        "--command",
+        metavar="NAME",
+        default=argparse.SUPPRESS,
+        help="Whose configs to sweep: paper (seeds sharded) or compare (each configuration "
+        "run whole, one task per method). (default: the file's command, else paper)",
+    )
+    parser.add_argument(
         "--grid",
         action="append",
         metavar="FIELD=V1,V2",
@@ -734,16 +982,19 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
     if not isinstance(data, dict):
         raise SweepError(f"{source}: expected a table of keys, got {type(data).__name__}")
     data = dict(data)
+    if hasattr(args, "command"):
+        data["command"] = args.command
+    command = check_command(data.get("command", "paper"), source)
     base = dict(data.get("base", {}) if isinstance(data.get("base", {}), dict) else {})
     for name, text in _pairs(args.set, "--set"):
-        base[name] = parse_value(name, text)
+        base[name] = parse_value(name, text, command)
     grid = dict(data.get("grid", {}) if isinstance(data.get("grid", {}), dict) else {})
     for name, text in _pairs(args.grid, "--grid"):
-        annotation = sweepable_fields().get(name)
+        annotation = sweepable_fields(command).get(name)
         if typing.get_origin(annotation) is tuple:  # one name per value: worlds=static,dynamic
             grid[name] = [[item] for item in text.split(",") if item]
         else:
-            grid[name] = [parse_value(name, item) for item in text.split(",") if item]
+            grid[name] = [parse_value(name, item, command) for item in text.split(",") if item]
     if base:
         data["base"] = base
     if grid:
@@ -795,7 +1046,13 @@ def main(argv: list[str] | None = None) -> int:
         spec = spec_from_args(args)
         where = where_from_args(args)
         workers = 1 if where.local_workers is None else where.local_workers or os.cpu_count() or 1
-        estimate = resources.sweep_estimate(spec.configurations(), spec.shard_seeds, workers)
+        if spec.command == "compare":
+            estimate = max(
+                (resources.compare_estimate(config) for config in spec.configurations()),
+                key=lambda estimate: estimate.bytes,
+            )
+        else:
+            estimate = resources.sweep_estimate(spec.configurations(), spec.shard_seeds, workers)
         large = resources.check(estimate, "sweep", resources.SWEEP_HINT)
         if large is not None:
             print(large, file=sys.stderr)
@@ -814,13 +1071,16 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run_sweep_command(parser, spec: SweepSpec, executor) -> int:
     configs = spec.configurations()
-    shards_total = len(configs) * math.ceil(spec.seeds / spec.shard_seeds)
+    if spec.command == "compare":
+        tasks = sum(len(config.methods) for config in configs)
+        work = f"{tasks} method tasks (factorq compare)"
+    else:
+        work = f"{len(configs) * math.ceil(spec.seeds / spec.shard_seeds)} shards"
     print(
-        f"{len(configs)} configurations x {spec.seeds} seeds = {shards_total} shards, "
-        f"{executor.description}",
+        f"{len(configs)} configurations x {spec.seeds} seeds = {work}, {executor.description}",
         file=sys.stderr,
     )
-    bar = _ShardBar()
+    bar = _ShardBar(unit="method" if spec.command == "compare" else "shard")
     try:
         sweep = run_sweep(spec, executor, bar)
         bar.close()
