@@ -1,6 +1,8 @@
 """``factorq sweep``: a grid (or list) of paper configurations, each with its seeds, run as shards
 in-process or on a Dask cluster, gathered into ``sweep.json``, ``sweep.md`` and one figure per
-swept axis.
+swept axis. With ``command = "compare"``, a grid of ``factorq compare`` configurations instead,
+each run whole (one task per method) and kept in ``OUT/configs/<digest>.json``
+(``run_compare_sweep``).
 
     spec (TOML file and/or options) -> configurations -> shards (contiguous seed ranges)
          -> executor (in-process or Dask) -> one .npz per shard, written as it finishes
@@ -924,8 +926,10 @@ def build_parser(prog: str = "factorq sweep") -> argparse.ArgumentParser:
     parser = _Parser(
         prog=prog,
         description="Run a grid of `factorq paper` configurations, each with --seeds seeds, as "
-        "shards of --shard-seeds seeds; write sweep.json, sweep.md and a figure per axis to --out. "
-        "Finished shards are kept in OUT/shards/ and not rerun (a killed sweep resumes).",
+        "shards of --shard-seeds seeds (or, with --command compare, of `factorq compare` "
+        "configurations, each run whole); write sweep.json, sweep.md and a figure per axis to "
+        "--out. Finished shards (configurations) are kept in OUT/shards/ (OUT/configs/) and not "
+        "rerun (a killed sweep resumes).",
     )
     parser.add_argument("spec", nargs="?", metavar="SPEC", help="a .toml (or .yaml) sweep file")
     parser.add_argument(
@@ -940,7 +944,8 @@ def build_parser(prog: str = "factorq sweep") -> argparse.ArgumentParser:
         action="append",
         metavar="FIELD=V1,V2",
         default=[],
-        help="A swept axis: a PaperConfig field and its values (repeatable; crossed).",
+        help="A swept axis: a field of the --command's config and its values (repeatable; "
+        "crossed).",
     )
     parser.add_argument(
         "--set",
