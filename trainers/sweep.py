@@ -1055,10 +1055,12 @@ def main(argv: list[str] | None = None) -> int:
             estimate = max(
                 (resources.compare_estimate(config) for config in spec.configurations()),
                 key=lambda estimate: estimate.bytes,
-            )
+            )  # per comparison: a worker runs one method of it at a time
+            hint = "use fewer --seeds, or smaller steps or size"
         else:
             estimate = resources.sweep_estimate(spec.configurations(), spec.shard_seeds, workers)
-        large = resources.check(estimate, "sweep", resources.SWEEP_HINT)
+            hint = resources.SWEEP_HINT
+        large = resources.check(estimate, "sweep", hint)
         if large is not None:
             print(large, file=sys.stderr)
         executor = cluster.open_executor(where)  # before anything is written
