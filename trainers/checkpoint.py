@@ -285,7 +285,7 @@ def read_content(path: Path, kind: str) -> dict[str, Any]:
 
 #: The type of every field of a checkpoint's content (its digest proves integrity, not origin:
 #: anyone can edit a file and sign it again, so nothing in it is trusted before these checks and
-#: the run's own, ``paper.check_checkpoint``, against its config).
+#: the run's own, ``resume_checks.check_checkpoint``, against its config).
 _FIELD_TYPES: dict[str, tuple[type, ...]] = {
     "config": (dict,),
     "backend": (str,),

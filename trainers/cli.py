@@ -19,7 +19,17 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
-from trainers import checkpoint, dependencies, options, outdir, paper, report, resources, sweep
+from trainers import (
+    checkpoint,
+    dependencies,
+    options,
+    outdir,
+    paper,
+    report,
+    resources,
+    resume_checks,
+    sweep,
+)
 
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
@@ -185,7 +195,7 @@ def _paper(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         if hasattr(args, "resume"):
             resume = checkpoint.load(args.resume)
             config = paper.resume_config(resume.config, _given_options(args), args.resume)
-            paper.check_checkpoint(resume, config)  # the whole content, before any output
+            resume_checks.check_checkpoint(resume, config)  # the whole content, before any output
         else:
             config = paper.PaperConfig(**_given_options(args))
         backend = paper.resolve_backend(config)
