@@ -507,3 +507,63 @@ class Checkpointer:
         self._last_save = time.monotonic()
         self._episodes_since_save = 0
         return path
+
+
+# --------------------------------------------------------------------------------------------
+# The config of a resumed run (paper and compare)
+
+#: Config fields a resumed run may change: they do not change the numbers.
+RESUMABLE_CHANGES = ("out", "threads")
+
+
+def resumed_config(
+    saved: dict[str, Any],
+    given: dict[str, Any],
+    directory: str | os.PathLike,
+    from_dict: Callable[[dict[str, Any]], Any],
+    to_dict: Callable[[Any], dict[str, Any]],
+) -> Any:
+    """The config to resume the run of ``directory`` with: the checkpoint's ``saved`` config
+    dict, with the ``given`` options (field -> value) that may change (``RESUMABLE_CHANGES``);
+    ``from_dict`` / ``to_dict`` convert the command's config.
+
+    Any other given option must equal the saved value (a ValueError names each that differs);
+    ``out`` must be ``directory`` (the saved spelling is kept when it names the same directory,
+    so the results repeat it). A saved config this program cannot use is a CheckpointError.
+    """
+    out = saved.get("out", "")
+    if not out or Path(out).resolve() != Path(directory).resolve():
+        out = str(directory)
+    if "out" in given and Path(given["out"]).resolve() != Path(directory).resolve():
+        raise ValueError(
+            f"out='{given['out']}' differs from the resumed directory '{directory}': a resumed "
+            f"run writes where its checkpoint is (leave --out out)"
+        )
+    try:
+        checkpointed = from_dict({**saved, "out": out})
+    except (ValueError, TypeError) as error:
+        raise CheckpointError(
+            f"resume='{directory}': the checkpoint's config is unusable here ({error})"
+        ) from None
+    merged = from_dict({**to_dict(checkpointed), **given, "out": out})
+    check_same_config(saved, to_dict(merged), f"resume='{directory}'")
+    return merged
+
+
+def check_same_config(saved: dict[str, Any], config: dict[str, Any], what: str) -> None:
+    """Refuse (ValueError naming each option) a ``config`` dict that differs from the ``saved``
+    one in a field outside ``RESUMABLE_CHANGES``."""
+    differing = [
+        f"{name}={_show(value)} given, {_show(saved.get(name))} in the checkpoint"
+        for name, value in config.items()
+        if name not in RESUMABLE_CHANGES and saved.get(name) != value
+    ]
+    if differing:
+        raise ValueError(
+            f"{what} has a checkpoint of a different config: {'; '.join(differing)} (leave "
+            f"these options out to resume it, or start a new run with another --out)"
+        )
+
+
+def _show(value: Any) -> str:
+    return ",".join(map(str, value)) if isinstance(value, list | tuple) else repr(value)

@@ -424,8 +424,6 @@ def config_from_dict(data: dict[str, Any]) -> CompareConfig:
 # Checkpoints: the finished methods' traces
 
 
-#: Config fields a resumed comparison may change: they do not change the numbers.
-RESUMABLE_CHANGES = ("out", "threads")
 _TRACE_ARRAYS = {
     "steps": torch.int64,
     "collisions": torch.int64,
@@ -571,32 +569,9 @@ def checkpoint_int(value: Any) -> bool:
 def resume_config(
     saved: dict[str, Any], given: dict[str, Any], directory: str | os.PathLike
 ) -> CompareConfig:
-    """The config to resume the comparison of ``directory`` with: the checkpoint's, with the
-    ``given`` options that may change (``RESUMABLE_CHANGES``); any other must equal the saved
-    value."""
-    if "out" in given and Path(given["out"]).resolve() != Path(directory).resolve():
-        raise ValueError(
-            f"out='{given['out']}' differs from the resumed directory '{directory}': a resumed "
-            f"run writes where its checkpoint is (leave --out out)"
-        )
-    try:
-        checkpointed = config_from_dict({**saved, "out": str(directory)})
-    except (ValueError, TypeError) as error:
-        raise checkpoint.CheckpointError(
-            f"resume='{directory}': the checkpoint's config is unusable here ({error})"
-        ) from None
-    merged = config_from_dict({**config_dict(checkpointed), **given, "out": str(directory)})
-    differing = [
-        f"{name}={value!r} given, {saved.get(name)!r} in the checkpoint"
-        for name, value in config_dict(merged).items()
-        if name not in RESUMABLE_CHANGES and saved.get(name) != value
-    ]
-    if differing:
-        raise ValueError(
-            f"resume='{directory}' has a checkpoint of a different config: "
-            f"{'; '.join(differing)} (leave these options out to resume it)"
-        )
-    return merged
+    """The config to resume the comparison of ``directory`` with
+    (``checkpoint.resumed_config``)."""
+    return checkpoint.resumed_config(saved, given, directory, config_from_dict, config_dict)
 
 
 # --------------------------------------------------------------------------------------------

@@ -432,7 +432,10 @@ def run(
     if notice is not None:
         print(notice, file=sys.stderr)
     if resume is not None:
-        _check_same_config(resume.config, config_dict(config), f"resume='{resume.path.parents[1]}'")
+        saved = {"first_seed": 0, **resume.config}  # from before shards: no first_seed
+        checkpoint.check_same_config(
+            saved, config_dict(config), f"resume='{resume.path.parents[1]}'"
+        )
         check_checkpoint(resume, config)
     if checkpoint_every is None and resume is not None:
         checkpoint_every = resume.every  # a resumed run goes on saving as it did
@@ -499,55 +502,13 @@ def run(
     return results
 
 
-#: Config fields a resumed run may change: they do not change the numbers.
-RESUMABLE_CHANGES = ("out", "threads")
-
-
 def resume_config(
     saved: dict[str, Any], given: dict[str, Any], directory: str | os.PathLike
 ) -> PaperConfig:
-    """The config to resume the run of ``directory`` with: the checkpoint's ``saved`` config
-    dict, with the ``given`` options (field -> value) that may change (``RESUMABLE_CHANGES``).
-
-    Any other given option must equal the saved value (a ValueError names each that differs);
-    ``out`` must be ``directory`` (the saved spelling is kept when it names the same directory,
-    so the results repeat it).
-    """
-    out = saved.get("out", "")
-    if not out or Path(out).resolve() != Path(directory).resolve():
-        out = str(directory)
-    if "out" in given and Path(given["out"]).resolve() != Path(directory).resolve():
-        raise ValueError(
-            f"out='{given['out']}' differs from the resumed directory '{directory}': a resumed "
-            f"run writes where its checkpoint is (leave --out out)"
-        )
-    try:
-        checkpointed = config_from_dict({**saved, "out": out})
-    except (ValueError, TypeError) as error:
-        raise checkpoint.CheckpointError(
-            f"resume='{directory}': the checkpoint's config is unusable here ({error})"
-        ) from None
-    merged = config_from_dict({**config_dict(checkpointed), **given, "out": out})
-    _check_same_config(saved, config_dict(merged), f"resume='{directory}'")
-    return merged
-
-
-def _check_same_config(saved: dict[str, Any], config: dict[str, Any], what: str) -> None:
-    saved = {"first_seed": 0, **saved}  # checkpoints from before shards had no first_seed
-    differing = [
-        f"{name}={_show(value)} given, {_show(saved.get(name))} in the checkpoint"
-        for name, value in config.items()
-        if name not in RESUMABLE_CHANGES and saved.get(name) != value
-    ]
-    if differing:
-        raise ValueError(
-            f"{what} has a checkpoint of a different config: {'; '.join(differing)} (leave "
-            f"these options out to resume it, or start a new run with another --out)"
-        )
-
-
-def _show(value: Any) -> str:
-    return ",".join(value) if isinstance(value, list | tuple) else repr(value)
+    """The config to resume the run of ``directory`` with (``checkpoint.resumed_config``); a
+    checkpoint from before shards had no ``first_seed`` (it reads as 0)."""
+    saved = {"first_seed": 0, **saved}
+    return checkpoint.resumed_config(saved, given, directory, config_from_dict, config_dict)
 
 
 # --------------------------------------------------------------------------------------------
