@@ -161,7 +161,7 @@ def _experiment_dim(value: torch.Tensor, trailing: int, num_experiments: int, ow
         raise ValueError(
             f"{owner} holds S={num_experiments} experiments but {key!r} has shape "
             f"{list(value.shape)}: expected [..., {num_experiments}"
-            f"{', 4' if trailing else ''}] (build the env with batch_size=({num_experiments},))"
+            f"{', K' if trailing else ''}] (build the env with batch_size=({num_experiments},))"
         )
 
 
