@@ -377,6 +377,19 @@ def check_optimizer(saved: Any, optimizer: torch.optim.Optimizer, steps: int, wh
     state = saved["state"]
     if not isinstance(state, dict):
         raise ValueError(f"{where}['state'] must be a table")
+    # Every parameter gets a gradient at every update: a state for all of them, or none yet.
+    if state and set(state) != set(range(len(parameters))):
+        raise ValueError(
+            f"{where}['state'] must hold every parameter's state (0 to {len(parameters) - 1}) "
+            f"or none"
+        )
+    if isinstance(optimizer, torch.optim.Adam):
+        entries = [entry for entry in state.values() if isinstance(entry, dict)]
+        if any(set(entry) != allowed for entry in entries):
+            raise ValueError(f"{where}['state'] entries must hold exactly {', '.join(allowed)}")
+        counts = {float(e["step"]) for e in entries if isinstance(e["step"], torch.Tensor)}
+        if len(counts) > 1:
+            raise ValueError(f"{where}['state'] has parameters at different step counts")
     for index, entry in state.items():
         if not checkpoint_int(index) or not 0 <= index < len(parameters):
             raise ValueError(f"{where}['state'] has a key {index!r} that is no parameter's index")
