@@ -28,8 +28,9 @@ SMALL = dict(
     size=4,
     obstacles=1,
     worlds=("static", "dynamic"),
-    dqn=DQNConfig(learning_starts=20, batch_size=8, buffer_size=64, hidden=(16,),
-                  target_update_interval=5),  # fmt: skip
+    dqn=DQNConfig(
+        learning_starts=20, batch_size=8, buffer_size=64, hidden=(16,), target_update_interval=5
+    ),  # fmt: skip
 )
 
 
@@ -108,8 +109,17 @@ def test_sigkill_during_dqn_then_resume_equals_an_uninterrupted_run(tmp_path):
     code, err = _cli_quiet("compare", *ARGS, "--out", str(whole))
     assert code == 0, err
     child = subprocess.Popen(
-        [sys.executable, "-m", "trainers.cli", "compare", *ARGS, "--out", str(cut),
-         "--checkpoint-every", "1"],  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "trainers.cli",
+            "compare",
+            *ARGS,
+            "--out",
+            str(cut),
+            "--checkpoint-every",
+            "1",
+        ],  # fmt: skip
         cwd=Path(__file__).parents[1],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
@@ -155,8 +165,15 @@ def _mid_dqn_checkpoint(out: Path) -> compare_checkpoint.CompareCheckpoint:
 def test_a_resume_with_another_config_is_refused_in_one_line(tmp_path, capsys):
     out = tmp_path / "cut"
     compare.save_checkpoint(
-        compare.CompareConfig(out=str(out), methods=("factor-q", "q-learning"), seeds=1,
-                              steps=60, size=4, obstacles=1, worlds=("static",)),  # fmt: skip
+        compare.CompareConfig(
+            out=str(out),
+            methods=("factor-q", "q-learning"),
+            seeds=1,
+            steps=60,
+            size=4,
+            obstacles=1,
+            worlds=("static",),
+        ),  # fmt: skip
         {},
     )
     code = cli.main(["compare", "--resume", str(out), "--steps", "61"])

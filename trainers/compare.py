@@ -516,9 +516,7 @@ def run_method(
     run in any order, in any process (``factorq compare --cluster``). ``checkpoints``: restore
     and save the method's state mid-method (``compare_checkpoint.Saver``)."""
     if method == "dqn":
-        return dqn.run(
-            config.dqn, config.experiments, progress=progress, checkpoints=checkpoints
-        )
+        return dqn.run(config.dqn, config.experiments, progress=progress, checkpoints=checkpoints)
     return run_online(method, config, progress=progress, checkpoints=checkpoints)
 
 

@@ -402,7 +402,9 @@ def check_optimizer(saved: Any, optimizer: torch.optim.Optimizer, steps: int, wh
                 continue
             if not isinstance(value, torch.Tensor):
                 raise ValueError(f"{at}[{name!r}] must be a tensor")
-            shape, dtype = ((), torch.float32) if name == "step" else (parameter.shape, parameter.dtype)
+            shape, dtype = (
+                ((), torch.float32) if name == "step" else (parameter.shape, parameter.dtype)
+            )
             if tuple(value.shape) != tuple(shape) or value.dtype != dtype:
                 raise ValueError(
                     f"{at}[{name!r}] has shape {tuple(value.shape)} and dtype {value.dtype}, "
@@ -442,9 +444,11 @@ def check_recorder(saved: Any, experiments: Any, step: int, where: str = "state[
     _keys(sums, set(_SUMS), f"{where}['sums']")
     for name in _SUMS:
         value = sums[name]
-        if not isinstance(value, torch.Tensor) or value.dtype != torch.float64 or tuple(
-            value.shape
-        ) != (count,):
+        if (
+            not isinstance(value, torch.Tensor)
+            or value.dtype != torch.float64
+            or tuple(value.shape) != (count,)
+        ):
             refuse(f"sums[{name!r}] must be a float64 tensor of shape [{count}]")
         if not bool(torch.isfinite(value).all()):
             refuse(f"sums[{name!r}] holds NaN or infinite values")
@@ -521,8 +525,10 @@ def check_dqn_state(
     periods = torch.tensor(experiments.periods)
     rng = saved["rng"]
     reference = fresh["rng"]
-    if not isinstance(rng, torch.Tensor) or rng.dtype != reference.dtype or rng.shape != (
-        reference.shape
+    if (
+        not isinstance(rng, torch.Tensor)
+        or rng.dtype != reference.dtype
+        or rng.shape != (reference.shape)
     ):
         raise ValueError(f"state['rng'] must be a {reference.dtype} tensor of {reference.numel()}")
     try:
@@ -530,8 +536,10 @@ def check_dqn_state(
     except RuntimeError as error:
         raise ValueError(f"state['rng'] is not a generator state torch accepts ({error})") from None
     loss = saved["loss"]
-    if not isinstance(loss, torch.Tensor) or loss.dtype != torch.float32 or tuple(loss.shape) != (
-        count,
+    if (
+        not isinstance(loss, torch.Tensor)
+        or loss.dtype != torch.float32
+        or tuple(loss.shape) != (count,)
     ):
         raise ValueError(f"state['loss'] must be a float32 tensor of shape [{count}]")
     if bool(torch.isinf(loss).any()) or bool((loss < 0).any()):
@@ -568,8 +576,10 @@ def check_buffer(
     where = "state['buffer']"
     _keys(saved, set(fresh), where)
     for key, value in fresh.items():
-        if key != "_storage" and key != "_writer" and (
-            type(saved[key]) is not type(value) or saved[key] != value
+        if (
+            key != "_storage"
+            and key != "_writer"
+            and (type(saved[key]) is not type(value) or saved[key] != value)
         ):
             raise ValueError(f"{where}[{key!r}] differs from this run's")
     capacity = config.buffer_size
@@ -579,8 +589,10 @@ def check_buffer(
         raise ValueError(f"{where}['_writer'] must be {writer} after {step} steps")
     storage = saved["_storage"]
     _keys(storage, {"_storage", "initialized", "_len"}, f"{where}['_storage']")
-    if storage["initialized"] is not True or storage["_len"] != length or not checkpoint_int(
-        storage["_len"]
+    if (
+        storage["initialized"] is not True
+        or storage["_len"] != length
+        or not checkpoint_int(storage["_len"])
     ):
         raise ValueError(f"{where}['_storage'] must be initialised and hold {length} rows")
     rows = storage["_storage"]
@@ -602,8 +614,10 @@ def check_buffer(
         like = expected[key]
         at = f"{where} entry {key}"
         shape = (capacity, *like.shape)
-        if not isinstance(value, torch.Tensor) or tuple(value.shape) != shape or (
-            value.dtype != like.dtype
+        if (
+            not isinstance(value, torch.Tensor)
+            or tuple(value.shape) != shape
+            or (value.dtype != like.dtype)
         ):
             raise ValueError(f"{at} must be a {like.dtype} tensor of shape {list(shape)}")
         written = value[:length]
@@ -618,4 +632,3 @@ def check_buffer(
             low, high = 0, bounds.get(leaf, experiments.max_steps + 1) - 1
         if written.numel() and (bool((written < low).any()) or bool((written > high).any())):
             raise ValueError(f"{at} holds values outside [{low}, {high}]")
-
