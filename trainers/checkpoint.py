@@ -53,7 +53,7 @@ from typing import Any, NamedTuple
 import torch
 
 FORMAT = "factorq-paper-checkpoint"
-#: ``factorq compare``'s checkpoints: the traces of the methods finished so far.
+#: ``factorq compare``'s checkpoints: the methods finished so far and the running one's state.
 COMPARE_FORMAT = "factorq-compare-checkpoint"
 FORMAT_VERSION = 1
 DIRECTORY = "checkpoint"
