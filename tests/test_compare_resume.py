@@ -208,6 +208,8 @@ TAMPERED = [
     ("buffer/_storage/_len", 10**9),
     ("recorder/sums/steps", torch.full((4,), float("nan"), dtype=torch.float64)),
     ("optimizer/param_groups", []),
+    ("policy/module.1.egreedy.eps", torch.tensor(7.0)),
+    ("loss_module/_value_estimator.gamma", torch.tensor(0.5)),
 ]
 
 

@@ -348,6 +348,28 @@ def check_like(saved: Any, fresh: Any, limit: Limits, periods: torch.Tensor, whe
     from trainers import resume_checks
 
     resume_checks.check_state(saved, fresh, limit, periods, where)
+    _check_constants(saved, fresh, where)
+
+
+#: Entries of a module's state that a run never changes: the body's dependency, a network's
+#: parent index, the discount, epsilon's schedule (DQN).
+CONSTANTS = ("dependency", "parent_index", "gamma", "eps_init", "eps_end")
+
+
+def _check_constants(saved: Any, fresh: Any, where: str) -> None:
+    """Every ``CONSTANTS`` entry of ``saved`` equal to ``fresh``'s (same structure: checked)."""
+    if isinstance(fresh, dict):
+        for key, value in fresh.items():
+            name = str(key).rsplit(".", 1)[-1]
+            at = f"{where}[{key!r}]"
+            if isinstance(value, torch.Tensor) and name in CONSTANTS:
+                if not torch.equal(saved[key], value):
+                    raise ValueError(f"{at} differs from this run's")
+            else:
+                _check_constants(saved[key], value, at)
+    elif isinstance(fresh, list):
+        for index, (item, reference) in enumerate(zip(saved, fresh, strict=True)):
+            _check_constants(item, reference, f"{where}[{index}]")
 
 
 def check_optimizer(saved: Any, optimizer: torch.optim.Optimizer, steps: int, where: str) -> None:
@@ -550,10 +572,7 @@ def check_dqn_state(
     check_like(saved["policy"], fresh["policy"], limit, periods, "state['policy']")
     check_like(saved["loss_module"], fresh["loss_module"], limit, periods, "state['loss_module']")
     for name, value in saved["policy"].items():
-        if name.endswith("eps_init") or name.endswith("eps_end"):
-            if not torch.equal(value, fresh["policy"][name]):
-                raise ValueError(f"state['policy'][{name!r}] differs from this run's")
-        elif name.endswith(".eps"):
+        if name.endswith(".eps"):
             if not config.eps_end <= float(value) <= config.eps_start:
                 raise ValueError(
                     f"state['policy'][{name!r}]={float(value)} must be in "
