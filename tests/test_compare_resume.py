@@ -225,3 +225,36 @@ def test_a_tampered_mid_method_state_is_refused_before_use(path, value, tmp_path
     lines = [line for line in err.strip().splitlines() if "error:" in line]
     assert code == cli.EXIT_USAGE and len(lines) == 1, err
     assert "is not usable" in lines[0] and "Traceback" not in err
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ("0", "--checkpoint-every='0' is out of range"),
+        ("abc", "--checkpoint-every='abc' is not a number of episodes"),
+        ("-5s", "--checkpoint-every='-5s' is out of range"),
+    ],
+)
+def test_a_bad_checkpoint_interval_is_one_line_before_any_work(value, message, tmp_path, capsys):
+    out = tmp_path / "out"
+    code = cli.main(["compare", "--steps", "10", "--out", str(out), f"--checkpoint-every={value}"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == cli.EXIT_USAGE and len(err) == 1 and message in err[0], err
+    assert not out.exists()
+
+
+def test_a_time_interval_saves_mid_method_too(tmp_path, one_thread):
+    config = compare.CompareConfig(methods=("q-learning",), out=str(tmp_path / "t"), **SMALL)
+
+    def progress(name, done, total):
+        time.sleep(0.002)  # a save is due every 1 ms: one is taken between any two reports
+        if done >= total // 2:
+            raise Stop
+
+    with pytest.raises(Stop):
+        compare.run(config, progress, checkpoints=True, checkpoint_every="0.001s")
+    resume = compare.load_checkpoint(config.out)
+    assert resume.running["method"] == "q-learning" and resume.every == "0.001s"
+    assert _numbers(compare.run(config, checkpoints=True, resume=resume)) == _numbers(
+        compare.run(config)
+    )

@@ -531,13 +531,20 @@ DQN_STATE = ("step", "rng", "loss", "updates", "world_state", "carrier", "policy
 
 
 def check_dqn_state(
-    saved: Any, fresh: dict[str, Any], agent: Any, env: Any, config: Any, experiments: Any
+    saved: Any,
+    fresh: dict[str, Any],
+    agent: Any,
+    env: Any,
+    config: Any,
+    experiments: Any,
+    stored: tuple[Any, ...],
 ) -> dict[str, Any]:
     """DQN's running state against ``fresh`` (its state before the first step) and the config
     (``DQNConfig``): a step count at a collector batch's end, a generator state torch accepts,
     the per-experiment losses (NaN before the first update), the target updater's counter, the
     world state, the collector's next observation, the networks (policy, loss module: target
-    network included) and epsilon, Adam, the replay buffer (``check_buffer``) and the records.
+    network included) and epsilon, Adam, the replay buffer (``check_buffer``; ``stored``: the
+    entries it keeps) and the records.
     Returns it with the records checked."""
     _keys(saved, set(DQN_STATE), "state")
     step = check_step(saved, experiments.steps, config.train_every)
@@ -579,19 +586,23 @@ def check_dqn_state(
                     f"[{config.eps_end}, {config.eps_start}]"
                 )
     check_optimizer(saved["optimizer"], agent.optimizer, step, "state['optimizer']")
-    check_buffer(saved["buffer"], fresh["buffer"], env, config, experiments, step)
+    check_buffer(saved["buffer"], fresh["buffer"], env, config, experiments, step, stored)
     return {**saved, "recorder": check_recorder(saved["recorder"], experiments, step)}
 
 
 def check_buffer(
-    saved: Any, fresh: dict[str, Any], env: Any, config: Any, experiments: Any, step: int
+    saved: Any,
+    fresh: dict[str, Any],
+    env: Any,
+    config: Any,
+    experiments: Any,
+    step: int,
+    stored: tuple[Any, ...],
 ) -> None:
     """A ``ReplayBuffer.state_dict()`` after ``step`` env steps: one row per step written round
     robin into ``buffer_size`` rows (so its length, cursor and write count follow from ``step``),
     everything else as this run's fresh buffer, and the rows written shaped like the env's
     transitions (``[buffer_size, E, ...]``, their dtypes) with values the env can produce."""
-    from trainers.dqn import _STORED
-
     where = "state['buffer']"
     _keys(saved, set(fresh), where)
     for key, value in fresh.items():
@@ -616,7 +627,7 @@ def check_buffer(
         raise ValueError(f"{where}['_storage'] must be initialised and hold {length} rows")
     rows = storage["_storage"]
     world = experiments.world
-    reference = env.fake_tensordict().select(*_STORED, strict=False)
+    reference = env.fake_tensordict().select(*stored, strict=False)
     bounds = {"cell": world.num_cells, "action": world.num_actuators,
               "heading": world.num_headings}  # fmt: skip
     # TensorDict's state_dict names a nested entry "next.cell".

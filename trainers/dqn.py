@@ -344,7 +344,7 @@ def run(
             from trainers import compare_checkpoint
 
             saved = compare_checkpoint.check_dqn_state(
-                saved, fresh, agent, env, config, experiments
+                saved, fresh, agent, env, config, experiments, _STORED
             )
             # The storage is allocated by its first write (batch shape [buffer_size, E]): a row
             # of zeros allocates it, the saved rows are written over it (TensorDict's
