@@ -587,4 +587,10 @@ def run(
         write_logs(config, runs, logs_dir)
     results = summarise(config, runs)
     results["timing"] = {"wall_s": round(time.perf_counter() - started, 3)}
+    if saver is not None and saver.every is not None:
+        results["timing"]["checkpoints"] = {
+            "every": str(saver.every),
+            "saved_mid_method": saver.saves,
+            "save_s": round(saver.save_seconds, 3),
+        }
     return results

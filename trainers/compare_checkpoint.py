@@ -245,6 +245,7 @@ class Saver:
         self.resumed = resume
         self.finished: dict[str, dict[str, Any]] = {}
         self.saves = 0
+        self.save_seconds = 0.0
         self._running = None if resume is None else resume.running
         if resume is not None:
             checkpoint.remove_temporaries(checkpoint.directory_of(out))
@@ -268,9 +269,11 @@ class Saver:
 
     def save(self, method: str, state: dict[str, Any], wall_s: float) -> Path:
         """Save the finished methods and ``method``'s ``state`` (after ``wall_s`` seconds)."""
+        started = time.perf_counter()
         running = {"method": method, "state": state, "wall_s": float(wall_s)}
         path = save(self.out, self.config, self.finished, running, self._every())
         self.saves += 1
+        self.save_seconds += time.perf_counter() - started
         self._since, self._last = 0, time.monotonic()
         return path
 
