@@ -148,6 +148,10 @@ def check(resume: CompareCheckpoint, config: Any, saved_form: dict[str, Any]) ->
 
     if resume.config != {**saved_form, "out": resume.config.get("out"),
                          "threads": resume.config.get("threads")}:  # fmt: skip
+        try:  # name the options that differ
+            checkpoint.check_same_config(resume.config, saved_form, "this run")
+        except ValueError as error:
+            refuse(f"it was written by a run of another config ({error})")
         refuse("it was written by a run of another config")
     experiments = config.experiments
     labels = experiments.labels
