@@ -415,7 +415,9 @@ def check_optimizer(saved: Any, optimizer: torch.optim.Optimizer, steps: int, wh
     if isinstance(optimizer, torch.optim.Adam):
         entries = [entry for entry in state.values() if isinstance(entry, dict)]
         if any(set(entry) != allowed for entry in entries):
-            raise ValueError(f"{where}['state'] entries must hold exactly {', '.join(allowed)}")
+            raise ValueError(
+                f"{where}['state'] entries must hold exactly {', '.join(sorted(allowed))}"
+            )
         counts = {float(e["step"]) for e in entries if isinstance(e["step"], torch.Tensor)}
         if len(counts) > 1:
             raise ValueError(f"{where}['state'] has parameters at different step counts")
