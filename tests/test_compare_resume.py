@@ -258,3 +258,15 @@ def test_a_time_interval_saves_mid_method_too(tmp_path, one_thread):
     assert _numbers(compare.run(config, checkpoints=True, resume=resume)) == _numbers(
         compare.run(config)
     )
+
+
+def test_the_memory_estimate_counts_the_checkpoint_copy():
+    from trainers import resources
+
+    config = compare.CompareConfig(methods=("dqn",), seeds=2, steps=5000)
+    plain = resources.compare_estimate(config)
+    saving = resources.compare_estimate(config, checkpointing=True)
+    copy = saving.parts["checkpoint copy"]
+    # The replay buffer and networks are copied once, and the records.
+    assert copy >= plain.parts["replay buffer"] + plain.parts["networks"]
+    assert saving.bytes == plain.bytes + copy
