@@ -31,7 +31,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from trainers import checkpoint
+from factorq_trainers import checkpoint
 
 _TRACE_ARRAYS = {
     "steps": torch.int64,
