@@ -269,8 +269,8 @@ class _Stop(Exception):
 def test_every_field_of_a_signed_mid_method_compare_checkpoint_mutated_is_refused_cleanly(
     running, tmp_path
 ):
-    from trainers import cli, compare
-    from trainers.dqn import DQNConfig
+    from factorq_trainers import cli, compare
+    from factorq_trainers.dqn import DQNConfig
 
     out = tmp_path / "compare"
     small_dqn = DQNConfig(learning_starts=20, batch_size=4, buffer_size=32, hidden=(8,),

@@ -18,8 +18,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from trainers import checkpoint, cli, compare, compare_checkpoint
-from trainers.dqn import DQNConfig
+from factorq_trainers import checkpoint, cli, compare, compare_checkpoint
+from factorq_trainers.dqn import DQNConfig
 
 #: Every method, small: a few hundred env steps of 2 worlds x 2 seeds on a 4 x 4 grid.
 SMALL = dict(
@@ -112,7 +112,7 @@ def test_sigkill_during_dqn_then_resume_equals_an_uninterrupted_run(tmp_path):
         [
             sys.executable,
             "-m",
-            "trainers.cli",
+            "factorq_trainers.cli",
             "compare",
             *ARGS,
             "--out",
@@ -261,7 +261,7 @@ def test_a_time_interval_saves_mid_method_too(tmp_path, one_thread):
 
 
 def test_the_memory_estimate_counts_the_checkpoint_copy():
-    from trainers import resources
+    from factorq_trainers import resources
 
     config = compare.CompareConfig(methods=("dqn",), seeds=2, steps=5000)
     plain = resources.compare_estimate(config)

@@ -266,7 +266,7 @@ def run_online(
 ) -> dict[str, Any]:
     """Tabular Factor-Q, tabular Q-learning or Factor-DQN for the step budget (OnlineCollector).
 
-    Returns ``{"traces", "wall_s"}`` like ``trainers.dqn.run``. ``checkpoints`` (a
+    Returns ``{"traces", "wall_s"}`` like ``factorq_trainers.dqn.run``. ``checkpoints`` (a
     ``compare_checkpoint.Saver``): restore the method's saved state if the run resumes during it,
     and save its state whenever one is due (between two steps; the numbers do not change).
     """

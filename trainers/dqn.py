@@ -291,9 +291,9 @@ def run(
     ``EpisodeRecorder`` trace per experiment (world-major, seed-minor). ``progress(done, total)``
     is called with env steps per experiment after every collector batch.
 
-    ``checkpoints`` (a ``trainers.compare_checkpoint.Saver``): restore the saved state if the run
-    resumes during DQN, and save the whole state whenever one is due, after a collector batch:
-    torch's global generator, the world state, the collector's next observation, the policy
+    ``checkpoints`` (a ``factorq_trainers.compare_checkpoint.Saver``): restore the saved state if
+    the run resumes during DQN, and save the whole state whenever one is due, after a collector
+    batch: torch's global generator, the world state, the collector's next observation, the policy
     (network, epsilon), the loss module (network and target network), Adam, the target
     updater's counter, the replay buffer (``ReplayBuffer.state_dict``) and the records. Saving
     draws nothing and changes nothing, so the numbers are those of an uninterrupted run.
@@ -341,7 +341,7 @@ def run(
 
         def load_state(saved: dict[str, Any]) -> None:
             nonlocal done_steps, gradient_steps, loss_per_experiment
-            from trainers import compare_checkpoint
+            from factorq_trainers import compare_checkpoint
 
             saved = compare_checkpoint.check_dqn_state(
                 saved, fresh, agent, env, config, experiments, _STORED
