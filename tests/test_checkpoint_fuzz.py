@@ -46,7 +46,10 @@ def mutations(value):
     if isinstance(value, torch.Tensor):
         yield "as list", value.tolist()
         yield "as int", 5
-        yield "shape", value.reshape(-1)[:-1].clone() if value.numel() > 1 else value.reshape(1, 1)
+        if value.numel() > 1:
+            yield "shape", value.reshape(-1)[:-1].clone()
+        elif value.numel() == 1:
+            yield "shape", value.reshape(1, 1)
         yield "extra dim", value.unsqueeze(0).clone()
         other = torch.float64 if value.dtype != torch.float64 else torch.float32
         yield f"dtype {other}", value.to(other)
@@ -60,7 +63,10 @@ def mutations(value):
         else:
             for bad in (-100_000, -(10**9), 10**12, 2**62):
                 mutated = value.clone()
-                mutated.view(-1)[0] = bad
+                try:
+                    mutated.view(-1)[0] = bad
+                except RuntimeError:  # not representable in its dtype (uint8: torch's rng state)
+                    mutated.view(-1)[0] = torch.iinfo(value.dtype).max - value.view(-1)[0]
                 yield f"[0]={bad}", mutated
     elif isinstance(value, dict):
         if value:
@@ -236,6 +242,91 @@ def test_every_field_of_a_signed_compare_checkpoint_mutated_is_refused_cleanly(t
     assert count > 100
 
 
+#: Mid-method compare checkpoints (``--checkpoint-every``): during Q-learning with Factor-Q
+#: finished (an online method's state: tables, collector, world, records), and during DQN
+#: (torch's generator, carrier, networks and target, Adam, replay buffer, records).
+MID_METHOD = {
+    "q-learning": dict(methods=("factor-q", "q-learning"), seeds=2, steps=120, size=4,
+                       obstacles=1, worlds=("static", "dynamic")),
+    "dqn": dict(methods=("dqn",), seeds=1, steps=400, size=4, obstacles=1,
+                worlds=("static", "dynamic")),
+}  # fmt: skip
+#: Fields of a running state whose other values are valid ones: another interval (None: none);
+#: a DQN loss is NaN until its first update; torch's generator state with other state words
+#: (any words but all zeros are a state of the Mersenne twister: the digest proves no origin).
+MID_METHOD_HARMLESS = ("every", "running/state/loss/", "running/state/rng/")
+#: The mutations tried on each tensor of a running state (one of each kind: every field is
+#: tried, and the same check refuses the other values of a kind).
+THIN = ("as list", "shape", "extra dim", "dtype", "[0]=-100000", "[0]=1000000000000", "[0]=nan",
+        "[0]=inf")  # fmt: skip
+
+
+class _Stop(Exception):
+    pass
+
+
+@pytest.mark.parametrize("running", list(MID_METHOD))
+def test_every_field_of_a_signed_mid_method_compare_checkpoint_mutated_is_refused_cleanly(
+    running, tmp_path
+):
+    from factorq_trainers import cli, compare
+    from factorq_trainers.dqn import DQNConfig
+
+    out = tmp_path / "compare"
+    small_dqn = DQNConfig(learning_starts=20, batch_size=4, buffer_size=32, hidden=(8,),
+                          target_update_interval=5)  # fmt: skip
+    config = compare.CompareConfig(out=str(out), dqn=small_dqn, **MID_METHOD[running])
+
+    def progress(method, done, total):
+        if method == running and done >= total * 3 // 4:
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        compare.run(config, progress, checkpoints=True, checkpoint_every=1)
+    path = out / "checkpoint" / checkpoint.LATEST
+    original = torch.load(path, weights_only=True)["content"]
+    assert original["running"]["method"] == running
+    # The config's and the finished methods' fields: the fuzz of a between-methods checkpoint.
+    targets = [
+        (field, value)
+        for field, value in fields_of(original)
+        if not field.startswith(("config/", "finished/"))
+    ]
+    traces = original["running"]["state"]["recorder"]["traces"]
+    for key, value in traces[0].items():  # a list: its entries are fields too
+        targets.append((f"running/state/recorder/traces/0/{key}", value))
+    failures, count = [], 0
+    for field, value in targets:
+        for name, mutated in mutations(value):
+            if field.endswith("/loss") and "nan" in name:
+                continue  # a NaN loss is a legitimate record (no update in that episode)
+            if isinstance(value, torch.Tensor) and not name.startswith(THIN):
+                continue
+            content = _replaced_deep(original, field, mutated)
+            checkpoint.remove(out)
+            checkpoint.save(out, content, kind=checkpoint.COMPARE_FORMAT)
+            for stale in out.glob("comparison.*"):
+                stale.unlink()
+            err = io.StringIO()
+            with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+                try:
+                    code = cli.main(["compare", "--resume", str(out)])
+                except BaseException as error:  # noqa: BLE001 - report, do not die
+                    code = f"raised {type(error).__name__}: {error}"
+            count += 1
+            lines = err.getvalue().strip().splitlines()
+            errors = [line for line in lines if "error:" in line]
+            clean = code == 2 and len(errors) == 1 and "Traceback" not in err.getvalue()
+            other_run = field.startswith("config") and _valid_compare_config(content["config"])
+            harmless = field.startswith(COMPARE_HARMLESS) or (field + "/").startswith(
+                MID_METHOD_HARMLESS
+            )
+            if not (clean or ((harmless or other_run) and code == 0)):
+                failures.append(f"{field} {name}: {code} {lines[-2:]}")
+    assert not failures, f"{len(failures)} of {count}:\n" + "\n".join(failures[:40])
+    assert count > 100
+
+
 def _replaced_deep(tree, path: str, value):
     """``replaced`` through dicts and lists (a list index is a path part)."""
     if not path:
@@ -246,6 +337,7 @@ def _replaced_deep(tree, path: str, value):
         copy[int(key)] = _replaced_deep(tree[int(key)], rest, value)
         return copy
     copy = dict(tree)
+    key = key if key in tree else int(key)  # an optimiser's state is keyed by parameter index
     copy[key] = _replaced_deep(tree[key], rest, value)
     return copy
 

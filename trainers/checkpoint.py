@@ -53,7 +53,7 @@ from typing import Any, NamedTuple
 import torch
 
 FORMAT = "factorq-paper-checkpoint"
-#: ``factorq compare``'s checkpoints: the traces of the methods finished so far.
+#: ``factorq compare``'s checkpoints: the methods finished so far and the running one's state.
 COMPARE_FORMAT = "factorq-compare-checkpoint"
 FORMAT_VERSION = 1
 DIRECTORY = "checkpoint"
@@ -146,7 +146,8 @@ def _feed(hasher: Any, value: Any) -> None:
     if isinstance(value, torch.Tensor):
         tensor = value.detach().cpu().contiguous()
         hasher.update(f"T{tensor.dtype}{tuple(tensor.shape)};".encode())
-        hasher.update(tensor.reshape(-1).view(torch.uint8).numpy())
+        if tensor.numel():  # (an empty tensor has no bytes, and may not be viewed as bytes)
+            hasher.update(tensor.reshape(-1).view(torch.uint8).numpy())
     elif isinstance(value, dict):
         hasher.update(f"D{len(value)};".encode())
         for key in sorted(value, key=repr):

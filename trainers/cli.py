@@ -112,12 +112,23 @@ def build_parser(*, compare_options: bool = True) -> argparse.ArgumentParser:
             "--force", action="store_true", default=argparse.SUPPRESS, help=FORCE_HELP
         )
         compare_parser.add_argument(
+            "--checkpoint-every",
+            metavar="EVERY",
+            help="Also save the running method's whole state (tables or networks, optimiser, "
+            "replay buffer, random state, world, records) to OUT/checkpoint/ every EVERY "
+            "episodes (summed over the method's experiments, e.g. 500) or seconds (e.g. 30s; "
+            "also 10m, 1h), atomically: --resume then continues it mid-method. (default: off: "
+            "a checkpoint after each method only)",
+            default=argparse.SUPPRESS,
+        )
+        compare_parser.add_argument(
             "--resume",
             metavar="DIR",
             help="Continue the interrupted comparison whose --out is DIR: the methods it had "
-            "finished (saved to DIR/checkpoint/ after each one) are not rerun, the others run "
-            "from their start, with the same numbers as an uninterrupted run (options repeated "
-            "must match; --threads may change).",
+            "finished (saved to DIR/checkpoint/ after each one) are not rerun, the one it was "
+            "saved during continues from its state (with --checkpoint-every) or its start, "
+            "with the same numbers as an uninterrupted run (options repeated must match; "
+            "--threads and --checkpoint-every may change).",
             default=argparse.SUPPRESS,
         )
     compare_parser.set_defaults(handler=_compare, command_parser=compare_parser)
@@ -289,21 +300,28 @@ def _compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
     resume = None
     try:
+        every = getattr(args, "checkpoint_every", None)
+        if every is not None:
+            every = checkpoint.parse_every(every)
         given = options.given_options(args, compare.CompareConfig)
         if hasattr(args, "resume"):
             resume = compare.load_checkpoint(args.resume)
             config = compare.resume_config(resume.config, given, args.resume)
         else:
             config = compare.CompareConfig(**given)
+        checkpointing = every is not None or (resume is not None and resume.every is not None)
         large = resources.check(
-            resources.compare_estimate(config), "comparison", resources.COMPARE_HINT
+            resources.compare_estimate(config, checkpointing=checkpointing),
+            "comparison",
+            resources.COMPARE_HINT,
         )
         executor = sweep.executor_from_args(args)  # None: in-process, as always
-        if executor is not None and resume is not None:
+        if executor is not None and (resume is not None or every is not None):
             executor.close()
+            what = "resume" if resume is not None else "checkpoint_every"
             raise ValueError(
-                "resume does not apply to a run on a cluster: rerun it there (each method is "
-                "one task), or resume without --cluster and --scheduler"
+                f"{what} does not apply to a run on a cluster: rerun it there (each method is "
+                f"one task), or run without --cluster and --scheduler"
             )
     except (ValueError, TypeError) as error:
         _error(parser, _as_option(str(error), compare.CompareConfig))
@@ -327,6 +345,8 @@ def _compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         with outdir.claim(
             config.out, outputs=outputs, force=hasattr(args, "force"), resume=resume is not None
         ):
+            if resume is not None:
+                print(f"resuming {args.resume} ({resume.progress})", file=sys.stderr)
             print(
                 f"{len(config.methods)} methods x {len(config.worlds)} worlds x {config.seeds} "
                 f"seeds, {config.steps:,} env steps each",
@@ -338,7 +358,12 @@ def _compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             try:
                 if executor is None:  # checkpoints after every method: a kill loses one at most
                     results = compare.run(
-                        config, progress, logs_dir=logs, checkpoints=True, resume=resume
+                        config,
+                        progress,
+                        logs_dir=logs,
+                        checkpoints=True,
+                        resume=resume,
+                        checkpoint_every=every,
                     )
                 else:  # one task per method
 

@@ -257,18 +257,27 @@ def value_providers(
     )
 
 
-def run_online(method: str, config: CompareConfig, logger=None, progress=None) -> dict[str, Any]:
+def run_online(
+    method: str,
+    config: CompareConfig,
+    logger=None,
+    progress=None,
+    checkpoints: compare_checkpoint.Saver | None = None,
+) -> dict[str, Any]:
     """Tabular Factor-Q, tabular Q-learning or Factor-DQN for the step budget (OnlineCollector).
 
-    Returns ``{"traces", "wall_s"}`` like ``factorq_trainers.dqn.run``.
+    Returns ``{"traces", "wall_s"}`` like ``factorq_trainers.dqn.run``. ``checkpoints`` (a
+    ``compare_checkpoint.Saver``): restore the method's saved state if the run resumes during it,
+    and save its state whenever one is due (between two steps; the numbers do not change).
     """
     started = time.perf_counter()
     experiments, agent = config.experiments, config.agent
     count, steps = experiments.num_experiments, experiments.steps
     task, local, optimizer = value_providers(method, config, count)
     epsilon = config.factor_dqn.epsilon if method == "factor-dqn" else agent.epsilon
+    grid = dqn.batch_env(experiments)
     env, policy, loss = experiment.online_agent(
-        dqn.batch_env(experiments),
+        grid,
         task,
         local,
         agent,
@@ -282,13 +291,44 @@ def run_online(method: str, config: CompareConfig, logger=None, progress=None) -
     hook = loss.register_forward_hook(lambda module, inputs, output: captured.update(output))
     recorder = EpisodeRecorder(experiments.labels, logger)
     report_every = max(1, steps // 100)
-    for step in range(1, steps + 1):
+    done, before = 0, 0.0
+    if checkpoints is not None:
+
+        def state(step: int) -> dict[str, Any]:
+            return {
+                "step": step,
+                "collector": collector.state_dict(),
+                "world_state": grid.world_state._asdict(),
+                "recorder": recorder.state_dict(),
+            }
+
+        fresh = state(0)
+
+        def load_state(saved: dict[str, Any]) -> None:
+            nonlocal done
+            saved = compare_checkpoint.check_online_state(
+                saved, fresh, collector.optimizer, experiments, neural=method == "factor-dqn"
+            )
+            collector.load_state_dict(saved["collector"])
+            grid.world_state = type(grid.world_state)(**saved["world_state"])
+            recorder.load_state_dict(saved["recorder"])
+            done = saved["step"]
+
+        before = checkpoints.restore(method, load_state) or 0.0
+    seen = recorder.finished_episodes
+    for step in range(done + 1, steps + 1):
         td = collector.step()
         recorder.update(td, epsilon, 0.5 * captured["td_error"].pow(2))
         if progress is not None and (step % report_every == 0 or step == steps):
             progress(step, steps)
+        if checkpoints is not None and step < steps:
+            checkpoints.advance(recorder.finished_episodes - seen)
+            seen = recorder.finished_episodes
+            if checkpoints.due():
+                wall = before + time.perf_counter() - started
+                checkpoints.save(method, state(step), wall)
     hook.remove()
-    return {"traces": recorder.traces(), "wall_s": time.perf_counter() - started}
+    return {"traces": recorder.traces(), "wall_s": before + time.perf_counter() - started}
 
 
 # --------------------------------------------------------------------------------------------
@@ -424,7 +464,7 @@ def config_from_dict(data: dict[str, Any]) -> CompareConfig:
 
 
 def save_checkpoint(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> Path:
-    """Save the finished methods' traces to ``out/checkpoint/``."""
+    """Save the finished methods' traces to ``out/checkpoint/`` (between methods)."""
     return compare_checkpoint.save(config.out, config_dict(config), runs)
 
 
@@ -466,14 +506,18 @@ Progress = Callable[[str, int, int], None]
 
 
 def run_method(
-    config: CompareConfig, method: str, progress: Callable[[int, int], None] | None = None
+    config: CompareConfig,
+    method: str,
+    progress: Callable[[int, int], None] | None = None,
+    checkpoints: compare_checkpoint.Saver | None = None,
 ) -> dict[str, Any]:
     """One method's batch (all selected worlds and seeds): ``{"traces", "wall_s"}``. A method's
     numbers do not depend on the others (DQN seeds torch's global stream first), so methods may
-    run in any order, in any process (``factorq compare --cluster``)."""
+    run in any order, in any process (``factorq compare --cluster``). ``checkpoints``: restore
+    and save the method's state mid-method (``compare_checkpoint.Saver``)."""
     if method == "dqn":
-        return dqn.run(config.dqn, config.experiments, progress=progress)
-    return run_online(method, config, progress=progress)
+        return dqn.run(config.dqn, config.experiments, progress=progress, checkpoints=checkpoints)
+    return run_online(method, config, progress=progress, checkpoints=checkpoints)
 
 
 def write_logs(
@@ -492,6 +536,7 @@ def run(
     logs_dir: str | os.PathLike | None = None,
     checkpoints: bool = False,
     resume: CompareCheckpoint | None = None,
+    checkpoint_every: checkpoint.Every | str | int | None = None,
 ) -> dict[str, Any]:
     """Run every selected method on every selected world; return the ``comparison.json`` dict.
 
@@ -501,10 +546,19 @@ def run(
 
     ``checkpoints``: save the traces of the finished methods to ``out/checkpoint/`` after each
     method (the caller removes them once the outputs are written); ``resume``
-    (``load_checkpoint(out)``) skips the methods it holds. A method's numbers do not depend on
-    the others (``run_method``), so a resumed run gives the numbers of an uninterrupted one."""
+    (``load_checkpoint(out)``) skips the methods it holds and continues the one it was taken
+    during from its saved state. A method's numbers do not depend on the others
+    (``run_method``), so a resumed run gives the numbers of an uninterrupted one.
+
+    ``checkpoint_every`` (episodes summed over the method's experiments, or seconds: ``"30s"``,
+    as ``factorq paper``'s) also saves the running method's whole state that often (with
+    ``checkpoints``); a resumed run goes on at its checkpoint's interval unless given one."""
     started = time.perf_counter()
-    estimate = resources.compare_estimate(config)
+    if checkpoint_every is None and resume is not None:
+        checkpoint_every = resume.every  # a resumed run goes on saving as it did
+    if checkpoint_every is not None:
+        checkpoint_every = checkpoint.parse_every(checkpoint_every)
+    estimate = resources.compare_estimate(config, checkpointing=checkpoint_every is not None)
     resources.check(estimate, "comparison", resources.COMPARE_HINT)  # before any allocation
     threads = torch.get_num_threads()
     torch.set_num_threads(config.threads)
@@ -512,19 +566,31 @@ def run(
         check_checkpoint(resume, config)
     elif checkpoints:
         checkpoint.check_none_in(config.out)
+    saver = None
+    if checkpoints or resume is not None:
+        every = checkpoint_every if checkpoints else None
+        saver = compare_checkpoint.Saver(config.out, config_dict(config), every, resume=resume)
     try:
         runs = {} if resume is None else dict(resume.finished)
+        if saver is not None:
+            saver.finished = dict(runs)
         for method in config.methods:
             if method in runs:
                 continue
             report = None if progress is None else (lambda d, t, m=method: progress(m, d, t))
-            runs[method] = run_method(config, method, report)
+            runs[method] = run_method(config, method, report, checkpoints=saver)
             if checkpoints and len(runs) < len(config.methods):
-                save_checkpoint(config, runs)
+                saver.save_finished(runs)
     finally:
         torch.set_num_threads(threads)
     if logs_dir is not None:
         write_logs(config, runs, logs_dir)
     results = summarise(config, runs)
     results["timing"] = {"wall_s": round(time.perf_counter() - started, 3)}
+    if saver is not None and saver.every is not None:
+        results["timing"]["checkpoints"] = {
+            "every": str(saver.every),
+            "saved_mid_method": saver.saves,
+            "save_s": round(saver.save_seconds, 3),
+        }
     return results

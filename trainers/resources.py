@@ -166,10 +166,12 @@ def sweep_estimate(configs: list[Any], shard_seeds: int, workers: int) -> Estima
     return Estimate(parts, steps, exact_steps=False)
 
 
-def compare_estimate(config: Any) -> Estimate:
+def compare_estimate(config: Any, checkpointing: bool = False) -> Estimate:
     """Peak memory of ``factorq compare`` with ``config`` (a ``CompareConfig``): the largest
     method's tables, networks and replay buffer, and every method's per-episode records (kept
-    until the summary; counted as if every episode were as short as possible)."""
+    until the summary; counted as if every episode were as short as possible); with
+    ``checkpointing`` (``--checkpoint-every``), the copy a mid-method checkpoint makes of the
+    running method's state (its tables or networks, replay buffer and records)."""
     experiments = config.experiments
     count = experiments.num_experiments
     world = experiments.world
@@ -207,6 +209,9 @@ def compare_estimate(config: Any) -> Estimate:
             parts["replay buffer"] = min(settings.buffer_size, experiments.steps) * count * 38
             parts["collector"] = settings.train_every * count * (200 + 4 * width)
         parts["env"] = count * (cells + _EXPERIMENT_BYTES)
+        if checkpointing:  # the saved state: copied once (state_dict, the records' arrays)
+            saved = ("tables", "networks", "replay buffer")
+            parts["checkpoint copy"] = sum(parts.get(name, 0) for name in saved) + records
         if sum(parts.values()) > sum(largest.values()):
             largest = parts
     largest["episode records"] = records * len(config.methods)

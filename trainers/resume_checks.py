@@ -163,6 +163,8 @@ def _check_values(value: torch.Tensor, fresh: torch.Tensor | None, config, where
         if not bool(torch.isfinite(value).all()):
             raise ValueError(f"{where} holds NaN or infinite values")
         low, high = {"rho": (-1.0, 0.0), "local_value": (-1.0, 0.0)}.get(name, (None, None))
+        if not getattr(config, "bounded_local_values", True):  # a network's, not a table's
+            low, high = None, None
         if "return" in name:
             low, high = -float(config.max_steps), 0.0
     else:
