@@ -1,8 +1,10 @@
-"""The FactoredGrid world as a gymnasium env (one world, numpy in and out).
+"""The FactoredGrid world, or any ``envs.protocol.World``, as a gymnasium env (one world, numpy in
+and out).
 
 Registered as ``"FactoredGrid-v0"`` on ``import envs``. It runs the same pure functions as the
-torchrl env (``envs.world``) on tensors of one world, and draws from the same counter streams:
-``reset(seed=s)`` gives the trajectories of ``FactoredGridEnv(seed=s)`` for the same actions.
+torchrl env (the world's ``reset``, ``step``, ``observe``) on tensors of one world, and draws from
+the same counter streams: ``reset(seed=s)`` gives the trajectories of ``FactoredGridEnv(seed=s)``
+for the same actions and the same world.
 """
 
 from __future__ import annotations
