@@ -519,7 +519,7 @@ class FactoredGridEnv(EnvBase):
 
     def render_rgb(self, index: int = 0) -> np.ndarray:
         """World ``index`` (flat, in ``[0, S)``) as an image ``uint8 [H, W, 3]``: walls, obstacles,
-        the agent with its heading, the goal, the last collision (``envs.render``; the same
+        the agent with its heading, the goal, the last collision (``factorq_envs.render``; the same
         picture as the gymnasium env's ``rgb_array``). ``RenderPixels`` writes it as ``pixels``."""
         if not is_int(index) or not 0 <= index < self.num_worlds:
             raise ValueError(f"index={index!r} is out of range: must be in [0, {self.num_worlds})")

@@ -39,8 +39,8 @@ class FactoredGridGym(gymnasium.Env):
             body and its sensors, as ``WorldConfig`` (observation ``sensors`` ``[K]``, and
             ``heading`` for a body with a heading; ``Discrete(A)`` actions).
         render_mode: ``None``, ``"ansi"`` (``render()`` returns the text picture) or
-            ``"rgb_array"`` (``render()`` returns ``uint8 [H, W, 3]``, ``envs.render``: walls,
-            obstacles, the agent with its heading, the goal, the last collision in red; what
+            ``"rgb_array"`` (``render()`` returns ``uint8 [H, W, 3]``, ``factorq_envs.render``:
+            walls, obstacles, the agent with its heading, the goal, the last collision in red; what
             gymnasium's ``RecordVideo`` and SB3's ``make_vec_env`` ask for).
 
     Spaces (the paper's body): observation ``Dict(cell=Discrete(N), sensors=MultiBinary(4),
@@ -53,7 +53,7 @@ class FactoredGridGym(gymnasium.Env):
     the world's stream starts from seed 0.
 
     Example:
-        >>> import envs
+        >>> import factorq_envs
         >>> env = gymnasium.make("FactoredGrid-v0", size=3, num_obstacles=0)
         >>> observation, info = env.reset(seed=0)
         >>> int(observation["cell"]), observation["proximity"].tolist()

@@ -1,6 +1,6 @@
 """The paper's output files: ``results.json``, Figure 3 and the claims report.
 
-``write_results`` writes all three from the results dict of ``trainers.paper.run``;
+``write_results`` writes all three from the results dict of ``factorq_trainers.paper.run``;
 ``factorq report`` (``regenerate``) redraws the figure and the report from ``results.json`` alone.
 Everything here reads the results and computes nothing new: the numbers in the report are the
 numbers in the file.
