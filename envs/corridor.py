@@ -1,4 +1,5 @@
-"""A second world in one file: a corridor with hurdles (the ``envs.protocol.World`` interface).
+"""A second world in one file: a corridor with hurdles (the ``factorq_envs.protocol.World``
+interface).
 
 The agent walks a one-dimensional corridor of ``length`` cells from cell 0 to the goal, cell
 ``length - 1``. Some cells hold a hurdle. Its body has three actuators: ``back`` (one cell back),
@@ -19,7 +20,7 @@ every ``k``-th action of an episode (except the one that reaches the goal), as t
 
 Rewards: -1 per action, +1 on reaching the goal, the collision vector as the local reward.
 
->>> from envs.protocol import World
+>>> from factorq_envs.protocol import World
 >>> corridor = Corridor(CorridorConfig(length=6, density=0.0))
 >>> isinstance(corridor, World), corridor.dependency.int().tolist()
 (True, [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]])
@@ -71,7 +72,7 @@ class CorridorConfig:
         check_int("max_steps", self.max_steps, 1)
         check_int("layout_seed", self.layout_seed, 0)
 
-    # What the env wrappers read (envs.protocol.CONFIG_FIELDS).
+    # What the env wrappers read (factorq_envs.protocol.CONFIG_FIELDS).
     num_sensors = len(SENSORS)
     num_actuators = len(ACTUATORS)
     num_headings = 1
@@ -143,7 +144,7 @@ def blocked(cell: torch.Tensor, hurdles: torch.Tensor, offsets: torch.Tensor) ->
 
 
 class Corridor:
-    """``S`` corridors as pure batched functions (``envs.protocol.World``)."""
+    """``S`` corridors as pure batched functions (``factorq_envs.protocol.World``)."""
 
     def __init__(self, config: CorridorConfig | None = None) -> None:
         if config is None:

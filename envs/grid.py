@@ -1,9 +1,9 @@
 """``FactoredGridEnv``: ``S`` independent worlds as one batched torchrl env.
 
-The world's rules live in a world (``envs.protocol.World``: ``envs.world.FactoredGrid`` by
-default, any other world given as ``world=``); this module only validates arguments, reads the
-specs from the world's config, holds the state of the worlds in tensors and moves it in and out
-of TensorDicts.
+The world's rules live in a world (``factorq_envs.protocol.World``:
+``factorq_envs.world.FactoredGrid`` by default, any other world given as ``world=``); this module
+only validates arguments, reads the specs from the world's config, holds the state of the worlds in
+tensors and moves it in and out of TensorDicts.
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from envs.protocol import check_world
-from envs.world import FactoredGrid, WorldConfig, static_layout
+from factorq_envs.protocol import check_world
+from factorq_envs.world import FactoredGrid, WorldConfig, static_layout
 from factorq_torch.base import keys
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 from factorq_torch.base.validation import check_device, is_int
@@ -125,11 +125,11 @@ def check_no_grid_arguments(given: dict, world) -> None:
 
 class FactoredGridEnv(EnvBase):
     """``S`` independent worlds (SPEC sections 1-2), one per experiment of a batch: the paper's
-    FactoredGrid by default, or any ``envs.protocol.World`` given as ``world``.
+    FactoredGrid by default, or any ``factorq_envs.protocol.World`` given as ``world``.
 
     Keyword Args:
-        world: an ``envs.protocol.World`` (e.g. ``envs.corridor.Corridor(...)``, or a
-            ``FactoredGrid``) whose rules, specs and body the env uses; ``None`` builds a
+        world: an ``factorq_envs.protocol.World`` (e.g. ``factorq_envs.corridor.Corridor(...)``, or
+            a ``FactoredGrid``) whose rules, specs and body the env uses; ``None`` builds a
             ``FactoredGrid`` from the arguments below (size ... actuator_noise), which must then
             be left out.
         size: side of the square grid (>= 2).
@@ -167,8 +167,8 @@ class FactoredGridEnv(EnvBase):
     - reward: ``reward`` ``[*B, 1]`` float32, the conventional step + goal + sum(collision);
     - done: ``done``, ``terminated``, ``truncated`` ``[*B, 1]`` bool.
 
-    The rules are called through ``world`` (an ``envs.protocol.World``). State (read and written
-    by the fast path and checkpoints; worlds flattened to ``S``):
+    The rules are called through ``world`` (an ``factorq_envs.protocol.World``). State (read and
+    written by the fast path and checkpoints; worlds flattened to ``S``):
     ``world_state`` (the world's state, leading dim ``S``; ``S = 1`` when ``batch_size == ()``),
     ``world_keys`` ``[S]`` int64, ``periods`` ``[S]`` int64 (handed to the world's ``reset`` and
     ``step``), ``static_obstacles`` ``[N]`` bool (default world only), ``world_seed`` (the seed
@@ -270,7 +270,7 @@ class FactoredGridEnv(EnvBase):
     def _setup(self, world, num_worlds, experiment_offset, periods, seed, world_keys) -> None:
         """Everything after the world is known: state, specs, keys."""
         device = self.device
-        # The world behind the envs.protocol.World interface: every rule is called through it.
+        # The world behind the factorq_envs.protocol.World interface: every rule goes through it.
         self.world = world
         self.config = world.config
         self.num_worlds = num_worlds
@@ -505,7 +505,7 @@ class FactoredGridEnv(EnvBase):
         if not callable(found):
             raise TypeError(
                 f"{type(self.world).__name__} has no {method}(): this world does not offer it "
-                f"(envs.protocol lists the optional methods)"
+                f"(factorq_envs.protocol lists the optional methods)"
             )
         return found
 

@@ -1,10 +1,10 @@
-"""The FactoredGrid world, or any ``envs.protocol.World``, as a gymnasium env (one world, numpy in
-and out).
+"""The FactoredGrid world, or any ``factorq_envs.protocol.World``, as a gymnasium env (one world,
+numpy in and out).
 
-Registered as ``"FactoredGrid-v0"`` on ``import envs``. It runs the same pure functions as the
-torchrl env (the world's ``reset``, ``step``, ``observe``) on tensors of one world, and draws from
-the same counter streams: ``reset(seed=s)`` gives the trajectories of ``FactoredGridEnv(seed=s)``
-for the same actions and the same world.
+Registered as ``"FactoredGrid-v0"`` on ``import factorq_envs``. It runs the same pure functions as
+the torchrl env (the world's ``reset``, ``step``, ``observe``) on tensors of one world, and draws
+from the same counter streams: ``reset(seed=s)`` gives the trajectories of
+``FactoredGridEnv(seed=s)`` for the same actions and the same world.
 """
 
 from __future__ import annotations
@@ -16,20 +16,21 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from envs.protocol import check_world
-from envs.world import FactoredGrid, WorldConfig, static_layout
+from factorq_envs.protocol import check_world
+from factorq_envs.world import FactoredGrid, WorldConfig, static_layout
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 from factorq_torch.base.validation import check_int
 
 
 class FactoredGridGym(gymnasium.Env):
-    """One FactoredGrid world (SPEC sections 1-2), or any ``envs.protocol.World``, for gymnasium.
+    """One FactoredGrid world (SPEC sections 1-2), or any ``factorq_envs.protocol.World``, for
+    gymnasium.
 
     Args:
-        world: an ``envs.protocol.World`` (e.g. ``envs.corridor.Corridor(...)``) whose rules,
-            spaces and body the env uses; ``None`` builds a ``FactoredGrid`` from the arguments
-            below (size ... actuator_noise), which must then be left out. The spaces are read
-            from its config (``cell``: ``Discrete(num_cells)``, ``sensors``:
+        world: an ``factorq_envs.protocol.World`` (e.g. ``factorq_envs.corridor.Corridor(...)``)
+            whose rules, spaces and body the env uses; ``None`` builds a ``FactoredGrid`` from the
+            arguments below (size ... actuator_noise), which must then be left out. The spaces are
+            read from its config (``cell``: ``Discrete(num_cells)``, ``sensors``:
             ``MultiBinary(num_sensors)``, ``heading`` when ``num_headings > 1``, ``bump``:
             ``MultiBinary(num_actuators)``, the world's extra observations; action
             ``Discrete(num_actuators)``).
@@ -82,7 +83,7 @@ class FactoredGridGym(gymnasium.Env):
         world=None,
     ) -> None:
         if world is not None:
-            from envs.grid import check_no_grid_arguments  # the one list of grid arguments
+            from factorq_envs.grid import check_no_grid_arguments  # the one list of grid arguments
 
             check_world(world)
             check_no_grid_arguments(
@@ -123,14 +124,14 @@ class FactoredGridGym(gymnasium.Env):
         self._setup(FactoredGrid(config, static_obstacles), obstacle_period, render_mode)
 
     def _setup(self, world, obstacle_period: int, render_mode: str | None) -> None:
-        """Spaces and state, read from ``world`` (an ``envs.protocol.World``)."""
+        """Spaces and state, read from ``world`` (an ``factorq_envs.protocol.World``)."""
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
                 f"render_mode={render_mode!r} is not supported: must be None or one of "
                 f"{self.metadata['render_modes']}"
             )
         self.render_mode = render_mode
-        # The world behind the envs.protocol.World interface: every rule is called through it.
+        # The world behind the factorq_envs.protocol.World interface: every rule goes through it.
         self.world = world
         self.config = config = world.config
         self.periods = torch.tensor([obstacle_period], dtype=torch.int64)  # [1]
@@ -234,7 +235,7 @@ class FactoredGridGym(gymnasium.Env):
         if not callable(found):
             raise TypeError(
                 f"{type(self.world).__name__} has no {method}(): this world does not offer it "
-                f"(envs.protocol lists the optional methods)"
+                f"(factorq_envs.protocol lists the optional methods)"
             )
         return found
 

@@ -1,13 +1,13 @@
 """The World protocol: what a world offers the env wrappers, the experiments and the fast path.
 
 A world is pure batched functions over a state of tensors with a leading dimension ``S`` of
-independent worlds, plus the data that describes its body (``dependency``). ``envs.world``'s
-``FactoredGrid`` implements it for the paper's grid; ``envs.corridor``'s ``Corridor`` is a second,
-one-dimensional world. A new world is one new file with a class like them: the torchrl env
-(``envs.grid.FactoredGridEnv(world=...)``) and the gymnasium env
-(``envs.gym.FactoredGridGym(world=...)``) read their specs from it, and ``SplitLocalReward``, the
-agents and the trainers' modular path run it unchanged. The compiled fast path runs only
-``FactoredGrid``: the trainers fall back to the modular path for any other world.
+independent worlds, plus the data that describes its body (``dependency``). ``factorq_envs.world``'s
+``FactoredGrid`` implements it for the paper's grid; ``factorq_envs.corridor``'s ``Corridor`` is a
+second, one-dimensional world. A new world is one new file with a class like them: the torchrl env
+(``factorq_envs.grid.FactoredGridEnv(world=...)``) and the gymnasium env
+(``factorq_envs.gym.FactoredGridGym(world=...)``) read their specs from it, and
+``SplitLocalReward``, the agents and the trainers' modular path run it unchanged. The compiled fast
+path runs only ``FactoredGrid``: the trainers fall back to the modular path for any other world.
 
 What the wrappers read, besides the methods below:
 
@@ -97,7 +97,7 @@ def check_world(world: Any, name: str = "world") -> Any:
         missing += [f"config.{field}" for field in CONFIG_FIELDS if not hasattr(config, field)]
     if missing:
         raise TypeError(
-            f"{name} must implement envs.protocol.World, got {type(world).__name__} without "
-            f"{', '.join(missing)}"
+            f"{name} must implement factorq_envs.protocol.World, got {type(world).__name__} "
+            f"without {', '.join(missing)}"
         )
     return world

@@ -674,8 +674,8 @@ class FactoredGrid:
         return state.obstacles.reshape(-1, size, size).clone()
 
     def render_rgb(self, state: WorldState, index: int = 0):
-        """World ``index`` as an image ``uint8 [H, W, 3]`` (``envs.render.render_rgb``)."""
-        from envs.render import bumped_faces, render_rgb
+        """World ``index`` as an image ``uint8 [H, W, 3]`` (``factorq_envs.render.render_rgb``)."""
+        from factorq_envs.render import bumped_faces, render_rgb
 
         body = self.config.body_spec
         heading = int(state.heading[index])

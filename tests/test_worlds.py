@@ -1,5 +1,5 @@
 """A new world is one new file (issue 11): the env wrappers, SplitLocalReward, the agents and the
-trainers' modular path run any ``envs.protocol.World``; ``envs.corridor`` proves it.
+trainers' modular path run any ``factorq_envs.protocol.World``; ``factorq_envs.corridor`` proves it.
 
 The corridor is checked against hand-computed cases and an independent per-world Python loop;
 the wrappers against their default-world outputs; the trainers by learning in it.
@@ -15,12 +15,12 @@ from gymnasium.utils.env_checker import check_env
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
-from envs.corridor import MOVES, Corridor, CorridorConfig, CorridorState
-from envs.grid import FactoredGridEnv
-from envs.gym import FactoredGridGym
-from envs.protocol import World, check_world
-from envs.transforms import SplitLocalReward
-from envs.world import FactoredGrid, WorldConfig
+from factorq_envs.corridor import MOVES, Corridor, CorridorConfig, CorridorState
+from factorq_envs.grid import FactoredGridEnv
+from factorq_envs.gym import FactoredGridGym
+from factorq_envs.protocol import World, check_world
+from factorq_envs.transforms import SplitLocalReward
+from factorq_envs.world import FactoredGrid, WorldConfig
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys, probability_threshold, random_bits
 
@@ -180,7 +180,9 @@ def test_bad_corridor_options_are_refused_naming_them():
 def test_the_corridor_and_the_grid_implement_the_protocol():
     assert isinstance(Corridor(), World)
     assert check_world(FactoredGrid(WorldConfig(size=3, num_obstacles=0))) is not None
-    with pytest.raises(TypeError, match=r"world must implement envs.protocol.World, got int"):
+    with pytest.raises(
+        TypeError, match=r"world must implement factorq_envs.protocol.World, got int"
+    ):
         check_world(3)
     with pytest.raises(TypeError, match=r"without .*rewind"):
         FactoredGridEnv(world=object())
@@ -308,7 +310,7 @@ def test_gymnasium_and_torchrl_envs_of_a_corridor_walk_alike():
 
 
 def test_the_fast_path_refuses_a_foreign_world_and_takes_the_grid():
-    from trainers import fast
+    from factorq_trainers import fast
 
     assert "Corridor" in fast.unsupported_reason(Corridor())
     assert fast.unsupported_reason(FactoredGrid(WorldConfig())) is None
@@ -317,7 +319,7 @@ def test_the_fast_path_refuses_a_foreign_world_and_takes_the_grid():
 
 def test_tabular_factorq_learns_the_corridor_through_the_online_collector(one_thread):
     from factorq_torch.collectors import OnlineCollector
-    from trainers import experiment
+    from factorq_trainers import experiment
 
     world = Corridor(CorridorConfig(length=12))
     count = 6
@@ -341,7 +343,7 @@ def test_tabular_factorq_learns_the_corridor_through_the_online_collector(one_th
 
 
 def test_paper_run_falls_back_to_the_modular_path_for_a_foreign_world(tmp_path, capsys):
-    from trainers import fast, paper
+    from factorq_trainers import fast, paper
 
     config = paper.PaperConfig(seeds=2, runs=1, episodes=4, out=str(tmp_path))
     world = Corridor(CorridorConfig(length=8))

@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from trainers.compare import METHOD_LABELS, THRESHOLD_FACTOR
-from trainers.results import body_label, dumps, write_all_atomic
+from factorq_trainers.compare import METHOD_LABELS, THRESHOLD_FACTOR
+from factorq_trainers.results import body_label, dumps, write_all_atomic
 
 JSON_FILE = "comparison.json"
 FIGURE_FILE = "comparison.png"

@@ -7,7 +7,8 @@ their experiments from these pieces rather than each its own copy:
   experiment draws the same numbers whatever else is selected;
 - ``check_world_options``: the world options of a trainer's config, checked once;
 - ``make_env``: the batched ``FactoredGridEnv`` of a batch, one obstacle period and world key
-  per experiment, around the paper's grid (a ``WorldConfig``) or any ``envs.protocol.World``;
+  per experiment, around the paper's grid (a ``WorldConfig``) or any
+  ``factorq_envs.protocol.World``;
 - ``tabular_values`` and ``online_agent``: the tables, and the policy and loss around any value
   providers (tables or networks) for Q-learning or Factor-Q;
 - ``ExperimentConfig`` and ``EpisodeRecorder``: the step-budget experiments of ``factorq
@@ -135,7 +136,7 @@ def check_world_options(
 
 def body_of(world: Any) -> Any:
     """The config that declares the body's sizes (``num_cells``, ``num_sensors``, ...): a
-    ``WorldConfig`` itself, else an ``envs.protocol.World``'s ``config``."""
+    ``WorldConfig`` itself, else an ``factorq_envs.protocol.World``'s ``config``."""
     return world if isinstance(world, WorldConfig) else world.config
 
 
@@ -162,9 +163,9 @@ def make_env(
 ) -> FactoredGridEnv:
     """The batch's worlds: one ``FactoredGridEnv`` experiment per entry of ``periods``, each
     drawing its obstacles from its own ``world_keys`` entry (``experiment_keys``). ``world``: a
-    ``WorldConfig`` (the paper's grid) or any ``envs.protocol.World`` (``FactoredGridEnv(world=
-    ...)``)."""
-    from envs.grid import FactoredGridEnv  # torchrl: only for the paths that step the env
+    ``WorldConfig`` (the paper's grid) or any ``factorq_envs.protocol.World``
+    (``FactoredGridEnv(world= ...)``)."""
+    from factorq_envs.grid import FactoredGridEnv  # torchrl: only for the paths that step the env
 
     if not isinstance(world, WorldConfig):
         return FactoredGridEnv(
@@ -200,7 +201,7 @@ def tabular_values(
     algorithm: str, count: int, world: Any, device: torch.device | str | None = None
 ) -> tuple[Any, Any]:
     """The tables of ``count`` experiments of ``algorithm`` in ``world``'s body (a
-    ``WorldConfig`` or an ``envs.protocol.World``): Q-learning's task table over cell (x
+    ``WorldConfig`` or an ``factorq_envs.protocol.World``): Q-learning's task table over cell (x
     heading) x the pattern of all sensors and no local table, or Factor-Q's task table over cells
     (x heading) and its local tables, given the body's true dependency (the oracle pairing, as in
     the paper)."""

@@ -200,8 +200,9 @@ def resolve_backend(config: PaperConfig, world: Any = None) -> str:
 
     This is the one place where the backend is chosen. ``auto`` takes the compiled fast path when
     it is available on this machine, the device is the cpu and the kernel can run the world
-    (``fast.unsupported_reason``: a body past its limits, or ``world``, an ``envs.protocol.World``
-    other than the paper's grid), the modular torchrl path otherwise.
+    (``fast.unsupported_reason``: a body past its limits, or ``world``, an
+    ``factorq_envs.protocol.World`` other than the paper's grid), the modular torchrl path
+    otherwise.
     """
     from factorq_trainers import fast
 
@@ -275,7 +276,7 @@ class Job(NamedTuple):
     #: Restores a resumed state (``restore``) and saves when due (``due``, ``save``).
     checkpoints: checkpoint.Checkpointer
     #: The world the experiments run in: ``None`` for the config's grid, else an
-    #: ``envs.protocol.World`` (modular path only).
+    #: ``factorq_envs.protocol.World`` (modular path only).
     world: Any = None
 
 
@@ -430,8 +431,8 @@ def run(
     a checkpoint, saving at its interval unless ``checkpoint_every`` is given. A new run refuses
     an ``out`` that holds an unfinished run's checkpoint.
 
-    ``world``: another world than the config's grid, an ``envs.protocol.World`` (e.g.
-    ``envs.corridor.Corridor``): the experiments of world name ``w`` run in it with ``w``'s
+    ``world``: another world than the config's grid, an ``factorq_envs.protocol.World`` (e.g.
+    ``factorq_envs.corridor.Corridor``): the experiments of world name ``w`` run in it with ``w``'s
     obstacle period, on the modular path (``auto`` falls back to it with a one-line notice;
     ``backend="fast"`` is refused), without checkpoints; the config's grid options are unused and
     ``results["world"]`` names the world.
@@ -526,8 +527,8 @@ def run(
 
 def _check_foreign_world(world: Any, checkpoint_every: Any, resume: Any) -> None:
     """Refuse a ``world`` that ``run`` cannot take: one error naming it."""
-    from envs.protocol import check_world
-    from envs.world import FactoredGrid
+    from factorq_envs.protocol import check_world
+    from factorq_envs.world import FactoredGrid
 
     check_world(world)
     if isinstance(world, FactoredGrid):

@@ -109,7 +109,8 @@ def paper_estimate(config: Any, checkpointing: bool = False, world: Any = None) 
     """Peak memory of ``factorq paper`` with ``config`` (a ``PaperConfig``): the running
     algorithm's tables, state and metrics, the finished algorithms' metrics, the results' curves
     (and, with ``checkpointing``, a copy of the running state being saved). ``world``: another
-    world than the config's grid (an ``envs.protocol.World``), whose config gives the sizes."""
+    world than the config's grid (an ``factorq_envs.protocol.World``), whose config gives the
+    sizes."""
     count = len(config.worlds) * config.seeds  # experiments of one algorithm
     # the body: sensors, actuators, headings (issue 11)
     world = config.world if world is None else world.config
