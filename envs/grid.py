@@ -1,7 +1,9 @@
-"""``FactoredGridEnv``: ``S`` independent FactoredGrid worlds as one batched torchrl env.
+"""``FactoredGridEnv``: ``S`` independent worlds as one batched torchrl env.
 
-The world's rules live in ``factorq_envs.world`` (pure tensor functions); this module only validates
-arguments, holds the state of the worlds in tensors and moves it in and out of TensorDicts.
+The world's rules live in a world (``factorq_envs.protocol.World``:
+``factorq_envs.world.FactoredGrid`` by default, any other world given as ``world=``); this module
+only validates arguments, reads the specs from the world's config, holds the state of the worlds in
+tensors and moves it in and out of TensorDicts.
 """
 
 from __future__ import annotations
@@ -15,15 +17,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from factorq_envs.render import bumped_faces, render_rgb
-from factorq_envs.world import (
-    NUM_ACTIONS,
-    FactoredGrid,
-    WorldConfig,
-    WorldState,
-    proximity,
-    static_layout,
-)
+from factorq_envs.protocol import check_world
+from factorq_envs.world import FactoredGrid, WorldConfig, static_layout
 from factorq_torch.base import keys
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 from factorq_torch.base.validation import check_device, is_int
@@ -92,10 +87,51 @@ def _check_periods(obstacle_period, num_worlds: int) -> tuple[torch.Tensor, int]
     return torch.tensor(values, dtype=torch.int64), shared
 
 
+#: The arguments that describe the default world (a ``FactoredGrid``), with their defaults: with
+#: ``world=`` they belong to that world's config and must be left out.
+GRID_ARGUMENTS = {
+    "size": 10,
+    "num_obstacles": 10,
+    "max_steps": 10_000,
+    "layout_seed": 0,
+    "body": "translate",
+    "sensors": "cross",
+    "num_distractors": 0,
+    "sensor_permutation": None,
+    "sensor_noise": 0.0,
+    "actuator_noise": 0.0,
+}
+
+
+def check_no_grid_arguments(given: dict, world) -> None:
+    """Refuse grid arguments beside ``world=``: one ValueError naming them."""
+
+    def differs(value, default) -> bool:
+        if default is None or value is None:
+            return value is not default
+        try:
+            return bool(value != default)
+        except (TypeError, RuntimeError):
+            return True
+
+    extra = [name for name, default in GRID_ARGUMENTS.items() if differs(given[name], default)]
+    if extra:
+        raise ValueError(
+            f"{', '.join(f'{name}={given[name]!r}' for name in extra)} describe the default "
+            f"FactoredGrid: with world={type(world).__name__}(...) set them in the world's "
+            f"config instead"
+        )
+
+
 class FactoredGridEnv(EnvBase):
-    """``S`` independent FactoredGrid worlds (SPEC sections 1-2), one per experiment of a batch.
+    """``S`` independent worlds (SPEC sections 1-2), one per experiment of a batch: the paper's
+    FactoredGrid by default, or any ``factorq_envs.protocol.World`` given as ``world``.
 
     Keyword Args:
+        world: an ``factorq_envs.protocol.World`` (e.g. ``factorq_envs.corridor.Corridor(...)``, or
+            a ``FactoredGrid``) whose rules, specs and body the env uses; ``None`` builds a
+            ``FactoredGrid`` from the arguments below (size ... actuator_noise), which must then
+            be left out.
         size: side of the square grid (>= 2).
         num_obstacles: single-cell obstacles, in ``[0, size**2 - 3]`` (at most ``(size - 1)**2``
             when a world is static, so that a path can exist).
@@ -116,12 +152,14 @@ class FactoredGridEnv(EnvBase):
             agent's body and sensors, as ``WorldConfig`` (defaults: the paper's). ``dependency``
             is the resulting ground truth, bool ``[actuators, sensors]``.
 
-    Keys (``B`` = ``batch_size``, ``N = size**2``):
+    Keys (``B`` = ``batch_size``, ``N = size**2``, in general ``config.num_cells``; ``K``,
+    ``A`` and the headings are read from the world's config):
 
     - observation: ``cell`` ``[*B]`` int64 in ``[0, N)``; ``sensors`` ``[*B, K]`` bool, every
       sensor as the agent receives it (what the agents read; for the paper's body equal to
       ``proximity``); ``heading`` ``[*B]`` int64 (bodies with a heading only); ``proximity``
-      ``[*B, 4]`` bool, the noise-free N, W, S, E neighbours; ``bump`` ``[*B, A]`` bool;
+      ``[*B, 4]`` bool, the noise-free N, W, S, E neighbours (the grid's
+      ``extra_observations``; another world publishes its own or none); ``bump`` ``[*B, A]`` bool;
       ``collision`` ``[*B, A]`` float32, the collision reward vector of the last action (-1 on
       the actuator that bumped; zeros after a reset), so that ``SplitLocalReward`` splits the
       reward without recomputing it (keys: ``factorq_torch.base.keys``);
@@ -129,12 +167,12 @@ class FactoredGridEnv(EnvBase):
     - reward: ``reward`` ``[*B, 1]`` float32, the conventional step + goal + sum(collision);
     - done: ``done``, ``terminated``, ``truncated`` ``[*B, 1]`` bool.
 
-    The rules are called through ``world`` (``factorq_envs.world.FactoredGrid``, an
-    ``factorq_envs.protocol.World``). State (read and written by the fast path and checkpoints;
-    worlds flattened to ``S``):
-    ``world_state`` (``WorldState``, leading dim ``S``; ``S = 1`` when ``batch_size == ()``),
-    ``world_keys`` ``[S]`` int64, ``periods`` ``[S]`` int64, ``static_obstacles`` ``[N]`` bool,
-    ``world_seed`` (the seed the keys came from), ``config`` (the ``WorldConfig``; its
+    The rules are called through ``world`` (an ``factorq_envs.protocol.World``). State (read and
+    written by the fast path and checkpoints; worlds flattened to ``S``):
+    ``world_state`` (the world's state, leading dim ``S``; ``S = 1`` when ``batch_size == ()``),
+    ``world_keys`` ``[S]`` int64, ``periods`` ``[S]`` int64 (handed to the world's ``reset`` and
+    ``step``), ``static_obstacles`` ``[N]`` bool (default world only), ``world_seed`` (the seed
+    the keys came from), ``config`` (the world's config; a ``WorldConfig``'s
     ``obstacle_period`` is meaningful only when the batch shares one period).
     Randomness comes only from the worlds' counter streams, never from the global RNG.
 
@@ -172,6 +210,7 @@ class FactoredGridEnv(EnvBase):
         sensor_permutation: Sequence[int] | int | None = None,
         sensor_noise: float = 0.0,
         actuator_noise: float = 0.0,
+        world=None,
     ) -> None:
         batch_size = _check_batch_size(batch_size)
         device = check_device("device", device)
@@ -181,6 +220,26 @@ class FactoredGridEnv(EnvBase):
             raise ValueError(f"experiment_offset={experiment_offset} is out of range: must be >= 0")
         num_worlds = math.prod(batch_size)
         periods, shared_period = _check_periods(obstacle_period, num_worlds)
+        if world is not None:
+            check_world(world)
+            check_no_grid_arguments(
+                {
+                    "size": size,
+                    "num_obstacles": num_obstacles,
+                    "max_steps": max_steps,
+                    "layout_seed": layout_seed,
+                    "body": body,
+                    "sensors": sensors,
+                    "num_distractors": num_distractors,
+                    "sensor_permutation": sensor_permutation,
+                    "sensor_noise": sensor_noise,
+                    "actuator_noise": actuator_noise,
+                },
+                world,
+            )
+            super().__init__(device=device, batch_size=batch_size)
+            self._setup(world, num_worlds, experiment_offset, periods, seed, world_keys)
+            return
         # WorldConfig validates size, num_obstacles, max_steps and layout_seed with messages
         # that name the argument, its value and the allowed range.
         config = WorldConfig(
@@ -197,18 +256,28 @@ class FactoredGridEnv(EnvBase):
             actuator_noise=actuator_noise,
         )
         super().__init__(device=device, batch_size=batch_size)
-        self.config = config
-        self.num_worlds = num_worlds
-        self.experiment_offset = experiment_offset
-        self.periods = periods.to(device)
         # Only static worlds need the layout: drawing it for a moving-only batch would waste
         # time and could refuse obstacle counts that moving worlds allow.
         if bool((periods == 0).any()):
-            self.static_obstacles = static_layout(config).to(device)
+            self.static_obstacles = static_layout(config).to(self.device)
         else:
-            self.static_obstacles = torch.zeros(config.num_cells, dtype=torch.bool, device=device)
+            self.static_obstacles = torch.zeros(
+                config.num_cells, dtype=torch.bool, device=self.device
+            )
+        world = FactoredGrid(config, self.static_obstacles)
+        self._setup(world, num_worlds, experiment_offset, periods, seed, world_keys)
+
+    def _setup(self, world, num_worlds, experiment_offset, periods, seed, world_keys) -> None:
+        """Everything after the world is known: state, specs, keys."""
+        device = self.device
         # The world behind the factorq_envs.protocol.World interface: every rule goes through it.
-        self.world = FactoredGrid(config, self.static_obstacles)
+        self.world = world
+        self.config = world.config
+        self.num_worlds = num_worlds
+        self.experiment_offset = experiment_offset
+        self.periods = periods.to(device)
+        if callable(getattr(world, "to", None)):
+            world.to(device)
         self._world_state = self.world.initial_state(num_worlds, device)
         self._started = False  # set by the first reset (or by assigning world_state)
         self._make_specs()
@@ -226,26 +295,25 @@ class FactoredGridEnv(EnvBase):
             self.world_keys = world_keys.to(self.device)
 
     @property
-    def world_state(self) -> WorldState:
-        """The worlds' state (``WorldState``, leading dim ``S``). Assigning it (a restored
-        checkpoint, the fast path) counts as a reset: the env may be stepped from it."""
+    def world_state(self):
+        """The worlds' state (the world's ``NamedTuple``, leading dim ``S``). Assigning it (a
+        restored checkpoint, the fast path) counts as a reset: the env may be stepped from it."""
         return self._world_state
 
     @world_state.setter
-    def world_state(self, value: WorldState) -> None:
+    def world_state(self, value) -> None:
         self._world_state = value
         self._started = True
 
     @property
     def dependency(self) -> torch.Tensor:
         """Ground truth bool ``[actuators, sensors]``: which of the sensors the agent receives
-        decide each actuator's local reward (``WorldConfig.dependency``). Tests and experiments
+        decide each actuator's local reward (the world's ``dependency``). Tests and experiments
         read it; an agent gets it only in an explicit oracle mode."""
-        return self.config.dependency.to(self.device)
+        return self.world.dependency.to(self.device)
 
     def _make_specs(self) -> None:
         batch, device, config = self.batch_size, self.device, self.config
-        faces = (*batch, NUM_ACTIONS)
         actuators = (*batch, config.num_actuators)
         entries = {
             keys.CELL: Categorical(config.num_cells, shape=batch, dtype=torch.int64, device=device),
@@ -255,7 +323,6 @@ class FactoredGridEnv(EnvBase):
                 dtype=torch.bool,
                 device=device,
             ),
-            keys.PROXIMITY: Binary(n=NUM_ACTIONS, shape=faces, dtype=torch.bool, device=device),
             keys.BUMP: Binary(
                 n=config.num_actuators, shape=actuators, dtype=torch.bool, device=device
             ),
@@ -263,10 +330,14 @@ class FactoredGridEnv(EnvBase):
                 low=-1.0, high=0.0, shape=actuators, dtype=torch.float32, device=device
             ),
         }
-        if config.body_spec.has_heading:
+        if config.num_headings > 1:
             entries[keys.HEADING] = Categorical(
                 config.num_headings, shape=batch, dtype=torch.int64, device=device
             )
+        # The world's extra entries (the grid's proximity): their widths read off one world.
+        for name, value in self._extra_observations(self.world.initial_state(1), None).items():
+            count = value.shape[-1]
+            entries[name] = Binary(n=count, shape=(*batch, count), dtype=torch.bool, device=device)
         self.observation_spec = Composite(entries, shape=batch, device=device)
         self.action_spec = Categorical(
             config.num_actuators, shape=batch, dtype=torch.int64, device=device
@@ -283,6 +354,16 @@ class FactoredGridEnv(EnvBase):
 
     # -- seeding -------------------------------------------------------------------------------
 
+    def _extra_observations(self, state, sensors: torch.Tensor | None) -> dict:
+        """The world's optional extra observation entries ``{key: [S, n] bool}`` (none when it
+        has no ``extra_observations``); ``sensors`` None: the world observes them itself."""
+        extra = getattr(self.world, "extra_observations", None)
+        if extra is None:
+            return {}
+        if sensors is None:
+            sensors = self.world.observe(state, torch.zeros(state.cell.shape[0], dtype=torch.int64))
+        return extra(state, sensors)
+
     def _set_seed(self, seed: int | None) -> None:
         """Re-derive the worlds' keys from ``seed`` (``None`` means 0) and rewind their streams."""
         if seed is None:
@@ -296,10 +377,7 @@ class FactoredGridEnv(EnvBase):
             seed, STREAM_WORLD, self.num_worlds, self.experiment_offset
         ).to(self.device)
         # A new seed starts its streams at the beginning, so set_seed + reset replays exactly.
-        self._world_state = self._world_state._replace(
-            scatters=torch.zeros_like(self._world_state.scatters),
-            ticks=torch.zeros_like(self._world_state.ticks),
-        )
+        self._world_state = self.world.rewind(self._world_state)
 
     # -- reset and step ------------------------------------------------------------------------
 
@@ -328,13 +406,13 @@ class FactoredGridEnv(EnvBase):
             )
         old = self.world_state
         state, outcome = self.world.step(old, action, self.world_keys, self.periods)
-        reward, collision = outcome.reward, outcome.collision  # [S], [S, 4]
+        reward, collision = outcome.reward, outcome.collision  # [S], [S, A]
         terminated, truncated = outcome.terminated, outcome.truncated  # [S]
         partial = tensordict.get("_step", None)
         if partial is not None:
             # torchrl's rollout steps only the worlds still running: the others keep their state.
             stepping = partial.reshape(self.num_worlds)  # [S]
-            state = WorldState(
+            state = type(state)(
                 *(
                     torch.where(stepping.view(-1, *([1] * (new.dim() - 1))), new, kept)
                     for new, kept in zip(state, old, strict=True)
@@ -377,7 +455,7 @@ class FactoredGridEnv(EnvBase):
 
     def _output(
         self,
-        state: WorldState,
+        state,
         collision: torch.Tensor,
         terminated: torch.Tensor,
         truncated: torch.Tensor,
@@ -385,24 +463,22 @@ class FactoredGridEnv(EnvBase):
     ) -> TensorDictBase:
         """The observation, reward and done entries of ``S`` worlds, shaped to ``batch_size``."""
         batch, config = self.batch_size, self.config
-        faces = (*batch, NUM_ACTIONS)
         actuators = (*batch, config.num_actuators)
         flag = (*batch, 1)
-        near = proximity(state.cell, state.obstacles, config.size)  # [S, 4]
-        # The paper's body receives exactly its proximity bits: skip recomputing them.
-        sensors = near if config.is_paper_body else self.world.observe(state, self.world_keys)
+        sensors = self.world.observe(state, self.world_keys)  # [S, K]
         entries = {
             keys.CELL: state.cell.reshape(batch),
             keys.SENSORS: sensors.reshape(*batch, config.num_sensors),
-            keys.PROXIMITY: near.reshape(faces),
             keys.BUMP: state.bump.reshape(actuators),
             keys.COLLISION: collision.reshape(actuators),
             "terminated": terminated.reshape(flag),
             "truncated": truncated.reshape(flag),
             "done": (terminated | truncated).reshape(flag),
         }
-        if config.body_spec.has_heading:
+        if config.num_headings > 1:
             entries[keys.HEADING] = state.heading.reshape(batch)
+        for name, value in self._extra_observations(state, sensors).items():
+            entries[name] = value.reshape(*batch, value.shape[-1])
         if reward is not None:
             entries["reward"] = reward.reshape(flag)
         # The entries are built right here with the right shapes: skip TensorDict's checks,
@@ -413,19 +489,33 @@ class FactoredGridEnv(EnvBase):
         """Move the specs (torchrl) and the worlds' state tensors to ``device``."""
         super().to(device)
         device = self.device
-        self._world_state = WorldState(*(tensor.to(device) for tensor in self._world_state))
+        state = self._world_state
+        self._world_state = type(state)(*(tensor.to(device) for tensor in state))
         self.world_keys = self.world_keys.to(device)
         self.periods = self.periods.to(device)
-        self.static_obstacles = self.static_obstacles.to(device)
-        self.world.static_obstacles = self.static_obstacles
+        if hasattr(self, "static_obstacles"):
+            self.static_obstacles = self.static_obstacles.to(device)
+        if callable(getattr(self.world, "to", None)):
+            self.world.to(device)
         return self
+
+    def _optional(self, method: str):
+        """The world's optional ``method``, or a TypeError naming the world that lacks it."""
+        found = getattr(self.world, method, None)
+        if not callable(found):
+            raise TypeError(
+                f"{type(self.world).__name__} has no {method}(): this world does not offer it "
+                f"(factorq_envs.protocol lists the optional methods)"
+            )
+        return found
 
     # -- inspection ----------------------------------------------------------------------------
 
     def obstacle_map(self) -> torch.Tensor:
-        """The current obstacles, a bool copy ``[*B, size, size]`` (``[r, c]`` = row r, col c)."""
-        size = self.config.size
-        return self.world_state.obstacles.reshape(*self.batch_size, size, size).clone()
+        """The current obstacles, a bool copy ``[*B, size, size]`` (``[r, c]`` = row r, col c;
+        the world's ``obstacle_map``, shaped to the batch)."""
+        obstacles = self._optional("obstacle_map")(self.world_state)  # [S, ...]
+        return obstacles.reshape(*self.batch_size, *obstacles.shape[1:])
 
     def render_rgb(self, index: int = 0) -> np.ndarray:
         """World ``index`` (flat, in ``[0, S)``) as an image ``uint8 [H, W, 3]``: walls, obstacles,
@@ -433,15 +523,7 @@ class FactoredGridEnv(EnvBase):
         picture as the gymnasium env's ``rgb_array``). ``RenderPixels`` writes it as ``pixels``."""
         if not is_int(index) or not 0 <= index < self.num_worlds:
             raise ValueError(f"index={index!r} is out of range: must be in [0, {self.num_worlds})")
-        state, body = self.world_state, self.config.body_spec
-        heading = int(state.heading[index])
-        return render_rgb(
-            int(state.cell[index]),
-            state.obstacles[index].cpu().numpy(),
-            self.config.size,
-            heading=heading if body.has_heading else None,
-            bumped=bumped_faces(state.bump[index].tolist(), heading, body),
-        )
+        return self._optional("render_rgb")(self.world_state, index)
 
     def render(self, index: int = 0) -> str:
         """A text picture of world ``index`` (flat index in ``[0, S)``): ``#`` wall,

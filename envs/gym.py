@@ -1,9 +1,10 @@
-"""The FactoredGrid world as a gymnasium env (one world, numpy in and out).
+"""The FactoredGrid world, or any ``factorq_envs.protocol.World``, as a gymnasium env (one world,
+numpy in and out).
 
 Registered as ``"FactoredGrid-v0"`` on ``import factorq_envs``. It runs the same pure functions as
-the torchrl env (``factorq_envs.world``) on tensors of one world, and draws from the same counter
-streams: ``reset(seed=s)`` gives the trajectories of ``FactoredGridEnv(seed=s)`` for the same
-actions.
+the torchrl env (the world's ``reset``, ``step``, ``observe``) on tensors of one world, and draws
+from the same counter streams: ``reset(seed=s)`` gives the trajectories of
+``FactoredGridEnv(seed=s)`` for the same actions and the same world.
 """
 
 from __future__ import annotations
@@ -15,21 +16,24 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from factorq_envs.render import bumped_faces, render_rgb
-from factorq_envs.world import (
-    NUM_ACTIONS,
-    FactoredGrid,
-    WorldConfig,
-    proximity,
-    static_layout,
-)
+from factorq_envs.protocol import check_world
+from factorq_envs.world import FactoredGrid, WorldConfig, static_layout
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
+from factorq_torch.base.validation import check_int
 
 
 class FactoredGridGym(gymnasium.Env):
-    """One FactoredGrid world (SPEC sections 1-2) for gymnasium.
+    """One FactoredGrid world (SPEC sections 1-2), or any ``factorq_envs.protocol.World``, for
+    gymnasium.
 
     Args:
+        world: an ``factorq_envs.protocol.World`` (e.g. ``factorq_envs.corridor.Corridor(...)``)
+            whose rules, spaces and body the env uses; ``None`` builds a ``FactoredGrid`` from the
+            arguments below (size ... actuator_noise), which must then be left out. The spaces are
+            read from its config (``cell``: ``Discrete(num_cells)``, ``sensors``:
+            ``MultiBinary(num_sensors)``, ``heading`` when ``num_headings > 1``, ``bump``:
+            ``MultiBinary(num_actuators)``, the world's extra observations; action
+            ``Discrete(num_actuators)``).
         size, num_obstacles, obstacle_period, max_steps, layout_seed: as ``WorldConfig``
             (``obstacle_period``: 0 static, 10 semi-dynamic, 1 dynamic).
         body, sensors, num_distractors, sensor_permutation, sensor_noise, actuator_noise: the
@@ -76,8 +80,31 @@ class FactoredGridGym(gymnasium.Env):
         sensor_permutation=None,
         sensor_noise: float = 0.0,
         actuator_noise: float = 0.0,
+        world=None,
     ) -> None:
-        self.config = WorldConfig(
+        if world is not None:
+            from factorq_envs.grid import check_no_grid_arguments  # the one list of grid arguments
+
+            check_world(world)
+            check_no_grid_arguments(
+                {
+                    "size": size,
+                    "num_obstacles": num_obstacles,
+                    "max_steps": max_steps,
+                    "layout_seed": layout_seed,
+                    "body": body,
+                    "sensors": sensors,
+                    "num_distractors": num_distractors,
+                    "sensor_permutation": sensor_permutation,
+                    "sensor_noise": sensor_noise,
+                    "actuator_noise": actuator_noise,
+                },
+                world,
+            )
+            check_int("obstacle_period", obstacle_period, 0, hint=" (0 static, k > 0 moving)")
+            self._setup(world, obstacle_period, render_mode)
+            return
+        config = WorldConfig(
             size=size,
             num_obstacles=num_obstacles,
             obstacle_period=obstacle_period,
@@ -90,40 +117,56 @@ class FactoredGridGym(gymnasium.Env):
             sensor_noise=sensor_noise,
             actuator_noise=actuator_noise,
         )
+        if obstacle_period == 0:
+            static_obstacles = static_layout(config)
+        else:
+            static_obstacles = torch.zeros(config.num_cells, dtype=torch.bool)
+        self._setup(FactoredGrid(config, static_obstacles), obstacle_period, render_mode)
+
+    def _setup(self, world, obstacle_period: int, render_mode: str | None) -> None:
+        """Spaces and state, read from ``world`` (an ``factorq_envs.protocol.World``)."""
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
                 f"render_mode={render_mode!r} is not supported: must be None or one of "
                 f"{self.metadata['render_modes']}"
             )
         self.render_mode = render_mode
-        config = self.config
+        # The world behind the factorq_envs.protocol.World interface: every rule goes through it.
+        self.world = world
+        self.config = config = world.config
+        self.periods = torch.tensor([obstacle_period], dtype=torch.int64)  # [1]
+        self.world_state = self.world.initial_state(1)
         entries = {
             "cell": spaces.Discrete(config.num_cells),
             "sensors": spaces.MultiBinary(config.num_sensors),
-            "proximity": spaces.MultiBinary(NUM_ACTIONS),
             "bump": spaces.MultiBinary(config.num_actuators),
         }
-        if config.body_spec.has_heading:
+        if config.num_headings > 1:
             entries["heading"] = spaces.Discrete(config.num_headings)
+        for name, value in self._extra_observations(None).items():
+            entries[name] = spaces.MultiBinary(value.shape[-1])
         self.observation_space = spaces.Dict(entries)
         self.action_space = spaces.Discrete(config.num_actuators)
-        self.periods = torch.tensor([obstacle_period], dtype=torch.int64)  # [1]
-        if obstacle_period == 0:
-            self.static_obstacles = static_layout(self.config)
-        else:
-            self.static_obstacles = torch.zeros(self.config.num_cells, dtype=torch.bool)
-        # The world behind the factorq_envs.protocol.World interface: every rule goes through it.
-        self.world = FactoredGrid(config, self.static_obstacles)
-        self.world_state = self.world.initial_state(1)
         self._seed_world(0)
+
+    def _extra_observations(self, sensors: torch.Tensor | None) -> dict:
+        """The world's optional extra entries ``{key: [1, n] bool}`` (the grid's proximity)."""
+        extra = getattr(self.world, "extra_observations", None)
+        if extra is None:
+            return {}
+        if sensors is None:
+            sensors = self.world.observe(self.world_state, torch.zeros(1, dtype=torch.int64))
+        return extra(self.world_state, sensors)
+
+    @property
+    def static_obstacles(self) -> torch.Tensor:
+        """The static layout ``[N]`` of the default world (zeros when it moves)."""
+        return self.world.static_obstacles
 
     def _seed_world(self, seed: int) -> None:
         """The world's key from ``seed`` (as ``FactoredGridEnv``), its stream rewound."""
         self.world_keys = derive_keys(seed, STREAM_WORLD, 1)  # [1]
-        self.world_state = self.world_state._replace(
-            scatters=torch.zeros_like(self.world_state.scatters),
-            ticks=torch.zeros_like(self.world_state.ticks),
-        )
+        self.world_state = self.world.rewind(self.world_state)
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -174,21 +217,31 @@ class FactoredGridGym(gymnasium.Env):
 
     def _observation(self) -> dict[str, Any]:
         state = self.world_state
-        near = proximity(state.cell, state.obstacles, self.config.size)[0]  # [4]
+        sensors = self.world.observe(state, self.world_keys)  # [1, K]
         observation = {
             "cell": np.int64(state.cell[0]),
-            "sensors": self.world.observe(state, self.world_keys)[0].numpy().astype(np.int8),
-            "proximity": near.numpy().astype(np.int8),
+            "sensors": sensors[0].numpy().astype(np.int8),
             "bump": state.bump[0].numpy().astype(np.int8),
         }
-        if self.config.body_spec.has_heading:
+        if self.config.num_headings > 1:
             observation["heading"] = np.int64(state.heading[0])
+        for name, value in self._extra_observations(sensors).items():
+            observation[name] = value[0].numpy().astype(np.int8)
         return observation
 
+    def _optional(self, method: str):
+        """The world's optional ``method``, or a TypeError naming the world that lacks it."""
+        found = getattr(self.world, method, None)
+        if not callable(found):
+            raise TypeError(
+                f"{type(self.world).__name__} has no {method}(): this world does not offer it "
+                f"(factorq_envs.protocol lists the optional methods)"
+            )
+        return found
+
     def obstacle_map(self) -> np.ndarray:
-        """The current obstacles, a bool copy ``[size, size]``."""
-        size = self.config.size
-        return self.world_state.obstacles[0].reshape(size, size).numpy().copy()
+        """The current obstacles, a bool copy ``[size, size]`` (the world's ``obstacle_map``)."""
+        return self._optional("obstacle_map")(self.world_state)[0].cpu().numpy()
 
     def render(self) -> str | np.ndarray | None:
         """The text picture (``render_mode="ansi"``: ``#`` wall, ``o`` obstacle, ``A`` agent,
@@ -201,13 +254,5 @@ class FactoredGridGym(gymnasium.Env):
         return self.world.render(state, 0)
 
     def render_rgb(self) -> np.ndarray:
-        """The world as an image, ``uint8 [H, W, 3]`` (``factorq_envs.render.render_rgb``)."""
-        state, body = self.world_state, self.config.body_spec
-        heading = int(state.heading[0])
-        return render_rgb(
-            int(state.cell[0]),
-            state.obstacles[0].numpy(),
-            self.config.size,
-            heading=heading if body.has_heading else None,
-            bumped=bumped_faces(state.bump[0].tolist(), heading, body),
-        )
+        """The world as an image, ``uint8 [H, W, 3]`` (the world's ``render_rgb``)."""
+        return self._optional("render_rgb")(self.world_state, 0)

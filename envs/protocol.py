@@ -2,8 +2,29 @@
 
 A world is pure batched functions over a state of tensors with a leading dimension ``S`` of
 independent worlds, plus the data that describes its body (``dependency``). ``factorq_envs.world``'s
-``FactoredGrid`` implements it for the paper's grid; a new world is one new file with a class
-like it (and, for the compiled path, a kernel loop). Nothing here imports a world.
+``FactoredGrid`` implements it for the paper's grid; ``factorq_envs.corridor``'s ``Corridor`` is a
+second, one-dimensional world. A new world is one new file with a class like them: the torchrl env
+(``factorq_envs.grid.FactoredGridEnv(world=...)``) and the gymnasium env
+(``factorq_envs.gym.FactoredGridGym(world=...)``) read their specs from it, and
+``SplitLocalReward``, the agents and the trainers' modular path run it unchanged. The compiled fast
+path runs only ``FactoredGrid``: the trainers fall back to the modular path for any other world.
+
+What the wrappers read, besides the methods below:
+
+- ``config``: ``num_cells`` (the ``cell`` observation is in ``[0, num_cells)``), ``num_sensors``
+  (``K``), ``num_actuators`` (``A``), ``num_headings`` (1: no ``heading`` in the observation),
+  ``goal_cell``, ``max_steps`` and ``actuator_names`` (error messages);
+- the state (a ``NamedTuple`` of tensors, leading dimension ``S``): ``cell`` ``[S]`` int64,
+  ``bump`` ``[S, A]`` bool, ``episode_step`` ``[S]`` int64, and ``heading`` ``[S]`` int64 when
+  ``num_headings > 1``;
+- the step's outcome (a ``NamedTuple``): ``reward`` ``[S]`` (the conventional scalar reward),
+  ``task_reward`` ``[S]`` (the reward without the collisions), ``collision`` ``[S, A]`` float32
+  (the local reward vector), ``terminated`` and ``truncated`` ``[S]`` bool.
+
+Optional methods, used when a world has them: ``extra_observations(state, sensors)`` (more
+observation entries, ``{key: [S, n] bool}``: the grid's ``proximity``), ``obstacle_map(state)``,
+``render_rgb(state, index)`` and ``to(device)`` (move constant tensors the world holds).
+Nothing here imports a world.
 """
 
 from __future__ import annotations
@@ -11,6 +32,17 @@ from __future__ import annotations
 from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 import torch
+
+#: The fields of a world's ``config`` that the wrappers read.
+CONFIG_FIELDS = (
+    "num_cells",
+    "num_sensors",
+    "num_actuators",
+    "num_headings",
+    "goal_cell",
+    "max_steps",
+    "actuator_names",
+)
 
 
 @runtime_checkable
@@ -30,7 +62,8 @@ class World(Protocol):
     def reset(
         self, state: NamedTuple, mask: torch.Tensor, key: torch.Tensor, period: torch.Tensor
     ) -> NamedTuple:
-        """Start new episodes where ``mask`` ``[S]`` is True."""
+        """Start new episodes where ``mask`` ``[S]`` is True (``period`` ``[S]``: each world's
+        obstacle period, 0 static; ``key`` ``[S]`` int64: each world's random stream)."""
 
     def step(
         self, state: NamedTuple, action: torch.Tensor, key: torch.Tensor, period: torch.Tensor
@@ -40,5 +73,31 @@ class World(Protocol):
     def observe(self, state: NamedTuple, key: torch.Tensor) -> torch.Tensor:
         """All sensors as the agent receives them, ``[S, K]`` bool."""
 
+    def rewind(self, state: NamedTuple) -> NamedTuple:
+        """``state`` with its random streams back at their start (a new seed replays exactly)."""
+
     def render(self, state: NamedTuple, index: int = 0) -> str:
         """A text picture of world ``index``."""
+
+
+def check_world(world: Any, name: str = "world") -> Any:
+    """``world`` if it implements ``World`` (methods and the ``config`` fields the wrappers
+    read), else one TypeError naming what is missing."""
+    missing = [
+        method
+        for method in ("initial_state", "reset", "step", "observe", "rewind", "render")
+        if not callable(getattr(world, method, None))
+    ]
+    if not hasattr(world, "dependency"):
+        missing.append("dependency")
+    config = getattr(world, "config", None)
+    if config is None:
+        missing.append("config")
+    else:
+        missing += [f"config.{field}" for field in CONFIG_FIELDS if not hasattr(config, field)]
+    if missing:
+        raise TypeError(
+            f"{name} must implement factorq_envs.protocol.World, got {type(world).__name__} "
+            f"without {', '.join(missing)}"
+        )
+    return world

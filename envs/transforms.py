@@ -15,7 +15,6 @@ from tensordict import TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from factorq_envs.render import SCALE
 from factorq_torch.base import keys
 
 
@@ -200,11 +199,11 @@ class RenderPixels(Transform):
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         base = self._base()
-        side = (base.config.size + 2) * SCALE
+        frame = base.render_rgb(0).shape  # [H, W, 3], whatever the world draws
         observation_spec[self.key] = Bounded(
             low=0,
             high=255,
-            shape=(*observation_spec.shape, side, side, 3),
+            shape=(*observation_spec.shape, *frame),
             dtype=torch.uint8,
             device=observation_spec.device,
         )

@@ -646,7 +646,49 @@ class FactoredGrid:
         return step_worlds(state, action, key, period, self.config)
 
     def observe(self, state: WorldState, key: torch.Tensor) -> torch.Tensor:
+        if self.config.is_paper_body:  # the same bits as ``observe``, without the offset tables
+            return proximity(state.cell, state.obstacles, self.config.size)
         return observe(state, key, self.config)
+
+    def rewind(self, state: WorldState) -> WorldState:
+        """The scatter and sensor streams back at their start."""
+        return state._replace(
+            scatters=torch.zeros_like(state.scatters), ticks=torch.zeros_like(state.ticks)
+        )
 
     def render(self, state: WorldState, index: int = 0) -> str:
         return render_world(int(state.cell[index]), state.obstacles[index], self.config.size)
+
+    # -- optional parts of the World protocol ---------------------------------------------------
+
+    def extra_observations(self, state: WorldState, sensors: torch.Tensor) -> dict:
+        """``proximity`` ``[S, 4]`` bool (``keys.PROXIMITY``): the noise-free N, W, S, E
+        neighbours, whatever the body (``sensors`` itself for the paper's body)."""
+        if self.config.is_paper_body:
+            return {"proximity": sensors}
+        return {"proximity": proximity(state.cell, state.obstacles, self.config.size)}
+
+    def obstacle_map(self, state: WorldState) -> torch.Tensor:
+        """The obstacles, a bool copy ``[S, size, size]``."""
+        size = self.config.size
+        return state.obstacles.reshape(-1, size, size).clone()
+
+    def render_rgb(self, state: WorldState, index: int = 0):
+        """World ``index`` as an image ``uint8 [H, W, 3]`` (``factorq_envs.render.render_rgb``)."""
+        from factorq_envs.render import bumped_faces, render_rgb
+
+        body = self.config.body_spec
+        heading = int(state.heading[index])
+        return render_rgb(
+            int(state.cell[index]),
+            state.obstacles[index].cpu().numpy(),
+            self.config.size,
+            heading=heading if body.has_heading else None,
+            bumped=bumped_faces(state.bump[index].tolist(), heading, body),
+        )
+
+    def to(self, device: torch.device | str) -> FactoredGrid:
+        """Keep the static layout (when drawn) on ``device``."""
+        if self._static is not None:
+            self._static = self._static.to(device)
+        return self

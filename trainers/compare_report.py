@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from factorq_trainers.compare import METHOD_LABELS, THRESHOLD_FACTOR
-from factorq_trainers.results import dumps, write_all_atomic
+from factorq_trainers.results import body_label, dumps, write_all_atomic
 
 JSON_FILE = "comparison.json"
 FIGURE_FILE = "comparison.png"
@@ -69,8 +69,10 @@ def write_figure(results: dict[str, Any], path: str | os.PathLike) -> None:
             if row == len(rows) - 1:
                 axis.set_xlabel("env steps per experiment")
     axes[0][0].legend(fontsize="small")
+    body = body_label(results)
     figure.suptitle(
-        f"per-episode means over each 1/{grid.size} of the budget; mean over "
+        ("" if body is None else f"{body}\n")
+        + f"per-episode means over each 1/{grid.size} of the budget; mean over "
         f"{results['config']['seeds']} seeds with 95% bands",
         fontsize="medium",
     )
@@ -86,8 +88,9 @@ def _number(value: float | None, digits: int = 0) -> str:
 def report_markdown(results: dict[str, Any]) -> str:
     """``comparison.md``: one row per method and world."""
     config = results["config"]
+    body = body_label(results)
     lines = [
-        "# factorq compare",
+        "# factorq compare" if body is None else f"# factorq compare: {body}",
         "",
         f"{config['seeds']} seeds x {config['steps']:,} env steps per experiment, "
         f"{config['size']}x{config['size']} grid, {config['obstacles']} obstacles, "

@@ -7,7 +7,8 @@ their experiments from these pieces rather than each its own copy:
   experiment draws the same numbers whatever else is selected;
 - ``check_world_options``: the world options of a trainer's config, checked once;
 - ``make_env``: the batched ``FactoredGridEnv`` of a batch, one obstacle period and world key
-  per experiment;
+  per experiment, around the paper's grid (a ``WorldConfig``) or any
+  ``factorq_envs.protocol.World``;
 - ``tabular_values`` and ``online_agent``: the tables, and the policy and loss around any value
   providers (tables or networks) for Q-learning or Factor-Q;
 - ``ExperimentConfig`` and ``EpisodeRecorder``: the step-budget experiments of ``factorq
@@ -133,9 +134,17 @@ def check_world_options(
     return world
 
 
-def check_qlearning_table(world: WorldConfig) -> None:
+def body_of(world: Any) -> Any:
+    """The config that declares the body's sizes (``num_cells``, ``num_sensors``, ...): a
+    ``WorldConfig`` itself, else an ``factorq_envs.protocol.World``'s ``config``."""
+    return world if isinstance(world, WorldConfig) else world.config
+
+
+def check_qlearning_table(world: Any) -> None:
     """Refuse a Q-learning table past ``tables.MAX_TABLE_ENTRIES``: its state is the cell (x
-    heading) x the pattern of all the body's sensors."""
+    heading) x the pattern of all the body's sensors (``world``: a ``WorldConfig`` or a
+    ``World``)."""
+    world = body_of(world)
     check_table_size(
         "q-learning",
         f"a Q-table of {world.num_cells} cells x {world.num_headings} headings x "
@@ -145,7 +154,7 @@ def check_qlearning_table(world: WorldConfig) -> None:
 
 
 def make_env(
-    world: WorldConfig,
+    world: Any,
     periods: Sequence[int] | torch.Tensor,
     world_keys: torch.Tensor,
     *,
@@ -153,9 +162,20 @@ def make_env(
     seed: int | None = None,
 ) -> FactoredGridEnv:
     """The batch's worlds: one ``FactoredGridEnv`` experiment per entry of ``periods``, each
-    drawing its obstacles from its own ``world_keys`` entry (``experiment_keys``)."""
+    drawing its obstacles from its own ``world_keys`` entry (``experiment_keys``). ``world``: a
+    ``WorldConfig`` (the paper's grid) or any ``factorq_envs.protocol.World``
+    (``FactoredGridEnv(world= ...)``)."""
     from factorq_envs.grid import FactoredGridEnv  # torchrl: only for the paths that step the env
 
+    if not isinstance(world, WorldConfig):
+        return FactoredGridEnv(
+            world=world,
+            obstacle_period=periods,
+            batch_size=(len(periods),),
+            seed=seed,
+            device=device,
+            world_keys=world_keys,
+        )
     env = FactoredGridEnv(
         size=world.size,
         num_obstacles=world.num_obstacles,
@@ -178,15 +198,18 @@ def make_env(
 
 
 def tabular_values(
-    algorithm: str, count: int, world: WorldConfig, device: torch.device | str | None = None
+    algorithm: str, count: int, world: Any, device: torch.device | str | None = None
 ) -> tuple[Any, Any]:
-    """The tables of ``count`` experiments of ``algorithm`` in ``world``'s body: Q-learning's
-    task table over cell (x heading) x the pattern of all sensors and no local table, or
-    Factor-Q's task table over cells (x heading) and its local tables, given the body's true
-    dependency (the oracle pairing, as in the paper)."""
+    """The tables of ``count`` experiments of ``algorithm`` in ``world``'s body (a
+    ``WorldConfig`` or an ``factorq_envs.protocol.World``): Q-learning's task table over cell (x
+    heading) x the pattern of all sensors and no local table, or Factor-Q's task table over cells
+    (x heading) and its local tables, given the body's true dependency (the oracle pairing, as in
+    the paper)."""
     from factorq_torch.tables import LocalRewardTable, TaskQTable
 
     factorq = algorithm == "factor-q"
+    dependency = world.dependency
+    world = body_of(world)
     task = TaskQTable(
         count,
         world.num_cells,
@@ -199,7 +222,7 @@ def tabular_values(
     )
     if not factorq:
         return task, None
-    return task, LocalRewardTable(count, dependency=world.dependency, device=device)
+    return task, LocalRewardTable(count, dependency=dependency, device=device)
 
 
 def online_agent(

@@ -44,7 +44,7 @@ from pathlib import Path
 
 import torch
 
-from factorq_envs.world import NUM_ACTIONS, WorldConfig, static_layout
+from factorq_envs.world import NUM_ACTIONS, FactoredGrid, WorldConfig, static_layout
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
 from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_torch.base.rng import probability_threshold
@@ -372,10 +372,21 @@ MAX_KERNEL_SENSORS = 62
 MAX_KERNEL_ACTUATORS = 32
 
 
-def unsupported_reason(world: WorldConfig) -> str | None:
+def unsupported_reason(world) -> str | None:
     """Why the kernel cannot run ``world``, or None when it can (every body and layout of
     ``factorq_envs.body`` up to ``MAX_KERNEL_SENSORS`` sensors and ``MAX_KERNEL_ACTUATORS``
-    actuators)."""
+    actuators).
+
+    ``world`` is a ``WorldConfig`` or an ``factorq_envs.protocol.World``: the kernel mirrors only
+    ``factorq_envs.world``'s ``FactoredGrid``, so any other world (a foreign one, or a subclass that
+    may change its rules) is refused here and runs on the modular path."""
+    if type(world) is FactoredGrid:
+        world = world.config
+    if not isinstance(world, WorldConfig):
+        return (
+            f"the world is {type(world).__name__}, and the kernel mirrors only "
+            f"factorq_envs.world.FactoredGrid"
+        )
     if world.num_sensors > MAX_KERNEL_SENSORS:
         return f"{world.num_sensors} sensors, more than its {MAX_KERNEL_SENSORS}"
     if world.num_actuators > MAX_KERNEL_ACTUATORS:

@@ -22,7 +22,7 @@ import os
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, is_dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -195,18 +195,21 @@ class Progress(NamedTuple):
 ProgressCallback = Callable[[Progress], None]
 
 
-def resolve_backend(config: PaperConfig) -> str:
+def resolve_backend(config: PaperConfig, world: Any = None) -> str:
     """The backend ``run`` will use: ``"fast"`` or ``"modular"``.
 
     This is the one place where the backend is chosen. ``auto`` takes the compiled fast path when
-    it is available on this machine and the device is the cpu, the modular torchrl path otherwise.
+    it is available on this machine, the device is the cpu and the kernel can run the world
+    (``fast.unsupported_reason``: a body past its limits, or ``world``, an
+    ``factorq_envs.protocol.World`` other than the paper's grid), the modular torchrl path
+    otherwise.
     """
     from factorq_trainers import fast
 
     on_cpu = torch.device(config.device).type == "cpu"
     if config.backend == "fast" and not fast.is_available():
         raise ValueError(f"backend='fast' is unavailable here: {fast.unavailable_reason()}")
-    unsupported = fast.unsupported_reason(config.world)
+    unsupported = fast.unsupported_reason(config.world if world is None else world)
     if config.backend == "fast" and unsupported is not None:
         raise ValueError(f"backend='fast' cannot run this config: {unsupported}")
     if config.backend == "auto":
@@ -220,14 +223,14 @@ def resolve_backend(config: PaperConfig) -> str:
 MODULAR_SECONDS_PER_EPISODE = 936.0 / (2 * 10 * 200)
 
 
-def fallback_notice(config: PaperConfig, backend: str) -> str | None:
+def fallback_notice(config: PaperConfig, backend: str, world: Any = None) -> str | None:
     """The one-line notice of ``auto`` falling back to the modular path: why, about how long the
     run will take, how to get the fast path (None when nothing fell back)."""
     from factorq_trainers import fast
 
     if backend != "modular" or config.backend != "auto":
         return None
-    unsupported = fast.unsupported_reason(config.world)
+    unsupported = fast.unsupported_reason(config.world if world is None else world)
     if unsupported is not None:  # the one-line notice of a fall-back (issue 11)
         return (
             f"factorq: the fast path cannot run this config ({unsupported}): running on "
@@ -272,6 +275,9 @@ class Job(NamedTuple):
     report: Callable[[int, int], None]
     #: Restores a resumed state (``restore``) and saves when due (``due``, ``save``).
     checkpoints: checkpoint.Checkpointer
+    #: The world the experiments run in: ``None`` for the config's grid, else an
+    #: ``factorq_envs.protocol.World`` (modular path only).
+    world: Any = None
 
 
 def experiment_keys(config: PaperConfig, algorithm: str) -> BatchKeys:
@@ -296,7 +302,7 @@ def _run_fast(job: Job) -> dict[str, torch.Tensor]:
     checkpoints)."""
     from factorq_trainers.fast import ExperimentBatch
 
-    config, algorithm, (periods, world_keys, policy_keys), report, checkpoints = job
+    config, algorithm, (periods, world_keys, policy_keys), report, checkpoints, _ = job
 
     batch = ExperimentBatch(
         algorithm,
@@ -339,11 +345,12 @@ def _run_modular(job: Job) -> dict[str, torch.Tensor]:
     fast path is tested against. Same keys, so the same numbers as ``_run_fast``."""
     from factorq_torch.collectors import OnlineCollector
 
-    config, algorithm, (periods, world_keys, policy_keys), report, checkpoints = job
+    config, algorithm, (periods, world_keys, policy_keys), report, checkpoints, world = job
 
     device = torch.device(config.device)
-    grid = experiment.make_env(config.world, periods, world_keys, device=device)
-    task, local = experiment.tabular_values(algorithm, len(periods), config.world, device)
+    world = config.world if world is None else world
+    grid = experiment.make_env(world, periods, world_keys, device=device)
+    task, local = experiment.tabular_values(algorithm, len(periods), world, device)
     env, policy, loss = experiment.online_agent(
         grid, task, local, config.agent, policy_keys, device=device
     )
@@ -409,6 +416,7 @@ def run(
     *,
     checkpoint_every: checkpoint.Every | str | int | None = None,
     resume: checkpoint.Checkpoint | None = None,
+    world: Any = None,
 ) -> dict[str, Any]:
     """Run the paper's experiment and return its results (the schema of ``results.json``).
 
@@ -422,13 +430,23 @@ def run(
     ``resume`` (``checkpoint.load(out)``, with ``config`` from ``resume_config``) continues from
     a checkpoint, saving at its interval unless ``checkpoint_every`` is given. A new run refuses
     an ``out`` that holds an unfinished run's checkpoint.
+
+    ``world``: another world than the config's grid, an ``factorq_envs.protocol.World`` (e.g.
+    ``factorq_envs.corridor.Corridor``): the experiments of world name ``w`` run in it with ``w``'s
+    obstacle period, on the modular path (``auto`` falls back to it with a one-line notice;
+    ``backend="fast"`` is refused), without checkpoints; the config's grid options are unused and
+    ``results["world"]`` names the world.
     """
     started = time.perf_counter()
-    estimate = resources.paper_estimate(config, checkpointing=checkpoint_every is not None)
+    if world is not None:
+        _check_foreign_world(world, checkpoint_every, resume)
+    estimate = resources.paper_estimate(
+        config, checkpointing=checkpoint_every is not None, world=world
+    )
     resources.check(estimate, "run", resources.PAPER_HINT)  # before anything is allocated
-    backend = resolve_backend(config)
+    backend = resolve_backend(config, world)
     driver = backend_driver(backend)
-    notice = fallback_notice(config, backend)
+    notice = fallback_notice(config, backend, world)
     if notice is not None:
         print(notice, file=sys.stderr)
     if resume is not None:
@@ -466,11 +484,11 @@ def run(
         batch = checkpoints.finished.get(algorithm)
         if batch is None:
             keys = experiment_keys(config, algorithm)
-            batch = driver(Job(config, algorithm, keys, advance_progress, checkpoints))
+            batch = driver(Job(config, algorithm, keys, advance_progress, checkpoints, world))
             checkpoints.finish(algorithm, batch)
-        for position, world in enumerate(config.worlds):
+        for position, name in enumerate(config.worlds):
             rows = slice(position * config.seeds, (position + 1) * config.seeds)
-            metrics[world, algorithm] = {
+            metrics[name, algorithm] = {
                 name: values[rows].cpu().numpy() for name, values in batch.items()
             }
     results = summarise(config, metrics)
@@ -488,9 +506,14 @@ def run(
         from factorq_trainers import fast
 
         # Why the compiled path did not run (a missing compiler, an unsupported body).
-        reason = fast.unsupported_reason(config.world) or fast.unavailable_reason()
+        reason = (
+            fast.unsupported_reason(config.world if world is None else world)
+            or fast.unavailable_reason()
+        )
         if reason is not None:
             results["timing"]["fast_unavailable"] = reason
+    if world is not None:
+        results["world"] = world_description(world)
     if checkpoint_every is not None or resume is not None:
         results["timing"]["checkpoints"] = {
             "every": None if checkpoints.every is None else str(checkpoints.every),
@@ -500,6 +523,38 @@ def run(
             "this_process_s": round(time.perf_counter() - started, 3),
         }
     return results
+
+
+def _check_foreign_world(world: Any, checkpoint_every: Any, resume: Any) -> None:
+    """Refuse a ``world`` that ``run`` cannot take: one error naming it."""
+    from factorq_envs.protocol import check_world
+    from factorq_envs.world import FactoredGrid
+
+    check_world(world)
+    if isinstance(world, FactoredGrid):
+        raise ValueError(
+            "world=FactoredGrid(...): the paper's grid is the config's own world; set its options "
+            "in the PaperConfig (size, obstacles, body, sensors, ...) instead"
+        )
+    if checkpoint_every is not None or resume is not None:
+        raise ValueError(
+            f"world={type(world).__name__}(...): checkpoints hold the paper grid's state only; "
+            f"run another world without checkpoint_every and resume"
+        )
+
+
+def world_description(world: Any) -> dict[str, Any]:
+    """``{"name", "config"}`` of a world other than the config's grid (``results["world"]``)."""
+    config = world.config
+    fields_ = asdict(config) if is_dataclass(config) else {}
+    return {
+        "name": type(world).__name__,
+        "config": {key: value for key, value in fields_.items() if _json_scalar(value)},
+    }
+
+
+def _json_scalar(value: Any) -> bool:
+    return value is None or isinstance(value, bool | int | float | str)
 
 
 def resume_config(

@@ -17,7 +17,7 @@ import numpy as np
 
 from factorq_envs.world import WORLD_PERIODS, WORLDS
 from factorq_trainers.claims import ALGORITHM_LABELS, MEASURE_LABELS, MEASURES
-from factorq_trainers.results import dumps, write_all_atomic
+from factorq_trainers.results import body_label, dumps, write_all_atomic
 from factorq_trainers.schema import escape_markdown, load_results_file, markdown_code
 from factorq_trainers.stats import format_number
 
@@ -132,8 +132,14 @@ def figure3(results: dict[str, Any], path: str | os.PathLike) -> None:
         frameon=False,
     )
     size = config["size"]
+    body = body_label(results)
+    if results.get("world") is not None:  # another world than the grid: its name and options
+        where = body
+    else:
+        where = f"{size}\u00d7{size} grid with {config['obstacles']} obstacles"
+        where += f", {body}" if body else ""
     figure.suptitle(
-        f"Q-learning vs Factor-Q, {size}\u00d7{size} grid with {config['obstacles']} obstacles\n"
+        f"Q-learning vs Factor-Q, {where}\n"
         f"mean of {config['seeds']} seeds \u00d7 {config['runs']} runs per episode, "
         "95% confidence bands across seeds",
         fontsize=11,
@@ -184,8 +190,10 @@ def report_markdown(results: dict[str, Any]) -> str:
     worlds, algorithms = _ordered_cells(results)
     passed = sum(claim["pass"] is True for claim in claims.values())
     evaluated = sum(claim["pass"] is not None for claim in claims.values())
+    body = body_label(results)
+    title = "# Factor-Q vs Q-learning: the paper's experiment"
     lines = [
-        "# Factor-Q vs Q-learning: the paper's experiment",
+        title if body is None else f"{title} ({escape_markdown(body)})",
         "",
         f"{passed} of {evaluated} evaluated claims pass ({len(claims)} claims). "
         f"{config['seeds']} independent experiments (seeds) per cell, each {config['runs']} runs "

@@ -105,13 +105,16 @@ def available_memory() -> tuple[int | None, str]:
     return min(limits)
 
 
-def paper_estimate(config: Any, checkpointing: bool = False) -> Estimate:
+def paper_estimate(config: Any, checkpointing: bool = False, world: Any = None) -> Estimate:
     """Peak memory of ``factorq paper`` with ``config`` (a ``PaperConfig``): the running
     algorithm's tables, state and metrics, the finished algorithms' metrics, the results' curves
-    (and, with ``checkpointing``, a copy of the running state being saved)."""
+    (and, with ``checkpointing``, a copy of the running state being saved). ``world``: another
+    world than the config's grid (an ``factorq_envs.protocol.World``), whose config gives the
+    sizes."""
     count = len(config.worlds) * config.seeds  # experiments of one algorithm
-    world = config.world  # the body: sensors, actuators, headings (issue 11)
-    cells = config.size**2
+    # the body: sensors, actuators, headings (issue 11)
+    world = config.world if world is None else world.config
+    cells = world.num_cells
     positions = cells * world.num_headings
     actions = world.num_actuators
     episodes = count * config.runs * config.episodes

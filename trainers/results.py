@@ -153,3 +153,50 @@ def software_versions() -> dict[str, str]:
             versions[package] = "not installed"
     versions["platform"] = platform.platform()
     return versions
+
+
+#: The paper's body as a results file's config spells it (issue 11); a file written before the
+#: body options existed lacks them and ran this body.
+PAPER_BODY = {
+    "body": "translate",
+    "sensors": "cross",
+    "distractors": 0,
+    "sensor_permutation": None,
+    "sensor_noise": 0.0,
+    "actuator_noise": 0.0,
+}
+
+
+def _shown(value: Any) -> str:
+    text = str(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def body_label(results: dict[str, Any]) -> str | None:
+    """What a results file ran when it is not the paper's body and grid, for titles: e.g.
+    ``"heading body, ring sensors, 4 distractors, permuted sensors (seed 3), sensor noise
+    0.05"``, or ``"Corridor world (length 12, density 0.4, ...)"`` for another world
+    (``results["world"]``); None for the paper's default. Values are shown as they are (a
+    results file is untrusted: callers escape for Markdown)."""
+    world = results.get("world")
+    if isinstance(world, dict):
+        options = world.get("config") if isinstance(world.get("config"), dict) else {}
+        described = ", ".join(f"{_shown(k)} {_shown(v)}" for k, v in list(options.items())[:6])
+        name = _shown(world.get("name", "another"))
+        return f"{name} world ({described})" if described else f"{name} world"
+    config = results.get("config") if isinstance(results.get("config"), dict) else {}
+    body = {name: config.get(name, default) for name, default in PAPER_BODY.items()}
+    parts = []
+    if body["body"] != PAPER_BODY["body"]:
+        parts.append(f"{_shown(body['body'])} body")
+    if body["sensors"] != PAPER_BODY["sensors"]:
+        parts.append(f"{_shown(body['sensors'])} sensors")
+    if body["distractors"]:
+        parts.append(f"{_shown(body['distractors'])} distractors")
+    if body["sensor_permutation"] is not None:
+        parts.append(f"permuted sensors (seed {_shown(body['sensor_permutation'])})")
+    if body["sensor_noise"]:
+        parts.append(f"sensor noise {_shown(body['sensor_noise'])}")
+    if body["actuator_noise"]:
+        parts.append(f"actuator noise {_shown(body['actuator_noise'])}")
+    return ", ".join(parts) or None
