@@ -80,7 +80,7 @@ class DependenciesConfig:
     """The structure-learning experiment; defaults run in about a minute on 2 cores."""
 
     seed: int = option(0, "Master seed: worlds, sensor orders and policies derive from it.")
-    seeds: int = option(20, "Independent experiments per setting (and method).")
+    seeds: int = option(100, "Independent experiments per setting (and method).")
     settings: tuple[str, ...] = option(
         tuple(SETTINGS), "Settings to run: " + ", ".join(SETTINGS) + " (comma-separated)."
     )
@@ -95,6 +95,19 @@ class DependenciesConfig:
     max_parents: int = option(2, "Largest candidate parent set (0, 1 or 2: pairs).")
     window: int = option(100, "Firings per actuator in the block the reopening test reads.")
     change_run: int = option(5, "Run at which the change setting redraws the sensor order.")
+    prediction: str = option(
+        "optimistic",
+        "What an open actuator predicts: optimistic (the largest mean among the parent sets the "
+        "evidence has not ruled out), map (its most probable parent set), posterior (the "
+        "posterior-weighted mean; modular path only) or committed (nothing until it commits).",
+        choices=("optimistic", "map", "posterior", "committed"),
+    )
+    path: str = option(
+        "fast",
+        "Where the learner runs: fast (the compiled kernel, where available) or modular.",
+        choices=("fast", "modular"),
+    )
+    threads: int = option(2, "Threads of the compiled path.")
     out: str = option("results/dependencies", "Directory for the json, figure and report.")
 
     def __post_init__(self) -> None:
@@ -105,6 +118,15 @@ class DependenciesConfig:
         check_int("episodes", self.episodes, 1)
         check_int("max_parents", self.max_parents, 0)
         check_int("window", self.window, 1)
+        check_int("threads", self.threads, 1)
+        for name, choices in (
+            ("prediction", ("optimistic", "map", "posterior", "committed")),
+            ("path", ("fast", "modular")),
+        ):
+            if getattr(self, name) not in choices:
+                raise ValueError(
+                    f"{name}={getattr(self, name)!r} is unknown: choose one of {choices}"
+                )
         if not isinstance(self.bayes_factor, (int, float)) or not self.bayes_factor > 1:
             raise ValueError(
                 f"bayes_factor={self.bayes_factor!r} must be > 1 (a commitment needs evidence "
@@ -158,8 +180,133 @@ def _keys(config: DependenciesConfig, method: str) -> tuple[torch.Tensor, torch.
     return world_keys, policy_keys
 
 
+def _learner_options(config: DependenciesConfig) -> dict[str, Any]:
+    return {
+        "max_parents": config.max_parents,
+        "bayes_factor": config.bayes_factor,
+        "window": config.window,
+        "prediction": config.prediction,
+    }
+
+
 def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
-    """The learned structure on the modular torchrl path, with its structure metrics."""
+    """The learned structure with its structure metrics: on the compiled path where it runs
+    (``fast.StructureOptions``), else on the modular torchrl path (``run_learned_modular``);
+    both give the same numbers bit for bit (``tests/test_fast_structure.py``)."""
+    from trainers import fast
+
+    world = config.world_of(setting)
+    if (
+        config.path == "modular"
+        or config.prediction == "posterior"
+        or not fast.is_available()
+        or fast.unsupported_reason(world) is not None
+    ):
+        return run_learned_modular(config, setting)
+    return run_learned_fast(config, setting)
+
+
+def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]:
+    """``run_learned`` on the compiled path."""
+    from trainers import fast
+
+    world = config.world_of(setting)
+    count, num_sensors = config.seeds, world.num_sensors
+    world_keys, policy_keys = _keys(config, "learned")
+    periods = torch.full((count,), WORLD_PERIODS[config.world], dtype=torch.int64)
+    orders = sensor_orders(config.seed, setting, count, num_sensors, 0)
+    change = setting == "change"
+    options = fast.StructureOptions(
+        orders=orders,
+        orders_after=sensor_orders(config.seed, setting, count, num_sensors, 1) if change else None,
+        change_run=config.change_run if change else 0,
+        curve_every=CURVE_EVERY,
+        **_learner_options(config),
+    )
+    batch = fast.ExperimentBatch(
+        "factor-q",
+        periods,
+        world,
+        AgentConfig(),
+        config.runs,
+        config.episodes,
+        world_keys,
+        policy_keys,
+        threads=config.threads,
+        structure=options,
+    )
+    while not batch.done:
+        batch.advance(1 << 62)
+    state = batch.learner_state()
+    sets = batch._candidate_sets
+    members = torch.zeros(len(sets), num_sensors, dtype=torch.bool)
+    for index, parents in enumerate(sets):
+        members[index, list(parents)] = True
+    committed = state["committed"]
+    structure = members[committed.clamp(min=0)] & (committed >= 0).unsqueeze(-1)
+    truth = _permuted(world, options.orders_after if change else orders)
+    steps = batch.metrics()["steps"].sum(dim=(1, 2))
+    return _structure_result(
+        config,
+        setting,
+        batch.metrics(),
+        right_since=state["right_since"],
+        samples_at_change=state["samples_at_change"],
+        wrong_commitments=state["wrong_commitments"],
+        structure=structure,
+        truth=truth,
+        reopened=state["reopened"],
+        samples=state["samples"],
+        curve=_fill_curve(state["curve"], steps),
+        state=state,
+    )
+
+
+def _permuted(world: WorldConfig, orders: torch.Tensor) -> torch.Tensor:
+    from envs.permutation import permuted_dependency
+
+    return permuted_dependency(world.dependency, orders)
+
+
+def _fill_curve(curve: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
+    """``[S, points]`` bool: an experiment that has finished holds its last point."""
+    points = torch.arange(curve.shape[1]) * CURVE_EVERY
+    last = (steps // CURVE_EVERY).clamp(max=curve.shape[1] - 1)  # [S]
+    final = curve.gather(1, last.unsqueeze(1))  # [S, 1]
+    return torch.where(points <= steps.unsqueeze(1), curve, final).bool()
+
+
+def _structure_result(
+    config, setting, metrics, *, right_since, samples_at_change, wrong_commitments, structure,
+    truth, reopened, samples, curve, state
+) -> dict[str, Any]:
+    right = (structure == truth).all(dim=-1)  # [S, A]
+    final_right = right.all(dim=-1)
+    since = right_since - (samples_at_change if setting == "change" else 0)
+    since = since.clamp(min=0).to(torch.float64)
+    until_right = torch.where(final_right, since.max(dim=-1).values, math.inf)
+    hamming = (structure != truth).sum(dim=(1, 2))
+    points = curve.shape[1]
+    fraction = curve.float().mean(dim=0)
+    return {
+        "metrics": metrics,
+        "samples_until_right": until_right.tolist(),
+        "wrong_commitments": wrong_commitments.tolist(),
+        "hamming_at_end": hamming.tolist(),
+        "reopened": reopened.sum(dim=-1).tolist(),
+        "samples_per_actuator": samples.tolist(),
+        "curve": {
+            "env_steps": [CURVE_EVERY * point for point in range(points)],
+            "fraction_right": fraction.tolist(),
+        },
+        "_curve": curve,
+        "_state": state,
+    }
+
+
+def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, Any]:
+    """``run_learned`` on the modular torchrl path: ``StructureLearner`` through
+    ``FactorQPolicy``, ``FactorQLoss`` and ``OnlineCollector``."""
     from tensordict.nn import TensorDictSequential
     from torchrl.envs import Compose, TransformedEnv
 
@@ -183,12 +330,7 @@ def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
         count, world.num_cells, num_headings=world.num_headings, num_actions=world.num_actuators
     )
     learner = StructureLearner(
-        count,
-        num_actions=world.num_actuators,
-        num_sensors=num_sensors,
-        max_parents=config.max_parents,
-        bayes_factor=config.bayes_factor,
-        window=config.window,
+        count, num_actions=world.num_actuators, num_sensors=num_sensors, **_learner_options(config)
     )
     policy = FactorQPolicy(count, keys=policy_keys, epsilon=agent.epsilon)
     loss = FactorQLoss(task, learner, gamma=agent.gamma, alpha=agent.alpha)
@@ -207,11 +349,12 @@ def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     wrong_commitments = torch.zeros(count, dtype=torch.int64)
     previous = learner.committed.clone()
     steps = torch.zeros(count, dtype=torch.int64)
-    curve_steps, curve_right = [], []
-    step = 0
+    max_steps = config.runs * config.episodes * world.max_steps
+    curve = torch.zeros(count, max_steps // CURVE_EVERY + 1, dtype=torch.uint8)
+    rows = torch.arange(count)
     for td in collector:
-        step += 1
-        steps += td.get(("collector", "mask")).to(torch.int64)
+        active = td.get(("collector", "mask"))
+        steps += active.to(torch.int64)
         if setting == "change":
             due = (collector.run_index >= config.change_run) & ~changed
             if bool(due.any()):
@@ -228,25 +371,37 @@ def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
         new_commit = (committed >= 0) & (committed != previous)
         wrong_commitments += (new_commit & ~right).sum(dim=-1)
         previous = committed.clone()
-        if step % CURVE_EVERY == 0:
-            curve_steps.append(int(steps.float().mean()))
-            curve_right.append(float(right.all(dim=-1).float().mean()))
+        point = active & (steps % CURVE_EVERY == 0)
+        curve[rows[point], steps[point] // CURVE_EVERY] = right.all(dim=-1)[point].to(torch.uint8)
     metrics = {name: collector.metrics.get(name) for name in collector.metrics.keys()}
-    final_right = right.all(dim=-1)
-    since = right_since - (samples_at_change if setting == "change" else 0)
-    since = since.clamp(min=0).to(torch.float64)
-    until_right = torch.where(final_right, since.max(dim=-1).values, math.inf)
-    structure = learner.structure()
-    hamming = (structure != truth).sum(dim=(1, 2))
-    return {
-        "metrics": metrics,
-        "samples_until_right": until_right.tolist(),
-        "wrong_commitments": wrong_commitments.tolist(),
-        "hamming_at_end": hamming.tolist(),
-        "reopened": learner.reopened.sum(dim=-1).tolist(),
-        "samples_per_actuator": learner.samples.tolist(),
-        "curve": {"env_steps": curve_steps, "fraction_right": curve_right},
+    state = {
+        "committed": learner.committed.clone(),
+        "samples": learner.samples.clone(),
+        "block_samples": learner.block_samples.clone(),
+        "reopened": learner.reopened.clone(),
+        "map_cache": learner.map_cache.clone(),
+        "plausible": learner.plausible_cache.to(torch.uint8),
+        "right_since": right_since,
+        "samples_at_change": samples_at_change,
+        "wrong_commitments": wrong_commitments,
     }
+    for prefix in ("", "block_"):
+        for name in ("count", "successes", "reward_sum", "log_marginal"):
+            state[prefix + name] = getattr(learner, prefix + name).clone()
+    return _structure_result(
+        config,
+        setting,
+        metrics,
+        right_since=right_since,
+        samples_at_change=samples_at_change,
+        wrong_commitments=wrong_commitments,
+        structure=learner.structure(),
+        truth=truth,
+        reopened=learner.reopened,
+        samples=learner.samples,
+        curve=_fill_curve(curve, steps),
+        state=state,
+    )
 
 
 def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[str, Any] | None:
