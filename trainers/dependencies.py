@@ -58,12 +58,15 @@ SETTINGS: dict[str, dict[str, Any]] = {
     "noise-10": {"body": "translate", "sensors": "cross", "sensor_noise": 0.10},
     "change": {"body": "translate", "sensors": "cross"},
 }
-METHODS = ("learned", "oracle", "joint", "q-learning")
+METHODS = ("learned", "oracle", "joint", "q-learning", "dqn")
+#: The methods run by default: DQN is opt-in (``--methods``), see ``run_dqn``.
+DEFAULT_METHODS = ("learned", "oracle", "joint", "q-learning")
 METHOD_LABELS = {
     "learned": "learned structure",
     "oracle": "oracle pairing",
     "joint": "full joint table",
     "q-learning": "Q-learning",
+    "dqn": "DQN",
 }
 #: Substream of the experiment key that draws the sensor orders (first, then after the change).
 STREAM_ORDER = 7
@@ -108,12 +111,17 @@ class DependenciesConfig:
         choices=("fast", "modular"),
     )
     threads: int = option(2, "Threads of the compiled path.")
+    methods: tuple[str, ...] = option(
+        DEFAULT_METHODS,
+        "Methods to run: " + ", ".join(METHODS) + " (comma-separated; dqn is slow: opt-in).",
+    )
     out: str = option("results/dependencies", "Directory for the json, figure and report.")
 
     def __post_init__(self) -> None:
         check_int("seed", self.seed, 0, MAX_SEED)
         check_int("seeds", self.seeds, 1)
         object.__setattr__(self, "settings", check_names("settings", self.settings, SETTINGS))
+        object.__setattr__(self, "methods", check_names("methods", self.methods, METHODS))
         check_int("runs", self.runs, 1)
         check_int("episodes", self.episodes, 1)
         check_int("max_parents", self.max_parents, 0)
@@ -432,6 +440,56 @@ def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[
     return {"metrics": metrics}
 
 
+def _budget(config: DependenciesConfig, setting: str, runs: dict[str, dict[str, Any]]) -> int:
+    """DQN's step budget: the oracle's mean env steps per experiment (else the learned
+    structure's, else every episode at its longest)."""
+    for method in ("oracle", "learned"):
+        if method in runs:
+            steps = runs[method]["metrics"]["steps"].sum(dim=(1, 2)).double().mean()
+            return max(1, round(float(steps)))
+    return config.runs * config.episodes * config.world_of(setting).max_steps
+
+
+def run_dqn(config: DependenciesConfig, setting: str, budget: int) -> dict[str, Any]:
+    """DQN (``trainers.dqn``, its default hyperparameters) on the setting's worlds for ``budget``
+    env steps per experiment (episodes as many as fit; DQN has no runs). It sees every sensor
+    (``TaskQNetwork(with_proximity=True)``); the order does not matter to a network trained from
+    scratch, so it runs without ``PermuteSensors``. Measured cost: 100 experiments of 1,400
+    steps took 300 s on 2 loaded cores (docs/decisions.md), hence opt-in."""
+    from trainers import dqn
+    from trainers.experiment import ExperimentConfig
+
+    options = {"body": "translate", "sensors": "cross", **SETTINGS[setting]}
+    experiments = ExperimentConfig(
+        seed=config.seed,
+        seeds=config.seeds,
+        worlds=(config.world,),
+        steps=budget,
+        size=config.size,
+        obstacles=config.obstacles,
+        max_steps=config.max_steps,
+        layout_seed=config.layout_seed,
+        body=options["body"],
+        sensors=options["sensors"],
+        distractors=options.get("num_distractors", 0),
+        sensor_noise=options.get("sensor_noise", 0.0),
+    )
+    traces = dqn.run(dqn.DQNConfig(), experiments)["traces"]
+    episodes = min(len(trace["steps"]) for trace in traces)
+    return {
+        "totals": {
+            "collisions": np.array([trace["total_collisions"] for trace in traces], float),
+            "greedy": np.array([trace["total_greedy_collisions"] for trace in traces], float),
+        },
+        "budget": budget,
+        "episodes": [len(trace["steps"]) for trace in traces],
+        "collisions_per_episode": [
+            float(np.mean([trace["collisions"][index] for trace in traces]))
+            for index in range(episodes)
+        ],
+    }
+
+
 def skipped_reason(config: DependenciesConfig, setting: str, method: str) -> str | None:
     """Why ``method`` does not run in ``setting`` (``None``: it runs)."""
     from factorq_torch.tables import MAX_PARENTS, MAX_TABLE_ENTRIES
@@ -439,6 +497,10 @@ def skipped_reason(config: DependenciesConfig, setting: str, method: str) -> str
 
     world = config.world_of(setting)
     if method == "learned":
+        return None
+    if method == "dqn":
+        if setting == "change":
+            return "DQN's env (trainers.dqn) cannot change the sensor order mid-experiment"
         return None
     if not fast.is_available():
         return f"the compiled path is unavailable ({fast.unavailable_reason()})"
@@ -485,6 +547,17 @@ def summarise_setting(
     summary: dict[str, Any] = {"methods": {}}
     totals = {}
     for method, result in runs.items():
+        if method == "dqn":  # a step budget, no runs: its totals only
+            collisions, greedy = result["totals"]["collisions"], result["totals"]["greedy"]
+            summary["methods"][method] = {
+                "collisions_per_experiment": float(collisions.mean()),
+                "greedy_collisions_per_experiment": float(greedy.mean()),
+                "steps_per_run": None,
+                "step_budget": result["budget"],
+                "episodes_per_experiment": float(np.mean(result["episodes"])),
+                "collisions_per_episode": result["collisions_per_episode"],
+            }
+            continue
         metrics = result["metrics"]
         steps = metrics["steps"].to(torch.float64)  # [S, runs, episodes]
         collisions = metrics["collisions"].sum(dim=(1, 2)).double().numpy()
@@ -540,7 +613,7 @@ def run(
     results: dict[str, Any] = {"config": asdict(config), "settings": {}, "skipped": {}}
     for setting in config.settings:
         runs: dict[str, dict[str, Any]] = {}
-        for method in METHODS:
+        for method in (method for method in METHODS if method in config.methods):
             reason = skipped_reason(config, setting, method)
             if reason is not None:
                 results["skipped"].setdefault(setting, {})[method] = reason
@@ -549,6 +622,8 @@ def run(
                 progress(setting, method)
             if method == "learned":
                 runs[method] = run_learned(config, setting)
+            elif method == "dqn":
+                runs[method] = run_dqn(config, setting, _budget(config, setting, runs))
             else:
                 runs[method] = run_compiled(config, setting, method)
         results["settings"][setting] = summarise_setting(config, setting, runs)
@@ -616,6 +691,14 @@ def report_markdown(results: dict[str, Any]) -> str:
                 f"{format_number(entry['collisions_per_experiment'])} | "
                 f"{format_number(entry['greedy_collisions_per_experiment'])} | "
                 f"{format_number(entry['steps_per_run'])} |"
+            )
+    for setting, summary in results["settings"].items():
+        entry = summary["methods"].get("dqn")
+        if entry is not None:
+            lines.append(
+                f"\nDQN in {setting}: a budget of {entry['step_budget']} env steps per experiment "
+                f"(the oracle's mean), {format_number(entry['episodes_per_experiment'])} episodes "
+                f"per experiment on average; no runs, so no steps per run."
             )
     for setting, skipped in results.get("skipped", {}).items():
         for method, reason in skipped.items():
