@@ -80,6 +80,7 @@ from factorq_torch.functional import (  # noqa: F401  (the structure math, re-ex
 )
 from factorq_torch.tables import _check_entry, check_batch, check_mask
 
+
 class StructureLearner(TensorDictModuleBase):
     """A local value provider that learns each actuator's parent sensors (module docstring).
 
@@ -180,9 +181,7 @@ class StructureLearner(TensorDictModuleBase):
             "weights_cache",
             torch.full(shape[:3], 1.0 / num_candidates, dtype=torch.float64, device=device),
         )
-        self.register_buffer(
-            "map_cache", torch.zeros(shape[:2], dtype=torch.int64, device=device)
-        )
+        self.register_buffer("map_cache", torch.zeros(shape[:2], dtype=torch.int64, device=device))
         self.register_buffer(
             "plausible_cache", torch.zeros(shape[:3], dtype=torch.bool, device=device)
         )

@@ -108,13 +108,17 @@ def test_structure_options_are_checked():
             *arguments, *keys, structure=fast.StructureOptions(orders, prediction="posterior")
         )
     with pytest.raises(ValueError, match="prior_a"):
-        fast.ExperimentBatch(*arguments, *keys, structure=fast.StructureOptions(orders, prior_a=0.3))
+        fast.ExperimentBatch(
+            *arguments, *keys, structure=fast.StructureOptions(orders, prior_a=0.3)
+        )
     with pytest.raises(ValueError, match="orders"):
         fast.ExperimentBatch(
             *arguments, *keys, structure=fast.StructureOptions(torch.zeros(2, 4, dtype=torch.int64))
         )
     with pytest.raises(ValueError, match="bayes_factor"):
-        fast.ExperimentBatch(*arguments, *keys, structure=fast.StructureOptions(orders, bayes_factor=1))
+        fast.ExperimentBatch(
+            *arguments, *keys, structure=fast.StructureOptions(orders, bayes_factor=1)
+        )
     with pytest.raises(ValueError, match="factor-q"):
         fast.ExperimentBatch(
             "q-learning", *arguments[1:], *keys, structure=fast.StructureOptions(orders)

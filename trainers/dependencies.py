@@ -285,8 +285,19 @@ def _fill_curve(curve: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
 
 
 def _structure_result(
-    config, setting, metrics, *, right_since, samples_at_change, wrong_commitments, structure,
-    truth, reopened, samples, curve, state
+    config,
+    setting,
+    metrics,
+    *,
+    right_since,
+    samples_at_change,
+    wrong_commitments,
+    structure,
+    truth,
+    reopened,
+    samples,
+    curve,
+    state,
 ) -> dict[str, Any]:
     right = (structure == truth).all(dim=-1)  # [S, A]
     final_right = right.all(dim=-1)

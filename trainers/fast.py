@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import math
 import os
 import platform
 import shlex
@@ -37,7 +38,6 @@ import shutil
 import subprocess
 import tempfile
 import threading
-import math
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -722,7 +722,9 @@ class ExperimentBatch:
         if not isinstance(options, StructureOptions):
             raise TypeError(f"structure must be a StructureOptions, got {type(options).__name__}")
         if algorithm != "factor-q":
-            raise ValueError(f"structure: the structure learner runs with factor-q, not {algorithm}")
+            raise ValueError(
+                f"structure: the structure learner runs with factor-q, not {algorithm}"
+            )
         if options.prediction not in _PREDICTION_CODES:
             raise ValueError(
                 f"structure.prediction={options.prediction!r}: the fast path runs "
@@ -734,8 +736,10 @@ class ExperimentBatch:
             raise ValueError(f"structure.bayes_factor={options.bayes_factor!r} must be > 1")
         for name in ("prior_a", "prior_b"):
             value = getattr(options, name)
-            if not isinstance(value, (int, float)) or not (0 < value < 2**20) or (
-                value * 1024 != int(value * 1024)
+            if (
+                not isinstance(value, (int, float))
+                or not (0 < value < 2**20)
+                or (value * 1024 != int(value * 1024))
             ):
                 raise ValueError(
                     f"structure.{name}={value!r}: the fast path needs a multiple of 1/1024 in "
