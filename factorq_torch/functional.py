@@ -294,6 +294,9 @@ PRIORS = ("size", "uniform")
 #: running mean (modular path only: it needs ``exp``, whose float64 result the compiled path
 #: cannot reproduce bit for bit); ``"committed"``, nothing (0, as an unvisited table entry).
 PREDICTIONS = ("optimistic", "map", "posterior", "committed")
+#: What a reopening forgets (``factorq_torch.structure``): ``"body"``, the counts of every
+#: actuator of the experiment (a body changes as a whole); ``"actuator"``, its own only.
+REOPENINGS = ("body", "actuator")
 
 
 def beta_bernoulli_log_marginal(

@@ -29,9 +29,14 @@ candidate ``c`` is
 in float64 (``beta_bernoulli_log_marginal``). The prior over candidates gives each size (0, 1,
 2 parents) the same mass, uniform within a size (``candidate_log_prior``).
 
-**Commitment.** Until it commits, actuator ``a``'s local value is the posterior-weighted running
-mean ``sum_c p(c | D) rho_c[o_c]`` (an unvisited pattern predicts 0, as an unvisited table entry
-does). It commits to the maximum a posteriori candidate ``c*`` when ``c*`` beats every
+**Commitment.** Until it commits, actuator ``a``'s local value is, by ``prediction``:
+``"optimistic"`` (the default) the largest running mean ``rho_c[o_c]`` among the *plausible*
+candidates, those whose log posterior is within ``log(bayes_factor)`` of the best (a firing is
+avoided only when every structure not yet ruled out predicts a loss); ``"map"`` the running mean
+of the maximum a posteriori candidate; ``"posterior"`` the posterior-weighted running mean
+``sum_c p(c | D) rho_c[o_c]``; ``"committed"`` 0. An unvisited pattern predicts 0, as an
+unvisited table entry does. (Why optimistic: ``docs/decisions.md``, "Learned dependencies".)
+It commits to the maximum a posteriori candidate ``c*`` when ``c*`` beats every
 *competitor* by the Bayes factor ``bayes_factor`` (default 100; posterior odds, the prior
 included). The competitors of ``c*`` are all candidates but its strict supersets; the competitors
 of "no sensor" are the single sensors. Why supersets are left out: a superset ``c* + {x}`` with
@@ -47,11 +52,16 @@ change-point test compares "nothing changed": the committed candidate ``c*`` pre
 from the data before it, ``p(block | c*, earlier) = p(all | c*) / p(earlier | c*)``, against "a
 change before the block": the best candidate (``c*`` included) fitted afresh to the block alone,
 both with their prior. When the change wins by ``bayes_factor``, the actuator reopens: it forgets
-all its counts (the block's too: the block may straddle the change, and restarting from it
+all its counts (``reopen="body"``, the default: every actuator of the experiment does, a body
+changes as a whole) (the block's too: the block may straddle the change, and restarting from it
 recommitted to the old structure in most experiments of the ``change`` setting) and commits
 again by the rule above. Comparing only fresh fits on the block would not do: an agent that keeps
 repeating one action in one place (into a wall its stale table calls safe) produces data every
 candidate fits equally well, while the stale prediction is refuted after a few collisions.
+
+The float64 operations run in a fixed order (``functional.log_posterior_of``: left-to-right sums
+over patterns; ``argmax``: the first maximum), which the compiled path (``trainers/_kernel.c``)
+repeats bit for bit for every prediction but ``"posterior"`` (its ``exp``).
 
 Keys: reads ``sensors`` ``[S, K]`` bool, writes ``local_value`` ``[S, A]`` float32.
 """
@@ -71,6 +81,7 @@ from factorq_torch.functional import (  # noqa: F401  (the structure math, re-ex
     MAX_SENSORS,
     PREDICTIONS,
     PRIORS,
+    REOPENINGS,
     beta_bernoulli_log_marginal,
     candidate_log_prior,
     candidate_sets,
@@ -94,6 +105,9 @@ class StructureLearner(TensorDictModuleBase):
         window: firings per actuator in the block the reopening test reads.
         prior_a, prior_b: the Beta prior of every pattern's rate.
         prior: the prior over candidates, ``"size"`` or ``"uniform"`` (``candidate_log_prior``).
+        prediction: what an open actuator predicts: ``"optimistic"``, ``"map"``, ``"posterior"``
+            or ``"committed"`` (module docstring).
+        reopen: what a reopening forgets: ``"body"`` (every actuator) or ``"actuator"``.
         sensors_key: where the sensors are read.
         device: where the counts live.
 
@@ -125,6 +139,7 @@ class StructureLearner(TensorDictModuleBase):
         prior_b: float = 1.0,
         prior: str = "size",
         prediction: str = "optimistic",
+        reopen: str = "body",
         sensors_key: str = keys.SENSORS,
         device: torch.device | str | None = None,
     ) -> None:
@@ -150,6 +165,9 @@ class StructureLearner(TensorDictModuleBase):
         if prediction not in PREDICTIONS:
             raise ValueError(f"prediction={prediction!r} is unknown: choose one of {PREDICTIONS}")
         self.prediction = prediction
+        if reopen not in REOPENINGS:
+            raise ValueError(f"reopen={reopen!r} is unknown: choose one of {REOPENINGS}")
+        self.reopen = reopen
         self.prior = prior
         self.prior_a, self.prior_b = float(prior_a), float(prior_b)
         self.sensors_key = sensors_key
@@ -346,11 +364,16 @@ class StructureLearner(TensorDictModuleBase):
         self.committed[rows, action] = new
         if bool(reopen.any()):  # forget everything: the block may straddle the change
             lost_rows, lost_actions = rows[reopen], action[reopen]
+            # "body": every actuator of the experiment forgets (a body changes as a whole)
+            lost = slice(None) if self.reopen == "body" else lost_actions
             for prefix in ("", "block_"):
                 for name in ("count", "successes", "reward_sum", "log_marginal"):
-                    getattr(self, prefix + name)[lost_rows, lost_actions] = 0.0
-            self.block_samples[lost_rows, lost_actions] = 0
+                    getattr(self, prefix + name)[lost_rows, lost] = 0.0
+            self.block_samples[lost_rows, lost] = 0
+            self.committed[lost_rows, lost] = -1
             self.reopened[lost_rows, lost_actions] += 1
+            if self.reopen == "body":
+                self._refresh_cache(lost_rows, slice(None))
         full = self.block_samples[rows, action] >= self.window
         if bool(full.any()):
             full_rows, full_actions = rows[full], action[full]

@@ -48,6 +48,7 @@ def draw_config(setting: str, generator: random.Random) -> DependenciesConfig:
         window=generator.choice([7, 20]),
         change_run=1,
         prediction=generator.choice(["optimistic", "map", "committed"]),
+        reopen=generator.choice(["body", "actuator"]),
         out="unused",
     )
 

@@ -163,6 +163,23 @@ def test_commits_to_the_deciding_sensor_and_reopens_when_the_body_changes():
     assert (learner.structure()[:, 0].nonzero()[:, 1] == 5).all()
 
 
+def test_a_reopening_forgets_the_whole_body_or_one_actuator():
+    for reopen in ("body", "actuator"):
+        generator = torch.Generator().manual_seed(0)
+        learner = StructureLearner(4, num_actions=2, num_sensors=4, window=50, reopen=reopen)
+        _feed(learner, 60, parent=3, generator=generator)
+        learner.committed[:, 1] = 2  # actuator 1 holds a commitment of its own
+        learner.count[:, 1] = 1.0
+        before = learner.reopened.clone()
+        _feed(learner, 150, parent=1, generator=generator)  # actuator 0's body changed
+        assert (learner.reopened[:, 0] > before[:, 0]).all()
+        assert learner.reopened[:, 1].eq(0).all()  # only the test that fired counts
+        if reopen == "body":  # actuator 1 forgot too, and predicts from nothing
+            assert learner.committed[:, 1].eq(-1).all() and learner.count[:, 1].eq(0).all()
+        else:
+            assert learner.committed[:, 1].eq(2).all() and learner.count[:, 1].eq(1).all()
+
+
 def test_masked_experiments_do_not_learn():
     learner = StructureLearner(2, num_actions=1, num_sensors=2)
     learner.update_running_mean(

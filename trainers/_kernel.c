@@ -137,6 +137,7 @@ typedef struct {
     int64_t curve_length;
     int64_t lgamma_length;    /* M: entries of each lgamma table */
     int64_t learner_stride;   /* doubles of one experiment's counts block */
+    int64_t reopen_body;      /* a reopening forgets every actuator (1) or its own (0) */
     double log_bayes_factor;
     double log_beta_prior;
     const int64_t *candidate_sensors; /* [C, 2] the candidate's sensors, -1: none */
@@ -747,6 +748,30 @@ static void learner_predict(const fq_batch *b, int64_t i, uint64_t readings, flo
     }
 }
 
+/* StructureLearner._refresh_cache for actuator a: the MAP candidate and the plausible ones, from
+   lp [C] when given, else from the counts. */
+static void learner_refresh(const fq_batch *b, int64_t i, int64_t a, double *lp, int have_lp) {
+    const learner_view v = learner_of(b, i);
+    const int64_t C = v.C, P = v.P, base = a * C * P;
+    if (!have_lp)
+        for (int64_t c = 0; c < C; c++)
+            lp[c] = b->log_prior[c] + candidate_sum(v.array[L_LM] + base + c * P, P);
+    const int64_t map = argmax_d(lp, C);
+    b->map_cache[i * v.A + a] = map;
+    const double floor = lp[map] - b->log_bayes_factor;
+    uint8_t *plausible = b->plausible + (i * v.A + a) * C;
+    for (int64_t c = 0; c < C; c++) plausible[c] = lp[c] >= floor;
+}
+
+/* Forget everything actuator a of experiment i has counted (a reopening). */
+static void learner_forget(const fq_batch *b, int64_t i, int64_t a) {
+    const learner_view v = learner_of(b, i);
+    const int64_t base = a * v.C * v.P;
+    for (int k = 0; k < L_ARRAYS; k++) memset(v.array[k] + base, 0, (size_t)(v.C * v.P) * 8);
+    b->committed[i * v.A + a] = -1;
+    b->block_samples[i * v.A + a] = 0;
+}
+
 /* StructureLearner.update_running_mean for one firing, then _decide and _refresh_cache. */
 static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int64_t a,
                            float local_reward, double *scratch) {
@@ -807,24 +832,21 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
     }
     if (commit) *committed = best;
     if (reopen) {
-        *committed = -1;
-        for (int k = 0; k < L_ARRAYS; k++) memset(v.array[k] + base, 0, (size_t)(C * P) * 8);
-        *block_samples = 0;
+        learner_forget(b, i, a);
         b->reopened[i * v.A + a] += 1;
+        if (b->reopen_body)
+            for (int64_t other = 0; other < v.A; other++)
+                if (other != a) {
+                    learner_forget(b, i, other);
+                    learner_refresh(b, i, other, lp, 0);
+                }
     }
     if (*block_samples >= b->window) {
         for (int k = L_BCOUNT; k < L_ARRAYS; k++) memset(v.array[k] + base, 0, (size_t)(C * P) * 8);
         *block_samples = 0;
     }
     /* _refresh_cache: the MAP candidate of the (possibly forgotten) counts */
-    if (reopen)
-        for (int64_t c = 0; c < C; c++)
-            lp[c] = b->log_prior[c] + candidate_sum(v.array[L_LM] + base + c * P, P);
-    const int64_t map = argmax_d(lp, C);
-    b->map_cache[i * v.A + a] = map;
-    const double floor = lp[map] - b->log_bayes_factor;
-    uint8_t *plausible = b->plausible + (i * v.A + a) * C;
-    for (int64_t c = 0; c < C; c++) plausible[c] = lp[c] >= floor;
+    learner_refresh(b, i, a, lp, !reopen);
 }
 
 /* trainers/dependencies.py's bookkeeping after a step: who is right, since when, wrong

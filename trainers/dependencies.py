@@ -4,14 +4,17 @@ Per *setting* (a body, a sensor layout, noise, a change), ``seeds`` experiments 
 ``episodes`` episodes (task tables reset per run, local knowledge kept, SPEC section 4) for four
 methods on the same worlds (common random numbers: the same world keys):
 
-- ``learned``: ``factorq_torch.structure.StructureLearner`` as the local value provider, through
-  ``FactorQPolicy``, ``FactorQLoss`` and ``OnlineCollector`` (the modular torchrl path), told
-  nothing of the body; every experiment receives its sensors in its own random order
-  (``envs.permutation.PermuteSensors``), redrawn at run ``change_run`` in the ``change`` setting;
+- ``learned``: ``factorq_torch.structure.StructureLearner`` as the local value provider, told
+  nothing of the body, on the compiled path (``fast.StructureOptions``) or, with ``--path
+  modular`` (or ``--prediction posterior``), through ``FactorQPolicy``, ``FactorQLoss`` and
+  ``OnlineCollector`` (the modular torchrl path): the same numbers bit for bit. Every experiment
+  receives its sensors in its own random order (``envs.permutation.PermuteSensors``), redrawn at
+  run ``change_run`` in the ``change`` setting;
 - ``oracle``: ``LocalRewardTable`` with the true dependency (the paper), on the compiled path;
 - ``joint``: Factor-Q with one local table per actuator over the pattern of *all* sensors (the
   paper's footnote 2), compiled, where ``2**K`` entries fit (``tables.MAX_PARENTS``);
-- ``q-learning``: compiled, where its table fits (``tables.MAX_TABLE_ENTRIES``).
+- ``q-learning``: compiled, where its table fits (``tables.MAX_TABLE_ENTRIES``);
+- ``dqn`` (opt-in, ``--methods``): ``trainers.dqn`` on the oracle's step budget (``run_dqn``).
 
 The oracle, the joint table and Q-learning do not depend on the order of the sensors (a
 permutation relabels their table entries), so they run without the transform and give exactly
@@ -80,7 +83,7 @@ JSON_FILE, FIGURE_FILE, REPORT_FILE = "dependencies.json", "dependencies.png", "
 
 @dataclass(frozen=True)
 class DependenciesConfig:
-    """The structure-learning experiment; defaults run in about a minute on 2 cores."""
+    """The structure-learning experiment; the defaults run in well under a minute on 2 cores."""
 
     seed: int = option(0, "Master seed: worlds, sensor orders and policies derive from it.")
     seeds: int = option(100, "Independent experiments per setting (and method).")
@@ -104,6 +107,12 @@ class DependenciesConfig:
         "evidence has not ruled out), map (its most probable parent set), posterior (the "
         "posterior-weighted mean; modular path only) or committed (nothing until it commits).",
         choices=("optimistic", "map", "posterior", "committed"),
+    )
+    reopen: str = option(
+        "body",
+        "What a reopening forgets: body (every actuator's counts: a body changes as a whole) or "
+        "actuator (its own).",
+        choices=("body", "actuator"),
     )
     path: str = option(
         "fast",
@@ -130,6 +139,7 @@ class DependenciesConfig:
         for name, choices in (
             ("prediction", ("optimistic", "map", "posterior", "committed")),
             ("path", ("fast", "modular")),
+            ("reopen", ("body", "actuator")),
         ):
             if getattr(self, name) not in choices:
                 raise ValueError(
@@ -194,6 +204,7 @@ def _learner_options(config: DependenciesConfig) -> dict[str, Any]:
         "bayes_factor": config.bayes_factor,
         "window": config.window,
         "prediction": config.prediction,
+        "reopen": config.reopen,
     }
 
 

@@ -53,6 +53,7 @@ from factorq_torch.base.rng import probability_threshold
 from factorq_torch.base.validation import MAX_PARENTS, check_int, check_table_size
 from factorq_torch.functional import (
     PREDICTIONS,
+    REOPENINGS,
     candidate_log_prior,
     candidate_sets,
     check_dependency,
@@ -144,6 +145,7 @@ class StructureOptions:
     prior_b: float = 1.0
     prior: str = "size"
     prediction: str = "optimistic"
+    reopen: str = "body"
     orders_after: torch.Tensor | None = None
     change_run: int = 0
     curve_every: int = 10
@@ -235,6 +237,7 @@ class _Batch(ctypes.Structure):
                 "curve_length",
                 "lgamma_length",
                 "learner_stride",
+                "reopen_body",
             )
         ]
         + [(name, ctypes.c_double) for name in ("log_bayes_factor", "log_beta_prior")]
@@ -746,6 +749,10 @@ class ExperimentBatch:
                     f"(0, 2**20)"
                 )
         check_int("structure.window", options.window, 1)
+        if options.reopen not in REOPENINGS:
+            raise ValueError(
+                f"structure.reopen={options.reopen!r} is unknown: choose one of {REOPENINGS}"
+            )
         check_int("structure.change_run", options.change_run, 0, self.runs - 1)
         check_int("structure.curve_every", options.curve_every, 1)
         num_sensors, actuators = world.num_sensors, world.num_actuators
@@ -812,6 +819,7 @@ class ExperimentBatch:
             "curve_length": curve_length,
             "lgamma_length": length,
             "learner_stride": stride,
+            "reopen_body": int(options.reopen == "body"),
             "log_bayes_factor": math.log(float(options.bayes_factor)),
             # as functional.beta_bernoulli_log_marginal computes it (Python's lgamma)
             "log_beta_prior": math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b),
