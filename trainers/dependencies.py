@@ -288,7 +288,9 @@ def _permuted(world: WorldConfig, orders: torch.Tensor) -> torch.Tensor:
 
 
 def _fill_curve(curve: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
-    """``[S, points]`` bool: an experiment that has finished holds its last point."""
+    """``[S, points]`` bool: an experiment that has finished holds its last point; the points
+    stop at the longest experiment's end."""
+    curve = curve[:, : int(steps.max()) // CURVE_EVERY + 1]
     points = torch.arange(curve.shape[1]) * CURVE_EVERY
     last = (steps // CURVE_EVERY).clamp(max=curve.shape[1] - 1)  # [S]
     final = curve.gather(1, last.unsqueeze(1))  # [S, 1]
