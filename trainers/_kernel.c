@@ -144,7 +144,8 @@ typedef struct {
     const double *log_prior;          /* [C] */
     const uint8_t *competitors;       /* [C, C] */
     const double *lgamma_table;       /* [3, M] lgamma(a + m), lgamma(b + m), lgamma(a + b + m) */
-    const int64_t *orders;            /* [S, K] agent sensor j = world sensor orders[s, j] */
+    const int64_t *orders;            /* [S, K] agent sensor j = world sensor orders[s, j]; NULL:
+                                         the world's order (any algorithm may have orders) */
     const int64_t *orders_after;      /* [S, K] the order after the change */
     const int64_t *truth;             /* [S, 2, A] candidate index of the true parents, -2: none */
     double *counts;                   /* [S, stride]: 8 arrays [A, C, P] (learner_arrays) */
@@ -1075,10 +1076,12 @@ static inline int64_t run_experiment_body(const fq_batch *b, int64_t i, int64_t 
             readings = agent_readings(
                 b, i, observe(b, grid, pos, heading, tick, distractor_key, noise_key), tick);
             /* the change (dependencies.py): from the observation after this reset on */
-            if (learning && b->change_run > 0 && b->change_tick[i] < 0 && run == b->change_run) {
+            if (b->orders != NULL && b->change_run > 0 && b->change_tick[i] < 0 &&
+                run == b->change_run) {
                 b->change_tick[i] = (int64_t)tick;
-                for (int64_t a = 0; a < A; a++)
-                    b->samples_at_change[i * A + a] = b->samples[i * A + a];
+                if (learning)
+                    for (int64_t a = 0; a < A; a++)
+                        b->samples_at_change[i * A + a] = b->samples[i * A + a];
             }
         } else {
             readings = next_readings;
@@ -1167,8 +1170,8 @@ int64_t fq_check_experiment(const fq_batch *b, int64_t i) {
                       s == (double)(int64_t)s))
                     return 15;
             }
-        if (b->change_tick[i] < -1) return 16;
     }
+    if (b->orders != NULL && b->change_tick[i] < -1) return 16;
     return 0;
 }
 

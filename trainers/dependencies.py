@@ -16,11 +16,9 @@ methods on the same worlds (common random numbers: the same world keys):
 - ``q-learning``: compiled, where its table fits (``tables.MAX_TABLE_ENTRIES``);
 - ``dqn`` (opt-in, ``--methods``): ``trainers.dqn`` on the oracle's step budget (``run_dqn``).
 
-The oracle, the joint table and Q-learning do not depend on the order of the sensors (a
-permutation relabels their table entries), so they run without the transform and give exactly
-the numbers they would give with it; the exception is a change *mid-experiment* for the joint
-table (its table outlives the change), which the compiled path cannot run: it is reported as not
-run in that setting.
+The joint table and Q-learning receive the sensors in the learner's orders, changed at the same
+moment (``fast.SensorOrders``); the oracle is told the true pairing at every moment, which is
+the same as running it in the world's own order.
 
 Structure metrics (``learned`` only), per experiment: the local samples (firings) per actuator
 until it holds the right parents and keeps them to the end (the experiment's value: the largest
@@ -449,6 +447,15 @@ def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[
         dependency = torch.ones(world.num_actuators, world.num_sensors, dtype=torch.bool)
     if method == "q-learning":
         algorithm = "q-learning"
+    orders = None
+    if method in ("joint", "q-learning"):  # the sensors in the learner's orders, changed alike
+        count, num_sensors = config.seeds, world.num_sensors
+        change = setting == "change"
+        orders = fast.SensorOrders(
+            sensor_orders(config.seed, setting, count, num_sensors, 0),
+            sensor_orders(config.seed, setting, count, num_sensors, 1) if change else None,
+            config.change_run if change else 0,
+        )
     metrics = fast.run_experiments(
         algorithm,
         periods,
@@ -458,8 +465,9 @@ def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[
         config.episodes,
         world_keys,
         policy_keys,
-        threads=1,
+        threads=config.threads,
         dependency=dependency,
+        sensor_orders=orders,
     )
     return {"metrics": metrics}
 
@@ -533,8 +541,6 @@ def skipped_reason(config: DependenciesConfig, setting: str, method: str) -> str
             f"a joint table over {world.num_sensors} sensors needs 2**{world.num_sensors} "
             f"entries per actuator, past the cap of 2**{MAX_PARENTS}"
         )
-    if method == "joint" and setting == "change":
-        return "the compiled path cannot change the sensor order mid-experiment"
     if method == "q-learning":
         entries = (world.num_cells * world.num_headings << world.num_sensors) * world.num_actuators
         if entries > MAX_TABLE_ENTRIES:

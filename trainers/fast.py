@@ -151,6 +151,18 @@ class StructureOptions:
     curve_every: int = 10
 
 
+@dataclass(frozen=True)
+class SensorOrders:
+    """A sensor order per experiment for any algorithm (``envs.permutation.PermuteSensors`` on
+    the compiled path): agent sensor ``j`` is world sensor ``orders[s, j]``, replaced by
+    ``orders_after`` from the first observation after the reset into run ``change_run`` (0:
+    never). ``StructureOptions`` carries its own."""
+
+    orders: torch.Tensor
+    orders_after: torch.Tensor | None = None
+    change_run: int = 0
+
+
 class _Batch(ctypes.Structure):
     """The kernel's ``fq_batch`` (same field order and types; its size is checked on load)."""
 
@@ -563,6 +575,7 @@ class ExperimentBatch:
         threads: int | None = None,
         dependency: torch.Tensor | None = None,
         structure: StructureOptions | None = None,
+        sensor_orders: SensorOrders | None = None,
     ) -> None:
         if algorithm not in _ALGORITHM_CODES:
             choices = ", ".join((*ALGORITHMS, RANDOM_WALK))
@@ -602,6 +615,7 @@ class ExperimentBatch:
         # ``dependency`` (bool [A, K]) replaces the world's true one in Factor-Q's local tables,
         # e.g. the full joint table over all sensors (trainers.dependencies); generic loop only.
         generic = not world.is_paper_body or dependency is not None or structure is not None
+        generic = generic or sensor_orders is not None
         num_actuators, num_sensors = world.num_actuators, world.num_sensors
         positions = num_cells * world.num_headings
         num_states = positions << num_sensors if algorithm == "q-learning" else positions
@@ -672,7 +686,11 @@ class ExperimentBatch:
             "greedy_collisions": zeros(*experiment_shape),
             "task_return": zeros(*experiment_shape, dtype=torch.float32),
         }
+        if structure is not None and sensor_orders is not None:
+            raise ValueError("sensor_orders: give the orders in structure (StructureOptions)")
         learner_fields = self._structure(structure, algorithm, world, count)
+        if sensor_orders is not None:
+            learner_fields.update(self._sensor_orders(sensor_orders, world, count))
         self._body = body_tensors  # read-only; kept alive for the kernel's pointers
         pointers = {
             name: tensor.data_ptr()
@@ -824,6 +842,18 @@ class ExperimentBatch:
             # as functional.beta_bernoulli_log_marginal computes it (Python's lgamma)
             "log_beta_prior": math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b),
         }
+
+    def _sensor_orders(self, options: SensorOrders, world: WorldConfig, count: int) -> dict:
+        """Check ``options``; keep its orders for the kernel; return fq_batch's fields."""
+        if not isinstance(options, SensorOrders):
+            raise TypeError(f"sensor_orders must be a SensorOrders, got {type(options).__name__}")
+        check_int("sensor_orders.change_run", options.change_run, 0, self.runs - 1)
+        orders = _check_orders("sensor_orders.orders", options.orders, count, world.num_sensors)
+        after = orders if options.orders_after is None else options.orders_after
+        after = _check_orders("sensor_orders.orders_after", after, count, world.num_sensors)
+        self._learner_tables.update(orders=orders, orders_after=after)
+        self._tensors["change_tick"] = torch.full((count,), -1, dtype=torch.int64)
+        return {"change_run": options.change_run}
 
     def learner_state(self) -> dict[str, torch.Tensor]:
         """The structure learner's state and bookkeeping (copies): ``committed``, ``samples``,
@@ -988,6 +1018,7 @@ def run_experiments(
     progress: Callable[[int], object] | None = None,
     dependency: torch.Tensor | None = None,
     structure: StructureOptions | None = None,
+    sensor_orders: SensorOrders | None = None,
 ) -> dict[str, torch.Tensor]:
     """Run S experiments to the end (see ``ExperimentBatch``) and return their ``metrics()``.
 
@@ -1006,6 +1037,7 @@ def run_experiments(
         threads,
         dependency=dependency,
         structure=structure,
+        sensor_orders=sensor_orders,
     )
     # Chunks only matter for progress reports (results do not depend on them).
     chunk = 20_000 if progress is not None else 1 << 62
