@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from factorq_torch.functional import beta_bernoulli_log_marginal, lgamma_tables
-from trainers import fast
-from trainers.dependencies import (
+from factorq_trainers import fast
+from factorq_trainers.dependencies import (
     SETTINGS,
     DependenciesConfig,
     run_learned_fast,
@@ -96,7 +96,7 @@ def test_lgamma_tables_are_torch_lgamma_of_the_marginals_arguments():
 
 
 def test_structure_options_are_checked():
-    from envs.world import WorldConfig
+    from factorq_envs.world import WorldConfig
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import derive_keys
 
@@ -127,7 +127,7 @@ def test_structure_options_are_checked():
 
 
 def test_sensor_orders_relabel_the_joint_table_and_q_learning_and_change_at_the_run():
-    from envs.world import WorldConfig
+    from factorq_envs.world import WorldConfig
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import derive_keys
 

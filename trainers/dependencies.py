@@ -8,13 +8,14 @@ methods on the same worlds (common random numbers: the same world keys):
   nothing of the body, on the compiled path (``fast.StructureOptions``) or, with ``--path
   modular`` (or ``--prediction posterior``), through ``FactorQPolicy``, ``FactorQLoss`` and
   ``OnlineCollector`` (the modular torchrl path): the same numbers bit for bit. Every experiment
-  receives its sensors in its own random order (``envs.permutation.PermuteSensors``), redrawn at
-  run ``change_run`` in the ``change`` setting;
+  receives its sensors in its own random order (``factorq_envs.permutation.PermuteSensors``),
+  redrawn at run ``change_run`` in the ``change`` setting;
 - ``oracle``: ``LocalRewardTable`` with the true dependency (the paper), on the compiled path;
 - ``joint``: Factor-Q with one local table per actuator over the pattern of *all* sensors (the
   paper's footnote 2), compiled, where ``2**K`` entries fit (``tables.MAX_PARENTS``);
 - ``q-learning``: compiled, where its table fits (``tables.MAX_TABLE_ENTRIES``);
-- ``dqn`` (opt-in, ``--methods``): ``trainers.dqn`` on the oracle's step budget (``run_dqn``).
+- ``dqn`` (opt-in, ``--methods``): ``factorq_trainers.dqn`` on the oracle's step budget
+(``run_dqn``).
 
 The joint table and Q-learning receive the sensors in the learner's orders, changed at the same
 moment (``fast.SensorOrders``); the oracle is told the true pairing at every moment, which is
@@ -210,7 +211,7 @@ def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     """The learned structure with its structure metrics: on the compiled path where it runs
     (``fast.StructureOptions``), else on the modular torchrl path (``run_learned_modular``);
     both give the same numbers bit for bit (``tests/test_fast_structure.py``)."""
-    from trainers import fast
+    from factorq_trainers import fast
 
     world = config.world_of(setting)
     if (
@@ -225,7 +226,7 @@ def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
 
 def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     """``run_learned`` on the compiled path."""
-    from trainers import fast
+    from factorq_trainers import fast
 
     world = config.world_of(setting)
     count, num_sensors = config.seeds, world.num_sensors
@@ -280,7 +281,7 @@ def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]
 
 
 def _permuted(world: WorldConfig, orders: torch.Tensor) -> torch.Tensor:
-    from envs.permutation import permuted_dependency
+    from factorq_envs.permutation import permuted_dependency
 
     return permuted_dependency(world.dependency, orders)
 
@@ -483,13 +484,13 @@ def _budget(config: DependenciesConfig, setting: str, runs: dict[str, dict[str, 
 
 
 def run_dqn(config: DependenciesConfig, setting: str, budget: int) -> dict[str, Any]:
-    """DQN (``trainers.dqn``, its default hyperparameters) on the setting's worlds for ``budget``
-    env steps per experiment (episodes as many as fit; DQN has no runs). It sees every sensor
-    (``TaskQNetwork(with_proximity=True)``); the order does not matter to a network trained from
-    scratch, so it runs without ``PermuteSensors``. Measured cost: 100 experiments of 1,400
+    """DQN (``factorq_trainers.dqn``, its default hyperparameters) on the setting's worlds for
+    ``budget`` env steps per experiment (episodes as many as fit; DQN has no runs). It sees every
+    sensor (``TaskQNetwork(with_proximity=True)``); the order does not matter to a network trained
+    from scratch, so it runs without ``PermuteSensors``. Measured cost: 100 experiments of 1,400
     steps took 300 s on 2 loaded cores (docs/decisions.md), hence opt-in."""
-    from trainers import dqn
-    from trainers.experiment import ExperimentConfig
+    from factorq_trainers import dqn
+    from factorq_trainers.experiment import ExperimentConfig
 
     options = {"body": "translate", "sensors": "cross", **SETTINGS[setting]}
     experiments = ExperimentConfig(
@@ -532,7 +533,7 @@ def skipped_reason(config: DependenciesConfig, setting: str, method: str) -> str
         return None
     if method == "dqn":
         if setting == "change":
-            return "DQN's env (trainers.dqn) cannot change the sensor order mid-experiment"
+            return "DQN's env (factorq_trainers.dqn) cannot change the sensor order mid-experiment"
         return None
     if not fast.is_available():
         return f"the compiled path is unavailable ({fast.unavailable_reason()})"

@@ -129,12 +129,12 @@ class StructureOptions:
     """The structure learner (``factorq_torch.structure.StructureLearner``) as Factor-Q's local
     value provider on the generic loop, with the bookkeeping of ``factorq dependencies``.
 
-    ``orders`` ``[S, K]``: each experiment's sensor order (``envs.permutation.PermuteSensors``),
-    replaced by ``orders_after`` from the first observation after the reset into run
-    ``change_run`` (0: never). ``curve_every``: steps between two points of the per-experiment
-    "all actuators right" curve. The other fields are the learner's arguments; the priors must
-    be multiples of 1/1024 (the counts and priors then add exactly, so every ``lgamma`` argument
-    is one of the tables' doubles).
+    ``orders`` ``[S, K]``: each experiment's sensor order
+    (``factorq_envs.permutation.PermuteSensors``), replaced by ``orders_after`` from the first
+    observation after the reset into run ``change_run`` (0: never). ``curve_every``: steps between
+    two points of the per-experiment "all actuators right" curve. The other fields are the learner's
+    arguments; the priors must be multiples of 1/1024 (the counts and priors then add exactly, so
+    every ``lgamma`` argument is one of the tables' doubles).
     """
 
     orders: torch.Tensor
@@ -153,8 +153,8 @@ class StructureOptions:
 
 @dataclass(frozen=True)
 class SensorOrders:
-    """A sensor order per experiment for any algorithm (``envs.permutation.PermuteSensors`` on
-    the compiled path): agent sensor ``j`` is world sensor ``orders[s, j]``, replaced by
+    """A sensor order per experiment for any algorithm (``factorq_envs.permutation.PermuteSensors``
+    on the compiled path): agent sensor ``j`` is world sensor ``orders[s, j]``, replaced by
     ``orders_after`` from the first observation after the reset into run ``change_run`` (0:
     never). ``StructureOptions`` carries its own."""
 
@@ -614,7 +614,8 @@ class ExperimentBatch:
             static_grid[pad_of_cell.long()] = static_layout(world).to(torch.uint8)
         # The body as data (factorq_envs.body): the paper's body runs the specialised loop.
         # ``dependency`` (bool [A, K]) replaces the world's true one in Factor-Q's local tables,
-        # e.g. the full joint table over all sensors (trainers.dependencies); generic loop only.
+        # e.g. the full joint table over all sensors (factorq_trainers.dependencies); generic loop
+        # only.
         generic = not world.is_paper_body or dependency is not None or structure is not None
         generic = generic or sensor_orders is not None
         num_actuators, num_sensors = world.num_actuators, world.num_sensors
