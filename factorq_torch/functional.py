@@ -11,9 +11,13 @@ produces bit-identical tables. Keep it that way when you edit.
 
 from __future__ import annotations
 
+import itertools
+import math
+
 import torch
 
 from factorq_torch.base.rng import probability_threshold, randint_from_bits
+from factorq_torch.base.validation import check_int
 
 
 def sensor_pattern(readings: torch.Tensor) -> torch.Tensor:
@@ -269,3 +273,116 @@ def epsilon_greedy(
     shape = (3, *values.shape[:-1])
     bits = torch.randint(0, 1 << 32, shape, generator=generator, device=values.device)
     return epsilon_greedy_from_bits(values, epsilon, bits[0], bits[1], bits[2])
+
+
+# --------------------------------------------------------------------------------------------
+# Learned dependencies (issue 12): the structure learner's math (factorq_torch.structure), shared
+# with the compiled path. Float64 throughout; sums over the patterns of a candidate are explicit
+# left-to-right additions (log_posterior_of), as the kernel performs them.
+
+#: The largest candidate parent set (pairs): see ``factorq_torch.structure``.
+MAX_CANDIDATE_PARENTS = 2
+#: Sensors the learner accepts (patterns are computed in int64 bit masks).
+MAX_SENSORS = 62
+#: Priors over the candidate parent sets (``candidate_log_prior``).
+PRIORS = ("size", "uniform")
+#: What an actuator predicts before it commits (``factorq_torch.structure``): ``"optimistic"``,
+#: the largest running mean among the plausible candidates (log posterior within
+#: ``log(bayes_factor)`` of the best: a firing is avoided only when every structure the evidence
+#: has not ruled out predicts a loss); ``"map"``, the running mean of its maximum a posteriori
+#: candidate; ``"posterior"``, the posterior-weighted
+#: running mean (modular path only: it needs ``exp``, whose float64 result the compiled path
+#: cannot reproduce bit for bit); ``"committed"``, nothing (0, as an unvisited table entry).
+PREDICTIONS = ("optimistic", "map", "posterior", "committed")
+#: What a reopening forgets (``factorq_torch.structure``): ``"body"``, the counts of every
+#: actuator of the experiment (a body changes as a whole); ``"actuator"``, its own only.
+REOPENINGS = ("body", "actuator")
+
+
+def beta_bernoulli_log_marginal(
+    count: torch.Tensor, successes: torch.Tensor, prior_a: float = 1.0, prior_b: float = 1.0
+) -> torch.Tensor:
+    """``log p(y_1..y_n)`` of ``n`` Bernoulli outcomes with ``s`` successes under a rate drawn
+    from ``Beta(a, b)``: ``log B(a + s, b + n - s) - log B(a, b)``, elementwise, in float64.
+
+    ``B(x, y) = Gamma(x) Gamma(y) / Gamma(x + y)``; ``n = s = 0`` gives 0. Fractional ``s`` (and
+    ``n``) are allowed (a fractional success). Shapes broadcast.
+
+    >>> beta_bernoulli_log_marginal(torch.tensor([2.0]), torch.tensor([1.0]))  # 1!1!/3! = 1/6
+    tensor([-1.7918], dtype=torch.float64)
+    """
+    n = count.to(torch.float64)
+    s = successes.to(torch.float64)
+    a, b = float(prior_a), float(prior_b)
+    log_beta_prior = math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b)
+    return torch.lgamma(a + s) + torch.lgamma(b + n - s) - torch.lgamma(a + b + n) - log_beta_prior
+
+
+def candidate_sets(num_sensors: int, max_parents: int = MAX_CANDIDATE_PARENTS) -> list[tuple]:
+    """The candidate parent sets: ``()``, then ``(j,)`` for every sensor, then ``(j, k)``,
+    ``j < k`` (with ``max_parents=2``), in that order."""
+    check_int("num_sensors", num_sensors, 1, MAX_SENSORS)
+    if not isinstance(max_parents, int) or isinstance(max_parents, bool) or max_parents < 0:
+        raise ValueError(f"max_parents={max_parents!r} must be an integer >= 0")
+    if max_parents > MAX_CANDIDATE_PARENTS:
+        raise ValueError(
+            f"max_parents={max_parents} is past the cap of {MAX_CANDIDATE_PARENTS}: candidate "
+            f"sets of {max_parents} sensors would be C({num_sensors}, {max_parents}) tables per "
+            f"actuator and experiment"
+        )
+    sets: list[tuple] = []
+    for size in range(min(max_parents, num_sensors) + 1):
+        sets.extend(itertools.combinations(range(num_sensors), size))
+    return sets
+
+
+def candidate_log_prior(sets: list[tuple], prior: str = "size") -> torch.Tensor:
+    """``[C]`` float64 log prior of the candidates: ``"size"``, every size of parent set has the
+    same mass, uniform within a size; ``"uniform"``, every candidate the same."""
+    if prior not in PRIORS:
+        raise ValueError(f"prior={prior!r} is unknown: choose one of {PRIORS}")
+    if prior == "uniform":
+        return torch.full((len(sets),), -math.log(len(sets)), dtype=torch.float64)
+    sizes = torch.tensor([len(s) for s in sets])
+    per_size = torch.bincount(sizes).to(torch.float64)  # candidates of each size
+    return -torch.log(per_size[sizes]) - math.log(len(per_size))
+
+
+def competitor_mask(sets: list[tuple]) -> torch.Tensor:
+    """``[C, C]`` bool: ``[c, c']`` True where ``c'`` competes with ``c`` for commitment: every
+    other candidate but the strict supersets of ``c``; for "no sensor", the single sensors."""
+    members = [frozenset(s) for s in sets]
+    mask = torch.zeros(len(sets), len(sets), dtype=torch.bool)
+    for i, best in enumerate(members):
+        for j, other in enumerate(members):
+            if i == j:
+                continue
+            if not best:
+                mask[i, j] = len(other) == 1
+            else:
+                mask[i, j] = not (best < other)
+    return mask
+
+
+def posterior_weights(log_posterior: torch.Tensor) -> torch.Tensor:
+    """``softmax`` over the last dimension (candidates): ``p(c | D)``, float64."""
+    return torch.softmax(log_posterior, dim=-1)
+
+
+def log_posterior_of(log_prior: torch.Tensor, log_marginal: torch.Tensor) -> torch.Tensor:
+    """``[..., C]`` float64: ``log p(c) + sum_p log p(D_p | c)`` of every candidate, from the log
+    marginal of each of its patterns ``[..., C, P]``, summed left to right (the kernel's order:
+    ``log_prior + (((m_0 + m_1) + m_2) + m_3)``)."""
+    total = log_marginal[..., 0]
+    for pattern in range(1, log_marginal.shape[-1]):
+        total = total + log_marginal[..., pattern]
+    return log_prior + total
+
+
+def lgamma_tables(prior_a: float, prior_b: float, length: int) -> torch.Tensor:
+    """``[3, length]`` float64: ``lgamma(a + m)``, ``lgamma(b + m)``, ``lgamma((a + b) + m)`` for
+    ``m = 0 .. length - 1``, by ``torch.lgamma`` (the compiled path looks them up instead of
+    calling its C library's ``lgamma``, which differs from torch's in the last bit)."""
+    m = torch.arange(length, dtype=torch.float64)
+    a, b = float(prior_a), float(prior_b)
+    return torch.stack((torch.lgamma(a + m), torch.lgamma(b + m), torch.lgamma(a + b + m)))

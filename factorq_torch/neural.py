@@ -30,6 +30,10 @@ predicts exactly no local reward), one network shared across actuators (equal ``
 sensed obstacle). Why, with the measurements behind it: ``docs/decisions.md``, "Neural
 Factor-Q's local network".
 
+``GatedLocalRewardNetwork`` (issue 12) is told no dependency: every actuator reads all ``K``
+sensors through learnable sigmoid gates with an L1 penalty, and its parents are read from the
+gates (``structure``).
+
 These are architectural priors, stated here; ``bias``, ``activation`` and ``shared`` are
 arguments so that the difference can be measured (``factorq_trainers.compare.FactorDQNConfig``).
 """
@@ -372,4 +376,116 @@ class LocalRewardNetwork(TensorDictModuleBase):
         else:
             value = self.network(reading)
         tensordict.set(names.LOCAL_VALUE, value.squeeze(-1))  # [..., S, A]
+        return tensordict
+
+
+class GatedLocalRewardNetwork(TensorDictModuleBase):
+    """A local reward network that learns each actuator's parent sensors: sparse input gates.
+
+    ``local_value[..., s, a] = f_{s,a}(sigmoid(z_{s,a}) * sensors[..., s, :])``: every actuator
+    ``a`` of experiment ``s`` has its own network ``f_{s,a}`` (bias-free, tanh, output starting at
+    0, as ``LocalRewardNetwork``'s defaults: nothing sensed predicts exactly 0) over all ``K``
+    sensors, each multiplied by a gate ``g = sigmoid(z)`` with a learnable logit ``z``
+    ``[S, A, K]`` (initially ``gate_init``). ``regularisation()`` is the L1 penalty
+    ``l1 * sum g`` (gates are positive, so the L1 norm is their sum), which ``FactorQLoss`` adds
+    to its losses as ``loss_regularisation``: trained through the same loss as every provider,
+    the gates of sensors that do not help predict the local reward shrink towards 0, and
+    ``structure()`` reads the parents as the gates above ``threshold``.
+
+    Args:
+        num_experiments: ``S``.
+        num_actions: ``A``.
+        num_sensors: ``K``.
+        hidden: hidden layer widths of each actuator's network.
+        l1: weight of the L1 penalty on the gates (>= 0).
+        gate_init: initial gate value, in (0, 1).
+        threshold: gate value above which a sensor counts as a parent, in (0, 1).
+        seed, offset, keys, device: as ``LocalRewardNetwork``.
+
+    Keys: reads ``sensors`` ``[..., S, K]`` bool, writes ``local_value`` ``[..., S, A]``.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> local = GatedLocalRewardNetwork(1, num_actions=2, num_sensors=3)
+        >>> td = local(TensorDict(sensors=torch.tensor([[True, False, True]]), batch_size=[1]))
+        >>> td["local_value"].detach()  # the output layer starts at 0
+        tensor([[0., 0.]])
+        >>> local.gates().shape, round(local.regularisation().item(), 6)  # 1e-3 * 6 * 0.5
+        (torch.Size([1, 2, 3]), 0.003)
+    """
+
+    def __init__(
+        self,
+        num_experiments: int,
+        *,
+        num_actions: int,
+        num_sensors: int,
+        hidden: Sequence[int] = (8,),
+        l1: float = 1e-3,
+        gate_init: float = 0.5,
+        threshold: float = 0.5,
+        seed: int = 0,
+        offset: int = 0,
+        keys: torch.Tensor | None = None,
+        device: torch.device | str | None = None,
+    ) -> None:
+        super().__init__()
+        self.num_experiments = check_int("num_experiments", num_experiments, 1)
+        self.num_actions = check_int("num_actions", num_actions, 1)
+        self.num_sensors = check_int("num_sensors", num_sensors, 1)
+        for name, value, low in (("l1", l1, 0.0), ("gate_init", gate_init, None)):
+            bad = not isinstance(value, (int, float)) or not math.isfinite(value)
+            if not bad and low is not None:
+                bad = value < low
+            if not bad and low is None:
+                bad = not 0.0 < value < 1.0
+            if bad:
+                allowed = ">= 0" if low is not None else "in (0, 1)"
+                raise ValueError(f"{name}={value!r} must be a finite number {allowed}")
+        if not isinstance(threshold, (int, float)) or not 0.0 < threshold < 1.0:
+            raise ValueError(f"threshold={threshold!r} must be in (0, 1)")
+        self.l1, self.threshold = float(l1), float(threshold)
+        self.in_keys = [names.SENSORS]
+        self.out_keys = [names.LOCAL_VALUE]
+        logit = math.log(gate_init / (1.0 - gate_init))
+        self.gate_logits = nn.Parameter(
+            torch.full((num_experiments, num_actions, num_sensors), logit, device=device)
+        )
+        self.network = BatchedMLP(
+            (num_experiments, num_actions),
+            num_sensors,
+            1,
+            hidden=check_hidden("hidden layer", hidden),
+            keys=_keys(keys, seed, STREAM_LOCAL_NETWORK, num_experiments, offset),
+            bias=False,
+            activation="tanh",
+            zero_output=True,
+            device=device,
+        )
+
+    def gates(self) -> torch.Tensor:
+        """``[S, A, K]``: ``sigmoid`` of the gate logits."""
+        return torch.sigmoid(self.gate_logits)
+
+    def structure(self) -> torch.Tensor:
+        """``[S, A, K]`` bool: the sensors whose gate is above ``threshold``, per actuator."""
+        return self.gates().detach() > self.threshold
+
+    def regularisation(self) -> torch.Tensor:
+        """The L1 penalty on the gates, ``l1 * sum g`` (a scalar with a gradient)."""
+        return self.l1 * self.gates().sum()
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        owner = type(self).__name__
+        sensors = tensordict.get(names.SENSORS, None)
+        if sensors is None:
+            raise KeyError(f"{owner} needs 'sensors' in the tensordict")
+        _experiment_dim(sensors, 1, self.num_experiments, owner, "sensors")
+        if sensors.shape[-1] != self.num_sensors:
+            raise ValueError(
+                f"{owner}: 'sensors' has {sensors.shape[-1]} sensors, expected K={self.num_sensors}"
+            )
+        # [..., S, 1, K] * [S, A, K] -> [..., S, A, K]: each actuator's gated view of the readings
+        gated = sensors.to(torch.float32).unsqueeze(-2) * self.gates()
+        tensordict.set(names.LOCAL_VALUE, self.network(gated).squeeze(-1))  # [..., S, A]
         return tensordict

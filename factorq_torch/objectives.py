@@ -316,7 +316,8 @@ class FactorQLoss(_TransitionLoss):
     Keys (``set_keys``): ``action_value``, ``local_value``, ``action``, ``sensors`` (all
     sensors before acting, ``[S, K]``), ``reward`` (task reward), ``local_reward`` and
     ``terminated`` (the last three read under ``"next"``), ``mask`` (optional). Output:
-    ``loss_task``, ``loss_local`` (scalars) and ``td_error`` ``[S]`` (detached).
+    ``loss_task``, ``loss_local`` (scalars) and ``td_error`` ``[S]`` (detached); with a local
+    provider that has ``regularisation()`` (``GatedLocalRewardNetwork``), ``loss_regularisation``.
     """
 
     @dataclass
@@ -409,9 +410,15 @@ class FactorQLoss(_TransitionLoss):
             else:
                 update(sensors, action, local_reward, mask, experiment=experiment)
         # write
-        return TensorDict(
+        out = TensorDict(
             loss_task=loss_task,
             loss_local=loss_local,
             td_error=td_error.detach(),
             batch_size=[],
         )
+        # a provider's own penalty (GatedLocalRewardNetwork's L1 on its gates), trained with
+        # the rest: the collector steps on the sum of every loss_* entry
+        regularisation = getattr(local, "regularisation", None)
+        if regularisation is not None:
+            out.set("loss_regularisation", regularisation())
+        return out

@@ -29,9 +29,14 @@ candidate ``c`` is
 in float64 (``beta_bernoulli_log_marginal``). The prior over candidates gives each size (0, 1,
 2 parents) the same mass, uniform within a size (``candidate_log_prior``).
 
-**Commitment.** Until it commits, actuator ``a``'s local value is the posterior-weighted running
-mean ``sum_c p(c | D) rho_c[o_c]`` (an unvisited pattern predicts 0, as an unvisited table entry
-does). It commits to the maximum a posteriori candidate ``c*`` when ``c*`` beats every
+**Commitment.** Until it commits, actuator ``a``'s local value is, by ``prediction``:
+``"optimistic"`` (the default) the largest running mean ``rho_c[o_c]`` among the *plausible*
+candidates, those whose log posterior is within ``log(bayes_factor)`` of the best (a firing is
+avoided only when every structure not yet ruled out predicts a loss); ``"map"`` the running mean
+of the maximum a posteriori candidate; ``"posterior"`` the posterior-weighted running mean
+``sum_c p(c | D) rho_c[o_c]``; ``"committed"`` 0. An unvisited pattern predicts 0, as an
+unvisited table entry does. (Why optimistic: ``docs/decisions.md``, "Learned dependencies".)
+It commits to the maximum a posteriori candidate ``c*`` when ``c*`` beats every
 *competitor* by the Bayes factor ``bayes_factor`` (default 100; posterior odds, the prior
 included). The competitors of ``c*`` are all candidates but its strict supersets; the competitors
 of "no sensor" are the single sensors. Why supersets are left out: a superset ``c* + {x}`` with
@@ -47,18 +52,22 @@ change-point test compares "nothing changed": the committed candidate ``c*`` pre
 from the data before it, ``p(block | c*, earlier) = p(all | c*) / p(earlier | c*)``, against "a
 change before the block": the best candidate (``c*`` included) fitted afresh to the block alone,
 both with their prior. When the change wins by ``bayes_factor``, the actuator reopens: it forgets
-all its counts (the block's too: the block may straddle the change, and restarting from it
+all its counts (``reopen="body"``, the default: every actuator of the experiment does, a body
+changes as a whole) (the block's too: the block may straddle the change, and restarting from it
 recommitted to the old structure in most experiments of the ``change`` setting) and commits
 again by the rule above. Comparing only fresh fits on the block would not do: an agent that keeps
 repeating one action in one place (into a wall its stale table calls safe) produces data every
 candidate fits equally well, while the stale prediction is refuted after a few collisions.
+
+The float64 operations run in a fixed order (``functional.log_posterior_of``: left-to-right sums
+over patterns; ``argmax``: the first maximum), which the compiled path (``trainers/_kernel.c``)
+repeats bit for bit for every prediction but ``"posterior"`` (its ``exp``).
 
 Keys: reads ``sensors`` ``[S, K]`` bool, writes ``local_value`` ``[S, A]`` float32.
 """
 
 from __future__ import annotations
 
-import itertools
 import math
 
 import torch
@@ -67,84 +76,20 @@ from tensordict.nn import TensorDictModuleBase
 
 from factorq_torch.base import keys
 from factorq_torch.base.validation import check_int
+from factorq_torch.functional import (  # noqa: F401  (the structure math, re-exported)
+    MAX_CANDIDATE_PARENTS,
+    MAX_SENSORS,
+    PREDICTIONS,
+    PRIORS,
+    REOPENINGS,
+    beta_bernoulli_log_marginal,
+    candidate_log_prior,
+    candidate_sets,
+    competitor_mask,
+    log_posterior_of,
+    posterior_weights,
+)
 from factorq_torch.tables import _check_entry, check_batch, check_mask
-
-#: The largest candidate parent set (pairs): see the module docstring.
-MAX_CANDIDATE_PARENTS = 2
-#: Sensors the learner accepts (patterns are computed in int64 bit masks).
-MAX_SENSORS = 62
-#: Priors over the candidate parent sets (``candidate_log_prior``).
-PRIORS = ("size", "uniform")
-
-
-def beta_bernoulli_log_marginal(
-    count: torch.Tensor, successes: torch.Tensor, prior_a: float = 1.0, prior_b: float = 1.0
-) -> torch.Tensor:
-    """``log p(y_1..y_n)`` of ``n`` Bernoulli outcomes with ``s`` successes under a rate drawn
-    from ``Beta(a, b)``: ``log B(a + s, b + n - s) - log B(a, b)``, elementwise, in float64.
-
-    ``B(x, y) = Gamma(x) Gamma(y) / Gamma(x + y)``; ``n = s = 0`` gives 0. Fractional ``s`` (and
-    ``n``) are allowed (a fractional success). Shapes broadcast.
-
-    >>> beta_bernoulli_log_marginal(torch.tensor([2.0]), torch.tensor([1.0]))  # 1!1!/3! = 1/6
-    tensor([-1.7918], dtype=torch.float64)
-    """
-    n = count.to(torch.float64)
-    s = successes.to(torch.float64)
-    a, b = float(prior_a), float(prior_b)
-    log_beta_prior = math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b)
-    return torch.lgamma(a + s) + torch.lgamma(b + n - s) - torch.lgamma(a + b + n) - log_beta_prior
-
-
-def candidate_sets(num_sensors: int, max_parents: int = MAX_CANDIDATE_PARENTS) -> list[tuple]:
-    """The candidate parent sets: ``()``, then ``(j,)`` for every sensor, then ``(j, k)``,
-    ``j < k`` (with ``max_parents=2``), in that order."""
-    check_int("num_sensors", num_sensors, 1, MAX_SENSORS)
-    if not isinstance(max_parents, int) or isinstance(max_parents, bool) or max_parents < 0:
-        raise ValueError(f"max_parents={max_parents!r} must be an integer >= 0")
-    if max_parents > MAX_CANDIDATE_PARENTS:
-        raise ValueError(
-            f"max_parents={max_parents} is past the cap of {MAX_CANDIDATE_PARENTS}: candidate "
-            f"sets of {max_parents} sensors would be C({num_sensors}, {max_parents}) tables per "
-            f"actuator and experiment"
-        )
-    sets: list[tuple] = []
-    for size in range(min(max_parents, num_sensors) + 1):
-        sets.extend(itertools.combinations(range(num_sensors), size))
-    return sets
-
-
-def candidate_log_prior(sets: list[tuple], prior: str = "size") -> torch.Tensor:
-    """``[C]`` float64 log prior of the candidates: ``"size"``, every size of parent set has the
-    same mass, uniform within a size; ``"uniform"``, every candidate the same."""
-    if prior not in PRIORS:
-        raise ValueError(f"prior={prior!r} is unknown: choose one of {PRIORS}")
-    if prior == "uniform":
-        return torch.full((len(sets),), -math.log(len(sets)), dtype=torch.float64)
-    sizes = torch.tensor([len(s) for s in sets])
-    per_size = torch.bincount(sizes).to(torch.float64)  # candidates of each size
-    return -torch.log(per_size[sizes]) - math.log(len(per_size))
-
-
-def competitor_mask(sets: list[tuple]) -> torch.Tensor:
-    """``[C, C]`` bool: ``[c, c']`` True where ``c'`` competes with ``c`` for commitment: every
-    other candidate but the strict supersets of ``c``; for "no sensor", the single sensors."""
-    members = [frozenset(s) for s in sets]
-    mask = torch.zeros(len(sets), len(sets), dtype=torch.bool)
-    for i, best in enumerate(members):
-        for j, other in enumerate(members):
-            if i == j:
-                continue
-            if not best:
-                mask[i, j] = len(other) == 1
-            else:
-                mask[i, j] = not (best < other)
-    return mask
-
-
-def posterior_weights(log_posterior: torch.Tensor) -> torch.Tensor:
-    """``softmax`` over the last dimension (candidates): ``p(c | D)``, float64."""
-    return torch.softmax(log_posterior, dim=-1)
 
 
 class StructureLearner(TensorDictModuleBase):
@@ -160,6 +105,9 @@ class StructureLearner(TensorDictModuleBase):
         window: firings per actuator in the block the reopening test reads.
         prior_a, prior_b: the Beta prior of every pattern's rate.
         prior: the prior over candidates, ``"size"`` or ``"uniform"`` (``candidate_log_prior``).
+        prediction: what an open actuator predicts: ``"optimistic"``, ``"map"``, ``"posterior"``
+            or ``"committed"`` (module docstring).
+        reopen: what a reopening forgets: ``"body"`` (every actuator) or ``"actuator"``.
         sensors_key: where the sensors are read.
         device: where the counts live.
 
@@ -190,6 +138,8 @@ class StructureLearner(TensorDictModuleBase):
         prior_a: float = 1.0,
         prior_b: float = 1.0,
         prior: str = "size",
+        prediction: str = "optimistic",
+        reopen: str = "body",
         sensors_key: str = keys.SENSORS,
         device: torch.device | str | None = None,
     ) -> None:
@@ -212,6 +162,13 @@ class StructureLearner(TensorDictModuleBase):
         self.bayes_factor = float(bayes_factor)
         self.log_bayes_factor = math.log(self.bayes_factor)
         self.window = check_int("window", window, 1)
+        if prediction not in PREDICTIONS:
+            raise ValueError(f"prediction={prediction!r} is unknown: choose one of {PREDICTIONS}")
+        self.prediction = prediction
+        if reopen not in REOPENINGS:
+            raise ValueError(f"reopen={reopen!r} is unknown: choose one of {REOPENINGS}")
+        self.reopen = reopen
+        self.prior = prior
         self.prior_a, self.prior_b = float(prior_a), float(prior_b)
         self.sensors_key = sensors_key
         self.in_keys = [sensors_key]
@@ -242,6 +199,10 @@ class StructureLearner(TensorDictModuleBase):
             "weights_cache",
             torch.full(shape[:3], 1.0 / num_candidates, dtype=torch.float64, device=device),
         )
+        self.register_buffer("map_cache", torch.zeros(shape[:2], dtype=torch.int64, device=device))
+        self.register_buffer(
+            "plausible_cache", torch.zeros(shape[:3], dtype=torch.bool, device=device)
+        )
         self._refresh_cache(slice(None), slice(None))
         self.register_buffer(
             "committed", torch.full((num_experiments, num_actions), -1, device=device)
@@ -256,7 +217,7 @@ class StructureLearner(TensorDictModuleBase):
     def log_posterior(self, block: bool = False) -> torch.Tensor:
         """``[S, A, C]`` float64: ``log p(c) + log p(D | c)`` (up to a constant per actuator)."""
         log_marginal = self.block_log_marginal if block else self.log_marginal
-        return self.log_prior + log_marginal.sum(dim=-1)
+        return log_posterior_of(self.log_prior, log_marginal)
 
     def posterior(self) -> torch.Tensor:
         """``[S, A, C]`` float64: ``p(c | D)`` over the candidates of each actuator."""
@@ -296,10 +257,17 @@ class StructureLearner(TensorDictModuleBase):
         pattern = self.patterns(readings)  # [S, C]
         index = pattern[:, None, :, None].expand(-1, self.num_actions, -1, 1)  # [S, A, C, 1]
         mean = self.mean.gather(-1, index).squeeze(-1)  # [S, A, C]
-        weighted = (self.weights_cache * mean).sum(dim=-1)  # [S, A]
+        if self.prediction == "optimistic":
+            before = torch.where(self.plausible_cache, mean, -math.inf).max(dim=-1).values
+        elif self.prediction == "posterior":
+            before = (self.weights_cache * mean).sum(dim=-1)  # [S, A]
+        elif self.prediction == "map":
+            before = mean.gather(-1, self.map_cache.unsqueeze(-1)).squeeze(-1)
+        else:  # "committed": an open actuator predicts nothing
+            before = torch.zeros_like(mean[..., 0])
         committed = self.committed.clamp(min=0).unsqueeze(-1)
         chosen = mean.gather(-1, committed).squeeze(-1)
-        return torch.where(self.committed >= 0, chosen, weighted).to(torch.float32)
+        return torch.where(self.committed >= 0, chosen, before).to(torch.float32)
 
     @torch.no_grad()
     def update_running_mean(
@@ -361,12 +329,15 @@ class StructureLearner(TensorDictModuleBase):
         """Recompute the running means and posterior weights of the given (rows, actuators)."""
         count, total = self.count[rows, action], self.reward_sum[rows, action]
         self.mean[rows, action] = torch.where(count > 0, total / count.clamp(min=1.0), 0.0)
-        log_posterior = self.log_prior + self.log_marginal[rows, action].sum(dim=-1)
+        log_posterior = log_posterior_of(self.log_prior, self.log_marginal[rows, action])
         self.weights_cache[rows, action] = posterior_weights(log_posterior)
+        self.map_cache[rows, action] = log_posterior.argmax(dim=-1)
+        best = log_posterior.max(dim=-1, keepdim=True).values
+        self.plausible_cache[rows, action] = log_posterior >= best - self.log_bayes_factor
 
     def _decide(self, rows: torch.Tensor, action: torch.Tensor) -> None:
         """Commit open actuators that have the evidence; reopen committed ones that lost it."""
-        log_posterior = self.log_prior + self.log_marginal[rows, action].sum(dim=-1)  # [R, C]
+        log_posterior = log_posterior_of(self.log_prior, self.log_marginal[rows, action])  # [R, C]
         committed = self.committed[rows, action]  # [R]
         best = log_posterior.argmax(dim=-1)  # [R]
         margin = self._margin(log_posterior, best)
@@ -383,9 +354,9 @@ class StructureLearner(TensorDictModuleBase):
             self.prior_a,
             self.prior_b,
         )
-        predicted = (self.log_marginal[index] - earlier).sum(dim=-1)  # [R]
+        predicted = log_posterior_of(0.0, self.log_marginal[index] - earlier)  # [R]
         lead = self.log_prior[held] + predicted
-        block_posterior = self.log_prior + self.block_log_marginal[rows, action].sum(dim=-1)
+        block_posterior = log_posterior_of(self.log_prior, self.block_log_marginal[rows, action])
         rival = block_posterior.max(dim=-1).values  # [R]
         reopen = (committed >= 0) & (rival - lead >= self.log_bayes_factor)
         new = torch.where(commit, best, committed)
@@ -393,11 +364,16 @@ class StructureLearner(TensorDictModuleBase):
         self.committed[rows, action] = new
         if bool(reopen.any()):  # forget everything: the block may straddle the change
             lost_rows, lost_actions = rows[reopen], action[reopen]
+            # "body": every actuator of the experiment forgets (a body changes as a whole)
+            lost = slice(None) if self.reopen == "body" else lost_actions
             for prefix in ("", "block_"):
                 for name in ("count", "successes", "reward_sum", "log_marginal"):
-                    getattr(self, prefix + name)[lost_rows, lost_actions] = 0.0
-            self.block_samples[lost_rows, lost_actions] = 0
+                    getattr(self, prefix + name)[lost_rows, lost] = 0.0
+            self.block_samples[lost_rows, lost] = 0
+            self.committed[lost_rows, lost] = -1
             self.reopened[lost_rows, lost_actions] += 1
+            if self.reopen == "body":
+                self._refresh_cache(lost_rows, slice(None))
         full = self.block_samples[rows, action] >= self.window
         if bool(full.any()):
             full_rows, full_actions = rows[full], action[full]

@@ -68,7 +68,8 @@ def test_a_tiny_experiment_writes_its_three_files(tmp_path):
     assert "samples_until_right_median" in cross["structure"]
     assert "collisions" in cross["against_oracle"]
     assert "joint" in saved["skipped"]["ring-24"] and "q-learning" in saved["skipped"]["ring-24"]
-    assert "joint" in saved["skipped"]["change"]
+    assert "change" not in saved["skipped"]  # the joint table runs through the change too
+    assert "joint" in saved["settings"]["change"]["methods"]
     assert "| cross |" in paths["report"].read_text()
 
 
@@ -104,3 +105,27 @@ def test_cli_keeps_earlier_results_unless_forced(tmp_path, capsys):
     assert cli.main(["dependencies", "--out", str(tmp_path)]) == 2
     assert "already holds dependencies.json from an earlier run" in capsys.readouterr().err
     assert (tmp_path / "dependencies.json").read_text() == "{}"
+
+
+def test_dqn_is_opt_in_and_runs_on_the_oracles_budget(tmp_path):
+    config = dependencies.DependenciesConfig(
+        **{**TINY, "max_steps": 30},
+        settings=("cross", "change"),
+        methods=("oracle", "dqn"),
+        out=str(tmp_path),
+    )
+    assert "dqn" not in dependencies.DependenciesConfig().methods
+    results = dependencies.run(config)
+    entry = results["settings"]["cross"]["methods"]["dqn"]
+    oracle = results["settings"]["cross"]["methods"]["oracle"]
+    assert entry["step_budget"] == round(oracle["steps_per_run"] * TINY["runs"])
+    assert entry["collisions_per_experiment"] >= 0
+    assert "dqn" in results["skipped"]["change"]
+    assert "DQN in cross: a budget of" in dependencies.report_markdown(results)
+
+
+def test_unknown_methods_and_predictions_are_refused():
+    with pytest.raises(ValueError, match="methods"):
+        dependencies.DependenciesConfig(methods=("nope",))
+    with pytest.raises(ValueError, match="prediction='nope'"):
+        dependencies.DependenciesConfig(prediction="nope")

@@ -14,6 +14,7 @@ from factorq_torch.collectors import OnlineCollector
 from factorq_torch.neural import (
     STREAM_TASK_NETWORK,
     BatchedMLP,
+    GatedLocalRewardNetwork,
     LocalRewardNetwork,
     TaskQNetwork,
 )
@@ -132,3 +133,58 @@ def test_swapping_tables_for_networks_needs_no_change_outside_the_value_provider
         assert (greedy_collisions < steps // 20).all()
     # Adam moved the task network's output layer away from its zero start.
     assert not torch.equal(task.network.weights[-1], torch.zeros_like(task.network.weights[-1]))
+
+
+def test_gated_network_is_its_gated_linear_map_and_reads_structure_from_gates():
+    local = GatedLocalRewardNetwork(1, num_actions=2, num_sensors=3, hidden=(), gate_init=0.5)
+    with torch.no_grad():
+        local.network.weights[0].copy_(
+            torch.tensor([[[[1.0], [2.0], [4.0]], [[-1.0], [0.0], [8.0]]]])
+        )
+        local.gate_logits.copy_(torch.tensor([[[0.0, 20.0, -20.0], [20.0, 0.0, 0.0]]]))
+    sensors = torch.tensor([[True, True, True]])
+    value = local(TensorDict(sensors=sensors, batch_size=[1]))["local_value"].detach()
+    # actuator 0: 0.5 * 1 + ~1 * 2 + ~0 * 4; actuator 1: ~1 * -1 + 0.5 * 0 + 0.5 * 8
+    assert torch.allclose(value, torch.tensor([[2.5, 3.0]]), atol=1e-6)
+    assert local.structure().tolist() == [[[False, True, False], [True, False, False]]]
+    # the L1 penalty: l1 * sum of the gates, with its gradient l1 * g (1 - g) on every logit
+    penalty = local.regularisation()
+    assert torch.allclose(penalty, local.l1 * local.gates().sum())
+    penalty.backward()
+    gates = local.gates().detach()
+    assert torch.allclose(local.gate_logits.grad, local.l1 * gates * (1 - gates))
+
+
+def test_factor_q_loss_adds_the_gates_penalty():
+    task, local = (
+        TaskQTable(2, num_cells=16),
+        GatedLocalRewardNetwork(2, num_actions=4, num_sensors=4),
+    )
+    adam = torch.optim.Adam(local.parameters(), lr=5e-2)
+    td, _ = _train_factor_q(task, local, adam, 2)
+    out = FactorQLoss(task, local)(td)
+    assert torch.allclose(out["loss_regularisation"], local.regularisation())
+    assert "loss_regularisation" not in FactorQLoss(task, LocalRewardTable(2))(td).keys()
+
+
+def test_gated_network_learns_each_actuators_own_sensor_through_factor_q(one_thread):
+    # the paper's body (actuator a collides when its sensor a is on), told nothing of it: after
+    # 600 steps through FactorQLoss the largest gate of every actuator is its own sensor
+    task = TaskQTable(2, num_cells=16)
+    local = GatedLocalRewardNetwork(2, num_actions=4, num_sensors=4, l1=1e-3)
+    adam = torch.optim.Adam(local.parameters(), lr=5e-2)
+    _train_factor_q(task, local, adam, 600)
+    gates = local.gates().detach()
+    assert torch.equal(gates.argmax(dim=-1), torch.arange(4).expand(2, 4))
+
+
+def test_gated_network_refuses_bad_options():
+    with pytest.raises(ValueError, match="l1=-1"):
+        GatedLocalRewardNetwork(1, num_actions=2, num_sensors=2, l1=-1)
+    with pytest.raises(ValueError, match="gate_init=1"):
+        GatedLocalRewardNetwork(1, num_actions=2, num_sensors=2, gate_init=1)
+    with pytest.raises(ValueError, match="threshold=0"):
+        GatedLocalRewardNetwork(1, num_actions=2, num_sensors=2, threshold=0)
+    local = GatedLocalRewardNetwork(2, num_actions=2, num_sensors=3)
+    with pytest.raises(ValueError, match="K=3"):
+        local(TensorDict(sensors=torch.zeros(2, 4, dtype=torch.bool), batch_size=[2]))

@@ -78,20 +78,61 @@ def test_posterior_and_weighted_prediction_match_hand_computation():
     # log p(D | c): none n=2, s=1: 1!1!/3! = 1/6; (0,): patterns 1 and 0 once each: 1/2 * 1/2;
     # (1,) and (0, 1): likewise 1/4. Prior by size: 1/3, 1/6, 1/6, 1/3.
     # Posterior ~ 1/18, 1/24, 1/24, 1/12 = (2, 1.5, 1.5, 3) / 8.
-    learner = StructureLearner(1, num_actions=2, num_sensors=2, bayes_factor=1e9)
-    learner.update_running_mean(
-        torch.tensor([[True, False]]), torch.tensor([0]), torch.tensor([[-1.0, 0.0]])
-    )
-    learner.update_running_mean(
-        torch.tensor([[False, True]]), torch.tensor([0]), torch.tensor([[0.0, 0.0]])
-    )
+    learners = {
+        prediction: StructureLearner(
+            1, num_actions=2, num_sensors=2, bayes_factor=1e9, prediction=prediction
+        )
+        for prediction in ("posterior", "optimistic", "map", "committed")
+    }
+    for learner in learners.values():
+        learner.update_running_mean(
+            torch.tensor([[True, False]]), torch.tensor([0]), torch.tensor([[-1.0, 0.0]])
+        )
+        learner.update_running_mean(
+            torch.tensor([[False, True]]), torch.tensor([0]), torch.tensor([[0.0, 0.0]])
+        )
+    learner = learners["posterior"]
     expected = torch.tensor([2.0, 1.5, 1.5, 3.0], dtype=torch.float64) / 8
     assert torch.allclose(learner.posterior()[0, 0], expected)
     # Under (1, 0): none predicts -1/2, every other candidate -1 (its pattern's one collision):
     # 0.25 * -0.5 + 0.75 * -1 = -0.875; actuator 1 never fired: 0.
-    values = learner.local_values(torch.tensor([[True, False]]))
-    assert values.tolist() == [[-0.875, 0.0]]
+    readings = torch.tensor([[True, False]])
+    assert learner.local_values(readings).tolist() == [[-0.875, 0.0]]
     assert learner.samples.tolist() == [[2, 0]]
+    # optimistic: every candidate is plausible at this Bayes factor, the largest mean is none's;
+    # map: (0, 1), the most probable, saw a collision under (1, 0); committed: nothing yet
+    assert learners["optimistic"].local_values(readings).tolist() == [[-0.5, 0.0]]
+    assert learners["map"].local_values(readings).tolist() == [[-1.0, 0.0]]
+    assert learners["committed"].local_values(readings).tolist() == [[0.0, 0.0]]
+    # under (0, 1) every candidate but none predicts 0: optimistic 0, map ((0, 1)) 0
+    readings = torch.tensor([[False, True]])
+    assert learners["optimistic"].local_values(readings).tolist() == [[0.0, 0.0]]
+    assert learners["map"].local_values(readings).tolist() == [[0.0, 0.0]]
+
+
+def test_optimistic_prediction_ignores_the_implausible():
+    # K = 2, single sensors only: (1, 1) collided three times, (0, 0) did not, three times.
+    # log p(D | c): none n=6, s=3: 3!3!/7! = 1/140; (0,) and (1,): (3!/4!)^2 = 1/16. Prior 1/2,
+    # 1/4, 1/4: posterior ~ 1/280, 1/64, 1/64. At a Bayes factor of 3 none (280/64 = 4.4 below
+    # the best) is ruled out and nothing commits (the two sensors tie; none led by at most 2 on
+    # the way); under (1, 1) both remaining candidates predict -1, and none's -1/2 no longer
+    # counts. At 1e9 it does.
+    values = {}
+    for bayes_factor in (3.0, 1e9):
+        learner = StructureLearner(
+            1, num_actions=1, num_sensors=2, max_parents=1, bayes_factor=bayes_factor
+        )
+        for readings, reward in (((True, True), -1.0), ((False, False), 0.0)) * 3:
+            learner.update_running_mean(
+                torch.tensor([readings]), torch.tensor([0]), torch.full((1, 1), reward)
+            )
+        assert learner.committed.tolist() == [[-1]]
+        values[bayes_factor] = learner.local_values(torch.tensor([[True, True]])).tolist()
+        if bayes_factor == 3.0:
+            assert learner.plausible_cache[0, 0].tolist() == [False, True, True]
+            # under (1, 0) sensor 1's pattern 0 was safe: optimistic 0
+            assert learner.local_values(torch.tensor([[True, False]])).tolist() == [[0.0]]
+    assert values == {3.0: [[-1.0]], 1e9: [[-0.5]]}
 
 
 def _feed(learner, steps, parent, generator, noise=0.0):
@@ -120,6 +161,23 @@ def test_commits_to_the_deciding_sensor_and_reopens_when_the_body_changes():
     assert (learner.reopened >= 1).all()
     assert learner.is_committed().all()
     assert (learner.structure()[:, 0].nonzero()[:, 1] == 5).all()
+
+
+def test_a_reopening_forgets_the_whole_body_or_one_actuator():
+    for reopen in ("body", "actuator"):
+        generator = torch.Generator().manual_seed(0)
+        learner = StructureLearner(4, num_actions=2, num_sensors=4, window=50, reopen=reopen)
+        _feed(learner, 60, parent=3, generator=generator)
+        learner.committed[:, 1] = 2  # actuator 1 holds a commitment of its own
+        learner.count[:, 1] = 1.0
+        before = learner.reopened.clone()
+        _feed(learner, 150, parent=1, generator=generator)  # actuator 0's body changed
+        assert (learner.reopened[:, 0] > before[:, 0]).all()
+        assert learner.reopened[:, 1].eq(0).all()  # only the test that fired counts
+        if reopen == "body":  # actuator 1 forgot too, and predicts from nothing
+            assert learner.committed[:, 1].eq(-1).all() and learner.count[:, 1].eq(0).all()
+        else:
+            assert learner.committed[:, 1].eq(2).all() and learner.count[:, 1].eq(1).all()
 
 
 def test_masked_experiments_do_not_learn():

@@ -26,13 +26,16 @@
  *   - walls are a ring of blocked cells around the obstacle map, so sensing is four loads.
  */
 #include <float.h>
+#include <math.h>
 #include <stdint.h>
 #include <string.h>
 
 #define NUM_ACTIONS 4
-#define FQ_ABI_VERSION 4
+#define FQ_ABI_VERSION 5
 /* Most actuators of a body the generic loop handles (bit masks, small stack arrays). */
 #define MAX_ACTUATORS 32
+/* Most candidates of the structure learner (1 + K + K (K - 1) / 2 for K <= 62). */
+#define LEARNER_SCRATCH 1954
 
 /* rng.py's constants: key + (counter + 1) * GOLDEN, then the SplitMix64 finaliser. */
 #define GOLDEN 0x9E3779B97F4A7C15ULL
@@ -122,6 +125,41 @@ typedef struct {
     int64_t kappa_stride;
     int64_t grid_stride;
     int64_t obstacle_stride;
+    /* The structure learner (factorq_torch/structure.py, issue 12) as the local value provider of
+       the generic Factor-Q loop (learner != 0); see the learner section below. */
+    int64_t learner;
+    int64_t num_candidates;   /* C */
+    int64_t learner_patterns; /* 2^max_parents: patterns of a candidate */
+    int64_t prediction;       /* 0: map, 1: committed (0 before commitment), 2: optimistic */
+    int64_t window;
+    int64_t change_run;       /* run at which orders_after replaces orders; 0: never */
+    int64_t curve_every;
+    int64_t curve_length;
+    int64_t lgamma_length;    /* M: entries of each lgamma table */
+    int64_t learner_stride;   /* doubles of one experiment's counts block */
+    int64_t reopen_body;      /* a reopening forgets every actuator (1) or its own (0) */
+    double log_bayes_factor;
+    double log_beta_prior;
+    const int64_t *candidate_sensors; /* [C, 2] the candidate's sensors, -1: none */
+    const double *log_prior;          /* [C] */
+    const uint8_t *competitors;       /* [C, C] */
+    const double *lgamma_table;       /* [3, M] lgamma(a + m), lgamma(b + m), lgamma(a + b + m) */
+    const int64_t *orders;            /* [S, K] agent sensor j = world sensor orders[s, j]; NULL:
+                                         the world's order (any algorithm may have orders) */
+    const int64_t *orders_after;      /* [S, K] the order after the change */
+    const int64_t *truth;             /* [S, 2, A] candidate index of the true parents, -2: none */
+    double *counts;                   /* [S, stride]: 8 arrays [A, C, P] (learner_arrays) */
+    int64_t *committed;               /* [S, A] candidate, -1 open */
+    int64_t *samples;                 /* [S, A] */
+    int64_t *block_samples;           /* [S, A] */
+    int64_t *reopened;                /* [S, A] */
+    int64_t *map_cache;               /* [S, A] argmax of the log posterior */
+    uint8_t *plausible;               /* [S, A, C] log posterior >= its max - log bayes_factor */
+    int64_t *right_since;             /* [S, A] samples when it last became right, -1 */
+    int64_t *samples_at_change;       /* [S, A] */
+    int64_t *wrong_commitments;       /* [S] */
+    int64_t *change_tick;             /* [S] tick of the last observation in the old order, -1 */
+    uint8_t *curve;                   /* [S, curve_length] all right at step t * curve_every */
 } fq_batch;
 
 int64_t fq_abi_version(void) { return FQ_ABI_VERSION; }
@@ -621,6 +659,233 @@ static inline int64_t greedy_action_n(const float *values, int64_t n, uint64_t k
     return __builtin_ctzll(is_max);
 }
 
+/* ----------------------------------------------------------------------------------------------
+ * The structure learner (factorq_torch/structure.py StructureLearner, with the math of
+ * factorq_torch/functional.py): per actuator, counts of every candidate parent set and pattern,
+ * Beta-Bernoulli log marginals (lgamma looked up in torch's tables: the counts are integers and
+ * the priors dyadic, so every argument is one of the tables' exact doubles), commitment at the
+ * Bayes factor, the change-point test on the block. The same float64 operations in the same
+ * order as the torch module; tests/test_fast_structure.py checks equality bit for bit.
+ */
+
+/* The 8 arrays [A, C, P] of one experiment's counts block, in this order. */
+enum { L_COUNT, L_SUCC, L_RSUM, L_LM, L_BCOUNT, L_BSUCC, L_BRSUM, L_BLM, L_ARRAYS };
+
+typedef struct {
+    double *array[L_ARRAYS];
+    int64_t C, P, A;
+} learner_view;
+
+static inline learner_view learner_of(const fq_batch *b, int64_t i) {
+    learner_view v;
+    const int64_t size = b->num_actuators * b->num_candidates * b->learner_patterns;
+    for (int k = 0; k < L_ARRAYS; k++) v.array[k] = b->counts + i * b->learner_stride + k * size;
+    v.C = b->num_candidates;
+    v.P = b->learner_patterns;
+    v.A = b->num_actuators;
+    return v;
+}
+
+/* functional.beta_bernoulli_log_marginal for integral n, s (exact table indices). */
+static inline double bb_log_marginal(const fq_batch *b, double n, double s) {
+    const double *t = b->lgamma_table;
+    const int64_t M = b->lgamma_length, ni = (int64_t)n, si = (int64_t)s;
+    return ((t[si] + t[M + (ni - si)]) - t[2 * M + ni]) - b->log_beta_prior;
+}
+
+/* The pattern of candidate c's sensors in readings (structure.patterns). */
+static inline int64_t candidate_pattern(const fq_batch *b, int64_t c, uint64_t readings) {
+    const int64_t j = b->candidate_sensors[2 * c], k = b->candidate_sensors[2 * c + 1];
+    int64_t pattern = 0;
+    if (j >= 0) pattern += (int64_t)((readings >> j) & 1u);
+    if (k >= 0) pattern += (int64_t)((readings >> k) & 1u) << 1;
+    return pattern;
+}
+
+/* functional.log_posterior_of for one candidate: log_prior + (((m_0 + m_1) + m_2) + m_3). */
+static inline double candidate_sum(const double *lm, int64_t P) {
+    double total = lm[0];
+    for (int64_t p = 1; p < P; p++) total = total + lm[p];
+    return total;
+}
+
+/* First index of the maximum (torch.argmax). */
+static inline int64_t argmax_d(const double *x, int64_t n) {
+    int64_t best = 0;
+    for (int64_t c = 1; c < n; c++)
+        if (x[c] > x[best]) best = c;
+    return best;
+}
+
+/* StructureLearner.local_values for one experiment: local[a] for every actuator. */
+static void learner_predict(const fq_batch *b, int64_t i, uint64_t readings, float *local) {
+    const learner_view v = learner_of(b, i);
+    const int64_t *committed = b->committed + i * v.A, *map = b->map_cache + i * v.A;
+    for (int64_t a = 0; a < v.A; a++) {
+        int64_t c = committed[a];
+        if (c < 0 && b->prediction == 2) { /* optimistic: the largest plausible mean */
+            const uint8_t *plausible = b->plausible + (i * v.A + a) * v.C;
+            double best = -INFINITY;
+            for (int64_t d = 0; d < v.C; d++) {
+                if (!plausible[d]) continue;
+                const int64_t e = (a * v.C + d) * v.P + candidate_pattern(b, d, readings);
+                const double n = v.array[L_COUNT][e];
+                const double mean = n > 0 ? v.array[L_RSUM][e] / n : 0.0;
+                if (mean > best) best = mean;
+            }
+            local[a] = (float)best;
+            continue;
+        }
+        if (c < 0) {
+            if (b->prediction != 0) {
+                local[a] = 0.0f;
+                continue;
+            }
+            c = map[a];
+        }
+        const int64_t e = (a * v.C + c) * v.P + candidate_pattern(b, c, readings);
+        const double n = v.array[L_COUNT][e];
+        local[a] = n > 0 ? (float)(v.array[L_RSUM][e] / n) : 0.0f;
+    }
+}
+
+/* StructureLearner._refresh_cache for actuator a: the MAP candidate and the plausible ones, from
+   lp [C] when given, else from the counts. */
+static void learner_refresh(const fq_batch *b, int64_t i, int64_t a, double *lp, int have_lp) {
+    const learner_view v = learner_of(b, i);
+    const int64_t C = v.C, P = v.P, base = a * C * P;
+    if (!have_lp)
+        for (int64_t c = 0; c < C; c++)
+            lp[c] = b->log_prior[c] + candidate_sum(v.array[L_LM] + base + c * P, P);
+    const int64_t map = argmax_d(lp, C);
+    b->map_cache[i * v.A + a] = map;
+    const double floor = lp[map] - b->log_bayes_factor;
+    uint8_t *plausible = b->plausible + (i * v.A + a) * C;
+    for (int64_t c = 0; c < C; c++) plausible[c] = lp[c] >= floor;
+}
+
+/* Forget everything actuator a of experiment i has counted (a reopening). */
+static void learner_forget(const fq_batch *b, int64_t i, int64_t a) {
+    const learner_view v = learner_of(b, i);
+    const int64_t base = a * v.C * v.P;
+    for (int k = 0; k < L_ARRAYS; k++) memset(v.array[k] + base, 0, (size_t)(v.C * v.P) * 8);
+    b->committed[i * v.A + a] = -1;
+    b->block_samples[i * v.A + a] = 0;
+}
+
+/* StructureLearner.update_running_mean for one firing, then _decide and _refresh_cache. */
+static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int64_t a,
+                           float local_reward, double *scratch) {
+    const learner_view v = learner_of(b, i);
+    const int64_t C = v.C, P = v.P;
+    const double reward = (double)local_reward;
+    const double negated = -reward;
+    const double success = negated < 0.0 ? 0.0 : (negated > 1.0 ? 1.0 : negated);
+    for (int64_t c = 0; c < C; c++) {
+        const int64_t e = (a * C + c) * P + candidate_pattern(b, c, readings);
+        for (int block = 0; block < 2; block++) {
+            double *count = v.array[block ? L_BCOUNT : L_COUNT];
+            double *succ = v.array[block ? L_BSUCC : L_SUCC];
+            double *rsum = v.array[block ? L_BRSUM : L_RSUM];
+            double *lm = v.array[block ? L_BLM : L_LM];
+            const double n = count[e] + 1.0, s = succ[e] + success;
+            count[e] = n;
+            succ[e] = s;
+            rsum[e] = rsum[e] + reward;
+            lm[e] = bb_log_marginal(b, n, s);
+        }
+    }
+    int64_t *committed = b->committed + i * v.A + a;
+    int64_t *block_samples = b->block_samples + i * v.A + a;
+    b->samples[i * v.A + a] += 1;
+    *block_samples += 1;
+    /* _decide */
+    const int64_t base = a * C * P;
+    double *lp = scratch; /* [C] */
+    for (int64_t c = 0; c < C; c++)
+        lp[c] = b->log_prior[c] + candidate_sum(v.array[L_LM] + base + c * P, P);
+    const int64_t best = argmax_d(lp, C);
+    double rival_max = -INFINITY;
+    const uint8_t *rivals = b->competitors + best * C;
+    for (int64_t c = 0; c < C; c++)
+        if (rivals[c] && lp[c] > rival_max) rival_max = lp[c];
+    const double margin = lp[best] - rival_max;
+    const int64_t held = *committed;
+    const int commit = held < 0 && margin >= b->log_bayes_factor;
+    int reopen = 0;
+    if (held >= 0) {
+        const int64_t h = base + held * P;
+        double predicted = 0.0;
+        for (int64_t p = 0; p < P; p++) {
+            const double earlier = bb_log_marginal(
+                b, v.array[L_COUNT][h + p] - v.array[L_BCOUNT][h + p],
+                v.array[L_SUCC][h + p] - v.array[L_BSUCC][h + p]);
+            const double term = v.array[L_LM][h + p] - earlier;
+            predicted = p == 0 ? term : predicted + term;
+        }
+        const double lead = b->log_prior[held] + (0.0 + predicted);
+        double rival = -INFINITY;
+        for (int64_t c = 0; c < C; c++) {
+            const double x = b->log_prior[c] + candidate_sum(v.array[L_BLM] + base + c * P, P);
+            if (x > rival) rival = x;
+        }
+        reopen = rival - lead >= b->log_bayes_factor;
+    }
+    if (commit) *committed = best;
+    if (reopen) {
+        learner_forget(b, i, a);
+        b->reopened[i * v.A + a] += 1;
+        if (b->reopen_body)
+            for (int64_t other = 0; other < v.A; other++)
+                if (other != a) {
+                    learner_forget(b, i, other);
+                    learner_refresh(b, i, other, lp, 0);
+                }
+    }
+    if (*block_samples >= b->window) {
+        for (int k = L_BCOUNT; k < L_ARRAYS; k++) memset(v.array[k] + base, 0, (size_t)(C * P) * 8);
+        *block_samples = 0;
+    }
+    /* _refresh_cache: the MAP candidate of the (possibly forgotten) counts */
+    learner_refresh(b, i, a, lp, !reopen);
+}
+
+/* trainers/dependencies.py's bookkeeping after a step: who is right, since when, wrong
+   commitments (of the fired actuator, whose commitment changed from before), the curve. */
+static void learner_track(const fq_batch *b, int64_t i, int64_t fired, int64_t before,
+                          uint64_t steps) {
+    const int64_t A = b->num_actuators;
+    const int64_t *truth = b->truth + (i * 2 + (b->change_tick[i] >= 0)) * A;
+    const int64_t *committed = b->committed + i * A, *samples = b->samples + i * A;
+    int64_t *since = b->right_since + i * A;
+    int all_right = 1;
+    for (int64_t a = 0; a < A; a++) {
+        const int64_t effective = committed[a] < 0 ? 0 : committed[a];
+        const int right = effective == truth[a];
+        since[a] = right ? (since[a] < 0 ? samples[a] : since[a]) : -1;
+        all_right &= right;
+        if (a == fired && committed[a] >= 0 && committed[a] != before && !right)
+            b->wrong_commitments[i] += 1;
+    }
+    if (b->curve_every > 0 && steps % (uint64_t)b->curve_every == 0) {
+        const uint64_t point = steps / (uint64_t)b->curve_every;
+        if (point < (uint64_t)b->curve_length) b->curve[i * b->curve_length + point] = all_right;
+    }
+}
+
+/* world.observe, then the agent's order (envs.permutation.PermuteSensors) when there is one:
+   the order after the change from the first observation after change_tick on. */
+static inline uint64_t agent_readings(const fq_batch *b, int64_t i, uint64_t raw, uint64_t tick) {
+    if (b->orders == NULL) return raw;
+    const int64_t K = b->num_sensors;
+    const int64_t change = b->change_tick[i];
+    const int64_t *order = (change >= 0 && tick > (uint64_t)change ? b->orders_after : b->orders) +
+                           i * K;
+    uint64_t readings = 0;
+    for (int64_t j = 0; j < K; j++) readings |= ((raw >> order[j]) & 1u) << j;
+    return readings;
+}
+
 /* Run experiment i of any body for up to budget steps; returns the episodes it completed. */
 static inline int64_t run_experiment_body(const fq_batch *b, int64_t i, int64_t budget,
                                           const int algorithm) {
@@ -667,7 +932,10 @@ static inline int64_t run_experiment_body(const fq_batch *b, int64_t i, int64_t 
     float episode_return = b->episode_task_return[i];
     int64_t last_bump = -2, last_action = 0;
     int64_t completed = 0;
-    uint64_t readings = observe(b, grid, pos, heading, tick, distractor_key, noise_key);
+    const int learning = b->learner != 0 && algorithm == ALG_FACTOR_Q;
+    double scratch[LEARNER_SCRATCH];
+    uint64_t readings =
+        agent_readings(b, i, observe(b, grid, pos, heading, tick, distractor_key, noise_key), tick);
 
     for (; budget > 0 && run < runs; budget--) {
         /* --- act --- */
@@ -685,7 +953,10 @@ static inline int64_t run_experiment_body(const fq_batch *b, int64_t i, int64_t 
             if (algorithm == ALG_Q_LEARNING) {
                 memcpy(values, q + state * A, (size_t)A * sizeof(float));
             } else {
-                project_local_body(b, rho, readings, local);
+                if (learning)
+                    learner_predict(b, i, readings, local);
+                else
+                    project_local_body(b, rho, readings, local);
                 combined_values_n(q + state * A, local, A, eta_factor, g_min, values);
             }
             exploratory =
@@ -706,6 +977,7 @@ static inline int64_t run_experiment_body(const fq_batch *b, int64_t i, int64_t 
                 (int64_t)((random_bits(actuator_key, 2 * tick + 1) * (uint64_t)(A - 1)) >> 32);
             fired = (action + 1 + other) % A;
         }
+        int64_t learner_before = -1;
         const int64_t move = b->moves[fired];
         int collided = 0;
         if (move >= 0) {
@@ -730,8 +1002,8 @@ static inline int64_t run_experiment_body(const fq_batch *b, int64_t i, int64_t 
             scatters++;
         }
         tick++;
-        const uint64_t next_readings =
-            observe(b, grid, pos, heading, tick, distractor_key, noise_key);
+        const uint64_t next_readings = agent_readings(
+            b, i, observe(b, grid, pos, heading, tick, distractor_key, noise_key), tick);
         const int64_t next_position = cell * H + heading;
 
         /* --- learn --- */
@@ -746,7 +1018,10 @@ static inline int64_t run_experiment_body(const fq_batch *b, int64_t i, int64_t 
             float target = task_reward;
             if (!terminated) {
                 float next_local[MAX_ACTUATORS], next_values[MAX_ACTUATORS];
-                project_local_body(b, rho, next_readings, next_local);
+                if (learning)
+                    learner_predict(b, i, next_readings, next_local);
+                else
+                    project_local_body(b, rho, next_readings, next_local);
                 combined_values_n(q + next_position * A, next_local, A, eta_factor, g_min,
                                   next_values);
                 target = task_reward + gamma * max_n(next_values, A);
@@ -754,9 +1029,14 @@ static inline int64_t run_experiment_body(const fq_batch *b, int64_t i, int64_t 
             float *q_sa = q + state * A + action;
             *q_sa = *q_sa + alpha * (target - *q_sa);
             /* Eq. 5 for the chosen actuator at the pattern of its parents before acting. */
-            const int64_t entry = action * P + local_pattern(b, action, readings);
-            kappa[entry] += 1;
-            rho[entry] = rho[entry] + (local_reward - rho[entry]) / (float)kappa[entry];
+            if (learning) {
+                learner_before = b->committed[i * A + action];
+                learner_update(b, i, readings, action, local_reward, scratch);
+            } else {
+                const int64_t entry = action * P + local_pattern(b, action, readings);
+                kappa[entry] += 1;
+                rho[entry] = rho[entry] + (local_reward - rho[entry]) / (float)kappa[entry];
+            }
         }
 
         /* --- episode bookkeeping (SPEC section 4) --- */
@@ -793,10 +1073,20 @@ static inline int64_t run_experiment_body(const fq_batch *b, int64_t i, int64_t 
                     scatters++;
                 }
             }
-            readings = observe(b, grid, pos, heading, tick, distractor_key, noise_key);
+            readings = agent_readings(
+                b, i, observe(b, grid, pos, heading, tick, distractor_key, noise_key), tick);
+            /* the change (dependencies.py): from the observation after this reset on */
+            if (b->orders != NULL && b->change_run > 0 && b->change_tick[i] < 0 &&
+                run == b->change_run) {
+                b->change_tick[i] = (int64_t)tick;
+                if (learning)
+                    for (int64_t a = 0; a < A; a++)
+                        b->samples_at_change[i * A + a] = b->samples[i * A + a];
+            }
         } else {
             readings = next_readings;
         }
+        if (learning) learner_track(b, i, action, learner_before, counter);
     }
     (void)last_action;
     b->cell[i] = cell;
@@ -860,6 +1150,28 @@ int64_t fq_check_experiment(const fq_batch *b, int64_t i) {
         }
     }
     if (b->episode_collisions[i] < 0 || b->episode_greedy_collisions[i] < 0) return 12;
+    if (b->learner) {
+        const int64_t A = b->num_actuators, C = b->num_candidates, M = b->lgamma_length;
+        for (int64_t a = 0; a < A; a++) {
+            const int64_t c = b->committed[i * A + a], map = b->map_cache[i * A + a];
+            if (c < -1 || c >= C || map < 0 || map >= C) return 13;
+            if (b->samples[i * A + a] < 0 || b->block_samples[i * A + a] < 0 ||
+                b->block_samples[i * A + a] >= b->window)
+                return 14;
+        }
+        const learner_view v = learner_of(b, i);
+        const int64_t entries = A * C * b->learner_patterns;
+        for (int64_t e = 0; e < entries; e++)
+            for (int block = 0; block < 2; block++) {
+                const double n = v.array[block ? L_BCOUNT : L_COUNT][e];
+                const double s = v.array[block ? L_BSUCC : L_SUCC][e];
+                /* integral 0 <= s <= n, and n + 1 still inside the lgamma tables */
+                if (!(n >= 0 && n + 1 < (double)M && s >= 0 && s <= n && n == (double)(int64_t)n &&
+                      s == (double)(int64_t)s))
+                    return 15;
+            }
+    }
+    if (b->orders != NULL && b->change_tick[i] < -1) return 16;
     return 0;
 }
 

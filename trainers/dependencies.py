@@ -4,21 +4,22 @@ Per *setting* (a body, a sensor layout, noise, a change), ``seeds`` experiments 
 ``episodes`` episodes (task tables reset per run, local knowledge kept, SPEC section 4) for four
 methods on the same worlds (common random numbers: the same world keys):
 
-- ``learned``: ``factorq_torch.structure.StructureLearner`` as the local value provider, through
-  ``FactorQPolicy``, ``FactorQLoss`` and ``OnlineCollector`` (the modular torchrl path), told
-  nothing of the body; every experiment receives its sensors in its own random order
-  (``factorq_envs.permutation.PermuteSensors``), redrawn at run ``change_run`` in the ``change``
-  setting;
+- ``learned``: ``factorq_torch.structure.StructureLearner`` as the local value provider, told
+  nothing of the body, on the compiled path (``fast.StructureOptions``) or, with ``--path
+  modular`` (or ``--prediction posterior``), through ``FactorQPolicy``, ``FactorQLoss`` and
+  ``OnlineCollector`` (the modular torchrl path): the same numbers bit for bit. Every experiment
+  receives its sensors in its own random order (``factorq_envs.permutation.PermuteSensors``),
+  redrawn at run ``change_run`` in the ``change`` setting;
 - ``oracle``: ``LocalRewardTable`` with the true dependency (the paper), on the compiled path;
 - ``joint``: Factor-Q with one local table per actuator over the pattern of *all* sensors (the
   paper's footnote 2), compiled, where ``2**K`` entries fit (``tables.MAX_PARENTS``);
-- ``q-learning``: compiled, where its table fits (``tables.MAX_TABLE_ENTRIES``).
+- ``q-learning``: compiled, where its table fits (``tables.MAX_TABLE_ENTRIES``);
+- ``dqn`` (opt-in, ``--methods``): ``factorq_trainers.dqn`` on the oracle's step budget
+(``run_dqn``).
 
-The oracle, the joint table and Q-learning do not depend on the order of the sensors (a
-permutation relabels their table entries), so they run without the transform and give exactly
-the numbers they would give with it; the exception is a change *mid-experiment* for the joint
-table (its table outlives the change), which the compiled path cannot run: it is reported as not
-run in that setting.
+The joint table and Q-learning receive the sensors in the learner's orders, changed at the same
+moment (``fast.SensorOrders``); the oracle is told the true pairing at every moment, which is
+the same as running it in the world's own order.
 
 Structure metrics (``learned`` only), per experiment: the local samples (firings) per actuator
 until it holds the right parents and keeps them to the end (the experiment's value: the largest
@@ -59,12 +60,15 @@ SETTINGS: dict[str, dict[str, Any]] = {
     "noise-10": {"body": "translate", "sensors": "cross", "sensor_noise": 0.10},
     "change": {"body": "translate", "sensors": "cross"},
 }
-METHODS = ("learned", "oracle", "joint", "q-learning")
+METHODS = ("learned", "oracle", "joint", "q-learning", "dqn")
+#: The methods run by default: DQN is opt-in (``--methods``), see ``run_dqn``.
+DEFAULT_METHODS = ("learned", "oracle", "joint", "q-learning")
 METHOD_LABELS = {
     "learned": "learned structure",
     "oracle": "oracle pairing",
     "joint": "full joint table",
     "q-learning": "Q-learning",
+    "dqn": "DQN",
 }
 #: Substream of the experiment key that draws the sensor orders (first, then after the change).
 STREAM_ORDER = 7
@@ -78,10 +82,10 @@ JSON_FILE, FIGURE_FILE, REPORT_FILE = "dependencies.json", "dependencies.png", "
 
 @dataclass(frozen=True)
 class DependenciesConfig:
-    """The structure-learning experiment; defaults run in about a minute on 2 cores."""
+    """The structure-learning experiment; the defaults run in well under a minute on 2 cores."""
 
     seed: int = option(0, "Master seed: worlds, sensor orders and policies derive from it.")
-    seeds: int = option(20, "Independent experiments per setting (and method).")
+    seeds: int = option(100, "Independent experiments per setting (and method).")
     settings: tuple[str, ...] = option(
         tuple(SETTINGS), "Settings to run: " + ", ".join(SETTINGS) + " (comma-separated)."
     )
@@ -96,16 +100,50 @@ class DependenciesConfig:
     max_parents: int = option(2, "Largest candidate parent set (0, 1 or 2: pairs).")
     window: int = option(100, "Firings per actuator in the block the reopening test reads.")
     change_run: int = option(5, "Run at which the change setting redraws the sensor order.")
+    prediction: str = option(
+        "optimistic",
+        "What an open actuator predicts: optimistic (the largest mean among the parent sets the "
+        "evidence has not ruled out), map (its most probable parent set), posterior (the "
+        "posterior-weighted mean; modular path only) or committed (nothing until it commits).",
+        choices=("optimistic", "map", "posterior", "committed"),
+    )
+    reopen: str = option(
+        "body",
+        "What a reopening forgets: body (every actuator's counts: a body changes as a whole) or "
+        "actuator (its own).",
+        choices=("body", "actuator"),
+    )
+    path: str = option(
+        "fast",
+        "Where the learner runs: fast (the compiled kernel, where available) or modular.",
+        choices=("fast", "modular"),
+    )
+    threads: int = option(2, "Threads of the compiled path.")
+    methods: tuple[str, ...] = option(
+        DEFAULT_METHODS,
+        "Methods to run: " + ", ".join(METHODS) + " (comma-separated; dqn is slow: opt-in).",
+    )
     out: str = option("results/dependencies", "Directory for the json, figure and report.")
 
     def __post_init__(self) -> None:
         check_int("seed", self.seed, 0, MAX_SEED)
         check_int("seeds", self.seeds, 1)
         object.__setattr__(self, "settings", check_names("settings", self.settings, SETTINGS))
+        object.__setattr__(self, "methods", check_names("methods", self.methods, METHODS))
         check_int("runs", self.runs, 1)
         check_int("episodes", self.episodes, 1)
         check_int("max_parents", self.max_parents, 0)
         check_int("window", self.window, 1)
+        check_int("threads", self.threads, 1)
+        for name, choices in (
+            ("prediction", ("optimistic", "map", "posterior", "committed")),
+            ("path", ("fast", "modular")),
+            ("reopen", ("body", "actuator")),
+        ):
+            if getattr(self, name) not in choices:
+                raise ValueError(
+                    f"{name}={getattr(self, name)!r} is unknown: choose one of {choices}"
+                )
         if not isinstance(self.bayes_factor, (int, float)) or not self.bayes_factor > 1:
             raise ValueError(
                 f"bayes_factor={self.bayes_factor!r} must be > 1 (a commitment needs evidence "
@@ -159,8 +197,147 @@ def _keys(config: DependenciesConfig, method: str) -> tuple[torch.Tensor, torch.
     return world_keys, policy_keys
 
 
+def _learner_options(config: DependenciesConfig) -> dict[str, Any]:
+    return {
+        "max_parents": config.max_parents,
+        "bayes_factor": config.bayes_factor,
+        "window": config.window,
+        "prediction": config.prediction,
+        "reopen": config.reopen,
+    }
+
+
 def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
-    """The learned structure on the modular torchrl path, with its structure metrics."""
+    """The learned structure with its structure metrics: on the compiled path where it runs
+    (``fast.StructureOptions``), else on the modular torchrl path (``run_learned_modular``);
+    both give the same numbers bit for bit (``tests/test_fast_structure.py``)."""
+    from factorq_trainers import fast
+
+    world = config.world_of(setting)
+    if (
+        config.path == "modular"
+        or config.prediction == "posterior"
+        or not fast.is_available()
+        or fast.unsupported_reason(world) is not None
+    ):
+        return run_learned_modular(config, setting)
+    return run_learned_fast(config, setting)
+
+
+def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]:
+    """``run_learned`` on the compiled path."""
+    from factorq_trainers import fast
+
+    world = config.world_of(setting)
+    count, num_sensors = config.seeds, world.num_sensors
+    world_keys, policy_keys = _keys(config, "learned")
+    periods = torch.full((count,), WORLD_PERIODS[config.world], dtype=torch.int64)
+    orders = sensor_orders(config.seed, setting, count, num_sensors, 0)
+    change = setting == "change"
+    options = fast.StructureOptions(
+        orders=orders,
+        orders_after=sensor_orders(config.seed, setting, count, num_sensors, 1) if change else None,
+        change_run=config.change_run if change else 0,
+        curve_every=CURVE_EVERY,
+        **_learner_options(config),
+    )
+    batch = fast.ExperimentBatch(
+        "factor-q",
+        periods,
+        world,
+        AgentConfig(),
+        config.runs,
+        config.episodes,
+        world_keys,
+        policy_keys,
+        threads=config.threads,
+        structure=options,
+    )
+    while not batch.done:
+        batch.advance(1 << 62)
+    state = batch.learner_state()
+    sets = batch._candidate_sets
+    members = torch.zeros(len(sets), num_sensors, dtype=torch.bool)
+    for index, parents in enumerate(sets):
+        members[index, list(parents)] = True
+    committed = state["committed"]
+    structure = members[committed.clamp(min=0)] & (committed >= 0).unsqueeze(-1)
+    truth = _permuted(world, options.orders_after if change else orders)
+    steps = batch.metrics()["steps"].sum(dim=(1, 2))
+    return _structure_result(
+        config,
+        setting,
+        batch.metrics(),
+        right_since=state["right_since"],
+        samples_at_change=state["samples_at_change"],
+        wrong_commitments=state["wrong_commitments"],
+        structure=structure,
+        truth=truth,
+        reopened=state["reopened"],
+        samples=state["samples"],
+        curve=_fill_curve(state["curve"], steps),
+        state=state,
+    )
+
+
+def _permuted(world: WorldConfig, orders: torch.Tensor) -> torch.Tensor:
+    from factorq_envs.permutation import permuted_dependency
+
+    return permuted_dependency(world.dependency, orders)
+
+
+def _fill_curve(curve: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
+    """``[S, points]`` bool: an experiment that has finished holds its last point; the points
+    stop at the longest experiment's end."""
+    curve = curve[:, : int(steps.max()) // CURVE_EVERY + 1]
+    points = torch.arange(curve.shape[1]) * CURVE_EVERY
+    last = (steps // CURVE_EVERY).clamp(max=curve.shape[1] - 1)  # [S]
+    final = curve.gather(1, last.unsqueeze(1))  # [S, 1]
+    return torch.where(points <= steps.unsqueeze(1), curve, final).bool()
+
+
+def _structure_result(
+    config,
+    setting,
+    metrics,
+    *,
+    right_since,
+    samples_at_change,
+    wrong_commitments,
+    structure,
+    truth,
+    reopened,
+    samples,
+    curve,
+    state,
+) -> dict[str, Any]:
+    right = (structure == truth).all(dim=-1)  # [S, A]
+    final_right = right.all(dim=-1)
+    since = right_since - (samples_at_change if setting == "change" else 0)
+    since = since.clamp(min=0).to(torch.float64)
+    until_right = torch.where(final_right, since.max(dim=-1).values, math.inf)
+    hamming = (structure != truth).sum(dim=(1, 2))
+    points = curve.shape[1]
+    fraction = curve.float().mean(dim=0)
+    return {
+        "metrics": metrics,
+        "samples_until_right": until_right.tolist(),
+        "wrong_commitments": wrong_commitments.tolist(),
+        "hamming_at_end": hamming.tolist(),
+        "reopened": reopened.sum(dim=-1).tolist(),
+        "samples_per_actuator": samples.tolist(),
+        "curve": {
+            "env_steps": [CURVE_EVERY * point for point in range(points)],
+            "fraction_right": fraction.tolist(),
+        },
+        "_curve": curve,
+        "_state": state,
+    }
+
+
+def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, Any]:
+    """``run_learned`` on the modular torchrl path: ``StructureLearner`` through
+    ``FactorQPolicy``, ``FactorQLoss`` and ``OnlineCollector``."""
     from tensordict.nn import TensorDictSequential
     from torchrl.envs import Compose, TransformedEnv
 
@@ -184,12 +361,7 @@ def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
         count, world.num_cells, num_headings=world.num_headings, num_actions=world.num_actuators
     )
     learner = StructureLearner(
-        count,
-        num_actions=world.num_actuators,
-        num_sensors=num_sensors,
-        max_parents=config.max_parents,
-        bayes_factor=config.bayes_factor,
-        window=config.window,
+        count, num_actions=world.num_actuators, num_sensors=num_sensors, **_learner_options(config)
     )
     policy = FactorQPolicy(count, keys=policy_keys, epsilon=agent.epsilon)
     loss = FactorQLoss(task, learner, gamma=agent.gamma, alpha=agent.alpha)
@@ -208,11 +380,12 @@ def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     wrong_commitments = torch.zeros(count, dtype=torch.int64)
     previous = learner.committed.clone()
     steps = torch.zeros(count, dtype=torch.int64)
-    curve_steps, curve_right = [], []
-    step = 0
+    max_steps = config.runs * config.episodes * world.max_steps
+    curve = torch.zeros(count, max_steps // CURVE_EVERY + 1, dtype=torch.uint8)
+    rows = torch.arange(count)
     for td in collector:
-        step += 1
-        steps += td.get(("collector", "mask")).to(torch.int64)
+        active = td.get(("collector", "mask"))
+        steps += active.to(torch.int64)
         if setting == "change":
             due = (collector.run_index >= config.change_run) & ~changed
             if bool(due.any()):
@@ -229,25 +402,37 @@ def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
         new_commit = (committed >= 0) & (committed != previous)
         wrong_commitments += (new_commit & ~right).sum(dim=-1)
         previous = committed.clone()
-        if step % CURVE_EVERY == 0:
-            curve_steps.append(int(steps.float().mean()))
-            curve_right.append(float(right.all(dim=-1).float().mean()))
+        point = active & (steps % CURVE_EVERY == 0)
+        curve[rows[point], steps[point] // CURVE_EVERY] = right.all(dim=-1)[point].to(torch.uint8)
     metrics = {name: collector.metrics.get(name) for name in collector.metrics.keys()}
-    final_right = right.all(dim=-1)
-    since = right_since - (samples_at_change if setting == "change" else 0)
-    since = since.clamp(min=0).to(torch.float64)
-    until_right = torch.where(final_right, since.max(dim=-1).values, math.inf)
-    structure = learner.structure()
-    hamming = (structure != truth).sum(dim=(1, 2))
-    return {
-        "metrics": metrics,
-        "samples_until_right": until_right.tolist(),
-        "wrong_commitments": wrong_commitments.tolist(),
-        "hamming_at_end": hamming.tolist(),
-        "reopened": learner.reopened.sum(dim=-1).tolist(),
-        "samples_per_actuator": learner.samples.tolist(),
-        "curve": {"env_steps": curve_steps, "fraction_right": curve_right},
+    state = {
+        "committed": learner.committed.clone(),
+        "samples": learner.samples.clone(),
+        "block_samples": learner.block_samples.clone(),
+        "reopened": learner.reopened.clone(),
+        "map_cache": learner.map_cache.clone(),
+        "plausible": learner.plausible_cache.to(torch.uint8),
+        "right_since": right_since,
+        "samples_at_change": samples_at_change,
+        "wrong_commitments": wrong_commitments,
     }
+    for prefix in ("", "block_"):
+        for name in ("count", "successes", "reward_sum", "log_marginal"):
+            state[prefix + name] = getattr(learner, prefix + name).clone()
+    return _structure_result(
+        config,
+        setting,
+        metrics,
+        right_since=right_since,
+        samples_at_change=samples_at_change,
+        wrong_commitments=wrong_commitments,
+        structure=learner.structure(),
+        truth=truth,
+        reopened=learner.reopened,
+        samples=learner.samples,
+        curve=_fill_curve(curve, steps),
+        state=state,
+    )
 
 
 def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[str, Any] | None:
@@ -263,6 +448,15 @@ def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[
         dependency = torch.ones(world.num_actuators, world.num_sensors, dtype=torch.bool)
     if method == "q-learning":
         algorithm = "q-learning"
+    orders = None
+    if method in ("joint", "q-learning"):  # the sensors in the learner's orders, changed alike
+        count, num_sensors = config.seeds, world.num_sensors
+        change = setting == "change"
+        orders = fast.SensorOrders(
+            sensor_orders(config.seed, setting, count, num_sensors, 0),
+            sensor_orders(config.seed, setting, count, num_sensors, 1) if change else None,
+            config.change_run if change else 0,
+        )
     metrics = fast.run_experiments(
         algorithm,
         periods,
@@ -272,10 +466,61 @@ def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[
         config.episodes,
         world_keys,
         policy_keys,
-        threads=1,
+        threads=config.threads,
         dependency=dependency,
+        sensor_orders=orders,
     )
     return {"metrics": metrics}
+
+
+def _budget(config: DependenciesConfig, setting: str, runs: dict[str, dict[str, Any]]) -> int:
+    """DQN's step budget: the oracle's mean env steps per experiment (else the learned
+    structure's, else every episode at its longest)."""
+    for method in ("oracle", "learned"):
+        if method in runs:
+            steps = runs[method]["metrics"]["steps"].sum(dim=(1, 2)).double().mean()
+            return max(1, round(float(steps)))
+    return config.runs * config.episodes * config.world_of(setting).max_steps
+
+
+def run_dqn(config: DependenciesConfig, setting: str, budget: int) -> dict[str, Any]:
+    """DQN (``factorq_trainers.dqn``, its default hyperparameters) on the setting's worlds for
+    ``budget`` env steps per experiment (episodes as many as fit; DQN has no runs). It sees every
+    sensor (``TaskQNetwork(with_proximity=True)``); the order does not matter to a network trained
+    from scratch, so it runs without ``PermuteSensors``. Measured cost: 100 experiments of 1,400
+    steps took 300 s on 2 loaded cores (docs/decisions.md), hence opt-in."""
+    from factorq_trainers import dqn
+    from factorq_trainers.experiment import ExperimentConfig
+
+    options = {"body": "translate", "sensors": "cross", **SETTINGS[setting]}
+    experiments = ExperimentConfig(
+        seed=config.seed,
+        seeds=config.seeds,
+        worlds=(config.world,),
+        steps=budget,
+        size=config.size,
+        obstacles=config.obstacles,
+        max_steps=config.max_steps,
+        layout_seed=config.layout_seed,
+        body=options["body"],
+        sensors=options["sensors"],
+        distractors=options.get("num_distractors", 0),
+        sensor_noise=options.get("sensor_noise", 0.0),
+    )
+    traces = dqn.run(dqn.DQNConfig(), experiments)["traces"]
+    episodes = min(len(trace["steps"]) for trace in traces)
+    return {
+        "totals": {
+            "collisions": np.array([trace["total_collisions"] for trace in traces], float),
+            "greedy": np.array([trace["total_greedy_collisions"] for trace in traces], float),
+        },
+        "budget": budget,
+        "episodes": [len(trace["steps"]) for trace in traces],
+        "collisions_per_episode": [
+            float(np.mean([trace["collisions"][index] for trace in traces]))
+            for index in range(episodes)
+        ],
+    }
 
 
 def skipped_reason(config: DependenciesConfig, setting: str, method: str) -> str | None:
@@ -286,6 +531,10 @@ def skipped_reason(config: DependenciesConfig, setting: str, method: str) -> str
     world = config.world_of(setting)
     if method == "learned":
         return None
+    if method == "dqn":
+        if setting == "change":
+            return "DQN's env (factorq_trainers.dqn) cannot change the sensor order mid-experiment"
+        return None
     if not fast.is_available():
         return f"the compiled path is unavailable ({fast.unavailable_reason()})"
     if method == "joint" and world.num_sensors > MAX_PARENTS:
@@ -293,8 +542,6 @@ def skipped_reason(config: DependenciesConfig, setting: str, method: str) -> str
             f"a joint table over {world.num_sensors} sensors needs 2**{world.num_sensors} "
             f"entries per actuator, past the cap of 2**{MAX_PARENTS}"
         )
-    if method == "joint" and setting == "change":
-        return "the compiled path cannot change the sensor order mid-experiment"
     if method == "q-learning":
         entries = (world.num_cells * world.num_headings << world.num_sensors) * world.num_actuators
         if entries > MAX_TABLE_ENTRIES:
@@ -331,6 +578,17 @@ def summarise_setting(
     summary: dict[str, Any] = {"methods": {}}
     totals = {}
     for method, result in runs.items():
+        if method == "dqn":  # a step budget, no runs: its totals only
+            collisions, greedy = result["totals"]["collisions"], result["totals"]["greedy"]
+            summary["methods"][method] = {
+                "collisions_per_experiment": float(collisions.mean()),
+                "greedy_collisions_per_experiment": float(greedy.mean()),
+                "steps_per_run": None,
+                "step_budget": result["budget"],
+                "episodes_per_experiment": float(np.mean(result["episodes"])),
+                "collisions_per_episode": result["collisions_per_episode"],
+            }
+            continue
         metrics = result["metrics"]
         steps = metrics["steps"].to(torch.float64)  # [S, runs, episodes]
         collisions = metrics["collisions"].sum(dim=(1, 2)).double().numpy()
@@ -386,7 +644,7 @@ def run(
     results: dict[str, Any] = {"config": asdict(config), "settings": {}, "skipped": {}}
     for setting in config.settings:
         runs: dict[str, dict[str, Any]] = {}
-        for method in METHODS:
+        for method in (method for method in METHODS if method in config.methods):
             reason = skipped_reason(config, setting, method)
             if reason is not None:
                 results["skipped"].setdefault(setting, {})[method] = reason
@@ -395,6 +653,8 @@ def run(
                 progress(setting, method)
             if method == "learned":
                 runs[method] = run_learned(config, setting)
+            elif method == "dqn":
+                runs[method] = run_dqn(config, setting, _budget(config, setting, runs))
             else:
                 runs[method] = run_compiled(config, setting, method)
         results["settings"][setting] = summarise_setting(config, setting, runs)
@@ -462,6 +722,14 @@ def report_markdown(results: dict[str, Any]) -> str:
                 f"{format_number(entry['collisions_per_experiment'])} | "
                 f"{format_number(entry['greedy_collisions_per_experiment'])} | "
                 f"{format_number(entry['steps_per_run'])} |"
+            )
+    for setting, summary in results["settings"].items():
+        entry = summary["methods"].get("dqn")
+        if entry is not None:
+            lines.append(
+                f"\nDQN in {setting}: a budget of {entry['step_budget']} env steps per experiment "
+                f"(the oracle's mean), {format_number(entry['episodes_per_experiment'])} episodes "
+                f"per experiment on average; no runs, so no steps per run."
             )
     for setting, skipped in results.get("skipped", {}).items():
         for method, reason in skipped.items():

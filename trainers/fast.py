@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import math
 import os
 import platform
 import shlex
@@ -40,6 +41,7 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -49,7 +51,16 @@ from factorq_torch.base.config import ALGORITHMS, AgentConfig
 from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_torch.base.rng import probability_threshold
 from factorq_torch.base.validation import MAX_PARENTS, check_int, check_table_size
-from factorq_torch.functional import check_dependency, parent_weights
+from factorq_torch.functional import (
+    PREDICTIONS,
+    REOPENINGS,
+    candidate_log_prior,
+    candidate_sets,
+    check_dependency,
+    competitor_mask,
+    lgamma_tables,
+    parent_weights,
+)
 
 #: The env-only mode of the kernel (benchmarks): uniformly random actions (the policy stream's
 #: action draw), no learning, every action counted as exploratory.
@@ -60,7 +71,7 @@ _SOURCE = Path(__file__).with_name("_kernel.c")
 #: No FMA contraction and no fast-math: every float operation must round exactly as torch's
 #: separate ops do. -march=native is left out (measured no faster; keeps the cache portable).
 _FLAGS = ("-O3", "-std=c99", "-ffp-contract=off", "-fno-fast-math", "-fPIC", "-shared")
-_ABI_VERSION = 4
+_ABI_VERSION = 5
 #: The fields ``fq_check_experiment`` refuses, by code (1-based), and ``fq_advance``'s encoding.
 _STATE_FIELDS = (
     "cell",
@@ -75,12 +86,81 @@ _STATE_FIELDS = (
     "ticks",
     "kappa",
     "episode_collisions",
+    "committed",
+    "samples",
+    "counts",
+    "change_tick",
 )
 _CHECK_CODES = 64
 
 
 # --------------------------------------------------------------------------------------------
 # Building and loading the kernel
+
+
+#: The structure learner's pointers in fq_batch, in order (read-only ones first).
+_LEARNER_POINTERS = (
+    "candidate_sensors",
+    "log_prior",
+    "competitors",
+    "lgamma_table",
+    "orders",
+    "orders_after",
+    "truth",
+    "counts",
+    "committed",
+    "samples",
+    "block_samples",
+    "reopened",
+    "map_cache",
+    "plausible",
+    "right_since",
+    "samples_at_change",
+    "wrong_commitments",
+    "change_tick",
+    "curve",
+)
+#: The kernel's codes of ``StructureOptions.prediction`` (``"posterior"`` is modular only).
+_PREDICTION_CODES = {"map": 0, "committed": 1, "optimistic": 2}
+
+
+@dataclass(frozen=True)
+class StructureOptions:
+    """The structure learner (``factorq_torch.structure.StructureLearner``) as Factor-Q's local
+    value provider on the generic loop, with the bookkeeping of ``factorq dependencies``.
+
+    ``orders`` ``[S, K]``: each experiment's sensor order
+    (``factorq_envs.permutation.PermuteSensors``), replaced by ``orders_after`` from the first
+    observation after the reset into run ``change_run`` (0: never). ``curve_every``: steps between
+    two points of the per-experiment "all actuators right" curve. The other fields are the learner's
+    arguments; the priors must be multiples of 1/1024 (the counts and priors then add exactly, so
+    every ``lgamma`` argument is one of the tables' doubles).
+    """
+
+    orders: torch.Tensor
+    max_parents: int = 2
+    bayes_factor: float = 100.0
+    window: int = 100
+    prior_a: float = 1.0
+    prior_b: float = 1.0
+    prior: str = "size"
+    prediction: str = "optimistic"
+    reopen: str = "body"
+    orders_after: torch.Tensor | None = None
+    change_run: int = 0
+    curve_every: int = 10
+
+
+@dataclass(frozen=True)
+class SensorOrders:
+    """A sensor order per experiment for any algorithm (``factorq_envs.permutation.PermuteSensors``
+    on the compiled path): agent sensor ``j`` is world sensor ``orders[s, j]``, replaced by
+    ``orders_after`` from the first observation after the reset into run ``change_run`` (0:
+    never). ``StructureOptions`` carries its own."""
+
+    orders: torch.Tensor
+    orders_after: torch.Tensor | None = None
+    change_run: int = 0
 
 
 class _Batch(ctypes.Structure):
@@ -156,6 +236,24 @@ class _Batch(ctypes.Structure):
             )
         ]
         + [(f"{name}_stride", ctypes.c_int64) for name in ("q", "rho", "kappa", "grid", "obstacle")]
+        + [
+            (name, ctypes.c_int64)
+            for name in (
+                "learner",
+                "num_candidates",
+                "learner_patterns",
+                "prediction",
+                "window",
+                "change_run",
+                "curve_every",
+                "curve_length",
+                "lgamma_length",
+                "learner_stride",
+                "reopen_body",
+            )
+        ]
+        + [(name, ctypes.c_double) for name in ("log_bayes_factor", "log_beta_prior")]
+        + [(name, ctypes.c_void_p) for name in _LEARNER_POINTERS]
     )
 
 
@@ -444,6 +542,18 @@ def _check_vector(name: str, value, count: int | None) -> torch.Tensor:
     return value.detach().contiguous().clone()
 
 
+def _check_orders(name: str, orders, count: int, num_sensors: int) -> torch.Tensor:
+    """``[count, K]`` int64, every row a permutation of ``range(K)``."""
+    if not isinstance(orders, torch.Tensor) or orders.dtype != torch.int64:
+        raise TypeError(f"{name} must be an int64 tensor [experiments, sensors]")
+    if tuple(orders.shape) != (count, num_sensors):
+        raise ValueError(f"{name} has shape {list(orders.shape)}, expected {[count, num_sensors]}")
+    expected = torch.arange(num_sensors).expand(count, -1)
+    if not torch.equal(orders.cpu().sort(dim=-1).values, expected):
+        raise ValueError(f"{name}: every row must hold each of 0..{num_sensors - 1} once")
+    return orders.detach().cpu().contiguous().clone()
+
+
 def _check_threads(threads) -> int:
     if threads is None:
         return torch.get_num_threads()
@@ -476,6 +586,8 @@ class ExperimentBatch:
         policy_keys: torch.Tensor,
         threads: int | None = None,
         dependency: torch.Tensor | None = None,
+        structure: StructureOptions | None = None,
+        sensor_orders: SensorOrders | None = None,
     ) -> None:
         if algorithm not in _ALGORITHM_CODES:
             choices = ", ".join((*ALGORITHMS, RANDOM_WALK))
@@ -515,7 +627,8 @@ class ExperimentBatch:
         # ``dependency`` (bool [A, K]) replaces the world's true one in Factor-Q's local tables,
         # e.g. the full joint table over all sensors (factorq_trainers.dependencies); generic loop
         # only.
-        generic = not world.is_paper_body or dependency is not None
+        generic = not world.is_paper_body or dependency is not None or structure is not None
+        generic = generic or sensor_orders is not None
         num_actuators, num_sensors = world.num_actuators, world.num_sensors
         positions = num_cells * world.num_headings
         num_states = positions << num_sensors if algorithm == "q-learning" else positions
@@ -586,10 +699,19 @@ class ExperimentBatch:
             "greedy_collisions": zeros(*experiment_shape),
             "task_return": zeros(*experiment_shape, dtype=torch.float32),
         }
+        if structure is not None and sensor_orders is not None:
+            raise ValueError("sensor_orders: give the orders in structure (StructureOptions)")
+        learner_fields = self._structure(structure, algorithm, world, count)
+        if sensor_orders is not None:
+            learner_fields.update(self._sensor_orders(sensor_orders, world, count))
         self._body = body_tensors  # read-only; kept alive for the kernel's pointers
         pointers = {
             name: tensor.data_ptr()
-            for name, tensor in (*self._tensors.items(), *body_tensors.items())
+            for name, tensor in (
+                *self._tensors.items(),
+                *body_tensors.items(),
+                *self._learner_tables.items(),
+            )
         }
         self._batch = _Batch(
             algorithm=_ALGORITHM_CODES[algorithm],
@@ -617,9 +739,166 @@ class ExperimentBatch:
             kappa_stride=kappa_stride,
             grid_stride=grid_stride,
             obstacle_stride=obstacle_stride,
+            **learner_fields,
             **pointers,
         )
         self._library.fq_start(ctypes.byref(self._batch))
+
+    def _structure(
+        self, options: StructureOptions | None, algorithm: str, world: WorldConfig, count: int
+    ) -> dict:
+        """Check ``options``, allocate the learner's state (in ``self._tensors``) and read-only
+        tables (in ``self._learner_tables``); return fq_batch's scalar fields."""
+        self.structure = options
+        self._learner_tables: dict[str, torch.Tensor] = {}
+        if options is None:
+            return {"learner": 0}
+        if not isinstance(options, StructureOptions):
+            raise TypeError(f"structure must be a StructureOptions, got {type(options).__name__}")
+        if algorithm != "factor-q":
+            raise ValueError(
+                f"structure: the structure learner runs with factor-q, not {algorithm}"
+            )
+        if options.prediction not in _PREDICTION_CODES:
+            raise ValueError(
+                f"structure.prediction={options.prediction!r}: the fast path runs "
+                f"{tuple(_PREDICTION_CODES)} ({PREDICTIONS} on the modular path)"
+            )
+        if not isinstance(options.bayes_factor, (int, float)) or not (
+            1 < options.bayes_factor < math.inf
+        ):
+            raise ValueError(f"structure.bayes_factor={options.bayes_factor!r} must be > 1")
+        for name in ("prior_a", "prior_b"):
+            value = getattr(options, name)
+            if (
+                not isinstance(value, (int, float))
+                or not (0 < value < 2**20)
+                or (value * 1024 != int(value * 1024))
+            ):
+                raise ValueError(
+                    f"structure.{name}={value!r}: the fast path needs a multiple of 1/1024 in "
+                    f"(0, 2**20)"
+                )
+        check_int("structure.window", options.window, 1)
+        if options.reopen not in REOPENINGS:
+            raise ValueError(
+                f"structure.reopen={options.reopen!r} is unknown: choose one of {REOPENINGS}"
+            )
+        check_int("structure.change_run", options.change_run, 0, self.runs - 1)
+        check_int("structure.curve_every", options.curve_every, 1)
+        num_sensors, actuators = world.num_sensors, world.num_actuators
+        sets = candidate_sets(num_sensors, options.max_parents)
+        index_of = {frozenset(parents): index for index, parents in enumerate(sets)}
+        orders = _check_orders("structure.orders", options.orders, count, num_sensors)
+        after = orders if options.orders_after is None else options.orders_after
+        after = _check_orders("structure.orders_after", after, count, num_sensors)
+        truth = torch.full((count, 2, actuators), -2, dtype=torch.int64)
+        dependency = world.dependency  # [A, K] in the world's order
+        for phase, order in enumerate((orders, after)):
+            for experiment in range(count):
+                parents = dependency[:, order[experiment]]  # agent sensor j = world order[j]
+                for actuator in range(actuators):
+                    members = frozenset(parents[actuator].nonzero().flatten().tolist())
+                    truth[experiment, phase, actuator] = index_of.get(members, -2)
+        num_candidates, patterns = len(sets), 1 << min(options.max_parents, num_sensors)
+        candidate_sensors = torch.full((num_candidates, 2), -1, dtype=torch.int64)
+        for index, parents in enumerate(sets):
+            candidate_sensors[index, : len(parents)] = torch.tensor(parents, dtype=torch.int64)
+        log_prior = candidate_log_prior(sets, options.prior)
+        steps = self.runs * self.episodes * world.max_steps
+        length = steps + 2  # n + 1 of every count stays inside
+        self._learner_tables = {
+            "candidate_sensors": candidate_sensors.contiguous(),
+            "log_prior": log_prior.contiguous(),
+            "competitors": competitor_mask(sets).to(torch.uint8).contiguous(),
+            "lgamma_table": lgamma_tables(options.prior_a, options.prior_b, length).contiguous(),
+            "orders": orders,
+            "orders_after": after,
+            "truth": truth,
+        }
+        per_experiment = 8 * actuators * num_candidates * patterns
+        counts, stride = _padded_zeros(count, (per_experiment,), torch.float64)
+        curve_length = steps // options.curve_every + 1
+        state = {
+            "counts": counts,
+            "committed": torch.full((count, actuators), -1, dtype=torch.int64),
+            "samples": torch.zeros(count, actuators, dtype=torch.int64),
+            "block_samples": torch.zeros(count, actuators, dtype=torch.int64),
+            "reopened": torch.zeros(count, actuators, dtype=torch.int64),
+            "map_cache": torch.full((count, actuators), int(log_prior.argmax()), dtype=torch.int64),
+            "plausible": (log_prior >= log_prior.max() - math.log(float(options.bayes_factor)))
+            .to(torch.uint8)
+            .expand(count, actuators, -1)
+            .contiguous(),
+            "right_since": torch.full((count, actuators), -1, dtype=torch.int64),
+            "samples_at_change": torch.zeros(count, actuators, dtype=torch.int64),
+            "wrong_commitments": torch.zeros(count, dtype=torch.int64),
+            "change_tick": torch.full((count,), -1, dtype=torch.int64),
+            "curve": torch.zeros(count, curve_length, dtype=torch.uint8),
+        }
+        self._tensors.update(state)
+        self._candidate_sets = sets
+        a, b = float(options.prior_a), float(options.prior_b)
+        return {
+            "learner": 1,
+            "num_candidates": num_candidates,
+            "learner_patterns": patterns,
+            "prediction": _PREDICTION_CODES[options.prediction],
+            "window": options.window,
+            "change_run": options.change_run,
+            "curve_every": options.curve_every,
+            "curve_length": curve_length,
+            "lgamma_length": length,
+            "learner_stride": stride,
+            "reopen_body": int(options.reopen == "body"),
+            "log_bayes_factor": math.log(float(options.bayes_factor)),
+            # as functional.beta_bernoulli_log_marginal computes it (Python's lgamma)
+            "log_beta_prior": math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b),
+        }
+
+    def _sensor_orders(self, options: SensorOrders, world: WorldConfig, count: int) -> dict:
+        """Check ``options``; keep its orders for the kernel; return fq_batch's fields."""
+        if not isinstance(options, SensorOrders):
+            raise TypeError(f"sensor_orders must be a SensorOrders, got {type(options).__name__}")
+        check_int("sensor_orders.change_run", options.change_run, 0, self.runs - 1)
+        orders = _check_orders("sensor_orders.orders", options.orders, count, world.num_sensors)
+        after = orders if options.orders_after is None else options.orders_after
+        after = _check_orders("sensor_orders.orders_after", after, count, world.num_sensors)
+        self._learner_tables.update(orders=orders, orders_after=after)
+        self._tensors["change_tick"] = torch.full((count,), -1, dtype=torch.int64)
+        return {"change_run": options.change_run}
+
+    def learner_state(self) -> dict[str, torch.Tensor]:
+        """The structure learner's state and bookkeeping (copies): ``committed``, ``samples``,
+        ``block_samples``, ``reopened``, ``map_cache``, ``right_since``, ``samples_at_change``
+        ``[S, A]``; ``wrong_commitments``, ``change_tick`` ``[S]``; ``curve`` ``[S, points]``;
+        the counts as ``count``, ``successes``, ``reward_sum``, ``log_marginal`` and their
+        ``block_`` twins ``[S, A, C, P]``; ``truth`` ``[S, 2, A]`` (candidate indices)."""
+        if self.structure is None:
+            raise RuntimeError("this batch runs no structure learner")
+        names = ("count", "successes", "reward_sum", "log_marginal")
+        state = {
+            name: self._tensors[name].clone()
+            for name in (
+                "committed",
+                "samples",
+                "block_samples",
+                "reopened",
+                "map_cache",
+                "plausible",
+                "right_since",
+                "samples_at_change",
+                "wrong_commitments",
+                "change_tick",
+                "curve",
+            )
+        }
+        shape = (self.num_experiments, 8, self.world.num_actuators, self._batch.num_candidates)
+        counts = self._tensors["counts"].reshape(*shape, self._batch.learner_patterns)
+        for index, name in enumerate((*names, *("block_" + name for name in names))):
+            state[name] = counts[:, index].clone()
+        state["truth"] = self._learner_tables["truth"].clone()
+        return state
 
     @property
     def num_experiments(self) -> int:
@@ -751,6 +1030,8 @@ def run_experiments(
     threads: int | None = None,
     progress: Callable[[int], object] | None = None,
     dependency: torch.Tensor | None = None,
+    structure: StructureOptions | None = None,
+    sensor_orders: SensorOrders | None = None,
 ) -> dict[str, torch.Tensor]:
     """Run S experiments to the end (see ``ExperimentBatch``) and return their ``metrics()``.
 
@@ -768,6 +1049,8 @@ def run_experiments(
         policy_keys,
         threads,
         dependency=dependency,
+        structure=structure,
+        sensor_orders=sensor_orders,
     )
     # Chunks only matter for progress reports (results do not depend on them).
     chunk = 20_000 if progress is not None else 1 << 62
