@@ -15,7 +15,7 @@ methods on the same worlds (common random numbers: the same world keys):
   paper's footnote 2), compiled, where ``2**K`` entries fit (``tables.MAX_PARENTS``);
 - ``q-learning``: compiled, where its table fits (``tables.MAX_TABLE_ENTRIES``);
 - ``dqn`` (opt-in, ``--methods``): ``factorq_trainers.dqn`` on the oracle's step budget
-(``run_dqn``).
+  (``run_dqn``).
 
 The joint table and Q-learning receive the sensors in the learner's orders, changed at the same
 moment (``fast.SensorOrders``); the oracle is told the true pairing at every moment, which is
