@@ -59,10 +59,9 @@ def test_layouts_and_dependency_are_data():
 
 
 def test_missing_extra_names_it(monkeypatch, tmp_path, capsys):
-    def missing(name, *args, **kwargs):
-        raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+    import sys
 
-    monkeypatch.setattr(adapter.importlib, "import_module", missing)
+    monkeypatch.setitem(sys.modules, "minigrid", None)  # import minigrid now fails, as uninstalled
     with pytest.raises(ModuleNotFoundError, match=r"factorq-torch\[minigrid\]"):
         adapter.require_minigrid()
     from trainers.cli import main
@@ -214,7 +213,7 @@ def test_cli_runs_a_tiny_budget(tmp_path, capsys):
     code = main(["minigrid", "--seeds", "2", "--sizes", "5", "--steps", "60", "--out", str(out)])
     assert code == 0, capsys.readouterr().err
     results = json.loads((out / "minigrid.json").read_text())
-    assert set(results["results"]["5"]) == set(adapter_methods())
+    assert set(results["results"]["5"]) == set(default_methods())
     for entry in results["results"]["5"].values():
         assert len(entry["seeds"]["collisions"]) == 2
         assert entry["summary"]["env_steps_per_seed"] == 60
@@ -224,7 +223,7 @@ def test_cli_runs_a_tiny_budget(tmp_path, capsys):
     assert "--seeds=0" in capsys.readouterr().err
 
 
-def adapter_methods():
-    from trainers.minigrid import METHODS
+def default_methods():
+    from trainers.minigrid import DEFAULT_METHODS
 
-    return METHODS
+    return DEFAULT_METHODS
