@@ -586,7 +586,7 @@ def _targets(per_method: dict[str, Any]) -> list[str]:
         ratio = math.inf if ours == 0 else theirs / ours
         success_ok = (mine["success_rate"]["mean"] or 0.0) >= (dqn["success_rate"]["mean"] or 0.0)
         out.append(
-            f"- {METHOD_LABELS[method]}: training collisions {ratio:.1f}x below DQN's "
+            f"- {METHOD_LABELS[method]}: training collisions {ratio:.2f}x below DQN's "
             f"(target >= 10x: {'met' if ratio >= 10 else 'not met'}); success rate "
             f"{'no worse than' if success_ok else 'below'} DQN's."
         )
@@ -622,7 +622,7 @@ def write_figure(results: dict[str, Any], path: Path) -> None:
         axis.set_xticks(range(len(sizes)), [f"{s}x{s}" for s in sizes])
         axis.set_title(title)
         if log:
-            axis.set_yscale("symlog", linthresh=1.0)
+            axis.set_yscale("log")
         axis.grid(alpha=0.3)
     figure.axes[0].legend(fontsize=7)
     figure.suptitle(
