@@ -163,7 +163,7 @@ def test_seeding_reproduces_episodes():
 def test_torchrl_citizenship():
     _need_minigrid()
     import gymnasium as gym
-    from torchrl.envs import GymWrapper, SerialEnv
+    from torchrl.envs import GymWrapper, ParallelEnv, SerialEnv
     from torchrl.envs.utils import check_env_specs
 
     from envs.minigrid_env import MiniGridEnv
@@ -180,6 +180,18 @@ def test_torchrl_citizenship():
     assert wrapped.rollout(40, break_when_any_done=False).batch_size == (2, 40)
     serial = SerialEnv(2, lambda: GymWrapper(adapter.make_minigrid(5)))
     check_env_specs(serial)
+    parallel = ParallelEnv(2, _gym_wrapped, mp_start_method="fork")  # fork: no re-import
+    try:
+        check_env_specs(parallel)
+        assert parallel.rollout(20, break_when_any_done=False).batch_size == (2, 20)
+    finally:
+        parallel.close()
+
+
+def _gym_wrapped():
+    from torchrl.envs import GymWrapper
+
+    return GymWrapper(adapter.make_minigrid(5, "nodeath"))
 
 
 def test_committed_learner_predicts_nothing_until_it_commits():
