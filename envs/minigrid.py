@@ -63,7 +63,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from envs.body import HEADING, SensorLayout, base_dependency
+from envs.body import HEADING, NUM_HEADINGS, SensorLayout, base_dependency
 from factorq_torch.base import keys
 
 #: The optional extra that installs MiniGrid.
@@ -91,6 +91,12 @@ VIEW_LAYOUTS = {
         directions=((0,), (1,), (3,), (0, 1), (0, 3), (0, 0)),
     ),
 }
+
+
+def minigrid_heading(agent_dir: int) -> int:
+    """MiniGrid's ``agent_dir`` (0 east, a left turn subtracts 1) as the project's heading (0
+    north, a left turn adds 1): east is our last direction, so ``(H - 1 - agent_dir) mod H``."""
+    return (NUM_HEADINGS - 1 - agent_dir) % NUM_HEADINGS
 
 
 def require_minigrid():
@@ -196,7 +202,7 @@ class FactoredMiniGrid(gym.Wrapper):
         x, y = base.agent_pos
         out = {
             keys.CELL: int(y) * base.width + int(x),
-            keys.HEADING: (3 - int(base.agent_dir)) % 4,
+            keys.HEADING: minigrid_heading(int(base.agent_dir)),
             keys.SENSORS: sensors,
             keys.BUMP: bump,
             keys.COLLISION: collision,
@@ -212,7 +218,10 @@ class FactoredMiniGrid(gym.Wrapper):
     def step(self, action):
         action = int(action)
         if not 0 <= action < self.num_actions:
-            raise ValueError(f"action={action} is out of range: must be in [0, 2]")
+            raise ValueError(
+                f"action={action} is out of range: must be in [0, {self.num_actions - 1}] "
+                f"({', '.join(HEADING.actuators)})"
+            )
         obs, reward, terminated, truncated, info = self.env.step(ACTION_TO_MINIGRID[action])
         collided = reward < 0  # only a collision gives MiniGrid a negative reward
         info = dict(info, collided=collided, success=bool(reward > 0))

@@ -12,6 +12,7 @@ from tensordict import TensorDict
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from envs.body import HEADING
 from envs.minigrid import VIEW_SIZE, dependency, make_minigrid
 from factorq_torch.base import keys
 from factorq_torch.base.validation import check_int
@@ -76,7 +77,9 @@ class MiniGridEnv(EnvBase):
         actuators = (*batch, self.num_actions)
         entries = {
             keys.CELL: Categorical(self.num_cells, shape=batch, dtype=torch.int64, device=device),
-            keys.HEADING: Categorical(4, shape=batch, dtype=torch.int64, device=device),
+            keys.HEADING: Categorical(
+                HEADING.num_headings, shape=batch, dtype=torch.int64, device=device
+            ),
             keys.SENSORS: Binary(
                 n=self.num_sensors,
                 shape=(*batch, self.num_sensors),

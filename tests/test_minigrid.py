@@ -89,7 +89,7 @@ def test_sensors_and_local_reward_equal_minigrid(size, semantics):
         assert obs[keys.SENSORS].tolist() == _expected(base, layout)
         x, y = base.agent_pos
         assert obs[keys.CELL] == y * base.width + x
-        assert obs[keys.HEADING] == (3 - base.agent_dir) % 4
+        assert obs[keys.HEADING] == {0: 3, 1: 2, 2: 1, 3: 0}[base.agent_dir]  # E S W N
         action = int(rng.choice(3, p=[0.6, 0.2, 0.2]))
         front = _blocked(base, np.array(base.front_pos))
         obs, reward, terminated, truncated, info = env.step(action)

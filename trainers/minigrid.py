@@ -233,6 +233,7 @@ def run_tabular(
     config: MiniGridConfig, size: int, method: str, tick: Callable[[int], None]
 ) -> dict[str, Any]:
     """Factor-Q (learned or oracle) or Q-learning through ``OnlineCollector``."""
+    from envs.body import HEADING
     from envs.minigrid import FORWARD
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import STREAM_POLICY
@@ -253,12 +254,12 @@ def run_tabular(
             cells,
             with_sensors=True,
             num_sensors=sensors,
-            num_headings=4,
+            num_headings=HEADING.num_headings,
             num_actions=actions,
         )
         local = None
     else:
-        task = TaskQTable(count, cells, num_headings=4, num_actions=actions)
+        task = TaskQTable(count, cells, num_headings=HEADING.num_headings, num_actions=actions)
         if method == "factor-q-oracle":
             local = LocalRewardTable(count, dependency=base.dependency)
         elif method == "factor-q-posterior":
@@ -334,6 +335,7 @@ def run_dqn(
     from torchrl.modules import QValueModule
     from torchrl.objectives import DQNLoss, HardUpdate
 
+    from envs.body import HEADING
     from factorq_torch.base.rng import STREAM_POLICY, STREAM_TASK_NETWORK
     from factorq_torch.neural import TaskQNetwork
     from trainers.dqn import DQNAgent, DQNConfig, ExploratoryEGreedy, _gradient_step
@@ -353,7 +355,7 @@ def run_dqn(
             env.num_cells,
             with_proximity=True,
             num_sensors=env.num_sensors,
-            num_headings=4,
+            num_headings=HEADING.num_headings,
             num_actions=actions,
             hidden=dqn.hidden,
             keys=init_keys,
