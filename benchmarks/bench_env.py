@@ -4,8 +4,8 @@ Two paths over the same worlds:
 
 - ``env.step``: ``FactoredGridEnv.step_and_maybe_reset``, the torchrl TensorDict path a collector
   drives (step, step_mdp, partial reset of finished worlds);
-- ``functions``: the bare ``envs.world`` functions a fused loop would call (``step_worlds``, the
-  proximity observation, ``reset_worlds`` of finished worlds), no TensorDict.
+- ``functions``: the bare ``factorq_envs.world`` functions a fused loop would call
+  (``step_worlds``, the proximity observation, ``reset_worlds`` of finished worlds), no TensorDict.
 
 Each at several batch sizes ``S`` (independent worlds), with ``torch.set_num_threads(1)`` and with
 torch's default thread count. Figures are world-steps per second (``S`` x batched steps per
@@ -24,8 +24,8 @@ import time
 
 import torch
 
-from envs import FactoredGridEnv
-from envs.world import proximity, reset_worlds, step_worlds
+from factorq_envs import FactoredGridEnv
+from factorq_envs.world import proximity, reset_worlds, step_worlds
 
 WORLDS = {"static": 0, "semi-dynamic": 10, "dynamic": 1}
 

@@ -1,4 +1,4 @@
-"""Speed and memory of the fused fast path (``trainers.fast``), printed as tables.
+"""Speed and memory of the fused fast path (``factorq_trainers.fast``), printed as tables.
 
 - kernel build: compile time (into an empty cache) and load time from the cache;
 - throughput, env steps per second, at several batch sizes ``S`` (independent experiments), for
@@ -45,10 +45,10 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(ROOT))
 
-from envs.world import WorldConfig  # noqa: E402
+from factorq_envs.world import WorldConfig  # noqa: E402
 from factorq_torch.base.config import AgentConfig  # noqa: E402
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys  # noqa: E402
-from trainers import fast  # noqa: E402
+from factorq_trainers import fast  # noqa: E402
 
 LOOPS = {"env-only": fast.RANDOM_WALK, "q-learning": "q-learning", "factor-q": "factor-q"}
 PAPER_PERIODS = (0, 10, 1)  # static, semi-dynamic, dynamic
@@ -118,7 +118,7 @@ def modular_throughput(
         from tensordict.nn import TensorDictSequential
         from torchrl.envs import TransformedEnv
 
-        from envs import FactoredGridEnv, SplitLocalReward
+        from factorq_envs import FactoredGridEnv, SplitLocalReward
         from factorq_torch.collectors import OnlineCollector
         from factorq_torch.objectives import FactorQLoss, TabularQLoss
         from factorq_torch.policy import EpsilonGreedyPolicy, FactorQPolicy

@@ -1,21 +1,21 @@
 """envs: the FactoredGrid world of the paper, for torchrl and gymnasium.
 
 Importing the package registers the gymnasium id ``"FactoredGrid-v0"``. The torchrl classes load
-on first use, so code that needs only the pure world functions (``envs.world``, the fast path)
-does not pay for importing torchrl and tensordict.
+on first use, so code that needs only the pure world functions (``factorq_envs.world``, the fast
+path) does not pay for importing torchrl and tensordict.
 """
 
 import importlib
 
 import gymnasium
 
-from envs.world import WorldConfig
+from factorq_envs.world import WorldConfig
 
 _LAZY = {
-    "FactoredGridEnv": "envs.grid",
-    "SplitLocalReward": "envs.transforms",
-    "ExperimentIndex": "envs.transforms",
-    "RenderPixels": "envs.transforms",
+    "FactoredGridEnv": "factorq_envs.grid",
+    "SplitLocalReward": "factorq_envs.transforms",
+    "ExperimentIndex": "factorq_envs.transforms",
+    "RenderPixels": "factorq_envs.transforms",
 }
 
 __all__ = ["WorldConfig", *_LAZY]
@@ -29,4 +29,4 @@ def __getattr__(name: str):
 
 # Episodes end inside the env (truncated at max_steps), so no TimeLimit wrapper is added.
 if "FactoredGrid-v0" not in gymnasium.registry:
-    gymnasium.register(id="FactoredGrid-v0", entry_point="envs.gym:FactoredGridGym")
+    gymnasium.register(id="FactoredGrid-v0", entry_point="factorq_envs.gym:FactoredGridGym")

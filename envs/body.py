@@ -13,7 +13,8 @@ to the left adds 1 (north -> west -> south -> east -> north). An offset ``(d_row
 left by a quarter becomes ``(-d_col, d_row)``.
 
 A new body or layout is one new entry: a ``Body(...)`` in ``BODIES`` or a ``SensorLayout(...)`` in
-``SENSOR_LAYOUTS``; a new world is one new file implementing the functions of ``envs.world``.
+``SENSOR_LAYOUTS``; a new world is one new file implementing the functions of
+``factorq_envs.world``.
 """
 
 from __future__ import annotations

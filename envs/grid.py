@@ -1,6 +1,6 @@
 """``FactoredGridEnv``: ``S`` independent FactoredGrid worlds as one batched torchrl env.
 
-The world's rules live in ``envs.world`` (pure tensor functions); this module only validates
+The world's rules live in ``factorq_envs.world`` (pure tensor functions); this module only validates
 arguments, holds the state of the worlds in tensors and moves it in and out of TensorDicts.
 """
 
@@ -15,8 +15,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from envs.render import bumped_faces, render_rgb
-from envs.world import (
+from factorq_envs.render import bumped_faces, render_rgb
+from factorq_envs.world import (
     NUM_ACTIONS,
     FactoredGrid,
     WorldConfig,
@@ -129,9 +129,9 @@ class FactoredGridEnv(EnvBase):
     - reward: ``reward`` ``[*B, 1]`` float32, the conventional step + goal + sum(collision);
     - done: ``done``, ``terminated``, ``truncated`` ``[*B, 1]`` bool.
 
-    The rules are called through ``world`` (``envs.world.FactoredGrid``, an
-    ``envs.protocol.World``). State (read and written by the fast path and checkpoints; worlds
-    flattened to ``S``):
+    The rules are called through ``world`` (``factorq_envs.world.FactoredGrid``, an
+    ``factorq_envs.protocol.World``). State (read and written by the fast path and checkpoints;
+    worlds flattened to ``S``):
     ``world_state`` (``WorldState``, leading dim ``S``; ``S = 1`` when ``batch_size == ()``),
     ``world_keys`` ``[S]`` int64, ``periods`` ``[S]`` int64, ``static_obstacles`` ``[N]`` bool,
     ``world_seed`` (the seed the keys came from), ``config`` (the ``WorldConfig``; its
@@ -207,7 +207,7 @@ class FactoredGridEnv(EnvBase):
             self.static_obstacles = static_layout(config).to(device)
         else:
             self.static_obstacles = torch.zeros(config.num_cells, dtype=torch.bool, device=device)
-        # The world behind the envs.protocol.World interface: every rule is called through it.
+        # The world behind the factorq_envs.protocol.World interface: every rule goes through it.
         self.world = FactoredGrid(config, self.static_obstacles)
         self._world_state = self.world.initial_state(num_worlds, device)
         self._started = False  # set by the first reset (or by assigning world_state)
@@ -429,7 +429,7 @@ class FactoredGridEnv(EnvBase):
 
     def render_rgb(self, index: int = 0) -> np.ndarray:
         """World ``index`` (flat, in ``[0, S)``) as an image ``uint8 [H, W, 3]``: walls, obstacles,
-        the agent with its heading, the goal, the last collision (``envs.render``; the same
+        the agent with its heading, the goal, the last collision (``factorq_envs.render``; the same
         picture as the gymnasium env's ``rgb_array``). ``RenderPixels`` writes it as ``pixels``."""
         if not is_int(index) or not 0 <= index < self.num_worlds:
             raise ValueError(f"index={index!r} is out of range: must be in [0, {self.num_worlds})")

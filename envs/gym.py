@@ -1,8 +1,9 @@
 """The FactoredGrid world as a gymnasium env (one world, numpy in and out).
 
-Registered as ``"FactoredGrid-v0"`` on ``import envs``. It runs the same pure functions as the
-torchrl env (``envs.world``) on tensors of one world, and draws from the same counter streams:
-``reset(seed=s)`` gives the trajectories of ``FactoredGridEnv(seed=s)`` for the same actions.
+Registered as ``"FactoredGrid-v0"`` on ``import factorq_envs``. It runs the same pure functions as
+the torchrl env (``factorq_envs.world``) on tensors of one world, and draws from the same counter
+streams: ``reset(seed=s)`` gives the trajectories of ``FactoredGridEnv(seed=s)`` for the same
+actions.
 """
 
 from __future__ import annotations
@@ -14,8 +15,8 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from envs.render import bumped_faces, render_rgb
-from envs.world import (
+from factorq_envs.render import bumped_faces, render_rgb
+from factorq_envs.world import (
     NUM_ACTIONS,
     FactoredGrid,
     WorldConfig,
@@ -35,8 +36,8 @@ class FactoredGridGym(gymnasium.Env):
             body and its sensors, as ``WorldConfig`` (observation ``sensors`` ``[K]``, and
             ``heading`` for a body with a heading; ``Discrete(A)`` actions).
         render_mode: ``None``, ``"ansi"`` (``render()`` returns the text picture) or
-            ``"rgb_array"`` (``render()`` returns ``uint8 [H, W, 3]``, ``envs.render``: walls,
-            obstacles, the agent with its heading, the goal, the last collision in red; what
+            ``"rgb_array"`` (``render()`` returns ``uint8 [H, W, 3]``, ``factorq_envs.render``:
+            walls, obstacles, the agent with its heading, the goal, the last collision in red; what
             gymnasium's ``RecordVideo`` and SB3's ``make_vec_env`` ask for).
 
     Spaces (the paper's body): observation ``Dict(cell=Discrete(N), sensors=MultiBinary(4),
@@ -49,7 +50,7 @@ class FactoredGridGym(gymnasium.Env):
     the world's stream starts from seed 0.
 
     Example:
-        >>> import envs
+        >>> import factorq_envs
         >>> env = gymnasium.make("FactoredGrid-v0", size=3, num_obstacles=0)
         >>> observation, info = env.reset(seed=0)
         >>> int(observation["cell"]), observation["proximity"].tolist()
@@ -111,7 +112,7 @@ class FactoredGridGym(gymnasium.Env):
             self.static_obstacles = static_layout(self.config)
         else:
             self.static_obstacles = torch.zeros(self.config.num_cells, dtype=torch.bool)
-        # The world behind the envs.protocol.World interface: every rule is called through it.
+        # The world behind the factorq_envs.protocol.World interface: every rule goes through it.
         self.world = FactoredGrid(config, self.static_obstacles)
         self.world_state = self.world.initial_state(1)
         self._seed_world(0)
@@ -200,7 +201,7 @@ class FactoredGridGym(gymnasium.Env):
         return self.world.render(state, 0)
 
     def render_rgb(self) -> np.ndarray:
-        """The world as an image, ``uint8 [H, W, 3]`` (``envs.render.render_rgb``)."""
+        """The world as an image, ``uint8 [H, W, 3]`` (``factorq_envs.render.render_rgb``)."""
         state, body = self.world_state, self.config.body_spec
         heading = int(state.heading[0])
         return render_rgb(

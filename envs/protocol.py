@@ -1,7 +1,7 @@
 """The World protocol: what a world offers the env wrappers, the experiments and the fast path.
 
 A world is pure batched functions over a state of tensors with a leading dimension ``S`` of
-independent worlds, plus the data that describes its body (``dependency``). ``envs.world``'s
+independent worlds, plus the data that describes its body (``dependency``). ``factorq_envs.world``'s
 ``FactoredGrid`` implements it for the paper's grid; a new world is one new file with a class
 like it (and, for the compiled path, a kernel loop). Nothing here imports a world.
 """

@@ -1,5 +1,5 @@
 """Pictures of one FactoredGrid world as RGB arrays (``render_mode="rgb_array"``, the ``pixels``
-of ``envs.transforms.RenderPixels``): numpy only, no drawing library.
+of ``factorq_envs.transforms.RenderPixels``): numpy only, no drawing library.
 
 Drawn on a square of ``(size + 2) * scale`` pixels: the wall around the grid (grey), obstacles
 (near black), the goal (green), the agent (blue) with a white mark on the side it faces (bodies
@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from envs.body import Body
+from factorq_envs.body import Body
 
 #: Pixels per cell (a 10x10 grid with its wall: 192 x 192, divisible by 16 as video codecs like).
 SCALE = 16

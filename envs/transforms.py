@@ -15,7 +15,7 @@ from tensordict import TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from envs.render import SCALE
+from factorq_envs.render import SCALE
 from factorq_torch.base import keys
 
 
@@ -33,7 +33,7 @@ class SplitLocalReward(Transform):
     Example:
         >>> import torch
         >>> from torchrl.envs import TransformedEnv
-        >>> from envs.grid import FactoredGridEnv
+        >>> from factorq_envs.grid import FactoredGridEnv
         >>> env = TransformedEnv(FactoredGridEnv(size=3, num_obstacles=0), SplitLocalReward())
         >>> td = env.reset()
         >>> td["action"] = torch.tensor(0)  # north: into the wall
@@ -119,7 +119,7 @@ class ExperimentIndex(Transform):
 
     Example:
         >>> from torchrl.envs import TransformedEnv
-        >>> from envs.grid import FactoredGridEnv
+        >>> from factorq_envs.grid import FactoredGridEnv
         >>> world = FactoredGridEnv(size=3, num_obstacles=1, batch_size=(2, 2))
         >>> env = TransformedEnv(world, ExperimentIndex())
         >>> env.reset()["experiment"]
@@ -163,7 +163,7 @@ class RenderPixels(Transform):
 
     Example:
         >>> from torchrl.envs import TransformedEnv
-        >>> from envs.grid import FactoredGridEnv
+        >>> from factorq_envs.grid import FactoredGridEnv
         >>> env = TransformedEnv(FactoredGridEnv(size=3, num_obstacles=1), RenderPixels())
         >>> env.reset()["pixels"].shape
         torch.Size([80, 80, 3])

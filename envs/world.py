@@ -2,7 +2,8 @@
 
 State lives in a ``WorldState`` of plain tensors with a leading batch dimension ``S`` of
 independent worlds; functions return new states and never mutate their inputs. The torchrl env
-(``envs.grid``), the gymnasium env (``envs.gym``) and the compiled fast path all run this logic.
+(``factorq_envs.grid``), the gymnasium env (``factorq_envs.gym``) and the compiled fast path all
+run this logic.
 
 Cells are numbered ``row * size + col``; the start is cell 0 (top-left), the goal the last cell.
 Actions, in the paper's order: 0 north (row - 1), 1 west (col - 1), 2 south (row + 1), 3 east
@@ -19,7 +20,7 @@ from typing import NamedTuple
 
 import torch
 
-from envs.body import (
+from factorq_envs.body import (
     BODIES,
     NUM_HEADINGS,
     SENSOR_LAYOUTS,
@@ -43,7 +44,7 @@ from factorq_torch.base.rng import (
 )
 from factorq_torch.base.validation import check_float, check_int, is_int
 
-#: The paper's body (``envs.body.TRANSLATE``): its actions, in the paper's order.
+#: The paper's body (``factorq_envs.body.TRANSLATE``): its actions, in the paper's order.
 ACTION_NAMES = TRANSLATE.actuators
 NUM_ACTIONS = len(ACTION_NAMES)
 ROW_DELTA = (-1, 0, 1, 0)
@@ -140,12 +141,12 @@ class WorldConfig:
 
     @property
     def body_spec(self) -> Body:
-        """The declaration of ``body`` (``envs.body``)."""
+        """The declaration of ``body`` (``factorq_envs.body``)."""
         return BODIES[self.body]
 
     @property
     def layout(self) -> SensorLayout:
-        """The declaration of the sensor layout ``sensors`` (``envs.body``)."""
+        """The declaration of the sensor layout ``sensors`` (``factorq_envs.body``)."""
         return SENSOR_LAYOUTS[self.sensors]
 
     @property
@@ -589,10 +590,10 @@ def render_world(cell: int, obstacles: torch.Tensor, size: int) -> str:
 
 
 class FactoredGrid:
-    """The FactoredGrid world behind the ``envs.protocol.World`` interface: the functions of
+    """The FactoredGrid world behind the ``factorq_envs.protocol.World`` interface: the functions of
     this module bound to one ``WorldConfig`` (the static layout drawn once, when needed).
 
-    >>> from envs.protocol import World
+    >>> from factorq_envs.protocol import World
     >>> grid = FactoredGrid(WorldConfig(size=3, num_obstacles=0, body="heading"))
     >>> isinstance(grid, World), grid.dependency.nonzero().tolist()
     (True, [[0, 0]])

@@ -20,7 +20,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.envs import Compose, InitTracker, RewardSum, StepCounter, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from envs import ExperimentIndex, FactoredGridEnv, SplitLocalReward
+from factorq_envs import ExperimentIndex, FactoredGridEnv, SplitLocalReward
 from factorq_torch.objectives import FactorQLoss, tabular_optimizer
 from factorq_torch.policy import FactorQPolicy
 from factorq_torch.tables import LocalRewardTable, TaskQTable

@@ -18,7 +18,7 @@ from tensordict.nn import TensorDictSequential
 from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from envs import FactoredGridEnv, RenderPixels, SplitLocalReward
+from factorq_envs import FactoredGridEnv, RenderPixels, SplitLocalReward
 from factorq_torch.collectors import OnlineCollector
 from factorq_torch.objectives import FactorQLoss
 from factorq_torch.policy import FactorQPolicy

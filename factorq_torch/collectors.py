@@ -81,7 +81,7 @@ class OnlineCollector(BaseCollector):
 
     Example:
         >>> from tensordict.nn import TensorDictSequential
-        >>> from envs import FactoredGridEnv
+        >>> from factorq_envs import FactoredGridEnv
         >>> from factorq_torch.objectives import TabularQLoss
         >>> from factorq_torch.policy import EpsilonGreedyPolicy
         >>> from factorq_torch.tables import TaskQTable

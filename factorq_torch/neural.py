@@ -31,7 +31,7 @@ sensed obstacle). Why, with the measurements behind it: ``docs/decisions.md``, "
 Factor-Q's local network".
 
 These are architectural priors, stated here; ``bias``, ``activation`` and ``shared`` are
-arguments so that the difference can be measured (``trainers.compare.FactorDQNConfig``).
+arguments so that the difference can be measured (``factorq_trainers.compare.FactorDQNConfig``).
 """
 
 from __future__ import annotations

@@ -84,7 +84,8 @@ def experiment_index(tensordict: TensorDictBase, num_experiments: int, owner: st
     raise ValueError(
         f"{owner} holds S={num_experiments} experiments but the tensordict has batch_size "
         f"{list(batch)} and no {keys.EXPERIMENT!r} entry: give each transition its experiment "
-        f"index under {keys.EXPERIMENT!r} (envs.transforms.ExperimentIndex writes it), or use "
+        f"index under {keys.EXPERIMENT!r} (factorq_envs.transforms.ExperimentIndex writes it), "
+        f"or use "
         f"batch_size [{num_experiments}] / [{num_experiments}, T] (build the env with "
         f"batch_size=({num_experiments},))"
     )

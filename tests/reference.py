@@ -7,7 +7,7 @@ float32 scalars (the tables' dtype) and the random draws come from the same coun
 
 ``run_body_experiment`` does the same for any body of issue 11, deriving the sensors, each
 actuator's parent sensor and the moves from the sensor and actuator *names* alone (not from
-``envs.body``'s offsets and dependency).
+``factorq_envs.body``'s offsets and dependency).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from envs.world import COL_DELTA, ROW_DELTA, WorldConfig
+from factorq_envs.world import COL_DELTA, ROW_DELTA, WorldConfig
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import POLICY_DRAWS_PER_STEP, probability_threshold, random_bits_int
 

@@ -3,7 +3,7 @@ collisions against ``env.dependency``, distractors, noise, and the agent reading
 
 The expected sensor readings are computed here from the sensor *names* and ``obstacle_map()``
 alone (``front-left`` = one step ahead plus one step left of the heading), independently of
-``envs.body``'s offsets and rotations.
+``factorq_envs.body``'s offsets and rotations.
 """
 
 from __future__ import annotations
@@ -15,15 +15,15 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
-from envs import FactoredGridEnv
-from envs.world import WorldConfig, sense, step_worlds
+from factorq_envs import FactoredGridEnv
+from factorq_envs.world import WorldConfig, sense, step_worlds
 from factorq_torch import functional
 from factorq_torch.base import keys
 from factorq_torch.tables import LocalRewardTable, TaskQTable
 
 
 def fast_available() -> bool:
-    from trainers import fast
+    from factorq_trainers import fast
 
     return fast.is_available()
 
@@ -297,8 +297,8 @@ def test_task_table_indexes_cell_heading_and_the_pattern_of_all_sensors():
     ids=str,
 )
 def test_the_paper_experiment_runs_other_bodies_on_the_modular_path(options):
-    from trainers import paper
-    from trainers.paper import PaperConfig
+    from factorq_trainers import paper
+    from factorq_trainers.paper import PaperConfig
 
     small = {"seeds": 2, "runs": 2, "episodes": 2, "size": 4, "obstacles": 2, "max_steps": 200}
     config = PaperConfig(**small, backend="modular", **options)
@@ -310,8 +310,8 @@ def test_the_paper_experiment_runs_other_bodies_on_the_modular_path(options):
 
 
 def test_factored_grid_implements_the_world_protocol_with_the_world_functions():
-    from envs.protocol import World
-    from envs.world import FactoredGrid, reset_worlds, static_layout
+    from factorq_envs.protocol import World
+    from factorq_envs.world import FactoredGrid, reset_worlds, static_layout
     from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 
     config = WorldConfig(size=5, num_obstacles=4, body="heading", sensors="ring", sensor_noise=0.1)
@@ -334,9 +334,9 @@ def test_factored_grid_implements_the_world_protocol_with_the_world_functions():
 def test_factorq_with_the_oracle_dependency_ignores_diagonals_distractors_and_order():
     # The tables only read each actuator's parent sensor: on ring + distractors, permuted, Factor-Q
     # makes exactly the paper body's decisions (same world and policy streams), bit for bit.
-    from trainers import paper
-    from trainers.paper import PaperConfig
-    from trainers.results import dumps as dumps_results
+    from factorq_trainers import paper
+    from factorq_trainers.paper import PaperConfig
+    from factorq_trainers.results import dumps as dumps_results
 
     small = {
         "seeds": 2,
@@ -356,7 +356,7 @@ def test_factorq_with_the_oracle_dependency_ignores_diagonals_distractors_and_or
 def test_gymnasium_env_gives_the_torchrl_envs_sensors_and_heading_for_the_same_actions():
     import gymnasium
 
-    import envs  # noqa: F401  (registers the id)
+    import factorq_envs  # noqa: F401  (registers the id)
 
     options = {"body": "heading", "sensors": "ring", "num_distractors": 2, "sensor_noise": 0.2}
     world = {"size": 5, "num_obstacles": 4, "obstacle_period": 1}
@@ -394,7 +394,7 @@ def test_local_network_sees_only_each_actuators_parents():
 def test_factorq_paper_command_runs_another_body_and_records_it(tmp_path, capsys):
     import json
 
-    from trainers import cli
+    from factorq_trainers import cli
 
     out = tmp_path / "heading"
     args = ["paper", "--seeds", "1", "--runs", "1", "--episodes", "2", "--size", "4"]
@@ -407,8 +407,8 @@ def test_factorq_paper_command_runs_another_body_and_records_it(tmp_path, capsys
 
 
 def test_factorq_compare_runs_every_method_on_another_body(tmp_path):
-    from trainers import compare
-    from trainers.compare import CompareConfig
+    from factorq_trainers import compare
+    from factorq_trainers.compare import CompareConfig
 
     config = CompareConfig(
         seeds=1, steps=300, size=4, obstacles=1, out=str(tmp_path / "compare"),
@@ -420,7 +420,7 @@ def test_factorq_compare_runs_every_method_on_another_body(tmp_path):
 
 
 def test_the_agent_default_body_is_the_paper_body_declared_in_envs():
-    from envs.body import CROSS, TRANSLATE, base_dependency
+    from factorq_envs.body import CROSS, TRANSLATE, base_dependency
     from factorq_torch.base.config import PAPER_NUM_ACTIONS
 
     assert PAPER_NUM_ACTIONS == len(TRANSLATE.actuators) == CROSS.num_sensors

@@ -15,10 +15,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from trainers import checkpoint, cli, fast, paper
-from trainers.checkpoint import CheckpointError
-from trainers.paper import PaperConfig
-from trainers.results import dumps as dumps_results
+from factorq_trainers import checkpoint, cli, fast, paper
+from factorq_trainers.checkpoint import CheckpointError
+from factorq_trainers.paper import PaperConfig
+from factorq_trainers.results import dumps as dumps_results
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 # Every episode takes at least 10 steps on a 6x6 grid, so each algorithm needs more than the
@@ -447,7 +447,7 @@ EVERY = "100000"
 
 def start(cwd: Path, *args: str) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-m", "trainers.cli", "paper", *args],
+        [sys.executable, "-m", "factorq_trainers.cli", "paper", *args],
         cwd=cwd,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,

@@ -19,8 +19,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from trainers import checkpoint, fast
-from trainers.paper import PaperConfig, run
+from factorq_trainers import checkpoint, fast
+from factorq_trainers.paper import PaperConfig, run
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 #: A checkpoint taken during Factor-Q with Q-learning finished: every kind of field is there.
@@ -106,7 +106,7 @@ def replaced(tree, path: str, value):
 
 def fuzz_child(out: str) -> None:
     """Run in the child: mutate, sign, resume; print one JSON line per attempt."""
-    from trainers import cli
+    from factorq_trainers import cli
 
     path = Path(out) / "checkpoint" / checkpoint.LATEST
     original = torch.load(path, weights_only=True)["content"]
@@ -186,7 +186,7 @@ COMPARE_HARMLESS = ("config/threads", "config/out", "finished/factor-q/wall_s")
 
 
 def test_every_field_of_a_signed_compare_checkpoint_mutated_is_refused_cleanly(tmp_path):
-    from trainers import cli, compare
+    from factorq_trainers import cli, compare
 
     out = tmp_path / "compare"
     config = compare.CompareConfig(
@@ -251,7 +251,7 @@ def _replaced_deep(tree, path: str, value):
 
 
 def _valid_compare_config(data) -> bool:
-    from trainers import compare
+    from factorq_trainers import compare
 
     try:
         compare.config_from_dict(data)
@@ -288,7 +288,7 @@ KERNEL_STATE = [
 )
 @pytest.mark.parametrize("threads", [1, 2])
 def test_the_kernel_refuses_a_state_out_of_range_whatever_its_source(field, value, threads):
-    from envs.world import WorldConfig
+    from factorq_envs.world import WorldConfig
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
 

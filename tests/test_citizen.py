@@ -23,7 +23,7 @@ from torchrl.envs import (
 )
 from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration_type
 
-from envs import ExperimentIndex, FactoredGridEnv, SplitLocalReward
+from factorq_envs import ExperimentIndex, FactoredGridEnv, SplitLocalReward
 from factorq_torch.collectors import OnlineCollector
 from factorq_torch.objectives import FactorQLoss, TabularQLoss, tabular_optimizer
 from factorq_torch.policy import EpsilonGreedyPolicy, FactorQPolicy
@@ -303,7 +303,7 @@ def test_gymnasium_rgb_array_frames_show_the_world_and_pass_the_env_checker():
     import gymnasium
     from gymnasium.utils.env_checker import check_env
 
-    import envs  # noqa: F401  (registers FactoredGrid-v0)
+    import factorq_envs  # noqa: F401  (registers FactoredGrid-v0)
 
     env = gymnasium.make("FactoredGrid-v0", size=4, num_obstacles=3, render_mode="rgb_array")
     check_env(env.unwrapped)
@@ -323,7 +323,7 @@ def test_gymnasium_record_video_writes_a_clip(tmp_path):
     import gymnasium
     from gymnasium.wrappers import RecordVideo
 
-    import envs  # noqa: F401
+    import factorq_envs  # noqa: F401
 
     env = gymnasium.make("FactoredGrid-v0", size=4, num_obstacles=3, render_mode="rgb_array")
     env = RecordVideo(env, str(tmp_path), episode_trigger=lambda episode: True)
@@ -339,19 +339,19 @@ def test_stable_baselines3_make_vec_env_renders_rgb_arrays():
     from stable_baselines3.common.env_checker import check_env
     from stable_baselines3.common.env_util import make_vec_env
 
-    import envs  # noqa: F401
+    import factorq_envs  # noqa: F401
 
     vector = make_vec_env("FactoredGrid-v0", n_envs=2, env_kwargs=dict(size=4, num_obstacles=3))
     vector.reset()
     assert vector.render().ndim == 3  # tiled rgb frames
-    check_env(envs.gym.FactoredGridGym(size=4, num_obstacles=3, render_mode="rgb_array"))
+    check_env(factorq_envs.gym.FactoredGridGym(size=4, num_obstacles=3, render_mode="rgb_array"))
 
 
 def test_torchrl_pixels_are_the_gymnasium_frames():
     import gymnasium
 
-    import envs  # noqa: F401
-    from envs import RenderPixels
+    import factorq_envs  # noqa: F401
+    from factorq_envs import RenderPixels
 
     torchrl_env = TransformedEnv(FactoredGridEnv(size=4, num_obstacles=3, seed=0), RenderPixels())
     gym_env = gymnasium.make("FactoredGrid-v0", size=4, num_obstacles=3, render_mode="rgb_array")
@@ -402,7 +402,7 @@ def test_torchrl_gym_env_reads_the_task_and_local_rewards_from_info():
     from torchrl.envs import GymEnv
     from torchrl.envs.libs.gym import default_info_dict_reader
 
-    import envs  # noqa: F401
+    import factorq_envs  # noqa: F401
 
     env = GymEnv("FactoredGrid-v0", size=4, num_obstacles=3)
     spec = {
@@ -420,7 +420,7 @@ def test_torchrl_video_recorder_records_the_pixels(tmp_path):
     from torchrl.record import VideoRecorder
     from torchrl.record.loggers.csv import CSVLogger
 
-    from envs import RenderPixels
+    from factorq_envs import RenderPixels
 
     logger = CSVLogger("run", log_dir=str(tmp_path), video_format="pt")  # no codec needed
     recorder = VideoRecorder(logger, tag="grid")

@@ -12,7 +12,7 @@ from dataclasses import fields
 
 import pytest
 
-from trainers import cli, fast, options, paper
+from factorq_trainers import cli, fast, options, paper
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 TINY = ["--seeds", "2", "--runs", "1", "--episodes", "2", "--size", "5", "--obstacles", "3"]
@@ -21,7 +21,7 @@ TINY = ["--seeds", "2", "--runs", "1", "--episodes", "2", "--size", "5", "--obst
 def factorq(*args: str, **kwargs) -> subprocess.Popen:
     """``factorq ARGS`` in a subprocess (the module entry point: no installed script needed)."""
     return subprocess.Popen(
-        [sys.executable, "-m", "trainers.cli", *args],
+        [sys.executable, "-m", "factorq_trainers.cli", *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         **kwargs,

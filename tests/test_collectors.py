@@ -8,8 +8,8 @@ import torch
 from tensordict.nn import TensorDictSequential
 from torchrl.envs import TransformedEnv
 
-from envs import FactoredGridEnv, SplitLocalReward
-from envs.world import WorldConfig, static_layout
+from factorq_envs import FactoredGridEnv, SplitLocalReward
+from factorq_envs.world import WorldConfig, static_layout
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import MASK64, STREAM_POLICY, STREAM_WORLD, derive_keys
 from factorq_torch.collectors import OnlineCollector

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from trainers import cli, compare, compare_report, options
-from trainers.dqn import DQNConfig
-from trainers.experiment import ExperimentConfig
+from factorq_trainers import cli, compare, compare_report, options
+from factorq_trainers.dqn import DQNConfig
+from factorq_trainers.experiment import ExperimentConfig
 
 
 def _trace(world: str, steps: list[int], collisions: int = 0, greedy: int = 0) -> dict:

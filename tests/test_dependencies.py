@@ -8,12 +8,12 @@ import pytest
 import torch
 from torchrl.envs import TransformedEnv
 
-from envs import FactoredGridEnv
-from envs.permutation import PermuteSensors, permuted_dependency
-from envs.world import WorldConfig
+from factorq_envs import FactoredGridEnv
+from factorq_envs.permutation import PermuteSensors, permuted_dependency
+from factorq_envs.world import WorldConfig
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import derive_keys
-from trainers import cli, dependencies, fast
+from factorq_trainers import cli, dependencies, fast
 
 TINY = dict(seeds=2, size=4, obstacles=2, runs=2, episodes=1, change_run=1, max_steps=200)
 

@@ -1,4 +1,4 @@
-"""The fused fast path (trainers.fast and its C kernel) against the slow reference and the
+"""The fused fast path (factorq_trainers.fast and its C kernel) against the slow reference and the
 pure-torch world and equations: equal bit for bit, whatever the chunking, threads and batch."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 import torch
 from reference import run_experiment  # tests/reference.py: pytest puts tests/ on sys.path
 
-from envs.world import (
+from factorq_envs.world import (
     WorldConfig,
     empty_state,
     reset_worlds,
@@ -32,7 +32,7 @@ from factorq_torch.base.rng import (
     randint_from_bits,
     random_bits,
 )
-from trainers import fast
+from factorq_trainers import fast
 
 pytestmark = pytest.mark.skipif(
     not fast.is_available(), reason=f"fast path unavailable: {fast.unavailable_reason()}"

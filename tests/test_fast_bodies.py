@@ -8,9 +8,9 @@ import random
 
 import pytest
 
-from trainers import fast, paper
-from trainers.paper import PaperConfig
-from trainers.results import dumps as dumps_results
+from factorq_trainers import fast, paper
+from factorq_trainers.paper import PaperConfig
+from factorq_trainers.results import dumps as dumps_results
 
 pytestmark = pytest.mark.skipif(
     not fast.is_available(), reason=f"fast path unavailable: {fast.unavailable_reason()}"
@@ -61,7 +61,7 @@ def test_kernel_results_for_a_body_do_not_depend_on_threads_or_chunking():
 def test_a_body_batch_resumes_exactly_from_its_state_dict():
     import torch
 
-    from envs.world import WorldConfig
+    from factorq_envs.world import WorldConfig
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
 
@@ -104,7 +104,7 @@ def test_kernel_equals_the_reference_written_from_the_sensor_names(draw):
     import torch
     from reference import run_body_experiment  # tests/reference.py
 
-    from envs.world import static_layout
+    from factorq_envs.world import static_layout
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import MASK64, STREAM_POLICY, STREAM_WORLD, derive_keys
 

@@ -7,8 +7,8 @@ import torch
 import torch.nn.functional as F
 from torchrl.envs.utils import check_env_specs, step_mdp
 
-from envs import FactoredGridEnv
-from envs.world import COL_DELTA, ROW_DELTA
+from factorq_envs import FactoredGridEnv
+from factorq_envs.world import COL_DELTA, ROW_DELTA
 from factorq_torch.base.rng import MASK64, STREAM_WORLD, derive_keys
 
 

@@ -7,9 +7,9 @@ import torch
 from gymnasium.utils.env_checker import check_env
 from torchrl.envs.utils import step_mdp
 
-import envs  # noqa: F401  (registers "FactoredGrid-v0")
-from envs import FactoredGridEnv
-from envs.gym import FactoredGridGym
+import factorq_envs  # noqa: F401  (registers "FactoredGrid-v0")
+from factorq_envs import FactoredGridEnv
+from factorq_envs.gym import FactoredGridGym
 
 
 @pytest.mark.parametrize("obstacle_period", [0, 10, 1])

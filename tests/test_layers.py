@@ -1,8 +1,9 @@
 """The import layers (docs/architecture.md): every module imports only its own layer or below.
 
-base (``factorq_torch.base``) -> worlds (``envs``) -> agent (the rest of ``factorq_torch``) ->
-compiled path (``trainers.fast``) -> trainers (``trainers``) -> CLI (``trainers.cli``). Imports
-inside functions count too, and no two modules may import each other through any chain.
+base (``factorq_torch.base``) -> worlds (``factorq_envs``, folder ``envs/``) -> agent (the rest of
+``factorq_torch``) -> compiled path (``factorq_trainers.fast``) -> trainers (``factorq_trainers``,
+folder ``trainers/``) -> CLI (``factorq_trainers.cli``). Imports inside functions count too, and no
+two modules may import each other through any chain.
 """
 
 from __future__ import annotations
@@ -13,7 +14,14 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("factorq_torch", "envs", "trainers")
+#: the installed package name -> its folder in the repository (pyproject's ``package-dir``)
+PACKAGES = {
+    "factorq_torch": "factorq_torch",
+    "factorq_envs": "envs",
+    "factorq_trainers": "trainers",
+}
+#: the folder names the wheel does not install: nothing may import them
+FOLDER_NAMES = ("envs", "trainers")
 LAYERS = ("base", "worlds", "agent", "compiled", "trainers", "cli")
 
 
@@ -21,13 +29,13 @@ def layer_of(module: str) -> str:
     """The layer a project module belongs to."""
     if module == "factorq_torch.base" or module.startswith("factorq_torch.base."):
         return "base"
-    if module.split(".")[0] == "envs":
+    if module.split(".")[0] == "factorq_envs":
         return "worlds"
     if module.split(".")[0] == "factorq_torch":
         return "agent"
-    if module == "trainers.fast":
+    if module == "factorq_trainers.fast":
         return "compiled"
-    if module == "trainers.cli":
+    if module == "factorq_trainers.cli":
         return "cli"
     return "trainers"
 
@@ -35,9 +43,9 @@ def layer_of(module: str) -> str:
 def project_modules() -> dict[str, Path]:
     """Every module of the three packages, by dotted name."""
     modules = {}
-    for package in PACKAGES:
-        for path in sorted((ROOT / package).rglob("*.py")):
-            parts = path.relative_to(ROOT).with_suffix("").parts
+    for package, folder in PACKAGES.items():
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            parts = (package, *path.relative_to(ROOT / folder).with_suffix("").parts)
             name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
             modules[name] = path
     return modules
@@ -74,9 +82,9 @@ GRAPH = {name: imports_of(name, path, MODULES) for name, path in MODULES.items()
 def test_every_package_has_modules_in_the_walk():
     assert {
         "factorq_torch.base.rng",
-        "envs.world",
+        "factorq_envs.world",
         "factorq_torch.functional",
-        "trainers.fast",
+        "factorq_trainers.fast",
     } <= set(MODULES)
 
 
@@ -99,3 +107,39 @@ def test_no_module_imports_itself_through_a_chain():
 
     circles = sorted(name for name in GRAPH if name in reach(name))
     assert not circles, f"modules on an import circle: {circles}"
+
+
+def bare_folder_imports(path: Path) -> list[str]:
+    """The imports in ``path`` of a folder name the wheel does not install (``envs``,
+    ``trainers``)."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            names = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and not node.level:
+            names = [node.module or ""]
+        else:
+            continue
+        found += [
+            f"{path.name}:{node.lineno} {n}" for n in names if n.split(".")[0] in FOLDER_NAMES
+        ]
+    return found
+
+
+def test_bare_folder_imports_are_found(tmp_path):
+    source = tmp_path / "m.py"
+    source.write_text("import os\nfrom envs.world import x\ndef f():\n    import trainers.cli\n")
+    assert bare_folder_imports(source) == ["m.py:2 envs.world", "m.py:4 trainers.cli"]
+
+
+def test_nothing_imports_the_folder_names():
+    """The repository's folders ``envs/`` and ``trainers/`` install as ``factorq_envs`` and
+    ``factorq_trainers``; a bare ``import envs`` works only from a checkout (or finds another
+    distribution's ``envs``), so no code, test, example or benchmark may use it."""
+    files = [
+        p
+        for d in ("factorq_torch", "envs", "trainers", "tests", "examples", "benchmarks")
+        for p in sorted((ROOT / d).rglob("*.py"))
+    ]
+    bad = [hit for path in files for hit in bare_folder_imports(path)]
+    assert not bad, f"imports of uninstalled folder names: {bad}"

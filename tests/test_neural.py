@@ -8,7 +8,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictSequential
 from torchrl.envs import TransformedEnv
 
-from envs import FactoredGridEnv, SplitLocalReward
+from factorq_envs import FactoredGridEnv, SplitLocalReward
 from factorq_torch.base.rng import derive_keys
 from factorq_torch.collectors import OnlineCollector
 from factorq_torch.neural import (

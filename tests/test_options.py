@@ -7,10 +7,10 @@ from dataclasses import dataclass
 
 import pytest
 
-from trainers import options
-from trainers.compare import CompareConfig
-from trainers.options import option
-from trainers.paper import PaperConfig
+from factorq_trainers import options
+from factorq_trainers.compare import CompareConfig
+from factorq_trainers.options import option
+from factorq_trainers.paper import PaperConfig
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ import textwrap
 
 import pytest
 
-from trainers.outdir import LOCK_FILE, OutputDirError, claim
+from factorq_trainers.outdir import LOCK_FILE, OutputDirError, claim
 
 
 def hold_lock_in_another_process(out):
@@ -15,7 +15,7 @@ def hold_lock_in_another_process(out):
     script = textwrap.dedent(
         f"""
         import sys, time
-        from trainers.outdir import claim
+        from factorq_trainers.outdir import claim
         with claim({str(out)!r}):
             print("held", flush=True)
             sys.stdin.readline()

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from trainers import fast, options, paper
-from trainers.paper import PaperConfig
-from trainers.results import dumps as dumps_results
-from trainers.schema import SCHEMA_VERSION, check_results
+from factorq_trainers import fast, options, paper
+from factorq_trainers.paper import PaperConfig
+from factorq_trainers.results import dumps as dumps_results
+from factorq_trainers.schema import SCHEMA_VERSION, check_results
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 TINY = {"seeds": 2, "runs": 2, "episodes": 3, "size": 5, "obstacles": 3}

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import pytest
 
-from trainers import fast, paper
-from trainers.paper import PaperConfig
-from trainers.results import dumps as dumps_results
+from factorq_trainers import fast, paper
+from factorq_trainers.paper import PaperConfig
+from factorq_trainers.results import dumps as dumps_results
 
 FIGURES = json.loads((Path(__file__).parent / "data" / "paper_figures.json").read_text())
 

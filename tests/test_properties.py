@@ -8,7 +8,7 @@ import torch
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from envs.world import (
+from factorq_envs.world import (
     NUM_ACTIONS,
     WorldConfig,
     empty_state,
@@ -19,7 +19,7 @@ from envs.world import (
 )
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 from factorq_torch.functional import combined_values, normaliser, running_mean_update
-from trainers import fast
+from factorq_trainers import fast
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 finite32 = st.floats(

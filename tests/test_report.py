@@ -8,8 +8,8 @@ import struct
 import numpy as np
 import pytest
 
-from trainers import paper, report
-from trainers.paper import PaperConfig
+from factorq_trainers import paper, report
+from factorq_trainers.paper import PaperConfig
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

@@ -10,9 +10,9 @@ import re
 
 import pytest
 
-from trainers import cli, resources
-from trainers.compare import CompareConfig
-from trainers.paper import PaperConfig
+from factorq_trainers import cli, resources
+from factorq_trainers.compare import CompareConfig
+from factorq_trainers.paper import PaperConfig
 
 NEEDS = r"needs about [\d.]+ [KMGTP]iB of memory \(.+\) but [\d.]+ [KMGTP]?i?B is available"
 PAPER_HINT = r"use fewer --seeds, --runs or --episodes, or a smaller --size"
@@ -73,7 +73,7 @@ def test_a_large_run_that_fits_prints_its_estimate_first(tmp_path, monkeypatch):
 
 def test_the_library_entry_points_check_too(tmp_path, monkeypatch):
     monkeypatch.setenv(resources.LIMIT_VARIABLE, "1000")
-    from trainers import compare, paper
+    from factorq_trainers import compare, paper
 
     with pytest.raises(resources.ResourceError, match=r"this run needs about .* but 1000 B is"):
         paper.run(PaperConfig(seeds=1, runs=1, episodes=1, size=4, obstacles=1, out=str(tmp_path)))

@@ -7,9 +7,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from trainers import fast, paper, shards
-from trainers import results as result_files
-from trainers.paper import PaperConfig
+from factorq_trainers import fast, paper, shards
+from factorq_trainers import results as result_files
+from factorq_trainers.paper import PaperConfig
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 SMALL = {"seeds": 6, "runs": 2, "episodes": 6, "size": 6, "obstacles": 4}

@@ -9,7 +9,7 @@ import torch
 from tensordict.nn import TensorDictSequential
 from torchrl.envs import TransformedEnv
 
-from envs import FactoredGridEnv, SplitLocalReward
+from factorq_envs import FactoredGridEnv, SplitLocalReward
 from factorq_torch.collectors import OnlineCollector
 from factorq_torch.objectives import FactorQLoss
 from factorq_torch.policy import FactorQPolicy

@@ -12,9 +12,9 @@ from dataclasses import fields, replace
 
 import pytest
 
-from trainers import cli, cluster, fast, paper, shards, sweep
-from trainers import results as result_files
-from trainers.sweep import SweepError, SweepSpec
+from factorq_trainers import cli, cluster, fast, paper, shards, sweep
+from factorq_trainers import results as result_files
+from factorq_trainers.sweep import SweepError, SweepSpec
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 BASE = (("runs", 1), ("episodes", 4), ("size", 5), ("obstacles", 3))
@@ -214,7 +214,7 @@ def test_paper_shard_seeds_in_process_writes_the_same_results_as_a_plain_run(tmp
 def test_a_sweep_killed_with_sigkill_resumes_from_its_shard_files_with_the_same_numbers(tmp_path):
     out = tmp_path / "killed"
     argv = ["--grid", "eta=0.05,0.1", "--seeds", "40", "--shard-seeds", "5", "--out", str(out)]
-    command = [sys.executable, "-m", "trainers.cli", "sweep", *argv]
+    command = [sys.executable, "-m", "factorq_trainers.cli", "sweep", *argv]
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 120
@@ -257,7 +257,7 @@ def _without_wall_s(value):
 
 
 def test_every_compare_config_field_but_nested_and_the_sweeps_own_is_sweepable():
-    from trainers import compare
+    from factorq_trainers import compare
 
     skipped = {*sweep.COMPARE_RESERVED, "agent", "dqn", "factor_dqn"}
     names = [f.name for f in fields(compare.CompareConfig) if f.name not in skipped]
@@ -266,7 +266,7 @@ def test_every_compare_config_field_but_nested_and_the_sweeps_own_is_sweepable()
 
 
 def test_a_compare_sweep_cell_equals_factorq_compare_and_resumes(tmp_path, capsys):
-    from trainers import compare
+    from factorq_trainers import compare
 
     spec_file = tmp_path / "compare.toml"
     spec_file.write_text(COMPARE_TOML)

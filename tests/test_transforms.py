@@ -6,7 +6,7 @@ from torchrl.data import Unbounded
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import check_env_specs, step_mdp
 
-from envs import FactoredGridEnv, SplitLocalReward
+from factorq_envs import FactoredGridEnv, SplitLocalReward
 from factorq_torch.functional import qlearning_state
 from factorq_torch.functional import sensor_pattern as proximity_pattern
 

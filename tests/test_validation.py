@@ -29,21 +29,21 @@ import pytest
 import torch
 from tensordict.nn import TensorDictSequential
 
-from envs import FactoredGridEnv, WorldConfig
-from envs.world import static_layout
+from factorq_envs import FactoredGridEnv, WorldConfig
+from factorq_envs.world import static_layout
 from factorq_torch.base import rng
 from factorq_torch.base.config import AgentConfig, check_algorithm
 from factorq_torch.collectors import OnlineCollector
 from factorq_torch.objectives import FactorQLoss, TabularQLoss
 from factorq_torch.policy import EpsilonGreedyPolicy, FactorQPolicy
 from factorq_torch.tables import LocalRewardTable, TaskQTable
-from trainers import checkpoint, cli, fast, paper, report
-from trainers.checkpoint import CheckpointError
-from trainers.claims import compute_claims
-from trainers.dqn import DQNConfig
-from trainers.experiment import ExperimentConfig
-from trainers.paper import PaperConfig
-from trainers.stats import t_critical
+from factorq_trainers import checkpoint, cli, fast, paper, report
+from factorq_trainers.checkpoint import CheckpointError
+from factorq_trainers.claims import compute_claims
+from factorq_trainers.dqn import DQNConfig
+from factorq_trainers.experiment import ExperimentConfig
+from factorq_trainers.paper import PaperConfig
+from factorq_trainers.stats import t_critical
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 # Prepended to `factorq paper` and `factorq compare` rows (later options win): should a check ever
@@ -255,7 +255,7 @@ def nan_table_to(what: str) -> None:
     else:
         from torchrl.envs import TransformedEnv
 
-        from envs.transforms import SplitLocalReward
+        from factorq_envs.transforms import SplitLocalReward
 
         env = TransformedEnv(env, SplitLocalReward()) if factor else env
         td = env.reset()
@@ -356,14 +356,14 @@ TRIED = [
     ),
     factorq("paper --out {file}", r"--out='.*a_file.txt' is an existing file: give a directory"),
     factorq("paper --sides 4", r"unrecognized arguments: --sides 4"),
-    # factorq paper: one writer per --out, checked before any work (trainers.outdir)
+    # factorq paper: one writer per --out, checked before any work (factorq_trainers.outdir)
     factorq("paper --out {finished-run}", r"--out='.*finished' already holds results.json from an earlier run: pass --force to replace them, or choose another --out"),
     factorq("paper --force --seeds 0", rf"--seeds=0 {RANGE} in \[1, 2147483647\]"),
     factorq("paper --out {locked}", r"--out='.*live' is in use by another factorq run \(pid 4242\): wait for it to finish, or choose another --out \(refusing to write to it at the same time\)"),
     factorq("paper --resume {locked-checkpoint}", r"--out='.*run' is in use by another factorq run \(pid 4242\): .* \(refusing to resume it at the same time\)"),
     factorq("paper --out {under-file}", r"--out='.*a_file.txt/out' is not writable: Not a directory"),
     factorq("paper --out /proc/factorq-out", r"--out='/proc/factorq-out' is not writable: "),
-    # factorq paper: shards and clusters (trainers.sweep, trainers.cluster)
+    # factorq paper: shards and clusters (factorq_trainers.sweep, factorq_trainers.cluster)
     factorq("paper --first-seed -1", rf"--first-seed=-1 {RANGE} in \[0, 2147483647\]"),
     factorq("paper --first-seed 2147483648", rf"--first-seed=2147483648 {RANGE} in \[0, 2147483647\]"),
     factorq("paper --shard-seeds 0", rf"--shard-seeds=0 {RANGE} in \[1, 2147483647\]"),
@@ -559,7 +559,7 @@ TRIED = [
     ("OnlineCollector(tables of another S)", lambda _: collector(tables=3), ValueError, r"env has batch_size \[2\] but TaskQTable holds S=3 experiments"),
     ("derive_keys(count=-1)", lambda _: rng.derive_keys(0, rng.STREAM_WORLD, -1), ValueError, rf"count=-1 {RANGE} >= 0"),
     ("probability_threshold(1.5)", lambda _: rng.probability_threshold(1.5), ValueError, rf"probability=1.5 {RANGE} in \[0, 1\]"),
-    # trainers.fast
+    # factorq_trainers.fast
     fast_row("ExperimentBatch('sarsa')", lambda _: batch("sarsa"), ValueError, r"algorithm='sarsa' is unknown: choose one of q-learning, factor-q, random-walk"),
     fast_row("ExperimentBatch(runs=0)", lambda _: batch(runs=0), ValueError, rf"runs=0 {RANGE} >= 1"),
     fast_row("ExperimentBatch(threads=0)", lambda _: batch(threads=0), ValueError, rf"threads=0 {RANGE} >= 1"),

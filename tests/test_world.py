@@ -8,7 +8,7 @@ import pytest
 import reference  # tests/reference.py: pytest puts tests/ on sys.path (no __init__.py)
 import torch
 
-from envs.world import (
+from factorq_envs.world import (
     NUM_ACTIONS,
     WorldConfig,
     WorldState,
@@ -383,7 +383,7 @@ def test_reset_step_and_observe_run_on_the_meta_device_so_never_synchronise_with
     # A meta tensor has no data: .item(), bool(), nonzero() and data-dependent shapes raise on it.
     # The world's functions running on meta is the proof that a step never waits for the device
     # (GPU readiness: CUDA graphs, torch.compile without graph breaks).
-    from envs.world import FactoredGrid
+    from factorq_envs.world import FactoredGrid
 
     config = WorldConfig(**options)
     count = 6

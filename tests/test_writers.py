@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from trainers import cli, compare_report, fast
+from factorq_trainers import cli, compare_report, fast
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 # Some seconds of work on one thread, a checkpoint every 20 k episodes.
@@ -33,7 +33,7 @@ def factorq(*args: str) -> tuple[int, str]:
 def test_a_live_run_owns_its_out_until_it_dies(tmp_path):
     out = tmp_path / "run"
     process = subprocess.Popen(
-        [sys.executable, "-m", "trainers.cli", "paper", *LIVE, "--out", str(out)]
+        [sys.executable, "-m", "factorq_trainers.cli", "paper", *LIVE, "--out", str(out)]
         + ["--checkpoint-every", "20000"],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
@@ -129,7 +129,7 @@ def test_a_comparison_killed_and_resumed_writes_the_same_results(tmp_path, monke
     reference_dir.mkdir()
     killed_dir.mkdir()
     process = subprocess.Popen(
-        [sys.executable, "-m", "trainers.cli", "compare", *COMPARED],
+        [sys.executable, "-m", "factorq_trainers.cli", "compare", *COMPARED],
         cwd=killed_dir,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,

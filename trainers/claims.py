@@ -2,7 +2,7 @@
 
 ``compute_claims`` reads only the ``per_seed`` lists of the cells of ``results.json`` (per seed,
 the measure per run); each claim's statistic gets a percentile bootstrap interval over seeds
-(``trainers.stats``), paired across cells because the cells of one seed index share their
+(``factorq_trainers.stats``), paired across cells because the cells of one seed index share their
 world's random numbers.
 """
 
@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from envs.world import WORLDS
+from factorq_envs.world import WORLDS
 from factorq_torch.base.config import ALGORITHMS
-from trainers.stats import bootstrap_indices, finite_or_none, format_number, quantiles
+from factorq_trainers.stats import bootstrap_indices, finite_or_none, format_number, quantiles
 
 #: The measures of a cell, per run (totals over the episodes of a run, mean over the runs).
 MEASURES = ("total_steps", "collisions", "greedy_collisions")

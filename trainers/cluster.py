@@ -1,8 +1,8 @@
 """Where shards run: here, one after another (the default, no Dask needed), or on a Dask cluster.
 
 An *executor* runs one function over a list of items and yields ``(index, result)`` pairs as
-they finish, in any order; whoever consumes them (``trainers.sweep``) writes each result down at
-once. Two executors:
+they finish, in any order; whoever consumes them (``factorq_trainers.sweep``) writes each result
+down at once. Two executors:
 
 - ``InProcess``: a plain loop in this process.
 - ``DaskExecutor``: ``distributed.Client.submit`` per item on a ``LocalCluster`` started here

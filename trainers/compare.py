@@ -9,10 +9,10 @@ the three worlds, for ``seeds`` independent experiments and a budget of ``steps`
 not the paper's runs x episodes protocol: a budget of env steps is what makes DQN, which trains on
 a replay buffer, comparable with the online methods. Tabular methods and Factor-DQN run in the
 project's ``OnlineCollector`` (one run, stepped ``steps`` times), DQN in torchrl's ``Collector``
-(``trainers.dqn``).
+(``factorq_trainers.dqn``).
 
 **The swap.** Factor-Q and Factor-DQN run the very same code (``run_online``, with the agent of
-``trainers.experiment.online_agent``): env with ``SplitLocalReward``, ``FactorQPolicy``
+``factorq_trainers.experiment.online_agent``): env with ``SplitLocalReward``, ``FactorQPolicy``
 (eqs. 2-3), ``FactorQLoss`` (eq. 4, and eq. 5 or its regression), ``OnlineCollector``. Only
 ``value_providers`` differs: tables and SGD(lr 1), or networks (``factorq_torch.neural``) and
 Adam.
@@ -47,19 +47,19 @@ from typing import Any
 import numpy as np
 import torch
 
-from envs.world import shortest_path_length as path_length_around
-from envs.world import static_layout
+from factorq_envs.world import shortest_path_length as path_length_around
+from factorq_envs.world import static_layout
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import STREAM_LOCAL_NETWORK, STREAM_POLICY, STREAM_TASK_NETWORK
 from factorq_torch.base.validation import check_float, check_hidden, check_names, check_threads
 from factorq_torch.collectors import OnlineCollector
 from factorq_torch.neural import ACTIVATIONS, LocalRewardNetwork, TaskQNetwork
-from trainers import checkpoint, compare_checkpoint, dqn, experiment, resources
-from trainers.compare_checkpoint import CompareCheckpoint
-from trainers.dqn import METHODS, DQNConfig, batch_keys
-from trainers.experiment import WORLDS, EpisodeRecorder, ExperimentConfig
-from trainers.options import option
-from trainers.stats import finite_or_none, mean_ci, scalar_ci
+from factorq_trainers import checkpoint, compare_checkpoint, dqn, experiment, resources
+from factorq_trainers.compare_checkpoint import CompareCheckpoint
+from factorq_trainers.dqn import METHODS, DQNConfig, batch_keys
+from factorq_trainers.experiment import WORLDS, EpisodeRecorder, ExperimentConfig
+from factorq_trainers.options import option
+from factorq_trainers.stats import finite_or_none, mean_ci, scalar_ci
 
 LOGGERS = ("csv", "tensorboard")
 THRESHOLD_FACTOR = 1.5
@@ -159,7 +159,7 @@ class CompareConfig:
         AgentConfig(),
         "Tabular and Factor-DQN parameters: epsilon, gamma, alpha, eta, g_min (the paper's).",
     )
-    dqn: DQNConfig = option(DQNConfig(), "DQN's hyperparameters (trainers.dqn).")
+    dqn: DQNConfig = option(DQNConfig(), "DQN's hyperparameters (factorq_trainers.dqn).")
     factor_dqn: FactorDQNConfig = option(
         FactorDQNConfig(), "Factor-DQN's networks and learning rates."
     )
@@ -260,7 +260,7 @@ def value_providers(
 def run_online(method: str, config: CompareConfig, logger=None, progress=None) -> dict[str, Any]:
     """Tabular Factor-Q, tabular Q-learning or Factor-DQN for the step budget (OnlineCollector).
 
-    Returns ``{"traces", "wall_s"}`` like ``trainers.dqn.run``.
+    Returns ``{"traces", "wall_s"}`` like ``factorq_trainers.dqn.run``.
     """
     started = time.perf_counter()
     experiments, agent = config.experiments, config.agent

@@ -1,8 +1,9 @@
 """``factorq compare``'s checkpoint: the finished methods' traces, saved after each method, and
 their checks on resume (issue 14). A method's numbers do not depend on the others, so a resumed
 comparison skips the finished methods and repeats an uninterrupted one exactly. The file goes
-through ``trainers.checkpoint`` (atomic, digest, safe loading); every field is checked against the
-config before use. The config is read by its fields (this module does not import ``compare``).
+through ``factorq_trainers.checkpoint`` (atomic, digest, safe loading); every field is checked
+against the config before use. The config is read by its fields (this module does not import
+``compare``).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from trainers import checkpoint
+from factorq_trainers import checkpoint
 
 _TRACE_ARRAYS = {
     "steps": torch.int64,
@@ -48,7 +49,8 @@ class CompareCheckpoint(NamedTuple):
 
 
 def save(out: str | os.PathLike, config: dict[str, Any], runs: dict[str, dict[str, Any]]) -> Path:
-    """Save the finished methods' traces to ``out/checkpoint/`` (``trainers.checkpoint``)."""
+    """Save the finished methods' traces to ``out/checkpoint/``
+    (``factorq_trainers.checkpoint``)."""
     finished = {}
     for method, run in runs.items():
         traces = [

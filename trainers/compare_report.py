@@ -1,6 +1,6 @@
 """The files of ``factorq compare``: ``comparison.json``, ``comparison.png``, ``comparison.md``.
 
-Everything here reads the results dict of ``trainers.compare.run`` and computes nothing new.
+Everything here reads the results dict of ``factorq_trainers.compare.run`` and computes nothing new.
 """
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from trainers.compare import METHOD_LABELS, THRESHOLD_FACTOR
-from trainers.results import dumps, write_all_atomic
+from factorq_trainers.compare import METHOD_LABELS, THRESHOLD_FACTOR
+from factorq_trainers.results import dumps, write_all_atomic
 
 JSON_FILE = "comparison.json"
 FIGURE_FILE = "comparison.png"
@@ -131,7 +131,7 @@ def report_markdown(results: dict[str, Any]) -> str:
 
 def staging_logs(out: str | os.PathLike) -> Path:
     """A fresh directory in ``out`` for this run's logs until ``write_outputs`` renames it to
-    ``out/logs`` (named like the temporaries ``trainers.outdir`` cleans up after a kill)."""
+    ``out/logs`` (named like the temporaries ``factorq_trainers.outdir`` cleans up after a kill)."""
     staging = Path(out) / f".{LOGS_DIRECTORY}.{os.getpid()}.tmp"
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)

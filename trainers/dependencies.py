@@ -7,7 +7,8 @@ methods on the same worlds (common random numbers: the same world keys):
 - ``learned``: ``factorq_torch.structure.StructureLearner`` as the local value provider, through
   ``FactorQPolicy``, ``FactorQLoss`` and ``OnlineCollector`` (the modular torchrl path), told
   nothing of the body; every experiment receives its sensors in its own random order
-  (``envs.permutation.PermuteSensors``), redrawn at run ``change_run`` in the ``change`` setting;
+  (``factorq_envs.permutation.PermuteSensors``), redrawn at run ``change_run`` in the ``change``
+  setting;
 - ``oracle``: ``LocalRewardTable`` with the true dependency (the paper), on the compiled path;
 - ``joint``: Factor-Q with one local table per actuator over the pattern of *all* sensors (the
   paper's footnote 2), compiled, where ``2**K`` entries fit (``tables.MAX_PARENTS``);
@@ -40,14 +41,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from envs.world import WORLD_PERIODS, WORLDS, WorldConfig
+from factorq_envs.world import WORLD_PERIODS, WORLDS, WorldConfig
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
 from factorq_torch.base.validation import check_int, check_names
-from trainers.experiment import MAX_SEED, check_world_options, experiment_keys
-from trainers.options import option
-from trainers.results import dumps, write_all_atomic
-from trainers.stats import bootstrap_indices, format_number, quantiles
+from factorq_trainers.experiment import MAX_SEED, check_world_options, experiment_keys
+from factorq_trainers.options import option
+from factorq_trainers.results import dumps, write_all_atomic
+from factorq_trainers.stats import bootstrap_indices, format_number, quantiles
 
 #: The settings of the issue: name -> body options (the sensor order is drawn per experiment).
 SETTINGS: dict[str, dict[str, Any]] = {
@@ -163,14 +164,14 @@ def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     from tensordict.nn import TensorDictSequential
     from torchrl.envs import Compose, TransformedEnv
 
-    from envs.permutation import PermuteSensors, permuted_dependency
-    from envs.transforms import SplitLocalReward
+    from factorq_envs.permutation import PermuteSensors, permuted_dependency
+    from factorq_envs.transforms import SplitLocalReward
     from factorq_torch.collectors import OnlineCollector
     from factorq_torch.objectives import FactorQLoss
     from factorq_torch.policy import FactorQPolicy
     from factorq_torch.structure import StructureLearner
     from factorq_torch.tables import TaskQTable
-    from trainers.experiment import make_env
+    from factorq_trainers.experiment import make_env
 
     world, agent = config.world_of(setting), AgentConfig()
     count, num_sensors = config.seeds, world.num_sensors
@@ -252,7 +253,7 @@ def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
 def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[str, Any] | None:
     """The oracle, the joint table or Q-learning on the compiled path (``None``: does not fit
     or cannot run this setting; the reason is in ``skipped``)."""
-    from trainers import fast
+    from factorq_trainers import fast
 
     world = config.world_of(setting)
     world_keys, policy_keys = _keys(config, method)
@@ -280,7 +281,7 @@ def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[
 def skipped_reason(config: DependenciesConfig, setting: str, method: str) -> str | None:
     """Why ``method`` does not run in ``setting`` (``None``: it runs)."""
     from factorq_torch.tables import MAX_PARENTS, MAX_TABLE_ENTRIES
-    from trainers import fast
+    from factorq_trainers import fast
 
     world = config.world_of(setting)
     if method == "learned":

@@ -31,7 +31,7 @@ annealing itself, once per call that explores (no schedule to step by hand, DESI
 **Defaults** follow CleanRL's ``dqn.py`` and torchrl's DQN example, scaled to this world; their
 sources and the measurements behind the scaling are in ``docs/decisions.md`` (Baselines).
 
-Per episode of every experiment (``trainers.experiment.EpisodeRecorder``): path length,
+Per episode of every experiment (``factorq_trainers.experiment.EpisodeRecorder``): path length,
 collisions, greedy collisions (collisions on non-exploratory actions), task return (step + goal
 rewards, as the tabular trainers record it), env steps so far, epsilon and loss.
 """
@@ -53,13 +53,13 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 from torchrl.modules import EGreedyModule, QValueModule
 from torchrl.objectives import DQNLoss, HardUpdate
 
-from envs.grid import FactoredGridEnv
-from envs.world import NUM_ACTIONS
+from factorq_envs.grid import FactoredGridEnv
+from factorq_envs.world import NUM_ACTIONS
 from factorq_torch.base.rng import STREAM_TASK_NETWORK, STREAM_WORLD
 from factorq_torch.base.validation import INT32_MAX, check_float, check_hidden, check_int
 from factorq_torch.neural import TaskQNetwork
-from trainers.experiment import EpisodeRecorder, ExperimentConfig, experiment_keys, make_env
-from trainers.options import option
+from factorq_trainers.experiment import EpisodeRecorder, ExperimentConfig, experiment_keys, make_env
+from factorq_trainers.options import option
 
 with warnings.catch_warnings():
     # torchrl 0.14.1 warns about its own deprecated weight updaters when the package is imported.
@@ -67,7 +67,7 @@ with warnings.catch_warnings():
     from torchrl.collectors import Collector
 
 #: The widest hidden layer a config accepts (a layer's weights are [E, width, width] float32).
-#: Methods of ``trainers.compare``; a method's index is part of its experiments' keys.
+#: Methods of ``factorq_trainers.compare``; a method's index is part of its experiments' keys.
 METHODS = ("factor-q", "q-learning", "dqn", "factor-dqn")
 # --------------------------------------------------------------------------------------------
 # Validation
@@ -77,8 +77,8 @@ def batch_keys(
     experiments: ExperimentConfig, stream: int, method: str | None = None
 ) -> torch.Tensor:
     """Keys ``[E]`` of ``stream`` for the experiments of ``factorq compare``'s batch: number
-    ``3 i + w`` (as ``trainers.paper``'s worlds), or with a ``method`` number ``4 (3 i + w) + m``
-    (``m`` its index in ``METHODS``); see ``trainers.experiment.experiment_keys``."""
+    ``3 i + w`` (as ``factorq_trainers.paper``'s worlds), or with a ``method`` number ``4 (3 i + w)
+    + m`` (``m`` its index in ``METHODS``); see ``factorq_trainers.experiment.experiment_keys``."""
     return experiment_keys(experiments.seed, stream, experiments.labels, METHODS, method)
 
 

@@ -1,7 +1,7 @@
 """What every experiment is built from: keys, the env, the online agents, episode records.
 
-``trainers.paper``, ``trainers.compare`` and ``trainers.dqn`` assemble their experiments from
-these pieces rather than each its own copy:
+``factorq_trainers.paper``, ``factorq_trainers.compare`` and ``factorq_trainers.dqn`` assemble
+their experiments from these pieces rather than each its own copy:
 
 - ``experiment_keys``: the random stream key of each experiment of a batch, numbered so that an
   experiment draws the same numbers whatever else is selected;
@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from envs.world import WORLD_PERIODS, WORLDS, WorldConfig, static_layout
+from factorq_envs.world import WORLD_PERIODS, WORLDS, WorldConfig, static_layout
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import derive_keys
 from factorq_torch.base.validation import (
@@ -35,12 +35,12 @@ from factorq_torch.base.validation import (
     check_names,
     check_table_size,
 )
-from trainers.options import option
+from factorq_trainers.options import option
 
 if TYPE_CHECKING:  # torchrl and tensordict load only on the paths that step an env
     from tensordict import TensorDictBase
 
-    from envs.grid import FactoredGridEnv
+    from factorq_envs.grid import FactoredGridEnv
 
 #: The largest seed a config accepts (keys are derived in 64-bit arithmetic).
 MAX_SEED = 2**63 - 1
@@ -154,7 +154,7 @@ def make_env(
 ) -> FactoredGridEnv:
     """The batch's worlds: one ``FactoredGridEnv`` experiment per entry of ``periods``, each
     drawing its obstacles from its own ``world_keys`` entry (``experiment_keys``)."""
-    from envs.grid import FactoredGridEnv  # torchrl: only for the paths that step the env
+    from factorq_envs.grid import FactoredGridEnv  # torchrl: only for the paths that step the env
 
     env = FactoredGridEnv(
         size=world.size,
@@ -221,7 +221,7 @@ def online_agent(
     from tensordict.nn import TensorDictSequential
     from torchrl.envs import TransformedEnv
 
-    from envs.transforms import SplitLocalReward
+    from factorq_envs.transforms import SplitLocalReward
     from factorq_torch.objectives import FactorQLoss, TabularQLoss
     from factorq_torch.policy import EpsilonGreedyPolicy, FactorQPolicy
 

@@ -1,6 +1,6 @@
 """The fused fast path: whole experiments (SPEC section 4) advanced by a small compiled C kernel.
 
-The kernel (``_kernel.c``, plain C99) performs exactly the operations of ``envs.world`` and
+The kernel (``_kernel.c``, plain C99) performs exactly the operations of ``factorq_envs.world`` and
 ``factorq_torch.functional`` in the same float32 order, with the same counter-based random streams
 (``factorq_torch.base.rng``), so its metrics and tables equal the modular torch path and the slow
 reference (``tests/reference.py``) bit for bit. It runs one experiment at a time for many steps
@@ -12,7 +12,7 @@ The kernel is compiled on first use with the system C compiler (``cc``, ``gcc`` 
 ``is_available()`` is False and ``unavailable_reason()`` says why; callers fall back to the
 modular torchrl path.
 
->>> from envs.world import WorldConfig
+>>> from factorq_envs.world import WorldConfig
 >>> from factorq_torch.base.config import AgentConfig
 >>> from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
 >>> if is_available():
@@ -44,7 +44,7 @@ from pathlib import Path
 
 import torch
 
-from envs.world import NUM_ACTIONS, WorldConfig, static_layout
+from factorq_envs.world import NUM_ACTIONS, WorldConfig, static_layout
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
 from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_torch.base.rng import probability_threshold
@@ -343,7 +343,7 @@ def kernel_scatter(
 ) -> torch.Tensor:
     """The kernel's obstacle scatter for one world: ``[size * size]`` bool.
 
-    For differential tests against ``envs.world.scatter_obstacles``.
+    For differential tests against ``factorq_envs.world.scatter_obstacles``.
     """
     library = _require()
     WorldConfig(size=size, num_obstacles=num_obstacles)  # validates the pair
@@ -374,7 +374,8 @@ MAX_KERNEL_ACTUATORS = 32
 
 def unsupported_reason(world: WorldConfig) -> str | None:
     """Why the kernel cannot run ``world``, or None when it can (every body and layout of
-    ``envs.body`` up to ``MAX_KERNEL_SENSORS`` sensors and ``MAX_KERNEL_ACTUATORS`` actuators)."""
+    ``factorq_envs.body`` up to ``MAX_KERNEL_SENSORS`` sensors and ``MAX_KERNEL_ACTUATORS``
+    actuators)."""
     if world.num_sensors > MAX_KERNEL_SENSORS:
         return f"{world.num_sensors} sensors, more than its {MAX_KERNEL_SENSORS}"
     if world.num_actuators > MAX_KERNEL_ACTUATORS:
@@ -499,9 +500,10 @@ class ExperimentBatch:
         static_grid[pad_of_cell.long()] = 0
         if bool((periods == 0).any()) and world.num_obstacles:
             static_grid[pad_of_cell.long()] = static_layout(world).to(torch.uint8)
-        # The body as data (envs.body): the paper's body runs the specialised loop.
+        # The body as data (factorq_envs.body): the paper's body runs the specialised loop.
         # ``dependency`` (bool [A, K]) replaces the world's true one in Factor-Q's local tables,
-        # e.g. the full joint table over all sensors (trainers.dependencies); generic loop only.
+        # e.g. the full joint table over all sensors (factorq_trainers.dependencies); generic loop
+        # only.
         generic = not world.is_paper_body or dependency is not None
         num_actuators, num_sensors = world.num_actuators, world.num_sensors
         positions = num_cells * world.num_headings

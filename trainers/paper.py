@@ -9,11 +9,11 @@ One *experiment* is one world x one algorithm: ``runs`` runs of ``episodes`` epi
 Keys make experiment ``(seed index i, world w, algorithm a)`` draw the same numbers whatever else is
 selected: its world key is number ``3 i + w`` of the world stream (shared by both algorithms:
 common random numbers) and its policy key number ``2 (3 i + w) + a`` of the policy stream
-(``trainers.experiment.experiment_keys``).
+(``factorq_trainers.experiment.experiment_keys``).
 
-The intervals are ``trainers.stats``' (Student's t for means, a paired bootstrap over seeds for
-the claims, seeded with ``config.seed``), the claims ``trainers.claims``', and the files
-``trainers.report.write_results``'.
+The intervals are ``factorq_trainers.stats``' (Student's t for means, a paired bootstrap over seeds
+for the claims, seeded with ``config.seed``), the claims ``factorq_trainers.claims``', and the files
+``factorq_trainers.report.write_results``'.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from envs.world import WORLD_PERIODS, WORLDS, WorldConfig
+from factorq_envs.world import WORLD_PERIODS, WORLDS, WorldConfig
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
 from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
@@ -40,18 +40,18 @@ from factorq_torch.base.validation import (
     check_names,
     check_threads,
 )
-from trainers import checkpoint, experiment, resources, stats
-from trainers.claims import compute_claims
-from trainers.experiment import (
+from factorq_trainers import checkpoint, experiment, resources, stats
+from factorq_trainers.claims import compute_claims
+from factorq_trainers.experiment import (
     MAX_SEED,
     body_options,
     check_qlearning_table,
     check_world_options,
 )
-from trainers.options import option
-from trainers.results import SCHEMA_VERSION, software_versions
-from trainers.resume_checks import DRIVERS, check_checkpoint, check_state
-from trainers.stats import interval, mean_ci
+from factorq_trainers.options import option
+from factorq_trainers.results import SCHEMA_VERSION, software_versions
+from factorq_trainers.resume_checks import DRIVERS, check_checkpoint, check_state
+from factorq_trainers.stats import interval, mean_ci
 
 #: Experiment drivers: the compiled kernel, the modular torchrl path, or the first available.
 BACKENDS = ("auto", *DRIVERS)
@@ -201,7 +201,7 @@ def resolve_backend(config: PaperConfig) -> str:
     This is the one place where the backend is chosen. ``auto`` takes the compiled fast path when
     it is available on this machine and the device is the cpu, the modular torchrl path otherwise.
     """
-    from trainers import fast
+    from factorq_trainers import fast
 
     on_cpu = torch.device(config.device).type == "cpu"
     if config.backend == "fast" and not fast.is_available():
@@ -223,7 +223,7 @@ MODULAR_SECONDS_PER_EPISODE = 936.0 / (2 * 10 * 200)
 def fallback_notice(config: PaperConfig, backend: str) -> str | None:
     """The one-line notice of ``auto`` falling back to the modular path: why, about how long the
     run will take, how to get the fast path (None when nothing fell back)."""
-    from trainers import fast
+    from factorq_trainers import fast
 
     if backend != "modular" or config.backend != "auto":
         return None
@@ -294,7 +294,7 @@ def experiment_keys(config: PaperConfig, algorithm: str) -> BatchKeys:
 def _run_fast(job: Job) -> dict[str, torch.Tensor]:
     """One algorithm's experiments on the compiled fast path, in chunks (progress, Ctrl-C,
     checkpoints)."""
-    from trainers.fast import ExperimentBatch
+    from factorq_trainers.fast import ExperimentBatch
 
     config, algorithm, (periods, world_keys, policy_keys), report, checkpoints = job
 
@@ -417,8 +417,8 @@ def run(
     often the run was interrupted and resumed.
 
     ``checkpoint_every`` (episodes summed over all experiments, or seconds: ``"30s"``) saves the
-    whole state to ``<config.out>/checkpoint/`` that often (see ``trainers.checkpoint``); the
-    caller removes it with ``checkpoint.remove(config.out)`` once the results are written.
+    whole state to ``<config.out>/checkpoint/`` that often (see ``factorq_trainers.checkpoint``);
+    the caller removes it with ``checkpoint.remove(config.out)`` once the results are written.
     ``resume`` (``checkpoint.load(out)``, with ``config`` from ``resume_config``) continues from
     a checkpoint, saving at its interval unless ``checkpoint_every`` is given. A new run refuses
     an ``out`` that holds an unfinished run's checkpoint.
@@ -485,7 +485,7 @@ def run(
         "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
     if backend == "modular" and config.backend == "auto":
-        from trainers import fast
+        from factorq_trainers import fast
 
         # Why the compiled path did not run (a missing compiler, an unsupported body).
         reason = fast.unsupported_reason(config.world) or fast.unavailable_reason()

@@ -1,6 +1,6 @@
 """The paper's output files: ``results.json``, Figure 3 and the claims report.
 
-``write_results`` writes all three from the results dict of ``trainers.paper.run``;
+``write_results`` writes all three from the results dict of ``factorq_trainers.paper.run``;
 ``factorq report`` (``regenerate``) redraws the figure and the report from ``results.json`` alone.
 Everything here reads the results and computes nothing new: the numbers in the report are the
 numbers in the file.
@@ -15,11 +15,11 @@ from typing import Any
 
 import numpy as np
 
-from envs.world import WORLD_PERIODS, WORLDS
-from trainers.claims import ALGORITHM_LABELS, MEASURE_LABELS, MEASURES
-from trainers.results import dumps, write_all_atomic
-from trainers.schema import escape_markdown, load_results_file, markdown_code
-from trainers.stats import format_number
+from factorq_envs.world import WORLD_PERIODS, WORLDS
+from factorq_trainers.claims import ALGORITHM_LABELS, MEASURE_LABELS, MEASURES
+from factorq_trainers.results import dumps, write_all_atomic
+from factorq_trainers.schema import escape_markdown, load_results_file, markdown_code
+from factorq_trainers.stats import format_number
 
 RESULTS_FILE = "results.json"
 FIGURE_FILE = "figure3.png"

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from trainers.stats import finite_or_none
+from factorq_trainers.stats import finite_or_none
 
 #: The newest layout this code reads and writes (files without the entry are version 1).
 SCHEMA_VERSION = 1

@@ -15,8 +15,8 @@ from typing import Any
 
 import torch
 
-from envs.world import NUM_ACTIONS
-from trainers import checkpoint
+from factorq_envs.world import NUM_ACTIONS
+from factorq_trainers import checkpoint
 
 #: The experiment drivers a checkpoint may come from (``paper.BACKENDS`` less ``auto``).
 DRIVERS = ("fast", "modular")
@@ -208,7 +208,7 @@ def _check_world(state: dict[str, Any], config: Any, periods: torch.Tensor, wher
         raise ValueError(f"{where}['cell'] is on an obstacle")
     static = periods == 0
     if bool(static.any()) and config.obstacles:
-        from envs.world import static_layout
+        from factorq_envs.world import static_layout
 
         if not bool((obstacles[static] == static_layout(config.world)).all()):
             raise ValueError(f"{where}['obstacles'] of a static world is not its layout")

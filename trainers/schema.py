@@ -19,11 +19,11 @@ import re
 from pathlib import Path
 from typing import Any
 
-from envs.world import WORLDS as WORLD_NAMES
+from factorq_envs.world import WORLDS as WORLD_NAMES
 from factorq_torch.base.config import ALGORITHMS as ALGORITHM_NAMES
-from trainers.claims import CLAIM_STATEMENTS, MEASURES
-from trainers.paper import CURVES as CURVE_NAMES
-from trainers.results import SCHEMA_VERSION, read_json
+from factorq_trainers.claims import CLAIM_STATEMENTS, MEASURES
+from factorq_trainers.paper import CURVES as CURVE_NAMES
+from factorq_trainers.results import SCHEMA_VERSION, read_json
 
 CLAIM_NAMES = tuple(CLAIM_STATEMENTS)
 

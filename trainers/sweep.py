@@ -34,8 +34,8 @@ killed sweep continues where it stopped, and a sweep that adds seeds or axis val
 new shards.
 
 **Identical results.** A shard's numbers depend on its configuration and seed range alone (see
-``trainers.shards``), so the per-experiment numbers and every summary are the same in-process,
-on any number of workers, and after any number of interruptions.
+``factorq_trainers.shards``), so the per-experiment numbers and every summary are the same
+in-process, on any number of workers, and after any number of interruptions.
 """
 
 from __future__ import annotations
@@ -62,8 +62,8 @@ import numpy as np
 import torch
 
 from factorq_torch.base.validation import INT32_MAX, check_int
-from trainers import claims, cluster, outdir, paper, resources, shards, stats
-from trainers import results as result_files
+from factorq_trainers import claims, cluster, outdir, paper, resources, shards, stats
+from factorq_trainers import results as result_files
 
 EXIT_USAGE = 2
 EXIT_FAILURE = 1
@@ -114,7 +114,9 @@ def check_command(command: Any, source: str = "sweep file") -> str:
 def config_class(command: str = "paper") -> type:
     """The config dataclass of ``command``: ``PaperConfig`` or ``CompareConfig``."""
     if command == "compare":
-        from trainers import compare  # not at import: compare is heavier and imports this one's
+        from factorq_trainers import (
+            compare,  # not at import: compare is heavier and imports this one's
+        )
 
         return compare.CompareConfig
     return paper.PaperConfig
@@ -145,7 +147,7 @@ def config_digest(config: Any) -> str:
     digest, or for a compare config every field but ``out``, ``threads`` and ``logger``."""
     if isinstance(config, paper.PaperConfig):
         return shards.digest(config)
-    from trainers import compare
+    from factorq_trainers import compare
 
     relevant = {
         key: value
@@ -450,7 +452,7 @@ def run_compare_configs(
     ``executor``; when a config's methods are all in, write its ``compare.summarise`` dict
     (what ``compare.run`` returns, ``timing`` aside) to ``compare_result_path``, atomically.
     ``done()`` is called per method finished."""
-    from trainers import compare
+    from factorq_trainers import compare
 
     items = [(config, method) for config in configs for method in config.methods]
     owner = [index for index, config in enumerate(configs) for _ in config.methods]
@@ -515,7 +517,7 @@ def run_compare_sweep(
 ) -> dict[str, Any]:
     """``run_sweep`` of a compare spec: every configuration not already in ``OUT/configs/``
     run whole (one task per method), then gathered into ``sweep.json``'s dict."""
-    from trainers import compare
+    from factorq_trainers import compare
 
     started = time.perf_counter()
     directory = Path(spec.out) / CONFIGS_DIRECTORY
@@ -889,8 +891,9 @@ def run_compare_on(
 ) -> dict[str, Any]:
     """``factorq compare`` with one task per method on ``executor`` (closed afterwards): a
     method's batch is the unit, so every method, DQN included, repeats its in-process numbers.
-    ``run_method`` and ``summarise`` are ``trainers.compare``'s (passed in: this module does not
-    import it). Seeds are not sharded: DQN's seeds share a random stream within their batch."""
+    ``run_method`` and ``summarise`` are ``factorq_trainers.compare``'s (passed in: this module
+    does not import it). Seeds are not sharded: DQN's seeds share a random stream within their
+    batch."""
     started = time.perf_counter()
     methods = list(config.methods)
     bar = _ShardBar("factorq compare", "method")

@@ -36,7 +36,7 @@ EXPERIMENT = "experiment"
 tables, policies and losses take transitions of any batch shape (replay minibatches, ``[S, T]``
 rollouts). Absent, it is ``arange(S)`` over a ``[S]`` batch (leading dimension ``S`` of a
 ``[S, *T]`` batch) and 0 when ``S = 1`` (``factorq_torch.tables.experiment_index``); written by
-``envs.transforms.ExperimentIndex``."""
+``factorq_envs.transforms.ExperimentIndex``."""
 
 #: What every driver (the online collector, the compiled path, DQN) records per episode, in this
 #: order: path length, collisions, collisions on greedy actions, task return.
