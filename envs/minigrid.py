@@ -7,17 +7,17 @@ neighbourhood every step; actions turn left, turn right, forward; forward into a
 gives -1 and ends the episode, decided on the grid *before* the balls move; the goal gives
 ``1 - 0.9 t / max_steps`` (``max_steps = 4 size**2``).
 
-**The body** is ``envs.body.HEADING`` (forward, turn-left, turn-right: Factor-Q's action ``a``
-is MiniGrid's ``ACTION_TO_MINIGRID[a]``). **The heading** is MiniGrid's ``agent_dir`` (0 east, 1
-south, 2 west, 3 north; left turn subtracts 1) in the project's numbering (0 north, 1 west, 2
+**The body** is ``factorq_envs.body.HEADING`` (forward, turn-left, turn-right: Factor-Q's action
+``a`` is MiniGrid's ``ACTION_TO_MINIGRID[a]``). **The heading** is MiniGrid's ``agent_dir`` (0 east,
+1 south, 2 west, 3 north; left turn subtracts 1) in the project's numbering (0 north, 1 west, 2
 south, 3 east; left turn adds 1): ``heading = (3 - agent_dir) % 4``. **The cell** is ``y *
 width + x`` of MiniGrid's ``agent_pos`` (walls included: ``size**2`` cells).
 
 **The sensors** are cells of MiniGrid's own egocentric 7x7 view (``obs["image"]``, indexed
 ``[x, y]``, the agent at ``(3, 6)`` facing up): sensor ``k`` is 1 when that view cell holds a wall
-(object index 2) or a ball (6). The layouts (``VIEW_LAYOUTS``) are ``envs.body.SensorLayout``
-entries, offsets ``(d_row, d_col)`` in the frame of heading 0 (ahead is ``-1`` rows), so the view
-cell of an offset is ``(3 + d_col, 6 + d_row)``:
+(object index 2) or a ball (6). The layouts (``VIEW_LAYOUTS``) are
+``factorq_envs.body.SensorLayout`` entries, offsets ``(d_row, d_col)`` in the frame of heading 0
+(ahead is ``-1`` rows), so the view cell of an offset is ``(3 + d_col, 6 + d_row)``:
 
 - ``"front3"`` (default): front ``image[3, 5]``, left ``image[2, 6]``, right ``image[4, 6]``;
 - ``"ahead6"``: those, then front-left ``image[2, 5]``, front-right ``image[4, 5]`` and the cell
@@ -47,8 +47,8 @@ Two ways in:
   ``heading``, ``sensors``, ``bump``, ``collision`` and, with ``with_image``, MiniGrid's
   ``image``), no ``mission`` string (torchrl's ``GymWrapper`` refuses text spaces): usable with
   ``gymnasium.vector`` envs and with torchrl's ``GymWrapper`` / ``SerialEnv`` / ``ParallelEnv``.
-- ``MiniGridEnv`` (``envs.minigrid_env``, loaded on first use, so this file needs no torchrl): a
-  torchrl ``EnvBase`` of ``batch_size=(S,)`` holding ``S`` of them (one seed
+- ``MiniGridEnv`` (``factorq_envs.minigrid_env``, loaded on first use, so this file needs no
+  torchrl): a torchrl ``EnvBase`` of ``batch_size=(S,)`` holding ``S`` of them (one seed
   each) with the project's keys and dtypes (``sensors``/``bump`` bool, as ``FactoredGridEnv``), for
   the online collector and DQN. The compiled kernel (``trainers/fast.py``) cannot step MiniGrid:
   the tabular agents run on the modular torchrl path.
@@ -63,7 +63,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from envs.body import HEADING, NUM_HEADINGS, SensorLayout, base_dependency
+from factorq_envs.body import HEADING, NUM_HEADINGS, SensorLayout, base_dependency
 from factorq_torch.base import keys
 
 #: The optional extra that installs MiniGrid.
@@ -251,5 +251,5 @@ def make_minigrid(
 
 def __getattr__(name: str):
     if name == "MiniGridEnv":
-        return importlib.import_module("envs.minigrid_env").MiniGridEnv
-    raise AttributeError(f"module 'envs.minigrid' has no attribute {name!r}")
+        return importlib.import_module("factorq_envs.minigrid_env").MiniGridEnv
+    raise AttributeError(f"module 'factorq_envs.minigrid' has no attribute {name!r}")

@@ -1,5 +1,5 @@
 """``MiniGridEnv``: ``S`` MiniGrid Dynamic-Obstacles worlds as one torchrl env (see
-``envs.minigrid`` for the observation, the rewards and the collision semantics)."""
+``factorq_envs.minigrid`` for the observation, the rewards and the collision semantics)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ from tensordict import TensorDict
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from envs.body import HEADING
-from envs.minigrid import VIEW_SIZE, dependency, make_minigrid
+from factorq_envs.body import HEADING
+from factorq_envs.minigrid import VIEW_SIZE, dependency, make_minigrid
 from factorq_torch.base import keys
 from factorq_torch.base.validation import check_int
 

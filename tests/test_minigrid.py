@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from envs import minigrid as adapter
+from factorq_envs import minigrid as adapter
 from factorq_torch.base import keys
 
 
@@ -64,7 +64,7 @@ def test_missing_extra_names_it(monkeypatch, tmp_path, capsys):
     monkeypatch.setitem(sys.modules, "minigrid", None)  # import minigrid now fails, as uninstalled
     with pytest.raises(ModuleNotFoundError, match=r"factorq-torch\[minigrid\]"):
         adapter.require_minigrid()
-    from trainers.cli import main
+    from factorq_trainers.cli import main
 
     code = main(["minigrid", "--seeds", "1", "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err.strip().splitlines()
@@ -114,8 +114,8 @@ def test_hand_computed_collision_and_split():
     _need_minigrid()
     from torchrl.envs import TransformedEnv
 
-    from envs.minigrid_env import MiniGridEnv
-    from envs.transforms import SplitLocalReward
+    from factorq_envs.minigrid_env import MiniGridEnv
+    from factorq_envs.transforms import SplitLocalReward
 
     for semantics, ends in (("minigrid", True), ("nodeath", False)):
         env = TransformedEnv(MiniGridEnv(5, semantics, seeds=[3]), SplitLocalReward())
@@ -136,7 +136,7 @@ def test_hand_computed_collision_and_split():
 
 
 def _rollout(seeds, steps=120):
-    from envs.minigrid_env import MiniGridEnv
+    from factorq_envs.minigrid_env import MiniGridEnv
 
     env = MiniGridEnv(6, "nodeath", seeds=seeds)
     generator = torch.Generator().manual_seed(0)
@@ -166,7 +166,7 @@ def test_torchrl_citizenship():
     from torchrl.envs import GymWrapper, ParallelEnv, SerialEnv
     from torchrl.envs.utils import check_env_specs
 
-    from envs.minigrid_env import MiniGridEnv
+    from factorq_envs.minigrid_env import MiniGridEnv
 
     for semantics in adapter.SEMANTICS:
         check_env_specs(MiniGridEnv(5, semantics, seeds=[0, 1], with_image=True))
@@ -219,7 +219,7 @@ def test_committed_learner_predicts_nothing_until_it_commits():
 
 def test_cli_runs_a_tiny_budget(tmp_path, capsys):
     _need_minigrid()
-    from trainers.cli import main
+    from factorq_trainers.cli import main
 
     out = tmp_path / "mg"
     code = main(["minigrid", "--seeds", "2", "--sizes", "5", "--steps", "60", "--out", str(out)])
@@ -236,6 +236,6 @@ def test_cli_runs_a_tiny_budget(tmp_path, capsys):
 
 
 def default_methods():
-    from trainers.minigrid import DEFAULT_METHODS
+    from factorq_trainers.minigrid import DEFAULT_METHODS
 
     return DEFAULT_METHODS

@@ -148,7 +148,9 @@ def build_parser(*, compare_options: bool = True) -> argparse.ArgumentParser:
         "--force", action="store_true", default=argparse.SUPPRESS, help=FORCE_HELP
     )
     minigrid_parser.set_defaults(handler=_minigrid, command_parser=minigrid_parser)
-    commands.add_parser("sweep", help=sweep.HELP, add_help=False)  # main hands it to trainers.sweep
+    commands.add_parser(
+        "sweep", help=sweep.HELP, add_help=False
+    )  # main hands it to factorq_trainers.sweep
     return parser
 
 

@@ -1,16 +1,16 @@
 """Factor-Q on MiniGrid Dynamic-Obstacles against Q-learning and DQN: ``factorq minigrid`` (#16).
 
-On each size of ``MiniGrid-Dynamic-Obstacles-{5x5,6x6,8x8,16x16}-v0`` (``envs.minigrid``: MiniGrid's
-real env, read through the adapter), every method trains ``seeds`` independent experiments for the
-same env-step budget, all seeds of a method in one batch:
+On each size of ``MiniGrid-Dynamic-Obstacles-{5x5,6x6,8x8,16x16}-v0`` (``factorq_envs.minigrid``:
+MiniGrid's real env, read through the adapter), every method trains ``seeds`` independent
+experiments for the same env-step budget, all seeds of a method in one batch:
 
 - ``factor-q-learned``: Factor-Q with ``StructureLearner`` as its local value provider, told only
   ``A = 3`` actuators and ``K`` sensors (no pairing): it must find that only forward has a local
   reward and that the front sensor decides it;
 - ``factor-q-oracle``: Factor-Q with ``LocalRewardTable`` on the true pairing (forward <- front);
 - ``q-learning``: tabular Q-learning on (cell, heading, all sensors);
-- ``dqn``: ``trainers.dqn``'s torchrl DQN (DQNLoss, target network, replay, annealed epsilon) on
-  the same information (``TaskQNetwork``: one-hot (cell, heading) and the sensor bits);
+- ``dqn``: ``factorq_trainers.dqn``'s torchrl DQN (DQNLoss, target network, replay, annealed
+  epsilon) on the same information (``TaskQNetwork``: one-hot (cell, heading) and the sensor bits);
 - ``dqn-image``: the same DQN on MiniGrid's own 7x7x3 ``image`` observation (the standard track).
 
 The tabular agents run on the modular torchrl path (``OnlineCollector``, learning after every
@@ -23,7 +23,7 @@ MiniGrid return (its own reward summed: goal reward, -1 per collision) and steps
 of the successful episodes); env steps until the success rate over the last ``window`` finished
 episodes first reaches 90%; for ``factor-q-learned``, the env step at which the learner first
 committed to "forward <- front" (and nothing else for forward). Wall time per method and size
-(all seeds together). Means with Student-t 95% intervals across seeds (``trainers.stats``).
+(all seeds together). Means with Student-t 95% intervals across seeds (``factorq_trainers.stats``).
 """
 
 from __future__ import annotations
@@ -38,9 +38,9 @@ from typing import Any
 import numpy as np
 
 from factorq_torch.base.validation import check_int
-from trainers.options import option
-from trainers.results import dumps, software_versions, write_all_atomic
-from trainers.stats import DESCRIPTION, format_number, interval, scalar_ci
+from factorq_trainers.options import option
+from factorq_trainers.results import dumps, software_versions, write_all_atomic
+from factorq_trainers.stats import DESCRIPTION, format_number, interval, scalar_ci
 
 METHODS = (
     "factor-q-learned",
@@ -65,7 +65,7 @@ SEMANTICS_NAMES = ("minigrid", "nodeath")
 LAYOUT_NAMES = ("front3", "ahead6")
 JSON_FILE, FIGURE_FILE, REPORT_FILE = "minigrid.json", "minigrid.png", "minigrid.md"
 OUTPUTS = (JSON_FILE, FIGURE_FILE, REPORT_FILE)
-#: The optional extra that installs MiniGrid (``envs.minigrid.EXTRA``).
+#: The optional extra that installs MiniGrid (``factorq_envs.minigrid.EXTRA``).
 EXTRA = "factorq-torch[minigrid]"
 #: The issue's target: the learner finds forward <- front within this many env steps.
 FOUND_TARGET_STEPS = 2_000
@@ -97,7 +97,7 @@ class MiniGridConfig:
     )
     layout: str = option(
         "front3",
-        "Sensors read from the view: front3 or ahead6 (envs.minigrid).",
+        "Sensors read from the view: front3 or ahead6 (factorq_envs.minigrid).",
         choices=LAYOUT_NAMES,
     )
     window: int = option(10, "Finished episodes in the success rate behind 'steps to 90%'.")
@@ -218,7 +218,7 @@ class Recorder:
 
 
 def _env(config: MiniGridConfig, size: int, *, with_image: bool = False):
-    from envs.minigrid_env import MiniGridEnv
+    from factorq_envs.minigrid_env import MiniGridEnv
 
     return MiniGridEnv(
         size,
@@ -233,15 +233,15 @@ def run_tabular(
     config: MiniGridConfig, size: int, method: str, tick: Callable[[int], None]
 ) -> dict[str, Any]:
     """Factor-Q (learned or oracle) or Q-learning through ``OnlineCollector``."""
-    from envs.body import HEADING
-    from envs.minigrid import FORWARD
+    from factorq_envs.body import HEADING
+    from factorq_envs.minigrid import FORWARD
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import STREAM_POLICY
     from factorq_torch.collectors import OnlineCollector
     from factorq_torch.structure import StructureLearner
     from factorq_torch.structure_committed import CommittedStructureLearner
     from factorq_torch.tables import LocalRewardTable, TaskQTable
-    from trainers.experiment import online_agent
+    from factorq_trainers.experiment import online_agent
 
     count, budget = config.seeds, config.budget(size)
     base = _env(config, size)
@@ -328,17 +328,17 @@ def _image_network(count: int, hidden: tuple[int, ...], keys, actions: int):
 def run_dqn(
     config: MiniGridConfig, size: int, method: str, tick: Callable[[int], None]
 ) -> dict[str, Any]:
-    """``trainers.dqn``'s DQN (its defaults) on the cell/heading/sensors or on the image."""
+    """``factorq_trainers.dqn``'s DQN (its defaults) on the cell/heading/sensors or on the image."""
     import torch
     from tensordict.nn import TensorDictSequential
     from torchrl.data import Categorical, LazyTensorStorage, ReplayBuffer
     from torchrl.modules import QValueModule
     from torchrl.objectives import DQNLoss, HardUpdate
 
-    from envs.body import HEADING
+    from factorq_envs.body import HEADING
     from factorq_torch.base.rng import STREAM_POLICY, STREAM_TASK_NETWORK
     from factorq_torch.neural import TaskQNetwork
-    from trainers.dqn import DQNAgent, DQNConfig, ExploratoryEGreedy, _gradient_step
+    from factorq_trainers.dqn import DQNAgent, DQNConfig, ExploratoryEGreedy, _gradient_step
 
     dqn = DQNConfig()
     count, budget = config.seeds, config.budget(size)
@@ -466,7 +466,7 @@ def run(
     announce: Callable[[int, str], None] | None = None,
 ) -> dict[str, Any]:
     """Every method on every size; ``progress(env_steps)`` after each 100 steps of a batch."""
-    from envs.minigrid import require_minigrid
+    from factorq_envs.minigrid import require_minigrid
 
     require_minigrid()
     import torch
@@ -480,7 +480,7 @@ def run(
 
 
 def _run(config, progress, announce) -> dict[str, Any]:
-    from envs.minigrid import sensor_names
+    from factorq_envs.minigrid import sensor_names
 
     started = time.perf_counter()
     sizes = [int(name) for name in config.sizes]
@@ -507,8 +507,8 @@ def _run(config, progress, announce) -> dict[str, Any]:
 
 
 def require_minigrid() -> None:
-    """``envs.minigrid.require_minigrid`` (a ModuleNotFoundError naming the extra)."""
-    from envs.minigrid import require_minigrid as require
+    """``factorq_envs.minigrid.require_minigrid`` (a ModuleNotFoundError naming the extra)."""
+    from factorq_envs.minigrid import require_minigrid as require
 
     require()
 
