@@ -17,7 +17,7 @@ setup: $(STAMP)
 
 $(STAMP): pyproject.toml
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/python -m pip install --quiet -e '.[dev,distributed]'
+	$(VENV)/bin/python -m pip install --quiet -e '.[dev,distributed,minigrid]'
 	touch $(STAMP)
 
 lint: $(STAMP)
