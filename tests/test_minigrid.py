@@ -196,10 +196,9 @@ def _gym_wrapped():
 
 def test_committed_learner_predicts_nothing_until_it_commits():
     from factorq_torch.structure import StructureLearner
-    from factorq_torch.structure_committed import CommittedStructureLearner
 
-    plain = StructureLearner(1, num_actions=2, num_sensors=3)
-    committed = CommittedStructureLearner(1, num_actions=2, num_sensors=3)
+    plain = StructureLearner(1, num_actions=2, num_sensors=3, prediction="posterior")
+    committed = StructureLearner(1, num_actions=2, num_sensors=3, prediction="committed")
     generator = torch.Generator().manual_seed(1)
     for step in range(80):
         sensors = torch.rand(1, 3, generator=generator) < 0.5

@@ -239,7 +239,6 @@ def run_tabular(
     from factorq_torch.base.rng import STREAM_POLICY
     from factorq_torch.collectors import OnlineCollector
     from factorq_torch.structure import StructureLearner
-    from factorq_torch.structure_committed import CommittedStructureLearner
     from factorq_torch.tables import LocalRewardTable, TaskQTable
     from factorq_trainers.experiment import online_agent
 
@@ -263,10 +262,12 @@ def run_tabular(
         if method == "factor-q-oracle":
             local = LocalRewardTable(count, dependency=base.dependency)
         elif method == "factor-q-posterior":
-            local = learner = StructureLearner(count, num_actions=actions, num_sensors=sensors)
-        else:
-            local = learner = CommittedStructureLearner(
-                count, num_actions=actions, num_sensors=sensors
+            local = learner = StructureLearner(
+                count, num_actions=actions, num_sensors=sensors, prediction="posterior"
+            )
+        else:  # an open actuator predicts no local reward (docs/decisions.md, MiniGrid)
+            local = learner = StructureLearner(
+                count, num_actions=actions, num_sensors=sensors, prediction="committed"
             )
     keys = method_keys(config, size, method, STREAM_POLICY)
     env, policy, loss = online_agent(base, task, local, agent, keys)
