@@ -434,6 +434,11 @@ TRIED = [
     ),
     # factorq compare: every option
     factorq("compare --seed -1", rf"--seed=-1 {RANGE} in \[0, 9223372036854775807\]"),
+    # factorq compare: mid-method checkpoints
+    factorq("compare --checkpoint-every 0", rf"--checkpoint-every='0' {RANGE} in \[1, 2\*\*63 - 1\] episodes"),
+    factorq("compare --checkpoint-every abc", r"--checkpoint-every='abc' is not a number of episodes"),
+    factorq("compare --checkpoint-every 0s", rf"--checkpoint-every='0s' {RANGE} > 0 seconds and fi"),
+    factorq("compare --cluster local:2 --checkpoint-every 5", r"checkpoint_every does not apply to a run on a cluster"),
     factorq("compare --seeds 0", rf"--seeds=0 {RANGE} in \[1, 2147483647\]"),
     factorq("compare --seeds 2147483648", rf"--seeds=2147483648 {RANGE} in \[1, 2147483647\]"),
     factorq("compare --seeds 1.5", r"argument --seeds: invalid int value: '1.5'"),
