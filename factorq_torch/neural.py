@@ -379,6 +379,12 @@ class LocalRewardNetwork(TensorDictModuleBase):
         return tensordict
 
 
+#: ``GatedLocalRewardNetwork.structure`` probes all ``2**K`` sensor patterns up to this many
+#: sensors, and ``PROBES`` random patterns beyond.
+MAX_PROBE_SENSORS = 10
+PROBES = 1024
+
+
 class GatedLocalRewardNetwork(TensorDictModuleBase):
     """A local reward network that learns each actuator's parent sensors: sparse input gates.
 
@@ -390,7 +396,11 @@ class GatedLocalRewardNetwork(TensorDictModuleBase):
     ``l1 * sum g`` (gates are positive, so the L1 norm is their sum), which ``FactorQLoss`` adds
     to its losses as ``loss_regularisation``: trained through the same loss as every provider,
     the gates of sensors that do not help predict the local reward shrink towards 0, and
-    ``structure()`` reads the parents as the gates above ``threshold``.
+    ``structure()`` reads the parents from what the network predicts: sensor ``k`` is a parent of
+    actuator ``a`` when flipping it changes ``a``'s predicted local reward by more than
+    ``threshold`` for some reading. (Not "gate above a value": under L1 every gate shrinks, since
+    the weights behind a gate make up its scale, so a gate's size alone is not identifiable;
+    measured in ``docs/decisions.md``.)
 
     Args:
         num_experiments: ``S``.
@@ -399,7 +409,8 @@ class GatedLocalRewardNetwork(TensorDictModuleBase):
         hidden: hidden layer widths of each actuator's network.
         l1: weight of the L1 penalty on the gates (>= 0).
         gate_init: initial gate value, in (0, 1).
-        threshold: gate value above which a sensor counts as a parent, in (0, 1).
+        threshold: the change of predicted local reward (reward units: a quarter of a
+            collision by default) above which a sensor counts as a parent (> 0).
         seed, offset, keys, device: as ``LocalRewardNetwork``.
 
     Keys: reads ``sensors`` ``[..., S, K]`` bool, writes ``local_value`` ``[..., S, A]``.
@@ -423,7 +434,7 @@ class GatedLocalRewardNetwork(TensorDictModuleBase):
         hidden: Sequence[int] = (8,),
         l1: float = 1e-3,
         gate_init: float = 0.5,
-        threshold: float = 0.5,
+        threshold: float = 0.25,
         seed: int = 0,
         offset: int = 0,
         keys: torch.Tensor | None = None,
@@ -442,8 +453,13 @@ class GatedLocalRewardNetwork(TensorDictModuleBase):
             if bad:
                 allowed = ">= 0" if low is not None else "in (0, 1)"
                 raise ValueError(f"{name}={value!r} must be a finite number {allowed}")
-        if not isinstance(threshold, (int, float)) or not 0.0 < threshold < 1.0:
-            raise ValueError(f"threshold={threshold!r} must be in (0, 1)")
+        if (
+            isinstance(threshold, bool)
+            or not isinstance(threshold, (int, float))
+            or not math.isfinite(threshold)
+            or threshold <= 0.0
+        ):
+            raise ValueError(f"threshold={threshold!r} must be a finite number > 0")
         self.l1, self.threshold = float(l1), float(threshold)
         self.in_keys = [names.SENSORS]
         self.out_keys = [names.LOCAL_VALUE]
@@ -467,9 +483,37 @@ class GatedLocalRewardNetwork(TensorDictModuleBase):
         """``[S, A, K]``: ``sigmoid`` of the gate logits."""
         return torch.sigmoid(self.gate_logits)
 
-    def structure(self) -> torch.Tensor:
-        """``[S, A, K]`` bool: the sensors whose gate is above ``threshold``, per actuator."""
-        return self.gates().detach() > self.threshold
+    @torch.no_grad()
+    def sensor_effects(self, readings: torch.Tensor | None = None) -> torch.Tensor:
+        """``[S, A, K]``: the largest change of each actuator's predicted local reward when one
+        sensor flips, over the probe ``readings`` (bool ``[N, K]``; default: all ``2**K`` patterns
+        for ``K <= MAX_PROBE_SENSORS``, else ``PROBES`` patterns drawn from a fixed seed)."""
+        K = self.num_sensors
+        device = self.gate_logits.device
+        if readings is None:
+            if K <= MAX_PROBE_SENSORS:
+                codes = torch.arange(2**K, device=device)
+                bits = 2 ** torch.arange(K, device=device)
+                readings = (codes[:, None] & bits) != 0
+            else:
+                generator = torch.Generator().manual_seed(0)
+                readings = (torch.rand(PROBES, K, generator=generator) < 0.5).to(device)
+        if readings.dim() != 2 or readings.shape[-1] != K:
+            raise ValueError(f"readings must be [N, {K}] (K sensors), got {list(readings.shape)}")
+        probes = readings.to(torch.float32)[:, None, None, :]  # [N, 1, 1, K]
+        gates = self.gates()
+        effects = []
+        for k in range(K):
+            on, off = probes.clone(), probes.clone()
+            on[..., k], off[..., k] = 1.0, 0.0
+            change = self.network(on * gates) - self.network(off * gates)  # [N, S, A, 1]
+            effects.append(change.squeeze(-1).abs().amax(dim=0))  # [S, A]
+        return torch.stack(effects, dim=-1)
+
+    def structure(self, readings: torch.Tensor | None = None) -> torch.Tensor:
+        """``[S, A, K]`` bool: sensor ``k`` is a parent of actuator ``a`` when flipping it changes
+        ``a``'s predicted local reward by more than ``threshold`` (``sensor_effects``)."""
+        return self.sensor_effects(readings) > self.threshold
 
     def regularisation(self) -> torch.Tensor:
         """The L1 penalty on the gates, ``l1 * sum g`` (a scalar with a gradient)."""

@@ -146,7 +146,17 @@ def test_gated_network_is_its_gated_linear_map_and_reads_structure_from_gates():
     value = local(TensorDict(sensors=sensors, batch_size=[1]))["local_value"].detach()
     # actuator 0: 0.5 * 1 + ~1 * 2 + ~0 * 4; actuator 1: ~1 * -1 + 0.5 * 0 + 0.5 * 8
     assert torch.allclose(value, torch.tensor([[2.5, 3.0]]), atol=1e-6)
-    assert local.structure().tolist() == [[[False, True, False], [True, False, False]]]
+    # a linear map: flipping sensor k moves actuator a's value by |g_ak w_ak| on every reading
+    effects = torch.tensor(
+        [[[0.5, 2.0, 4 * torch.sigmoid(torch.tensor(-20.0)).item()], [1.0, 0.0, 4.0]]]
+    )
+    assert torch.allclose(local.sensor_effects(), effects, atol=1e-6)
+    assert local.structure().tolist() == [[[True, True, False], [True, False, True]]]
+    strict = GatedLocalRewardNetwork(1, num_actions=2, num_sensors=3, hidden=(), threshold=0.75)
+    strict.load_state_dict(local.state_dict())
+    assert strict.structure().tolist() == [[[False, True, False], [True, False, True]]]
+    # probes given by the caller: a reading where nothing else is on gives the same effects here
+    assert torch.equal(local.structure(torch.zeros(1, 3, dtype=torch.bool)), local.structure())
     # the L1 penalty: l1 * sum of the gates, with its gradient l1 * g (1 - g) on every logit
     penalty = local.regularisation()
     assert torch.allclose(penalty, local.l1 * local.gates().sum())
@@ -169,13 +179,17 @@ def test_factor_q_loss_adds_the_gates_penalty():
 
 def test_gated_network_learns_each_actuators_own_sensor_through_factor_q(one_thread):
     # the paper's body (actuator a collides when its sensor a is on), told nothing of it: after
-    # 600 steps through FactorQLoss the largest gate of every actuator is its own sensor
+    # 2,000 steps through FactorQLoss the largest gate of every actuator is its own sensor, and
+    # structure() reads exactly the paper's pairing (its own sensor moves its prediction by about
+    # a collision, the others by under 0.05), although every gate has shrunk far below its start
     task = TaskQTable(2, num_cells=16)
     local = GatedLocalRewardNetwork(2, num_actions=4, num_sensors=4, l1=1e-3)
     adam = torch.optim.Adam(local.parameters(), lr=5e-2)
-    _train_factor_q(task, local, adam, 600)
+    _train_factor_q(task, local, adam, 2000)
     gates = local.gates().detach()
     assert torch.equal(gates.argmax(dim=-1), torch.arange(4).expand(2, 4))
+    assert (gates < 0.3).all()  # a gate's size alone would read no parent at all
+    assert torch.equal(local.structure(), torch.eye(4, dtype=torch.bool).expand(2, 4, 4))
 
 
 def test_gated_network_refuses_bad_options():
@@ -185,6 +199,8 @@ def test_gated_network_refuses_bad_options():
         GatedLocalRewardNetwork(1, num_actions=2, num_sensors=2, gate_init=1)
     with pytest.raises(ValueError, match="threshold=0"):
         GatedLocalRewardNetwork(1, num_actions=2, num_sensors=2, threshold=0)
+    with pytest.raises(ValueError, match="readings must be"):
+        GatedLocalRewardNetwork(1, num_actions=2, num_sensors=2).structure(torch.zeros(3, 5) > 0)
     local = GatedLocalRewardNetwork(2, num_actions=2, num_sensors=3)
     with pytest.raises(ValueError, match="K=3"):
         local(TensorDict(sensors=torch.zeros(2, 4, dtype=torch.bool), batch_size=[2]))
