@@ -141,6 +141,10 @@ class OnlineCollector(BaseCollector):
                 )
         self.env, self.policy, self.loss = env, policy, loss
         self.optimizer = tabular_optimizer(loss) if optimizer is None else optimizer
+        # The optimizer is ours and the loss can apply its step directly (a TaskQTable): the
+        # same update, bit for bit, without a graph, a sparse gradient or an optimizer call.
+        supports = getattr(loss, "supports_tabular_step", None)
+        self._tabular = optimizer is None and callable(supports) and bool(supports())
         self.progress = progress
         self._reset_task = getattr(getattr(loss, "task_value_network", None), "reset_task", None)
         if self._reset_task is None and self.runs > 1:
@@ -211,7 +215,11 @@ class OnlineCollector(BaseCollector):
         return td
 
     def _learn(self, td: TensorDictBase) -> None:
-        """The loss (eq. 5 inside, in training mode) and one optimizer step on its gradients."""
+        """The loss (eq. 5 inside, in training mode) and one optimizer step on its gradients;
+        with the collector's own tabular optimizer, the loss's ``tabular_step`` (the same update
+        written directly, see ``factorq_torch.objectives``)."""
+        if self._tabular and self.loss.tabular_step(td):
+            return
         losses = self.loss(td)
         total = None
         for key, value in losses.items():
