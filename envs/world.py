@@ -363,41 +363,44 @@ def scatter_obstacles(
     goal = num_cells - 1
     batch = agent_cell.shape[0]
     device = agent_cell.device
-    # The excluded cells, ascending: start (0), then the agent and the goal; an agent on the start
-    # or the goal adds no exclusion (it gets a sentinel beyond every cell).
+    # The excluded cells, ascending: the start (cell 0, START_CELL), the agent, the goal (the
+    # last cell); an agent on the start or the goal adds no exclusion. A position p in [0, M)
+    # among the allowed cells is cell p + 1 (skip the start), plus 1 at or past a free agent
+    # (a sentinel beyond every cell when the agent is not free); the goal is never reached: M
+    # positions skip at most M + 2 = num_cells - 1 cells below it.
     agent_free = (agent_cell != START_CELL) & (agent_cell != goal)
-    agent_key = torch.where(agent_free, agent_cell, torch.full_like(agent_cell, 2 * num_cells))
-    excluded = (
-        torch.full_like(agent_cell, START_CELL),
-        torch.minimum(agent_key, torch.full_like(agent_key, goal)),
-        torch.maximum(agent_key, torch.full_like(agent_key, goal)),
-    )
-    allowed = num_cells - 2 - agent_free.to(torch.int64)  # [S], M
+    agent_key = torch.where(agent_free, agent_cell, 2 * num_cells)
+    allowed = (num_cells - 2) - agent_free.to(torch.int64)  # [S], M
     # All K draws at once (counter scatter_index * K + k), and Floyd's K steps without a loop over
     # them (a handful of ops on [S, K] tensors, no data-dependent branch or shape). Step k draws
     # t_k in [0, j_k], j_k = M - K + k, and takes j_k when t_k was taken before ("collides"),
-    # else t_k. t_k was taken iff it equals an earlier t_i (an earlier collision took t_i too),
-    # or it equals j_i for the one i = t_k - (M - K) < k and step i collided (j_k exceeds every
-    # earlier pick, so only these can match). The second case chains through i < k: resolved by
-    # pointer jumping, ceil(log2 K) rounds.
+    # else t_k. t_k was taken iff it equals an earlier t_i (an earlier collision took t_i too:
+    # found with the first step that drew each value, a scatter-min), or it equals j_i for the
+    # one i = t_k - (M - K) < k and step i collided (j_k exceeds every earlier pick, so only
+    # these can match). The second case chains through i < k: resolved by pointer jumping,
+    # ceil(log2 K) rounds.
     steps = torch.arange(num_obstacles, device=device)
     base = (allowed - num_obstacles).unsqueeze(1)  # [S, 1]
     j = base + steps  # [S, K]
     bits = random_bits(key.unsqueeze(1), scatter_index.unsqueeze(1) * num_obstacles + steps)
     t = randint_from_bits(bits, j + 1)  # [S, K], t_k in [0, j_k]
-    earlier = steps.unsqueeze(1) > steps  # [K, K]: [k, i] = i < k
-    collided = ((t.unsqueeze(2) == t.unsqueeze(1)) & earlier).any(dim=2)  # [S, K]
+    # (in place on fresh tensors of the smallest dtype that holds a step: this [S, N] map and
+    # the obstacles are the largest tensors of a step, and memory traffic is what they cost)
+    small = torch.int16 if num_obstacles < 2**15 else torch.int64
+    step_numbers = steps.to(small)
+    first = torch.full((batch, num_cells), num_obstacles, dtype=small, device=device)
+    first.scatter_reduce_(1, t, step_numbers.expand(batch, -1), "amin")  # first step drawing t
+    collided = first.gather(1, t) < step_numbers  # [S, K]: an earlier step drew t_k
     link = t - base  # the i with j_i = t_k, where 0 <= i < k; else k itself (a fixed point)
     link = torch.where((link >= 0) & (link < steps), link, steps)
     for _ in range(max(num_obstacles - 1, 0).bit_length()):
         collided = collided | collided.gather(1, link)
         link = link.gather(1, link)
     picks = torch.where(collided, j, t)  # [S, K], distinct positions in [0, M)
-    cells = picks  # [S, K]: positions among the allowed cells -> cells
-    for excluded_cell in excluded:  # ascending: skip each excluded cell at or below
-        cells = cells + (cells >= excluded_cell.unsqueeze(1)).to(torch.int64)
+    cells = picks + 1  # positions among the allowed cells -> cells (the start is cell 0)
+    cells = cells + (cells >= agent_key.unsqueeze(1))
     obstacles = torch.zeros(batch, num_cells, dtype=torch.bool, device=device)
-    return obstacles.scatter(1, cells, True)
+    return obstacles.scatter_(1, cells, True)
 
 
 def _scatter_where(
