@@ -428,3 +428,16 @@ def test_scatter_equals_floyds_sequential_loop_in_crowded_and_sparse_worlds(size
             expected = torch.zeros(cells, dtype=torch.bool)
             expected[[allowed[position] for position in taken]] = True
             assert torch.equal(fast[row], expected), (size, num_obstacles, row)
+
+
+@pytest.mark.parametrize("size", [2, 3, 10])
+def test_the_neighbour_lookup_equals_the_row_and_column_arithmetic(size):
+    from factorq_envs.world import _neighbour_cells, neighbours
+
+    cell = torch.arange(size * size).repeat(3).reshape(3, -1)  # any leading shape
+    target, inside = neighbours(cell, size)
+    expected_target, expected_inside = _neighbour_cells(cell, size)
+    assert torch.equal(target, expected_target) and torch.equal(inside, expected_inside)
+    # by hand: cell 0 has only its south and east neighbours inside
+    assert inside[0, 0].tolist() == [False, False, True, True]
+    assert target[0, 0].tolist() == [0, 0, size, 1]
