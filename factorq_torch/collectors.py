@@ -140,6 +140,16 @@ class OnlineCollector(BaseCollector):
                     f"{cells} cells: build it with num_cells={cells} (size**2 of the env)"
                 )
         self.env, self.policy, self.loss = env, policy, loss
+        #: What a partial reset reads and writes: the env's observation, done and state entries.
+        self._env_keys = list(
+            dict.fromkeys(
+                (
+                    *env.full_observation_spec.keys(True, True),
+                    *env.full_done_spec.keys(True, True),
+                    *env.full_state_spec.keys(True, True),
+                )
+            )
+        )
         self.optimizer = tabular_optimizer(loss) if optimizer is None else optimizer
         # The optimizer is ours and the loss can apply its step directly (a TaskQTable): the
         # same update, bit for bit, without a graph, a sparse gradient or an optimizer call.
@@ -205,8 +215,12 @@ class OnlineCollector(BaseCollector):
             next_td = self.env.step_mdp(td)
             restart = self._record(td, active)
             if restart is not None:
-                next_td.set("_reset", restart.unsqueeze(-1))
-                next_td = self.env.reset(next_td)
+                # The env's own entries only: the others (the policy's outputs, the collector's
+                # counters) are rewritten before they are read again, and torchrl would merge
+                # every entry of the tensordict by the reset mask, one torch.where each.
+                env_td = next_td.select(*self._env_keys, strict=False)
+                env_td.set("_reset", restart.unsqueeze(-1))
+                next_td.update(self.env.reset(env_td))
         self._td = next_td
         self._frames += self.num_experiments - finished_before
         self._iter += 1
