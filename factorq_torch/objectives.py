@@ -219,15 +219,25 @@ class _TransitionLoss(LossModule):
         if not table.requires_grad:
             return
         state = provider.state_index(tensordict)  # [S]
+        _, states, width = table.shape
         rows = torch.arange(state.shape[0], device=state.device)
+        # The flat entry (experiment, state, action) of each experiment, -1 (refused by
+        # index_select) where the state or the action is out of range.
+        inside = (state >= 0) & (state < states) & (action >= 0) & (action < width)
+        entry = torch.where(inside, (rows * states + state) * width + action, -1)
+        flat = table.detach().view(-1)
         try:
-            q_sa = table[rows, state, action]  # [S]
+            q_sa = flat.index_select(0, entry)  # [S], Q(s, a)
         except IndexError:
-            raise ValueError(provider._misfit(state)) from None
+            if bool(((state < 0) | (state >= states)).any()):
+                raise ValueError(provider._misfit(state)) from None
+            raise ValueError(
+                f"{type(self).__name__}: action holds values outside [0, {width})"
+            ) from None
         new = q_update(q_sa, target, self.alpha)  # eqs. 1 and 4
         if mask is not None:
             new = torch.where(mask, new, q_sa)
-        table.index_put_((rows, state, action), new)
+        flat.index_copy_(0, entry, new)
 
     @staticmethod
     def _provide(

@@ -384,3 +384,17 @@ def test_tabular_step_refuses_what_it_cannot_do_and_skips_transitions_with_exper
     table = task.table.detach().clone()
     assert FactorQLoss(task, local).tabular_step(td) is False
     assert torch.equal(task.table.detach(), table)
+
+
+def test_tabular_step_names_a_state_past_the_table_and_an_action_out_of_range():
+    generator = torch.Generator().manual_seed(5)
+    task, local = _random_tables(2, 4, generator)
+    loss = FactorQLoss(task, local)
+    td = random_batch(2, 4, generator)
+    td["cell"] = torch.tensor([0, 5])
+    with pytest.raises(ValueError, match="num_cells=4 but received cell 5"):
+        loss.tabular_step(td)
+    td = random_batch(2, 4, generator)
+    td["action"] = torch.tensor([4, 0])
+    with pytest.raises(ValueError, match=r"action holds values outside \[0, 4\)"):
+        loss.tabular_step(td)
