@@ -423,6 +423,26 @@ def scatter_obstacles(
     return obstacles.scatter_(1, cells, True)
 
 
+def where_rows(mask: torch.Tensor, new: torch.Tensor, old: torch.Tensor) -> torch.Tensor:
+    """``torch.where(mask[:, None], new, old)`` for bool maps ``[S, N]`` (``mask`` ``[S]``), the
+    same bits: each row is selected as whole words (the widest integer type that divides
+    ``N`` bytes), about 3x faster on CPU than the bool ``where``, which is not vectorised when
+    the mask broadcasts."""
+    width = old.shape[-1]
+    word = next(
+        (d for d in (torch.int64, torch.int32, torch.int16) if width % d.itemsize == 0), None
+    )
+    if word is not None and new.dtype == torch.bool and old.dtype == torch.bool:
+        try:
+            picked = torch.where(
+                mask.unsqueeze(-1), new.contiguous().view(word), old.contiguous().view(word)
+            )
+            return picked.view(torch.bool)
+        except RuntimeError:  # a storage offset that is no whole word: select the bools
+            pass
+    return torch.where(mask.unsqueeze(-1), new, old)
+
+
 def _scatter_where(
     mask: torch.Tensor,
     obstacles: torch.Tensor,
@@ -438,7 +458,7 @@ def _scatter_where(
     ``torch.compile``). Counter-based streams make the unused draws free of side effects.
     """
     fresh = scatter_obstacles(key, scatters, agent_cell, config.size, config.num_obstacles)
-    return torch.where(mask.unsqueeze(1), fresh, obstacles), scatters + mask.to(torch.int64)
+    return where_rows(mask, fresh, obstacles), scatters + mask.to(torch.int64)
 
 
 def is_reachable(obstacles: torch.Tensor, size: int) -> bool:
@@ -509,8 +529,8 @@ def reset_worlds(
     moving = mask & (period > 0)
     obstacles = state.obstacles
     if static_obstacles is not None:
-        static = (mask & (period == 0)).unsqueeze(1)
-        obstacles = torch.where(static, static_obstacles, obstacles)
+        static = mask & (period == 0)
+        obstacles = where_rows(static, static_obstacles.expand_as(obstacles), obstacles)
     scatters = state.scatters
     if config.num_obstacles:
         start = torch.full_like(state.cell, START_CELL)

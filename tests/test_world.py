@@ -441,3 +441,22 @@ def test_the_neighbour_lookup_equals_the_row_and_column_arithmetic(size):
     # by hand: cell 0 has only its south and east neighbours inside
     assert inside[0, 0].tolist() == [False, False, True, True]
     assert target[0, 0].tolist() == [0, 0, size, 1]
+
+
+@pytest.mark.parametrize("width", [1, 3, 4, 6, 8, 100, 101])
+def test_where_rows_equals_torch_where_on_any_width_offset_and_layout(width):
+    from factorq_envs.world import where_rows
+
+    generator = torch.Generator().manual_seed(width)
+    big = torch.rand(7, width + 1, generator=generator) < 0.5
+    new = torch.rand(6, width, generator=generator) < 0.5
+    mask = torch.rand(6, generator=generator) < 0.5
+    for old in (
+        torch.rand(6, width, generator=generator) < 0.5,  # contiguous
+        big[1:, 1:],  # an offset, strided slice
+        big.reshape(-1)[1 : 1 + 6 * width].reshape(6, width),  # an odd storage offset
+    ):
+        expected = torch.where(mask.unsqueeze(1), new, old)
+        assert torch.equal(where_rows(mask, new, old), expected)
+    meta = where_rows(mask.to("meta"), new.to("meta"), old.to("meta"))
+    assert meta.shape == (6, width) and meta.dtype == torch.bool
