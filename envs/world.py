@@ -410,12 +410,19 @@ def scatter_obstacles(
     step_numbers = steps.to(small)
     first = torch.full((batch, num_cells), num_obstacles, dtype=small, device=device)
     first.scatter_reduce_(1, t, step_numbers.expand(batch, -1), "amin")  # first step drawing t
-    collided = first.gather(1, t) < step_numbers  # [S, K]: an earlier step drew t_k
-    link = t - base  # the i with j_i = t_k, where 0 <= i < k; else k itself (a fixed point)
+    direct = first.gather(1, t) < step_numbers  # [S, K]: an earlier step drew t_k
+    # Pointer jumping on one pointer per step: a step whose t_k an earlier step drew points at a
+    # sentinel K (collided, and the sentinel points at itself); else at the i with j_i = t_k
+    # when 0 <= i < k (it collided iff step i did); else at itself (it did not). After r rounds
+    # a pointer has gone 2**r links down its chain (at most K), so it rests on the sentinel
+    # exactly when the step collided.
+    link = t - base
     link = torch.where((link >= 0) & (link < steps), link, steps)
+    pointer = torch.full((batch, num_obstacles + 1), num_obstacles, device=device)
+    pointer[:, :num_obstacles] = torch.where(direct, num_obstacles, link)
     for _ in range(max(num_obstacles - 1, 0).bit_length()):
-        collided = collided | collided.gather(1, link)
-        link = link.gather(1, link)
+        pointer = pointer.gather(1, pointer)
+    collided = pointer[:, :num_obstacles] == num_obstacles  # [S, K]
     picks = torch.where(collided, j, t)  # [S, K], distinct positions in [0, M)
     cells = picks + 1  # positions among the allowed cells -> cells (the start is cell 0)
     cells = cells + (cells >= agent_key.unsqueeze(1))
