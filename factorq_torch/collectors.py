@@ -232,7 +232,7 @@ class OnlineCollector(BaseCollector):
         """The loss (eq. 5 inside, in training mode) and one optimizer step on its gradients;
         with the collector's own tabular optimizer, the loss's ``tabular_step`` (the same update
         written directly, see ``factorq_torch.objectives``)."""
-        if self._tabular and self.loss.tabular_step(td):
+        if self._tabular and not self._loss_observed() and self.loss.tabular_step(td):
             return
         losses = self.loss(td)
         total = None
@@ -243,6 +243,12 @@ class OnlineCollector(BaseCollector):
             total.backward()
             self.optimizer.step()
             self.optimizer.zero_grad(set_to_none=True)
+
+    def _loss_observed(self) -> bool:
+        """Whether a hook watches the loss's ``forward`` (e.g. a trainer reading ``td_error``):
+        then the loss runs as a module, and the update goes through its gradient."""
+        loss = self.loss
+        return bool(loss._forward_hooks or loss._forward_pre_hooks)
 
     def _record(self, td: TensorDictBase, active: torch.Tensor) -> torch.Tensor | None:
         """Add the step to the episode sums; file finished episodes; advance the counters.

@@ -24,9 +24,10 @@ autograd: it computes the target exactly as ``forward`` does and writes
 ``functional.q_update(Q(s, a), target, alpha)`` into the table entry (and eq. 5, in training mode),
 which is bit for bit what ``forward``, ``backward`` and one step of ``tabular_optimizer`` give
 (``Q - fl(alpha td)`` and ``Q + fl(alpha (-td))`` are the same float). ``OnlineCollector`` uses it
-when it built the optimizer itself and ``supports_tabular_step()`` holds (a ``TaskQTable`` as the
-only parameter, reduction ``"sum"``): a step then builds no graph, no sparse gradient and no
-optimizer call.
+when it built the optimizer itself, ``supports_tabular_step()`` holds (a ``TaskQTable`` as the
+only parameter, reduction ``"sum"``) and no hook watches the loss's ``forward`` (a trainer that
+reads ``td_error`` from it keeps getting it): a step then builds no graph, no sparse gradient and
+no optimizer call.
 
 **How the local update (eq. 5) is applied.** Eq. 5 is a running mean (``alpha_L = 1 / kappa``),
 not a gradient step. Like a BatchNorm's running statistics, it is applied by
