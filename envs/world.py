@@ -457,15 +457,16 @@ def _scatter_where(
     key: torch.Tensor,
     agent_cell: torch.Tensor,
     config: WorldConfig,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """New obstacles and stream positions after scattering the worlds where ``mask`` is True.
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """New obstacles and stream positions after scattering the worlds where ``mask`` is True,
+    and the draw of every world (``fresh``, kept or not).
 
     Every world is drawn and the masked ones kept (``torch.where``): no host synchronisation and
     no data-dependent shape, so a step runs the same ops whatever the mask (CUDA graphs,
     ``torch.compile``). Counter-based streams make the unused draws free of side effects.
     """
     fresh = scatter_obstacles(key, scatters, agent_cell, config.size, config.num_obstacles)
-    return where_rows(mask, fresh, obstacles), scatters + mask.to(torch.int64)
+    return where_rows(mask, fresh, obstacles), scatters + mask.to(torch.int64), fresh
 
 
 def is_reachable(obstacles: torch.Tensor, size: int) -> bool:
@@ -526,12 +527,16 @@ def reset_worlds(
     period: torch.Tensor,
     static_obstacles: torch.Tensor,
     config: WorldConfig,
+    draws: torch.Tensor | None = None,
 ) -> WorldState:
     """Start a new episode in the worlds where ``mask`` ``[S]`` is True; the others are unchanged.
 
     The agent goes to the start with no bump; a static world (``period == 0``) gets
     ``static_obstacles`` ``[N]``, a moving one a fresh scatter. ``static_obstacles=None`` says
     that no world of the batch is static (the caller knows it from ``period``; nothing to copy).
+    ``draws`` ``[S, N]``: the scatter each moving world in ``mask`` would draw now (its stream
+    position, the agent on the start), when the caller already has it (``step_worlds`` with
+    ``keep_draws``: exact for the worlds whose episode that step terminated); None draws it.
     """
     moving = mask & (period > 0)
     obstacles = state.obstacles
@@ -540,8 +545,12 @@ def reset_worlds(
         obstacles = where_rows(static, static_obstacles.expand_as(obstacles), obstacles)
     scatters = state.scatters
     if config.num_obstacles:
-        start = torch.full_like(state.cell, START_CELL)
-        obstacles, scatters = _scatter_where(moving, obstacles, scatters, key, start, config)
+        if draws is None:
+            start = torch.full_like(state.cell, START_CELL)
+            obstacles, scatters, _ = _scatter_where(moving, obstacles, scatters, key, start, config)
+        else:
+            obstacles = where_rows(moving, draws, obstacles)
+            scatters = scatters + moving.to(torch.int64)
     return WorldState(
         cell=torch.where(mask, START_CELL, state.cell),
         obstacles=obstacles,
@@ -559,8 +568,15 @@ def step_worlds(
     key: torch.Tensor,
     period: torch.Tensor,
     config: WorldConfig,
-) -> tuple[WorldState, StepOutcome]:
+    keep_draws: bool = False,
+):
     """One action in each of ``S`` worlds (SPEC section 1's order).
+
+    Returns ``(state, outcome)``; with ``keep_draws``, ``(state, outcome, draws)``: the scatter
+    every world drew at this step (``[S, N]``, kept only where it scatters; None without
+    obstacles). For a world whose episode this step *terminated* it is exactly the scatter its
+    next reset draws: a terminating step does not scatter (same stream position) and an agent
+    on the goal excludes the same cells as one on the start (neither is a free cell).
 
     read action -> (actuator noise) -> move or collide, turn -> reward -> (maybe) scatter -> new
     observation. A moving actuator goes one cell in its direction turned with the heading; a
@@ -609,11 +625,13 @@ def step_worlds(
         truncated=truncated,
         fired=fired,
     )
-    obstacles, scatters = state.obstacles, state.scatters
+    obstacles, scatters, draws = state.obstacles, state.scatters, None
     scatter = (period > 0) & ~terminated & (episode_step % period.clamp(min=1) == 0)
     if config.num_obstacles:
-        obstacles, scatters = _scatter_where(scatter, obstacles, scatters, key, cell, config)
+        obstacles, scatters, draws = _scatter_where(scatter, obstacles, scatters, key, cell, config)
     new_state = WorldState(cell, obstacles, bump, episode_step, scatters, heading, state.ticks + 1)
+    if keep_draws:
+        return new_state, outcome, draws
     return new_state, outcome
 
 
@@ -678,13 +696,26 @@ class FactoredGrid:
         return empty_state(batch, self.config.size, device, self.config.num_actuators)
 
     def reset(
-        self, state: WorldState, mask: torch.Tensor, key: torch.Tensor, period: torch.Tensor
+        self,
+        state: WorldState,
+        mask: torch.Tensor,
+        key: torch.Tensor,
+        period: torch.Tensor,
+        draws: torch.Tensor | None = None,
     ) -> WorldState:
+        """``draws``: kept by ``step_keeping_draws`` for worlds whose episode terminated there
+        (``reset_worlds``); the caller vouches that every world in ``mask`` is one."""
         if self._has_static_world(period):
             static = self.static_obstacles.to(state.cell.device)
         else:
             static = None  # no static world: no layout to draw, nothing to copy
-        return reset_worlds(state, mask, key, period, static, self.config)
+        return reset_worlds(state, mask, key, period, static, self.config, draws)
+
+    def step_keeping_draws(
+        self, state: WorldState, action: torch.Tensor, key: torch.Tensor, period: torch.Tensor
+    ) -> tuple[WorldState, StepOutcome, torch.Tensor | None]:
+        """``step`` and the scatter every world drew (``step_worlds(..., keep_draws=True)``)."""
+        return step_worlds(state, action, key, period, self.config, keep_draws=True)
 
     def _has_static_world(self, period: torch.Tensor) -> bool:
         """Whether ``period`` holds a static world: read once per ``period`` tensor (a host

@@ -140,6 +140,10 @@ class OnlineCollector(BaseCollector):
                     f"{cells} cells: build it with num_cells={cells} (size**2 of the env)"
                 )
         self.env, self.policy, self.loss = env, policy, loss
+        # The env takes reset(..., restarts_terminated=True) (FactoredGridEnv): told when every
+        # restart follows a terminated episode, it reuses the step's scatter (same numbers).
+        self._hints = bool(getattr(env, "accepts_restarts_terminated", False))
+        self._restarts_terminated = False
         #: What a partial reset reads and writes: the env's observation, done and state entries.
         self._env_keys = list(
             dict.fromkeys(
@@ -220,7 +224,8 @@ class OnlineCollector(BaseCollector):
                 # every entry of the tensordict by the reset mask, one torch.where each.
                 env_td = next_td.select(*self._env_keys, strict=False)
                 env_td.set("_reset", restart.unsqueeze(-1))
-                next_td.update(self.env.reset(env_td))
+                hint = {"restarts_terminated": True} if self._restarts_terminated else {}
+                next_td.update(self.env.reset(env_td, **(hint if self._hints else {})))
         self._td = next_td
         self._frames += self.num_experiments - finished_before
         self._iter += 1
@@ -274,8 +279,11 @@ class OnlineCollector(BaseCollector):
         run_index = self.run_index + run_ended.to(torch.int64)
         finishing = run_ended & (run_index == self.runs)
         next_run = run_ended & ~finishing
-        counts = torch.stack((ended.sum(), next_run.sum(), finishing.sum())).tolist()
-        episodes_ended, runs_started, experiments_finishing = counts
+        # (and how many ended without terminating: a truncated episode's reset draws afresh)
+        unterminated = ended & ~next_td.get("terminated").squeeze(-1)
+        counts = torch.stack((ended.sum(), next_run.sum(), finishing.sum(), unterminated.sum()))
+        episodes_ended, runs_started, experiments_finishing, truncated = counts.tolist()
+        self._restarts_terminated = truncated == 0
         if not episodes_ended:
             return None
         # Each experiment's slot (run, episode) in the flat [S * runs * episodes] metrics; the
