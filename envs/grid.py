@@ -191,6 +191,13 @@ class FactoredGridEnv(EnvBase):
         tensor([-2., -2.])
     """
 
+    #: ``reset(td, restarts_terminated=True)`` is understood: the caller vouches that every world
+    #: in ``"_reset"`` terminated at the last step (checked on the device), so a world that
+    #: offers ``step_keeping_draws`` (the grid) restarts from the scatter that step drew, the
+    #: same numbers without a second scatter (``OnlineCollector`` passes it when its counts
+    #: show no truncated episode among the restarts).
+    accepts_restarts_terminated = True
+
     def __init__(
         self,
         *,
@@ -279,6 +286,7 @@ class FactoredGridEnv(EnvBase):
         if callable(getattr(world, "to", None)):
             world.to(device)
         self._world_state = self.world.initial_state(num_worlds, device)
+        self._kept_draws = None  # (state, draws, terminated) of the last step, for its reset
         self._started = False  # set by the first reset (or by assigning world_state)
         self._make_specs()
         self._set_seed(seed)
@@ -388,7 +396,20 @@ class FactoredGridEnv(EnvBase):
             mask = torch.ones(self.num_worlds, dtype=torch.bool, device=self.device)
         else:
             mask = reset.reshape(self.num_worlds)  # [S]
-        self.world_state = self.world.reset(self.world_state, mask, self.world_keys, self.periods)
+        kept = self._kept_draws
+        self._kept_draws = None
+        if kwargs.get("restarts_terminated") and kept is not None and kept[0] is self._world_state:
+            # Every world restarting here terminated at the last step (the caller says so,
+            # checked on the device): its reset draws what that step drew (World docs).
+            _, draws, terminated = kept
+            message = "reset(restarts_terminated=True) restarts a world that did not terminate"
+            torch._assert_async(~(mask & ~terminated).any(), message)
+            state = self.world.reset(
+                self.world_state, mask, self.world_keys, self.periods, draws=draws
+            )
+        else:
+            state = self.world.reset(self.world_state, mask, self.world_keys, self.periods)
+        self.world_state = state
         state = self.world_state
         # Worlds left alone report their true status (a finished one stays done).
         terminated = state.cell == self.config.goal_cell
@@ -405,7 +426,12 @@ class FactoredGridEnv(EnvBase):
                 "yet (no obstacles, no position); call env.reset() first"
             )
         old = self.world_state
-        state, outcome = self.world.step(old, action, self.world_keys, self.periods)
+        keeping = getattr(self.world, "step_keeping_draws", None)
+        draws = None
+        if keeping is None:
+            state, outcome = self.world.step(old, action, self.world_keys, self.periods)
+        else:
+            state, outcome, draws = keeping(old, action, self.world_keys, self.periods)
         reward, collision = outcome.reward, outcome.collision  # [S], [S, A]
         terminated, truncated = outcome.terminated, outcome.truncated  # [S]
         partial = tensordict.get("_step", None)
@@ -422,6 +448,8 @@ class FactoredGridEnv(EnvBase):
             collision = torch.where(stepping.unsqueeze(1), collision, 0.0)
             terminated, truncated = terminated & stepping, truncated & stepping
         self.world_state = state
+        # What a reset right after this step may reuse (reset(restarts_terminated=True)).
+        self._kept_draws = None if draws is None else (state, draws, terminated)
         return self._output(state, collision, terminated, truncated, reward)
 
     def _check_action(self, action: torch.Tensor | None) -> torch.Tensor:

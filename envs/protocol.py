@@ -23,8 +23,11 @@ What the wrappers read, besides the methods below:
 
 Optional methods, used when a world has them: ``extra_observations(state, sensors)`` (more
 observation entries, ``{key: [S, n] bool}``: the grid's ``proximity``), ``obstacle_map(state)``,
-``render_rgb(state, index)`` and ``to(device)`` (move constant tensors the world holds).
-Nothing here imports a world.
+``render_rgb(state, index)``, ``to(device)`` (move constant tensors the world holds) and
+``step_keeping_draws(state, action, key, period)`` (``step`` plus what it drew at random,
+``[S, ...]``, that ``reset(state, mask, key, period, draws=...)`` reuses for the worlds whose
+episode that step terminated: the grid's scatter, so that the torchrl env's reset after
+terminated episodes draws nothing again). Nothing here imports a world.
 """
 
 from __future__ import annotations

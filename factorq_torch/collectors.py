@@ -140,7 +140,25 @@ class OnlineCollector(BaseCollector):
                     f"{cells} cells: build it with num_cells={cells} (size**2 of the env)"
                 )
         self.env, self.policy, self.loss = env, policy, loss
+        # The env takes reset(..., restarts_terminated=True) (FactoredGridEnv): told when every
+        # restart follows a terminated episode, it reuses the step's scatter (same numbers).
+        self._hints = bool(getattr(env, "accepts_restarts_terminated", False))
+        self._restarts_terminated = False
+        #: What a partial reset reads and writes: the env's observation, done and state entries.
+        self._env_keys = list(
+            dict.fromkeys(
+                (
+                    *env.full_observation_spec.keys(True, True),
+                    *env.full_done_spec.keys(True, True),
+                    *env.full_state_spec.keys(True, True),
+                )
+            )
+        )
         self.optimizer = tabular_optimizer(loss) if optimizer is None else optimizer
+        # The optimizer is ours and the loss can apply its step directly (a TaskQTable): the
+        # same update, bit for bit, without a graph, a sparse gradient or an optimizer call.
+        supports = getattr(loss, "supports_tabular_step", None)
+        self._tabular = optimizer is None and callable(supports) and bool(supports())
         self.progress = progress
         self._reset_task = getattr(getattr(loss, "task_value_network", None), "reset_task", None)
         if self._reset_task is None and self.runs > 1:
@@ -201,8 +219,13 @@ class OnlineCollector(BaseCollector):
             next_td = self.env.step_mdp(td)
             restart = self._record(td, active)
             if restart is not None:
-                next_td.set("_reset", restart.unsqueeze(-1))
-                next_td = self.env.reset(next_td)
+                # The env's own entries only: the others (the policy's outputs, the collector's
+                # counters) are rewritten before they are read again, and torchrl would merge
+                # every entry of the tensordict by the reset mask, one torch.where each.
+                env_td = next_td.select(*self._env_keys, strict=False)
+                env_td.set("_reset", restart.unsqueeze(-1))
+                hint = {"restarts_terminated": True} if self._restarts_terminated else {}
+                next_td.update(self.env.reset(env_td, **(hint if self._hints else {})))
         self._td = next_td
         self._frames += self.num_experiments - finished_before
         self._iter += 1
@@ -211,7 +234,11 @@ class OnlineCollector(BaseCollector):
         return td
 
     def _learn(self, td: TensorDictBase) -> None:
-        """The loss (eq. 5 inside, in training mode) and one optimizer step on its gradients."""
+        """The loss (eq. 5 inside, in training mode) and one optimizer step on its gradients;
+        with the collector's own tabular optimizer, the loss's ``tabular_step`` (the same update
+        written directly, see ``factorq_torch.objectives``)."""
+        if self._tabular and not self._loss_observed() and self.loss.tabular_step(td):
+            return
         losses = self.loss(td)
         total = None
         for key, value in losses.items():
@@ -221,6 +248,12 @@ class OnlineCollector(BaseCollector):
             total.backward()
             self.optimizer.step()
             self.optimizer.zero_grad(set_to_none=True)
+
+    def _loss_observed(self) -> bool:
+        """Whether a hook watches the loss's ``forward`` (e.g. a trainer reading ``td_error``):
+        then the loss runs as a module, and the update goes through its gradient."""
+        loss = self.loss
+        return bool(loss._forward_hooks or loss._forward_pre_hooks)
 
     def _record(self, td: TensorDictBase, active: torch.Tensor) -> torch.Tensor | None:
         """Add the step to the episode sums; file finished episodes; advance the counters.
@@ -246,8 +279,11 @@ class OnlineCollector(BaseCollector):
         run_index = self.run_index + run_ended.to(torch.int64)
         finishing = run_ended & (run_index == self.runs)
         next_run = run_ended & ~finishing
-        counts = torch.stack((ended.sum(), next_run.sum(), finishing.sum())).tolist()
-        episodes_ended, runs_started, experiments_finishing = counts
+        # (and how many ended without terminating: a truncated episode's reset draws afresh)
+        unterminated = ended & ~next_td.get("terminated").squeeze(-1)
+        counts = torch.stack((ended.sum(), next_run.sum(), finishing.sum(), unterminated.sum()))
+        episodes_ended, runs_started, experiments_finishing, truncated = counts.tolist()
+        self._restarts_terminated = truncated == 0
         if not episodes_ended:
             return None
         # Each experiment's slot (run, episode) in the flat [S * runs * episodes] metrics; the

@@ -19,6 +19,16 @@ torch's vectorised ``param.add_(grad, alpha=-lr)`` (plain, foreach and fused SGD
 ``Q + alpha (target - Q)`` in the last bit (measured on AVX2). With learning rate 1 the product
 ``-1 * grad`` is exact, so the only multiplication by ``alpha`` is the loss's.
 
+**The direct tabular step.** ``loss.tabular_step(td)`` applies the same update without
+autograd: it computes the target exactly as ``forward`` does and writes
+``functional.q_update(Q(s, a), target, alpha)`` into the table entry (and eq. 5, in training mode),
+which is bit for bit what ``forward``, ``backward`` and one step of ``tabular_optimizer`` give
+(``Q - fl(alpha td)`` and ``Q + fl(alpha (-td))`` are the same float). ``OnlineCollector`` uses it
+when it built the optimizer itself, ``supports_tabular_step()`` holds (a ``TaskQTable`` as the
+only parameter, reduction ``"sum"``) and no hook watches the loss's ``forward`` (a trainer that
+reads ``td_error`` from it keeps getting it): a step then builds no graph, no sparse gradient and
+no optimizer call.
+
 **How the local update (eq. 5) is applied.** Eq. 5 is a running mean (``alpha_L = 1 / kappa``),
 not a gradient step. Like a BatchNorm's running statistics, it is applied by
 ``FactorQLoss.forward`` in training mode (the default; ``loss.eval()`` turns it off): after the
@@ -51,8 +61,9 @@ from factorq_torch.functional import (
     factorq_target,
     normaliser,
     q_learning_target,
+    q_update,
 )
-from factorq_torch.tables import experiment_index
+from factorq_torch.tables import TaskQTable, experiment_index
 
 REDUCTIONS = ("sum", "mean")
 
@@ -171,6 +182,63 @@ class _TransitionLoss(LossModule):
                 f"{list(batch)} (one flag per transition)"
             )
         return mask
+
+    def supports_tabular_step(self) -> bool:
+        """Whether ``tabular_step`` gives what ``forward`` + ``backward`` + one step of
+        ``tabular_optimizer(self)`` give: the task provider is a ``TaskQTable``, its table is the
+        loss's only parameter (no network to train by gradient) and the reduction is ``"sum"``."""
+        provider = self._task_provider
+        return (
+            isinstance(provider, TaskQTable)
+            and self.reduction == "sum"
+            and [id(p) for p in self.parameters()] == [id(provider.table)]
+        )
+
+    def _takes_tabular_step(self, tensordict: TensorDictBase) -> bool:
+        """Whether ``tabular_step`` applies to ``tensordict``: the online step (batch_size
+        ``[S]``, no ``keys.EXPERIMENT`` entry); a loss that does not support it raises."""
+        if not self.supports_tabular_step():
+            raise ValueError(
+                f"{type(self).__name__}.tabular_step needs a TaskQTable as the only parameter "
+                f"and reduction='sum'; use forward + backward + an optimizer step instead"
+            )
+        return self._experiment(tensordict) is None
+
+    @torch.no_grad()
+    def _write_task_update(
+        self,
+        tensordict: TensorDictBase,
+        action: torch.Tensor,
+        target: torch.Tensor,
+        mask: torch.Tensor | None,
+    ) -> None:
+        """``Q(s, a) <- q_update(Q(s, a), target, alpha)`` of every experiment (the online
+        ``[S]`` step: one entry each), unchanged where ``mask`` is False or the table is
+        frozen (``requires_grad=False``: the optimizer would not move it either)."""
+        provider = self._task_provider
+        table = provider.table
+        if not table.requires_grad:
+            return
+        state = provider.state_index(tensordict)  # [S]
+        _, states, width = table.shape
+        rows = torch.arange(state.shape[0], device=state.device)
+        # The flat entry (experiment, state, action) of each experiment, -1 (refused by
+        # index_select) where the state or the action is out of range.
+        inside = (state >= 0) & (state < states) & (action >= 0) & (action < width)
+        entry = torch.where(inside, (rows * states + state) * width + action, -1)
+        flat = table.detach().view(-1)
+        try:
+            q_sa = flat.index_select(0, entry)  # [S], Q(s, a)
+        except IndexError:
+            if bool(((state < 0) | (state >= states)).any()):
+                raise ValueError(provider._misfit(state)) from None
+            raise ValueError(
+                f"{type(self).__name__}: action holds values outside [0, {width})"
+            ) from None
+        new = q_update(q_sa, target, self.alpha)  # eqs. 1 and 4
+        if mask is not None:
+            new = torch.where(mask, new, q_sa)
+        flat.index_copy_(0, entry, new)
 
     @staticmethod
     def _provide(
@@ -291,6 +359,25 @@ class TabularQLoss(_TransitionLoss):
         loss_task, td_error = self._task_loss(q, action, target, mask, weight)
         # write
         return TensorDict(loss_task=loss_task, td_error=td_error.detach(), batch_size=[])
+
+    @torch.no_grad()
+    def tabular_step(self, tensordict: TensorDictBase) -> bool:
+        """Eq. 1's update written straight into the table: what ``forward``, ``backward`` and
+        one step of ``tabular_optimizer`` give, bit for bit, without autograd (see the module
+        docstring; ``supports_tabular_step()``). Returns False, changing nothing, for anything
+        but the online ``[S]`` step (transitions with experiment indices: use ``forward``)."""
+        if not self._takes_tabular_step(tensordict):
+            return False
+        keys, batch = self.tensor_keys, self._batch(tensordict)
+        provider = self.task_value_network
+        action = self._read_action(tensordict, provider.num_actions)  # [S]
+        reward = self._read(tensordict, ("next", keys.reward), ())  # [S]
+        terminated = self._read_terminated(tensordict)  # [S]
+        mask = self._mask(tensordict, batch)
+        q_next = self._provide(provider, tensordict.get("next"), keys.action_value)  # [S, A]
+        target = q_learning_target(reward, q_next, terminated, self.gamma)  # [S], eq. 1
+        self._write_task_update(tensordict, action, target, mask)
+        return True
 
 
 class FactorQLoss(_TransitionLoss):
@@ -422,3 +509,36 @@ class FactorQLoss(_TransitionLoss):
         if regularisation is not None:
             out.set("loss_regularisation", regularisation())
         return out
+
+    @torch.no_grad()
+    def tabular_step(self, tensordict: TensorDictBase) -> bool:
+        """Eqs. 4 and 5 written straight into the tables: what ``forward``, ``backward`` and one
+        step of ``tabular_optimizer`` give, bit for bit, without autograd (see the module
+        docstring; ``supports_tabular_step()``). Returns False, changing nothing, for anything
+        but the online ``[S]`` step (transitions with experiment indices: use ``forward``)."""
+        if not self._takes_tabular_step(tensordict):
+            return False
+        keys, batch = self.tensor_keys, self._batch(tensordict)
+        task, local = self.task_value_network, self.local_value_network
+        num_actions = task.num_actions
+        action = self._read_action(tensordict, num_actions)  # [S]
+        num_sensors = getattr(local, "num_sensors", None)
+        if num_sensors is None:  # a provider that does not declare K: take the entry's own
+            num_sensors = getattr(tensordict.get(keys.sensors, None), "shape", (0,))[-1]
+        sensors = self._read(tensordict, keys.sensors, (num_sensors,))  # [S, K], before acting
+        reward = self._read(tensordict, ("next", keys.reward), ())  # [S], task reward
+        local_reward = self._read(tensordict, ("next", keys.local_reward), (num_actions,))
+        terminated = self._read_terminated(tensordict)  # [S]
+        mask = self._mask(tensordict, batch)
+        next_td = tensordict.get("next")
+        q_next = self._provide(task, next_td, keys.action_value)  # [S, A]
+        rho_next = self._provide(local, next_td, keys.local_value)  # [S, A]
+        g_next = normaliser(q_next, rho_next, eta=self.eta, g_min=self.g_min)  # [S], eq. 3
+        c_next = combined_values(q_next, rho_next, g_next)  # [S, A], eq. 2
+        target = factorq_target(reward, c_next, terminated, self.gamma)  # [S], eq. 4
+        self._write_task_update(tensordict, action, target, mask)
+        # eq. 5, after the target used the local tables as they were
+        update = getattr(local, "update_running_mean", None)
+        if self.training and update is not None:
+            update(sensors, action, local_reward, mask)
+        return True

@@ -126,6 +126,18 @@ def check_mask(mask: torch.Tensor | None, num_experiments: int, owner: str) -> t
     return mask
 
 
+def table_rows(table: torch.Tensor, experiment: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+    """``table[experiment, state]`` ``[*B, A]`` of a ``[S, states, A]`` table (no gradient) for
+    int64 indices ``[*B]``, by one ``index_select`` on the flattened rows: the same values as
+    the advanced indexing, 2-3x faster on CPU where the rows are not in cache (measured in the
+    README loop at S = 4096). A state outside ``[0, states)`` raises IndexError like the
+    indexing does (``experiment`` must be in range: ``experiment_index`` checks it)."""
+    states, width = table.shape[1], table.shape[-1]
+    inside = (state >= 0) & (state < states)
+    flat = torch.where(inside, experiment * states + state, -1).reshape(-1)
+    return table.detach().reshape(-1, width).index_select(0, flat).reshape(*state.shape, width)
+
+
 def _check_entry(
     tensordict: TensorDictBase, key, shape: tuple, dtypes: tuple, owner: str
 ) -> torch.Tensor:
@@ -245,10 +257,13 @@ class TaskQTable(TensorDictModuleBase):
         experiment = experiment_index(tensordict, self.num_experiments, type(self).__name__)
         state = self.state_index(tensordict)  # [*B]
         try:
-            if self.sparse_grad and torch.is_grad_enabled() and self.table.requires_grad:
+            learning = torch.is_grad_enabled() and self.table.requires_grad
+            if learning and self.sparse_grad:
                 values = _RowsWithSparseGrad.apply(self.table, experiment, state)  # [*B, A]
-            else:
+            elif learning:  # a dense gradient through the indexing
                 values = self.table[experiment, state]  # [*B, A]
+            else:
+                values = table_rows(self.table, experiment, state)  # [*B, A]
         except IndexError:
             raise ValueError(self._misfit(state)) from None
         tensordict.set(keys.ACTION_VALUE, values)
@@ -283,7 +298,7 @@ class _RowsWithSparseGrad(torch.autograd.Function):
     def forward(ctx, table: torch.Tensor, experiment: torch.Tensor, state: torch.Tensor):
         ctx.save_for_backward(experiment, state)
         ctx.table_shape = table.shape
-        return table[experiment, state]
+        return table_rows(table, experiment, state)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
@@ -420,9 +435,11 @@ class LocalRewardTable(TensorDictModuleBase):
                 raise ValueError(
                     f"{owner}: {name} has shape {list(value.shape)}, expected {list(shape)}"
                 )
+        distinct = False  # whether the transitions' experiments are known to differ
         if experiment is None:
             if batch == (self.num_experiments,):
                 experiment = torch.arange(self.num_experiments, device=action.device)
+                distinct = True
             elif self.num_experiments == 1:
                 experiment = torch.zeros(batch, dtype=torch.int64, device=action.device)
             else:
@@ -448,18 +465,23 @@ class LocalRewardTable(TensorDictModuleBase):
         entry = (experiment.reshape(-1) * self.num_actions + action) * self.rho.shape[-1]
         entry = entry + reading  # [M], flat index into rho / kappa
         rho_flat, kappa_flat = self.rho.view(-1), self.kappa.view(-1)
-        rho, kappa = rho_flat[entry], kappa_flat[entry]  # [M]
+        rho, kappa = rho_flat.index_select(0, entry), kappa_flat.index_select(0, entry)  # [M]
         step = reward - rho  # r_L[a] - rho_a[o]
         visits = torch.ones_like(kappa)
         if mask is not None:
             mask = mask.reshape(-1)
             step, visits = torch.where(mask, step, 0.0), mask.to(torch.int64)
-        # Sums per entry (n transitions on one entry add n visits and their n steps).
-        count = torch.zeros_like(kappa_flat).index_add_(0, entry, visits)[entry]  # [M]
-        total = torch.zeros_like(rho_flat).index_add_(0, entry, step)[entry]  # [M]
+        # Sums per entry (n transitions on one entry add n visits and their n steps). One
+        # transition per experiment (the online step) hits distinct entries: the sums are the
+        # transitions' own (``0.0 + step``, as index_add_ into zeros computes it: -0.0 -> 0.0).
+        if distinct:
+            count, total = visits, step + 0.0
+        else:
+            count = torch.zeros_like(kappa_flat).index_add_(0, entry, visits)[entry]  # [M]
+            total = torch.zeros_like(rho_flat).index_add_(0, entry, step)[entry]  # [M]
         new_rho, new_kappa = running_mean_add(rho, kappa, total, count)  # eq. 5, n at once
-        rho_flat[entry] = new_rho  # every transition of an entry writes the same value
-        kappa_flat[entry] = new_kappa
+        rho_flat.index_copy_(0, entry, new_rho)  # every transition of an entry writes the same
+        kappa_flat.index_copy_(0, entry, new_kappa)  # value
 
     @torch.no_grad()
     def reset(self, mask: torch.Tensor | None = None) -> None:

@@ -318,3 +318,83 @@ def test_a_transition_of_another_batch_size_than_the_tables_is_refused():
     loss = TabularQLoss(TaskQTable(2, num_cells=4))
     with pytest.raises(ValueError, match="S=2 experiments .* batch_size \\[1\\]"):
         loss(td)
+
+
+def _random_tables(batch, num_cells, generator, with_sensors=False):
+    task = TaskQTable(batch, num_cells, with_sensors=with_sensors, sparse_grad=True)
+    local = LocalRewardTable(batch)
+    with torch.no_grad():
+        task.table.copy_(torch.randn(task.table.shape, generator=generator) * 3)
+        local.kappa.copy_(torch.randint(0, 9, local.kappa.shape, generator=generator))
+        local.rho.copy_(-torch.rand(local.rho.shape, generator=generator) * (local.kappa > 0))
+    return task, local
+
+
+@pytest.mark.parametrize("algorithm", ["factor-q", "q-learning"])
+@pytest.mark.parametrize("alpha", [0.2, 0.3, 0.77])
+def test_tabular_step_equals_the_loss_its_gradient_and_one_sgd_step_bit_for_bit(algorithm, alpha):
+    # Two copies of the same random tables: one moved by forward + backward + tabular_optimizer,
+    # the other by tabular_step; finished experiments (mask False) keep their tables.
+    generator = torch.Generator().manual_seed(int(alpha * 100))
+    batch, num_cells = 512, 6
+    q_learning = algorithm == "q-learning"
+    td = random_batch(batch, num_cells, generator, local=not q_learning)
+    td["collector", "mask"] = torch.rand(batch, generator=generator) < 0.8
+    moved = []
+    for _ in range(2):
+        generator.manual_seed(7)
+        task, local = _random_tables(batch, num_cells, generator, with_sensors=q_learning)
+        if q_learning:
+            loss = TabularQLoss(task, gamma=0.8, alpha=alpha)
+        else:
+            loss = FactorQLoss(task, local, gamma=0.8, alpha=alpha, eta=0.3, g_min=0.02)
+        moved.append((task, local, loss))
+    (task, local, loss), (task_d, local_d, loss_d) = moved
+    initial = task.table.detach().clone()
+    optimizer = tabular_optimizer(loss)
+    loss(td.clone())["loss_task"].backward()
+    optimizer.step()
+    assert loss_d.supports_tabular_step() and loss_d.tabular_step(td.clone()) is True
+    assert torch.equal(task.table.detach(), task_d.table.detach())
+    assert torch.equal(local.rho, local_d.rho) and torch.equal(local.kappa, local_d.kappa)
+    changed = (task_d.table.detach() != initial).flatten(1).any(1)
+    assert changed.sum() > batch // 2 and not (changed & ~td["collector", "mask"]).any()
+
+
+def test_tabular_step_leaves_a_frozen_table_and_in_eval_mode_the_local_tables_alone():
+    generator = torch.Generator().manual_seed(3)
+    task, local = _random_tables(64, 6, generator)
+    td = random_batch(64, 6, generator)
+    table, rho = task.table.detach().clone(), local.rho.clone()
+    loss = FactorQLoss(task, local).eval()
+    task.table.requires_grad_(False)
+    assert loss.tabular_step(td) is True
+    assert torch.equal(task.table, table) and torch.equal(local.rho, rho)
+
+
+def test_tabular_step_refuses_what_it_cannot_do_and_skips_transitions_with_experiments():
+    task, local = TaskQTable(2, 4), LocalRewardTable(2)
+    with pytest.raises(ValueError, match="tabular_step needs a TaskQTable .* reduction='sum'"):
+        FactorQLoss(task, local, reduction="mean").tabular_step(TensorDict(batch_size=[2]))
+    network = TensorDictModule(torch.nn.Linear(4, 4), ["x"], ["action_value"])
+    assert not TabularQLoss(network).supports_tabular_step()
+    generator = torch.Generator().manual_seed(4)
+    td = random_batch(2, 4, generator)
+    td["experiment"] = torch.tensor([1, 1])
+    table = task.table.detach().clone()
+    assert FactorQLoss(task, local).tabular_step(td) is False
+    assert torch.equal(task.table.detach(), table)
+
+
+def test_tabular_step_names_a_state_past_the_table_and_an_action_out_of_range():
+    generator = torch.Generator().manual_seed(5)
+    task, local = _random_tables(2, 4, generator)
+    loss = FactorQLoss(task, local)
+    td = random_batch(2, 4, generator)
+    td["cell"] = torch.tensor([0, 5])
+    with pytest.raises(ValueError, match="num_cells=4 but received cell 5"):
+        loss.tabular_step(td)
+    td = random_batch(2, 4, generator)
+    td["action"] = torch.tensor([4, 0])
+    with pytest.raises(ValueError, match=r"action holds values outside \[0, 4\)"):
+        loss.tabular_step(td)
