@@ -158,6 +158,19 @@ def _keys(keys, seed: int, stream: int, count: int, offset: int) -> torch.Tensor
     return keys
 
 
+def _sensors(tensordict: TensorDictBase, owner: str, num_experiments: int, num_sensors: int):
+    """The ``sensors`` entry, checked to be ``[..., S, K]`` with ``K = num_sensors``."""
+    sensors = tensordict.get(names.SENSORS, None)
+    if sensors is None:
+        raise KeyError(f"{owner} needs 'sensors' in the tensordict")
+    _experiment_dim(sensors, 1, num_experiments, owner, "sensors")
+    if sensors.shape[-1] != num_sensors:
+        raise ValueError(
+            f"{owner}: 'sensors' has {sensors.shape[-1]} sensors, expected K={num_sensors}"
+        )
+    return sensors
+
+
 def _experiment_dim(value: torch.Tensor, trailing: int, num_experiments: int, owner: str, key):
     """Check that ``value`` is ``[..., S, *trailing]`` with ``S = num_experiments``."""
     dim = value.dim() - 1 - trailing
@@ -353,16 +366,7 @@ class LocalRewardNetwork(TensorDictModuleBase):
         )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        owner = type(self).__name__
-        sensors = tensordict.get(names.SENSORS, None)
-        if sensors is None:
-            raise KeyError(f"{owner} needs 'sensors' in the tensordict")
-        _experiment_dim(sensors, 1, self.num_experiments, owner, "sensors")
-        if sensors.shape[-1] != self.num_sensors:
-            raise ValueError(
-                f"{owner}: 'sensors' has {sensors.shape[-1]} sensors, expected "
-                f"{self.num_sensors} (the dependency's)"
-            )
+        sensors = _sensors(tensordict, type(self).__name__, self.num_experiments, self.num_sensors)
         padded = torch.cat(  # [..., S, K + 1]: a zero column for missing parents
             [
                 sensors.to(torch.float32),
@@ -520,15 +524,7 @@ class GatedLocalRewardNetwork(TensorDictModuleBase):
         return self.l1 * self.gates().sum()
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        owner = type(self).__name__
-        sensors = tensordict.get(names.SENSORS, None)
-        if sensors is None:
-            raise KeyError(f"{owner} needs 'sensors' in the tensordict")
-        _experiment_dim(sensors, 1, self.num_experiments, owner, "sensors")
-        if sensors.shape[-1] != self.num_sensors:
-            raise ValueError(
-                f"{owner}: 'sensors' has {sensors.shape[-1]} sensors, expected K={self.num_sensors}"
-            )
+        sensors = _sensors(tensordict, type(self).__name__, self.num_experiments, self.num_sensors)
         # [..., S, 1, K] * [S, A, K] -> [..., S, A, K]: each actuator's gated view of the readings
         gated = sensors.to(torch.float32).unsqueeze(-2) * self.gates()
         tensordict.set(names.LOCAL_VALUE, self.network(gated).squeeze(-1))  # [..., S, A]
