@@ -104,7 +104,8 @@ GRID_ARGUMENTS = {
 
 
 def check_no_grid_arguments(given: dict, world) -> None:
-    """Refuse grid arguments beside ``world=``: one ValueError naming them."""
+    """Refuse grid arguments beside ``world=``: one ValueError naming them. ``given``: the
+    constructor's arguments by name (its ``locals()``); only ``GRID_ARGUMENTS`` are read."""
 
     def differs(value, default) -> bool:
         if default is None or value is None:
@@ -229,21 +230,7 @@ class FactoredGridEnv(EnvBase):
         periods, shared_period = _check_periods(obstacle_period, num_worlds)
         if world is not None:
             check_world(world)
-            check_no_grid_arguments(
-                {
-                    "size": size,
-                    "num_obstacles": num_obstacles,
-                    "max_steps": max_steps,
-                    "layout_seed": layout_seed,
-                    "body": body,
-                    "sensors": sensors,
-                    "num_distractors": num_distractors,
-                    "sensor_permutation": sensor_permutation,
-                    "sensor_noise": sensor_noise,
-                    "actuator_noise": actuator_noise,
-                },
-                world,
-            )
+            check_no_grid_arguments(locals(), world)  # the grid arguments, read by name
             super().__init__(device=device, batch_size=batch_size)
             self._setup(world, num_worlds, experiment_offset, periods, seed, world_keys)
             return

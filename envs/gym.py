@@ -86,21 +86,7 @@ class FactoredGridGym(gymnasium.Env):
             from factorq_envs.grid import check_no_grid_arguments  # the one list of grid arguments
 
             check_world(world)
-            check_no_grid_arguments(
-                {
-                    "size": size,
-                    "num_obstacles": num_obstacles,
-                    "max_steps": max_steps,
-                    "layout_seed": layout_seed,
-                    "body": body,
-                    "sensors": sensors,
-                    "num_distractors": num_distractors,
-                    "sensor_permutation": sensor_permutation,
-                    "sensor_noise": sensor_noise,
-                    "actuator_noise": actuator_noise,
-                },
-                world,
-            )
+            check_no_grid_arguments(locals(), world)  # the grid arguments, read by name
             check_int("obstacle_period", obstacle_period, 0, hint=" (0 static, k > 0 moving)")
             self._setup(world, obstacle_period, render_mode)
             return
