@@ -877,22 +877,9 @@ class ExperimentBatch:
         if self.structure is None:
             raise RuntimeError("this batch runs no structure learner")
         names = ("count", "successes", "reward_sum", "log_marginal")
-        state = {
-            name: self._tensors[name].clone()
-            for name in (
-                "committed",
-                "samples",
-                "block_samples",
-                "reopened",
-                "map_cache",
-                "plausible",
-                "right_since",
-                "samples_at_change",
-                "wrong_commitments",
-                "change_tick",
-                "curve",
-            )
-        }
+        # the learner's own state: the pointers after its counts (committed ... curve)
+        own = _LEARNER_POINTERS[_LEARNER_POINTERS.index("counts") + 1 :]
+        state = {name: self._tensors[name].clone() for name in own}
         shape = (self.num_experiments, 8, self.world.num_actuators, self._batch.num_candidates)
         counts = self._tensors["counts"].reshape(*shape, self._batch.learner_patterns)
         for index, name in enumerate((*names, *("block_" + name for name in names))):
