@@ -5,6 +5,7 @@ prints its estimate first."""
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import io
 import re
 
@@ -32,7 +33,20 @@ REFUSED = [
     ("compare --seeds 10000000", r"episode records [\d.]+ TiB", COMPARE_HINT),
     ("compare --steps 2000000000", r"episode records [\d.]+ TiB", COMPARE_HINT),
     ("compare --size 1000 --seeds 1000 --methods factor-q", r"tables [\d.]+ GiB", COMPARE_HINT),
+    (
+        "dependencies --seeds 100000000",
+        r"learners, tables and metrics [\d.]+ TiB",
+        r"use fewer --seeds, --runs or --episodes, or fewer --settings",
+    ),
 ]
+if importlib.util.find_spec("minigrid") is not None:  # the extra: its refusal comes first without
+    REFUSED.append(
+        (
+            "minigrid --seeds 10000 --sizes 16 --steps 100000000",
+            r"episode records [\d.]+ TiB",
+            r"use fewer --seeds or --steps, or smaller --sizes",
+        )
+    )
 
 
 def run_cli(command: str, tmp_path) -> tuple[int, str]:
@@ -79,6 +93,20 @@ def test_the_library_entry_points_check_too(tmp_path, monkeypatch):
         paper.run(PaperConfig(seeds=1, runs=1, episodes=1, size=4, obstacles=1, out=str(tmp_path)))
     with pytest.raises(resources.ResourceError, match=r"this comparison needs about"):
         compare.run(CompareConfig(seeds=1, steps=1, size=4, obstacles=1, out=str(tmp_path)))
+    from factorq_trainers import dependencies
+
+    with pytest.raises(resources.ResourceError, match=r"this experiment needs about"):
+        dependencies.run(dependencies.DependenciesConfig(seeds=1, settings=("cross",)))
+
+
+def test_the_dependencies_estimate_grows_with_the_candidate_sets():
+    from factorq_trainers.dependencies import DependenciesConfig
+
+    cross = resources.dependencies_estimate(DependenciesConfig(seeds=10, settings=("cross",)))
+    ring = resources.dependencies_estimate(DependenciesConfig(seeds=10, settings=("ring-24",)))
+    # cross: 4 sensors, 11 candidate sets, ring-24: 32 sensors, 529 (of at most 2 parents each)
+    learners = 2 * 8 * 8 * 4 * 4 * 10
+    assert ring.bytes - cross.bytes >= learners * (529 - 11) - 10 * 4 * (1 << 4) * 12
 
 
 def test_the_paper_estimate_is_close_to_what_the_default_run_allocates():

@@ -417,6 +417,15 @@ def _dependencies(parser: argparse.ArgumentParser, args: argparse.Namespace) -> 
         _error(parser, _as_option(str(error), config_type))
         return EXIT_USAGE
 
+    try:  # before any work: a config that would not fit is one line
+        estimate = resources.dependencies_estimate(config)
+        large = resources.check(estimate, "experiment", resources.DEPENDENCIES_HINT)
+    except resources.ResourceError as error:
+        _error(parser, str(error))
+        return EXIT_USAGE
+    if large:
+        print(large, file=sys.stderr)
+
     def progress(setting: str, method: str) -> None:
         print(f"factorq dependencies: {setting}: {method}", file=sys.stderr, flush=True)
 
@@ -446,9 +455,12 @@ def _minigrid(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         return EXIT_USAGE
     try:
         minigrid.require_minigrid()
-    except ModuleNotFoundError as error:
+        large = resources.check(minigrid.estimate(config), "experiment", resources.MINIGRID_HINT)
+    except (ModuleNotFoundError, resources.ResourceError) as error:
         _error(parser, str(error))
         return EXIT_USAGE
+    if large:
+        print(large, file=sys.stderr)
     print(minigrid.NOTICE, file=sys.stderr, flush=True)
     from tqdm.auto import tqdm
 

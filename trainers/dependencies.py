@@ -45,7 +45,8 @@ import torch
 from factorq_envs.world import WORLD_PERIODS, WORLDS, WorldConfig
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
-from factorq_torch.base.validation import check_int, check_names
+from factorq_torch.base.validation import INT32_MAX, check_int, check_names, check_threads
+from factorq_trainers import resources
 from factorq_trainers.experiment import MAX_SEED, check_world_options, experiment_keys
 from factorq_trainers.options import option
 from factorq_trainers.results import dumps, write_all_atomic
@@ -127,14 +128,14 @@ class DependenciesConfig:
 
     def __post_init__(self) -> None:
         check_int("seed", self.seed, 0, MAX_SEED)
-        check_int("seeds", self.seeds, 1)
+        check_int("seeds", self.seeds, 1, INT32_MAX)
         object.__setattr__(self, "settings", check_names("settings", self.settings, SETTINGS))
         object.__setattr__(self, "methods", check_names("methods", self.methods, METHODS))
-        check_int("runs", self.runs, 1)
-        check_int("episodes", self.episodes, 1)
+        check_int("runs", self.runs, 1, INT32_MAX)
+        check_int("episodes", self.episodes, 1, INT32_MAX)
         check_int("max_parents", self.max_parents, 0)
-        check_int("window", self.window, 1)
-        check_int("threads", self.threads, 1)
+        check_int("window", self.window, 1, INT32_MAX)
+        check_threads("threads", self.threads)
         for name, choices in (
             ("prediction", ("optimistic", "map", "posterior", "committed")),
             ("path", ("fast", "modular")),
@@ -151,11 +152,11 @@ class DependenciesConfig:
             )
         from factorq_torch.structure import candidate_sets
 
-        candidate_sets(4, self.max_parents)  # the cap on the candidate sets, named
         if "change" in self.settings:
             check_int("change_run", self.change_run, 1, self.runs - 1)
         for name in self.settings:
             world = self.world_of(name)
+            candidate_sets(world.num_sensors, self.max_parents)  # the cap on the sets, named
             if not bool(world.dependency.any()):
                 raise ValueError(
                     f"settings: {name!r} has a body without local rewards (no actuator can "
@@ -640,6 +641,8 @@ def run(
     config: DependenciesConfig, progress: Callable[[str, str], None] | None = None
 ) -> dict[str, Any]:
     """Every setting x method; returns the results (what ``dependencies.json`` holds)."""
+    estimate = resources.dependencies_estimate(config)
+    resources.check(estimate, "experiment", resources.DEPENDENCIES_HINT)  # before any allocation
     started = time.perf_counter()
     results: dict[str, Any] = {"config": asdict(config), "settings": {}, "skipped": {}}
     for setting in config.settings:

@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from factorq_torch.base.validation import check_int
+from factorq_trainers import resources
 from factorq_trainers.options import option
 from factorq_trainers.results import dumps, software_versions, write_all_atomic
 from factorq_trainers.stats import DESCRIPTION, format_number, interval, scalar_ci
@@ -461,6 +462,16 @@ def summarise(result: dict[str, Any], budget: int) -> dict[str, Any]:
     return summary
 
 
+def estimate(config: MiniGridConfig) -> resources.Estimate:
+    """``resources.minigrid_estimate`` for the body of ``config``'s sensor layout."""
+    from factorq_envs.body import HEADING
+    from factorq_envs.minigrid import sensor_names
+
+    return resources.minigrid_estimate(
+        config, len(sensor_names(config.layout)), HEADING.num_headings, len(HEADING.actuators)
+    )
+
+
 def run(
     config: MiniGridConfig,
     progress: Callable[[int], None] | None = None,
@@ -469,6 +480,7 @@ def run(
     """Every method on every size; ``progress(env_steps)`` after each 100 steps of a batch."""
     from factorq_envs.minigrid import require_minigrid
 
+    resources.check(estimate(config), "experiment", resources.MINIGRID_HINT)  # before allocating
     require_minigrid()
     import torch
 
