@@ -76,6 +76,8 @@ STREAM_ORDER = 7
 #: The issue's thresholds: local samples per actuator.
 SAMPLES_TARGET = 100
 SAMPLES_TARGET_CHANGE = 200
+#: The compiled path's priors are multiples of 1/PRIOR_DENOMINATOR (``fast.StructureOptions``).
+PRIOR_DENOMINATOR, PRIOR_LIMIT = 1024, 2**20
 #: Env steps between two points of the "right structure" curve.
 CURVE_EVERY = 10
 JSON_FILE, FIGURE_FILE, REPORT_FILE = "dependencies.json", "dependencies.png", "dependencies.md"
@@ -100,6 +102,14 @@ class DependenciesConfig:
     bayes_factor: float = option(100.0, "Posterior odds at which a parent set is committed to.")
     max_parents: int = option(2, "Largest candidate parent set (0, 1 or 2: pairs).")
     window: int = option(100, "Firings per actuator in the block the reopening test reads.")
+    prior_a: float = option(
+        1.0,
+        "Beta(prior_a, prior_b) prior of every pattern's collision rate: prior_a (> 0; a multiple "
+        "of 1/1024 on the compiled path).",
+    )
+    prior_b: float = option(
+        1.0, "Beta(prior_a, prior_b) prior of every pattern's collision rate: prior_b (as prior_a)."
+    )
     change_run: int = option(5, "Run at which the change setting redraws the sensor order.")
     prediction: str = option(
         "optimistic",
@@ -150,6 +160,23 @@ class DependenciesConfig:
                 f"bayes_factor={self.bayes_factor!r} must be > 1 (a commitment needs evidence "
                 f"for the best candidate over the runner-up)"
             )
+        for name in ("prior_a", "prior_b"):
+            value = getattr(self, name)
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not math.isfinite(value)
+                or not value > 0
+            ):
+                raise ValueError(f"{name}={value!r} must be a finite number > 0")
+            compiled = self.path == "fast" and self.prediction != "posterior"
+            scaled = value * PRIOR_DENOMINATOR
+            if compiled and (scaled != int(scaled) or not value < PRIOR_LIMIT):
+                raise ValueError(
+                    f"{name}={value!r}: the compiled path (--path fast) needs a multiple of "
+                    f"1/{PRIOR_DENOMINATOR} below {PRIOR_LIMIT} (e.g. 0.0625); --path modular "
+                    f"takes any finite value > 0"
+                )
         from factorq_torch.structure import candidate_sets
 
         if "change" in self.settings:
@@ -203,6 +230,8 @@ def _learner_options(config: DependenciesConfig) -> dict[str, Any]:
         "max_parents": config.max_parents,
         "bayes_factor": config.bayes_factor,
         "window": config.window,
+        "prior_a": config.prior_a,
+        "prior_b": config.prior_b,
         "prediction": config.prediction,
         "reopen": config.reopen,
     }
