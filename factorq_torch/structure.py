@@ -82,6 +82,7 @@ from factorq_torch.functional import (  # noqa: F401  (the structure math, re-ex
     PREDICTIONS,
     PRIORS,
     REOPENINGS,
+    SPARSE_PAIR_MASS,
     beta_bernoulli_log_marginal,
     candidate_log_prior,
     candidate_sets,
@@ -104,7 +105,8 @@ class StructureLearner(TensorDictModuleBase):
             which evidence on the recent block reopens it); must be > 1.
         window: firings per actuator in the block the reopening test reads.
         prior_a, prior_b: the Beta prior of every pattern's rate.
-        prior: the prior over candidates, ``"size"`` or ``"uniform"`` (``candidate_log_prior``).
+        prior: the prior over candidates, ``"size"``, ``"sparse"`` or ``"uniform"``
+            (``candidate_log_prior``).
         prediction: what an open actuator predicts: ``"optimistic"``, ``"map"``, ``"posterior"``
             or ``"committed"`` (module docstring).
         reopen: what a reopening forgets: ``"body"`` (every actuator) or ``"actuator"``.

@@ -14,6 +14,7 @@ from factorq_torch.collectors import OnlineCollector
 from factorq_torch.objectives import FactorQLoss
 from factorq_torch.policy import FactorQPolicy
 from factorq_torch.structure import (
+    SPARSE_PAIR_MASS,
     StructureLearner,
     beta_bernoulli_log_marginal,
     candidate_log_prior,
@@ -53,6 +54,18 @@ def test_each_size_has_the_same_prior_mass():
     assert torch.allclose(prior, expected)
     assert torch.allclose(
         candidate_log_prior(candidate_sets(3), "uniform").exp(), prior * 0 + 1 / 7
+    )
+
+
+def test_the_sparse_prior_gives_all_pairs_a_hundredth_of_a_size():
+    sparse = candidate_log_prior(candidate_sets(3), "sparse").exp()  # 1, 3, 3 candidates
+    total = 2 + SPARSE_PAIR_MASS
+    expected = [1 / total] + [1 / (3 * total)] * 3 + [SPARSE_PAIR_MASS / (3 * total)] * 3
+    assert torch.allclose(sparse, torch.tensor(expected, dtype=torch.float64))
+    # without pairs it is the size prior
+    singles = candidate_sets(3, max_parents=1)
+    assert torch.allclose(
+        candidate_log_prior(singles, "sparse"), candidate_log_prior(singles, "size")
     )
 
 

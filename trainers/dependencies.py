@@ -110,6 +110,12 @@ class DependenciesConfig:
     prior_b: float = option(
         1.0, "Beta(prior_a, prior_b) prior of every pattern's collision rate: prior_b (as prior_a)."
     )
+    candidate_prior: str = option(
+        "size",
+        "Prior over the candidate parent sets: size (no sensor, the single sensors and the pairs "
+        "each a third), sparse (the pairs together 1/100 of that) or uniform.",
+        choices=("size", "sparse", "uniform"),
+    )
     change_run: int = option(5, "Run at which the change setting redraws the sensor order.")
     prediction: str = option(
         "optimistic",
@@ -150,6 +156,7 @@ class DependenciesConfig:
             ("prediction", ("optimistic", "map", "posterior", "committed")),
             ("path", ("fast", "modular")),
             ("reopen", ("body", "actuator")),
+            ("candidate_prior", ("size", "sparse", "uniform")),
         ):
             if getattr(self, name) not in choices:
                 raise ValueError(
@@ -232,6 +239,7 @@ def _learner_options(config: DependenciesConfig) -> dict[str, Any]:
         "window": config.window,
         "prior_a": config.prior_a,
         "prior_b": config.prior_b,
+        "prior": config.candidate_prior,
         "prediction": config.prediction,
         "reopen": config.reopen,
     }
