@@ -86,6 +86,10 @@ def test_bad_options_are_refused_by_name():
         StructureLearner(1, num_actions=1, num_sensors=2, prior_a=0.0)
 
 
+#: The hand computations below are with Beta(1, 1) and the size prior (not the defaults).
+HAND = {"prior_a": 1.0, "prior_b": 1.0, "prior": "size"}
+
+
 def test_posterior_and_weighted_prediction_match_hand_computation():
     # Two firings of actuator 0 with K = 2: readings (1, 0) collided, readings (0, 1) did not.
     # log p(D | c): none n=2, s=1: 1!1!/3! = 1/6; (0,): patterns 1 and 0 once each: 1/2 * 1/2;
@@ -93,7 +97,7 @@ def test_posterior_and_weighted_prediction_match_hand_computation():
     # Posterior ~ 1/18, 1/24, 1/24, 1/12 = (2, 1.5, 1.5, 3) / 8.
     learners = {
         prediction: StructureLearner(
-            1, num_actions=2, num_sensors=2, bayes_factor=1e9, prediction=prediction
+            1, num_actions=2, num_sensors=2, bayes_factor=1e9, prediction=prediction, **HAND
         )
         for prediction in ("posterior", "optimistic", "map", "committed")
     }
@@ -133,7 +137,7 @@ def test_optimistic_prediction_ignores_the_implausible():
     values = {}
     for bayes_factor in (3.0, 1e9):
         learner = StructureLearner(
-            1, num_actions=1, num_sensors=2, max_parents=1, bayes_factor=bayes_factor
+            1, num_actions=1, num_sensors=2, max_parents=1, bayes_factor=bayes_factor, **HAND
         )
         for readings, reward in (((True, True), -1.0), ((False, False), 0.0)) * 3:
             learner.update_running_mean(

@@ -99,19 +99,19 @@ class DependenciesConfig:
     obstacles: int = option(4, "Number of single-cell obstacles.")
     max_steps: int = option(1_000, "Actions after which an episode is truncated.")
     layout_seed: int = option(0, "Seed of the static world's obstacle layout.")
-    bayes_factor: float = option(100.0, "Posterior odds at which a parent set is committed to.")
+    bayes_factor: float = option(300.0, "Posterior odds at which a parent set is committed to.")
     max_parents: int = option(2, "Largest candidate parent set (0, 1 or 2: pairs).")
     window: int = option(100, "Firings per actuator in the block the reopening test reads.")
     prior_a: float = option(
-        1.0,
+        0.25,
         "Beta(prior_a, prior_b) prior of every pattern's collision rate: prior_a (> 0; a multiple "
         "of 1/1024 on the compiled path).",
     )
     prior_b: float = option(
-        1.0, "Beta(prior_a, prior_b) prior of every pattern's collision rate: prior_b (as prior_a)."
+        0.25, "Beta(prior_a, prior_b) prior of every pattern's collision rate: prior_b (as a)."
     )
     candidate_prior: str = option(
-        "size",
+        "sparse",
         "Prior over the candidate parent sets: size (no sensor, the single sensors and the pairs "
         "each a third), sparse (the pairs together 1/100 of that) or uniform.",
         choices=("size", "sparse", "uniform"),
