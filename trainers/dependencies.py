@@ -724,7 +724,9 @@ def report_markdown(results: dict[str, Any]) -> str:
         "",
         f"{config['seeds']} experiments per setting, {config['runs']} runs x {config['episodes']} "
         f"episodes each, {config['world']} world {config['size']}x{config['size']} with "
-        f"{config['obstacles']} obstacles, Bayes factor {format_number(config['bayes_factor'])}; "
+        f"{config['obstacles']} obstacles, Bayes factor {format_number(config['bayes_factor'])}, "
+        f"Beta({format_number(config['prior_a'])}, {format_number(config['prior_b'])}) prior, "
+        f"candidate prior {config['candidate_prior']}; "
         f"wall time {results['timing']['wall_seconds']:.1f} s.",
         "",
         "| setting | samples until right (median, p90) | right within target | wrong commitments "
