@@ -285,7 +285,10 @@ MAX_CANDIDATE_PARENTS = 2
 #: Sensors the learner accepts (patterns are computed in int64 bit masks).
 MAX_SENSORS = 62
 #: Priors over the candidate parent sets (``candidate_log_prior``).
-PRIORS = ("size", "uniform")
+PRIORS = ("size", "uniform", "sparse")
+#: The ``"sparse"`` prior's mass of all pairs together, relative to "no sensor" and to all single
+#: sensors together (docs/decisions.md, "Learned dependencies": measured 0.1, 0.01, 0.001).
+SPARSE_PAIR_MASS = 0.01
 #: What an actuator predicts before it commits (``factorq_torch.structure``): ``"optimistic"``,
 #: the largest running mean among the plausible candidates (log posterior within
 #: ``log(bayes_factor)`` of the best: a firing is avoided only when every structure the evidence
@@ -338,14 +341,20 @@ def candidate_sets(num_sensors: int, max_parents: int = MAX_CANDIDATE_PARENTS) -
 
 def candidate_log_prior(sets: list[tuple], prior: str = "size") -> torch.Tensor:
     """``[C]`` float64 log prior of the candidates: ``"size"``, every size of parent set has the
-    same mass, uniform within a size; ``"uniform"``, every candidate the same."""
+    same mass, uniform within a size; ``"uniform"``, every candidate the same; ``"sparse"``, as
+    ``"size"`` but all pairs together have ``SPARSE_PAIR_MASS`` times the mass of a size (an
+    actuator needs the evidence of a pair's second sensor before the pair competes)."""
     if prior not in PRIORS:
         raise ValueError(f"prior={prior!r} is unknown: choose one of {PRIORS}")
     if prior == "uniform":
         return torch.full((len(sets),), -math.log(len(sets)), dtype=torch.float64)
     sizes = torch.tensor([len(s) for s in sets])
     per_size = torch.bincount(sizes).to(torch.float64)  # candidates of each size
-    return -torch.log(per_size[sizes]) - math.log(len(per_size))
+    if prior == "size":
+        return -torch.log(per_size[sizes]) - math.log(len(per_size))
+    mass = torch.ones_like(per_size)  # of each size, before normalising
+    mass[2:] = SPARSE_PAIR_MASS
+    return torch.log(mass[sizes]) - torch.log(per_size[sizes]) - math.log(float(mass.sum()))
 
 
 def competitor_mask(sets: list[tuple]) -> torch.Tensor:

@@ -20,14 +20,18 @@ outcome. A local reward outside ``{0, -1}`` is read as the fractional success ``
 1)`` (a Beta-Bernoulli likelihood with fractional counts, still a proper conjugate update:
 ``lgamma`` takes real arguments); rewards above 0 count as 0 and below -1 as -1 for the structure
 only, while the prediction uses the real rewards (their running mean). Each pattern of a
-candidate has its own rate with a ``Beta(prior_a, prior_b)`` prior, so the marginal likelihood of
-candidate ``c`` is
+candidate has its own rate with a ``Beta(prior_a, prior_b)`` prior (default ``Beta(1/4, 1/4)``:
+the collisions of a body are near-deterministic given the right sensors, so a rate near 0 or 1 is
+likely a priori and one counterexample counts against a candidate), so the marginal likelihood
+of candidate ``c`` is
 
     log p(D | c) = sum_patterns [ lgamma(a + s) + lgamma(b + n - s) - lgamma(a + b + n)
                                   - lgamma(a) - lgamma(b) + lgamma(a + b) ]
 
-in float64 (``beta_bernoulli_log_marginal``). The prior over candidates gives each size (0, 1,
-2 parents) the same mass, uniform within a size (``candidate_log_prior``).
+in float64 (``beta_bernoulli_log_marginal``). The prior over candidates (``candidate_log_prior``,
+``prior``) is by default ``"sparse"``: "no sensor" and the single sensors (together) the same
+mass, all pairs together 1/100 of it, uniform within a size (``"size"``: every size the same
+mass; ``"uniform"``: every candidate the same).
 
 **Commitment.** Until it commits, actuator ``a``'s local value is, by ``prediction``:
 ``"optimistic"`` (the default) the largest running mean ``rho_c[o_c]`` among the *plausible*
@@ -37,14 +41,15 @@ of the maximum a posteriori candidate; ``"posterior"`` the posterior-weighted ru
 ``sum_c p(c | D) rho_c[o_c]``; ``"committed"`` 0. An unvisited pattern predicts 0, as an
 unvisited table entry does. (Why optimistic: ``docs/decisions.md``, "Learned dependencies".)
 It commits to the maximum a posteriori candidate ``c*`` when ``c*`` beats every
-*competitor* by the Bayes factor ``bayes_factor`` (default 100; posterior odds, the prior
+*competitor* by the Bayes factor ``bayes_factor`` (default 300; posterior odds, the prior
 included). The competitors of ``c*`` are all candidates but its strict supersets; the competitors
 of "no sensor" are the single sensors. Why supersets are left out: a superset ``c* + {x}`` with
 an irrelevant ``x`` predicts what ``c*`` predicts, and its Occam penalty grows only like
 ``log n`` (about ``n0 n1 / 16`` for a deterministic single sensor seen ``n0`` and ``n1`` times per
-reading), so requiring it would delay every commitment to hundreds of samples; a superset whose
-extra sensor matters overtakes ``c*`` at a rate linear in ``n`` and becomes the MAP itself. Once
-committed, the actuator's local value is the committed candidate's running mean.
+reading with ``Beta(1, 1)``; more slowly with a sharper prior), so requiring it would delay
+every commitment to hundreds of samples; a superset whose extra sensor matters overtakes ``c*``
+at a rate linear in ``n`` and becomes the MAP itself. Once committed, the actuator's local value
+is the committed candidate's running mean.
 
 **Reopening.** Alongside the counts, the learner keeps the same counts over a *block* of the last
 at most ``window`` firings of each actuator (restarted every ``window`` firings). A Bayesian
@@ -82,6 +87,7 @@ from factorq_torch.functional import (  # noqa: F401  (the structure math, re-ex
     PREDICTIONS,
     PRIORS,
     REOPENINGS,
+    SPARSE_PAIR_MASS,
     beta_bernoulli_log_marginal,
     candidate_log_prior,
     candidate_sets,
@@ -104,7 +110,8 @@ class StructureLearner(TensorDictModuleBase):
             which evidence on the recent block reopens it); must be > 1.
         window: firings per actuator in the block the reopening test reads.
         prior_a, prior_b: the Beta prior of every pattern's rate.
-        prior: the prior over candidates, ``"size"`` or ``"uniform"`` (``candidate_log_prior``).
+        prior: the prior over candidates, ``"size"``, ``"sparse"`` or ``"uniform"``
+            (``candidate_log_prior``).
         prediction: what an open actuator predicts: ``"optimistic"``, ``"map"``, ``"posterior"``
             or ``"committed"`` (module docstring).
         reopen: what a reopening forgets: ``"body"`` (every actuator) or ``"actuator"``.
@@ -133,11 +140,11 @@ class StructureLearner(TensorDictModuleBase):
         num_actions: int,
         num_sensors: int,
         max_parents: int = MAX_CANDIDATE_PARENTS,
-        bayes_factor: float = 100.0,
+        bayes_factor: float = 300.0,
         window: int = 100,
-        prior_a: float = 1.0,
-        prior_b: float = 1.0,
-        prior: str = "size",
+        prior_a: float = 0.25,
+        prior_b: float = 0.25,
+        prior: str = "sparse",
         prediction: str = "optimistic",
         reopen: str = "body",
         sensors_key: str = keys.SENSORS,

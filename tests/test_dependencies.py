@@ -80,6 +80,11 @@ def test_a_tiny_experiment_writes_its_three_files(tmp_path):
         ({"max_parents": 3}, "max_parents=3 is past the cap"),
         ({"settings": ("nope",)}, "settings"),
         ({"change_run": 5, "runs": 5}, "change_run"),
+        ({"prior_a": 0.0}, "prior_a=0.0 must be a finite number > 0"),
+        ({"prior_b": -1.0}, "prior_b=-1.0 must be a finite number > 0"),
+        ({"prior_a": float("inf")}, "prior_a=inf must be a finite number > 0"),
+        ({"prior_b": 0.1}, "prior_b=0.1: the compiled path .* multiple of 1/1024"),
+        ({"prior_a": 2.0**20}, "prior_a=1048576.0: the compiled path"),
     ],
 )
 def test_bad_options_are_one_clear_error(options, message):
@@ -98,6 +103,24 @@ def test_a_body_without_local_rewards_is_refused(monkeypatch):
 def test_cli_refuses_a_bayes_factor_of_one(capsys):
     assert cli.main(["dependencies", "--bayes-factor", "1"]) == 2
     assert "--bayes-factor=1.0 must be > 1" in capsys.readouterr().err
+
+
+def test_cli_refuses_a_prior_the_compiled_path_cannot_take(capsys):
+    assert cli.main(["dependencies", "--prior-a", "0.1"]) == 2
+    assert "--prior-a=0.1: the compiled path" in capsys.readouterr().err
+    # the modular path takes it (nothing runs: the check is the config's)
+    config = dependencies.DependenciesConfig(prior_a=0.1, path="modular")
+    assert dependencies._learner_options(config)["prior_a"] == 0.1
+
+
+def test_the_priors_reach_the_learner(tmp_path):
+    """A sharper prior is a different learner: the same worlds give other structure metrics."""
+    common = dict(TINY, settings=("cross",), methods=("learned",), out=str(tmp_path))
+    plain = dependencies.run_learned(dependencies.DependenciesConfig(**common), "cross")
+    sharp = dependencies.run_learned(
+        dependencies.DependenciesConfig(**common, prior_a=1 / 16, prior_b=1 / 16), "cross"
+    )
+    assert not torch.equal(plain["_state"]["log_marginal"], sharp["_state"]["log_marginal"])
 
 
 def test_cli_keeps_earlier_results_unless_forced(tmp_path, capsys):

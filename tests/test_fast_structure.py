@@ -49,6 +49,9 @@ def draw_config(setting: str, generator: random.Random) -> DependenciesConfig:
         change_run=1,
         prediction=generator.choice(["optimistic", "map", "committed"]),
         reopen=generator.choice(["body", "actuator"]),
+        prior_a=generator.choice([1.0, 0.25, 0.0625, 2.5]),
+        prior_b=generator.choice([1.0, 0.25, 1 / 1024]),
+        candidate_prior=generator.choice(["size", "sparse", "uniform"]),
         out="unused",
     )
 

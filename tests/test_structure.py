@@ -14,6 +14,7 @@ from factorq_torch.collectors import OnlineCollector
 from factorq_torch.objectives import FactorQLoss
 from factorq_torch.policy import FactorQPolicy
 from factorq_torch.structure import (
+    SPARSE_PAIR_MASS,
     StructureLearner,
     beta_bernoulli_log_marginal,
     candidate_log_prior,
@@ -56,6 +57,18 @@ def test_each_size_has_the_same_prior_mass():
     )
 
 
+def test_the_sparse_prior_gives_all_pairs_a_hundredth_of_a_size():
+    sparse = candidate_log_prior(candidate_sets(3), "sparse").exp()  # 1, 3, 3 candidates
+    total = 2 + SPARSE_PAIR_MASS
+    expected = [1 / total] + [1 / (3 * total)] * 3 + [SPARSE_PAIR_MASS / (3 * total)] * 3
+    assert torch.allclose(sparse, torch.tensor(expected, dtype=torch.float64))
+    # without pairs it is the size prior
+    singles = candidate_sets(3, max_parents=1)
+    assert torch.allclose(
+        candidate_log_prior(singles, "sparse"), candidate_log_prior(singles, "size")
+    )
+
+
 def test_competitors_are_all_but_the_strict_supersets_and_singles_compete_with_none():
     sets = candidate_sets(2)  # (), (0,), (1,), (0, 1)
     mask = competitor_mask(sets)
@@ -73,6 +86,10 @@ def test_bad_options_are_refused_by_name():
         StructureLearner(1, num_actions=1, num_sensors=2, prior_a=0.0)
 
 
+#: The hand computations below are with Beta(1, 1) and the size prior (not the defaults).
+HAND = {"prior_a": 1.0, "prior_b": 1.0, "prior": "size"}
+
+
 def test_posterior_and_weighted_prediction_match_hand_computation():
     # Two firings of actuator 0 with K = 2: readings (1, 0) collided, readings (0, 1) did not.
     # log p(D | c): none n=2, s=1: 1!1!/3! = 1/6; (0,): patterns 1 and 0 once each: 1/2 * 1/2;
@@ -80,7 +97,7 @@ def test_posterior_and_weighted_prediction_match_hand_computation():
     # Posterior ~ 1/18, 1/24, 1/24, 1/12 = (2, 1.5, 1.5, 3) / 8.
     learners = {
         prediction: StructureLearner(
-            1, num_actions=2, num_sensors=2, bayes_factor=1e9, prediction=prediction
+            1, num_actions=2, num_sensors=2, bayes_factor=1e9, prediction=prediction, **HAND
         )
         for prediction in ("posterior", "optimistic", "map", "committed")
     }
@@ -120,7 +137,7 @@ def test_optimistic_prediction_ignores_the_implausible():
     values = {}
     for bayes_factor in (3.0, 1e9):
         learner = StructureLearner(
-            1, num_actions=1, num_sensors=2, max_parents=1, bayes_factor=bayes_factor
+            1, num_actions=1, num_sensors=2, max_parents=1, bayes_factor=bayes_factor, **HAND
         )
         for readings, reward in (((True, True), -1.0), ((False, False), 0.0)) * 3:
             learner.update_running_mean(

@@ -85,7 +85,9 @@ def test_grid_axes_are_crossed_with_the_configs_list(tmp_path):
         ({"grid": {"eta": [0.1, 0.1]}}, "grid axis 'eta' repeats a value"),
         ({"grid": {"eta": 0.1}}, "grid axis 'eta' must be a list"),
         ({"grid": {"eta": [0.1]}, "colour": "red"}, "unknown key(s) colour"),
-        ({"grid": {"eta": [0.1]}, "command": "dependencies"}, "'dependencies' cannot be swept"),
+        ({"grid": {"eta": [0.1]}, "command": "dependencies"}, "unknown field 'eta' in grid"),
+        ({"grid": {"prior_a": [0.1]}, "command": "dependencies"}, "configuration 0 (prior_a=0.1)"),
+        ({"grid": {"runs": [2]}, "command": "dependencies", "shard_seeds": 1}, "shard_seeds does"),
         ({"grid": {"eta": [0.1]}, "command": "tune"}, "command='tune' is not one of paper"),
         ({"grid": {"stepz": [1]}, "command": "compare"}, "unknown field 'stepz' in grid"),
         ({"grid": {"eta": [0.1]}, "command": "compare"}, "unknown field 'eta' in grid"),
@@ -300,6 +302,64 @@ def test_a_compare_sweep_cell_equals_factorq_compare_and_resumes(tmp_path, capsy
     )
 
 
+DEPENDENCIES_TOML = """
+command = "dependencies"
+seeds = 2
+[base]
+settings = ["cross", "change"]
+methods = ["learned", "oracle"]
+runs = 2
+size = 4
+obstacles = 2
+max_steps = 150
+change_run = 1
+"""
+
+
+def test_every_dependencies_config_field_but_seeds_and_out_is_sweepable():
+    from factorq_trainers import dependencies
+
+    names = [f.name for f in fields(dependencies.DependenciesConfig)]
+    assert list(sweep.sweepable_fields("dependencies")) == [
+        name for name in names if name not in ("seeds", "out")
+    ]
+
+
+def test_a_dependencies_sweep_cell_equals_factorq_dependencies_and_resumes(tmp_path):
+    from factorq_trainers import dependencies
+
+    spec_file = tmp_path / "dependencies.toml"
+    spec_file.write_text(DEPENDENCIES_TOML)
+    out = tmp_path / "sweep"
+    argv = ["sweep", str(spec_file), "--grid", "prior_a=1,0.25", "--out", str(out)]
+    assert cli.main(argv) == 0
+    result = json.loads((out / "sweep.json").read_text())
+    assert result["command"] == "dependencies" and result["axes"] == ["prior_a"]
+    grid = {"prior_a": [1.0, 0.25]}
+    spec = sweep.spec_from_mapping({**sweep.read_spec_file(spec_file), "grid": grid})
+    config = spec.configurations()[1]
+    expected = json.loads(result_files.dumps(dependencies.run(replace(config, out="unused"))))
+    row = result["configurations"][1]
+    stored = json.loads((out / row["results_file"]).read_text())
+    assert stored["config"].pop("out") == str(out) and expected["config"].pop("out")
+    assert _without_wall_s(stored) == _without_wall_s(expected)
+    cell = row["cells"]["change/learned"]
+    learned = expected["settings"]["change"]
+    assert cell["collisions"]["mean"] == learned["methods"]["learned"]["collisions_per_experiment"]
+    assert cell["collisions_vs_oracle"]["mean"] == learned["against_oracle"]["collisions"]["ratio"]
+    assert row["cells"]["change/oracle"]["fraction_right_within_target"]["mean"] is None
+    assert "| prior_a | world | algorithm | collisions |" in (out / "sweep.md").read_text()
+    # resumption: a lost configuration file is the only work of the next run
+    (out / row["results_file"]).unlink()
+    again = CountingExecutor()
+    resumed = sweep.run_sweep(replace(spec, out=str(out)), again)
+    assert again.items == [replace(config, out=str(out))]
+    assert resumed["timing"]["configurations_run_now"] == 1
+    assert _without_wall_s(json.loads(result_files.dumps(resumed))["configurations"]) == (
+        _without_wall_s(result["configurations"])
+    )
+
+
 def test_bad_compare_input_on_the_command_line_is_one_line_exit_2_and_nothing_written(
     tmp_path, capsys
 ):
@@ -311,6 +371,7 @@ def test_bad_compare_input_on_the_command_line_is_one_line_exit_2_and_nothing_wr
         ["--command", "compare", "--grid", "methods=factor-q,sarsa", "--out", str(out)],
         ["--command", "compare", "--grid", "steps=9", "--shard-seeds", "2", "--out", str(out)],
         ["--command", "dependencies", "--grid", "steps=9", "--out", str(out)],
+        ["--command", "dependencies", "--grid", "prior_b=0.3", "--out", str(out)],
     ):
         assert cli.main(["sweep", *argv]) == 2, argv
         error = capsys.readouterr().err

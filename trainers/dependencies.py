@@ -76,6 +76,8 @@ STREAM_ORDER = 7
 #: The issue's thresholds: local samples per actuator.
 SAMPLES_TARGET = 100
 SAMPLES_TARGET_CHANGE = 200
+#: The compiled path's priors are multiples of 1/PRIOR_DENOMINATOR (``fast.StructureOptions``).
+PRIOR_DENOMINATOR, PRIOR_LIMIT = 1024, 2**20
 #: Env steps between two points of the "right structure" curve.
 CURVE_EVERY = 10
 JSON_FILE, FIGURE_FILE, REPORT_FILE = "dependencies.json", "dependencies.png", "dependencies.md"
@@ -97,9 +99,23 @@ class DependenciesConfig:
     obstacles: int = option(4, "Number of single-cell obstacles.")
     max_steps: int = option(1_000, "Actions after which an episode is truncated.")
     layout_seed: int = option(0, "Seed of the static world's obstacle layout.")
-    bayes_factor: float = option(100.0, "Posterior odds at which a parent set is committed to.")
+    bayes_factor: float = option(300.0, "Posterior odds at which a parent set is committed to.")
     max_parents: int = option(2, "Largest candidate parent set (0, 1 or 2: pairs).")
     window: int = option(100, "Firings per actuator in the block the reopening test reads.")
+    prior_a: float = option(
+        0.25,
+        "Beta(prior_a, prior_b) prior of every pattern's collision rate: prior_a (> 0; a multiple "
+        "of 1/1024 on the compiled path).",
+    )
+    prior_b: float = option(
+        0.25, "Beta(prior_a, prior_b) prior of every pattern's collision rate: prior_b (as a)."
+    )
+    candidate_prior: str = option(
+        "sparse",
+        "Prior over the candidate parent sets: size (no sensor, the single sensors and the pairs "
+        "each a third), sparse (the pairs together 1/100 of that) or uniform.",
+        choices=("size", "sparse", "uniform"),
+    )
     change_run: int = option(5, "Run at which the change setting redraws the sensor order.")
     prediction: str = option(
         "optimistic",
@@ -140,6 +156,7 @@ class DependenciesConfig:
             ("prediction", ("optimistic", "map", "posterior", "committed")),
             ("path", ("fast", "modular")),
             ("reopen", ("body", "actuator")),
+            ("candidate_prior", ("size", "sparse", "uniform")),
         ):
             if getattr(self, name) not in choices:
                 raise ValueError(
@@ -150,6 +167,23 @@ class DependenciesConfig:
                 f"bayes_factor={self.bayes_factor!r} must be > 1 (a commitment needs evidence "
                 f"for the best candidate over the runner-up)"
             )
+        for name in ("prior_a", "prior_b"):
+            value = getattr(self, name)
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not math.isfinite(value)
+                or not value > 0
+            ):
+                raise ValueError(f"{name}={value!r} must be a finite number > 0")
+            compiled = self.path == "fast" and self.prediction != "posterior"
+            scaled = value * PRIOR_DENOMINATOR
+            if compiled and (scaled != int(scaled) or not value < PRIOR_LIMIT):
+                raise ValueError(
+                    f"{name}={value!r}: the compiled path (--path fast) needs a multiple of "
+                    f"1/{PRIOR_DENOMINATOR} below {PRIOR_LIMIT} (e.g. 0.0625); --path modular "
+                    f"takes any finite value > 0"
+                )
         from factorq_torch.structure import candidate_sets
 
         if "change" in self.settings:
@@ -203,6 +237,9 @@ def _learner_options(config: DependenciesConfig) -> dict[str, Any]:
         "max_parents": config.max_parents,
         "bayes_factor": config.bayes_factor,
         "window": config.window,
+        "prior_a": config.prior_a,
+        "prior_b": config.prior_b,
+        "prior": config.candidate_prior,
         "prediction": config.prediction,
         "reopen": config.reopen,
     }
@@ -687,7 +724,9 @@ def report_markdown(results: dict[str, Any]) -> str:
         "",
         f"{config['seeds']} experiments per setting, {config['runs']} runs x {config['episodes']} "
         f"episodes each, {config['world']} world {config['size']}x{config['size']} with "
-        f"{config['obstacles']} obstacles, Bayes factor {format_number(config['bayes_factor'])}; "
+        f"{config['obstacles']} obstacles, Bayes factor {format_number(config['bayes_factor'])}, "
+        f"Beta({format_number(config['prior_a'])}, {format_number(config['prior_b'])}) prior, "
+        f"candidate prior {config['candidate_prior']}; "
         f"wall time {results['timing']['wall_seconds']:.1f} s.",
         "",
         "| setting | samples until right (median, p90) | right within target | wrong commitments "

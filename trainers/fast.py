@@ -139,11 +139,11 @@ class StructureOptions:
 
     orders: torch.Tensor
     max_parents: int = 2
-    bayes_factor: float = 100.0
+    bayes_factor: float = 300.0
     window: int = 100
-    prior_a: float = 1.0
-    prior_b: float = 1.0
-    prior: str = "size"
+    prior_a: float = 0.25
+    prior_b: float = 0.25
+    prior: str = "sparse"
     prediction: str = "optimistic"
     reopen: str = "body"
     orders_after: torch.Tensor | None = None

@@ -2,7 +2,8 @@
 in-process or on a Dask cluster, gathered into ``sweep.json``, ``sweep.md`` and one figure per
 swept axis. With ``command = "compare"``, a grid of ``factorq compare`` configurations instead,
 each run whole (one task per method) and kept in ``OUT/configs/<digest>.json``
-(``run_compare_sweep``).
+(``run_compare_sweep``); with ``command = "dependencies"``, of ``factorq dependencies``
+configurations, one task each (``run_dependencies_sweep``).
 
     spec (TOML file and/or options) -> configurations -> shards (contiguous seed ranges)
          -> executor (in-process or Dask) -> one .npz per shard, written as it finishes
@@ -81,15 +82,27 @@ RESERVED = ("seeds", "first_seed", "out")
 SPEC_KEYS = ("command", "seeds", "shard_seeds", "out", "base", "grid", "configs")
 MEASURES = ("total_steps", "collisions", "greedy_collisions")
 #: The commands whose configs a sweep runs (``command = "..."`` in a sweep file, ``--command``).
-COMMANDS = ("paper", "compare")
+COMMANDS = ("paper", "compare", "dependencies")
 #: ``CompareConfig`` fields the sweep sets itself (``logger``: a sweep writes no per-episode logs).
 COMPARE_RESERVED = ("seeds", "out", "logger")
+#: ``DependenciesConfig`` fields the sweep sets itself.
+DEPENDENCIES_RESERVED = ("seeds", "out")
+#: What a dependencies sweep reports per setting and method (``dependencies.summarise_setting``'s
+#: measures; the last two for the learned structure only).
+DEPENDENCIES_MEASURES = (
+    "collisions",
+    "greedy_collisions",
+    "fraction_right_within_target",
+    "collisions_vs_oracle",
+)
 #: What a compare sweep reports per method and world (``compare.summarise``'s measures).
 COMPARE_MEASURES = ("steps_to_threshold", "collisions", "greedy_collisions")
 MEASURE_LABELS = {
     **claims.MEASURE_LABELS,
     "steps_to_threshold": "steps to threshold",
     "avoidable_greedy_collisions": "avoidable greedy collisions",
+    "fraction_right_within_target": "right structure within target",
+    "collisions_vs_oracle": "collisions vs oracle",
 }
 #: Where a compare sweep keeps each finished configuration's ``comparison.json`` dict.
 CONFIGS_DIRECTORY = "configs"
@@ -101,18 +114,18 @@ class SweepError(ValueError):
 
 def check_command(command: Any, source: str = "sweep file") -> str:
     """``command`` if a sweep can run its configs, else a ``SweepError`` saying which can."""
-    if command == "dependencies":
-        raise SweepError(
-            f"{source}: command='dependencies' cannot be swept yet (sweepable: "
-            f"{', '.join(COMMANDS)}); run `factorq dependencies` once per configuration"
-        )
     if command not in COMMANDS:
         raise SweepError(f"{source}: command={command!r} is not one of {', '.join(COMMANDS)}")
     return command
 
 
 def config_class(command: str = "paper") -> type:
-    """The config dataclass of ``command``: ``PaperConfig`` or ``CompareConfig``."""
+    """The config dataclass of ``command``: ``PaperConfig``, ``CompareConfig`` or
+    ``DependenciesConfig``."""
+    if command == "dependencies":
+        from factorq_trainers import dependencies
+
+        return dependencies.DependenciesConfig
     if command == "compare":
         from factorq_trainers import (
             compare,  # not at import: compare is heavier and imports this one's
@@ -124,7 +137,9 @@ def config_class(command: str = "paper") -> type:
 
 def reserved_fields(command: str = "paper") -> tuple[str, ...]:
     """The fields of ``command``'s config that the sweep sets itself."""
-    return COMPARE_RESERVED if command == "compare" else RESERVED
+    return {"compare": COMPARE_RESERVED, "dependencies": DEPENDENCIES_RESERVED}.get(
+        command, RESERVED
+    )
 
 
 def nested_fields(command: str = "paper") -> list[str]:
@@ -144,16 +159,19 @@ def sweepable_fields(command: str = "paper") -> dict[str, Any]:
 
 def config_digest(config: Any) -> str:
     """A short hash of the fields that decide ``config``'s numbers: a paper config's shard
-    digest, or for a compare config every field but ``out``, ``threads`` and ``logger``."""
+    digest, or for a compare config every field but ``out``, ``threads`` and ``logger``; for a
+    dependencies config every field but ``out``, ``threads`` and ``path`` (the compiled and the
+    modular path give the same numbers bit for bit)."""
     if isinstance(config, paper.PaperConfig):
         return shards.digest(config)
-    from factorq_trainers import compare
+    from factorq_trainers import compare, dependencies
 
-    relevant = {
-        key: value
-        for key, value in compare.config_dict(config).items()
-        if key not in ("out", "threads", "logger")
-    }
+    if isinstance(config, dependencies.DependenciesConfig):
+        values = _json(dataclasses.asdict(config))
+        ignored = ("out", "threads", "path")
+    else:
+        values, ignored = compare.config_dict(config), ("out", "threads", "logger")
+    relevant = {key: value for key, value in values.items() if key not in ignored}
     return hashlib.sha256(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -180,7 +198,8 @@ class SweepSpec:
     out: str = DEFAULT_OUT
     """Directory for sweep.json, sweep.md, the figures and shards/ (configs/ for compare)."""
     command: str = "paper"
-    """Whose configs are swept: ``paper`` (sharded seeds) or ``compare`` (whole configs)."""
+    """Whose configs are swept: ``paper`` (sharded seeds), ``compare`` or ``dependencies``
+    (whole configs)."""
 
     def __post_init__(self) -> None:
         check_command(self.command, "sweep")
@@ -268,9 +287,9 @@ def spec_from_mapping(data: dict[str, Any], source: str = "sweep file") -> Sweep
             f"{source}: unknown key(s) {', '.join(unknown)}; known: {', '.join(SPEC_KEYS)}"
         )
     command = check_command(data.get("command", "paper"), source)
-    if command == "compare" and "shard_seeds" in data:
+    if command in ("compare", "dependencies") and "shard_seeds" in data:
         raise SweepError(
-            f"{source}: shard_seeds does not apply to command='compare': its unit of work is a "
+            f"{source}: shard_seeds does not apply to command={command!r}: its unit of work is a "
             "whole configuration (DQN's seeds share a random stream within their batch)"
         )
     for key in ("base", "grid"):
@@ -568,6 +587,103 @@ def run_compare_sweep(
     }
 
 
+def _dependencies_task(config: Any) -> dict[str, Any]:
+    from factorq_trainers import dependencies
+
+    return dependencies.run(config)
+
+
+def dependencies_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per setting and method of a ``dependencies.json`` dict: collisions and greedy collisions
+    per experiment (means), and for the learned structure the fraction right within the target
+    and its collisions against the oracle's (ratio with its paired-bootstrap interval)."""
+    cells = {}
+    for setting, summary in results["settings"].items():
+        structure = summary.get("structure")
+        ratio = summary.get("against_oracle", {}).get("collisions")
+        for method, entry in summary["methods"].items():
+            learned = method == "learned"
+            cells[f"{setting}/{method}"] = {
+                "world": setting,
+                "algorithm": method,
+                "collisions": {"mean": entry["collisions_per_experiment"], "ci95": None},
+                "greedy_collisions": {
+                    "mean": entry["greedy_collisions_per_experiment"],
+                    "ci95": None,
+                },
+                "fraction_right_within_target": {
+                    "mean": structure["fraction_right_within_target"]
+                    if learned and structure
+                    else None,
+                    "ci95": None,
+                },
+                "collisions_vs_oracle": {
+                    "mean": ratio["ratio"] if learned and ratio else None,
+                    "ci95": _ci(ratio["ci"]) if learned and ratio and ratio["ci"] else None,
+                },
+            }
+    return cells
+
+
+def run_dependencies_sweep(
+    spec: SweepSpec,
+    executor: cluster.InProcess | cluster.DaskExecutor,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict[str, Any]:
+    """``run_sweep`` of a dependencies spec: every configuration not already in ``OUT/configs/``
+    run whole (``dependencies.run``, one task each) and kept there as its ``dependencies.json``
+    dict, then gathered into ``sweep.json``'s dict."""
+    started = time.perf_counter()
+    directory = Path(spec.out) / CONFIGS_DIRECTORY
+    configs = spec.configurations()
+    pending = [c for c in configs if not compare_result_path(directory, c).is_file()]
+    done = len(configs) - len(pending)
+    if progress is not None:
+        progress(done, len(configs))
+    names = [f"dependencies-{config_digest(config)}" for config in pending]
+    for index, results in executor.map(_dependencies_task, pending, names):
+        text = result_files.dumps(results)
+        directory.mkdir(parents=True, exist_ok=True)
+        result_files.write_atomic(
+            compare_result_path(directory, pending[index]), lambda path, t=text: path.write_text(t)
+        )
+        done += 1
+        if progress is not None:
+            progress(done, len(configs))
+    computed = time.perf_counter() - started
+    rows = []
+    for config, point in zip(configs, spec.points(), strict=True):
+        path = compare_result_path(directory, config)
+        results = json.loads(path.read_text())
+        rows.append(
+            {
+                "values": point,
+                "digest": config_digest(config),
+                "config": _json(dataclasses.asdict(config)),
+                "results_file": f"{CONFIGS_DIRECTORY}/{path.name}",
+                "cells": dependencies_cells(results),
+                "claims": {},
+            }
+        )
+    return {
+        "command": "dependencies",
+        "measures": list(DEPENDENCIES_MEASURES),
+        "axes": spec.axes,
+        "base": {name: _json(value) for name, value in spec.base},
+        "seeds": spec.seeds,
+        "shard_seeds": None,
+        "configurations": [_json(row) for row in rows],
+        "timing": {
+            "wall_s": round(time.perf_counter() - started, 3),
+            "compute_s": round(computed, 3),
+            "where": executor.description,
+            "configurations_total": len(configs),
+            "configurations_run_now": len(pending),
+        },
+        "software": paper.software_versions(),
+    }
+
+
 def run_sweep(
     spec: SweepSpec,
     executor: cluster.InProcess | cluster.DaskExecutor,
@@ -580,6 +696,8 @@ def run_sweep(
     """
     if spec.command == "compare":
         return run_compare_sweep(spec, executor, progress)
+    if spec.command == "dependencies":
+        return run_dependencies_sweep(spec, executor, progress)
     started = time.perf_counter()
     directory = Path(spec.out) / SHARDS_DIRECTORY
     configs = spec.configurations()
@@ -663,7 +781,10 @@ def report_markdown(sweep: dict[str, Any]) -> str:
     axes = sweep["axes"]
     measures = _measures(sweep)
     is_paper = sweep.get("command", "paper") == "paper"
-    unit = f"shards of {sweep['shard_seeds']}" if is_paper else "one task per method"
+    unit = {
+        "paper": f"shards of {sweep['shard_seeds']}",
+        "dependencies": "one task per configuration",
+    }.get(sweep.get("command", "paper"), "one task per method")
     per = "Per run" if is_paper else "Per experiment"
     claims_column = ["claims passed"] if is_paper else []
     lines = [
@@ -749,7 +870,7 @@ def write_axis_figure(sweep: dict[str, Any], axis: str, path: Path) -> None:
         panel.set_xlabel(axis)
         per = " per run" if sweep.get("command", "paper") == "paper" else ""
         panel.set_ylabel(f"{MEASURE_LABELS[measure]}{per}")
-        if measure not in ("total_steps", "steps_to_threshold"):
+        if measure in ("collisions", "greedy_collisions", "avoidable_greedy_collisions"):
             panel.set_yscale("symlog", linthresh=1.0)
         if not numeric:
             panel.set_xticks(x, labels)
@@ -939,8 +1060,9 @@ def build_parser(prog: str = "factorq sweep") -> argparse.ArgumentParser:
         "--command",
         metavar="NAME",
         default=argparse.SUPPRESS,
-        help="Whose configs to sweep: paper (seeds sharded) or compare (each configuration "
-        "run whole, one task per method). (default: the file's command, else paper)",
+        help="Whose configs to sweep: paper (seeds sharded), compare (each configuration "
+        "run whole, one task per method) or dependencies (each configuration one task). "
+        "(default: the file's command, else paper)",
     )
     parser.add_argument(
         "--grid",
@@ -1054,7 +1176,13 @@ def main(argv: list[str] | None = None) -> int:
         spec = spec_from_args(args)
         where = where_from_args(args)
         workers = 1 if where.local_workers is None else where.local_workers or os.cpu_count() or 1
-        if spec.command == "compare":
+        if spec.command == "dependencies":
+            estimate = max(
+                (resources.dependencies_estimate(config) for config in spec.configurations()),
+                key=lambda estimate: estimate.bytes,
+            )  # per configuration: a worker runs one at a time
+            hint = resources.DEPENDENCIES_HINT
+        elif spec.command == "compare":
             estimate = max(
                 (resources.compare_estimate(config) for config in spec.configurations()),
                 key=lambda estimate: estimate.bytes,
@@ -1084,13 +1212,16 @@ def _run_sweep_command(parser, spec: SweepSpec, executor) -> int:
     if spec.command == "compare":
         tasks = sum(len(config.methods) for config in configs)
         work = f"{tasks} method tasks (factorq compare)"
+    elif spec.command == "dependencies":
+        work = f"{len(configs)} configuration tasks (factorq dependencies)"
     else:
         work = f"{len(configs) * math.ceil(spec.seeds / spec.shard_seeds)} shards"
     print(
         f"{len(configs)} configurations x {spec.seeds} seeds = {work}, {executor.description}",
         file=sys.stderr,
     )
-    bar = _ShardBar(unit="method" if spec.command == "compare" else "shard")
+    unit = {"compare": "method", "dependencies": "configuration"}.get(spec.command, "shard")
+    bar = _ShardBar(unit=unit)
     try:
         sweep = run_sweep(spec, executor, bar)
         bar.close()
