@@ -10,7 +10,7 @@ import sys
 import pytest
 from test_report import synthetic_results
 
-from factorq_trainers import cli, fast, figure_process, report
+from factorq_trainers import cli, fast, figure_process, paper, paper_figure, report
 from factorq_trainers.figure_process import FigureProcess, FigureProcessError
 from factorq_trainers.results import temporary_path
 
@@ -32,7 +32,10 @@ def output_names(out) -> list[str]:
     return sorted(path.name for path in out.iterdir() if path.name != ".factorq.lock")
 
 
-def test_the_helper_draws_the_bytes_drawn_in_process(results, tmp_path):
+@pytest.mark.parametrize("shape", ["small", "defaults"])
+def test_the_helper_draws_the_bytes_drawn_in_process(results, shape, tmp_path):
+    if shape == "defaults":  # the figure the helper prepared before it was sent the curves
+        results = synthetic_results(seeds=100, runs=10, episodes=200)
     report.figure3(results, tmp_path / "here.png")
     with FigureProcess.start() as helper:
         report.send_figure(helper, results, tmp_path)
@@ -40,6 +43,24 @@ def test_the_helper_draws_the_bytes_drawn_in_process(results, tmp_path):
         helper.finish(temporary)
         assert helper.process.returncode == 0
     assert temporary.read_bytes() == (tmp_path / "here.png").read_bytes()
+
+
+def test_the_prepared_frame_is_that_of_the_paper_defaults():
+    results = {"config": paper.config_dict(paper.PaperConfig())}
+    spec = paper_figure.frame_spec(results, *report.figure_arguments(results))
+    assert paper_figure.default_spec() == spec
+
+
+def test_a_prepared_frame_draws_the_same_bytes(results, tmp_path):
+    arguments = report.figure_arguments(results)
+    prepared = paper_figure.prepare(paper_figure.frame_spec(results, *arguments))
+    paper_figure.draw(results, tmp_path / "prepared.png", *arguments, prepared=prepared)
+    other = paper_figure.prepare(paper_figure.default_spec())  # another figure's: not used
+    paper_figure.draw(results, tmp_path / "other.png", *arguments, prepared=other)
+    report.figure3(results, tmp_path / "fresh.png")
+    fresh = (tmp_path / "fresh.png").read_bytes()
+    assert (tmp_path / "prepared.png").read_bytes() == fresh
+    assert (tmp_path / "other.png").read_bytes() == fresh
 
 
 def test_the_helper_does_not_import_torch():

@@ -1,8 +1,9 @@
 """Figure 3 drawn by a helper process beside the experiment (issue 17: ``factorq paper`` in 3 s).
 
 ``factorq paper`` starts it first, before the main process loads torch: while that keeps one
-core busy, the helper loads matplotlib on the other and draws a made-up figure into memory
-(fonts, Pillow's encoder, matplotlib's lazily built tables), then waits, idle, for its one message.
+core busy, the helper loads matplotlib on the other, draws a made-up figure into memory (fonts,
+Pillow's encoder, matplotlib's lazily built tables) and prepares the frame of the default run's
+figure (``paper_figure.prepare``), then waits, idle, for its one message.
 Once the experiment is over, the main process sends it what the figure reads (the config and the
 curves) and the name of ``figure3.png``'s temporary; the helper draws there while the main process
 writes ``results.json``'s and ``report.md``'s, then exits. The main process renames the three
@@ -172,16 +173,23 @@ def main() -> int:
     gc.disable()  # collecting while modules load only costs time: they stay
     paper_figure.preload()
     stdin = sys.stdin.buffer
-    if not select.select([stdin], [], [], 0)[0]:  # the curves are not here yet: warm up
+    prepared = None
+    if not _readable(stdin):  # the curves are not here yet: warm up, then guess the figure
         paper_figure.warm_up()
+        if not _readable(stdin):
+            prepared = paper_figure.prepare(paper_figure.default_spec())
+    gc.freeze()  # later collections skip all of the above
     gc.enable()
-    gc.freeze()
     data = stdin.read()
     if not data:  # the parent ended without a figure to draw (an error, Ctrl-C, --help)
         return 0
     results, path, worlds, algorithms, labels = pickle.loads(data)
-    paper_figure.draw(results, path, worlds, algorithms, labels)
+    paper_figure.draw(results, path, worlds, algorithms, labels, prepared=prepared)
     return 0
+
+
+def _readable(stream: BinaryIO) -> bool:
+    return bool(select.select([stream], [], [], 0)[0])
 
 
 if __name__ == "__main__":
