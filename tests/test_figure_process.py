@@ -115,6 +115,15 @@ def test_a_failed_helper_is_one_notice_and_the_figure_is_drawn_in_process(
 
 
 @needs_fast
+def test_without_a_helper_the_figure_is_drawn_in_process(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(FigureProcess, "start", classmethod(lambda cls: None))
+    out = tmp_path / "paper"
+    assert cli.main(["paper", *TINY, "--out", str(out)]) == 0
+    assert "figure process" not in capsys.readouterr().err
+    assert output_names(out) == ["figure3.png", "report.md", "results.json"]
+
+
+@needs_fast
 def test_a_figure_that_cannot_be_drawn_is_one_error_line_and_no_file(tmp_path, monkeypatch, capsys):
     failing_helper(monkeypatch, "import sys; sys.exit(1)")
 

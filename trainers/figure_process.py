@@ -61,7 +61,12 @@ class FigureProcess:
     @classmethod
     def start(cls) -> FigureProcess | None:
         """Start a helper; None when it cannot be started (the figure is then drawn in-process)."""
-        errors = tempfile.TemporaryFile()
+        if not sys.executable or getattr(sys, "frozen", False):  # no Python to run it with
+            return None
+        try:
+            errors = tempfile.TemporaryFile()
+        except OSError:
+            return None
         try:
             process = subprocess.Popen(
                 command(),
