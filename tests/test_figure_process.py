@@ -96,6 +96,22 @@ def test_finish_refuses_a_helper_that_exits_0_without_the_file(results, tmp_path
             helper.finish(temporary_path(tmp_path / report.FIGURE_FILE))
 
 
+def test_ctrl_c_while_the_helper_draws_ends_it_and_leaves_no_file(results, tmp_path, monkeypatch):
+    failing_helper(monkeypatch, "import sys, time; sys.stdin.buffer.read(); time.sleep(60)")
+    helper = FigureProcess.start()
+
+    def interrupted(*args, **kwargs):
+        monkeypatch.undo()  # close() waits for real
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(helper.process, "wait", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        report.write_results(results, tmp_path, figure_process=helper)
+    assert helper.process.poll() is not None  # ended before the temporaries were removed
+    assert output_names(tmp_path) == []
+    helper.close()
+
+
 @needs_fast
 def test_a_failed_helper_is_one_notice_and_the_figure_is_drawn_in_process(
     tmp_path, monkeypatch, capsys

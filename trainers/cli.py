@@ -608,6 +608,9 @@ def _main(
         parser = build_parser(compare_options=command == "compare", command=command)
         if command == "paper":
             _load_paper_modules()
+    except KeyboardInterrupt:  # while torch loads: nothing started, nothing written
+        print(f"factorq{' ' + command if command else ''}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     finally:
         if paused:
             gc.freeze()  # later collections skip everything loaded so far
