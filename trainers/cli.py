@@ -652,7 +652,8 @@ def _load_paper_modules() -> None:
 def _exit(code: int) -> typing.NoReturn:
     """End the process with ``code`` once the atexit handlers ran and the output is flushed,
     skipping the interpreter's teardown (freeing every module's objects: 0.1-0.4 s with torch).
-    Exits normally instead if a thread other than the idle fast-path workers still runs."""
+    Exits normally instead if a thread other than the fast path's pool workers (idle once a run
+    is over) still runs: it may have work to finish."""
     others = [
         thread
         for thread in threading.enumerate()
