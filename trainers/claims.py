@@ -47,13 +47,23 @@ MOVING = ("semi-dynamic", "dynamic")
 
 
 class _Means:
-    """Means per (world, algorithm, measure): point estimates, or bootstrap resamples ``[B]``."""
+    """Means per (world, algorithm, measure): point estimates, or bootstrap resamples ``[B]``.
+
+    Each is computed once (the claims share them; a resampled mean is ``B x S`` numbers) and
+    never modified by its users."""
 
     def __init__(self, cells: dict[str, Any], indices: np.ndarray | None) -> None:
         self.cells = cells
         self.indices = indices
+        self._known: dict[tuple[str, str, str], Any] = {}
 
     def __call__(self, world: str, algorithm: str, measure: str) -> Any:
+        key = (world, algorithm, measure)
+        if key not in self._known:
+            self._known[key] = self._mean(*key)
+        return self._known[key]
+
+    def _mean(self, world: str, algorithm: str, measure: str) -> Any:
         values = np.asarray(self.cells[f"{world}/{algorithm}"]["per_seed"][measure], np.float64)
         if self.indices is None:
             return values.mean()
@@ -158,6 +168,8 @@ def compute_claims(cells: dict[str, Any], seed: int = 0) -> dict[str, Any]:
         raise ValueError(f"cells have different numbers of seeds: {sorted(seeds)}")
     count = seeds.pop() if seeds else 0
     indices = bootstrap_indices(seed, count) if count >= 2 else None
+    point_means = _Means(cells, None)
+    boot_means = None if indices is None else _Means(cells, indices)
     claims = {}
     for claim, measure_fn in _CLAIM_MEASURES.items():
         entry = {
@@ -174,11 +186,11 @@ def compute_claims(cells: dict[str, Any], seed: int = 0) -> dict[str, Any]:
         if missing:
             entry["detail"] = f"not evaluated: needs {', '.join(missing)}, which were not run"
             continue
-        point = measure_fn(_Means(cells, None))
+        point = measure_fn(point_means)
         value, passed = _headline(claim, point)
         boot_value = None
         if indices is not None:
-            boot = measure_fn(_Means(cells, indices))
+            boot = measure_fn(boot_means)
             boot_value, _ = _headline(claim, boot)
         for name, (measure_value, measure_pass) in point.items():
             entry["measures"].append(

@@ -417,6 +417,7 @@ def run(
     checkpoint_every: checkpoint.Every | str | int | None = None,
     resume: checkpoint.Checkpoint | None = None,
     world: Any = None,
+    curves_ready: Callable[[dict[str, Any]], None] | None = None,
 ) -> dict[str, Any]:
     """Run the paper's experiment and return its results (the schema of ``results.json``).
 
@@ -436,6 +437,10 @@ def run(
     obstacle period, on the modular path (``auto`` falls back to it with a one-line notice;
     ``backend="fast"`` is refused), without checkpoints; the config's grid options are unused and
     ``results["world"]`` names the world.
+
+    ``curves_ready`` is called with the results so far (``config``, ``cells`` and, for another
+    world, ``world``: what Figure 3 reads) as soon as the curves are summarised, before the claims
+    are computed: ``factorq paper`` has the figure drawn meanwhile.
     """
     started = time.perf_counter()
     if world is not None:
@@ -491,7 +496,15 @@ def run(
             metrics[name, algorithm] = {
                 name: values[rows].cpu().numpy() for name, values in batch.items()
             }
-    results = summarise(config, metrics)
+    summarised = None
+    if curves_ready is not None:
+
+        def summarised(partial: dict[str, Any]) -> None:
+            if world is not None:
+                partial = {**partial, "world": world_description(world)}
+            curves_ready(partial)
+
+    results = summarise(config, metrics, curves_ready=summarised)
     wall = checkpoints.elapsed_s
     env_steps = int(sum(cell["steps"].sum() for cell in metrics.values()))
     results["timing"] = {
@@ -571,9 +584,14 @@ def resume_config(
 
 
 def summarise(
-    config: PaperConfig, metrics: dict[tuple[str, str], dict[str, np.ndarray]]
+    config: PaperConfig,
+    metrics: dict[tuple[str, str], dict[str, np.ndarray]],
+    *,
+    curves_ready: Callable[[dict[str, Any]], None] | None = None,
 ) -> dict[str, Any]:
-    """Results from raw metrics ``{(world, algorithm): {name: [S, runs, episodes]}}``."""
+    """Results from raw metrics ``{(world, algorithm): {name: [S, runs, episodes]}}``;
+    ``curves_ready`` is called with the results so far (``schema_version``, ``config``, ``cells``)
+    before the claims are computed (``run``)."""
     cells = {}
     for world, algorithm in config.cells:  # canonical order, whatever order they ran in
         cell = metrics[world, algorithm]
@@ -604,14 +622,13 @@ def summarise(
             "curves_ci_low": lows,
             "curves_ci_high": highs,
         }
-    return {
-        "schema_version": SCHEMA_VERSION,
-        "config": config_dict(config),
-        "cells": cells,
-        "claims": compute_claims(cells, config.seed),
-        "statistics": dict(stats.DESCRIPTION),
-        "software": software_versions(),
-    }
+    results = {"schema_version": SCHEMA_VERSION, "config": config_dict(config), "cells": cells}
+    if curves_ready is not None:
+        curves_ready(results)
+    results["claims"] = compute_claims(cells, config.seed)
+    results["statistics"] = dict(stats.DESCRIPTION)
+    results["software"] = software_versions()
+    return results
 
 
 def config_dict(config: PaperConfig) -> dict[str, Any]:

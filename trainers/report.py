@@ -9,31 +9,27 @@ numbers in the file.
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from factorq_envs.world import WORLD_PERIODS, WORLDS
+from factorq_trainers import paper_figure
 from factorq_trainers.claims import ALGORITHM_LABELS, MEASURE_LABELS, MEASURES
-from factorq_trainers.results import body_label, dumps, write_all_atomic
+from factorq_trainers.figure_process import FigureProcess, FigureProcessError
+from factorq_trainers.results import body_label, dumps, temporary_path, write_all_atomic
 from factorq_trainers.schema import escape_markdown, load_results_file, markdown_code
 from factorq_trainers.stats import format_number
+
+
+class FigureError(RuntimeError):
+    """Figure 3 could not be drawn (nothing was written); the message says why."""
+
 
 RESULTS_FILE = "results.json"
 FIGURE_FILE = "figure3.png"
 REPORT_FILE = "report.md"
-
-COLOURS = {"q-learning": "#D55E00", "factor-q": "#0072B2"}  # colour-blind safe (Okabe-Ito)
-# Greedy collisions: a darker shade of the algorithm's colour, dashed, drawn over all collisions
-# (for Q-learning the two nearly coincide, and the dashes must stay visible).
-GREEDY_COLOURS = {"q-learning": "#7A3500", "factor-q": "#003A5C"}
-WORLD_TITLES = {
-    "static": "static world",
-    "semi-dynamic": "semi-dynamic world (obstacles move every 10 steps)",
-    "dynamic": "dynamic world (obstacles move every step)",
-}
 
 
 def _ordered_cells(results: dict[str, Any]) -> tuple[list[str], list[str]]:
@@ -44,122 +40,21 @@ def _ordered_cells(results: dict[str, Any]) -> tuple[list[str], list[str]]:
     return worlds, algorithms
 
 
-def preload_figure() -> None:
-    """Import matplotlib's modules for ``figure3`` (about 0.4 s). ``factorq paper`` calls it in a
-    background thread while the experiment runs, so that the figure does not wait for them."""
-    import matplotlib.backends.backend_agg
-    import matplotlib.figure
-    import matplotlib.lines
-    import matplotlib.ticker  # noqa: F401
-
-
 def figure3(results: dict[str, Any], path: str | os.PathLike) -> None:
     """Draw the paper's Figure 3 from ``results`` and save it as a PNG at ``path``.
 
     Columns are worlds; the top row shows steps per episode, the bottom row collisions per
     episode (solid: all, dashed: greedy) on a log scale, each the mean over seeds and runs with
-    its 95% confidence band across seeds.
+    its 95% confidence band across seeds (``factorq_trainers.paper_figure.draw``).
     """
-    # matplotlib loads here, not with the module: `factorq` starts faster without it.
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-    from matplotlib.lines import Line2D
-    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+    paper_figure.draw(results, path, *figure_arguments(results))
 
-    plain = FuncFormatter(lambda value, _: f"{value:g}")  # 0.01, 1, 300 rather than 10^-2, 3x10^2
+
+def figure_arguments(results: dict[str, Any]) -> tuple[list[str], list[str], dict[str, str]]:
+    """``paper_figure.draw``'s arguments after the path: the worlds and algorithms present, in
+    canonical order, and the algorithms' names for people."""
     worlds, algorithms = _ordered_cells(results)
-    config = results["config"]
-    width, height = max(4.4 * len(worlds) + 0.6, 6.0), 7.4
-    figure = Figure(figsize=(width, height), dpi=150)
-    FigureCanvasAgg(figure)
-    # Fixed margins (inches) rather than a constrained layout, which draws every tick twice
-    # (half of the figure's time): room for the y labels, the title above, the legend below.
-    axes = figure.subplots(
-        2,
-        len(worlds),
-        sharex=True,
-        sharey="row",
-        squeeze=False,
-        gridspec_kw={
-            "left": 0.75 / width,
-            "right": 1 - 0.3 / width,
-            "top": 1 - 0.95 / height,
-            "bottom": 1.0 / height,
-            "wspace": 0.06,
-            "hspace": 0.06,
-        },
-    )
-    # The smallest non-zero mean over seeds x runs; below it a log axis turns linear, so episodes
-    # with no collision at all stay on the plot.
-    resolution = 1.0 / (config["seeds"] * config["runs"])
-    highest = 0.0
-    for column, world in enumerate(worlds):
-        steps_axis, collisions_axis = axes[0, column], axes[1, column]
-        for algorithm in algorithms:
-            cell = results["cells"][f"{world}/{algorithm}"]
-            colour = COLOURS[algorithm]
-            _curve(steps_axis, cell, "steps", colour, "-", 1.6, band_alpha=0.25)
-            _curve(collisions_axis, cell, "collisions", colour, "-", 1.6, band_alpha=0.25)
-            greedy = GREEDY_COLOURS[algorithm]
-            _curve(collisions_axis, cell, "greedy_collisions", greedy, "--", 1.1, band_alpha=0.12)
-            highest = max(highest, max(cell["curves"]["collisions"]))
-        # y given: matplotlib then skips placing the title around tick labels (there are none
-        # above the axes), a fifth of the figure's drawing time
-        steps_axis.set_title(WORLD_TITLES[world], fontsize=11, y=1.0, pad=6.0)
-        steps_axis.set_yscale("log")
-        steps_axis.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 3.0, 5.0)))
-        collisions_axis.set_yscale("symlog", linthresh=resolution, linscale=0.5)
-        collisions_axis.set_xlabel("episode")
-        for axis in (steps_axis, collisions_axis):
-            axis.grid(True, which="major", alpha=0.3)
-            axis.set_xlim(1, config["episodes"])
-            axis.yaxis.set_major_formatter(plain)
-            axis.yaxis.set_minor_formatter(NullFormatter())
-    axes[1, 0].set_ylim(0, max(highest, resolution) * 1.5)  # the row shares its y axis
-    axes[0, 0].set_ylabel("steps per episode (log)")
-    axes[1, 0].set_ylabel("collisions per episode (log)")
-    handles = [
-        Line2D([], [], color=COLOURS[name], lw=2, label=ALGORITHM_LABELS[name])
-        for name in algorithms
-    ] + [
-        Line2D([], [], color="0.45", lw=1.6, ls="-", label="all collisions"),
-        Line2D([], [], color="0.15", lw=1.1, ls="--", label="greedy collisions (not exploratory)"),
-    ]
-    columns = len(handles) if len(worlds) > 1 else 2
-    figure.legend(
-        handles=handles,
-        loc="lower center",
-        bbox_to_anchor=(0.5, 0.0),
-        ncols=columns,
-        frameon=False,
-    )
-    size = config["size"]
-    body = body_label(results)
-    if results.get("world") is not None:  # another world than the grid: its name and options
-        where = body
-    else:
-        where = f"{size}\u00d7{size} grid with {config['obstacles']} obstacles"
-        where += f", {body}" if body else ""
-    figure.suptitle(
-        f"Q-learning vs Factor-Q, {where}\n"
-        f"mean of {config['seeds']} seeds \u00d7 {config['runs']} runs per episode, "
-        "95% confidence bands across seeds",
-        fontsize=11,
-        y=1 - 0.08 / height,
-        va="top",
-    )
-    # zlib level 1: a slightly larger file, encoded several times faster.
-    figure.savefig(path, format="png", dpi=150, pil_kwargs={"compress_level": 1})
-
-
-def _curve(axis, cell, name: str, colour: str, style: str, width: float, band_alpha: float) -> None:
-    mean = np.asarray(cell["curves"][name], dtype=np.float64)
-    episodes = np.arange(1, mean.size + 1)
-    axis.plot(episodes, mean, color=colour, ls=style, lw=width, zorder=3 if style == "--" else 2)
-    low, high = cell["curves_ci_low"][name], cell["curves_ci_high"][name]
-    if low is not None:
-        low = np.maximum(np.asarray(low, dtype=np.float64), 0.0)  # counts are never negative
-        axis.fill_between(episodes, low, high, color=colour, alpha=band_alpha, lw=0)
+    return worlds, algorithms, dict(ALGORITHM_LABELS)
 
 
 def _with_ci(value: Any, ci: Any) -> str:
@@ -298,15 +193,35 @@ def load_results(results_dir: str | os.PathLike) -> dict[str, Any]:
     return load_results_file(path)
 
 
-def write_results(results: dict[str, Any], out_dir: str | os.PathLike) -> dict[str, Path]:
+def write_results(
+    results: dict[str, Any],
+    out_dir: str | os.PathLike,
+    *,
+    figure_process: FigureProcess | None = None,
+) -> dict[str, Path]:
     """Write ``results.json``, ``figure3.png`` and ``report.md`` to ``out_dir``, atomically.
 
     ``results.json`` is renamed into place first: a results file on disk is always complete, and
-    ``factorq report`` can redraw the other two from it.
+    ``factorq report`` can redraw the other two from it. ``figure_process``
+    (``factorq_trainers.figure_process``): the helper that draws the figure while this process
+    writes the other two; if it fails, the figure is drawn here (a one-line notice says why).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    return _write(results, out, with_results_file=True)
+    return _write(results, out, with_results_file=True, figure_process=figure_process)
+
+
+def send_figure(
+    figure_process: FigureProcess, results: dict[str, Any], out_dir: str | os.PathLike
+) -> None:
+    """Have ``figure_process`` draw Figure 3 of ``results`` (``config``, ``cells`` and ``world``
+    suffice: ``paper.run``'s ``curves_ready``) into the temporary of ``out_dir/figure3.png``, which
+    ``write_results`` then renames into place with the other files."""
+    figure_process.send(
+        paper_figure.drawn_part(results),
+        temporary_path(Path(out_dir) / FIGURE_FILE),
+        *figure_arguments(results),
+    )
 
 
 def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
@@ -314,11 +229,34 @@ def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
     return _write(load_results(results_dir), Path(results_dir), with_results_file=False)
 
 
-def _write(results: dict[str, Any], out: Path, *, with_results_file: bool) -> dict[str, Path]:
+def _write(
+    results: dict[str, Any],
+    out: Path,
+    *,
+    with_results_file: bool,
+    figure_process: FigureProcess | None = None,
+) -> dict[str, Path]:
     """The files of ``results`` in ``out``, in this order, all atomically."""
+    if figure_process is not None and not figure_process.sent:
+        send_figure(figure_process, results, out)  # it draws while the others are written
+
+    def figure(path: Path) -> None:
+        if figure_process is not None:
+            try:
+                figure_process.finish(path)
+                return
+            except FigureProcessError as error:
+                print(f"factorq: {error}; drawing {FIGURE_FILE} here instead", file=sys.stderr)
+        try:
+            figure3(results, path)
+        except Exception as error:  # matplotlib's, from deep inside: one line, no file written
+            raise FigureError(
+                f"drawing {FIGURE_FILE} failed: {type(error).__name__}: {error}"
+            ) from error
+
     writers: dict[str, tuple[Path, Callable[[Path], Any]]] = {
         "results": (out / RESULTS_FILE, lambda path: path.write_text(dumps(results))),
-        "figure": (out / FIGURE_FILE, lambda path: figure3(results, path)),
+        "figure": (out / FIGURE_FILE, figure),
         "report": (out / REPORT_FILE, lambda path: path.write_text(report_markdown(results))),
     }
     if not with_results_file:

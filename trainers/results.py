@@ -66,6 +66,12 @@ def write_atomic(path: str | os.PathLike, write: Callable[[Path], None]) -> None
     write_all_atomic({Path(path): write})
 
 
+def temporary_path(path: Path) -> Path:
+    """Where ``write_all_atomic`` writes ``path`` before renaming it: ``.NAME.PID.tmp`` beside it
+    (``factorq_trainers.outdir`` removes those of killed writers)."""
+    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+
+
 def write_all_atomic(
     writers: dict[Path, Callable[[Path], None]], before_rename: Callable[[], None] | None = None
 ) -> None:
@@ -76,7 +82,7 @@ def write_all_atomic(
     ``before_rename`` runs once every temporary is complete, just before the renames (e.g. to
     swap in a directory written beside them).
     """
-    temporaries = {path: path.with_name(f".{path.name}.{os.getpid()}.tmp") for path in writers}
+    temporaries = {path: temporary_path(path) for path in writers}
     try:
         for path, write in writers.items():
             write(temporaries[path])

@@ -12,6 +12,7 @@ With a single seed there is no interval (``None``).
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -28,10 +29,13 @@ DESCRIPTION = {
 }
 
 
+@functools.lru_cache(maxsize=256)
 def t_critical(df: int, confidence: float = CONFIDENCE) -> float:
     """The two-sided Student's t critical value: ``P(|T| <= t) = confidence`` with ``df`` dof.
 
-    Exact for integer ``df`` (Abramowitz & Stegun 26.7.3-4, a finite series), solved by bisection.
+    Exact for integer ``df`` (Abramowitz & Stegun 26.7.3-4, a finite series), solved by bisection
+    (200 steps of a series of ``df / 2`` terms, about 2 ms at ``df = 99``: kept per ``df``, as a
+    run's every interval has the same).
 
     >>> round(t_critical(1), 3), round(t_critical(9), 3), round(t_critical(99), 3)
     (12.706, 2.262, 1.984)
