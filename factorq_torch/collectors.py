@@ -304,7 +304,7 @@ class OnlineCollector(BaseCollector):
         for name in METRICS:
             metric = self.metrics.get(name).view(-1)
             metric.scatter_(0, slot, torch.where(ended, sums[name], metric.gather(0, slot)))
-            sums[name] = torch.where(ended, torch.zeros_like(sums[name]), sums[name])
+            sums[name] = sums[name].masked_fill(ended, 0)
         self.episode_index = torch.where(run_ended, 0, episode)
         self.run_index = run_index
         if self._reset_task is not None and runs_started:
