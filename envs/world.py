@@ -32,6 +32,7 @@ from factorq_envs.body import (
     sensor_offsets,
 )
 from factorq_torch.base.rng import (
+    GOLDEN,
     STREAM_LAYOUT,
     SUBSTREAM_ACTUATOR_NOISE,
     SUBSTREAM_DISTRACTOR,
@@ -365,6 +366,10 @@ def observe(state: WorldState, key: torch.Tensor, config: WorldConfig) -> torch.
     return readings
 
 
+#: ``GOLDEN`` as the int64 with the same 64 bits (the streams' arithmetic wraps modulo 2**64).
+_GOLDEN_INT64 = GOLDEN - (1 << 64) if GOLDEN >= 1 << 63 else GOLDEN
+
+
 def scatter_obstacles(
     key: torch.Tensor,
     scatter_index: torch.Tensor,
@@ -402,8 +407,13 @@ def scatter_obstacles(
     steps = torch.arange(num_obstacles, device=device)
     base = (allowed - num_obstacles).unsqueeze(1)  # [S, 1]
     j = base + steps  # [S, K]
-    bits = random_bits(key.unsqueeze(1), scatter_index.unsqueeze(1) * num_obstacles + steps)
-    t = randint_from_bits(bits, j + 1)  # [S, K], t_k in [0, j_k]
+    # Counter scatter_index * K + k of each world's stream: random_bits adds (counter + 1) *
+    # GOLDEN to the key, and in wrapping 64-bit arithmetic that is the key moved by
+    # scatter_index * K * GOLDEN (per world) plus (k + 1) * GOLDEN (per step), the same bits
+    # with the [S, K] counter never built.
+    row_key = key + scatter_index * num_obstacles * _GOLDEN_INT64  # [S]
+    bits = random_bits(row_key.unsqueeze(1), steps)  # [S, K]
+    t = randint_from_bits(bits, (base + 1) + steps)  # [S, K], t_k in [0, j_k]
     # (in place on fresh tensors of the smallest dtype that holds a step: this [S, N] map and
     # the obstacles are the largest tensors of a step, and memory traffic is what they cost)
     small = torch.int16 if num_obstacles < 2**15 else torch.int64

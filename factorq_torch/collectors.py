@@ -54,6 +54,9 @@ with warnings.catch_warnings():
     warnings.filterwarnings("ignore", "Creating .*WeightUpdater", DeprecationWarning)
     from torchrl.collectors import BaseCollector
 
+#: The module of the forward pre-hook ``torchrl.objectives.LossModule`` puts on every loss.
+_TORCHRL_LOSS_HOOKS = LossModule.__init__.__module__
+
 #: ``progress(episodes, experiments)``: episodes and experiments completed since the last call.
 ProgressCallback = Callable[[int, int], None]
 
@@ -253,7 +256,14 @@ class OnlineCollector(BaseCollector):
         """Whether a hook watches the loss's ``forward`` (e.g. a trainer reading ``td_error``):
         then the loss runs as a module, and the update goes through its gradient."""
         loss = self.loss
-        return bool(loss._forward_hooks or loss._forward_pre_hooks)
+        # torchrl's LossModule registers its own pre-hook on every loss (a target-network
+        # warning, which reads nothing of the output): it does not count as a watcher.
+        pre_hooks = [
+            hook
+            for hook in loss._forward_pre_hooks.values()
+            if getattr(hook, "__module__", None) != _TORCHRL_LOSS_HOOKS
+        ]
+        return bool(loss._forward_hooks or pre_hooks)
 
     def _record(self, td: TensorDictBase, active: torch.Tensor) -> torch.Tensor | None:
         """Add the step to the episode sums; file finished episodes; advance the counters.
@@ -294,7 +304,7 @@ class OnlineCollector(BaseCollector):
         for name in METRICS:
             metric = self.metrics.get(name).view(-1)
             metric.scatter_(0, slot, torch.where(ended, sums[name], metric.gather(0, slot)))
-            sums[name] = torch.where(ended, torch.zeros_like(sums[name]), sums[name])
+            sums[name] = sums[name].masked_fill(ended, 0)
         self.episode_index = torch.where(run_ended, 0, episode)
         self.run_index = run_index
         if self._reset_task is not None and runs_started:

@@ -163,7 +163,6 @@ class EpsilonGreedyPolicy(TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         owner = type(self).__name__
         batch = tuple(tensordict.batch_size)
-        experiment = experiment_index(tensordict, self.num_experiments, owner)  # [*B]
         values = self._values(tensordict)  # [*B, A]
         epsilon = self.epsilon if explores() else 0.0
         draws = torch.arange(POLICY_DRAWS_PER_STEP, device=self.counter.device).unsqueeze(1)
@@ -173,6 +172,7 @@ class EpsilonGreedyPolicy(TensorDictModuleBase):
             keys, position = self.stream_keys, self.counter  # [S]
             advance = 1 if mask is None else mask.to(torch.int64)
         else:  # experiment e's entries take its next decisions, in flattened order
+            experiment = experiment_index(tensordict, self.num_experiments, owner)  # [*B]
             mask = tensordict.get(MASK_KEY, None)
             flat = experiment.reshape(-1)  # [M]
             taken = torch.nn.functional.one_hot(flat, self.num_experiments)  # [M, S]

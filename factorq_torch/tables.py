@@ -375,7 +375,6 @@ class LocalRewardTable(TensorDictModuleBase):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         owner = type(self).__name__
-        experiment = experiment_index(tensordict, self.num_experiments, owner)  # [*B]
         readings = _check_entry(
             tensordict,
             self.sensors_key,
@@ -388,6 +387,7 @@ class LocalRewardTable(TensorDictModuleBase):
         ):
             local_value = project_local(self.rho, readings, self.dependency)  # [S, A]
         else:  # rho_a[o_D(a)] of each transition's experiment (project_local, gathered)
+            experiment = experiment_index(tensordict, self.num_experiments, owner)  # [*B]
             pattern = local_patterns(readings, self.dependency)  # [*B, A]
             actuators = torch.arange(self.num_actions, device=pattern.device)
             local_value = self.rho[experiment.unsqueeze(-1), actuators, pattern]  # [*B, A]

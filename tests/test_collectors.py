@@ -269,11 +269,17 @@ def test_no_host_synchronisation_creeps_into_the_step(algorithm, monkeypatch):
 def test_a_hook_on_the_loss_keeps_the_loss_running_as_a_module_with_the_same_numbers():
     # The collector's direct tabular step skips the loss's forward; a forward hook (a trainer
     # reading td_error) gets it back, and the tables end the same either way.
-    results, seen = [], []
+    # Without a hook of ours the direct step is taken (torchrl's own pre-hook on every loss does
+    # not count): the loss's forward never runs.
+    results, seen, forwards = [], [], []
     for hooked in (False, True):
         collector, _, _ = small("factor-q", periods=(0, 10, 1, 1), runs=1, episodes=2)
+        loss = collector.loss
+        original = loss.forward
+        loss.forward = lambda td, o=original, h=hooked: forwards.append(h) or o(td)
         if hooked:
-            collector.loss.register_forward_hook(lambda m, i, out: seen.append(out["td_error"]))
+            loss.register_forward_hook(lambda m, i, out: seen.append(out["td_error"]))
         collector.run()
-        results.append(collector.loss.task_value_network.table.detach().clone())
+        results.append(loss.task_value_network.table.detach().clone())
     assert seen and torch.equal(results[0], results[1])
+    assert forwards and set(forwards) == {True}
