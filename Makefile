@@ -18,6 +18,7 @@ setup: $(STAMP)
 $(STAMP): pyproject.toml
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/python -m pip install --quiet -e '.[dev,distributed,minigrid]'
+	$(VENV)/bin/python -m compileall -q envs trainers factorq_torch  # start-up: no module compiled per run
 	touch $(STAMP)
 
 lint: $(STAMP)
