@@ -383,3 +383,24 @@ def test_failing_compiler_gives_its_error_as_the_reason(tmp_path, monkeypatch):
     with pytest.raises(fast._Unavailable, match="failed \\(exit 3\\): error: no space left"):
         fast._build()
     assert list((tmp_path / "cache").iterdir()) == []  # no half-written file left behind
+
+
+def test_an_interrupt_waits_for_the_helper_threads_before_leaving_advance():
+    # Ctrl-C reaches the main thread's share of the work; the helpers still run the kernel on the
+    # batch, which must stay alive until they return (leaving at once freed it under them: a
+    # crash). The library is replaced by one whose main-thread call raises KeyboardInterrupt.
+    batch = _batch(periods=(0, 10, 1, 0), threads=3)
+    finished, main = [], threading.get_ident()
+
+    class Interrupted:
+        def fq_advance(self, *arguments):
+            if threading.get_ident() == main:
+                raise KeyboardInterrupt
+            threading.Event().wait(0.3)  # a helper busy with its chunk
+            finished.append(threading.get_ident())
+            return 0
+
+    batch._library = Interrupted()
+    with pytest.raises(KeyboardInterrupt):
+        batch.advance(10)
+    assert len(finished) == 2  # both helpers had returned before advance raised

@@ -40,7 +40,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -505,6 +505,18 @@ def _pool(workers: int) -> ThreadPoolExecutor:
         return _executor
 
 
+def _wait_uninterrupted(futures: list) -> None:
+    """Wait until every future is done, whatever interrupts arrive meanwhile (a second Ctrl-C
+    must not skip the wait either); the futures' own errors are left to their callers."""
+    pending = list(futures)
+    while pending:
+        try:
+            wait(pending)
+        except KeyboardInterrupt:
+            pass
+        pending = [future for future in pending if not future.done()]
+
+
 # --------------------------------------------------------------------------------------------
 # Argument checks
 
@@ -927,8 +939,16 @@ class ExperimentBatch:
         # shared counter until none is left (results never depend on who ran what).
         pool = _pool(threads - 1)
         helpers = [pool.submit(self._library.fq_advance, *arguments) for _ in range(threads - 1)]
-        completed = self._library.fq_advance(*arguments)
-        return self._checked([completed, *(helper.result() for helper in helpers)])
+        try:
+            completed = self._library.fq_advance(*arguments)
+            results = [completed, *(helper.result() for helper in helpers)]
+        except BaseException:
+            # An interrupt (Ctrl-C) or an error here must not unwind while a helper still runs
+            # the kernel on this batch: leaving would free the batch (and the shared counter)
+            # under it, a crash. Wait for them (each finishes its current chunk), then raise.
+            _wait_uninterrupted(helpers)
+            raise
+        return self._checked(results)
 
     def _checked(self, results: list[int]) -> int:
         """The episodes completed, or the kernel's refusal of a state out of range (ValueError)."""
