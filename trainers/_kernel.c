@@ -185,7 +185,11 @@ static inline unsigned proximity(const uint8_t *grid, int64_t pos, int64_t width
  * start, the goal and the agent, by Floyd's algorithm. Position j of the last K of the M allowed
  * positions draws t in [0, j] (counter scatter_index * K + k) and takes t, or j if t is taken.
  * Positions map to cells in ascending order skipping the excluded cells, a bijection, so "t is
- * taken" is read straight off the (cleared) obstacle map instead of a separate bitmap.
+ * taken" is read straight off the (cleared) obstacle map instead of a separate bitmap. The branch
+ * on it is predicted "free" (taken on about 5% of the draws), so each draw's store address is
+ * known early and j's cell is looked up only when needed: fewer instructions per draw, which is
+ * what bounds the dynamic world (measured: a 128-bit mask of taken positions in registers, or a
+ * branch-free choice between t and j, chained the draws and were 9% slower there).
  */
 static void scatter(uint8_t *grid, int32_t *obstacle_pads, const int32_t *pad_of_cell,
                     int64_t num_cells, int64_t num_obstacles, uint64_t key, uint64_t scatter_index,
@@ -202,11 +206,14 @@ static void scatter(uint8_t *grid, int32_t *obstacle_pads, const int32_t *pad_of
                                      (uint64_t)(j + 1)) >> 32);
         /* position -> cell: skip the start (cell 0), then the agent; the goal, the last cell,
            is never reached because positions stop at allowed - 1. */
-        int64_t cell_t = t + 1, cell_j = j + 1;
+        int64_t cell_t = t + 1;
         cell_t += cell_t >= skip;
-        cell_j += cell_j >= skip;
-        const int32_t pad_t = pad_of_cell[cell_t], pad_j = pad_of_cell[cell_j];
-        const int32_t pad = grid[pad_t] ? pad_j : pad_t; /* t taken: take j */
+        int32_t pad = pad_of_cell[cell_t];
+        if (__builtin_expect(grid[pad], 0)) { /* t taken: take j */
+            int64_t cell_j = j + 1;
+            cell_j += cell_j >= skip;
+            pad = pad_of_cell[cell_j];
+        }
         grid[pad] = 1;
         obstacle_pads[k] = pad;
     }
