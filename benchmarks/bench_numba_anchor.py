@@ -268,10 +268,9 @@ if numba is not None:
                     steps_out[i, run, episode] = step
 
 
-def _inputs(seeds: int):
-    """The paper's batch: periods, keys, the static layout padded, the cells' padded indices."""
-    import torch
-
+def _inputs(periods, seed: int) -> dict:
+    """A batch of experiments with obstacle ``periods`` [S] (0 static, k > 0 scatter every k-th
+    step) and ``seed``'s keys: the static layout padded, the cells' padded indices, the config."""
     from factorq_envs.world import WorldConfig, static_layout
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import (
@@ -282,7 +281,6 @@ def _inputs(seeds: int):
     )
 
     world, agent = WorldConfig(), AgentConfig()
-    periods = torch.tensor(PAPER_PERIODS).repeat_interleave(seeds).numpy()
     size, width = world.size, world.size + 2
     cells = np.arange(size * size)
     pad_of_cell = (cells // size + 1) * width + cells % size + 1
@@ -290,9 +288,9 @@ def _inputs(seeds: int):
     static_grid[pad_of_cell] = static_layout(world).numpy().astype(np.uint8)
     f32 = np.float32
     return dict(
-        periods=periods.astype(np.int64),
-        world_keys=derive_keys(0, STREAM_WORLD, len(periods)).numpy().view(np.uint64),
-        policy_keys=derive_keys(0, STREAM_POLICY, len(periods)).numpy().view(np.uint64),
+        periods=np.asarray(periods, dtype=np.int64),
+        world_keys=derive_keys(seed, STREAM_WORLD, len(periods)).numpy().view(np.uint64),
+        policy_keys=derive_keys(seed, STREAM_POLICY, len(periods)).numpy().view(np.uint64),
         static_grid=static_grid,
         pad_of_cell=pad_of_cell.astype(np.int64),
         size=size,
@@ -306,33 +304,31 @@ def _inputs(seeds: int):
     )
 
 
-def paper_workload(threads: int, seeds: int = 100, runs: int = 10, episodes: int = 200):
-    """{algorithm: (seconds, env steps)} of the paper workload on ``threads`` numba threads
-    (compiled beforehand on a tiny batch, so no compile time is included)."""
-    inputs = _inputs(seeds)
+def workload(
+    algorithm: str, periods, threads: int, runs: int, episodes: int, seed: int = 0
+) -> tuple[float, int]:
+    """(seconds, env steps) of ``algorithm`` ("q-learning" or "factor-q") on one experiment per
+    entry of ``periods``, every experiment to its end, on ``threads`` numba threads (compiled
+    beforehand on a tiny batch, so no compile time is included)."""
+    code = {"q-learning": Q_LEARNING, "factor-q": FACTOR_Q}[algorithm]
+    inputs = _inputs(periods, seed)
     numba.set_num_threads(threads)
     # Experiments differ in length (static, semi-dynamic, dynamic worlds): hand them out one at
     # a time, as the fast path's atomic counter does, instead of in one static block per thread.
     numba.set_parallel_chunksize(1)
-    results = {}
-    for name, code in (("q-learning", Q_LEARNING), ("factor-q", FACTOR_Q)):
-        tiny = np.zeros((len(inputs["periods"]), 1, 1), np.int64)
-        _run(code, runs=1, episodes=1, steps_out=tiny, **inputs)  # compile, warm up
-        steps = np.zeros((len(inputs["periods"]), runs, episodes), np.int64)
-        start = time.perf_counter()
-        _run(code, runs=runs, episodes=episodes, steps_out=steps, **inputs)
-        results[name] = (time.perf_counter() - start, int(steps.sum()))
-    return results
+    tiny = np.zeros((len(periods), 1, 1), np.int64)
+    _run(code, runs=1, episodes=1, steps_out=tiny, **inputs)  # compile, warm up
+    steps = np.zeros((len(periods), runs, episodes), np.int64)
+    start = time.perf_counter()
+    _run(code, runs=runs, episodes=episodes, steps_out=steps, **inputs)
+    return time.perf_counter() - start, int(steps.sum())
 
 
-def paper_rate(threads: int = 2, repeats: int = 1) -> float:
-    """Best env steps per second of the numba paper workload over ``repeats`` runs."""
-    best = 0.0
-    for _ in range(repeats):
-        results = paper_workload(threads)
-        seconds = sum(value[0] for value in results.values())
-        best = max(best, sum(value[1] for value in results.values()) / seconds)
-    return best
+def paper_workload(threads: int, seeds: int = 100) -> dict[str, tuple[float, int]]:
+    """{algorithm: (seconds, env steps)} of the paper workload (``bench_speed.paper_workload``'s
+    batch: ``seeds`` experiments per world, seed 0's keys, 10 runs x 200 episodes)."""
+    periods = np.repeat(PAPER_PERIODS, seeds)
+    return {name: workload(name, periods, threads, 10, 200) for name in ("q-learning", "factor-q")}
 
 
 def main() -> None:
