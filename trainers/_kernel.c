@@ -191,24 +191,18 @@ static inline unsigned proximity(const uint8_t *grid, int64_t pos, int64_t width
  * what bounds the dynamic world (measured: a 128-bit mask of taken positions in registers, or a
  * branch-free choice between t and j, chained the draws and were 9% slower there).
  */
-static void scatter(uint8_t *grid, int32_t *obstacle_pads, const int32_t *pad_of_cell,
-                    int64_t num_cells, int64_t num_obstacles, uint64_t key, uint64_t scatter_index,
-                    int64_t agent) {
-    const int64_t goal = num_cells - 1;
-    const int64_t agent_free = agent != 0 && agent != goal;
-    const int64_t skip = agent_free ? agent : num_cells; /* excluded cell after the start */
-    const int64_t allowed = num_cells - 2 - agent_free;
-    const uint64_t first_counter = scatter_index * (uint64_t)num_obstacles;
-    for (int64_t k = 0; k < num_obstacles; k++) grid[obstacle_pads[k]] = 0;
+static inline __attribute__((always_inline)) void scatter_positions(
+    uint8_t *grid, int32_t *obstacle_pads, const int32_t *pad_of_cell, int64_t allowed,
+    int64_t skip, int64_t num_obstacles, uint64_t key, uint64_t first_counter) {
     for (int64_t k = 0; k < num_obstacles; k++) {
         const int64_t j = allowed - num_obstacles + k;
         const int64_t t = (int64_t)((random_bits(key, first_counter + (uint64_t)k) *
                                      (uint64_t)(j + 1)) >> 32);
         /* position -> cell: skip the start (cell 0), then the agent; the goal, the last cell,
-           is never reached because positions stop at allowed - 1. */
-        int64_t cell_t = t + 1;
-        cell_t += cell_t >= skip;
-        int32_t pad = pad_of_cell[cell_t];
+           is never reached because positions stop at allowed - 1. Both candidate cells are
+           read before the agent's cell is compared, so that only a select waits on it. */
+        const int32_t below = pad_of_cell[t + 1], above = pad_of_cell[t + 2];
+        int32_t pad = t + 1 >= skip ? above : below;
         if (__builtin_expect(grid[pad], 0)) { /* t taken: take j */
             int64_t cell_j = j + 1;
             cell_j += cell_j >= skip;
@@ -217,6 +211,22 @@ static void scatter(uint8_t *grid, int32_t *obstacle_pads, const int32_t *pad_of
         grid[pad] = 1;
         obstacle_pads[k] = pad;
     }
+}
+
+static void scatter(uint8_t *grid, int32_t *obstacle_pads, const int32_t *pad_of_cell,
+                    int64_t num_cells, int64_t num_obstacles, uint64_t key, uint64_t scatter_index,
+                    int64_t agent) {
+    const uint64_t first_counter = scatter_index * (uint64_t)num_obstacles;
+    for (int64_t k = 0; k < num_obstacles; k++) grid[obstacle_pads[k]] = 0;
+    /* The agent is almost always on a free cell (a scatter never happens on the goal): with
+       the number of allowed positions a constant on that predicted branch, the draws do not
+       wait for the agent's move, which the dynamic world's every step otherwise did. */
+    if (__builtin_expect(agent != 0 && agent != num_cells - 1, 1))
+        scatter_positions(grid, obstacle_pads, pad_of_cell, num_cells - 3, agent, num_obstacles,
+                          key, first_counter);
+    else /* the start (and the goal) excluded anyway: nothing after the start to skip */
+        scatter_positions(grid, obstacle_pads, pad_of_cell, num_cells - 2, num_cells,
+                          num_obstacles, key, first_counter);
 }
 
 /* Index of the k-th set bit (k counted from 0) of a 4-bit mask. */
