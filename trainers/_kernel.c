@@ -23,7 +23,9 @@
  *     random action when not exploring): counter-based streams make that free;
  *   - C(s') computed for the eq. 4 target is reused for the next decision when nothing it read
  *     has changed; the spread of rho (eq. 3's denominator) is kept per proximity pattern;
- *   - walls are a ring of blocked cells around the obstacle map, so sensing is four loads.
+ *   - walls are a ring of blocked cells around the obstacle map, so sensing is four loads;
+ *   - the obstacle scatter after a move does not wait for the move (see scatter): in the
+ *     dynamic world it used to lengthen every step's chain from one action to the next.
  */
 #include <float.h>
 #include <math.h>
@@ -188,8 +190,8 @@ static inline unsigned proximity(const uint8_t *grid, int64_t pos, int64_t width
  * taken" is read straight off the (cleared) obstacle map instead of a separate bitmap. The branch
  * on it is predicted "free" (taken on about 5% of the draws), so each draw's store address is
  * known early and j's cell is looked up only when needed: fewer instructions per draw, which is
- * what bounds the dynamic world (measured: a 128-bit mask of taken positions in registers, or a
- * branch-free choice between t and j, chained the draws and were 9% slower there).
+ * what bounds the dynamic world (measured: a branch-free 128-bit mask of taken positions in
+ * registers chained the draws one after the other and was 9% slower there).
  */
 static inline __attribute__((always_inline)) void scatter_positions(
     uint8_t *grid, int32_t *obstacle_pads, const int32_t *pad_of_cell, int64_t allowed,
