@@ -374,7 +374,15 @@ static inline int64_t run_experiment(const fq_batch *b, int64_t i, int64_t budge
     int last_bump = -2; /* -2: no step taken in this call, bump unchanged */
     int64_t completed = 0;
 
-    unsigned prox = proximity(grid, pos, width);
+    /* A world that never scatters senses from a table of each cell's pattern: one load after
+       the move instead of four and their combination. */
+    uint8_t prox_of_cell[4096];
+    const int sense_table = !moving && num_cells <= 4096;
+    if (sense_table)
+        for (int64_t c = 0; c < num_cells; c++)
+            prox_of_cell[c] = (uint8_t)proximity(grid, pad_of_cell[c], width);
+#define SENSE() (sense_table ? (unsigned)prox_of_cell[cell] : proximity(grid, pos, width))
+    unsigned prox = SENSE();
     /* C(s) of the current state, computed for the previous target and still exact when neither
        the Q row nor the rho entries it used have changed since (see the end of the step). */
     float cached[NUM_ACTIONS];
@@ -428,7 +436,7 @@ static inline int64_t run_experiment(const fq_batch *b, int64_t i, int64_t budge
                 scatters++;
             }
         }
-        const unsigned next_prox = proximity(grid, pos, width);
+        const unsigned next_prox = SENSE();
 
         /* --- learn --- */
         if (algorithm == ALG_Q_LEARNING) {
@@ -500,12 +508,13 @@ static inline int64_t run_experiment(const fq_batch *b, int64_t i, int64_t budge
                     scatters++;
                 }
             }
-            prox = proximity(grid, pos, width);
+            prox = SENSE();
         } else {
             prox = next_prox;
         }
     }
 
+#undef SENSE
     if (algorithm == ALG_FACTOR_Q) {
         memcpy(b->rho + i * b->rho_stride, rho, sizeof rho);
         memcpy(b->kappa + i * b->kappa_stride, kappa, sizeof kappa);
