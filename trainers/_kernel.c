@@ -375,9 +375,10 @@ static inline int64_t run_experiment(const fq_batch *b, int64_t i, int64_t budge
     int64_t completed = 0;
 
     /* A world that never scatters senses from a table of each cell's pattern: one load after
-       the move instead of four and their combination. */
+       the move instead of four and their combination. Built per call, so only where the call
+       may run enough steps to pay for it (the paper's 100 cells: from 400 steps). */
     uint8_t prox_of_cell[4096];
-    const int sense_table = !moving && num_cells <= 4096;
+    const int sense_table = !moving && num_cells <= 4096 && budget >= 4 * num_cells;
     if (sense_table)
         for (int64_t c = 0; c < num_cells; c++)
             prox_of_cell[c] = (uint8_t)proximity(grid, pad_of_cell[c], width);
