@@ -15,9 +15,11 @@ Worlds are the paper's default 10x10 with 10 obstacles; the batch cycles through
 dynamic, the README loop of issue 17's torchrl targets). The fast path's 2-thread Factor-Q and
 paper-workload figures are also given as a ratio to ``NUMBA_ANCHOR``, the throughput of an
 independent numba implementation of the same experiment measured on the project's 2-core machine
-(issue 17; numba is not a dependency, so the anchor is that figure, not a measurement of this
-run). The torchrl path runs on ``--device`` (default ``cuda`` where one is present, else ``cpu``);
-on a GPU try ``--sizes 4096 16384 65536 262144 --no-paper``. Run from the repository root:
+(issue 17, a quoted figure), and, where numba is importable (it is not a dependency: ``pip install
+numba`` or the ``bench`` extra), to ``bench_numba_anchor.py``'s numba implementation measured in
+this run on the same batches (``--no-numba`` skips it). The torchrl path runs on ``--device``
+(default ``cuda`` where one is present, else ``cpu``); on a GPU try ``--sizes 4096 16384 65536
+262144 --no-paper``. Run from the repository root:
 
     .venv/bin/python benchmarks/bench_speed.py
     .venv/bin/python benchmarks/bench_speed.py --sizes 1 1024 --seconds 0.3 --no-paper
@@ -49,6 +51,9 @@ from factorq_envs.world import WorldConfig  # noqa: E402
 from factorq_torch.base.config import AgentConfig  # noqa: E402
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys  # noqa: E402
 from factorq_trainers import fast  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_numba_anchor as numba_anchor  # noqa: E402  (measures only where numba imports)
 
 LOOPS = {"env-only": fast.RANDOM_WALK, "q-learning": "q-learning", "factor-q": "factor-q"}
 PAPER_PERIODS = (0, 10, 1)  # static, semi-dynamic, dynamic
@@ -105,6 +110,18 @@ def fast_throughput(loop: str, count: int, threads: int, seconds: float) -> floa
             elapsed += time.perf_counter() - start
             steps += batch.total_steps - before
     return steps / elapsed
+
+
+def numba_throughput(loop: str, count: int, threads: int) -> float | str:
+    """Env steps per second of the numba anchor (``bench_numba_anchor``) on ``fast_throughput``'s
+    first batch (same worlds, keys, runs and episodes), every experiment to its end."""
+    if loop not in ("q-learning", "factor-q"):
+        return "-"
+    runs, episodes, _ = _shape(count)
+    seconds, steps = numba_anchor.workload(
+        loop, _periods(count).numpy(), threads, runs, episodes, seed=0
+    )
+    return steps / seconds
 
 
 def modular_throughput(
@@ -270,6 +287,9 @@ def main() -> None:
         default="cuda" if torch.cuda.is_available() else "cpu",
         help="device of the torchrl path (the fast path is CPU only)",
     )
+    parser.add_argument(
+        "--no-numba", action="store_true", help="do not measure the numba anchor (when installed)"
+    )
     parser.add_argument("--memory-probe", nargs=2, metavar=("LOOP", "S"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.memory_probe:
@@ -292,8 +312,11 @@ def main() -> None:
     modular_threads = args.threads if torch.device(args.device).type == "cpu" else [1]
     if not args.no_modular:
         columns += [f"torchrl {t} thr" for t in modular_threads]
+    measured = 2 in args.threads and numba_anchor.available() and not args.no_numba
     if 2 in args.threads:
         columns.append("fast 2 / numba")
+    if measured:
+        columns += ["numba 2 thr", "/ numba meas."]
     print(f"{'loop':<11}{'S':>7}" + "".join(f"{name:>16}" for name in columns))
     for loop in args.loops:
         for count in args.sizes:
@@ -306,6 +329,10 @@ def main() -> None:
             if 2 in args.threads:
                 ratio = cells[args.threads.index(2)] / NUMBA_ANCHOR
                 cells.append(f"{ratio:.2f}x" if loop == "factor-q" else "-")
+            if measured:
+                anchor = numba_throughput(loop, count, 2)
+                ratio = cells[args.threads.index(2)] / anchor if anchor != "-" else "-"
+                cells += [anchor, f"{ratio:.2f}x" if ratio != "-" else ratio]
             print(f"{loop:<11}{count:>7}" + "".join(f"{_rate(cell):>16}" for cell in cells))
 
     if not args.no_paper:
@@ -320,6 +347,15 @@ def main() -> None:
             print(f"{threads:>7}{times[0]:>12.2f} s{times[1]:>12.2f} s{seconds:>8.2f} s"
                   f"{steps:>13,}{steps / seconds / 1e6:>10.1f} M"
                   f"{steps / seconds / NUMBA_ANCHOR:>8.2f}x")  # fmt: skip
+            if threads == 2 and measured:
+                anchor = numba_anchor.paper_workload(threads)
+                rate = sum(v[1] for v in anchor.values()) / sum(v[0] for v in anchor.values())
+                print(f"{'':>7}numba anchor measured now: {rate / 1e6:.1f} M steps/s on 2 threads"
+                      f" (same {sum(v[1] for v in anchor.values()):,} env steps): fast / numba "
+                      f"{steps / seconds / rate:.2f}x")  # fmt: skip
+    if 2 in args.threads and not numba_anchor.available():
+        print("\nnumba is not installed: the '/ numba' ratios are to the quoted anchor only "
+              "(pip install numba, or the bench extra, to measure it in this run)")  # fmt: skip
 
     if args.no_memory:
         return
