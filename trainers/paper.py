@@ -218,9 +218,10 @@ def resolve_backend(config: PaperConfig, world: Any = None) -> str:
     return config.backend
 
 
-#: Seconds per batched step of the modular path and per (algorithm, run, episode) of the
-#: default batch, measured on a 2-core CPU: the defaults took 15 min 36 s there (issue 17).
-MODULAR_SECONDS_PER_EPISODE = 936.0 / (2 * 10 * 200)
+#: Seconds of the modular path per (algorithm, run, episode) of the default batch, measured on
+#: a 2-core CPU: one run of each algorithm (``--backend modular --runs 1``) took 68 s there after
+#: issue 17's second round (the defaults took 15 min 36 s before its first), so about 11 min.
+MODULAR_SECONDS_PER_EPISODE = 68.0 / (2 * 1 * 200)
 
 
 def fallback_notice(config: PaperConfig, backend: str, world: Any = None) -> str | None:
