@@ -553,7 +553,34 @@ def run_compare_sweep(
             progress(count["done"], total)
 
     run_compare_configs(pending, directory, executor, done)
+    return _gathered(
+        spec,
+        "compare",
+        COMPARE_MEASURES,
+        pending,
+        started,
+        executor,
+        compare.config_dict,
+        compare_cells,
+    )
+
+
+def _gathered(
+    spec: SweepSpec,
+    command: str,
+    measures: Sequence[str],
+    pending: list,
+    started: float,
+    executor: cluster.InProcess | cluster.DaskExecutor,
+    config_dict: Callable[[Any], dict[str, Any]],
+    cells: Callable[[dict[str, Any]], dict[str, dict[str, Any]]],
+) -> dict[str, Any]:
+    """``sweep.json``'s dict of a sweep whose configurations each ran whole (``compare``,
+    ``dependencies``): one row per configuration read back from ``OUT/configs/``, its cells
+    taken by ``cells``; ``pending``: the configurations run by this call."""
     computed = time.perf_counter() - started
+    directory = Path(spec.out) / CONFIGS_DIRECTORY
+    configs = spec.configurations()
     rows = []
     for config, point in zip(configs, spec.points(), strict=True):
         path = compare_result_path(directory, config)
@@ -562,15 +589,15 @@ def run_compare_sweep(
             {
                 "values": point,
                 "digest": config_digest(config),
-                "config": compare.config_dict(config),
+                "config": config_dict(config),
                 "results_file": f"{CONFIGS_DIRECTORY}/{path.name}",
-                "cells": compare_cells(results),
+                "cells": cells(results),
                 "claims": {},
             }
         )
     return {
-        "command": "compare",
-        "measures": list(COMPARE_MEASURES),
+        "command": command,
+        "measures": list(measures),
         "axes": spec.axes,
         "base": {name: _json(value) for name, value in spec.base},
         "seeds": spec.seeds,
@@ -650,38 +677,16 @@ def run_dependencies_sweep(
         done += 1
         if progress is not None:
             progress(done, len(configs))
-    computed = time.perf_counter() - started
-    rows = []
-    for config, point in zip(configs, spec.points(), strict=True):
-        path = compare_result_path(directory, config)
-        results = json.loads(path.read_text())
-        rows.append(
-            {
-                "values": point,
-                "digest": config_digest(config),
-                "config": _json(dataclasses.asdict(config)),
-                "results_file": f"{CONFIGS_DIRECTORY}/{path.name}",
-                "cells": dependencies_cells(results),
-                "claims": {},
-            }
-        )
-    return {
-        "command": "dependencies",
-        "measures": list(DEPENDENCIES_MEASURES),
-        "axes": spec.axes,
-        "base": {name: _json(value) for name, value in spec.base},
-        "seeds": spec.seeds,
-        "shard_seeds": None,
-        "configurations": [_json(row) for row in rows],
-        "timing": {
-            "wall_s": round(time.perf_counter() - started, 3),
-            "compute_s": round(computed, 3),
-            "where": executor.description,
-            "configurations_total": len(configs),
-            "configurations_run_now": len(pending),
-        },
-        "software": paper.software_versions(),
-    }
+    return _gathered(
+        spec,
+        "dependencies",
+        DEPENDENCIES_MEASURES,
+        pending,
+        started,
+        executor,
+        lambda config: _json(dataclasses.asdict(config)),
+        dependencies_cells,
+    )
 
 
 def run_sweep(
