@@ -51,18 +51,18 @@ every commitment to hundreds of samples; a superset whose extra sensor matters o
 at a rate linear in ``n`` and becomes the MAP itself. Once committed, the actuator's local value
 is the committed candidate's running mean.
 
-**Reopening.** Alongside the counts, the learner keeps the same counts over a *block* of the last
-at most ``window`` firings of each actuator (restarted every ``window`` firings). A Bayesian
+**Reopening.** Alongside the counts, the learner keeps the same counts over a *block* of the last at
+most ``window`` firings of each actuator (restarted every ``window`` firings). A Bayesian
 change-point test compares "nothing changed": the committed candidate ``c*`` predicting the block
 from the data before it, ``p(block | c*, earlier) = p(all | c*) / p(earlier | c*)``, against "a
 change before the block": the best candidate (``c*`` included) fitted afresh to the block alone,
-both with their prior. When the change wins by ``bayes_factor``, the actuator reopens: it forgets
-all its counts (``reopen="body"``, the default: every actuator of the experiment does, a body
-changes as a whole) (the block's too: the block may straddle the change, and restarting from it
-recommitted to the old structure in most experiments of the ``change`` setting) and commits
-again by the rule above. Comparing only fresh fits on the block would not do: an agent that keeps
-repeating one action in one place (into a wall its stale table calls safe) produces data every
-candidate fits equally well, while the stale prediction is refuted after a few collisions.
+both with their prior. When the change wins by ``reopen_factor`` (default ``bayes_factor``), the
+actuator reopens: it forgets all its counts (``reopen="body"``, the default: every actuator of the
+experiment does, a body changes as a whole) (the block's too: the block may straddle the change, and
+restarting from it recommitted to the old structure in most experiments of the ``change`` setting)
+and commits again by the rule above. Comparing only fresh fits on the block would not do: an agent
+that keeps repeating one action in one place (into a wall its stale table calls safe) produces data
+every candidate fits equally well, while the stale prediction is refuted after a few collisions.
 
 The float64 operations run in a fixed order (``functional.log_posterior_of``: left-to-right sums
 over patterns; ``argmax``: the first maximum), which the compiled path (``trainers/_kernel.c``)
@@ -107,7 +107,11 @@ class StructureLearner(TensorDictModuleBase):
         num_sensors: ``K``, the sensors the agent receives.
         max_parents: the largest candidate parent set, 0..2 (default 2: pairs).
         bayes_factor: the posterior odds at which the best candidate is committed to (and at
-            which evidence on the recent block reopens it); must be > 1.
+            which evidence on the recent block reopens it, unless ``reopen_factor`` is given);
+            must be > 1.
+        reopen_factor: the posterior odds of the change-point test at which a commitment is
+            reopened (``None``: ``bayes_factor``); must be > 1. A higher one ignores more false
+            alarms under sensor noise and notices a changed body later.
         window: firings per actuator in the block the reopening test reads.
         prior_a, prior_b: the Beta prior of every pattern's rate.
         prior: the prior over candidates, ``"size"``, ``"sparse"`` or ``"uniform"``
@@ -147,6 +151,7 @@ class StructureLearner(TensorDictModuleBase):
         prior: str = "sparse",
         prediction: str = "optimistic",
         reopen: str = "body",
+        reopen_factor: float | None = None,
         sensors_key: str = keys.SENSORS,
         device: torch.device | str | None = None,
     ) -> None:
@@ -168,6 +173,17 @@ class StructureLearner(TensorDictModuleBase):
                 raise ValueError(f"{name}={value!r} must be a finite number > 0")
         self.bayes_factor = float(bayes_factor)
         self.log_bayes_factor = math.log(self.bayes_factor)
+        if reopen_factor is not None and (
+            isinstance(reopen_factor, bool)
+            or not isinstance(reopen_factor, (int, float))
+            or not 1 < reopen_factor < math.inf
+        ):
+            raise ValueError(
+                f"reopen_factor={reopen_factor!r} must be a finite number > 1 (or None: "
+                f"bayes_factor)"
+            )
+        self.reopen_factor = self.bayes_factor if reopen_factor is None else float(reopen_factor)
+        self.log_reopen_factor = math.log(self.reopen_factor)
         self.window = check_int("window", window, 1)
         if prediction not in PREDICTIONS:
             raise ValueError(f"prediction={prediction!r} is unknown: choose one of {PREDICTIONS}")
@@ -365,7 +381,7 @@ class StructureLearner(TensorDictModuleBase):
         lead = self.log_prior[held] + predicted
         block_posterior = log_posterior_of(self.log_prior, self.block_log_marginal[rows, action])
         rival = block_posterior.max(dim=-1).values  # [R]
-        reopen = (committed >= 0) & (rival - lead >= self.log_bayes_factor)
+        reopen = (committed >= 0) & (rival - lead >= self.log_reopen_factor)
         new = torch.where(commit, best, committed)
         new = torch.where(reopen, torch.full_like(new, -1), new)
         self.committed[rows, action] = new

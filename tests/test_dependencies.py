@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
@@ -85,6 +86,8 @@ def test_a_tiny_experiment_writes_its_three_files(tmp_path):
         ({"prior_a": float("inf")}, "prior_a=inf must be a finite number > 0"),
         ({"prior_b": 0.1}, "prior_b=0.1: the compiled path .* multiple of 1/1024"),
         ({"prior_a": 2.0**20}, "prior_a=1048576.0: the compiled path"),
+        ({"reopen_factor": 1.0}, "reopen_factor=1.0 must be a finite number > 1"),
+        ({"reopen_factor": float("nan")}, "reopen_factor=nan must be"),
     ],
 )
 def test_bad_options_are_one_clear_error(options, message):
@@ -103,6 +106,16 @@ def test_a_body_without_local_rewards_is_refused(monkeypatch):
 def test_cli_refuses_a_bayes_factor_of_one(capsys):
     assert cli.main(["dependencies", "--bayes-factor", "1"]) == 2
     assert "--bayes-factor=1.0 must be > 1" in capsys.readouterr().err
+
+
+def test_cli_refuses_a_reopen_factor_of_one_and_reports_a_given_one(capsys, tmp_path):
+    assert cli.main(["dependencies", "--reopen-factor", "1"]) == 2
+    assert "--reopen-factor=1.0 must be a finite number > 1" in capsys.readouterr().err
+    config = dependencies.DependenciesConfig(reopen_factor=1e4)
+    assert dependencies._learner_options(config)["reopen_factor"] == 1e4
+    results = {"config": dataclasses.asdict(config), "timing": {"wall_seconds": 1.0}}
+    results["settings"] = {}
+    assert "reopening at Bayes factor 10000" in dependencies.report_markdown(results)
 
 
 def test_cli_refuses_a_prior_the_compiled_path_cannot_take(capsys):

@@ -5,6 +5,7 @@ bookkeeping) on randomly drawn configurations of every setting of ``factorq depe
 
 from __future__ import annotations
 
+import dataclasses
 import random
 
 import pytest
@@ -52,6 +53,7 @@ def draw_config(setting: str, generator: random.Random) -> DependenciesConfig:
         prior_a=generator.choice([1.0, 0.25, 0.0625, 2.5]),
         prior_b=generator.choice([1.0, 0.25, 1 / 1024]),
         candidate_prior=generator.choice(["size", "sparse", "uniform"]),
+        reopen_factor=generator.choice([None, 5.0, 1000.0]),
         out="unused",
     )
 
@@ -83,6 +85,18 @@ def test_kernel_learner_equals_the_modular_learner_through_commitments_and_reope
     assert sum(fast_result["reopened"]) > 0
     assert int((fast_result["_state"]["committed"] >= 0).sum()) > 0
     assert_same(fast_result, run_learned_modular(config, "change"))
+    # the change-point test has its own threshold: the same one given explicitly changes nothing,
+    # a higher one reopens less (here never), on both paths alike
+    same = dataclasses.replace(config, reopen_factor=config.bayes_factor)
+    assert run_learned_fast(same, "change")["reopened"] == fast_result["reopened"]
+    deaf = dataclasses.replace(config, reopen_factor=1e300)
+    deaf_result = run_learned_fast(deaf, "change")
+    assert sum(deaf_result["reopened"]) == 0
+    assert_same(deaf_result, run_learned_modular(deaf, "change"))
+    eager = dataclasses.replace(config, reopen_factor=2.0)
+    eager_result = run_learned_fast(eager, "change")
+    assert sum(eager_result["reopened"]) > sum(fast_result["reopened"])
+    assert_same(eager_result, run_learned_modular(eager, "change"))
 
 
 def test_lgamma_tables_are_torch_lgamma_of_the_marginals_arguments():
@@ -122,6 +136,10 @@ def test_structure_options_are_checked():
     with pytest.raises(ValueError, match="bayes_factor"):
         fast.ExperimentBatch(
             *arguments, *keys, structure=fast.StructureOptions(orders, bayes_factor=1)
+        )
+    with pytest.raises(ValueError, match="reopen_factor"):
+        fast.ExperimentBatch(
+            *arguments, *keys, structure=fast.StructureOptions(orders, reopen_factor=1.0)
         )
     with pytest.raises(ValueError, match="factor-q"):
         fast.ExperimentBatch(

@@ -84,6 +84,9 @@ def test_bad_options_are_refused_by_name():
         StructureLearner(1, num_actions=1, num_sensors=2, bayes_factor=0.5)
     with pytest.raises(ValueError, match="prior_a"):
         StructureLearner(1, num_actions=1, num_sensors=2, prior_a=0.0)
+    with pytest.raises(ValueError, match="reopen_factor=1"):
+        StructureLearner(1, num_actions=1, num_sensors=2, reopen_factor=1)
+    assert StructureLearner(1, num_actions=1, num_sensors=2).reopen_factor == 300.0
 
 
 #: The hand computations below are with Beta(1, 1) and the size prior (not the defaults).

@@ -33,7 +33,7 @@
 #include <string.h>
 
 #define NUM_ACTIONS 4
-#define FQ_ABI_VERSION 5
+#define FQ_ABI_VERSION 6
 /* Most actuators of a body the generic loop handles (bit masks, small stack arrays). */
 #define MAX_ACTUATORS 32
 /* Most candidates of the structure learner (1 + K + K (K - 1) / 2 for K <= 62). */
@@ -141,6 +141,7 @@ typedef struct {
     int64_t learner_stride;   /* doubles of one experiment's counts block */
     int64_t reopen_body;      /* a reopening forgets every actuator (1) or its own (0) */
     double log_bayes_factor;
+    double log_reopen_factor;          /* the change-point test's threshold */
     double log_beta_prior;
     const int64_t *candidate_sensors; /* [C, 2] the candidate's sensors, -1: none */
     const double *log_prior;          /* [C] */
@@ -858,7 +859,7 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
             const double x = b->log_prior[c] + candidate_sum(v.array[L_BLM] + base + c * P, P);
             if (x > rival) rival = x;
         }
-        reopen = rival - lead >= b->log_bayes_factor;
+        reopen = rival - lead >= b->log_reopen_factor;
     }
     if (commit) *committed = best;
     if (reopen) {

@@ -130,6 +130,12 @@ class DependenciesConfig:
         "actuator (its own).",
         choices=("body", "actuator"),
     )
+    reopen_factor: float | None = option(
+        None,
+        "Posterior odds of the change-point test at which a commitment is reopened (> 1; auto: "
+        "the Bayes factor). Higher: fewer false reopenings under sensor noise, a changed body "
+        "noticed later.",
+    )
     path: str = option(
         "fast",
         "Where the learner runs: fast (the compiled kernel, where available) or modular.",
@@ -166,6 +172,15 @@ class DependenciesConfig:
             raise ValueError(
                 f"bayes_factor={self.bayes_factor!r} must be > 1 (a commitment needs evidence "
                 f"for the best candidate over the runner-up)"
+            )
+        if self.reopen_factor is not None and (
+            isinstance(self.reopen_factor, bool)
+            or not isinstance(self.reopen_factor, (int, float))
+            or not 1 < self.reopen_factor < math.inf
+        ):
+            raise ValueError(
+                f"reopen_factor={self.reopen_factor!r} must be a finite number > 1 (or left out: "
+                f"the Bayes factor)"
             )
         for name in ("prior_a", "prior_b"):
             value = getattr(self, name)
@@ -242,6 +257,7 @@ def _learner_options(config: DependenciesConfig) -> dict[str, Any]:
         "prior": config.candidate_prior,
         "prediction": config.prediction,
         "reopen": config.reopen,
+        "reopen_factor": config.reopen_factor,
     }
 
 
@@ -726,7 +742,13 @@ def report_markdown(results: dict[str, Any]) -> str:
         f"episodes each, {config['world']} world {config['size']}x{config['size']} with "
         f"{config['obstacles']} obstacles, Bayes factor {format_number(config['bayes_factor'])}, "
         f"Beta({format_number(config['prior_a'])}, {format_number(config['prior_b'])}) prior, "
-        f"candidate prior {config['candidate_prior']}; "
+        f"candidate prior {config['candidate_prior']}"
+        + (
+            f", reopening at Bayes factor {format_number(config['reopen_factor'])}"
+            if config.get("reopen_factor") is not None
+            else ""
+        )
+        + "; "
         f"wall time {results['timing']['wall_seconds']:.1f} s.",
         "",
         "| setting | samples until right (median, p90) | right within target | wrong commitments "

@@ -71,7 +71,7 @@ _SOURCE = Path(__file__).with_name("_kernel.c")
 #: No FMA contraction and no fast-math: every float operation must round exactly as torch's
 #: separate ops do. -march=native is left out (measured no faster; keeps the cache portable).
 _FLAGS = ("-O3", "-std=c99", "-ffp-contract=off", "-fno-fast-math", "-fPIC", "-shared")
-_ABI_VERSION = 5
+_ABI_VERSION = 6
 #: The fields ``fq_check_experiment`` refuses, by code (1-based), and ``fq_advance``'s encoding.
 _STATE_FIELDS = (
     "cell",
@@ -146,6 +146,7 @@ class StructureOptions:
     prior: str = "sparse"
     prediction: str = "optimistic"
     reopen: str = "body"
+    reopen_factor: float | None = None
     orders_after: torch.Tensor | None = None
     change_run: int = 0
     curve_every: int = 10
@@ -252,7 +253,10 @@ class _Batch(ctypes.Structure):
                 "reopen_body",
             )
         ]
-        + [(name, ctypes.c_double) for name in ("log_bayes_factor", "log_beta_prior")]
+        + [
+            (name, ctypes.c_double)
+            for name in ("log_bayes_factor", "log_reopen_factor", "log_beta_prior")
+        ]
         + [(name, ctypes.c_void_p) for name in _LEARNER_POINTERS]
     )
 
@@ -780,6 +784,14 @@ class ExperimentBatch:
             1 < options.bayes_factor < math.inf
         ):
             raise ValueError(f"structure.bayes_factor={options.bayes_factor!r} must be > 1")
+        if options.reopen_factor is not None and (
+            isinstance(options.reopen_factor, bool)
+            or not isinstance(options.reopen_factor, (int, float))
+            or not 1 < options.reopen_factor < math.inf
+        ):
+            raise ValueError(
+                f"structure.reopen_factor={options.reopen_factor!r} must be > 1 (or None)"
+            )
         for name in ("prior_a", "prior_b"):
             value = getattr(options, name)
             if (
@@ -864,6 +876,11 @@ class ExperimentBatch:
             "learner_stride": stride,
             "reopen_body": int(options.reopen == "body"),
             "log_bayes_factor": math.log(float(options.bayes_factor)),
+            "log_reopen_factor": math.log(
+                float(
+                    options.bayes_factor if options.reopen_factor is None else options.reopen_factor
+                )
+            ),
             # as functional.beta_bernoulli_log_marginal computes it (Python's lgamma)
             "log_beta_prior": math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b),
         }
