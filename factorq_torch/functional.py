@@ -15,6 +15,7 @@ import itertools
 import math
 
 import torch
+from torch.utils.weak import WeakIdKeyDictionary
 
 from factorq_torch.base.rng import probability_threshold, randint_from_bits
 from factorq_torch.base.validation import check_int
@@ -90,15 +91,32 @@ def local_patterns(readings: torch.Tensor, dependency: torch.Tensor) -> torch.Te
     >>> local_patterns(torch.tensor([True, False, True]), dependency)
     tensor([3, 0])
     """
-    weights = parent_weights(dependency)  # [A, K]
     if readings.shape[-1] > _EXACT_FLOAT64_BITS:  # patterns past float64's exact integers
+        weights = parent_weights(dependency)  # [A, K]
         return (readings.to(torch.int64).unsqueeze(-2) * weights).sum(dim=-1)
     # As a float64 product ``readings @ weights.T``: with at most 53 sensors every term and
     # partial sum is an integer below 2**53, exact in float64 whatever the summation order, and
     # the product is one matmul instead of a broadcast int64 [..., A, K] multiply and a sum over
     # a tiny last axis (4x faster on CPU at S = 4096).
-    float_weights = weights.to(torch.float64).transpose(0, 1)  # [K, A]
-    return (readings.to(torch.float64) @ float_weights).to(torch.int64)
+    return (readings.to(torch.float64) @ _float_weights(dependency)).to(torch.int64)
+
+
+#: ``dependency -> (its version counter, weights)``: ``parent_weights(dependency)`` as float64
+#: ``[K, A]``, built once per dependency tensor (about twenty small ops a step otherwise) and
+#: rebuilt when the tensor is modified in place (its ``_version`` moves).
+_FLOAT_WEIGHTS = WeakIdKeyDictionary()
+
+
+def _float_weights(dependency: torch.Tensor) -> torch.Tensor:
+    """``parent_weights(dependency)`` as float64 ``[K, A]`` (cached per tensor and version)."""
+    if dependency.requires_grad or dependency.device.type == "meta":
+        return parent_weights(dependency).to(torch.float64).transpose(0, 1)
+    cached = _FLOAT_WEIGHTS.get(dependency)
+    if cached is None or cached[0] != dependency._version:
+        weights = parent_weights(dependency).to(torch.float64).transpose(0, 1)
+        cached = (dependency._version, weights)
+        _FLOAT_WEIGHTS[dependency] = cached
+    return cached[1]
 
 
 def project_local(
@@ -120,16 +138,17 @@ def project_local(
 
 def _left_sum(x: torch.Tensor) -> torch.Tensor:
     """``x[..., 0] + x[..., 1] + ...`` in that order (``[..., A] -> [...]``)."""
-    total = x[..., 0]
-    for index in range(1, x.shape[-1]):
-        total = total + x[..., index]
+    first, *rest = x.unbind(-1)
+    total = first
+    for column in rest:
+        total = total + column
     return total
 
 
 def _mean_of_others(x: torch.Tensor, excluded: torch.Tensor) -> torch.Tensor:
     """Mean of ``x[..., a]`` over ``a != excluded`` (``[..., A], [...] -> [...]``)."""
     actions = torch.arange(x.shape[-1], device=x.device)
-    others = torch.where(actions == excluded.unsqueeze(-1), torch.zeros_like(x), x)  # [..., A]
+    others = x.masked_fill(actions == excluded.unsqueeze(-1), 0.0)  # [..., A], +0.0 at excluded
     return _left_sum(others) / (x.shape[-1] - 1)
 
 
@@ -160,10 +179,10 @@ def normaliser(
     rho_min, a_check = rho.min(dim=-1)
     y = _mean_of_others(rho, a_check) - rho_min
     spread = y > 0
-    g = x / torch.where(spread, y, torch.ones_like(y)) * (1 + eta)
+    g = x / torch.where(spread, y, 1.0) * (1 + eta)
     # `g >= g_min` is False for NaN (inf / inf) too; an overflowed ratio is capped at the largest
     # finite value, so G stays finite for any finite input (never reached by real tables).
-    g = torch.where(spread & (g >= g_min), g, torch.full_like(g, g_min))
+    g = torch.where(spread & (g >= g_min), g, g_min)
     return g.clamp(max=torch.finfo(g.dtype).max)
 
 
