@@ -13,6 +13,7 @@ number ``m`` of a world uses counters ``m * num_obstacles .. (m + 1) * num_obsta
 
 from __future__ import annotations
 
+import threading
 from collections import deque
 from dataclasses import dataclass
 from functools import cached_property
@@ -418,7 +419,7 @@ def scatter_obstacles(
     # the obstacles are the largest tensors of a step, and memory traffic is what they cost)
     small = torch.int16 if num_obstacles < 2**15 else torch.int64
     step_numbers = steps.to(small)
-    first = torch.full((batch, num_cells), num_obstacles, dtype=small, device=device)
+    first = _scratch((batch, num_cells), small, device).fill_(num_obstacles)
     first.scatter_reduce_(1, t, step_numbers.expand(batch, -1), "amin")  # first step drawing t
     direct = first.gather(1, t) < step_numbers  # [S, K]: an earlier step drew t_k
     # Pointer jumping on one pointer per step: a step whose t_k an earlier step drew points at a
@@ -438,6 +439,27 @@ def scatter_obstacles(
     cells = cells + (cells >= agent_key.unsqueeze(1))
     obstacles = torch.zeros(batch, num_cells, dtype=torch.bool, device=device)
     return obstacles.scatter_(1, cells, True)
+
+
+#: Per thread, ``(shape, dtype, device) -> tensor``: the scatter's ``[S, N]`` map of first draws
+#: is scratch (never returned), so each thread reuses one buffer instead of a fresh ``[S, N]``
+#: allocation per step (at ``S = 4096`` glibc returns and takes back that memory, page faults
+#: included, at every step).
+_SCRATCH = threading.local()
+
+
+def _scratch(shape: tuple, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """An uninitialised buffer of ``shape`` owned by this thread, reused across calls."""
+    buffers = getattr(_SCRATCH, "buffers", None)
+    if buffers is None:
+        buffers = _SCRATCH.buffers = {}
+    key = (shape, dtype, torch.device(device))
+    buffer = buffers.get(key)
+    if buffer is None:
+        if len(buffers) >= 8:  # a handful of batch shapes at most: drop the old ones
+            buffers.clear()
+        buffer = buffers[key] = torch.empty(shape, dtype=dtype, device=device)
+    return buffer
 
 
 def where_rows(mask: torch.Tensor, new: torch.Tensor, old: torch.Tensor) -> torch.Tensor:
