@@ -130,9 +130,10 @@ def project_local(
     ``rho(o) = (rho_0[o_0], ..., rho_3[o_3])``.
     """
     pattern = local_patterns(readings, dependency)  # [..., A]
-    leading = torch.broadcast_shapes(rho.shape[:-2], pattern.shape[:-1])
-    rho = rho.expand(*leading, *rho.shape[-2:])
-    pattern = pattern.expand(*leading, pattern.shape[-1])
+    if rho.shape[:-2] != pattern.shape[:-1]:  # (torch.broadcast_shapes costs ~40 us in Python)
+        leading = torch.broadcast_shapes(rho.shape[:-2], pattern.shape[:-1])
+        rho = rho.expand(*leading, *rho.shape[-2:])
+        pattern = pattern.expand(*leading, pattern.shape[-1])
     return rho.gather(-1, pattern.unsqueeze(-1)).squeeze(-1)
 
 
