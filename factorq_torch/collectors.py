@@ -276,22 +276,22 @@ class OnlineCollector(BaseCollector):
         if next_td.get("local_reward", None) is None:  # conventional reward: remove collisions
             reward = reward - next_td.get("collision").sum(dim=-1)
         sums = self._episode
-        sums["steps"] = sums["steps"] + active.to(torch.int64)
-        sums["collisions"] = sums["collisions"] + collided.to(torch.int64)
+        sums["steps"] = sums["steps"] + active  # int64 + bool: int64, no cast pass
+        sums["collisions"] = sums["collisions"] + collided
         greedy = collided & ~td.get("exploratory")
-        sums["greedy_collisions"] = sums["greedy_collisions"] + greedy.to(torch.int64)
+        sums["greedy_collisions"] = sums["greedy_collisions"] + greedy
         sums["task_return"] = sums["task_return"] + torch.where(active, reward, 0.0)
         ended = next_td.get("done").squeeze(-1) & active  # [S]
         # Everything below is computed for every experiment and selected with torch.where, and
         # the host reads one small tensor of counts per step (a GPU waits once, not five times).
-        episode = self.episode_index + ended.to(torch.int64)
+        episode = self.episode_index + ended
         run_ended = episode == self.episodes  # only experiments that just ended an episode
-        run_index = self.run_index + run_ended.to(torch.int64)
+        run_index = self.run_index + run_ended
         finishing = run_ended & (run_index == self.runs)
         next_run = run_ended & ~finishing
         # (and how many ended without terminating: a truncated episode's reset draws afresh)
         unterminated = ended & ~next_td.get("terminated").squeeze(-1)
-        counts = torch.stack((ended.sum(), next_run.sum(), finishing.sum(), unterminated.sum()))
+        counts = torch.stack((ended, next_run, finishing, unterminated)).sum(dim=1)  # int64 [4]
         episodes_ended, runs_started, experiments_finishing, truncated = counts.tolist()
         self._restarts_terminated = truncated == 0
         if not episodes_ended:
