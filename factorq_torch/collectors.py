@@ -296,14 +296,21 @@ class OnlineCollector(BaseCollector):
         self._restarts_terminated = truncated == 0
         if not episodes_ended:
             return None
-        # Each experiment's slot (run, episode) in the flat [S * runs * episodes] metrics; the
-        # finished ones (run == runs) point at their last slot and write back what it holds.
+        # The experiments that ended an episode, ascending, without a host read: the k-th of
+        # them goes to position k of a buffer of episodes_ended (a count the host already
+        # holds), the others to one spare position past its end. Only their slots (run,
+        # episode) of the flat [S * runs * episodes] metrics are touched: reading and writing
+        # back every experiment's slot, one per S * runs * episodes / S entries, was a cache
+        # miss per experiment and metric (a sixth of the README loop's ops time at S = 4096).
         rows = torch.arange(ended.shape[0], device=ended.device)
-        run = self.run_index.clamp(max=self.runs - 1)
-        slot = (rows * self.runs + run) * self.episodes + self.episode_index
+        position = torch.where(ended, ended.cumsum(0) - 1, episodes_ended)
+        which = rows.new_empty(episodes_ended + 1).scatter_(0, position, rows)[:episodes_ended]
+        run = self.run_index.index_select(0, which)  # (an ended experiment is not finished)
+        episode_in_run = self.episode_index.index_select(0, which)
+        slot = (which * self.runs + run) * self.episodes + episode_in_run
         for name in METRICS:
             metric = self.metrics.get(name).view(-1)
-            metric.scatter_(0, slot, torch.where(ended, sums[name], metric.gather(0, slot)))
+            metric.index_copy_(0, slot, sums[name].index_select(0, which))
             sums[name] = sums[name].masked_fill(ended, 0)
         self.episode_index = torch.where(run_ended, 0, episode)
         self.run_index = run_index
