@@ -176,9 +176,16 @@ def normaliser(
     # max / min with their indices: the value and the first index holding it, what argmax /
     # argmin and a gather give, in one reduction each
     q_max, a_hat = q.max(dim=-1)  # [...]; which maximum is taken does not change Q_bar
-    x = q_max - _mean_of_others(q, a_hat)
     rho_min, a_check = rho.min(dim=-1)
-    y = _mean_of_others(rho, a_check) - rho_min
+    if q.shape == rho.shape and q.dtype == rho.dtype and q.device == rho.device:
+        # both means in one pass over the stacked values (the same elementwise ops: half the
+        # calls of two passes over these small tensors)
+        both = _mean_of_others(torch.stack((q, rho)), torch.stack((a_hat, a_check)))
+        q_bar, p_bar = both.unbind(0)
+    else:
+        q_bar, p_bar = _mean_of_others(q, a_hat), _mean_of_others(rho, a_check)
+    x = q_max - q_bar
+    y = p_bar - rho_min
     spread = y > 0
     g = x / torch.where(spread, y, 1.0) * (1 + eta)
     # `g >= g_min` is False for NaN (inf / inf) too; an overflowed ratio is capped at the largest
