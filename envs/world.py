@@ -427,18 +427,40 @@ def scatter_obstacles(
     # when 0 <= i < k (it collided iff step i did); else at itself (it did not). After r rounds
     # a pointer has gone 2**r links down its chain (at most K), so it rests on the sentinel
     # exactly when the step collided.
+    # (t_k <= j_k, so link <= k: a link of k is the step itself, and only link < 0 needs the
+    # self pointer written)
     link = t - base
-    link = torch.where((link >= 0) & (link < steps), link, steps)
-    pointer = torch.full((batch, num_obstacles + 1), num_obstacles, device=device)
-    pointer[:, :num_obstacles] = torch.where(direct, num_obstacles, link)
+    link = torch.where(link >= 0, link, steps)
+    sentinel = torch.full((1, 1), num_obstacles, device=device).expand(batch, 1)
+    pointer = torch.cat((torch.where(direct, num_obstacles, link), sentinel), dim=1)
     for _ in range(max(num_obstacles - 1, 0).bit_length()):
         pointer = pointer.gather(1, pointer)
     collided = pointer[:, :num_obstacles] == num_obstacles  # [S, K]
     picks = torch.where(collided, j, t)  # [S, K], distinct positions in [0, M)
-    cells = picks + 1  # positions among the allowed cells -> cells (the start is cell 0)
-    cells = cells + (cells >= agent_key.unsqueeze(1))
+    # positions among the allowed cells -> cells (the start is cell 0), as indices into the
+    # flattened [S * N] map (world s's row starts at s * N): index_fill_ on the flat map is
+    # 2x faster on CPU than scatter_ along the rows
+    rows = _row_starts(batch, num_cells, device)  # [S, 1]
+    cells = picks + (rows + 1)
+    cells = cells + (cells >= (agent_key.unsqueeze(1) + rows))
     obstacles = torch.zeros(batch, num_cells, dtype=torch.bool, device=device)
-    return obstacles.scatter_(1, cells, True)
+    obstacles.view(-1).index_fill_(0, cells.view(-1), True)
+    return obstacles
+
+
+#: ``(batch, stride, device) -> [batch, 1]`` int64 ``s * stride``: constants, never written.
+_ROW_STARTS: dict = {}
+
+
+def _row_starts(batch: int, stride: int, device: torch.device) -> torch.Tensor:
+    """``arange(batch)[:, None] * stride`` (cached: a few batch shapes per process)."""
+    key = (batch, stride, torch.device(device))
+    starts = _ROW_STARTS.get(key)
+    if starts is None:
+        if len(_ROW_STARTS) >= 16:
+            _ROW_STARTS.clear()
+        starts = _ROW_STARTS[key] = (torch.arange(batch, device=device) * stride).unsqueeze(1)
+    return starts
 
 
 #: Per thread, ``(shape, dtype, device) -> tensor``: the scatter's ``[S, N]`` map of first draws
