@@ -488,19 +488,21 @@ def where_rows(mask: torch.Tensor, new: torch.Tensor, old: torch.Tensor) -> torc
     """``torch.where(mask[:, None], new, old)`` for bool maps ``[S, N]`` (``mask`` ``[S]``), the
     same bits: each row is selected as whole words (the widest integer type that divides
     ``N`` bytes), about 3x faster on CPU than the bool ``where``, which is not vectorised when
-    the mask broadcasts."""
+    the mask broadcasts, and by bit operations, ``old ^ ((old ^ new) & every)`` with
+    ``every`` all ones in the masked rows and 0 elsewhere (new there, old elsewhere: 1.5-2x
+    faster on CPU than the word ``where``, whose broadcast mask is not vectorised either)."""
     width = old.shape[-1]
     word = next(
         (d for d in (torch.int64, torch.int32, torch.int16) if width % d.itemsize == 0), None
     )
-    if word is not None and new.dtype == torch.bool and old.dtype == torch.bool:
+    if word is not None and all(t.dtype == torch.bool for t in (mask, new, old)):
         try:
-            picked = torch.where(
-                mask.unsqueeze(-1), new.contiguous().view(word), old.contiguous().view(word)
-            )
-            return picked.view(torch.bool)
-        except RuntimeError:  # a storage offset that is no whole word: select the bools
-            pass
+            new_words, old_words = new.contiguous().view(word), old.contiguous().view(word)
+            every = mask.to(word).neg_().unsqueeze(-1)  # -1: all bits set
+            picked = torch.bitwise_xor(old_words, new_words).bitwise_and_(every)
+            return picked.bitwise_xor_(old_words).view(torch.bool)
+        except RuntimeError:  # a storage offset that is no whole word, or a mask that widens
+            pass  # the maps: select the bools
     return torch.where(mask.unsqueeze(-1), new, old)
 
 
