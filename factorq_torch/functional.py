@@ -98,25 +98,43 @@ def local_patterns(readings: torch.Tensor, dependency: torch.Tensor) -> torch.Te
     # partial sum is an integer below 2**53, exact in float64 whatever the summation order, and
     # the product is one matmul instead of a broadcast int64 [..., A, K] multiply and a sum over
     # a tiny last axis (4x faster on CPU at S = 4096).
-    return (readings.to(torch.float64) @ _float_weights(dependency)).to(torch.int64)
+    weights, columns = _pattern_tables(dependency)
+    if columns is not None:  # one parent per actuator: the pattern is that sensor's bit
+        if columns is _IDENTITY:  # actuator a's parent is sensor a
+            return readings.to(torch.int64)
+        return readings.index_select(-1, columns).to(torch.int64)
+    return (readings.to(torch.float64) @ weights).to(torch.int64)
 
 
-#: ``dependency -> (its version counter, weights)``: ``parent_weights(dependency)`` as float64
-#: ``[K, A]``, built once per dependency tensor (about twenty small ops a step otherwise) and
-#: rebuilt when the tensor is modified in place (its ``_version`` moves).
-_FLOAT_WEIGHTS = WeakIdKeyDictionary()
+#: ``dependency -> (its version counter, weights, columns)``: ``parent_weights(dependency)`` as
+#: float64 ``[K, A]`` and, when every actuator has exactly one parent, the parents ``[A]``
+#: (int64; else None), built once per dependency tensor (about twenty small ops a step
+#: otherwise) and rebuilt when the tensor is modified in place (its ``_version`` moves).
+_PATTERN_TABLES = WeakIdKeyDictionary()
 
 
-def _float_weights(dependency: torch.Tensor) -> torch.Tensor:
-    """``parent_weights(dependency)`` as float64 ``[K, A]`` (cached per tensor and version)."""
+#: ``columns`` of a dependency whose actuator ``a``'s one parent is sensor ``a`` (``A = K``).
+_IDENTITY = torch.empty(0, dtype=torch.int64)
+
+
+def _pattern_tables(dependency: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """``(weights, columns)`` of ``dependency`` for ``local_patterns``, cached per tensor and
+    version; ``columns`` (None: not one parent each) is only looked for on the CPU, where
+    reading the dependency once is no synchronisation."""
     if dependency.requires_grad or dependency.device.type == "meta":
-        return parent_weights(dependency).to(torch.float64).transpose(0, 1)
-    cached = _FLOAT_WEIGHTS.get(dependency)
+        return parent_weights(dependency).to(torch.float64).transpose(0, 1), None
+    cached = _PATTERN_TABLES.get(dependency)
     if cached is None or cached[0] != dependency._version:
         weights = parent_weights(dependency).to(torch.float64).transpose(0, 1)
-        cached = (dependency._version, weights)
-        _FLOAT_WEIGHTS[dependency] = cached
-    return cached[1]
+        columns = None
+        if dependency.device.type == "cpu" and dependency.dim() == 2:
+            if bool((dependency.sum(dim=-1) == 1).all()):
+                columns = dependency.to(torch.int64).argmax(dim=-1)  # [A]
+                if torch.equal(columns, torch.arange(dependency.shape[-1])):
+                    columns = _IDENTITY
+        cached = (dependency._version, weights, columns)
+        _PATTERN_TABLES[dependency] = cached
+    return cached[1], cached[2]
 
 
 def project_local(
