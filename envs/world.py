@@ -658,7 +658,8 @@ def step_worlds(
         )
         other = randint_from_bits(random_bits(noise_key, 2 * state.ticks + 1), num_actuators - 1)
         fired = torch.where(slip, (action + 1 + other) % num_actuators, action)
-    move = tables["moves"].to(action.device)[fired]  # [S], -1: no move
+    # (index_select: the same entries as advanced indexing, a fraction of its per-call cost)
+    move = tables["moves"].to(action.device).index_select(0, fired)  # [S], -1: no move
     moving = move >= 0
     direction = (move.clamp(min=0) + state.heading) % NUM_HEADINGS  # [S]
     target, inside = neighbours(state.cell, config.size)  # [S, 4]
@@ -667,7 +668,8 @@ def step_worlds(
     collided = moving & blocked.gather(1, chosen).squeeze(1)  # [S]
     stays = collided | ~moving
     cell = torch.where(stays, state.cell, target.gather(1, chosen).squeeze(1))
-    heading = (state.heading + tables["turns"].to(action.device)[fired]) % NUM_HEADINGS
+    turn = tables["turns"].to(action.device).index_select(0, fired)  # [S]
+    heading = (state.heading + turn) % NUM_HEADINGS
     actuators = torch.arange(num_actuators, device=action.device)
     bump = (actuators == action.unsqueeze(1)) & collided.unsqueeze(1)  # [S, A]
     episode_step = state.episode_step + 1
