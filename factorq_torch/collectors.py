@@ -276,34 +276,41 @@ class OnlineCollector(BaseCollector):
         if next_td.get("local_reward", None) is None:  # conventional reward: remove collisions
             reward = reward - next_td.get("collision").sum(dim=-1)
         sums = self._episode
-        sums["steps"] = sums["steps"] + active.to(torch.int64)
-        sums["collisions"] = sums["collisions"] + collided.to(torch.int64)
+        sums["steps"] = sums["steps"] + active  # int64 + bool: int64, no cast pass
+        sums["collisions"] = sums["collisions"] + collided
         greedy = collided & ~td.get("exploratory")
-        sums["greedy_collisions"] = sums["greedy_collisions"] + greedy.to(torch.int64)
+        sums["greedy_collisions"] = sums["greedy_collisions"] + greedy
         sums["task_return"] = sums["task_return"] + torch.where(active, reward, 0.0)
         ended = next_td.get("done").squeeze(-1) & active  # [S]
         # Everything below is computed for every experiment and selected with torch.where, and
         # the host reads one small tensor of counts per step (a GPU waits once, not five times).
-        episode = self.episode_index + ended.to(torch.int64)
+        episode = self.episode_index + ended
         run_ended = episode == self.episodes  # only experiments that just ended an episode
-        run_index = self.run_index + run_ended.to(torch.int64)
+        run_index = self.run_index + run_ended
         finishing = run_ended & (run_index == self.runs)
         next_run = run_ended & ~finishing
         # (and how many ended without terminating: a truncated episode's reset draws afresh)
         unterminated = ended & ~next_td.get("terminated").squeeze(-1)
-        counts = torch.stack((ended.sum(), next_run.sum(), finishing.sum(), unterminated.sum()))
+        counts = torch.stack((ended, next_run, finishing, unterminated)).sum(dim=1)  # int64 [4]
         episodes_ended, runs_started, experiments_finishing, truncated = counts.tolist()
         self._restarts_terminated = truncated == 0
         if not episodes_ended:
             return None
-        # Each experiment's slot (run, episode) in the flat [S * runs * episodes] metrics; the
-        # finished ones (run == runs) point at their last slot and write back what it holds.
+        # The experiments that ended an episode, ascending, without a host read: the k-th of
+        # them goes to position k of a buffer of episodes_ended (a count the host already
+        # holds), the others to one spare position past its end. Only their slots (run,
+        # episode) of the flat [S * runs * episodes] metrics are touched: reading and writing
+        # back every experiment's slot, one per S * runs * episodes / S entries, was a cache
+        # miss per experiment and metric (a sixth of the README loop's ops time at S = 4096).
         rows = torch.arange(ended.shape[0], device=ended.device)
-        run = self.run_index.clamp(max=self.runs - 1)
-        slot = (rows * self.runs + run) * self.episodes + self.episode_index
+        position = torch.where(ended, ended.cumsum(0) - 1, episodes_ended)
+        which = rows.new_empty(episodes_ended + 1).scatter_(0, position, rows)[:episodes_ended]
+        run = self.run_index.index_select(0, which)  # (an ended experiment is not finished)
+        episode_in_run = self.episode_index.index_select(0, which)
+        slot = (which * self.runs + run) * self.episodes + episode_in_run
         for name in METRICS:
             metric = self.metrics.get(name).view(-1)
-            metric.scatter_(0, slot, torch.where(ended, sums[name], metric.gather(0, slot)))
+            metric.index_copy_(0, slot, sums[name].index_select(0, which))
             sums[name] = sums[name].masked_fill(ended, 0)
         self.episode_index = torch.where(run_ended, 0, episode)
         self.run_index = run_index

@@ -15,6 +15,7 @@ import itertools
 import math
 
 import torch
+from torch.utils.weak import WeakIdKeyDictionary
 
 from factorq_torch.base.rng import probability_threshold, randint_from_bits
 from factorq_torch.base.validation import check_int
@@ -90,15 +91,50 @@ def local_patterns(readings: torch.Tensor, dependency: torch.Tensor) -> torch.Te
     >>> local_patterns(torch.tensor([True, False, True]), dependency)
     tensor([3, 0])
     """
-    weights = parent_weights(dependency)  # [A, K]
     if readings.shape[-1] > _EXACT_FLOAT64_BITS:  # patterns past float64's exact integers
+        weights = parent_weights(dependency)  # [A, K]
         return (readings.to(torch.int64).unsqueeze(-2) * weights).sum(dim=-1)
     # As a float64 product ``readings @ weights.T``: with at most 53 sensors every term and
     # partial sum is an integer below 2**53, exact in float64 whatever the summation order, and
     # the product is one matmul instead of a broadcast int64 [..., A, K] multiply and a sum over
     # a tiny last axis (4x faster on CPU at S = 4096).
-    float_weights = weights.to(torch.float64).transpose(0, 1)  # [K, A]
-    return (readings.to(torch.float64) @ float_weights).to(torch.int64)
+    weights, columns = _pattern_tables(dependency)
+    if columns is not None:  # one parent per actuator: the pattern is that sensor's bit
+        if columns is _IDENTITY:  # actuator a's parent is sensor a
+            return readings.to(torch.int64)
+        return readings.index_select(-1, columns).to(torch.int64)
+    return (readings.to(torch.float64) @ weights).to(torch.int64)
+
+
+#: ``dependency -> (its version counter, weights, columns)``: ``parent_weights(dependency)`` as
+#: float64 ``[K, A]`` and, when every actuator has exactly one parent, the parents ``[A]``
+#: (int64; else None), built once per dependency tensor (about twenty small ops a step
+#: otherwise) and rebuilt when the tensor is modified in place (its ``_version`` moves).
+_PATTERN_TABLES = WeakIdKeyDictionary()
+
+
+#: ``columns`` of a dependency whose actuator ``a``'s one parent is sensor ``a`` (``A = K``).
+_IDENTITY = torch.empty(0, dtype=torch.int64)
+
+
+def _pattern_tables(dependency: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """``(weights, columns)`` of ``dependency`` for ``local_patterns``, cached per tensor and
+    version; ``columns`` (None: not one parent each) is only looked for on the CPU, where
+    reading the dependency once is no synchronisation."""
+    if dependency.requires_grad or dependency.device.type == "meta":
+        return parent_weights(dependency).to(torch.float64).transpose(0, 1), None
+    cached = _PATTERN_TABLES.get(dependency)
+    if cached is None or cached[0] != dependency._version:
+        weights = parent_weights(dependency).to(torch.float64).transpose(0, 1)
+        columns = None
+        if dependency.device.type == "cpu" and dependency.dim() == 2:
+            if bool((dependency.sum(dim=-1) == 1).all()):
+                columns = dependency.to(torch.int64).argmax(dim=-1)  # [A]
+                if torch.equal(columns, torch.arange(dependency.shape[-1])):
+                    columns = _IDENTITY
+        cached = (dependency._version, weights, columns)
+        _PATTERN_TABLES[dependency] = cached
+    return cached[1], cached[2]
 
 
 def project_local(
@@ -112,24 +148,26 @@ def project_local(
     ``rho(o) = (rho_0[o_0], ..., rho_3[o_3])``.
     """
     pattern = local_patterns(readings, dependency)  # [..., A]
-    leading = torch.broadcast_shapes(rho.shape[:-2], pattern.shape[:-1])
-    rho = rho.expand(*leading, *rho.shape[-2:])
-    pattern = pattern.expand(*leading, pattern.shape[-1])
+    if rho.shape[:-2] != pattern.shape[:-1]:  # (torch.broadcast_shapes costs ~40 us in Python)
+        leading = torch.broadcast_shapes(rho.shape[:-2], pattern.shape[:-1])
+        rho = rho.expand(*leading, *rho.shape[-2:])
+        pattern = pattern.expand(*leading, pattern.shape[-1])
     return rho.gather(-1, pattern.unsqueeze(-1)).squeeze(-1)
 
 
 def _left_sum(x: torch.Tensor) -> torch.Tensor:
     """``x[..., 0] + x[..., 1] + ...`` in that order (``[..., A] -> [...]``)."""
-    total = x[..., 0]
-    for index in range(1, x.shape[-1]):
-        total = total + x[..., index]
+    first, *rest = x.unbind(-1)
+    total = first
+    for column in rest:
+        total = total + column
     return total
 
 
 def _mean_of_others(x: torch.Tensor, excluded: torch.Tensor) -> torch.Tensor:
     """Mean of ``x[..., a]`` over ``a != excluded`` (``[..., A], [...] -> [...]``)."""
     actions = torch.arange(x.shape[-1], device=x.device)
-    others = torch.where(actions == excluded.unsqueeze(-1), torch.zeros_like(x), x)  # [..., A]
+    others = x.masked_fill(actions == excluded.unsqueeze(-1), 0.0)  # [..., A], +0.0 at excluded
     return _left_sum(others) / (x.shape[-1] - 1)
 
 
@@ -156,14 +194,21 @@ def normaliser(
     # max / min with their indices: the value and the first index holding it, what argmax /
     # argmin and a gather give, in one reduction each
     q_max, a_hat = q.max(dim=-1)  # [...]; which maximum is taken does not change Q_bar
-    x = q_max - _mean_of_others(q, a_hat)
     rho_min, a_check = rho.min(dim=-1)
-    y = _mean_of_others(rho, a_check) - rho_min
+    if q.shape == rho.shape and q.dtype == rho.dtype and q.device == rho.device:
+        # both means in one pass over the stacked values (the same elementwise ops: half the
+        # calls of two passes over these small tensors)
+        both = _mean_of_others(torch.stack((q, rho)), torch.stack((a_hat, a_check)))
+        q_bar, p_bar = both.unbind(0)
+    else:
+        q_bar, p_bar = _mean_of_others(q, a_hat), _mean_of_others(rho, a_check)
+    x = q_max - q_bar
+    y = p_bar - rho_min
     spread = y > 0
-    g = x / torch.where(spread, y, torch.ones_like(y)) * (1 + eta)
+    g = x / torch.where(spread, y, 1.0) * (1 + eta)
     # `g >= g_min` is False for NaN (inf / inf) too; an overflowed ratio is capped at the largest
     # finite value, so G stays finite for any finite input (never reached by real tables).
-    g = torch.where(spread & (g >= g_min), g, torch.full_like(g, g_min))
+    g = torch.where(spread & (g >= g_min), g, g_min)
     return g.clamp(max=torch.finfo(g.dtype).max)
 
 
