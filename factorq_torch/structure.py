@@ -80,7 +80,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from factorq_torch.base import keys
-from factorq_torch.base.validation import check_int
+from factorq_torch.base.validation import check_float, check_int
 from factorq_torch.functional import (  # noqa: F401  (the structure math, re-exported)
     MAX_CANDIDATE_PARENTS,
     MAX_SENSORS,
@@ -173,14 +173,9 @@ class StructureLearner(TensorDictModuleBase):
                 raise ValueError(f"{name}={value!r} must be a finite number > 0")
         self.bayes_factor = float(bayes_factor)
         self.log_bayes_factor = math.log(self.bayes_factor)
-        if reopen_factor is not None and (
-            isinstance(reopen_factor, bool)
-            or not isinstance(reopen_factor, (int, float))
-            or not 1 < reopen_factor < math.inf
-        ):
-            raise ValueError(
-                f"reopen_factor={reopen_factor!r} must be a finite number > 1 (or None: "
-                f"bayes_factor)"
+        if reopen_factor is not None:
+            check_float(
+                "reopen_factor", reopen_factor, 1.0, math.inf, low_open=True, high_open=True
             )
         self.reopen_factor = self.bayes_factor if reopen_factor is None else float(reopen_factor)
         self.log_reopen_factor = math.log(self.reopen_factor)

@@ -86,8 +86,8 @@ def test_a_tiny_experiment_writes_its_three_files(tmp_path):
         ({"prior_a": float("inf")}, "prior_a=inf must be a finite number > 0"),
         ({"prior_b": 0.1}, "prior_b=0.1: the compiled path .* multiple of 1/1024"),
         ({"prior_a": 2.0**20}, "prior_a=1048576.0: the compiled path"),
-        ({"reopen_factor": 1.0}, "reopen_factor=1.0 must be a finite number > 1"),
-        ({"reopen_factor": float("nan")}, "reopen_factor=nan must be"),
+        ({"reopen_factor": 1.0}, "reopen_factor=1.0 is out of range"),
+        ({"reopen_factor": float("nan")}, "reopen_factor=nan is out of range"),
     ],
 )
 def test_bad_options_are_one_clear_error(options, message):
@@ -110,7 +110,7 @@ def test_cli_refuses_a_bayes_factor_of_one(capsys):
 
 def test_cli_refuses_a_reopen_factor_of_one_and_reports_a_given_one(capsys, tmp_path):
     assert cli.main(["dependencies", "--reopen-factor", "1"]) == 2
-    assert "--reopen-factor=1.0 must be a finite number > 1" in capsys.readouterr().err
+    assert "--reopen-factor=1.0 is out of range" in capsys.readouterr().err
     config = dependencies.DependenciesConfig(reopen_factor=1e4)
     assert dependencies._learner_options(config)["reopen_factor"] == 1e4
     results = {"config": dataclasses.asdict(config), "timing": {"wall_seconds": 1.0}}

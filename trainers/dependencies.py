@@ -45,7 +45,13 @@ import torch
 from factorq_envs.world import WORLD_PERIODS, WORLDS, WorldConfig
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
-from factorq_torch.base.validation import INT32_MAX, check_int, check_names, check_threads
+from factorq_torch.base.validation import (
+    INT32_MAX,
+    check_float,
+    check_int,
+    check_names,
+    check_threads,
+)
 from factorq_trainers import resources
 from factorq_trainers.experiment import MAX_SEED, check_world_options, experiment_keys
 from factorq_trainers.options import option
@@ -173,14 +179,9 @@ class DependenciesConfig:
                 f"bayes_factor={self.bayes_factor!r} must be > 1 (a commitment needs evidence "
                 f"for the best candidate over the runner-up)"
             )
-        if self.reopen_factor is not None and (
-            isinstance(self.reopen_factor, bool)
-            or not isinstance(self.reopen_factor, (int, float))
-            or not 1 < self.reopen_factor < math.inf
-        ):
-            raise ValueError(
-                f"reopen_factor={self.reopen_factor!r} must be a finite number > 1 (or left out: "
-                f"the Bayes factor)"
+        if self.reopen_factor is not None:
+            check_float(
+                "reopen_factor", self.reopen_factor, 1.0, math.inf, low_open=True, high_open=True
             )
         for name in ("prior_a", "prior_b"):
             value = getattr(self, name)

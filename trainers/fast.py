@@ -50,7 +50,7 @@ from factorq_envs.world import NUM_ACTIONS, FactoredGrid, WorldConfig, static_la
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
 from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_torch.base.rng import probability_threshold
-from factorq_torch.base.validation import MAX_PARENTS, check_int, check_table_size
+from factorq_torch.base.validation import MAX_PARENTS, check_float, check_int, check_table_size
 from factorq_torch.functional import (
     PREDICTIONS,
     REOPENINGS,
@@ -784,13 +784,14 @@ class ExperimentBatch:
             1 < options.bayes_factor < math.inf
         ):
             raise ValueError(f"structure.bayes_factor={options.bayes_factor!r} must be > 1")
-        if options.reopen_factor is not None and (
-            isinstance(options.reopen_factor, bool)
-            or not isinstance(options.reopen_factor, (int, float))
-            or not 1 < options.reopen_factor < math.inf
-        ):
-            raise ValueError(
-                f"structure.reopen_factor={options.reopen_factor!r} must be > 1 (or None)"
+        if options.reopen_factor is not None:
+            check_float(
+                "structure.reopen_factor",
+                options.reopen_factor,
+                1.0,
+                math.inf,
+                low_open=True,
+                high_open=True,
             )
         for name in ("prior_a", "prior_b"):
             value = getattr(options, name)
