@@ -17,7 +17,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from factorq_envs.protocol import check_world
+from factorq_envs.protocol import check_world, optional_method
 from factorq_envs.world import FactoredGrid, WorldConfig, static_layout
 from factorq_torch.base import keys
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
@@ -122,6 +122,18 @@ def check_no_grid_arguments(given: dict, world) -> None:
             f"FactoredGrid: with world={type(world).__name__}(...) set them in the world's "
             f"config instead"
         )
+
+
+def done_spec(batch: tuple[int, ...], device) -> Composite:
+    """The ``done`` / ``terminated`` / ``truncated`` flags ``[*batch, 1]`` bool of a batched env."""
+    flag = Categorical(2, shape=(*batch, 1), dtype=torch.bool, device=device)
+    return Composite(
+        done=flag.clone(),
+        terminated=flag.clone(),
+        truncated=flag.clone(),
+        shape=batch,
+        device=device,
+    )
 
 
 class FactoredGridEnv(EnvBase):
@@ -338,14 +350,7 @@ class FactoredGridEnv(EnvBase):
             config.num_actuators, shape=batch, dtype=torch.int64, device=device
         )
         self.reward_spec = Unbounded(shape=(*batch, 1), dtype=torch.float32, device=device)
-        flag = Categorical(2, shape=(*batch, 1), dtype=torch.bool, device=device)
-        self.full_done_spec = Composite(
-            done=flag.clone(),
-            terminated=flag.clone(),
-            truncated=flag.clone(),
-            shape=batch,
-            device=device,
-        )
+        self.full_done_spec = done_spec(batch, device)
 
     # -- seeding -------------------------------------------------------------------------------
 
@@ -514,22 +519,12 @@ class FactoredGridEnv(EnvBase):
             self.world.to(device)
         return self
 
-    def _optional(self, method: str):
-        """The world's optional ``method``, or a TypeError naming the world that lacks it."""
-        found = getattr(self.world, method, None)
-        if not callable(found):
-            raise TypeError(
-                f"{type(self.world).__name__} has no {method}(): this world does not offer it "
-                f"(factorq_envs.protocol lists the optional methods)"
-            )
-        return found
-
     # -- inspection ----------------------------------------------------------------------------
 
     def obstacle_map(self) -> torch.Tensor:
         """The current obstacles, a bool copy ``[*B, size, size]`` (``[r, c]`` = row r, col c;
         the world's ``obstacle_map``, shaped to the batch)."""
-        obstacles = self._optional("obstacle_map")(self.world_state)  # [S, ...]
+        obstacles = optional_method(self.world, "obstacle_map")(self.world_state)  # [S, ...]
         return obstacles.reshape(*self.batch_size, *obstacles.shape[1:])
 
     def render_rgb(self, index: int = 0) -> np.ndarray:
@@ -538,7 +533,7 @@ class FactoredGridEnv(EnvBase):
         picture as the gymnasium env's ``rgb_array``). ``RenderPixels`` writes it as ``pixels``."""
         if not is_int(index) or not 0 <= index < self.num_worlds:
             raise ValueError(f"index={index!r} is out of range: must be in [0, {self.num_worlds})")
-        return self._optional("render_rgb")(self.world_state, index)
+        return optional_method(self.world, "render_rgb")(self.world_state, index)
 
     def render(self, index: int = 0) -> str:
         """A text picture of world ``index`` (flat index in ``[0, S)``): ``#`` wall,

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from factorq_envs.protocol import check_world
+from factorq_envs.protocol import check_world, optional_method
 from factorq_envs.world import FactoredGrid, WorldConfig, static_layout
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 from factorq_torch.base.validation import check_int
@@ -215,19 +215,9 @@ class FactoredGridGym(gymnasium.Env):
             observation[name] = value[0].numpy().astype(np.int8)
         return observation
 
-    def _optional(self, method: str):
-        """The world's optional ``method``, or a TypeError naming the world that lacks it."""
-        found = getattr(self.world, method, None)
-        if not callable(found):
-            raise TypeError(
-                f"{type(self.world).__name__} has no {method}(): this world does not offer it "
-                f"(factorq_envs.protocol lists the optional methods)"
-            )
-        return found
-
     def obstacle_map(self) -> np.ndarray:
         """The current obstacles, a bool copy ``[size, size]`` (the world's ``obstacle_map``)."""
-        return self._optional("obstacle_map")(self.world_state)[0].cpu().numpy()
+        return optional_method(self.world, "obstacle_map")(self.world_state)[0].cpu().numpy()
 
     def render(self) -> str | np.ndarray | None:
         """The text picture (``render_mode="ansi"``: ``#`` wall, ``o`` obstacle, ``A`` agent,
@@ -241,4 +231,4 @@ class FactoredGridGym(gymnasium.Env):
 
     def render_rgb(self) -> np.ndarray:
         """The world as an image, ``uint8 [H, W, 3]`` (the world's ``render_rgb``)."""
-        return self._optional("render_rgb")(self.world_state, 0)
+        return optional_method(self.world, "render_rgb")(self.world_state, 0)

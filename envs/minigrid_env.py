@@ -13,6 +13,7 @@ from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from factorq_envs.body import HEADING
+from factorq_envs.grid import done_spec
 from factorq_envs.minigrid import VIEW_SIZE, dependency, make_minigrid
 from factorq_torch.base import keys
 from factorq_torch.base.validation import check_int
@@ -104,14 +105,7 @@ class MiniGridEnv(EnvBase):
             self.num_actions, shape=batch, dtype=torch.int64, device=device
         )
         self.reward_spec = Unbounded(shape=(*batch, 1), dtype=torch.float32, device=device)
-        flag = Categorical(2, shape=(*batch, 1), dtype=torch.bool, device=device)
-        self.full_done_spec = Composite(
-            done=flag.clone(),
-            terminated=flag.clone(),
-            truncated=flag.clone(),
-            shape=batch,
-            device=device,
-        )
+        self.full_done_spec = done_spec(batch, device)
 
     def _set_seed(self, seed: int | None) -> None:
         """Seed world ``i`` with ``seed + i`` at its next reset."""

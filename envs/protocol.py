@@ -104,3 +104,15 @@ def check_world(world: Any, name: str = "world") -> Any:
             f"without {', '.join(missing)}"
         )
     return world
+
+
+def optional_method(world: Any, method: str):
+    """``world``'s optional ``method`` (``extra_observations``, ``obstacle_map``, ``render_rgb``,
+    ``to``), or a TypeError naming the world that lacks it."""
+    found = getattr(world, method, None)
+    if not callable(found):
+        raise TypeError(
+            f"{type(world).__name__} has no {method}(): this world does not offer it "
+            f"(factorq_envs.protocol lists the optional methods)"
+        )
+    return found
