@@ -246,10 +246,17 @@ def build_dqn(config: DQNConfig, experiments: ExperimentConfig, device=None) -> 
         zero_output=False,  # PyTorch's default initialisation, as the DQN examples
         device=device,
     )
+    return dqn_agent(q_network, world.num_actuators, config, experiments.steps, device)
+
+
+def dqn_agent(q_network, actions: int, config: DQNConfig, steps: int, device=None) -> DQNAgent:
+    """The DQN agent around ``q_network`` (``actions`` actions, ``steps`` env steps of budget for
+    the exploration schedule): greedy value module, exploration, DQNLoss with a target network,
+    Adam and a replay buffer on ``device``."""
+    device = torch.device("cpu" if device is None else device)
     # QValueModule's spec is per sample (one action), not per batch.
-    actions = world.num_actuators
     value_network = TensorDictSequential(q_network, QValueModule(spec=Categorical(actions)))
-    annealing = max(1, round(config.exploration_fraction * experiments.steps))
+    annealing = max(1, round(config.exploration_fraction * steps))
     exploration = ExploratoryEGreedy(config.eps_start, config.eps_end, annealing, actions)
     policy = TensorDictSequential(value_network, exploration)
     # Summed over the [B, E] minibatch and divided by B below: each experiment's network gets the

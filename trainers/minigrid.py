@@ -332,15 +332,11 @@ def run_dqn(
 ) -> dict[str, Any]:
     """``factorq_trainers.dqn``'s DQN (its defaults) on the cell/heading/sensors or on the image."""
     import torch
-    from tensordict.nn import TensorDictSequential
-    from torchrl.data import Categorical, LazyTensorStorage, ReplayBuffer
-    from torchrl.modules import QValueModule
-    from torchrl.objectives import DQNLoss, HardUpdate
 
     from factorq_envs.body import HEADING
     from factorq_torch.base.rng import STREAM_POLICY, STREAM_TASK_NETWORK
     from factorq_torch.neural import TaskQNetwork
-    from factorq_trainers.dqn import DQNAgent, DQNConfig, ExploratoryEGreedy, _gradient_step
+    from factorq_trainers.dqn import DQNConfig, _gradient_step, dqn_agent
 
     dqn = DQNConfig()
     count, budget = config.seeds, config.budget(size)
@@ -373,24 +369,8 @@ def run_dqn(
         ]
     stored += ["action", ("next", "reward"), ("next", "done"), ("next", "terminated")]
     torch.manual_seed(int(method_keys(config, size, method, STREAM_POLICY)[0]) & 0x7FFFFFFF)
-    value_network = TensorDictSequential(q_network, QValueModule(spec=Categorical(actions)))
-    annealing = max(1, round(dqn.exploration_fraction * budget))
-    exploration = ExploratoryEGreedy(dqn.eps_start, dqn.eps_end, annealing, actions)
-    policy = TensorDictSequential(value_network, exploration)
-    loss = DQNLoss(
-        value_network,
-        loss_function="l2",
-        delay_value=True,
-        action_space="categorical",
-        reduction="sum",
-    )
-    loss.make_value_estimator(gamma=dqn.gamma)
-    updater = HardUpdate(loss, value_network_update_interval=dqn.target_update_interval)
-    optimizer = torch.optim.Adam(loss.parameters(), lr=dqn.lr)
-    buffer = ReplayBuffer(storage=LazyTensorStorage(dqn.buffer_size), batch_size=dqn.batch_size)
-    agent = DQNAgent(
-        q_network, value_network, exploration, policy, loss, updater, optimizer, buffer
-    )
+    agent = dqn_agent(q_network, actions, dqn, budget)
+    policy, buffer = agent.policy, agent.buffer
     recorder = Recorder(count)
     started = time.perf_counter()
     td = env.reset()
