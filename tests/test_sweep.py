@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import builtins
+import contextlib
+import io
 import json
 import signal
 import subprocess
@@ -358,6 +360,15 @@ def test_a_dependencies_sweep_cell_equals_factorq_dependencies_and_resumes(tmp_p
     assert _without_wall_s(json.loads(result_files.dumps(resumed))["configurations"]) == (
         _without_wall_s(result["configurations"])
     )
+    # a kept configuration file edited or cut short: one line naming it, exit 1, no traceback
+    kept = out / row["results_file"]
+    for bad in ('{"settings": {"change": {}}}', "garbage{"):
+        kept.write_text(bad)
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            assert cli.main([*argv, "--force"]) == 1
+        assert f"configuration file {kept} is not a factorq dependencies result" in err.getvalue()
+        assert "Traceback" not in err.getvalue()
 
 
 def test_bad_compare_input_on_the_command_line_is_one_line_exit_2_and_nothing_written(

@@ -584,14 +584,20 @@ def _gathered(
     rows = []
     for config, point in zip(configs, spec.points(), strict=True):
         path = compare_result_path(directory, config)
-        results = json.loads(path.read_text())
+        try:  # a kept file is the user's: it may have been edited or cut short
+            kept = cells(json.loads(path.read_text()))
+        except (ValueError, KeyError, TypeError, AttributeError, IndexError) as error:
+            raise ValueError(
+                f"configuration file {path} is not a factorq {command} result ({error!r}): "
+                f"delete it to rerun that configuration"
+            ) from None
         rows.append(
             {
                 "values": point,
                 "digest": config_digest(config),
                 "config": config_dict(config),
                 "results_file": f"{CONFIGS_DIRECTORY}/{path.name}",
-                "cells": cells(results),
+                "cells": kept,
                 "claims": {},
             }
         )
@@ -1235,7 +1241,7 @@ def _run_sweep_command(parser, spec: SweepSpec, executor) -> int:
         bar.close()
         print(f"{parser.prog}: interrupted (run it again to resume)", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except OSError as error:
+    except (OSError, ValueError) as error:  # a full disk; a kept shard or result file gone bad
         bar.close()
         print(f"{parser.prog}: error: {error}", file=sys.stderr)
         return EXIT_FAILURE
