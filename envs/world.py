@@ -32,6 +32,7 @@ from factorq_envs.body import (
     draw_permutation,
     sensor_offsets,
 )
+from factorq_torch.base.indices import row_starts
 from factorq_torch.base.rng import (
     GOLDEN,
     STREAM_LAYOUT,
@@ -314,6 +315,21 @@ def neighbours(cell: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tenso
     return tuple(t.index_select(0, flat).reshape(shape) for t in tables)
 
 
+#: ``(size, device) -> (target [N * 4] int64, wall [N * 4] bool)``: ``neighbours`` of every cell
+#: flattened, entry ``cell * 4 + direction``, with ``wall = ~inside`` (one lookup per step).
+_MOVE_TABLES: dict = {}
+
+
+def _move_tables(size: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """``neighbours`` of every cell as flat ``(target, wall)`` tables (cached per size, device)."""
+    key = (size, device)
+    tables = _MOVE_TABLES.get(key)
+    if tables is None:
+        target, inside = neighbours(torch.arange(size * size, device=device), size)
+        tables = _MOVE_TABLES[key] = (target.reshape(-1), (~inside).reshape(-1))
+    return tables
+
+
 def proximity(cell: torch.Tensor, obstacles: torch.Tensor, size: int) -> torch.Tensor:
     """Proximity sensors ``[S, 4]`` bool: the neighbouring cell is wall or obstacle."""
     target, inside = neighbours(cell, size)
@@ -440,27 +456,12 @@ def scatter_obstacles(
     # positions among the allowed cells -> cells (the start is cell 0), as indices into the
     # flattened [S * N] map (world s's row starts at s * N): index_fill_ on the flat map is
     # 2x faster on CPU than scatter_ along the rows
-    rows = _row_starts(batch, num_cells, device)  # [S, 1]
+    rows = row_starts(batch, num_cells, device, column=True)  # [S, 1]
     cells = picks + (rows + 1)
     cells = cells + (cells >= (agent_key.unsqueeze(1) + rows))
     obstacles = torch.zeros(batch, num_cells, dtype=torch.bool, device=device)
     obstacles.view(-1).index_fill_(0, cells.view(-1), True)
     return obstacles
-
-
-#: ``(batch, stride, device) -> [batch, 1]`` int64 ``s * stride``: constants, never written.
-_ROW_STARTS: dict = {}
-
-
-def _row_starts(batch: int, stride: int, device: torch.device) -> torch.Tensor:
-    """``arange(batch)[:, None] * stride`` (cached: a few batch shapes per process)."""
-    key = (batch, stride, torch.device(device))
-    starts = _ROW_STARTS.get(key)
-    if starts is None:
-        if len(_ROW_STARTS) >= 16:
-            _ROW_STARTS.clear()
-        starts = _ROW_STARTS[key] = (torch.arange(batch, device=device) * stride).unsqueeze(1)
-    return starts
 
 
 #: Per thread, ``(shape, dtype, device) -> tensor``: the scatter's ``[S, N]`` map of first draws
@@ -618,6 +619,21 @@ def reset_worlds(
     )
 
 
+#: The last ``period`` tensor seen and its ``(period > 0, period.clamp(min=1))``: an env hands
+#: the same tensor to every step.
+_PERIOD_TABLES: list = [None, None]
+
+
+def _period_tables(period: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(period > 0, period.clamp(min=1))``, computed again only for another tensor or after it
+    was modified in place (its ``_version`` moved)."""
+    cached, tables = _PERIOD_TABLES
+    if cached is None or cached[0] is not period or cached[1] != period._version:
+        tables = (period > 0, period.clamp(min=1))
+        _PERIOD_TABLES[:] = [(period, period._version), tables]
+    return tables
+
+
 def step_worlds(
     state: WorldState,
     action: torch.Tensor,
@@ -658,33 +674,49 @@ def step_worlds(
         )
         other = randint_from_bits(random_bits(noise_key, 2 * state.ticks + 1), num_actuators - 1)
         fired = torch.where(slip, (action + 1 + other) % num_actuators, action)
+    body = config.body_spec
+    always_moves = all(move is not None for move in body.moves)
     # (index_select: the same entries as advanced indexing, a fraction of its per-call cost)
     move = tables["moves"].to(action.device).index_select(0, fired)  # [S], -1: no move
-    moving = move >= 0
-    direction = (move.clamp(min=0) + state.heading) % NUM_HEADINGS  # [S]
-    target, inside = neighbours(state.cell, config.size)  # [S, 4]
-    blocked = ~inside | state.obstacles.gather(1, target)
-    chosen = direction.unsqueeze(1)
-    collided = moving & blocked.gather(1, chosen).squeeze(1)  # [S]
-    stays = collided | ~moving
-    cell = torch.where(stays, state.cell, target.gather(1, chosen).squeeze(1))
-    turn = tables["turns"].to(action.device).index_select(0, fired)  # [S]
-    heading = (state.heading + turn) % NUM_HEADINGS
-    actuators = torch.arange(num_actuators, device=action.device)
-    bump = (actuators == action.unsqueeze(1)) & collided.unsqueeze(1)  # [S, A]
+    if body.has_heading:
+        direction = (move.clamp(min=0) + state.heading) % NUM_HEADINGS  # [S]
+    else:  # the heading stays START_HEADING = 0: relative directions are absolute
+        direction = move if always_moves else move.clamp(min=0)
+    # the cell one move away in that direction and whether a wall is there, looked up for
+    # (cell, direction) at once (the same entries as ``neighbours`` and a gather of its column)
+    target_of, wall_of = _move_tables(config.size, action.device)  # [N * 4] each
+    entry = state.cell * NUM_HEADINGS + direction  # [S]
+    target = target_of.index_select(0, entry)
+    blocked = wall_of.index_select(0, entry) | state.obstacles.gather(1, target.unsqueeze(1))[:, 0]
+    if always_moves:
+        collided = blocked  # [S]
+        cell = torch.where(collided, state.cell, target)
+    else:
+        moving = move >= 0
+        collided = moving & blocked
+        cell = torch.where(collided | ~moving, state.cell, target)
+    if any(body.turns):
+        turn = tables["turns"].to(action.device).index_select(0, fired)  # [S]
+        heading = (state.heading + turn) % NUM_HEADINGS
+    else:
+        heading = state.heading
+    # the chosen actuator's bit, where it collided: one scatter into zeros
+    bump = torch.zeros_like(state.bump).scatter_(1, action.unsqueeze(1), collided.unsqueeze(1))
     episode_step = state.episode_step + 1
     terminated = cell == config.goal_cell
     truncated = ~terminated & (episode_step >= config.max_steps)
     outcome = StepOutcome(
         step_reward=torch.full(cell.shape, -1.0, device=cell.device),
         goal_reward=terminated.to(torch.float32),
-        collision=torch.where(bump, -1.0, 0.0),  # not -bump: that prints (and stores) -0.0
+        # -1 where it bumped, +0.0 elsewhere (not -bump: that prints, and stores, -0.0)
+        collision=torch.zeros(bump.shape, device=bump.device).masked_fill_(bump, -1.0),
         terminated=terminated,
         truncated=truncated,
         fired=fired,
     )
     obstacles, scatters, draws = state.obstacles, state.scatters, None
-    scatter = (period > 0) & ~terminated & (episode_step % period.clamp(min=1) == 0)
+    moves_obstacles, every = _period_tables(period)
+    scatter = moves_obstacles & ~terminated & (episode_step % every == 0)
     if config.num_obstacles:
         obstacles, scatters, draws = _scatter_where(scatter, obstacles, scatters, key, cell, config)
     new_state = WorldState(cell, obstacles, bump, episode_step, scatters, heading, state.ticks + 1)

@@ -271,17 +271,23 @@ class OnlineCollector(BaseCollector):
         Returns the experiments whose env must start a new episode (``None``: none).
         """
         next_td = td.get("next")
-        collided = next_td.get("bump").any(dim=-1) & active  # [S]
+        # (until an experiment finishes every one is active: the masking is skipped)
+        collided = next_td.get("bump").any(dim=-1)  # [S]
         reward = next_td.get("reward").squeeze(-1)  # [S]
         if next_td.get("local_reward", None) is None:  # conventional reward: remove collisions
             reward = reward - next_td.get("collision").sum(dim=-1)
+        ended = next_td.get("done").squeeze(-1)  # [S]
         sums = self._episode
-        sums["steps"] = sums["steps"] + active  # int64 + bool: int64, no cast pass
+        if self._any_finished:
+            collided, ended = collided & active, ended & active
+            sums["steps"] = sums["steps"] + active  # int64 + bool: int64, no cast pass
+            sums["task_return"] = sums["task_return"] + torch.where(active, reward, 0.0)
+        else:
+            sums["steps"] = sums["steps"] + 1
+            sums["task_return"] = sums["task_return"] + reward
         sums["collisions"] = sums["collisions"] + collided
         greedy = collided & ~td.get("exploratory")
         sums["greedy_collisions"] = sums["greedy_collisions"] + greedy
-        sums["task_return"] = sums["task_return"] + torch.where(active, reward, 0.0)
-        ended = next_td.get("done").squeeze(-1) & active  # [S]
         # Everything below is computed for every experiment and selected with torch.where, and
         # the host reads one small tensor of counts per step (a GPU waits once, not five times).
         episode = self.episode_index + ended

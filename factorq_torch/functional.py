@@ -166,8 +166,7 @@ def _left_sum(x: torch.Tensor) -> torch.Tensor:
 
 def _mean_of_others(x: torch.Tensor, excluded: torch.Tensor) -> torch.Tensor:
     """Mean of ``x[..., a]`` over ``a != excluded`` (``[..., A], [...] -> [...]``)."""
-    actions = torch.arange(x.shape[-1], device=x.device)
-    others = x.masked_fill(actions == excluded.unsqueeze(-1), 0.0)  # [..., A], +0.0 at excluded
+    others = x.scatter(-1, excluded.unsqueeze(-1), 0.0)  # [..., A], +0.0 at excluded
     return _left_sum(others) / (x.shape[-1] - 1)
 
 

@@ -55,6 +55,7 @@ from torchrl.objectives import LossModule
 
 from factorq_torch.base import keys as names
 from factorq_torch.base.config import AgentConfig
+from factorq_torch.base.indices import row_starts
 from factorq_torch.base.validation import check_finite
 from factorq_torch.functional import (
     combined_values,
@@ -220,12 +221,12 @@ class _TransitionLoss(LossModule):
         if not table.requires_grad:
             return
         state = provider.state_index(tensordict)  # [S]
-        _, states, width = table.shape
-        rows = torch.arange(state.shape[0], device=state.device)
+        count, states, width = table.shape
         # The flat entry (experiment, state, action) of each experiment, -1 (refused by
         # index_select) where the state or the action is out of range.
         inside = (state >= 0) & (state < states) & (action >= 0) & (action < width)
-        entry = torch.where(inside, (rows * states + state) * width + action, -1)
+        rows = row_starts(count, states * width, state.device)  # [S], where each table starts
+        entry = torch.where(inside, rows + state * width + action, -1)
         flat = table.detach().view(-1)
         try:
             q_sa = flat.index_select(0, entry)  # [S], Q(s, a)

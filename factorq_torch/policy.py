@@ -38,6 +38,7 @@ from tensordict.nn.probabilistic import InteractionType, interaction_type
 
 from factorq_torch.base import keys as names
 from factorq_torch.base.config import AgentConfig
+from factorq_torch.base.indices import row_starts
 from factorq_torch.base.rng import POLICY_DRAWS_PER_STEP, STREAM_POLICY, derive_keys, random_bits
 from factorq_torch.base.validation import check_device, check_finite
 from factorq_torch.functional import combined_values, epsilon_greedy_from_bits, normaliser
@@ -165,7 +166,8 @@ class EpsilonGreedyPolicy(TensorDictModuleBase):
         batch = tuple(tensordict.batch_size)
         values = self._values(tensordict)  # [*B, A]
         epsilon = self.epsilon if explores() else 0.0
-        draws = torch.arange(POLICY_DRAWS_PER_STEP, device=self.counter.device).unsqueeze(1)
+        # [[0], [1], ...]: draw k of a decision (a cached constant)
+        draws = row_starts(POLICY_DRAWS_PER_STEP, 1, self.counter.device, column=True)
         online = batch == (self.num_experiments,) and names.EXPERIMENT not in tensordict.keys()
         if online:  # one decision per experiment, in experiment order (the online step)
             mask = check_mask(tensordict.get(MASK_KEY, None), self.num_experiments, "policy")

@@ -32,6 +32,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from factorq_torch.base import keys
 from factorq_torch.base.config import PAPER_NUM_ACTIONS
+from factorq_torch.base.indices import row_starts
 from factorq_torch.base.validation import (  # MAX_TABLE_ENTRIES: re-exported
     MAX_PARENTS,
     MAX_TABLE_ENTRIES,  # noqa: F401
@@ -136,6 +137,25 @@ def table_rows(table: torch.Tensor, experiment: torch.Tensor, state: torch.Tenso
     inside = (state >= 0) & (state < states)
     flat = torch.where(inside, experiment * states + state, -1).reshape(-1)
     return table.detach().reshape(-1, width).index_select(0, flat).reshape(*state.shape, width)
+
+
+def _is_online(tensordict: TensorDictBase, num_experiments: int) -> bool:
+    """Whether ``tensordict`` is the online step of ``S`` experiments: batch ``[S]``, entry ``i``
+    experiment ``i`` (no ``keys.EXPERIMENT`` entry)."""
+    return tuple(tensordict.batch_size) == (num_experiments,) and (
+        tensordict.get(keys.EXPERIMENT, None) is None
+    )
+
+
+def online_rows(table: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+    """``table[i, state[i]]`` ``[S, A]`` of a ``[S, states, A]`` table (no gradient), the online
+    step's rows (experiment ``i`` reads its own table): one ``gather`` along the states, the
+    same values as ``table_rows`` with ``arange(S)`` in fewer ops (2x faster at S <= 1024; the
+    same at 4096). A state outside ``[0, states)`` raises (RuntimeError): ``gather`` refuses
+    one past the end, and a negative one is sent there (``gather`` would wrap it around)."""
+    states, width = table.shape[1], table.shape[-1]
+    index = torch.where(state >= 0, state, states).view(-1, 1, 1).expand(-1, 1, width)
+    return table.detach().gather(1, index).view(state.shape[0], width)
 
 
 def _check_entry(
@@ -254,14 +274,23 @@ class TaskQTable(TensorDictModuleBase):
         return qlearning_state(state, readings)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        learning = torch.is_grad_enabled() and self.table.requires_grad
+        if not learning and _is_online(tensordict, self.num_experiments):
+            state = self.state_index(tensordict)  # [S]
+            try:
+                values = online_rows(self.table, state)  # [S, A]
+            except (IndexError, RuntimeError):
+                raise ValueError(self._misfit(state)) from None
+            tensordict.set(keys.ACTION_VALUE, values)
+            return tensordict
         experiment = experiment_index(tensordict, self.num_experiments, type(self).__name__)
         state = self.state_index(tensordict)  # [*B]
         try:
-            learning = torch.is_grad_enabled() and self.table.requires_grad
             if learning and self.sparse_grad:
                 values = _RowsWithSparseGrad.apply(self.table, experiment, state)  # [*B, A]
-            elif learning:  # a dense gradient through the indexing
-                values = self.table[experiment, state]  # [*B, A]
+            elif learning:  # a dense gradient through the indexing (a negative state is sent
+                # past the end: the indexing would wrap it around)
+                values = self.table[experiment, torch.where(state >= 0, state, self.num_states)]
             else:
                 values = table_rows(self.table, experiment, state)  # [*B, A]
         except IndexError:
@@ -436,9 +465,12 @@ class LocalRewardTable(TensorDictModuleBase):
                     f"{owner}: {name} has shape {list(value.shape)}, expected {list(shape)}"
                 )
         distinct = False  # whether the transitions' experiments are known to differ
+        patterns_per_table = self.rho.shape[-1]
         if experiment is None:
-            if batch == (self.num_experiments,):
-                experiment = torch.arange(self.num_experiments, device=action.device)
+            if batch == (self.num_experiments,):  # experiment i's tables start at row_starts[i]
+                table_starts = row_starts(
+                    self.num_experiments, self.num_actions * patterns_per_table, action.device
+                )
                 distinct = True
             elif self.num_experiments == 1:
                 experiment = torch.zeros(batch, dtype=torch.int64, device=action.device)
@@ -462,13 +494,17 @@ class LocalRewardTable(TensorDictModuleBase):
         reading = patterns.gather(1, action.unsqueeze(1)).squeeze(1)  # [M], o_D(a)
         rewards = local_reward.reshape(-1, self.num_actions)
         reward = rewards.gather(1, action.unsqueeze(1)).squeeze(1)  # [M], r_L[a]
-        entry = (experiment.reshape(-1) * self.num_actions + action) * self.rho.shape[-1]
-        entry = entry + reading  # [M], flat index into rho / kappa
+        if distinct:
+            entry = table_starts + (action * patterns_per_table + reading)
+        else:
+            entry = (experiment.reshape(-1) * self.num_actions + action) * patterns_per_table
+            entry = entry + reading  # [M], flat index into rho / kappa
         rho_flat, kappa_flat = self.rho.view(-1), self.kappa.view(-1)
         rho, kappa = rho_flat.index_select(0, entry), kappa_flat.index_select(0, entry)  # [M]
         step = reward - rho  # r_L[a] - rho_a[o]
-        visits = torch.ones_like(kappa)
-        if mask is not None:
+        if mask is None:
+            visits = torch.ones_like(kappa)
+        else:
             mask = mask.reshape(-1)
             step, visits = torch.where(mask, step, 0.0), mask.to(torch.int64)
         # Sums per entry (n transitions on one entry add n visits and their n steps). One

@@ -170,3 +170,27 @@ def test_bad_sizes_and_masks_are_refused():
         LocalRewardTable(2).update_running_mean(
             torch.ones(2, 4, dtype=torch.bool), torch.tensor([0]), torch.zeros(2, 4)
         )
+
+
+@pytest.mark.parametrize("sparse_grad", [False, True])
+@pytest.mark.parametrize("grad", [False, True])
+@pytest.mark.parametrize("cell", [4, -1, -4])
+def test_a_cell_outside_the_table_is_refused_on_every_read_path(sparse_grad, grad, cell):
+    # the online read (one gather), the sparse-gradient and the dense-gradient reads: a negative
+    # cell must not wrap around to the last rows
+    table = TaskQTable(3, num_cells=4, sparse_grad=sparse_grad)
+    td = TensorDict(cell=torch.tensor([0, cell, 1]), batch_size=[3])
+    with torch.set_grad_enabled(grad), pytest.raises(ValueError, match="num_cells=4"):
+        table(td)
+
+
+def test_the_online_read_gives_each_experiments_own_row():
+    table = TaskQTable(3, num_cells=5)
+    with torch.no_grad():
+        table.table.copy_(torch.arange(60, dtype=torch.float32).view(3, 5, 4))
+        values = table(TensorDict(cell=torch.tensor([4, 0, 2]), batch_size=[3]))["action_value"]
+    assert values.tolist() == [
+        [16.0, 17.0, 18.0, 19.0],
+        [20.0, 21.0, 22.0, 23.0],
+        [48.0, 49.0, 50.0, 51.0],
+    ]

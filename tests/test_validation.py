@@ -599,3 +599,30 @@ def test_the_table_tries_every_option_of_factorq_paper_and_compare(command):
         for option in action.option_strings:
             if option.startswith("--") and option != "--help":
                 assert option in tried, f"{option} has no row in the table"
+
+
+@pytest.mark.parametrize(
+    "bad, first",
+    [
+        (None, None),  # finite, but the sum overflows: the entry-by-entry check clears it
+        (float("nan"), 2),
+        (float("inf"), 1),
+        (-float("inf"), 0),
+    ],
+)
+def test_check_finite_decides_by_the_sum_and_falls_back_to_every_entry(bad, first):
+    from factorq_torch.base.validation import check_finite
+
+    largest = torch.finfo(torch.float32).max
+    values = torch.full((3, 4), largest)  # every entry finite, the sum +inf
+    if bad is not None:
+        values = torch.zeros(3, 4)
+        values[first, 1] = bad
+        values[first + 1 :, 3] = bad
+    if bad is None:
+        assert check_finite("owner", "'key'", values) is values
+        return
+    with pytest.raises(
+        ValueError, match=rf"owner: 'key' holds NaN .* \(experiment {first} first\)"
+    ):
+        check_finite("owner", "'key'", values)

@@ -146,29 +146,29 @@ def check_finite(owner: str, name: str, values):
     """Return ``values`` (a tensor ``[S, ...]``) if every entry is finite, else raise a
     ValueError naming ``owner``, the key and the first experiment (leading index) at fault.
 
-    Cheap enough to stay on: one fused reduction. On the CPU it reads the verdict (a memory read,
-    no synchronisation); on an accelerator it is a device-side assert (``torch._assert_async``)
-    so that it never stalls the step with a device-to-host copy; on ``meta`` there is no data.
-    A NaN or infinite value fed to a policy or a loss would otherwise spread silently through
-    argmax ties and targets.
+    Cheap enough to stay on. On the CPU the sum of the values decides at once when it is finite
+    (a NaN or an infinity makes every sum NaN or infinite; two ops and a memory read, no
+    synchronisation), and only a sum that is not (bad values, or finite ones whose sum
+    overflows) is checked entry by entry; on an accelerator it is a device-side assert
+    (``torch._assert_async``) so that it never stalls the step with a device-to-host copy; on
+    ``meta`` there is no data. A NaN or infinite value fed to a policy or a loss would otherwise
+    spread silently through argmax ties and targets.
     """
     import torch
 
     if not values.is_floating_point() or values.device.type == "meta":
         return values
-    finite = torch.isfinite(values).all()
     if values.device.type != "cpu":
+        finite = torch.isfinite(values).all()
         torch._assert_async(finite, f"{owner}: {name} holds NaN or infinite values")
         return values
-    if not bool(finite):
-        bad = (
-            (~torch.isfinite(values)).reshape(values.shape[0], -1).any(dim=1)
-            if values.dim()
-            else None
-        )
-        where = "" if bad is None else f" (experiment {int(bad.nonzero()[0, 0])} first)"
-        raise ValueError(
-            f"{owner}: {name} holds NaN or infinite values{where}: a table or network diverged "
-            f"or was loaded from a bad state"
-        )
-    return values
+    if math.isfinite(values.sum().item()) or bool(torch.isfinite(values).all()):
+        return values
+    where = ""
+    if values.dim():
+        bad = (~torch.isfinite(values)).reshape(values.shape[0], -1).any(dim=1)
+        where = f" (experiment {int(bad.nonzero()[0, 0])} first)"
+    raise ValueError(
+        f"{owner}: {name} holds NaN or infinite values{where}: a table or network diverged "
+        f"or was loaded from a bad state"
+    )
