@@ -383,8 +383,10 @@ def observe(state: WorldState, key: torch.Tensor, config: WorldConfig) -> torch.
     return readings
 
 
-#: ``GOLDEN`` as the int64 with the same 64 bits (the streams' arithmetic wraps modulo 2**64).
-_GOLDEN_INT64 = GOLDEN - (1 << 64) if GOLDEN >= 1 << 63 else GOLDEN
+def _as_int64(value: int) -> int:
+    """The int64 with the same low 64 bits as ``value`` (the streams' arithmetic wraps modulo
+    2**64)."""
+    return (value + (1 << 63)) % (1 << 64) - (1 << 63)
 
 
 def scatter_obstacles(
@@ -421,16 +423,19 @@ def scatter_obstacles(
     # one i = t_k - (M - K) < k and step i collided (j_k exceeds every earlier pick, so only
     # these can match). The second case chains through i < k: resolved by pointer jumping,
     # ceil(log2 K) rounds.
-    steps = torch.arange(num_obstacles, device=device)
+    # (the [S, K] int64 tensors below are written in place where nothing reads them again: at
+    # S = 4096 each new one is 320 kB, which the allocator takes from the system and returns,
+    # page faults included, several times a step)
+    steps = row_starts(num_obstacles, 1, device)  # [K]: 0, 1, ... (cached)
     base = (allowed - num_obstacles).unsqueeze(1)  # [S, 1]
     j = base + steps  # [S, K]
     # Counter scatter_index * K + k of each world's stream: random_bits adds (counter + 1) *
     # GOLDEN to the key, and in wrapping 64-bit arithmetic that is the key moved by
     # scatter_index * K * GOLDEN (per world) plus (k + 1) * GOLDEN (per step), the same bits
     # with the [S, K] counter never built.
-    row_key = key + scatter_index * num_obstacles * _GOLDEN_INT64  # [S]
-    bits = random_bits(row_key.unsqueeze(1), steps)  # [S, K]
-    t = randint_from_bits(bits, (base + 1) + steps)  # [S, K], t_k in [0, j_k]
+    row_key = key + scatter_index * _as_int64(num_obstacles * GOLDEN)  # [S]
+    bits = random_bits(row_key.unsqueeze(1), steps)  # [S, K], a new tensor
+    t = bits.mul_(j + 1).__irshift__(32)  # randint_from_bits(bits, j + 1): t_k in [0, j_k]
     # (in place on fresh tensors of the smallest dtype that holds a step: this [S, N] map and
     # the obstacles are the largest tensors of a step, and memory traffic is what they cost)
     small = torch.int16 if num_obstacles < 2**15 else torch.int64
@@ -445,20 +450,22 @@ def scatter_obstacles(
     # exactly when the step collided.
     # (t_k <= j_k, so link <= k: a link of k is the step itself, and only link < 0 needs the
     # self pointer written)
-    link = t - base
-    link = torch.where(link >= 0, link, steps)
-    sentinel = torch.full((1, 1), num_obstacles, device=device).expand(batch, 1)
-    pointer = torch.cat((torch.where(direct, num_obstacles, link), sentinel), dim=1)
+    pointer = torch.empty(batch, num_obstacles + 1, dtype=torch.int64, device=device)
+    pointer[:, num_obstacles] = num_obstacles  # the sentinel
+    link = torch.sub(t, base, out=pointer[:, :num_obstacles])
+    torch.where(link >= 0, link, steps, out=link)
+    link.masked_fill_(direct, num_obstacles)
+    jumped = torch.empty_like(pointer)
     for _ in range(max(num_obstacles - 1, 0).bit_length()):
-        pointer = pointer.gather(1, pointer)
+        pointer, jumped = torch.gather(pointer, 1, pointer, out=jumped), pointer
     collided = pointer[:, :num_obstacles] == num_obstacles  # [S, K]
-    picks = torch.where(collided, j, t)  # [S, K], distinct positions in [0, M)
+    picks = torch.where(collided, j, t, out=j)  # [S, K], distinct positions in [0, M)
     # positions among the allowed cells -> cells (the start is cell 0), as indices into the
     # flattened [S * N] map (world s's row starts at s * N): index_fill_ on the flat map is
     # 2x faster on CPU than scatter_ along the rows
     rows = row_starts(batch, num_cells, device, column=True)  # [S, 1]
-    cells = picks + (rows + 1)
-    cells = cells + (cells >= (agent_key.unsqueeze(1) + rows))
+    cells = picks.add_(rows + 1)
+    cells += cells >= (agent_key.unsqueeze(1) + rows)
     obstacles = torch.zeros(batch, num_cells, dtype=torch.bool, device=device)
     obstacles.view(-1).index_fill_(0, cells.view(-1), True)
     return obstacles
