@@ -149,13 +149,14 @@ def _is_online(tensordict: TensorDictBase, num_experiments: int) -> bool:
 
 def online_rows(table: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
     """``table[i, state[i]]`` ``[S, A]`` of a ``[S, states, A]`` table (no gradient), the online
-    step's rows (experiment ``i`` reads its own table): one ``gather`` along the states, the
-    same values as ``table_rows`` with ``arange(S)`` in fewer ops (2x faster at S <= 1024; the
-    same at 4096). A state outside ``[0, states)`` raises (RuntimeError): ``gather`` refuses
-    one past the end, and a negative one is sent there (``gather`` would wrap it around)."""
-    states, width = table.shape[1], table.shape[-1]
-    index = torch.where(state >= 0, state, states).view(-1, 1, 1).expand(-1, 1, width)
-    return table.detach().gather(1, index).view(state.shape[0], width)
+    step's rows (experiment ``i`` reads its own table): ``table_rows`` with ``arange(S)``, its
+    row offsets cached (``row_starts``). One ``index_select`` of whole rows: a ``gather`` along
+    the states takes fewer ops but was measured 4x slower at S = 4096, where the rows are not
+    in cache. A state outside ``[0, states)`` raises IndexError."""
+    count, states, width = table.shape
+    inside = (state >= 0) & (state < states)
+    flat = torch.where(inside, row_starts(count, states, state.device) + state, -1)
+    return table.detach().reshape(-1, width).index_select(0, flat)
 
 
 def _check_entry(
