@@ -229,7 +229,7 @@ def q_learning_target(
     Truncated transitions still bootstrap: only ``terminated`` stops it.
     Shapes: ``[...], [..., A], [...] (bool) -> [...]``.
     """
-    bootstrap = reward + gamma * q_next.max(dim=-1).values
+    bootstrap = reward + gamma * q_next.amax(dim=-1)
     return torch.where(terminated, reward, bootstrap)
 
 
@@ -290,7 +290,7 @@ def greedy_action_from_bits(values: torch.Tensor, tie_bits: torch.Tensor) -> tor
     The ``k``-th of the ``n`` maximal actions (in index order) is taken, ``k = bits * n >> 32``.
     Shapes: ``[..., A], [...] -> [...]`` (int64).
     """
-    is_max = values == values.max(dim=-1, keepdim=True).values  # [..., A]
+    is_max = values == values.amax(dim=-1, keepdim=True)  # [..., A]
     count = is_max.sum(dim=-1)
     k = randint_from_bits(tie_bits, count)
     rank = is_max.cumsum(dim=-1) - 1  # rank of each maximal action among the maximal ones
