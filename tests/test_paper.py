@@ -284,6 +284,19 @@ def test_a_checkpointed_modular_run_keeps_one_process(tmp_path):
     assert results["timing"]["processes"] == 1 and results["timing"]["threads"] == 2
 
 
+def test_a_modular_run_whose_processes_do_not_fit_in_memory_keeps_one(monkeypatch):
+    # The run alone fits, but not another interpreter with torch besides it.
+    from factorq_trainers import resources
+
+    small = {**TINY, "worlds": ("static",), "seeds": 1, "runs": 1, "episodes": 1}
+    config = PaperConfig(**small, backend="modular", threads=2)
+    needed = resources.paper_estimate(config).bytes
+    monkeypatch.setattr(resources, "available_memory", lambda: (needed + 2**20, "test"))
+    assert paper.modular_processes(config) == 2
+    results = paper.run(config)
+    assert results["timing"]["processes"] == 1
+
+
 def _work():
     import processes_work  # tests/processes_work.py: the children import it by name
 

@@ -255,9 +255,8 @@ def fallback_notice(
         return None  # asked for: a device the compiled path does not run on
     if processes is None:
         processes = modular_processes(config, world)
-    if processes > 1:  # the algorithms side by side, in rounds of `processes`
-        rounds = -(-len(config.algorithms) // processes)
-        estimate = MODULAR_PARALLEL_SECONDS_PER_EPISODE * rounds * config.runs * config.episodes
+    if processes > 1:  # the algorithms side by side: about the slower one's time
+        estimate = MODULAR_PARALLEL_SECONDS_PER_EPISODE * config.runs * config.episodes
     else:
         estimate = (
             MODULAR_SECONDS_PER_EPISODE * len(config.algorithms) * config.runs * config.episodes
@@ -282,18 +281,18 @@ def threads_used(config: PaperConfig, backend: str, processes: int = 1) -> int:
 
 
 def modular_processes(config: PaperConfig, world: Any = None, checkpointing: bool = False) -> int:
-    """Processes the modular path runs ``config``'s algorithms in: one per algorithm, at most one
-    per CPU thread allowed (``config.threads``, default torch's thread count, what the fast path
-    takes), or 1 (this process, one algorithm after the other) with a single algorithm or thread,
-    with another ``world`` than the grid, with ``checkpointing`` (a checkpoint holds the state
-    of one running algorithm) or where no process can be started. ``run`` also falls back to 1
-    if the processes' memory does not fit."""
+    """Processes the modular path runs ``config``'s algorithms in: one per algorithm, all at once,
+    where two or more CPU threads are allowed (``config.threads``, default torch's thread count,
+    what the fast path takes); 1 (this process, one algorithm after the other) with a single
+    algorithm or thread, with another ``world`` than the grid, with ``checkpointing`` (a
+    checkpoint holds the state of one running algorithm) or where no process can be started.
+    ``run`` also falls back to 1 if the processes' memory does not fit."""
     if len(config.algorithms) < 2 or world is not None or checkpointing:
         return 1
     if not processes.available():  # no Python to start them with (a frozen program)
         return 1
     allowed = config.threads if config.threads is not None else torch.get_num_threads()
-    return max(1, min(len(config.algorithms), allowed))
+    return len(config.algorithms) if allowed >= 2 else 1
 
 
 def modular_threads(config: PaperConfig, processes: int) -> int:
@@ -439,7 +438,7 @@ def _run_modular(job: Job) -> dict[str, torch.Tensor]:
 
 
 def _modular_in_process(config: PaperConfig, algorithm: str, report: Any) -> dict[str, np.ndarray]:
-    """What each process of a parallel modular run does (``run``, ``processes.run_each``): one
+    """What each child process of a parallel modular run does (``_run_side_by_side``): one
     algorithm's experiments on the modular path, without checkpoints (a Checkpointer that only
     counts), their metrics as numpy arrays (they pickle as plain bytes)."""
     counter = checkpoint.Checkpointer(config.out, config_dict(config), "modular")
@@ -638,7 +637,7 @@ def _run_side_by_side(
 def _processes_fit(config: PaperConfig, count: int) -> bool:
     """Whether the modular path's ``count`` processes fit in the memory available: every
     algorithm's tables and state at once (``resources.paper_estimate`` of each alone) and
-    ``PROCESS_BYTES`` each, besides this process's metrics and curves."""
+    ``PROCESS_BYTES`` for each child, besides this process's metrics and curves."""
     available, _ = resources.available_memory()
     if available is None:
         return True
@@ -649,7 +648,7 @@ def _processes_fit(config: PaperConfig, count: int) -> bool:
     batches = sum(estimate.parts["tables"] + estimate.parts["run state"] for estimate in alone)
     whole = resources.paper_estimate(config)
     rest = whole.bytes - whole.parts["tables"] - whole.parts["run state"]
-    return batches + count * PROCESS_BYTES + rest <= available
+    return batches + (count - 1) * PROCESS_BYTES + rest <= available
 
 
 def _check_foreign_world(world: Any, checkpoint_every: Any, resume: Any) -> None:
