@@ -4,13 +4,19 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
+import subprocess
+import sys
+import time
 from dataclasses import fields
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from factorq_trainers import fast, options, paper
+from factorq_trainers import fast, options, paper, processes
 from factorq_trainers.paper import PaperConfig
 from factorq_trainers.results import dumps as dumps_results
 from factorq_trainers.schema import SCHEMA_VERSION, check_results
@@ -223,11 +229,154 @@ def test_without_a_compiler_auto_says_why_once_and_records_what_ran(monkeypatch,
     # get the fast path) and results.json records the backend and the threads actually used.
     monkeypatch.setattr(fast, "_load", lambda: None)
     monkeypatch.setattr(fast, "_reason", "no C compiler found (test)")
-    results = paper.run(PaperConfig(**{**TINY, "worlds": ("static",), "threads": None}))
+    config = PaperConfig(**{**TINY, "worlds": ("static",), "threads": None})
+    results = paper.run(config)
     err = capsys.readouterr().err
     assert err.count("the compiled fast path is unavailable (no C compiler found (test))") == 1
     assert "roughly" in err and "FACTORQ_CC" in err
     timing = results["timing"]
-    assert timing["backend"] == "modular" and timing["threads"] == 1
+    assert timing["backend"] == "modular"
+    # the algorithms side by side where 2 threads are allowed, 1 intra-op thread each
+    assert timing["threads"] == timing["processes"] == min(2, torch.get_num_threads())
     assert timing["fast_unavailable"] == "no C compiler found (test)"
     check_results(results)
+
+
+# --------------------------------------------------------------------------------------------
+# The modular path's algorithms side by side, in processes of their own (issue 17)
+
+
+def test_modular_algorithms_in_processes_give_the_sequential_results():
+    # --threads 1: one after the other in this process; 2: each algorithm in a process of its own
+    small = {**TINY, "backend": "modular"}
+    sequential = paper.run(PaperConfig(**small, threads=1))
+    parallel = paper.run(PaperConfig(**small, threads=2))
+    assert sequential["timing"]["processes"] == 1 and sequential["timing"]["threads"] == 1
+    assert parallel["timing"]["processes"] == 2 and parallel["timing"]["threads"] == 2
+    check_results(parallel)
+    first, second = dict(sequential), dict(parallel)
+    for results in (first, second):
+        results.pop("timing")
+    first["config"] = second["config"] = None  # threads differs in the config only
+    assert dumps_results(first) == dumps_results(second)
+
+
+def test_modular_processes_only_for_several_algorithms_threads_and_no_checkpoints():
+    both = PaperConfig(**TINY, backend="modular", threads=2)
+    assert paper.modular_processes(both) == 2
+    assert paper.modular_processes(PaperConfig(**TINY, threads=1)) == 1
+    assert paper.modular_processes(PaperConfig(**TINY, threads=8)) == 2  # one per algorithm
+    assert paper.modular_processes(PaperConfig(**TINY, threads=2, algorithms=("factor-q",))) == 1
+    assert paper.modular_processes(both, checkpointing=True) == 1
+    assert paper.modular_processes(both, world=object()) == 1
+    # threads: processes x threads each (1 each unless --threads gives more)
+    assert paper.threads_used(both, "modular", 2) == 2
+    assert paper.threads_used(PaperConfig(**TINY, threads=5), "modular", 2) == 4
+    assert paper.threads_used(PaperConfig(**TINY, threads=None), "modular", 2) == 2
+    assert paper.threads_used(PaperConfig(**TINY, threads=None), "modular", 1) == 1
+
+
+def test_a_checkpointed_modular_run_keeps_one_process(tmp_path):
+    # (the smallest run: 2 torch threads on 2 busy cores are slow)
+    small = {**TINY, "worlds": ("static",), "seeds": 1, "runs": 1, "episodes": 1}
+    config = PaperConfig(**small, backend="modular", threads=2, out=str(tmp_path))
+    results = paper.run(config, checkpoint_every=10**9)
+    assert results["timing"]["processes"] == 1 and results["timing"]["threads"] == 2
+
+
+def test_a_modular_run_whose_processes_do_not_fit_in_memory_keeps_one(monkeypatch):
+    # The run alone fits, but not another interpreter with torch besides it.
+    from factorq_trainers import resources
+
+    small = {**TINY, "worlds": ("static",), "seeds": 1, "runs": 1, "episodes": 1}
+    config = PaperConfig(**small, backend="modular", threads=2)
+    needed = resources.paper_estimate(config).bytes
+    monkeypatch.setattr(resources, "available_memory", lambda: (needed + 2**20, "test"))
+    assert paper.modular_processes(config) == 2
+    results = paper.run(config)
+    assert results["timing"]["processes"] == 1
+
+
+def _work():
+    import processes_work  # tests/processes_work.py: the children import it by name
+
+    return processes_work
+
+
+def test_children_report_progress_and_return_results_in_the_order_given():
+    reports = []
+    items = {"b": ("count", 30), "a": ("count", 20)}
+    results = processes.run_each(_work().work, items, lambda *counts: reports.append(counts))
+    assert list(results) == ["b", "a"] and results == {"b": {"episodes": 30}, "a": {"episodes": 20}}
+    assert sum(episodes for episodes, _ in reports) == 50
+    assert sum(experiments for _, experiments in reports) == 2
+    assert len(reports) < 50  # batched, not one message per report
+
+
+@pytest.mark.parametrize(
+    ("item", "error", "message"),
+    [
+        (("raise", "bad value in the child"), ValueError, "bad value in the child"),
+        (("unpicklable", "first"), RuntimeError, "TwoArgumentError: first and more"),
+        (
+            ("kill", None),
+            processes.WorkerError,
+            "the process running b was killed by signal SIGKILL (exit code -9) before sending "
+            "its results",
+        ),
+        (
+            ("exit", 3),
+            processes.WorkerError,
+            "the process running b exited with exit code 3 before sending its results",
+        ),
+    ],
+    ids=["ValueError", "unpicklable", "killed", "exit"],
+)
+def test_an_error_in_a_child_is_one_error_here_and_ends_the_other_children(item, error, message):
+    items = {"a": ("sleep", 60), "b": item}
+    children = processes.Children(_work().work, items, lambda *counts: None)
+    with pytest.raises(error) as raised, children:
+        children.wait()
+    assert type(raised.value) is error and str(raised.value) == message
+    if error is not processes.WorkerError:  # the child's traceback comes as a note
+        assert "raised in child process" in "".join(raised.value.__notes__)
+    for pid in children.pids.values():  # the sleeping child was ended and waited for
+        assert not _alive(pid)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state not in ("Z", "X")
+
+
+def test_ctrl_c_ends_the_children_and_propagates():
+    tests = str(Path(__file__).resolve().parent)
+    script = (
+        "import sys; sys.path.insert(0, sys.argv[1]); import processes_work\n"
+        "from factorq_trainers import processes\n"
+        "items = {'a': ('sleep', 60), 'b': ('sleep', 60)}\n"
+        "with processes.Children(processes_work.work, items, print) as children:\n"
+        "    print(*children.pids.values(), flush=True)\n"
+        "    children.wait()\n"
+    )
+    run = subprocess.Popen(
+        [sys.executable, "-c", script, tests],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, as at a terminal
+    )
+    try:
+        pids = [int(pid) for pid in run.stdout.readline().split()]
+        assert len(pids) == 2 and all(_alive(pid) for pid in pids)
+        time.sleep(0.2)  # in wait()
+        os.killpg(run.pid, signal.SIGINT)  # Ctrl-C: the terminal signals the process group
+        _, err = run.communicate(timeout=30)
+    finally:
+        if run.poll() is None:
+            run.kill()
+    assert run.returncode != 0 and "KeyboardInterrupt" in err
+    assert not any(_alive(pid) for pid in pids)

@@ -22,7 +22,7 @@ import os
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, fields, is_dataclass
+from dataclasses import asdict, dataclass, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -40,7 +40,7 @@ from factorq_torch.base.validation import (
     check_names,
     check_threads,
 )
-from factorq_trainers import checkpoint, experiment, resources, stats
+from factorq_trainers import checkpoint, experiment, processes, resources, stats
 from factorq_trainers.claims import compute_claims
 from factorq_trainers.experiment import (
     MAX_SEED,
@@ -220,13 +220,27 @@ def resolve_backend(config: PaperConfig, world: Any = None) -> str:
 
 #: Seconds of the modular path per (algorithm, run, episode) of the default batch, measured on
 #: a 2-core CPU: one run of each algorithm (``--backend modular --runs 1``) took 68 s there after
-#: issue 17's second round (the defaults took 15 min 36 s before its first), so about 11 min.
+#: issue 17's second round (the defaults took 15 min 36 s before its first), so about 11 min,
+#: with the algorithms one after the other (``--threads 1``).
 MODULAR_SECONDS_PER_EPISODE = 68.0 / (2 * 1 * 200)
+#: Wall seconds of the modular path per (run, episode) of the default batch with each algorithm
+#: in its own process (``modular_processes``): the slower algorithm's time alone, measured on the
+#: same 2-core CPU while two other CPU-bound jobs ran (load 2.7-3.1): ``--backend modular
+#: --runs 1 --threads 1`` took 40.3 s for Q-learning alone and 27.1 s for Factor-Q alone, so
+#: about 6.7 min for the defaults where the two have a core each. Side by side on that busy
+#: machine, where they did not, ``--runs 1`` took 60.0-66.8 s (one after the other: 64.8 s).
+MODULAR_PARALLEL_SECONDS_PER_EPISODE = 40.3 / (1 * 200)
+#: Memory of one child process of the modular path besides its batch: the interpreter with torch
+#: and torchrl imported (329 MiB peak resident set measured; counted in ``run``'s check).
+PROCESS_BYTES = 330 * 2**20
 
 
-def fallback_notice(config: PaperConfig, backend: str, world: Any = None) -> str | None:
+def fallback_notice(
+    config: PaperConfig, backend: str, world: Any = None, processes: int | None = None
+) -> str | None:
     """The one-line notice of ``auto`` falling back to the modular path: why, about how long the
-    run will take, how to get the fast path (None when nothing fell back)."""
+    run will take (on ``processes``, default ``modular_processes(config, world)``), how to get
+    the fast path (None when nothing fell back)."""
     from factorq_trainers import fast
 
     if backend != "modular" or config.backend != "auto":
@@ -239,7 +253,14 @@ def fallback_notice(config: PaperConfig, backend: str, world: Any = None) -> str
         )
     if torch.device(config.device).type != "cpu":
         return None  # asked for: a device the compiled path does not run on
-    estimate = MODULAR_SECONDS_PER_EPISODE * len(config.algorithms) * config.runs * config.episodes
+    if processes is None:
+        processes = modular_processes(config, world)
+    if processes > 1:  # the algorithms side by side: about the slower one's time
+        estimate = MODULAR_PARALLEL_SECONDS_PER_EPISODE * config.runs * config.episodes
+    else:
+        estimate = (
+            MODULAR_SECONDS_PER_EPISODE * len(config.algorithms) * config.runs * config.episodes
+        )
     duration = f"{estimate / 60:.0f} min" if estimate >= 90 else f"{max(estimate, 1):.0f} s"
     return (
         f"factorq: the compiled fast path is unavailable ({fast.unavailable_reason()}): running "
@@ -249,13 +270,35 @@ def fallback_notice(config: PaperConfig, backend: str, world: Any = None) -> str
     )
 
 
-def threads_used(config: PaperConfig, backend: str) -> int:
+def threads_used(config: PaperConfig, backend: str, processes: int = 1) -> int:
     """CPU threads the experiment actually runs on: the fast path's workers (at most one per
-    experiment), or the modular path's torch intra-op threads (1 unless --threads says more)."""
+    experiment), or the modular path's torch intra-op threads (1 unless --threads says more) in
+    each of its ``processes`` (``modular_processes``; ``modular_threads`` each)."""
     if backend == "fast":
         threads = config.threads if config.threads is not None else torch.get_num_threads()
         return max(1, min(threads, len(config.worlds) * config.seeds))
-    return config.threads or 1
+    return processes * modular_threads(config, processes)
+
+
+def modular_processes(config: PaperConfig, world: Any = None, checkpointing: bool = False) -> int:
+    """Processes the modular path runs ``config``'s algorithms in: one per algorithm, all at once,
+    where two or more CPU threads are allowed (``config.threads``, default torch's thread count,
+    what the fast path takes); 1 (this process, one algorithm after the other) with a single
+    algorithm or thread, with another ``world`` than the grid, with ``checkpointing`` (a
+    checkpoint holds the state of one running algorithm) or where no process can be started.
+    ``run`` also falls back to 1 if the processes' memory does not fit."""
+    if len(config.algorithms) < 2 or world is not None or checkpointing:
+        return 1
+    if not processes.available():  # no Python to start them with (a frozen program)
+        return 1
+    allowed = config.threads if config.threads is not None else torch.get_num_threads()
+    return len(config.algorithms) if allowed >= 2 else 1
+
+
+def modular_threads(config: PaperConfig, processes: int) -> int:
+    """Torch intra-op threads of each of the modular path's ``processes``: 1 (the per-step tensors
+    are small: more threads only synchronise) unless ``config.threads`` gives each more."""
+    return max(1, (config.threads or 1) // processes)
 
 
 class BatchKeys(NamedTuple):
@@ -394,6 +437,15 @@ def _run_modular(job: Job) -> dict[str, torch.Tensor]:
     return dict(collector.metrics.items())
 
 
+def _modular_in_process(config: PaperConfig, algorithm: str, report: Any) -> dict[str, np.ndarray]:
+    """What each child process of a parallel modular run does (``_run_side_by_side``): one
+    algorithm's experiments on the modular path, without checkpoints (a Checkpointer that only
+    counts), their metrics as numpy arrays (they pickle as plain bytes)."""
+    counter = checkpoint.Checkpointer(config.out, config_dict(config), "modular")
+    job = Job(config, algorithm, experiment_keys(config, algorithm), report, counter)
+    return {name: values.cpu().numpy() for name, values in _run_modular(job).items()}
+
+
 def _to_device(tree: Any, device: torch.device) -> Any:
     """``tree`` (nested dicts and lists of tensors) with every tensor on ``device``."""
     if isinstance(tree, torch.Tensor):
@@ -442,17 +494,30 @@ def run(
     ``curves_ready`` is called with the results so far (``config``, ``cells`` and, for another
     world, ``world``: what Figure 3 reads) as soon as the curves are summarised, before the claims
     are computed: ``factorq paper`` has the figure drawn meanwhile.
+
+    On the modular path the algorithms run side by side, each in a process of its own
+    (``modular_processes``: with two or more CPU threads allowed, without checkpoints and another
+    ``world``; a checkpoint holds one running algorithm's state, so a checkpointed run keeps
+    them one after the other in this process): the same numbers, ``results["timing"]`` records
+    ``processes``. An error in a process is raised here; a process that dies is a
+    ``processes.WorkerError`` naming its algorithm; Ctrl-C ends them.
     """
     started = time.perf_counter()
     if world is not None:
         _check_foreign_world(world, checkpoint_every, resume)
+    checkpointing = checkpoint_every is not None or resume is not None
     estimate = resources.paper_estimate(
         config, checkpointing=checkpoint_every is not None, world=world
     )
     resources.check(estimate, "run", resources.PAPER_HINT)  # before anything is allocated
     backend = resolve_backend(config, world)
     driver = backend_driver(backend)
-    notice = fallback_notice(config, backend, world)
+    count = 1
+    if backend == "modular":
+        count = modular_processes(config, world, checkpointing)
+        if count > 1 and not _processes_fit(config, count):
+            count = 1  # the batches side by side do not fit: one after the other, as they do
+    notice = fallback_notice(config, backend, world, count)
     if notice is not None:
         print(notice, file=sys.stderr)
     if resume is not None:
@@ -485,6 +550,8 @@ def run(
         report_progress()
 
     report_progress()
+    if count > 1:  # the algorithms side by side (nothing finished: no resume)
+        _run_side_by_side(config, count, checkpoints, advance_progress)
     metrics: dict[tuple[str, str], dict[str, np.ndarray]] = {}
     for algorithm in config.algorithms:
         batch = checkpoints.finished.get(algorithm)
@@ -511,11 +578,13 @@ def run(
     results["timing"] = {
         "wall_s": round(wall, 3),
         "backend": backend,
-        "threads": threads_used(config, backend),
+        "threads": threads_used(config, backend, count),
         "env_steps": env_steps,
         "env_steps_per_s": round(env_steps / max(wall, 1e-9)),
         "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
+    if backend == "modular":
+        results["timing"]["processes"] = count
     if backend == "modular" and config.backend == "auto":
         from factorq_trainers import fast
 
@@ -537,6 +606,49 @@ def run(
             "this_process_s": round(time.perf_counter() - started, 3),
         }
     return results
+
+
+def _run_side_by_side(
+    config: PaperConfig,
+    count: int,
+    checkpoints: checkpoint.Checkpointer,
+    advance_progress: Callable[[int, int], None],
+) -> None:
+    """Every algorithm's experiments on the modular path at once, into ``checkpoints.finish``:
+    the first in this process, the others each in a child process (``processes.Children``),
+    with ``modular_threads`` torch threads each. A child's start-up (mostly importing torch,
+    about 3.5 s) overlaps with this process's work and delays only its own algorithm."""
+    config = replace(config, threads=modular_threads(config, count))
+    first, *others = config.algorithms
+    items = {algorithm: (config, algorithm) for algorithm in others}
+    with processes.Children(_modular_in_process, items, advance_progress) as children:
+
+        def report(episodes: int, experiments: int) -> None:
+            advance_progress(episodes, experiments)
+            children.poll(every=processes.PROGRESS_SECONDS)  # their progress, errors, deaths
+
+        keys = experiment_keys(config, first)
+        checkpoints.finish(first, _run_modular(Job(config, first, keys, report, checkpoints)))
+        computed = children.wait()
+    for algorithm, arrays in computed.items():
+        checkpoints.finish(algorithm, {name: torch.from_numpy(a) for name, a in arrays.items()})
+
+
+def _processes_fit(config: PaperConfig, count: int) -> bool:
+    """Whether the modular path's ``count`` processes fit in the memory available: every
+    algorithm's tables and state at once (``resources.paper_estimate`` of each alone) and
+    ``PROCESS_BYTES`` for each child, besides this process's metrics and curves."""
+    available, _ = resources.available_memory()
+    if available is None:
+        return True
+    alone = [
+        resources.paper_estimate(replace(config, algorithms=(algorithm,)))
+        for algorithm in config.algorithms
+    ]
+    batches = sum(estimate.parts["tables"] + estimate.parts["run state"] for estimate in alone)
+    whole = resources.paper_estimate(config)
+    rest = whole.bytes - whole.parts["tables"] - whole.parts["run state"]
+    return batches + (count - 1) * PROCESS_BYTES + rest <= available
 
 
 def _check_foreign_world(world: Any, checkpoint_every: Any, resume: Any) -> None:
