@@ -146,6 +146,9 @@ class OnlineCollector(BaseCollector):
         # The env takes reset(..., restarts_terminated=True) (FactoredGridEnv): told when every
         # restart follows a terminated episode, it reuses the step's scatter (same numbers).
         self._hints = bool(getattr(env, "accepts_restarts_terminated", False))
+        # ... and reset(..., reset_mask=mask): the worlds to restart as a keyword, so that
+        # torchrl updates with the env's whole answer instead of merging it under "_reset".
+        self._mask_keyword = bool(getattr(env, "accepts_reset_mask", False))
         self._restarts_terminated = False
         #: What a partial reset reads and writes: the env's observation, done and state entries.
         self._env_keys = list(
@@ -226,9 +229,14 @@ class OnlineCollector(BaseCollector):
                 # counters) are rewritten before they are read again, and torchrl would merge
                 # every entry of the tensordict by the reset mask, one torch.where each.
                 env_td = next_td.select(*self._env_keys, strict=False)
-                env_td.set("_reset", restart.unsqueeze(-1))
-                hint = {"restarts_terminated": True} if self._restarts_terminated else {}
-                next_td.update(self.env.reset(env_td, **(hint if self._hints else {})))
+                hints = {}
+                if self._hints and self._restarts_terminated:
+                    hints["restarts_terminated"] = True
+                if self._mask_keyword:
+                    hints["reset_mask"] = restart
+                else:
+                    env_td.set("_reset", restart.unsqueeze(-1))
+                next_td.update(self.env.reset(env_td, **hints))
         self._td = next_td
         self._frames += self.num_experiments - finished_before
         self._iter += 1

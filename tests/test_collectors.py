@@ -283,3 +283,24 @@ def test_a_hook_on_the_loss_keeps_the_loss_running_as_a_module_with_the_same_num
         results.append(loss.task_value_network.table.detach().clone())
     assert seen and torch.equal(results[0], results[1])
     assert forwards and set(forwards) == {True}
+
+
+@pytest.mark.parametrize("algorithm", ["factor-q", "q-learning"])
+def test_restarts_by_reset_mask_give_the_transitions_of_restarts_by_the_reset_entry(algorithm):
+    # The collector restarts FactoredGridEnv's worlds with reset(td, reset_mask=...) (torchrl then
+    # updates with the env's whole answer); a "_reset" entry makes torchrl merge under the mask.
+    # Every transition, every entry (root and "next", done flags and collisions of the worlds
+    # left alone, finished experiments included), must be the same; truncations happen too.
+    by_keyword, _, _ = small(algorithm, periods=(0, 1, 10), runs=2, episodes=3, seed=4)
+    by_entry, _, _ = small(algorithm, periods=(0, 1, 10), runs=2, episodes=3, seed=4)
+    assert by_keyword._mask_keyword
+    by_entry._mask_keyword = False  # this collector restarts by the "_reset" entry
+    steps = 0
+    for expected, got in zip(by_entry, by_keyword, strict=True):
+        steps += 1
+        assert set(expected.keys(True, True)) == set(got.keys(True, True))
+        for key in expected.keys(True, True):
+            assert torch.equal(expected[key], got[key]), (steps, key)
+    assert steps > 20 and by_keyword.done
+    truncated = by_entry.metrics["steps"] == 30
+    assert bool(truncated.any()), "no episode was truncated: change the seed"

@@ -426,3 +426,17 @@ def test_world_keys_given_outright_replay_that_world_of_a_larger_batch():
     assert torch.equal(first["sensors"][2:], second["sensors"])
     with pytest.raises(ValueError, match=r"world_keys must be an int64 tensor of shape \[2\]"):
         FactoredGridEnv(batch_size=(2,), world_keys=torch.zeros(3, dtype=torch.int64))
+
+
+def test_reset_mask_restarts_only_those_worlds_and_refuses_a_bad_mask():
+    env = FactoredGridEnv(size=4, num_obstacles=0, batch_size=(3,))
+    env.reset()
+    td = env.reset()
+    td["action"] = torch.tensor([2, 2, 3])  # south, south, east: all move
+    moved = env.step(td)["next", "cell"]
+    assert moved.tolist() == [4, 4, 1]
+    out = env.reset(reset_mask=torch.tensor([True, False, False]))
+    assert out["cell"].tolist() == [0, 4, 1]
+    for bad in (torch.tensor([1, 0, 0]), torch.tensor([True, False])):
+        with pytest.raises(ValueError, match="reset_mask"):
+            env.reset(reset_mask=bad)
