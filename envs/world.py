@@ -450,8 +450,8 @@ def scatter_obstacles(
     # exactly when the step collided.
     # (t_k <= j_k, so link <= k: a link of k is the step itself, and only link < 0 needs the
     # self pointer written)
-    pointer = torch.empty(batch, num_obstacles + 1, dtype=torch.int64, device=device)
-    pointer[:, num_obstacles] = num_obstacles  # the sentinel
+    # (every entry K, the sentinel's; the first K columns are written below)
+    pointer = torch.full((batch, num_obstacles + 1), num_obstacles, device=device)
     link = torch.sub(t, base, out=pointer[:, :num_obstacles])
     torch.where(link >= 0, link, steps, out=link)
     link.masked_fill_(direct, num_obstacles)
