@@ -314,7 +314,7 @@ def main() -> None:
         columns += [f"torchrl {t} thr" for t in modular_threads]
     measured = 2 in args.threads and numba_anchor.available() and not args.no_numba
     if 2 in args.threads:
-        columns.append("fast 2 / numba")
+        columns.append("fast 2 / 60.7 M")  # the anchor figure issue 17 quoted
     if measured:
         columns += ["numba 2 thr", "/ numba meas."]
     print(f"{'loop':<11}{'S':>7}" + "".join(f"{name:>16}" for name in columns))
@@ -338,7 +338,7 @@ def main() -> None:
     if not args.no_paper:
         print("\npaper workload (100 seeds x 3 worlds x 10 runs x 200 episodes, per algorithm)")
         print(f"{'threads':>7}{'q-learning':>14}{'factor-q':>14}{'total':>10}{'env steps':>13}"
-              f"{'steps/s':>12}{'/ numba':>9}")  # fmt: skip
+              f"{'steps/s':>12}{'/ 60.7 M':>9}")  # fmt: skip
         for threads in args.threads:
             results = paper_workload(threads)
             seconds = sum(value[0] for value in results.values())
