@@ -224,12 +224,11 @@ def resolve_backend(config: PaperConfig, world: Any = None) -> str:
 #: with the algorithms one after the other (``--threads 1``).
 MODULAR_SECONDS_PER_EPISODE = 68.0 / (2 * 1 * 200)
 #: Wall seconds of the modular path per (run, episode) of the default batch with each algorithm
-#: in its own process (``modular_processes``): the slower algorithm's time alone, measured on the
-#: same 2-core CPU while two other CPU-bound jobs ran (load 2.7-3.1): ``--backend modular
-#: --runs 1 --threads 1`` took 40.3 s for Q-learning alone and 27.1 s for Factor-Q alone, so
-#: about 6.7 min for the defaults where the two have a core each. Side by side on that busy
-#: machine, where they did not, ``--runs 1`` took 60.0-66.8 s (one after the other: 64.8 s).
-MODULAR_PARALLEL_SECONDS_PER_EPISODE = 40.3 / (1 * 200)
+#: in its own process (``modular_processes``), measured on the same 2-core CPU with nothing
+#: else running: the defaults (``--backend modular``, 10 runs x 200 episodes) took 346.9 s after
+#: issue 17's fourth round, Q-learning the slower of the two (its batch needs 230,896 batched
+#: steps, Factor-Q's 131,591; each process runs about 1.4x slower while the other one runs).
+MODULAR_PARALLEL_SECONDS_PER_EPISODE = 346.9 / (10 * 200)
 #: Memory of one child process of the modular path besides its batch: the interpreter with torch
 #: and torchrl imported (329 MiB peak resident set measured; counted in ``run``'s check).
 PROCESS_BYTES = 330 * 2**20
