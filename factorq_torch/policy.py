@@ -188,7 +188,7 @@ class EpsilonGreedyPolicy(TensorDictModuleBase):
             values.detach().reshape(-1, values.shape[-1]), epsilon, bits[0], bits[1], bits[2]
         )
         # The stream advances with each decision (only where the experiment is still running).
-        self.counter += advance
+        self.counter.add_(advance)  # (in place: no Module.__setattr__ per step)
         tensordict.set("action", action.reshape(batch))
         tensordict.set("exploratory", exploratory.reshape(batch))
         return tensordict

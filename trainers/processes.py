@@ -174,11 +174,15 @@ def _start(work: Callable[..., Any], args: tuple[Any, ...]) -> _Child:
     payload = pickle.dumps((work, args), protocol=pickle.HIGHEST_PROTOCOL)
     read, write = os.pipe()
     try:
+        # The parent's import path as the child's PYTHONPATH too, so that ``-m`` finds this
+        # module however the parent found it (an installed package or a path added at run time).
+        path = os.pathsep.join(entry for entry in sys.path if entry)
         process = subprocess.Popen(
             [sys.executable, "-m", "factorq_trainers.processes", str(write)],
             stdin=subprocess.PIPE,
             pass_fds=(write,),
             start_new_session=True,  # a Ctrl-C at the terminal is the parent's to handle
+            env={**os.environ, "PYTHONPATH": path},
         )
     except BaseException:
         os.close(read)
