@@ -45,6 +45,7 @@ from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule
 
 from factorq_torch.base import keys
+from factorq_torch.base.indices import row_starts
 from factorq_torch.base.validation import check_int
 from factorq_torch.objectives import tabular_optimizer
 from factorq_torch.policy import MASK_KEY
@@ -61,6 +62,20 @@ _TORCHRL_LOSS_HOOKS = LossModule.__init__.__module__
 ProgressCallback = Callable[[int, int], None]
 
 METRICS = keys.EPISODE_METRICS
+
+
+def ended_rows(ended: torch.Tensor, count: int, on_host: bool) -> torch.Tensor:
+    """The indices ``[count]`` of the ``count`` True entries of ``ended`` ``[S]``, ascending.
+
+    ``on_host`` (the CPU, where reading the flags is a memory read): ``nonzero``. Else without a
+    host read: the ``k``-th True entry goes to position ``k`` of a buffer of ``count + 1`` (a
+    count the host already holds), the others to the spare position past its end.
+    """
+    if on_host:
+        return ended.nonzero().squeeze(1)
+    rows = row_starts(ended.shape[0], 1, ended.device)  # arange(S)
+    position = torch.where(ended, ended.cumsum(0) - 1, count)
+    return rows.new_empty(count + 1).scatter_(0, position, rows)[:count]
 
 
 class OnlineCollector(BaseCollector):
@@ -310,22 +325,19 @@ class OnlineCollector(BaseCollector):
         self._restarts_terminated = truncated == 0
         if not episodes_ended:
             return None
-        # The experiments that ended an episode, ascending, without a host read: the k-th of
-        # them goes to position k of a buffer of episodes_ended (a count the host already
-        # holds), the others to one spare position past its end. Only their slots (run,
-        # episode) of the flat [S * runs * episodes] metrics are touched: reading and writing
-        # back every experiment's slot, one per S * runs * episodes / S entries, was a cache
-        # miss per experiment and metric (a sixth of the README loop's ops time at S = 4096).
-        rows = torch.arange(ended.shape[0], device=ended.device)
-        position = torch.where(ended, ended.cumsum(0) - 1, episodes_ended)
-        which = rows.new_empty(episodes_ended + 1).scatter_(0, position, rows)[:episodes_ended]
+        # The experiments that ended an episode, ascending (ended_rows: without a host read on
+        # a GPU). Only their slots (run, episode) of the flat [S * runs * episodes] metrics are
+        # touched: reading and writing back every experiment's slot, one per S * runs *
+        # episodes / S entries, was a cache miss per experiment and metric (a sixth of the
+        # README loop's ops time at S = 4096).
+        which = ended_rows(ended, episodes_ended, on_host=ended.device.type == "cpu")
         run = self.run_index.index_select(0, which)  # (an ended experiment is not finished)
         episode_in_run = self.episode_index.index_select(0, which)
         slot = (which * self.runs + run) * self.episodes + episode_in_run
         for name in METRICS:
             metric = self.metrics.get(name).view(-1)
             metric.index_copy_(0, slot, sums[name].index_select(0, which))
-            sums[name] = sums[name].masked_fill(ended, 0)
+            sums[name].masked_fill_(ended, 0)  # (the sums are this collector's own tensors)
         self.episode_index = torch.where(run_ended, 0, episode)
         self.run_index = run_index
         if self._reset_task is not None and runs_started:

@@ -229,8 +229,9 @@ HOST_READS = ("item", "__bool__", "nonzero", "tolist", "__int__", "__float__", "
 def test_no_host_synchronisation_creeps_into_the_step(algorithm, monkeypatch):
     # Every read of a tensor's value on the host (a device-to-host sync on a GPU) made by our own
     # code while the loop runs is recorded by its function. Allowed: the collector's one read of
-    # its counts per step, and the CPU-only exact action check and finite-value checks of the
-    # policy and the loss (on a GPU: device-side asserts, no host read).
+    # its counts per step, and the CPU-only reads: the collector's list of the experiments that
+    # ended an episode, the exact action check and the finite-value checks of the policy and the
+    # loss (on a GPU: compaction on the device and device-side asserts, no host read).
     # torchrl's own env machinery is not ours to change and is not counted.
     import sys
     from pathlib import Path
@@ -248,6 +249,7 @@ def test_no_host_synchronisation_creeps_into_the_step(algorithm, monkeypatch):
             caller = sys._getframe(1).f_code
             if caller.co_filename.startswith(ours):
                 where = f"{Path(caller.co_filename).name}:{caller.co_name}"
+                where += f":{name}" if name in ("tolist", "nonzero") else ""
                 reads[where] = reads.get(where, 0) + 1
             return original(self, *args, **kwargs)
 
@@ -260,7 +262,8 @@ def test_no_host_synchronisation_creeps_into_the_step(algorithm, monkeypatch):
         collector.step()
         steps += 1
     monkeypatch.undo()
-    assert reads.pop("collectors.py:_record") == steps
+    assert reads.pop("collectors.py:_record:tolist") == steps
+    assert 0 < reads.pop("collectors.py:ended_rows:nonzero") < steps  # CPU: episodes ended
     assert reads.pop("grid.py:_check_action", 0) <= steps
     assert reads.pop("validation.py:check_finite", 0) <= 6 * steps  # policy; loss at s and s'
     assert reads == {}
@@ -304,3 +307,16 @@ def test_restarts_by_reset_mask_give_the_transitions_of_restarts_by_the_reset_en
     assert steps > 20 and by_keyword.done
     truncated = by_entry.metrics["steps"] == 30
     assert bool(truncated.any()), "no episode was truncated: change the seed"
+
+
+def test_the_ended_experiments_are_found_alike_with_and_without_a_host_read():
+    from factorq_torch.collectors import ended_rows
+
+    generator = torch.Generator().manual_seed(3)
+    for size in (1, 7, 300):
+        for _ in range(20):
+            ended = torch.rand(size, generator=generator) < 0.3
+            count = int(ended.sum())
+            on_device = ended_rows(ended, count, on_host=False)
+            assert torch.equal(on_device, ended_rows(ended, count, on_host=True))
+            assert on_device.tolist() == [i for i, flag in enumerate(ended.tolist()) if flag]
