@@ -430,10 +430,6 @@ class FactoredGridEnv(EnvBase):
             state = self.world.reset(self.world_state, mask, self.world_keys, self.periods)
         self.world_state = state
         state = self.world_state
-        # Worlds left alone report their true status (a finished one stays done).
-        terminated = state.cell == self.config.goal_cell
-        truncated = ~terminated & (state.episode_step >= self.config.max_steps)
-        collision = torch.zeros(self.num_worlds, self.config.num_actuators, device=self.device)
         last = self._kept_output
         self._kept_output = None
         if keyword and last is not None and last[0] is previous:
@@ -443,7 +439,13 @@ class FactoredGridEnv(EnvBase):
             # a finished experiment, are zeros); their observation comes from the same state.
             _, last_collision, last_terminated, last_truncated = last
             collision = last_collision.masked_fill(mask.unsqueeze(1), 0.0)
-            terminated, truncated = last_terminated & ~mask, last_truncated & ~mask
+            alone = ~mask  # the worlds left alone
+            terminated, truncated = last_terminated & alone, last_truncated & alone
+        else:
+            # Worlds left alone report their true status (a finished one stays done).
+            terminated = state.cell == self.config.goal_cell
+            truncated = ~terminated & (state.episode_step >= self.config.max_steps)
+            collision = torch.zeros(self.num_worlds, self.config.num_actuators, device=self.device)
         return self._output(state, collision, terminated, truncated, reward=None)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:

@@ -602,10 +602,11 @@ def reset_worlds(
     position, the agent on the start), when the caller already has it (``step_worlds`` with
     ``keep_draws``: exact for the worlds whose episode that step terminated); None draws it.
     """
-    moving = mask & (period > 0)
+    moves_obstacles, _, still = _period_tables(period)
+    moving = mask & moves_obstacles
     obstacles = state.obstacles
     if static_obstacles is not None:
-        static = mask & (period == 0)
+        static = mask & still
         obstacles = where_rows(static, static_obstacles.expand_as(obstacles), obstacles)
     scatters = state.scatters
     if config.num_obstacles:
@@ -626,17 +627,17 @@ def reset_worlds(
     )
 
 
-#: The last ``period`` tensor seen and its ``(period > 0, period.clamp(min=1))``: an env hands
-#: the same tensor to every step.
+#: The last ``period`` tensor seen and its ``(period > 0, period.clamp(min=1), period == 0)``:
+#: an env hands the same tensor to every step and reset.
 _PERIOD_TABLES: list = [None, None]
 
 
-def _period_tables(period: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(period > 0, period.clamp(min=1))``, computed again only for another tensor or after it
-    was modified in place (its ``_version`` moved)."""
+def _period_tables(period: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(period > 0, period.clamp(min=1), period == 0)``, computed again only for another
+    tensor or after it was modified in place (its ``_version`` moved)."""
     cached, tables = _PERIOD_TABLES
     if cached is None or cached[0] is not period or cached[1] != period._version:
-        tables = (period > 0, period.clamp(min=1))
+        tables = (period > 0, period.clamp(min=1), period == 0)
         _PERIOD_TABLES[:] = [(period, period._version), tables]
     return tables
 
@@ -722,7 +723,7 @@ def step_worlds(
         fired=fired,
     )
     obstacles, scatters, draws = state.obstacles, state.scatters, None
-    moves_obstacles, every = _period_tables(period)
+    moves_obstacles, every, _ = _period_tables(period)
     scatter = moves_obstacles & ~terminated & (episode_step % every == 0)
     if config.num_obstacles:
         obstacles, scatters, draws = _scatter_where(scatter, obstacles, scatters, key, cell, config)
