@@ -530,7 +530,7 @@ def _scatter_where(
     ``torch.compile``). Counter-based streams make the unused draws free of side effects.
     """
     fresh = scatter_obstacles(key, scatters, agent_cell, config.size, config.num_obstacles)
-    return where_rows(mask, fresh, obstacles), scatters + mask.to(torch.int64), fresh
+    return where_rows(mask, fresh, obstacles), scatters + mask, fresh  # (int64 + bool: int64)
 
 
 def is_reachable(obstacles: torch.Tensor, size: int) -> bool:
@@ -615,15 +615,15 @@ def reset_worlds(
             obstacles, scatters, _ = _scatter_where(moving, obstacles, scatters, key, start, config)
         else:
             obstacles = where_rows(moving, draws, obstacles)
-            scatters = scatters + moving.to(torch.int64)
+            scatters = scatters + moving  # int64 + bool: int64
     return WorldState(
-        cell=torch.where(mask, START_CELL, state.cell),
+        cell=state.cell.masked_fill(mask, START_CELL),
         obstacles=obstacles,
-        bump=state.bump & ~mask.unsqueeze(1),
-        episode_step=torch.where(mask, 0, state.episode_step),
+        bump=state.bump.masked_fill(mask.unsqueeze(1), False),
+        episode_step=state.episode_step.masked_fill(mask, 0),
         scatters=scatters,
-        heading=torch.where(mask, START_HEADING, state.heading),
-        ticks=state.ticks + mask.to(torch.int64),  # a new episode is a new observation
+        heading=state.heading.masked_fill(mask, START_HEADING),
+        ticks=state.ticks + mask,  # a new episode is a new observation (int64 + bool: int64)
     )
 
 

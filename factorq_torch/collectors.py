@@ -334,11 +334,10 @@ class OnlineCollector(BaseCollector):
         run = self.run_index.index_select(0, which)  # (an ended experiment is not finished)
         episode_in_run = self.episode_index.index_select(0, which)
         slot = (which * self.runs + run) * self.episodes + episode_in_run
-        for name in METRICS:
-            metric = self.metrics.get(name).view(-1)
+        for name, metric in self._flat_metrics().items():
             metric.index_copy_(0, slot, sums[name].index_select(0, which))
             sums[name].masked_fill_(ended, 0)  # (the sums are this collector's own tensors)
-        self.episode_index = torch.where(run_ended, 0, episode)
+        self.episode_index = episode.masked_fill_(run_ended, 0)  # (a new tensor: episode)
         self.run_index = run_index
         if self._reset_task is not None and runs_started:
             self._reset_task(next_run)  # SPEC 4: task table to 0 at every run, local tables kept
@@ -350,6 +349,15 @@ class OnlineCollector(BaseCollector):
             self.progress(episodes_ended, experiments_finishing)
         restart = ended & ~self.finished
         return None if episodes_ended == experiments_finishing else restart
+
+    def _flat_metrics(self) -> dict[str, torch.Tensor]:
+        """Each metric of ``self.metrics`` as a flat ``[S * runs * episodes]`` view, built once
+        per metrics TensorDict (``load_state_dict`` writes into it in place)."""
+        cached = getattr(self, "_flat_views", None)
+        if cached is None or cached[0] is not self.metrics:
+            views = {name: self.metrics.get(name).view(-1) for name in METRICS}
+            cached = self._flat_views = (self.metrics, views)
+        return cached[1]
 
     # -- BaseCollector's interface -------------------------------------------------------------
 
