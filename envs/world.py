@@ -498,7 +498,8 @@ def where_rows(mask: torch.Tensor, new: torch.Tensor, old: torch.Tensor) -> torc
     ``N`` bytes), about 3x faster on CPU than the bool ``where``, which is not vectorised when
     the mask broadcasts, and by bit operations, ``old ^ ((old ^ new) & every)`` with
     ``every`` all ones in the masked rows and 0 elsewhere (new there, old elsewhere: 1.5-2x
-    faster on CPU than the word ``where``, whose broadcast mask is not vectorised either)."""
+    faster on CPU than the word ``where``, whose broadcast mask is not vectorised either; the
+    ``&`` with all ones or zeros written as a product by 1 or 0, one op fewer)."""
     width = old.shape[-1]
     word = next(
         (d for d in (torch.int64, torch.int32, torch.int16) if width % d.itemsize == 0), None
@@ -506,8 +507,8 @@ def where_rows(mask: torch.Tensor, new: torch.Tensor, old: torch.Tensor) -> torc
     if word is not None and all(t.dtype == torch.bool for t in (mask, new, old)):
         try:
             new_words, old_words = new.contiguous().view(word), old.contiguous().view(word)
-            every = mask.to(word).neg_().unsqueeze(-1)  # -1: all bits set
-            picked = torch.bitwise_xor(old_words, new_words).bitwise_and_(every)
+            every = mask.to(word).unsqueeze(-1)  # 1 in the masked rows, 0 elsewhere
+            picked = torch.bitwise_xor(old_words, new_words).mul_(every)  # (x * 1 = x, x * 0 = 0)
             return picked.bitwise_xor_(old_words).view(torch.bool)
         except RuntimeError:  # a storage offset that is no whole word, or a mask that widens
             pass  # the maps: select the bools

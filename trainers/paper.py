@@ -229,6 +229,8 @@ MODULAR_SECONDS_PER_EPISODE = 68.0 / (2 * 1 * 200)
 #: issue 17's fourth round, Q-learning the slower of the two (its batch needs 230,896 batched
 #: steps, Factor-Q's 131,591; each process runs about 1.4x slower while the other one runs).
 MODULAR_PARALLEL_SECONDS_PER_EPISODE = 346.9 / (10 * 200)
+#: Seconds between two calls of ``run``'s ``progress``, at most (a bar needs no more).
+PROGRESS_SECONDS = 0.1
 #: Memory of one child process of the modular path besides its batch: the interpreter with torch
 #: and torchrl imported (329 MiB peak resident set measured; counted in ``run``'s check).
 PROCESS_BYTES = 330 * 2**20
@@ -544,9 +546,16 @@ def run(
                 )
             )
 
+    reported = [time.monotonic()]
+
     def advance_progress(episodes: int, experiments: int) -> None:
+        # (the modular path reports after almost every step: the callback is passed on at most
+        # every PROGRESS_SECONDS, and once more when the experiments are done)
         checkpoints.advance(episodes, experiments)
-        report_progress()
+        now = time.monotonic()
+        if now - reported[0] >= PROGRESS_SECONDS:
+            reported[0] = now
+            report_progress()
 
     report_progress()
     if count > 1:  # the algorithms side by side (nothing finished: no resume)
@@ -563,6 +572,7 @@ def run(
             metrics[name, algorithm] = {
                 name: values[rows].cpu().numpy() for name, values in batch.items()
             }
+    report_progress()  # where the experiments ended
     summarised = None
     if curves_ready is not None:
 
