@@ -18,7 +18,7 @@ from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from factorq_envs.protocol import check_world, optional_method
-from factorq_envs.world import FactoredGrid, WorldConfig, static_layout
+from factorq_envs.world import FactoredGrid, WorldConfig, static_layout, where_rows
 from factorq_torch.base import keys
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 from factorq_torch.base.validation import check_device, is_int
@@ -122,6 +122,14 @@ def check_no_grid_arguments(given: dict, world) -> None:
             f"FactoredGrid: with world={type(world).__name__}(...) set them in the world's "
             f"config instead"
         )
+
+
+def _keep_rows(stepping: torch.Tensor, new: torch.Tensor, kept: torch.Tensor) -> torch.Tensor:
+    """``new`` in the worlds that stepped, ``kept`` in the others (``stepping`` ``[S]``): a bool
+    map ``[S, N]`` by whole words (``world.where_rows``), anything else by ``torch.where``."""
+    if new.dim() == 2 and new.dtype == torch.bool:
+        return where_rows(stepping, new, kept)
+    return torch.where(stepping.view(-1, *([1] * (new.dim() - 1))), new, kept)
 
 
 def done_spec(batch: tuple[int, ...], device) -> Composite:
@@ -470,10 +478,7 @@ class FactoredGridEnv(EnvBase):
             # torchrl's rollout steps only the worlds still running: the others keep their state.
             stepping = partial.reshape(self.num_worlds)  # [S]
             state = type(state)(
-                *(
-                    torch.where(stepping.view(-1, *([1] * (new.dim() - 1))), new, kept)
-                    for new, kept in zip(state, old, strict=True)
-                )
+                *(_keep_rows(stepping, new, kept) for new, kept in zip(state, old, strict=True))
             )
             reward = torch.where(stepping, reward, 0.0)
             collision = torch.where(stepping.unsqueeze(1), collision, 0.0)
@@ -503,12 +508,16 @@ class FactoredGridEnv(EnvBase):
             )
         action = action.reshape(self.num_worlds).to(torch.int64)
         count = self.config.num_actuators
-        out_of_range = (action < 0) | (action >= count)
+        if count & (count - 1) == 0:  # a power of two: outside [0, count) iff a bit of -count
+            outside = (action & -count).any()  # is set (two's complement: negatives too)
+        else:
+            outside = ((action < 0) | (action >= count)).any()
         if action.device.type != "cpu":  # checked on the device: the step never waits for it
             message = f"action out of range: must be in [0, {count})"
-            torch._assert_async(~out_of_range.any(), message)
+            torch._assert_async(~outside, message)
             return action
-        if bool(out_of_range.any()):
+        if bool(outside):
+            out_of_range = (action < 0) | (action >= count)
             bad = action[out_of_range][0].item()
             names = ", ".join(f"{i} {name}" for i, name in enumerate(self.config.actuator_names))
             raise ValueError(f"action={bad} is out of range: must be in [0, {count - 1}] ({names})")
