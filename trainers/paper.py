@@ -225,10 +225,10 @@ def resolve_backend(config: PaperConfig, world: Any = None) -> str:
 MODULAR_SECONDS_PER_EPISODE = 68.0 / (2 * 1 * 200)
 #: Wall seconds of the modular path per (run, episode) of the default batch with each algorithm
 #: in its own process (``modular_processes``), measured on the same 2-core CPU with nothing
-#: else running: the defaults (``--backend modular``, 10 runs x 200 episodes) took 346.9 s after
-#: issue 17's fourth round, Q-learning the slower of the two (its batch needs 230,896 batched
-#: steps, Factor-Q's 131,591; each process runs about 1.4x slower while the other one runs).
-MODULAR_PARALLEL_SECONDS_PER_EPISODE = 346.9 / (10 * 200)
+#: else running: the defaults (``--backend modular``, 10 runs x 200 episodes) took 286.2 s and
+#: 286.9 s after issue 17's fourth round, Q-learning the slower of the two (its batch needs
+#: 230,896 batched steps, Factor-Q's 131,591).
+MODULAR_PARALLEL_SECONDS_PER_EPISODE = 286.5 / (10 * 200)
 #: Seconds between two calls of ``run``'s ``progress``, at most (a bar needs no more).
 PROGRESS_SECONDS = 0.1
 #: Memory of one child process of the modular path besides its batch: the interpreter with torch
