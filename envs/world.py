@@ -32,13 +32,14 @@ from factorq_envs.body import (
     draw_permutation,
     sensor_offsets,
 )
-from factorq_torch.base.indices import row_starts
+from factorq_torch.base.indices import constant, row_starts
 from factorq_torch.base.rng import (
     GOLDEN,
     STREAM_LAYOUT,
     SUBSTREAM_ACTUATOR_NOISE,
     SUBSTREAM_DISTRACTOR,
     SUBSTREAM_SENSOR_NOISE,
+    as_int64,
     derive_keys,
     probability_threshold,
     randint_from_bits,
@@ -292,42 +293,35 @@ def _neighbour_cells(cell: torch.Tensor, size: int) -> tuple[torch.Tensor, torch
     return row.clamp(0, size - 1) * size + col.clamp(0, size - 1), inside
 
 
-#: ``(size, device) -> (target [N, 4] int64, inside [N, 4] bool)``: ``_neighbour_cells`` of
-#: every cell, computed once (a step then looks its worlds' cells up instead of about fifteen
-#: small ops).
-_NEIGHBOUR_TABLES: dict = {}
-
-
 def neighbours(cell: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
     """The cell one move away in each direction and whether it is inside the grid.
 
     Shapes: ``[...] -> ([..., 4] int64, [..., 4] bool)``; outside cells are clamped to the edge.
-    ``cell`` must lie in ``[0, size**2)``.
+    ``cell`` must lie in ``[0, size**2)``. Looked up in ``_neighbour_cells`` of every cell,
+    computed once per size and device (about fifteen small ops a step otherwise).
     """
-    key = (size, cell.device)
-    tables = _NEIGHBOUR_TABLES.get(key)
-    if tables is None:
+    device = cell.device
+
+    def build() -> tuple[torch.Tensor, ...]:
         every = torch.arange(size * size)
-        tables = tuple(t.to(cell.device) for t in _neighbour_cells(every, size))
-        _NEIGHBOUR_TABLES[key] = tables
+        return tuple(t.to(device) for t in _neighbour_cells(every, size))
+
+    tables = constant(("neighbours", size, device), build)
     flat = cell.reshape(-1)
     shape = (*cell.shape, len(ROW_DELTA))
     return tuple(t.index_select(0, flat).reshape(shape) for t in tables)
 
 
-#: ``(size, device) -> (target [N * 4] int64, wall [N * 4] bool)``: ``neighbours`` of every cell
-#: flattened, entry ``cell * 4 + direction``, with ``wall = ~inside`` (one lookup per step).
-_MOVE_TABLES: dict = {}
-
-
 def _move_tables(size: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-    """``neighbours`` of every cell as flat ``(target, wall)`` tables (cached per size, device)."""
-    key = (size, device)
-    tables = _MOVE_TABLES.get(key)
-    if tables is None:
+    """``neighbours`` of every cell flattened, ``(target, wall)`` ``[N * NUM_HEADINGS]`` with
+    entry ``cell * NUM_HEADINGS + direction`` and ``wall = ~inside``: one lookup per step
+    (built once per size and device)."""
+
+    def build() -> tuple[torch.Tensor, torch.Tensor]:
         target, inside = neighbours(torch.arange(size * size, device=device), size)
-        tables = _MOVE_TABLES[key] = (target.reshape(-1), (~inside).reshape(-1))
-    return tables
+        return target.reshape(-1), (~inside).reshape(-1)
+
+    return constant(("move tables", size, device), build)
 
 
 def proximity(cell: torch.Tensor, obstacles: torch.Tensor, size: int) -> torch.Tensor:
@@ -383,12 +377,6 @@ def observe(state: WorldState, key: torch.Tensor, config: WorldConfig) -> torch.
     return readings
 
 
-def _as_int64(value: int) -> int:
-    """The int64 with the same low 64 bits as ``value`` (the streams' arithmetic wraps modulo
-    2**64)."""
-    return (value + (1 << 63)) % (1 << 64) - (1 << 63)
-
-
 def scatter_obstacles(
     key: torch.Tensor,
     scatter_index: torch.Tensor,
@@ -433,9 +421,9 @@ def scatter_obstacles(
     # GOLDEN to the key, and in wrapping 64-bit arithmetic that is the key moved by
     # scatter_index * K * GOLDEN (per world) plus (k + 1) * GOLDEN (per step), the same bits
     # with the [S, K] counter never built.
-    row_key = key + scatter_index * _as_int64(num_obstacles * GOLDEN)  # [S]
+    row_key = key + scatter_index * as_int64(num_obstacles * GOLDEN)  # [S]
     bits = random_bits(row_key.unsqueeze(1), steps)  # [S, K], a new tensor
-    t = bits.mul_(j + 1).__irshift__(32)  # randint_from_bits(bits, j + 1): t_k in [0, j_k]
+    t = randint_from_bits(bits, j + 1, in_place=True)  # [S, K], t_k in [0, j_k]
     # (in place on fresh tensors of the smallest dtype that holds a step: this [S, N] map and
     # the obstacles are the largest tensors of a step, and memory traffic is what they cost)
     small = torch.int16 if num_obstacles < 2**15 else torch.int64

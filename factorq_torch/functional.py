@@ -17,6 +17,7 @@ import math
 import torch
 from torch.utils.weak import WeakIdKeyDictionary
 
+from factorq_torch.base.indices import constant
 from factorq_torch.base.rng import probability_threshold, randint_from_bits
 from factorq_torch.base.validation import check_int
 
@@ -29,23 +30,11 @@ def sensor_pattern(readings: torch.Tensor) -> torch.Tensor:
     >>> sensor_pattern(torch.tensor([[True, False, False, True], [False] * 4]))
     tensor([9, 0])
     """
-    weights = _bit_weights(readings.shape[-1], readings.device)  # [K]: 1, 2, 4, ...
+    count, device = readings.shape[-1], readings.device
+    weights = constant(
+        ("bit weights", count, device), lambda: 1 << torch.arange(count, device=device)
+    )
     return (readings.to(torch.int64) * weights).sum(dim=-1)
-
-
-#: ``(K, device) -> [K]`` int64 ``1 << arange(K)``: constants, built once.
-_BIT_WEIGHTS: dict = {}
-
-
-def _bit_weights(count: int, device: torch.device) -> torch.Tensor:
-    """``1 << arange(count)`` on ``device`` (cached; never written)."""
-    key = (count, device)
-    weights = _BIT_WEIGHTS.get(key)
-    if weights is None:
-        if len(_BIT_WEIGHTS) >= 64:
-            _BIT_WEIGHTS.clear()
-        weights = _BIT_WEIGHTS[key] = 1 << torch.arange(count, device=device)
-    return weights
 
 
 def qlearning_state(cell: torch.Tensor, readings: torch.Tensor) -> torch.Tensor:

@@ -36,13 +36,12 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.nn.probabilistic import InteractionType, interaction_type
 
-from factorq_torch.base import keys as names
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.indices import row_starts
 from factorq_torch.base.rng import POLICY_DRAWS_PER_STEP, STREAM_POLICY, derive_keys, random_bits
 from factorq_torch.base.validation import check_device, check_finite
 from factorq_torch.functional import combined_values, epsilon_greedy_from_bits, normaliser
-from factorq_torch.tables import check_mask, experiment_index
+from factorq_torch.tables import check_mask, experiment_index, is_online
 
 #: The mask entry the collector writes: True where the experiment is still running.
 MASK_KEY = ("collector", "mask")
@@ -168,8 +167,9 @@ class EpsilonGreedyPolicy(TensorDictModuleBase):
         epsilon = self.epsilon if explores() else 0.0
         # [[0], [1], ...]: draw k of a decision (a cached constant)
         draws = row_starts(POLICY_DRAWS_PER_STEP, 1, self.counter.device, column=True)
-        online = batch == (self.num_experiments,) and names.EXPERIMENT not in tensordict.keys()
-        if online:  # one decision per experiment, in experiment order (the online step)
+        if is_online(
+            tensordict, self.num_experiments
+        ):  # one decision per experiment, in experiment order (the online step)
             mask = check_mask(tensordict.get(MASK_KEY, None), self.num_experiments, "policy")
             keys, position = self.stream_keys, self.counter  # [S]
             advance = 1 if mask is None else mask.to(torch.int64)

@@ -127,36 +127,30 @@ def check_mask(mask: torch.Tensor | None, num_experiments: int, owner: str) -> t
     return mask
 
 
-def table_rows(table: torch.Tensor, experiment: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+def table_rows(
+    table: torch.Tensor, experiment: torch.Tensor | None, state: torch.Tensor
+) -> torch.Tensor:
     """``table[experiment, state]`` ``[*B, A]`` of a ``[S, states, A]`` table (no gradient) for
-    int64 indices ``[*B]``, by one ``index_select`` on the flattened rows: the same values as
-    the advanced indexing, 2-3x faster on CPU where the rows are not in cache (measured in the
-    README loop at S = 4096). A state outside ``[0, states)`` raises IndexError like the
-    indexing does (``experiment`` must be in range: ``experiment_index`` checks it)."""
-    states, width = table.shape[1], table.shape[-1]
+    int64 indices ``[*B]``, by one ``index_select`` of whole rows on the flattened table: the
+    same values as the advanced indexing, 2-3x faster on CPU where the rows are not in cache
+    (measured in the README loop at S = 4096; a ``gather`` along the states, fewer ops, was 4x
+    slower there). ``experiment`` None: the online step, ``state`` ``[S]`` and experiment ``i``
+    reading its own table (the row offsets cached, ``row_starts``). A state outside
+    ``[0, states)`` raises IndexError like the indexing does (``experiment`` must be in range:
+    ``experiment_index`` checks it)."""
+    count, states, width = table.shape
+    starts = row_starts(count, states, state.device) if experiment is None else experiment * states
     inside = (state >= 0) & (state < states)
-    flat = torch.where(inside, experiment * states + state, -1).reshape(-1)
+    flat = torch.where(inside, starts + state, -1).reshape(-1)
     return table.detach().reshape(-1, width).index_select(0, flat).reshape(*state.shape, width)
 
 
-def _is_online(tensordict: TensorDictBase, num_experiments: int) -> bool:
+def is_online(tensordict: TensorDictBase, num_experiments: int) -> bool:
     """Whether ``tensordict`` is the online step of ``S`` experiments: batch ``[S]``, entry ``i``
     experiment ``i`` (no ``keys.EXPERIMENT`` entry)."""
     return tuple(tensordict.batch_size) == (num_experiments,) and (
         tensordict.get(keys.EXPERIMENT, None) is None
     )
-
-
-def online_rows(table: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
-    """``table[i, state[i]]`` ``[S, A]`` of a ``[S, states, A]`` table (no gradient), the online
-    step's rows (experiment ``i`` reads its own table): ``table_rows`` with ``arange(S)``, its
-    row offsets cached (``row_starts``). One ``index_select`` of whole rows: a ``gather`` along
-    the states takes fewer ops but was measured 4x slower at S = 4096, where the rows are not
-    in cache. A state outside ``[0, states)`` raises IndexError."""
-    count, states, width = table.shape
-    inside = (state >= 0) & (state < states)
-    flat = torch.where(inside, row_starts(count, states, state.device) + state, -1)
-    return table.detach().reshape(-1, width).index_select(0, flat)
 
 
 def _check_entry(
@@ -276,15 +270,9 @@ class TaskQTable(TensorDictModuleBase):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         learning = torch.is_grad_enabled() and self.table.requires_grad
-        if not learning and _is_online(tensordict, self.num_experiments):
-            state = self.state_index(tensordict)  # [S]
-            try:
-                values = online_rows(self.table, state)  # [S, A]
-            except (IndexError, RuntimeError):
-                raise ValueError(self._misfit(state)) from None
-            tensordict.set(keys.ACTION_VALUE, values)
-            return tensordict
-        experiment = experiment_index(tensordict, self.num_experiments, type(self).__name__)
+        experiment = None  # the online step without gradient: no index tensor to build
+        if learning or not is_online(tensordict, self.num_experiments):
+            experiment = experiment_index(tensordict, self.num_experiments, type(self).__name__)
         state = self.state_index(tensordict)  # [*B]
         try:
             if learning and self.sparse_grad:
@@ -412,9 +400,7 @@ class LocalRewardTable(TensorDictModuleBase):
             (torch.bool,),
             owner,
         )
-        if tuple(tensordict.batch_size) == (self.num_experiments,) and keys.EXPERIMENT not in (
-            tensordict.keys()
-        ):
+        if is_online(tensordict, self.num_experiments):
             local_value = project_local(self.rho, readings, self.dependency)  # [S, A]
         else:  # rho_a[o_D(a)] of each transition's experiment (project_local, gathered)
             experiment = experiment_index(tensordict, self.num_experiments, owner)  # [*B]
@@ -495,11 +481,9 @@ class LocalRewardTable(TensorDictModuleBase):
         reading = patterns.gather(1, action.unsqueeze(1)).squeeze(1)  # [M], o_D(a)
         rewards = local_reward.reshape(-1, self.num_actions)
         reward = rewards.gather(1, action.unsqueeze(1)).squeeze(1)  # [M], r_L[a]
-        if distinct:
-            entry = table_starts + (action * patterns_per_table + reading)
-        else:
-            entry = (experiment.reshape(-1) * self.num_actions + action) * patterns_per_table
-            entry = entry + reading  # [M], flat index into rho / kappa
+        if not distinct:
+            table_starts = experiment.reshape(-1) * (self.num_actions * patterns_per_table)
+        entry = table_starts + (action * patterns_per_table + reading)  # [M], into rho / kappa
         rho_flat, kappa_flat = self.rho.view(-1), self.kappa.view(-1)
         rho, kappa = rho_flat.index_select(0, entry), kappa_flat.index_select(0, entry)  # [M]
         step = reward - rho  # r_L[a] - rho_a[o]

@@ -1,6 +1,7 @@
 """Constant index tensors, built once per shape and device (a step would otherwise rebuild them).
 
-``row_starts(S, stride)`` is ``arange(S) * stride``: where row ``i`` of a ``[S, stride]`` tensor
+``constant(key, build)`` builds such a tensor once; ``row_starts(S, stride)`` is
+``arange(S) * stride``: where row ``i`` of a ``[S, stride]`` tensor
 starts in its flattened storage. The online step of ``S`` experiments indexes each experiment's
 own row of a table that way, in every layer (the worlds' obstacle maps, the task and local
 tables), so the constant lives here, below them all. The tensors are shared: never write them.
@@ -8,11 +9,31 @@ tables), so the constant lives here, below them all. The tensors are shared: nev
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TypeVar
+
 import torch
 
-#: ``(batch, stride, device, column) -> tensor``; a handful of shapes per process.
-_ROW_STARTS: dict = {}
-_MOST_CACHED = 32
+T = TypeVar("T")
+
+#: ``key -> value`` of ``constant``: a handful of shapes and devices per process.
+_CONSTANTS: dict = {}
+_MOST_CACHED = 64
+
+
+def constant(key: tuple, build: Callable[[], T]) -> T:
+    """``build()``, built once per ``key`` and then shared: the constant tensors a step would
+    otherwise rebuild (index offsets, lookup tables). Never write what it returns.
+
+    >>> constant(("doc", 3), lambda: torch.arange(3)) is constant(("doc", 3), lambda: None)
+    True
+    """
+    value = _CONSTANTS.get(key)
+    if value is None:
+        if len(_CONSTANTS) >= _MOST_CACHED:  # shapes of another run: drop the old ones
+            _CONSTANTS.clear()
+        value = _CONSTANTS[key] = build()
+    return value
 
 
 def row_starts(
@@ -24,11 +45,9 @@ def row_starts(
     ([0, 10, 20], [[0], [5]])
     """
     device = torch.device("cpu" if device is None else device)
-    key = (batch, stride, device, column)
-    starts = _ROW_STARTS.get(key)
-    if starts is None:
-        if len(_ROW_STARTS) >= _MOST_CACHED:
-            _ROW_STARTS.clear()
+
+    def build() -> torch.Tensor:
         starts = torch.arange(batch, device=device) * stride
-        _ROW_STARTS[key] = starts = starts.unsqueeze(1) if column else starts
-    return starts
+        return starts.unsqueeze(1) if column else starts
+
+    return constant(("row_starts", batch, stride, device, column), build)

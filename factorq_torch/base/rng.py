@@ -40,8 +40,9 @@ STREAM_LOCAL_NETWORK = 6  # initial weights of a local reward network
 POLICY_DRAWS_PER_STEP = 3
 
 
-def _signed(value: int) -> int:
-    """The int64 with the same 64 bits as the unsigned ``value``."""
+def as_int64(value: int) -> int:
+    """The int64 with the same low 64 bits as ``value`` (the streams' arithmetic wraps modulo
+    2**64: an int64 tensor takes it)."""
     value &= MASK64
     return value - (1 << 64) if value >= 1 << 63 else value
 
@@ -65,9 +66,9 @@ def mix64(z: torch.Tensor) -> torch.Tensor:
     it (the same values; half the allocations, which at ``[4096, 10]`` also cost page faults).
     """
     z = z ^ _shr(z, 30)
-    z *= _signed(_MIX1)
+    z *= as_int64(_MIX1)
     _xor_shr_(z, 27)
-    z *= _signed(_MIX2)
+    z *= as_int64(_MIX2)
     return _xor_shr_(z, 31)
 
 
@@ -85,9 +86,9 @@ def random_bits(key: torch.Tensor, counter: torch.Tensor | int) -> torch.Tensor:
     ``key`` and ``counter`` broadcast against each other. Inputs are not modified.
     """
     if isinstance(counter, int):  # a Python int would overflow int64 before wrapping
-        z = key + _signed((counter + 1) * GOLDEN)
+        z = key + as_int64((counter + 1) * GOLDEN)
     else:
-        z = key + (counter + 1) * _signed(GOLDEN)
+        z = key + (counter + 1) * as_int64(GOLDEN)
     z = mix64(z)  # (a new tensor: the top half shifted down in place)
     z >>= 32
     return z.bitwise_and_(0xFFFFFFFF)
@@ -98,9 +99,16 @@ def random_bits_int(key: int, counter: int) -> int:
     return mix64_int(key + (counter + 1) * GOLDEN) >> 32
 
 
-def randint_from_bits(bits: torch.Tensor, n: torch.Tensor | int) -> torch.Tensor:
-    """An integer in ``[0, n)`` from 32 random bits (multiply-shift; ``n < 2**31``)."""
-    return (bits * n) >> 32
+def randint_from_bits(
+    bits: torch.Tensor, n: torch.Tensor | int, *, in_place: bool = False
+) -> torch.Tensor:
+    """An integer in ``[0, n)`` from 32 random bits (multiply-shift; ``n < 2**31``).
+
+    ``in_place``: written over ``bits`` (a tensor nothing reads again) instead of a new one.
+    """
+    product = bits.mul_(n) if in_place else bits * n
+    product >>= 32
+    return product
 
 
 def probability_threshold(probability: float) -> int:
@@ -123,7 +131,7 @@ def derive_keys(seed: int, stream: int, count: int, offset: int = 0) -> torch.Te
         if value < 0:
             raise ValueError(f"{name}={value} is out of range: must be >= 0")
     base = mix64_int(mix64_int(seed * GOLDEN + stream) + stream * _MIX1)
-    keys = [_signed(mix64_int(base + (offset + i + 1) * GOLDEN)) for i in range(count)]
+    keys = [as_int64(mix64_int(base + (offset + i + 1) * GOLDEN)) for i in range(count)]
     return torch.tensor(keys, dtype=torch.int64)
 
 
@@ -138,7 +146,7 @@ SUBSTREAM_PERMUTATION = 4
 
 def substream_key(key: torch.Tensor, substream: int) -> torch.Tensor:
     """The key of ``substream`` of each key ``[...]`` int64: ``mix64(key + substream * MIX1)``."""
-    return mix64(key + _signed(substream * _MIX1))
+    return mix64(key + as_int64(substream * _MIX1))
 
 
 def substream_key_int(key: int, substream: int) -> int:
