@@ -237,11 +237,11 @@ PROCESS_BYTES = 330 * 2**20
 
 
 def fallback_notice(
-    config: PaperConfig, backend: str, world: Any = None, processes: int | None = None
+    config: PaperConfig, backend: str, world: Any = None, process_count: int | None = None
 ) -> str | None:
     """The one-line notice of ``auto`` falling back to the modular path: why, about how long the
-    run will take (on ``processes``, default ``modular_processes(config, world)``), how to get
-    the fast path (None when nothing fell back)."""
+    run will take (on ``process_count`` processes, default ``modular_processes(config, world)``),
+    how to get the fast path (None when nothing fell back)."""
     from factorq_trainers import fast
 
     if backend != "modular" or config.backend != "auto":
@@ -254,9 +254,9 @@ def fallback_notice(
         )
     if torch.device(config.device).type != "cpu":
         return None  # asked for: a device the compiled path does not run on
-    if processes is None:
-        processes = modular_processes(config, world)
-    if processes > 1:  # the algorithms side by side: about the slower one's time
+    if process_count is None:
+        process_count = modular_processes(config, world)
+    if process_count > 1:  # the algorithms side by side: about the slower one's time
         estimate = MODULAR_PARALLEL_SECONDS_PER_EPISODE * config.runs * config.episodes
     else:
         estimate = (
@@ -271,14 +271,14 @@ def fallback_notice(
     )
 
 
-def threads_used(config: PaperConfig, backend: str, processes: int = 1) -> int:
+def threads_used(config: PaperConfig, backend: str, process_count: int = 1) -> int:
     """CPU threads the experiment actually runs on: the fast path's workers (at most one per
     experiment), or the modular path's torch intra-op threads (1 unless --threads says more) in
-    each of its ``processes`` (``modular_processes``; ``modular_threads`` each)."""
+    each of its ``process_count`` processes (``modular_processes``; ``modular_threads`` each)."""
     if backend == "fast":
         threads = config.threads if config.threads is not None else torch.get_num_threads()
         return max(1, min(threads, len(config.worlds) * config.seeds))
-    return processes * modular_threads(config, processes)
+    return process_count * modular_threads(config, process_count)
 
 
 def modular_processes(config: PaperConfig, world: Any = None, checkpointing: bool = False) -> int:
@@ -296,10 +296,11 @@ def modular_processes(config: PaperConfig, world: Any = None, checkpointing: boo
     return len(config.algorithms) if allowed >= 2 else 1
 
 
-def modular_threads(config: PaperConfig, processes: int) -> int:
-    """Torch intra-op threads of each of the modular path's ``processes``: 1 (the per-step tensors
-    are small: more threads only synchronise) unless ``config.threads`` gives each more."""
-    return max(1, (config.threads or 1) // processes)
+def modular_threads(config: PaperConfig, process_count: int) -> int:
+    """Torch intra-op threads of each of the modular path's ``process_count`` processes: 1 (the
+    per-step tensors are small: more threads only synchronise) unless ``config.threads`` gives
+    each more."""
+    return max(1, (config.threads or 1) // process_count)
 
 
 class BatchKeys(NamedTuple):
