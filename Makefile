@@ -5,13 +5,25 @@ PYTHON ?= python3.11
 VENV := .venv
 STAMP := $(VENV)/.installed
 
-.PHONY: paper test setup lint clean
+.PHONY: paper test test-float setup lint clean
 
 paper: $(STAMP)
 	$(VENV)/bin/factorq paper $(ARGS)
 
+# The suite on this CPU's kernels, then its float-sensitive part (networks, Adam, DQN) again under
+# two other kernel sets, as another machine would round (docs/decisions.md, "Tests that hold on
+# any machine"). Where ARGS selects no float-sensitive test, pytest's "no tests" (exit 5) is fine.
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest $(ARGS)
+	$(MAKE) --no-print-directory test-float
+
+test-float: $(STAMP)
+	@for capability in default avx2; do \
+	  echo "float-sensitive tests under ATEN_CPU_CAPABILITY=$$capability"; \
+	  ATEN_CPU_CAPABILITY=$$capability $(VENV)/bin/python -m pytest -q -p no:cacheprovider \
+	    -m float_sensitive $(or $(ARGS),tests); \
+	  code=$$?; [ $$code -eq 0 ] || [ $$code -eq 5 ] || exit $$code; \
+	done
 
 setup: $(STAMP)
 

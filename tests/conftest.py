@@ -1,7 +1,23 @@
-"""Fixtures shared by the tests."""
+"""Fixtures shared by the tests, and the thread count of a run.
+
+``FACTORQ_TEST_THREADS=N`` runs the whole session with ``torch.set_num_threads(N)`` (tests that
+ask for ``one_thread`` still get one): with ``ATEN_CPU_CAPABILITY`` it is how the float-sensitive
+tests are tried on another machine's arithmetic (docs/decisions.md, "Tests that hold on any
+machine").
+"""
+
+import os
 
 import pytest
 import torch
+
+
+def pytest_configure(config):
+    threads = os.environ.get("FACTORQ_TEST_THREADS")
+    if threads:
+        if not threads.isdigit() or int(threads) < 1:
+            raise pytest.UsageError(f"FACTORQ_TEST_THREADS={threads!r} is not a thread count >= 1")
+        torch.set_num_threads(int(threads))
 
 
 @pytest.fixture

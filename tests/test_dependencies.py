@@ -143,6 +143,7 @@ def test_cli_keeps_earlier_results_unless_forced(tmp_path, capsys):
     assert (tmp_path / "dependencies.json").read_text() == "{}"
 
 
+@pytest.mark.float_sensitive
 def test_dqn_is_opt_in_and_runs_on_the_oracles_budget(tmp_path):
     config = dependencies.DependenciesConfig(
         **{**TINY, "max_steps": 30},

@@ -10,6 +10,9 @@ from tensordict import TensorDict
 from factorq_torch.base.rng import STREAM_WORLD
 from factorq_trainers import dqn, experiment
 
+#: outcomes that depend on float rounding: `make test` reruns these under other CPU kernels
+pytestmark = pytest.mark.float_sensitive
+
 
 def test_exploratory_egreedy_flags_exactly_the_actions_the_epsilon_branch_drew():
     torch.manual_seed(0)

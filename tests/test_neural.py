@@ -22,6 +22,9 @@ from factorq_torch.objectives import FactorQLoss
 from factorq_torch.policy import FactorQPolicy
 from factorq_torch.tables import LocalRewardTable, TaskQTable
 
+#: outcomes that depend on float rounding: `make test` reruns these under other CPU kernels
+pytestmark = pytest.mark.float_sensitive
+
 
 def test_experiment_draws_the_same_initial_network_alone_or_in_a_batch():
     batch = TaskQNetwork(3, num_cells=9, with_proximity=True, zero_output=False, seed=7)
@@ -97,16 +100,18 @@ def test_networks_name_a_batch_that_does_not_match_their_experiments():
         LocalRewardNetwork(2, hidden=(0,))
 
 
-def _train_factor_q(task, local, optimizer, steps: int):
+def _train_factor_q(task, local, optimizer, steps: int, experiments: int = 2):
     """The same env, policy, loss and collector, whatever the value providers are."""
     env = TransformedEnv(
-        FactoredGridEnv(size=4, num_obstacles=3, obstacle_period=1, batch_size=(2,), seed=1),
+        FactoredGridEnv(
+            size=4, num_obstacles=3, obstacle_period=1, batch_size=(experiments,), seed=1
+        ),
         SplitLocalReward(),
     )
-    policy = TensorDictSequential(task, local, FactorQPolicy(2, seed=1))
+    policy = TensorDictSequential(task, local, FactorQPolicy(experiments, seed=1))
     loss = FactorQLoss(task, local)
     collector = OnlineCollector(env, policy, loss, runs=1, episodes=steps, optimizer=optimizer)
-    greedy_collisions = torch.zeros(2, dtype=torch.int64)
+    greedy_collisions = torch.zeros(experiments, dtype=torch.int64)
     for _ in range(steps):
         td = collector.step()
         collided = td["next", "bump"].any(-1) & ~td["exploratory"]
@@ -115,22 +120,33 @@ def _train_factor_q(task, local, optimizer, steps: int):
 
 
 def test_swapping_tables_for_networks_needs_no_change_outside_the_value_providers(one_thread):
-    steps = 300
-    tables = (TaskQTable(2, num_cells=16), LocalRewardTable(2), None)
-    task, local = TaskQNetwork(2, num_cells=16), LocalRewardNetwork(2)
+    # A learned outcome of a network trained by Adam: the trajectory depends on float rounding
+    # (CPU kernels, threads), so the assertions are about the batch of 8 experiments, with margins
+    # measured over seeds 0-3 under ATEN_CPU_CAPABILITY=default, avx2 and avx512: after 600 steps
+    # the median rho(sensed) lay in [-1.5, -1.0] on every setting and seed, while any single
+    # experiment of Adam's noisy regression could sit anywhere in [-3.9, -0.03] (one above -0.5
+    # flipped this test's 2-experiment, 300-step version on an AVX-512 machine). Breaking eq. 5
+    # (no local learning) leaves the median at 0 and fails it (docs/decisions.md, "Tests that hold
+    # on any machine").
+    steps, experiments = 600, 8
+    tables = (TaskQTable(experiments, num_cells=16), LocalRewardTable(experiments), None)
+    task = TaskQNetwork(experiments, num_cells=16)
+    local = LocalRewardNetwork(experiments)
     adam = torch.optim.Adam(
         [{"params": task.parameters(), "lr": 1e-2}, {"params": local.parameters(), "lr": 5e-2}]
     )
     for providers in (tables, (task, local, adam)):
-        td, greedy_collisions = _train_factor_q(*providers, steps)
-        assert td["combined_value"].shape == (2, 4)  # eqs. 2-3 ran on either provider
-        north = torch.tensor([[True, False, False, False]] * 2)
-        sensed = TensorDict(sensors=north, batch_size=[2])
+        td, greedy_collisions = _train_factor_q(*providers, steps, experiments)
+        assert td["combined_value"].shape == (experiments, 4)  # eqs. 2-3 ran on either provider
+        north = torch.tensor([[True, False, False, False]] * experiments)
+        sensed = TensorDict(sensors=north, batch_size=[experiments])
         rho = providers[1](sensed)["local_value"].detach()
-        # Both learned eq. 5's fact of this world: a sensed obstacle costs about -1, nothing
-        # sensed costs nothing, and so they hardly collide on greedy actions.
-        assert (rho[:, 0] < -0.5).all() and torch.equal(rho[:, 1:], torch.zeros(2, 3))
-        assert (greedy_collisions < steps // 20).all()
+        # Both learned eq. 5's fact of this world: a sensed obstacle costs about -1 (the median
+        # of the batch, with a margin of 0.5), nothing sensed costs exactly nothing (the
+        # networks have no bias: exact on any CPU), and so they hardly collide on greedy actions.
+        assert rho[:, 0].median() < -0.5, rho[:, 0]
+        assert torch.equal(rho[:, 1:], torch.zeros(experiments, 3))
+        assert (greedy_collisions < steps // 20).all(), greedy_collisions
     # Adam moved the task network's output layer away from its zero start.
     assert not torch.equal(task.network.weights[-1], torch.zeros_like(task.network.weights[-1]))
 
@@ -179,17 +195,26 @@ def test_factor_q_loss_adds_the_gates_penalty():
 
 def test_gated_network_learns_each_actuators_own_sensor_through_factor_q(one_thread):
     # the paper's body (actuator a collides when its sensor a is on), told nothing of it: after
-    # 2,000 steps through FactorQLoss the largest gate of every actuator is its own sensor, and
-    # structure() reads exactly the paper's pairing (its own sensor moves its prediction by about
-    # a collision, the others by under 0.05), although every gate has shrunk far below its start
-    task = TaskQTable(2, num_cells=16)
-    local = GatedLocalRewardNetwork(2, num_actions=4, num_sensors=4, l1=1e-3)
+    # 2,000 steps through FactorQLoss the largest gate of an actuator is its own sensor, and
+    # structure() reads the paper's pairing (its own sensor moves its prediction by about a
+    # collision, the others by under 0.05), although the gates have shrunk far below their start.
+    # Adam's trajectory depends on float rounding, so this is asserted over the 8 experiments'
+    # 32 actuators and 128 structure entries, with margins: measured on 12 experiments under
+    # ATEN_CPU_CAPABILITY=default and avx2, 47/48 argmax right, 188/192 entries right, 45/48
+    # actuators' gates all below 0.3; one experiment in three had some entry wrong, so a test of
+    # every entry of 2 experiments was a coin with a 60% head (docs/decisions.md, "Tests that
+    # hold on any machine"). A local network that learns nothing keeps every gate at 0.5.
+    experiments = 8
+    task = TaskQTable(experiments, num_cells=16)
+    local = GatedLocalRewardNetwork(experiments, num_actions=4, num_sensors=4, l1=1e-3)
     adam = torch.optim.Adam(local.parameters(), lr=5e-2)
-    _train_factor_q(task, local, adam, 2000)
-    gates = local.gates().detach()
-    assert torch.equal(gates.argmax(dim=-1), torch.arange(4).expand(2, 4))
-    assert (gates < 0.3).all()  # a gate's size alone would read no parent at all
-    assert torch.equal(local.structure(), torch.eye(4, dtype=torch.bool).expand(2, 4, 4))
+    _train_factor_q(task, local, adam, 2000, experiments)
+    gates = local.gates().detach()  # [S, A, K]
+    own = torch.arange(4).expand(experiments, 4)
+    assert (gates.argmax(dim=-1) == own).float().mean() >= 0.85, gates.argmax(dim=-1)
+    assert (gates < 0.3).all(-1).float().mean() >= 0.75  # a gate's size alone reads no parent
+    truth = torch.eye(4, dtype=torch.bool).expand(experiments, 4, 4)
+    assert (local.structure() == truth).float().mean() >= 0.9, local.structure()
 
 
 def test_gated_network_refuses_bad_options():
