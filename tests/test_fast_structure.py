@@ -54,6 +54,7 @@ def draw_config(setting: str, generator: random.Random) -> DependenciesConfig:
         prior_b=generator.choice([1.0, 0.25, 1 / 1024]),
         candidate_prior=generator.choice(["size", "sparse", "uniform"]),
         reopen_factor=generator.choice([None, 5.0, 1000.0]),
+        likelihood=generator.choice(["mixture", "flip", "pattern"]),
         out="unused",
     )
 

@@ -66,6 +66,19 @@ SETTINGS: dict[str, dict[str, Any]] = {
     "noise-5": {"body": "translate", "sensors": "cross", "sensor_noise": 0.05},
     "noise-10": {"body": "translate", "sensors": "cross", "sensor_noise": 0.10},
     "change": {"body": "translate", "sensors": "cross"},
+    # issue 27: noise with many sensors (8 ring sensors and 12 distractors: 20)
+    "ring-12-noise-5": {
+        "body": "translate",
+        "sensors": "ring",
+        "num_distractors": 12,
+        "sensor_noise": 0.05,
+    },
+    "ring-12-noise-10": {
+        "body": "translate",
+        "sensors": "ring",
+        "num_distractors": 12,
+        "sensor_noise": 0.10,
+    },
 }
 METHODS = ("learned", "oracle", "joint", "q-learning", "dqn")
 #: The methods run by default: DQN is opt-in (``--methods``), see ``run_dqn``.
@@ -122,6 +135,14 @@ class DependenciesConfig:
         "each a third), sparse (the pairs together 1/100 of that) or uniform.",
         choices=("size", "sparse", "uniform"),
     )
+    likelihood: str = option(
+        "mixture",
+        "Likelihood of a parent set's data: mixture (each pattern's collision rate from a clean "
+        "or a noisy population, whichever fits: noisy sensors), pattern (each pattern its own "
+        "rate under the Beta prior) or flip (each pattern collides or not, the outcomes "
+        "disagree at a flip rate learned per parent set).",
+        choices=("flip", "pattern", "mixture"),
+    )
     change_run: int = option(5, "Run at which the change setting redraws the sensor order.")
     prediction: str = option(
         "optimistic",
@@ -169,6 +190,7 @@ class DependenciesConfig:
             ("path", ("fast", "modular")),
             ("reopen", ("body", "actuator")),
             ("candidate_prior", ("size", "sparse", "uniform")),
+            ("likelihood", ("flip", "pattern", "mixture")),
         ):
             if getattr(self, name) not in choices:
                 raise ValueError(
@@ -259,6 +281,7 @@ def _learner_options(config: DependenciesConfig) -> dict[str, Any]:
         "prediction": config.prediction,
         "reopen": config.reopen,
         "reopen_factor": config.reopen_factor,
+        "likelihood": config.likelihood,
     }
 
 
