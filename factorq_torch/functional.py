@@ -437,17 +437,17 @@ def candidate_log_prior(sets: list[tuple], prior: str = "size") -> torch.Tensor:
 
 def competitor_mask(sets: list[tuple]) -> torch.Tensor:
     """``[C, C]`` bool: ``[c, c']`` True where ``c'`` competes with ``c`` for commitment: every
-    other candidate but the strict supersets of ``c``; for "no sensor", the single sensors."""
-    members = [frozenset(s) for s in sets]
-    mask = torch.zeros(len(sets), len(sets), dtype=torch.bool)
-    for i, best in enumerate(members):
-        for j, other in enumerate(members):
-            if i == j:
-                continue
-            if not best:
-                mask[i, j] = len(other) == 1
-            else:
-                mask[i, j] = not (best < other)
+    other candidate but the strict supersets of ``c``; for "no sensor", the single sensors.
+    (Vectorised: 529 candidates are 280,000 pairs, seconds as a Python loop.)"""
+    size = torch.tensor([len(parents) for parents in sets])
+    width = 1 + max((max(parents) for parents in sets if parents), default=-1)
+    members = torch.zeros(len(sets), width, dtype=torch.bool)
+    for index, parents in enumerate(sets):
+        members[index, list(parents)] = True
+    outside = members.to(torch.int64) @ (~members).to(torch.int64).T  # [c, c']: c's not in c'
+    strict_superset = (outside == 0) & (size[None, :] > size[:, None])
+    mask = ~strict_superset & ~torch.eye(len(sets), dtype=torch.bool)
+    mask[size == 0] = size == 1
     return mask
 
 
