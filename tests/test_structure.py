@@ -354,3 +354,22 @@ def test_the_mixture_commits_to_a_sensor_that_reads_wrong_15_percent_of_the_time
 def test_an_unknown_likelihood_is_refused_by_name():
     with pytest.raises(ValueError, match="likelihood='noisy' is unknown"):
         StructureLearner(1, num_actions=1, num_sensors=2, likelihood="noisy")
+
+
+def test_competitor_mask_is_the_definition_for_every_small_body():
+    # the vectorised mask against the definition, pair by pair: c' competes with c unless it is
+    # c itself or a strict superset of it; "no sensor" competes with the single sensors only
+    for sensors in (1, 2, 3, 5):
+        for max_parents in (0, 1, 2):
+            sets = candidate_sets(sensors, max_parents)
+            members = [frozenset(parents) for parents in sets]
+            expected = torch.tensor(
+                [
+                    [
+                        i != j and (len(other) == 1 if not best else not best < other)
+                        for j, other in enumerate(members)
+                    ]
+                    for i, best in enumerate(members)
+                ]
+            )
+            assert torch.equal(competitor_mask(sets), expected), (sensors, max_parents)
