@@ -84,6 +84,10 @@ SETTINGS: dict[str, dict[str, Any]] = {
     },
 }
 METHODS = ("learned", "oracle", "joint", "q-learning", "dqn", "gated")
+#: The methods with a policy stream of their own: their number fixes every method's keys
+#: (``experiment_keys``), so a new method must not join them; the gated network takes the
+#: learned structure's stream (the two learners under common random numbers).
+KEYED_METHODS = ("learned", "oracle", "joint", "q-learning", "dqn")
 #: The methods run by default: DQN is opt-in (``--methods``), see ``run_dqn``.
 DEFAULT_METHODS = ("learned", "oracle", "joint", "q-learning")
 METHOD_LABELS = {
@@ -273,7 +277,7 @@ def sensor_orders(
 def _keys(config: DependenciesConfig, method: str) -> tuple[torch.Tensor, torch.Tensor]:
     labels = [(config.world, index) for index in range(config.seeds)]
     world_keys = experiment_keys(config.seed, STREAM_WORLD, labels)
-    policy_keys = experiment_keys(config.seed, STREAM_POLICY, labels, METHODS, method)
+    policy_keys = experiment_keys(config.seed, STREAM_POLICY, labels, KEYED_METHODS, method)
     return world_keys, policy_keys
 
 
@@ -579,7 +583,7 @@ def run_gated(config: DependenciesConfig, setting: str) -> dict[str, Any]:
 
     world, agent = config.world_of(setting), AgentConfig()
     count, num_sensors = config.seeds, world.num_sensors
-    world_keys, policy_keys = _keys(config, "gated")
+    world_keys, policy_keys = _keys(config, "learned")  # common random numbers (KEYED_METHODS)
     orders = sensor_orders(config.seed, setting, count, num_sensors, 0)
     permute = PermuteSensors(orders)
     periods = [WORLD_PERIODS[config.world]] * count
