@@ -123,11 +123,13 @@ class StructureLearner(TensorDictModuleBase):
             reopened (``None``: ``bayes_factor``); must be > 1. A higher one ignores more false
             alarms under sensor noise and notices a changed body later.
         window: firings per actuator in the block the reopening test reads.
-        prior_a, prior_b: the Beta prior of every pattern's rate (``likelihood="pattern"``) or
-            of every candidate's flip rate (``"flip"``).
-        likelihood: ``"flip"`` (sensors and outcomes may be wrong: each pattern a label the
-            outcomes disagree with at a latent flip rate per candidate) or ``"pattern"`` (each
-            pattern its own rate); module docstring.
+        prior_a, prior_b: the Beta prior of every pattern's rate (``likelihood="pattern"``;
+            ``"mixture"``: of the clean population) or of every candidate's flip rate
+            (``"flip"``).
+        likelihood: ``"mixture"`` (the default: each pattern's rate from a clean or a noisy
+            population, sensors may read wrong), ``"pattern"`` (each pattern its own rate under
+            ``Beta(prior_a, prior_b)``) or ``"flip"`` (one flip rate per candidate between its
+            patterns' labels and the outcomes); module docstring.
         prior: the prior over candidates, ``"size"``, ``"sparse"`` or ``"uniform"``
             (``candidate_log_prior``).
         prediction: what an open actuator predicts: ``"optimistic"``, ``"map"``, ``"posterior"``

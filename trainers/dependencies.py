@@ -134,7 +134,8 @@ class DependenciesConfig:
     window: int = option(100, "Firings per actuator in the block the reopening test reads.")
     prior_a: float = option(
         0.25,
-        "Beta(prior_a, prior_b) prior of every pattern's collision rate: prior_a (> 0; a multiple "
+        "Beta(prior_a, prior_b) prior of every pattern's collision rate (with the mixture "
+        "likelihood: of the clean population; flip: of the flip rate): prior_a (> 0; a multiple "
         "of 1/1024 on the compiled path).",
     )
     prior_b: float = option(
