@@ -859,7 +859,8 @@ def report_markdown(results: dict[str, Any]) -> str:
         f"episodes each, {config['world']} world {config['size']}x{config['size']} with "
         f"{config['obstacles']} obstacles, Bayes factor {format_number(config['bayes_factor'])}, "
         f"Beta({format_number(config['prior_a'])}, {format_number(config['prior_b'])}) prior, "
-        f"candidate prior {config['candidate_prior']}"
+        f"candidate prior {config['candidate_prior']}, "
+        f"{config.get('likelihood', 'pattern')} likelihood"
         + (
             f", reopening at Bayes factor {format_number(config['reopen_factor'])}"
             if config.get("reopen_factor") is not None
