@@ -28,7 +28,14 @@ of candidate ``c`` is
     log p(D | c) = sum_patterns [ lgamma(a + s) + lgamma(b + n - s) - lgamma(a + b + n)
                                   - lgamma(a) - lgamma(b) + lgamma(a + b) ]
 
-in float64 (``beta_bernoulli_log_marginal``). The prior over candidates (``candidate_log_prior``,
+in float64 (``beta_bernoulli_log_marginal``; ``likelihood="pattern"``). By default
+(``likelihood="mixture"``, issue 27) each pattern's rate comes from a clean population (that
+``Beta(prior_a, prior_b)``) or a noisy one (``functional.NOISY_PRIOR``, a sensor that reads wrong
+leaves the rate anywhere in between), at the more probable of the two
+(``functional.mixture_log_marginal``); ``likelihood="flip"`` gives each candidate one flip rate
+between its patterns' labels and the outcomes (``functional.flip_log_marginal``). Derivations and
+measurements: docs/decisions.md, "Learned dependencies with noisy sensors (issue 27)". The prior
+over candidates (``candidate_log_prior``,
 ``prior``) is by default ``"sparse"``: "no sensor" and the single sensors (together) the same
 mass, all pairs together 1/100 of it, uniform within a size (``"size"``: every size the same
 mass; ``"uniform"``: every candidate the same).
@@ -82,6 +89,7 @@ from tensordict.nn import TensorDictModuleBase
 from factorq_torch.base import keys
 from factorq_torch.base.validation import check_float, check_int
 from factorq_torch.functional import (  # noqa: F401  (the structure math, re-exported)
+    LIKELIHOODS,
     MAX_CANDIDATE_PARENTS,
     MAX_SENSORS,
     PREDICTIONS,
@@ -92,7 +100,9 @@ from factorq_torch.functional import (  # noqa: F401  (the structure math, re-ex
     candidate_log_prior,
     candidate_sets,
     competitor_mask,
+    flip_log_marginal,
     log_posterior_of,
+    mixture_log_marginal,
     posterior_weights,
 )
 from factorq_torch.tables import _check_entry, check_batch, check_mask
@@ -113,7 +123,13 @@ class StructureLearner(TensorDictModuleBase):
             reopened (``None``: ``bayes_factor``); must be > 1. A higher one ignores more false
             alarms under sensor noise and notices a changed body later.
         window: firings per actuator in the block the reopening test reads.
-        prior_a, prior_b: the Beta prior of every pattern's rate.
+        prior_a, prior_b: the Beta prior of every pattern's rate (``likelihood="pattern"``;
+            ``"mixture"``: of the clean population) or of every candidate's flip rate
+            (``"flip"``).
+        likelihood: ``"mixture"`` (the default: each pattern's rate from a clean or a noisy
+            population, sensors may read wrong), ``"pattern"`` (each pattern its own rate under
+            ``Beta(prior_a, prior_b)``) or ``"flip"`` (one flip rate per candidate between its
+            patterns' labels and the outcomes); module docstring.
         prior: the prior over candidates, ``"size"``, ``"sparse"`` or ``"uniform"``
             (``candidate_log_prior``).
         prediction: what an open actuator predicts: ``"optimistic"``, ``"map"``, ``"posterior"``
@@ -152,6 +168,7 @@ class StructureLearner(TensorDictModuleBase):
         prediction: str = "optimistic",
         reopen: str = "body",
         reopen_factor: float | None = None,
+        likelihood: str = "mixture",
         sensors_key: str = keys.SENSORS,
         device: torch.device | str | None = None,
     ) -> None:
@@ -186,6 +203,9 @@ class StructureLearner(TensorDictModuleBase):
         if reopen not in REOPENINGS:
             raise ValueError(f"reopen={reopen!r} is unknown: choose one of {REOPENINGS}")
         self.reopen = reopen
+        if likelihood not in LIKELIHOODS:
+            raise ValueError(f"likelihood={likelihood!r} is unknown: choose one of {LIKELIHOODS}")
+        self.likelihood = likelihood
         self.prior = prior
         self.prior_a, self.prior_b = float(prior_a), float(prior_b)
         self.sensors_key = sensors_key
@@ -234,8 +254,28 @@ class StructureLearner(TensorDictModuleBase):
 
     def log_posterior(self, block: bool = False) -> torch.Tensor:
         """``[S, A, C]`` float64: ``log p(c) + log p(D | c)`` (up to a constant per actuator)."""
-        log_marginal = self.block_log_marginal if block else self.log_marginal
-        return log_posterior_of(self.log_prior, log_marginal)
+        return self._log_posterior_at(slice(None), slice(None), block)
+
+    def _log_posterior_at(self, rows, action, block: bool = False) -> torch.Tensor:
+        """``[R, C]`` (or ``[S, A, C]``): the log posterior of the candidates of the given (rows,
+        actuators) from all their counts or (``block``) the block's."""
+        prefix = "block_" if block else ""
+        if self.likelihood != "flip":  # a sum over the patterns
+            log_marginal = getattr(self, prefix + "log_marginal")[rows, action]
+            return log_posterior_of(self.log_prior, log_marginal)
+        count = getattr(self, prefix + "count")[rows, action]
+        successes = getattr(self, prefix + "successes")[rows, action]
+        return self.log_prior + self._flip(count, successes)
+
+    def _pattern_log_marginal(self, count: torch.Tensor, successes: torch.Tensor) -> torch.Tensor:
+        """Each pattern's log marginal (``"pattern"`` and ``"flip"``: Beta-Bernoulli; the flip
+        likelihood reads the counts instead, the patterns' are kept alike)."""
+        if self.likelihood == "mixture":
+            return mixture_log_marginal(count, successes, self.prior_a, self.prior_b)
+        return beta_bernoulli_log_marginal(count, successes, self.prior_a, self.prior_b)
+
+    def _flip(self, count: torch.Tensor, successes: torch.Tensor) -> torch.Tensor:
+        return flip_log_marginal(count, successes, self.prior_a, self.prior_b)
 
     def posterior(self) -> torch.Tensor:
         """``[S, A, C]`` float64: ``p(c | D)`` over the candidates of each actuator."""
@@ -335,8 +375,8 @@ class StructureLearner(TensorDictModuleBase):
             successes[where] = new_successes
             reward_sum = getattr(self, prefix + "reward_sum").view(-1)
             reward_sum[where] = reward_sum[where] + reward
-            getattr(self, prefix + "log_marginal").view(-1)[where] = beta_bernoulli_log_marginal(
-                new_count, new_successes, self.prior_a, self.prior_b
+            getattr(self, prefix + "log_marginal").view(-1)[where] = self._pattern_log_marginal(
+                new_count, new_successes
             )
         self.samples[rows, action] += 1
         self.block_samples[rows, action] += 1
@@ -347,7 +387,7 @@ class StructureLearner(TensorDictModuleBase):
         """Recompute the running means and posterior weights of the given (rows, actuators)."""
         count, total = self.count[rows, action], self.reward_sum[rows, action]
         self.mean[rows, action] = torch.where(count > 0, total / count.clamp(min=1.0), 0.0)
-        log_posterior = log_posterior_of(self.log_prior, self.log_marginal[rows, action])
+        log_posterior = self._log_posterior_at(rows, action)
         self.weights_cache[rows, action] = posterior_weights(log_posterior)
         self.map_cache[rows, action] = log_posterior.argmax(dim=-1)
         best = log_posterior.max(dim=-1, keepdim=True).values
@@ -355,7 +395,7 @@ class StructureLearner(TensorDictModuleBase):
 
     def _decide(self, rows: torch.Tensor, action: torch.Tensor) -> None:
         """Commit open actuators that have the evidence; reopen committed ones that lost it."""
-        log_posterior = log_posterior_of(self.log_prior, self.log_marginal[rows, action])  # [R, C]
+        log_posterior = self._log_posterior_at(rows, action)  # [R, C]
         committed = self.committed[rows, action]  # [R]
         best = log_posterior.argmax(dim=-1)  # [R]
         margin = self._margin(log_posterior, best)
@@ -366,15 +406,18 @@ class StructureLearner(TensorDictModuleBase):
         held = committed.clamp(min=0)
         index = (rows, action, held)
         count, successes = self.count[index], self.successes[index]  # [R, P]
-        earlier = beta_bernoulli_log_marginal(
-            count - self.block_count[index],
-            successes - self.block_successes[index],
-            self.prior_a,
-            self.prior_b,
-        )
-        predicted = log_posterior_of(0.0, self.log_marginal[index] - earlier)  # [R]
+        earlier_count = count - self.block_count[index]
+        earlier_successes = successes - self.block_successes[index]
+        if self.likelihood != "flip":
+            earlier = self._pattern_log_marginal(earlier_count, earlier_successes)
+            predicted = log_posterior_of(0.0, self.log_marginal[index] - earlier)  # [R]
+        else:  # the flip likelihood does not split over patterns: the ratio of the whole
+            predicted = self._flip(count[:, None], successes[:, None]) - self._flip(
+                earlier_count[:, None], earlier_successes[:, None]
+            )
+            predicted = predicted.squeeze(1)
         lead = self.log_prior[held] + predicted
-        block_posterior = log_posterior_of(self.log_prior, self.block_log_marginal[rows, action])
+        block_posterior = self._log_posterior_at(rows, action, block=True)
         rival = block_posterior.max(dim=-1).values  # [R]
         reopen = (committed >= 0) & (rival - lead >= self.log_reopen_factor)
         new = torch.where(commit, best, committed)

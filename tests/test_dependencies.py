@@ -166,3 +166,40 @@ def test_unknown_methods_and_predictions_are_refused():
         dependencies.DependenciesConfig(methods=("nope",))
     with pytest.raises(ValueError, match="prediction='nope'"):
         dependencies.DependenciesConfig(prediction="nope")
+
+
+def test_the_noisy_settings_have_many_sensors_and_the_likelihood_reaches_the_learner(tmp_path):
+    # issue 27: ring sensors and 12 distractors (20 sensors) at 5% and 10% sensor noise
+    config = dependencies.DependenciesConfig(**TINY, out=str(tmp_path))
+    for name, noise in (("ring-12-noise-5", 0.05), ("ring-12-noise-10", 0.10)):
+        world = config.world_of(name)
+        assert (world.num_sensors, world.sensor_noise) == (20, noise)
+    assert dependencies.DependenciesConfig().likelihood == "mixture"
+    common = dict(TINY, settings=("noise-10",), methods=("learned",), out=str(tmp_path))
+    states = {
+        likelihood: dependencies.run_learned(
+            dependencies.DependenciesConfig(**common, likelihood=likelihood), "noise-10"
+        )["_state"]
+        for likelihood in ("mixture", "pattern")
+    }
+    # the same worlds: the counts of the first firings agree, the log marginals do not
+    assert not torch.equal(states["mixture"]["log_marginal"], states["pattern"]["log_marginal"])
+    with pytest.raises(ValueError, match="likelihood='nope'"):
+        dependencies.DependenciesConfig(likelihood="nope")
+
+
+def test_the_gated_network_is_opt_in_and_reports_its_structure(tmp_path, one_thread):
+    config = dependencies.DependenciesConfig(
+        **{**TINY, "max_steps": 30, "runs": 1},
+        settings=("cross",),
+        methods=("oracle", "gated"),
+        out=str(tmp_path),
+    )
+    assert "gated" not in dependencies.DependenciesConfig().methods
+    results = dependencies.run(config)
+    gated = results["settings"]["cross"]["gated_structure"]
+    assert 0.0 <= gated["fraction_right_at_end"] <= 1.0
+    world = config.world_of("cross")  # at most every (actuator, sensor) wrong
+    assert 0 <= gated["hamming_at_end_mean"] <= world.num_actuators * world.num_sensors
+    assert "collisions" in results["settings"]["cross"]["gated_against_oracle"]
+    assert "| cross, gated network |" in dependencies.report_markdown(results)

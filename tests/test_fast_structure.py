@@ -54,6 +54,7 @@ def draw_config(setting: str, generator: random.Random) -> DependenciesConfig:
         prior_b=generator.choice([1.0, 0.25, 1 / 1024]),
         candidate_prior=generator.choice(["size", "sparse", "uniform"]),
         reopen_factor=generator.choice([None, 5.0, 1000.0]),
+        likelihood=generator.choice(["mixture", "flip", "pattern"]),
         out="unused",
     )
 
@@ -187,3 +188,24 @@ def test_sensor_orders_relabel_the_joint_table_and_q_learning_and_change_at_the_
             structure=fast.StructureOptions(orders),
             sensor_orders=fast.SensorOrders(orders),
         )
+
+
+@pytest.mark.parametrize("likelihood", ["flip", "pattern"])
+def test_every_likelihood_reopens_alike_on_both_paths(likelihood):
+    # the change-point test reads each likelihood's own marginals (the flip likelihood's whole
+    # candidate, the others' patterns): the configuration above reopens under each of them
+    config = DependenciesConfig(
+        seeds=3,
+        settings=("change",),
+        runs=3,
+        size=4,
+        obstacles=2,
+        max_steps=150,
+        change_run=1,
+        window=20,
+        likelihood=likelihood,
+        out="unused",
+    )
+    fast_result = run_learned_fast(config, "change")
+    assert sum(fast_result["reopened"]) > 0
+    assert_same(fast_result, run_learned_modular(config, "change"))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from fractions import Fraction
 
 import pytest
 import torch
@@ -20,6 +21,8 @@ from factorq_torch.structure import (
     candidate_log_prior,
     candidate_sets,
     competitor_mask,
+    flip_log_marginal,
+    mixture_log_marginal,
 )
 from factorq_torch.tables import TaskQTable
 
@@ -89,8 +92,9 @@ def test_bad_options_are_refused_by_name():
     assert StructureLearner(1, num_actions=1, num_sensors=2).reopen_factor == 300.0
 
 
-#: The hand computations below are with Beta(1, 1) and the size prior (not the defaults).
-HAND = {"prior_a": 1.0, "prior_b": 1.0, "prior": "size"}
+#: The hand computations below are with Beta(1, 1), the size prior and the pattern likelihood
+#: (not the defaults).
+HAND = {"prior_a": 1.0, "prior_b": 1.0, "prior": "size", "likelihood": "pattern"}
 
 
 def test_posterior_and_weighted_prediction_match_hand_computation():
@@ -252,3 +256,120 @@ def test_it_is_a_local_value_provider_for_the_factorq_loss_policy_and_collector(
     assert int(learner.samples.sum()) == int(metrics["steps"].sum())
     td = policy(env.reset())
     assert td["local_value"].shape == (count, 4) and td["local_value"].dtype == torch.float32
+
+
+# -- noisy sensors (issue 27) ---------------------------------------------------------------------
+
+
+def _sequence_probability(outcomes: list[int], a: Fraction, b: Fraction) -> Fraction:
+    """p(y_1..y_n) under Beta(a, b) by the chain rule (Polya urn): each success has probability
+    (a + s) / (a + b + i), each failure (b + f) / (a + b + i); exact rationals, no lgamma."""
+    probability, successes, failures = Fraction(1), 0, 0
+    for index, outcome in enumerate(outcomes):
+        if outcome:
+            probability *= (a + successes) / (a + b + index)
+            successes += 1
+        else:
+            probability *= (b + failures) / (a + b + index)
+            failures += 1
+    return probability
+
+
+def test_mixture_marginal_matches_hand_computation():
+    # Clean Beta(1/4, 1/4), noisy Beta(2, 2), prior odds noisy : clean = 1 : 4 (weights 4/5, 1/5).
+    # n = 3, s = 0: clean (1/4)/(1/2) * (5/4)/(3/2) * (9/4)/(5/2) = 3/8, * 4/5 = 3/10;
+    #   noisy 2/4 * 3/5 * 4/6 = 1/5, * 1/5 = 1/25: the clean level, log(3/10).
+    # n = 0: no data, 0 whatever the level.
+    # At odds 1 : 1 (weights 1/2) a coin, n = 12, s = 6: clean (1/4 * 5/4 * ... * 21/4)**2 /
+    #   (1/2 * 3/2 * ... * 23/2) = 663/19689472, noisy (2 * 3 * ... * 7)**2 / (4 * 5 * ... * 15)
+    #   = 1/8580: the noisy level wins (about 3.5 times as probable), log(1/17160).
+    a, b = Fraction(1, 4), Fraction(1, 4)
+    coin = [1, 0] * 6
+    assert _sequence_probability([0, 0, 0], a, b) * Fraction(4, 5) == Fraction(3, 10)
+    assert _sequence_probability(coin, a, b) == Fraction(663, 19689472)
+    assert _sequence_probability(coin, Fraction(2), Fraction(2)) == Fraction(1, 8580)
+    got = mixture_log_marginal(
+        torch.tensor([3.0, 0.0]), torch.tensor([0.0, 0.0]), 0.25, 0.25, (2.0, 2.0), 0.25
+    )
+    expected = torch.tensor([math.log(3 / 10), 0.0], dtype=torch.float64)
+    assert torch.allclose(got, expected, atol=1e-12)
+    got = mixture_log_marginal(
+        torch.tensor([12.0]), torch.tensor([6.0]), 0.25, 0.25, (2.0, 2.0), 1.0
+    )
+    assert math.isclose(got.item(), math.log(1 / 17160), abs_tol=1e-12)
+
+
+def test_flip_marginal_matches_hand_computation():
+    # A candidate with two patterns under Beta(1, 1) on the flip rate: pattern 0 seen 3 times with
+    # 1 collision (label "no", 1 disagreement), pattern 1 seen 2 times with 2 (label "yes", 0):
+    # m = 1 of n = 5, v = 2 labels: B(2, 5) / B(1, 1) / 4 = (1! 4! / 6!) / 4 = 1/30 / 4 = 1/120.
+    got = flip_log_marginal(torch.tensor([[3.0, 2.0]]), torch.tensor([[1.0, 2.0]]), 1.0, 1.0)
+    assert math.isclose(got.item(), math.log(1 / 120), abs_tol=1e-12)
+
+
+def test_mixture_posterior_of_the_learner_matches_hand_computation():
+    # K = 1, single sensors only, uniform prior (1/2 each), defaults otherwise (Beta(1/4, 1/4)
+    # clean, Beta(2, 2) noisy at odds 1/4): the sensor read 1 and collided 12 times, read 0 and
+    # did not collide 12 times, then read 0 and collided once (a flipped reading).
+    # (0,): pattern 1, n = 12, s = 12; pattern 0, n = 13, s = 1; none: n = 25, s = 13.
+    # Each pattern at its more probable level (exact rationals below): the sensor wins.
+    learner = StructureLearner(1, num_actions=1, num_sensors=1, prior="uniform", bayes_factor=1e9)
+    on, off = torch.tensor([[True]]), torch.tensor([[False]])
+    for readings, reward in [(on, -1.0)] * 12 + [(off, 0.0)] * 12 + [(off, -1.0)]:
+        learner.update_running_mean(readings, torch.tensor([0]), torch.tensor([[reward]]))
+    a, clean, noisy = Fraction(1, 4), Fraction(4, 5), Fraction(1, 5)
+
+    def pattern(outcomes):
+        return max(
+            _sequence_probability(outcomes, a, a) * clean,
+            _sequence_probability(outcomes, Fraction(2), Fraction(2)) * noisy,
+        )
+
+    sensor = pattern([1] * 12) * pattern([0] * 12 + [1])
+    none = pattern([1] * 12 + [0] * 12 + [1])
+    log_posterior = learner.log_posterior()[0, 0]
+    assert math.isclose(
+        (log_posterior[1] - log_posterior[0]).item(), math.log(sensor / none), abs_tol=1e-9
+    )
+    assert sensor / none > 1e5  # about 3.8e5
+
+
+def test_the_mixture_commits_to_a_sensor_that_reads_wrong_15_percent_of_the_time():
+    # One actuator, K = 6; sensor 2 decides the collision but reads wrong 15% of the time.
+    # Fired 60 times per experiment, 12 experiments: the mixture commits to sensor 2 in nearly
+    # all (a margin for any CPU: the counts are integral, the outcome is exact anyway).
+    def run(likelihood, seed):
+        learner = StructureLearner(1, num_actions=1, num_sensors=6, likelihood=likelihood)
+        generator = torch.Generator().manual_seed(seed)
+        for _ in range(60):
+            truth = torch.rand(1, 6, generator=generator) < 0.3
+            flips = torch.rand(1, 6, generator=generator) < 0.15
+            reward = -truth[:, 2:3].float()
+            learner.update_running_mean(truth ^ flips, torch.tensor([0]), reward)
+        return learner.structure()[0, 0].nonzero().flatten().tolist()
+
+    assert sum(run("mixture", seed) == [2] for seed in range(12)) >= 10
+
+
+def test_an_unknown_likelihood_is_refused_by_name():
+    with pytest.raises(ValueError, match="likelihood='noisy' is unknown"):
+        StructureLearner(1, num_actions=1, num_sensors=2, likelihood="noisy")
+
+
+def test_competitor_mask_is_the_definition_for_every_small_body():
+    # the vectorised mask against the definition, pair by pair: c' competes with c unless it is
+    # c itself or a strict superset of it; "no sensor" competes with the single sensors only
+    for sensors in (1, 2, 3, 5):
+        for max_parents in (0, 1, 2):
+            sets = candidate_sets(sensors, max_parents)
+            members = [frozenset(parents) for parents in sets]
+            expected = torch.tensor(
+                [
+                    [
+                        i != j and (len(other) == 1 if not best else not best < other)
+                        for j, other in enumerate(members)
+                    ]
+                    for i, best in enumerate(members)
+                ]
+            )
+            assert torch.equal(competitor_mask(sets), expected), (sensors, max_parents)

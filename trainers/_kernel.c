@@ -33,7 +33,7 @@
 #include <string.h>
 
 #define NUM_ACTIONS 4
-#define FQ_ABI_VERSION 6
+#define FQ_ABI_VERSION 7
 /* Most actuators of a body the generic loop handles (bit masks, small stack arrays). */
 #define MAX_ACTUATORS 32
 /* Most candidates of the structure learner (1 + K + K (K - 1) / 2 for K <= 62). */
@@ -140,13 +140,19 @@ typedef struct {
     int64_t lgamma_length;    /* M: entries of each lgamma table */
     int64_t learner_stride;   /* doubles of one experiment's counts block */
     int64_t reopen_body;      /* a reopening forgets every actuator (1) or its own (0) */
+    int64_t likelihood_flip;  /* functional.LIKELIHOODS: 1 "flip", 0 "pattern" or "mixture" */
+    int64_t mixture;          /* 1: "mixture" (each pattern's rate clean or noisy) */
     double log_bayes_factor;
     double log_reopen_factor;          /* the change-point test's threshold */
     double log_beta_prior;
+    double log_noisy_beta_prior;       /* functional.NOISY_PRIOR's log B(a, b) */
+    double log_mixture_total;          /* log(1 + NOISY_ODDS) */
+    double log_noisy_weight;           /* log(NOISY_ODDS) - log(1 + NOISY_ODDS) */
     const int64_t *candidate_sensors; /* [C, 2] the candidate's sensors, -1: none */
     const double *log_prior;          /* [C] */
     const uint8_t *competitors;       /* [C, C] */
     const double *lgamma_table;       /* [3, M] lgamma(a + m), lgamma(b + m), lgamma(a + b + m) */
+    const double *noisy_lgamma_table; /* [3, M] the same of functional.NOISY_PRIOR ("mixture") */
     const int64_t *orders;            /* [S, K] agent sensor j = world sensor orders[s, j]; NULL:
                                          the world's order (any algorithm may have orders) */
     const int64_t *orders_after;      /* [S, K] the order after the change */
@@ -723,6 +729,21 @@ static inline double bb_log_marginal(const fq_batch *b, double n, double s) {
     return ((t[si] + t[M + (ni - si)]) - t[2 * M + ni]) - b->log_beta_prior;
 }
 
+/* StructureLearner._pattern_log_marginal for integral n, s: Beta-Bernoulli, or
+   functional.mixture_log_marginal (the more probable of the clean and the noisy level). */
+static inline double pattern_log_marginal(const fq_batch *b, double n, double s) {
+    const double clean = bb_log_marginal(b, n, s);
+    if (!b->mixture) return clean;
+    if (!(n > 0)) return 0.0;
+    const double *t = b->noisy_lgamma_table;
+    const int64_t M = b->lgamma_length, ni = (int64_t)n, si = (int64_t)s;
+    const double noisy =
+        (((t[si] + t[M + (ni - si)]) - t[2 * M + ni]) - b->log_noisy_beta_prior) +
+        b->log_noisy_weight;
+    const double weighted = clean - b->log_mixture_total;
+    return weighted >= noisy ? weighted : noisy; /* torch.maximum (no NaN here) */
+}
+
 /* The pattern of candidate c's sensors in readings (structure.patterns). */
 static inline int64_t candidate_pattern(const fq_batch *b, int64_t c, uint64_t readings) {
     const int64_t j = b->candidate_sensors[2 * c], k = b->candidate_sensors[2 * c + 1];
@@ -737,6 +758,39 @@ static inline double candidate_sum(const double *lm, int64_t P) {
     double total = lm[0];
     for (int64_t p = 1; p < P; p++) total = total + lm[p];
     return total;
+}
+
+/* functional.LOG_TWO (math.log(2.0): the double nearest ln 2, as this literal). */
+#define FQ_LOG_TWO 0.69314718055994530942
+
+/* functional.flip_log_marginal for one candidate's P patterns (count - minus_count, succ -
+   minus_succ where minus_count is given): log B(a + m, b + n - m) - log B(a, b) - v log 2 with
+   m the patterns' minority outcomes, n their firings, v the visited patterns (sums left to right;
+   integral, hence exact). */
+static inline double flip_log_marginal(const fq_batch *b, const double *count, const double *succ,
+                                       const double *minus_count, const double *minus_succ,
+                                       int64_t P) {
+    double m = 0.0, n = 0.0, labels = 0.0;
+    for (int64_t p = 0; p < P; p++) {
+        const double np = minus_count ? count[p] - minus_count[p] : count[p];
+        const double sp = minus_count ? succ[p] - minus_succ[p] : succ[p];
+        const double other = np - sp;
+        const double d = sp < other ? sp : other; /* torch.minimum(s, n - s) */
+        m = p == 0 ? d : m + d;
+        n = p == 0 ? np : n + np;
+        labels = p == 0 ? (double)(np > 0) : labels + (double)(np > 0);
+    }
+    return bb_log_marginal(b, n, m) - labels * FQ_LOG_TWO;
+}
+
+/* The log marginal of the candidate whose patterns start at h in the counts block (all counts,
+   or the block's): the sum of its patterns' Beta-Bernoulli log marginals (functional.
+   log_posterior_of's, "pattern") or functional.flip_log_marginal ("flip"). */
+static inline double candidate_log_marginal(const fq_batch *b, const learner_view *v, int64_t h,
+                                            int block) {
+    if (!b->likelihood_flip) return candidate_sum(v->array[block ? L_BLM : L_LM] + h, v->P);
+    return flip_log_marginal(b, v->array[block ? L_BCOUNT : L_COUNT] + h,
+                             v->array[block ? L_BSUCC : L_SUCC] + h, NULL, NULL, v->P);
 }
 
 /* First index of the maximum (torch.argmax). */
@@ -786,7 +840,7 @@ static void learner_refresh(const fq_batch *b, int64_t i, int64_t a, double *lp,
     const int64_t C = v.C, P = v.P, base = a * C * P;
     if (!have_lp)
         for (int64_t c = 0; c < C; c++)
-            lp[c] = b->log_prior[c] + candidate_sum(v.array[L_LM] + base + c * P, P);
+            lp[c] = b->log_prior[c] + candidate_log_marginal(b, &v, base + c * P, 0);
     const int64_t map = argmax_d(lp, C);
     b->map_cache[i * v.A + a] = map;
     const double floor = lp[map] - b->log_bayes_factor;
@@ -822,7 +876,7 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
             count[e] = n;
             succ[e] = s;
             rsum[e] = rsum[e] + reward;
-            lm[e] = bb_log_marginal(b, n, s);
+            lm[e] = pattern_log_marginal(b, n, s);
         }
     }
     int64_t *committed = b->committed + i * v.A + a;
@@ -833,7 +887,7 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
     const int64_t base = a * C * P;
     double *lp = scratch; /* [C] */
     for (int64_t c = 0; c < C; c++)
-        lp[c] = b->log_prior[c] + candidate_sum(v.array[L_LM] + base + c * P, P);
+        lp[c] = b->log_prior[c] + candidate_log_marginal(b, &v, base + c * P, 0);
     const int64_t best = argmax_d(lp, C);
     double rival_max = -INFINITY;
     const uint8_t *rivals = b->competitors + best * C;
@@ -845,18 +899,27 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
     int reopen = 0;
     if (held >= 0) {
         const int64_t h = base + held * P;
-        double predicted = 0.0;
-        for (int64_t p = 0; p < P; p++) {
-            const double earlier = bb_log_marginal(
-                b, v.array[L_COUNT][h + p] - v.array[L_BCOUNT][h + p],
-                v.array[L_SUCC][h + p] - v.array[L_BSUCC][h + p]);
-            const double term = v.array[L_LM][h + p] - earlier;
-            predicted = p == 0 ? term : predicted + term;
+        double lead;
+        if (b->likelihood_flip) { /* the whole candidate's ratio: it does not split over patterns */
+            const double all = candidate_log_marginal(b, &v, h, 0);
+            const double earlier =
+                flip_log_marginal(b, v.array[L_COUNT] + h, v.array[L_SUCC] + h,
+                                  v.array[L_BCOUNT] + h, v.array[L_BSUCC] + h, P);
+            lead = b->log_prior[held] + (all - earlier);
+        } else {
+            double predicted = 0.0;
+            for (int64_t p = 0; p < P; p++) {
+                const double earlier = pattern_log_marginal(
+                    b, v.array[L_COUNT][h + p] - v.array[L_BCOUNT][h + p],
+                    v.array[L_SUCC][h + p] - v.array[L_BSUCC][h + p]);
+                const double term = v.array[L_LM][h + p] - earlier;
+                predicted = p == 0 ? term : predicted + term;
+            }
+            lead = b->log_prior[held] + (0.0 + predicted);
         }
-        const double lead = b->log_prior[held] + (0.0 + predicted);
         double rival = -INFINITY;
         for (int64_t c = 0; c < C; c++) {
-            const double x = b->log_prior[c] + candidate_sum(v.array[L_BLM] + base + c * P, P);
+            const double x = b->log_prior[c] + candidate_log_marginal(b, &v, base + c * P, 1);
             if (x > rival) rival = x;
         }
         reopen = rival - lead >= b->log_reopen_factor;

@@ -15,7 +15,10 @@ methods on the same worlds (common random numbers: the same world keys):
   paper's footnote 2), compiled, where ``2**K`` entries fit (``tables.MAX_PARENTS``);
 - ``q-learning``: compiled, where its table fits (``tables.MAX_TABLE_ENTRIES``);
 - ``dqn`` (opt-in, ``--methods``): ``factorq_trainers.dqn`` on the oracle's step budget
-  (``run_dqn``).
+  (``run_dqn``);
+- ``gated`` (opt-in, ``--methods``): Factor-Q with ``factorq_torch.neural.
+  GatedLocalRewardNetwork`` as the local value provider on the modular path, in the learner's
+  sensor orders, its structure read out (``structure()``) at the end (``run_gated``).
 
 The joint table and Q-learning receive the sensors in the learner's orders, changed at the same
 moment (``fast.SensorOrders``); the oracle is told the true pairing at every moment, which is
@@ -66,8 +69,25 @@ SETTINGS: dict[str, dict[str, Any]] = {
     "noise-5": {"body": "translate", "sensors": "cross", "sensor_noise": 0.05},
     "noise-10": {"body": "translate", "sensors": "cross", "sensor_noise": 0.10},
     "change": {"body": "translate", "sensors": "cross"},
+    # issue 27: noise with many sensors (8 ring sensors and 12 distractors: 20)
+    "ring-12-noise-5": {
+        "body": "translate",
+        "sensors": "ring",
+        "num_distractors": 12,
+        "sensor_noise": 0.05,
+    },
+    "ring-12-noise-10": {
+        "body": "translate",
+        "sensors": "ring",
+        "num_distractors": 12,
+        "sensor_noise": 0.10,
+    },
 }
-METHODS = ("learned", "oracle", "joint", "q-learning", "dqn")
+METHODS = ("learned", "oracle", "joint", "q-learning", "dqn", "gated")
+#: The methods with a policy stream of their own: their number fixes every method's keys
+#: (``experiment_keys``), so a new method must not join them; the gated network takes the
+#: learned structure's stream (the two learners under common random numbers).
+KEYED_METHODS = ("learned", "oracle", "joint", "q-learning", "dqn")
 #: The methods run by default: DQN is opt-in (``--methods``), see ``run_dqn``.
 DEFAULT_METHODS = ("learned", "oracle", "joint", "q-learning")
 METHOD_LABELS = {
@@ -76,7 +96,11 @@ METHOD_LABELS = {
     "joint": "full joint table",
     "q-learning": "Q-learning",
     "dqn": "DQN",
+    "gated": "gated network",
 }
+#: The gated network's training (``run_gated``): Adam's learning rate and the gates' L1 weight
+#: (docs/decisions.md, "The neural variant": the paper's body read right after 2,000 steps).
+GATED_LEARNING_RATE, GATED_L1 = 5e-2, 1e-3
 #: Substream of the experiment key that draws the sensor orders (first, then after the change).
 STREAM_ORDER = 7
 #: The issue's thresholds: local samples per actuator.
@@ -110,7 +134,8 @@ class DependenciesConfig:
     window: int = option(100, "Firings per actuator in the block the reopening test reads.")
     prior_a: float = option(
         0.25,
-        "Beta(prior_a, prior_b) prior of every pattern's collision rate: prior_a (> 0; a multiple "
+        "Beta(prior_a, prior_b) prior of every pattern's collision rate (with the mixture "
+        "likelihood: of the clean population; flip: of the flip rate): prior_a (> 0; a multiple "
         "of 1/1024 on the compiled path).",
     )
     prior_b: float = option(
@@ -121,6 +146,14 @@ class DependenciesConfig:
         "Prior over the candidate parent sets: size (no sensor, the single sensors and the pairs "
         "each a third), sparse (the pairs together 1/100 of that) or uniform.",
         choices=("size", "sparse", "uniform"),
+    )
+    likelihood: str = option(
+        "mixture",
+        "Likelihood of a parent set's data: mixture (each pattern's collision rate from a clean "
+        "or a noisy population, whichever fits: noisy sensors), pattern (each pattern its own "
+        "rate under the Beta prior) or flip (each pattern collides or not, the outcomes "
+        "disagree at a flip rate learned per parent set).",
+        choices=("flip", "pattern", "mixture"),
     )
     change_run: int = option(5, "Run at which the change setting redraws the sensor order.")
     prediction: str = option(
@@ -169,6 +202,7 @@ class DependenciesConfig:
             ("path", ("fast", "modular")),
             ("reopen", ("body", "actuator")),
             ("candidate_prior", ("size", "sparse", "uniform")),
+            ("likelihood", ("flip", "pattern", "mixture")),
         ):
             if getattr(self, name) not in choices:
                 raise ValueError(
@@ -244,7 +278,7 @@ def sensor_orders(
 def _keys(config: DependenciesConfig, method: str) -> tuple[torch.Tensor, torch.Tensor]:
     labels = [(config.world, index) for index in range(config.seeds)]
     world_keys = experiment_keys(config.seed, STREAM_WORLD, labels)
-    policy_keys = experiment_keys(config.seed, STREAM_POLICY, labels, METHODS, method)
+    policy_keys = experiment_keys(config.seed, STREAM_POLICY, labels, KEYED_METHODS, method)
     return world_keys, policy_keys
 
 
@@ -259,6 +293,7 @@ def _learner_options(config: DependenciesConfig) -> dict[str, Any]:
         "prediction": config.prediction,
         "reopen": config.reopen,
         "reopen_factor": config.reopen_factor,
+        "likelihood": config.likelihood,
     }
 
 
@@ -528,6 +563,72 @@ def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[
     return {"metrics": metrics}
 
 
+def run_gated(config: DependenciesConfig, setting: str) -> dict[str, Any]:
+    """Factor-Q with ``GatedLocalRewardNetwork`` (one network per experiment and actuator over
+    all sensors, sigmoid gates under an L1 penalty, Adam) through ``FactorQPolicy``,
+    ``FactorQLoss`` and ``OnlineCollector``, the sensors in the learner's orders (the change
+    setting: redrawn at the same run). Its structure is read at the end (``structure()``: a
+    sensor is a parent when flipping it moves the predicted local reward by a quarter of a
+    collision), against the truth of that moment."""
+    from tensordict.nn import TensorDictSequential
+    from torchrl.envs import Compose, TransformedEnv
+
+    from factorq_envs.permutation import PermuteSensors, permuted_dependency
+    from factorq_envs.transforms import SplitLocalReward
+    from factorq_torch.collectors import OnlineCollector
+    from factorq_torch.neural import GatedLocalRewardNetwork
+    from factorq_torch.objectives import FactorQLoss
+    from factorq_torch.policy import FactorQPolicy
+    from factorq_torch.tables import TaskQTable
+    from factorq_trainers.experiment import make_env
+
+    world, agent = config.world_of(setting), AgentConfig()
+    count, num_sensors = config.seeds, world.num_sensors
+    world_keys, policy_keys = _keys(config, "learned")  # common random numbers (KEYED_METHODS)
+    orders = sensor_orders(config.seed, setting, count, num_sensors, 0)
+    permute = PermuteSensors(orders)
+    periods = [WORLD_PERIODS[config.world]] * count
+    env = TransformedEnv(make_env(world, periods, world_keys), Compose(SplitLocalReward(), permute))
+    task = TaskQTable(
+        count, world.num_cells, num_headings=world.num_headings, num_actions=world.num_actuators
+    )
+    local = GatedLocalRewardNetwork(
+        count,
+        num_actions=world.num_actuators,
+        num_sensors=num_sensors,
+        l1=GATED_L1,
+        seed=config.seed,
+    )
+    optimizer = torch.optim.Adam(local.parameters(), lr=GATED_LEARNING_RATE)
+    collector = OnlineCollector(
+        env,
+        TensorDictSequential(
+            task, local, FactorQPolicy(count, keys=policy_keys, epsilon=agent.epsilon)
+        ),
+        FactorQLoss(task, local, gamma=agent.gamma, alpha=agent.alpha),
+        runs=config.runs,
+        episodes=config.episodes,
+        optimizer=optimizer,
+    )
+    truth = permuted_dependency(world.dependency, orders)
+    changed = torch.zeros(count, dtype=torch.bool)
+    for _ in collector:
+        if setting == "change":
+            due = (collector.run_index >= config.change_run) & ~changed
+            if bool(due.any()):
+                new_orders = sensor_orders(config.seed, setting, count, num_sensors, 1)
+                permute.set_permutations(new_orders, due)
+                truth[due] = permuted_dependency(world.dependency, new_orders)[due]
+                changed |= due
+    structure = local.structure()  # [S, A, K]
+    metrics = {name: collector.metrics.get(name) for name in collector.metrics.keys()}
+    return {
+        "metrics": metrics,
+        "right_at_end": (structure == truth).all(dim=-1).all(dim=-1).tolist(),
+        "hamming_at_end": (structure != truth).sum(dim=(1, 2)).tolist(),
+    }
+
+
 def _budget(config: DependenciesConfig, setting: str, runs: dict[str, dict[str, Any]]) -> int:
     """DQN's step budget: the oracle's mean env steps per experiment (else the learned
     structure's, else every episode at its longest)."""
@@ -584,7 +685,7 @@ def skipped_reason(config: DependenciesConfig, setting: str, method: str) -> str
     from factorq_trainers import fast
 
     world = config.world_of(setting)
-    if method == "learned":
+    if method in ("learned", "gated"):
         return None
     if method == "dqn":
         if setting == "change":
@@ -660,6 +761,19 @@ def summarise_setting(
             .mean(dim=0)
             .tolist(),
         }
+    gated = runs.get("gated")
+    if gated is not None:
+        summary["gated_structure"] = {
+            "fraction_right_at_end": float(np.mean(gated["right_at_end"])),
+            "hamming_at_end_mean": float(np.mean(gated["hamming_at_end"])),
+        }
+        if "oracle" in totals:
+            mine, oracle = totals["gated"], totals["oracle"]
+            summary["gated_against_oracle"] = {
+                "collisions": _ratio(mine["collisions"], oracle["collisions"], config.seed),
+                "greedy_collisions": _ratio(mine["greedy"], oracle["greedy"], config.seed),
+                "learning_speed": _ratio(oracle["steps"], mine["steps"], config.seed),
+            }
     learned = runs.get("learned")
     if learned is None:
         return summary
@@ -712,6 +826,8 @@ def run(
                 runs[method] = run_learned(config, setting)
             elif method == "dqn":
                 runs[method] = run_dqn(config, setting, _budget(config, setting, runs))
+            elif method == "gated":
+                runs[method] = run_gated(config, setting)
             else:
                 runs[method] = run_compiled(config, setting, method)
         results["settings"][setting] = summarise_setting(config, setting, runs)
@@ -743,7 +859,8 @@ def report_markdown(results: dict[str, Any]) -> str:
         f"episodes each, {config['world']} world {config['size']}x{config['size']} with "
         f"{config['obstacles']} obstacles, Bayes factor {format_number(config['bayes_factor'])}, "
         f"Beta({format_number(config['prior_a'])}, {format_number(config['prior_b'])}) prior, "
-        f"candidate prior {config['candidate_prior']}"
+        f"candidate prior {config['candidate_prior']}, "
+        f"{config.get('likelihood', 'pattern')} likelihood"
         + (
             f", reopening at Bayes factor {format_number(config['reopen_factor'])}"
             if config.get("reopen_factor") is not None
@@ -769,6 +886,19 @@ def report_markdown(results: dict[str, Any]) -> str:
             f"(<= {structure['samples_target']}) | "
             f"{format_number(structure['wrong_commitments_per_1000'])} | "
             f"{format_number(structure['hamming_at_end_mean'])} | "
+            f"{_ratio_text(against.get('collisions'))} | "
+            f"{_ratio_text(against.get('greedy_collisions'))} | "
+            f"{_ratio_text(against.get('learning_speed'))} |"
+        )
+    for setting, summary in results["settings"].items():
+        gated = summary.get("gated_structure")
+        if gated is None:
+            continue
+        against = summary.get("gated_against_oracle", {})
+        lines.append(
+            f"| {setting}, gated network | - | "
+            f"{100 * gated['fraction_right_at_end']:.0f}% (at the end) | - | "
+            f"{format_number(gated['hamming_at_end_mean'])} | "
             f"{_ratio_text(against.get('collisions'))} | "
             f"{_ratio_text(against.get('greedy_collisions'))} | "
             f"{_ratio_text(against.get('learning_speed'))} |"

@@ -52,6 +52,9 @@ from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_torch.base.rng import probability_threshold
 from factorq_torch.base.validation import MAX_PARENTS, check_float, check_int, check_table_size
 from factorq_torch.functional import (
+    LIKELIHOODS,
+    NOISY_ODDS,
+    NOISY_PRIOR,
     PREDICTIONS,
     REOPENINGS,
     candidate_log_prior,
@@ -71,7 +74,7 @@ _SOURCE = Path(__file__).with_name("_kernel.c")
 #: No FMA contraction and no fast-math: every float operation must round exactly as torch's
 #: separate ops do. -march=native is left out (measured no faster; keeps the cache portable).
 _FLAGS = ("-O3", "-std=c99", "-ffp-contract=off", "-fno-fast-math", "-fPIC", "-shared")
-_ABI_VERSION = 6
+_ABI_VERSION = 7
 #: The fields ``fq_check_experiment`` refuses, by code (1-based), and ``fq_advance``'s encoding.
 _STATE_FIELDS = (
     "cell",
@@ -104,6 +107,7 @@ _LEARNER_POINTERS = (
     "log_prior",
     "competitors",
     "lgamma_table",
+    "noisy_lgamma_table",
     "orders",
     "orders_after",
     "truth",
@@ -147,6 +151,7 @@ class StructureOptions:
     prediction: str = "optimistic"
     reopen: str = "body"
     reopen_factor: float | None = None
+    likelihood: str = "mixture"
     orders_after: torch.Tensor | None = None
     change_run: int = 0
     curve_every: int = 10
@@ -251,11 +256,20 @@ class _Batch(ctypes.Structure):
                 "lgamma_length",
                 "learner_stride",
                 "reopen_body",
+                "likelihood_flip",
+                "mixture",
             )
         ]
         + [
             (name, ctypes.c_double)
-            for name in ("log_bayes_factor", "log_reopen_factor", "log_beta_prior")
+            for name in (
+                "log_bayes_factor",
+                "log_reopen_factor",
+                "log_beta_prior",
+                "log_noisy_beta_prior",
+                "log_mixture_total",
+                "log_noisy_weight",
+            )
         ]
         + [(name, ctypes.c_void_p) for name in _LEARNER_POINTERS]
     )
@@ -805,6 +819,11 @@ class ExperimentBatch:
                     f"(0, 2**20)"
                 )
         check_int("structure.window", options.window, 1)
+        if options.likelihood not in LIKELIHOODS:
+            raise ValueError(
+                f"structure.likelihood={options.likelihood!r} is unknown: choose one of "
+                f"{LIKELIHOODS}"
+            )
         if options.reopen not in REOPENINGS:
             raise ValueError(
                 f"structure.reopen={options.reopen!r} is unknown: choose one of {REOPENINGS}"
@@ -837,6 +856,7 @@ class ExperimentBatch:
             "log_prior": log_prior.contiguous(),
             "competitors": competitor_mask(sets).to(torch.uint8).contiguous(),
             "lgamma_table": lgamma_tables(options.prior_a, options.prior_b, length).contiguous(),
+            "noisy_lgamma_table": lgamma_tables(*NOISY_PRIOR, length).contiguous(),
             "orders": orders,
             "orders_after": after,
             "truth": truth,
@@ -864,6 +884,7 @@ class ExperimentBatch:
         self._tensors.update(state)
         self._candidate_sets = sets
         a, b = float(options.prior_a), float(options.prior_b)
+        noisy_a, noisy_b = NOISY_PRIOR
         return {
             "learner": 1,
             "num_candidates": num_candidates,
@@ -876,6 +897,8 @@ class ExperimentBatch:
             "lgamma_length": length,
             "learner_stride": stride,
             "reopen_body": int(options.reopen == "body"),
+            "likelihood_flip": int(options.likelihood == "flip"),
+            "mixture": int(options.likelihood == "mixture"),
             "log_bayes_factor": math.log(float(options.bayes_factor)),
             "log_reopen_factor": math.log(
                 float(
@@ -884,6 +907,12 @@ class ExperimentBatch:
             ),
             # as functional.beta_bernoulli_log_marginal computes it (Python's lgamma)
             "log_beta_prior": math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b),
+            # as functional.mixture_log_marginal computes them
+            "log_noisy_beta_prior": math.lgamma(noisy_a)
+            + math.lgamma(noisy_b)
+            - math.lgamma(noisy_a + noisy_b),
+            "log_mixture_total": math.log1p(NOISY_ODDS),
+            "log_noisy_weight": math.log(NOISY_ODDS) - math.log1p(NOISY_ODDS),
         }
 
     def _sensor_orders(self, options: SensorOrders, world: WorldConfig, count: int) -> dict:

@@ -1,0 +1,100 @@
+"""The structure learner's cost per firing against the number of sensors (issue 27).
+
+On the compiled path, a translate body with the ring sensors (8) and ``K - 8`` distractors, the
+static 6x6 world: ``--seeds`` experiments of ``--runs`` episodes run with the learned structure
+(``fast.StructureOptions``, the defaults) and with the oracle pairing (Factor-Q told the true
+dependency), one thread. Prints per ``K``: the candidates ``C``, env steps per second of both
+(the kernel's run, without building the batch), the throughput ratio oracle / learned (also with
+the batches' set-up counted), the learner's cost per firing (learned minus oracle time per step:
+every step fires one actuator) and the learner's set-up time. The world takes at most 32
+distractors, so ``K`` stops at 40 here (the learner itself takes up to
+``functional.MAX_SENSORS`` = 62); the work per firing is linear in the candidates
+``C = 1 + K + K (K - 1) / 2``, which gives it at ``K = 64``.
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_structure.py --sensors 16,32,40
+
+The machine may be shared: read the ratios of one run, not the absolute times.
+Not a package on purpose (the torchrl wheel installs a top-level ``benchmarks``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+
+from factorq_envs.world import WORLD_PERIODS
+from factorq_torch.base.config import AgentConfig
+from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
+from factorq_torch.functional import LIKELIHOODS, candidate_sets
+from factorq_trainers import fast
+from factorq_trainers.experiment import check_world_options, experiment_keys
+
+
+def timed(
+    sensors: int, seeds: int, runs: int, learned: bool, likelihood: str = "mixture"
+) -> tuple[float, float, int]:
+    """Seconds to build the batch, seconds to run it, env steps (learned structure or oracle)."""
+    body = {"body": "translate", "sensors": "ring", "distractors": sensors - 8}
+    world = check_world_options(6, 4, 1_000, 0, ("static",), body)
+    labels = [("static", index) for index in range(seeds)]
+    world_keys = experiment_keys(0, STREAM_WORLD, labels)
+    policy_keys = experiment_keys(0, STREAM_POLICY, labels)
+    periods = torch.full((seeds,), WORLD_PERIODS["static"], dtype=torch.int64)
+    generator = torch.Generator().manual_seed(0)
+    orders = torch.stack([torch.randperm(sensors, generator=generator) for _ in range(seeds)])
+    structure = fast.StructureOptions(orders=orders, likelihood=likelihood) if learned else None
+    started = time.perf_counter()
+    batch = fast.ExperimentBatch(
+        "factor-q",
+        periods,
+        world,
+        AgentConfig(),
+        runs,
+        1,
+        world_keys,
+        policy_keys,
+        threads=1,
+        structure=structure,
+    )
+    built = time.perf_counter()
+    while not batch.done:
+        batch.advance(1 << 62)
+    return built - started, time.perf_counter() - built, int(batch.metrics()["steps"].sum())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sensors", default="16,32,40", help="Values of K, comma-separated.")
+    parser.add_argument("--seeds", type=int, default=20, help="Experiments per batch.")
+    parser.add_argument("--runs", type=int, default=10, help="Episodes per experiment.")
+    parser.add_argument(
+        "--likelihood", default="mixture", choices=LIKELIHOODS, help="The learner's likelihood."
+    )
+    arguments = parser.parse_args()
+    if not fast.is_available():
+        raise SystemExit(f"the compiled path is unavailable: {fast.unavailable_reason()}")
+    timed(16, 2, 1, True)  # compile and warm up
+    print(
+        "| K | candidates | oracle steps/s | learned steps/s | oracle / learned | the same with "
+        "set-up | us per firing | learned set-up s |"
+    )
+    print("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+    for sensors in (int(value) for value in arguments.sensors.split(",")):
+        oracle = timed(sensors, arguments.seeds, arguments.runs, False)
+        learned = timed(sensors, arguments.seeds, arguments.runs, True, arguments.likelihood)
+        oracle_rate, learned_rate = oracle[2] / oracle[1], learned[2] / learned[1]
+        with_set_up = ((learned[0] + learned[1]) / learned[2]) / (
+            (oracle[0] + oracle[1]) / oracle[2]
+        )
+        per_firing = 1e6 * (1 / learned_rate - 1 / oracle_rate)
+        print(
+            f"| {sensors} | {len(candidate_sets(sensors))} | {oracle_rate:,.0f} | "
+            f"{learned_rate:,.0f} | {oracle_rate / learned_rate:.1f} | {with_set_up:.1f} | "
+            f"{per_firing:.2f} | {learned[0]:.2f} |"
+        )
+
+
+if __name__ == "__main__":
+    main()
