@@ -8,7 +8,7 @@ import hashlib
 from pathlib import Path
 from typing import Any
 
-from factorq_trainers.results import dumps
+from factorq_trainers.runner.results import dumps
 
 DATA = Path(__file__).parent / "data" / "command_figures.json"
 #: Tabular methods only: their numbers are integer counts and table arithmetic (bit-exact on any
@@ -67,7 +67,7 @@ def digest(exact: dict[str, Any]) -> str:
 def compute() -> dict[str, Any]:
     import os
 
-    from factorq_trainers import compare, dependencies, minigrid
+    from factorq_trainers.experiments import compare, dependencies, minigrid
 
     stored: dict[str, Any] = {}
     with_out = {"out": os.devnull}

@@ -14,7 +14,8 @@ import os
 import command_figures
 import pytest
 
-from factorq_trainers import compare, dependencies, fast, minigrid
+from factorq_trainers.compiled import fast
+from factorq_trainers.experiments import compare, dependencies, minigrid
 
 STORED = json.loads(command_figures.DATA.read_text())
 DEVNULL = {"out": os.devnull}

@@ -14,7 +14,11 @@ from factorq_envs.permutation import PermuteSensors, permuted_dependency
 from factorq_envs.world import WorldConfig
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import derive_keys
-from factorq_trainers import cli, dependencies, fast
+from factorq_trainers import cli
+from factorq_trainers.compiled import fast
+from factorq_trainers.experiments import dependencies
+from factorq_trainers.reports import dependencies as dependencies_report
+from factorq_trainers.runner import frame
 
 TINY = dict(seeds=2, size=4, obstacles=2, runs=2, episodes=1, change_run=1, max_steps=200)
 
@@ -57,7 +61,7 @@ def test_a_tiny_experiment_writes_its_three_files(tmp_path):
         **TINY, settings=("cross", "ring-24", "change"), out=str(tmp_path)
     )
     results = dependencies.run(config)
-    paths = dependencies.write_outputs(results, tmp_path)
+    paths = frame.write_outputs(dependencies, results, tmp_path)
     assert {path.name for path in paths.values()} == {
         "dependencies.json",
         "dependencies.md",
@@ -113,9 +117,9 @@ def test_cli_refuses_a_reopen_factor_of_one_and_reports_a_given_one(capsys, tmp_
     assert "--reopen-factor=1.0 is out of range" in capsys.readouterr().err
     config = dependencies.DependenciesConfig(reopen_factor=1e4)
     assert dependencies._learner_options(config)["reopen_factor"] == 1e4
-    results = {"config": dataclasses.asdict(config), "timing": {"wall_seconds": 1.0}}
+    results = {"config": dataclasses.asdict(config), "timing": {"wall_s": 1.0}}
     results["settings"] = {}
-    assert "reopening at Bayes factor 10000" in dependencies.report_markdown(results)
+    assert "reopening at Bayes factor 10000" in dependencies_report.markdown(results)
 
 
 def test_cli_refuses_a_prior_the_compiled_path_cannot_take(capsys):
@@ -157,7 +161,7 @@ def test_dqn_is_opt_in_and_runs_on_the_oracles_budget(tmp_path):
     assert entry["step_budget"] == round(oracle["steps_per_run"] * TINY["runs"])
     assert entry["collisions_per_experiment"] >= 0
     assert "dqn" in results["skipped"]["change"]
-    assert "DQN in cross: a budget of" in dependencies.report_markdown(results)
+    assert "DQN in cross: a budget of" in dependencies_report.markdown(results)
 
 
 def test_unknown_methods_and_predictions_are_refused():

@@ -8,7 +8,7 @@ import torch
 from tensordict import TensorDict
 
 from factorq_torch.base.rng import STREAM_WORLD
-from factorq_trainers import dqn, experiment
+from factorq_trainers.experiments import dqn, experiment
 
 
 def test_exploratory_egreedy_flags_exactly_the_actions_the_epsilon_branch_drew():

@@ -2,8 +2,8 @@
 
 ``compute_claims`` reads only the ``per_seed`` lists of the cells of ``results.json`` (per seed,
 the measure per run); each claim's statistic gets a percentile bootstrap interval over seeds
-(``factorq_trainers.stats``), paired across cells because the cells of one seed index share their
-world's random numbers.
+(``factorq_trainers.analysis.stats``), paired across cells because the cells of one seed index
+share their world's random numbers.
 """
 
 from __future__ import annotations
@@ -14,9 +14,14 @@ from typing import Any
 
 import numpy as np
 
-from factorq_envs.world import WORLDS
 from factorq_torch.base.config import ALGORITHMS
-from factorq_trainers.stats import bootstrap_indices, finite_or_none, format_number, quantiles
+from factorq_trainers.analysis.stats import (
+    bootstrap_indices,
+    finite_or_none,
+    format_number,
+    quantiles,
+)
+from factorq_trainers.analysis.worlds import WORLDS
 
 #: The measures of a cell, per run (totals over the episodes of a run, mean over the runs).
 MEASURES = ("total_steps", "collisions", "greedy_collisions")

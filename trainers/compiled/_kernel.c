@@ -880,7 +880,7 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
     learner_refresh(b, i, a, lp, !reopen);
 }
 
-/* trainers/dependencies.py's bookkeeping after a step: who is right, since when, wrong
+/* trainers/experiments/dependencies.py's bookkeeping after a step: who is right, since when, wrong
    commitments (of the fired actuator, whose commitment changed from before), the curve. */
 static void learner_track(const fq_batch *b, int64_t i, int64_t fired, int64_t before,
                           uint64_t steps) {

@@ -1,7 +1,8 @@
 """Where shards run: here, one after another (the default, no Dask needed), or on a Dask cluster.
 
 An *executor* runs one function over a list of items and yields ``(index, result)`` pairs as
-they finish, in any order; whoever consumes them (``factorq_trainers.sweep``) writes each result
+they finish, in any order; whoever consumes them (``factorq_trainers.distributed.sweep``) writes
+each result
 down at once. Two executors:
 
 - ``InProcess``: a plain loop in this process.
@@ -22,6 +23,7 @@ Dask is the optional extra ``factorq-torch[distributed]``; asking for a cluster 
 
 from __future__ import annotations
 
+import argparse
 import os
 import re
 import tempfile
@@ -199,3 +201,53 @@ def open_executor(where: Where) -> InProcess | DaskExecutor:
         silence_logs=50,  # CRITICAL only: a killed worker's traceback is expected noise here
     )
     return DaskExecutor(distributed.Client(cluster, set_as_default=False), cluster)
+
+
+# --------------------------------------------------------------------------------------------
+# The command-line options of every command that can run on a cluster
+
+
+def add_options(parser: argparse.ArgumentParser) -> None:
+    """``--cluster``, ``--scheduler``, ``--connect-timeout`` (``factorq sweep``, every command)."""
+    parser.add_argument(
+        "--cluster",
+        metavar="local[:N]",
+        help="Run the shards on a Dask LocalCluster of N worker processes started here (plain "
+        "'local': one per core). Needs the 'distributed' extra. (default: in-process)",
+        default=argparse.SUPPRESS,
+    )
+    parser.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="Run the shards on the running Dask cluster whose scheduler is at ADDRESS "
+        "(tcp://host:8786). Needs the 'distributed' extra.",
+        default=argparse.SUPPRESS,
+    )
+    parser.add_argument(
+        "--connect-timeout",
+        metavar="SECONDS",
+        type=float,
+        help=f"Give up on --scheduler after this long. (default: {DEFAULT_CONNECT_TIMEOUT_S:g})",
+        default=argparse.SUPPRESS,
+    )
+
+
+def where_from_args(args: argparse.Namespace) -> Where:
+    """Where to run, from ``add_options``' options (a ``ClusterError`` when invalid)."""
+    workers = None
+    if hasattr(args, "cluster"):
+        workers = parse_cluster(args.cluster)
+    return Where(
+        local_workers=workers,
+        scheduler=getattr(args, "scheduler", None),
+        connect_timeout_s=getattr(args, "connect_timeout", DEFAULT_CONNECT_TIMEOUT_S),
+    )
+
+
+def executor_from_args(
+    args: argparse.Namespace,
+) -> InProcess | DaskExecutor | None:
+    """The executor of ``add_options``' options: ``None`` when none was given."""
+    if not any(hasattr(args, name) for name in ("cluster", "scheduler", "connect_timeout")):
+        return None
+    return open_executor(where_from_args(args))

@@ -30,8 +30,9 @@ import numpy as np
 
 from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_torch.base.validation import check_int
-from factorq_trainers import checkpoint, paper
-from factorq_trainers import results as result_files
+from factorq_trainers.experiments import paper
+from factorq_trainers.runner import checkpoint
+from factorq_trainers.runner import results as result_files
 
 #: Config fields that do not change a shard's numbers (tested: backends and thread counts give
 #: identical results), left out of its digest so that they may differ between a run and its resume.

@@ -35,7 +35,8 @@ killed sweep continues where it stopped, and a sweep that adds seeds or axis val
 new shards.
 
 **Identical results.** A shard's numbers depend on its configuration and seed range alone (see
-``factorq_trainers.shards``), so the per-experiment numbers and every summary are the same
+``factorq_trainers.distributed.shards``), so the per-experiment numbers and every summary are the
+same
 in-process, on any number of workers, and after any number of interruptions.
 """
 
@@ -63,8 +64,11 @@ import numpy as np
 import torch
 
 from factorq_torch.base.validation import INT32_MAX, check_int
-from factorq_trainers import claims, cluster, outdir, paper, resources, shards, stats
-from factorq_trainers import results as result_files
+from factorq_trainers.analysis import claims, stats
+from factorq_trainers.distributed import cluster, shards
+from factorq_trainers.experiments import paper
+from factorq_trainers.runner import outdir, resources
+from factorq_trainers.runner import results as result_files
 
 EXIT_USAGE = 2
 EXIT_FAILURE = 1
@@ -123,11 +127,11 @@ def config_class(command: str = "paper") -> type:
     """The config dataclass of ``command``: ``PaperConfig``, ``CompareConfig`` or
     ``DependenciesConfig``."""
     if command == "dependencies":
-        from factorq_trainers import dependencies
+        from factorq_trainers.experiments import dependencies
 
         return dependencies.DependenciesConfig
     if command == "compare":
-        from factorq_trainers import (
+        from factorq_trainers.experiments import (
             compare,  # not at import: compare is heavier and imports this one's
         )
 
@@ -164,7 +168,7 @@ def config_digest(config: Any) -> str:
     modular path give the same numbers bit for bit)."""
     if isinstance(config, paper.PaperConfig):
         return shards.digest(config)
-    from factorq_trainers import compare, dependencies
+    from factorq_trainers.experiments import compare, dependencies
 
     if isinstance(config, dependencies.DependenciesConfig):
         values = _json(dataclasses.asdict(config))
@@ -471,7 +475,7 @@ def run_compare_configs(
     ``executor``; when a config's methods are all in, write its ``compare.summarise`` dict
     (what ``compare.run`` returns, ``timing`` aside) to ``compare_result_path``, atomically.
     ``done()`` is called per method finished."""
-    from factorq_trainers import compare
+    from factorq_trainers.experiments import compare
 
     items = [(config, method) for config in configs for method in config.methods]
     owner = [index for index, config in enumerate(configs) for _ in config.methods]
@@ -536,7 +540,7 @@ def run_compare_sweep(
 ) -> dict[str, Any]:
     """``run_sweep`` of a compare spec: every configuration not already in ``OUT/configs/``
     run whole (one task per method), then gathered into ``sweep.json``'s dict."""
-    from factorq_trainers import compare
+    from factorq_trainers.experiments import compare
 
     started = time.perf_counter()
     directory = Path(spec.out) / CONFIGS_DIRECTORY
@@ -621,7 +625,7 @@ def _gathered(
 
 
 def _dependencies_task(config: Any) -> dict[str, Any]:
-    from factorq_trainers import dependencies
+    from factorq_trainers.experiments import dependencies
 
     return dependencies.run(config)
 
@@ -922,35 +926,9 @@ class _Parser(argparse.ArgumentParser):
         raise SystemExit(EXIT_USAGE)
 
 
-def add_cluster_options(parser: argparse.ArgumentParser) -> None:
-    """``--cluster``, ``--scheduler``, ``--connect-timeout`` (``factorq sweep`` and ``paper``)."""
-    parser.add_argument(
-        "--cluster",
-        metavar="local[:N]",
-        help="Run the shards on a Dask LocalCluster of N worker processes started here (plain "
-        "'local': one per core). Needs the 'distributed' extra. (default: in-process)",
-        default=argparse.SUPPRESS,
-    )
-    parser.add_argument(
-        "--scheduler",
-        metavar="ADDRESS",
-        help="Run the shards on the running Dask cluster whose scheduler is at ADDRESS "
-        "(tcp://host:8786). Needs the 'distributed' extra.",
-        default=argparse.SUPPRESS,
-    )
-    parser.add_argument(
-        "--connect-timeout",
-        metavar="SECONDS",
-        type=float,
-        help="Give up on --scheduler after this long. "
-        f"(default: {cluster.DEFAULT_CONNECT_TIMEOUT_S:g})",
-        default=argparse.SUPPRESS,
-    )
-
-
 def add_paper_options(parser: argparse.ArgumentParser) -> None:
-    """The cluster options of ``factorq paper``: ``add_cluster_options`` and ``--shard-seeds``."""
-    add_cluster_options(parser)
+    """The cluster options of ``factorq paper``: ``cluster.add_options`` and ``--shard-seeds``."""
+    cluster.add_options(parser)
     parser.add_argument(
         "--shard-seeds",
         type=int,
@@ -978,7 +956,7 @@ def paper_executor(args: argparse.Namespace) -> cluster.InProcess | cluster.Dask
     check_int(
         "--shard-seeds", getattr(args, "shard_seeds", DEFAULT_PAPER_SHARD_SEEDS), 1, INT32_MAX
     )
-    return executor_from_args(args) or cluster.InProcess()
+    return cluster.executor_from_args(args) or cluster.InProcess()
 
 
 def run_paper_on(
@@ -993,15 +971,6 @@ def run_paper_on(
         return run_paper(config, executor, shard_seeds, progress)
     finally:
         executor.close()
-
-
-def executor_from_args(
-    args: argparse.Namespace,
-) -> cluster.InProcess | cluster.DaskExecutor | None:
-    """The executor of ``add_cluster_options``' options: ``None`` when none was given."""
-    if not any(hasattr(args, name) for name in ("cluster", "scheduler", "connect_timeout")):
-        return None
-    return cluster.open_executor(where_from_args(args))
 
 
 def _compare_method(run_method: Callable[..., Any], config: Any, method: str) -> Any:
@@ -1023,7 +992,8 @@ def run_compare_on(
 ) -> dict[str, Any]:
     """``factorq compare`` with one task per method on ``executor`` (closed afterwards): a
     method's batch is the unit, so every method, DQN included, repeats its in-process numbers.
-    ``run_method`` and ``summarise`` are ``factorq_trainers.compare``'s (passed in: this module
+    ``run_method`` and ``summarise`` are ``factorq_trainers.experiments.compare``'s (passed in:
+    this module
     does not import it). Seeds are not sharded: DQN's seeds share a random stream within their
     batch."""
     started = time.perf_counter()
@@ -1043,18 +1013,6 @@ def run_compare_on(
     results = summarise(config, {method: runs[method] for method in methods})
     results["timing"] = {"wall_s": round(time.perf_counter() - started, 3), "where": where}
     return results
-
-
-def where_from_args(args: argparse.Namespace) -> cluster.Where:
-    """Where to run, from ``add_cluster_options``' options (a ``ClusterError`` when invalid)."""
-    workers = None
-    if hasattr(args, "cluster"):
-        workers = cluster.parse_cluster(args.cluster)
-    return cluster.Where(
-        local_workers=workers,
-        scheduler=getattr(args, "scheduler", None),
-        connect_timeout_s=getattr(args, "connect_timeout", cluster.DEFAULT_CONNECT_TIMEOUT_S),
-    )
 
 
 def build_parser(prog: str = "factorq sweep") -> argparse.ArgumentParser:
@@ -1102,7 +1060,7 @@ def build_parser(prog: str = "factorq sweep") -> argparse.ArgumentParser:
         help="Replace the sweep.json and sweep.md of an earlier sweep in --out (its finished "
         "shards are reused either way). Without it, an --out holding them is refused.",
     )
-    add_cluster_options(parser)
+    cluster.add_options(parser)
     return parser
 
 
@@ -1185,7 +1143,7 @@ def main(argv: list[str] | None = None) -> int:
         return exit_.code if isinstance(exit_.code, int) else EXIT_USAGE
     try:
         spec = spec_from_args(args)
-        where = where_from_args(args)
+        where = cluster.where_from_args(args)
         workers = 1 if where.local_workers is None else where.local_workers or os.cpu_count() or 1
         if spec.command == "dependencies":
             estimate = max(

@@ -9,10 +9,11 @@ the three worlds, for ``seeds`` independent experiments and a budget of ``steps`
 not the paper's runs x episodes protocol: a budget of env steps is what makes DQN, which trains on
 a replay buffer, comparable with the online methods. Tabular methods and Factor-DQN run in the
 project's ``OnlineCollector`` (one run, stepped ``steps`` times), DQN in torchrl's ``Collector``
-(``factorq_trainers.dqn``).
+(``factorq_trainers.experiments.dqn``).
 
 **The swap.** Factor-Q and Factor-DQN run the very same code (``run_online``, with the agent of
-``factorq_trainers.experiment.online_agent``): env with ``SplitLocalReward``, ``FactorQPolicy``
+``factorq_trainers.experiments.experiment.online_agent``): env with ``SplitLocalReward``,
+``FactorQPolicy``
 (eqs. 2-3), ``FactorQLoss`` (eq. 4, and eq. 5 or its regression), ``OnlineCollector``. Only
 ``value_providers`` differs: tables and SGD(lr 1), or networks (``factorq_torch.neural``) and
 Adam.
@@ -54,22 +55,27 @@ from factorq_torch.base.rng import STREAM_LOCAL_NETWORK, STREAM_POLICY, STREAM_T
 from factorq_torch.base.validation import check_float, check_hidden, check_names, check_threads
 from factorq_torch.collectors import OnlineCollector
 from factorq_torch.neural import ACTIVATIONS, LocalRewardNetwork, TaskQNetwork
-from factorq_trainers import checkpoint, compare_checkpoint, dqn, experiment, resources
-from factorq_trainers.compare_checkpoint import CompareCheckpoint
-from factorq_trainers.dqn import METHODS, DQNConfig, batch_keys
-from factorq_trainers.experiment import WORLDS, EpisodeRecorder, ExperimentConfig
-from factorq_trainers.options import option
-from factorq_trainers.stats import finite_or_none, mean_ci, scalar_ci
+from factorq_trainers.analysis.stats import finite_or_none, mean_ci, scalar_ci
+from factorq_trainers.experiments import dqn, experiment
+from factorq_trainers.experiments.dqn import METHODS, DQNConfig, batch_keys
+from factorq_trainers.experiments.experiment import WORLDS, EpisodeRecorder, ExperimentConfig
+from factorq_trainers.reports.compare_report import THRESHOLD_FACTOR
+from factorq_trainers.runner import checkpoint, compare_checkpoint, resources
+from factorq_trainers.runner.compare_checkpoint import CompareCheckpoint
+from factorq_trainers.runner.options import option
 
 LOGGERS = ("csv", "tensorboard")
-THRESHOLD_FACTOR = 1.5
+NAME = "compare"
+HELP = "compare tabular Factor-Q, Q-learning, DQN and neural Factor-Q on the three worlds"
+DESCRIPTION = (
+    "Run factor-q, q-learning, dqn and factor-dqn for --seeds experiments of --steps env steps "
+    "per world; write comparison.json, comparison.png and comparison.md to --out."
+)
+#: compare keeps its finer frame (a checkpoint per method and mid-method).
+FRAME = "factorq_trainers.experiments.compare_frame"
+FILES = {"json": "comparison.json", "report": "comparison.md", "figure": "comparison.png"}
+REPORT = "factorq_trainers.reports.compare_report"
 CURVE_POINTS = 100
-METHOD_LABELS = {
-    "factor-q": "Factor-Q (tabular)",
-    "q-learning": "Q-learning (tabular)",
-    "dqn": "DQN",
-    "factor-dqn": "Factor-DQN (neural Factor-Q)",
-}
 
 
 @dataclass(frozen=True)
@@ -159,7 +165,9 @@ class CompareConfig:
         AgentConfig(),
         "Tabular and Factor-DQN parameters: epsilon, gamma, alpha, eta, g_min (the paper's).",
     )
-    dqn: DQNConfig = option(DQNConfig(), "DQN's hyperparameters (factorq_trainers.dqn).")
+    dqn: DQNConfig = option(
+        DQNConfig(), "DQN's hyperparameters (factorq_trainers.experiments.dqn)."
+    )
     factor_dqn: FactorDQNConfig = option(
         FactorDQNConfig(), "Factor-DQN's networks and learning rates."
     )
@@ -205,6 +213,9 @@ class CompareConfig:
             layout_seed=self.layout_seed,
             **experiment.body_options(self),
         )
+
+
+CONFIG = CompareConfig
 
 
 # --------------------------------------------------------------------------------------------
@@ -266,7 +277,8 @@ def run_online(
 ) -> dict[str, Any]:
     """Tabular Factor-Q, tabular Q-learning or Factor-DQN for the step budget (OnlineCollector).
 
-    Returns ``{"traces", "wall_s"}`` like ``factorq_trainers.dqn.run``. ``checkpoints`` (a
+    Returns ``{"traces", "wall_s"}`` like ``factorq_trainers.experiments.dqn.run``. ``checkpoints``
+    (a
     ``compare_checkpoint.Saver``): restore the method's saved state if the run resumes during it,
     and save its state whenever one is due (between two steps; the numbers do not change).
     """
@@ -460,7 +472,7 @@ def config_from_dict(data: dict[str, Any]) -> CompareConfig:
 
 
 # --------------------------------------------------------------------------------------------
-# Checkpoints (trainers/compare_checkpoint.py holds the file format and its checks)
+# Checkpoints (trainers/runner/compare_checkpoint.py holds the file format and its checks)
 
 
 def save_checkpoint(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> Path:

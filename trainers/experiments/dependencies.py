@@ -14,7 +14,7 @@ methods on the same worlds (common random numbers: the same world keys):
 - ``joint``: Factor-Q with one local table per actuator over the pattern of *all* sensors (the
   paper's footnote 2), compiled, where ``2**K`` entries fit (``tables.MAX_PARENTS``);
 - ``q-learning``: compiled, where its table fits (``tables.MAX_TABLE_ENTRIES``);
-- ``dqn`` (opt-in, ``--methods``): ``factorq_trainers.dqn`` on the oracle's step budget
+- ``dqn`` (opt-in, ``--methods``): ``factorq_trainers.experiments.dqn`` on the oracle's step budget
   (``run_dqn``).
 
 The joint table and Q-learning receive the sensors in the learner's orders, changed at the same
@@ -33,10 +33,8 @@ Writes ``dependencies.json``, ``dependencies.png`` and ``dependencies.md`` to ``
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -52,11 +50,20 @@ from factorq_torch.base.validation import (
     check_names,
     check_threads,
 )
-from factorq_trainers import resources
-from factorq_trainers.experiment import MAX_SEED, check_world_options, experiment_keys
-from factorq_trainers.options import option
-from factorq_trainers.results import dumps, write_all_atomic
-from factorq_trainers.stats import bootstrap_indices, format_number, quantiles
+from factorq_trainers.analysis.stats import bootstrap_indices, quantiles
+from factorq_trainers.experiments.experiment import MAX_SEED, check_world_options, experiment_keys
+from factorq_trainers.runner import resources
+from factorq_trainers.runner.options import option
+
+NAME = "dependencies"
+HELP = "learn which sensors each actuator depends on, against the oracle pairing"
+DESCRIPTION = (
+    "Run the structure learner (issue 12) against the oracle pairing, the full joint table and "
+    "Q-learning on the settings; write dependencies.json, dependencies.png and dependencies.md "
+    "to --out."
+)
+REPORT = "factorq_trainers.reports.dependencies"
+HINT = resources.DEPENDENCIES_HINT
 
 #: The settings of the issue: name -> body options (the sensor order is drawn per experiment).
 SETTINGS: dict[str, dict[str, Any]] = {
@@ -86,7 +93,6 @@ SAMPLES_TARGET_CHANGE = 200
 PRIOR_DENOMINATOR, PRIOR_LIMIT = 1024, 2**20
 #: Env steps between two points of the "right structure" curve.
 CURVE_EVERY = 10
-JSON_FILE, FIGURE_FILE, REPORT_FILE = "dependencies.json", "dependencies.png", "dependencies.md"
 
 
 @dataclass(frozen=True)
@@ -222,6 +228,9 @@ class DependenciesConfig:
         )
 
 
+CONFIG = DependenciesConfig
+
+
 # --------------------------------------------------------------------------------------------
 # One setting
 
@@ -266,7 +275,7 @@ def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     """The learned structure with its structure metrics: on the compiled path where it runs
     (``fast.StructureOptions``), else on the modular torchrl path (``run_learned_modular``);
     both give the same numbers bit for bit (``tests/test_fast_structure.py``)."""
-    from factorq_trainers import fast
+    from factorq_trainers.compiled import fast
 
     world = config.world_of(setting)
     if (
@@ -281,7 +290,7 @@ def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
 
 def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     """``run_learned`` on the compiled path."""
-    from factorq_trainers import fast
+    from factorq_trainers.compiled import fast
 
     world = config.world_of(setting)
     count, num_sensors = config.seeds, world.num_sensors
@@ -403,7 +412,7 @@ def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, A
     from factorq_torch.policy import FactorQPolicy
     from factorq_torch.structure import StructureLearner
     from factorq_torch.tables import TaskQTable
-    from factorq_trainers.experiment import make_env
+    from factorq_trainers.experiments.experiment import make_env
 
     world, agent = config.world_of(setting), AgentConfig()
     count, num_sensors = config.seeds, world.num_sensors
@@ -493,7 +502,7 @@ def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, A
 def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[str, Any] | None:
     """The oracle, the joint table or Q-learning on the compiled path (``None``: does not fit
     or cannot run this setting; the reason is in ``skipped``)."""
-    from factorq_trainers import fast
+    from factorq_trainers.compiled import fast
 
     world = config.world_of(setting)
     world_keys, policy_keys = _keys(config, method)
@@ -539,13 +548,13 @@ def _budget(config: DependenciesConfig, setting: str, runs: dict[str, dict[str, 
 
 
 def run_dqn(config: DependenciesConfig, setting: str, budget: int) -> dict[str, Any]:
-    """DQN (``factorq_trainers.dqn``, its default hyperparameters) on the setting's worlds for
+    """DQN (``experiments.dqn``, its default hyperparameters) on the setting's worlds for
     ``budget`` env steps per experiment (episodes as many as fit; DQN has no runs). It sees every
     sensor (``TaskQNetwork(with_proximity=True)``); the order does not matter to a network trained
     from scratch, so it runs without ``PermuteSensors``. Measured cost: 100 experiments of 1,400
     steps took 300 s on 2 loaded cores (docs/decisions.md), hence opt-in."""
-    from factorq_trainers import dqn
-    from factorq_trainers.experiment import ExperimentConfig
+    from factorq_trainers.experiments import dqn
+    from factorq_trainers.experiments.experiment import ExperimentConfig
 
     options = {"body": "translate", "sensors": "cross", **SETTINGS[setting]}
     experiments = ExperimentConfig(
@@ -581,14 +590,17 @@ def run_dqn(config: DependenciesConfig, setting: str, budget: int) -> dict[str, 
 def skipped_reason(config: DependenciesConfig, setting: str, method: str) -> str | None:
     """Why ``method`` does not run in ``setting`` (``None``: it runs)."""
     from factorq_torch.tables import MAX_PARENTS, MAX_TABLE_ENTRIES
-    from factorq_trainers import fast
+    from factorq_trainers.compiled import fast
 
     world = config.world_of(setting)
     if method == "learned":
         return None
     if method == "dqn":
         if setting == "change":
-            return "DQN's env (factorq_trainers.dqn) cannot change the sensor order mid-experiment"
+            return (
+                "DQN's env (factorq_trainers.experiments.dqn) cannot change the sensor order "
+                "mid-experiment"
+            )
         return None
     if not fast.is_available():
         return f"the compiled path is unavailable ({fast.unavailable_reason()})"
@@ -691,161 +703,52 @@ def summarise_setting(
 # The experiment
 
 
-def run(
-    config: DependenciesConfig, progress: Callable[[str, str], None] | None = None
+def units(config: DependenciesConfig) -> list[dict[str, Any]]:
+    """One unit per setting (its methods share worlds, and DQN's budget is the oracle's)."""
+    return [{"id": setting, "setting": setting} for setting in config.settings]
+
+
+def run_unit(
+    config: DependenciesConfig,
+    unit: dict[str, Any],
+    progress: Callable[[int], None] | None = None,
 ) -> dict[str, Any]:
-    """Every setting x method; returns the results (what ``dependencies.json`` holds)."""
-    estimate = resources.dependencies_estimate(config)
-    resources.check(estimate, "experiment", resources.DEPENDENCIES_HINT)  # before any allocation
-    started = time.perf_counter()
-    results: dict[str, Any] = {"config": asdict(config), "settings": {}, "skipped": {}}
-    for setting in config.settings:
-        runs: dict[str, dict[str, Any]] = {}
-        for method in (method for method in METHODS if method in config.methods):
-            reason = skipped_reason(config, setting, method)
-            if reason is not None:
-                results["skipped"].setdefault(setting, {})[method] = reason
-                continue
-            if progress is not None:
-                progress(setting, method)
-            if method == "learned":
-                runs[method] = run_learned(config, setting)
-            elif method == "dqn":
-                runs[method] = run_dqn(config, setting, _budget(config, setting, runs))
-            else:
-                runs[method] = run_compiled(config, setting, method)
-        results["settings"][setting] = summarise_setting(config, setting, runs)
-    results["timing"] = {"wall_seconds": time.perf_counter() - started}
+    """Every method of ``config`` in the unit's setting: its summary and the methods skipped."""
+    setting = unit["setting"]
+    runs: dict[str, dict[str, Any]] = {}
+    skipped = {}
+    for method in (method for method in METHODS if method in config.methods):
+        reason = skipped_reason(config, setting, method)
+        if reason is not None:
+            skipped[method] = reason
+            continue
+        if method == "learned":
+            runs[method] = run_learned(config, setting)
+        elif method == "dqn":
+            runs[method] = run_dqn(config, setting, _budget(config, setting, runs))
+        else:
+            runs[method] = run_compiled(config, setting, method)
+    return {"summary": summarise_setting(config, setting, runs), "skipped": skipped}
+
+
+def summarise(config: DependenciesConfig, outcomes: list[dict[str, Any]]) -> dict[str, Any]:
+    """``dependencies.json``'s entries from the settings' units (in ``units`` order)."""
+    results: dict[str, Any] = {"settings": {}, "skipped": {}, "methods": dict(METHOD_LABELS)}
+    for setting, outcome in zip(config.settings, outcomes, strict=True):
+        if outcome["skipped"]:
+            results["skipped"][setting] = outcome["skipped"]
+        results["settings"][setting] = outcome["summary"]
     return results
 
 
-# --------------------------------------------------------------------------------------------
-# Files
+def estimate(config: DependenciesConfig) -> resources.Estimate:
+    return resources.dependencies_estimate(config)
 
 
-def _ratio_text(entry: dict[str, Any] | None) -> str:
-    if entry is None:
-        return "n/a"
-    text = format_number(entry["ratio"])
-    if entry.get("ci"):
-        low, high = entry["ci"]
-        text += f" [{format_number(low)}, {format_number(high)}]"
-    return text
+def run(config: DependenciesConfig) -> dict[str, Any]:
+    """Every setting x method, here; the results (what ``dependencies.json`` holds)."""
+    import sys
 
+    from factorq_trainers.runner import frame
 
-def report_markdown(results: dict[str, Any]) -> str:
-    """The table of the issue's metrics, one row per setting, and the baselines' totals."""
-    config = results["config"]
-    lines = [
-        "# Learned sensor-actuator dependencies",
-        "",
-        f"{config['seeds']} experiments per setting, {config['runs']} runs x {config['episodes']} "
-        f"episodes each, {config['world']} world {config['size']}x{config['size']} with "
-        f"{config['obstacles']} obstacles, Bayes factor {format_number(config['bayes_factor'])}, "
-        f"Beta({format_number(config['prior_a'])}, {format_number(config['prior_b'])}) prior, "
-        f"candidate prior {config['candidate_prior']}"
-        + (
-            f", reopening at Bayes factor {format_number(config['reopen_factor'])}"
-            if config.get("reopen_factor") is not None
-            else ""
-        )
-        + "; "
-        f"wall time {results['timing']['wall_seconds']:.1f} s.",
-        "",
-        "| setting | samples until right (median, p90) | right within target | wrong commitments "
-        "/ 1000 | SHD at end | collisions vs oracle | greedy collisions vs oracle | learning speed "
-        "vs oracle |",
-        "| --- | --- | --- | ---: | ---: | --- | --- | --- |",
-    ]
-    for setting, summary in results["settings"].items():
-        structure = summary.get("structure")
-        if structure is None:
-            continue
-        against = summary.get("against_oracle", {})
-        lines.append(
-            f"| {setting} | {format_number(structure['samples_until_right_median'])}, "
-            f"{format_number(structure['samples_until_right_p90'])} | "
-            f"{100 * structure['fraction_right_within_target']:.0f}% "
-            f"(<= {structure['samples_target']}) | "
-            f"{format_number(structure['wrong_commitments_per_1000'])} | "
-            f"{format_number(structure['hamming_at_end_mean'])} | "
-            f"{_ratio_text(against.get('collisions'))} | "
-            f"{_ratio_text(against.get('greedy_collisions'))} | "
-            f"{_ratio_text(against.get('learning_speed'))} |"
-        )
-    lines += [
-        "",
-        "Per experiment (means): collisions, greedy collisions, env steps per run.",
-        "",
-        "| setting | method | collisions | greedy collisions | steps per run |",
-        "| --- | --- | ---: | ---: | ---: |",
-    ]
-    for setting, summary in results["settings"].items():
-        for method, entry in summary["methods"].items():
-            lines.append(
-                f"| {setting} | {METHOD_LABELS[method]} | "
-                f"{format_number(entry['collisions_per_experiment'])} | "
-                f"{format_number(entry['greedy_collisions_per_experiment'])} | "
-                f"{format_number(entry['steps_per_run'])} |"
-            )
-    for setting, summary in results["settings"].items():
-        entry = summary["methods"].get("dqn")
-        if entry is not None:
-            lines.append(
-                f"\nDQN in {setting}: a budget of {entry['step_budget']} env steps per experiment "
-                f"(the oracle's mean), {format_number(entry['episodes_per_experiment'])} episodes "
-                f"per experiment on average; no runs, so no steps per run."
-            )
-    for setting, skipped in results.get("skipped", {}).items():
-        for method, reason in skipped.items():
-            lines.append(f"\nNot run: {METHOD_LABELS[method]} in {setting}: {reason}.")
-    return "\n".join(lines) + "\n"
-
-
-def write_figure(results: dict[str, Any], path: Path) -> None:
-    """Top: fraction of experiments holding the right structure against env steps, per setting;
-    bottom: collisions per episode per method."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    settings = list(results["settings"])
-    figure = Figure(figsize=(3.2 * max(len(settings), 1), 6.0), layout="constrained")
-    FigureCanvasAgg(figure)
-    axes = figure.subplots(2, max(len(settings), 1), squeeze=False)
-    for column, setting in enumerate(settings):
-        summary = results["settings"][setting]
-        top, bottom = axes[0, column], axes[1, column]
-        structure = summary.get("structure")
-        if structure is not None:
-            curve = structure["curve"]
-            top.plot(curve["env_steps"], curve["fraction_right"], color="C0")
-        top.set_title(setting)
-        top.set_ylim(-0.02, 1.02)
-        top.set_xlabel("env steps")
-        if column == 0:
-            top.set_ylabel("fraction with the right structure")
-        for method, entry in summary["methods"].items():
-            values = entry["collisions_per_episode"]
-            color = f"C{METHODS.index(method)}"  # one colour per method in every panel
-            bottom.plot(range(1, len(values) + 1), values, label=METHOD_LABELS[method], color=color)
-        bottom.set_yscale("symlog", linthresh=1.0)
-        bottom.set_xlabel("episode")
-        if column == 0:
-            bottom.set_ylabel("collisions per episode")
-            bottom.legend(fontsize="small")
-    figure.savefig(path, format="png", dpi=110)
-
-
-def write_outputs(results: dict[str, Any], out: str | Path) -> dict[str, Path]:
-    """Write dependencies.json, dependencies.png and dependencies.md to ``out``, atomically."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {"json": out / JSON_FILE, "figure": out / FIGURE_FILE, "report": out / REPORT_FILE}
-    write_all_atomic(
-        {
-            paths["json"]: lambda path: path.write_text(dumps(results)),
-            paths["figure"]: lambda path: write_figure(results, path),
-            paths["report"]: lambda path: path.write_text(report_markdown(results)),
-        }
-    )
-    return paths
+    return frame.run_in_process(sys.modules[__name__], config)

@@ -31,7 +31,8 @@ annealing itself, once per call that explores (no schedule to step by hand, DESI
 **Defaults** follow CleanRL's ``dqn.py`` and torchrl's DQN example, scaled to this world; their
 sources and the measurements behind the scaling are in ``docs/decisions.md`` (Baselines).
 
-Per episode of every experiment (``factorq_trainers.experiment.EpisodeRecorder``): path length,
+Per episode of every experiment (``factorq_trainers.experiments.experiment.EpisodeRecorder``): path
+length,
 collisions, greedy collisions (collisions on non-exploratory actions), task return (step + goal
 rewards, as the tabular trainers record it), env steps so far, epsilon and loss.
 """
@@ -58,8 +59,13 @@ from factorq_envs.world import NUM_ACTIONS
 from factorq_torch.base.rng import STREAM_TASK_NETWORK, STREAM_WORLD
 from factorq_torch.base.validation import INT32_MAX, check_float, check_hidden, check_int
 from factorq_torch.neural import TaskQNetwork
-from factorq_trainers.experiment import EpisodeRecorder, ExperimentConfig, experiment_keys, make_env
-from factorq_trainers.options import option
+from factorq_trainers.experiments.experiment import (
+    EpisodeRecorder,
+    ExperimentConfig,
+    experiment_keys,
+    make_env,
+)
+from factorq_trainers.runner.options import option
 
 with warnings.catch_warnings():
     # torchrl 0.14.1 warns about its own deprecated weight updaters when the package is imported.
@@ -67,7 +73,8 @@ with warnings.catch_warnings():
     from torchrl.collectors import Collector
 
 #: The widest hidden layer a config accepts (a layer's weights are [E, width, width] float32).
-#: Methods of ``factorq_trainers.compare``; a method's index is part of its experiments' keys.
+#: Methods of ``factorq_trainers.experiments.compare``; a method's index is part of its
+# experiments' keys.
 METHODS = ("factor-q", "q-learning", "dqn", "factor-dqn")
 # --------------------------------------------------------------------------------------------
 # Validation
@@ -77,8 +84,10 @@ def batch_keys(
     experiments: ExperimentConfig, stream: int, method: str | None = None
 ) -> torch.Tensor:
     """Keys ``[E]`` of ``stream`` for the experiments of ``factorq compare``'s batch: number
-    ``3 i + w`` (as ``factorq_trainers.paper``'s worlds), or with a ``method`` number ``4 (3 i + w)
-    + m`` (``m`` its index in ``METHODS``); see ``factorq_trainers.experiment.experiment_keys``."""
+    ``3 i + w`` (as ``factorq_trainers.experiments.paper``'s worlds), or with a ``method`` number
+    ``4 (3 i + w)
+    + m`` (``m`` its index in ``METHODS``); see
+    ``factorq_trainers.experiments.experiment.experiment_keys``."""
     return experiment_keys(experiments.seed, stream, experiments.labels, METHODS, method)
 
 
@@ -298,7 +307,8 @@ def run(
     ``EpisodeRecorder`` trace per experiment (world-major, seed-minor). ``progress(done, total)``
     is called with env steps per experiment after every collector batch.
 
-    ``checkpoints`` (a ``factorq_trainers.compare_checkpoint.Saver``): restore the saved state if
+    ``checkpoints`` (a ``factorq_trainers.runner.compare_checkpoint.Saver``): restore the saved
+    state if
     the run resumes during DQN, and save the whole state whenever one is due, after a collector
     batch: torch's global generator, the world state, the collector's next observation, the policy
     (network, epsilon), the loss module (network and target network), Adam, the target
@@ -348,7 +358,7 @@ def run(
 
         def load_state(saved: dict[str, Any]) -> None:
             nonlocal done_steps, gradient_steps, loss_per_experiment
-            from factorq_trainers import compare_checkpoint
+            from factorq_trainers.runner import compare_checkpoint
 
             saved = compare_checkpoint.check_dqn_state(
                 saved, fresh, agent, env, config, experiments, _STORED

@@ -1,6 +1,7 @@
 """What every experiment is built from: keys, the env, the online agents, episode records.
 
-``factorq_trainers.paper``, ``factorq_trainers.compare`` and ``factorq_trainers.dqn`` assemble
+``factorq_trainers.experiments.paper``, ``factorq_trainers.experiments.compare`` and
+``factorq_trainers.experiments.dqn`` assemble
 their experiments from these pieces rather than each its own copy:
 
 - ``experiment_keys``: the random stream key of each experiment of a batch, numbered so that an
@@ -36,7 +37,7 @@ from factorq_torch.base.validation import (
     check_names,
     check_table_size,
 )
-from factorq_trainers.options import option
+from factorq_trainers.runner.options import option
 
 if TYPE_CHECKING:  # torchrl and tensordict load only on the paths that step an env
     from tensordict import TensorDictBase

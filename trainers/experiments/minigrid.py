@@ -9,12 +9,12 @@ experiments for the same env-step budget, all seeds of a method in one batch:
   reward and that the front sensor decides it;
 - ``factor-q-oracle``: Factor-Q with ``LocalRewardTable`` on the true pairing (forward <- front);
 - ``q-learning``: tabular Q-learning on (cell, heading, all sensors);
-- ``dqn``: ``factorq_trainers.dqn``'s torchrl DQN (DQNLoss, target network, replay, annealed
+- ``dqn``: ``experiments.dqn``'s torchrl DQN (DQNLoss, target network, replay, annealed
   epsilon) on the same information (``TaskQNetwork``: one-hot (cell, heading) and the sensor bits);
 - ``dqn-image``: the same DQN on MiniGrid's own 7x7x3 ``image`` observation (the standard track).
 
 The tabular agents run on the modular torchrl path (``OnlineCollector``, learning after every
-step): the compiled kernel (``trainers/fast.py``) cannot step MiniGrid.
+step): the compiled kernel (``trainers/compiled/fast.py``) cannot step MiniGrid.
 
 **Budget.** ``steps * size / 5`` env steps per seed at each size (rounded), the same for every
 method. **Measures**, per seed: collisions during training (all, and on greedy actions); over the
@@ -23,26 +23,41 @@ MiniGrid return (its own reward summed: goal reward, -1 per collision) and steps
 of the successful episodes); env steps until the success rate over the last ``window`` finished
 episodes first reaches 90%; for ``factor-q-learned``, the env step at which the learner first
 committed to "forward <- front" (and nothing else for forward). Wall time per method and size
-(all seeds together). Means with Student-t 95% intervals across seeds (``factorq_trainers.stats``).
+(all seeds together). Means with Student-t 95% intervals across seeds
+(``factorq_trainers.analysis.stats``).
 """
 
 from __future__ import annotations
 
 import math
+import sys
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from factorq_torch.base.validation import check_int
-from factorq_trainers import resources
-from factorq_trainers.options import option
-from factorq_trainers.results import dumps, software_versions, write_all_atomic
-from factorq_trainers.stats import DESCRIPTION, format_number, interval, scalar_ci
+from factorq_trainers.analysis.stats import DESCRIPTION as DESCRIPTION_OF_STATISTICS
+from factorq_trainers.analysis.stats import format_number, interval, scalar_ci
+from factorq_trainers.runner import resources
+from factorq_trainers.runner.options import option
 
+NAME = "minigrid"
+HELP = (
+    "Factor-Q against Q-learning and DQN on MiniGrid Dynamic-Obstacles (needs the minigrid extra)"
+)
+EXTRA = "factorq-torch[minigrid]"
+DESCRIPTION = (
+    "Train Factor-Q (learned dependencies and oracle pairing), Q-learning and DQN (same "
+    "information, and MiniGrid's image) on MiniGrid-Dynamic-Obstacles-{5x5,6x6,8x8,16x16}-v0 with "
+    "equal env-step budgets; write minigrid.json, minigrid.png and minigrid.md to --out. Needs "
+    f"pip install '{EXTRA}'."
+)
+HINT = resources.MINIGRID_HINT
+WORK_UNIT = "step"
 METHODS = (
     "factor-q-learned",
     "factor-q-posterior",
@@ -64,10 +79,6 @@ METHOD_LABELS = {
 SIZE_NAMES = ("5", "6", "8", "16")
 SEMANTICS_NAMES = ("minigrid", "nodeath")
 LAYOUT_NAMES = ("front3", "ahead6")
-JSON_FILE, FIGURE_FILE, REPORT_FILE = "minigrid.json", "minigrid.png", "minigrid.md"
-OUTPUTS = (JSON_FILE, FIGURE_FILE, REPORT_FILE)
-#: The optional extra that installs MiniGrid (``factorq_envs.minigrid.EXTRA``).
-EXTRA = "factorq-torch[minigrid]"
 #: The issue's target: the learner finds forward <- front within this many env steps.
 FOUND_TARGET_STEPS = 2_000
 SUCCESS_THRESHOLD = 0.9
@@ -125,6 +136,9 @@ class MiniGridConfig:
     def budget(self, size: int) -> int:
         """Env steps per seed at ``size``."""
         return max(1, round(self.steps * size / 5))
+
+
+CONFIG = MiniGridConfig
 
 
 # --------------------------------------------------------------------------------------------
@@ -241,7 +255,7 @@ def run_tabular(
     from factorq_torch.collectors import OnlineCollector
     from factorq_torch.structure import StructureLearner
     from factorq_torch.tables import LocalRewardTable, TaskQTable
-    from factorq_trainers.experiment import online_agent
+    from factorq_trainers.experiments.experiment import online_agent
 
     count, budget = config.seeds, config.budget(size)
     base = _env(config, size)
@@ -330,13 +344,14 @@ def _image_network(count: int, hidden: tuple[int, ...], keys, actions: int):
 def run_dqn(
     config: MiniGridConfig, size: int, method: str, tick: Callable[[int], None]
 ) -> dict[str, Any]:
-    """``factorq_trainers.dqn``'s DQN (its defaults) on the cell/heading/sensors or on the image."""
+    """``factorq_trainers.experiments.dqn``'s DQN (its defaults) on the cell/heading/sensors or on
+    the image."""
     import torch
 
     from factorq_envs.body import HEADING
     from factorq_torch.base.rng import STREAM_POLICY, STREAM_TASK_NETWORK
     from factorq_torch.neural import TaskQNetwork
-    from factorq_trainers.dqn import DQNConfig, _gradient_step, dqn_agent
+    from factorq_trainers.experiments.dqn import DQNConfig, _gradient_step, dqn_agent
 
     dqn = DQNConfig()
     count, budget = config.seeds, config.budget(size)
@@ -429,7 +444,7 @@ MEASURES = (
 )
 
 
-def summarise(result: dict[str, Any], budget: int) -> dict[str, Any]:
+def summarise_method(result: dict[str, Any], budget: int) -> dict[str, Any]:
     summary = {name: _stat(result[name]) for name in MEASURES}
     found = result.get("found_forward_front")
     if found is not None:
@@ -452,63 +467,65 @@ def estimate(config: MiniGridConfig) -> resources.Estimate:
     )
 
 
-def run(
-    config: MiniGridConfig,
-    progress: Callable[[int], None] | None = None,
-    announce: Callable[[int, str], None] | None = None,
-) -> dict[str, Any]:
-    """Every method on every size; ``progress(env_steps)`` after each 100 steps of a batch."""
+def units(config: MiniGridConfig) -> list[dict[str, Any]]:
+    """One unit per size and method (a method's seeds run as one batch)."""
+    return [
+        {"id": f"{size}/{method}", "size": int(size), "method": method}
+        for size in config.sizes
+        for method in config.methods
+    ]
+
+
+def work(config: MiniGridConfig, unit: dict[str, Any]) -> int:
+    """A unit's env steps per seed (what ``run_unit`` reports to ``progress``)."""
+    return config.budget(unit["size"])
+
+
+def prepare(config: MiniGridConfig) -> None:
+    """``factorq_envs.minigrid.require_minigrid`` (a ModuleNotFoundError naming the extra)."""
     from factorq_envs.minigrid import require_minigrid
 
-    resources.check(estimate(config), "experiment", resources.MINIGRID_HINT)  # before allocating
     require_minigrid()
+
+
+def run_unit(
+    config: MiniGridConfig, unit: dict[str, Any], progress: Callable[[int], None] | None = None
+) -> dict[str, Any]:
+    """One method at one size, all seeds; ``progress(env_steps)`` after each 100 steps."""
     import torch
 
+    size, method = unit["size"], unit["method"]
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # tiny tensors: more threads only wait on each other
     try:
-        return _run(config, progress, announce)
+        raw = RUNNERS[method](config, size, method, progress or (lambda steps: None))
     finally:
         torch.set_num_threads(threads)
+    return {"seeds": raw, "summary": summarise_method(raw, config.budget(size))}
 
 
-def _run(config, progress, announce) -> dict[str, Any]:
+def summarise(config: MiniGridConfig, outcomes: list[dict[str, Any]]) -> dict[str, Any]:
+    """``minigrid.json``'s entries from the units (in ``units`` order)."""
     from factorq_envs.minigrid import sensor_names
 
-    started = time.perf_counter()
-    sizes = [int(name) for name in config.sizes]
-    tick = progress if progress is not None else (lambda steps: None)
     results: dict[str, Any] = {}
-    for size in sizes:
-        per_method = {}
-        for method in config.methods:
-            if announce is not None:
-                announce(size, method)
-            raw = RUNNERS[method](config, size, method, tick)
-            per_method[method] = {"seeds": raw, "summary": summarise(raw, config.budget(size))}
-        results[str(size)] = per_method
+    for unit, outcome in zip(units(config), outcomes, strict=True):
+        results.setdefault(str(unit["size"]), {})[unit["method"]] = outcome
     return {
-        "config": asdict(config),
         "sensors": list(sensor_names(config.layout)),
-        "budgets": {str(size): config.budget(size) for size in sizes},
+        "budgets": {size: config.budget(int(size)) for size in config.sizes},
         "results": results,
-        "statistics": DESCRIPTION,
-        "software": software_versions(),
+        "statistics": DESCRIPTION_OF_STATISTICS,
         "notice": NOTICE,
-        "wall_s": time.perf_counter() - started,
+        "methods": dict(METHOD_LABELS),
     }
 
 
-def require_minigrid() -> None:
-    """``factorq_envs.minigrid.require_minigrid`` (a ModuleNotFoundError naming the extra)."""
-    from factorq_envs.minigrid import require_minigrid as require
+def run(config: MiniGridConfig, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
+    """Every method on every size, here; the results (what ``minigrid.json`` holds)."""
+    from factorq_trainers.runner import frame
 
-    require()
-
-
-def total_steps(config: MiniGridConfig) -> int:
-    """Env steps of one seed over every size and method (the progress bar's total)."""
-    return sum(config.budget(int(s)) for s in config.sizes) * len(config.methods)
+    return frame.run_in_process(sys.modules[__name__], config, progress)
 
 
 # --------------------------------------------------------------------------------------------
@@ -527,7 +544,7 @@ def _cell(stat: dict[str, Any], digits: int = 2, seeds: int | None = None) -> st
     return text
 
 
-def report_markdown(results: dict[str, Any]) -> str:
+def markdown(results: dict[str, Any]) -> str:
     config = results["config"]
     seeds = config["seeds"]
     lines = [
@@ -559,17 +576,23 @@ def report_markdown(results: dict[str, Any]) -> str:
                     f"{s['found_within_target']:.0%} within {FOUND_TARGET_STEPS:,}"
                 )
             lines.append(
-                f"| {METHOD_LABELS[method]} | {_cell(s['success_rate'], 2, seeds)} | "
+                f"| {_label(results, method)} | {_cell(s['success_rate'], 2, seeds)} | "
                 f"{_cell(s['return'], 2, seeds)} | {_cell(s['steps_to_goal'], 1, seeds)} | "
                 f"{_cell(s['collisions'], 1)} | {_cell(s['greedy_collisions'], 1)} | "
                 f"{_cell(s['steps_to_90'], 0, seeds)} | {format_number(s['wall_s'])} | {found} |"
             )
-        lines += ["", *_targets(per_method), ""]
-    lines.append(f"Total wall time {results['wall_s']:.0f} s.")
+        lines += ["", *_targets(results, per_method), ""]
+    wall_s = results["timing"]["wall_s"] if "timing" in results else results["wall_s"]
+    lines.append(f"Total wall time {wall_s:.0f} s.")
     return "\n".join(lines) + "\n"
 
 
-def _targets(per_method: dict[str, Any]) -> list[str]:
+def _label(results: dict[str, Any], method: str) -> str:
+    declared = results.get("methods")
+    return str(declared.get(method, method)) if isinstance(declared, dict) else method
+
+
+def _targets(results: dict[str, Any], per_method: dict[str, Any]) -> list[str]:
     """The issue's targets at one size, where the methods they compare ran."""
     out = []
     dqn = per_method.get("dqn", {}).get("summary")
@@ -581,14 +604,14 @@ def _targets(per_method: dict[str, Any]) -> list[str]:
         ratio = math.inf if ours == 0 else theirs / ours
         success_ok = (mine["success_rate"]["mean"] or 0.0) >= (dqn["success_rate"]["mean"] or 0.0)
         out.append(
-            f"- {METHOD_LABELS[method]}: training collisions {ratio:.2f}x below DQN's "
+            f"- {_label(results, method)}: training collisions {ratio:.2f}x below DQN's "
             f"(target >= 10x: {'met' if ratio >= 10 else 'not met'}); success rate "
             f"{'no worse than' if success_ok else 'below'} DQN's."
         )
     return out
 
 
-def write_figure(results: dict[str, Any], path: Path) -> None:
+def figure(results: dict[str, Any], path: Path) -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -613,7 +636,7 @@ def write_figure(results: dict[str, Any], path: Path) -> None:
                 ys.append(stat["mean"])
                 ci = stat["ci95"]
                 errs.append(0.0 if ci is None or ci[1] is None else ci[1] - stat["mean"])
-            axis.errorbar(xs, ys, yerr=errs, marker="o", capsize=3, label=METHOD_LABELS[method])
+            axis.errorbar(xs, ys, yerr=errs, marker="o", capsize=3, label=_label(results, method))
         axis.set_xticks(range(len(sizes)), [f"{s}x{s}" for s in sizes])
         axis.set_title(title)
         if log:
@@ -625,16 +648,3 @@ def write_figure(results: dict[str, Any], path: Path) -> None:
     )
     figure.tight_layout()
     figure.savefig(path, dpi=100, format="png")
-
-
-def write_outputs(results: dict[str, Any], out: str | Path) -> dict[str, Path]:
-    out = Path(out)
-    paths = {name: out / name for name in (JSON_FILE, FIGURE_FILE, REPORT_FILE)}
-    write_all_atomic(
-        {
-            paths[JSON_FILE]: lambda p: p.write_text(dumps(results)),
-            paths[FIGURE_FILE]: lambda p: write_figure(results, p),
-            paths[REPORT_FILE]: lambda p: p.write_text(report_markdown(results)),
-        }
-    )
-    return paths

@@ -9,11 +9,13 @@ One *experiment* is one world x one algorithm: ``runs`` runs of ``episodes`` epi
 Keys make experiment ``(seed index i, world w, algorithm a)`` draw the same numbers whatever else is
 selected: its world key is number ``3 i + w`` of the world stream (shared by both algorithms:
 common random numbers) and its policy key number ``2 (3 i + w) + a`` of the policy stream
-(``factorq_trainers.experiment.experiment_keys``).
+(``factorq_trainers.experiments.experiment.experiment_keys``).
 
-The intervals are ``factorq_trainers.stats``' (Student's t for means, a paired bootstrap over seeds
-for the claims, seeded with ``config.seed``), the claims ``factorq_trainers.claims``', and the files
-``factorq_trainers.report.write_results``'.
+The intervals are ``factorq_trainers.analysis.stats``' (Student's t for means, a paired bootstrap
+over seeds
+for the claims, seeded with ``config.seed``), the claims ``factorq_trainers.analysis.claims``', and
+the files
+``factorq_trainers.reports.report.write_results``'.
 """
 
 from __future__ import annotations
@@ -31,7 +33,6 @@ import torch
 
 from factorq_envs.world import WORLD_PERIODS, WORLDS, WorldConfig
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
-from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
 from factorq_torch.base.validation import (
     INT32_MAX,
@@ -40,22 +41,36 @@ from factorq_torch.base.validation import (
     check_names,
     check_threads,
 )
-from factorq_trainers import checkpoint, experiment, processes, resources, stats
-from factorq_trainers.claims import compute_claims
-from factorq_trainers.experiment import (
+from factorq_trainers.analysis import stats
+from factorq_trainers.analysis.claims import compute_claims
+from factorq_trainers.analysis.stats import interval, mean_ci
+from factorq_trainers.distributed import processes
+from factorq_trainers.experiments import experiment
+from factorq_trainers.experiments.experiment import (
     MAX_SEED,
     body_options,
     check_qlearning_table,
     check_world_options,
 )
-from factorq_trainers.options import option
-from factorq_trainers.results import SCHEMA_VERSION, software_versions
-from factorq_trainers.resume_checks import DRIVERS, check_checkpoint, check_state
-from factorq_trainers.stats import interval, mean_ci
+from factorq_trainers.runner import checkpoint, resources
+from factorq_trainers.runner.options import option
+from factorq_trainers.runner.results import SCHEMA_VERSION, software_versions
+from factorq_trainers.runner.resume_checks import DRIVERS, check_checkpoint, check_state
+from factorq_trainers.runner.schema import CURVE_NAMES
 
 #: Experiment drivers: the compiled kernel, the modular torchrl path, or the first available.
 BACKENDS = ("auto", *DRIVERS)
-CURVES = EPISODE_METRICS[:3]  # per-episode curves; task return is reported per run
+NAME = "paper"
+HELP = "run the paper's experiment (3 worlds x 2 algorithms, many seeds) and report it"
+DESCRIPTION = (
+    "Run the paper's experiment (SPEC section 4) over many seeds and write results.json, "
+    "figure3.png and report.md to --out."
+)
+#: paper keeps its finer frame (mid-run checkpoints, the figure process, shards on Dask).
+FRAME = "factorq_trainers.experiments.paper_frame"
+FILES = {"json": "results.json", "report": "report.md", "figure": "figure3.png"}
+REPORT = "factorq_trainers.reports.report"
+CURVES = CURVE_NAMES  # per-episode curves; task return is reported per run
 
 
 @dataclass(frozen=True)
@@ -183,6 +198,9 @@ class PaperConfig:
 # Running the experiments
 
 
+CONFIG = PaperConfig
+
+
 class Progress(NamedTuple):
     """What ``run`` reports to its ``progress`` callback after every chunk of work."""
 
@@ -204,7 +222,7 @@ def resolve_backend(config: PaperConfig, world: Any = None) -> str:
     ``factorq_envs.protocol.World`` other than the paper's grid), the modular torchrl path
     otherwise.
     """
-    from factorq_trainers import fast
+    from factorq_trainers.compiled import fast
 
     on_cpu = torch.device(config.device).type == "cpu"
     if config.backend == "fast" and not fast.is_available():
@@ -242,7 +260,7 @@ def fallback_notice(
     """The one-line notice of ``auto`` falling back to the modular path: why, about how long the
     run will take (on ``process_count`` processes, default ``modular_processes(config, world)``),
     how to get the fast path (None when nothing fell back)."""
-    from factorq_trainers import fast
+    from factorq_trainers.compiled import fast
 
     if backend != "modular" or config.backend != "auto":
         return None
@@ -346,7 +364,7 @@ def experiment_keys(config: PaperConfig, algorithm: str) -> BatchKeys:
 def _run_fast(job: Job) -> dict[str, torch.Tensor]:
     """One algorithm's experiments on the compiled fast path, in chunks (progress, Ctrl-C,
     checkpoints)."""
-    from factorq_trainers.fast import ExperimentBatch
+    from factorq_trainers.compiled.fast import ExperimentBatch
 
     config, algorithm, (periods, world_keys, policy_keys), report, checkpoints, _ = job
 
@@ -481,7 +499,8 @@ def run(
     often the run was interrupted and resumed.
 
     ``checkpoint_every`` (episodes summed over all experiments, or seconds: ``"30s"``) saves the
-    whole state to ``<config.out>/checkpoint/`` that often (see ``factorq_trainers.checkpoint``);
+    whole state to ``<config.out>/checkpoint/`` that often (see
+    ``factorq_trainers.runner.checkpoint``);
     the caller removes it with ``checkpoint.remove(config.out)`` once the results are written.
     ``resume`` (``checkpoint.load(out)``, with ``config`` from ``resume_config``) continues from
     a checkpoint, saving at its interval unless ``checkpoint_every`` is given. A new run refuses
@@ -596,7 +615,7 @@ def run(
     if backend == "modular":
         results["timing"]["processes"] = count
     if backend == "modular" and config.backend == "auto":
-        from factorq_trainers import fast
+        from factorq_trainers.compiled import fast
 
         # Why the compiled path did not run (a missing compiler, an unsupported body).
         reason = (

@@ -1,6 +1,7 @@
 """The files of ``factorq compare``: ``comparison.json``, ``comparison.png``, ``comparison.md``.
 
-Everything here reads the results dict of ``factorq_trainers.compare.run`` and computes nothing new.
+Everything here reads the results dict of ``factorq_trainers.experiments.compare.run`` and computes
+nothing new.
 """
 
 from __future__ import annotations
@@ -12,9 +13,16 @@ from typing import Any
 
 import numpy as np
 
-from factorq_trainers.compare import METHOD_LABELS, THRESHOLD_FACTOR
-from factorq_trainers.results import body_label, dumps, write_all_atomic
+from factorq_trainers.runner.results import body_label, dumps, write_all_atomic
 
+#: A method reached the threshold when an episode took at most this many times the shortest path.
+THRESHOLD_FACTOR = 1.5
+METHOD_LABELS = {
+    "factor-q": "Factor-Q (tabular)",
+    "q-learning": "Q-learning (tabular)",
+    "dqn": "DQN",
+    "factor-dqn": "Factor-DQN (neural Factor-Q)",
+}
 JSON_FILE = "comparison.json"
 FIGURE_FILE = "comparison.png"
 REPORT_FILE = "comparison.md"
@@ -134,7 +142,8 @@ def report_markdown(results: dict[str, Any]) -> str:
 
 def staging_logs(out: str | os.PathLike) -> Path:
     """A fresh directory in ``out`` for this run's logs until ``write_outputs`` renames it to
-    ``out/logs`` (named like the temporaries ``factorq_trainers.outdir`` cleans up after a kill)."""
+    ``out/logs`` (named like the temporaries ``factorq_trainers.runner.outdir`` cleans up after a
+    kill)."""
     staging = Path(out) / f".{LOGS_DIRECTORY}.{os.getpid()}.tmp"
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)
@@ -173,3 +182,7 @@ def write_outputs(
     if logs is not None:
         paths["logs"] = out / LOGS_DIRECTORY
     return paths
+
+
+#: The runner's names (``factorq report``).
+markdown, figure = report_markdown, write_figure

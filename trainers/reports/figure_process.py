@@ -7,7 +7,7 @@ figure (``paper_figure.prepare``), then waits, idle, for its one message.
 Once the experiment is over, the main process sends it what the figure reads (the config and the
 curves) and the name of ``figure3.png``'s temporary; the helper draws there while the main process
 writes ``results.json``'s and ``report.md``'s, then exits. The main process renames the three
-into place only after the helper exited 0 (``factorq_trainers.results.write_all_atomic``).
+into place only after the helper exited 0 (``factorq_trainers.runner.results.write_all_atomic``).
 
 One writer per output, nothing half-written: the helper writes the one temporary it was given and
 nothing else; the main process owns every rename, and ends the helper (and waits for it) before it
@@ -16,7 +16,7 @@ or fails, ``finish`` raises ``FigureProcessError`` and ``report`` draws the figu
 process instead, as before (a one-line notice says why). The helper is in its own session, so a
 Ctrl-C at the terminal reaches the main process only, which ends it.
 
-Run as ``python -m factorq_trainers.figure_process`` (``main``). Nothing here imports torch.
+Run as ``python -m factorq_trainers.reports.figure_process`` (``main``). Nothing here imports torch.
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ class FigureProcessError(RuntimeError):
 
 def command() -> list[str]:
     """The helper's command line: this module run by the same Python."""
-    return [sys.executable, "-m", "factorq_trainers.figure_process"]
+    return [sys.executable, "-m", "factorq_trainers.reports.figure_process"]
 
 
 class FigureProcess:
@@ -173,7 +173,7 @@ class FigureProcess:
 def main() -> int:
     """The helper: load matplotlib, warm it up, draw the one figure it is sent, exit."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent ends this process
-    from factorq_trainers import paper_figure
+    from factorq_trainers.reports import paper_figure
 
     gc.disable()  # collecting while modules load only costs time: they stay
     paper_figure.preload()

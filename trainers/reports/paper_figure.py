@@ -1,7 +1,9 @@
 """The paper's Figure 3, drawn with matplotlib from a results dict: nothing here imports torch.
 
-``factorq_trainers.report.figure3`` draws it in the calling process; ``factorq paper`` draws it in
-``factorq_trainers.figure_process``'s helper process, which loads matplotlib while the main process
+``factorq_trainers.reports.report.figure3`` draws it in the calling process; ``factorq paper``
+draws it in
+``factorq_trainers.reports.figure_process``'s helper process, which loads matplotlib while the main
+process
 loads torch. Both call ``draw`` with the same arguments, so the file is the same byte for byte.
 """
 
@@ -14,7 +16,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from factorq_trainers.results import body_label
+from factorq_trainers.runner.results import body_label
 
 COLOURS = {"q-learning": "#D55E00", "factor-q": "#0072B2"}  # colour-blind safe (Okabe-Ito)
 # Greedy collisions: a darker shade of the algorithm's colour, dashed, drawn over all collisions

@@ -1,6 +1,7 @@
 """The paper's output files: ``results.json``, Figure 3 and the claims report.
 
-``write_results`` writes all three from the results dict of ``factorq_trainers.paper.run``;
+``write_results`` writes all three from the results dict of
+``factorq_trainers.experiments.paper.run``;
 ``factorq report`` (``regenerate``) redraws the figure and the report from ``results.json`` alone.
 Everything here reads the results and computes nothing new: the numbers in the report are the
 numbers in the file.
@@ -14,18 +15,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from factorq_envs.world import WORLD_PERIODS, WORLDS
-from factorq_trainers import paper_figure
-from factorq_trainers.claims import ALGORITHM_LABELS, MEASURE_LABELS, MEASURES
-from factorq_trainers.figure_process import FigureProcess, FigureProcessError
-from factorq_trainers.results import body_label, dumps, temporary_path, write_all_atomic
-from factorq_trainers.schema import escape_markdown, load_results_file, markdown_code
-from factorq_trainers.stats import format_number
-
-
-class FigureError(RuntimeError):
-    """Figure 3 could not be drawn (nothing was written); the message says why."""
-
+from factorq_trainers.analysis.claims import ALGORITHM_LABELS, MEASURE_LABELS, MEASURES
+from factorq_trainers.analysis.stats import format_number
+from factorq_trainers.analysis.worlds import WORLD_PERIODS, WORLDS
+from factorq_trainers.reports import FigureError, paper_figure
+from factorq_trainers.reports.figure_process import FigureProcess, FigureProcessError
+from factorq_trainers.runner.results import body_label, dumps, temporary_path, write_all_atomic
+from factorq_trainers.runner.schema import escape_markdown, load_results_file, markdown_code
 
 RESULTS_FILE = "results.json"
 FIGURE_FILE = "figure3.png"
@@ -45,7 +41,7 @@ def figure3(results: dict[str, Any], path: str | os.PathLike) -> None:
 
     Columns are worlds; the top row shows steps per episode, the bottom row collisions per
     episode (solid: all, dashed: greedy) on a log scale, each the mean over seeds and runs with
-    its 95% confidence band across seeds (``factorq_trainers.paper_figure.draw``).
+    its 95% confidence band across seeds (``factorq_trainers.reports.paper_figure.draw``).
     """
     paper_figure.draw(results, path, *figure_arguments(results))
 
@@ -203,8 +199,9 @@ def write_results(
 
     ``results.json`` is renamed into place first: a results file on disk is always complete, and
     ``factorq report`` can redraw the other two from it. ``figure_process``
-    (``factorq_trainers.figure_process``): the helper that draws the figure while this process
-    writes the other two; if it fails, the figure is drawn here (a one-line notice says why).
+    (``factorq_trainers.reports.figure_process``): the helper that draws the figure while this
+    process writes the other two; if it fails, the figure is drawn here (a one-line notice says
+    why).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

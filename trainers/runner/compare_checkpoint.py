@@ -2,7 +2,8 @@
 with ``--checkpoint-every``, the whole state of the method in progress (issue 14); their checks on
 resume. A method's numbers do not depend on the others, so a resumed comparison skips the finished
 methods, continues the running one from its saved state and repeats an uninterrupted one exactly.
-The file goes through ``factorq_trainers.checkpoint`` (atomic, digest, safe loading); every field is
+The file goes through ``factorq_trainers.runner.checkpoint`` (atomic, digest, safe loading); every
+field is
 checked against the config, and the running state against a fresh state of the method, before
 use. The config is read by its fields (this module does not import ``compare``).
 
@@ -31,7 +32,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from factorq_trainers import checkpoint
+from factorq_trainers.runner import checkpoint
 
 _TRACE_ARRAYS = {
     "steps": torch.int64,
@@ -77,7 +78,7 @@ def save(
     every: str | None = None,
 ) -> Path:
     """Save the finished methods' traces (and ``running``: ``{"method", "state", "wall_s"}`` of
-    the method in progress) to ``out/checkpoint/`` (``factorq_trainers.checkpoint``)."""
+    the method in progress) to ``out/checkpoint/`` (``factorq_trainers.runner.checkpoint``)."""
     finished = {}
     for method, run in runs.items():
         traces = [
@@ -352,7 +353,7 @@ def check_step(state: dict[str, Any], steps: int, multiple: int = 1) -> int:
 def check_like(saved: Any, fresh: Any, limit: Limits, periods: torch.Tensor, where: str) -> None:
     """``saved`` shaped like ``fresh`` (entries, shapes, dtypes, stream keys) with values in
     range (``resume_checks.check_state``)."""
-    from factorq_trainers import resume_checks
+    from factorq_trainers.runner import resume_checks
 
     resume_checks.check_state(saved, fresh, limit, periods, where)
     _check_constants(saved, fresh, where)

@@ -15,7 +15,7 @@ its largest parts and the limit when the run would not fit; it returns a line to
 that fits but is large (at least ``LARGE_BYTES`` or a quarter of what is available), with the
 number of env steps it will take, the cheap part of a time estimate.
 
->>> from factorq_trainers.paper import PaperConfig
+>>> from factorq_trainers.experiments.paper import PaperConfig
 >>> estimate = paper_estimate(PaperConfig())
 >>> 30 * 2**20 < estimate.bytes < 120 * 2**20  # the default run: some 56 MiB (measured 60)
 True

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from factorq_trainers.stats import finite_or_none
+from factorq_trainers.analysis.stats import finite_or_none
 
 #: The newest layout this code reads and writes (files without the entry are version 1).
 SCHEMA_VERSION = 1
@@ -68,7 +68,7 @@ def write_atomic(path: str | os.PathLike, write: Callable[[Path], None]) -> None
 
 def temporary_path(path: Path) -> Path:
     """Where ``write_all_atomic`` writes ``path`` before renaming it: ``.NAME.PID.tmp`` beside it
-    (``factorq_trainers.outdir`` removes those of killed writers)."""
+    (``factorq_trainers.runner.outdir`` removes those of killed writers)."""
     return path.with_name(f".{path.name}.{os.getpid()}.tmp")
 
 

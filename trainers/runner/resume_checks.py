@@ -16,7 +16,7 @@ from typing import Any
 import torch
 
 from factorq_envs.world import NUM_ACTIONS
-from factorq_trainers import checkpoint
+from factorq_trainers.runner import checkpoint
 
 #: The experiment drivers a checkpoint may come from (``paper.BACKENDS`` less ``auto``).
 DRIVERS = ("fast", "modular")

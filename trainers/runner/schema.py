@@ -19,12 +19,14 @@ import re
 from pathlib import Path
 from typing import Any
 
-from factorq_envs.world import WORLDS as WORLD_NAMES
 from factorq_torch.base.config import ALGORITHMS as ALGORITHM_NAMES
-from factorq_trainers.claims import CLAIM_STATEMENTS, MEASURES
-from factorq_trainers.paper import CURVES as CURVE_NAMES
-from factorq_trainers.results import SCHEMA_VERSION, read_json
+from factorq_torch.base.keys import EPISODE_METRICS
+from factorq_trainers.analysis.claims import CLAIM_STATEMENTS, MEASURES
+from factorq_trainers.analysis.worlds import WORLDS as WORLD_NAMES
+from factorq_trainers.runner.results import SCHEMA_VERSION, read_json
 
+#: The per-episode curves a results file holds per cell (task return is reported per run).
+CURVE_NAMES = EPISODE_METRICS[:3]
 CLAIM_NAMES = tuple(CLAIM_STATEMENTS)
 
 SUMMARY_MEASURES = (*MEASURES, "task_return")
