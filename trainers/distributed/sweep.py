@@ -3,7 +3,7 @@ in-process or on a Dask cluster, gathered into ``sweep.json``, ``sweep.md`` and 
 swept axis. With ``command = "compare"``, a grid of ``factorq compare`` configurations instead,
 each run whole (one task per method) and kept in ``OUT/configs/<digest>.json``
 (``run_compare_sweep``); with ``command = "dependencies"``, of ``factorq dependencies``
-configurations, one task each (``run_dependencies_sweep``).
+configurations, one task each (``run_units_sweep``).
 
     spec (TOML file and/or options) -> configurations -> shards (contiguous seed ranges)
          -> executor (in-process or Dask) -> one .npz per shard, written as it finishes
@@ -85,20 +85,14 @@ DEFAULT_OUT = "results/sweep"
 RESERVED = ("seeds", "first_seed", "out")
 SPEC_KEYS = ("command", "seeds", "shard_seeds", "out", "base", "grid", "configs")
 MEASURES = ("total_steps", "collisions", "greedy_collisions")
-#: The commands whose configs a sweep runs (``command = "..."`` in a sweep file, ``--command``).
-COMMANDS = ("paper", "compare", "dependencies")
+#: The commands whose configs a sweep runs by their own rules (``command = "..."`` in a sweep
+#: file, ``--command``); every other registered command runs each configuration whole, one task
+#: each (``run_units_sweep``).
+SPECIAL = ("paper", "compare")
 #: ``CompareConfig`` fields the sweep sets itself (``logger``: a sweep writes no per-episode logs).
 COMPARE_RESERVED = ("seeds", "out", "logger")
-#: ``DependenciesConfig`` fields the sweep sets itself.
-DEPENDENCIES_RESERVED = ("seeds", "out")
-#: What a dependencies sweep reports per setting and method (``dependencies.summarise_setting``'s
-#: measures; the last two for the learned structure only).
-DEPENDENCIES_MEASURES = (
-    "collisions",
-    "greedy_collisions",
-    "fraction_right_within_target",
-    "collisions_vs_oracle",
-)
+#: The fields of another command's config that the sweep sets itself.
+UNITS_RESERVED = ("seeds", "out")
 #: What a compare sweep reports per method and world (``compare.summarise``'s measures).
 COMPARE_MEASURES = ("steps_to_threshold", "collisions", "greedy_collisions")
 MEASURE_LABELS = {
@@ -116,34 +110,41 @@ class SweepError(ValueError):
     """A sweep spec or value that cannot be used; the message says which and why."""
 
 
+def commands() -> tuple[str, ...]:
+    """Every command a sweep can run: ``paper``, ``compare`` and each registered command."""
+    from factorq_trainers.runner import registry
+
+    return (*SPECIAL, *(name for name in registry.commands() if name not in SPECIAL))
+
+
 def check_command(command: Any, source: str = "sweep file") -> str:
     """``command`` if a sweep can run its configs, else a ``SweepError`` saying which can."""
-    if command not in COMMANDS:
-        raise SweepError(f"{source}: command={command!r} is not one of {', '.join(COMMANDS)}")
+    if command not in commands():
+        raise SweepError(f"{source}: command={command!r} is not one of {', '.join(commands())}")
     return command
 
 
+def _reports_of(command: str) -> Any:
+    """The report module of ``command`` (its ``sweep_cells`` and ``SWEEP_MEASURES``)."""
+    import importlib
+
+    from factorq_trainers.runner import registry
+
+    return importlib.import_module(registry.commands()[command].report)
+
+
 def config_class(command: str = "paper") -> type:
-    """The config dataclass of ``command``: ``PaperConfig``, ``CompareConfig`` or
-    ``DependenciesConfig``."""
-    if command == "dependencies":
-        from factorq_trainers.experiments import dependencies
+    """The config dataclass of ``command`` (``PaperConfig``, ``CompareConfig``, ...)."""
+    if command == "paper":
+        return paper.PaperConfig
+    from factorq_trainers.runner import registry
 
-        return dependencies.DependenciesConfig
-    if command == "compare":
-        from factorq_trainers.experiments import (
-            compare,  # not at import: compare is heavier and imports this one's
-        )
-
-        return compare.CompareConfig
-    return paper.PaperConfig
+    return registry.load(command).CONFIG
 
 
 def reserved_fields(command: str = "paper") -> tuple[str, ...]:
     """The fields of ``command``'s config that the sweep sets itself."""
-    return {"compare": COMPARE_RESERVED, "dependencies": DEPENDENCIES_RESERVED}.get(
-        command, RESERVED
-    )
+    return {"compare": COMPARE_RESERVED, "paper": RESERVED}.get(command, UNITS_RESERVED)
 
 
 def nested_fields(command: str = "paper") -> list[str]:
@@ -168,13 +169,14 @@ def config_digest(config: Any) -> str:
     modular path give the same numbers bit for bit)."""
     if isinstance(config, paper.PaperConfig):
         return shards.digest(config)
-    from factorq_trainers.experiments import compare, dependencies
+    from factorq_trainers.experiments import compare
 
-    if isinstance(config, dependencies.DependenciesConfig):
-        values = _json(dataclasses.asdict(config))
-        ignored = ("out", "threads", "path")
-    else:
+    if isinstance(config, compare.CompareConfig):
         values, ignored = compare.config_dict(config), ("out", "threads", "logger")
+    else:  # a command of the runner: its DIGEST_IGNORED (fields that leave the numbers alone)
+        module = sys.modules[type(config).__module__]
+        values = _json(dataclasses.asdict(config))
+        ignored = getattr(module, "DIGEST_IGNORED", ("out", "threads"))
     relevant = {key: value for key, value in values.items() if key not in ignored}
     return hashlib.sha256(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:16]
 
@@ -291,7 +293,7 @@ def spec_from_mapping(data: dict[str, Any], source: str = "sweep file") -> Sweep
             f"{source}: unknown key(s) {', '.join(unknown)}; known: {', '.join(SPEC_KEYS)}"
         )
     command = check_command(data.get("command", "paper"), source)
-    if command in ("compare", "dependencies") and "shard_seeds" in data:
+    if command != "paper" and "shard_seeds" in data:
         raise SweepError(
             f"{source}: shard_seeds does not apply to command={command!r}: its unit of work is a "
             "whole configuration (DQN's seeds share a random stream within their batch)"
@@ -501,10 +503,6 @@ def run_compare_configs(
             runs[index] = {}
 
 
-def _ci(interval: Sequence[Any]) -> list[float] | None:
-    return None if any(value is None for value in interval) else [float(v) for v in interval]
-
-
 def compare_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """Per method and world of a ``comparison.json`` dict: its measures as means with 95%
     intervals across seeds (``steps_to_threshold`` only where every seed reached it)."""
@@ -514,13 +512,16 @@ def compare_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
             reached = entry["steps_to_threshold_per_seed"]
             steps = {"mean": entry["steps_to_threshold"], "ci95": None}
             if entry["steps_to_threshold"] is not None:
-                steps["ci95"] = _ci(stats.scalar_ci(reached)[1:])
+                steps["ci95"] = result_files.interval_or_none(stats.scalar_ci(reached)[1:])
             cells[f"{world}/{method}"] = {
                 "world": world,
                 "algorithm": method,
                 "steps_to_threshold": steps,
                 **{
-                    measure: {"mean": entry[measure], "ci95": _ci(entry[f"{measure}_ci95"])}
+                    measure: {
+                        "mean": entry[measure],
+                        "ci95": result_files.interval_or_none(entry[f"{measure}_ci95"]),
+                    }
                     for measure in (
                         "collisions",
                         "greedy_collisions",
@@ -624,52 +625,21 @@ def _gathered(
     }
 
 
-def _dependencies_task(config: Any) -> dict[str, Any]:
-    from factorq_trainers.experiments import dependencies
+def _units_task(command: str, config: Any) -> dict[str, Any]:
+    from factorq_trainers.runner import frame, registry
 
-    return dependencies.run(config)
-
-
-def dependencies_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """Per setting and method of a ``dependencies.json`` dict: collisions and greedy collisions
-    per experiment (means), and for the learned structure the fraction right within the target
-    and its collisions against the oracle's (ratio with its paired-bootstrap interval)."""
-    cells = {}
-    for setting, summary in results["settings"].items():
-        structure = summary.get("structure")
-        ratio = summary.get("against_oracle", {}).get("collisions")
-        for method, entry in summary["methods"].items():
-            learned = method == "learned"
-            cells[f"{setting}/{method}"] = {
-                "world": setting,
-                "algorithm": method,
-                "collisions": {"mean": entry["collisions_per_experiment"], "ci95": None},
-                "greedy_collisions": {
-                    "mean": entry["greedy_collisions_per_experiment"],
-                    "ci95": None,
-                },
-                "fraction_right_within_target": {
-                    "mean": structure["fraction_right_within_target"]
-                    if learned and structure
-                    else None,
-                    "ci95": None,
-                },
-                "collisions_vs_oracle": {
-                    "mean": ratio["ratio"] if learned and ratio else None,
-                    "ci95": _ci(ratio["ci"]) if learned and ratio and ratio["ci"] else None,
-                },
-            }
-    return cells
+    return frame.run_in_process(registry.load(command), config)
 
 
-def run_dependencies_sweep(
+def run_units_sweep(
     spec: SweepSpec,
     executor: cluster.InProcess | cluster.DaskExecutor,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
-    """``run_sweep`` of a dependencies spec: every configuration not already in ``OUT/configs/``
-    run whole (``dependencies.run``, one task each) and kept there as its ``dependencies.json``
-    dict, then gathered into ``sweep.json``'s dict."""
+    """``run_sweep`` of a spec of a command of the runner (``dependencies``, ``minigrid``, ...):
+    every configuration not already in ``OUT/configs/`` run whole
+    (``frame.run_in_process``, one task each) and kept there as its results dict, then gathered
+    into ``sweep.json``'s dict with the cells of the command's ``sweep_cells``."""
     started = time.perf_counter()
     directory = Path(spec.out) / CONFIGS_DIRECTORY
     configs = spec.configurations()
@@ -677,8 +647,9 @@ def run_dependencies_sweep(
     done = len(configs) - len(pending)
     if progress is not None:
         progress(done, len(configs))
-    names = [f"dependencies-{config_digest(config)}" for config in pending]
-    for index, results in executor.map(_dependencies_task, pending, names):
+    names = [f"{spec.command}-{config_digest(config)}" for config in pending]
+    task = functools.partial(_units_task, spec.command)
+    for index, results in executor.map(task, pending, names):
         text = result_files.dumps(results)
         directory.mkdir(parents=True, exist_ok=True)
         result_files.write_atomic(
@@ -687,15 +658,16 @@ def run_dependencies_sweep(
         done += 1
         if progress is not None:
             progress(done, len(configs))
+    reports = _reports_of(spec.command)
     return _gathered(
         spec,
-        "dependencies",
-        DEPENDENCIES_MEASURES,
+        spec.command,
+        reports.SWEEP_MEASURES,
         pending,
         started,
         executor,
         lambda config: _json(dataclasses.asdict(config)),
-        dependencies_cells,
+        reports.sweep_cells,
     )
 
 
@@ -711,8 +683,8 @@ def run_sweep(
     """
     if spec.command == "compare":
         return run_compare_sweep(spec, executor, progress)
-    if spec.command == "dependencies":
-        return run_dependencies_sweep(spec, executor, progress)
+    if spec.command != "paper":
+        return run_units_sweep(spec, executor, progress)
     started = time.perf_counter()
     directory = Path(spec.out) / SHARDS_DIRECTORY
     configs = spec.configurations()
@@ -791,6 +763,10 @@ def _shown(value: Any) -> str:
     return ",".join(map(str, value)) if isinstance(value, list | tuple) else str(value)
 
 
+def _label(measure: str) -> str:
+    return MEASURE_LABELS.get(measure, measure.replace("_", " "))
+
+
 def report_markdown(sweep: dict[str, Any]) -> str:
     """``sweep.md``: one row per configuration and cell, means with 95% intervals."""
     axes = sweep["axes"]
@@ -798,8 +774,8 @@ def report_markdown(sweep: dict[str, Any]) -> str:
     is_paper = sweep.get("command", "paper") == "paper"
     unit = {
         "paper": f"shards of {sweep['shard_seeds']}",
-        "dependencies": "one task per configuration",
-    }.get(sweep.get("command", "paper"), "one task per method")
+        "compare": "one task per method",
+    }.get(sweep.get("command", "paper"), "one task per configuration")
     per = "Per run" if is_paper else "Per experiment"
     claims_column = ["claims passed"] if is_paper else []
     lines = [
@@ -810,8 +786,8 @@ def report_markdown(sweep: dict[str, Any]) -> str:
         + (", ".join(f"{k}={_shown(v)}" for k, v in sweep["base"].items()) or "defaults")
         + f"; computed {sweep['timing']['where']}. {per}: means over seeds [95% interval].",
         "",
-        "| " + " | ".join([*axes, "world", "algorithm",
-                          *(MEASURE_LABELS[m] for m in measures), *claims_column]) + " |",
+        "| " + " | ".join([*axes, "world", "algorithm", *map(_label, measures),
+                          *claims_column]) + " |",
         "| " + " | ".join(["---"] * (len(axes) + 2)
                           + ["---:"] * (len(measures) + len(claims_column))) + " |",
     ]  # fmt: skip
@@ -884,7 +860,7 @@ def write_axis_figure(sweep: dict[str, Any], axis: str, path: Path) -> None:
             panel.errorbar(x, mean, yerr=errors, marker="o", capsize=3, label=cell)
         panel.set_xlabel(axis)
         per = " per run" if sweep.get("command", "paper") == "paper" else ""
-        panel.set_ylabel(f"{MEASURE_LABELS[measure]}{per}")
+        panel.set_ylabel(f"{_label(measure)}{per}")
         if measure in ("collisions", "greedy_collisions", "avoidable_greedy_collisions"):
             panel.set_yscale("symlog", linthresh=1.0)
         if not numeric:
@@ -1030,7 +1006,8 @@ def build_parser(prog: str = "factorq sweep") -> argparse.ArgumentParser:
         metavar="NAME",
         default=argparse.SUPPRESS,
         help="Whose configs to sweep: paper (seeds sharded), compare (each configuration "
-        "run whole, one task per method) or dependencies (each configuration one task). "
+        "run whole, one task per method) or any other command (dependencies, minigrid, ...: "
+        "each configuration one task). "
         "(default: the file's command, else paper)",
     )
     parser.add_argument(
@@ -1145,12 +1122,20 @@ def main(argv: list[str] | None = None) -> int:
         spec = spec_from_args(args)
         where = cluster.where_from_args(args)
         workers = 1 if where.local_workers is None else where.local_workers or os.cpu_count() or 1
-        if spec.command == "dependencies":
+        if spec.command not in SPECIAL:  # a command of the runner: its own estimate, if any
+            from factorq_trainers.runner import registry
+
+            module = registry.load(spec.command)
             estimate = max(
-                (resources.dependencies_estimate(config) for config in spec.configurations()),
+                (
+                    module.estimate(config)
+                    if hasattr(module, "estimate")
+                    else resources.Estimate({}, 0, exact_steps=False)
+                    for config in spec.configurations()
+                ),
                 key=lambda estimate: estimate.bytes,
             )  # per configuration: a worker runs one at a time
-            hint = resources.DEPENDENCIES_HINT
+            hint = getattr(module, "HINT", "use fewer --seeds or smaller configurations")
         elif spec.command == "compare":
             estimate = max(
                 (resources.compare_estimate(config) for config in spec.configurations()),
@@ -1181,15 +1166,15 @@ def _run_sweep_command(parser, spec: SweepSpec, executor) -> int:
     if spec.command == "compare":
         tasks = sum(len(config.methods) for config in configs)
         work = f"{tasks} method tasks (factorq compare)"
-    elif spec.command == "dependencies":
-        work = f"{len(configs)} configuration tasks (factorq dependencies)"
-    else:
+    elif spec.command == "paper":
         work = f"{len(configs) * math.ceil(spec.seeds / spec.shard_seeds)} shards"
+    else:
+        work = f"{len(configs)} configuration tasks (factorq {spec.command})"
     print(
         f"{len(configs)} configurations x {spec.seeds} seeds = {work}, {executor.description}",
         file=sys.stderr,
     )
-    unit = {"compare": "method", "dependencies": "configuration"}.get(spec.command, "shard")
+    unit = {"compare": "method", "paper": "shard"}.get(spec.command, "configuration")
     bar = _ShardBar(unit=unit)
     try:
         sweep = run_sweep(spec, executor, bar)

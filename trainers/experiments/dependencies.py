@@ -63,6 +63,8 @@ DESCRIPTION = (
     "to --out."
 )
 REPORT = "factorq_trainers.reports.dependencies"
+#: The fields that leave the numbers alone (the compiled and modular paths agree bit for bit).
+DIGEST_IGNORED = ("out", "threads", "path")
 HINT = resources.DEPENDENCIES_HINT
 
 #: The settings of the issue: name -> body options (the sensor order is drawn per experiment).

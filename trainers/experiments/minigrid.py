@@ -648,3 +648,27 @@ def figure(results: dict[str, Any], path: Path) -> None:
     )
     figure.tight_layout()
     figure.savefig(path, dpi=100, format="png")
+
+
+# --------------------------------------------------------------------------------------------
+# factorq sweep --command minigrid
+
+SWEEP_MEASURES = ("success_rate", "collisions", "greedy_collisions", "steps_to_90")
+
+
+def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per size and method of a ``minigrid.json`` dict: the ``SWEEP_MEASURES`` (means and 95%
+    intervals across seeds)."""
+    cells = {}
+    for size, per_method in results["results"].items():
+        for method, entry in per_method.items():
+            summary = entry["summary"]
+            cells[f"{size}x{size}/{method}"] = {
+                "world": f"{size}x{size}",
+                "algorithm": method,
+                **{
+                    measure: {"mean": summary[measure]["mean"], "ci95": summary[measure]["ci95"]}
+                    for measure in SWEEP_MEASURES
+                },
+            }
+    return cells

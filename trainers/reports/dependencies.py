@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from factorq_trainers.analysis.stats import format_number
+from factorq_trainers.runner.results import interval_or_none
 
 
 def _wall_s(results: dict[str, Any]) -> float:
@@ -148,3 +149,50 @@ def figure(results: dict[str, Any], path: Path) -> None:
             bottom.set_ylabel("collisions per episode")
             bottom.legend(fontsize="small")
     figure.savefig(path, format="png", dpi=110)
+
+
+# --------------------------------------------------------------------------------------------
+# factorq sweep --command dependencies
+
+#: What a dependencies sweep reports per setting and method (``experiments.dependencies``'
+#: measures; the last two for the learned structure only).
+SWEEP_MEASURES = (
+    "collisions",
+    "greedy_collisions",
+    "fraction_right_within_target",
+    "collisions_vs_oracle",
+)
+
+
+def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per setting and method of a ``dependencies.json`` dict: collisions and greedy collisions
+    per experiment (means), and for the learned structure the fraction right within the target
+    and its collisions against the oracle's (ratio with its paired-bootstrap interval)."""
+    cells = {}
+    for setting, summary in results["settings"].items():
+        structure = summary.get("structure")
+        ratio = summary.get("against_oracle", {}).get("collisions")
+        for method, entry in summary["methods"].items():
+            learned = method == "learned"
+            cells[f"{setting}/{method}"] = {
+                "world": setting,
+                "algorithm": method,
+                "collisions": {"mean": entry["collisions_per_experiment"], "ci95": None},
+                "greedy_collisions": {
+                    "mean": entry["greedy_collisions_per_experiment"],
+                    "ci95": None,
+                },
+                "fraction_right_within_target": {
+                    "mean": structure["fraction_right_within_target"]
+                    if learned and structure
+                    else None,
+                    "ci95": None,
+                },
+                "collisions_vs_oracle": {
+                    "mean": ratio["ratio"] if learned and ratio else None,
+                    "ci95": interval_or_none(ratio["ci"])
+                    if learned and ratio and ratio["ci"]
+                    else None,
+                },
+            }
+    return cells
