@@ -169,3 +169,29 @@ def test_unknown_methods_and_predictions_are_refused():
         dependencies.DependenciesConfig(methods=("nope",))
     with pytest.raises(ValueError, match="prediction='nope'"):
         dependencies.DependenciesConfig(prediction="nope")
+
+
+def test_a_settings_streams_derive_from_its_content_not_its_position(monkeypatch):
+    config = dependencies.DependenciesConfig(seeds=2, runs=2, change_run=1)
+    before = {name: config.setting_stream(name) for name in config.settings}
+    assert len(set(before.values())) == len(before)  # change differs from cross by its change
+    custom = dependencies.DependenciesConfig(body="translate", sensors="cross", seeds=2)
+    assert custom.settings == ("custom",)
+    assert custom.setting_stream("custom") == before["cross"]  # the same content
+    monkeypatch.setattr(
+        dependencies, "SETTINGS", {"new": {"body": "heading"}, **dependencies.SETTINGS}
+    )
+    assert {name: config.setting_stream(name) for name in config.settings} == before
+
+
+def test_body_options_declare_the_custom_setting(tmp_path):
+    config = dependencies.DependenciesConfig(
+        **TINY, body="heading", distractors=2, out=str(tmp_path)
+    )
+    assert config.settings == ("custom",)
+    world = config.world_of("custom")
+    assert world.num_headings == 4 and world.num_sensors == 4 + 2
+    with pytest.raises(ValueError, match="declare the setting 'custom'"):
+        dependencies.DependenciesConfig(settings=("cross",), sensor_noise=0.1)
+    with pytest.raises(ValueError, match="'custom' needs"):
+        dependencies.DependenciesConfig(settings=("custom",))

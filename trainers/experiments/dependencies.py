@@ -32,6 +32,8 @@ Writes ``dependencies.json``, ``dependencies.png`` and ``dependencies.md`` to ``
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -76,6 +78,16 @@ SETTINGS: dict[str, dict[str, Any]] = {
     "noise-10": {"body": "translate", "sensors": "cross", "sensor_noise": 0.10},
     "change": {"body": "translate", "sensors": "cross"},
 }
+#: The setting that ``--body``, ``--sensors``, ``--distractors`` and ``--sensor-noise`` declare.
+CUSTOM = "custom"
+#: A setting's content: its body options with the defaults filled in, and whether the sensor
+#: order is redrawn mid-experiment (the ``change`` preset).
+SETTING_DEFAULTS = {
+    "body": "translate",
+    "sensors": "cross",
+    "num_distractors": 0,
+    "sensor_noise": 0.0,
+}
 METHODS = ("learned", "oracle", "joint", "q-learning", "dqn")
 #: The methods run by default: DQN is opt-in (``--methods``), see ``run_dqn``.
 DEFAULT_METHODS = ("learned", "oracle", "joint", "q-learning")
@@ -104,7 +116,15 @@ class DependenciesConfig:
     seed: int = option(0, "Master seed: worlds, sensor orders and policies derive from it.")
     seeds: int = option(100, "Independent experiments per setting (and method).")
     settings: tuple[str, ...] = option(
-        tuple(SETTINGS), "Settings to run: " + ", ".join(SETTINGS) + " (comma-separated)."
+        tuple(SETTINGS),
+        "Settings to run: " + ", ".join(SETTINGS) + " (presets, comma-separated), or custom (the "
+        "body options below; given alone, they run it instead of the presets).",
+    )
+    body: str | None = option(None, "Body of the custom setting: translate or heading.")
+    sensors: str | None = option(None, "Sensor layout of the custom setting: cross or ring.")
+    distractors: int | None = option(None, "Distractor sensor bits of the custom setting.")
+    sensor_noise: float | None = option(
+        None, "Probability that each sensor bit of the custom setting flips at each observation."
     )
     world: str = option("static", "World: static, semi-dynamic or dynamic.", choices=WORLDS)
     runs: int = option(10, "Runs per experiment (task tables reset at each).")
@@ -165,7 +185,21 @@ class DependenciesConfig:
     def __post_init__(self) -> None:
         check_int("seed", self.seed, 0, MAX_SEED)
         check_int("seeds", self.seeds, 1, INT32_MAX)
-        object.__setattr__(self, "settings", check_names("settings", self.settings, SETTINGS))
+        settings = check_names("settings", self.settings, (*SETTINGS, CUSTOM))
+        custom = [name for name in ("body", "sensors", "distractors", "sensor_noise")
+                  if getattr(self, name) is not None]  # fmt: skip
+        if custom and settings == tuple(SETTINGS):  # body options alone: their setting only
+            settings = (CUSTOM,)
+        if custom and CUSTOM not in settings:
+            raise ValueError(
+                f"settings: {', '.join(custom)} declare the setting {CUSTOM!r}: add it to "
+                f"settings or leave settings out"
+            )
+        if CUSTOM in settings and not custom:
+            raise ValueError(
+                f"settings: {CUSTOM!r} needs body, sensors, distractors or sensor_noise"
+            )
+        object.__setattr__(self, "settings", settings)
         object.__setattr__(self, "methods", check_names("methods", self.methods, METHODS))
         check_int("runs", self.runs, 1, INT32_MAX)
         check_int("episodes", self.episodes, 1, INT32_MAX)
@@ -221,8 +255,28 @@ class DependenciesConfig:
                     f"collide): there is no structure to learn"
                 )
 
+    def setting_options(self, setting: str) -> dict[str, Any]:
+        """The body options of ``setting`` (a preset, or the custom one), defaults filled in."""
+        if setting != CUSTOM:
+            return {**SETTING_DEFAULTS, **SETTINGS[setting]}
+        given = {
+            "body": self.body,
+            "sensors": self.sensors,
+            "num_distractors": self.distractors,
+            "sensor_noise": self.sensor_noise,
+        }
+        return {**SETTING_DEFAULTS, **{k: v for k, v in given.items() if v is not None}}
+
+    def setting_stream(self, setting: str) -> int:
+        """The seed of ``setting``'s sensor orders, from its content (its options and whether
+        it changes), not its name or position: adding a setting changes no other's numbers,
+        and two settings of the same content draw the same orders."""
+        content = {**self.setting_options(setting), "change": setting == "change"}
+        text = json.dumps(content, sort_keys=True)
+        return int.from_bytes(hashlib.sha256(text.encode()).digest()[:8], "little") >> 1
+
     def world_of(self, setting: str) -> WorldConfig:
-        options = {"body": "translate", "sensors": "cross", **SETTINGS[setting]}
+        options = self.setting_options(setting)
         renamed = {"num_distractors": "distractors"}
         body = {renamed.get(name, name): value for name, value in options.items()}
         return check_world_options(
@@ -238,15 +292,15 @@ CONFIG = DependenciesConfig
 
 
 def sensor_orders(
-    seed: int, setting: str, count: int, num_sensors: int, redraw: int
+    seed: int, setting_stream: int, count: int, num_sensors: int, redraw: int
 ) -> torch.Tensor:
     """``[count, K]``: experiment ``i``'s sensor order (``redraw`` 0: the first, 1: after the
-    change), drawn from its own generator seeded by ``(seed, setting, i, redraw)``."""
+    change), drawn from its own generator seeded by ``(seed, setting_stream, i, redraw)``
+    (``setting_stream``: ``DependenciesConfig.setting_stream``, from the setting's content)."""
     orders = []
-    setting_index = list(SETTINGS).index(setting)
     for index in range(count):
         generator = torch.Generator().manual_seed(
-            hash((seed, STREAM_ORDER, setting_index, index, redraw)) & (2**63 - 1)
+            hash((seed, STREAM_ORDER, setting_stream, index, redraw)) & (2**63 - 1)
         )
         orders.append(torch.randperm(num_sensors, generator=generator))
     return torch.stack(orders)
@@ -298,11 +352,15 @@ def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]
     count, num_sensors = config.seeds, world.num_sensors
     world_keys, policy_keys = _keys(config, "learned")
     periods = torch.full((count,), WORLD_PERIODS[config.world], dtype=torch.int64)
-    orders = sensor_orders(config.seed, setting, count, num_sensors, 0)
+    orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
     change = setting == "change"
     options = fast.StructureOptions(
         orders=orders,
-        orders_after=sensor_orders(config.seed, setting, count, num_sensors, 1) if change else None,
+        orders_after=sensor_orders(
+            config.seed, config.setting_stream(setting), count, num_sensors, 1
+        )
+        if change
+        else None,
         change_run=config.change_run if change else 0,
         curve_every=CURVE_EVERY,
         **_learner_options(config),
@@ -420,7 +478,7 @@ def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, A
     count, num_sensors = config.seeds, world.num_sensors
     world_keys, policy_keys = _keys(config, "learned")
     periods = [WORLD_PERIODS[config.world]] * count
-    orders = sensor_orders(config.seed, setting, count, num_sensors, 0)
+    orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
     permute = PermuteSensors(orders)
     env = TransformedEnv(make_env(world, periods, world_keys), Compose(SplitLocalReward(), permute))
     task = TaskQTable(
@@ -455,7 +513,9 @@ def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, A
         if setting == "change":
             due = (collector.run_index >= config.change_run) & ~changed
             if bool(due.any()):
-                new_orders = sensor_orders(config.seed, setting, count, num_sensors, 1)
+                new_orders = sensor_orders(
+                    config.seed, config.setting_stream(setting), count, num_sensors, 1
+                )
                 permute.set_permutations(new_orders, due)
                 truth[due] = permuted_dependency(world.dependency, new_orders)[due]
                 samples_at_change[due] = learner.samples[due]
@@ -519,8 +579,10 @@ def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[
         count, num_sensors = config.seeds, world.num_sensors
         change = setting == "change"
         orders = fast.SensorOrders(
-            sensor_orders(config.seed, setting, count, num_sensors, 0),
-            sensor_orders(config.seed, setting, count, num_sensors, 1) if change else None,
+            sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0),
+            sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 1)
+            if change
+            else None,
             config.change_run if change else 0,
         )
     metrics = fast.run_experiments(
@@ -558,7 +620,7 @@ def run_dqn(config: DependenciesConfig, setting: str, budget: int) -> dict[str, 
     from factorq_trainers.experiments import dqn
     from factorq_trainers.experiments.experiment import ExperimentConfig
 
-    options = {"body": "translate", "sensors": "cross", **SETTINGS[setting]}
+    options = config.setting_options(setting)
     experiments = ExperimentConfig(
         seed=config.seed,
         seeds=config.seeds,
