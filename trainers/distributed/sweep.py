@@ -69,10 +69,8 @@ from factorq_trainers.distributed import cluster, shards
 from factorq_trainers.experiments import paper
 from factorq_trainers.runner import outdir, resources
 from factorq_trainers.runner import results as result_files
+from factorq_trainers.runner.frame import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_USAGE, Parser
 
-EXIT_USAGE = 2
-EXIT_FAILURE = 1
-EXIT_INTERRUPTED = 130
 HELP = "run a grid of paper configurations as shards, in-process or on a Dask cluster"
 JSON_FILE = "sweep.json"
 REPORT_FILE = "sweep.md"
@@ -894,14 +892,6 @@ def write_outputs(sweep: dict[str, Any], out: str | Path) -> dict[str, Path]:
 # Command line
 
 
-class _Parser(argparse.ArgumentParser):
-    """One-line errors, exit 2 (as the other ``factorq`` commands)."""
-
-    def error(self, message: str) -> typing.NoReturn:
-        print(f"{self.prog}: error: {message} (see {self.prog} --help)", file=sys.stderr)
-        raise SystemExit(EXIT_USAGE)
-
-
 def add_paper_options(parser: argparse.ArgumentParser) -> None:
     """The cluster options of ``factorq paper``: ``cluster.add_options`` and ``--shard-seeds``."""
     cluster.add_options(parser)
@@ -992,7 +982,7 @@ def run_compare_on(
 
 
 def build_parser(prog: str = "factorq sweep") -> argparse.ArgumentParser:
-    parser = _Parser(
+    parser = Parser(
         prog=prog,
         description="Run a grid of `factorq paper` configurations, each with --seeds seeds, as "
         "shards of --shard-seeds seeds (or, with --command compare, of `factorq compare` "

@@ -65,6 +65,7 @@ from factorq_trainers.experiments.experiment import (
     experiment_keys,
     make_env,
 )
+from factorq_trainers.runner.checkpoint import to_device
 from factorq_trainers.runner.options import option
 
 with warnings.catch_warnings():
@@ -369,7 +370,7 @@ def run(
             # ReplayBuffer.load_state_dict restores the length and the writer's cursor.
             row = env.fake_tensordict().select(*_STORED, strict=False).unsqueeze(0)
             agent.buffer.extend(row.zero_())
-            buffer = _to(saved["buffer"], device)
+            buffer = to_device(saved["buffer"], device)
             rows = buffer["_storage"]["_storage"]
             rows = TensorDict(
                 {tuple(key.split(".")): value for key, value in rows.items()},
@@ -381,10 +382,10 @@ def run(
             torch.set_rng_state(saved["rng"])
             loss_per_experiment = saved["loss"].clone()
             agent.target_updater.counter = saved["updates"]
-            env.world_state = type(env.world_state)(**_to(saved["world_state"], device))
-            collector._carrier.update_(_to(saved["carrier"], device))
-            agent.policy.load_state_dict(_to(saved["policy"], device))
-            agent.loss.load_state_dict(_to(saved["loss_module"], device))
+            env.world_state = type(env.world_state)(**to_device(saved["world_state"], device))
+            collector._carrier.update_(to_device(saved["carrier"], device))
+            agent.policy.load_state_dict(to_device(saved["policy"], device))
+            agent.loss.load_state_dict(to_device(saved["loss_module"], device))
             agent.optimizer.load_state_dict(saved["optimizer"])
             recorder.load_state_dict(saved["recorder"])
             done_steps = saved["step"]
@@ -433,19 +434,8 @@ def run(
     }
 
 
-def _to(tree: Any, device: torch.device) -> Any:
-    """``tree`` (nested dicts and lists of tensors) with every tensor on ``device``."""
-    if isinstance(tree, torch.Tensor):
-        return tree.to(device)
-    if isinstance(tree, dict):
-        return type(tree)((key, _to(value, device)) for key, value in tree.items())
-    if isinstance(tree, list):
-        return [_to(value, device) for value in tree]
-    return tree
-
-
 def _to_cpu(tree: Any) -> Any:
-    return _to(tree, torch.device("cpu"))
+    return to_device(tree, torch.device("cpu"))
 
 
 def _gradient_step(agent: DQNAgent, batch_size: int) -> torch.Tensor:

@@ -423,20 +423,20 @@ def _run_modular(job: Job) -> dict[str, torch.Tensor]:
     )
 
     fresh = {
-        "collector": _to_device(collector.state_dict(), torch.device("cpu")),
-        "world_state": _to_device(grid.world_state._asdict(), torch.device("cpu")),
+        "collector": checkpoint.to_device(collector.state_dict(), torch.device("cpu")),
+        "world_state": checkpoint.to_device(grid.world_state._asdict(), torch.device("cpu")),
     }
     # A new collector has not stepped: its observation is None; a saved one is checked by
     # _check_observation (its entries depend on the body, the env and the policy).
 
     def load_state(state: dict[str, Any]) -> None:
         check_state(state, fresh, config, periods)
-        collector.load_state_dict(_to_device(state["collector"], device))
+        collector.load_state_dict(checkpoint.to_device(state["collector"], device))
         saved = state["world_state"]
         for name, tensor in grid.world_state._asdict().items():
             if saved[name].shape != tensor.shape or saved[name].dtype != tensor.dtype:
                 raise ValueError(f"world_state[{name!r}] does not fit this batch")
-        grid.world_state = type(grid.world_state)(**_to_device(saved, device))
+        grid.world_state = type(grid.world_state)(**checkpoint.to_device(saved, device))
 
     checkpoints.restore(algorithm, load_state)
     # The per-step tensors are small: intra-op threads only add synchronisation (2 threads were
@@ -451,7 +451,7 @@ def _run_modular(job: Job) -> dict[str, torch.Tensor]:
                     "collector": collector.state_dict(),
                     "world_state": grid.world_state._asdict(),
                 }
-                checkpoints.save(algorithm, _to_device(state, torch.device("cpu")))
+                checkpoints.save(algorithm, checkpoint.to_device(state, torch.device("cpu")))
     finally:
         torch.set_num_threads(previous_threads)
     return dict(collector.metrics.items())
@@ -464,17 +464,6 @@ def _modular_in_process(config: PaperConfig, algorithm: str, report: Any) -> dic
     counter = checkpoint.Checkpointer(config.out, config_dict(config), "modular")
     job = Job(config, algorithm, experiment_keys(config, algorithm), report, counter)
     return {name: values.cpu().numpy() for name, values in _run_modular(job).items()}
-
-
-def _to_device(tree: Any, device: torch.device) -> Any:
-    """``tree`` (nested dicts and lists of tensors) with every tensor on ``device``."""
-    if isinstance(tree, torch.Tensor):
-        return tree.to(device)
-    if isinstance(tree, dict):
-        return type(tree)((key, _to_device(value, device)) for key, value in tree.items())
-    if isinstance(tree, list):
-        return [_to_device(value, device) for value in tree]
-    return tree
 
 
 def backend_driver(backend: str) -> Callable[[Job], dict[str, torch.Tensor]]:

@@ -63,6 +63,23 @@ _UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0}
 _TEMPORARY = re.compile(r"^\.(checkpoint\.pt|checkpoint\.prev\.pt)\.\d+\.tmp$")
 
 
+def is_int(value: Any) -> bool:
+    """An int that is not a bool (``True`` is an int to Python, never to a checkpoint)."""
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def to_device(tree: Any, device: torch.device | str) -> Any:
+    """``tree`` (nested dicts and lists of tensors) with every tensor on ``device``: a state
+    saved from any device, restored on the run's."""
+    if isinstance(tree, torch.Tensor):
+        return tree.to(device)
+    if isinstance(tree, dict):
+        return type(tree)((key, to_device(value, device)) for key, value in tree.items())
+    if isinstance(tree, list):
+        return [to_device(value, device) for value in tree]
+    return tree
+
+
 class CheckpointError(ValueError):
     """A checkpoint that cannot be used: missing, damaged, or not this run's. One line, naming
     the file and what to do."""

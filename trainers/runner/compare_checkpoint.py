@@ -217,14 +217,10 @@ def _check_trace(trace, world, index, experiments, refuse) -> dict[str, Any]:
             refuse(f"{where}: {name} holds values outside [{low}, {high}]")
     for name in _TRACE_TOTALS:
         value = trace.get(name)
-        if not checkpoint_int(value) or not 0 <= value <= experiments.steps:
+        if not checkpoint.is_int(value) or not 0 <= value <= experiments.steps:
             refuse(f"{where}: {name} must be an int in [0, {experiments.steps}]")
         out[name] = value
     return out
-
-
-def checkpoint_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
 
 
 # --------------------------------------------------------------------------------------------
@@ -337,7 +333,7 @@ def _keys(state: Any, expected: tuple[str, ...] | set[str], where: str) -> None:
 
 
 def _int(value: Any, low: int, high: int, where: str) -> int:
-    if not checkpoint_int(value) or not low <= value <= high:
+    if not checkpoint.is_int(value) or not low <= value <= high:
         raise ValueError(f"{where}={value!r} must be an int in [{low}, {high}]")
     return value
 
@@ -423,7 +419,7 @@ def check_optimizer(saved: Any, optimizer: torch.optim.Optimizer, steps: int, wh
         if len(counts) > 1:
             raise ValueError(f"{where}['state'] has parameters at different step counts")
     for index, entry in state.items():
-        if not checkpoint_int(index) or not 0 <= index < len(parameters):
+        if not checkpoint.is_int(index) or not 0 <= index < len(parameters):
             raise ValueError(f"{where}['state'] has a key {index!r} that is no parameter's index")
         at = f"{where}['state'][{index}]"
         if not isinstance(entry, dict) or not set(entry) <= allowed:
@@ -632,7 +628,7 @@ def check_buffer(
     if (
         storage["initialized"] is not True
         or storage["_len"] != length
-        or not checkpoint_int(storage["_len"])
+        or not checkpoint.is_int(storage["_len"])
     ):
         raise ValueError(f"{where}['_storage'] must be initialised and hold {length} rows")
     rows = storage["_storage"]
