@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from factorq_trainers import compare
+from factorq_trainers.experiments import compare
 
 
 class _Stop(Exception):

@@ -17,7 +17,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from factorq_trainers.dependencies import (
+from factorq_trainers.experiments.dependencies import (
     SETTINGS,
     DependenciesConfig,
     run_learned_fast,

@@ -1,4 +1,4 @@
-"""Speed and memory of the fused fast path (``factorq_trainers.fast``), printed as tables.
+"""Speed and memory of the fused fast path (``factorq_trainers.compiled.fast``), printed as tables.
 
 - kernel build: compile time (into an empty cache) and load time from the cache;
 - throughput, env steps per second, at several batch sizes ``S`` (independent experiments), for
@@ -50,7 +50,7 @@ if str(ROOT) not in sys.path:  # run as a script from anywhere
 from factorq_envs.world import WorldConfig  # noqa: E402
 from factorq_torch.base.config import AgentConfig  # noqa: E402
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys  # noqa: E402
-from factorq_trainers import fast  # noqa: E402
+from factorq_trainers.compiled import fast  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_numba_anchor as numba_anchor  # noqa: E402  (measures only where numba imports)

@@ -154,7 +154,9 @@ def compare_restarts(collector: OnlineCollector, blocks: int, steps: int) -> Non
 
 
 def batched_steps() -> None:
-    from factorq_trainers import checkpoint, fast, paper
+    from factorq_trainers.compiled import fast
+    from factorq_trainers.experiments import paper
+    from factorq_trainers.runner import checkpoint
 
     if not fast.is_available():
         print("\nbatched steps: the fast path is unavailable here")

@@ -20,7 +20,7 @@ import argparse
 import dataclasses
 import statistics
 
-from factorq_trainers.dependencies import DependenciesConfig, run
+from factorq_trainers.experiments.dependencies import DependenciesConfig, run
 
 
 def variant(text: str) -> tuple[str, dict[str, object]]:

@@ -5,7 +5,7 @@ dimensions (experiments). Values are float tensors; actions are int64.
 
 Floating-point order is part of the contract: sums over actions are written as explicit
 left-to-right additions (``_left_sum``) and no step is fused, so the compiled fast path
-(``trainers/_kernel.c``, which performs the same operations in the same order in float32)
+(``trainers/compiled/_kernel.c``, which performs the same operations in the same order in float32)
 produces bit-identical tables. Keep it that way when you edit.
 """
 

@@ -35,7 +35,8 @@ sensors through learnable sigmoid gates with an L1 penalty, and its parents are 
 gates (``structure``).
 
 These are architectural priors, stated here; ``bias``, ``activation`` and ``shared`` are
-arguments so that the difference can be measured (``factorq_trainers.compare.FactorDQNConfig``).
+arguments so that the difference can be measured
+(``factorq_trainers.experiments.compare.FactorDQNConfig``).
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
-"""Work for child processes in the tests of ``factorq_trainers.processes`` (a module the children
-import: pytest puts tests/ on sys.path, and the children get the parent's sys.path)."""
+"""Work for child processes in the tests of ``factorq_trainers.distributed.processes`` (a
+module the children import: pytest puts tests/ on sys.path, and the children get the parent's
+sys.path)."""
 
 from __future__ import annotations
 

@@ -23,7 +23,7 @@ from factorq_torch.tables import LocalRewardTable, TaskQTable
 
 
 def fast_available() -> bool:
-    from factorq_trainers import fast
+    from factorq_trainers.compiled import fast
 
     return fast.is_available()
 
@@ -297,8 +297,8 @@ def test_task_table_indexes_cell_heading_and_the_pattern_of_all_sensors():
     ids=str,
 )
 def test_the_paper_experiment_runs_other_bodies_on_the_modular_path(options):
-    from factorq_trainers import paper
-    from factorq_trainers.paper import PaperConfig
+    from factorq_trainers.experiments import paper
+    from factorq_trainers.experiments.paper import PaperConfig
 
     small = {"seeds": 2, "runs": 2, "episodes": 2, "size": 4, "obstacles": 2, "max_steps": 200}
     config = PaperConfig(**small, backend="modular", **options)
@@ -334,9 +334,9 @@ def test_factored_grid_implements_the_world_protocol_with_the_world_functions():
 def test_factorq_with_the_oracle_dependency_ignores_diagonals_distractors_and_order():
     # The tables only read each actuator's parent sensor: on ring + distractors, permuted, Factor-Q
     # makes exactly the paper body's decisions (same world and policy streams), bit for bit.
-    from factorq_trainers import paper
-    from factorq_trainers.paper import PaperConfig
-    from factorq_trainers.results import dumps as dumps_results
+    from factorq_trainers.experiments import paper
+    from factorq_trainers.experiments.paper import PaperConfig
+    from factorq_trainers.runner.results import dumps as dumps_results
 
     small = {
         "seeds": 2,
@@ -407,8 +407,8 @@ def test_factorq_paper_command_runs_another_body_and_records_it(tmp_path, capsys
 
 
 def test_factorq_compare_runs_every_method_on_another_body(tmp_path):
-    from factorq_trainers import compare
-    from factorq_trainers.compare import CompareConfig
+    from factorq_trainers.experiments import compare
+    from factorq_trainers.experiments.compare import CompareConfig
 
     config = CompareConfig(
         seeds=1, steps=300, size=4, obstacles=1, out=str(tmp_path / "compare"),

@@ -15,10 +15,13 @@ from pathlib import Path
 import pytest
 import torch
 
-from factorq_trainers import checkpoint, cli, fast, paper
-from factorq_trainers.checkpoint import CheckpointError
-from factorq_trainers.paper import PaperConfig
-from factorq_trainers.results import dumps as dumps_results
+from factorq_trainers import cli
+from factorq_trainers.compiled import fast
+from factorq_trainers.experiments import paper
+from factorq_trainers.experiments.paper import PaperConfig
+from factorq_trainers.runner import checkpoint
+from factorq_trainers.runner.checkpoint import CheckpointError
+from factorq_trainers.runner.results import dumps as dumps_results
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 # Every episode takes at least 10 steps on a 6x6 grid, so each algorithm needs more than the

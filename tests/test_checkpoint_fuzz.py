@@ -19,8 +19,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from factorq_trainers import checkpoint, fast
-from factorq_trainers.paper import PaperConfig, run
+from factorq_trainers.compiled import fast
+from factorq_trainers.experiments.paper import PaperConfig, run
+from factorq_trainers.runner import checkpoint
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 #: A checkpoint taken during Factor-Q with Q-learning finished: every kind of field is there.
@@ -192,7 +193,8 @@ COMPARE_HARMLESS = ("config/threads", "config/out", "finished/factor-q/wall_s")
 
 
 def test_every_field_of_a_signed_compare_checkpoint_mutated_is_refused_cleanly(tmp_path):
-    from factorq_trainers import cli, compare
+    from factorq_trainers import cli
+    from factorq_trainers.experiments import compare
 
     out = tmp_path / "compare"
     config = compare.CompareConfig(
@@ -269,8 +271,9 @@ class _Stop(Exception):
 def test_every_field_of_a_signed_mid_method_compare_checkpoint_mutated_is_refused_cleanly(
     running, tmp_path
 ):
-    from factorq_trainers import cli, compare
-    from factorq_trainers.dqn import DQNConfig
+    from factorq_trainers import cli
+    from factorq_trainers.experiments import compare
+    from factorq_trainers.experiments.dqn import DQNConfig
 
     out = tmp_path / "compare"
     small_dqn = DQNConfig(learning_starts=20, batch_size=4, buffer_size=32, hidden=(8,),
@@ -343,7 +346,7 @@ def _replaced_deep(tree, path: str, value):
 
 
 def _valid_compare_config(data) -> bool:
-    from factorq_trainers import compare
+    from factorq_trainers.experiments import compare
 
     try:
         compare.config_from_dict(data)

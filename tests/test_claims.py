@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from factorq_trainers.claims import MEASURES, compute_claims
+from factorq_trainers.analysis.claims import MEASURES, compute_claims
 
 # Means per run like SPEC section 5's table: (total steps, collisions, greedy collisions).
 PAPER_LIKE = {

@@ -12,7 +12,10 @@ from dataclasses import fields
 
 import pytest
 
-from factorq_trainers import cli, fast, options, paper
+from factorq_trainers import cli
+from factorq_trainers.compiled import fast
+from factorq_trainers.experiments import paper
+from factorq_trainers.runner import options
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 TINY = ["--seeds", "2", "--runs", "1", "--episodes", "2", "--size", "5", "--obstacles", "3"]
@@ -106,7 +109,8 @@ def test_paper_writes_results_figure_and_report_and_report_regenerates(tmp_path,
 
 def test_report_of_a_directory_without_results_is_an_error(tmp_path, capsys):
     assert cli.main(["report", str(tmp_path)]) == 2
-    assert "results.json does not exist" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "holds no results file of a factorq command" in err and "results.json" in err
 
 
 def test_interrupt_during_the_run_exits_130_and_writes_nothing(tmp_path, capsys, monkeypatch):

@@ -13,8 +13,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from factorq_trainers import cli, cluster, fast, paper, shards, sweep
-from factorq_trainers import results as result_files
+from factorq_trainers import cli
+from factorq_trainers.compiled import fast
+from factorq_trainers.distributed import cluster, shards, sweep
+from factorq_trainers.experiments import paper
+from factorq_trainers.runner import results as result_files
 
 distributed = pytest.importorskip("distributed")
 pytestmark = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
@@ -157,8 +160,8 @@ def test_a_worker_killed_mid_shard_loses_only_that_shard_and_the_numbers_stay(ex
 
 
 def test_factorq_compare_on_the_cluster_repeats_every_method_in_process(executor, tmp_path):
-    from factorq_trainers import compare
-    from factorq_trainers.dqn import DQNConfig
+    from factorq_trainers.experiments import compare
+    from factorq_trainers.experiments.dqn import DQNConfig
 
     config = compare.CompareConfig(
         seeds=2,

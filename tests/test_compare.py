@@ -9,9 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from factorq_trainers import cli, compare, compare_report, options
-from factorq_trainers.dqn import DQNConfig
-from factorq_trainers.experiment import ExperimentConfig
+from factorq_trainers import cli
+from factorq_trainers.experiments import compare
+from factorq_trainers.experiments.dqn import DQNConfig
+from factorq_trainers.experiments.experiment import ExperimentConfig
+from factorq_trainers.reports import compare_report
+from factorq_trainers.runner import options
 
 #: outcomes that depend on float rounding: `make test` reruns these under other CPU kernels
 pytestmark = pytest.mark.float_sensitive

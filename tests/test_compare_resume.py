@@ -18,8 +18,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from factorq_trainers import checkpoint, cli, compare, compare_checkpoint
-from factorq_trainers.dqn import DQNConfig
+from factorq_trainers import cli
+from factorq_trainers.experiments import compare
+from factorq_trainers.experiments.dqn import DQNConfig
+from factorq_trainers.runner import checkpoint, compare_checkpoint
 
 #: Every method, small: a few hundred env steps of 2 worlds x 2 seeds on a 4 x 4 grid.
 SMALL = dict(
@@ -261,7 +263,7 @@ def test_a_time_interval_saves_mid_method_too(tmp_path, one_thread):
 
 
 def test_the_memory_estimate_counts_the_checkpoint_copy():
-    from factorq_trainers import resources
+    from factorq_trainers.runner import resources
 
     config = compare.CompareConfig(methods=("dqn",), seeds=2, steps=5000)
     plain = resources.compare_estimate(config)

@@ -14,7 +14,11 @@ from factorq_envs.permutation import PermuteSensors, permuted_dependency
 from factorq_envs.world import WorldConfig
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import derive_keys
-from factorq_trainers import cli, dependencies, fast
+from factorq_trainers import cli
+from factorq_trainers.compiled import fast
+from factorq_trainers.experiments import dependencies
+from factorq_trainers.reports import dependencies as dependencies_report
+from factorq_trainers.runner import frame
 
 TINY = dict(seeds=2, size=4, obstacles=2, runs=2, episodes=1, change_run=1, max_steps=200)
 
@@ -57,7 +61,7 @@ def test_a_tiny_experiment_writes_its_three_files(tmp_path):
         **TINY, settings=("cross", "ring-24", "change"), out=str(tmp_path)
     )
     results = dependencies.run(config)
-    paths = dependencies.write_outputs(results, tmp_path)
+    paths = frame.write_outputs(dependencies, results, tmp_path)
     assert {path.name for path in paths.values()} == {
         "dependencies.json",
         "dependencies.md",
@@ -113,9 +117,9 @@ def test_cli_refuses_a_reopen_factor_of_one_and_reports_a_given_one(capsys, tmp_
     assert "--reopen-factor=1.0 is out of range" in capsys.readouterr().err
     config = dependencies.DependenciesConfig(reopen_factor=1e4)
     assert dependencies._learner_options(config)["reopen_factor"] == 1e4
-    results = {"config": dataclasses.asdict(config), "timing": {"wall_seconds": 1.0}}
+    results = {"config": dataclasses.asdict(config), "timing": {"wall_s": 1.0}}
     results["settings"] = {}
-    assert "reopening at Bayes factor 10000" in dependencies.report_markdown(results)
+    assert "reopening at Bayes factor 10000" in dependencies_report.markdown(results)
 
 
 def test_cli_refuses_a_prior_the_compiled_path_cannot_take(capsys):
@@ -158,7 +162,7 @@ def test_dqn_is_opt_in_and_runs_on_the_oracles_budget(tmp_path):
     assert entry["step_budget"] == round(oracle["steps_per_run"] * TINY["runs"])
     assert entry["collisions_per_experiment"] >= 0
     assert "dqn" in results["skipped"]["change"]
-    assert "DQN in cross: a budget of" in dependencies.report_markdown(results)
+    assert "DQN in cross: a budget of" in dependencies_report.markdown(results)
 
 
 def test_unknown_methods_and_predictions_are_refused():
@@ -202,4 +206,30 @@ def test_the_gated_network_is_opt_in_and_reports_its_structure(tmp_path, one_thr
     world = config.world_of("cross")  # at most every (actuator, sensor) wrong
     assert 0 <= gated["hamming_at_end_mean"] <= world.num_actuators * world.num_sensors
     assert "collisions" in results["settings"]["cross"]["gated_against_oracle"]
-    assert "| cross, gated network |" in dependencies.report_markdown(results)
+    assert "| cross, gated network |" in dependencies_report.markdown(results)
+
+
+def test_a_settings_streams_derive_from_its_content_not_its_position(monkeypatch):
+    config = dependencies.DependenciesConfig(seeds=2, runs=2, change_run=1)
+    before = {name: config.setting_stream(name) for name in config.settings}
+    assert len(set(before.values())) == len(before)  # change differs from cross by its change
+    custom = dependencies.DependenciesConfig(body="translate", sensors="cross", seeds=2)
+    assert custom.settings == ("custom",)
+    assert custom.setting_stream("custom") == before["cross"]  # the same content
+    monkeypatch.setattr(
+        dependencies, "SETTINGS", {"new": {"body": "heading"}, **dependencies.SETTINGS}
+    )
+    assert {name: config.setting_stream(name) for name in config.settings} == before
+
+
+def test_body_options_declare_the_custom_setting(tmp_path):
+    config = dependencies.DependenciesConfig(
+        **TINY, body="heading", distractors=2, out=str(tmp_path)
+    )
+    assert config.settings == ("custom",)
+    world = config.world_of("custom")
+    assert world.num_headings == 4 and world.num_sensors == 4 + 2
+    with pytest.raises(ValueError, match="declare the setting 'custom'"):
+        dependencies.DependenciesConfig(settings=("cross",), sensor_noise=0.1)
+    with pytest.raises(ValueError, match="'custom' needs"):
+        dependencies.DependenciesConfig(settings=("custom",))

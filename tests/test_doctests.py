@@ -23,15 +23,16 @@ def modules_with_examples() -> list[str]:
     """Every module of the two packages whose source holds an example (``>>>``)."""
     names = []
     for package, folder in FOLDERS.items():
-        for path in sorted((ROOT / folder).glob("*.py")):
+        for path in sorted((ROOT / folder).rglob("*.py")):
             if ">>>" in path.read_text():
-                stem = path.stem
-                names.append(package if stem == "__init__" else f"{package}.{stem}")
+                parts = path.relative_to(ROOT / folder).with_suffix("").parts
+                parts = parts[:-1] if parts[-1] == "__init__" else parts
+                names.append(".".join((package, *parts)))
     return names
 
 
 def test_the_walk_finds_examples():
-    assert {"factorq_envs.grid", "factorq_trainers.stats"} <= set(modules_with_examples())
+    assert {"factorq_envs.grid", "factorq_trainers.analysis.stats"} <= set(modules_with_examples())
 
 
 @pytest.mark.parametrize("name", modules_with_examples())

@@ -1,5 +1,6 @@
-"""The fused fast path (factorq_trainers.fast and its C kernel) against the slow reference and the
-pure-torch world and equations: equal bit for bit, whatever the chunking, threads and batch."""
+"""The fused fast path (factorq_trainers.compiled.fast and its C kernel) against the slow
+reference and the pure-torch world and equations: equal bit for bit, whatever the chunking,
+threads and batch."""
 
 from __future__ import annotations
 
@@ -32,7 +33,7 @@ from factorq_torch.base.rng import (
     randint_from_bits,
     random_bits,
 )
-from factorq_trainers import fast
+from factorq_trainers.compiled import fast
 
 pytestmark = pytest.mark.skipif(
     not fast.is_available(), reason=f"fast path unavailable: {fast.unavailable_reason()}"

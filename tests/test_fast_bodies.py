@@ -8,9 +8,10 @@ import random
 
 import pytest
 
-from factorq_trainers import fast, paper
-from factorq_trainers.paper import PaperConfig
-from factorq_trainers.results import dumps as dumps_results
+from factorq_trainers.compiled import fast
+from factorq_trainers.experiments import paper
+from factorq_trainers.experiments.paper import PaperConfig
+from factorq_trainers.runner.results import dumps as dumps_results
 
 pytestmark = pytest.mark.skipif(
     not fast.is_available(), reason=f"fast path unavailable: {fast.unavailable_reason()}"

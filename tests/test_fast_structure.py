@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from factorq_torch.functional import beta_bernoulli_log_marginal, lgamma_tables
-from factorq_trainers import fast
-from factorq_trainers.dependencies import (
+from factorq_trainers.compiled import fast
+from factorq_trainers.experiments.dependencies import (
     SETTINGS,
     DependenciesConfig,
     run_learned_fast,

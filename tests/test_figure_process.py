@@ -10,9 +10,12 @@ import sys
 import pytest
 from test_report import synthetic_results
 
-from factorq_trainers import cli, fast, figure_process, paper, paper_figure, report
-from factorq_trainers.figure_process import FigureProcess, FigureProcessError
-from factorq_trainers.results import temporary_path
+from factorq_trainers import cli
+from factorq_trainers.compiled import fast
+from factorq_trainers.experiments import paper
+from factorq_trainers.reports import figure_process, paper_figure, report
+from factorq_trainers.reports.figure_process import FigureProcess, FigureProcessError
+from factorq_trainers.runner.results import temporary_path
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 TINY = ["--seeds", "2", "--runs", "1", "--episodes", "3", "--size", "5", "--obstacles", "3"]
@@ -66,7 +69,7 @@ def test_a_prepared_frame_draws_the_same_bytes(results, tmp_path):
 def test_the_helper_does_not_import_torch():
     code = (
         "import sys\n"
-        "from factorq_trainers import figure_process, paper_figure\n"
+        "from factorq_trainers.reports import figure_process, paper_figure\n"
         "paper_figure.preload()\n"
         "paper_figure.warm_up()\n"
         "assert 'torch' not in sys.modules, 'the figure process imported torch'\n"
@@ -182,8 +185,9 @@ def test_paper_loads_neither_the_other_commands_nor_matplotlib_in_the_main_proce
         "assert 'torch' not in sys.modules, 'importing the cli imported torch'\n"
         f"assert cli.main(['paper', '--seeds', '0', '--out', {str(tmp_path)!r}]) == 2\n"
         "loaded = [name for name in ('matplotlib', 'torchrl', 'tensordict',\n"
-        "          'factorq_trainers.dependencies', 'factorq_trainers.minigrid',\n"
-        "          'factorq_trainers.compare') if name in sys.modules]\n"
+        "          'factorq_trainers.experiments.dependencies',\n"
+        "          'factorq_trainers.experiments.minigrid',\n"
+        "          'factorq_trainers.experiments.compare') if name in sys.modules]\n"
         "assert not loaded, loaded\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)

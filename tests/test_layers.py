@@ -1,7 +1,8 @@
 """The import layers (docs/architecture.md): every module imports only its own layer or below.
 
 base (``factorq_torch.base``) -> worlds (``factorq_envs``, folder ``envs/``) -> agent (the rest of
-``factorq_torch``) -> compiled path (``factorq_trainers.fast``) -> trainers (``factorq_trainers``,
+``factorq_torch``) -> compiled path (``factorq_trainers.compiled.fast``) -> trainers
+(``factorq_trainers``,
 folder ``trainers/``) -> CLI (``factorq_trainers.cli``). Imports inside functions count too, and no
 two modules may import each other through any chain.
 """
@@ -33,7 +34,7 @@ def layer_of(module: str) -> str:
         return "worlds"
     if module.split(".")[0] == "factorq_torch":
         return "agent"
-    if module == "factorq_trainers.fast":
+    if module.startswith("factorq_trainers.compiled"):
         return "compiled"
     if module == "factorq_trainers.cli":
         return "cli"
@@ -84,7 +85,7 @@ def test_every_package_has_modules_in_the_walk():
         "factorq_torch.base.rng",
         "factorq_envs.world",
         "factorq_torch.functional",
-        "factorq_trainers.fast",
+        "factorq_trainers.compiled.fast",
     } <= set(MODULES)
 
 

@@ -7,10 +7,10 @@ from dataclasses import dataclass
 
 import pytest
 
-from factorq_trainers import options
-from factorq_trainers.compare import CompareConfig
-from factorq_trainers.options import option
-from factorq_trainers.paper import PaperConfig
+from factorq_trainers.experiments.compare import CompareConfig
+from factorq_trainers.experiments.paper import PaperConfig
+from factorq_trainers.runner import options
+from factorq_trainers.runner.options import option
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""One writer per output directory (trainers/outdir.py)."""
+"""One writer per output directory (trainers/runner/outdir.py)."""
 
 import os
 import subprocess
@@ -7,7 +7,7 @@ import textwrap
 
 import pytest
 
-from factorq_trainers.outdir import LOCK_FILE, OutputDirError, claim
+from factorq_trainers.runner.outdir import LOCK_FILE, OutputDirError, claim
 
 
 def hold_lock_in_another_process(out):
@@ -15,7 +15,7 @@ def hold_lock_in_another_process(out):
     script = textwrap.dedent(
         f"""
         import sys, time
-        from factorq_trainers.outdir import claim
+        from factorq_trainers.runner.outdir import claim
         with claim({str(out)!r}):
             print("held", flush=True)
             sys.stdin.readline()

@@ -41,4 +41,5 @@ def test_entry_points_use_installed_names():
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     assert project["scripts"]["factorq"] == "factorq_trainers.cli:main"
     assert (ROOT / "trainers" / "py.typed").exists() and (ROOT / "envs" / "py.typed").exists()
-    assert "*.c" in TOOL["package-data"]["factorq_trainers"]
+    assert "*.c" in TOOL["package-data"]["factorq_trainers.compiled"]
+    assert (ROOT / "trainers" / "compiled" / "_kernel.c").exists()

@@ -16,10 +16,13 @@ import numpy as np
 import pytest
 import torch
 
-from factorq_trainers import fast, options, paper, processes
-from factorq_trainers.paper import PaperConfig
-from factorq_trainers.results import dumps as dumps_results
-from factorq_trainers.schema import SCHEMA_VERSION, check_results
+from factorq_trainers.compiled import fast
+from factorq_trainers.distributed import processes
+from factorq_trainers.experiments import paper
+from factorq_trainers.experiments.paper import PaperConfig
+from factorq_trainers.runner import options
+from factorq_trainers.runner.results import dumps as dumps_results
+from factorq_trainers.runner.schema import SCHEMA_VERSION, check_results
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 TINY = {"seeds": 2, "runs": 2, "episodes": 3, "size": 5, "obstacles": 3}
@@ -286,7 +289,7 @@ def test_a_checkpointed_modular_run_keeps_one_process(tmp_path):
 
 def test_a_modular_run_whose_processes_do_not_fit_in_memory_keeps_one(monkeypatch):
     # The run alone fits, but not another interpreter with torch besides it.
-    from factorq_trainers import resources
+    from factorq_trainers.runner import resources
 
     small = {**TINY, "worlds": ("static",), "seeds": 1, "runs": 1, "episodes": 1}
     config = PaperConfig(**small, backend="modular", threads=2)
@@ -356,7 +359,7 @@ def test_ctrl_c_ends_the_children_and_propagates():
     tests = str(Path(__file__).resolve().parent)
     script = (
         "import sys; sys.path.insert(0, sys.argv[1]); import processes_work\n"
-        "from factorq_trainers import processes\n"
+        "from factorq_trainers.distributed import processes\n"
         "items = {'a': ('sleep', 60), 'b': ('sleep', 60)}\n"
         "with processes.Children(processes_work.work, items, print) as children:\n"
         "    print(*children.pids.values(), flush=True)\n"

@@ -16,9 +16,10 @@ from pathlib import Path
 
 import pytest
 
-from factorq_trainers import fast, paper
-from factorq_trainers.paper import PaperConfig
-from factorq_trainers.results import dumps as dumps_results
+from factorq_trainers.compiled import fast
+from factorq_trainers.experiments import paper
+from factorq_trainers.experiments.paper import PaperConfig
+from factorq_trainers.runner.results import dumps as dumps_results
 
 FIGURES = json.loads((Path(__file__).parent / "data" / "paper_figures.json").read_text())
 

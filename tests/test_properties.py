@@ -19,7 +19,7 @@ from factorq_envs.world import (
 )
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 from factorq_torch.functional import combined_values, normaliser, running_mean_update
-from factorq_trainers import fast
+from factorq_trainers.compiled import fast
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 finite32 = st.floats(

@@ -8,8 +8,9 @@ import struct
 import numpy as np
 import pytest
 
-from factorq_trainers import paper, report
-from factorq_trainers.paper import PaperConfig
+from factorq_trainers.experiments import paper
+from factorq_trainers.experiments.paper import PaperConfig
+from factorq_trainers.reports import report
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

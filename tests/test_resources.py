@@ -11,9 +11,10 @@ import re
 
 import pytest
 
-from factorq_trainers import cli, resources
-from factorq_trainers.compare import CompareConfig
-from factorq_trainers.paper import PaperConfig
+from factorq_trainers import cli
+from factorq_trainers.experiments.compare import CompareConfig
+from factorq_trainers.experiments.paper import PaperConfig
+from factorq_trainers.runner import resources
 
 NEEDS = r"needs about [\d.]+ [KMGTP]iB of memory \(.+\) but [\d.]+ [KMGTP]?i?B is available"
 PAPER_HINT = r"use fewer --seeds, --runs or --episodes, or a smaller --size"
@@ -87,20 +88,20 @@ def test_a_large_run_that_fits_prints_its_estimate_first(tmp_path, monkeypatch):
 
 def test_the_library_entry_points_check_too(tmp_path, monkeypatch):
     monkeypatch.setenv(resources.LIMIT_VARIABLE, "1000")
-    from factorq_trainers import compare, paper
+    from factorq_trainers.experiments import compare, paper
 
     with pytest.raises(resources.ResourceError, match=r"this run needs about .* but 1000 B is"):
         paper.run(PaperConfig(seeds=1, runs=1, episodes=1, size=4, obstacles=1, out=str(tmp_path)))
     with pytest.raises(resources.ResourceError, match=r"this comparison needs about"):
         compare.run(CompareConfig(seeds=1, steps=1, size=4, obstacles=1, out=str(tmp_path)))
-    from factorq_trainers import dependencies
+    from factorq_trainers.experiments import dependencies
 
     with pytest.raises(resources.ResourceError, match=r"this experiment needs about"):
         dependencies.run(dependencies.DependenciesConfig(seeds=1, settings=("cross",)))
 
 
 def test_the_dependencies_estimate_grows_with_the_candidate_sets():
-    from factorq_trainers.dependencies import DependenciesConfig
+    from factorq_trainers.experiments.dependencies import DependenciesConfig
 
     cross = resources.dependencies_estimate(DependenciesConfig(seeds=10, settings=("cross",)))
     ring = resources.dependencies_estimate(DependenciesConfig(seeds=10, settings=("ring-24",)))

@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from factorq_trainers.results import SCHEMA_VERSION, read_json, write_atomic
-from factorq_trainers.results import dumps as dumps_results
+from factorq_trainers.runner.results import SCHEMA_VERSION, read_json, write_atomic
+from factorq_trainers.runner.results import dumps as dumps_results
 
 
 def test_results_json_keeps_number_lists_on_one_line_and_is_strict_json():

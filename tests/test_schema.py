@@ -9,9 +9,9 @@ import random
 import pytest
 from test_report import synthetic_results
 
-from factorq_trainers import report
-from factorq_trainers.results import MAX_DEPTH, SCHEMA_VERSION
-from factorq_trainers.schema import (
+from factorq_trainers.reports import report
+from factorq_trainers.runner.results import MAX_DEPTH, SCHEMA_VERSION
+from factorq_trainers.runner.schema import (
     ResultsFileError,
     check_results,
     escape_markdown,

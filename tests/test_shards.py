@@ -7,9 +7,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from factorq_trainers import fast, paper, shards
-from factorq_trainers import results as result_files
-from factorq_trainers.paper import PaperConfig
+from factorq_trainers.compiled import fast
+from factorq_trainers.distributed import shards
+from factorq_trainers.experiments import paper
+from factorq_trainers.experiments.paper import PaperConfig
+from factorq_trainers.runner import results as result_files
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 SMALL = {"seeds": 6, "runs": 2, "episodes": 6, "size": 6, "obstacles": 4}

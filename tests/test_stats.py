@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from factorq_trainers.stats import mean_ci, t_critical
+from factorq_trainers.analysis.stats import mean_ci, t_critical
 
 
 def test_t_critical_matches_tables():

@@ -14,9 +14,12 @@ from dataclasses import fields, replace
 
 import pytest
 
-from factorq_trainers import cli, cluster, fast, paper, shards, sweep
-from factorq_trainers import results as result_files
-from factorq_trainers.sweep import SweepError, SweepSpec
+from factorq_trainers import cli
+from factorq_trainers.compiled import fast
+from factorq_trainers.distributed import cluster, shards, sweep
+from factorq_trainers.distributed.sweep import SweepError, SweepSpec
+from factorq_trainers.experiments import paper
+from factorq_trainers.runner import results as result_files
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 BASE = (("runs", 1), ("episodes", 4), ("size", 5), ("obstacles", 3))
@@ -261,7 +264,7 @@ def _without_wall_s(value):
 
 
 def test_every_compare_config_field_but_nested_and_the_sweeps_own_is_sweepable():
-    from factorq_trainers import compare
+    from factorq_trainers.experiments import compare
 
     skipped = {*sweep.COMPARE_RESERVED, "agent", "dqn", "factor_dqn"}
     names = [f.name for f in fields(compare.CompareConfig) if f.name not in skipped]
@@ -270,7 +273,7 @@ def test_every_compare_config_field_but_nested_and_the_sweeps_own_is_sweepable()
 
 
 def test_a_compare_sweep_cell_equals_factorq_compare_and_resumes(tmp_path, capsys):
-    from factorq_trainers import compare
+    from factorq_trainers.experiments import compare
 
     spec_file = tmp_path / "compare.toml"
     spec_file.write_text(COMPARE_TOML)
@@ -319,7 +322,7 @@ change_run = 1
 
 
 def test_every_dependencies_config_field_but_seeds_and_out_is_sweepable():
-    from factorq_trainers import dependencies
+    from factorq_trainers.experiments import dependencies
 
     names = [f.name for f in fields(dependencies.DependenciesConfig)]
     assert list(sweep.sweepable_fields("dependencies")) == [
@@ -328,7 +331,7 @@ def test_every_dependencies_config_field_but_seeds_and_out_is_sweepable():
 
 
 def test_a_dependencies_sweep_cell_equals_factorq_dependencies_and_resumes(tmp_path):
-    from factorq_trainers import dependencies
+    from factorq_trainers.experiments import dependencies
 
     spec_file = tmp_path / "dependencies.toml"
     spec_file.write_text(DEPENDENCIES_TOML)

@@ -37,13 +37,17 @@ from factorq_torch.collectors import OnlineCollector
 from factorq_torch.objectives import FactorQLoss, TabularQLoss
 from factorq_torch.policy import EpsilonGreedyPolicy, FactorQPolicy
 from factorq_torch.tables import LocalRewardTable, TaskQTable
-from factorq_trainers import checkpoint, cli, fast, paper, report
-from factorq_trainers.checkpoint import CheckpointError
-from factorq_trainers.claims import compute_claims
-from factorq_trainers.dqn import DQNConfig
-from factorq_trainers.experiment import ExperimentConfig
-from factorq_trainers.paper import PaperConfig
-from factorq_trainers.stats import t_critical
+from factorq_trainers import cli
+from factorq_trainers.analysis.claims import compute_claims
+from factorq_trainers.analysis.stats import t_critical
+from factorq_trainers.compiled import fast
+from factorq_trainers.experiments import paper
+from factorq_trainers.experiments.dqn import DQNConfig
+from factorq_trainers.experiments.experiment import ExperimentConfig
+from factorq_trainers.experiments.paper import PaperConfig
+from factorq_trainers.reports import report
+from factorq_trainers.runner import checkpoint
+from factorq_trainers.runner.checkpoint import CheckpointError
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 # Prepended to `factorq paper` and `factorq compare` rows (later options win): should a check ever
@@ -356,14 +360,14 @@ TRIED = [
     ),
     factorq("paper --out {file}", r"--out='.*a_file.txt' is an existing file: give a directory"),
     factorq("paper --sides 4", r"unrecognized arguments: --sides 4"),
-    # factorq paper: one writer per --out, checked before any work (factorq_trainers.outdir)
+    # factorq paper: one writer per --out, checked before any work (factorq_trainers.runner.outdir)
     factorq("paper --out {finished-run}", r"--out='.*finished' already holds results.json from an earlier run: pass --force to replace them, or choose another --out"),
     factorq("paper --force --seeds 0", rf"--seeds=0 {RANGE} in \[1, 2147483647\]"),
     factorq("paper --out {locked}", r"--out='.*live' is in use by another factorq run \(pid 4242\): wait for it to finish, or choose another --out \(refusing to write to it at the same time\)"),
     factorq("paper --resume {locked-checkpoint}", r"--out='.*run' is in use by another factorq run \(pid 4242\): .* \(refusing to resume it at the same time\)"),
     factorq("paper --out {under-file}", r"--out='.*a_file.txt/out' is not writable: Not a directory"),
     factorq("paper --out /proc/factorq-out", r"--out='/proc/factorq-out' is not writable: "),
-    # factorq paper: shards and clusters (factorq_trainers.sweep, factorq_trainers.cluster)
+    # factorq paper: shards and clusters (factorq_trainers.distributed.sweep, factorq_trainers.distributed.cluster)
     factorq("paper --first-seed -1", rf"--first-seed=-1 {RANGE} in \[0, 2147483647\]"),
     factorq("paper --first-seed 2147483648", rf"--first-seed=2147483648 {RANGE} in \[0, 2147483647\]"),
     factorq("paper --shard-seeds 0", rf"--shard-seeds=0 {RANGE} in \[1, 2147483647\]"),
@@ -564,7 +568,7 @@ TRIED = [
     ("OnlineCollector(tables of another S)", lambda _: collector(tables=3), ValueError, r"env has batch_size \[2\] but TaskQTable holds S=3 experiments"),
     ("derive_keys(count=-1)", lambda _: rng.derive_keys(0, rng.STREAM_WORLD, -1), ValueError, rf"count=-1 {RANGE} >= 0"),
     ("probability_threshold(1.5)", lambda _: rng.probability_threshold(1.5), ValueError, rf"probability=1.5 {RANGE} in \[0, 1\]"),
-    # factorq_trainers.fast
+    # factorq_trainers.compiled.fast
     fast_row("ExperimentBatch('sarsa')", lambda _: batch("sarsa"), ValueError, r"algorithm='sarsa' is unknown: choose one of q-learning, factor-q, random-walk"),
     fast_row("ExperimentBatch(runs=0)", lambda _: batch(runs=0), ValueError, rf"runs=0 {RANGE} >= 1"),
     fast_row("ExperimentBatch(threads=0)", lambda _: batch(threads=0), ValueError, rf"threads=0 {RANGE} >= 1"),

@@ -15,7 +15,9 @@ from pathlib import Path
 
 import pytest
 
-from factorq_trainers import cli, compare_report, fast
+from factorq_trainers import cli
+from factorq_trainers.compiled import fast
+from factorq_trainers.reports import compare_report
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 # Some seconds of work on one thread, a checkpoint every 20 k episodes.

@@ -11,7 +11,7 @@ counters, so
 - nothing is shared across the batch: experiment ``i`` draws the same numbers whatever the batch
   size, the thread count or the order in which experiments are computed;
 - the state of a stream is one integer, which makes checkpoints and exact resumes trivial;
-- the compiled fast path (``trainers/_kernel.c``) draws bit-identical numbers, so it can be
+- the compiled fast path (``trainers/compiled/_kernel.c``) draws bit-identical numbers, so it can be
   tested for equality with the pure-torch path, not merely for closeness.
 
 Tensors hold the unsigned 64-bit arithmetic in ``int64``: additions and products wrap modulo

@@ -1,0 +1,1 @@
+"""Statistics (intervals, the bootstrap, numbers for people) and the paper's claims."""

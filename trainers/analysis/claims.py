@@ -1,0 +1,263 @@
+"""The paper's claims as checks (SPEC section 5): C1-C5 from the per-seed means of each cell.
+
+``compute_claims`` reads only the ``per_seed`` lists of the cells of ``results.json`` (per seed,
+the measure per run); each claim's statistic gets a percentile bootstrap interval over seeds
+(``factorq_trainers.analysis.stats``), paired across cells because the cells of one seed index
+share their world's random numbers.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from factorq_torch.base.config import ALGORITHMS
+from factorq_trainers.analysis.stats import (
+    bootstrap_indices,
+    finite_or_none,
+    format_number,
+    quantiles,
+)
+from factorq_trainers.analysis.worlds import WORLDS
+
+#: The measures of a cell, per run (totals over the episodes of a run, mean over the runs).
+MEASURES = ("total_steps", "collisions", "greedy_collisions")
+MEASURE_LABELS = {
+    "total_steps": "total steps",
+    "collisions": "collisions",
+    "greedy_collisions": "greedy collisions",
+}
+ALGORITHM_LABELS = {"q-learning": "Q-learning", "factor-q": "Factor-Q"}
+
+CLAIM_STATEMENTS = {
+    "C1": "Factor-Q beats Q-learning on every measure, in every world",
+    "C2": "in the static world learning speed is not significantly different",
+    "C3": "static-world collision avoidance is dramatically better",
+    "C4": "Factor-Q learns dynamic worlds nearly as fast as the static one; "
+    "Q-learning falls to about 57% in the worst case",
+    "C5": "greedy collisions improved by over two orders of magnitude",
+}
+CLAIM_THRESHOLDS = {
+    "C1": "Factor-Q / Q-learning <= 1 for all 3 measures in all 3 worlds",
+    "C2": "Q-learning / Factor-Q total steps in [0.8, 1.25]",
+    "C3": "Q-learning / Factor-Q collisions > 10",
+    "C4": "Factor-Q moving/static speed >= 0.85 in both moving worlds; "
+    "Q-learning worst in [0.45, 0.70]",
+    "C5": "Q-learning / Factor-Q greedy collisions > 100 in every world",
+}
+MOVING = ("semi-dynamic", "dynamic")
+
+
+class _Means:
+    """Means per (world, algorithm, measure): point estimates, or bootstrap resamples ``[B]``.
+
+    Each is computed once (the claims share them; a resampled mean is ``B x S`` numbers) and
+    never modified by its users."""
+
+    def __init__(self, cells: dict[str, Any], indices: np.ndarray | None) -> None:
+        self.cells = cells
+        self.indices = indices
+        self._known: dict[tuple[str, str, str], Any] = {}
+
+    def __call__(self, world: str, algorithm: str, measure: str) -> Any:
+        key = (world, algorithm, measure)
+        if key not in self._known:
+            self._known[key] = self._mean(*key)
+        return self._known[key]
+
+    def _mean(self, world: str, algorithm: str, measure: str) -> Any:
+        values = np.asarray(self.cells[f"{world}/{algorithm}"]["per_seed"][measure], np.float64)
+        if self.indices is None:
+            return values.mean()
+        return values[self.indices].mean(axis=1)  # [B]
+
+
+def _ratio(numerator: Any, denominator: Any) -> Any:
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.divide(numerator, denominator)
+
+
+def _c1(means: _Means) -> dict[str, Any]:
+    measures = {}
+    for world in WORLDS:
+        for measure in MEASURES:
+            factor_q = means(world, "factor-q", measure)
+            q_learning = means(world, "q-learning", measure)
+            measures[f"{world} {MEASURE_LABELS[measure]}, Factor-Q / Q-learning"] = (
+                _ratio(factor_q, q_learning),
+                factor_q <= q_learning,
+            )
+    return measures
+
+
+def _c2(means: _Means) -> dict[str, Any]:
+    ratio = _ratio(
+        means("static", "q-learning", "total_steps"), means("static", "factor-q", "total_steps")
+    )
+    return {"static total steps, Q-learning / Factor-Q": (ratio, (ratio >= 0.8) & (ratio <= 1.25))}
+
+
+def _c3(means: _Means) -> dict[str, Any]:
+    ratio = _ratio(
+        means("static", "q-learning", "collisions"), means("static", "factor-q", "collisions")
+    )
+    return {"static collisions, Q-learning / Factor-Q": (ratio, ratio > 10)}
+
+
+def _c4(means: _Means) -> dict[str, Any]:
+    measures = {}
+    for algorithm in ALGORITHMS:
+        static = means("static", algorithm, "total_steps")
+        for world in MOVING:
+            # speed = 1 / mean total steps, so moving/static speed = static steps / moving steps
+            ratio = _ratio(static, means(world, algorithm, "total_steps"))
+            label = f"{ALGORITHM_LABELS[algorithm]} speed, {world} / static"
+            passed = ratio >= 0.85 if algorithm == "factor-q" else None
+            measures[label] = (ratio, passed)
+    return measures
+
+
+def _c5(means: _Means) -> dict[str, Any]:
+    measures = {}
+    for world in WORLDS:
+        ratio = _ratio(
+            means(world, "q-learning", "greedy_collisions"),
+            means(world, "factor-q", "greedy_collisions"),
+        )
+        measures[f"{world} greedy collisions, Q-learning / Factor-Q"] = (ratio, ratio > 100)
+    return measures
+
+
+def _worst(measures: dict[str, Any], pick: Callable, keys: list[str] | None = None) -> Any:
+    values = [measures[key][0] for key in (keys or list(measures))]
+    return pick(np.stack(np.broadcast_arrays(*values)), axis=0)
+
+
+def _headline(claim: str, measures: dict[str, Any]) -> tuple[Any, Any]:
+    """The claim's headline statistic (from its measures) and whether it passes."""
+    if claim == "C1":
+        return _worst(measures, np.max), np.all(np.stack([m[1] for m in measures.values()]), 0)
+    if claim in ("C2", "C3"):
+        (value, passed), *_ = measures.values()
+        return value, passed
+    if claim == "C4":
+        factor_q = _worst(measures, np.min, [key for key in measures if "Factor-Q" in key])
+        q_learning = _worst(measures, np.min, [key for key in measures if "Q-learning" in key])
+        passed = (factor_q >= 0.85) & (q_learning >= 0.45) & (q_learning <= 0.70)
+        return {"factor-q": factor_q, "q-learning": q_learning}, passed
+    return _worst(measures, np.min), np.all(np.stack([m[1] for m in measures.values()]), 0)
+
+
+_CLAIM_MEASURES = {"C1": _c1, "C2": _c2, "C3": _c3, "C4": _c4, "C5": _c5}
+_CLAIM_CELLS = {
+    "C1": [(world, algorithm) for world in WORLDS for algorithm in ALGORITHMS],
+    "C2": [("static", algorithm) for algorithm in ALGORITHMS],
+    "C3": [("static", algorithm) for algorithm in ALGORITHMS],
+    "C4": [(world, algorithm) for world in WORLDS for algorithm in ALGORITHMS],
+    "C5": [(world, algorithm) for world in WORLDS for algorithm in ALGORITHMS],
+}
+
+
+def compute_claims(cells: dict[str, Any], seed: int = 0) -> dict[str, Any]:
+    """Claims C1-C5 of SPEC section 5 from ``cells`` (only their ``per_seed`` lists are read).
+
+    Each claim: ``statement``, ``threshold``, ``value`` (its statistic; C4 has one per algorithm),
+    ``ci95`` (bootstrap interval of ``value``, ``None`` with one seed), ``pass`` (``None`` when a
+    cell it needs was not run), ``detail`` and ``measures`` (the comparisons it is made of).
+    """
+    seeds = {len(cell["per_seed"]["total_steps"]) for cell in cells.values()}
+    if len(seeds) > 1:
+        raise ValueError(f"cells have different numbers of seeds: {sorted(seeds)}")
+    count = seeds.pop() if seeds else 0
+    indices = bootstrap_indices(seed, count) if count >= 2 else None
+    point_means = _Means(cells, None)
+    boot_means = None if indices is None else _Means(cells, indices)
+    claims = {}
+    for claim, measure_fn in _CLAIM_MEASURES.items():
+        entry = {
+            "statement": CLAIM_STATEMENTS[claim],
+            "threshold": CLAIM_THRESHOLDS[claim],
+            "value": None,
+            "ci95": None,
+            "pass": None,
+            "detail": "",
+            "measures": [],
+        }
+        claims[claim] = entry
+        missing = [f"{w}/{a}" for w, a in _CLAIM_CELLS[claim] if f"{w}/{a}" not in cells]
+        if missing:
+            entry["detail"] = f"not evaluated: needs {', '.join(missing)}, which were not run"
+            continue
+        point = measure_fn(point_means)
+        value, passed = _headline(claim, point)
+        boot_value = None
+        if indices is not None:
+            boot = measure_fn(boot_means)
+            boot_value, _ = _headline(claim, boot)
+        for name, (measure_value, measure_pass) in point.items():
+            entry["measures"].append(
+                {
+                    "name": name,
+                    "value": finite_or_none(measure_value),
+                    "ci95": None if indices is None else quantiles(boot[name][0]),
+                    "pass": None if measure_pass is None else bool(measure_pass),
+                }
+            )
+        if isinstance(value, dict):
+            entry["value"] = {key: finite_or_none(item) for key, item in value.items()}
+            if boot_value is not None:
+                entry["ci95"] = {key: quantiles(item) for key, item in boot_value.items()}
+        else:
+            entry["value"] = finite_or_none(value)
+            entry["ci95"] = None if boot_value is None else quantiles(boot_value)
+        entry["pass"] = bool(passed)
+        entry["detail"] = _detail(claim, entry, value)
+    return claims
+
+
+def _detail(claim: str, entry: dict[str, Any], value: Any) -> str:
+    """One sentence: what was compared, the outcome, and why."""
+    measures = {measure["name"]: measure for measure in entry["measures"]}
+    undefined = [name for name, measure in measures.items() if measure["value"] is None]
+    note = (
+        f"; undefined (0 in a denominator, reported as null): {', '.join(undefined)}"
+        if undefined
+        else ""
+    )
+    if claim == "C1":
+        failing = [name for name, measure in measures.items() if not measure["pass"]]
+        if failing:
+            return "Factor-Q > Q-learning on: " + "; ".join(failing) + note
+        closest = max(measures, key=lambda name: _sortable(measures[name]["value"]))
+        return (
+            f"Factor-Q <= Q-learning in all {len(measures)} comparisons; closest: {closest} = "
+            f"{format_number(value)}{note}"
+        )
+    if claim == "C2":
+        inside = "inside" if entry["pass"] else "outside"
+        ratio = format_number(value)
+        return f"static total steps, Q-learning / Factor-Q = {ratio}, {inside} [0.8, 1.25]{note}"
+    if claim == "C3":
+        return (
+            f"static collisions, Q-learning / Factor-Q = {format_number(value)} "
+            f"({'>' if entry['pass'] else 'not >'} 10){note}"
+        )
+    if claim == "C4":
+        factor_q, q_learning = value["factor-q"], value["q-learning"]
+        return (
+            f"Factor-Q worst moving/static speed {format_number(factor_q)} "
+            f"({'>=' if factor_q >= 0.85 else 'below'} 0.85); Q-learning worst "
+            f"{format_number(q_learning)} ({'in' if 0.45 <= q_learning <= 0.70 else 'outside'} "
+            f"[0.45, 0.70]){note}"
+        )
+    smallest = min(measures, key=lambda name: _sortable(measures[name]["value"]))
+    failing = [name.split(" ")[0] for name, measure in measures.items() if not measure["pass"]]
+    outcome = f"not > 100 in: {', '.join(failing)}" if failing else "> 100 in every world"
+    return f"smallest ratio {format_number(value)} ({smallest.split(' ')[0]}); {outcome}{note}"
+
+
+def _sortable(value: float | None) -> float:
+    return math.inf if value is None else value

@@ -1,0 +1,2 @@
+"""Where work runs: seed-range shards, executors (in-process, Dask), child processes, and
+``factorq sweep``."""

@@ -1,0 +1,253 @@
+"""Where shards run: here, one after another (the default, no Dask needed), or on a Dask cluster.
+
+An *executor* runs one function over a list of items and yields ``(index, result)`` pairs as
+they finish, in any order; whoever consumes them (``factorq_trainers.distributed.sweep``) writes
+each result
+down at once. Two executors:
+
+- ``InProcess``: a plain loop in this process.
+- ``DaskExecutor``: ``distributed.Client.submit`` per item on a ``LocalCluster`` started here
+  (``--cluster local[:N]``) or on a running scheduler (``--scheduler tcp://host:port``). A worker
+  that dies mid-item (kill -9, a lost node) loses only that item: the scheduler resubmits it to
+  another worker (up to ``distributed.scheduler.allowed-failures`` times), and since an item's
+  result depends on the item alone, the rerun gives the same numbers.
+
+Workers run one intra-op torch thread each (``torch.set_num_threads(1)``: the tensors are tiny and
+threads would fight over the cores the other workers use) and build the fast path's kernel in a
+node-local cache (``FACTORQ_CACHE_DIR``, unless the worker's environment already sets it), so
+workers on a shared home directory do not compile into one NFS folder.
+
+Dask is the optional extra ``factorq-torch[distributed]``; asking for a cluster without it is a
+``ClusterError`` naming the extra.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import tempfile
+import uuid
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from factorq_torch.base.validation import MAX_THREADS
+
+EXTRA = "distributed"
+INSTALL_HINT = (
+    f"pip install 'factorq-torch[{EXTRA}]' (in this checkout: pip install -e '.[{EXTRA}]')"
+)
+DEFAULT_CONNECT_TIMEOUT_S = 10.0
+_LOCAL = re.compile(r"^local(?::(\d+))?$")
+
+
+class ClusterError(ValueError):
+    """A cluster cannot be used: the message says why, in one line."""
+
+
+@dataclass(frozen=True)
+class Where:
+    """Where to run: in-process (both None), a local cluster of ``workers`` (0: one per core),
+    or the scheduler at ``scheduler``."""
+
+    local_workers: int | None = None
+    """Workers of a LocalCluster started here (``--cluster local[:N]``)."""
+    scheduler: str | None = None
+    """Address of a running Dask scheduler (``--scheduler tcp://host:port``)."""
+    connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S
+    """Seconds to wait for the scheduler before giving up."""
+
+    def __post_init__(self) -> None:
+        if self.local_workers is not None and self.scheduler is not None:
+            raise ClusterError("give --cluster or --scheduler, not both")
+        if self.local_workers is not None and self.local_workers < 0:
+            raise ClusterError(f"--cluster workers={self.local_workers} must be >= 1")
+        if self.scheduler is not None and "://" not in self.scheduler:
+            raise ClusterError(
+                f"--scheduler={self.scheduler!r} is not an address like tcp://host:8786"
+            )
+        if not self.connect_timeout_s > 0:
+            raise ClusterError(f"--connect-timeout={self.connect_timeout_s!r} must be > 0 seconds")
+
+    @property
+    def in_process(self) -> bool:
+        return self.local_workers is None and self.scheduler is None
+
+
+def parse_cluster(text: str) -> int:
+    """Workers of ``--cluster local[:N]`` (0 for plain ``local``: one per core).
+
+    >>> parse_cluster("local"), parse_cluster("local:2")
+    (0, 2)
+    """
+    match = _LOCAL.match(text)
+    if match is not None and match[1] and int(match[1]) > MAX_THREADS:
+        raise ClusterError(
+            f"--cluster={text!r} is out of range: at most local:{MAX_THREADS} workers"
+        )
+    if match is None or match[1] == "0":
+        raise ClusterError(
+            f"--cluster={text!r} is not local or local:N with N >= 1 (for a running cluster, "
+            f"use --scheduler tcp://host:port)"
+        )
+    return int(match[1] or 0)
+
+
+class InProcess:
+    """Runs every item here, in order: the default, which needs no Dask."""
+
+    workers = 1
+    description = "in-process"
+
+    def map(
+        self, function: Callable[[Any], Any], items: Sequence[Any], names: Sequence[str]
+    ) -> Iterator[tuple[int, Any]]:
+        for index, item in enumerate(items):
+            yield index, function(item)
+
+    def close(self) -> None:
+        pass
+
+
+def _node_local_cache() -> str:
+    user = os.environ.get("USER") or str(os.getuid())
+    return str(Path(tempfile.gettempdir()) / f"factorq_torch-{user}")
+
+
+def _worker_setup() -> None:
+    """Per worker process: one intra-op thread, a node-local kernel cache."""
+    import torch
+
+    torch.set_num_threads(1)
+    os.environ.setdefault("FACTORQ_CACHE_DIR", _node_local_cache())
+
+
+def _on_worker(function: Callable[[Any], Any], item: Any) -> Any:
+    """What a worker runs: its set-up (idempotent, so a restarted worker gets it too), then the
+    item."""
+    _worker_setup()
+    return function(item)
+
+
+def _import_distributed() -> Any:
+    try:
+        import distributed
+    except ImportError:
+        raise ClusterError(f"a Dask cluster needs the '{EXTRA}' extra: {INSTALL_HINT}") from None
+    return distributed
+
+
+class DaskExecutor:
+    """Runs items as Dask futures; yields results as they complete."""
+
+    def __init__(self, client: Any, cluster: Any = None) -> None:
+        self.client = client
+        self.cluster = cluster
+        distributed = _import_distributed()
+        self._as_completed = distributed.as_completed
+
+    @property
+    def workers(self) -> int:
+        return max(1, len(self.client.scheduler_info(n_workers=-1)["workers"]))
+
+    @property
+    def description(self) -> str:
+        return f"Dask scheduler {self.client.scheduler.address} ({self.workers} workers)"
+
+    def map(
+        self, function: Callable[[Any], Any], items: Sequence[Any], names: Sequence[str]
+    ) -> Iterator[tuple[int, Any]]:
+        run = uuid.uuid4().hex[:8]  # fresh keys: never a cached result of an earlier call
+        futures = {
+            self.client.submit(_on_worker, function, item, key=f"{name}-{run}", pure=False): index
+            for index, (item, name) in enumerate(zip(items, names, strict=True))
+        }
+        try:
+            for future in self._as_completed(futures, loop=self.client.loop):
+                yield futures[future], future.result()
+        finally:
+            for future in futures:
+                future.release()
+
+    def close(self) -> None:
+        self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
+
+def open_executor(where: Where) -> InProcess | DaskExecutor:
+    """The executor for ``where``; a ``ClusterError`` (one line) if it cannot be had."""
+    if where.in_process:
+        return InProcess()
+    distributed = _import_distributed()
+    if where.scheduler is not None:
+        try:
+            client = distributed.Client(
+                where.scheduler, timeout=f"{where.connect_timeout_s}s", set_as_default=False
+            )
+        except (OSError, TimeoutError) as error:
+            raise ClusterError(
+                f"scheduler {where.scheduler} is unreachable within "
+                f"{where.connect_timeout_s:g} s ({error})"
+            ) from None
+        return DaskExecutor(client)
+    cluster = distributed.LocalCluster(
+        n_workers=where.local_workers or os.cpu_count() or 1,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=None,
+        silence_logs=50,  # CRITICAL only: a killed worker's traceback is expected noise here
+    )
+    return DaskExecutor(distributed.Client(cluster, set_as_default=False), cluster)
+
+
+# --------------------------------------------------------------------------------------------
+# The command-line options of every command that can run on a cluster
+
+
+def add_options(parser: argparse.ArgumentParser) -> None:
+    """``--cluster``, ``--scheduler``, ``--connect-timeout`` (``factorq sweep``, every command)."""
+    parser.add_argument(
+        "--cluster",
+        metavar="local[:N]",
+        help="Run the shards on a Dask LocalCluster of N worker processes started here (plain "
+        "'local': one per core). Needs the 'distributed' extra. (default: in-process)",
+        default=argparse.SUPPRESS,
+    )
+    parser.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="Run the shards on the running Dask cluster whose scheduler is at ADDRESS "
+        "(tcp://host:8786). Needs the 'distributed' extra.",
+        default=argparse.SUPPRESS,
+    )
+    parser.add_argument(
+        "--connect-timeout",
+        metavar="SECONDS",
+        type=float,
+        help=f"Give up on --scheduler after this long. (default: {DEFAULT_CONNECT_TIMEOUT_S:g})",
+        default=argparse.SUPPRESS,
+    )
+
+
+def where_from_args(args: argparse.Namespace) -> Where:
+    """Where to run, from ``add_options``' options (a ``ClusterError`` when invalid)."""
+    workers = None
+    if hasattr(args, "cluster"):
+        workers = parse_cluster(args.cluster)
+    return Where(
+        local_workers=workers,
+        scheduler=getattr(args, "scheduler", None),
+        connect_timeout_s=getattr(args, "connect_timeout", DEFAULT_CONNECT_TIMEOUT_S),
+    )
+
+
+def executor_from_args(
+    args: argparse.Namespace,
+) -> InProcess | DaskExecutor | None:
+    """The executor of ``add_options``' options: ``None`` when none was given."""
+    if not any(hasattr(args, name) for name in ("cluster", "scheduler", "connect_timeout")):
+        return None
+    return open_executor(where_from_args(args))

@@ -1,0 +1,168 @@
+"""Shards: a run of the paper's experiment cut into contiguous ranges of seeds, run anywhere.
+
+A *shard* is one configuration's seeds ``[first_seed, first_seed + seeds)``: a ``PaperConfig``
+with those two fields set. The random streams are counter-based per experiment and a seed's keys
+depend on its index alone (``paper.experiment_keys``), so a shard run alone, in any process, on
+any machine, gives each of its experiments exactly the numbers it has inside the full run, and
+
+    concatenate([run_shard(shard) for shard in split(config, k)]) == run_shard(config)
+
+bit for bit, whatever ``k``, the order the shards finish in, the backend or the thread count. The
+results of the whole run are then ``paper.summarise`` of the concatenation, the same function one
+process uses, so ``results.json`` repeats to the last digit (but for its ``timing``).
+
+A shard's result is its raw per-episode metrics (``[seeds, runs, episodes]`` per world, algorithm
+and measure); ``save`` writes it as one ``.npz`` file, atomically, named after the numbers-relevant
+config (``digest``) and the seed range, so a finished shard is never run twice.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import zipfile
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from factorq_torch.base.keys import EPISODE_METRICS
+from factorq_torch.base.validation import check_int
+from factorq_trainers.experiments import paper
+from factorq_trainers.runner import checkpoint
+from factorq_trainers.runner import results as result_files
+
+#: Config fields that do not change a shard's numbers (tested: backends and thread counts give
+#: identical results), left out of its digest so that they may differ between a run and its resume.
+NUMBER_FREE_FIELDS = ("out", "threads", "backend", "device", "first_seed", "seeds")
+#: Metrics of a shard, per world and algorithm: ``[seeds, runs, episodes]`` each.
+METRICS = EPISODE_METRICS
+SHARD_SUFFIX = ".npz"
+
+#: A shard's result: ``{"world/algorithm/metric": array [seeds, runs, episodes]}``.
+ShardMetrics = dict[str, np.ndarray]
+
+
+def split(config: paper.PaperConfig, shard_seeds: int) -> list[paper.PaperConfig]:
+    """``config``'s seeds cut into contiguous shards of ``shard_seeds`` (the last may be smaller).
+
+    >>> [(s.first_seed, s.seeds) for s in split(paper.PaperConfig(seeds=10), 4)]
+    [(0, 4), (4, 4), (8, 2)]
+    """
+    check_int("shard_seeds", shard_seeds, 1)
+    stop = config.first_seed + config.seeds
+    return [
+        replace(config, first_seed=first, seeds=min(shard_seeds, stop - first))
+        for first in range(config.first_seed, stop, shard_seeds)
+    ]
+
+
+def run_shard(shard: paper.PaperConfig, threads: int | None = None) -> ShardMetrics:
+    """The raw metrics of ``shard``'s experiments, computed here (the task a worker runs).
+
+    ``threads`` overrides ``shard.threads`` (it does not change the numbers). Nothing is written:
+    no checkpoint, no results file.
+    """
+    if threads is not None:
+        shard = replace(shard, threads=threads)
+    backend = paper.resolve_backend(shard)
+    driver = paper.backend_driver(backend)
+    # every=None: a Checkpointer that only counts; shards are short and are themselves the unit
+    # of resumption.
+    counter = checkpoint.Checkpointer(shard.out, paper.config_dict(shard), backend)
+    metrics: ShardMetrics = {}
+    for algorithm in shard.algorithms:
+        keys = paper.experiment_keys(shard, algorithm)
+        batch = driver(paper.Job(shard, algorithm, keys, counter.advance, counter))
+        for position, world in enumerate(shard.worlds):
+            rows = slice(position * shard.seeds, (position + 1) * shard.seeds)
+            for name in METRICS:
+                metrics[f"{world}/{algorithm}/{name}"] = batch[name][rows].cpu().numpy()
+    return metrics
+
+
+def concatenate(
+    config: paper.PaperConfig, parts: list[ShardMetrics]
+) -> dict[tuple[str, str], dict[str, np.ndarray]]:
+    """The metrics of ``config`` (``paper.summarise``'s input) from its shards' ``parts``, in seed
+    order; a ValueError if they do not cover its seeds exactly once."""
+    cells: dict[tuple[str, str], dict[str, np.ndarray]] = {}
+    for world, algorithm in config.cells:
+        cells[world, algorithm] = {
+            name: np.concatenate([part[f"{world}/{algorithm}/{name}"] for part in parts])
+            for name in METRICS
+        }
+        count = len(cells[world, algorithm][METRICS[0]])
+        if count != config.seeds:
+            raise ValueError(
+                f"the shards hold {count} seeds of {world}/{algorithm}, not {config.seeds}"
+            )
+    return cells
+
+
+def results(
+    config: paper.PaperConfig, parts: list[ShardMetrics], timing: dict[str, Any]
+) -> dict[str, Any]:
+    """``results.json`` of ``config`` from its shards (``paper.summarise``), with ``timing``."""
+    summary = paper.summarise(config, concatenate(config, parts))
+    summary["timing"] = timing
+    return summary
+
+
+# --------------------------------------------------------------------------------------------
+# Shard files
+
+
+def digest(config: paper.PaperConfig) -> str:
+    """A short hash of the fields that decide ``config``'s numbers (``NUMBER_FREE_FIELDS`` out)."""
+    relevant = {
+        key: value
+        for key, value in paper.config_dict(config).items()
+        if key not in NUMBER_FREE_FIELDS
+    }
+    text = json.dumps(relevant, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def shard_path(directory: str | os.PathLike, shard: paper.PaperConfig) -> Path:
+    """``directory/<digest>/<first>-<stop>.npz``: where ``shard``'s result is kept."""
+    stop = shard.first_seed + shard.seeds
+    return Path(directory) / digest(shard) / f"{shard.first_seed:06d}-{stop:06d}{SHARD_SUFFIX}"
+
+
+def save(path: str | os.PathLike, shard: paper.PaperConfig, metrics: ShardMetrics) -> None:
+    """Write ``metrics`` (and ``shard``'s config, for checking) to ``path``, all or nothing."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    config = json.dumps(paper.config_dict(shard), sort_keys=True)
+
+    def write(temporary: Path) -> None:
+        with open(temporary, "wb") as handle:
+            np.savez_compressed(handle, __config__=np.array(config), **metrics)
+            handle.flush()
+            os.fsync(handle.fileno())
+
+    result_files.write_atomic(path, write)
+
+
+def load(path: str | os.PathLike, shard: paper.PaperConfig) -> ShardMetrics:
+    """The metrics saved at ``path``; a ValueError naming the file if it is not ``shard``'s."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            saved = json.loads(str(data["__config__"]))
+            metrics = {key: data[key] for key in data.files if key != "__config__"}
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as error:
+        raise ValueError(f"shard file {path} is unreadable ({error}): delete it to rerun") from None
+    expected = paper.config_dict(shard)
+    differing = sorted(
+        key
+        for key in expected
+        if key not in NUMBER_FREE_FIELDS[:4] and saved.get(key) != expected[key]
+    )
+    if differing:
+        raise ValueError(
+            f"shard file {path} holds another config (differs in {', '.join(differing)})"
+        )
+    return metrics

@@ -1,0 +1,608 @@
+"""``factorq compare``: tabular Factor-Q and Q-learning, DQN and neural Factor-Q (Factor-DQN) on
+the three worlds, for ``seeds`` independent experiments and a budget of ``steps`` env steps each.
+
+    config -> for each method: one batch of (worlds x seeds) experiments -> per-episode traces
+           -> steps to threshold, collisions, greedy collisions -> comparison.json / .png / .md
+
+**Step budget.** Every experiment gets exactly ``steps`` env steps, episodes being as many as fit
+(the last one may be cut by the budget: its collisions count, its path length does not). This is
+not the paper's runs x episodes protocol: a budget of env steps is what makes DQN, which trains on
+a replay buffer, comparable with the online methods. Tabular methods and Factor-DQN run in the
+project's ``OnlineCollector`` (one run, stepped ``steps`` times), DQN in torchrl's ``Collector``
+(``factorq_trainers.experiments.dqn``).
+
+**The swap.** Factor-Q and Factor-DQN run the very same code (``run_online``, with the agent of
+``factorq_trainers.experiments.experiment.online_agent``): env with ``SplitLocalReward``,
+``FactorQPolicy``
+(eqs. 2-3), ``FactorQLoss`` (eq. 4, and eq. 5 or its regression), ``OnlineCollector``. Only
+``value_providers`` differs: tables and SGD(lr 1), or networks (``factorq_torch.neural``) and
+Adam.
+
+**Threshold.** ``steps_to_threshold`` is the env steps at the end of the first episode whose path
+length is within 1.5x the shortest path: the BFS distance from start to goal in the static layout;
+in the moving worlds, where the shortest path changes with every scatter, the obstacle-free
+Manhattan distance ``2 (size - 1)``. Per method and world it is the mean over seeds when every
+seed reached it, ``null`` otherwise (``seeds_reached`` says how many did).
+
+**Wall time.** Each method runs all selected worlds and seeds as one batch, so ``wall_s`` is that
+batch's time, the same for each of its worlds.
+
+**Logging.** torchrl's ``CSVLogger`` (default) or ``TensorboardLogger`` (``logger="tensorboard"``)
+under ``out/logs/<method>/``: per experiment and finished episode, ``return`` (task return),
+``path_length``, ``collisions``, ``greedy_collisions``, ``epsilon`` and ``loss`` (0.5 x squared TD
+error: of each step's update for the online methods, of the latest minibatch for DQN; averaged
+over the episode's steps), at step = that experiment's env steps.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from factorq_envs.world import shortest_path_length as path_length_around
+from factorq_envs.world import static_layout
+from factorq_torch.base.config import AgentConfig
+from factorq_torch.base.rng import STREAM_LOCAL_NETWORK, STREAM_POLICY, STREAM_TASK_NETWORK
+from factorq_torch.base.validation import check_float, check_hidden, check_names, check_threads
+from factorq_torch.collectors import OnlineCollector
+from factorq_torch.neural import ACTIVATIONS, LocalRewardNetwork, TaskQNetwork
+from factorq_trainers.analysis.stats import finite_or_none, mean_ci, scalar_ci
+from factorq_trainers.experiments import dqn, experiment
+from factorq_trainers.experiments.dqn import METHODS, DQNConfig, batch_keys
+from factorq_trainers.experiments.experiment import WORLDS, EpisodeRecorder, ExperimentConfig
+from factorq_trainers.reports.compare_report import THRESHOLD_FACTOR
+from factorq_trainers.runner import checkpoint, compare_checkpoint, resources
+from factorq_trainers.runner.compare_checkpoint import CompareCheckpoint
+from factorq_trainers.runner.options import option
+
+LOGGERS = ("csv", "tensorboard")
+NAME = "compare"
+HELP = "compare tabular Factor-Q, Q-learning, DQN and neural Factor-Q on the three worlds"
+DESCRIPTION = (
+    "Run factor-q, q-learning, dqn and factor-dqn for --seeds experiments of --steps env steps "
+    "per world; write comparison.json, comparison.png and comparison.md to --out."
+)
+#: compare keeps its finer frame (a checkpoint per method and mid-method).
+FRAME = "factorq_trainers.experiments.compare_frame"
+FILES = {"json": "comparison.json", "report": "comparison.md", "figure": "comparison.png"}
+REPORT = "factorq_trainers.reports.compare_report"
+CURVE_POINTS = 100
+
+
+@dataclass(frozen=True)
+class FactorDQNConfig:
+    """Neural Factor-Q's networks, optimiser and exploration (eqs. 2-4 use ``AgentConfig``'s
+    gamma, alpha, eta and g_min). Why the local networks have no bias and tanh, and why
+    ``epsilon`` is 0.05 rather than the paper's 0.01: ``docs/decisions.md`` (Factor-DQN)."""
+
+    hidden: tuple[int, ...] = option(
+        (64,), "Hidden layer widths of each experiment's task Q-network (input: the cell one-hot)."
+    )
+    activation: str = option("relu", "Hidden activation of the task Q-network: tanh or relu.")
+    local_hidden: tuple[int, ...] = option(
+        (8,), "Hidden layer widths of each actuator's local reward network (input: its sensor bit)."
+    )
+    local_bias: bool = option(
+        False,
+        "Biases in the local networks (False: nothing sensed predicts exactly 0; see neural.py).",
+    )
+    lr: float = option(1e-3, "Adam learning rate of the task Q-network.")
+    local_lr: float = option(1e-2, "Adam learning rate of the local reward networks.")
+    local_activation: str = option("tanh", "Hidden activation of the local networks: tanh or relu.")
+    local_shared: bool = option(
+        True,
+        "One local network per experiment shared by its four actuators (else one per actuator).",
+    )
+    epsilon: float = option(
+        0.05, "Exploration probability of FactorQPolicy (tabular Factor-Q: the paper's 0.01)."
+    )
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "hidden", check_hidden("hidden", self.hidden))
+        object.__setattr__(self, "local_hidden", check_hidden("local_hidden", self.local_hidden))
+        for name in ("local_bias", "local_shared"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"{name} must be a bool, got {getattr(self, name)!r}")
+        for name in ("activation", "local_activation"):
+            if getattr(self, name) not in ACTIVATIONS:
+                raise ValueError(
+                    f"{name}={getattr(self, name)!r} is unknown: choose one of "
+                    f"{', '.join(ACTIVATIONS)}"
+                )
+        check_float("lr", self.lr, 0.0, 1.0, low_open=True)
+        check_float("local_lr", self.local_lr, 0.0, 1.0, low_open=True)
+        check_float("epsilon", self.epsilon, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class CompareConfig:
+    """The comparison: methods x worlds, ``seeds`` experiments each, ``steps`` env steps each."""
+
+    seed: int = option(
+        0, "Master seed: worlds, policies and network initialisations derive from it."
+    )
+    seeds: int = option(
+        3, "Independent experiments per method and world; 95% intervals are across them."
+    )
+    steps: int = option(15_000, "Budget of env steps per experiment.")
+    worlds: tuple[str, ...] = option(
+        WORLDS, "Worlds to run: static, semi-dynamic, dynamic (comma-separated)."
+    )
+    methods: tuple[str, ...] = option(
+        METHODS, "Methods to run: factor-q, q-learning, dqn, factor-dqn (comma-separated)."
+    )
+    out: str = option(
+        "results/compare", "Directory for comparison.json, comparison.png, comparison.md and logs/."
+    )
+    logger: str = option(
+        "csv",
+        "Per-episode logs: csv (torchrl CSVLogger) or tensorboard (needs the tensorboard package).",
+        choices=LOGGERS,
+    )
+    size: int = option(10, "Side of the square grid, in cells.")
+    obstacles: int = option(10, "Number of single-cell obstacles.")
+    max_steps: int = option(10_000, "Actions after which an episode is truncated.")
+    layout_seed: int = option(0, "Seed of the static world's obstacle layout.")
+    body: str = option("translate", "Agent body: translate (the paper) or heading.")
+    sensors: str = option("cross", "Sensor layout: cross (the paper: 4 neighbours) or ring (8).")
+    distractors: int = option(0, "Extra sensor bits that carry no information.")
+    sensor_permutation: int | None = option(
+        None, "Seed of a random order in which the agent receives its sensors."
+    )
+    sensor_noise: float = option(0.0, "Probability that each sensor bit flips at each observation.")
+    actuator_noise: float = option(0.0, "Probability that another actuator fires than the chosen.")
+    threads: int = option(1, "CPU threads for torch (1 is fastest on these tiny tensors).")
+    agent: AgentConfig = option(
+        AgentConfig(),
+        "Tabular and Factor-DQN parameters: epsilon, gamma, alpha, eta, g_min (the paper's).",
+    )
+    dqn: DQNConfig = option(
+        DQNConfig(), "DQN's hyperparameters (factorq_trainers.experiments.dqn)."
+    )
+    factor_dqn: FactorDQNConfig = option(
+        FactorDQNConfig(), "Factor-DQN's networks and learning rates."
+    )
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "methods", check_names("methods", self.methods, METHODS))
+        if self.logger not in LOGGERS:
+            raise ValueError(
+                f"logger={self.logger!r} is unknown: choose one of {', '.join(LOGGERS)}"
+            )
+        if self.logger == "tensorboard" and importlib.util.find_spec("tensorboard") is None:
+            raise ValueError(
+                "logger='tensorboard' needs the tensorboard package, which is not installed: "
+                "`pip install tensorboard` (the extra: `pip install -e '.[tensorboard]'`), "
+                "or use logger='csv'"
+            )
+        if not isinstance(self.out, str | os.PathLike) or not str(self.out):
+            raise ValueError(f"out={self.out!r} must be a directory path")
+        object.__setattr__(self, "out", str(self.out))
+        check_threads("threads", self.threads)
+        for name, kind in (
+            ("agent", AgentConfig),
+            ("dqn", DQNConfig),
+            ("factor_dqn", FactorDQNConfig),
+        ):
+            if not isinstance(getattr(self, name), kind):
+                raise TypeError(f"{name} must be a {kind.__name__}, got {getattr(self, name)!r}")
+        # ExperimentConfig validates seed, seeds, steps, worlds and the world, naming the option.
+        object.__setattr__(self, "worlds", self.experiments.worlds)
+        if "q-learning" in self.methods:  # its state holds the pattern of all sensors
+            experiment.check_qlearning_table(self.experiments.world)
+
+    @property
+    def experiments(self) -> ExperimentConfig:
+        return ExperimentConfig(
+            seed=self.seed,
+            seeds=self.seeds,
+            worlds=self.worlds,
+            steps=self.steps,
+            size=self.size,
+            obstacles=self.obstacles,
+            max_steps=self.max_steps,
+            layout_seed=self.layout_seed,
+            **experiment.body_options(self),
+        )
+
+
+CONFIG = CompareConfig
+
+
+# --------------------------------------------------------------------------------------------
+# The online methods: one loop, two kinds of value providers
+
+
+def value_providers(
+    method: str, config: CompareConfig, count: int
+) -> tuple[Any, Any, torch.optim.Optimizer | None]:
+    """The task and local value providers of ``method`` and their optimizer.
+
+    The only place where tabular and neural Factor-Q differ: tables (eq. 5 applied by the loss
+    through ``update_running_mean``, eq. 4 by SGD of learning rate 1, ``optimizer=None``) or
+    networks (``loss_task`` and ``loss_local`` by Adam).
+    """
+    experiments = config.experiments
+    cells = experiments.size**2
+    world = experiments.world  # the body: tables and networks get its shapes and dependency
+    shapes = {"num_headings": world.num_headings, "num_actions": world.num_actuators}
+    if method in ("q-learning", "factor-q"):
+        return (*experiment.tabular_values(method, count, world), None)
+    if method == "factor-dqn":
+        settings = config.factor_dqn
+        task = TaskQNetwork(
+            count,
+            cells,
+            **shapes,
+            hidden=settings.hidden,
+            activation=settings.activation,
+            keys=batch_keys(experiments, STREAM_TASK_NETWORK, method),
+        )
+        local = LocalRewardNetwork(
+            count,
+            dependency=world.dependency,
+            hidden=settings.local_hidden,
+            bias=settings.local_bias,
+            activation=settings.local_activation,
+            shared=settings.local_shared,
+            keys=batch_keys(experiments, STREAM_LOCAL_NETWORK, method),
+        )
+        optimizer = torch.optim.Adam(
+            [
+                {"params": task.parameters(), "lr": settings.lr},
+                {"params": local.parameters(), "lr": settings.local_lr},
+            ]
+        )
+        return task, local, optimizer
+    raise ValueError(
+        f"method={method!r} is not an online method (factor-q, q-learning, factor-dqn)"
+    )
+
+
+def run_online(
+    method: str,
+    config: CompareConfig,
+    logger=None,
+    progress=None,
+    checkpoints: compare_checkpoint.Saver | None = None,
+) -> dict[str, Any]:
+    """Tabular Factor-Q, tabular Q-learning or Factor-DQN for the step budget (OnlineCollector).
+
+    Returns ``{"traces", "wall_s"}`` like ``factorq_trainers.experiments.dqn.run``. ``checkpoints``
+    (a
+    ``compare_checkpoint.Saver``): restore the method's saved state if the run resumes during it,
+    and save its state whenever one is due (between two steps; the numbers do not change).
+    """
+    started = time.perf_counter()
+    experiments, agent = config.experiments, config.agent
+    count, steps = experiments.num_experiments, experiments.steps
+    task, local, optimizer = value_providers(method, config, count)
+    epsilon = config.factor_dqn.epsilon if method == "factor-dqn" else agent.epsilon
+    grid = dqn.batch_env(experiments)
+    env, policy, loss = experiment.online_agent(
+        grid,
+        task,
+        local,
+        agent,
+        batch_keys(experiments, STREAM_POLICY, method),
+        epsilon=epsilon,
+    )
+    # An episode takes at least the Manhattan distance, so this many always fit the budget.
+    episodes = steps // (2 * (experiments.size - 1)) + 1
+    collector = OnlineCollector(env, policy, loss, runs=1, episodes=episodes, optimizer=optimizer)
+    captured: dict[str, torch.Tensor] = {}
+    hook = loss.register_forward_hook(lambda module, inputs, output: captured.update(output))
+    recorder = EpisodeRecorder(experiments.labels, logger)
+    report_every = max(1, steps // 100)
+    done, before = 0, 0.0
+    if checkpoints is not None:
+
+        def state(step: int) -> dict[str, Any]:
+            return {
+                "step": step,
+                "collector": collector.state_dict(),
+                "world_state": grid.world_state._asdict(),
+                "recorder": recorder.state_dict(),
+            }
+
+        fresh = state(0)
+
+        def load_state(saved: dict[str, Any]) -> None:
+            nonlocal done
+            saved = compare_checkpoint.check_online_state(
+                saved, fresh, collector.optimizer, experiments, neural=method == "factor-dqn"
+            )
+            collector.load_state_dict(saved["collector"])
+            grid.world_state = type(grid.world_state)(**saved["world_state"])
+            recorder.load_state_dict(saved["recorder"])
+            done = saved["step"]
+
+        before = checkpoints.restore(method, load_state) or 0.0
+    seen = recorder.finished_episodes
+    for step in range(done + 1, steps + 1):
+        td = collector.step()
+        recorder.update(td, epsilon, 0.5 * captured["td_error"].pow(2))
+        if progress is not None and (step % report_every == 0 or step == steps):
+            progress(step, steps)
+        if checkpoints is not None and step < steps:
+            checkpoints.advance(recorder.finished_episodes - seen)
+            seen = recorder.finished_episodes
+            if checkpoints.due():
+                wall = before + time.perf_counter() - started
+                checkpoints.save(method, state(step), wall)
+    hook.remove()
+    return {"traces": recorder.traces(), "wall_s": before + time.perf_counter() - started}
+
+
+# --------------------------------------------------------------------------------------------
+# Summaries
+
+
+def shortest_path_length(experiments: ExperimentConfig, world: str) -> int:
+    """BFS distance start -> goal in the static layout; ``2 (size - 1)`` in a moving world."""
+    size = experiments.size
+    if world != "static":
+        return 2 * (size - 1)
+    length = path_length_around(static_layout(experiments.world), size)
+    if length is None:
+        raise ValueError(f"the static layout (layout_seed={experiments.layout_seed}) has no path")
+    return length
+
+
+def steps_to_threshold(trace: dict[str, Any], threshold: float) -> int | None:
+    """Env steps at the end of the first episode with path length <= ``threshold`` (or None)."""
+    reached = np.flatnonzero(trace["steps"] <= threshold)
+    return int(trace["env_steps"][reached[0]]) if reached.size else None
+
+
+def _curve(traces: list[dict[str, Any]], name: str, grid: np.ndarray) -> dict[str, list]:
+    """Per-episode ``name`` against env steps: for every seed, the mean over the episodes that
+    ended in each interval ``(grid[k-1], grid[k]]`` (the last value carried over an interval where
+    none ended, NaN before the first), then the mean and 95% band across seeds where every seed
+    has a value."""
+    values = np.full((len(traces), grid.size), np.nan)
+    for row, trace in enumerate(traces):
+        interval = np.searchsorted(grid, trace["env_steps"], side="left")  # [episodes]
+        inside = interval < grid.size
+        totals = np.bincount(interval[inside], trace[name][inside], minlength=grid.size)
+        counts = np.bincount(interval[inside], minlength=grid.size)
+        last = np.nan
+        for k in range(grid.size):
+            last = totals[k] / counts[k] if counts[k] else last
+            values[row, k] = last
+    mean = np.full(grid.size, np.nan)
+    low, high = mean.copy(), mean.copy()
+    complete = ~np.isnan(values).any(axis=0)
+    if complete.any():
+        mean[complete], band_low, band_high = mean_ci(values[:, complete])
+        if band_low is not None:
+            low[complete], high[complete] = band_low, band_high
+    return {"mean": _json_list(mean), "low": _json_list(low), "high": _json_list(high)}
+
+
+def _json_list(values: np.ndarray) -> list[float | None]:
+    return [finite_or_none(value) for value in values]
+
+
+def summarise(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The ``comparison.json`` dict from every method's ``{"traces", "wall_s"}``."""
+    experiments = config.experiments
+    grid = np.linspace(experiments.steps / CURVE_POINTS, experiments.steps, CURVE_POINTS)
+    thresholds = {}
+    for world in experiments.worlds:
+        shortest = shortest_path_length(experiments, world)
+        thresholds[world] = {"shortest_path": shortest, "threshold": THRESHOLD_FACTOR * shortest}
+    results: dict[str, Any] = {}
+    curves: dict[str, Any] = {}
+    for method, run in runs.items():
+        results[method], curves[method] = {}, {}
+        for world in experiments.worlds:
+            traces = [trace for trace in run["traces"] if trace["world"] == world]
+            reached = [steps_to_threshold(t, thresholds[world]["threshold"]) for t in traces]
+            hit = [value for value in reached if value is not None]
+            collisions = scalar_ci([t["total_collisions"] for t in traces])
+            greedy = scalar_ci([t["total_greedy_collisions"] for t in traces])
+            avoidable = scalar_ci(
+                [
+                    t["total_greedy_collisions"] - t["total_boxed_in_greedy_collisions"]
+                    for t in traces
+                ]
+            )
+            tail = [t["steps"][t["env_steps"] > 0.8 * experiments.steps] for t in traces]
+            tail = [float(values.mean()) for values in tail if values.size]
+            results[method][world] = {
+                "steps_to_threshold": float(np.mean(hit)) if len(hit) == len(traces) else None,
+                "collisions": collisions[0],
+                "greedy_collisions": greedy[0],
+                "wall_s": round(float(run["wall_s"]), 3),
+                "seeds_reached": len(hit),
+                "steps_to_threshold_per_seed": reached,
+                "collisions_ci95": [collisions[1], collisions[2]],
+                "greedy_collisions_ci95": [greedy[1], greedy[2]],
+                "avoidable_greedy_collisions": avoidable[0],
+                "avoidable_greedy_collisions_ci95": [avoidable[1], avoidable[2]],
+                "episodes": float(np.mean([t["steps"].size for t in traces])),
+                "final_path_length": float(np.mean(tail)) if len(tail) == len(traces) else None,
+            }
+            curves[method][world] = {
+                name: _curve(traces, name, grid) for name in ("steps", "collisions")
+            }
+    return {
+        "config": config_dict(config),
+        "thresholds": thresholds,
+        "results": results,
+        "curves": {"env_steps": [float(x) for x in grid], **curves},
+    }
+
+
+def config_dict(config: CompareConfig) -> dict[str, Any]:
+    """``config`` as JSON-ready values (tuples as lists, nested configs as dicts)."""
+    return json.loads(json.dumps(asdict(config)))
+
+
+_NESTED = {"agent": AgentConfig, "dqn": DQNConfig, "factor_dqn": FactorDQNConfig}
+
+
+def config_from_dict(data: dict[str, Any]) -> CompareConfig:
+    """The inverse of ``config_dict`` (unknown or malformed fields: ValueError or TypeError)."""
+    known = {field.name for field in fields(CompareConfig)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise ValueError(f"unknown config fields: {', '.join(unknown)}")
+
+    def plain(values: dict[str, Any]) -> dict[str, Any]:
+        return {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
+
+    values = plain(data)
+    for name, kind in _NESTED.items():
+        if name in values:
+            if not isinstance(values[name], dict):
+                raise TypeError(f"{name} must be a table of {kind.__name__} fields")
+            values[name] = kind(**plain(values[name]))
+    return CompareConfig(**values)
+
+
+# --------------------------------------------------------------------------------------------
+# Checkpoints (trainers/runner/compare_checkpoint.py holds the file format and its checks)
+
+
+def save_checkpoint(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> Path:
+    """Save the finished methods' traces to ``out/checkpoint/`` (between methods)."""
+    return compare_checkpoint.save(config.out, config_dict(config), runs)
+
+
+def check_checkpoint(resume: CompareCheckpoint, config: CompareConfig) -> None:
+    """Refuse a checkpoint whose content does not fit ``config`` (one line)."""
+    compare_checkpoint.check(resume, config, config_dict(config))
+
+
+load_checkpoint = compare_checkpoint.load
+
+
+def resume_config(
+    saved: dict[str, Any], given: dict[str, Any], directory: str | os.PathLike
+) -> CompareConfig:
+    """The config to resume the comparison of ``directory`` with
+    (``checkpoint.resumed_config``)."""
+    return checkpoint.resumed_config(saved, given, directory, config_from_dict, config_dict)
+
+
+# --------------------------------------------------------------------------------------------
+# Running
+
+
+def make_logger(config: CompareConfig, method: str, log_dir: str | os.PathLike | None = None):
+    """torchrl's CSVLogger or TensorboardLogger for ``method`` under ``log_dir`` (default
+    ``out/logs/``)."""
+    log_dir = str(Path(config.out) / "logs" if log_dir is None else log_dir)
+    if config.logger == "tensorboard":
+        from torchrl.record.loggers.tensorboard import TensorboardLogger
+
+        return TensorboardLogger(exp_name=method, log_dir=log_dir)
+    from torchrl.record.loggers.csv import CSVLogger
+
+    return CSVLogger(exp_name=method, log_dir=log_dir)
+
+
+#: ``progress(method, done, total)``: env steps per experiment done so far for ``method``.
+Progress = Callable[[str, int, int], None]
+
+
+def run_method(
+    config: CompareConfig,
+    method: str,
+    progress: Callable[[int, int], None] | None = None,
+    checkpoints: compare_checkpoint.Saver | None = None,
+) -> dict[str, Any]:
+    """One method's batch (all selected worlds and seeds): ``{"traces", "wall_s"}``. A method's
+    numbers do not depend on the others (DQN seeds torch's global stream first), so methods may
+    run in any order, in any process (``factorq compare --cluster``). ``checkpoints``: restore
+    and save the method's state mid-method (``compare_checkpoint.Saver``)."""
+    if method == "dqn":
+        return dqn.run(config.dqn, config.experiments, progress=progress, checkpoints=checkpoints)
+    return run_online(method, config, progress=progress, checkpoints=checkpoints)
+
+
+def write_logs(
+    config: CompareConfig, runs: dict[str, dict[str, Any]], log_dir: str | os.PathLike
+) -> None:
+    """Every method's per-episode records, from its traces, as ``config.logger`` logs under
+    ``log_dir`` (written once a run is over: one run's logs, the same after a resume)."""
+    for method, run in runs.items():
+        experiment.log_traces(make_logger(config, method, log_dir), run["traces"])
+
+
+def run(
+    config: CompareConfig,
+    progress: Progress | None = None,
+    *,
+    logs_dir: str | os.PathLike | None = None,
+    checkpoints: bool = False,
+    resume: CompareCheckpoint | None = None,
+    checkpoint_every: checkpoint.Every | str | int | None = None,
+) -> dict[str, Any]:
+    """Run every selected method on every selected world; return the ``comparison.json`` dict.
+
+    ``logs_dir``: where to write the per-episode logs (``write_logs``) when the run is over
+    (``factorq compare`` gives a staging directory that ``compare_report.write_outputs`` renames
+    to ``out/logs`` with the other outputs); None writes none.
+
+    ``checkpoints``: save the traces of the finished methods to ``out/checkpoint/`` after each
+    method (the caller removes them once the outputs are written); ``resume``
+    (``load_checkpoint(out)``) skips the methods it holds and continues the one it was taken
+    during from its saved state. A method's numbers do not depend on the others
+    (``run_method``), so a resumed run gives the numbers of an uninterrupted one.
+
+    ``checkpoint_every`` (episodes summed over the method's experiments, or seconds: ``"30s"``,
+    as ``factorq paper``'s) also saves the running method's whole state that often (with
+    ``checkpoints``); a resumed run goes on at its checkpoint's interval unless given one."""
+    started = time.perf_counter()
+    if checkpoint_every is None and resume is not None:
+        checkpoint_every = resume.every  # a resumed run goes on saving as it did
+    if checkpoint_every is not None:
+        checkpoint_every = checkpoint.parse_every(checkpoint_every)
+    estimate = resources.compare_estimate(config, checkpointing=checkpoint_every is not None)
+    resources.check(estimate, "comparison", resources.COMPARE_HINT)  # before any allocation
+    threads = torch.get_num_threads()
+    torch.set_num_threads(config.threads)
+    if resume is not None:
+        check_checkpoint(resume, config)
+    elif checkpoints:
+        checkpoint.check_none_in(config.out)
+    saver = None
+    if checkpoints or resume is not None:
+        every = checkpoint_every if checkpoints else None
+        saver = compare_checkpoint.Saver(config.out, config_dict(config), every, resume=resume)
+    try:
+        runs = {} if resume is None else dict(resume.finished)
+        if saver is not None:
+            saver.finished = dict(runs)
+        for method in config.methods:
+            if method in runs:
+                continue
+            report = None if progress is None else (lambda d, t, m=method: progress(m, d, t))
+            runs[method] = run_method(config, method, report, checkpoints=saver)
+            if checkpoints and len(runs) < len(config.methods):
+                saver.save_finished(runs)
+    finally:
+        torch.set_num_threads(threads)
+    if logs_dir is not None:
+        write_logs(config, runs, logs_dir)
+    results = summarise(config, runs)
+    results["timing"] = {"wall_s": round(time.perf_counter() - started, 3)}
+    if saver is not None and saver.every is not None:
+        results["timing"]["checkpoints"] = {
+            "every": str(saver.every),
+            "saved_mid_method": saver.saves,
+            "save_s": round(saver.save_seconds, 3),
+        }
+    return results

@@ -1,0 +1,69 @@
+"""Figures and Markdown drawn from results dicts alone: ``factorq report DIR`` redraws any
+command's files with these modules, without importing torch (``tests/test_runner.py`` checks it in
+a fresh interpreter).
+
+A command's report module (its ``REPORT``, else its own module) provides ``markdown(results) ->
+str`` and/or ``figure(results, path)``; ``regenerate`` finds which command wrote ``DIR`` by the
+results file's name (each command's ``FILES["json"]``, read by the registry without importing
+the command) and rewrites the other files from it, all at once.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+from pathlib import Path
+from typing import Any
+
+
+class FigureError(RuntimeError):
+    """Drawing a figure failed (matplotlib's error, in one line)."""
+
+
+def find(results_dir: str | os.PathLike) -> tuple[Any, Path]:
+    """The registry entry of the command whose results file is in ``results_dir``, and the
+    file (a FileNotFoundError naming the files looked for when none is there)."""
+    from factorq_trainers.runner import registry
+
+    directory = Path(results_dir)
+    entries = registry.commands().values()
+    for entry in entries:
+        path = directory / entry.files["json"]
+        if path.is_file():
+            return entry, path
+    looked = ", ".join(entry.files["json"] for entry in entries)
+    raise FileNotFoundError(
+        f"{directory} holds no results file of a factorq command ({looked}): run one with "
+        f"--out {directory}"
+    )
+
+
+def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
+    """Rewrite the Markdown and the figure in ``results_dir`` from its results file."""
+    from factorq_trainers.runner import results
+
+    entry, path = find(results_dir)
+    report = importlib.import_module(entry.report)
+    if hasattr(report, "regenerate"):  # a report with its own reading (paper: the schema)
+        return report.regenerate(results_dir)
+    data = results.read_json(path, ("config",), f"run `factorq {entry.name}`")
+    directory = Path(results_dir)
+    writers = {}
+    if hasattr(report, "markdown"):
+        writers["report"] = (
+            directory / entry.files["report"],
+            lambda target: target.write_text(report.markdown(data)),
+        )
+    if hasattr(report, "figure"):
+
+        def figure(target: Path) -> None:
+            try:
+                report.figure(data, target)
+            except Exception as error:  # matplotlib's, from deep inside: one line, no file
+                raise FigureError(
+                    f"drawing {entry.files['figure']} failed: {type(error).__name__}: {error}"
+                ) from error
+
+        writers["figure"] = (directory / entry.files["figure"], figure)
+    results.write_all_atomic(dict(writers.values()))
+    return {name: target for name, (target, _) in writers.items()}

@@ -1,0 +1,188 @@
+"""The files of ``factorq compare``: ``comparison.json``, ``comparison.png``, ``comparison.md``.
+
+Everything here reads the results dict of ``factorq_trainers.experiments.compare.run`` and computes
+nothing new.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from factorq_trainers.runner.results import body_label, dumps, write_all_atomic
+
+#: A method reached the threshold when an episode took at most this many times the shortest path.
+THRESHOLD_FACTOR = 1.5
+METHOD_LABELS = {
+    "factor-q": "Factor-Q (tabular)",
+    "q-learning": "Q-learning (tabular)",
+    "dqn": "DQN",
+    "factor-dqn": "Factor-DQN (neural Factor-Q)",
+}
+JSON_FILE = "comparison.json"
+FIGURE_FILE = "comparison.png"
+REPORT_FILE = "comparison.md"
+OUTPUT_FILES = (JSON_FILE, FIGURE_FILE, REPORT_FILE)
+LOGS_DIRECTORY = "logs"
+COLOURS = {
+    "factor-q": "#0072B2",
+    "q-learning": "#D55E00",
+    "dqn": "#009E73",
+    "factor-dqn": "#CC79A7",
+}
+
+
+def write_figure(results: dict[str, Any], path: str | os.PathLike) -> None:
+    """Steps and collisions per episode against env steps, mean and 95% band, one column a world."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    worlds = list(results["thresholds"])
+    grid = np.asarray(results["curves"]["env_steps"])
+    figure = Figure(figsize=(4.2 * len(worlds), 7.0), layout="constrained")
+    FigureCanvasAgg(figure)
+    axes = figure.subplots(2, len(worlds), squeeze=False, sharex=True)
+    rows = (("steps", "steps per episode"), ("collisions", "collisions per episode"))
+    for column, world in enumerate(worlds):
+        for row, (name, label) in enumerate(rows):
+            axis = axes[row][column]
+            for method in results["results"]:
+                curve = results["curves"][method][world][name]
+                mean = np.array([np.nan if v is None else v for v in curve["mean"]])
+                low = np.array([np.nan if v is None else v for v in curve["low"]])
+                high = np.array([np.nan if v is None else v for v in curve["high"]])
+                colour = COLOURS[method]
+                floor = 1.0 if name == "steps" else 0.0  # a path takes >= 1 step
+                axis.plot(grid, mean, color=colour, label=METHOD_LABELS[method], linewidth=1.4)
+                axis.fill_between(grid, np.maximum(low, floor), high, color=colour, alpha=0.2)
+            if name == "steps":
+                axis.axhline(
+                    results["thresholds"][world]["threshold"],
+                    color="grey",
+                    linestyle=":",
+                    linewidth=1.0,
+                    label=f"{THRESHOLD_FACTOR}x shortest path",
+                )
+                axis.set_title(f"{world} world")
+                axis.set_yscale("log")
+            else:  # symlog: linear near 0, where the Factor-Q curves end up
+                axis.set_yscale("symlog", linthresh=1.0)
+                axis.set_ylim(bottom=0.0)
+            axis.set_xlim(0, grid[-1])
+            axis.set_ylabel(label)
+            if row == len(rows) - 1:
+                axis.set_xlabel("env steps per experiment")
+    axes[0][0].legend(fontsize="small")
+    body = body_label(results)
+    figure.suptitle(
+        ("" if body is None else f"{body}\n")
+        + f"per-episode means over each 1/{grid.size} of the budget; mean over "
+        f"{results['config']['seeds']} seeds with 95% bands",
+        fontsize="medium",
+    )
+    figure.savefig(path, format="png", dpi=110)
+
+
+def _number(value: float | None, digits: int = 0) -> str:
+    if value is None:
+        return "never"
+    return f"{value:,.{digits}f}"
+
+
+def report_markdown(results: dict[str, Any]) -> str:
+    """``comparison.md``: one row per method and world."""
+    config = results["config"]
+    body = body_label(results)
+    lines = [
+        "# factorq compare" if body is None else f"# factorq compare: {body}",
+        "",
+        f"{config['seeds']} seeds x {config['steps']:,} env steps per experiment, "
+        f"{config['size']}x{config['size']} grid, {config['obstacles']} obstacles, "
+        f"master seed {config['seed']}. Means over seeds (95% interval in brackets).",
+        "",
+        "- **steps to threshold**: env steps until the first episode whose path is within "
+        f"{THRESHOLD_FACTOR}x the shortest path (static: BFS in the layout; moving worlds: the "
+        "Manhattan distance); `never` unless every seed reached it (reached: seeds that did).",
+        "- **collisions**, **greedy collisions** (on non-exploratory actions): totals over the "
+        "budget; **avoidable**: the greedy collisions where some direction was free (not boxed in "
+        "by walls and obstacles on all four sides). **final path**: mean path length of the "
+        "episodes ending in the last 20% of the budget.",
+        "- **wall s**: the method's batch (all worlds and seeds at once).",
+        "",
+        "| method | world | steps to threshold | reached | collisions | greedy collisions "
+        "| avoidable | final path | wall s |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for method, worlds in results["results"].items():
+        for world, cell in worlds.items():
+            low, high = cell["collisions_ci95"]
+            g_low, g_high = cell["greedy_collisions_ci95"]
+            collisions = _number(cell["collisions"], 1)
+            greedy = _number(cell["greedy_collisions"], 1)
+            if low is not None:
+                collisions += f" [{max(low, 0):,.0f}, {high:,.0f}]"
+                greedy += f" [{max(g_low, 0):,.0f}, {g_high:,.0f}]"
+            lines.append(
+                f"| {METHOD_LABELS[method]} | {world} | {_number(cell['steps_to_threshold'])} "
+                f"| {cell['seeds_reached']}/{config['seeds']} | {collisions} | {greedy} "
+                f"| {_number(cell['avoidable_greedy_collisions'], 1)} "
+                f"| {_number(cell['final_path_length'], 1)} | {cell['wall_s']:.0f} |"
+            )
+    thresholds = ", ".join(
+        f"{world} {entry['shortest_path']} -> {entry['threshold']:g}"
+        for world, entry in results["thresholds"].items()
+    )
+    lines += ["", f"Shortest path -> threshold: {thresholds}.", ""]
+    return "\n".join(lines)
+
+
+def staging_logs(out: str | os.PathLike) -> Path:
+    """A fresh directory in ``out`` for this run's logs until ``write_outputs`` renames it to
+    ``out/logs`` (named like the temporaries ``factorq_trainers.runner.outdir`` cleans up after a
+    kill)."""
+    staging = Path(out) / f".{LOGS_DIRECTORY}.{os.getpid()}.tmp"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    return staging
+
+
+def write_outputs(
+    results: dict[str, Any], out: str | os.PathLike, logs: str | os.PathLike | None = None
+) -> dict[str, Path]:
+    """Write comparison.json, comparison.png and comparison.md to ``out`` as a set: each is
+    written to a temporary first, then all are renamed into place; ``logs`` (a staging
+    directory, ``staging_logs``) replaces ``out/logs`` in the same step, so the files of two
+    runs never mix (a kill during the few renames can leave the old logs removed, never mixed)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"json": out / JSON_FILE, "figure": out / FIGURE_FILE, "report": out / REPORT_FILE}
+
+    def swap_logs() -> None:
+        if logs is None:
+            return
+        target = out / LOGS_DIRECTORY
+        if target.exists():
+            old = out / f".{LOGS_DIRECTORY}.old.{os.getpid()}.tmp"
+            os.replace(target, old)
+            shutil.rmtree(old, ignore_errors=True)
+        os.replace(logs, target)
+
+    write_all_atomic(
+        {
+            paths["json"]: lambda path: path.write_text(dumps(results)),
+            paths["figure"]: lambda path: write_figure(results, path),
+            paths["report"]: lambda path: path.write_text(report_markdown(results)),
+        },
+        before_rename=swap_logs,
+    )
+    if logs is not None:
+        paths["logs"] = out / LOGS_DIRECTORY
+    return paths
+
+
+#: The runner's names (``factorq report``).
+markdown, figure = report_markdown, write_figure

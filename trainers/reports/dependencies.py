@@ -1,0 +1,212 @@
+"""``factorq dependencies``' Markdown and figure, from its results alone (no torch)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from factorq_trainers.analysis.stats import format_number
+from factorq_trainers.runner.results import interval_or_none
+
+
+def _wall_s(results: dict[str, Any]) -> float:
+    """The run's wall time (``timing.wall_seconds`` in files written before the runner)."""
+    timing = results["timing"]
+    return timing["wall_s"] if "wall_s" in timing else timing["wall_seconds"]
+
+
+def _methods(results: dict[str, Any]) -> list[str]:
+    """Every method the run knew, in its order (the methods present, in older files)."""
+    declared = results.get("methods")
+    if isinstance(declared, dict):
+        return list(declared)
+    seen: list[str] = []
+    for summary in results["settings"].values():
+        seen += [method for method in summary["methods"] if method not in seen]
+    return seen
+
+
+def _label(results: dict[str, Any], method: str) -> str:
+    declared = results.get("methods")
+    return str(declared.get(method, method)) if isinstance(declared, dict) else method
+
+
+def _index(results: dict[str, Any], method: str) -> int:
+    methods = _methods(results)
+    return methods.index(method) if method in methods else len(methods)
+
+
+def _ratio_text(entry: dict[str, Any] | None) -> str:
+    if entry is None:
+        return "n/a"
+    text = format_number(entry["ratio"])
+    if entry.get("ci"):
+        low, high = entry["ci"]
+        text += f" [{format_number(low)}, {format_number(high)}]"
+    return text
+
+
+def markdown(results: dict[str, Any]) -> str:
+    """The table of the issue's metrics, one row per setting, and the baselines' totals."""
+    config = results["config"]
+    lines = [
+        "# Learned sensor-actuator dependencies",
+        "",
+        f"{config['seeds']} experiments per setting, {config['runs']} runs x {config['episodes']} "
+        f"episodes each, {config['world']} world {config['size']}x{config['size']} with "
+        f"{config['obstacles']} obstacles, Bayes factor {format_number(config['bayes_factor'])}, "
+        f"Beta({format_number(config['prior_a'])}, {format_number(config['prior_b'])}) prior, "
+        f"candidate prior {config['candidate_prior']}, "
+        f"{config.get('likelihood', 'pattern')} likelihood"
+        + (
+            f", reopening at Bayes factor {format_number(config['reopen_factor'])}"
+            if config.get("reopen_factor") is not None
+            else ""
+        )
+        + "; "
+        f"wall time {_wall_s(results):.1f} s.",
+        "",
+        "| setting | samples until right (median, p90) | right within target | wrong commitments "
+        "/ 1000 | SHD at end | collisions vs oracle | greedy collisions vs oracle | learning speed "
+        "vs oracle |",
+        "| --- | --- | --- | ---: | ---: | --- | --- | --- |",
+    ]
+    for setting, summary in results["settings"].items():
+        structure = summary.get("structure")
+        if structure is None:
+            continue
+        against = summary.get("against_oracle", {})
+        lines.append(
+            f"| {setting} | {format_number(structure['samples_until_right_median'])}, "
+            f"{format_number(structure['samples_until_right_p90'])} | "
+            f"{100 * structure['fraction_right_within_target']:.0f}% "
+            f"(<= {structure['samples_target']}) | "
+            f"{format_number(structure['wrong_commitments_per_1000'])} | "
+            f"{format_number(structure['hamming_at_end_mean'])} | "
+            f"{_ratio_text(against.get('collisions'))} | "
+            f"{_ratio_text(against.get('greedy_collisions'))} | "
+            f"{_ratio_text(against.get('learning_speed'))} |"
+        )
+    for setting, summary in results["settings"].items():
+        gated = summary.get("gated_structure")
+        if gated is None:
+            continue
+        against = summary.get("gated_against_oracle", {})
+        lines.append(
+            f"| {setting}, gated network | - | "
+            f"{100 * gated['fraction_right_at_end']:.0f}% (at the end) | - | "
+            f"{format_number(gated['hamming_at_end_mean'])} | "
+            f"{_ratio_text(against.get('collisions'))} | "
+            f"{_ratio_text(against.get('greedy_collisions'))} | "
+            f"{_ratio_text(against.get('learning_speed'))} |"
+        )
+    lines += [
+        "",
+        "Per experiment (means): collisions, greedy collisions, env steps per run.",
+        "",
+        "| setting | method | collisions | greedy collisions | steps per run |",
+        "| --- | --- | ---: | ---: | ---: |",
+    ]
+    for setting, summary in results["settings"].items():
+        for method, entry in summary["methods"].items():
+            lines.append(
+                f"| {setting} | {_label(results, method)} | "
+                f"{format_number(entry['collisions_per_experiment'])} | "
+                f"{format_number(entry['greedy_collisions_per_experiment'])} | "
+                f"{format_number(entry['steps_per_run'])} |"
+            )
+    for setting, summary in results["settings"].items():
+        entry = summary["methods"].get("dqn")
+        if entry is not None:
+            lines.append(
+                f"\nDQN in {setting}: a budget of {entry['step_budget']} env steps per experiment "
+                f"(the oracle's mean), {format_number(entry['episodes_per_experiment'])} episodes "
+                f"per experiment on average; no runs, so no steps per run."
+            )
+    for setting, skipped in results.get("skipped", {}).items():
+        for method, reason in skipped.items():
+            lines.append(f"\nNot run: {_label(results, method)} in {setting}: {reason}.")
+    return "\n".join(lines) + "\n"
+
+
+def figure(results: dict[str, Any], path: Path) -> None:
+    """Top: fraction of experiments holding the right structure against env steps, per setting;
+    bottom: collisions per episode per method."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    settings = list(results["settings"])
+    figure = Figure(figsize=(3.2 * max(len(settings), 1), 6.0), layout="constrained")
+    FigureCanvasAgg(figure)
+    axes = figure.subplots(2, max(len(settings), 1), squeeze=False)
+    for column, setting in enumerate(settings):
+        summary = results["settings"][setting]
+        top, bottom = axes[0, column], axes[1, column]
+        structure = summary.get("structure")
+        if structure is not None:
+            curve = structure["curve"]
+            top.plot(curve["env_steps"], curve["fraction_right"], color="C0")
+        top.set_title(setting)
+        top.set_ylim(-0.02, 1.02)
+        top.set_xlabel("env steps")
+        if column == 0:
+            top.set_ylabel("fraction with the right structure")
+        for method, entry in summary["methods"].items():
+            values = entry["collisions_per_episode"]
+            color = f"C{_index(results, method)}"  # one colour per method in every panel
+            bottom.plot(
+                range(1, len(values) + 1), values, label=_label(results, method), color=color
+            )
+        bottom.set_yscale("symlog", linthresh=1.0)
+        bottom.set_xlabel("episode")
+        if column == 0:
+            bottom.set_ylabel("collisions per episode")
+            bottom.legend(fontsize="small")
+    figure.savefig(path, format="png", dpi=110)
+
+
+# --------------------------------------------------------------------------------------------
+# factorq sweep --command dependencies
+
+#: What a dependencies sweep reports per setting and method (``experiments.dependencies``'
+#: measures; the last two for the learned structure only).
+SWEEP_MEASURES = (
+    "collisions",
+    "greedy_collisions",
+    "fraction_right_within_target",
+    "collisions_vs_oracle",
+)
+
+
+def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per setting and method of a ``dependencies.json`` dict: collisions and greedy collisions
+    per experiment (means), and for the learned structure the fraction right within the target
+    and its collisions against the oracle's (ratio with its paired-bootstrap interval)."""
+    cells = {}
+    for setting, summary in results["settings"].items():
+        structure = summary.get("structure")
+        ratio = summary.get("against_oracle", {}).get("collisions")
+        for method, entry in summary["methods"].items():
+            learned = method == "learned"
+            cells[f"{setting}/{method}"] = {
+                "world": setting,
+                "algorithm": method,
+                "collisions": {"mean": entry["collisions_per_experiment"], "ci95": None},
+                "greedy_collisions": {
+                    "mean": entry["greedy_collisions_per_experiment"],
+                    "ci95": None,
+                },
+                "fraction_right_within_target": {
+                    "mean": structure["fraction_right_within_target"]
+                    if learned and structure
+                    else None,
+                    "ci95": None,
+                },
+                "collisions_vs_oracle": {
+                    "mean": ratio["ratio"] if learned and ratio else None,
+                    "ci95": interval_or_none(ratio["ci"])
+                    if learned and ratio and ratio["ci"]
+                    else None,
+                },
+            }
+    return cells

@@ -1,0 +1,587 @@
+"""Checkpoints of ``factorq paper``: a run's whole state, saved atomically, loaded safely.
+
+A checkpoint is one file written by ``torch.save`` and read back by ``torch.load(...,
+weights_only=True)``: plain tensors, numbers, strings, lists and dicts, never pickled code. It holds
+
+    format, version     what the file is ("factorq-paper-checkpoint", FORMAT_VERSION)
+    sha256              digest of the content, tensor bytes included: torch's reader does not
+                        notice a flipped bit inside a tensor, this does
+    content:
+      config            the run's config (``paper.config_dict``); a resumed run takes it from here
+      backend           the driver that wrote the state ("fast" or "modular"; each reads its own)
+      every             the checkpoint interval the run was started with ("5000", "30s")
+      finished          {algorithm: metrics [W * S, runs, episodes]} of the algorithms done
+      running           {"algorithm", "state"} of the one in progress (None between algorithms):
+                        for the fast backend ``ExperimentBatch.state_dict()``, that is tables,
+                        counts, world state, stream positions (counter-based streams: their state
+                        is one integer each), run and episode counters and partial metrics; for
+                        the modular one ``OnlineCollector.state_dict()`` (tables, policy stream
+                        counters, counters, metrics, the observation the next step acts on) and
+                        the env's ``world_state``
+      episodes_completed, experiments_finished, elapsed_s, saved_utc
+
+Files, in ``<out>/checkpoint/``: ``checkpoint.pt`` (the newest) and ``checkpoint.prev.pt`` (the
+one before it). A save writes a temporary next to them, flushes and fsyncs it, hard-links the
+current newest file to the previous name (through a temporary link and ``os.replace``), renames
+the temporary onto the newest name and fsyncs the directory: at every instant both names hold
+complete files, so a kill at any moment loses at most the work since the last save, and a
+damaged newest file still leaves the previous one. The directory is removed once the run's
+results are written.
+
+Loading reads ``checkpoint.pt``, or ``checkpoint.prev.pt`` when there is no newest file. A damaged
+newest file is an error, not a silent fall-back: the message says whether the previous file is
+intact and how to resume from it (move the damaged one away), and nothing is changed on disk.
+
+>>> every = parse_every("30s")
+>>> every.seconds, every.episodes, str(every)
+(30.0, None, '30s')
+>>> parse_every(5000)
+Every(episodes=5000, seconds=None)
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import re
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import torch
+
+FORMAT = "factorq-paper-checkpoint"
+#: ``factorq compare``'s checkpoints: the methods finished so far and the running one's state.
+COMPARE_FORMAT = "factorq-compare-checkpoint"
+FORMAT_VERSION = 1
+DIRECTORY = "checkpoint"
+LATEST = "checkpoint.pt"
+PREVIOUS = "checkpoint.prev.pt"
+_UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0}
+_TEMPORARY = re.compile(r"^\.(checkpoint\.pt|checkpoint\.prev\.pt)\.\d+\.tmp$")
+
+
+def is_int(value: Any) -> bool:
+    """An int that is not a bool (``True`` is an int to Python, never to a checkpoint)."""
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def to_device(tree: Any, device: torch.device | str) -> Any:
+    """``tree`` (nested dicts and lists of tensors) with every tensor on ``device``: a state
+    saved from any device, restored on the run's."""
+    if isinstance(tree, torch.Tensor):
+        return tree.to(device)
+    if isinstance(tree, dict):
+        return type(tree)((key, to_device(value, device)) for key, value in tree.items())
+    if isinstance(tree, list):
+        return [to_device(value, device) for value in tree]
+    return tree
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be used: missing, damaged, or not this run's. One line, naming
+    the file and what to do."""
+
+
+# --------------------------------------------------------------------------------------------
+# The interval
+
+
+class Every(NamedTuple):
+    """Save every ``episodes`` episodes (summed over all experiments) or every ``seconds``."""
+
+    episodes: int | None = None
+    seconds: float | None = None
+
+    def __str__(self) -> str:
+        return str(self.episodes) if self.episodes is not None else f"{self.seconds:g}s"
+
+
+def parse_every(value: Any) -> Every:
+    """``5000`` or ``"5000"`` (episodes), ``"30s"``, ``"10m"``, ``"1h"`` (time) as an ``Every``."""
+    if isinstance(value, Every):
+        return value
+    usage = "a number of episodes (e.g. 5000) or of seconds with a unit (e.g. 30s, 10m, 1h)"
+    if isinstance(value, bool) or not isinstance(value, int | str):
+        raise TypeError(f"checkpoint_every must be {usage}, got {value!r}")
+    text = str(value).strip().lower()
+    if re.fullmatch(r"[+-]?\d+", text):
+        episodes = int(text)
+        if not 1 <= episodes <= 2**63 - 1:  # counted in int64 alongside the kernel's counters
+            raise ValueError(
+                f"checkpoint_every={value!r} is out of range: must be in [1, 2**63 - 1] episodes"
+            )
+        return Every(episodes=episodes)
+    match = re.fullmatch(r"([+-]?[0-9.e+-]+)\s*([smh])", text)
+    try:
+        seconds = float(match[1]) * _UNITS[match[2]] if match else math.nan
+    except ValueError:
+        seconds = math.nan
+    if match is None or math.isnan(seconds):
+        raise ValueError(f"checkpoint_every={value!r} is not {usage}")
+    if not 0 < seconds < math.inf:
+        raise ValueError(
+            f"checkpoint_every={value!r} is out of range: must be > 0 seconds and finite"
+        )
+    return Every(seconds=seconds)
+
+
+# --------------------------------------------------------------------------------------------
+# Files
+
+
+def directory_of(out: str | os.PathLike) -> Path:
+    """Where the checkpoints of a run writing to ``out`` live."""
+    return Path(out) / DIRECTORY
+
+
+def exists(out: str | os.PathLike) -> bool:
+    """Whether ``out`` holds a checkpoint (of a run that has not finished)."""
+    directory = directory_of(out)
+    return (directory / LATEST).is_file() or (directory / PREVIOUS).is_file()
+
+
+def check_none_in(out: str | os.PathLike) -> None:
+    """Refuse to start a new run in ``out`` over an unfinished run's checkpoint."""
+    if exists(out):
+        raise CheckpointError(
+            f"out='{out}' holds the checkpoint of an unfinished run ({directory_of(out)}): "
+            f"continue it with --resume {out}, or delete {directory_of(out)} to start afresh"
+        )
+
+
+def digest(value: Any) -> str:
+    """SHA-256 of a checkpoint's content: structure, types, shapes and every tensor's bytes."""
+    hasher = hashlib.sha256()
+    _feed(hasher, value)
+    return hasher.hexdigest()
+
+
+def _feed(hasher: Any, value: Any) -> None:
+    if isinstance(value, torch.Tensor):
+        tensor = value.detach().cpu().contiguous()
+        hasher.update(f"T{tensor.dtype}{tuple(tensor.shape)};".encode())
+        if tensor.numel():  # (an empty tensor has no bytes, and may not be viewed as bytes)
+            hasher.update(tensor.reshape(-1).view(torch.uint8).numpy())
+    elif isinstance(value, dict):
+        hasher.update(f"D{len(value)};".encode())
+        for key in sorted(value, key=repr):
+            hasher.update(f"{key!r}:".encode())
+            _feed(hasher, value[key])
+    elif isinstance(value, list | tuple):
+        hasher.update(f"L{len(value)};".encode())
+        for item in value:
+            _feed(hasher, item)
+    else:
+        hasher.update(f"{type(value).__name__}:{value!r};".encode())
+
+
+def save(out: str | os.PathLike, content: dict[str, Any], kind: str = FORMAT) -> Path:
+    """Write ``content`` as the newest checkpoint of ``out``, keeping the one before it
+    (``kind``: the file's format name, ``FORMAT`` or ``COMPARE_FORMAT``)."""
+    directory = directory_of(out)
+    directory.mkdir(parents=True, exist_ok=True)
+    latest, previous = directory / LATEST, directory / PREVIOUS
+    pid = os.getpid()
+    temporary = directory / f".{LATEST}.{pid}.tmp"
+    link = directory / f".{PREVIOUS}.{pid}.tmp"
+    record = {"format": kind, "version": FORMAT_VERSION, "sha256": digest(content)}
+    try:
+        with open(temporary, "wb") as file:
+            torch.save({**record, "content": content}, file)
+            file.flush()
+            os.fsync(file.fileno())
+        if latest.exists():
+            try:  # previous := newest, while the newest name keeps its file
+                os.link(latest, link)
+                os.replace(link, previous)
+            except OSError:  # no hard links here: a moment without a newest file
+                os.replace(latest, previous)
+        os.replace(temporary, latest)
+        _sync_directory(directory)
+    finally:
+        temporary.unlink(missing_ok=True)
+        link.unlink(missing_ok=True)
+    return latest
+
+
+def _sync_directory(directory: Path) -> None:
+    """Make the renames in ``directory`` durable (where the platform allows it)."""
+    try:
+        descriptor = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(descriptor)
+    except OSError:
+        pass
+    finally:
+        os.close(descriptor)
+
+
+def remove(out: str | os.PathLike) -> None:
+    """Delete the checkpoints of ``out`` (after its results are written)."""
+    directory = directory_of(out)
+    for name in (LATEST, PREVIOUS):
+        (directory / name).unlink(missing_ok=True)
+    remove_temporaries(directory)
+    try:
+        directory.rmdir()
+    except OSError:  # missing, or holds files that are not ours: leave them
+        pass
+
+
+def remove_temporaries(directory: Path) -> None:
+    """Delete temporaries left by a save that was killed midway."""
+    if directory.is_dir():
+        for path in directory.iterdir():
+            if _TEMPORARY.match(path.name):
+                path.unlink(missing_ok=True)
+
+
+class Checkpoint(NamedTuple):
+    """A loaded checkpoint: its file and the fields of its content (see the module doc)."""
+
+    path: Path
+    config: dict[str, Any]
+    backend: str
+    every: str | None
+    finished: dict[str, dict[str, torch.Tensor]]
+    running: dict[str, Any] | None
+    episodes_completed: int
+    experiments_finished: int
+    elapsed_s: float
+    saved_utc: str
+
+
+def read(path: str | os.PathLike) -> Checkpoint:
+    """Read and check one checkpoint file; ``CheckpointError`` saying why it is unusable."""
+    path = Path(path)
+    content = read_content(path, FORMAT)
+    unknown = sorted(map(str, set(content) - set(Checkpoint._fields[1:])))
+    if unknown:
+        raise CheckpointError(
+            f"checkpoint {path} is not usable: unknown fields {', '.join(unknown)}"
+        )
+    try:
+        loaded = Checkpoint(
+            path=path, **{field: content[field] for field in Checkpoint._fields[1:]}
+        )
+    except (KeyError, TypeError) as error:
+        raise CheckpointError(f"checkpoint {path} lacks a field: {error}") from None
+    _check_field_types(loaded)
+    return loaded
+
+
+def read_content(path: Path, kind: str) -> dict[str, Any]:
+    """The content of the checkpoint file ``path`` of format ``kind``, its digest checked."""
+    try:
+        record = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise CheckpointError(f"checkpoint {path} is missing") from None
+    except Exception as error:  # torch raises many kinds on a damaged file: all mean the same
+        raise CheckpointError(
+            f"checkpoint {path} is corrupted or truncated ({_why(error)})"
+        ) from None
+    if not isinstance(record, dict) or record.get("format") != kind:
+        command = "compare" if kind == COMPARE_FORMAT else "paper"
+        raise CheckpointError(f"checkpoint {path} is not a factorq {command} checkpoint")
+    if record.get("version") != FORMAT_VERSION:
+        raise CheckpointError(
+            f"checkpoint {path} has format version {record.get('version')!r}; this factorq "
+            f"reads version {FORMAT_VERSION}: resume it with the factorq that wrote it"
+        )
+    content = record.get("content")
+    if not isinstance(content, dict) or digest(content) != record.get("sha256"):
+        raise CheckpointError(
+            f"checkpoint {path} is corrupted or truncated (its content does not match its digest)"
+        )
+    return content
+
+
+#: The type of every field of a checkpoint's content (its digest proves integrity, not origin:
+#: anyone can edit a file and sign it again, so nothing in it is trusted before these checks and
+#: the run's own, ``resume_checks.check_checkpoint``, against its config).
+_FIELD_TYPES: dict[str, tuple[type, ...]] = {
+    "config": (dict,),
+    "backend": (str,),
+    "every": (str, type(None)),
+    "finished": (dict,),
+    "running": (dict, type(None)),
+    "episodes_completed": (int,),
+    "experiments_finished": (int,),
+    "elapsed_s": (float, int),
+    "saved_utc": (str,),
+}
+
+
+def _check_field_types(loaded: Checkpoint) -> None:
+    for field, types in _FIELD_TYPES.items():
+        value = getattr(loaded, field)
+        if isinstance(value, bool) or not isinstance(value, types):
+            expected = " or ".join(
+                "None" if kind is type(None) else kind.__name__ for kind in types
+            )
+            raise CheckpointError(
+                f"checkpoint {loaded.path} is not usable: its {field} is a "
+                f"{type(value).__name__}, not a {expected}"
+            )
+    if not all(isinstance(key, str) for key in loaded.config):
+        raise CheckpointError(
+            f"checkpoint {loaded.path} is not usable: its config has non-text keys"
+        )
+    if loaded.every is not None:
+        try:
+            parse_every(loaded.every)
+        except (ValueError, TypeError) as error:
+            raise CheckpointError(f"checkpoint {loaded.path} is not usable: {error}") from None
+    if not math.isfinite(loaded.elapsed_s) or loaded.elapsed_s < 0:
+        raise CheckpointError(
+            f"checkpoint {loaded.path} is not usable: elapsed_s={loaded.elapsed_s!r} must be a "
+            f"finite number >= 0"
+        )
+
+
+def _why(error: BaseException) -> str:
+    """The first line of a loader's error, short (torch's run to several sentences)."""
+    text = str(error).strip().splitlines()[0] if str(error).strip() else ""
+    text = text.split(". ")[0].rstrip(".")
+    if len(text) > 100:
+        text = text[:97] + "..."
+    return f"{type(error).__name__}: {text}" if text else f"{type(error).__name__}: file ends early"
+
+
+def load(out: str | os.PathLike, reader: Callable[[Path], Any] = read) -> Any:
+    """The checkpoint to resume the run of ``out`` from (its newest one).
+
+    Raises ``CheckpointError`` with one line saying what is wrong and what to do: ``out`` is not a
+    directory, holds no checkpoint (or the run finished), or its newest checkpoint is damaged
+    (then whether the previous one is intact and how to continue from it).
+    """
+    out_path = Path(out)
+    where = "give the --out directory of an interrupted run"
+    if not out_path.exists():
+        raise CheckpointError(f"resume='{out}' does not exist: {where}")
+    if not out_path.is_dir():
+        raise CheckpointError(f"resume='{out}' is a file: {where} (it holds {DIRECTORY}/{LATEST})")
+    directory = directory_of(out)
+    latest, previous = directory / LATEST, directory / PREVIOUS
+    if not latest.exists() and not previous.exists():
+        if (out_path / "results.json").exists():
+            raise CheckpointError(
+                f"resume='{out}' holds no checkpoint: its run finished (results.json is there; "
+                f"checkpoints are removed when a run finishes)"
+            )
+        raise CheckpointError(
+            f"resume='{out}' holds no checkpoint ({latest} is missing): was the run started "
+            f"with --checkpoint-every, and had it saved one yet?"
+        )
+    if not latest.exists():  # the newest was moved away (or a save was cut between renames)
+        try:
+            return reader(previous)
+        except CheckpointError as error:
+            raise CheckpointError(
+                f"{error}; no other checkpoint is left: start the run again"
+            ) from None
+    try:
+        return reader(latest)
+    except CheckpointError as error:
+        if not previous.exists():
+            raise CheckpointError(
+                f"{error}; there is no previous checkpoint ({previous}): start the run again"
+            ) from None
+        try:
+            fallback = reader(previous)
+        except CheckpointError as second:
+            raise CheckpointError(
+                f"{error}; the previous one is unusable too ({second}): start the run again"
+            ) from None
+        done = getattr(fallback, "progress", None) or f"{fallback.episodes_completed} episodes done"
+        raise CheckpointError(
+            f"{error}; the previous checkpoint {previous} is intact ({done}): move the damaged "
+            f"file away (e.g. mv {latest} {latest}.damaged) and resume again to continue from it"
+        ) from None
+
+
+# --------------------------------------------------------------------------------------------
+# Saving during a run
+
+
+class Checkpointer:
+    """A run's position (episodes, experiments, finished algorithms), when to save, and saving.
+
+    ``paper.run`` makes one per run (``every=None``: never saves) and counts progress through it;
+    a driver asks ``resume_state(algorithm)`` once, then after each chunk of work calls
+    ``due()`` and, when it says so, ``save(algorithm, state)``.
+    """
+
+    def __init__(
+        self,
+        out: str | os.PathLike,
+        config: dict[str, Any],
+        backend: str,
+        every: Every | str | int | None = None,
+        resume: Checkpoint | None = None,
+    ) -> None:
+        self.out = Path(out)
+        self.config = config
+        self.backend = backend
+        self.every = None if every is None else parse_every(every)
+        self.resumed = resume
+        self.finished: dict[str, dict[str, torch.Tensor]] = {}
+        self.episodes_completed = 0
+        self.experiments_finished = 0
+        self.saves = 0
+        self.save_seconds = 0.0
+        self._elapsed_before = 0.0
+        self._running = None
+        if resume is None:
+            check_none_in(self.out)
+        else:
+            if resume.backend != backend:
+                raise CheckpointError(
+                    f"checkpoint {resume.path} was written by the {resume.backend} backend but "
+                    f"this run uses the {backend} one: resume with --backend {resume.backend}"
+                )
+            self.finished = dict(resume.finished)
+            self._running = resume.running
+            self.episodes_completed = resume.episodes_completed
+            self.experiments_finished = resume.experiments_finished
+            self._elapsed_before = resume.elapsed_s
+            remove_temporaries(directory_of(self.out))  # of saves cut short by the interruption
+        self._started = time.perf_counter()
+        self._last_save = time.monotonic()
+        self._episodes_since_save = 0
+
+    @property
+    def elapsed_s(self) -> float:
+        """Seconds of work on this run, in this process and the ones it resumed."""
+        return self._elapsed_before + time.perf_counter() - self._started
+
+    def advance(self, episodes: int, experiments: int) -> None:
+        """Count ``episodes`` more completed and ``experiments`` more finished."""
+        self.episodes_completed += episodes
+        self.experiments_finished += experiments
+        self._episodes_since_save += episodes
+
+    def due(self) -> bool:
+        """Whether a checkpoint is due now (always False without an interval)."""
+        if self.every is None:
+            return False
+        if self.every.episodes is not None:
+            return self._episodes_since_save >= self.every.episodes
+        return time.monotonic() - self._last_save >= self.every.seconds
+
+    def resume_state(self, algorithm: str) -> dict[str, Any] | None:
+        """The saved state of ``algorithm``'s experiments if the checkpoint was taken during
+        them (once: later calls return None)."""
+        running, self._running = self._running, None
+        if running is None:
+            return None
+        if running.get("algorithm") != algorithm:
+            raise CheckpointError(
+                f"checkpoint {self.resumed.path} was taken during {running.get('algorithm')!r} "
+                f"but this run resumes at {algorithm!r}: it is not this run's checkpoint"
+            )
+        return running["state"]
+
+    def restore(self, algorithm: str, load_state: Callable[[dict[str, Any]], None]) -> bool:
+        """Call ``load_state(state)`` with ``algorithm``'s saved state, if any; whatever it
+        refuses becomes a ``CheckpointError`` naming the file. Returns whether it restored."""
+        state = self.resume_state(algorithm)
+        if state is None:
+            return False
+        try:
+            load_state(state)
+        except (KeyError, ValueError, TypeError, RuntimeError, AttributeError) as error:
+            raise CheckpointError(
+                f"checkpoint {self.resumed.path} does not fit this run: {error}"
+            ) from None
+        return True
+
+    def finish(self, algorithm: str, metrics: dict[str, torch.Tensor]) -> None:
+        """Record ``algorithm``'s final metrics (kept in later checkpoints)."""
+        self.finished[algorithm] = {name: value.cpu() for name, value in metrics.items()}
+
+    def save(self, algorithm: str | None, state: dict[str, Any] | None) -> Path:
+        """Write a checkpoint now: the finished algorithms, and ``algorithm``'s ``state``."""
+        started = time.perf_counter()
+        content = {
+            "config": self.config,
+            "backend": self.backend,
+            "every": None if self.every is None else str(self.every),
+            "finished": self.finished,
+            "running": None if algorithm is None else {"algorithm": algorithm, "state": state},
+            "episodes_completed": self.episodes_completed,
+            "experiments_finished": self.experiments_finished,
+            "elapsed_s": self.elapsed_s,
+            "saved_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        }
+        path = save(self.out, content)
+        self.saves += 1
+        self.save_seconds += time.perf_counter() - started
+        self._last_save = time.monotonic()
+        self._episodes_since_save = 0
+        return path
+
+
+# --------------------------------------------------------------------------------------------
+# The config of a resumed run (paper and compare)
+
+#: Config fields a resumed run may change: they do not change the numbers.
+RESUMABLE_CHANGES = ("out", "threads")
+
+
+def resumed_config(
+    saved: dict[str, Any],
+    given: dict[str, Any],
+    directory: str | os.PathLike,
+    from_dict: Callable[[dict[str, Any]], Any],
+    to_dict: Callable[[Any], dict[str, Any]],
+) -> Any:
+    """The config to resume the run of ``directory`` with: the checkpoint's ``saved`` config
+    dict, with the ``given`` options (field -> value) that may change (``RESUMABLE_CHANGES``);
+    ``from_dict`` / ``to_dict`` convert the command's config.
+
+    Any other given option must equal the saved value (a ValueError names each that differs);
+    ``out`` must be ``directory`` (the saved spelling is kept when it names the same directory,
+    so the results repeat it). A saved config this program cannot use is a CheckpointError.
+    """
+    out = saved.get("out", "")
+    if not out or Path(out).resolve() != Path(directory).resolve():
+        out = str(directory)
+    if "out" in given and Path(given["out"]).resolve() != Path(directory).resolve():
+        raise ValueError(
+            f"out='{given['out']}' differs from the resumed directory '{directory}': a resumed "
+            f"run writes where its checkpoint is (leave --out out)"
+        )
+    try:
+        checkpointed = from_dict({**saved, "out": out})
+    except (ValueError, TypeError) as error:
+        raise CheckpointError(
+            f"resume='{directory}': the checkpoint's config is unusable here ({error})"
+        ) from None
+    merged = from_dict({**to_dict(checkpointed), **given, "out": out})
+    check_same_config(saved, to_dict(merged), f"resume='{directory}'")
+    return merged
+
+
+def check_same_config(saved: dict[str, Any], config: dict[str, Any], what: str) -> None:
+    """Refuse (ValueError naming each option) a ``config`` dict that differs from the ``saved``
+    one in a field outside ``RESUMABLE_CHANGES``."""
+    differing = [
+        f"{name}={_show(value)} given, {_show(saved.get(name))} in the checkpoint"
+        for name, value in config.items()
+        if name not in RESUMABLE_CHANGES and saved.get(name) != value
+    ]
+    if differing:
+        raise ValueError(
+            f"{what} has a checkpoint of a different config: {'; '.join(differing)} (leave "
+            f"these options out to resume it, or start a new run with another --out)"
+        )
+
+
+def _show(value: Any) -> str:
+    return ",".join(map(str, value)) if isinstance(value, list | tuple) else repr(value)

@@ -1,0 +1,424 @@
+"""The frame every command declared by units runs in (``factorq_trainers.runner.registry``).
+
+A command module declares what differs (``CONFIG``, ``units``, ``run_unit``, ``summarise``,
+optionally ``markdown``, ``figure``, ``estimate``, ``prepare``, ``work``, ``FILES``; the protocol
+is written out in docs/architecture.md, "Adding a command"); ``execute`` does the rest, once for
+every command:
+
+    options -> config -> prepare -> memory estimate -> claim --out -> resume -> the pending units
+    (in-process, or on Dask with --cluster/--scheduler) under one progress bar, each result kept
+    in OUT/units/ as it finishes -> summarise -> the results envelope -> json, Markdown and figure
+    written all at once -> OUT/units/ removed -> the Markdown and the paths printed
+
+**Resume** is per unit: ``OUT/units/run.json`` holds the command and its config, and one file per
+finished unit its result (JSON, written atomically), so ``--resume OUT`` after a kill reruns only
+the units without a file, with the saved config. A unit's result goes through JSON whether it was
+computed now or read back, so a resumed run writes the same files as an uninterrupted one.
+
+**The envelope** of every results file: ``schema_version``, ``command``, ``config``,
+``software``, ``timing`` (``wall_s``, ``where``, ``units``, ``units_resumed``) and the command's
+own entries (``summarise``'s dict) beside them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import hashlib
+import importlib
+import json
+import re
+import shutil
+import sys
+import time
+import typing
+from collections.abc import Callable
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+from factorq_trainers.runner import options, outdir, resources, results
+
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, what shells report for Ctrl-C
+UNITS_DIRECTORY = "units"
+RUN_FILE = "run.json"
+UNITS_FORMAT = "factorq-units"
+FORCE_HELP = (
+    "Replace the results of an earlier run in --out (they are kept until the new ones are "
+    "written, all at once). Without it, an --out holding results is refused before any work."
+)
+RESUME_HELP = (
+    "Continue the interrupted run whose --out is DIR: the units it finished (kept in DIR/units/) "
+    "are not rerun, with the config saved there (options repeated must match; --threads may "
+    "change) and the same numbers as an uninterrupted run."
+)
+#: The envelope's own entries: ``summarise`` may not return them.
+ENVELOPE = ("schema_version", "command", "config", "software")
+
+
+class Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line: ``factorq paper: error: ...`` (exit 2)."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        error(self, message)
+        raise SystemExit(EXIT_USAGE)
+
+
+def error(parser: argparse.ArgumentParser, message: str) -> None:
+    """Print ``PROG: error: MESSAGE (see PROG --help)`` on stderr."""
+    print(f"{parser.prog}: error: {message} (see {parser.prog} --help)", file=sys.stderr)
+
+
+def failure(parser: argparse.ArgumentParser, message: Any) -> None:
+    """Print ``PROG: error: MESSAGE`` (a failure that is not the user's input)."""
+    print(f"{parser.prog}: error: {message}", file=sys.stderr)
+
+
+def as_option(message: str, config: type, extra: tuple[str, ...] = ()) -> str:
+    """``seeds=0 is out of range`` -> ``--seeds=0 is out of range`` (the names the user typed):
+    a leading ``name:`` and every ``name=`` of a field of ``config`` or of ``extra``."""
+    names = {field.name for field in dataclasses.fields(config)} | set(extra)
+
+    def spelled(match: re.Match) -> str:
+        return options.option_name(match[1]) if match[1] in names else match[1]
+
+    message = re.sub(r"^(\w+)(?=:)", spelled, message, count=1)
+    return re.sub(r"(?<![\w.'-])(\w+)(?==)", spelled, message)
+
+
+# --------------------------------------------------------------------------------------------
+# The declaration's optional parts, with their defaults
+
+
+def files(module: ModuleType) -> dict[str, str]:
+    """``{"json", "report", "figure"}`` -> file names: ``FILES``, else ``NAME.json/.md/.png``."""
+    name = module.NAME
+    return {
+        "json": f"{name}.json",
+        "report": f"{name}.md",
+        "figure": f"{name}.png",
+        **getattr(module, "FILES", {}),
+    }
+
+
+def work(module: ModuleType, config: Any, unit: dict[str, Any]) -> int:
+    """The unit's share of the progress bar (``work``, else 1)."""
+    return int(module.work(config, unit)) if hasattr(module, "work") else 1
+
+
+def plain(value: Any) -> Any:
+    """A config (or anything made of dataclasses, tuples, dicts) as JSON values."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        value = dataclasses.asdict(value)
+    return json.loads(json.dumps(value))
+
+
+def config_from_dict(config_type: type, data: dict[str, Any]) -> Any:
+    """``config_type(**data)`` with JSON lists back as the tuples the dataclass holds."""
+    return config_type(
+        **{key: tuple(value) if isinstance(value, list) else value for key, value in data.items()}
+    )
+
+
+def checked_units(module: ModuleType, config: Any) -> list[dict[str, Any]]:
+    """``module.units(config)``, each with a unique string ``id`` (a RuntimeError otherwise: the
+    declaration's bug, not the user's)."""
+    units = module.units(config)
+    ids = [unit.get("id") if isinstance(unit, dict) else None for unit in units]
+    if any(not isinstance(unit_id, str) or not unit_id for unit_id in ids):
+        raise RuntimeError(f"{module.NAME}.units: every unit needs a non-empty string 'id'")
+    if len(set(ids)) != len(ids):
+        raise RuntimeError(f"{module.NAME}.units: unit ids repeat")
+    return units
+
+
+def through_json(value: Any) -> Any:
+    """``value`` as a results file would give it back (non-finite numbers as None)."""
+    return json.loads(results.dumps(value))
+
+
+def envelope(
+    module: ModuleType,
+    config: Any,
+    summary: dict[str, Any],
+    *,
+    wall_s: float,
+    where: str = "in-process",
+    units: int = 0,
+    resumed: int = 0,
+) -> dict[str, Any]:
+    """The results file's dict: the envelope around ``summary`` (``summarise``'s)."""
+    clash = [key for key in ENVELOPE if key in summary]
+    if clash:
+        raise RuntimeError(f"{module.NAME}.summarise returned the envelope's {clash}")
+    timing = {"wall_s": wall_s, "where": where, "units": units, "units_resumed": resumed}
+    rest = {key: value for key, value in summary.items() if key != "timing"}
+    return {
+        "schema_version": results.SCHEMA_VERSION,
+        "command": module.NAME,
+        "config": plain(config),
+        "software": results.software_versions(),
+        "timing": {**timing, **summary.get("timing", {})},
+        **rest,
+    }
+
+
+def run_in_process(
+    module: ModuleType, config: Any, progress: Callable[[int], None] | None = None
+) -> dict[str, Any]:
+    """Every unit here, in order, summarised into the envelope; no files (the protocol's
+    ``run(config)``, for tests and notebooks)."""
+    started = time.perf_counter()
+    if hasattr(module, "prepare"):
+        module.prepare(config)
+    if hasattr(module, "estimate"):  # before any allocation
+        resources.check(module.estimate(config), "experiment", getattr(module, "HINT", ""))
+    units = checked_units(module, config)
+    outcomes = [through_json(module.run_unit(config, unit, progress)) for unit in units]
+    summary = module.summarise(config, outcomes)
+    return envelope(module, config, summary, wall_s=time.perf_counter() - started, units=len(units))
+
+
+def run_unit_task(module_name: str, config: Any, unit: dict[str, Any]) -> Any:
+    """One unit on a worker (picklable: the module travels by name)."""
+    return through_json(importlib.import_module(module_name).run_unit(config, unit, None))
+
+
+# --------------------------------------------------------------------------------------------
+# The units kept in OUT/units/
+
+
+def _unit_path(directory: Path, unit_id: str) -> Path:
+    return directory / f"{hashlib.sha256(unit_id.encode()).hexdigest()[:20]}.json"
+
+
+class UnitStore:
+    """The finished units of one run, in ``OUT/units/``: ``run.json`` (command, config, unit
+    ids) and one ``<digest of the id>.json`` per finished unit."""
+
+    def __init__(self, out: str | Path) -> None:
+        self.directory = Path(out) / UNITS_DIRECTORY
+
+    def exists(self) -> bool:
+        return self.directory.exists()
+
+    def start(self, module: ModuleType, config: Any, units: list[dict[str, Any]]) -> None:
+        """A fresh run: an empty store recording the command and config."""
+        shutil.rmtree(self.directory, ignore_errors=True)
+        self.directory.mkdir(parents=True)
+        record = {
+            "format": UNITS_FORMAT,
+            "command": module.NAME,
+            "config": plain(config),
+            "units": [unit["id"] for unit in units],
+        }
+        results.write_atomic(
+            self.directory / RUN_FILE, lambda path: path.write_text(results.dumps(record))
+        )
+
+    def saved_run(self, module: ModuleType) -> dict[str, Any]:
+        """``run.json`` of an interrupted run of ``module`` (a ValueError naming why not)."""
+        hint = f"nothing to resume: run `factorq {module.NAME}` without --resume"
+        record = results.read_json(self.directory / RUN_FILE, ("format", "command", "config"), hint)
+        if record["format"] != UNITS_FORMAT or record["command"] != module.NAME:
+            raise ValueError(
+                f"{self.directory / RUN_FILE} is not an interrupted `factorq {module.NAME}` run "
+                f"(command {record['command']!r})"
+            )
+        if not isinstance(record["config"], dict):
+            raise ValueError(f"{self.directory / RUN_FILE}: its config is not a mapping")
+        return record
+
+    def finished(self, units: list[dict[str, Any]]) -> dict[str, Any]:
+        """Unit id -> its result, for every unit with a readable file."""
+        found = {}
+        for unit in units:
+            path = _unit_path(self.directory, unit["id"])
+            if not path.is_file():
+                continue
+            try:
+                kept = results.read_json(path, ("id", "result"), "")
+            except ValueError as problem:
+                raise ValueError(f"{problem}: delete it to rerun unit {unit['id']!r}") from None
+            if kept["id"] != unit["id"]:
+                raise ValueError(f"{path} holds unit {kept['id']!r}, not {unit['id']!r}")
+            found[unit["id"]] = kept["result"]
+        return found
+
+    def keep(self, unit: dict[str, Any], result: Any) -> None:
+        text = results.dumps({"id": unit["id"], "result": result})
+        results.write_atomic(
+            _unit_path(self.directory, unit["id"]), lambda path: path.write_text(text)
+        )
+
+    def remove(self) -> None:
+        shutil.rmtree(self.directory, ignore_errors=True)
+
+
+# --------------------------------------------------------------------------------------------
+# The command line
+
+
+def add_frame_options(parser: argparse.ArgumentParser) -> None:
+    """``--force``, ``--resume DIR`` and the cluster options (``--cluster``, ``--scheduler``,
+    ``--connect-timeout``)."""
+    from factorq_trainers.distributed import cluster
+
+    parser.add_argument("--force", action="store_true", default=argparse.SUPPRESS, help=FORCE_HELP)
+    parser.add_argument("--resume", metavar="DIR", default=argparse.SUPPRESS, help=RESUME_HELP)
+    cluster.add_options(parser)
+
+
+def _config(module: ModuleType, args: argparse.Namespace, store: UnitStore | None) -> Any:
+    given = options.given_options(args, module.CONFIG)
+    if store is None:
+        return module.CONFIG(**given)
+    from factorq_trainers.runner import checkpoint
+
+    saved = store.saved_run(module)["config"]
+    return checkpoint.resumed_config(
+        saved,
+        given,
+        args.resume,
+        functools.partial(config_from_dict, module.CONFIG),
+        plain,
+    )
+
+
+def write_outputs(module: ModuleType, results_dict: dict[str, Any], out: Path) -> dict[str, Path]:
+    """The results file, the Markdown and the figure (those the command declares), at once."""
+    names = files(module)
+    report = report_module(module)
+    writers: dict[str, tuple[Path, Callable[[Path], Any]]] = {
+        "json": (out / names["json"], lambda p: p.write_text(results.dumps(results_dict)))
+    }
+    if hasattr(report, "markdown"):
+        writers["report"] = (
+            out / names["report"],
+            lambda p: p.write_text(report.markdown(results_dict)),
+        )
+    if hasattr(report, "figure"):
+        writers["figure"] = (out / names["figure"], lambda p: report.figure(results_dict, p))
+    results.write_all_atomic(dict(writers.values()))
+    return {name: path for name, (path, _) in writers.items()}
+
+
+def report_module(module: ModuleType) -> ModuleType:
+    """Where ``module``'s ``markdown`` and ``figure`` live: its ``REPORT`` module, else itself."""
+    name = getattr(module, "REPORT", None)
+    return importlib.import_module(name) if name else module
+
+
+def execute(module: ModuleType, parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """Run the command ``module`` declares with the parsed ``args``; the exit status."""
+    store = UnitStore(args.resume) if hasattr(args, "resume") else None
+    try:
+        config = _config(module, args, store)
+        if hasattr(module, "prepare"):
+            module.prepare(config)
+        if hasattr(module, "estimate"):
+            large = resources.check(
+                module.estimate(config), "experiment", getattr(module, "HINT", "")
+            )
+            if large:
+                print(large, file=sys.stderr)
+        units = checked_units(module, config)
+        from factorq_trainers.distributed import cluster
+
+        executor = cluster.executor_from_args(args)
+    except (ValueError, TypeError, ModuleNotFoundError) as problem:
+        error(parser, as_option(str(problem), module.CONFIG, ("resume",)))
+        return EXIT_USAGE
+    notice = getattr(module, "NOTICE", None)
+    if notice:
+        print(notice, file=sys.stderr, flush=True)
+    try:
+        with outdir.claim(
+            config.out,
+            outputs=tuple(files(module).values()),
+            force=hasattr(args, "force"),
+            resume=store is not None,
+        ):
+            return _run(module, config, units, store, executor, force=hasattr(args, "force"))
+    except (outdir.OutputDirError, ValueError) as problem:
+        error(parser, as_option(str(problem), module.CONFIG, ("resume",)))
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        kept = UnitStore(config.out).exists()
+        resume = f" (resume it with --resume {config.out})" if kept else ""
+        print(f"{parser.prog}: interrupted{resume}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except OSError as problem:  # a full disk, a directory that vanished: one line
+        failure(parser, problem)
+        return EXIT_FAILURE
+    finally:
+        if executor is not None:
+            executor.close()
+
+
+def _run(module, config, units, store, executor, *, force: bool) -> int:
+    from tqdm.auto import tqdm
+
+    started = time.perf_counter()
+    if store is None:
+        store = UnitStore(config.out)
+        if store.exists() and not force:
+            raise outdir.OutputDirError(
+                f"out='{config.out}' holds the units of an interrupted run ({UNITS_DIRECTORY}/): "
+                f"continue it with --resume {config.out}, or pass --force to start over"
+            )
+        store.start(module, config, units)
+        done: dict[str, Any] = {}
+    else:
+        done = store.finished(units)
+        print(f"resuming {config.out}: {len(done)} of {len(units)} units done", file=sys.stderr)
+    pending = [unit for unit in units if unit["id"] not in done]
+    bar = tqdm(
+        total=sum(work(module, config, unit) for unit in pending),
+        desc=f"factorq {module.NAME}",
+        unit="unit" if not hasattr(module, "work") else getattr(module, "WORK_UNIT", "step"),
+        file=sys.stderr,
+        dynamic_ncols=True,
+        mininterval=0.5 if sys.stderr.isatty() else 30.0,
+    )
+    where = "in-process"
+    try:
+        if executor is None:
+            for unit in pending:
+                before = bar.n
+                result = through_json(module.run_unit(config, unit, bar.update))
+                # the unit's whole share, whatever it reported
+                bar.update(max(0, before + work(module, config, unit) - bar.n))
+                store.keep(unit, result)
+                done[unit["id"]] = result
+        else:
+            where = executor.description
+            task = functools.partial(run_unit_task, module.__name__, config)
+            names = [f"{module.NAME}-{unit['id']}" for unit in pending]
+            for index, result in executor.map(task, pending, names):
+                store.keep(pending[index], result)
+                done[pending[index]["id"]] = result
+                bar.update(work(module, config, pending[index]))
+    finally:
+        bar.close()
+    summary = module.summarise(config, [done[unit["id"]] for unit in units])
+    results_dict = envelope(
+        module,
+        config,
+        summary,
+        wall_s=time.perf_counter() - started,
+        where=where,
+        units=len(units),
+        resumed=len(units) - len(pending),
+    )
+    paths = write_outputs(module, results_dict, Path(config.out))
+    store.remove()  # the results are complete: nothing left to resume
+    report = report_module(module)
+    if hasattr(report, "markdown"):
+        print(report.markdown(results_dict))
+    for path in paths.values():
+        print(path)
+    return 0

@@ -1,0 +1,84 @@
+"""The commands of ``factorq``: every module of ``factorq_trainers.experiments`` that assigns
+``NAME = "..."`` is one, so adding a command is adding one file.
+
+The registry reads ``NAME`` and ``HELP`` from each module's source with ``ast`` (no import): the
+``factorq`` parser lists every command without importing torch, and imports only the module of
+the command being run (``load``). ``HELP`` defaults to the first line of the module's docstring.
+"""
+
+from __future__ import annotations
+
+import ast
+import functools
+import importlib
+from pathlib import Path
+from types import ModuleType
+from typing import Any, NamedTuple
+
+PACKAGE = "factorq_trainers.experiments"
+#: The commands that are not experiments: ``report`` redraws files, ``sweep`` runs grids of
+#: another command's configurations.
+BUILT_IN = ("report", "sweep")
+
+
+class Entry(NamedTuple):
+    """A registered command: its name, its module's dotted name, its one-line help, its files
+    (``FILES``, else ``NAME.json/.md/.png``) and the module of its report (``REPORT``, else the
+    command's own)."""
+
+    name: str
+    module: str
+    help: str
+    files: dict[str, str]
+    report: str
+
+
+def _constant(tree: ast.Module, name: str, kind: type = str) -> Any:
+    """The literal (a ``kind``: a string, a dict of strings) assigned to ``name`` at the top level
+    of ``tree`` (None if none)."""
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and any(
+            isinstance(t, ast.Name) and t.id == name for t in node.targets
+        ):
+            try:
+                value = ast.literal_eval(node.value)
+            except ValueError:
+                return None
+            return value if isinstance(value, kind) else None
+    return None
+
+
+@functools.cache
+def commands() -> dict[str, Entry]:
+    """Every registered command by name, in file-name order."""
+    folder = Path(__file__).resolve().parent.parent / "experiments"
+    found: dict[str, Entry] = {}
+    for path in sorted(folder.glob("*.py")):
+        tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+        name = _constant(tree, "NAME")
+        if name is None:
+            continue  # a piece experiments share (experiment, dqn), not a command
+        if name in found or name in BUILT_IN:
+            raise RuntimeError(f"{path.name}: command {name!r} is declared twice")
+        docstring = (ast.get_docstring(tree) or name).strip().splitlines()[0]
+        help_text = _constant(tree, "HELP") or docstring
+        module = f"{PACKAGE}.{path.stem}"
+        files = {
+            "json": f"{name}.json",
+            "report": f"{name}.md",
+            "figure": f"{name}.png",
+            **(_constant(tree, "FILES", dict) or {}),
+        }
+        found[name] = Entry(name, module, help_text, files, _constant(tree, "REPORT") or module)
+    return found
+
+
+def load(name: str) -> ModuleType:
+    """The module of command ``name`` (imported now)."""
+    try:
+        entry = commands()[name]
+    except KeyError:
+        raise ValueError(
+            f"{name!r} is not a factorq command: choose one of {', '.join(commands())}"
+        ) from None
+    return importlib.import_module(entry.module)

@@ -1,0 +1,214 @@
+"""Result files: JSON written for people and programs, all or nothing, with a schema version.
+
+Every trainer's output goes through here: ``dumps`` (indented JSON, number lists on one line,
+non-finite numbers as ``null``), ``write_all_atomic`` (a reader never sees a partial file),
+``read_json`` (a clear error for a missing, malformed or too new file) and
+``software_versions`` (what computed the numbers).
+
+**Versions.** A results file without a ``"schema_version"`` entry is version 1: the layout of
+``results.json`` and ``comparison.json`` as documented in the README. A change that breaks
+readers raises ``SCHEMA_VERSION``, makes the writer add ``"schema_version"`` and teaches
+``read_json``'s callers the old layouts they still accept; a reader refuses a file newer than
+it understands instead of misreading it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import re
+from collections.abc import Callable, Iterable
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from factorq_trainers.analysis.stats import finite_or_none
+
+#: The newest layout this code reads and writes (files without the entry are version 1).
+SCHEMA_VERSION = 1
+#: The packages whose versions a results file records.
+PACKAGES = ("factorq-torch", "torch", "torchrl", "tensordict", "gymnasium", "numpy", "matplotlib")
+
+
+def dumps(results: dict[str, Any]) -> str:
+    """``results`` as JSON: indented, lists of numbers on one line, non-finite numbers as null."""
+    return _dumps(results, 0) + "\n"
+
+
+def _dumps(value: Any, level: int) -> str:
+    if isinstance(value, float | np.floating):
+        return json.dumps(finite_or_none(value))
+    if isinstance(value, dict):
+        if not value:
+            return "{}"
+        inner = "  " * (level + 1)
+        items = [f"{inner}{json.dumps(str(k))}: {_dumps(v, level + 1)}" for k, v in value.items()]
+        return "{\n" + ",\n".join(items) + "\n" + "  " * level + "}"
+    if isinstance(value, list | tuple):
+        if all(not isinstance(item, dict | list | tuple) for item in value):
+            return "[" + ", ".join(_dumps(item, level) for item in value) + "]"
+        inner = "  " * (level + 1)
+        items = [f"{inner}{_dumps(item, level + 1)}" for item in value]
+        return "[\n" + ",\n".join(items) + "\n" + "  " * level + "]"
+    if isinstance(value, np.integer | np.bool_):
+        return json.dumps(value.item())
+    return json.dumps(value)
+
+
+def write_atomic(path: str | os.PathLike, write: Callable[[Path], None]) -> None:
+    """Call ``write(temporary)`` next to ``path``, then rename it to ``path`` (all or nothing).
+
+    A reader never sees a partial file; an interrupted write leaves the old file (if any) intact.
+    """
+    write_all_atomic({Path(path): write})
+
+
+def temporary_path(path: Path) -> Path:
+    """Where ``write_all_atomic`` writes ``path`` before renaming it: ``.NAME.PID.tmp`` beside it
+    (``factorq_trainers.runner.outdir`` removes those of killed writers)."""
+    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+
+
+def write_all_atomic(
+    writers: dict[Path, Callable[[Path], None]], before_rename: Callable[[], None] | None = None
+) -> None:
+    """Write every file to a temporary next to it, then rename them all into place, in order.
+
+    The slow part (drawing, serialising) happens before any rename, so an interruption leaves
+    either all the old files or, but for a few renames' time, all the new ones.
+    ``before_rename`` runs once every temporary is complete, just before the renames (e.g. to
+    swap in a directory written beside them).
+    """
+    temporaries = {path: temporary_path(path) for path in writers}
+    try:
+        for path, write in writers.items():
+            write(temporaries[path])
+        if before_rename is not None:
+            before_rename()
+        for path, temporary in temporaries.items():
+            os.replace(temporary, path)
+    finally:
+        for temporary in temporaries.values():
+            temporary.unlink(missing_ok=True)
+
+
+#: A results file of the default run is about 200 kB; far larger files are not ours.
+MAX_FILE_BYTES = 256 * 1024 * 1024
+#: JSON nesting deeper than this is refused before parsing (a results file nests 6 levels).
+MAX_DEPTH = 32
+_BRACKETS = re.compile(r'"(?:[^"\\]|\\.)*"|[\[\]{}]')
+
+
+def nesting_depth(text: str) -> int:
+    """The deepest ``[``/``{`` nesting of JSON ``text`` (brackets inside strings do not count)."""
+    depth = deepest = 0
+    for token in _BRACKETS.findall(text):
+        if token in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif token in "]}":
+            depth -= 1
+    return deepest
+
+
+def read_json(path: Path, required: Iterable[str], missing_hint: str) -> dict[str, Any]:
+    """The results stored in ``path``; a clear error when it is missing, too large or deep, not
+    JSON, lacks one of the ``required`` entries or was written by a newer version
+    (``missing_hint``: how to make the file, for the error when it does not exist)."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} does not exist: {missing_hint}")
+    size = path.stat().st_size
+    if size > MAX_FILE_BYTES:
+        raise ValueError(f"{path} is {size} bytes, more than a results file's {MAX_FILE_BYTES}")
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        raise ValueError(f"{path} is not UTF-8 text") from None
+    if nesting_depth(text) > MAX_DEPTH:
+        raise ValueError(f"{path} nests deeper than {MAX_DEPTH} levels: not a results file")
+    try:
+        results = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path} is not valid JSON ({error})") from None
+    if not isinstance(results, dict):
+        raise ValueError(f"{path} is not a results file: it holds no JSON object")
+    missing = [key for key in required if key not in results]
+    if missing:
+        raise ValueError(f"{path} is not a results file: {', '.join(missing)} missing")
+    version = results.get("schema_version", 1)
+    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+        raise ValueError(f"{path} has schema_version={version!r}: must be a positive integer")
+    if version > SCHEMA_VERSION:
+        raise ValueError(
+            f"{path} has schema_version={version!r}, newer than this factorq reads "
+            f"({SCHEMA_VERSION}): update factorq-torch"
+        )
+    return results
+
+
+def interval_or_none(interval: Iterable[Any]) -> list[float] | None:
+    """``[low, high]`` as floats, or None when either end is missing."""
+    values = list(interval)
+    return None if any(value is None for value in values) else [float(v) for v in values]
+
+
+def software_versions() -> dict[str, str]:
+    """Versions of python, the libraries that computed the results, and the platform."""
+    versions = {"python": platform.python_version()}
+    for package in PACKAGES:
+        try:
+            versions[package] = metadata.version(package)
+        except metadata.PackageNotFoundError:
+            versions[package] = "not installed"
+    versions["platform"] = platform.platform()
+    return versions
+
+
+#: The paper's body as a results file's config spells it (issue 11); a file written before the
+#: body options existed lacks them and ran this body.
+PAPER_BODY = {
+    "body": "translate",
+    "sensors": "cross",
+    "distractors": 0,
+    "sensor_permutation": None,
+    "sensor_noise": 0.0,
+    "actuator_noise": 0.0,
+}
+
+
+def _shown(value: Any) -> str:
+    text = str(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def body_label(results: dict[str, Any]) -> str | None:
+    """What a results file ran when it is not the paper's body and grid, for titles: e.g.
+    ``"heading body, ring sensors, 4 distractors, permuted sensors (seed 3), sensor noise
+    0.05"``, or ``"Corridor world (length 12, density 0.4, ...)"`` for another world
+    (``results["world"]``); None for the paper's default. Values are shown as they are (a
+    results file is untrusted: callers escape for Markdown)."""
+    world = results.get("world")
+    if isinstance(world, dict):
+        options = world.get("config") if isinstance(world.get("config"), dict) else {}
+        described = ", ".join(f"{_shown(k)} {_shown(v)}" for k, v in list(options.items())[:6])
+        name = _shown(world.get("name", "another"))
+        return f"{name} world ({described})" if described else f"{name} world"
+    config = results.get("config") if isinstance(results.get("config"), dict) else {}
+    body = {name: config.get(name, default) for name, default in PAPER_BODY.items()}
+    parts = []
+    if body["body"] != PAPER_BODY["body"]:
+        parts.append(f"{_shown(body['body'])} body")
+    if body["sensors"] != PAPER_BODY["sensors"]:
+        parts.append(f"{_shown(body['sensors'])} sensors")
+    if body["distractors"]:
+        parts.append(f"{_shown(body['distractors'])} distractors")
+    if body["sensor_permutation"] is not None:
+        parts.append(f"permuted sensors (seed {_shown(body['sensor_permutation'])})")
+    if body["sensor_noise"]:
+        parts.append(f"sensor noise {_shown(body['sensor_noise'])}")
+    if body["actuator_noise"]:
+        parts.append(f"actuator noise {_shown(body['actuator_noise'])}")
+    return ", ".join(parts) or None
