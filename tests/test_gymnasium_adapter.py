@@ -249,3 +249,31 @@ def test_other_bad_input_names_the_problem():
                 num_cells=16,
             )
         )
+
+
+def test_the_experiment_command_at_a_tiny_budget(tmp_path):
+    """``trainers/gym_experiment.py`` follows the command protocol: units per (method, seed),
+    deterministic ``run_unit``, a summary, the report and the figure (MiniGrid 8x8: fast)."""
+    pytest.importorskip("minigrid")
+    from factorq_trainers import gym_experiment as experiment
+
+    config = experiment.GymConfig(
+        world="minigrid-8x8", seeds=1, steps=40, eval_episodes=1, curve_points=4
+    )
+    units = experiment.units(config)
+    assert [u["id"] for u in units] == [f"{m}-seed0" for m in experiment.DEFAULT_METHODS]
+    results = [experiment.run_unit(config, unit) for unit in units]
+    again = experiment.run_unit(config, units[1])  # factor-q-oracle, seed 0
+    assert again["curve_crashes"] == results[1]["curve_crashes"]
+    assert again["greedy_return"] == results[1]["greedy_return"]
+    for result in results:
+        assert result["curve_steps"] == [10, 20, 30, 40]
+        assert result["crashes_per_1000"] == 1000 * result["crashes"] / 40
+    summary = experiment.summarise(config, results)
+    summary["config"] = {"seeds": 1, "steps": 40, "eval_episodes": 1, "window": 5}
+    report = experiment.markdown(summary)
+    assert "| neural Factor-Q, oracle dependency |" in report
+    experiment.figure(summary, tmp_path / "gym.png")
+    assert (tmp_path / "gym.png").stat().st_size > 0
+    with pytest.raises(ValueError, match="world='atari'"):
+        experiment.GymConfig(world="atari")
