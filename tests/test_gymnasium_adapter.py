@@ -150,7 +150,7 @@ def _cartpole_declaration() -> Declaration:
     )
 
 
-@pytest.mark.parametrize("backend", ["sync", "parallel"])
+@pytest.mark.parametrize("backend", ["sync", "async", "parallel"])
 def test_torchrl_env_has_the_project_keys_and_passes_check_env_specs(backend):
     """S adapters as one torchrl env: categorical cell, bool sensors, the split reward and the
     tables work on it; partial resets restart only the marked envs."""

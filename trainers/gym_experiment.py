@@ -414,6 +414,13 @@ def _run_factor_q(config: GymConfig, unit: dict, progress) -> dict[str, Any]:
     result = recorder.result()
     result.update(_evaluate(config, unit, policy), wall_s=wall)
     result["steps_per_s"] = config.steps / wall
+    declaration = base.declaration
+    if oracle is not None:  # the declared names and oracle, for a summary without torch
+        result["oracle"] = oracle.to(int).tolist()
+        result["actuator_names"] = list(base.config.actuator_names)
+        result["sensor_names"] = list(declaration.sensor_names) or [
+            f"s{k}" for k in range(base.num_sensors)
+        ]
     if isinstance(local, StructureLearner):
         learned = local.structure()[0]  # [A, K]
         result["structure"] = learned.to(int).tolist()
@@ -538,8 +545,6 @@ def _stat(values: list) -> dict[str, Any]:
 def summarise(config: GymConfig, unit_results: list[dict]) -> dict[str, Any]:
     """Per method: each measure's mean and 95% t interval over seeds, the curves of every seed,
     and (learned dependencies) how many seeds' learner agrees with the oracle per actuator."""
-    from factorq_envs.highway import ACTUATOR_NAMES, ORACLE, SENSOR_NAMES
-
     by_method: dict[str, list[dict]] = {}
     for unit, result in zip(units(config), unit_results, strict=True):
         by_method.setdefault(unit["method"], []).append(result)
@@ -560,10 +565,11 @@ def summarise(config: GymConfig, unit_results: list[dict]) -> dict[str, Any]:
             ]
         methods[method] = entry
     out = {"methods": methods, "world": config.spec.label, "threshold": config.return_threshold}
-    if config.world == "highway":
-        out["sensors"] = list(SENSOR_NAMES)
-        out["actuators"] = list(ACTUATOR_NAMES)
-        out["oracle"] = [[int(b) for b in row] for row in ORACLE]
+    declared = next((r for r in unit_results if "oracle" in r), None)
+    if declared is not None:
+        out["sensors"] = declared["sensor_names"]
+        out["actuators"] = declared["actuator_names"]
+        out["oracle"] = declared["oracle"]
     return out
 
 
