@@ -46,6 +46,17 @@ class DeclaredEnv(TransformedEnv):
         self.dependency = local.dependency
         self.envs = envs
 
+    def _step(self, tensordict):
+        partial = tensordict.get("_step", None)
+        if partial is not None and not bool(partial.all()):
+            # a Gymnasium vector env steps all its envs: a partial step would silently step the
+            # envs the caller meant to freeze
+            raise NotImplementedError(
+                "DeclaredEnv steps every env at once: a '_step' mask (the online collector's "
+                "finished experiments) is not supported; stop at a step budget instead"
+            )
+        return super()._step(tensordict)
+
     @property
     def num_cells(self) -> int:
         return self.config.num_cells

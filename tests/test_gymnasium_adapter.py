@@ -277,3 +277,15 @@ def test_the_experiment_command_at_a_tiny_budget(tmp_path):
     assert (tmp_path / "gym.png").stat().st_size > 0
     with pytest.raises(ValueError, match="world='atari'"):
         experiment.GymConfig(world="atari")
+
+
+def test_a_partial_step_is_refused():
+    """A vector env steps all its envs: a '_step' mask is refused, not silently ignored."""
+    from factorq_envs.declared_env import declared_torchrl_env
+
+    env = declared_torchrl_env(make_lake, [0, 1])
+    td = env.reset()
+    td["action"] = torch.tensor([2, 2])
+    td["_step"] = torch.tensor([[True], [False]])
+    with pytest.raises(NotImplementedError, match="'_step' mask"):
+        env.step(td)
