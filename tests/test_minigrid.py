@@ -242,3 +242,21 @@ def default_methods():
     from factorq_trainers.minigrid import DEFAULT_METHODS
 
     return DEFAULT_METHODS
+
+
+def test_gymnasium_and_minigrid_tools_accept_the_adapter():
+    """Gymnasium's check_env (the env re-created from its spec: RecordConstructorArgs) and
+    MiniGrid's own observation wrappers, which find the image and the mission passed through."""
+    _need_minigrid()
+    from gymnasium.utils.env_checker import check_env
+    from minigrid.wrappers import FlatObsWrapper, ImgObsWrapper
+
+    check_env(adapter.make_minigrid(5), skip_render_check=True)
+    image, _ = ImgObsWrapper(adapter.make_minigrid(8)).reset(seed=0)
+    assert image.shape == (7, 7, 3)
+    flat, _ = FlatObsWrapper(adapter.make_minigrid(8)).reset(seed=0)
+    assert flat.shape == (7 * 7 * 3 + 96 * 28,)  # the image and the mission (28 characters)
+    env = adapter.make_minigrid(5, seed=4)
+    observation, _ = env.reset()
+    assert observation["mission"] == "get to the green goal square"
+    assert env.config.num_cells == 25 and env.config.actuator_names == adapter.HEADING.actuators
