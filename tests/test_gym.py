@@ -81,6 +81,7 @@ def test_gym_env_follows_the_torchrl_env_for_the_same_seed_and_actions(obstacle_
         assert observation["bump"].tolist() == nxt["bump"].int().tolist()
         assert reward == nxt["reward"].item()
         assert info["local_reward"].tolist() == nxt["collision"].tolist()
+        assert observation["collision"].tolist() == nxt["collision"].tolist()
         assert (terminated, truncated) == (nxt["terminated"].item(), nxt["truncated"].item())
         assert same_obstacles(gym_env, torch_env)
         td = step_mdp(td)
