@@ -88,7 +88,7 @@ WORLDS = {
         "highway-fast-v0",
     ),
     "minigrid-8x8": WorldSpec(
-        "factorq_trainers.gym_experiment:make_minigrid_8x8",
+        f"{__name__}:make_minigrid_8x8",  # this module, wherever the runner puts it
         "image",
         0.5,
         "minigrid",
