@@ -45,7 +45,8 @@ class FactoredGridGym(gymnasium.Env):
             gymnasium's ``RecordVideo`` and SB3's ``make_vec_env`` ask for).
 
     Spaces (the paper's body): observation ``Dict(cell=Discrete(N), sensors=MultiBinary(4),
-    proximity=MultiBinary(4), bump=MultiBinary(4))`` with ``N = size**2``; action ``Discrete(4)``
+    proximity=MultiBinary(4), bump=MultiBinary(4), collision=Box(-1, 0, (4,)))`` with
+    ``N = size**2``; action ``Discrete(4)``
     (0 north, 1 west, 2 south, 3 east). The reward is
     the conventional step + goal + sum(collision); ``info`` holds ``"local_reward"`` (float32
     ``[4]``, the collision vector) and ``"task_reward"`` (step + goal, a float32 scalar, so that
@@ -122,10 +123,14 @@ class FactoredGridGym(gymnasium.Env):
         self.config = config = world.config
         self.periods = torch.tensor([obstacle_period], dtype=torch.int64)  # [1]
         self.world_state = self.world.initial_state(1)
+        self._collision = np.zeros(config.num_actuators, dtype=np.float32)
         entries = {
             "cell": spaces.Discrete(config.num_cells),
             "sensors": spaces.MultiBinary(config.num_sensors),
             "bump": spaces.MultiBinary(config.num_actuators),
+            # the collision vector (as FactoredGridEnv's), so that torchrl's GymEnv composes with
+            # SplitLocalReward; info["local_reward"] keeps it for gymnasium users
+            "collision": spaces.Box(-1.0, 0.0, (config.num_actuators,), np.float32),
         }
         if config.num_headings > 1:
             entries["heading"] = spaces.Discrete(config.num_headings)
@@ -160,6 +165,7 @@ class FactoredGridGym(gymnasium.Env):
         super().reset(seed=seed)
         if seed is not None:
             self._seed_world(seed)
+        self._collision = np.zeros(self.config.num_actuators, dtype=np.float32)
         start_all = torch.ones(1, dtype=torch.bool)
         self.world_state = self.world.reset(
             self.world_state, start_all, self.world_keys, self.periods
@@ -189,8 +195,9 @@ class FactoredGridGym(gymnasium.Env):
         self.world_state, outcome = self.world.step(
             self.world_state, action_tensor, self.world_keys, self.periods
         )
+        self._collision = outcome.collision[0].numpy().copy()  # [A] float32
         info = {
-            "local_reward": outcome.collision[0].numpy().copy(),  # [A] float32
+            "local_reward": self._collision.copy(),
             "task_reward": np.float32(outcome.task_reward[0]),  # with a dtype, for torchrl
         }
         return (
@@ -208,6 +215,7 @@ class FactoredGridGym(gymnasium.Env):
             "cell": np.int64(state.cell[0]),
             "sensors": sensors[0].numpy().astype(np.int8),
             "bump": state.bump[0].numpy().astype(np.int8),
+            "collision": self._collision.copy(),
         }
         if self.config.num_headings > 1:
             observation["heading"] = np.int64(state.heading[0])
@@ -232,3 +240,28 @@ class FactoredGridGym(gymnasium.Env):
     def render_rgb(self) -> np.ndarray:
         """The world as an image, ``uint8 [H, W, 3]`` (the world's ``render_rgb``)."""
         return optional_method(self.world, "render_rgb")(self.world_state, 0)
+
+
+#: The ``info`` entries torchrl reads from ``FactoredGridGym`` (``torchrl_info_reader``).
+INFO_KEYS = ("task_reward",)
+
+
+def torchrl_info_reader():
+    """torchrl's ``default_info_dict_reader`` for the step's ``task_reward`` with its spec
+    declared (a float32 scalar per env), so torchrl need not infer it from a first step.
+    ``local_reward`` is left out: the ``collision`` observation carries it, and
+    ``SplitLocalReward`` writes ``local_reward`` itself.
+
+    Example:
+        >>> from torchrl.envs import GymEnv
+        >>> env = GymEnv("FactoredGrid-v0", size=3, num_obstacles=0)
+        >>> env = env.set_info_dict_reader(torchrl_info_reader())
+        >>> env.rollout(2)["next", "task_reward"].shape
+        torch.Size([2])
+    """
+    import torch
+    from torchrl.data import Unbounded
+    from torchrl.envs.libs.gym import default_info_dict_reader
+
+    spec = {key: Unbounded(shape=(), dtype=torch.float32) for key in INFO_KEYS}
+    return default_info_dict_reader(list(INFO_KEYS), spec=spec)

@@ -1,17 +1,19 @@
-"""MiniGrid's Dynamic-Obstacles worlds as Factor-Q sees them: an adapter, not a copy (issue 16).
+"""MiniGrid's Dynamic-Obstacles worlds as Factor-Q sees them: a declaration on the Gymnasium
+adapter (``factorq_envs.gymnasium_adapter``; issues 16 and 25), not a copy.
 
 MiniGrid (Farama, ``minigrid`` 3.2.0, the optional extra ``factorq-torch[minigrid]``) is stepped
-as it is; this file only *reads* it. ``MiniGrid-Dynamic-Obstacles-{5x5,6x6,8x8,16x16}-v0``: an
-empty room, the goal in the bottom-right corner, balls that random-walk in their 3x3
-neighbourhood every step; actions turn left, turn right, forward; forward into a wall or ball
-gives -1 and ends the episode, decided on the grid *before* the balls move; the goal gives
-``1 - 0.9 t / max_steps`` (``max_steps = 4 size**2``).
+as it is; this file only *declares* how Factor-Q reads it. ``MiniGrid-Dynamic-Obstacles-{5x5,
+6x6,8x8,16x16}-v0``: an empty room, the goal in the bottom-right corner, balls that random-walk in
+their 3x3 neighbourhood every step; actions turn left, turn right, forward; forward into a wall
+or ball gives -1 and ends the episode, decided on the grid *before* the balls move; the goal
+gives ``1 - 0.9 t / max_steps`` (``max_steps = 4 size**2``).
 
 **The body** is ``factorq_envs.body.HEADING`` (forward, turn-left, turn-right: Factor-Q's action
-``a`` is MiniGrid's ``ACTION_TO_MINIGRID[a]``). **The heading** is MiniGrid's ``agent_dir`` (0 east,
-1 south, 2 west, 3 north; left turn subtracts 1) in the project's numbering (0 north, 1 west, 2
-south, 3 east; left turn adds 1): ``heading = (3 - agent_dir) % 4``. **The cell** is ``y *
-width + x`` of MiniGrid's ``agent_pos`` (walls included: ``size**2`` cells).
+``a`` is MiniGrid's ``ACTION_TO_MINIGRID[a]``, the declaration's ``actions``). **The heading** is
+MiniGrid's ``direction`` (0 east, 1 south, 2 west, 3 north; left turn subtracts 1) in the
+project's numbering (0 north, 1 west, 2 south, 3 east; left turn adds 1): ``heading = (3 -
+direction) % 4``. **The cell** is ``y * width + x`` of MiniGrid's ``agent_pos`` (walls included:
+``size**2`` cells). Together they are the declaration's ``task_state``.
 
 **The sensors** are cells of MiniGrid's own egocentric 7x7 view (``obs["image"]``, indexed
 ``[x, y]``, the agent at ``(3, 6)`` facing up): sensor ``k`` is 1 when that view cell holds a wall
@@ -28,11 +30,13 @@ MiniGrid cannot see behind the agent, so no layout has a "back" sensor.
 
 **Rewards.** The conventional ``reward`` is MiniGrid's own. A collision is read from MiniGrid's
 outcome, not recomputed: a negative MiniGrid reward (only a collision gives one) is the
-collision, attributed to forward (the only actuator that moves): ``collision`` ``[A]`` is -1 at
-forward, 0 elsewhere, and ``bump`` marks it. So, as for ``FactoredGridEnv``, ``SplitLocalReward``
-gives the task reward (the goal reward; 0 on a collision step) and the local reward vector.
-``tests/test_minigrid.py`` checks that the collision equals "front cell (read from the unwrapped
-env before the step) is wall or ball, and the action is forward" on every step.
+collision, charged to the chosen actuator, which is always forward (the only actuator that
+moves): ``collision`` ``[A]`` is -1 at forward, 0 elsewhere, and ``bump`` marks it. The task
+reward is the declaration's default (MiniGrid's reward without the collision: the goal reward, 0
+on a collision step), so ``SplitLocalReward`` gives the task reward and the local reward vector as
+for ``FactoredGridEnv``. ``tests/test_minigrid.py`` checks that the collision equals "front cell
+(read from the unwrapped env before the step) is wall or ball, and the action is forward" on
+every step.
 
 **Collision semantics** (``SEMANTICS``): ``"minigrid"``, MiniGrid's own (a collision ends the
 episode); ``"nodeath"``, ``minigrid.wrappers.NoDeath(env, ("ball", "wall"), 0.0)``: the episode
@@ -43,28 +47,29 @@ agent does move; under ``"nodeath"`` it goes on from its new cell.)
 
 Two ways in:
 
-- ``FactoredMiniGrid``: a ``gymnasium.Wrapper`` with a ``Dict`` observation (``cell``,
-  ``heading``, ``sensors``, ``bump``, ``collision`` and, with ``with_image``, MiniGrid's
-  ``image``), no ``mission`` string (torchrl's ``GymWrapper`` refuses text spaces): usable with
-  ``gymnasium.vector`` envs and with torchrl's ``GymWrapper`` / ``SerialEnv`` / ``ParallelEnv``.
+- ``make_minigrid(size)``: a ``FactorQEnv`` (a ``gymnasium.Wrapper``) whose observation is
+  MiniGrid's own (``image``, ``direction``, ``mission`` as a plain ``Text``) plus ``cell``,
+  ``heading``, ``sensors``, ``bump``, ``collision``: Gymnasium's ``check_env``, MiniGrid's
+  ``ImgObsWrapper`` and ``FlatObsWrapper``, ``gymnasium.vector`` envs and torchrl's
+  ``GymWrapper`` / ``SerialEnv`` / ``ParallelEnv`` take it.
 - ``MiniGridEnv`` (``factorq_envs.minigrid_env``, loaded on first use, so this file needs no
-  torchrl): a torchrl ``EnvBase`` of ``batch_size=(S,)`` holding ``S`` of them (one seed
-  each) with the project's keys and dtypes (``sensors``/``bump`` bool, as ``FactoredGridEnv``), for
-  the online collector and DQN. The compiled kernel (``trainers/fast.py``) cannot step MiniGrid:
-  the tabular agents run on the modular torchrl path.
+  torchrl): ``S`` of them as one torchrl env of ``batch_size=(S,)`` (the adapter's
+  ``declared_torchrl_env``), with the project's keys and dtypes, for the online collector and
+  DQN. The compiled kernel (``trainers/fast.py``) cannot step MiniGrid: the tabular agents run on
+  the modular torchrl path.
 """
 
 from __future__ import annotations
 
 import importlib
-from typing import Any
+import string
 
 import gymnasium as gym
 import numpy as np
 import torch
 
 from factorq_envs.body import HEADING, NUM_HEADINGS, SensorLayout, base_dependency
-from factorq_torch.base import keys
+from factorq_envs.gymnasium_adapter import Declaration, FactorQEnv, require_extra
 
 #: The optional extra that installs MiniGrid.
 EXTRA = "factorq-torch[minigrid]"
@@ -81,6 +86,9 @@ FORWARD = HEADING.moves.index(0)
 VIEW_SIZE = 7
 #: The agent's cell in the egocentric view, ``(x, y)``.
 AGENT_VIEW = (VIEW_SIZE // 2, VIEW_SIZE - 1)
+#: MiniGrid's mission as a plain Gymnasium ``Text`` (torchrl reads ``Text``, not MiniGrid's own
+#: ``MissionSpace``; ``FlatObsWrapper`` reads the string itself).
+MISSION_SPACE = gym.spaces.Text(max_length=96, charset=string.printable)
 
 _FRONT3 = ((-1, 0), (0, -1), (0, 1))
 VIEW_LAYOUTS = {
@@ -102,15 +110,7 @@ def minigrid_heading(agent_dir: int) -> int:
 def require_minigrid():
     """Import ``minigrid`` (registering its envs), or raise one ModuleNotFoundError naming the
     extra to install."""
-    try:
-        return importlib.import_module("minigrid")
-    except ModuleNotFoundError as error:
-        if error.name is not None and error.name.split(".")[0] != "minigrid":
-            raise
-        raise ModuleNotFoundError(
-            f"MiniGrid is not installed: install the optional extra with pip install '{EXTRA}'",
-            name="minigrid",
-        ) from None
+    return require_extra("minigrid", EXTRA)
 
 
 def env_id(size: int) -> str:
@@ -149,83 +149,45 @@ def sensor_names(layout: str = "front3") -> tuple[str, ...]:
     return check_layout(layout).names(HEADING)
 
 
-class FactoredMiniGrid(gym.Wrapper):
-    """A MiniGrid env with Factor-Q's observation and action numbering (module docstring).
+def _blocked_cells(cells: np.ndarray, observation, info, env) -> np.ndarray:
+    """The view cells ``cells`` ``[K, 2]`` that hold a wall or a ball, ``[K]`` bool."""
+    kinds = observation["image"][cells[:, 0], cells[:, 1], 0]
+    return (kinds == BLOCKING["wall"]) | (kinds == BLOCKING["ball"])
 
-    Args:
-        env: a MiniGrid Dynamic-Obstacles env (``gymnasium.make(env_id(size))``, possibly
-            wrapped in ``NoDeath``).
-        layout: the sensors, a key of ``VIEW_LAYOUTS``.
-        with_image: also return MiniGrid's 7x7x3 ``image`` (for the image-based DQN).
 
-    Observation (``Dict``): ``cell`` int, ``heading`` int, ``sensors`` ``MultiBinary(K)``,
-    ``bump`` ``MultiBinary(A)``, ``collision`` ``Box(-1, 0, (A,))``, [``image``]. Actions:
-    ``Discrete(3)``, 0 forward, 1 turn-left, 2 turn-right. Reward: MiniGrid's. ``info`` adds
-    ``collided`` and ``success`` (the goal was reached).
-    """
+def _cell_and_heading(size: int, observation, info, env) -> tuple[int, int]:
+    x, y = env.unwrapped.agent_pos
+    return int(y) * size + int(x), minigrid_heading(int(observation["direction"]))
 
-    def __init__(self, env, layout: str = "front3", with_image: bool = False) -> None:
-        super().__init__(env)
-        base = env.unwrapped
-        if not hasattr(base, "agent_dir") or not hasattr(base, "agent_view_size"):
-            raise TypeError(f"env must be a MiniGrid env, got {type(base).__name__}")
-        if base.agent_view_size != VIEW_SIZE:
-            raise ValueError(f"agent_view_size={base.agent_view_size}: the layouts need 7")
-        self.layout = check_layout(layout)
-        self.with_image = bool(with_image)
-        self._cells = np.array(view_cells(self.layout))  # [K, 2]
-        self.num_sensors = self.layout.num_sensors
-        self.num_actions = HEADING.num_actuators
-        self.num_cells = base.width * base.height
-        spaces = {
-            keys.CELL: gym.spaces.Discrete(self.num_cells),
-            keys.HEADING: gym.spaces.Discrete(HEADING.num_headings),
-            keys.SENSORS: gym.spaces.MultiBinary(self.num_sensors),
-            keys.BUMP: gym.spaces.MultiBinary(self.num_actions),
-            keys.COLLISION: gym.spaces.Box(-1.0, 0.0, (self.num_actions,), np.float32),
-        }
-        if self.with_image:
-            spaces["image"] = base.observation_space["image"]
-        self.observation_space = gym.spaces.Dict(spaces)
-        self.action_space = gym.spaces.Discrete(self.num_actions)
 
-    def _observe(self, obs: dict[str, Any], collided: bool) -> dict[str, Any]:
-        base = self.env.unwrapped
-        image = obs["image"]
-        kinds = image[self._cells[:, 0], self._cells[:, 1], 0]
-        sensors = ((kinds == BLOCKING["wall"]) | (kinds == BLOCKING["ball"])).astype(np.int8)
-        bump = np.zeros(self.num_actions, dtype=np.int8)
-        collision = np.zeros(self.num_actions, dtype=np.float32)
-        if collided:
-            bump[FORWARD] = 1
-            collision[FORWARD] = -1.0
-        x, y = base.agent_pos
-        out = {
-            keys.CELL: int(y) * base.width + int(x),
-            keys.HEADING: minigrid_heading(int(base.agent_dir)),
-            keys.SENSORS: sensors,
-            keys.BUMP: bump,
-            keys.COLLISION: collision,
-        }
-        if self.with_image:
-            out["image"] = image
-        return out
+def _collided(reward: float, info: dict) -> bool:
+    return reward < 0  # only a collision gives MiniGrid a negative reward
 
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        obs, info = self.env.reset(seed=seed, options=options)
-        return self._observe(obs, False), dict(info, collided=False, success=False)
 
-    def step(self, action):
-        action = int(action)
-        if not 0 <= action < self.num_actions:
-            raise ValueError(
-                f"action={action} is out of range: must be in [0, {self.num_actions - 1}] "
-                f"({', '.join(HEADING.actuators)})"
-            )
-        obs, reward, terminated, truncated, info = self.env.step(ACTION_TO_MINIGRID[action])
-        collided = reward < 0  # only a collision gives MiniGrid a negative reward
-        info = dict(info, collided=collided, success=bool(reward > 0))
-        return self._observe(obs, collided), float(reward), terminated, truncated, info
+def declaration(size: int, layout: str = "front3") -> Declaration:
+    """What Factor-Q reads from MiniGrid's Dynamic-Obstacles world of side ``size`` (module
+    docstring): the whole adapter, as data."""
+    chosen = check_layout(layout)
+    return Declaration(
+        num_sensors=chosen.num_sensors,
+        sensors=partial_of(_blocked_cells, np.array(view_cells(chosen))),
+        collision=_collided,
+        actions=ACTION_TO_MINIGRID,
+        actuator_names=HEADING.actuators,
+        task_state=partial_of(_cell_and_heading, size),
+        num_cells=size * size,
+        num_headings=HEADING.num_headings,
+        dependency=tuple(map(tuple, dependency(layout).tolist())),
+        sensor_names=chosen.names(HEADING),
+        spaces={"mission": MISSION_SPACE},
+    )
+
+
+def partial_of(function, *args):
+    """``functools.partial`` (picklable, so the declaration travels to worker processes)."""
+    from functools import partial
+
+    return partial(function, *args)
 
 
 def make_minigrid(
@@ -233,11 +195,12 @@ def make_minigrid(
     semantics: str = "minigrid",
     *,
     layout: str = "front3",
-    with_image: bool = False,
+    seed: int | None = None,
     render_mode: str | None = None,
-) -> FactoredMiniGrid:
-    """``FactoredMiniGrid`` around MiniGrid's own ``MiniGrid-Dynamic-Obstacles-{size}x{size}-v0``
-    (``semantics="nodeath"``: inside ``NoDeath(env, ("ball", "wall"), 0.0)``)."""
+) -> FactorQEnv:
+    """The adapter around MiniGrid's own ``MiniGrid-Dynamic-Obstacles-{size}x{size}-v0``
+    (``semantics="nodeath"``: inside ``NoDeath(env, ("ball", "wall"), 0.0)``); ``seed``: the seed
+    of its first reset that is given none."""
     require_minigrid()
     from minigrid.wrappers import NoDeath
 
@@ -246,7 +209,7 @@ def make_minigrid(
     env = gym.make(env_id(size), render_mode=render_mode, disable_env_checker=True)
     if semantics == "nodeath":
         env = NoDeath(env, ("ball", "wall"), 0.0)
-    return FactoredMiniGrid(env, layout=layout, with_image=with_image)
+    return FactorQEnv(env, declaration(size, layout), seed=seed)
 
 
 def __getattr__(name: str):

@@ -32,6 +32,7 @@ terminated episodes draws nothing again). Nothing here imports a world.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 import torch
@@ -46,6 +47,35 @@ CONFIG_FIELDS = (
     "max_steps",
     "actuator_names",
 )
+
+
+@dataclass(frozen=True)
+class EnvSizes:
+    """The sizes an agent is built from, for an env that is not a ``World`` (a declared
+    Gymnasium env, ``factorq_envs.gymnasium_adapter``): the ``CONFIG_FIELDS`` of a world's
+    ``config``, so ``env.config.num_sensors`` reads the same on every env of the project.
+    ``goal_cell`` and ``max_steps`` are ``None`` where the env has none (or does not say)."""
+
+    num_cells: int
+    num_sensors: int
+    num_actuators: int
+    num_headings: int = 1
+    goal_cell: int | None = None
+    max_steps: int | None = None
+    actuator_names: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        from factorq_torch.base.validation import check_int
+
+        check_int("num_cells", self.num_cells, 1)
+        check_int("num_sensors", self.num_sensors, 1)
+        check_int("num_actuators", self.num_actuators, 1)
+        check_int("num_headings", self.num_headings, 1)
+        if len(self.actuator_names) != self.num_actuators:
+            raise ValueError(
+                f"actuator_names={self.actuator_names!r} names {len(self.actuator_names)} "
+                f"actuators, but num_actuators={self.num_actuators}"
+            )
 
 
 @runtime_checkable

@@ -81,6 +81,7 @@ def test_gym_env_follows_the_torchrl_env_for_the_same_seed_and_actions(obstacle_
         assert observation["bump"].tolist() == nxt["bump"].int().tolist()
         assert reward == nxt["reward"].item()
         assert info["local_reward"].tolist() == nxt["collision"].tolist()
+        assert observation["collision"].tolist() == nxt["collision"].tolist()
         assert (terminated, truncated) == (nxt["terminated"].item(), nxt["truncated"].item())
         assert same_obstacles(gym_env, torch_env)
         td = step_mdp(td)
@@ -161,3 +162,32 @@ def test_numpy_integer_actions_are_accepted():
 def test_bad_constructor_argument_raises_naming_it(kwargs, error, message):
     with pytest.raises(error, match=message):
         FactoredGridGym(**kwargs)
+
+
+def test_torchrl_gym_env_composes_with_split_local_reward_and_the_tables():
+    """torchrl's own GymEnv of "FactoredGrid-v0" feeds the project's agent: categorical cell,
+    bool sensors (a dtype cast), the collision observation split by SplitLocalReward, the task
+    reward read from info with its declared spec; the split equals the world's own."""
+    from torchrl.envs import Compose, DTypeCastTransform, GymEnv, TransformedEnv
+    from torchrl.envs.utils import check_env_specs
+
+    from factorq_envs.gym import torchrl_info_reader
+    from factorq_envs.transforms import SplitLocalReward
+    from factorq_torch.tables import TaskQTable
+
+    env = GymEnv("FactoredGrid-v0", size=3, num_obstacles=0, categorical_action_encoding=True)
+    env.set_info_dict_reader(torchrl_info_reader())
+    binary = ["sensors", "proximity", "bump"]
+    env = TransformedEnv(
+        env, Compose(DTypeCastTransform(torch.int8, torch.bool, in_keys=binary), SplitLocalReward())
+    )
+    check_env_specs(env)
+    td = env.reset()
+    assert td["cell"].dtype == torch.int64 and td["cell"].shape == ()
+    assert td["sensors"].dtype == torch.bool
+    td["action"] = torch.tensor(0)  # north, into the wall
+    nxt = env.step(td)["next"]
+    assert nxt["local_reward"].tolist() == [-1.0, 0.0, 0.0, 0.0]
+    assert nxt["reward"].tolist() == [-1.0] == [nxt["task_reward"].item()]
+    table = TaskQTable(1, 9)
+    assert table(nxt.unsqueeze(0).clone())["action_value"].shape == (1, 4)

@@ -1,0 +1,427 @@
+"""Factor-Q on any Gymnasium env with a ``Discrete`` action space: the adapter, declared as data
+(issue 25).
+
+A user's env is stepped as it is; a ``Declaration`` says what Factor-Q reads from it:
+
+- ``sensors(observation, info, env) -> [K]`` bool (or float32 features with ``features=True``);
+  ``env`` is the env inside the adapter, for what an env keeps outside its observation (a
+  second observation type, the agent's position);
+- ``collision(reward, info) -> bool`` (or the name of a bool ``info`` key), charged to the chosen
+  actuator unless ``charge(actuator, info) -> actuator`` says otherwise;
+- optionally the task state for tables (``task_state(observation, info, env) -> cell`` or
+  ``(cell, heading)``, with ``num_cells`` and ``num_headings``), the task reward
+  (``task_reward(reward, info) -> float``; default: the env's reward without the collision's
+  part, so that the conventional reward stays the env's own), the actuators (``actions``: the
+  env action of each, ``actuator_names``) and the oracle ``dependency`` ``[A][K]``.
+
+Two ways in, the same numbers:
+
+- ``FactorQEnv(env, declaration)``: a ``gymnasium.Wrapper`` (and ``RecordConstructorArgs``, so
+  Gymnasium's ``check_env`` and ``env.spec`` accept it) whose observation is the env's own
+  (its ``Dict`` entries, or ``"observation"``) plus the project's keys: ``cell`` and ``heading``
+  (with a task state), ``sensors`` ``MultiBinary(K)``, ``bump`` ``MultiBinary(A)``,
+  ``collision`` ``Box(-penalty, 0, (A,))``. Its reward is the conventional one, ``task reward +
+  sum(collision)``; ``info`` adds ``collided`` and ``task_reward``. The env's own wrappers (a
+  ``Dict`` env's observation wrappers) still find their entries.
+- ``factorq_envs.declared_env.declared_torchrl_env(make_env, seeds)`` (its own file, so this one
+  needs no torchrl): ``S`` of them through torchrl's ``GymWrapper`` over a
+  Gymnasium vector env (``backend="sync"`` in-process, ``"async"`` one process per env) or
+  torchrl's ``ParallelEnv`` (``"parallel"``), categorical ``cell``/``heading``/``action`` and
+  bool ``sensors``/``bump`` (a ``DTypeCastTransform``), batch ``(S,)``: the keys the tables,
+  ``SplitLocalReward`` and the online collector read. torchrl's ``GymWrapper`` reads the specs
+  from the Gymnasium spaces; nothing here writes a spec by hand.
+
+Every env of the project states its sizes the same way: ``env.config`` holds the
+``factorq_envs.protocol.CONFIG_FIELDS`` (``FactoredGridEnv``'s ``WorldConfig``, the adapter's
+``EnvSizes``), so an agent is built from ``env.config`` whatever the env.
+
+Bad input is refused where it enters, in one message naming it: a non-``Discrete`` action
+space, a declared function that returns the wrong shape or dtype or reads a missing ``info``
+key (one probing reset and step at construction, ``probe=True``), an env id that is not
+registered, an extra that is not installed (``require_extra``).
+
+Example (a third-party env would be declared the same way; the README's "Factor-Q on your own
+env" declares one):
+
+    >>> import gymnasium, numpy as np
+    >>> declaration = Declaration(
+    ...     num_sensors=1,
+    ...     sensors=lambda obs, info, env: np.array([obs[2] > 0.1]),  # pole leaning right
+    ...     collision=lambda reward, info: False,
+    ...     actuator_names=("left", "right"),
+    ... )
+    >>> env = FactorQEnv(gymnasium.make("CartPole-v1"), declaration)
+    >>> obs, info = env.reset(seed=0)
+    >>> sorted(obs), env.config.num_actuators
+    (['bump', 'collision', 'observation', 'sensors'], 2)
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+from gymnasium.utils import RecordConstructorArgs
+
+from factorq_envs.protocol import EnvSizes
+from factorq_torch.base import keys
+from factorq_torch.base.validation import check_int
+
+#: The entries the adapter adds to the observation (a Dict env may not already use them).
+ADDED_KEYS = (keys.CELL, keys.HEADING, keys.SENSORS, keys.BUMP, keys.COLLISION)
+#: The key of a non-Dict env's own observation.
+OBSERVATION = "observation"
+
+
+def require_extra(module: str, extra: str):
+    """Import ``module`` (registering its envs), or raise one ModuleNotFoundError naming the
+    optional ``extra`` that installs it (e.g. ``factorq-torch[highway]``)."""
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as error:
+        if error.name is not None and error.name.split(".")[0] != module.split(".")[0]:
+            raise
+        raise ModuleNotFoundError(
+            f"{module} is not installed: install the optional extra with pip install '{extra}'",
+            name=module,
+        ) from None
+
+
+def make_registered(env_id: str, **kwargs) -> gymnasium.Env:
+    """``gymnasium.make(env_id, **kwargs)``, or one ValueError naming an id that is not
+    registered (import the package that registers it first)."""
+    if env_id not in gymnasium.registry:
+        raise ValueError(
+            f"env id {env_id!r} is not registered with gymnasium: import the package that "
+            f"registers it (or install its extra) first"
+        )
+    return gymnasium.make(env_id, **kwargs)
+
+
+def _callable_or_none(name: str, value) -> None:
+    if value is not None and not callable(value):
+        raise TypeError(f"Declaration.{name} must be callable or None, got {value!r}")
+
+
+@dataclass(frozen=True)
+class Declaration:
+    """What Factor-Q reads from a Gymnasium env (module docstring); the env itself is not part
+    of it, so one declaration serves every env of a family (MiniGrid's sizes, highway's ids).
+
+    Args:
+        num_sensors: ``K``, the length of what ``sensors`` returns.
+        sensors: ``(observation, info, env) -> [K]`` bool numpy array (float32 features with
+            ``features=True``); ``info`` is ``{}`` at a reset unless the env gives one.
+        collision: ``(reward, info) -> bool``, or the name of a bool ``info`` key.
+        charge: ``(actuator, info) -> actuator`` that pays for a collision; ``None``: the chosen
+            one.
+        actions: the env action of each actuator (default: actuator ``a`` is action ``a``).
+        actuator_names: one name per actuator (default: the action numbers).
+        task_state: ``(observation, info, env) -> cell`` or ``(cell, heading)`` for tables;
+            ``None``: no ``cell`` in the observation (networks only).
+        num_cells, num_headings: the task state's ranges (``num_headings > 1``: ``task_state``
+            returns ``(cell, heading)``).
+        task_reward: ``(reward, info) -> float``; ``None``: the env's reward minus the
+            collision vector's sum, so the conventional reward is the env's own.
+        dependency: the oracle, ``A`` rows of ``K`` bools (which sensors decide each actuator's
+            collision), or ``None`` when nobody states it.
+        sensor_names: one name per sensor (default ``s0 ... s{K-1}``).
+        features: the sensors are float32 features (``Box``) rather than bool.
+        spaces: replacements for entries of a Dict env's own observation space (a space torchrl
+            cannot read, such as MiniGrid's ``MissionSpace``); ``None`` leaves an entry out.
+        penalty: the collision's size: the collision vector holds ``-penalty`` at the charged
+            actuator.
+    """
+
+    num_sensors: int
+    sensors: Callable[[Any, dict, gymnasium.Env], Any]
+    collision: Callable[[float, dict], bool] | str
+    charge: Callable[[int, dict], int] | None = None
+    actions: tuple[int, ...] = ()
+    actuator_names: tuple[str, ...] = ()
+    task_state: Callable[[Any, dict, gymnasium.Env], Any] | None = None
+    num_cells: int = 1
+    num_headings: int = 1
+    task_reward: Callable[[float, dict], float] | None = None
+    dependency: tuple[tuple[bool, ...], ...] | None = None
+    sensor_names: tuple[str, ...] = ()
+    features: bool = False
+    spaces: Mapping[str, spaces.Space | None] = field(default_factory=dict)
+    penalty: float = 1.0
+
+    def __post_init__(self) -> None:
+        check_int("Declaration.num_sensors", self.num_sensors, 1)
+        check_int("Declaration.num_cells", self.num_cells, 1)
+        check_int("Declaration.num_headings", self.num_headings, 1)
+        if not callable(self.sensors):
+            raise TypeError(f"Declaration.sensors must be callable, got {self.sensors!r}")
+        if not (callable(self.collision) or isinstance(self.collision, str)):
+            raise TypeError(
+                f"Declaration.collision must be callable (reward, info) -> bool or an info key, "
+                f"got {self.collision!r}"
+            )
+        for name in ("charge", "task_state", "task_reward"):
+            _callable_or_none(name, getattr(self, name))
+        object.__setattr__(self, "actions", tuple(int(a) for a in self.actions))
+        object.__setattr__(self, "actuator_names", tuple(self.actuator_names))
+        if self.actions and self.actuator_names and len(self.actions) != len(self.actuator_names):
+            raise ValueError(
+                f"Declaration: {len(self.actions)} actions but {len(self.actuator_names)} "
+                f"actuator_names"
+            )
+        if self.sensor_names and len(self.sensor_names) != self.num_sensors:
+            raise ValueError(
+                f"Declaration.sensor_names has {len(self.sensor_names)} names for "
+                f"num_sensors={self.num_sensors}"
+            )
+        if self.dependency is not None:
+            rows = tuple(tuple(bool(b) for b in row) for row in self.dependency)
+            if any(len(row) != self.num_sensors for row in rows):
+                raise ValueError(
+                    f"Declaration.dependency must be [actuators][{self.num_sensors}] bools, got "
+                    f"rows of lengths {[len(row) for row in rows]}"
+                )
+            object.__setattr__(self, "dependency", rows)
+        if not (math.isfinite(self.penalty) and self.penalty > 0):
+            raise ValueError(f"Declaration.penalty={self.penalty!r} must be finite and > 0")
+
+    def collided(self, reward: float, info: dict) -> bool:
+        if isinstance(self.collision, str):
+            return bool(info[self.collision])  # a missing key: _call names it
+        return self.collision(reward, info)
+
+
+def _call(declaration_field: str, function, *args):
+    """Call a declared function; a KeyError (a missing info or observation key) becomes one
+    message naming the field and the keys the env's info has."""
+    try:
+        return function(*args)
+    except KeyError as error:
+        info = args[1]  # every declared function takes the info second
+        raise KeyError(
+            f"Declaration.{declaration_field} read the key {error.args[0]!r}, which the env "
+            f"does not provide (its info has {sorted(info)})"
+        ) from None
+
+
+class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
+    """A Gymnasium env with the project's observation entries, read as ``declaration`` says
+    (module docstring).
+
+    Args:
+        env: any Gymnasium env with a ``Discrete`` action space.
+        declaration: a ``Declaration``.
+        seed: the seed of the first reset that is given none (so a batch of adapters built with
+            one seed each replays, as ``MiniGridEnv`` did); ``None``: the env's own behaviour.
+        probe: run one reset and one step at construction to check the declaration against
+            the env (then the env is reset again by whoever uses it).
+    """
+
+    def __init__(
+        self,
+        env: gymnasium.Env,
+        declaration: Declaration,
+        *,
+        seed: int | None = None,
+        probe: bool = True,
+    ) -> None:
+        RecordConstructorArgs.__init__(self, declaration=declaration, seed=seed, probe=probe)
+        gymnasium.Wrapper.__init__(self, env)
+        if not isinstance(declaration, Declaration):
+            raise TypeError(f"declaration must be a Declaration, got {type(declaration).__name__}")
+        if not isinstance(env.action_space, spaces.Discrete):
+            raise TypeError(
+                f"FactorQEnv needs a Discrete action space (one actuator per action), "
+                f"{_name(env)} has {env.action_space}"
+            )
+        self.declaration = declaration
+        self._pending_seed = None if seed is None else check_int("seed", seed, 0)
+        count = int(env.action_space.n)
+        actions = declaration.actions or tuple(range(count))
+        bad = [a for a in actions if not 0 <= a < count]
+        if bad:
+            raise ValueError(f"Declaration.actions {bad} are not actions of {env.action_space}")
+        self._actions = actions
+        names = declaration.actuator_names or tuple(str(a) for a in actions)
+        if len(names) != len(actions):
+            raise ValueError(
+                f"Declaration.actuator_names has {len(names)} names for {len(actions)} actions"
+            )
+        num_actuators = len(actions)
+        if declaration.dependency is not None and len(declaration.dependency) != num_actuators:
+            raise ValueError(
+                f"Declaration.dependency has {len(declaration.dependency)} rows for "
+                f"{num_actuators} actuators"
+            )
+        self.config = EnvSizes(
+            num_cells=declaration.num_cells,
+            num_sensors=declaration.num_sensors,
+            num_actuators=num_actuators,
+            num_headings=declaration.num_headings,
+            max_steps=getattr(env.spec, "max_episode_steps", None) if env.spec else None,
+            actuator_names=names,
+        )
+        self.observation_space = spaces.Dict(self._spaces(env.observation_space))
+        self.action_space = spaces.Discrete(num_actuators)
+        if probe:
+            self._probe()
+
+    # ---------------------------------------------------------------------------------------
+    # Spaces
+
+    def _own_entries(self, space: spaces.Space) -> dict[str, spaces.Space]:
+        if not isinstance(space, spaces.Dict):
+            return {OBSERVATION: space}
+        own = {}
+        for name, entry in space.spaces.items():
+            if name in ADDED_KEYS:
+                raise ValueError(
+                    f"{_name(self.env)}'s observation already has an entry {name!r}, a key the "
+                    f"adapter writes: rename it with an observation wrapper first"
+                )
+            entry = self.declaration.spaces.get(name, entry)
+            if entry is not None:
+                own[name] = entry
+        return own
+
+    def _spaces(self, space: spaces.Space) -> dict[str, spaces.Space]:
+        declaration, config = self.declaration, self.config
+        entries = self._own_entries(space)
+        if declaration.task_state is not None:
+            entries[keys.CELL] = spaces.Discrete(config.num_cells)
+            if config.num_headings > 1:
+                entries[keys.HEADING] = spaces.Discrete(config.num_headings)
+        if declaration.features:
+            entries[keys.SENSORS] = spaces.Box(-np.inf, np.inf, (config.num_sensors,), np.float32)
+        else:
+            entries[keys.SENSORS] = spaces.MultiBinary(config.num_sensors)
+        entries[keys.BUMP] = spaces.MultiBinary(config.num_actuators)
+        entries[keys.COLLISION] = spaces.Box(
+            -declaration.penalty, 0.0, (config.num_actuators,), np.float32
+        )
+        self._own_keys = [k for k in entries if k not in ADDED_KEYS]
+        return entries
+
+    @property
+    def num_actions(self) -> int:
+        return self.config.num_actuators
+
+    @property
+    def dependency(self):
+        """The declared oracle as a bool tensor ``[A, K]``, or ``None``."""
+        if self.declaration.dependency is None:
+            return None
+        import torch
+
+        return torch.tensor(self.declaration.dependency, dtype=torch.bool)
+
+    # ---------------------------------------------------------------------------------------
+    # Reading the env
+
+    def _sensors(self, observation, info) -> np.ndarray:
+        declaration = self.declaration
+        value = _call("sensors", declaration.sensors, observation, info, self.env)
+        array = np.asarray(value)
+        want = np.float32 if declaration.features else np.bool_
+        if array.shape != (declaration.num_sensors,) or array.dtype != want:
+            raise ValueError(
+                f"Declaration.sensors must return [{declaration.num_sensors}] "
+                f"{np.dtype(want).name}, got shape {array.shape} dtype {array.dtype}"
+            )
+        return array.astype(np.float32) if declaration.features else array.astype(np.int8)
+
+    def _task_state(self, observation, info) -> tuple[int, int]:
+        declaration = self.declaration
+        state = _call("task_state", declaration.task_state, observation, info, self.env)
+        cell, heading = state if declaration.num_headings > 1 else (state, 0)
+        cell, heading = int(cell), int(heading)
+        if not (0 <= cell < declaration.num_cells and 0 <= heading < declaration.num_headings):
+            raise ValueError(
+                f"Declaration.task_state returned cell={cell}, heading={heading}: must be in "
+                f"[0, {declaration.num_cells}) and [0, {declaration.num_headings})"
+            )
+        return cell, heading
+
+    def _observe(self, observation, info, charged: int | None) -> dict[str, Any]:
+        config = self.config
+        if isinstance(observation, dict):
+            out = {name: observation[name] for name in self._own_keys}
+        else:
+            out = {OBSERVATION: observation}
+        if self.declaration.task_state is not None:
+            cell, heading = self._task_state(observation, info)
+            out[keys.CELL] = cell
+            if config.num_headings > 1:
+                out[keys.HEADING] = heading
+        out[keys.SENSORS] = self._sensors(observation, info)
+        bump = np.zeros(config.num_actuators, dtype=np.int8)
+        collision = np.zeros(config.num_actuators, dtype=np.float32)
+        if charged is not None:
+            bump[charged] = 1
+            collision[charged] = -self.declaration.penalty
+        out[keys.BUMP] = bump
+        out[keys.COLLISION] = collision
+        return out
+
+    # ---------------------------------------------------------------------------------------
+    # The Gymnasium API
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        if seed is None and self._pending_seed is not None:
+            seed = self._pending_seed
+        self._pending_seed = None
+        observation, info = self.env.reset(seed=seed, options=options)
+        info = dict(info, collided=False, task_reward=0.0)
+        return self._observe(observation, info, None), info
+
+    def step(self, action):
+        if isinstance(action, np.ndarray) and action.shape == ():
+            action = action.item()
+        count = self.config.num_actuators
+        if isinstance(action, bool | np.bool_) or not isinstance(action, int | np.integer):
+            raise TypeError(f"action must be an int in [0, {count - 1}], got {action!r}")
+        actuator = int(action)
+        if not 0 <= actuator < count:
+            names = ", ".join(f"{i} {n}" for i, n in enumerate(self.config.actuator_names))
+            raise ValueError(
+                f"action={actuator} is out of range: must be in [0, {count}) ({names})"
+            )
+        declaration = self.declaration
+        observation, reward, terminated, truncated, info = self.env.step(self._actions[actuator])
+        collided = bool(_call("collision", declaration.collided, reward, info))
+        charged = None
+        if collided:
+            charged = actuator if declaration.charge is None else declaration.charge(actuator, info)
+            if not 0 <= int(charged) < count:
+                raise ValueError(f"Declaration.charge returned {charged}: not in [0, {count})")
+        penalty = declaration.penalty if collided else 0.0
+        if declaration.task_reward is None:
+            task = float(reward) + penalty
+            conventional = float(reward)  # the env's own, exactly
+        else:
+            task = float(_call("task_reward", declaration.task_reward, reward, info))
+            conventional = task - penalty
+        info = dict(info, collided=collided, task_reward=task)
+        out = self._observe(observation, info, charged)
+        return out, conventional, bool(terminated), bool(truncated), info
+
+    def _probe(self) -> None:
+        """One reset and one step (actuator 0), checking every declared function; the seed of
+        the first real reset is kept."""
+        pending = self._pending_seed
+        observation, info = self.reset()
+        if observation not in self.observation_space:
+            raise ValueError(f"the adapter's observation is not in its space: {observation}")
+        self.step(0)
+        self._pending_seed = pending
+
+
+def _name(env) -> str:
+    spec = getattr(env, "spec", None)
+    return spec.id if spec is not None else type(env.unwrapped).__name__
