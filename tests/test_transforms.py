@@ -161,7 +161,7 @@ def test_keep_reward_keeps_env_reward_key_and_passes_check_env_specs():
     check_env_specs(env)
     split = split_env(size=4, num_obstacles=2)
     with pytest.raises(KeyError):  # the Factor-Q split declares two rewards (documented)
-        split.reward_key
+        _ = split.reward_key
 
 
 def test_keep_reward_must_be_a_bool():
