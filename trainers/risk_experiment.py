@@ -349,12 +349,82 @@ def _result(tally: _Tally, greedy: dict, wall: float) -> dict:
 
 
 def run_sb3(config: RiskConfig, unit: dict, progress: Callable | None = None) -> dict:
-    """SB3's DQN on the gymnasium grid, alone or with the local-risk layer (``sb3`` extra)."""
-    from factorq_torch.integrations import sb3 as risk_sb3
+    """SB3's DQN on the gymnasium grid (``FactoredGrid-v0``), alone or as ``LocalRiskDQN`` with
+    the oracle table (the ``sb3`` extra); the same budget and hyperparameters as the torchrl
+    units."""
+    import gymnasium
+    from stable_baselines3 import DQN
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    import factorq_envs  # noqa: F401  (registers FactoredGrid-v0)
+    from factorq_torch.integrations.sb3 import LocalRiskDQN
+    from factorq_torch.tables import LocalRewardTable
 
     if unit["world"] != "grid":
         raise ValueError("the sb3 methods run on the grid world only (sb3_worlds)")
-    return risk_sb3.run_unit(config, unit, progress)
+    tally = _Tally(config.success_threshold)
+
+    class Tally(BaseCallback):
+        def _on_step(self) -> bool:
+            for reward, done, info in zip(
+                self.locals["rewards"], self.locals["dones"], self.locals["infos"], strict=True
+            ):
+                collided = bool((info["local_reward"] < 0).any())
+                success = bool(done) and not info.get("TimeLimit.truncated", False)
+                tally.step(float(reward), collided, bool(done), success and not collided)
+            if progress is not None:
+                progress(len(self.locals["infos"]))
+            return True
+
+    def grid_env(seed: int):
+        env = gymnasium.make(
+            "FactoredGrid-v0",
+            size=config.grid_size,
+            num_obstacles=config.grid_obstacles,
+            obstacle_period=1,
+        )
+        env.reset(seed=seed)
+        return env
+
+    env = grid_env(unit["seed"])
+    settings = dict(
+        learning_rate=config.lr,
+        buffer_size=config.buffer_size,
+        learning_starts=config.learning_starts,
+        batch_size=config.batch_size,
+        tau=config.tau,
+        gamma=config.gamma,
+        train_freq=config.train_every,
+        target_update_interval=1,  # with tau: SoftUpdate every gradient step, as torchrl's
+        exploration_fraction=config.exploration_fraction,
+        exploration_initial_eps=config.eps_start,
+        exploration_final_eps=config.eps_end,
+        policy_kwargs={"net_arch": [config.hidden, config.hidden]},
+        seed=unit["seed"],
+        verbose=0,
+    )
+    if unit["method"] == "sb3-dqn":
+        model = DQN("MultiInputPolicy", env, **settings)
+    else:
+        provider = LocalRewardTable(1, dependency=env.unwrapped.config.dependency)
+        model = LocalRiskDQN("MultiInputPolicy", env, provider=provider, **settings)
+    started = time.perf_counter()
+    model.learn(config.steps, callback=Tally())
+    wall = time.perf_counter() - started
+    evaluation = grid_env(10_000 + unit["seed"])
+    collisions = successes = 0
+    for _ in range(config.eval_episodes):
+        obs, _ = evaluation.reset()
+        for _ in range(4 * config.grid_size**2):
+            action, _ = model.predict(obs, deterministic=True)
+            obs, _, terminated, truncated, info = evaluation.step(int(action))
+            collided = bool((info["local_reward"] < 0).any())
+            collisions += int(collided)
+            if terminated or truncated:
+                successes += int(terminated and not collided)
+                break
+    greedy = {"collisions": collisions, "successes": successes, "episodes": config.eval_episodes}
+    return _result(tally, greedy, wall)
 
 
 def run_unit(config: RiskConfig, unit: dict, progress: Callable | None = None) -> dict:
