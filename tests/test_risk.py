@@ -287,3 +287,18 @@ def test_dqn_with_local_risk_collides_far_less_in_training(one_thread):
                 for seed in (0, 1)
             )
     assert totals["dqn"] >= 4 * max(1, totals["dqn+risk-oracle"]), totals
+
+
+def test_risky_faces_mark_the_side_of_each_penalised_actuator():
+    from factorq_envs.render import mark_risk, render_rgb, risky_faces
+    from factorq_envs.world import WorldConfig
+
+    body = WorldConfig().body_spec
+    faces = risky_faces(torch.tensor([-1.0, 0.0, -0.01, -0.3]), 0, body)
+    assert faces == [(0, -1.0), (3, pytest.approx(-0.3))]  # north and east, not the small one
+    frame = render_rgb(0, torch.zeros(4, dtype=torch.bool), 2, scale=12)
+    marked = mark_risk(frame.copy(), 0, 2, faces, scale=12)
+    changed = (marked != frame).any(-1)
+    rows, cols = changed.nonzero()
+    assert rows.min() == 12 and cols.max() == 23  # the agent's cell: its north and east edges
+    assert changed.sum() > 0 and (marked[changed] == (245, 150, 20)).all()
