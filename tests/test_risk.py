@@ -302,3 +302,64 @@ def test_risky_faces_mark_the_side_of_each_penalised_actuator():
     rows, cols = changed.nonzero()
     assert rows.min() == 12 and cols.max() == 23  # the agent's cell: its north and east edges
     assert changed.sum() > 0 and (marked[changed] == (245, 150, 20)).all()
+
+
+# --- the side-by-side command module (trainers/risk_experiment.py) ---------------------------
+
+
+def test_risk_experiment_units_summary_and_report():
+    from factorq_trainers import risk_experiment as experiment
+
+    config = experiment.RiskConfig(
+        worlds=("grid",), methods=("dqn", "dqn+risk-oracle", "sb3-dqn"), seeds=2
+    )
+    found = experiment.units(config)
+    assert [unit["id"] for unit in found] == [
+        "grid/dqn/0",
+        "grid/dqn/1",
+        "grid/dqn+risk-oracle/0",
+        "grid/dqn+risk-oracle/1",
+        "grid/sb3-dqn/0",
+        "grid/sb3-dqn/1",
+    ]
+    minigrid = experiment.RiskConfig(worlds=("minigrid",), methods=("sb3-dqn",))
+    assert experiment.units(minigrid) == []  # sb3 only on sb3_worlds
+
+    def result(method, seed, collisions, final):
+        return {
+            "world": "grid",
+            "method": method,
+            "seed": seed,
+            "train_collisions": collisions,
+            "greedy_collisions": 0,
+            "final_return": final,
+            "greedy_success": 1.0,
+            "steps_to_threshold": None if seed else 500,
+            "wall_s": 1.0,
+        }
+
+    results = experiment.summarise(
+        config,
+        [
+            result("dqn", 0, 200, -11.0),
+            result("dqn", 1, 100, -12.0),
+            result("dqn+risk-oracle", 0, 10, -10.0),
+            result("dqn+risk-oracle", 1, 5, -11.0),
+        ],
+    )
+    (ratio,) = results["ratios"]
+    assert ratio["collision_ratio"] == pytest.approx(150.0 / 7.5)
+    assert ratio["return_gain"] == pytest.approx(1.0)
+    report = experiment.markdown(results)
+    assert "| grid | dqn | 150.0 |" in report and "20.0x" in report and "(1/2)" in report
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [("worlds", ("highway",)), ("methods", ("ppo",)), ("seeds", 0), ("tau", 2.0)],
+)
+def test_risk_experiment_config_names_the_bad_field(field, value):
+    from factorq_trainers.risk_experiment import RiskConfig
+
+    with pytest.raises(ValueError, match=field):
+        RiskConfig(**{field: value})
