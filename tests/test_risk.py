@@ -307,7 +307,7 @@ def test_risky_faces_mark_the_side_of_each_penalised_actuator():
 # --- the side-by-side command module (trainers/risk_experiment.py) ---------------------------
 
 
-def test_risk_experiment_units_summary_and_report():
+def test_risk_experiment_units_summary_and_report(tmp_path):
     from factorq_trainers import risk_experiment as experiment
 
     config = experiment.RiskConfig(
@@ -352,6 +352,8 @@ def test_risk_experiment_units_summary_and_report():
     assert ratio["return_gain"] == pytest.approx(1.0)
     report = experiment.markdown(results)
     assert "| grid | dqn | 150.0 |" in report and "20.0x" in report and "(1/2)" in report
+    experiment.figure(results, tmp_path / "risk.png")
+    assert (tmp_path / "risk.png").stat().st_size > 0
 
 
 @pytest.mark.parametrize(
