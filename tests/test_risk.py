@@ -365,3 +365,24 @@ def test_risk_experiment_config_names_the_bad_field(field, value):
 
     with pytest.raises(ValueError, match=field):
         RiskConfig(**{field: value})
+
+
+def test_any_value_network_a_dueling_head():
+    class Dueling(torch.nn.Module):  # Q = V + A - mean(A)
+        def __init__(self) -> None:
+            super().__init__()
+            self.value, self.advantage = torch.nn.Linear(6, 1), torch.nn.Linear(6, 4)
+
+        def forward(self, observation):
+            advantage = self.advantage(observation)
+            return self.value(observation) + advantage - advantage.mean(-1, keepdim=True)
+
+    from torchrl.data import Categorical
+
+    torch.manual_seed(0)
+    actor = QValueActor(Dueling(), in_keys=["observation"], spec=Categorical(4))
+    acting = with_local_risk(actor, blocked_north_table())
+    sensors = torch.tensor([[True, False, False, False]]).expand(32, 4)
+    td = acting(TensorDict(observation=torch.randn(32, 6), sensors=sensors, batch_size=[32]))
+    assert not (td["action"] == 0).any()  # north is never the choice where it is blocked
+    assert (td[TASK_VALUE].argmax(-1) == 0).any()  # though the task values sometimes prefer it
