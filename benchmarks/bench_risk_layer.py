@@ -50,9 +50,10 @@ def main() -> None:
     parser.add_argument("--calls", type=int, default=200)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--world", default="grid", choices=["grid", "minigrid"])
+    parser.add_argument("--hidden", type=int, default=64, help="width of the two hidden layers")
     args = parser.parse_args()
     torch.manual_seed(0)
-    config = RiskConfig()
+    config = RiskConfig(hidden=args.hidden)
     env = make_env(config, args.world, 0)
     spec = env.action_spec_unbatched
     encoder, width = features(env)
@@ -76,7 +77,10 @@ def main() -> None:
     with torch.no_grad():
         act_plain = per_call(lambda: actor(step.clone()), args.calls, args.repeats)
     dqn = per_call(update, args.calls // 4, args.repeats)
-    print(f"world {args.world}; DQN update on {args.batch} transitions: {dqn * 1e6:,.0f} us; ")
+    print(
+        f"world {args.world}, hidden {args.hidden}x2; DQN update on {args.batch} transitions: "
+        f"{dqn * 1e6:,.0f} us"
+    )
     print(f"plain actor forward: {act_plain * 1e6:,.0f} us")
     print("| provider | layer forward (us) | local loss per transition (us) | layer / DQN update |")
     print("| --- | ---: | ---: | ---: |")

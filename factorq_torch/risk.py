@@ -292,11 +292,12 @@ class LocalRisk(TensorDictModuleBase):
             combined = combined_values(task, rho, g)  # [*B, A], eq. 2
             allowed = rho >= -self.mask_threshold
             allowed = allowed | ~allowed.any(dim=-1, keepdim=True)  # never an empty choice
-        tensordict.set(RISK_MASK, allowed)
-        tensordict.set(TASK_VALUE, q)
-        tensordict.set(names.LOCAL_VALUE, rho)
-        tensordict.set(NORMALISER, g)
-        tensordict.set(self.out_key, combined)
+        # (local_value: the provider wrote it already on the online step)
+        if tensordict.get(names.LOCAL_VALUE, None) is not rho:
+            tensordict.set(names.LOCAL_VALUE, rho)
+        tensordict.update(
+            {RISK_MASK: allowed, TASK_VALUE: q, NORMALISER: g, self.out_key: combined}
+        )
         return tensordict
 
     # -- explanations ---------------------------------------------------------------------------
