@@ -245,9 +245,8 @@ class LocalRisk(TensorDictModuleBase):
                 f"tensordict has batch_size {list(batch)}: expected [..., {count}] or "
                 f"[{count}, ...]"
             )
-        if not leading and not isinstance(provider, StructureLearner):
-            if (count == 1 and batch == (1,)) or batch == (count,):  # the online step: as is
-                return provider(tensordict).get(names.LOCAL_VALUE)
+        if batch == (count,):  # the online step (every provider reads it as is)
+            return provider(tensordict).get(names.LOCAL_VALUE)
         view = tensordict.select(*provider.in_keys, strict=False)
         if leading:  # a [S, T] rollout: experiments last, as the networks read them
             view = view.permute(*range(1, len(batch)), 0)
