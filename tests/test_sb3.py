@@ -111,3 +111,16 @@ def test_sb3_dqn_with_local_risk_collides_far_less(one_thread):
         counts[name] = callback.count
     assert counts["dqn"] >= 4 * max(1, counts["risk"]), counts
     assert isinstance(model.policy, LocalRiskPolicy)
+
+
+def test_save_and_load_keep_the_provider(tmp_path):
+    env = grid()
+    model = LocalRiskDQN("MultiInputPolicy", env, provider=LocalRewardTable(1), learning_starts=50)
+    model.learn(100)
+    model.save(tmp_path / "model.zip")
+    loaded = LocalRiskDQN.load(tmp_path / "model.zip", env=env)
+    provider = loaded.policy.risk.provider
+    assert int(provider.kappa.sum()) == 100
+    assert torch.equal(provider.rho, model.policy.risk.provider.rho)
+    obs, _ = env.reset(seed=1)
+    assert model.predict(obs, deterministic=True)[0] == loaded.predict(obs, deterministic=True)[0]

@@ -153,14 +153,18 @@ class LocalRiskDQN(DQN):
     ``learn`` adds ``LocalRiskCallback`` to the given callbacks."""
 
     def __init__(self, policy="MultiInputPolicy", env=None, *, provider=None, **kwargs) -> None:
-        if provider is None:
+        # DQN.load builds the model with _init_setup_model=False, then restores the saved
+        # policy_kwargs (the provider included) and the policy's state
+        loading = kwargs.get("_init_setup_model", True) is False
+        if provider is None and not loading:
             raise ValueError("LocalRiskDQN needs provider= (a local value provider of S=1)")
         if policy in ("MultiInputPolicy", MultiInputPolicy):
             policy = LocalRiskPolicy
         if not (isinstance(policy, type) and issubclass(policy, LocalRiskPolicy)):
             raise TypeError(f"LocalRiskDQN needs a LocalRiskPolicy, got {policy!r}")
         policy_kwargs = dict(kwargs.pop("policy_kwargs", None) or {})
-        policy_kwargs["provider"] = provider
+        if provider is not None:
+            policy_kwargs["provider"] = provider
         super().__init__(policy, env, policy_kwargs=policy_kwargs, **kwargs)
 
     def _risk_step(self, observation, exploration_rate: float) -> np.ndarray:
