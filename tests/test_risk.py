@@ -386,3 +386,22 @@ def test_any_value_network_a_dueling_head():
     td = acting(TensorDict(observation=torch.randn(32, 6), sensors=sensors, batch_size=[32]))
     assert not (td["action"] == 0).any()  # north is never the choice where it is blocked
     assert (td[TASK_VALUE].argmax(-1) == 0).any()  # though the task values sometimes prefer it
+
+
+def test_over_the_projects_task_table_it_is_factor_q_policys_combined_value():
+    from factorq_torch.policy import FactorQPolicy
+    from factorq_torch.tables import TaskQTable
+
+    generator = torch.Generator().manual_seed(3)
+    task, local = TaskQTable(4, num_cells=9), LocalRewardTable(4)
+    with torch.no_grad():
+        task.table.copy_(torch.randn(task.table.shape, generator=generator))
+        local.rho.copy_(-torch.rand(local.rho.shape, generator=generator))
+    td = TensorDict(
+        cell=torch.tensor([0, 3, 5, 8]),
+        sensors=torch.rand(4, 4, generator=generator) < 0.5,
+        batch_size=[4],
+    )
+    layer = TensorDictSequential(task, LocalRisk(local))(td.clone())
+    policy = TensorDictSequential(task, local, FactorQPolicy(4, epsilon=0.0))(td.clone())
+    assert torch.equal(layer["action_value"], policy["combined_value"])  # the same functions
