@@ -4,8 +4,11 @@ Per env step of torchrl's DQN recipe, the layer adds one ``LocalRisk`` forward o
 batch (the provider's values, eqs. 2-3, the mask) and one ``LocalRiskLoss`` call on the collected
 transition (eq. 5 for a table, the Bayesian counts for a ``StructureLearner``). This script times
 them against one DQN update of the recipe (``DQNLoss`` forward and backward, Adam, ``SoftUpdate``
-on a minibatch of ``--batch`` transitions) and against the plain actor's forward, the medians of
-``--repeats`` timings of ``--calls`` calls each. Run from the repository root:
+on a minibatch of ``--batch`` transitions) and against the plain actor's forward, interleaved
+(``--repeats`` rounds, each timing ``--calls`` calls of every part in turn, so that a change of
+load on a shared machine hits them alike); the ratio is ``(layered forward - plain forward +
+local loss) / DQN update`` per round, its median printed with its range. Run from the
+repository root:
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_risk_layer.py
 
@@ -32,16 +35,24 @@ logging.getLogger("torchrl").setLevel(logging.WARNING)
 warnings.filterwarnings("ignore")
 
 
-def per_call(function, calls: int, repeats: int) -> float:
-    """Median seconds per call."""
-    function()  # warm-up
-    times = []
+def timed(function, calls: int) -> float:
+    """Seconds per call over ``calls`` calls."""
+    started = time.perf_counter()
+    for _ in range(calls):
+        function()
+    return (time.perf_counter() - started) / calls
+
+
+def interleaved(functions: dict, calls: dict, repeats: int) -> dict:
+    """Per repeat, every function timed in turn (so a load change hits them all alike); the
+    per-repeat times by name, after one warm-up call each."""
+    for function in functions.values():
+        function()
+    times = {name: [] for name in functions}
     for _ in range(repeats):
-        started = time.perf_counter()
-        for _ in range(calls):
-            function()
-        times.append((time.perf_counter() - started) / calls)
-    return statistics.median(times)
+        for name, function in functions.items():
+            times[name].append(timed(function, calls[name]))
+    return times
 
 
 def main() -> None:
@@ -74,28 +85,46 @@ def main() -> None:
         optimizer.step()
         target.step()
 
-    with torch.no_grad():
-        act_plain = per_call(lambda: actor(step.clone()), args.calls, args.repeats)
-    dqn = per_call(update, args.calls // 4, args.repeats)
+    print(f"world {args.world}, hidden {args.hidden}x2, DQN minibatch {args.batch}")
     print(
-        f"world {args.world}, hidden {args.hidden}x2; DQN update on {args.batch} transitions: "
-        f"{dqn * 1e6:,.0f} us"
+        "| provider | DQN update (us) | plain actor (us) | layer forward (us) | local loss (us) "
+        "| layer / DQN update |"
     )
-    print(f"plain actor forward: {act_plain * 1e6:,.0f} us")
-    print("| provider | layer forward (us) | local loss per transition (us) | layer / DQN update |")
-    print("| --- | ---: | ---: | ---: |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: |")
     for method in ("dqn+risk-oracle", "dqn+risk-learned"):
         local = provider(method, env)
         acting = with_local_risk(actor, local, env=env)
         local_loss = LocalRiskLoss(local)
         transition = data[:1]
-        with torch.no_grad():
-            forward = per_call(lambda acting=acting: acting(step.clone()), args.calls, args.repeats)
-        learn = per_call(lambda ll=local_loss, t=transition: ll(t), args.calls, args.repeats)
-        added = forward - act_plain + learn
+
+        def plain(actor=actor):
+            with torch.no_grad():
+                actor(step.clone())
+
+        def layered(acting=acting):
+            with torch.no_grad():
+                acting(step.clone())
+
+        functions = {
+            "update": update,
+            "plain": plain,
+            "layered": layered,
+            "loss": lambda ll=local_loss, t=transition: ll(t),
+        }
+        calls = {"update": max(1, args.calls // 4), "plain": args.calls, "layered": args.calls,
+                 "loss": args.calls}  # fmt: skip
+        times = interleaved(functions, calls, args.repeats)
+        ratios = [
+            (layered - plain + loss) / update
+            for update, plain, layered, loss in zip(
+                times["update"], times["plain"], times["layered"], times["loss"], strict=True
+            )
+        ]
+        median = {name: statistics.median(values) * 1e6 for name, values in times.items()}
         print(
-            f"| {type(local).__name__} | {(forward - act_plain) * 1e6:,.0f} | {learn * 1e6:,.0f} "
-            f"| {added / dqn:.1%} |"
+            f"| {type(local).__name__} | {median['update']:,.0f} | {median['plain']:,.0f} | "
+            f"{median['layered'] - median['plain']:,.0f} | {median['loss']:,.0f} | "
+            f"{statistics.median(ratios):.1%} (repeats {min(ratios):.1%}-{max(ratios):.1%}) |"
         )
 
 

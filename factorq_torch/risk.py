@@ -535,6 +535,9 @@ class LocalRiskLoss(LossModule):
             for row in range(rows.shape[0]):
                 update(rows[row], actions[row], rewards[row])
             return
+        if count == 1:  # one shared provider: the table's own [N] form (experiment 0)
+            update(rows.reshape(-1, width), actions.reshape(-1), rewards.flatten(0, 1))
+            return
         experiment = torch.arange(count, device=action.device).expand(rows.shape[0], count)
         update(rows, actions, rewards, experiment=experiment)
 
