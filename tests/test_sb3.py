@@ -92,8 +92,9 @@ def test_bad_input_is_named_at_construction():
 def test_a_missing_extra_gets_a_clear_error(monkeypatch):
     monkeypatch.setitem(sys.modules, "stable_baselines3", None)
     monkeypatch.delitem(sys.modules, "factorq_torch.integrations.sb3", raising=False)
+    module = importlib.import_module("factorq_torch.integrations.sb3")  # imports: docs, doctests
     with pytest.raises(ImportError, match=r"factorq-torch\[sb3\]"):
-        importlib.import_module("factorq_torch.integrations.sb3")
+        module.LocalRiskDQN("MultiInputPolicy", grid(), provider=LocalRewardTable(1))
 
 
 @pytest.mark.slow

@@ -22,8 +22,9 @@ Example (``FactoredGrid-v0``, registered by ``import factorq_envs``)::
     model = LocalRiskDQN("MultiInputPolicy", env, provider=provider, learning_starts=100)
     model.learn(2_000)
 
-The observation must be a ``Dict`` holding ``sensors`` (``MultiBinary(K)``); the reward SB3 reads
-is the env's own (the conventional reward, collisions included).
+The observation must be a ``Dict`` holding ``sensors`` (``MultiBinary(K)``); the reward SB3
+reads is the env's own (the conventional reward, collisions included). Without the extra the
+module still imports; building any of its classes raises an ImportError naming the extra.
 """
 
 from __future__ import annotations
@@ -34,18 +35,28 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
+from factorq_torch.base import keys as names
+from factorq_torch.risk import RISK_MASK, LocalRisk, LocalRiskLoss
+
 try:
     from stable_baselines3 import DQN
     from stable_baselines3.common.callbacks import BaseCallback, CallbackList
     from stable_baselines3.dqn.policies import MultiInputPolicy
-except ImportError as error:  # the optional extra
-    raise ImportError(
-        "factorq_torch.integrations.sb3 needs Stable-Baselines3: pip install "
-        "'factorq-torch[sb3]' (stable-baselines3==2.9.2)"
-    ) from error
 
-from factorq_torch.base import keys as names
-from factorq_torch.risk import RISK_MASK, LocalRisk, LocalRiskLoss
+    _MISSING: ImportError | None = None
+except ImportError as error:  # the optional extra: the module imports (docs, doctest
+    # collection), its classes refuse to be built
+    _MISSING = error
+    DQN = BaseCallback = MultiInputPolicy = object
+
+
+def _require() -> None:
+    """A clear error naming the extra when Stable-Baselines3 is not installed."""
+    if _MISSING is not None:
+        raise ImportError(
+            "factorq_torch.integrations.sb3 needs Stable-Baselines3: pip install "
+            "'factorq-torch[sb3]' (stable-baselines3==2.9.2)"
+        ) from _MISSING
 
 
 class LocalRiskPolicy(MultiInputPolicy):
@@ -65,6 +76,7 @@ class LocalRiskPolicy(MultiInputPolicy):
         risk_options: dict[str, Any] | None = None,
         **kwargs,
     ) -> None:
+        _require()
         super().__init__(*args, **kwargs)
         if provider is None:
             raise ValueError("LocalRiskPolicy needs policy_kwargs={'provider': ...}")
@@ -106,6 +118,7 @@ class LocalRiskCallback(BaseCallback):
     """Trains the policy's provider from every env step (``info["local_reward"]``)."""
 
     def __init__(self, verbose: int = 0) -> None:
+        _require()
         super().__init__(verbose)
         self.loss: LocalRiskLoss | None = None
 
@@ -153,6 +166,7 @@ class LocalRiskDQN(DQN):
     ``learn`` adds ``LocalRiskCallback`` to the given callbacks."""
 
     def __init__(self, policy="MultiInputPolicy", env=None, *, provider=None, **kwargs) -> None:
+        _require()
         # DQN.load builds the model with _init_setup_model=False, then restores the saved
         # policy_kwargs (the provider included) and the policy's state
         loading = kwargs.get("_init_setup_model", True) is False
