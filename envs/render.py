@@ -3,7 +3,9 @@ of ``factorq_envs.transforms.RenderPixels``): numpy only, no drawing library.
 
 Drawn on a square of ``(size + 2) * scale`` pixels: the wall around the grid (grey), obstacles
 (near black), the goal (green), the agent (blue) with a white mark on the side it faces (bodies
-with a heading), and the last collision as a red bar on the face that bumped.
+with a heading), and the last collision as a red bar on the face that bumped. ``mark_risk`` adds
+the local-risk layer's explanations (``factorq_torch.risk``): an orange mark on the side of every
+actuator the layer penalises, deeper for a larger penalty.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ GOAL = (60, 170, 75)
 AGENT = (40, 90, 220)
 MARK = (255, 255, 255)
 COLLISION = (220, 40, 40)
+RISK = (245, 150, 20)
 #: (d_row, d_col) of the four directions: 0 north, 1 west, 2 south, 3 east.
 OFFSETS = ((-1, 0), (0, -1), (1, 0), (0, 1))
 
@@ -34,6 +37,40 @@ def bumped_faces(bump, heading: int, body: Body) -> list[int]:
         if hit and move is not None:
             faces.append((move + heading) % len(OFFSETS))
     return faces
+
+
+def risky_faces(penalties, heading: int, body: Body, threshold: float = 0.05) -> list:
+    """``(face, penalty)`` of every moving actuator whose penalty (``G rho_a``, ``[A]``) is below
+    ``-threshold``: the absolute direction it would move in (as ``bumped_faces``)."""
+    faces = []
+    for actuator, penalty in enumerate(penalties):
+        move = body.moves[actuator]
+        if float(penalty) < -threshold and move is not None:
+            faces.append(((move + heading) % len(OFFSETS), float(penalty)))
+    return faces
+
+
+def mark_risk(image: np.ndarray, cell: int, size: int, faces, *, scale: int = SCALE) -> np.ndarray:
+    """``image`` (a ``render_rgb`` frame, changed in place and returned) with an orange mark in
+    the agent's cell next to each face of ``faces`` (``risky_faces``): a bar whose depth grows
+    with the penalty, from an eighth of the cell (small) to a third (a penalty of 1 or more).
+
+    >>> frame = render_rgb(0, torch.zeros(4, dtype=torch.bool), 2, scale=8)
+    >>> mark_risk(frame, 0, 2, [(3, -1.0)], scale=8)[12, 15].tolist()  # east side of the agent
+    [245, 150, 20]
+    """
+    row, col = divmod(int(cell), size)
+    top, left = (row + 1) * scale, (col + 1) * scale
+    for face, penalty in faces:
+        depth = max(1, round(scale * min(1.0, max(0.375, abs(penalty))) / 3))
+        d_row, d_col = OFFSETS[face]
+        if d_row:
+            edge = top if d_row < 0 else top + scale - depth
+            image[edge : edge + depth, left + depth : left + scale - depth] = RISK
+        else:
+            edge = left if d_col < 0 else left + scale - depth
+            image[top + depth : top + scale - depth, edge : edge + depth] = RISK
+    return image
 
 
 def render_rgb(

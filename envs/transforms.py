@@ -3,7 +3,18 @@
 ``SplitLocalReward`` turns the conventional reward of ``FactoredGridEnv`` into what Factor-Q
 learns from (SPEC section 2): the task reward (step + goal) under ``"reward"`` and the local
 reward vector (the collision vector) under ``"local_reward"``. Q-learning and DQN use the env
-without it.
+without it, or with ``SplitLocalReward(keep_reward=True)`` (a DQN with the local-risk layer,
+``factorq_torch.risk``): ``"reward"`` stays the conventional reward and ``"local_reward"`` is
+added beside it.
+
+**Which reward each part reads** (the trap: a DQN recipe on the default split never sees a
+collision, since its ``"reward"`` is then the task reward alone, and its greedy policy keeps
+colliding; nothing in torchrl can tell):
+
+- the plain env: ``reward`` = step + goal + collisions, read by Q-learning and DQN;
+- ``SplitLocalReward()``: ``reward`` = step + goal, read by ``FactorQLoss`` with ``local_reward``;
+- ``SplitLocalReward(keep_reward=True)``: ``reward`` = step + goal + collisions, read by
+  ``DQNLoss`` or any recipe; ``local_reward`` read by ``LocalRiskLoss``.
 """
 
 from __future__ import annotations
@@ -29,6 +40,11 @@ class SplitLocalReward(Transform):
     - ``("next", local_reward_key)`` ``[*B, 4]`` float32: the collision vector, declared as a
       second reward (so pass reward keys explicitly: ``env.reward_key`` is ambiguous).
 
+    With ``keep_reward=True`` (torchrl recipes, the local-risk layer) ``("next", reward_key)``
+    is left as the conventional reward, what a DQN recipe expects, and ``local_reward`` is
+    declared as an observation entry, not a second reward: ``env.reward_key`` stays
+    ``reward_key`` (torchrl's ``RewardSum`` then sums the conventional reward only).
+
     Example:
         >>> import torch
         >>> from torchrl.envs import TransformedEnv
@@ -39,6 +55,11 @@ class SplitLocalReward(Transform):
         >>> td = env.step(td)
         >>> td["next", "reward"], td["next", "local_reward"]
         (tensor([-1.]), tensor([-1.,  0.,  0.,  0.]))
+        >>> kept = TransformedEnv(FactoredGridEnv(size=3, num_obstacles=0),
+        ...                       SplitLocalReward(keep_reward=True))
+        >>> td = kept.step(kept.reset().set("action", torch.tensor(0)))
+        >>> kept.reward_key, td["next", "reward"], td["next", "local_reward"]
+        ('reward', tensor([-2.]), tensor([-1.,  0.,  0.,  0.]))
     """
 
     def __init__(
@@ -46,13 +67,17 @@ class SplitLocalReward(Transform):
         reward_key: str = "reward",
         collision_key: str = "collision",
         local_reward_key: str = "local_reward",
+        *,
+        keep_reward: bool = False,
     ) -> None:
-        super().__init__(
-            in_keys=[reward_key, collision_key], out_keys=[reward_key, local_reward_key]
-        )
+        if not isinstance(keep_reward, bool):
+            raise TypeError(f"keep_reward must be a bool, got {keep_reward!r}")
+        out_keys = [local_reward_key] if keep_reward else [reward_key, local_reward_key]
+        super().__init__(in_keys=[reward_key, collision_key], out_keys=out_keys)
         self.reward_key = reward_key
         self.collision_key = collision_key
         self.local_reward_key = local_reward_key
+        self.keep_reward = keep_reward
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         reward = next_tensordict.get(self.reward_key, None)  # [*B, 1]
@@ -65,10 +90,22 @@ class SplitLocalReward(Transform):
                 f"subtract the collisions twice"
             )
         collision = next_tensordict.get(self.collision_key)  # [*B, 4]
-        next_tensordict.set(self.reward_key, reward - collision.sum(dim=-1, keepdim=True))
+        if not self.keep_reward:
+            next_tensordict.set(self.reward_key, reward - collision.sum(dim=-1, keepdim=True))
         # A copy, so that editing one entry in place never changes the other.
         next_tensordict.set(self.local_reward_key, collision.clone())
         return next_tensordict
+
+    def _reset(
+        self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
+    ) -> TensorDictBase:
+        # kept reward: local_reward is an observation, present from the reset on (the
+        # collision vector of a reset: zeros)
+        if self.keep_reward:
+            collision = tensordict_reset.get(self.collision_key, None)
+            if collision is not None:
+                tensordict_reset.set(self.local_reward_key, collision.clone())
+        return tensordict_reset
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Split transitions offline, e.g. as a replay buffer's transform
@@ -104,7 +141,9 @@ class SplitLocalReward(Transform):
                 f"vector written by FactoredGridEnv); the env has {list(observation_spec.keys())}"
             )
         collision = observation_spec[self.collision_key]
-        output_spec["full_reward_spec"][self.local_reward_key] = Unbounded(
+        # kept reward: an observation entry, so that env.reward_key stays the one reward key
+        where = "full_observation_spec" if self.keep_reward else "full_reward_spec"
+        output_spec[where][self.local_reward_key] = Unbounded(
             shape=collision.shape, dtype=collision.dtype, device=collision.device
         )
         return super().transform_output_spec(output_spec)

@@ -33,6 +33,10 @@ _LAZY = {
     "OnlineCollector": "factorq_torch.collectors",
     "TaskQNetwork": "factorq_torch.neural",
     "LocalRewardNetwork": "factorq_torch.neural",
+    "LocalRisk": "factorq_torch.risk",
+    "LocalRiskLoss": "factorq_torch.risk",
+    "RiskSummary": "factorq_torch.risk",
+    "with_local_risk": "factorq_torch.risk",
 }
 
 __all__ = ["__version__", *_LAZY]

@@ -128,3 +128,42 @@ def test_qlearning_state_of_the_env_observation_covers_the_1600_states_range():
     assert states.shape == (32, 50)
     assert bool(((states >= 0) & (states < 1600)).all())
     assert torch.equal(states // 16, data["cell"])
+
+
+# --- keep_reward: the recipe's reward untouched, local_reward beside it (issue 26) ----------
+
+
+def test_keep_reward_leaves_the_conventional_reward_and_adds_the_collision_vector():
+    settings = dict(size=5, num_obstacles=6, obstacle_period=1, batch_size=(3,))
+    plain = FactoredGridEnv(**settings, seed=4)
+    kept = TransformedEnv(FactoredGridEnv(**settings, seed=4), SplitLocalReward(keep_reward=True))
+    torch.manual_seed(0)
+    actions = torch.randint(0, 4, (40, 3))
+    td_plain, td_kept = plain.reset(), kept.reset()
+    assert td_kept["local_reward"].tolist() == [[0.0] * 4] * 3  # an observation from the reset
+    for action in actions:
+        td_plain = plain.step(td_plain.set("action", action))
+        td_kept = kept.step(td_kept.set("action", action))
+        assert torch.equal(td_kept["next", "reward"], td_plain["next", "reward"])
+        assert torch.equal(td_kept["next", "local_reward"], td_plain["next", "collision"])
+        td_plain, td_kept = step_mdp(td_plain), step_mdp(td_kept)
+
+
+def test_keep_reward_keeps_env_reward_key_and_passes_check_env_specs():
+    from torchrl.envs import Compose, RewardSum, StepCounter
+
+    env = TransformedEnv(
+        FactoredGridEnv(size=4, num_obstacles=2, batch_size=(2,)),
+        Compose(SplitLocalReward(keep_reward=True), StepCounter(), RewardSum()),
+    )
+    assert env.reward_key == "reward"  # local_reward is no second reward
+    assert "local_reward" in env.observation_spec.keys()
+    check_env_specs(env)
+    split = split_env(size=4, num_obstacles=2)
+    with pytest.raises(KeyError):  # the Factor-Q split declares two rewards (documented)
+        _ = split.reward_key
+
+
+def test_keep_reward_must_be_a_bool():
+    with pytest.raises(TypeError, match="keep_reward"):
+        SplitLocalReward(keep_reward="yes")
