@@ -56,7 +56,7 @@ from factorq_trainers import resources
 from factorq_trainers.experiment import MAX_SEED, check_world_options, experiment_keys
 from factorq_trainers.options import option
 from factorq_trainers.results import dumps, write_all_atomic
-from factorq_trainers.stats import bootstrap_indices, format_number, quantiles
+from factorq_trainers.stats import bootstrap_indices, format_number, interval, quantiles, wilson_ci
 
 #: The settings of the issue: name -> body options (the sensor order is drawn per experiment).
 SETTINGS: dict[str, dict[str, Any]] = {
@@ -620,6 +620,13 @@ def _ratio(numerator: np.ndarray, denominator: np.ndarray, seed: int) -> dict[st
     return {"ratio": value, "ci": quantiles(ratios)}
 
 
+def _percent_interval(bounds: list[float | None] | None) -> str:
+    """``[lo, hi]% `` of a Wilson interval (results from before it: nothing)."""
+    if bounds is None:
+        return ""
+    return f"[{100 * bounds[0]:.0f}, {100 * bounds[1]:.0f}] "
+
+
 def _percentile(values: np.ndarray, q: float) -> float | None:
     value = float(np.quantile(values, q, method="inverted_cdf"))
     return value if math.isfinite(value) else None
@@ -670,6 +677,7 @@ def summarise_setting(
         "samples_until_right_p90": _percentile(until, 0.9),
         "samples_target": target,
         "fraction_right_within_target": float((until <= target).mean()),
+        "fraction_right_within_target_ci95": interval(*wilson_ci(until <= target)[1:]),
         "fraction_right_at_end": float(np.isfinite(until).mean()),
         "wrong_commitments_per_1000": 1000 * float(np.mean(learned["wrong_commitments"])),
         "hamming_at_end_mean": float(np.mean(learned["hamming_at_end"])),
@@ -766,6 +774,7 @@ def report_markdown(results: dict[str, Any]) -> str:
             f"| {setting} | {format_number(structure['samples_until_right_median'])}, "
             f"{format_number(structure['samples_until_right_p90'])} | "
             f"{100 * structure['fraction_right_within_target']:.0f}% "
+            f"{_percent_interval(structure.get('fraction_right_within_target_ci95'))}"
             f"(<= {structure['samples_target']}) | "
             f"{format_number(structure['wrong_commitments_per_1000'])} | "
             f"{format_number(structure['hamming_at_end_mean'])} | "
