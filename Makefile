@@ -5,7 +5,7 @@ PYTHON ?= python3.11
 VENV := .venv
 STAMP := $(VENV)/.installed
 
-.PHONY: paper test setup lint clean
+.PHONY: paper test setup lint typecheck docs clean
 
 paper: $(STAMP)
 	$(VENV)/bin/factorq paper $(ARGS)
@@ -23,6 +23,14 @@ $(STAMP): pyproject.toml
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check .
+
+# The documentation site (mkdocs.yml) into build/site; warnings are errors.
+docs: $(VENV)/.docs-installed
+	$(VENV)/bin/mkdocs build --strict
+
+$(VENV)/.docs-installed: $(STAMP)
+	$(VENV)/bin/python -m pip install --quiet -e '.[docs]'
+	touch $@
 
 clean:
 	rm -rf $(VENV) build *.egg-info
