@@ -24,6 +24,13 @@ $(STAMP): pyproject.toml
 lint: $(STAMP)
 	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check .
 
+# mypy on the three packages under their installed names (pyproject's [tool.mypy] says how).
+typecheck: $(STAMP)
+	mkdir -p build/typecheck
+	ln -sfn ../../envs build/typecheck/factorq_envs
+	ln -sfn ../../trainers build/typecheck/factorq_trainers
+	$(VENV)/bin/mypy
+
 # The documentation site (mkdocs.yml) into build/site; warnings are errors.
 docs: $(VENV)/.docs-installed
 	$(VENV)/bin/mkdocs build --strict

@@ -190,7 +190,7 @@ class FactoredMiniGrid(gym.Wrapper):
         self.action_space = gym.spaces.Discrete(self.num_actions)
 
     def _observe(self, obs: dict[str, Any], collided: bool) -> dict[str, Any]:
-        base = self.env.unwrapped
+        base: Any = self.env.unwrapped  # a MiniGridEnv (checked in __init__), untyped
         image = obs["image"]
         kinds = image[self._cells[:, 0], self._cells[:, 1], 0]
         sensors = ((kinds == BLOCKING["wall"]) | (kinds == BLOCKING["ball"])).astype(np.int8)

@@ -64,7 +64,7 @@ class MiniGridEnv(EnvBase):
         first = self.envs[0]
         self.num_cells, self.num_sensors = first.num_cells, first.num_sensors
         self.num_actions = first.num_actions
-        self.max_steps = first.unwrapped.max_steps
+        self.max_steps: int = first.unwrapped.max_steps  # type: ignore[attr-defined]  # MiniGridEnv's
         self._last: list[dict[str, Any]] = [first.observation_space.sample() for _ in seeds]
         self._make_specs()
 

@@ -29,6 +29,12 @@ class SplitLocalReward(Transform):
     - ``("next", local_reward_key)`` ``[*B, 4]`` float32: the collision vector, declared as a
       second reward (so pass reward keys explicitly: ``env.reward_key`` is ambiguous).
 
+    Args:
+        reward_key: the env's reward, read as the conventional reward and rewritten as the task
+            reward.
+        collision_key: the collision vector ``[*B, actuators]`` the env writes.
+        local_reward_key: where the local reward vector is written.
+
     Example:
         >>> import torch
         >>> from torchrl.envs import TransformedEnv
@@ -116,6 +122,10 @@ class ExperimentIndex(Transform):
     buffer (``rb.extend(data.reshape(-1))``) and the tables, policies and losses can take any
     minibatch of them.
 
+    Args:
+        key: where the index is written (``keys.EXPERIMENT``, ``"experiment"``, which the tables,
+            policies and losses read).
+
     Example:
         >>> from torchrl.envs import TransformedEnv
         >>> from factorq_envs.grid import FactoredGridEnv
@@ -159,6 +169,9 @@ class RenderPixels(Transform):
     (``FactoredGridEnv.render_rgb``: the gymnasium env's ``rgb_array`` frames), for torchrl's
     ``VideoRecorder`` or any frame consumer. Costs a picture per world per step: for
     evaluation and videos, not for training.
+
+    Args:
+        key: where the frames are written.
 
     Example:
         >>> from torchrl.envs import TransformedEnv
