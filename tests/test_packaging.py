@@ -117,7 +117,11 @@ def test_the_sdist_carries_examples_docs_licence_and_changelog(distributions):
     names = {name.removeprefix(top) for name in sdist.getnames()}
     tracked = ["LICENSE", "CHANGELOG.md", "README.md", "mkdocs.yml"]
     for folder in ("examples", "docs"):
-        tracked += [str(p.relative_to(ROOT)) for p in (ROOT / folder).rglob("*") if p.is_file()]
+        tracked += [
+            str(path.relative_to(ROOT))
+            for path in (ROOT / folder).rglob("*")
+            if path.is_file() and "__pycache__" not in path.parts  # bytecode stays out
+        ]
     missing = [name for name in tracked if (ROOT / name).exists() and name not in names]
     assert not missing, f"not in the sdist: {missing}"
     assert "examples/offpolicy_replay.py" in names and "docs/decisions.md" in names
