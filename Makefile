@@ -5,7 +5,7 @@ PYTHON ?= python3.11
 VENV := .venv
 STAMP := $(VENV)/.installed
 
-.PHONY: paper test test-float setup lint clean
+.PHONY: paper test test-float setup lint typecheck docs clean
 
 paper: $(STAMP)
 	$(VENV)/bin/factorq paper $(ARGS)
@@ -35,6 +35,21 @@ $(STAMP): pyproject.toml
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check .
+
+# mypy on the three packages under their installed names (pyproject's [tool.mypy] says how).
+typecheck: $(STAMP)
+	mkdir -p build/typecheck
+	ln -sfn ../../envs build/typecheck/factorq_envs
+	ln -sfn ../../trainers build/typecheck/factorq_trainers
+	$(VENV)/bin/mypy
+
+# The documentation site (mkdocs.yml) into build/site; warnings are errors.
+docs: $(VENV)/.docs-installed
+	$(VENV)/bin/mkdocs build --strict
+
+$(VENV)/.docs-installed: $(STAMP)
+	$(VENV)/bin/python -m pip install --quiet -e '.[docs]'
+	touch $@
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -148,7 +148,9 @@ def base_dependency(body: Body, layout: SensorLayout, num_distractors: int) -> t
     """``[actuators, layout sensors + distractors]`` bool before any permutation: a moving
     actuator's collision is decided by the one sensor looking where it moves (the cross sensor of
     its direction, present in every layout); turns and distractors decide nothing."""
-    dependency = torch.zeros(body.num_actuators, layout.num_sensors + num_distractors, dtype=bool)
+    dependency = torch.zeros(
+        body.num_actuators, layout.num_sensors + num_distractors, dtype=torch.bool
+    )
     for actuator, move in enumerate(body.moves):
         if move is not None:
             dependency[actuator, layout.directions.index((move,))] = True

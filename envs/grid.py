@@ -305,8 +305,8 @@ class FactoredGridEnv(EnvBase):
         if callable(getattr(world, "to", None)):
             world.to(device)
         self._world_state = self.world.initial_state(num_worlds, device)
-        self._kept_draws = None  # (state, draws, terminated) of the last step, for its reset
-        self._kept_output = None  # (state, collision, terminated, truncated) of the last step
+        self._kept_draws: tuple | None = None  # (state, draws, terminated) of the last step
+        self._kept_output: tuple | None = None  # (state, collision, terminated, truncated)
         self._started = False  # set by the first reset (or by assigning world_state)
         self._make_specs()
         self._set_seed(seed)

@@ -79,7 +79,7 @@ def render_rgb(
     size: int,
     *,
     heading: int | None = None,
-    bumped: list[int] = (),
+    bumped: tuple[int, ...] | list[int] = (),
     scale: int = SCALE,
 ) -> np.ndarray:
     """One world as ``uint8 [(size + 2) * scale, (size + 2) * scale, 3]``.

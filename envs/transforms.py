@@ -45,6 +45,14 @@ class SplitLocalReward(Transform):
     declared as an observation entry, not a second reward: ``env.reward_key`` stays
     ``reward_key`` (torchrl's ``RewardSum`` then sums the conventional reward only).
 
+    Args:
+        reward_key: the env's reward, read as the conventional reward and rewritten as the task
+            reward.
+        collision_key: the collision vector ``[*B, actuators]`` the env writes.
+        local_reward_key: where the local reward vector is written.
+        keep_reward: leave the conventional reward under ``reward_key`` and declare
+            ``local_reward`` as an observation (see above).
+
     Example:
         >>> import torch
         >>> from torchrl.envs import TransformedEnv
@@ -155,6 +163,10 @@ class ExperimentIndex(Transform):
     buffer (``rb.extend(data.reshape(-1))``) and the tables, policies and losses can take any
     minibatch of them.
 
+    Args:
+        key: where the index is written (``keys.EXPERIMENT``, ``"experiment"``, which the tables,
+            policies and losses read).
+
     Example:
         >>> from torchrl.envs import TransformedEnv
         >>> from factorq_envs.grid import FactoredGridEnv
@@ -198,6 +210,9 @@ class RenderPixels(Transform):
     (``FactoredGridEnv.render_rgb``: the gymnasium env's ``rgb_array`` frames), for torchrl's
     ``VideoRecorder`` or any frame consumer. Costs a picture per world per step: for
     evaluation and videos, not for training.
+
+    Args:
+        key: where the frames are written.
 
     Example:
         >>> from torchrl.envs import TransformedEnv

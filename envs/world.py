@@ -15,9 +15,10 @@ from __future__ import annotations
 
 import threading
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import torch
 
@@ -89,7 +90,21 @@ def check_permutation(name: str, value, count: int) -> tuple[int, ...]:
 
 @dataclass(frozen=True)
 class WorldConfig:
-    """The parameters of one FactoredGrid world, validated on construction."""
+    """The parameters of one FactoredGrid world, validated on construction.
+
+    Args:
+        size: side of the square grid in cells, >= 2.
+        num_obstacles: single-cell obstacles.
+        obstacle_period: 0 static, 10 semi-dynamic, 1 dynamic (scatter after every k-th action).
+        max_steps: actions after which an episode is truncated.
+        layout_seed: seed of the static layout.
+        body: ``"translate"`` (the paper) or ``"heading"`` (``factorq_envs.body.BODIES``).
+        sensors: ``"cross"`` (the paper) or ``"ring"`` (``factorq_envs.body.SENSOR_LAYOUTS``).
+        num_distractors: extra sensor bits that carry no information.
+        sensor_permutation: the sensors' order: None, a permutation or an int seed to draw one.
+        sensor_noise: probability that each sensor bit is flipped.
+        actuator_noise: probability that another actuator fires than the chosen one.
+    """
 
     size: int = 10
     """Side of the square grid, in cells (the wall surrounds it)."""
@@ -108,7 +123,7 @@ class WorldConfig:
     """Sensor layout: cross (the paper: the 4 neighbours) or ring (the 8 neighbours)."""
     num_distractors: int = 0
     """Extra sensor bits that carry no information: fair coins drawn afresh at every observation."""
-    sensor_permutation: tuple[int, ...] | int | None = None
+    sensor_permutation: Sequence[int] | int | None = None
     """The order the agent receives the sensors in: None (layout order, distractors last), a
     permutation (agent's sensor j = sensor permutation[j]) or an int seed to draw one from."""
     sensor_noise: float = 0.0
@@ -173,7 +188,7 @@ class WorldConfig:
         ``sensor_permutation`` is None)."""
         if self.sensor_permutation is None:
             return tuple(range(self.num_sensors))
-        return self.sensor_permutation
+        return cast(tuple[int, ...], self.sensor_permutation)  # a tuple after __post_init__
 
     @property
     def sensor_names(self) -> tuple[str, ...]:
@@ -293,7 +308,7 @@ def _neighbour_cells(cell: torch.Tensor, size: int) -> tuple[torch.Tensor, torch
     return row.clamp(0, size - 1) * size + col.clamp(0, size - 1), inside
 
 
-def neighbours(cell: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+def neighbours(cell: torch.Tensor, size: int) -> tuple[torch.Tensor, ...]:
     """The cell one move away in each direction and whether it is inside the grid.
 
     Shapes: ``[...] -> ([..., 4] int64, [..., 4] bool)``; outside cells are clamped to the edge.
@@ -578,7 +593,7 @@ def reset_worlds(
     mask: torch.Tensor,
     key: torch.Tensor,
     period: torch.Tensor,
-    static_obstacles: torch.Tensor,
+    static_obstacles: torch.Tensor | None,
     config: WorldConfig,
     draws: torch.Tensor | None = None,
 ) -> WorldState:

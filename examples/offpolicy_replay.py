@@ -93,6 +93,10 @@ def train(
 
 
 if __name__ == "__main__":
+    # One torch thread: the tensors here are a few hundred numbers, and on a busy 2-core machine
+    # torch's default threads made this script 3-8x slower (issue 28: 18.7-47.5 s against
+    # 6.1-6.5 s with one; docs: how-to "Speed and threads").
+    torch.set_num_threads(1)
     result = train()
     for index, (steps, collisions) in enumerate(
         zip(result["steps"], result["collisions"], strict=True)

@@ -244,7 +244,7 @@ class OnlineCollector(BaseCollector):
                 # counters) are rewritten before they are read again, and torchrl would merge
                 # every entry of the tensordict by the reset mask, one torch.where each.
                 env_td = next_td.select(*self._env_keys, strict=False)
-                hints = {}
+                hints: dict[str, object] = {}
                 if self._hints and self._restarts_terminated:
                     hints["restarts_terminated"] = True
                 if self._mask_keyword:

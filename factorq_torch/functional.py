@@ -456,7 +456,7 @@ def posterior_weights(log_posterior: torch.Tensor) -> torch.Tensor:
     return torch.softmax(log_posterior, dim=-1)
 
 
-def log_posterior_of(log_prior: torch.Tensor, log_marginal: torch.Tensor) -> torch.Tensor:
+def log_posterior_of(log_prior: torch.Tensor | float, log_marginal: torch.Tensor) -> torch.Tensor:
     """``[..., C]`` float64: ``log p(c) + sum_p log p(D_p | c)`` of every candidate, from the log
     marginal of each of its patterns ``[..., C, P]``, summed left to right (the kernel's order:
     ``log_prior + (((m_0 + m_1) + m_2) + m_3)``)."""

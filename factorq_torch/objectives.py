@@ -80,7 +80,11 @@ def _check_provider(name: str, module: object) -> None:
 
 def tabular_optimizer(loss: LossModule) -> torch.optim.SGD:
     """Plain SGD of learning rate 1 over ``loss.parameters()``: one ``step()`` after
-    ``loss(td)["loss_task"].backward()`` applies ``Q + alpha (target - Q)`` exactly."""
+    ``loss(td)["loss_task"].backward()`` applies ``Q + alpha (target - Q)`` exactly.
+
+    Args:
+        loss: a ``FactorQLoss`` or ``TabularQLoss`` (its tables' parameters are stepped).
+    """
     return torch.optim.SGD(loss.parameters(), lr=1.0)
 
 

@@ -70,6 +70,11 @@ def experiment_index(tensordict: TensorDictBase, num_experiments: int, owner: st
     ``arange(S)`` over a ``[S]`` batch (broadcast over the trailing dimensions of ``[S, *T]``,
     a rollout of a ``[S]`` env) and 0 everywhere when ``S = 1``. Anything else is a ValueError
     naming the batch and the remedy, raised here, where the transitions enter.
+
+    Args:
+        tensordict: the transitions, batch ``[*B]``.
+        num_experiments: ``S``, the experiments the table holds.
+        owner: the caller's name, for the error message.
     """
     batch = tuple(tensordict.batch_size)
     index = tensordict.get(keys.EXPERIMENT, None)
@@ -482,6 +487,7 @@ class LocalRewardTable(TensorDictModuleBase):
         rewards = local_reward.reshape(-1, self.num_actions)
         reward = rewards.gather(1, action.unsqueeze(1)).squeeze(1)  # [M], r_L[a]
         if not distinct:
+            assert experiment is not None  # for mypy: every branch but the distinct one sets it
             table_starts = experiment.reshape(-1) * (self.num_actions * patterns_per_table)
         entry = table_starts + (action * patterns_per_table + reading)  # [M], into rho / kappa
         rho_flat, kappa_flat = self.rho.view(-1), self.kappa.view(-1)

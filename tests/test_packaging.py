@@ -1,9 +1,17 @@
-"""What the wheel installs: the three project packages under project names, nothing generic."""
+"""What the wheel installs (the three project packages under project names, nothing generic) and
+what the distributions carry (licence, one version, examples and docs in the sdist)."""
 
 from __future__ import annotations
 
+import re
+import subprocess
+import sys
+import tarfile
 import tomllib
+import zipfile
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 TOOL = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
@@ -43,3 +51,79 @@ def test_entry_points_use_installed_names():
     assert (ROOT / "trainers" / "py.typed").exists() and (ROOT / "envs" / "py.typed").exists()
     assert "*.c" in TOOL["package-data"]["factorq_trainers.compiled"]
     assert (ROOT / "trainers" / "compiled" / "_kernel.c").exists()
+
+
+# --- the distributions themselves (issue 28): licence, version in one place, sdist contents ---
+# One sdist and one wheel built per test session by setuptools' own backend (no isolation, no
+# download: about 2 s), in a temporary folder.
+
+BUILD = """
+import sys
+from setuptools import build_meta
+out = sys.argv[1]  # read first: build_meta rewrites sys.argv
+print(build_meta.build_sdist(out))
+print(build_meta.build_wheel(out))
+"""
+
+
+@pytest.fixture(scope="module")
+def distributions(tmp_path_factory) -> tuple[tarfile.TarFile, zipfile.ZipFile]:
+    out = tmp_path_factory.mktemp("dist")
+    subprocess.run(
+        [sys.executable, "-c", BUILD, str(out)], cwd=ROOT, check=True, capture_output=True
+    )
+    (sdist,) = out.glob("*.tar.gz")
+    (wheel,) = out.glob("*.whl")
+    return tarfile.open(sdist), zipfile.ZipFile(wheel)
+
+
+def project_version() -> str:
+    """``factorq_torch.__version__`` as written in the source (what the build reads)."""
+    source = (ROOT / "factorq_torch" / "__init__.py").read_text()
+    return re.search(r'^__version__ = "([^"]+)"$', source, re.MULTILINE).group(1)
+
+
+def test_license_is_an_spdx_expression_with_its_file():
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert project["license"] == "MIT" and project["license-files"] == ["LICENSE"]
+    assert (ROOT / "LICENSE").read_text().startswith("MIT License")
+
+
+def test_the_version_lives_in_one_place():
+    pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    assert "version" not in pyproject["project"] and "version" in pyproject["project"]["dynamic"]
+    dynamic = pyproject["tool"]["setuptools"]["dynamic"]["version"]
+    assert dynamic == {"attr": "factorq_torch.__version__"}
+    import factorq_torch
+
+    assert factorq_torch.__version__ == project_version()
+    assert f"## [{project_version()}]" in (ROOT / "CHANGELOG.md").read_text()
+
+
+def test_the_wheel_metadata(distributions):
+    _, wheel = distributions
+    info = f"factorq_torch-{project_version()}.dist-info"
+    metadata = wheel.read(f"{info}/METADATA").decode()
+    assert f"\nVersion: {project_version()}\n" in metadata
+    assert "\nLicense-Expression: MIT\n" in metadata and "\nLicense-File: LICENSE\n" in metadata
+    names = set(wheel.namelist())
+    assert f"{info}/licenses/LICENSE" in names and "factorq_trainers/_kernel.c" in names
+    # the wheel installs packages only: examples and docs travel in the sdist
+    assert not any(name.startswith(("examples/", "docs/", "envs/", "trainers/")) for name in names)
+
+
+def test_the_sdist_carries_examples_docs_licence_and_changelog(distributions):
+    sdist, _ = distributions
+    top = f"factorq_torch-{project_version()}/"
+    names = {name.removeprefix(top) for name in sdist.getnames()}
+    tracked = ["LICENSE", "CHANGELOG.md", "README.md", "mkdocs.yml"]
+    for folder in ("examples", "docs"):
+        tracked += [
+            str(path.relative_to(ROOT))
+            for path in (ROOT / folder).rglob("*")
+            if path.is_file() and "__pycache__" not in path.parts  # bytecode stays out
+        ]
+    missing = [name for name in tracked if (ROOT / name).exists() and name not in names]
+    assert not missing, f"not in the sdist: {missing}"
+    assert "examples/offpolicy_replay.py" in names and "docs/decisions.md" in names
+    assert not any("__pycache__" in name for name in names)

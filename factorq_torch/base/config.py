@@ -15,7 +15,15 @@ PAPER_NUM_ACTIONS = 4
 
 @dataclass(frozen=True)
 class AgentConfig:
-    """Learning parameters shared by Q-learning and Factor-Q (defaults: the paper's)."""
+    """Learning parameters shared by Q-learning and Factor-Q (defaults: the paper's).
+
+    Args:
+        epsilon: probability of a uniformly random action, in [0, 1].
+        gamma: discount of future reward, in [0, 1).
+        alpha: task learning rate (eqs. 1 and 4), in (0, 1].
+        eta: margin by which the scaled local reward dominates the task reward (eq. 3), >= 0.
+        g_min: floor of the normaliser G (eq. 3), > 0.
+    """
 
     epsilon: float = 0.01
     """Probability of a uniformly random (exploratory) action."""

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import TypeGuard
 
 #: The largest value of a C ``int64_t`` (and of a torch int64 tensor entry).
 INT64_MAX = 2**63 - 1
@@ -54,7 +55,7 @@ def check_hidden(name: str, value) -> tuple[int, ...]:
     return tuple(value)
 
 
-def is_int(value) -> bool:
+def is_int(value) -> TypeGuard[int]:
     """An ``int`` that is not a ``bool``."""
     return isinstance(value, int) and not isinstance(value, bool)
 

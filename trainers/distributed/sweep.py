@@ -510,7 +510,9 @@ def compare_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
             reached = entry["steps_to_threshold_per_seed"]
             steps = {"mean": entry["steps_to_threshold"], "ci95": None}
             if entry["steps_to_threshold"] is not None:
-                steps["ci95"] = result_files.interval_or_none(stats.scalar_ci(reached)[1:])
+                seed = results["config"].get("seed", 0)  # compare's bootstrap, its seed
+                bounded = functools.partial(stats.bootstrap_mean_ci, seed=seed)
+                steps["ci95"] = result_files.interval_or_none(stats.scalar_ci(reached, bounded)[1:])
             cells[f"{world}/{method}"] = {
                 "world": world,
                 "algorithm": method,

@@ -36,6 +36,7 @@ over the episode's steps), at step = that experiment's env steps.
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import json
 import os
@@ -55,7 +56,7 @@ from factorq_torch.base.rng import STREAM_LOCAL_NETWORK, STREAM_POLICY, STREAM_T
 from factorq_torch.base.validation import check_float, check_hidden, check_names, check_threads
 from factorq_torch.collectors import OnlineCollector
 from factorq_torch.neural import ACTIVATIONS, LocalRewardNetwork, TaskQNetwork
-from factorq_trainers.analysis.stats import finite_or_none, mean_ci, scalar_ci
+from factorq_trainers.analysis.stats import bootstrap_mean_ci, finite_or_none, scalar_ci
 from factorq_trainers.experiments import dqn, experiment
 from factorq_trainers.experiments.dqn import METHODS, DQNConfig, batch_keys
 from factorq_trainers.experiments.experiment import WORLDS, EpisodeRecorder, ExperimentConfig
@@ -364,10 +365,11 @@ def steps_to_threshold(trace: dict[str, Any], threshold: float) -> int | None:
     return int(trace["env_steps"][reached[0]]) if reached.size else None
 
 
-def _curve(traces: list[dict[str, Any]], name: str, grid: np.ndarray) -> dict[str, list]:
+def _curve(traces: list[dict[str, Any]], name: str, grid: np.ndarray, seed: int) -> dict[str, list]:
     """Per-episode ``name`` against env steps: for every seed, the mean over the episodes that
     ended in each interval ``(grid[k-1], grid[k]]`` (the last value carried over an interval where
-    none ended, NaN before the first), then the mean and 95% band across seeds where every seed
+    none ended, NaN before the first), then the mean and 95% band across seeds (BCa bootstrap: it
+    stays between the seeds, so inside the quantity's range) where every seed
     has a value."""
     values = np.full((len(traces), grid.size), np.nan)
     for row, trace in enumerate(traces):
@@ -383,7 +385,7 @@ def _curve(traces: list[dict[str, Any]], name: str, grid: np.ndarray) -> dict[st
     low, high = mean.copy(), mean.copy()
     complete = ~np.isnan(values).any(axis=0)
     if complete.any():
-        mean[complete], band_low, band_high = mean_ci(values[:, complete])
+        mean[complete], band_low, band_high = bootstrap_mean_ci(values[:, complete], seed)
         if band_low is not None:
             low[complete], high[complete] = band_low, band_high
     return {"mean": _json_list(mean), "low": _json_list(low), "high": _json_list(high)}
@@ -409,13 +411,15 @@ def summarise(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[st
             traces = [trace for trace in run["traces"] if trace["world"] == world]
             reached = [steps_to_threshold(t, thresholds[world]["threshold"]) for t in traces]
             hit = [value for value in reached if value is not None]
-            collisions = scalar_ci([t["total_collisions"] for t in traces])
-            greedy = scalar_ci([t["total_greedy_collisions"] for t in traces])
+            bounded = functools.partial(bootstrap_mean_ci, seed=experiments.seed)  # counts: >= 0
+            collisions = scalar_ci([t["total_collisions"] for t in traces], bounded)
+            greedy = scalar_ci([t["total_greedy_collisions"] for t in traces], bounded)
             avoidable = scalar_ci(
                 [
                     t["total_greedy_collisions"] - t["total_boxed_in_greedy_collisions"]
                     for t in traces
-                ]
+                ],
+                bounded,
             )
             tail = [t["steps"][t["env_steps"] > 0.8 * experiments.steps] for t in traces]
             tail = [float(values.mean()) for values in tail if values.size]
@@ -434,7 +438,8 @@ def summarise(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[st
                 "final_path_length": float(np.mean(tail)) if len(tail) == len(traces) else None,
             }
             curves[method][world] = {
-                name: _curve(traces, name, grid) for name in ("steps", "collisions")
+                name: _curve(traces, name, grid, experiments.seed)
+                for name in ("steps", "collisions")
             }
     return {
         "config": config_dict(config),

@@ -55,7 +55,7 @@ from factorq_torch.base.validation import (
     check_names,
     check_threads,
 )
-from factorq_trainers.analysis.stats import bootstrap_indices, quantiles
+from factorq_trainers.analysis.stats import bootstrap_indices, interval, quantiles, wilson_ci
 from factorq_trainers.experiments.experiment import MAX_SEED, check_world_options, experiment_keys
 from factorq_trainers.runner import resources
 from factorq_trainers.runner.options import option
@@ -862,6 +862,7 @@ def summarise_setting(
         "samples_until_right_p90": _percentile(until, 0.9),
         "samples_target": target,
         "fraction_right_within_target": float((until <= target).mean()),
+        "fraction_right_within_target_ci95": interval(*wilson_ci(until <= target)[1:]),
         "fraction_right_at_end": float(np.isfinite(until).mean()),
         "wrong_commitments_per_1000": 1000 * float(np.mean(learned["wrong_commitments"])),
         "hamming_at_end_mean": float(np.mean(learned["hamming_at_end"])),

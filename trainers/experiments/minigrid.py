@@ -23,12 +23,13 @@ MiniGrid return (its own reward summed: goal reward, -1 per collision) and steps
 of the successful episodes); env steps until the success rate over the last ``window`` finished
 episodes first reaches 90%; for ``factor-q-learned``, the env step at which the learner first
 committed to "forward <- front" (and nothing else for forward). Wall time per method and size
-(all seeds together). Means with Student-t 95% intervals across seeds
-(``factorq_trainers.analysis.stats``).
+(all seeds together). Means with 95% intervals across seeds that stay in the possible range:
+Wilson's for the success rate, the BCa bootstrap for the rest (``factorq_trainers.analysis.stats``).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import sys
 import time
@@ -41,7 +42,13 @@ import numpy as np
 
 from factorq_torch.base.validation import check_int
 from factorq_trainers.analysis.stats import DESCRIPTION as DESCRIPTION_OF_STATISTICS
-from factorq_trainers.analysis.stats import format_number, interval, scalar_ci
+from factorq_trainers.analysis.stats import (
+    bootstrap_mean_ci,
+    format_number,
+    interval,
+    scalar_ci,
+    wilson_ci,
+)
 from factorq_trainers.runner import resources
 from factorq_trainers.runner.options import option
 
@@ -424,12 +431,14 @@ RUNNERS = {
 # The experiment
 
 
-def _stat(values: list) -> dict[str, Any]:
-    """Mean and 95% t interval of the seeds that have a value, and how many have one."""
+def _stat(values: list, seed: int, proportion: bool = False) -> dict[str, Any]:
+    """Mean and 95% interval of the seeds that have a value (Wilson's for a proportion, the
+    bootstrap's otherwise: both stay inside the possible range, stats), and how many have one."""
     present = [v for v in values if v is not None]
     if not present:
         return {"mean": None, "ci95": None, "n": 0}
-    mean, low, high = scalar_ci(present)
+    method = wilson_ci if proportion else functools.partial(bootstrap_mean_ci, seed=seed)
+    mean, low, high = scalar_ci(present, method)
     return {"mean": mean, "ci95": interval(low, high), "n": len(present)}
 
 
@@ -444,12 +453,12 @@ MEASURES = (
 )
 
 
-def summarise_method(result: dict[str, Any], budget: int) -> dict[str, Any]:
-    summary = {name: _stat(result[name]) for name in MEASURES}
+def summarise_method(result: dict[str, Any], budget: int, seed: int = 0) -> dict[str, Any]:
+    summary = {name: _stat(result[name], seed, name == "success_rate") for name in MEASURES}
     found = result.get("found_forward_front")
     if found is not None:
         within = [f is not None and f <= FOUND_TARGET_STEPS for f in found]
-        summary["found_forward_front"] = _stat(found)
+        summary["found_forward_front"] = _stat(found, seed)
         summary["found_within_target"] = float(np.mean(within))
         summary["found_at_all"] = float(np.mean([f is not None for f in found]))
     summary["wall_s"] = result["wall_s"]
@@ -501,7 +510,7 @@ def run_unit(
         raw = RUNNERS[method](config, size, method, progress or (lambda steps: None))
     finally:
         torch.set_num_threads(threads)
-    return {"seeds": raw, "summary": summarise_method(raw, config.budget(size))}
+    return {"seeds": raw, "summary": summarise_method(raw, config.budget(size), config.seed)}
 
 
 def summarise(config: MiniGridConfig, outcomes: list[dict[str, Any]]) -> dict[str, Any]:
@@ -550,7 +559,8 @@ def markdown(results: dict[str, Any]) -> str:
     lines = [
         "# Factor-Q on MiniGrid Dynamic-Obstacles",
         "",
-        f"{seeds} seeds per cell, means with 95% t intervals across seeds; semantics "
+        f"{seeds} seeds per cell, means with 95% intervals across seeds (success rate: Wilson; "
+        f"the others: BCa bootstrap; neither leaves the possible range); semantics "
         f"`{config['semantics']}`, sensors {', '.join(results['sensors'])}. Success rate, return "
         f"and steps to goal over the episodes ending in the last "
         f"{config['final_fraction']:.0%} of the budget; collisions over the whole budget; "
@@ -644,7 +654,8 @@ def figure(results: dict[str, Any], path: Path) -> None:
         axis.grid(alpha=0.3)
     figure.axes[0].legend(fontsize=7)
     figure.suptitle(
-        f"MiniGrid Dynamic-Obstacles, {results['config']['seeds']} seeds, 95% t intervals"
+        f"MiniGrid Dynamic-Obstacles, {results['config']['seeds']} seeds, "
+        "95% intervals (Wilson, BCa bootstrap)"
     )
     figure.tight_layout()
     figure.savefig(path, dpi=100, format="png")

@@ -106,7 +106,9 @@ class PaperConfig:
     out: str = option("results/paper", "Directory for results.json, figure3.png and report.md.")
     threads: int | None = option(
         None,
-        "CPU threads for the experiments (default: all available); results do not depend on it.",
+        "CPU threads for the experiments (default: all available, the compiled path's workers; the "
+        "modular path runs 1 torch thread per process, fastest for its small tensors); results do "
+        "not depend on it.",
     )
     backend: str = option(
         "auto",

@@ -36,6 +36,13 @@ def _index(results: dict[str, Any], method: str) -> int:
     return methods.index(method) if method in methods else len(methods)
 
 
+def _percent_interval(bounds: list[float | None] | None) -> str:
+    """``[lo, hi]% `` of a Wilson interval (results from before it: nothing)."""
+    if bounds is None:
+        return ""
+    return f"[{100 * bounds[0]:.0f}, {100 * bounds[1]:.0f}] "
+
+
 def _ratio_text(entry: dict[str, Any] | None) -> str:
     if entry is None:
         return "n/a"
@@ -80,6 +87,7 @@ def markdown(results: dict[str, Any]) -> str:
             f"| {setting} | {format_number(structure['samples_until_right_median'])}, "
             f"{format_number(structure['samples_until_right_p90'])} | "
             f"{100 * structure['fraction_right_within_target']:.0f}% "
+            f"{_percent_interval(structure.get('fraction_right_within_target_ci95'))}"
             f"(<= {structure['samples_target']}) | "
             f"{format_number(structure['wrong_commitments_per_1000'])} | "
             f"{format_number(structure['hamming_at_end_mean'])} | "
