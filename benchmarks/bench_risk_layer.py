@@ -29,7 +29,7 @@ from torchrl.modules import MLP, QValueActor
 from torchrl.objectives import DQNLoss, SoftUpdate
 
 from factorq_torch.risk import LocalRiskLoss, with_local_risk
-from factorq_trainers.risk_experiment import RiskConfig, features, make_env, provider
+from factorq_trainers.experiments.risk import RiskConfig, features, make_env, provider
 
 logging.getLogger("torchrl").setLevel(logging.WARNING)
 warnings.filterwarnings("ignore")

@@ -73,7 +73,7 @@ def write_cli() -> None:
         "# Command line\n\n",
         "Generated from the parsers when the site is built (`factorq COMMAND --help`). Every "
         "option of a command is a field of its config dataclass, with the field's docstring as "
-        "its help (`factorq_trainers.options`).\n\n",
+        "its help (`factorq_trainers.runner.options`).\n\n",
         "```text\n",
         parser.format_help(),
         "```\n\n",
@@ -81,7 +81,7 @@ def write_cli() -> None:
     commands = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
     for name, command in commands.choices.items():
         if name == "sweep":  # main hands its arguments to factorq_trainers.sweep's own parser
-            from factorq_trainers import sweep
+            from factorq_trainers.distributed import sweep
 
             command = sweep.build_parser()
         lines += [f"## `factorq {name}`\n\n", "```text\n", command.format_help(), "```\n\n"]

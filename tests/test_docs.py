@@ -81,8 +81,8 @@ def _command_lines(code: str) -> list[list[str]]:
 
 
 def test_bash_blocks_name_real_commands_options_and_files():
-    from factorq_trainers import sweep
     from factorq_trainers.cli import build_parser
+    from factorq_trainers.distributed import sweep
 
     makefile = (ROOT / "Makefile").read_text()
     checked = 0
@@ -149,7 +149,7 @@ def test_the_api_reference_walks_every_module():
     for package, folder in namespace["PACKAGES"].items():
         names += namespace["module_names"](package, ROOT / folder)
     assert {"factorq_torch", "factorq_torch.base.rng", "factorq_envs.grid"} <= set(names)
-    assert "factorq_trainers.stats" in names and not any("._" in name for name in names)
+    assert "factorq_trainers.analysis.stats" in names and not any("._" in name for name in names)
     for name in names:
         assert importlib.util.find_spec(name) is not None, name
 

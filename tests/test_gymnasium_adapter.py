@@ -252,10 +252,10 @@ def test_other_bad_input_names_the_problem():
 
 
 def test_the_experiment_command_at_a_tiny_budget(tmp_path):
-    """``trainers/gym_experiment.py`` follows the command protocol: units per (method, seed),
+    """``trainers/experiments/gym.py`` follows the command protocol: units per (method, seed),
     deterministic ``run_unit``, a summary, the report and the figure (MiniGrid 8x8: fast)."""
     pytest.importorskip("minigrid")
-    from factorq_trainers import gym_experiment as experiment
+    from factorq_trainers.experiments import gym as experiment
 
     config = experiment.GymConfig(
         world="minigrid-8x8", seeds=1, steps=40, eval_episodes=1, curve_points=4

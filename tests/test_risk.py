@@ -271,7 +271,7 @@ def test_learned_structure_explains_with_the_committed_parents():
 
 @pytest.mark.slow
 def test_dqn_with_local_risk_collides_far_less_in_training(one_thread):
-    from factorq_trainers.risk_experiment import RiskConfig, run_unit
+    from factorq_trainers.experiments.risk import RiskConfig, run_unit
 
     config = RiskConfig(
         steps=250, grid_size=4, grid_obstacles=2, learning_starts=50, eval_episodes=0
@@ -304,11 +304,11 @@ def test_risky_faces_mark_the_side_of_each_penalised_actuator():
     assert changed.sum() > 0 and (marked[changed] == (245, 150, 20)).all()
 
 
-# --- the side-by-side command module (trainers/risk_experiment.py) ---------------------------
+# --- the side-by-side command module (trainers/experiments/risk.py) ---------------------------
 
 
 def test_risk_experiment_units_summary_and_report(tmp_path):
-    from factorq_trainers import risk_experiment as experiment
+    from factorq_trainers.experiments import risk as experiment
 
     config = experiment.RiskConfig(
         worlds=("grid",), methods=("dqn", "dqn+risk-oracle", "sb3-dqn"), seeds=2
@@ -361,7 +361,7 @@ def test_risk_experiment_units_summary_and_report(tmp_path):
     [("worlds", ("highway",)), ("methods", ("ppo",)), ("seeds", 0), ("tau", 2.0)],
 )
 def test_risk_experiment_config_names_the_bad_field(field, value):
-    from factorq_trainers.risk_experiment import RiskConfig
+    from factorq_trainers.experiments.risk import RiskConfig
 
     with pytest.raises(ValueError, match=field):
         RiskConfig(**{field: value})

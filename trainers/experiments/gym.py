@@ -5,7 +5,7 @@ module of the runner (``/work/coord`` protocol: ``NAME``, ``CONFIG``, ``units``,
 Every method trains one experiment per unit (``(method, seed)``) for the same env-step budget on
 the same worlds (common random numbers: seed ``i`` meets the same env seed under every method):
 
-- ``dqn``: ``factorq_trainers.dqn``'s torchrl DQN (``DQNLoss``, target network, replay,
+- ``dqn``: ``factorq_trainers.experiments.dqn``'s torchrl DQN (``DQNLoss``, target network, replay,
   annealed epsilon) on the world's own observation (highway: ``Kinematics``), with the
   hyperparameters highway-env's documentation uses for SB3's DQN (``HIGHWAY_DQN``);
 - ``factor-q-oracle``: neural Factor-Q: the task values from a network on the same observation
@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from factorq_torch.base.validation import check_float, check_int, check_names
-from factorq_trainers.options import option
+from factorq_trainers.runner.options import option
 
 NAME = "gym"
 HELP = (
@@ -326,7 +326,7 @@ def _run_dqn(config: GymConfig, unit: dict, progress) -> dict[str, Any]:
     import torch
 
     from factorq_torch.base.rng import STREAM_POLICY, STREAM_TASK_NETWORK
-    from factorq_trainers.dqn import DQNConfig, _gradient_step, dqn_agent
+    from factorq_trainers.experiments.dqn import DQNConfig, _gradient_step, dqn_agent
 
     settings = DQNConfig(**HIGHWAY_DQN)
     env = _torchrl_env(config, _env_seed(config, unit["seed_index"]))
@@ -536,7 +536,7 @@ MEASURES = (
 
 
 def _stat(values: list) -> dict[str, Any]:
-    from factorq_trainers.stats import interval, scalar_ci
+    from factorq_trainers.analysis.stats import interval, scalar_ci
 
     present = [v for v in values if v is not None]
     if not present:
@@ -657,7 +657,7 @@ def figure(results: dict[str, Any], path) -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from factorq_trainers.stats import mean_ci
+    from factorq_trainers.analysis.stats import mean_ci
 
     figure = Figure(figsize=(11, 4))
     FigureCanvasAgg(figure)

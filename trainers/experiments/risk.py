@@ -38,7 +38,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from factorq_trainers.options import option
+from factorq_trainers.runner.options import option
 
 NAME = "risk"
 WORLDS = ("grid", "minigrid")
