@@ -13,15 +13,18 @@ paper: $(STAMP)
 # The suite on this CPU's kernels, then its float-sensitive part (networks, Adam, DQN) again under
 # two other kernel sets, as another machine would round (docs/decisions.md, "Tests that hold on
 # any machine"). Where ARGS selects no float-sensitive test, pytest's "no tests" (exit 5) is fine.
+# One pytest-xdist worker per core, a test file per worker (TEST_WORKERS=0 runs in-process).
+TEST_WORKERS ?= auto
+XDIST := $(if $(filter 0,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadfile)
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest $(ARGS)
+	$(VENV)/bin/python -m pytest $(XDIST) $(ARGS)
 	$(MAKE) --no-print-directory test-float
 
 test-float: $(STAMP)
 	@for capability in default avx2; do \
 	  echo "float-sensitive tests under ATEN_CPU_CAPABILITY=$$capability"; \
 	  ATEN_CPU_CAPABILITY=$$capability $(VENV)/bin/python -m pytest -q -p no:cacheprovider \
-	    -m float_sensitive $(or $(ARGS),tests); \
+	    $(XDIST) -m float_sensitive $(or $(ARGS),tests); \
 	  code=$$?; [ $$code -eq 0 ] || [ $$code -eq 5 ] || exit $$code; \
 	done
 
@@ -29,7 +32,7 @@ setup: $(STAMP)
 
 $(STAMP): pyproject.toml
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/python -m pip install --quiet -e '.[dev,distributed,minigrid]'
+	$(VENV)/bin/python -m pip install --quiet -e '.[dev,distributed,minigrid,highway,sb3]'
 	$(VENV)/bin/python -m compileall -q envs trainers factorq_torch  # start-up: no module compiled per run
 	touch $(STAMP)
 
