@@ -123,6 +123,7 @@ class GymConfig:
         None, "Return threshold for 'steps to threshold' (default: the world's)."
     )
     curve_points: int = option(20, "Points of the curves in the figure.")
+    out: str = option("results/gym", "Directory for the json, figure and report.")
 
     def __post_init__(self) -> None:
         if self.world not in WORLDS:

@@ -41,6 +41,7 @@ from typing import Any
 from factorq_trainers.runner.options import option
 
 NAME = "risk"
+HELP = "torchrl's DQN (and SB3's) alone against DQN + local risk, side by side"
 WORLDS = ("grid", "minigrid")
 METHODS = ("dqn", "dqn+risk-oracle", "dqn+risk-learned", "sb3-dqn", "sb3-dqn+risk-oracle")
 TORCHRL_METHODS = METHODS[:3]
@@ -82,6 +83,7 @@ class RiskConfig:
     exploration_fraction: float = option(0.3, "Fraction of the steps epsilon anneals over.")
     eval_episodes: int = option(10, "Greedy episodes after training.")
     success_threshold: float = option(0.8, "Success rate of 10 episodes that counts as learned.")
+    out: str = option("results/risk", "Directory for the json, figure and report.")
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "worlds", _names(self.worlds, "worlds", WORLDS))
