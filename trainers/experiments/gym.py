@@ -37,6 +37,7 @@ from factorq_torch.base.validation import check_float, check_int, check_names
 from factorq_trainers.runner.options import option
 
 NAME = "gym"
+WORK_UNIT = "step"
 HELP = (
     "Factor-Q (oracle and learned dependencies) against DQN on a declared Gymnasium world "
     "(highway-fast-v0, MiniGrid): crashes and return for the same env-step budget."

@@ -42,6 +42,7 @@ from factorq_trainers.runner.options import option
 
 NAME = "risk"
 HELP = "torchrl's DQN (and SB3's) alone against DQN + local risk, side by side"
+WORK_UNIT = "step"
 WORLDS = ("grid", "minigrid")
 METHODS = ("dqn", "dqn+risk-oracle", "dqn+risk-learned", "sb3-dqn", "sb3-dqn+risk-oracle")
 TORCHRL_METHODS = METHODS[:3]
@@ -427,6 +428,11 @@ def run_sb3(config: RiskConfig, unit: dict, progress: Callable | None = None) ->
                 break
     greedy = {"collisions": collisions, "successes": successes, "episodes": config.eval_episodes}
     return _result(tally, greedy, wall)
+
+
+def work(config: RiskConfig, unit: dict) -> int:
+    """The unit's share of the progress bar: its training env steps (what ``run_unit`` reports)."""
+    return config.steps
 
 
 def run_unit(config: RiskConfig, unit: dict, progress: Callable | None = None) -> dict:
