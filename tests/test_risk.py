@@ -1,5 +1,6 @@
 """The local-risk layer for any Q-value actor (factorq_torch/risk.py, issue 26)."""
 
+import dataclasses
 import logging
 import warnings
 
@@ -347,6 +348,7 @@ def test_risk_experiment_units_summary_and_report(tmp_path):
             result("dqn+risk-oracle", 1, 5, -11.0),
         ],
     )
+    results["config"] = dataclasses.asdict(config)  # the runner's envelope adds it
     (ratio,) = results["ratios"]
     assert ratio["collision_ratio"] == pytest.approx(150.0 / 7.5)
     assert ratio["return_gain"] == pytest.approx(1.0)

@@ -378,7 +378,7 @@ def _run_factor_q(config: GymConfig, unit: dict, progress) -> dict[str, Any]:
     from factorq_torch.collectors import OnlineCollector
     from factorq_torch.structure import StructureLearner
     from factorq_torch.tables import LocalRewardTable
-    from factorq_trainers.experiment import online_agent
+    from factorq_trainers.experiments.experiment import online_agent
 
     base = _torchrl_env(config, _env_seed(config, unit["seed_index"]))
     key = config.spec.observation
@@ -691,12 +691,9 @@ def figure(results: dict[str, Any], path) -> None:
 
 
 def run(config: GymConfig, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
-    """In-process, until the runner lands: every unit, then the summary (no files)."""
-    from dataclasses import asdict
+    """Every unit here, summarised into the runner's envelope (no files)."""
+    import sys
 
-    prepare(config)
-    started = time.perf_counter()
-    results = [run_unit(config, unit, progress) for unit in units(config)]
-    out = summarise(config, results)
-    out.update(config=asdict(config), timing={"wall_s": time.perf_counter() - started})
-    return out
+    from factorq_trainers.runner import frame
+
+    return frame.run_in_process(sys.modules[__name__], config, progress)

@@ -35,7 +35,7 @@ import statistics
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any
 
 from factorq_trainers.runner.options import option
@@ -504,7 +504,7 @@ def summarise(config: RiskConfig, unit_results: list[dict]) -> dict:
                     "return_gain": learned["final_return"] - oracle["final_return"],
                 }
             )
-    return {"config": asdict(config), "rows": rows, "ratios": ratios}
+    return {"rows": rows, "ratios": ratios}
 
 
 def _cell(value, digits: int = 1) -> str:
@@ -572,5 +572,9 @@ def figure(results: dict, path) -> None:
 
 
 def run(config: RiskConfig) -> dict:
-    """All units in-process (until the runner lands)."""
-    return summarise(config, [run_unit(config, unit) for unit in units(config)])
+    """All units here, summarised into the runner's envelope (no files)."""
+    import sys
+
+    from factorq_trainers.runner import frame
+
+    return frame.run_in_process(sys.modules[__name__], config)
