@@ -567,7 +567,7 @@ def figure(results: dict, path) -> None:
             if metric == "train_collisions":
                 axis.set_yscale("log")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=100, format="png")  # the runner writes a temporary name first
     plt.close(fig)
 
 
