@@ -407,3 +407,16 @@ def test_over_the_projects_task_table_it_is_factor_q_policys_combined_value():
     layer = TensorDictSequential(task, LocalRisk(local))(td.clone())
     policy = TensorDictSequential(task, local, FactorQPolicy(4, epsilon=0.0))(td.clone())
     assert torch.equal(layer["action_value"], policy["combined_value"])  # the same functions
+
+
+def test_factorq_risk_runs_through_the_runner_and_writes_its_files(tmp_path, capsys):
+    # the command as a user types it: the runner's frame calls units, run_unit, summarise,
+    # markdown and figure, and writes the three files under --out
+    from factorq_trainers import cli
+
+    out = tmp_path / "risk"
+    args = ["risk", "--worlds", "grid", "--methods", "dqn,dqn+risk-oracle", "--seeds", "1"]
+    args += ["--steps", "40", "--learning-starts", "20", "--eval-episodes", "1", "--out", str(out)]
+    assert cli.main(args) == 0, capsys.readouterr().err
+    assert {path.name for path in out.iterdir()} >= {"risk.json", "risk.md", "risk.png"}
+    assert "dqn+risk-oracle" in (out / "risk.md").read_text()

@@ -462,6 +462,11 @@ def _mean(values: list) -> float | None:
     return statistics.fmean(found) if found else None
 
 
+def _difference(first: float | None, second: float | None) -> float | None:
+    """``first - second``; ``None`` where a side has no finished episode to give a return."""
+    return None if first is None or second is None else first - second
+
+
 def summarise(config: RiskConfig, unit_results: list[dict]) -> dict:
     """Means over seeds per (world, method), and the ratios the issue's targets name."""
     groups: dict[tuple[str, str], list[dict]] = {}
@@ -490,7 +495,7 @@ def summarise(config: RiskConfig, unit_results: list[dict]) -> dict:
                         "pair": f"{base} / {with_risk}",
                         "collision_ratio": alone["train_collisions"]
                         / max(risk["train_collisions"], 1e-9),
-                        "return_gain": risk["final_return"] - alone["final_return"],
+                        "return_gain": _difference(risk["final_return"], alone["final_return"]),
                     }
                 )
         if (world, "dqn+risk-learned") in by and (world, "dqn+risk-oracle") in by:
@@ -501,7 +506,7 @@ def summarise(config: RiskConfig, unit_results: list[dict]) -> dict:
                     "pair": "learned / oracle collisions",
                     "collision_ratio": learned["train_collisions"]
                     / max(oracle["train_collisions"], 1e-9),
-                    "return_gain": learned["final_return"] - oracle["final_return"],
+                    "return_gain": _difference(learned["final_return"], oracle["final_return"]),
                 }
             )
     return {"rows": rows, "ratios": ratios}
@@ -540,7 +545,8 @@ def markdown(results: dict) -> str:
         for ratio in results["ratios"]:
             lines.append(
                 f"| {ratio['world']} | {ratio['pair']} | {ratio['collision_ratio']:.1f}x | "
-                f"{ratio['return_gain']:+.2f} |"
+                + ("-" if ratio["return_gain"] is None else f"{ratio['return_gain']:+.2f}")
+                + " |"
             )
     return "\n".join(lines) + "\n"
 
