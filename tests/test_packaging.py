@@ -107,7 +107,7 @@ def test_the_wheel_metadata(distributions):
     assert f"\nVersion: {project_version()}\n" in metadata
     assert "\nLicense-Expression: MIT\n" in metadata and "\nLicense-File: LICENSE\n" in metadata
     names = set(wheel.namelist())
-    assert f"{info}/licenses/LICENSE" in names and "factorq_trainers/_kernel.c" in names
+    assert f"{info}/licenses/LICENSE" in names and "factorq_trainers/compiled/_kernel.c" in names
     # the wheel installs packages only: examples and docs travel in the sdist
     assert not any(name.startswith(("examples/", "docs/", "envs/", "trainers/")) for name in names)
 
