@@ -124,7 +124,7 @@ class FactorDQNConfig:
 
 
 @dataclass(frozen=True)
-class CompareConfig:
+class CompareConfig(experiment.WorldOptions):
     """The comparison: methods x worlds, ``seeds`` experiments each, ``steps`` env steps each."""
 
     seed: int = option(
@@ -148,18 +148,6 @@ class CompareConfig:
         "Per-episode logs: csv (torchrl CSVLogger) or tensorboard (needs the tensorboard package).",
         choices=LOGGERS,
     )
-    size: int = option(10, "Side of the square grid, in cells.")
-    obstacles: int = option(10, "Number of single-cell obstacles.")
-    max_steps: int = option(10_000, "Actions after which an episode is truncated.")
-    layout_seed: int = option(0, "Seed of the static world's obstacle layout.")
-    body: str = option("translate", "Agent body: translate (the paper) or heading.")
-    sensors: str = option("cross", "Sensor layout: cross (the paper: 4 neighbours) or ring (8).")
-    distractors: int = option(0, "Extra sensor bits that carry no information.")
-    sensor_permutation: int | None = option(
-        None, "Seed of a random order in which the agent receives its sensors."
-    )
-    sensor_noise: float = option(0.0, "Probability that each sensor bit flips at each observation.")
-    actuator_noise: float = option(0.0, "Probability that another actuator fires than the chosen.")
     threads: int = option(1, "CPU threads for torch (1 is fastest on these tiny tensors).")
     agent: AgentConfig = option(
         AgentConfig(),

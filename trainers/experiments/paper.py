@@ -74,7 +74,7 @@ CURVES = CURVE_NAMES  # per-episode curves; task return is reported per run
 
 
 @dataclass(frozen=True)
-class PaperConfig:
+class PaperConfig(experiment.WorldOptions):
     """The paper's experiment (SPEC section 4); defaults reproduce it with 100 seeds."""
 
     seed: int = option(0, "Master seed: every random number of the experiment derives from it.")
@@ -88,16 +88,12 @@ class PaperConfig:
         10, "Runs per experiment (task tables reset each run; Factor-Q's local tables carry over)."
     )
     episodes: int = option(200, "Episodes per run.")
-    size: int = option(10, "Side of the square grid, in cells.")
-    obstacles: int = option(10, "Number of single-cell obstacles.")
     worlds: tuple[str, ...] = option(
         WORLDS, "Worlds to run: static, semi-dynamic, dynamic (comma-separated)."
     )
     algorithms: tuple[str, ...] = option(
         ALGORITHMS, "Algorithms to run: q-learning, factor-q (comma-separated)."
     )
-    max_steps: int = option(10_000, "Actions after which an episode is truncated.")
-    layout_seed: int = option(0, "Seed of the static world's obstacle layout.")
     epsilon: float = option(0.01, "Probability of a uniformly random (exploratory) action.")
     gamma: float = option(0.9, "Discount of future reward, in [0, 1).")
     alpha: float = option(0.2, "Task learning rate (eqs. 1 and 4), in (0, 1].")
@@ -114,26 +110,6 @@ class PaperConfig:
         choices=BACKENDS,
     )
     device: str = option("cpu", "Torch device (the fast backend runs on cpu only).")
-    body: str = option(
-        "translate",
-        "Agent body: translate (the paper: moves N/W/S/E) or heading (forward, turn left/right).",
-    )
-    sensors: str = option(
-        "cross", "Sensor layout: cross (the paper: 4 neighbours) or ring (8 neighbours)."
-    )
-    distractors: int = option(
-        0, "Extra sensor bits that carry no information (fresh fair coins at every observation)."
-    )
-    sensor_permutation: int | None = option(
-        None,
-        "Seed of a random order in which the agent receives its sensors (default: layout order).",
-    )
-    sensor_noise: float = option(
-        0.0, "Probability that each sensor bit is flipped at each observation, in [0, 1]."
-    )
-    actuator_noise: float = option(
-        0.0, "Probability that another actuator fires than the chosen one, in [0, 1]."
-    )
 
     def __post_init__(self) -> None:
         check_int("seed", self.seed, 0, MAX_SEED)
