@@ -131,7 +131,8 @@ def test_reports_import_no_torch():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
-def test_report_redraws_dependencies_without_torch(tmp_path):
+@pytest.mark.parametrize("layout", ["envelope", "before the runner"])
+def test_report_redraws_dependencies_without_torch(tmp_path, layout):
     results = {
         "schema_version": 1,
         "command": "dependencies",
@@ -147,6 +148,9 @@ def test_report_redraws_dependencies_without_torch(tmp_path):
         "skipped": {},
         "methods": {"oracle": "oracle pairing"},
     }  # fmt: skip
+    if layout == "before the runner":  # timing.wall_seconds, no method labels
+        results["timing"] = {"wall_seconds": 1.0}
+        del results["methods"], results["schema_version"], results["command"]
     (tmp_path / "dependencies.json").write_text(json.dumps(results))
     code = (
         "import sys\nfrom factorq_trainers import cli\n"
@@ -154,7 +158,8 @@ def test_report_redraws_dependencies_without_torch(tmp_path):
         "assert 'torch' not in sys.modules, 'factorq report imported torch'\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, capture_output=True)
-    assert "| cross | oracle pairing |" in (tmp_path / "dependencies.md").read_text()
+    label = "oracle pairing" if layout == "envelope" else "oracle"
+    assert f"| cross | {label} |" in (tmp_path / "dependencies.md").read_text()
     assert (tmp_path / "dependencies.png").stat().st_size > 0
 
 
