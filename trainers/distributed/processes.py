@@ -1,5 +1,5 @@
-"""Work items run side by side, each in a child process of its own (issue 17: ``factorq paper
---backend modular`` runs each algorithm in its own process).
+"""Work items run side by side, each in a child process of its own (``factorq paper --backend
+modular`` runs each algorithm in its own process).
 
 ``Children(work, items, progress)`` calls ``work(*args, report)`` for every ``name -> args`` of
 ``items`` in a child process of its own; ``wait()`` returns ``{name: result}`` in the order of

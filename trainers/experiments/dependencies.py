@@ -60,7 +60,7 @@ from factorq_trainers.runner.options import option
 NAME = "dependencies"
 HELP = "learn which sensors each actuator depends on, against the oracle pairing"
 DESCRIPTION = (
-    "Run the structure learner (issue 12) against the oracle pairing, the full joint table and "
+    "Run the structure learner against the oracle pairing, the full joint table and "
     "Q-learning on the settings; write dependencies.json, dependencies.png and dependencies.md "
     "to --out."
 )

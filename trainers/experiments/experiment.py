@@ -80,7 +80,7 @@ def experiment_keys(
     return derive_keys(seed, stream, max(slots) - low + 1, low)[torch.tensor(slots) - low]
 
 
-#: The body options of a trainer's config (field name -> ``WorldConfig`` argument), issue 11.
+#: The body options of a trainer's config (field name -> ``WorldConfig`` argument).
 BODY_OPTIONS = {
     "body": "body",
     "sensors": "sensors",

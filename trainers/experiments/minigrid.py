@@ -1,4 +1,4 @@
-"""Factor-Q on MiniGrid Dynamic-Obstacles against Q-learning and DQN: ``factorq minigrid`` (#16).
+"""Factor-Q on MiniGrid Dynamic-Obstacles against Q-learning and DQN: ``factorq minigrid``.
 
 On each size of ``MiniGrid-Dynamic-Obstacles-{5x5,6x6,8x8,16x16}-v0`` (``factorq_envs.minigrid``:
 MiniGrid's real env, read through the adapter), every method trains ``seeds`` independent

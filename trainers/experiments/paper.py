@@ -213,15 +213,14 @@ def resolve_backend(config: PaperConfig, world: Any = None) -> str:
 
 
 #: Seconds of the modular path per (algorithm, run, episode) of the default batch, measured on
-#: a 2-core CPU: one run of each algorithm (``--backend modular --runs 1``) took 68 s there after
-#: issue 17's second round (the defaults took 15 min 36 s before its first), so about 11 min,
-#: with the algorithms one after the other (``--threads 1``).
+#: a 2-core CPU: one run of each algorithm (``--backend modular --runs 1``) took 68 s there, so
+#: about 11 min with the algorithms one after the other (``--threads 1``; docs/decisions.md).
 MODULAR_SECONDS_PER_EPISODE = 68.0 / (2 * 1 * 200)
 #: Wall seconds of the modular path per (run, episode) of the default batch with each algorithm
 #: in its own process (``modular_processes``), measured on the same 2-core CPU with nothing
 #: else running: the defaults (``--backend modular``, 10 runs x 200 episodes) took 286.2 s and
-#: 286.9 s after issue 17's fourth round, Q-learning the slower of the two (its batch needs
-#: 230,896 batched steps, Factor-Q's 131,591).
+#: 286.9 s, Q-learning the slower of the two (its batch needs 230,896 batched steps, Factor-Q's
+#: 131,591; docs/decisions.md).
 MODULAR_PARALLEL_SECONDS_PER_EPISODE = 286.5 / (10 * 200)
 #: Seconds between two calls of ``run``'s ``progress``, at most (a bar needs no more).
 PROGRESS_SECONDS = 0.1
@@ -241,7 +240,7 @@ def fallback_notice(
     if backend != "modular" or config.backend != "auto":
         return None
     unsupported = fast.unsupported_reason(config.world if world is None else world)
-    if unsupported is not None:  # the one-line notice of a fall-back (issue 11)
+    if unsupported is not None:  # the one-line notice of a fall-back
         return (
             f"factorq: the fast path cannot run this config ({unsupported}): running on "
             f"the modular torchrl path"

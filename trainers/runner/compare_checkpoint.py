@@ -1,5 +1,5 @@
 """``factorq compare``'s checkpoint: the finished methods' traces, saved after each method, and,
-with ``--checkpoint-every``, the whole state of the method in progress (issue 14); their checks on
+with ``--checkpoint-every``, the whole state of the method in progress; their checks on
 resume. A method's numbers do not depend on the others, so a resumed comparison skips the finished
 methods, continues the running one from its saved state and repeats an uninterrupted one exactly.
 The file goes through ``factorq_trainers.runner.checkpoint`` (atomic, digest, safe loading); every
