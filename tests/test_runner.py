@@ -119,14 +119,18 @@ def test_a_declaration_without_unit_ids_is_its_authors_bug():
 
 
 def test_reports_import_no_torch():
+    """``factorq report`` imports the reports package and each command's report module: none may
+    load torch (a command whose module imports torch puts its ``markdown`` and ``figure`` in
+    ``trainers/reports/<name>.py`` and names it in ``REPORT``)."""
     code = (
         "import sys, pkgutil, importlib\nimport factorq_trainers.reports as reports\n"
-        "for info in pkgutil.iter_modules(reports.__path__):\n"
-        "    importlib.import_module('factorq_trainers.reports.' + info.name)\n"
         "from factorq_trainers.runner import registry\n"
-        "for entry in registry.commands().values():\n"
-        "    importlib.import_module(entry.report)\n"
-        "assert 'torch' not in sys.modules, 'a report module imported torch'\n"
+        "names = [f'{reports.__name__}.{m.name}' for m in pkgutil.iter_modules(reports.__path__)]\n"
+        "names += [entry.report for entry in registry.commands().values()]\n"
+        "for name in names:\n"
+        "    importlib.import_module(name)\n"
+        "    assert 'torch' not in sys.modules, f'{name} imports torch: move markdown and figure "
+        "to trainers/reports/ and name that module in REPORT'\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
 
