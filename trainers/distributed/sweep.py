@@ -119,6 +119,13 @@ def check_command(command: Any, source: str = "sweep file") -> str:
     """``command`` if a sweep can run its configs, else a ``SweepError`` saying which can."""
     if command not in commands():
         raise SweepError(f"{source}: command={command!r} is not one of {', '.join(commands())}")
+    if command not in SPECIAL:
+        reports = _reports_of(command)
+        if not (hasattr(reports, "sweep_cells") and hasattr(reports, "SWEEP_MEASURES")):
+            raise SweepError(
+                f"{source}: command={command!r} cannot be swept: {reports.__name__} declares no "
+                f"sweep_cells and SWEEP_MEASURES (what a sweep reports per configuration)"
+            )
     return command
 
 
