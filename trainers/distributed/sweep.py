@@ -36,8 +36,7 @@ new shards.
 
 **Identical results.** A shard's numbers depend on its configuration and seed range alone (see
 ``factorq_trainers.distributed.shards``), so the per-experiment numbers and every summary are the
-same
-in-process, on any number of workers, and after any number of interruptions.
+same in-process, on any number of workers, and after any number of interruptions.
 """
 
 from __future__ import annotations
@@ -821,10 +820,9 @@ def run_compare_on(
 ) -> dict[str, Any]:
     """``factorq compare`` with one task per method on ``executor`` (closed afterwards): a
     method's batch is the unit, so every method, DQN included, repeats its in-process numbers.
-    ``run_method`` and ``summarise`` are ``factorq_trainers.experiments.compare``'s (passed in:
-    this module
-    does not import it). Seeds are not sharded: DQN's seeds share a random stream within their
-    batch."""
+    ``run_method`` and ``summarise`` are ``factorq_trainers.experiments.compare``'s (passed in: this
+    module does not import it). Seeds are not sharded: DQN's seeds share a random stream within
+    their batch."""
     started = time.perf_counter()
     methods = list(config.methods)
     bar = _ShardBar("factorq compare", "method")

@@ -13,10 +13,9 @@ project's ``OnlineCollector`` (one run, stepped ``steps`` times), DQN in torchrl
 
 **The swap.** Factor-Q and Factor-DQN run the very same code (``run_online``, with the agent of
 ``factorq_trainers.experiments.experiment.online_agent``): env with ``SplitLocalReward``,
-``FactorQPolicy``
-(eqs. 2-3), ``FactorQLoss`` (eq. 4, and eq. 5 or its regression), ``OnlineCollector``. Only
-``value_providers`` differs: tables and SGD(lr 1), or networks (``factorq_torch.neural``) and
-Adam.
+``FactorQPolicy`` (eqs. 2-3), ``FactorQLoss`` (eq. 4, and eq. 5 or its regression),
+``OnlineCollector``. Only ``value_providers`` differs: tables and SGD(lr 1), or networks
+(``factorq_torch.neural``) and Adam.
 
 **Threshold.** ``steps_to_threshold`` is the env steps at the end of the first episode whose path
 length is within 1.5x the shortest path: the BFS distance from start to goal in the static layout;

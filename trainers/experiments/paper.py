@@ -12,9 +12,8 @@ common random numbers) and its policy key number ``2 (3 i + w) + a`` of the poli
 (``factorq_trainers.experiments.experiment.experiment_keys``).
 
 The intervals are ``factorq_trainers.analysis.stats``' (Student's t for means, a paired bootstrap
-over seeds
-for the claims, seeded with ``config.seed``), the claims ``factorq_trainers.analysis.claims``', and
-the files
+over seeds for the claims, seeded with ``config.seed``), the claims
+``factorq_trainers.analysis.claims``', and the files
 ``factorq_trainers.reports.report.write_results``'.
 """
 

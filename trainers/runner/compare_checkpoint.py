@@ -3,9 +3,8 @@ with ``--checkpoint-every``, the whole state of the method in progress; their ch
 resume. A method's numbers do not depend on the others, so a resumed comparison skips the finished
 methods, continues the running one from its saved state and repeats an uninterrupted one exactly.
 The file goes through ``factorq_trainers.runner.checkpoint`` (atomic, digest, safe loading); every
-field is
-checked against the config, and the running state against a fresh state of the method, before
-use. The config is read by its fields (this module does not import ``compare``).
+field is checked against the config, and the running state against a fresh state of the method,
+before use. The config is read by its fields (this module does not import ``compare``).
 
 Content: ``config``, ``finished`` ({method: {"traces", "wall_s"}}), ``running`` (None between
 methods, else ``{"method", "state", "wall_s"}``: the method's state at a step boundary and the
