@@ -62,6 +62,7 @@ from factorq_trainers.reports.compare_report import THRESHOLD_FACTOR
 from factorq_trainers.runner import checkpoint, compare_checkpoint, resources
 from factorq_trainers.runner.compare_checkpoint import CompareCheckpoint
 from factorq_trainers.runner.options import option
+from factorq_trainers.runner.results import SCHEMA_VERSION, software_versions
 
 LOGGERS = ("csv", "tensorboard")
 NAME = "compare"
@@ -423,8 +424,11 @@ def summarise(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[st
             curves[method][world] = {
                 name: _curve(traces, name, grid) for name in ("steps", "collisions")
             }
-    return {
+    return {  # the runner's envelope (schema_version, command, config, software) around them
+        "schema_version": SCHEMA_VERSION,
+        "command": NAME,
         "config": config_dict(config),
+        "software": software_versions(),
         "thresholds": thresholds,
         "results": results,
         "curves": {"env_steps": [float(x) for x in grid], **curves},
