@@ -1,17 +1,16 @@
 """An independent numba implementation of the paper's experiment: issue 17's speed anchor.
 
 The same work as the fast path (``factorq_trainers.compiled.fast``) does for the paper's default
-workload
-(SPEC section 4: 100 seeds x 3 worlds x 2 algorithms x 10 runs x 200 episodes, 10x10 worlds with
-10 obstacles, static / semi-dynamic (period 10) / dynamic (period 1)): the world (move or collide,
-the obstacle scatter by Floyd's algorithm, the proximity sensors), epsilon-greedy with random
-tie-breaking, Q-learning (eq. 1 on cell x proximity pattern) and Factor-Q (eqs. 2-5), written
+workload (SPEC section 4: 100 seeds x 3 worlds x 2 algorithms x 10 runs x 200 episodes, 10x10 worlds
+with 10 obstacles, static / semi-dynamic (period 10) / dynamic (period 1)): the world (move or
+collide, the obstacle scatter by Floyd's algorithm, the proximity sensors), epsilon-greedy with
+random tie-breaking, Q-learning (eq. 1 on cell x proximity pattern) and Factor-Q (eqs. 2-5), written
 plainly in numba: ``@njit(parallel=True)``, ``prange`` over experiments, float32 tables, the same
 counter-based random streams (SplitMix64, ``factorq_torch.base.rng``) so that it draws the same
 numbers. It shares no code with the C kernel (``trainers/compiled/_kernel.c``); it reuses only the
-project's key derivation, configuration defaults and static layout. As a check that it does the
-same work it prints its total env steps beside the fast path's: equal when both follow the SPEC
-to the bit (it does not try to be bit-identical in every corner, e.g. NaN handling).
+project's key derivation, configuration defaults and static layout. As a check that it does the same
+work it prints its total env steps beside the fast path's: equal when both follow the SPEC to the
+bit (it does not try to be bit-identical in every corner, e.g. NaN handling).
 
 numba is not a dependency of the project (``pip install numba``, or the ``bench`` extra); without
 it this script says so in one line and exits 0. Run from the repository root:

@@ -1,10 +1,9 @@
 """The import layers (docs/architecture.md): every module imports only its own layer or below.
 
 base (``factorq_torch.base``) -> worlds (``factorq_envs``, folder ``envs/``) -> agent (the rest of
-``factorq_torch``) -> compiled path (``factorq_trainers.compiled.fast``) -> trainers
-(``factorq_trainers``,
-folder ``trainers/``) -> CLI (``factorq_trainers.cli``). Imports inside functions count too, and no
-two modules may import each other through any chain.
+``factorq_torch``) -> compiled path (``factorq_trainers.compiled``) -> trainers
+(``factorq_trainers``, folder ``trainers/``) -> CLI (``factorq_trainers.cli``). Imports inside
+functions count too, and no two modules may import each other through any chain.
 """
 
 from __future__ import annotations

@@ -119,19 +119,24 @@ def test_a_declaration_without_unit_ids_is_its_authors_bug():
 
 
 def test_reports_import_no_torch():
+    """``factorq report`` imports the reports package and each command's report module: none may
+    load torch (a command whose module imports torch puts its ``markdown`` and ``figure`` in
+    ``trainers/reports/<name>.py`` and names it in ``REPORT``)."""
     code = (
         "import sys, pkgutil, importlib\nimport factorq_trainers.reports as reports\n"
-        "for info in pkgutil.iter_modules(reports.__path__):\n"
-        "    importlib.import_module('factorq_trainers.reports.' + info.name)\n"
         "from factorq_trainers.runner import registry\n"
-        "for entry in registry.commands().values():\n"
-        "    importlib.import_module(entry.report)\n"
-        "assert 'torch' not in sys.modules, 'a report module imported torch'\n"
+        "names = [f'{reports.__name__}.{m.name}' for m in pkgutil.iter_modules(reports.__path__)]\n"
+        "names += [entry.report for entry in registry.commands().values()]\n"
+        "for name in names:\n"
+        "    importlib.import_module(name)\n"
+        "    assert 'torch' not in sys.modules, f'{name} imports torch: move markdown and figure "
+        "to trainers/reports/ and name that module in REPORT'\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
-def test_report_redraws_dependencies_without_torch(tmp_path):
+@pytest.mark.parametrize("layout", ["envelope", "before the runner"])
+def test_report_redraws_dependencies_without_torch(tmp_path, layout):
     results = {
         "schema_version": 1,
         "command": "dependencies",
@@ -147,6 +152,9 @@ def test_report_redraws_dependencies_without_torch(tmp_path):
         "skipped": {},
         "methods": {"oracle": "oracle pairing"},
     }  # fmt: skip
+    if layout == "before the runner":  # timing.wall_seconds, no method labels
+        results["timing"] = {"wall_seconds": 1.0}
+        del results["methods"], results["schema_version"], results["command"]
     (tmp_path / "dependencies.json").write_text(json.dumps(results))
     code = (
         "import sys\nfrom factorq_trainers import cli\n"
@@ -154,7 +162,8 @@ def test_report_redraws_dependencies_without_torch(tmp_path):
         "assert 'torch' not in sys.modules, 'factorq report imported torch'\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, capture_output=True)
-    assert "| cross | oracle pairing |" in (tmp_path / "dependencies.md").read_text()
+    label = "oracle pairing" if layout == "envelope" else "oracle"
+    assert f"| cross | {label} |" in (tmp_path / "dependencies.md").read_text()
     assert (tmp_path / "dependencies.png").stat().st_size > 0
 
 
@@ -175,3 +184,14 @@ def test_architecture_names_every_registered_command():
 
 def test_the_cli_knows_every_registered_command():
     assert set(cli.commands()) == {*registry.commands(), *registry.BUILT_IN}
+
+
+def test_every_registered_command_can_be_swept_and_one_without_cells_is_refused(monkeypatch):
+    from factorq_trainers.distributed import sweep
+
+    for name in registry.commands():
+        assert sweep.check_command(name) == name
+    monkeypatch.setattr(sweep, "commands", lambda: (*sweep.SPECIAL, "toy"))
+    monkeypatch.setattr(sweep, "_reports_of", lambda command: types.ModuleType("toy_report"))
+    with pytest.raises(sweep.SweepError, match="'toy' cannot be swept: toy_report declares no"):
+        sweep.check_command("toy")

@@ -82,7 +82,7 @@ def test_grid_axes_are_crossed_with_the_configs_list(tmp_path):
 @pytest.mark.parametrize(
     ("document", "message"),
     [
-        ({"grid": {"etta": [0.1]}}, "unknown field 'etta' in grid; sweepable: seed, runs"),
+        ({"grid": {"etta": [0.1]}}, "unknown field 'etta' in grid; sweepable: size, obstacles"),
         ({"base": {"seeds": 4}, "grid": {"eta": [0.1]}}, "'seeds' in base (the sweep sets it"),
         ({"grid": {"eta": [0.1, -1.0]}}, "configuration 1 (eta=-1.0): eta=-1.0"),
         ({"grid": {"obstacles": [2.5]}}, "obstacles must be an int"),

@@ -2,8 +2,7 @@
 
 An *executor* runs one function over a list of items and yields ``(index, result)`` pairs as
 they finish, in any order; whoever consumes them (``factorq_trainers.distributed.sweep``) writes
-each result
-down at once. Two executors:
+each result down at once. Two executors:
 
 - ``InProcess``: a plain loop in this process.
 - ``DaskExecutor``: ``distributed.Client.submit`` per item on a ``LocalCluster`` started here

@@ -1,5 +1,5 @@
-"""Work items run side by side, each in a child process of its own (issue 17: ``factorq paper
---backend modular`` runs each algorithm in its own process).
+"""Work items run side by side, each in a child process of its own (``factorq paper --backend
+modular`` runs each algorithm in its own process).
 
 ``Children(work, items, progress)`` calls ``work(*args, report)`` for every ``name -> args`` of
 ``items`` in a child process of its own; ``wait()`` returns ``{name: result}`` in the order of
@@ -9,12 +9,11 @@ wait).
 - **Processes, started fresh.** The modular path steps its batch from Python, so two threads
   share one interpreter lock (measured 0.54x of running one after the other). A child is a new
   interpreter, ``python -m factorq_trainers.distributed.processes``: not a ``fork`` (forking a
-  process that
-  already runs torch's OpenMP threads is unsafe), and not ``multiprocessing``'s ``spawn``
-  either, which re-runs the parent's main script in every child: a script calling ``paper.run``
-  without an ``if __name__ == "__main__":`` guard would then fail in its children. The child
-  gets the parent's ``sys.path`` and the pickled ``work`` and ``args`` on its stdin, and sends
-  its messages on a pipe of its own (``multiprocessing.connection.Connection``).
+  process that already runs torch's OpenMP threads is unsafe), and not ``multiprocessing``'s
+  ``spawn`` either, which re-runs the parent's main script in every child: a script calling
+  ``paper.run`` without an ``if __name__ == "__main__":`` guard would then fail in its children.
+  The child gets the parent's ``sys.path`` and the pickled ``work`` and ``args`` on its stdin,
+  and sends its messages on a pipe of its own (``multiprocessing.connection.Connection``).
 - **Progress.** ``report(episodes, experiments)`` in a child adds to a tally that is sent at
   most every ``PROGRESS_SECONDS`` (and once at the end); the parent passes each message on to
   ``progress`` (in ``poll`` and ``wait``). What travels (``work``'s arguments, its result, its

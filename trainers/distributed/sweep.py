@@ -36,8 +36,7 @@ new shards.
 
 **Identical results.** A shard's numbers depend on its configuration and seed range alone (see
 ``factorq_trainers.distributed.shards``), so the per-experiment numbers and every summary are the
-same
-in-process, on any number of workers, and after any number of interruptions.
+same in-process, on any number of workers, and after any number of interruptions.
 """
 
 from __future__ import annotations
@@ -60,20 +59,18 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
 from factorq_torch.base.validation import INT32_MAX, check_int
 from factorq_trainers.analysis import claims, stats
 from factorq_trainers.distributed import cluster, shards
 from factorq_trainers.experiments import paper
+from factorq_trainers.reports import sweep as sweep_report
 from factorq_trainers.runner import outdir, resources
 from factorq_trainers.runner import results as result_files
 from factorq_trainers.runner.frame import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_USAGE, Parser
 
 HELP = "run a grid of paper configurations as shards, in-process or on a Dask cluster"
-JSON_FILE = "sweep.json"
-REPORT_FILE = "sweep.md"
 SHARDS_DIRECTORY = "shards"
 DEFAULT_SEEDS = 100
 DEFAULT_SHARD_SEEDS = 25
@@ -82,7 +79,7 @@ DEFAULT_OUT = "results/sweep"
 #: Fields the sweep sets itself: neither axes nor base values.
 RESERVED = ("seeds", "first_seed", "out")
 SPEC_KEYS = ("command", "seeds", "shard_seeds", "out", "base", "grid", "configs")
-MEASURES = ("total_steps", "collisions", "greedy_collisions")
+MEASURES = claims.MEASURES  # a paper sweep reports the paper's measures
 #: The commands whose configs a sweep runs by their own rules (``command = "..."`` in a sweep
 #: file, ``--command``); every other registered command runs each configuration whole, one task
 #: each (``run_units_sweep``).
@@ -93,13 +90,6 @@ COMPARE_RESERVED = ("seeds", "out", "logger")
 UNITS_RESERVED = ("seeds", "out")
 #: What a compare sweep reports per method and world (``compare.summarise``'s measures).
 COMPARE_MEASURES = ("steps_to_threshold", "collisions", "greedy_collisions")
-MEASURE_LABELS = {
-    **claims.MEASURE_LABELS,
-    "steps_to_threshold": "steps to threshold",
-    "avoidable_greedy_collisions": "avoidable greedy collisions",
-    "fraction_right_within_target": "right structure within target",
-    "collisions_vs_oracle": "collisions vs oracle",
-}
 #: Where a compare sweep keeps each finished configuration's ``comparison.json`` dict.
 CONFIGS_DIRECTORY = "configs"
 
@@ -119,6 +109,13 @@ def check_command(command: Any, source: str = "sweep file") -> str:
     """``command`` if a sweep can run its configs, else a ``SweepError`` saying which can."""
     if command not in commands():
         raise SweepError(f"{source}: command={command!r} is not one of {', '.join(commands())}")
+    if command not in SPECIAL:
+        reports = _reports_of(command)
+        if not (hasattr(reports, "sweep_cells") and hasattr(reports, "SWEEP_MEASURES")):
+            raise SweepError(
+                f"{source}: command={command!r} cannot be swept: {reports.__name__} declares no "
+                f"sweep_cells and SWEEP_MEASURES (what a sweep reports per configuration)"
+            )
     return command
 
 
@@ -756,141 +753,6 @@ def _json(value: Any) -> Any:
 
 
 # --------------------------------------------------------------------------------------------
-# Output
-
-
-def _shown(value: Any) -> str:
-    return ",".join(map(str, value)) if isinstance(value, list | tuple) else str(value)
-
-
-def _label(measure: str) -> str:
-    return MEASURE_LABELS.get(measure, measure.replace("_", " "))
-
-
-def report_markdown(sweep: dict[str, Any]) -> str:
-    """``sweep.md``: one row per configuration and cell, means with 95% intervals."""
-    axes = sweep["axes"]
-    measures = _measures(sweep)
-    is_paper = sweep.get("command", "paper") == "paper"
-    unit = {
-        "paper": f"shards of {sweep['shard_seeds']}",
-        "compare": "one task per method",
-    }.get(sweep.get("command", "paper"), "one task per configuration")
-    per = "Per run" if is_paper else "Per experiment"
-    claims_column = ["claims passed"] if is_paper else []
-    lines = [
-        f"# factorq sweep ({sweep.get('command', 'paper')})",
-        "",
-        f"{len(sweep['configurations'])} configurations x {sweep['seeds']} seeds "
-        f"({unit}); base: "
-        + (", ".join(f"{k}={_shown(v)}" for k, v in sweep["base"].items()) or "defaults")
-        + f"; computed {sweep['timing']['where']}. {per}: means over seeds [95% interval].",
-        "",
-        "| " + " | ".join([*axes, "world", "algorithm", *map(_label, measures),
-                          *claims_column]) + " |",
-        "| " + " | ".join(["---"] * (len(axes) + 2)
-                          + ["---:"] * (len(measures) + len(claims_column))) + " |",
-    ]  # fmt: skip
-    for row in sweep["configurations"]:
-        claims = row["claims"].values()
-        evaluated = [claim for claim in claims if claim["pass"] is not None]
-        passed = f"{sum(c['pass'] for c in evaluated)}/{len(evaluated)}" if evaluated else "n/a"
-        passed_column = [passed] if is_paper else []
-        for cell in row["cells"].values():
-            numbers = []
-            for measure in measures:
-                entry = cell[measure]
-                text = stats.format_number(entry["mean"])
-                if entry["ci95"] is not None:
-                    low, high = (stats.format_number(v) for v in entry["ci95"])
-                    text += f" [{low}, {high}]"
-                numbers.append(text)
-            values = [_shown(row["values"].get(axis, "")) for axis in axes]
-            lines.append(
-                "| "
-                + " | ".join([*values, cell["world"], cell["algorithm"], *numbers, *passed_column])
-                + " |"
-            )
-    lines.append("")
-    return "\n".join(lines)
-
-
-def _measures(sweep: dict[str, Any]) -> list[str]:
-    return list(sweep.get("measures", MEASURES))
-
-
-def figure_path(out: Path, axis: str) -> Path:
-    return out / f"sweep-{axis}.png"
-
-
-def write_axis_figure(sweep: dict[str, Any], axis: str, path: Path) -> None:
-    """Means with 95% intervals of the three measures against ``axis``, one line per world and
-    algorithm; the other axes held at their first value (named in the title)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    others = {
-        name: sweep["configurations"][0]["values"].get(name)
-        for name in sweep["axes"]
-        if name != axis
-    }
-    rows = [
-        row
-        for row in sweep["configurations"]
-        if axis in row["values"]
-        and all(row["values"].get(name) == value for name, value in others.items())
-    ]
-    labels = [_shown(row["values"][axis]) for row in rows]
-    numeric = all(isinstance(row["values"][axis], int | float) for row in rows)
-    x = np.array([row["values"][axis] for row in rows], float) if numeric else np.arange(len(rows))
-    measures = _measures(sweep)
-    figure = Figure(figsize=(13, 4), layout="constrained")
-    FigureCanvasAgg(figure)
-    panels = figure.subplots(1, len(measures))
-    cells = list(dict.fromkeys(cell for row in rows for cell in row["cells"]))  # e.g. worlds axis
-    for panel, measure in zip(panels, measures, strict=True):
-        for cell in cells:
-            entries = [row["cells"].get(cell, {}).get(measure) for row in rows]
-            mean = np.array([np.nan if e is None else e["mean"] for e in entries], float)
-            low = np.array([m if e is None or e["ci95"] is None else e["ci95"][0]
-                            for m, e in zip(mean, entries, strict=True)], float)  # fmt: skip
-            high = np.array([m if e is None or e["ci95"] is None else e["ci95"][1]
-                             for m, e in zip(mean, entries, strict=True)], float)  # fmt: skip
-            errors = np.stack([np.maximum(mean - low, 0), np.maximum(high - mean, 0)])
-            panel.errorbar(x, mean, yerr=errors, marker="o", capsize=3, label=cell)
-        panel.set_xlabel(axis)
-        per = " per run" if sweep.get("command", "paper") == "paper" else ""
-        panel.set_ylabel(f"{_label(measure)}{per}")
-        if measure in ("collisions", "greedy_collisions", "avoidable_greedy_collisions"):
-            panel.set_yscale("symlog", linthresh=1.0)
-        if not numeric:
-            panel.set_xticks(x, labels)
-    if cells:
-        panels[0].legend(fontsize="small")
-    held = ", ".join(f"{k}={_shown(v)}" for k, v in others.items())
-    figure.suptitle(
-        f"{axis}: means over {sweep['seeds']} seeds, 95% intervals"
-        + (f" ({held})" if held else ""),
-        fontsize="medium",
-    )
-    figure.savefig(path, dpi=100, format="png")
-
-
-def write_outputs(sweep: dict[str, Any], out: str | Path) -> dict[str, Path]:
-    """``sweep.json``, ``sweep.md`` and ``sweep-<axis>.png`` per axis, all written atomically."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    writers: dict[Path, Callable[[Path], None]] = {
-        out / JSON_FILE: lambda path: path.write_text(result_files.dumps(sweep)),
-        out / REPORT_FILE: lambda path: path.write_text(report_markdown(sweep)),
-    }
-    for axis in sweep["axes"]:
-        writers[figure_path(out, axis)] = functools.partial(write_axis_figure, sweep, axis)
-    result_files.write_all_atomic(writers)
-    return {path.name: path for path in writers}
-
-
-# --------------------------------------------------------------------------------------------
 # Command line
 
 
@@ -960,10 +822,9 @@ def run_compare_on(
 ) -> dict[str, Any]:
     """``factorq compare`` with one task per method on ``executor`` (closed afterwards): a
     method's batch is the unit, so every method, DQN included, repeats its in-process numbers.
-    ``run_method`` and ``summarise`` are ``factorq_trainers.experiments.compare``'s (passed in:
-    this module
-    does not import it). Seeds are not sharded: DQN's seeds share a random stream within their
-    batch."""
+    ``run_method`` and ``summarise`` are ``factorq_trainers.experiments.compare``'s (passed in: this
+    module does not import it). Seeds are not sharded: DQN's seeds share a random stream within
+    their batch."""
     started = time.perf_counter()
     methods = list(config.methods)
     bar = _ShardBar("factorq compare", "method")
@@ -1145,7 +1006,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{parser.prog}: error: {error}", file=sys.stderr)
         return EXIT_USAGE
     try:  # the only writer of --out from here on, checked before any work
-        with outdir.claim(spec.out, outputs=(JSON_FILE, REPORT_FILE), force=args.force):
+        with outdir.claim(
+            spec.out, outputs=(sweep_report.JSON_FILE, sweep_report.REPORT_FILE), force=args.force
+        ):
             return _run_sweep_command(parser, spec, executor)
     except outdir.OutputDirError as error:
         executor.close()
@@ -1171,7 +1034,7 @@ def _run_sweep_command(parser, spec: SweepSpec, executor) -> int:
     try:
         sweep = run_sweep(spec, executor, bar)
         bar.close()
-        paths = write_outputs(sweep, spec.out)
+        paths = sweep_report.write_outputs(sweep, spec.out)
     except KeyboardInterrupt:
         bar.close()
         print(f"{parser.prog}: interrupted (run it again to resume)", file=sys.stderr)

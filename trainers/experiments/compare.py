@@ -13,10 +13,9 @@ project's ``OnlineCollector`` (one run, stepped ``steps`` times), DQN in torchrl
 
 **The swap.** Factor-Q and Factor-DQN run the very same code (``run_online``, with the agent of
 ``factorq_trainers.experiments.experiment.online_agent``): env with ``SplitLocalReward``,
-``FactorQPolicy``
-(eqs. 2-3), ``FactorQLoss`` (eq. 4, and eq. 5 or its regression), ``OnlineCollector``. Only
-``value_providers`` differs: tables and SGD(lr 1), or networks (``factorq_torch.neural``) and
-Adam.
+``FactorQPolicy`` (eqs. 2-3), ``FactorQLoss`` (eq. 4, and eq. 5 or its regression),
+``OnlineCollector``. Only ``value_providers`` differs: tables and SGD(lr 1), or networks
+(``factorq_torch.neural``) and Adam.
 
 **Threshold.** ``steps_to_threshold`` is the env steps at the end of the first episode whose path
 length is within 1.5x the shortest path: the BFS distance from start to goal in the static layout;
@@ -64,6 +63,7 @@ from factorq_trainers.reports.compare_report import THRESHOLD_FACTOR
 from factorq_trainers.runner import checkpoint, compare_checkpoint, resources
 from factorq_trainers.runner.compare_checkpoint import CompareCheckpoint
 from factorq_trainers.runner.options import option
+from factorq_trainers.runner.results import SCHEMA_VERSION, software_versions
 
 LOGGERS = ("csv", "tensorboard")
 NAME = "compare"
@@ -125,7 +125,7 @@ class FactorDQNConfig:
 
 
 @dataclass(frozen=True)
-class CompareConfig:
+class CompareConfig(experiment.WorldOptions):
     """The comparison: methods x worlds, ``seeds`` experiments each, ``steps`` env steps each."""
 
     seed: int = option(
@@ -149,18 +149,6 @@ class CompareConfig:
         "Per-episode logs: csv (torchrl CSVLogger) or tensorboard (needs the tensorboard package).",
         choices=LOGGERS,
     )
-    size: int = option(10, "Side of the square grid, in cells.")
-    obstacles: int = option(10, "Number of single-cell obstacles.")
-    max_steps: int = option(10_000, "Actions after which an episode is truncated.")
-    layout_seed: int = option(0, "Seed of the static world's obstacle layout.")
-    body: str = option("translate", "Agent body: translate (the paper) or heading.")
-    sensors: str = option("cross", "Sensor layout: cross (the paper: 4 neighbours) or ring (8).")
-    distractors: int = option(0, "Extra sensor bits that carry no information.")
-    sensor_permutation: int | None = option(
-        None, "Seed of a random order in which the agent receives its sensors."
-    )
-    sensor_noise: float = option(0.0, "Probability that each sensor bit flips at each observation.")
-    actuator_noise: float = option(0.0, "Probability that another actuator fires than the chosen.")
     threads: int = option(1, "CPU threads for torch (1 is fastest on these tiny tensors).")
     agent: AgentConfig = option(
         AgentConfig(),
@@ -441,8 +429,11 @@ def summarise(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[st
                 name: _curve(traces, name, grid, experiments.seed)
                 for name in ("steps", "collisions")
             }
-    return {
+    return {  # the runner's envelope (schema_version, command, config, software) around them
+        "schema_version": SCHEMA_VERSION,
+        "command": NAME,
         "config": config_dict(config),
+        "software": software_versions(),
         "thresholds": thresholds,
         "results": results,
         "curves": {"env_steps": [float(x) for x in grid], **curves},

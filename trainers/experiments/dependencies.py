@@ -63,7 +63,7 @@ from factorq_trainers.runner.options import option
 NAME = "dependencies"
 HELP = "learn which sensors each actuator depends on, against the oracle pairing"
 DESCRIPTION = (
-    "Run the structure learner (issue 12) against the oracle pairing, the full joint table and "
+    "Run the structure learner against the oracle pairing, the full joint table and "
     "Q-learning on the settings; write dependencies.json, dependencies.png and dependencies.md "
     "to --out."
 )
@@ -144,9 +144,15 @@ class DependenciesConfig:
         "Settings to run: " + ", ".join(SETTINGS) + " (presets, comma-separated), or custom (the "
         "body options below; given alone, they run it instead of the presets).",
     )
-    body: str | None = option(None, "Body of the custom setting: translate or heading.")
-    sensors: str | None = option(None, "Sensor layout of the custom setting: cross or ring.")
-    distractors: int | None = option(None, "Distractor sensor bits of the custom setting.")
+    body: str | None = option(
+        None, "Body of the custom setting: translate or heading (auto: the presets')."
+    )
+    sensors: str | None = option(
+        None, "Sensor layout of the custom setting: cross or ring (auto: the presets')."
+    )
+    distractors: int | None = option(
+        None, "Distractor sensor bits of the custom setting (auto: the presets')."
+    )
     sensor_noise: float | None = option(
         None, "Probability that each sensor bit of the custom setting flips at each observation."
     )

@@ -32,9 +32,8 @@ annealing itself, once per call that explores (no schedule to step by hand, DESI
 sources and the measurements behind the scaling are in ``docs/decisions.md`` (Baselines).
 
 Per episode of every experiment (``factorq_trainers.experiments.experiment.EpisodeRecorder``): path
-length,
-collisions, greedy collisions (collisions on non-exploratory actions), task return (step + goal
-rewards, as the tabular trainers record it), env steps so far, epsilon and loss.
+length, collisions, greedy collisions (collisions on non-exploratory actions), task return (step +
+goal rewards, as the tabular trainers record it), env steps so far, epsilon and loss.
 """
 
 from __future__ import annotations
@@ -75,7 +74,7 @@ with warnings.catch_warnings():
 
 #: The widest hidden layer a config accepts (a layer's weights are [E, width, width] float32).
 #: Methods of ``factorq_trainers.experiments.compare``; a method's index is part of its
-# experiments' keys.
+#: experiments' keys.
 METHODS = ("factor-q", "q-learning", "dqn", "factor-dqn")
 # --------------------------------------------------------------------------------------------
 # Validation
@@ -86,8 +85,7 @@ def batch_keys(
 ) -> torch.Tensor:
     """Keys ``[E]`` of ``stream`` for the experiments of ``factorq compare``'s batch: number
     ``3 i + w`` (as ``factorq_trainers.experiments.paper``'s worlds), or with a ``method`` number
-    ``4 (3 i + w)
-    + m`` (``m`` its index in ``METHODS``); see
+    ``4 (3 i + w) + m`` (``m`` its index in ``METHODS``); see
     ``factorq_trainers.experiments.experiment.experiment_keys``."""
     return experiment_keys(experiments.seed, stream, experiments.labels, METHODS, method)
 
@@ -309,10 +307,9 @@ def run(
     is called with env steps per experiment after every collector batch.
 
     ``checkpoints`` (a ``factorq_trainers.runner.compare_checkpoint.Saver``): restore the saved
-    state if
-    the run resumes during DQN, and save the whole state whenever one is due, after a collector
-    batch: torch's global generator, the world state, the collector's next observation, the policy
-    (network, epsilon), the loss module (network and target network), Adam, the target
+    state if the run resumes during DQN, and save the whole state whenever one is due, after a
+    collector batch: torch's global generator, the world state, the collector's next observation,
+    the policy (network, epsilon), the loss module (network and target network), Adam, the target
     updater's counter, the replay buffer (``ReplayBuffer.state_dict``) and the records. Saving
     draws nothing and changes nothing, so the numbers are those of an uninterrupted run.
     """

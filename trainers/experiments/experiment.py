@@ -80,7 +80,7 @@ def experiment_keys(
     return derive_keys(seed, stream, max(slots) - low + 1, low)[torch.tensor(slots) - low]
 
 
-#: The body options of a trainer's config (field name -> ``WorldConfig`` argument), issue 11.
+#: The body options of a trainer's config (field name -> ``WorldConfig`` argument).
 BODY_OPTIONS = {
     "body": "body",
     "sensors": "sensors",
@@ -270,7 +270,39 @@ def online_agent(
 
 
 @dataclass(frozen=True)
-class ExperimentConfig:
+class WorldOptions:
+    """The world and body options every command's config shares (declared once: the paper's
+    grid and body by default). A config inherits them and checks them with
+    ``check_world_options`` and ``body_options``."""
+
+    size: int = option(10, "Side of the square grid, in cells.")
+    obstacles: int = option(10, "Number of single-cell obstacles.")
+    max_steps: int = option(10_000, "Actions after which an episode is truncated.")
+    layout_seed: int = option(0, "Seed of the static world's obstacle layout.")
+    body: str = option(
+        "translate",
+        "Agent body: translate (the paper: moves N/W/S/E) or heading (forward, turn left/right).",
+    )
+    sensors: str = option(
+        "cross", "Sensor layout: cross (the paper: 4 neighbours) or ring (8 neighbours)."
+    )
+    distractors: int = option(
+        0, "Extra sensor bits that carry no information (fresh fair coins at every observation)."
+    )
+    sensor_permutation: int | None = option(
+        None,
+        "Seed of a random order in which the agent receives its sensors (default: layout order).",
+    )
+    sensor_noise: float = option(
+        0.0, "Probability that each sensor bit is flipped at each observation, in [0, 1]."
+    )
+    actuator_noise: float = option(
+        0.0, "Probability that another actuator fires than the chosen one, in [0, 1]."
+    )
+
+
+@dataclass(frozen=True)
+class ExperimentConfig(WorldOptions):
     """Which experiments run, and their budget: ``seeds`` per world, ``steps`` env steps each."""
 
     seed: int = option(
@@ -281,18 +313,6 @@ class ExperimentConfig:
         WORLDS, "Worlds to run: static, semi-dynamic, dynamic (comma-separated)."
     )
     steps: int = option(15_000, "Budget of env steps per experiment (episodes are as many as fit).")
-    size: int = option(10, "Side of the square grid, in cells.")
-    obstacles: int = option(10, "Number of single-cell obstacles.")
-    max_steps: int = option(10_000, "Actions after which an episode is truncated.")
-    layout_seed: int = option(0, "Seed of the static world's obstacle layout.")
-    body: str = option("translate", "Agent body: translate (the paper) or heading.")
-    sensors: str = option("cross", "Sensor layout: cross (the paper: 4 neighbours) or ring (8).")
-    distractors: int = option(0, "Extra sensor bits that carry no information.")
-    sensor_permutation: int | None = option(
-        None, "Seed of a random order in which the agent receives its sensors."
-    )
-    sensor_noise: float = option(0.0, "Probability that each sensor bit flips at each observation.")
-    actuator_noise: float = option(0.0, "Probability that another actuator fires than the chosen.")
 
     def __post_init__(self) -> None:
         check_int("seed", self.seed, 0, MAX_SEED)

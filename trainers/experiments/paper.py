@@ -12,9 +12,8 @@ common random numbers) and its policy key number ``2 (3 i + w) + a`` of the poli
 (``factorq_trainers.experiments.experiment.experiment_keys``).
 
 The intervals are ``factorq_trainers.analysis.stats``' (Student's t for means, a paired bootstrap
-over seeds
-for the claims, seeded with ``config.seed``), the claims ``factorq_trainers.analysis.claims``', and
-the files
+over seeds for the claims, seeded with ``config.seed``), the claims
+``factorq_trainers.analysis.claims``', and the files
 ``factorq_trainers.reports.report.write_results``'.
 """
 
@@ -74,7 +73,7 @@ CURVES = CURVE_NAMES  # per-episode curves; task return is reported per run
 
 
 @dataclass(frozen=True)
-class PaperConfig:
+class PaperConfig(experiment.WorldOptions):
     """The paper's experiment (SPEC section 4); defaults reproduce it with 100 seeds."""
 
     seed: int = option(0, "Master seed: every random number of the experiment derives from it.")
@@ -88,16 +87,12 @@ class PaperConfig:
         10, "Runs per experiment (task tables reset each run; Factor-Q's local tables carry over)."
     )
     episodes: int = option(200, "Episodes per run.")
-    size: int = option(10, "Side of the square grid, in cells.")
-    obstacles: int = option(10, "Number of single-cell obstacles.")
     worlds: tuple[str, ...] = option(
         WORLDS, "Worlds to run: static, semi-dynamic, dynamic (comma-separated)."
     )
     algorithms: tuple[str, ...] = option(
         ALGORITHMS, "Algorithms to run: q-learning, factor-q (comma-separated)."
     )
-    max_steps: int = option(10_000, "Actions after which an episode is truncated.")
-    layout_seed: int = option(0, "Seed of the static world's obstacle layout.")
     epsilon: float = option(0.01, "Probability of a uniformly random (exploratory) action.")
     gamma: float = option(0.9, "Discount of future reward, in [0, 1).")
     alpha: float = option(0.2, "Task learning rate (eqs. 1 and 4), in (0, 1].")
@@ -116,26 +111,6 @@ class PaperConfig:
         choices=BACKENDS,
     )
     device: str = option("cpu", "Torch device (the fast backend runs on cpu only).")
-    body: str = option(
-        "translate",
-        "Agent body: translate (the paper: moves N/W/S/E) or heading (forward, turn left/right).",
-    )
-    sensors: str = option(
-        "cross", "Sensor layout: cross (the paper: 4 neighbours) or ring (8 neighbours)."
-    )
-    distractors: int = option(
-        0, "Extra sensor bits that carry no information (fresh fair coins at every observation)."
-    )
-    sensor_permutation: int | None = option(
-        None,
-        "Seed of a random order in which the agent receives its sensors (default: layout order).",
-    )
-    sensor_noise: float = option(
-        0.0, "Probability that each sensor bit is flipped at each observation, in [0, 1]."
-    )
-    actuator_noise: float = option(
-        0.0, "Probability that another actuator fires than the chosen one, in [0, 1]."
-    )
 
     def __post_init__(self) -> None:
         check_int("seed", self.seed, 0, MAX_SEED)
@@ -239,15 +214,14 @@ def resolve_backend(config: PaperConfig, world: Any = None) -> str:
 
 
 #: Seconds of the modular path per (algorithm, run, episode) of the default batch, measured on
-#: a 2-core CPU: one run of each algorithm (``--backend modular --runs 1``) took 68 s there after
-#: issue 17's second round (the defaults took 15 min 36 s before its first), so about 11 min,
-#: with the algorithms one after the other (``--threads 1``).
+#: a 2-core CPU: one run of each algorithm (``--backend modular --runs 1``) took 68 s there, so
+#: about 11 min with the algorithms one after the other (``--threads 1``; docs/decisions.md).
 MODULAR_SECONDS_PER_EPISODE = 68.0 / (2 * 1 * 200)
 #: Wall seconds of the modular path per (run, episode) of the default batch with each algorithm
 #: in its own process (``modular_processes``), measured on the same 2-core CPU with nothing
 #: else running: the defaults (``--backend modular``, 10 runs x 200 episodes) took 286.2 s and
-#: 286.9 s after issue 17's fourth round, Q-learning the slower of the two (its batch needs
-#: 230,896 batched steps, Factor-Q's 131,591).
+#: 286.9 s, Q-learning the slower of the two (its batch needs 230,896 batched steps, Factor-Q's
+#: 131,591; docs/decisions.md).
 MODULAR_PARALLEL_SECONDS_PER_EPISODE = 286.5 / (10 * 200)
 #: Seconds between two calls of ``run``'s ``progress``, at most (a bar needs no more).
 PROGRESS_SECONDS = 0.1
@@ -267,7 +241,7 @@ def fallback_notice(
     if backend != "modular" or config.backend != "auto":
         return None
     unsupported = fast.unsupported_reason(config.world if world is None else world)
-    if unsupported is not None:  # the one-line notice of a fall-back (issue 11)
+    if unsupported is not None:  # the one-line notice of a fall-back
         return (
             f"factorq: the fast path cannot run this config ({unsupported}): running on "
             f"the modular torchrl path"

@@ -1,4 +1,4 @@
-"""Figure 3 drawn by a helper process beside the experiment (issue 17: ``factorq paper`` in 3 s).
+"""Figure 3 drawn by a helper process beside the experiment (so that ``factorq paper`` ends in 3 s).
 
 ``factorq paper`` starts it first, before the main process loads torch: while that keeps one
 core busy, the helper loads matplotlib on the other, draws a made-up figure into memory (fonts,

@@ -1,10 +1,9 @@
 """The paper's Figure 3, drawn with matplotlib from a results dict: nothing here imports torch.
 
-``factorq_trainers.reports.report.figure3`` draws it in the calling process; ``factorq paper``
-draws it in
-``factorq_trainers.reports.figure_process``'s helper process, which loads matplotlib while the main
-process
-loads torch. Both call ``draw`` with the same arguments, so the file is the same byte for byte.
+``factorq_trainers.reports.report.figure3`` draws it in the calling process; ``factorq paper`` draws
+it in ``factorq_trainers.reports.figure_process``'s helper process, which loads matplotlib while the
+main process loads torch. Both call ``draw`` with the same arguments, so the file is the same byte
+for byte.
 """
 
 from __future__ import annotations

@@ -409,7 +409,41 @@ def load(out: str | os.PathLike, reader: Callable[[Path], Any] = read) -> Any:
 # Saving during a run
 
 
-class Checkpointer:
+class Schedule:
+    """When the next checkpoint is due: every ``every`` episodes (summed over the experiments)
+    or seconds since the last save (``parse_every``; None: never), and what saving has cost.
+    ``factorq paper``'s ``Checkpointer`` and ``factorq compare``'s ``Saver`` both keep it."""
+
+    def __init__(self, every: Every | str | int | None = None) -> None:
+        self.every = None if every is None else parse_every(every)
+        self.saves = 0
+        self.save_seconds = 0.0
+        self._last_save = time.monotonic()
+        self._episodes_since_save = 0
+
+    def advance(self, episodes: int) -> None:
+        """Count ``episodes`` more finished (summed over the experiments)."""
+        self._episodes_since_save += episodes
+
+    def due(self) -> bool:
+        """Whether a checkpoint is due now (always False without an interval)."""
+        if self.every is None:
+            return False
+        if self.every.episodes is not None:
+            return self._episodes_since_save >= self.every.episodes
+        return time.monotonic() - self._last_save >= self.every.seconds
+
+    def saved(self, started: float | None = None) -> None:
+        """A save just ended (begun at ``perf_counter()`` ``started``, if counted): the
+        schedule starts over."""
+        if started is not None:
+            self.saves += 1
+            self.save_seconds += time.perf_counter() - started
+        self._last_save = time.monotonic()
+        self._episodes_since_save = 0
+
+
+class Checkpointer(Schedule):
     """A run's position (episodes, experiments, finished algorithms), when to save, and saving.
 
     ``paper.run`` makes one per run (``every=None``: never saves) and counts progress through it;
@@ -425,16 +459,14 @@ class Checkpointer:
         every: Every | str | int | None = None,
         resume: Checkpoint | None = None,
     ) -> None:
+        super().__init__(every)
         self.out = Path(out)
         self.config = config
         self.backend = backend
-        self.every = None if every is None else parse_every(every)
         self.resumed = resume
         self.finished: dict[str, dict[str, torch.Tensor]] = {}
         self.episodes_completed = 0
         self.experiments_finished = 0
-        self.saves = 0
-        self.save_seconds = 0.0
         self._elapsed_before = 0.0
         self._running = None
         if resume is None:
@@ -452,8 +484,7 @@ class Checkpointer:
             self._elapsed_before = resume.elapsed_s
             remove_temporaries(directory_of(self.out))  # of saves cut short by the interruption
         self._started = time.perf_counter()
-        self._last_save = time.monotonic()
-        self._episodes_since_save = 0
+        self.saved()  # the interval counts from the start
 
     @property
     def elapsed_s(self) -> float:
@@ -464,15 +495,7 @@ class Checkpointer:
         """Count ``episodes`` more completed and ``experiments`` more finished."""
         self.episodes_completed += episodes
         self.experiments_finished += experiments
-        self._episodes_since_save += episodes
-
-    def due(self) -> bool:
-        """Whether a checkpoint is due now (always False without an interval)."""
-        if self.every is None:
-            return False
-        if self.every.episodes is not None:
-            return self._episodes_since_save >= self.every.episodes
-        return time.monotonic() - self._last_save >= self.every.seconds
+        super().advance(episodes)
 
     def resume_state(self, algorithm: str) -> dict[str, Any] | None:
         """The saved state of ``algorithm``'s experiments if the checkpoint was taken during
@@ -520,10 +543,7 @@ class Checkpointer:
             "saved_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         }
         path = save(self.out, content)
-        self.saves += 1
-        self.save_seconds += time.perf_counter() - started
-        self._last_save = time.monotonic()
-        self._episodes_since_save = 0
+        self.saved(started)
         return path
 
 

@@ -1,11 +1,10 @@
 """``factorq compare``'s checkpoint: the finished methods' traces, saved after each method, and,
-with ``--checkpoint-every``, the whole state of the method in progress (issue 14); their checks on
+with ``--checkpoint-every``, the whole state of the method in progress; their checks on
 resume. A method's numbers do not depend on the others, so a resumed comparison skips the finished
 methods, continues the running one from its saved state and repeats an uninterrupted one exactly.
 The file goes through ``factorq_trainers.runner.checkpoint`` (atomic, digest, safe loading); every
-field is
-checked against the config, and the running state against a fresh state of the method, before
-use. The config is read by its fields (this module does not import ``compare``).
+field is checked against the config, and the running state against a fresh state of the method,
+before use. The config is read by its fields (this module does not import ``compare``).
 
 Content: ``config``, ``finished`` ({method: {"traces", "wall_s"}}), ``running`` (None between
 methods, else ``{"method", "state", "wall_s"}``: the method's state at a step boundary and the
@@ -227,7 +226,7 @@ def _check_trace(trace, world, index, experiments, refuse) -> dict[str, Any]:
 # Saving during a method, and restoring its state
 
 
-class Saver:
+class Saver(checkpoint.Schedule):
     """When and what a comparison saves: after each method (``save_finished``) and, with an
     interval ``every`` (episodes summed over the experiments, or seconds, as ``factorq paper
     --checkpoint-every``), during a method (``advance``, ``due``, ``save``); on resume, the
@@ -240,30 +239,14 @@ class Saver:
         every: checkpoint.Every | str | int | None = None,
         resume: CompareCheckpoint | None = None,
     ) -> None:
+        super().__init__(every)
         self.out = out
         self.config = config
-        self.every = None if every is None else checkpoint.parse_every(every)
         self.resumed = resume
         self.finished: dict[str, dict[str, Any]] = {}
-        self.saves = 0
-        self.save_seconds = 0.0
         self._running = None if resume is None else resume.running
         if resume is not None:
             checkpoint.remove_temporaries(checkpoint.directory_of(out))
-        self._since = 0
-        self._last = time.monotonic()
-
-    def advance(self, episodes: int) -> None:
-        """Count ``episodes`` more finished (summed over the experiments)."""
-        self._since += episodes
-
-    def due(self) -> bool:
-        """Whether a mid-method checkpoint is due now (never without an interval)."""
-        if self.every is None:
-            return False
-        if self.every.episodes is not None:
-            return self._since >= self.every.episodes
-        return time.monotonic() - self._last >= self.every.seconds
 
     def _every(self) -> str | None:
         return None if self.every is None else str(self.every)
@@ -273,16 +256,14 @@ class Saver:
         started = time.perf_counter()
         running = {"method": method, "state": state, "wall_s": float(wall_s)}
         path = save(self.out, self.config, self.finished, running, self._every())
-        self.saves += 1
-        self.save_seconds += time.perf_counter() - started
-        self._since, self._last = 0, time.monotonic()
+        self.saved(started)
         return path
 
     def save_finished(self, runs: dict[str, dict[str, Any]]) -> Path:
         """Save the finished methods ``runs`` (between methods: nothing running)."""
         self.finished = dict(runs)
         path = save(self.out, self.config, self.finished, None, self._every())
-        self._since, self._last = 0, time.monotonic()
+        self.saved()
         return path
 
     def restore(self, method: str, load_state: Callable[[dict[str, Any]], None]) -> float | None:

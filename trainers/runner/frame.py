@@ -38,7 +38,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from factorq_trainers.runner import options, outdir, resources, results
+from factorq_trainers.runner import options, outdir, registry, resources, results
 
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
@@ -95,13 +95,7 @@ def as_option(message: str, config: type, extra: tuple[str, ...] = ()) -> str:
 
 def files(module: ModuleType) -> dict[str, str]:
     """``{"json", "report", "figure"}`` -> file names: ``FILES``, else ``NAME.json/.md/.png``."""
-    name = module.NAME
-    return {
-        "json": f"{name}.json",
-        "report": f"{name}.md",
-        "figure": f"{name}.png",
-        **getattr(module, "FILES", {}),
-    }
+    return {**registry.default_files(module.NAME), **getattr(module, "FILES", {})}
 
 
 def work(module: ModuleType, config: Any, unit: dict[str, Any]) -> int:

@@ -48,6 +48,11 @@ def _constant(tree: ast.Module, name: str, kind: type = str) -> Any:
     return None
 
 
+def default_files(name: str) -> dict[str, str]:
+    """A command's files unless it declares ``FILES``: ``NAME.json``, ``NAME.md``, ``NAME.png``."""
+    return {"json": f"{name}.json", "report": f"{name}.md", "figure": f"{name}.png"}
+
+
 @functools.cache
 def commands() -> dict[str, Entry]:
     """Every registered command by name, in file-name order."""
@@ -63,12 +68,7 @@ def commands() -> dict[str, Entry]:
         docstring = (ast.get_docstring(tree) or name).strip().splitlines()[0]
         help_text = _constant(tree, "HELP") or docstring
         module = f"{PACKAGE}.{path.stem}"
-        files = {
-            "json": f"{name}.json",
-            "report": f"{name}.md",
-            "figure": f"{name}.png",
-            **(_constant(tree, "FILES", dict) or {}),
-        }
+        files = {**default_files(name), **(_constant(tree, "FILES", dict) or {})}
         found[name] = Entry(name, module, help_text, files, _constant(tree, "REPORT") or module)
     return found
 

@@ -115,7 +115,7 @@ def paper_estimate(config: Any, checkpointing: bool = False, world: Any = None) 
     world than the config's grid (an ``factorq_envs.protocol.World``), whose config gives the
     sizes."""
     count = len(config.worlds) * config.seeds  # experiments of one algorithm
-    # the body: sensors, actuators, headings (issue 11)
+    # the body: sensors, actuators, headings
     world = config.world if world is None else world.config
     cells = world.num_cells
     positions = cells * world.num_headings

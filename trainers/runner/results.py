@@ -167,7 +167,7 @@ def software_versions() -> dict[str, str]:
     return versions
 
 
-#: The paper's body as a results file's config spells it (issue 11); a file written before the
+#: The paper's body as a results file's config spells it; a file written before the
 #: body options existed lacks them and ran this body.
 PAPER_BODY = {
     "body": "translate",

@@ -1,5 +1,5 @@
 """Untrusted checkpoint state of ``factorq paper``, checked before anything reaches the kernel or
-the env (issue 14): a checkpoint's digest proves the file is intact, not who wrote it, so every
+the env: a checkpoint's digest proves the file is intact, not who wrote it, so every
 field is compared with the run's config and with a fresh batch of the run (entries, shapes, dtypes,
 ranges, finiteness, the world's invariants), and refused in one line naming the field.
 

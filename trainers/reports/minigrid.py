@@ -1,0 +1,157 @@
+"""``factorq minigrid``'s Markdown and figure, and its cells for ``factorq sweep``, from its
+results alone (no torch)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+from factorq_trainers.analysis.stats import format_number
+
+#: The issue's target: the learner finds forward <- front within this many env steps.
+FOUND_TARGET_STEPS = 2_000
+
+
+def _cell(stat: dict[str, Any], digits: int = 2, seeds: int | None = None) -> str:
+    if stat["mean"] is None:
+        return "-"
+    text = f"{stat['mean']:.{digits}f}"
+    if stat["ci95"] is not None and stat["ci95"][0] is not None:
+        low, high = stat["ci95"]
+        text += f" [{low:.{digits}f}, {high:.{digits}f}]"
+    if seeds is not None and stat["n"] < seeds:
+        text += f" ({stat['n']}/{seeds})"
+    return text
+
+
+def markdown(results: dict[str, Any]) -> str:
+    config = results["config"]
+    seeds = config["seeds"]
+    lines = [
+        "# Factor-Q on MiniGrid Dynamic-Obstacles",
+        "",
+        f"{seeds} seeds per cell, means with 95% intervals across seeds (success rate: Wilson; "
+        f"the others: BCa bootstrap; neither leaves the possible range); semantics "
+        f"`{config['semantics']}`, sensors {', '.join(results['sensors'])}. Success rate, return "
+        f"and steps to goal over the episodes ending in the last "
+        f"{config['final_fraction']:.0%} of the budget; collisions over the whole budget; "
+        f"'steps to 90%' over the seeds that got there (k/{seeds}); wall time for all seeds of "
+        f"a method together. {results['notice']}.",
+        "",
+    ]
+    for size, per_method in results["results"].items():
+        budget = results["budgets"][size]
+        lines += [
+            f"## {size}x{size} ({budget:,} env steps per seed)",
+            "",
+            "| method | success rate | return | steps to goal | collisions (training) | greedy "
+            "collisions | env steps to 90% success | wall s | forward <- front found at |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for method, entry in per_method.items():
+            s = entry["summary"]
+            found = "-"
+            if "found_forward_front" in s:
+                found = (
+                    f"{_cell(s['found_forward_front'], 0, seeds)}; "
+                    f"{s['found_within_target']:.0%} within {FOUND_TARGET_STEPS:,}"
+                )
+            lines.append(
+                f"| {_label(results, method)} | {_cell(s['success_rate'], 2, seeds)} | "
+                f"{_cell(s['return'], 2, seeds)} | {_cell(s['steps_to_goal'], 1, seeds)} | "
+                f"{_cell(s['collisions'], 1)} | {_cell(s['greedy_collisions'], 1)} | "
+                f"{_cell(s['steps_to_90'], 0, seeds)} | {format_number(s['wall_s'])} | {found} |"
+            )
+        lines += ["", *_targets(results, per_method), ""]
+    wall_s = results["timing"]["wall_s"] if "timing" in results else results["wall_s"]
+    lines.append(f"Total wall time {wall_s:.0f} s.")
+    return "\n".join(lines) + "\n"
+
+
+def _label(results: dict[str, Any], method: str) -> str:
+    declared = results.get("methods")
+    return str(declared.get(method, method)) if isinstance(declared, dict) else method
+
+
+def _targets(results: dict[str, Any], per_method: dict[str, Any]) -> list[str]:
+    """The issue's targets at one size, where the methods they compare ran."""
+    out = []
+    dqn = per_method.get("dqn", {}).get("summary")
+    for method in ("factor-q-learned", "factor-q-oracle"):
+        mine = per_method.get(method, {}).get("summary")
+        if mine is None or dqn is None:
+            continue
+        ours, theirs = mine["collisions"]["mean"], dqn["collisions"]["mean"]
+        ratio = math.inf if ours == 0 else theirs / ours
+        success_ok = (mine["success_rate"]["mean"] or 0.0) >= (dqn["success_rate"]["mean"] or 0.0)
+        out.append(
+            f"- {_label(results, method)}: training collisions {ratio:.2f}x below DQN's "
+            f"(target >= 10x: {'met' if ratio >= 10 else 'not met'}); success rate "
+            f"{'no worse than' if success_ok else 'below'} DQN's."
+        )
+    return out
+
+
+def figure(results: dict[str, Any], path: Path) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    panels = (
+        ("success_rate", "success rate (end of training)", False),
+        ("collisions", "collisions during training", True),
+        ("steps_to_90", "env steps to 90% success", False),
+    )
+    figure = Figure(figsize=(13, 4))
+    FigureCanvasAgg(figure)
+    sizes = list(results["results"])
+    methods = list(results["config"]["methods"])
+    for column, (measure, title, log) in enumerate(panels):
+        axis = figure.add_subplot(1, len(panels), column + 1)
+        for offset, method in enumerate(methods):
+            xs, ys, errs = [], [], []
+            for position, size in enumerate(sizes):
+                stat = results["results"][size][method]["summary"][measure]
+                if stat["mean"] is None:
+                    continue
+                xs.append(position + (offset - len(methods) / 2) * 0.06)
+                ys.append(stat["mean"])
+                ci = stat["ci95"]
+                errs.append(0.0 if ci is None or ci[1] is None else ci[1] - stat["mean"])
+            axis.errorbar(xs, ys, yerr=errs, marker="o", capsize=3, label=_label(results, method))
+        axis.set_xticks(range(len(sizes)), [f"{s}x{s}" for s in sizes])
+        axis.set_title(title)
+        if log:
+            axis.set_yscale("log")
+        axis.grid(alpha=0.3)
+    figure.axes[0].legend(fontsize=7)
+    figure.suptitle(
+        f"MiniGrid Dynamic-Obstacles, {results['config']['seeds']} seeds, "
+        "95% intervals (Wilson, BCa bootstrap)"
+    )
+    figure.tight_layout()
+    figure.savefig(path, dpi=100, format="png")
+
+
+# --------------------------------------------------------------------------------------------
+# factorq sweep --command minigrid
+
+SWEEP_MEASURES = ("success_rate", "collisions", "greedy_collisions", "steps_to_90")
+
+
+def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per size and method of a ``minigrid.json`` dict: the ``SWEEP_MEASURES`` (means and 95%
+    intervals across seeds)."""
+    cells = {}
+    for size, per_method in results["results"].items():
+        for method, entry in per_method.items():
+            summary = entry["summary"]
+            cells[f"{size}x{size}/{method}"] = {
+                "world": f"{size}x{size}",
+                "algorithm": method,
+                **{
+                    measure: {"mean": summary[measure]["mean"], "ci95": summary[measure]["ci95"]}
+                    for measure in SWEEP_MEASURES
+                },
+            }
+    return cells
