@@ -52,6 +52,8 @@ from typing import Any, NamedTuple
 
 import torch
 
+from factorq_trainers.runner import outdir
+
 FORMAT = "factorq-paper-checkpoint"
 #: ``factorq compare``'s checkpoints: the methods finished so far and the running one's state.
 COMPARE_FORMAT = "factorq-compare-checkpoint"
@@ -189,7 +191,7 @@ def save(out: str | os.PathLike, content: dict[str, Any], kind: str = FORMAT) ->
     link = directory / f".{PREVIOUS}.{pid}.tmp"
     record = {"format": kind, "version": FORMAT_VERSION, "sha256": digest(content)}
     try:
-        with open(temporary, "wb") as file:
+        with os.fdopen(outdir.create_new(temporary), "wb") as file:  # never through a link
             torch.save({**record, "content": content}, file)
             file.flush()
             os.fsync(file.fileno())

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from factorq_trainers.analysis.stats import finite_or_none
+from factorq_trainers.runner import outdir
 
 #: The newest layout this code reads and writes (files without the entry are version 1).
 SCHEMA_VERSION = 1
@@ -85,6 +86,8 @@ def write_all_atomic(
     temporaries = {path: temporary_path(path) for path in writers}
     try:
         for path, write in writers.items():
+            # made new here (never through a link planted at the temporary's name), then filled
+            os.close(outdir.create_new(temporaries[path]))
             write(temporaries[path])
         if before_rename is not None:
             before_rename()
