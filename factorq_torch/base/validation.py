@@ -86,6 +86,10 @@ def check_float(
     """Return ``value`` if it is a finite number in the interval (open ends as flagged)."""
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise TypeError(f"{name} must be a number, got {value!r} ({type(value).__name__})")
+    if isinstance(value, int) and abs(value) > 2**1023:  # float(value) would raise OverflowError
+        shown = f"{str(value)[:12]}... ({len(str(abs(value)))} digits)"
+        interval = f"{'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
+        raise ValueError(f"{name}={shown} is out of range: must be in {interval}")
     below = value <= low if low_open else value < low
     above = value >= high if high_open else value > high
     if not math.isfinite(value) or below or above:

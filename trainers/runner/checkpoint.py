@@ -52,7 +52,7 @@ from typing import Any, NamedTuple
 
 import torch
 
-from factorq_trainers.runner import outdir
+from factorq_trainers.runner import outdir, results
 
 FORMAT = "factorq-paper-checkpoint"
 #: ``factorq compare``'s checkpoints: the methods finished so far and the running one's state.
@@ -296,6 +296,11 @@ def read_content(path: Path, kind: str) -> dict[str, Any]:
             f"reads version {FORMAT_VERSION}: resume it with the factorq that wrote it"
         )
     content = record.get("content")
+    if results.deeper_than(content, results.MAX_DEPTH):  # before the digest walk recurses
+        raise CheckpointError(
+            f"checkpoint {path} nests deeper than {results.MAX_DEPTH} levels: not a checkpoint "
+            f"factorq wrote"
+        )
     if not isinstance(content, dict) or digest(content) != record.get("sha256"):
         raise CheckpointError(
             f"checkpoint {path} is corrupted or truncated (its content does not match its digest)"

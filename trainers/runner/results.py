@@ -105,16 +105,35 @@ MAX_DEPTH = 32
 _BRACKETS = re.compile(r'"(?:[^"\\]|\\.)*"|[\[\]{}]')
 
 
-def nesting_depth(text: str) -> int:
-    """The deepest ``[``/``{`` nesting of JSON ``text`` (brackets inside strings do not count)."""
+def nesting_depth(text: str, tokens: re.Pattern = _BRACKETS) -> int:
+    """The deepest ``[``/``{`` nesting of JSON ``text`` (brackets inside strings do not count;
+    ``tokens``: the strings and brackets of another syntax, e.g. TOML's)."""
     depth = deepest = 0
-    for token in _BRACKETS.findall(text):
+    for token in tokens.findall(text):
         if token in "[{":
             depth += 1
             deepest = max(deepest, depth)
         elif token in "]}":
             depth -= 1
     return deepest
+
+
+def deeper_than(value: Any, limit: int) -> bool:
+    """Whether ``value``'s dicts, lists and tuples nest more than ``limit`` levels, found without
+    recursion (a walk that recursed would raise RecursionError on a hostile file first)."""
+    stack = [(value, 0)]
+    while stack:
+        item, depth = stack.pop()
+        if isinstance(item, dict):
+            children = item.values()
+        elif isinstance(item, list | tuple):
+            children = item
+        else:
+            continue
+        if depth >= limit:
+            return True
+        stack.extend((child, depth + 1) for child in children)
+    return False
 
 
 def read_json(path: Path, required: Iterable[str], missing_hint: str) -> dict[str, Any]:
