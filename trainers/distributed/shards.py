@@ -155,6 +155,8 @@ def load(path: str | os.PathLike, shard: paper.PaperConfig) -> ShardMetrics:
             metrics = {key: data[key] for key in data.files if key != "__config__"}
     except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as error:
         raise ValueError(f"shard file {path} is unreadable ({error}): delete it to rerun") from None
+    if not isinstance(saved, dict):  # found by the fuzz harness (tests/test_hardening_fuzz.py)
+        raise ValueError(f"shard file {path} holds no config: delete it to rerun")
     expected = paper.config_dict(shard)
     differing = sorted(
         key
