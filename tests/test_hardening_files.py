@@ -108,3 +108,14 @@ def test_a_link_planted_at_the_checkpoints_temporary_is_refused_and_its_target_k
         checkpoint.save(out, {"episodes": 1})
     assert victim.read_bytes() == PRECIOUS
     assert not (directory / checkpoint.LATEST).exists()
+
+
+def test_a_fifo_where_a_results_file_belongs_is_named_as_such_not_missing(tmp_path):
+    from factorq_trainers import reports
+
+    fifo = tmp_path / "results.json"
+    os.mkfifo(fifo)
+    with pytest.raises(ValueError, match="results.json is not a regular file: not a results file"):
+        results.read_json(fifo, ["config"], "run factorq paper")  # (reading it would block)
+    with pytest.raises(ValueError, match="is not a regular file"):
+        reports.find(tmp_path)

@@ -141,6 +141,8 @@ def read_json(path: Path, required: Iterable[str], missing_hint: str) -> dict[st
     JSON, lacks one of the ``required`` entries or was written by a newer version
     (``missing_hint``: how to make the file, for the error when it does not exist)."""
     if not path.is_file():
+        if path.exists():  # a FIFO (reading it would block), a device, a directory
+            raise ValueError(f"{path} is not a regular file: not a results file")
         raise FileNotFoundError(f"{path} does not exist: {missing_hint}")
     size = path.stat().st_size
     if size > MAX_FILE_BYTES:
