@@ -41,6 +41,12 @@ def test_a_float_option_that_is_not_finite_is_refused_while_parsing(capsys, text
     assert message.startswith(f"factorq toy: error: argument --rate: '{text}' is not a finite")
 
 
+def test_a_float_option_that_is_not_a_number_says_so(capsys):
+    assert parse(capsys, "--rate", "abc").endswith(
+        "argument --rate: 'abc' is not a number (see factorq toy --help)"
+    )
+
+
 def test_finite_float_options_still_parse():
     parser = Parser(prog="factorq toy")
     options.add_options(parser, Toy)

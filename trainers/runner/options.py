@@ -34,7 +34,10 @@ def finite_float(text: str) -> float:
     """argparse's type of every float option: a finite number. ``inf``, ``nan`` and anything past
     the float range (``1e400``, a 400-digit integer: both read as ``inf``) are refused while the
     options are parsed, in one line, before any work (a config's own range checks follow)."""
-    value = float(text)  # a ValueError: argparse's "invalid finite_float value: 'x'"
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
     return value
