@@ -21,7 +21,7 @@ from factorq_envs.protocol import check_world, optional_method
 from factorq_envs.world import FactoredGrid, WorldConfig, static_layout, where_rows
 from factorq_torch.base import keys
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
-from factorq_torch.base.validation import check_device, is_int
+from factorq_torch.base.validation import check_device, check_seed, is_int
 
 _INTEGER_DTYPES = (torch.int8, torch.int16, torch.int32, torch.int64, torch.uint8)
 
@@ -391,8 +391,7 @@ class FactoredGridEnv(EnvBase):
             seed = 0
         if not is_int(seed):
             raise TypeError(f"seed must be an int or None, got {seed!r} ({type(seed).__name__})")
-        if seed < 0:
-            raise ValueError(f"seed={seed} is out of range: must be >= 0")
+        check_seed("seed", seed)  # [0, INT64_MAX]: 2**80 would wrap to 0 in the 64-bit keys
         self.world_seed = seed
         self.world_keys = derive_keys(
             seed, STREAM_WORLD, self.num_worlds, self.experiment_offset

@@ -52,7 +52,7 @@ from torch import nn
 from factorq_torch.base import keys as names
 from factorq_torch.base.config import PAPER_NUM_ACTIONS
 from factorq_torch.base.rng import MASK64, STREAM_LOCAL_NETWORK, STREAM_TASK_NETWORK, derive_keys
-from factorq_torch.base.validation import check_hidden, check_int
+from factorq_torch.base.validation import check_hidden, check_int, check_seed
 from factorq_torch.functional import check_dependency
 
 NUM_ACTIONS = PAPER_NUM_ACTIONS  # the default body (base.config)
@@ -149,6 +149,7 @@ class BatchedMLP(nn.Module):
 def _keys(keys, seed: int, stream: int, count: int, offset: int) -> torch.Tensor:
     """The given initialisation keys ``[S]`` int64, or those derived from ``seed``."""
     if keys is None:
+        check_seed("seed", seed)  # [0, INT64_MAX]: the keys are 64-bit
         return derive_keys(seed, stream, count, offset)
     if not isinstance(keys, torch.Tensor) or keys.dtype != torch.int64:
         raise TypeError("keys must be an int64 tensor (see factorq_torch.base.rng.derive_keys)")

@@ -56,7 +56,7 @@ from torchrl.objectives import LossModule
 from factorq_torch.base import keys as names
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.indices import row_starts
-from factorq_torch.base.validation import check_finite
+from factorq_torch.base.validation import check_finite, check_indices, check_same_device
 from factorq_torch.functional import (
     combined_values,
     factorq_target,
@@ -157,13 +157,27 @@ class _TransitionLoss(LossModule):
             )
         return value
 
+    def _read_reward(
+        self, tensordict: TensorDictBase, key: NestedKey, trailing: tuple, device: torch.device
+    ) -> torch.Tensor:
+        """A reward ``[*B, *trailing]`` on the tables' ``device``, finite (a NaN or an infinity
+        would make the loss, the targets and the local tables NaN from then on)."""
+        value = self._read(tensordict, key, trailing)
+        name = type(self).__name__
+        check_same_device(name, repr(key), value, device)
+        return check_finite(name, repr(key), value, cause="the env or a transform gave it")
+
     def _read_action(self, tensordict: TensorDictBase, num_actions: int) -> torch.Tensor:
-        action = self._read(tensordict, self.tensor_keys.action, ())
+        key = self.tensor_keys.action
+        action = self._read(tensordict, key, ())
         if action.dtype not in (torch.int64, torch.int32):
             raise ValueError(
-                f"{type(self).__name__}: {self.tensor_keys.action!r} must be integer action "
+                f"{type(self).__name__}: {key!r} must be integer action "
                 f"indices in [0, {num_actions}), got dtype {action.dtype}"
             )
+        check_indices(
+            type(self).__name__, key if isinstance(key, str) else repr(key), action, num_actions
+        )
         return action.to(torch.int64)
 
     def _read_terminated(self, tensordict: TensorDictBase) -> torch.Tensor:
@@ -352,7 +366,7 @@ class TabularQLoss(_TransitionLoss):
         provider = self.task_value_network
         q = self._provide(provider, tensordict, keys.action_value, experiment)  # [*B, A]
         action = self._read_action(tensordict, q.shape[-1])  # [*B]
-        reward = self._read(tensordict, ("next", keys.reward), ())  # [*B]
+        reward = self._read_reward(tensordict, ("next", keys.reward), (), q.device)  # [*B]
         terminated = self._read_terminated(tensordict)  # [*B]
         mask = self._mask(tensordict, batch)
         weight = self._entry_weight(tensordict, experiment, action)
@@ -376,7 +390,7 @@ class TabularQLoss(_TransitionLoss):
         keys, batch = self.tensor_keys, self._batch(tensordict)
         provider = self.task_value_network
         action = self._read_action(tensordict, provider.num_actions)  # [S]
-        reward = self._read(tensordict, ("next", keys.reward), ())  # [S]
+        reward = self._read_reward(tensordict, ("next", keys.reward), (), provider.table.device)
         terminated = self._read_terminated(tensordict)  # [S]
         mask = self._mask(tensordict, batch)
         q_next = self._provide(provider, tensordict.get("next"), keys.action_value)  # [S, A]
@@ -476,8 +490,10 @@ class FactorQLoss(_TransitionLoss):
         if num_sensors is None:  # a provider that does not declare K: take the entry's own
             num_sensors = getattr(tensordict.get(keys.sensors, None), "shape", (0,))[-1]
         sensors = self._read(tensordict, keys.sensors, (num_sensors,))  # [*B, K], before acting
-        reward = self._read(tensordict, ("next", keys.reward), ())  # [*B], task reward
-        local_reward = self._read(tensordict, ("next", keys.local_reward), (num_actions,))
+        reward = self._read_reward(tensordict, ("next", keys.reward), (), q.device)  # [*B], task
+        local_reward = self._read_reward(
+            tensordict, ("next", keys.local_reward), (num_actions,), q.device
+        )
         terminated = self._read_terminated(tensordict)  # [*B]
         mask = self._mask(tensordict, batch)
         weight = self._entry_weight(tensordict, experiment, action)
@@ -531,8 +547,11 @@ class FactorQLoss(_TransitionLoss):
         if num_sensors is None:  # a provider that does not declare K: take the entry's own
             num_sensors = getattr(tensordict.get(keys.sensors, None), "shape", (0,))[-1]
         sensors = self._read(tensordict, keys.sensors, (num_sensors,))  # [S, K], before acting
-        reward = self._read(tensordict, ("next", keys.reward), ())  # [S], task reward
-        local_reward = self._read(tensordict, ("next", keys.local_reward), (num_actions,))
+        device = task.table.device
+        reward = self._read_reward(tensordict, ("next", keys.reward), (), device)  # [S], task
+        local_reward = self._read_reward(
+            tensordict, ("next", keys.local_reward), (num_actions,), device
+        )
         terminated = self._read_terminated(tensordict)  # [S]
         mask = self._mask(tensordict, batch)
         next_td = tensordict.get("next")

@@ -39,7 +39,7 @@ from tensordict.nn.probabilistic import InteractionType, interaction_type
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.indices import row_starts
 from factorq_torch.base.rng import POLICY_DRAWS_PER_STEP, STREAM_POLICY, derive_keys, random_bits
-from factorq_torch.base.validation import check_device, check_finite
+from factorq_torch.base.validation import check_device, check_finite, check_seed
 from factorq_torch.functional import combined_values, epsilon_greedy_from_bits, normaliser
 from factorq_torch.tables import check_mask, experiment_index, is_online
 
@@ -123,6 +123,7 @@ class EpsilonGreedyPolicy(TensorDictModuleBase):
                 raise TypeError(f"{name} must be an int, got {value!r} ({type(value).__name__})")
             if value < 0:
                 raise ValueError(f"{name}={value} is out of range: must be >= 0")
+        check_seed("seed", int(seed))  # at most INT64_MAX: the keys are 64-bit
         self.set_stream_keys(derive_keys(seed, STREAM_POLICY, self.num_experiments, offset))
 
     @torch.no_grad()

@@ -105,7 +105,7 @@ from factorq_torch.functional import (  # noqa: F401  (the structure math, re-ex
     mixture_log_marginal,
     posterior_weights,
 )
-from factorq_torch.tables import _check_entry, check_batch, check_mask
+from factorq_torch.tables import _check_entry, check_batch, check_firing, check_mask
 
 
 class StructureLearner(TensorDictModuleBase):
@@ -348,6 +348,8 @@ class StructureLearner(TensorDictModuleBase):
                     f"StructureLearner.update_running_mean: {name} has shape "
                     f"{list(value.shape)}, expected {list(shape)}"
                 )
+        owner, device = "StructureLearner.update_running_mean", self.count.device
+        check_firing(owner, readings, action, local_reward, self.num_actions, device)
         rows = torch.arange(batch, device=action.device)
         if mask is not None:
             rows, action = rows[mask], action[mask]

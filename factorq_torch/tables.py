@@ -37,7 +37,10 @@ from factorq_torch.base.validation import (  # MAX_TABLE_ENTRIES: re-exported
     MAX_PARENTS,
     MAX_TABLE_ENTRIES,  # noqa: F401
     check_device,
+    check_finite,
+    check_indices,
     check_int,
+    check_same_device,
     check_table_size,
 )
 from factorq_torch.functional import (
@@ -156,6 +159,28 @@ def is_online(tensordict: TensorDictBase, num_experiments: int) -> bool:
     return tuple(tensordict.batch_size) == (num_experiments,) and (
         tensordict.get(keys.EXPERIMENT, None) is None
     )
+
+
+def check_firing(
+    owner: str,
+    readings: torch.Tensor,
+    action: torch.Tensor,
+    local_reward: torch.Tensor,
+    num_actions: int,
+    device: torch.device,
+) -> None:
+    """What a local learner's update reads (``LocalRewardTable``, ``StructureLearner``): bool
+    ``readings``, integer actions in ``[0, num_actions)``, finite local rewards, all on the
+    learner's ``device``; errors name the argument, the first experiment and its value (shapes
+    are the caller's to check)."""
+    if readings.dtype != torch.bool:
+        raise TypeError(f"{owner}: readings must be bool sensor readings, got {readings.dtype}")
+    if action.dtype not in (torch.int64, torch.int32):
+        raise TypeError(f"{owner}: action must be integer action indices, got {action.dtype}")
+    for name, value in (("readings", readings), ("action", action), ("local_reward", local_reward)):
+        check_same_device(owner, name, value, device)
+    check_indices(owner, "action", action, num_actions)
+    check_finite(owner, "local_reward", local_reward, cause="the env or a transform gave it")
 
 
 def _check_entry(
@@ -293,13 +318,22 @@ class TaskQTable(TensorDictModuleBase):
         return tensordict
 
     def _misfit(self, state: torch.Tensor) -> str:
-        """The message for a state past the table (an env larger than ``num_cells``)."""
-        cells = int(state.max()) // ((1 << self.num_sensors) if self.with_sensors else 1)
-        cells = cells // self.num_headings + 1
+        """The message for a state outside the table: the first such transition's cell (floor
+        division keeps a negative cell negative), past the end (an env larger than
+        ``num_cells``) or negative (a bad index)."""
+        outside = (state < 0) | (state >= self.num_states)
+        first = int(state.reshape(-1)[outside.reshape(-1)][0])
+        cell = first // ((1 << self.num_sensors) if self.with_sensors else 1) // self.num_headings
+        where = int(outside.reshape(-1).nonzero()[0, 0])
+        if cell < 0:
+            return (
+                f"TaskQTable: {keys.CELL!r} holds cell {cell} (transition {where} first): a "
+                f"table of num_cells={self.num_cells} holds cells 0 to {self.num_cells - 1}"
+            )
         return (
             f"TaskQTable was built for num_cells={self.num_cells} but received cell "
-            f"{cells - 1}: the env has more cells (size**2) than the table; build "
-            f"TaskQTable(..., num_cells=size**2) of the env"
+            f"{cell} (transition {where} first): the env has more cells (size**2) than the "
+            f"table; build TaskQTable(..., num_cells=size**2) of the env"
         )
 
     @torch.no_grad()
@@ -456,6 +490,7 @@ class LocalRewardTable(TensorDictModuleBase):
                 raise ValueError(
                     f"{owner}: {name} has shape {list(value.shape)}, expected {list(shape)}"
                 )
+        check_firing(owner, readings, action, local_reward, self.num_actions, self.rho.device)
         distinct = False  # whether the transitions' experiments are known to differ
         patterns_per_table = self.rho.shape[-1]
         if experiment is None:

@@ -70,6 +70,12 @@ def check_int(name: str, value, low: int, high: int | None = None, hint: str = "
     return value
 
 
+def check_seed(name: str, value) -> int:
+    """A seed in the documented range ``[0, INT64_MAX]`` (keys are derived in 64 bits: past it
+    a seed would silently equal a smaller one, ``2**80`` the same as 0)."""
+    return check_int(name, value, 0, INT64_MAX)
+
+
 def check_threads(name: str, value) -> int:
     """A thread count in ``[1, MAX_THREADS]``."""
     return check_int(name, value, 1, MAX_THREADS)
@@ -81,6 +87,10 @@ def check_float(
     """Return ``value`` if it is a finite number in the interval (open ends as flagged)."""
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise TypeError(f"{name} must be a number, got {value!r} ({type(value).__name__})")
+    if isinstance(value, int) and abs(value) > 2**1023:  # float(value) would raise OverflowError
+        shown = f"{str(value)[:12]}... ({len(str(abs(value)))} digits)"
+        interval = f"{'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
+        raise ValueError(f"{name}={shown} is out of range: must be in {interval}")
     below = value <= low if low_open else value < low
     above = value >= high if high_open else value > high
     if not math.isfinite(value) or below or above:
@@ -143,7 +153,7 @@ def check_device(name: str, value, *, allow_meta: bool = True, optional: bool = 
     return device
 
 
-def check_finite(owner: str, name: str, values):
+def check_finite(owner: str, name: str, values, *, cause: str | None = None):
     """Return ``values`` (a tensor ``[S, ...]``) if every entry is finite, else raise a
     ValueError naming ``owner``, the key and the first experiment (leading index) at fault.
 
@@ -153,7 +163,8 @@ def check_finite(owner: str, name: str, values):
     overflows) is checked entry by entry; on an accelerator it is a device-side assert
     (``torch._assert_async``) so that it never stalls the step with a device-to-host copy; on
     ``meta`` there is no data. A NaN or infinite value fed to a policy or a loss would otherwise
-    spread silently through argmax ties and targets.
+    spread silently through argmax ties and targets. The CPU error names the first bad value;
+    ``cause`` replaces the default remedy (a diverged table or network).
     """
     import torch
 
@@ -165,11 +176,52 @@ def check_finite(owner: str, name: str, values):
         return values
     if math.isfinite(values.sum().item()) or bool(torch.isfinite(values).all()):
         return values
-    where = ""
-    if values.dim():
-        bad = (~torch.isfinite(values)).reshape(values.shape[0], -1).any(dim=1)
-        where = f" (experiment {int(bad.nonzero()[0, 0])} first)"
+    cause = cause or "a table or network diverged or was loaded from a bad state"
+    where, value = _first(values, ~torch.isfinite(values))
     raise ValueError(
-        f"{owner}: {name} holds NaN or infinite values{where}: a table or network diverged "
-        f"or was loaded from a bad state"
+        f"{owner}: {name} holds NaN or infinite values{where}: {cause} (first: {value})"
     )
+
+
+def _first(values, bad) -> tuple[str, object]:
+    """`` (experiment i first)`` (the first experiment, leading index, holding a ``bad`` entry;
+    empty for a 0-d tensor) and that experiment's first bad value."""
+    if not values.dim():
+        return "", values.item()
+    rows, flags = values.reshape(values.shape[0], -1), bad.reshape(values.shape[0], -1)
+    experiment = int(flags.any(dim=1).nonzero()[0, 0])
+    return f" (experiment {experiment} first)", rows[experiment][flags[experiment]][0].item()
+
+
+def check_indices(owner: str, name: str, values, high: int, *, what: str = "values"):
+    """Return ``values`` (an integer tensor ``[S, ...]``) if every entry is in ``[0, high)``,
+    else raise a ValueError naming ``owner``, the key, the first experiment at fault and its
+    value (a raw torch index error, or a silent read of another experiment's row, otherwise).
+
+    As ``check_finite``: on the CPU one ``aminmax`` decides (the entries are read once), and
+    only a batch out of range is searched; on an accelerator a device-side assert, no host
+    synchronisation; nothing to check on ``meta``.
+    """
+    import torch
+
+    if values.numel() == 0 or values.device.type == "meta":
+        return values
+    if values.device.type != "cpu":
+        inside = ((values >= 0) & (values < high)).all()
+        torch._assert_async(inside, f"{owner}: {name} holds {what} outside [0, {high})")
+        return values
+    low_seen, high_seen = torch.aminmax(values)
+    if int(low_seen) >= 0 and int(high_seen) < high:
+        return values
+    where, value = _first(values, (values < 0) | (values >= high))
+    raise ValueError(f"{owner}: {name} holds {what} outside [0, {high}){where}: {value}")
+
+
+def check_same_device(owner: str, name: str, value, device) -> None:
+    """Raise a ValueError naming the key when ``value`` is not on ``device`` (torch's own error
+    names neither the key nor the remedy)."""
+    if value.device != device:
+        raise ValueError(
+            f"{owner}: {name} is on {value.device} but the tables are on {device}: move the "
+            f"tensordict there (td.to({str(device)!r}))"
+        )

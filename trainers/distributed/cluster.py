@@ -33,12 +33,15 @@ from pathlib import Path
 from typing import Any
 
 from factorq_torch.base.validation import MAX_THREADS
+from factorq_trainers.runner import options
 
 EXTRA = "distributed"
 INSTALL_HINT = (
     f"pip install 'factorq-torch[{EXTRA}]' (in this checkout: pip install -e '.[{EXTRA}]')"
 )
 DEFAULT_CONNECT_TIMEOUT_S = 10.0
+#: The longest wait for a scheduler (a day): a finite bound Dask's timeout parser takes.
+MAX_CONNECT_TIMEOUT_S = 86_400.0
 _LOCAL = re.compile(r"^local(?::(\d+))?$")
 
 
@@ -67,8 +70,13 @@ class Where:
             raise ClusterError(
                 f"--scheduler={self.scheduler!r} is not an address like tcp://host:8786"
             )
-        if not self.connect_timeout_s > 0:
-            raise ClusterError(f"--connect-timeout={self.connect_timeout_s!r} must be > 0 seconds")
+        timeout = self.connect_timeout_s
+        if not (isinstance(timeout, int | float) and 0 < timeout <= MAX_CONNECT_TIMEOUT_S):
+            # inf used to reach Dask's timeout parser (KeyError), 1e300 to hang for good
+            raise ClusterError(
+                f"--connect-timeout={timeout!r} is out of range: must be in "
+                f"(0, {MAX_CONNECT_TIMEOUT_S:g}] seconds"
+            )
 
     @property
     def in_process(self) -> bool:
@@ -225,8 +233,9 @@ def add_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--connect-timeout",
         metavar="SECONDS",
-        type=float,
-        help=f"Give up on --scheduler after this long. (default: {DEFAULT_CONNECT_TIMEOUT_S:g})",
+        type=options.finite_float,
+        help=f"Give up on --scheduler after this long (at most {MAX_CONNECT_TIMEOUT_S:g}). "
+        f"(default: {DEFAULT_CONNECT_TIMEOUT_S:g})",
         default=argparse.SUPPRESS,
     )
 

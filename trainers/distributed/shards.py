@@ -132,15 +132,72 @@ def shard_path(directory: str | os.PathLike, shard: paper.PaperConfig) -> Path:
     return Path(directory) / digest(shard) / f"{shard.first_seed:06d}-{stop:06d}{SHARD_SUFFIX}"
 
 
+#: Metrics that count (steps, collisions): whole numbers >= 0; the others need only be finite.
+_COUNTS = ("steps", "collisions", "greedy_collisions")
+
+
+def metrics_digest(metrics: ShardMetrics) -> str:
+    """SHA-256 of ``metrics``: every name, dtype, shape and byte, in name order (a kept shard is
+    reused on a rerun: an edit to its numbers must not reach the results silently)."""
+    hasher = hashlib.sha256()
+    for name in sorted(metrics):
+        array = np.ascontiguousarray(metrics[name])
+        hasher.update(f"{name}:{array.dtype.str}:{array.shape};".encode())
+        hasher.update(array.tobytes())
+    return hasher.hexdigest()
+
+
+def _check_metrics(
+    path: Path, shard: paper.PaperConfig, metrics: ShardMetrics, stored: str
+) -> None:
+    """Raise a ValueError naming ``path`` unless ``metrics`` are what ``run_shard(shard)`` gives:
+    its digest, every metric of every cell, the shape ``[seeds, runs, episodes]``, finite
+    values, counts whole and >= 0 (checked even when the digest matches: it proves integrity,
+    not origin)."""
+    remedy = "delete it to recompute it"
+    if not stored:
+        raise ValueError(f"shard file {path} has no digest (an older factorq wrote it): {remedy}")
+    if stored != metrics_digest(metrics):
+        raise ValueError(
+            f"shard file {path} does not match its digest (edited or damaged): {remedy}"
+        )
+    shape = (shard.seeds, shard.runs, shard.episodes)
+    for world in shard.worlds:
+        for algorithm in shard.algorithms:
+            for name in METRICS:
+                key = f"{world}/{algorithm}/{name}"
+                values = metrics.get(key)
+                if values is None:
+                    raise ValueError(f"shard file {path} lacks the metric {key}: {remedy}")
+                if values.shape != shape or values.dtype.kind not in "iuf":
+                    raise ValueError(
+                        f"shard file {path}: {key} is {values.dtype} {list(values.shape)}, "
+                        f"not numbers {list(shape)}: {remedy}"
+                    )
+                bad = ~np.isfinite(values)
+                if name in _COUNTS:
+                    bad |= (values < 0) | (values != np.floor(values))
+                if bad.any():
+                    first = values[bad].flat[0]
+                    raise ValueError(
+                        f"shard file {path}: {key} holds {first}, not a "
+                        f"{'count' if name in _COUNTS else 'finite number'}: {remedy}"
+                    )
+
+
 def save(path: str | os.PathLike, shard: paper.PaperConfig, metrics: ShardMetrics) -> None:
-    """Write ``metrics`` (and ``shard``'s config, for checking) to ``path``, all or nothing."""
+    """Write ``metrics`` (with ``shard``'s config and their digest, for checking) to ``path``,
+    all or nothing."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     config = json.dumps(paper.config_dict(shard), sort_keys=True)
+    digest_of = np.array(metrics_digest(metrics))
 
     def write(temporary: Path) -> None:
         with open(temporary, "wb") as handle:
-            np.savez_compressed(handle, __config__=np.array(config), **metrics)
+            np.savez_compressed(
+                handle, __config__=np.array(config), __sha256__=digest_of, **metrics
+            )
             handle.flush()
             os.fsync(handle.fileno())
 
@@ -152,9 +209,12 @@ def load(path: str | os.PathLike, shard: paper.PaperConfig) -> ShardMetrics:
     try:
         with np.load(path, allow_pickle=False) as data:
             saved = json.loads(str(data["__config__"]))
-            metrics = {key: data[key] for key in data.files if key != "__config__"}
+            stored = str(data["__sha256__"]) if "__sha256__" in data.files else ""
+            metrics = {key: data[key] for key in data.files if not key.startswith("__")}
     except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as error:
         raise ValueError(f"shard file {path} is unreadable ({error}): delete it to rerun") from None
+    if not isinstance(saved, dict):  # found by the fuzz harness (tests/test_hardening_fuzz.py)
+        raise ValueError(f"shard file {path} holds no config: delete it to rerun")
     expected = paper.config_dict(shard)
     differing = sorted(
         key
@@ -165,4 +225,5 @@ def load(path: str | os.PathLike, shard: paper.PaperConfig) -> ShardMetrics:
         raise ValueError(
             f"shard file {path} holds another config (differs in {', '.join(differing)})"
         )
+    _check_metrics(Path(path), shard, metrics, stored)
     return metrics

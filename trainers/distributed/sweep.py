@@ -49,6 +49,7 @@ import itertools
 import json
 import math
 import os
+import re
 import sys
 import time
 import tomllib
@@ -233,6 +234,13 @@ class SweepSpec:
                 raise SweepError(f"grid axis {name!r} needs a non-empty list of values")
             if len(set(map(repr, values))) != len(values):
                 raise SweepError(f"grid axis {name!r} repeats a value: {list(values)}")
+        count = len(self.configs) * math.prod(len(values) for _, values in self.grid)
+        if count > MAX_CONFIGURATIONS:  # from the axes' lengths: nothing expanded yet
+            sizes = " x ".join(str(len(values)) for _, values in self.grid) or "1"
+            raise SweepError(
+                f"the sweep has {count} configurations ({len(self.configs)} configs x grid "
+                f"{sizes}), more than {MAX_CONFIGURATIONS}: split it into several sweeps"
+            )
         axes = {name for name, _ in self.grid}
         for entry in self.configs:
             clash = axes & {name for name, _ in entry}
@@ -321,13 +329,61 @@ def spec_from_mapping(data: dict[str, Any], source: str = "sweep file") -> Sweep
         raise SweepError(f"{source}: {error}") from None
 
 
+#: A sweep file is a few hundred bytes; far larger ones are not sweep files.
+MAX_SPEC_BYTES = 1024 * 1024
+#: Configurations one sweep may hold (each is a whole run): checked from the axes' lengths
+#: before anything is expanded (10**9 points used to end in MemoryError, 10**5 in minutes of
+#: silence).
+MAX_CONFIGURATIONS = 10_000
+#: TOML's strings, comments and brackets, for the nesting check before ``tomllib`` (which
+#: recurses on nested arrays and inline tables).
+_TOML_TOKENS = re.compile(
+    r'"""[\s\S]*?"""'
+    r"|'''[\s\S]*?'''"
+    r'|"(?:[^"\\\n]|\\.)*"'
+    r"|'[^'\n]*'"
+    r"|#[^\n]*"
+    r"|[\[\]{}]"
+)
+
+
+def _yaml_loader() -> type:
+    """PyYAML's safe loader refusing aliases (a 433-byte alias bomb took a minute and gigabytes)
+    and nesting past ``results.MAX_DEPTH`` (checked before the composer recurses)."""
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        depth = 0
+
+        def compose_node(self, parent, index):  # noqa: ANN001, ANN202 - PyYAML's signature
+            if self.check_event(yaml.AliasEvent):
+                mark = self.peek_event().start_mark
+                raise yaml.YAMLError(
+                    f"aliases (*name) are not allowed in a sweep file (line {mark.line + 1})"
+                )
+            if self.depth >= result_files.MAX_DEPTH:
+                raise yaml.YAMLError(f"it nests deeper than {result_files.MAX_DEPTH} levels")
+            self.depth += 1
+            try:
+                return super().compose_node(parent, index)
+            finally:
+                self.depth -= 1
+
+    return Loader
+
+
 def read_spec_file(path: str | Path) -> dict[str, Any]:
-    """The document of a ``.toml`` sweep file (or ``.yaml``/``.yml`` where PyYAML is installed)."""
+    """The document of a ``.toml`` sweep file (or ``.yaml``/``.yml`` where PyYAML is installed):
+    bounded in size and nesting before it is parsed, YAML without aliases."""
     path = Path(path)
     try:
+        if path.is_file() and path.stat().st_size > MAX_SPEC_BYTES:
+            raise SweepError(f"sweep file {path} is larger than {MAX_SPEC_BYTES} bytes")
         text = path.read_text()
     except OSError as error:
         raise SweepError(f"cannot read sweep file {path}: {error.strerror}") from None
+    except UnicodeDecodeError:
+        raise SweepError(f"sweep file {path} is not UTF-8 text") from None
     if path.suffix in (".yaml", ".yml"):
         try:
             import yaml
@@ -336,13 +392,19 @@ def read_spec_file(path: str | Path) -> dict[str, Any]:
                 f"{path}: YAML needs PyYAML (pip install pyyaml); or use TOML"
             ) from None
         try:
-            return yaml.safe_load(text) or {}
+            data = yaml.load(text, Loader=_yaml_loader()) or {}  # noqa: S506 - a safe loader
         except yaml.YAMLError as error:
             raise SweepError(f"{path}: not valid YAML ({' '.join(str(error).split())})") from None
-    try:
-        return tomllib.loads(text)
-    except tomllib.TOMLDecodeError as error:
-        raise SweepError(f"{path}: not valid TOML ({error})") from None
+    else:
+        if result_files.nesting_depth(text, _TOML_TOKENS) > result_files.MAX_DEPTH:
+            raise SweepError(f"{path} nests deeper than {result_files.MAX_DEPTH} levels")
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as error:
+            raise SweepError(f"{path}: not valid TOML ({error})") from None
+    if result_files.deeper_than(data, result_files.MAX_DEPTH):  # dotted keys nest too
+        raise SweepError(f"{path} nests deeper than {result_files.MAX_DEPTH} levels")
+    return data
 
 
 def parse_value(name: str, text: str, command: str = "paper") -> Any:

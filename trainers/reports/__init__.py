@@ -31,6 +31,8 @@ def find(results_dir: str | os.PathLike) -> tuple[Any, Path]:
         path = directory / entry.files["json"]
         if path.is_file():
             return entry, path
+        if path.exists():  # a FIFO, a device, a directory: not "missing" (issue 29)
+            raise ValueError(f"{path} is not a regular file: not a results file")
     looked = ", ".join(entry.files["json"] for entry in entries)
     raise FileNotFoundError(
         f"{directory} holds no results file of a factorq command ({looked}): run one with "

@@ -52,6 +52,8 @@ from typing import Any, NamedTuple
 
 import torch
 
+from factorq_trainers.runner import outdir, results
+
 FORMAT = "factorq-paper-checkpoint"
 #: ``factorq compare``'s checkpoints: the methods finished so far and the running one's state.
 COMPARE_FORMAT = "factorq-compare-checkpoint"
@@ -189,7 +191,7 @@ def save(out: str | os.PathLike, content: dict[str, Any], kind: str = FORMAT) ->
     link = directory / f".{PREVIOUS}.{pid}.tmp"
     record = {"format": kind, "version": FORMAT_VERSION, "sha256": digest(content)}
     try:
-        with open(temporary, "wb") as file:
+        with os.fdopen(outdir.create_new(temporary), "wb") as file:  # never through a link
             torch.save({**record, "content": content}, file)
             file.flush()
             os.fsync(file.fileno())
@@ -294,6 +296,11 @@ def read_content(path: Path, kind: str) -> dict[str, Any]:
             f"reads version {FORMAT_VERSION}: resume it with the factorq that wrote it"
         )
     content = record.get("content")
+    if results.deeper_than(content, results.MAX_DEPTH):  # before the digest walk recurses
+        raise CheckpointError(
+            f"checkpoint {path} nests deeper than {results.MAX_DEPTH} levels: not a checkpoint "
+            f"factorq wrote"
+        )
     if not isinstance(content, dict) or digest(content) != record.get("sha256"):
         raise CheckpointError(
             f"checkpoint {path} is corrupted or truncated (its content does not match its digest)"

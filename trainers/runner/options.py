@@ -21,12 +21,26 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import types
 import typing
 from typing import Any
 
 #: The placeholder of a list option's value.
 NAMES_METAVAR = "NAME[,NAME]"
+
+
+def finite_float(text: str) -> float:
+    """argparse's type of every float option: a finite number. ``inf``, ``nan`` and anything past
+    the float range (``1e400``, a 400-digit integer: both read as ``inf``) are refused while the
+    options are parsed, in one line, before any work (a config's own range checks follow)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return value
 
 
 def option(default: Any, doc: str, *, choices: tuple[str, ...] | None = None) -> Any:
@@ -79,7 +93,11 @@ def add_options(parser: argparse.ArgumentParser, cls: type) -> None:
             kwargs: dict[str, Any] = {"action": "append", "metavar": NAMES_METAVAR}
         else:
             help_text = f"{doc} (default: {'auto' if default is None else default})"
-            kwargs = {"type": _value_type(hints[field.name]), "metavar": field.name.upper()}
+            kind = _value_type(hints[field.name])
+            kwargs = {
+                "type": finite_float if kind is float else kind,
+                "metavar": field.name.upper(),
+            }
             if "choices" in field.metadata:
                 kwargs["choices"] = field.metadata["choices"]
         parser.add_argument(

@@ -13,7 +13,11 @@
 - results of an earlier run are not overwritten unless ``force`` (or ``resume``, which continues
   the run that owns them) is given;
 - temporaries left by writers that were killed mid-write (``.NAME.PID.tmp``) are removed: no one
-  else can be writing them while we hold the lock.
+  else can be writing them while we hold the lock;
+- no file of ours is ever opened through a link (issue 29): the lock, the probe and every
+  temporary are created with ``O_NOFOLLOW`` (``O_EXCL`` where new, ``create_new``), and a
+  symbolic link where the lock or an output belongs is refused in one line (``LinkRefused``),
+  leaving the link's target untouched.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import fcntl
 import os
 import re
 import shutil
+import stat
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
@@ -36,6 +41,67 @@ class OutputDirError(ValueError):
     """An output directory that cannot be used, with the reason and what to do instead."""
 
 
+class LinkRefused(OutputDirError):
+    """A symbolic link where factorq writes a file of its own (a lock, a temporary, an output)."""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        super().__init__(
+            f"'{path}' is a symbolic link where factorq writes its own file: remove the link "
+            f"(factorq never writes through links; its target was left as it is)"
+        )
+
+
+#: Flags of every file of ours: never through a link, never inherited by a child process.
+_OWN = getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+
+
+def create_new(path: str | os.PathLike) -> int:
+    """Create ``path`` as a new empty file and return its descriptor (write-only).
+
+    ``O_CREAT | O_EXCL | O_NOFOLLOW``: the file is new, so nothing another process planted there
+    (a link to a user's file) is opened or truncated. A link at ``path`` raises ``LinkRefused``;
+    a regular file there (a temporary of a killed writer whose pid was reused) is replaced.
+    """
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | _OWN
+    try:
+        return os.open(path, flags, 0o644)
+    except FileExistsError:
+        if os.path.islink(path):
+            raise LinkRefused(path) from None
+        if not os.path.isfile(path):
+            raise OutputDirError(
+                f"'{path}' is in the way and not a regular file: remove it"
+            ) from None
+        os.unlink(path)
+        return os.open(path, flags, 0o644)
+
+
+def _open_lock(lock_path: Path, what: str) -> int:
+    """The lock file's descriptor (read-write), created new where missing; a link there is
+    refused (it used to be followed and its target truncated), and so is anything but a
+    regular file."""
+    try:
+        return os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_EXCL | _OWN, 0o644)
+    except FileExistsError:
+        pass
+    if lock_path.is_symlink():
+        raise LinkRefused(lock_path)
+    try:
+        descriptor = os.open(lock_path, os.O_RDWR | _OWN)
+    except OSError as error:  # a directory, a link swapped in meanwhile (ELOOP), no access
+        raise OutputDirError(
+            f"{what}='{lock_path.parent}' cannot be locked: {lock_path.name} "
+            f"{error.strerror or type(error).__name__}"
+        ) from None
+    if not stat.S_ISREG(os.fstat(descriptor).st_mode):
+        os.close(descriptor)
+        raise OutputDirError(
+            f"{what}='{lock_path.parent}' cannot be locked: {lock_path.name} is not a regular "
+            f"file: remove it"
+        )
+    return descriptor
+
+
 def _prepare(path: Path, what: str) -> None:
     """Create ``path`` and prove it writable, or raise an OutputDirError naming why."""
     if path.exists() and not path.is_dir():
@@ -43,7 +109,7 @@ def _prepare(path: Path, what: str) -> None:
     try:
         path.mkdir(parents=True, exist_ok=True)
         probe = path / f".factorq-probe.{os.getpid()}.tmp"
-        probe.write_bytes(b"")
+        os.close(create_new(probe))
         probe.unlink()
     except OSError as error:
         reason = error.strerror or type(error).__name__
@@ -103,7 +169,7 @@ def claim(
     created = not path.exists()
     _prepare(path, what)
     lock_path = path / LOCK_FILE
-    descriptor = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+    descriptor = _open_lock(lock_path, what)
     try:
         try:
             fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -119,6 +185,9 @@ def claim(
             ) from None
         os.ftruncate(descriptor, 0)
         os.write(descriptor, str(os.getpid()).encode())
+        links = [name for name in outputs if (path / name).is_symlink()]
+        if links:  # renaming over a link would not follow it, but it is not ours to remove
+            raise LinkRefused(path / links[0])
         existing = [name for name in outputs if (path / name).exists()]
         if existing and not (force or resume):
             raise OutputDirError(

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from factorq_trainers.analysis.stats import finite_or_none
+from factorq_trainers.runner import outdir
 
 #: The newest layout this code reads and writes (files without the entry are version 1).
 SCHEMA_VERSION = 1
@@ -85,6 +86,8 @@ def write_all_atomic(
     temporaries = {path: temporary_path(path) for path in writers}
     try:
         for path, write in writers.items():
+            # made new here (never through a link planted at the temporary's name), then filled
+            os.close(outdir.create_new(temporaries[path]))
             write(temporaries[path])
         if before_rename is not None:
             before_rename()
@@ -102,10 +105,11 @@ MAX_DEPTH = 32
 _BRACKETS = re.compile(r'"(?:[^"\\]|\\.)*"|[\[\]{}]')
 
 
-def nesting_depth(text: str) -> int:
-    """The deepest ``[``/``{`` nesting of JSON ``text`` (brackets inside strings do not count)."""
+def nesting_depth(text: str, tokens: re.Pattern = _BRACKETS) -> int:
+    """The deepest ``[``/``{`` nesting of JSON ``text`` (brackets inside strings do not count;
+    ``tokens``: the strings and brackets of another syntax, e.g. TOML's)."""
     depth = deepest = 0
-    for token in _BRACKETS.findall(text):
+    for token in tokens.findall(text):
         if token in "[{":
             depth += 1
             deepest = max(deepest, depth)
@@ -114,11 +118,31 @@ def nesting_depth(text: str) -> int:
     return deepest
 
 
+def deeper_than(value: Any, limit: int) -> bool:
+    """Whether ``value``'s dicts, lists and tuples nest more than ``limit`` levels, found without
+    recursion (a walk that recursed would raise RecursionError on a hostile file first)."""
+    stack = [(value, 0)]
+    while stack:
+        item, depth = stack.pop()
+        if isinstance(item, dict):
+            children = item.values()
+        elif isinstance(item, list | tuple):
+            children = item
+        else:
+            continue
+        if depth >= limit:
+            return True
+        stack.extend((child, depth + 1) for child in children)
+    return False
+
+
 def read_json(path: Path, required: Iterable[str], missing_hint: str) -> dict[str, Any]:
     """The results stored in ``path``; a clear error when it is missing, too large or deep, not
     JSON, lacks one of the ``required`` entries or was written by a newer version
     (``missing_hint``: how to make the file, for the error when it does not exist)."""
     if not path.is_file():
+        if path.exists():  # a FIFO (reading it would block), a device, a directory
+            raise ValueError(f"{path} is not a regular file: not a results file")
         raise FileNotFoundError(f"{path} does not exist: {missing_hint}")
     size = path.stat().st_size
     if size > MAX_FILE_BYTES:

@@ -1,0 +1,212 @@
+"""Issue 29 item 1: files the project creates are never opened through links. A link planted
+where the lock, a temporary or an output belongs is refused in one line, and its target is left
+as it was (the lock used to be opened through the link and the target truncated to a pid).
+Item 2, for kept shards: their content digest and values are checked when a sweep reuses them."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from factorq_trainers.runner import checkpoint, outdir, results
+
+PRECIOUS = b"a user's file, not ours\n"
+
+
+@pytest.fixture
+def victim(tmp_path):
+    path = tmp_path / "precious.txt"
+    path.write_bytes(PRECIOUS)
+    return path
+
+
+def one_line(error: pytest.ExceptionInfo) -> str:
+    message = str(error.value)
+    assert "\n" not in message
+    return message
+
+
+def test_a_link_planted_as_the_lock_is_refused_and_its_target_kept(tmp_path, victim):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / outdir.LOCK_FILE).symlink_to(victim)
+    with pytest.raises(outdir.LinkRefused) as error:
+        with outdir.claim(out):
+            pytest.fail("claimed through a link")
+    assert "is a symbolic link where factorq writes its own file" in one_line(error)
+    assert outdir.LOCK_FILE in str(error.value)
+    assert victim.read_bytes() == PRECIOUS
+
+
+def test_a_dangling_link_as_the_lock_creates_nothing_at_its_target(tmp_path):
+    out, target = tmp_path / "out", tmp_path / "would-be-created"
+    out.mkdir()
+    (out / outdir.LOCK_FILE).symlink_to(target)
+    with pytest.raises(outdir.LinkRefused):
+        with outdir.claim(out):
+            pass
+    assert not target.exists()
+
+
+def test_a_lock_that_is_not_a_regular_file_is_refused(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    os.mkfifo(out / outdir.LOCK_FILE)
+    with pytest.raises(outdir.OutputDirError, match="is not a regular file: remove it"):
+        with outdir.claim(out):
+            pass
+
+
+def test_the_lock_of_a_fresh_and_of_an_earlier_run_is_a_regular_file_with_our_pid(tmp_path):
+    out = tmp_path / "out"
+    for _ in range(2):  # created new, then reopened (no link)
+        with outdir.claim(out) as path:
+            (path / "kept").write_text("x")
+            assert (path / outdir.LOCK_FILE).read_text() == str(os.getpid())
+    assert not (out / outdir.LOCK_FILE).is_symlink()
+
+
+def test_a_link_where_an_output_belongs_is_refused_even_with_force(tmp_path, victim):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "results.json").symlink_to(victim)
+    with pytest.raises(outdir.LinkRefused, match="results.json"):
+        with outdir.claim(out, outputs=["results.json"], force=True):
+            pass
+    assert victim.read_bytes() == PRECIOUS
+
+
+def test_a_link_planted_at_a_temporarys_name_is_refused_and_its_target_kept(tmp_path, victim):
+    path = tmp_path / "results.json"
+    results.temporary_path(path).symlink_to(victim)
+    with pytest.raises(outdir.LinkRefused) as error:
+        results.write_atomic(path, lambda temporary: temporary.write_text("{}"))
+    one_line(error)
+    assert victim.read_bytes() == PRECIOUS
+    assert not path.exists()
+    # the link was removed with the temporaries: the next write goes through
+    results.write_atomic(path, lambda temporary: temporary.write_text("{}"))
+    assert path.read_text() == "{}" and victim.read_bytes() == PRECIOUS
+
+
+def test_a_stale_regular_temporary_of_a_reused_pid_is_replaced(tmp_path):
+    path = tmp_path / "results.json"
+    results.temporary_path(path).write_text("half-written by a killed run")
+    results.write_atomic(path, lambda temporary: temporary.write_text("new"))
+    assert path.read_text() == "new"
+    assert not results.temporary_path(path).exists()
+
+
+def test_a_link_planted_at_the_checkpoints_temporary_is_refused_and_its_target_kept(
+    tmp_path, victim
+):
+    out = tmp_path / "out"
+    directory = checkpoint.directory_of(out)
+    directory.mkdir(parents=True)
+    (directory / f".{checkpoint.LATEST}.{os.getpid()}.tmp").symlink_to(victim)
+    with pytest.raises(outdir.LinkRefused):
+        checkpoint.save(out, {"episodes": 1})
+    assert victim.read_bytes() == PRECIOUS
+    assert not (directory / checkpoint.LATEST).exists()
+
+
+def test_a_fifo_where_a_results_file_belongs_is_named_as_such_not_missing(tmp_path):
+    from factorq_trainers import reports
+
+    fifo = tmp_path / "results.json"
+    os.mkfifo(fifo)
+    with pytest.raises(ValueError, match="results.json is not a regular file: not a results file"):
+        results.read_json(fifo, ["config"], "run factorq paper")  # (reading it would block)
+    with pytest.raises(ValueError, match="is not a regular file"):
+        reports.find(tmp_path)
+
+
+def _kept_shard(tmp_path):
+
+    from factorq_trainers.distributed import shards
+    from factorq_trainers.experiments.paper import PaperConfig
+
+    shard = PaperConfig(seeds=2, runs=2, episodes=3)
+    rng = np.random.default_rng(0)
+    metrics = {
+        f"{world}/{algorithm}/{name}": (
+            rng.integers(0, 50, (2, 2, 3)) if name != "task_return" else rng.normal(size=(2, 2, 3))
+        )
+        for world in shard.worlds
+        for algorithm in shard.algorithms
+        for name in shards.METRICS
+    }
+    path = tmp_path / "000000-000002.npz"
+    shards.save(path, shard, metrics)
+    return shards, shard, path, metrics
+
+
+def _edit(path, change):
+    """Rewrite a kept shard with ``change(metrics)`` applied, its stored digest kept or
+    recomputed (``change`` returns whether to sign again)."""
+
+    from factorq_trainers.distributed import shards
+
+    with np.load(path) as data:
+        everything = {key: data[key] for key in data.files}
+    metrics = {key: value for key, value in everything.items() if not key.startswith("__")}
+    if change(metrics):
+        everything["__sha256__"] = np.array(shards.metrics_digest(metrics))
+    everything = {**everything, **metrics}
+    for key in [key for key in everything if not key.startswith("__") and key not in metrics]:
+        del everything[key]
+    with open(path, "wb") as handle:
+        np.savez(handle, **everything)
+
+
+def test_a_kept_shard_reads_back_as_it_was_written(tmp_path):
+
+    shards, shard, path, metrics = _kept_shard(tmp_path)
+    loaded = shards.load(path, shard)
+    assert sorted(loaded) == sorted(metrics)
+    assert all(np.array_equal(loaded[key], metrics[key]) for key in metrics)
+
+
+def _times_100(metrics):
+    key = next(iter(metrics))
+    metrics[key] = metrics[key] * 100
+    return False  # the digest of the original numbers stays
+
+
+def _nan_signed(metrics):
+    key = next(key for key in metrics if key.endswith("/task_return"))
+    metrics[key] = metrics[key].copy()
+    metrics[key][0, 0, 0] = np.nan
+    return True
+
+
+def _negative_signed(metrics):
+    key = next(key for key in metrics if key.endswith("/collisions"))
+    metrics[key] = metrics[key].copy()
+    metrics[key][1, 0, 2] = -4
+    return True
+
+
+def _missing_signed(metrics):
+    del metrics[next(key for key in metrics if key.endswith("/steps"))]
+    return True
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (_times_100, "does not match its digest"),
+        (_nan_signed, "holds nan, not a finite number"),
+        (_negative_signed, "holds -4, not a count"),
+        (_missing_signed, "lacks the metric .*/steps"),
+    ],
+    ids=["x100", "nan", "negative", "missing"],
+)
+def test_an_edited_kept_shard_is_refused_naming_the_file(tmp_path, change, message):
+    shards, shard, path, _ = _kept_shard(tmp_path)
+    _edit(path, change)
+    with pytest.raises(ValueError, match=message) as error:
+        shards.load(path, shard)
+    assert str(path) in one_line(error) and "delete it to recompute it" in str(error.value)
