@@ -230,8 +230,9 @@ def test_no_host_synchronisation_creeps_into_the_step(algorithm, monkeypatch):
     # Every read of a tensor's value on the host (a device-to-host sync on a GPU) made by our own
     # code while the loop runs is recorded by its function. Allowed: the collector's one read of
     # its counts per step, and the CPU-only reads: the collector's list of the experiments that
-    # ended an episode, the exact action check and the finite-value checks of the policy and the
-    # loss (on a GPU: compaction on the device and device-side asserts, no host read).
+    # ended an episode, the exact action check, the finite-value checks of the policy and the
+    # loss (values and rewards) and the index checks of the loss and the tables (actions, cells:
+    # one aminmax each; on a GPU: compaction on the device and device-side asserts, no host read).
     # torchrl's own env machinery is not ours to change and is not counted.
     import sys
     from pathlib import Path
@@ -265,7 +266,8 @@ def test_no_host_synchronisation_creeps_into_the_step(algorithm, monkeypatch):
     assert reads.pop("collectors.py:_record:tolist") == steps
     assert 0 < reads.pop("collectors.py:ended_rows:nonzero") < steps  # CPU: episodes ended
     assert reads.pop("grid.py:_check_action", 0) <= steps
-    assert reads.pop("validation.py:check_finite", 0) <= 6 * steps  # policy; loss at s and s'
+    assert reads.pop("validation.py:check_finite", 0) <= 8 * steps  # policy; loss: s, s', rewards
+    assert reads.pop("validation.py:check_indices", 0) <= 4 * steps  # loss and tables' indices
     assert reads == {}
 
 

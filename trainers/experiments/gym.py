@@ -547,6 +547,25 @@ def _stat(values: list) -> dict[str, Any]:
     return {"mean": mean, "ci95": interval(low, high), "n": len(present)}
 
 
+#: What ``factorq sweep --command gym`` reports per configuration (``sweep_cells``).
+SWEEP_MEASURES = ("crashes_per_1000", "greedy_crash_rate", "greedy_return", "steps_to_threshold")
+
+
+def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per method of a ``gym.json`` dict: the ``SWEEP_MEASURES`` (means and 95% intervals)."""
+    return {
+        f"{results['world']}/{method}": {
+            "world": results["world"],
+            "algorithm": method,
+            **{
+                measure: {"mean": entry[measure]["mean"], "ci95": entry[measure]["ci95"]}
+                for measure in SWEEP_MEASURES
+            },
+        }
+        for method, entry in results["methods"].items()
+    }
+
+
 def summarise(config: GymConfig, unit_results: list[dict]) -> dict[str, Any]:
     """Per method: each measure's mean and 95% t interval over seeds, the curves of every seed,
     and (learned dependencies) how many seeds' learner agrees with the oracle per actuator."""

@@ -462,6 +462,23 @@ def _mean(values: list) -> float | None:
     return statistics.fmean(found) if found else None
 
 
+#: What ``factorq sweep --command risk`` reports per configuration (``sweep_cells``): means
+#: over seeds (the summary keeps no interval).
+SWEEP_MEASURES = ("train_collisions", "greedy_collisions", "final_return", "greedy_success")
+
+
+def sweep_cells(results: dict) -> dict[str, dict]:
+    """Per world and method of a ``risk.json`` dict: the ``SWEEP_MEASURES``' means."""
+    return {
+        f"{row['world']}/{row['method']}": {
+            "world": row["world"],
+            "algorithm": row["method"],
+            **{measure: {"mean": row[measure], "ci95": None} for measure in SWEEP_MEASURES},
+        }
+        for row in results["rows"]
+    }
+
+
 def _difference(first: float | None, second: float | None) -> float | None:
     """``first - second``; ``None`` where a side has no finished episode to give a return."""
     return None if first is None or second is None else first - second
