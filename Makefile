@@ -13,9 +13,9 @@ paper: $(STAMP)
 # The suite on this CPU's kernels, then its float-sensitive part (networks, Adam, DQN) again under
 # two other kernel sets, as another machine would round (docs/decisions.md, "Tests that hold on
 # any machine"). Where ARGS selects no float-sensitive test, pytest's "no tests" (exit 5) is fine.
-# One pytest-xdist worker per core, a test file per worker (TEST_WORKERS=0 runs in-process).
+# One pytest-xdist worker per core, idle workers stealing tests (TEST_WORKERS=0: in-process).
 TEST_WORKERS ?= auto
-XDIST := $(if $(filter 0,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadfile)
+XDIST := $(if $(filter 0,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist worksteal)
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest $(XDIST) $(ARGS)
 	$(MAKE) --no-print-directory test-float

@@ -271,6 +271,7 @@ def test_learned_structure_explains_with_the_committed_parents():
 
 
 @pytest.mark.slow
+@pytest.mark.float_sensitive  # a learned outcome of a network: tried under other CPU kernels
 def test_dqn_with_local_risk_collides_far_less_in_training(one_thread):
     from factorq_trainers.experiments.risk import RiskConfig, run_unit
 

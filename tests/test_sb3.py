@@ -98,6 +98,7 @@ def test_a_missing_extra_gets_a_clear_error(monkeypatch):
 
 
 @pytest.mark.slow
+@pytest.mark.float_sensitive  # a learned outcome of a network: tried under other CPU kernels
 def test_sb3_dqn_with_local_risk_collides_far_less(one_thread):
     settings = dict(learning_starts=50, exploration_fraction=0.3, train_freq=4, seed=0)
     counts = {}
