@@ -67,23 +67,27 @@ def test_kernel_learner_equals_the_modular_learner_on_random_configurations(sett
     assert sum(fast_result["samples_per_actuator"][0]) > 0
 
 
+#: A configuration in which actuators commit, the change reopens them and they commit again
+#: (seed 6, since the sensor orders are seeded by the setting's content: two of the four
+#: experiments reopen, three with an eager reopen factor).
+REOPENING = dict(
+    seeds=4,
+    seed=6,
+    settings=("change",),
+    runs=3,
+    size=4,
+    obstacles=2,
+    max_steps=150,
+    change_run=1,
+    window=20,
+    out="unused",
+)
+
+
 def test_kernel_learner_equals_the_modular_learner_through_commitments_and_reopenings():
     # chosen (on the fast path) so that actuators commit, the change reopens them, and they commit
-    # again: every branch of the learner runs (seed 6, since the sensor orders are seeded by the
-    # setting's content: two of the four experiments reopen, three with an eager reopen factor)
-    config = DependenciesConfig(
-        seeds=4,
-        seed=6,
-        settings=("change",),
-        runs=3,
-        size=4,
-        obstacles=2,
-        max_steps=150,
-        change_run=1,
-        window=20,
-        prediction="optimistic",
-        out="unused",
-    )
+    # again: every branch of the learner runs (REOPENING)
+    config = DependenciesConfig(**REOPENING, prediction="optimistic")
     fast_result = run_learned_fast(config, "change")
     assert sum(fast_result["reopened"]) > 0
     assert int((fast_result["_state"]["committed"] >= 0).sum()) > 0
@@ -196,19 +200,7 @@ def test_sensor_orders_relabel_the_joint_table_and_q_learning_and_change_at_the_
 def test_every_likelihood_reopens_alike_on_both_paths(likelihood):
     # the change-point test reads each likelihood's own marginals (the flip likelihood's whole
     # candidate, the others' patterns): the configuration above reopens under each of them
-    config = DependenciesConfig(
-        seeds=4,
-        seed=6,
-        settings=("change",),
-        runs=3,
-        size=4,
-        obstacles=2,
-        max_steps=150,
-        change_run=1,
-        window=20,
-        likelihood=likelihood,
-        out="unused",
-    )
+    config = DependenciesConfig(**REOPENING, likelihood=likelihood)
     fast_result = run_learned_fast(config, "change")
     assert sum(fast_result["reopened"]) > 0
     assert_same(fast_result, run_learned_modular(config, "change"))
