@@ -324,27 +324,36 @@ def _tick(progress, step: int, total: int) -> None:
         progress(100 if step % 100 == 0 else step % 100)
 
 
+def _env_and_task_network(config: GymConfig, unit: dict, *, zero_output: bool):
+    """The unit's env (its own env seed) and a task Q-network on the world's observation, with
+    highway-env's documented hidden layers: what every torchrl method of a unit starts from."""
+    from factorq_torch.base.rng import STREAM_TASK_NETWORK
+
+    env = _torchrl_env(config, _env_seed(config, unit["seed_index"]))
+    key = config.spec.observation
+    network = observation_network(
+        1,
+        key,
+        tuple(env.observation_spec[key].shape[1:]),
+        env.num_actions,
+        HIGHWAY_DQN["hidden"],
+        _keys(config, unit, STREAM_TASK_NETWORK),
+        zero_output=zero_output,
+    )
+    return env, network
+
+
 def _run_dqn(config: GymConfig, unit: dict, progress) -> dict[str, Any]:
     import torch
 
-    from factorq_torch.base.rng import STREAM_POLICY, STREAM_TASK_NETWORK
+    from factorq_torch.base.rng import STREAM_POLICY
     from factorq_trainers.experiments.dqn import DQNConfig, _gradient_step, dqn_agent
 
     settings = DQNConfig(**HIGHWAY_DQN)
-    env = _torchrl_env(config, _env_seed(config, unit["seed_index"]))
-    key = config.spec.observation
-    shape = tuple(env.observation_spec[key].shape[1:])
-    q_network = observation_network(
-        1,
-        key,
-        shape,
-        env.num_actions,
-        settings.hidden,
-        _keys(config, unit, STREAM_TASK_NETWORK),
-        zero_output=False,
-    )
+    env, q_network = _env_and_task_network(config, unit, zero_output=False)
     torch.manual_seed(int(_keys(config, unit, STREAM_POLICY)[0]) & 0x7FFFFFFF)
     agent = dqn_agent(q_network, env.num_actions, settings, config.steps)
+    key = config.spec.observation
     stored = [key, ("next", key), "action", ("next", "reward"), ("next", "done")]
     stored.append(("next", "terminated"))
     recorder = Recorder(config)
@@ -374,24 +383,13 @@ def _run_factor_q(config: GymConfig, unit: dict, progress) -> dict[str, Any]:
     import torch
 
     from factorq_torch.base.config import AgentConfig
-    from factorq_torch.base.rng import STREAM_POLICY, STREAM_TASK_NETWORK
+    from factorq_torch.base.rng import STREAM_POLICY
     from factorq_torch.collectors import OnlineCollector
     from factorq_torch.structure import StructureLearner
     from factorq_torch.tables import LocalRewardTable
     from factorq_trainers.experiments.experiment import online_agent
 
-    base = _torchrl_env(config, _env_seed(config, unit["seed_index"]))
-    key = config.spec.observation
-    shape = tuple(base.observation_spec[key].shape[1:])
-    task = observation_network(
-        1,
-        key,
-        shape,
-        base.num_actions,
-        HIGHWAY_DQN["hidden"],
-        _keys(config, unit, STREAM_TASK_NETWORK),
-        zero_output=True,
-    )
+    base, task = _env_and_task_network(config, unit, zero_output=True)
     oracle = base.dependency
     if unit["method"] == "factor-q-oracle":
         local = LocalRewardTable(1, dependency=oracle)

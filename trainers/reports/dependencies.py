@@ -43,6 +43,12 @@ def _percent_interval(bounds: list[float | None] | None) -> str:
     return f"[{100 * bounds[0]:.0f}, {100 * bounds[1]:.0f}] "
 
 
+def _against_cells(against: dict[str, Any]) -> str:
+    """The three learned / oracle ratio cells of a row: collisions, greedy, learning speed."""
+    names = ("collisions", "greedy_collisions", "learning_speed")
+    return " | ".join(_ratio_text(against.get(name)) for name in names)
+
+
 def _ratio_text(entry: dict[str, Any] | None) -> str:
     if entry is None:
         return "n/a"
@@ -91,9 +97,7 @@ def markdown(results: dict[str, Any]) -> str:
             f"(<= {structure['samples_target']}) | "
             f"{format_number(structure['wrong_commitments_per_1000'])} | "
             f"{format_number(structure['hamming_at_end_mean'])} | "
-            f"{_ratio_text(against.get('collisions'))} | "
-            f"{_ratio_text(against.get('greedy_collisions'))} | "
-            f"{_ratio_text(against.get('learning_speed'))} |"
+            f"{_against_cells(against)} |"
         )
     for setting, summary in results["settings"].items():
         gated = summary.get("gated_structure")
@@ -104,9 +108,7 @@ def markdown(results: dict[str, Any]) -> str:
             f"| {setting}, gated network | - | "
             f"{100 * gated['fraction_right_at_end']:.0f}% (at the end) | - | "
             f"{format_number(gated['hamming_at_end_mean'])} | "
-            f"{_ratio_text(against.get('collisions'))} | "
-            f"{_ratio_text(against.get('greedy_collisions'))} | "
-            f"{_ratio_text(against.get('learning_speed'))} |"
+            f"{_against_cells(against)} |"
         )
     lines += [
         "",
