@@ -111,9 +111,27 @@ def replaced(tree, path: str, value):
     return copy
 
 
+def without_figures(patch) -> None:
+    """Draw no figure (``patch(owner, name, value)`` is ``setattr`` or pytest's ``monkeypatch``):
+    an accepted mutation finishes the run, and its figure (a helper process loading matplotlib,
+    then the drawing) would cost more than the resume being fuzzed; the figures have their tests.
+    """
+    from factorq_trainers.reports import compare_report, report
+    from factorq_trainers.reports.figure_process import FigureProcess
+
+    def placeholder(results, path) -> None:
+        Path(path).write_bytes(b"")
+
+    patch(FigureProcess, "start", classmethod(lambda cls: None))
+    patch(report, "figure3", placeholder)
+    patch(compare_report, "write_figure", placeholder)
+
+
 def fuzz_child(out: str) -> None:
     """Run in the child: mutate, sign, resume; print one JSON line per attempt."""
     from factorq_trainers import cli
+
+    without_figures(setattr)
 
     path = Path(out) / "checkpoint" / checkpoint.LATEST
     original = torch.load(path, weights_only=True)["content"]
@@ -192,9 +210,13 @@ COMPARE_ARGS += ["--obstacles", "1", "--worlds", "static,dynamic"]
 COMPARE_HARMLESS = ("config/threads", "config/out", "finished/factor-q/wall_s")
 
 
-def test_every_field_of_a_signed_compare_checkpoint_mutated_is_refused_cleanly(tmp_path):
+def test_every_field_of_a_signed_compare_checkpoint_mutated_is_refused_cleanly(
+    tmp_path, monkeypatch
+):
     from factorq_trainers import cli
     from factorq_trainers.experiments import compare
+
+    without_figures(monkeypatch.setattr)
 
     out = tmp_path / "compare"
     config = compare.CompareConfig(
@@ -269,11 +291,13 @@ class _Stop(Exception):
 
 @pytest.mark.parametrize("running", list(MID_METHOD))
 def test_every_field_of_a_signed_mid_method_compare_checkpoint_mutated_is_refused_cleanly(
-    running, tmp_path
+    running, tmp_path, monkeypatch
 ):
     from factorq_trainers import cli
     from factorq_trainers.experiments import compare
     from factorq_trainers.experiments.dqn import DQNConfig
+
+    without_figures(monkeypatch.setattr)
 
     out = tmp_path / "compare"
     small_dqn = DQNConfig(learning_starts=20, batch_size=4, buffer_size=32, hidden=(8,),
