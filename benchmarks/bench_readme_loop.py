@@ -8,7 +8,7 @@ time and as process CPU time (steadier on a shared machine), the env steps per s
 minor page faults per step (memory the allocator gave back to the system and took again).
 
 To compare two commits, run this file from a checkout of each, alternately, several times (the
-README's and the closing notes' A/B tables were made that way):
+A/B tables of docs/howto/speed.md and of the closing notes were made that way):
 
     .venv/bin/python benchmarks/bench_readme_loop.py --sizes 1024 4096
 

@@ -5,7 +5,14 @@ reachable, and the generated references follow the code.
 - ``bash`` blocks: every ``factorq`` command line is parsed by the real parser (the command and
   its options exist; nothing runs), every ``make`` target exists in the Makefile, every script
   named exists;
-- ``toml`` blocks parse.
+- ``toml`` blocks parse;
+- the README stays what a visitor needs first (short; its bash blocks checked as the pages' are,
+  its python block a doctest that pytest's ``--doctest-glob`` runs), and every relative link or
+  image of the README and the pages points at a file that exists; every figure in ``docs/`` is
+  shown on some page.
+
+A page whose examples need an optional extra says so in a comment, ``<!-- requires: minigrid -->``:
+its examples are skipped where the extra is not installed.
 
 ``mkdocs build --strict`` itself is ``make docs`` (a CI step of its own: it needs the ``docs``
 extra and takes longer than a unit test should).
@@ -24,21 +31,27 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = ROOT / "docs"
 PAGES = sorted(path for path in DOCS.rglob("*.md"))
+README = ROOT / "README.md"
+#: The README's length limit: the two commands, what Factor-Q is, the figure and claims, a
+#: quickstart and links; everything else lives in the site (issue 28).
+README_LINES = 200
+REQUIRES = re.compile(r"<!-- requires: ([\w, ]+) -->")
 FENCE = re.compile(r"^```(\w*)[^\n]*\n(.*?)^```", re.MULTILINE | re.DOTALL)
 FLAGS = doctest.NORMALIZE_WHITESPACE | doctest.ELLIPSIS
 
 
 def blocks(language: str) -> list[tuple[Path, str]]:
+    """The ``language`` blocks of every page and of the README."""
     return [
         (page, match.group(2))
-        for page in PAGES
+        for page in [*PAGES, README]
         for match in FENCE.finditer(page.read_text())
         if match.group(1) == language
     ]
 
 
 def page_id(page: Path) -> str:
-    return str(page.relative_to(DOCS))
+    return str(page.relative_to(DOCS if page.is_relative_to(DOCS) else ROOT))
 
 
 def test_every_python_block_is_a_doctest():
@@ -49,6 +62,9 @@ def test_every_python_block_is_a_doctest():
 
 @pytest.mark.parametrize("page", [p for p in PAGES if "```python" in p.read_text()], ids=page_id)
 def test_python_blocks_run(page, monkeypatch):
+    for required in REQUIRES.findall(page.read_text()):
+        for module in required.replace(",", " ").split():
+            pytest.importorskip(module, reason=f"{page_id(page)} needs the extra {module}")
     monkeypatch.chdir(ROOT)
     import torch
 
@@ -163,3 +179,46 @@ def test_the_api_reference_renders_docstring_examples_as_code():
     spec.loader.exec_module(extension)
     failed, attempted = doctest.testmod(extension, optionflags=FLAGS)
     assert attempted and not failed
+
+
+def test_the_readme_stays_short_and_opens_with_the_two_commands():
+    text = README.read_text()
+    assert len(text.splitlines()) < README_LINES, "the README grows: move the detail to docs/"
+    first = FENCE.search(text)
+    assert first.group(1) == "bash" and text.index(first.group(0)) < text.index("\n## ")
+    commands = [words[:2] for words in _command_lines(first.group(2))]
+    assert commands == [["make", "paper"], ["make", "test"]]
+    quickstart = [code for page, code in blocks("python") if page == README]
+    assert len(quickstart) == 1 and ">>>" in quickstart[0]  # a doctest (pytest's doctest-glob)
+
+
+LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)\)")
+
+
+def test_relative_links_and_images_point_at_files():
+    # generated at build time by docs/gen_reference.py, so absent from the folder
+    generated = ("reference/", "changelog.md")
+    broken = []
+    for page in [*PAGES, README]:
+        text = FENCE.sub("", page.read_text())  # code blocks hold no links
+        for target in LINK.findall(text):
+            path = target.split("#", 1)[0]
+            if not path or re.match(r"^[a-z]+:", path):  # an anchor on the page, or a URL
+                continue
+            resolved = (page.parent / path).resolve()
+            inside = resolved.is_relative_to(DOCS.resolve())
+            if inside and str(resolved.relative_to(DOCS.resolve())).startswith(generated):
+                continue
+            if not resolved.exists():
+                broken.append(f"{page_id(page)}: {target}")
+    assert not broken, f"links to nothing: {broken}"
+
+
+def test_every_figure_in_docs_is_shown_on_a_page():
+    shown = {
+        (page.parent / target).resolve()
+        for page in PAGES
+        for target in LINK.findall(page.read_text())
+    }
+    figures = sorted(DOCS.glob("*.png"))
+    assert figures and not [f.name for f in figures if f.resolve() not in shown]
