@@ -33,7 +33,7 @@ from factorq_torch.base.rng import (
     randint_from_bits,
     random_bits,
 )
-from factorq_trainers.compiled import fast
+from factorq_trainers.compiled import fast, loader
 
 pytestmark = pytest.mark.skipif(
     not fast.is_available(), reason=f"fast path unavailable: {fast.unavailable_reason()}"
@@ -335,8 +335,8 @@ def test_bad_advance_budget_raises():
 
 def test_build_is_cached_and_a_second_load_does_not_recompile(tmp_path, monkeypatch):
     monkeypatch.setenv("FACTORQ_CACHE_DIR", str(tmp_path))
-    _, first = fast._build()
-    _, second = fast._build()
+    _, first = loader._build()
+    _, second = loader._build()
     assert first["compiled"] and not second["compiled"]
     assert first["path"] == second["path"] and os.path.dirname(first["path"]) == str(tmp_path)
     assert [path.suffix for path in tmp_path.iterdir()] == [".so"]
@@ -348,7 +348,7 @@ def test_concurrent_builds_into_one_cache_do_not_clash(tmp_path, monkeypatch):
 
     def build():
         try:
-            results.append(fast._build()[1]["path"])
+            results.append(loader._build()[1]["path"])
         except Exception as error:  # reported below
             errors.append(error)
 
@@ -364,8 +364,8 @@ def test_concurrent_builds_into_one_cache_do_not_clash(tmp_path, monkeypatch):
 def test_missing_compiler_makes_the_fast_path_unavailable_with_a_reason(tmp_path, monkeypatch):
     monkeypatch.setenv("FACTORQ_CACHE_DIR", str(tmp_path))
     monkeypatch.setenv("FACTORQ_CC", "/nonexistent/cc")
-    monkeypatch.setattr(fast, "_library", None)
-    monkeypatch.setattr(fast, "_reason", None)
+    monkeypatch.setattr(loader, "_library", None)
+    monkeypatch.setattr(loader, "_reason", None)
     assert not fast.is_available()
     assert "FACTORQ_CC='/nonexistent/cc' is not an executable C compiler" in (
         fast.unavailable_reason()
@@ -381,8 +381,8 @@ def test_failing_compiler_gives_its_error_as_the_reason(tmp_path, monkeypatch):
     compiler.chmod(compiler.stat().st_mode | stat.S_IXUSR)
     monkeypatch.setenv("FACTORQ_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.setenv("FACTORQ_CC", str(compiler))
-    with pytest.raises(fast._Unavailable, match="failed \\(exit 3\\): error: no space left"):
-        fast._build()
+    with pytest.raises(loader._Unavailable, match="failed \\(exit 3\\): error: no space left"):
+        loader._build()
     assert list((tmp_path / "cache").iterdir()) == []  # no half-written file left behind
 
 

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from factorq_torch.base.validation import check_float
-from factorq_trainers.distributed import cluster, sweep
+from factorq_trainers.distributed import cluster, sweep, sweep_spec
 from factorq_trainers.runner import checkpoint, options, results
 from factorq_trainers.runner.frame import Parser
 
@@ -112,7 +112,7 @@ def test_deep_nesting_in_a_sweep_file_is_refused_before_recursion(tmp_path, name
 
 def test_brackets_inside_toml_strings_and_comments_do_not_count():
     text = 'a = "[[[[" # [[[[\nb = \'{{{{\'\nc = """\n[[[[\n"""\n[[configs]]\n'
-    assert results.nesting_depth(text, sweep._TOML_TOKENS) == 2
+    assert results.nesting_depth(text, sweep_spec._TOML_TOKENS) == 2
 
 
 def test_an_oversized_sweep_file_is_refused_unread(tmp_path):

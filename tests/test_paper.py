@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from factorq_trainers.compiled import fast
+from factorq_trainers.compiled import fast, loader
 from factorq_trainers.distributed import processes
 from factorq_trainers.experiments import paper
 from factorq_trainers.experiments.paper import PaperConfig
@@ -230,8 +230,8 @@ def test_modular_torchrl_backend_gives_the_same_results_as_the_fast_path(tiny_re
 def test_without_a_compiler_auto_says_why_once_and_records_what_ran(monkeypatch, capsys):
     # No compiler: auto runs the modular path, says so once at the start (why, how long, how to
     # get the fast path) and results.json records the backend and the threads actually used.
-    monkeypatch.setattr(fast, "_load", lambda: None)
-    monkeypatch.setattr(fast, "_reason", "no C compiler found (test)")
+    monkeypatch.setattr(loader, "_load", lambda: None)
+    monkeypatch.setattr(loader, "_reason", "no C compiler found (test)")
     config = PaperConfig(**{**TINY, "worlds": ("static",), "threads": None})
     results = paper.run(config)
     err = capsys.readouterr().err

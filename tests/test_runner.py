@@ -187,11 +187,11 @@ def test_the_cli_knows_every_registered_command():
 
 
 def test_every_registered_command_can_be_swept_and_one_without_cells_is_refused(monkeypatch):
-    from factorq_trainers.distributed import sweep
+    from factorq_trainers.distributed import sweep, sweep_spec
 
     for name in registry.commands():
         assert sweep.check_command(name) == name
-    monkeypatch.setattr(sweep, "commands", lambda: (*sweep.SPECIAL, "toy"))
-    monkeypatch.setattr(sweep, "_reports_of", lambda command: types.ModuleType("toy_report"))
+    monkeypatch.setattr(sweep_spec, "commands", lambda: (*sweep.SPECIAL, "toy"))
+    monkeypatch.setattr(sweep_spec, "_reports_of", lambda command: types.ModuleType("toy_report"))
     with pytest.raises(sweep.SweepError, match="'toy' cannot be swept: toy_report declares no"):
         sweep.check_command("toy")

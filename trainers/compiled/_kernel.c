@@ -11,7 +11,7 @@
  * experiment i draws exactly what the reference (tests/reference.py) and the torch modules draw.
  * tests/test_fast.py checks equality bit for bit (metrics and final tables).
  *
- * Plain C99, no Python or torch headers: fast.py compiles it on first use and loads it through
+ * Plain C99, no Python or torch headers: loader.py compiles it on first use and loads it through
  * ctypes, passing the data pointers of contiguous tensors in an fq_batch struct. Each experiment
  * is independent and sequential; threads share the batch and take whole experiments from an
  * atomic counter, so the results do not depend on the thread count or on the scheduling.
@@ -62,10 +62,10 @@ enum { ALG_RANDOM_WALK = 0, ALG_Q_LEARNING = 1, ALG_FACTOR_Q = 2 };
  *   metrics [S, runs, episodes].
  * The blocks a thread writes in its inner loop (q, rho, kappa, grid, obstacle_pads) start every
  * experiment at its own 64-byte cache line: experiment i's block is at i * *_stride elements (a
- * row of the [S, stride] storage, stride rounded up by fast.py), so two threads working on
+ * row of the [S, stride] storage, stride rounded up by batch_options.py), so two threads working on
  * neighbouring experiments never write one cache line (false sharing halved the second thread's
  * throughput when the 144-byte grids and 40-byte obstacle lists were packed back to back).
- * Field order and types must match fast.py's _Batch (checked through fq_batch_size()).
+ * Field order and types must match loader.py's _Batch (checked through fq_batch_size()).
  */
 typedef struct {
     int64_t algorithm;
@@ -1217,7 +1217,7 @@ static int64_t run_factor_q_body(const fq_batch *b, int64_t i, int64_t budget) {
 /*
  * The state of experiment i as the loops index with it, checked on entry whatever its source (a
  * checkpoint is signed, not trusted): 0 when every index stays inside its buffer, else the code of
- * the first field out of range (fast.py's _STATE_FIELDS names them). Cheap: a few compares per
+ * the first field out of range (loader.py's _STATE_FIELDS names them). Cheap: a few compares per
  * experiment per advance call, none in the step loop.
  */
 int64_t fq_check_experiment(const fq_batch *b, int64_t i) {

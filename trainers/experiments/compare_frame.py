@@ -48,7 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """Run ``factorq compare`` with the parsed ``args``; the exit status."""
-    from factorq_trainers.distributed import sweep
+    from factorq_trainers.distributed import cluster_runs
     from factorq_trainers.reports import compare_report
     from factorq_trainers.runner import checkpoint, options, outdir, resources
 
@@ -125,7 +125,9 @@ def main(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
                         compare.write_logs(config, runs, logs)
                         return compare.summarise(config, runs)
 
-                    results = sweep.run_compare_on(executor, config, compare.run_method, summarise)
+                    results = cluster_runs.run_compare_on(
+                        executor, config, compare.run_method, summarise
+                    )
                 paths = compare_report.write_outputs(results, config.out, logs=logs)
                 checkpoint.remove(config.out)  # the outputs are complete: nothing to resume
             finally:

@@ -27,7 +27,7 @@ def _as_option(message: str) -> str:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``--checkpoint-every``, ``--resume``, ``--force`` and the cluster options."""
-    from factorq_trainers.distributed import sweep
+    from factorq_trainers.distributed import cluster_runs
 
     parser.add_argument(
         "--checkpoint-every",
@@ -48,7 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--force", action="store_true", default=argparse.SUPPRESS, help=frame.FORCE_HELP
     )
-    sweep.add_paper_options(parser)  # --cluster, --scheduler, --shard-seeds
+    cluster_runs.add_paper_options(parser)  # --cluster, --scheduler, --shard-seeds
 
 
 class _Bar:
@@ -88,7 +88,7 @@ def main(
     args: argparse.Namespace,
     figure_process: FigureProcess | None = None,
 ) -> int:
-    from factorq_trainers.distributed import sweep
+    from factorq_trainers.distributed import cluster_runs
     from factorq_trainers.reports import report
     from factorq_trainers.runner import checkpoint, outdir, resources, resume_checks
 
@@ -109,7 +109,7 @@ def main(
         checkpointing = every is not None or resume is not None
         estimate = resources.paper_estimate(config, checkpointing=checkpointing)
         large = resources.check(estimate, "run", resources.PAPER_HINT)
-        executor = sweep.paper_executor(args)  # None: in-process, as always
+        executor = cluster_runs.paper_executor(args)  # None: in-process, as always
     except (ValueError, TypeError, NotImplementedError) as error:
         frame.error(parser, _as_option(str(error)))
         return frame.EXIT_USAGE
@@ -131,7 +131,7 @@ def main(
 
 
 def _run(parser, args, config, backend, every, resume, executor, figure_process) -> int:
-    from factorq_trainers.distributed import sweep
+    from factorq_trainers.distributed import cluster_runs
     from factorq_trainers.reports import report
     from factorq_trainers.runner import checkpoint
 
@@ -163,7 +163,7 @@ def _run(parser, args, config, backend, every, resume, executor, figure_process)
                 curves_ready=curves_ready,
             )
         else:
-            results = sweep.run_paper_on(executor, config, args, progress=bar)
+            results = cluster_runs.run_paper_on(executor, config, args, progress=bar)
         bar.close()
         paths = report.write_results(results, config.out, figure_process=figure_process)
         checkpoint.remove(config.out)  # the results are complete: nothing left to resume

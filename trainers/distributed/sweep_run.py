@@ -1,0 +1,430 @@
+"""Running a sweep (``factorq sweep``) and gathering it: the shards of a paper sweep, the whole
+configurations of a compare sweep (one task per method) or of any other registered command (one
+task each), on an executor, each kept on disk as it finishes; then ``sweep.json``'s dict.
+
+    spec -> configurations -> shards (contiguous seed ranges) or whole configurations
+         -> executor (in-process or Dask) -> one .npz per shard (OUT/shards/) or one JSON file
+            per configuration (OUT/configs/), written as it finishes
+         -> per configuration: its cells and claims -> sweep.json's dict
+
+**Resumption.** Shard files live in ``OUT/shards/<digest>/<first>-<stop>.npz``, where the digest
+hashes the fields that decide the numbers. A shard whose file exists is not run again, so a
+killed sweep continues where it stopped, and a sweep that adds seeds or axis values runs only the
+new shards. Whole configurations are kept the same way in ``OUT/configs/<digest>.json``.
+
+**Identical results.** A shard's numbers depend on its configuration and seed range alone (see
+``factorq_trainers.distributed.shards``), so the per-experiment numbers and every summary are the
+same in-process, on any number of workers, and after any number of interruptions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import os
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from factorq_trainers.analysis import stats
+from factorq_trainers.distributed import cluster, shards
+from factorq_trainers.distributed.sweep_spec import (
+    COMPARE_MEASURES,
+    CONFIGS_DIRECTORY,
+    DEFAULT_PAPER_SHARD_SEEDS,
+    MEASURES,
+    SHARDS_DIRECTORY,
+    SweepSpec,
+    _json,
+    _reports_of,
+    config_digest,
+)
+from factorq_trainers.experiments import paper
+from factorq_trainers.runner import results as result_files
+
+
+def run_shards(
+    pending: Sequence[paper.PaperConfig],
+    directory: Path,
+    executor: cluster.InProcess | cluster.DaskExecutor,
+    done: Callable[[paper.PaperConfig], None],
+) -> None:
+    """Run ``pending`` shards on ``executor``, saving each one's file as soon as it arrives."""
+    if isinstance(executor, cluster.DaskExecutor):
+        function = functools.partial(shards.run_shard, threads=1)
+    else:
+        function = shards.run_shard
+    names = [f"shard-{shards.digest(s)}-{s.first_seed}-{s.first_seed + s.seeds}" for s in pending]
+    for index, metrics in executor.map(function, list(pending), names):
+        shard = pending[index]
+        shards.save(shards.shard_path(directory, shard), shard, metrics)
+        done(shard)
+
+
+def _missing(directory: Path, every: list[paper.PaperConfig]) -> list[paper.PaperConfig]:
+    return [shard for shard in every if not shards.shard_path(directory, shard).is_file()]
+
+
+def run_paper(
+    config: paper.PaperConfig,
+    executor: cluster.InProcess | cluster.DaskExecutor,
+    shard_seeds: int = DEFAULT_PAPER_SHARD_SEEDS,
+    progress: paper.ProgressCallback | None = None,
+) -> dict[str, Any]:
+    """``paper.run(config)``'s results, computed as shards of ``shard_seeds`` seeds on
+    ``executor``, each kept in ``OUT/shards/`` (existing ones are not rerun). Identical numbers;
+    ``timing`` says where and how they were computed."""
+    started = time.perf_counter()
+    directory = Path(config.out) / SHARDS_DIRECTORY
+    every = shards.split(config, shard_seeds)
+    pending = _missing(directory, every)
+    per_seed = len(config.cells) * config.runs * config.episodes
+    total_seeds = config.seeds
+    state = {"seeds": total_seeds - sum(s.seeds for s in pending)}
+
+    def report() -> None:
+        if progress is not None:
+            progress(
+                paper.Progress(
+                    state["seeds"] * per_seed,
+                    total_seeds * per_seed,
+                    state["seeds"] * len(config.cells),
+                    total_seeds * len(config.cells),
+                )
+            )
+
+    def done(shard: paper.PaperConfig) -> None:
+        state["seeds"] += shard.seeds
+        report()
+
+    report()
+    run_shards(pending, directory, executor, done)
+    parts = [shards.load(shards.shard_path(directory, shard), shard) for shard in every]
+    wall = time.perf_counter() - started
+    env_steps = int(
+        sum(part[key].sum() for part in parts for key in part if key.endswith("/steps"))
+    )
+    timing = {
+        "wall_s": round(wall, 3),
+        "backend": paper.resolve_backend(config),
+        "threads": 1  # a worker's, or this process's as paper.run reports it
+        if isinstance(executor, cluster.DaskExecutor)
+        else config.threads or torch.get_num_threads(),
+        "env_steps": env_steps,
+        "env_steps_per_s": round(env_steps / max(wall, 1e-9)),
+        "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "shards": {
+            "where": executor.description,
+            "seeds_per_shard": shard_seeds,
+            "total": len(every),
+            "run_now": len(pending),
+        },
+    }
+    return shards.results(config, parts, timing)
+
+
+def compare_result_path(directory: str | os.PathLike, config: Any) -> Path:
+    """``directory/<digest>.json``: where a compare configuration's results are kept."""
+    return Path(directory) / f"{config_digest(config)}.json"
+
+
+def _compare_task(run_method: Callable[..., Any], item: tuple[Any, str]) -> Any:
+    config, method = item
+    return _compare_method(run_method, config, method)
+
+
+def run_compare_configs(
+    configs: Sequence[Any],
+    directory: Path,
+    executor: cluster.InProcess | cluster.DaskExecutor,
+    done: Callable[[], None],
+) -> None:
+    """Run every method of every compare config in ``configs`` as one task each on
+    ``executor``; when a config's methods are all in, write its ``compare.summarise`` dict
+    (what ``compare.run`` returns, ``timing`` aside) to ``compare_result_path``, atomically.
+    ``done()`` is called per method finished."""
+    from factorq_trainers.experiments import compare
+
+    items = [(config, method) for config in configs for method in config.methods]
+    owner = [index for index, config in enumerate(configs) for _ in config.methods]
+    names = [f"compare-{config_digest(config)}-{method}" for config, method in items]
+    runs: list[dict[str, Any]] = [{} for _ in configs]
+    function = functools.partial(_compare_task, compare.run_method)
+    for task, result in executor.map(function, items, names):
+        index = owner[task]
+        config = configs[index]
+        runs[index][items[task][1]] = result
+        done()
+        if len(runs[index]) == len(config.methods):
+            results = compare.summarise(config, {m: runs[index][m] for m in config.methods})
+            results["timing"] = {
+                "method_wall_s": round(sum(float(r["wall_s"]) for r in runs[index].values()), 3),
+                "where": executor.description,
+            }
+            text = result_files.dumps(results)
+            directory.mkdir(parents=True, exist_ok=True)
+            result_files.write_atomic(
+                compare_result_path(directory, config), lambda path, t=text: path.write_text(t)
+            )
+            runs[index] = {}
+
+
+def compare_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per method and world of a ``comparison.json`` dict: its measures as means with 95%
+    intervals across seeds (``steps_to_threshold`` only where every seed reached it)."""
+    cells = {}
+    for method, worlds in results["results"].items():
+        for world, entry in worlds.items():
+            reached = entry["steps_to_threshold_per_seed"]
+            steps = {"mean": entry["steps_to_threshold"], "ci95": None}
+            if entry["steps_to_threshold"] is not None:
+                seed = results["config"].get("seed", 0)  # compare's bootstrap, its seed
+                bounded = functools.partial(stats.bootstrap_mean_ci, seed=seed)
+                steps["ci95"] = result_files.interval_or_none(stats.scalar_ci(reached, bounded)[1:])
+            cells[f"{world}/{method}"] = {
+                "world": world,
+                "algorithm": method,
+                "steps_to_threshold": steps,
+                **{
+                    measure: {
+                        "mean": entry[measure],
+                        "ci95": result_files.interval_or_none(entry[f"{measure}_ci95"]),
+                    }
+                    for measure in (
+                        "collisions",
+                        "greedy_collisions",
+                        "avoidable_greedy_collisions",
+                    )
+                },
+                "seeds_reached": entry["seeds_reached"],
+                "per_seed": {"steps_to_threshold": reached},
+            }
+    return cells
+
+
+def run_compare_sweep(
+    spec: SweepSpec,
+    executor: cluster.InProcess | cluster.DaskExecutor,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict[str, Any]:
+    """``run_sweep`` of a compare spec: every configuration not already in ``OUT/configs/``
+    run whole (one task per method), then gathered into ``sweep.json``'s dict."""
+    from factorq_trainers.experiments import compare
+
+    started = time.perf_counter()
+    directory = Path(spec.out) / CONFIGS_DIRECTORY
+    configs = spec.configurations()
+    pending = [c for c in configs if not compare_result_path(directory, c).is_file()]
+    total = sum(len(config.methods) for config in configs)
+    count = {"done": total - sum(len(config.methods) for config in pending)}
+    if progress is not None:
+        progress(count["done"], total)
+
+    def done() -> None:
+        count["done"] += 1
+        if progress is not None:
+            progress(count["done"], total)
+
+    run_compare_configs(pending, directory, executor, done)
+    return _gathered(
+        spec,
+        "compare",
+        COMPARE_MEASURES,
+        pending,
+        started,
+        executor,
+        compare.config_dict,
+        compare_cells,
+    )
+
+
+def _gathered(
+    spec: SweepSpec,
+    command: str,
+    measures: Sequence[str],
+    pending: list,
+    started: float,
+    executor: cluster.InProcess | cluster.DaskExecutor,
+    config_dict: Callable[[Any], dict[str, Any]],
+    cells: Callable[[dict[str, Any]], dict[str, dict[str, Any]]],
+) -> dict[str, Any]:
+    """``sweep.json``'s dict of a sweep whose configurations each ran whole (``compare``,
+    ``dependencies``): one row per configuration read back from ``OUT/configs/``, its cells
+    taken by ``cells``; ``pending``: the configurations run by this call."""
+    computed = time.perf_counter() - started
+    directory = Path(spec.out) / CONFIGS_DIRECTORY
+    configs = spec.configurations()
+    rows = []
+    for config, point in zip(configs, spec.points(), strict=True):
+        path = compare_result_path(directory, config)
+        try:  # a kept file is the user's: it may have been edited or cut short
+            kept = cells(json.loads(path.read_text()))
+        except (ValueError, KeyError, TypeError, AttributeError, IndexError) as error:
+            raise ValueError(
+                f"configuration file {path} is not a factorq {command} result ({error!r}): "
+                f"delete it to rerun that configuration"
+            ) from None
+        rows.append(
+            {
+                "values": point,
+                "digest": config_digest(config),
+                "config": config_dict(config),
+                "results_file": f"{CONFIGS_DIRECTORY}/{path.name}",
+                "cells": kept,
+                "claims": {},
+            }
+        )
+    return {
+        "command": command,
+        "measures": list(measures),
+        "axes": spec.axes,
+        "base": {name: _json(value) for name, value in spec.base},
+        "seeds": spec.seeds,
+        "shard_seeds": None,
+        "configurations": [_json(row) for row in rows],
+        "timing": {
+            "wall_s": round(time.perf_counter() - started, 3),
+            "compute_s": round(computed, 3),
+            "where": executor.description,
+            "configurations_total": len(configs),
+            "configurations_run_now": len(pending),
+        },
+        "software": paper.software_versions(),
+    }
+
+
+def _units_task(command: str, config: Any) -> dict[str, Any]:
+    from factorq_trainers.runner import frame, registry
+
+    return frame.run_in_process(registry.load(command), config)
+
+
+def run_units_sweep(
+    spec: SweepSpec,
+    executor: cluster.InProcess | cluster.DaskExecutor,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict[str, Any]:
+    """``run_sweep`` of a spec of a command of the runner (``dependencies``, ``minigrid``, ...):
+    every configuration not already in ``OUT/configs/`` run whole
+    (``frame.run_in_process``, one task each) and kept there as its results dict, then gathered
+    into ``sweep.json``'s dict with the cells of the command's ``sweep_cells``."""
+    started = time.perf_counter()
+    directory = Path(spec.out) / CONFIGS_DIRECTORY
+    configs = spec.configurations()
+    pending = [c for c in configs if not compare_result_path(directory, c).is_file()]
+    done = len(configs) - len(pending)
+    if progress is not None:
+        progress(done, len(configs))
+    names = [f"{spec.command}-{config_digest(config)}" for config in pending]
+    task = functools.partial(_units_task, spec.command)
+    for index, results in executor.map(task, pending, names):
+        text = result_files.dumps(results)
+        directory.mkdir(parents=True, exist_ok=True)
+        result_files.write_atomic(
+            compare_result_path(directory, pending[index]), lambda path, t=text: path.write_text(t)
+        )
+        done += 1
+        if progress is not None:
+            progress(done, len(configs))
+    reports = _reports_of(spec.command)
+    return _gathered(
+        spec,
+        spec.command,
+        reports.SWEEP_MEASURES,
+        pending,
+        started,
+        executor,
+        lambda config: _json(dataclasses.asdict(config)),
+        reports.sweep_cells,
+    )
+
+
+def run_sweep(
+    spec: SweepSpec,
+    executor: cluster.InProcess | cluster.DaskExecutor,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict[str, Any]:
+    """Run every shard of ``spec`` not already on disk, then gather ``sweep.json``'s dict.
+
+    ``progress(done, total)`` counts shards (those found on disk are done from the start); for
+    a compare spec, ``run_compare_sweep``, counting methods.
+    """
+    if spec.command == "compare":
+        return run_compare_sweep(spec, executor, progress)
+    if spec.command != "paper":
+        return run_units_sweep(spec, executor, progress)
+    started = time.perf_counter()
+    directory = Path(spec.out) / SHARDS_DIRECTORY
+    configs = spec.configurations()
+    every = [shard for config in configs for shard in shards.split(config, spec.shard_seeds)]
+    pending = _missing(directory, every)
+    count = {"done": len(every) - len(pending)}
+    if progress is not None:
+        progress(count["done"], len(every))
+
+    def done(_: paper.PaperConfig) -> None:
+        count["done"] += 1
+        if progress is not None:
+            progress(count["done"], len(every))
+
+    run_shards(pending, directory, executor, done)
+    computed = time.perf_counter() - started
+    rows = []
+    for config, point in zip(configs, spec.points(), strict=True):
+        parts = [
+            shards.load(shards.shard_path(directory, shard), shard)
+            for shard in shards.split(config, spec.shard_seeds)
+        ]
+        summary = paper.summarise(config, shards.concatenate(config, parts))
+        rows.append(
+            {
+                "values": point,
+                "digest": shards.digest(config),
+                "config": paper.config_dict(config),
+                "cells": {
+                    name: {
+                        "world": cell["world"],
+                        "algorithm": cell["algorithm"],
+                        **cell["summary"],
+                        "per_seed": cell["per_seed"],
+                    }
+                    for name, cell in summary["cells"].items()
+                },
+                "claims": {
+                    name: {key: claim[key] for key in ("value", "ci95", "pass")}
+                    for name, claim in summary["claims"].items()
+                },
+            }
+        )
+    return {
+        "command": "paper",
+        "measures": list(MEASURES),
+        "axes": spec.axes,
+        "base": {name: _json(value) for name, value in spec.base},
+        "seeds": spec.seeds,
+        "shard_seeds": spec.shard_seeds,
+        "configurations": [_json(row) for row in rows],
+        "timing": {
+            "wall_s": round(time.perf_counter() - started, 3),
+            "compute_s": round(computed, 3),
+            "where": executor.description,
+            "shards_total": len(every),
+            "shards_run_now": len(pending),
+        },
+        "software": paper.software_versions(),
+    }
+
+
+def _compare_method(run_method: Callable[..., Any], config: Any, method: str) -> Any:
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(config.threads)
+    try:
+        return run_method(config, method)
+    finally:
+        torch.set_num_threads(threads)

@@ -1,0 +1,413 @@
+"""A sweep's spec (``factorq sweep``): the sweep file and options read, checked and expanded into
+the configurations of one command, before anything runs or is written.
+
+A sweep file (every key optional but the axes; options given on the command line win)::
+
+    seeds = 100              # per configuration
+    shard_seeds = 25         # seeds per shard: the unit of work, of files and of resumption
+    out = "results/sweep"
+
+    [base]                   # fields every configuration shares
+    episodes = 100
+
+    [grid]                   # the cartesian product of these axes ...
+    obstacles = [5, 10, 20]
+    eta = [0.05, 0.1, 0.2]
+
+    [[configs]]              # ... crossed with this list (each entry one configuration)
+    size = 8
+
+Any field of ``PaperConfig`` is an axis or a base value, but for ``seeds``, ``first_seed`` and
+``out``, which the sweep sets: the fields are read from the dataclass, so new ones are sweepable
+without edits here. Unknown fields and invalid values are refused before anything is written.
+With ``command = "compare"`` (or any other registered command) the fields are those of that
+command's config.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import itertools
+import json
+import math
+import re
+import sys
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+from factorq_torch.base.validation import INT32_MAX, check_int
+from factorq_trainers.analysis import claims
+from factorq_trainers.distributed import shards
+from factorq_trainers.experiments import paper
+from factorq_trainers.runner import results as result_files
+
+SHARDS_DIRECTORY = "shards"
+DEFAULT_SEEDS = 100
+DEFAULT_SHARD_SEEDS = 25
+DEFAULT_PAPER_SHARD_SEEDS = 10
+DEFAULT_OUT = "results/sweep"
+#: Fields the sweep sets itself: neither axes nor base values.
+RESERVED = ("seeds", "first_seed", "out")
+SPEC_KEYS = ("command", "seeds", "shard_seeds", "out", "base", "grid", "configs")
+MEASURES = claims.MEASURES  # a paper sweep reports the paper's measures
+#: The commands whose configs a sweep runs by their own rules (``command = "..."`` in a sweep
+#: file, ``--command``); every other registered command runs each configuration whole, one task
+#: each (``run_units_sweep``).
+SPECIAL = ("paper", "compare")
+#: ``CompareConfig`` fields the sweep sets itself (``logger``: a sweep writes no per-episode logs).
+COMPARE_RESERVED = ("seeds", "out", "logger")
+#: The fields of another command's config that the sweep sets itself.
+UNITS_RESERVED = ("seeds", "out")
+#: What a compare sweep reports per method and world (``compare.summarise``'s measures).
+COMPARE_MEASURES = ("steps_to_threshold", "collisions", "greedy_collisions")
+#: Where a compare sweep keeps each finished configuration's ``comparison.json`` dict.
+CONFIGS_DIRECTORY = "configs"
+
+
+class SweepError(ValueError):
+    """A sweep spec or value that cannot be used; the message says which and why."""
+
+
+def commands() -> tuple[str, ...]:
+    """Every command a sweep can run: ``paper``, ``compare`` and each registered command."""
+    from factorq_trainers.runner import registry
+
+    return (*SPECIAL, *(name for name in registry.commands() if name not in SPECIAL))
+
+
+def check_command(command: Any, source: str = "sweep file") -> str:
+    """``command`` if a sweep can run its configs, else a ``SweepError`` saying which can."""
+    if command not in commands():
+        raise SweepError(f"{source}: command={command!r} is not one of {', '.join(commands())}")
+    if command not in SPECIAL:
+        reports = _reports_of(command)
+        if not (hasattr(reports, "sweep_cells") and hasattr(reports, "SWEEP_MEASURES")):
+            raise SweepError(
+                f"{source}: command={command!r} cannot be swept: {reports.__name__} declares no "
+                f"sweep_cells and SWEEP_MEASURES (what a sweep reports per configuration)"
+            )
+    return command
+
+
+def _reports_of(command: str) -> Any:
+    """The report module of ``command`` (its ``sweep_cells`` and ``SWEEP_MEASURES``)."""
+    import importlib
+
+    from factorq_trainers.runner import registry
+
+    return importlib.import_module(registry.commands()[command].report)
+
+
+def config_class(command: str = "paper") -> type:
+    """The config dataclass of ``command`` (``PaperConfig``, ``CompareConfig``, ...)."""
+    if command == "paper":
+        return paper.PaperConfig
+    from factorq_trainers.runner import registry
+
+    return registry.load(command).CONFIG
+
+
+def reserved_fields(command: str = "paper") -> tuple[str, ...]:
+    """The fields of ``command``'s config that the sweep sets itself."""
+    return {"compare": COMPARE_RESERVED, "paper": RESERVED}.get(command, UNITS_RESERVED)
+
+
+def nested_fields(command: str = "paper") -> list[str]:
+    """The fields of ``command``'s config that are configs themselves: not sweepable."""
+    hints = typing.get_type_hints(config_class(command))
+    return [name for name, hint in hints.items() if dataclasses.is_dataclass(hint)]
+
+
+def sweepable_fields(command: str = "paper") -> dict[str, Any]:
+    """Field name -> type annotation of every field of ``command``'s config a sweep may set
+    (``PaperConfig`` or ``CompareConfig``; nested configs and the sweep's own fields left out)."""
+    kind = config_class(command)
+    hints = typing.get_type_hints(kind)
+    skipped = {*reserved_fields(command), *nested_fields(command)}
+    return {f.name: hints[f.name] for f in fields(kind) if f.name not in skipped}
+
+
+def config_digest(config: Any) -> str:
+    """A short hash of the fields that decide ``config``'s numbers: a paper config's shard
+    digest, or for a compare config every field but ``out``, ``threads`` and ``logger``; for a
+    dependencies config every field but ``out``, ``threads`` and ``path`` (the compiled and the
+    modular path give the same numbers bit for bit)."""
+    if isinstance(config, paper.PaperConfig):
+        return shards.digest(config)
+    from factorq_trainers.experiments import compare
+
+    if isinstance(config, compare.CompareConfig):
+        values, ignored = compare.config_dict(config), ("out", "threads", "logger")
+    else:  # a command of the runner: its DIGEST_IGNORED (fields that leave the numbers alone)
+        module = sys.modules[type(config).__module__]
+        values = _json(dataclasses.asdict(config))
+        ignored = getattr(module, "DIGEST_IGNORED", ("out", "threads"))
+    relevant = {key: value for key, value in values.items() if key not in ignored}
+    return hashlib.sha256(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _plain(value: Any) -> Any:
+    """TOML lists as tuples (the configs' sequence fields), everything else as is."""
+    return tuple(value) if isinstance(value, list) else value
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    """A sweep: ``base`` values, ``grid`` axes (crossed with the ``configs`` list), ``seeds``
+    per configuration in shards of ``shard_seeds``, results in ``out``."""
+
+    base: tuple[tuple[str, Any], ...] = ()
+    """Fields every configuration shares, as (name, value) pairs."""
+    grid: tuple[tuple[str, tuple[Any, ...]], ...] = ()
+    """Swept axes, as (name, values) pairs: configurations are their cartesian product."""
+    configs: tuple[tuple[tuple[str, Any], ...], ...] = ((),)
+    """Explicit configurations (each crossed with the grid)."""
+    seeds: int = DEFAULT_SEEDS
+    """Seeds (independent experiments per world and algorithm) of every configuration."""
+    shard_seeds: int = DEFAULT_SHARD_SEEDS
+    """Seeds per shard."""
+    out: str = DEFAULT_OUT
+    """Directory for sweep.json, sweep.md, the figures and shards/ (configs/ for compare)."""
+    command: str = "paper"
+    """Whose configs are swept: ``paper`` (sharded seeds), ``compare`` or ``dependencies``
+    (whole configs)."""
+
+    def __post_init__(self) -> None:
+        check_command(self.command, "sweep")
+        check_int("seeds", self.seeds, 1, INT32_MAX)
+        check_int("shard_seeds", self.shard_seeds, 1, INT32_MAX)
+        if not isinstance(self.out, str) or not self.out:
+            raise SweepError(f"out={self.out!r} must be a directory path")
+        if Path(self.out).exists() and not Path(self.out).is_dir():
+            raise SweepError(f"out={self.out!r} is an existing file: give a directory")
+        known = sweepable_fields(self.command)
+        reserved, nested = reserved_fields(self.command), nested_fields(self.command)
+        for where, names in (
+            ("base", [name for name, _ in self.base]),
+            ("grid", [name for name, _ in self.grid]),
+            ("configs", [name for entry in self.configs for name, _ in entry]),
+        ):
+            for name in names:
+                if name in nested:
+                    raise SweepError(
+                        f"field {name!r} in {where} is a nested config of {self.command}'s "
+                        f"({', '.join(nested)}): not sweepable; sweepable: {', '.join(known)}"
+                    )
+                if name not in known:
+                    hint = " (the sweep sets it: a top-level key)" if name in reserved else ""
+                    raise SweepError(
+                        f"unknown field {name!r} in {where}{hint}; sweepable: {', '.join(known)}"
+                    )
+        for name, values in self.grid:
+            if not isinstance(values, tuple) or not values:
+                raise SweepError(f"grid axis {name!r} needs a non-empty list of values")
+            if len(set(map(repr, values))) != len(values):
+                raise SweepError(f"grid axis {name!r} repeats a value: {list(values)}")
+        count = len(self.configs) * math.prod(len(values) for _, values in self.grid)
+        if count > MAX_CONFIGURATIONS:  # from the axes' lengths: nothing expanded yet
+            sizes = " x ".join(str(len(values)) for _, values in self.grid) or "1"
+            raise SweepError(
+                f"the sweep has {count} configurations ({len(self.configs)} configs x grid "
+                f"{sizes}), more than {MAX_CONFIGURATIONS}: split it into several sweeps"
+            )
+        axes = {name for name, _ in self.grid}
+        for entry in self.configs:
+            clash = axes & {name for name, _ in entry}
+            if clash:
+                raise SweepError(f"{', '.join(sorted(clash))} is both a grid axis and in configs")
+        seen: dict[str, int] = {}
+        for index, config in enumerate(self.configurations()):
+            key = config_digest(config)
+            if key in seen:
+                raise SweepError(f"configurations {seen[key]} and {index} are the same")
+            seen[key] = index
+
+    @property
+    def axes(self) -> list[str]:
+        """The names that vary between configurations, in the order given."""
+        names = [name for name, _ in self.grid]
+        for entry in self.configs:
+            names += [name for name, _ in entry if name not in names]
+        return names
+
+    def points(self) -> list[dict[str, Any]]:
+        """Each configuration's values of the axes."""
+        names = [name for name, _ in self.grid]
+        grid = [
+            dict(zip(names, values, strict=True))
+            for values in itertools.product(*(values for _, values in self.grid))
+        ]
+        return [{**dict(entry), **point} for entry in self.configs for point in grid]
+
+    @functools.cache  # noqa: B019 - the spec is frozen and small
+    def configurations(self) -> list[Any]:
+        """The validated config of every point (a ``SweepError`` names the point and the value):
+        ``PaperConfig``s, or ``CompareConfig``s for ``command="compare"``."""
+        kind = config_class(self.command)
+        configs = []
+        for index, point in enumerate(self.points()):
+            values = {**dict(self.base), **point, "seeds": self.seeds, "out": self.out}
+            try:
+                configs.append(kind(**{k: _plain(v) for k, v in values.items()}))
+            except (ValueError, TypeError) as error:
+                shown = ", ".join(f"{k}={v!r}" for k, v in point.items()) or "base"
+                raise SweepError(f"configuration {index} ({shown}): {error}") from None
+        return configs
+
+
+def spec_from_mapping(data: dict[str, Any], source: str = "sweep file") -> SweepSpec:
+    """A ``SweepSpec`` from a parsed TOML (or YAML) document."""
+    if not isinstance(data, dict):
+        raise SweepError(f"{source}: expected a table of keys, got {type(data).__name__}")
+    unknown = sorted(set(data) - set(SPEC_KEYS))
+    if unknown:
+        raise SweepError(
+            f"{source}: unknown key(s) {', '.join(unknown)}; known: {', '.join(SPEC_KEYS)}"
+        )
+    command = check_command(data.get("command", "paper"), source)
+    if command != "paper" and "shard_seeds" in data:
+        raise SweepError(
+            f"{source}: shard_seeds does not apply to command={command!r}: its unit of work is a "
+            "whole configuration (DQN's seeds share a random stream within their batch)"
+        )
+    for key in ("base", "grid"):
+        if not isinstance(data.get(key, {}), dict):
+            raise SweepError(f"{source}: [{key}] must be a table")
+    configs = data.get("configs", [{}])
+    if (
+        not isinstance(configs, list)
+        or not all(isinstance(c, dict) for c in configs)
+        or not configs
+    ):
+        raise SweepError(f"{source}: configs must be a non-empty array of tables ([[configs]])")
+    grid = []
+    for name, values in data.get("grid", {}).items():
+        if not isinstance(values, list):
+            raise SweepError(f"{source}: grid axis {name!r} must be a list, got {values!r}")
+        grid.append((name, tuple(_plain(value) for value in values)))
+    extra = {key: data[key] for key in ("seeds", "shard_seeds", "out") if key in data}
+    try:
+        return SweepSpec(
+            base=tuple((k, _plain(v)) for k, v in data.get("base", {}).items()),
+            grid=tuple(grid),
+            configs=tuple(tuple((k, _plain(v)) for k, v in entry.items()) for entry in configs),
+            command=command,
+            **extra,
+        )
+    except (ValueError, TypeError) as error:
+        raise SweepError(f"{source}: {error}") from None
+
+
+#: A sweep file is a few hundred bytes; far larger ones are not sweep files.
+MAX_SPEC_BYTES = 1024 * 1024
+#: Configurations one sweep may hold (each is a whole run): checked from the axes' lengths
+#: before anything is expanded (10**9 points used to end in MemoryError, 10**5 in minutes of
+#: silence).
+MAX_CONFIGURATIONS = 10_000
+#: TOML's strings, comments and brackets, for the nesting check before ``tomllib`` (which
+#: recurses on nested arrays and inline tables).
+_TOML_TOKENS = re.compile(
+    r'"""[\s\S]*?"""'
+    r"|'''[\s\S]*?'''"
+    r'|"(?:[^"\\\n]|\\.)*"'
+    r"|'[^'\n]*'"
+    r"|#[^\n]*"
+    r"|[\[\]{}]"
+)
+
+
+def _yaml_loader() -> type:
+    """PyYAML's safe loader refusing aliases (a 433-byte alias bomb took a minute and gigabytes)
+    and nesting past ``results.MAX_DEPTH`` (checked before the composer recurses)."""
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        depth = 0
+
+        def compose_node(self, parent, index):  # noqa: ANN001, ANN202 - PyYAML's signature
+            if self.check_event(yaml.AliasEvent):
+                mark = self.peek_event().start_mark
+                raise yaml.YAMLError(
+                    f"aliases (*name) are not allowed in a sweep file (line {mark.line + 1})"
+                )
+            if self.depth >= result_files.MAX_DEPTH:
+                raise yaml.YAMLError(f"it nests deeper than {result_files.MAX_DEPTH} levels")
+            self.depth += 1
+            try:
+                return super().compose_node(parent, index)
+            finally:
+                self.depth -= 1
+
+    return Loader
+
+
+def read_spec_file(path: str | Path) -> dict[str, Any]:
+    """The document of a ``.toml`` sweep file (or ``.yaml``/``.yml`` where PyYAML is installed):
+    bounded in size and nesting before it is parsed, YAML without aliases."""
+    path = Path(path)
+    try:
+        if path.is_file() and path.stat().st_size > MAX_SPEC_BYTES:
+            raise SweepError(f"sweep file {path} is larger than {MAX_SPEC_BYTES} bytes")
+        text = path.read_text()
+    except OSError as error:
+        raise SweepError(f"cannot read sweep file {path}: {error.strerror}") from None
+    except UnicodeDecodeError:
+        raise SweepError(f"sweep file {path} is not UTF-8 text") from None
+    if path.suffix in (".yaml", ".yml"):
+        try:
+            import yaml
+        except ImportError:
+            raise SweepError(
+                f"{path}: YAML needs PyYAML (pip install pyyaml); or use TOML"
+            ) from None
+        try:
+            data = yaml.load(text, Loader=_yaml_loader()) or {}  # noqa: S506 - a safe loader
+        except yaml.YAMLError as error:
+            raise SweepError(f"{path}: not valid YAML ({' '.join(str(error).split())})") from None
+    else:
+        if result_files.nesting_depth(text, _TOML_TOKENS) > result_files.MAX_DEPTH:
+            raise SweepError(f"{path} nests deeper than {result_files.MAX_DEPTH} levels")
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as error:
+            raise SweepError(f"{path}: not valid TOML ({error})") from None
+    if result_files.deeper_than(data, result_files.MAX_DEPTH):  # dotted keys nest too
+        raise SweepError(f"{path} nests deeper than {result_files.MAX_DEPTH} levels")
+    return data
+
+
+def parse_value(name: str, text: str, command: str = "paper") -> Any:
+    """An option's ``text`` as the type of field ``name`` of ``command``'s config (tuples:
+    comma-separated)."""
+    known = sweepable_fields(command)
+    annotation = known.get(name)
+    if annotation is None:
+        raise SweepError(f"unknown field {name!r}; sweepable: {', '.join(known)}")
+    if isinstance(annotation, types.UnionType):  # int | None -> int
+        annotation = next(a for a in typing.get_args(annotation) if a is not type(None))
+    if typing.get_origin(annotation) is tuple:
+        return tuple(item for item in text.split(",") if item)
+    if annotation is bool:
+        if text.lower() not in ("true", "false"):
+            raise SweepError(f"{name}={text!r} is not true or false")
+        return text.lower() == "true"
+    if annotation in (int, float):
+        try:
+            return annotation(text)
+        except ValueError:
+            raise SweepError(f"{name}={text!r} is not {annotation.__name__}") from None
+    return text
+
+
+def _json(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {key: _json(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json(item) for item in value]
+    return value
