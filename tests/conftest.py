@@ -3,7 +3,10 @@
 ``FACTORQ_TEST_THREADS=N`` runs the whole session with ``torch.set_num_threads(N)`` (tests that
 ask for ``one_thread`` still get one): with ``ATEN_CPU_CAPABILITY`` it is how the float-sensitive
 tests are tried on another machine's arithmetic (docs/decisions.md, "Tests that hold on any
-machine").
+machine"). Without it, each pytest-xdist worker takes its share of the cores (one each when there
+are as many workers as cores, as ``make test`` starts them): torch's default of every core per
+worker only oversubscribes them (measured: a third of the suite's CPU time spent spinning).
+Tests of several threads ask for them explicitly (the kernel's ``threads``).
 """
 
 import os
@@ -18,6 +21,9 @@ def pytest_configure(config):
         if not threads.isdigit() or int(threads) < 1:
             raise pytest.UsageError(f"FACTORQ_TEST_THREADS={threads!r} is not a thread count >= 1")
         torch.set_num_threads(int(threads))
+    elif os.environ.get("PYTEST_XDIST_WORKER"):  # set by pytest-xdist in its workers
+        workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+        torch.set_num_threads(max(1, torch.get_num_threads() // workers))
 
 
 @pytest.fixture
