@@ -113,8 +113,8 @@ def test_compare_replaces_its_files_and_logs_as_a_set(tmp_path, monkeypatch):
     assert Path(out / "logs").is_dir()
 
 
-COMPARED = ["--methods", "factor-q,q-learning,dqn", "--seeds", "2", "--steps", "1500"]
-COMPARED += ["--size", "5", "--obstacles", "2", "--out", "run"]
+COMPARED = ["--methods", "factor-q,q-learning,dqn", "--seeds", "2", "--steps", "1000"]
+COMPARED += ["--size", "5", "--obstacles", "2", "--worlds", "static,dynamic", "--out", "run"]
 
 
 def without_wall_time(text: str) -> dict:
