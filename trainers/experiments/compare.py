@@ -60,7 +60,7 @@ from factorq_trainers.experiments import dqn, experiment
 from factorq_trainers.experiments.dqn import METHODS, DQNConfig, batch_keys
 from factorq_trainers.experiments.experiment import WORLDS, EpisodeRecorder, ExperimentConfig
 from factorq_trainers.reports.compare_report import THRESHOLD_FACTOR
-from factorq_trainers.runner import checkpoint, compare_checkpoint, resources
+from factorq_trainers.runner import checkpoint, compare_checkpoint, compare_state_checks, resources
 from factorq_trainers.runner.compare_checkpoint import CompareCheckpoint
 from factorq_trainers.runner.options import option
 from factorq_trainers.runner.results import SCHEMA_VERSION, software_versions
@@ -307,7 +307,7 @@ def run_online(
 
         def load_state(saved: dict[str, Any]) -> None:
             nonlocal done
-            saved = compare_checkpoint.check_online_state(
+            saved = compare_state_checks.check_online_state(
                 saved, fresh, collector.optimizer, experiments, neural=method == "factor-dqn"
             )
             collector.load_state_dict(saved["collector"])

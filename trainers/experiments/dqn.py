@@ -356,9 +356,9 @@ def run(
 
         def load_state(saved: dict[str, Any]) -> None:
             nonlocal done_steps, gradient_steps, loss_per_experiment
-            from factorq_trainers.runner import compare_checkpoint
+            from factorq_trainers.runner import compare_state_checks
 
-            saved = compare_checkpoint.check_dqn_state(
+            saved = compare_state_checks.check_dqn_state(
                 saved, fresh, agent, env, config, experiments, _STORED
             )
             # The storage is allocated by its first write (batch shape [buffer_size, E]): a row
