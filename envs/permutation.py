@@ -1,7 +1,7 @@
 """``PermuteSensors``: a sensor order per experiment, which may be redrawn mid-experiment.
 
 ``WorldConfig.sensor_permutation`` gives every experiment of a batch the same order, fixed for the
-whole experiment. The structure-learning experiment of issue 12 (``factorq dependencies``) needs
+whole experiment. The structure-learning experiment (``factorq dependencies``) needs
 one order per experiment and a body that changes while the agent learns ("the permutation is
 redrawn at run 5"). This transform is that hook, kept outside the world: it reorders the
 ``sensors`` entry the env writes, ``sensors[s, j] <- sensors[s, permutations[s, j]]``, on every

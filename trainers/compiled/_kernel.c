@@ -24,8 +24,8 @@
  *   - C(s') computed for the eq. 4 target is reused for the next decision when nothing it read
  *     has changed; the spread of rho (eq. 3's denominator) is kept per proximity pattern;
  *   - walls are a ring of blocked cells around the obstacle map, so sensing is four loads;
- *   - the obstacle scatter after a move does not wait for the move (see scatter): in the
- *     dynamic world it used to lengthen every step's chain from one action to the next.
+ *   - the obstacle scatter after a move does not wait for the move (see scatter): waiting would
+ *     lengthen every step's chain from one action to the next in the dynamic world.
  */
 #include <float.h>
 #include <math.h>
@@ -127,7 +127,7 @@ typedef struct {
     int64_t kappa_stride;
     int64_t grid_stride;
     int64_t obstacle_stride;
-    /* The structure learner (factorq_torch/structure.py, issue 12) as the local value provider of
+    /* The structure learner (factorq_torch/structure.py) as the local value provider of
        the generic Factor-Q loop (learner != 0); see the learner section below. */
     int64_t learner;
     int64_t num_candidates;   /* C */
@@ -588,7 +588,7 @@ static int64_t run_factor_q(const fq_batch *b, int64_t i, int64_t budget) {
 
 /* ----------------------------------------------------------------------------------------------
  * The generic loop: any body and sensor layout of envs/body.py, with distractors, a permutation
- * and noise (issue 11). The same equations and float order as the paper's loop above, without
+ * and noise. The same equations and float order as the paper's loop above, without
  * its caches: observations are bit masks of the K sensors in the agent's order (K <= 62).
  */
 

@@ -33,7 +33,7 @@ SETTINGS: dict[str, dict[str, Any]] = {
     "noise-5": {"body": "translate", "sensors": "cross", "sensor_noise": 0.05},
     "noise-10": {"body": "translate", "sensors": "cross", "sensor_noise": 0.10},
     "change": {"body": "translate", "sensors": "cross"},
-    # issue 27: noise with many sensors (8 ring sensors and 12 distractors: 20)
+    # noise with many sensors (8 ring sensors and 12 distractors: 20)
     "ring-12-noise-5": {
         "body": "translate",
         "sensors": "ring",
