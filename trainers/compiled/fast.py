@@ -32,6 +32,7 @@ import ctypes
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor, wait
+from typing import Any
 
 import torch
 
@@ -369,6 +370,17 @@ class ExperimentBatch:
             )
         return sum(results)
 
+    def run(self, progress: Callable[[int], object] | None = None) -> dict[str, torch.Tensor]:
+        """Advance every experiment to its end and return ``metrics()``; ``progress(n)`` is
+        called with the number of episodes completed since its last call."""
+        # Chunks only matter for progress reports (results do not depend on them).
+        chunk = 20_000 if progress is not None else 1 << 62
+        while not self.done:
+            completed = self.advance(chunk)
+            if progress is not None and completed:
+                progress(completed)
+        return self.metrics()
+
     def metrics(self) -> dict[str, torch.Tensor]:
         """Per-episode ``steps``, ``collisions``, ``greedy_collisions`` (int64) and
         ``task_return`` (float32), each ``[S, runs, episodes]``; zeros where not yet played."""
@@ -432,44 +444,11 @@ class ExperimentBatch:
 
 
 def run_experiments(
-    algorithm: str,
-    periods: torch.Tensor,
-    world: WorldConfig,
-    agent: AgentConfig,
-    runs: int,
-    episodes: int,
-    world_keys: torch.Tensor,
-    policy_keys: torch.Tensor,
-    *,
-    threads: int | None = None,
-    progress: Callable[[int], object] | None = None,
-    dependency: torch.Tensor | None = None,
-    structure: StructureOptions | None = None,
-    sensor_orders: SensorOrders | None = None,
+    *batch: Any, progress: Callable[[int], object] | None = None, **options: Any
 ) -> dict[str, torch.Tensor]:
-    """Run S experiments to the end (see ``ExperimentBatch``) and return their ``metrics()``.
+    """Run S experiments to the end and return their ``metrics()``: ``ExperimentBatch(*batch,
+    **options)`` (its arguments, the same names and order) advanced until done.
 
-    ``progress(n)`` is called with the number of episodes completed since its last call;
-    ``dependency`` replaces the world's in Factor-Q's local tables (``ExperimentBatch``).
+    ``progress(n)`` is called with the number of episodes completed since its last call.
     """
-    batch = ExperimentBatch(
-        algorithm,
-        periods,
-        world,
-        agent,
-        runs,
-        episodes,
-        world_keys,
-        policy_keys,
-        threads,
-        dependency=dependency,
-        structure=structure,
-        sensor_orders=sensor_orders,
-    )
-    # Chunks only matter for progress reports (results do not depend on them).
-    chunk = 20_000 if progress is not None else 1 << 62
-    while not batch.done:
-        completed = batch.advance(chunk)
-        if progress is not None and completed:
-            progress(completed)
-    return batch.metrics()
+    return ExperimentBatch(*batch, **options).run(progress)
