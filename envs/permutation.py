@@ -37,7 +37,7 @@ class PermuteSensors(Transform):
 
     Example:
         >>> from torchrl.envs import TransformedEnv
-        >>> from factorq_envs.grid import FactoredGridEnv
+        >>> from factorq_envs.torchrl_env import FactoredGridEnv
         >>> base = FactoredGridEnv(size=3, num_obstacles=0, batch_size=(1,))
         >>> env = TransformedEnv(base, PermuteSensors(torch.tensor([[1, 2, 3, 0]])))
         >>> base.reset()["sensors"].tolist(), env.reset()["sensors"].tolist()

@@ -2,7 +2,7 @@
  * The fused fast path of factorq_torch: whole experiments (SPEC section 4) in one tight C loop.
  *
  * This file mirrors, operation for operation, two Python sources and must stay identical to them:
- *   - envs/world.py            the FactoredGrid world (SPEC sections 1-2): move or collide ->
+ *   - envs/grid_world.py       the FactoredGrid world (SPEC sections 1-2): move or collide ->
  *                              reward -> maybe scatter (Floyd's algorithm) -> observation;
  *   - factorq_torch/functional.py  the paper's equations (eq. 1-5) with its float32 order
  *                              contract: explicit left-to-right sums, no fused multiply-add
@@ -336,8 +336,8 @@ static inline void combined_values(const float q[NUM_ACTIONS], const local_patte
 /* The end of an episode, in both loops (SPEC section 4): its metrics into its slot, the episode's
    counts zeroed, the next episode (and run) begun; at the start of a further run the Q table
    (q_floats entries, NULL: none) restarts at 0 while Factor-Q's local tables carry over, and a
-   moving world draws a fresh scatter with the agent at the start (world.reset_worlds). Putting
-   the agent back at the start is the caller's. */
+   moving world draws a fresh scatter with the agent at the start (grid_world.reset_worlds).
+   Putting the agent back at the start is the caller's. */
 static inline void end_episode(const fq_batch *b, int64_t i, int64_t episode_step, int64_t *run,
                                int64_t *episode, int64_t *collisions, int64_t *greedy,
                                float *task_return, float *q, size_t q_floats, uint8_t *grid,
@@ -452,7 +452,7 @@ static inline int64_t run_experiment(const fq_batch *b, int64_t i, int64_t budge
         }
         counter++;
 
-        /* --- world step (world.step_worlds): move or collide, reward, maybe scatter --- */
+        /* --- world step (grid_world.step_worlds): move or collide, reward, maybe scatter --- */
         const int collided = (prox >> action) & 1u;
         if (!collided) {
             pos += move_pad[action];
@@ -518,7 +518,7 @@ static inline int64_t run_experiment(const fq_batch *b, int64_t i, int64_t budge
                         &episode_return, q, (size_t)num_states * NUM_ACTIONS, grid, obstacle_pads,
                         moving, world_key, &scatters);
             completed++;
-            /* world.reset_worlds: the agent to the start, no bump */
+            /* grid_world.reset_worlds: the agent to the start, no bump */
             cell = 0;
             pos = pad_of_cell[0];
             episode_step = 0;
@@ -1067,7 +1067,7 @@ static inline int64_t run_experiment_body(const fq_batch *b, int64_t i, int64_t 
         }
         counter++;
 
-        /* --- world step (world.step_worlds): actuator noise, move or collide, turn --- */
+        /* --- world step (grid_world.step_worlds): actuator noise, move or collide, turn --- */
         int64_t fired = action;
         if (slip_threshold > 0 &&
             random_bits(actuator_key, 2 * tick) < slip_threshold) {
@@ -1146,7 +1146,7 @@ static inline int64_t run_experiment_body(const fq_batch *b, int64_t i, int64_t 
                         &episode_return, q, (size_t)num_states * (size_t)A, grid, obstacle_pads,
                         moving, world_key, &scatters);
             completed++;
-            /* world.reset_worlds: start cell, heading north, a new observation */
+            /* grid_world.reset_worlds: start cell, heading north, a new observation */
             cell = 0;
             pos = pad_of_cell[0];
             heading = 0;

@@ -1,9 +1,9 @@
 """The fused fast path: whole experiments (SPEC section 4) advanced by a small compiled C kernel.
 
-The kernel (``_kernel.c``, plain C99) performs exactly the operations of ``factorq_envs.world`` and
-``factorq_torch.functional`` in the same float32 order, with the same counter-based random streams
-(``factorq_torch.base.rng``), so its metrics and tables equal the modular torch path and the slow
-reference (``tests/reference.py``) bit for bit. It runs one experiment at a time for many steps
+The kernel (``_kernel.c``, plain C99) performs exactly the operations of ``factorq_envs.grid_world``
+and ``factorq_torch.functional`` in the same float32 order, with the same counter-based random
+streams (``factorq_torch.base.rng``), so its metrics and tables equal the modular torch path and the
+slow reference (``tests/reference.py``) bit for bit. It runs one experiment at a time for many steps
 (its tables stay in the L1/L2 cache) and leaves Python only once per ``advance`` call.
 
 Building, the ABI and loading are ``factorq_trainers.compiled.loader``'s (whose public names
@@ -12,7 +12,7 @@ this module re-exports); the batch's options and their checks are
 ``is_available()`` is False and ``unavailable_reason()`` says why; callers fall back to the
 modular torchrl path.
 
->>> from factorq_envs.world import WorldConfig
+>>> from factorq_envs.grid_world import WorldConfig
 >>> from factorq_torch.base.config import AgentConfig
 >>> from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
 >>> if is_available():
@@ -36,7 +36,7 @@ from typing import Any
 
 import torch
 
-from factorq_envs.world import WorldConfig, static_layout
+from factorq_envs.grid_world import WorldConfig, static_layout
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
 from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_torch.base.rng import probability_threshold

@@ -53,8 +53,8 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 from torchrl.modules import EGreedyModule, QValueModule
 from torchrl.objectives import DQNLoss, HardUpdate
 
-from factorq_envs.grid import FactoredGridEnv
-from factorq_envs.world import NUM_ACTIONS
+from factorq_envs.grid_world import NUM_ACTIONS
+from factorq_envs.torchrl_env import FactoredGridEnv
 from factorq_torch.base.rng import STREAM_TASK_NETWORK, STREAM_WORLD
 from factorq_torch.base.validation import INT32_MAX, check_float, check_hidden, check_int
 from factorq_torch.neural import TaskQNetwork
