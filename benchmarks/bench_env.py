@@ -4,7 +4,7 @@ Two paths over the same worlds:
 
 - ``env.step``: ``FactoredGridEnv.step_and_maybe_reset``, the torchrl TensorDict path a collector
   drives (step, step_mdp, partial reset of finished worlds);
-- ``functions``: the bare ``factorq_envs.world`` functions a fused loop would call
+- ``functions``: the bare ``factorq_envs.grid_world`` functions a fused loop would call
   (``step_worlds``, the proximity observation, ``reset_worlds`` of finished worlds), no TensorDict.
 
 Each at several batch sizes ``S`` (independent worlds), with ``torch.set_num_threads(1)`` and with
@@ -25,9 +25,8 @@ import time
 import torch
 
 from factorq_envs import FactoredGridEnv
-from factorq_envs.world import proximity, reset_worlds, step_worlds
-
-WORLDS = {"static": 0, "semi-dynamic": 10, "dynamic": 1}
+from factorq_envs.grid_world import proximity, reset_worlds, step_worlds
+from factorq_envs.regimes import REGIME_PERIODS
 
 
 def random_actions(batch: int, steps: int) -> torch.Tensor:
@@ -87,7 +86,7 @@ def bench_functions(batch: int, period: int, seconds: float) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[1, 64, 1024, 4096])
-    parser.add_argument("--worlds", nargs="+", choices=sorted(WORLDS), default=["dynamic"])
+    parser.add_argument("--worlds", nargs="+", choices=sorted(REGIME_PERIODS), default=["dynamic"])
     parser.add_argument("--seconds", type=float, default=1.0, help="time per measurement")
     args = parser.parse_args()
 
@@ -101,7 +100,7 @@ def main() -> None:
             for batch in args.sizes:
                 for threads in sorted({1, default_threads}):
                     torch.set_num_threads(threads)
-                    rate = bench(batch, WORLDS[world], args.seconds)
+                    rate = bench(batch, REGIME_PERIODS[world], args.seconds)
                     print(
                         f"{world:<13}{path:<11}{batch:>6}{threads:>9}{rate:>17,.0f}"
                         f"{rate * batch:>15,.0f}",

@@ -33,7 +33,7 @@ import torch
 
 
 def _minigrid(seed: int, adapted: bool):
-    from factorq_envs.minigrid import env_id, make_minigrid, require_minigrid
+    from factorq_envs.minigrid_adapter import env_id, make_minigrid, require_minigrid
 
     require_minigrid()
     if adapted:

@@ -290,7 +290,7 @@ if numba is not None:
 def _inputs(periods, seed: int) -> dict:
     """A batch of experiments with obstacle ``periods`` [S] (0 static, k > 0 scatter every k-th
     step) and ``seed``'s keys: the static layout padded, the cells' padded indices, the config."""
-    from factorq_envs.world import WorldConfig, static_layout
+    from factorq_envs.grid_world import WorldConfig, static_layout
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import (
         STREAM_POLICY,

@@ -47,7 +47,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(ROOT))
 
-from factorq_envs.world import WorldConfig  # noqa: E402
+from factorq_envs.grid_world import WorldConfig  # noqa: E402
 from factorq_torch.base.config import AgentConfig  # noqa: E402
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys  # noqa: E402
 from factorq_trainers.compiled import fast, loader  # noqa: E402

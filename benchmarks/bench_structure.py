@@ -24,7 +24,7 @@ import time
 
 import torch
 
-from factorq_envs.world import WORLD_PERIODS
+from factorq_envs.regimes import REGIME_PERIODS
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
 from factorq_torch.functional import LIKELIHOODS, candidate_sets
@@ -41,7 +41,7 @@ def timed(
     labels = [("static", index) for index in range(seeds)]
     world_keys = experiment_keys(0, STREAM_WORLD, labels)
     policy_keys = experiment_keys(0, STREAM_POLICY, labels)
-    periods = torch.full((seeds,), WORLD_PERIODS["static"], dtype=torch.int64)
+    periods = torch.full((seeds,), REGIME_PERIODS["static"], dtype=torch.int64)
     generator = torch.Generator().manual_seed(0)
     orders = torch.stack([torch.randperm(sensors, generator=generator) for _ in range(seeds)])
     structure = fast.StructureOptions(orders=orders, likelihood=likelihood) if learned else None

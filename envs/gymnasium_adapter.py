@@ -1,5 +1,4 @@
-"""Factor-Q on any Gymnasium env with a ``Discrete`` action space: the adapter, declared as data
-(issue 25).
+"""Factor-Q on any Gymnasium env with a ``Discrete`` action space: the adapter, declared as data.
 
 A user's env is stepped as it is; a ``Declaration`` says what Factor-Q reads from it:
 

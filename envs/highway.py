@@ -1,4 +1,4 @@
-"""highway-env's ``highway-fast-v0`` as a declared world (issue 25): a dynamic world nobody here
+"""highway-env's ``highway-fast-v0`` as a declared world: a dynamic world nobody here
 wrote, read through the Gymnasium adapter (``factorq_envs.gymnasium_adapter``).
 
 highway-env (Farama, ``highway-env`` 1.12.1, the optional extra ``factorq-torch[highway]``) is

@@ -1,7 +1,7 @@
 """``PermuteSensors``: a sensor order per experiment, which may be redrawn mid-experiment.
 
 ``WorldConfig.sensor_permutation`` gives every experiment of a batch the same order, fixed for the
-whole experiment. The structure-learning experiment of issue 12 (``factorq dependencies``) needs
+whole experiment. The structure-learning experiment (``factorq dependencies``) needs
 one order per experiment and a body that changes while the agent learns ("the permutation is
 redrawn at run 5"). This transform is that hook, kept outside the world: it reorders the
 ``sensors`` entry the env writes, ``sensors[s, j] <- sensors[s, permutations[s, j]]``, on every
@@ -37,7 +37,7 @@ class PermuteSensors(Transform):
 
     Example:
         >>> from torchrl.envs import TransformedEnv
-        >>> from factorq_envs.grid import FactoredGridEnv
+        >>> from factorq_envs.torchrl_env import FactoredGridEnv
         >>> base = FactoredGridEnv(size=3, num_obstacles=0, batch_size=(1,))
         >>> env = TransformedEnv(base, PermuteSensors(torch.tensor([[1, 2, 3, 0]])))
         >>> base.reset()["sensors"].tolist(), env.reset()["sensors"].tolist()

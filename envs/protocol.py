@@ -1,11 +1,12 @@
 """The World protocol: what a world offers the env wrappers, the experiments and the fast path.
 
 A world is pure batched functions over a state of tensors with a leading dimension ``S`` of
-independent worlds, plus the data that describes its body (``dependency``). ``factorq_envs.world``'s
-``FactoredGrid`` implements it for the paper's grid; ``factorq_envs.corridor``'s ``Corridor`` is a
-second, one-dimensional world. A new world is one new file with a class like them: the torchrl env
-(``factorq_envs.grid.FactoredGridEnv(world=...)``) and the gymnasium env
-(``factorq_envs.gym.FactoredGridGym(world=...)``) read their specs from it, and
+independent worlds, plus the data that describes its body (``dependency``).
+``factorq_envs.grid_world``'s ``FactoredGrid`` implements it for the paper's grid;
+``factorq_envs.corridor``'s ``Corridor`` is a second, one-dimensional world. A new world is one new
+file with a class like them: the torchrl env
+(``factorq_envs.torchrl_env.FactoredGridEnv(world=...)``) and the gymnasium env
+(``factorq_envs.gymnasium_env.FactoredGridGym(world=...)``) read their specs from it, and
 ``SplitLocalReward``, the agents and the trainers' modular path run it unchanged. The compiled fast
 path runs only ``FactoredGrid``: the trainers fall back to the modular path for any other world.
 

@@ -56,7 +56,7 @@ class SplitLocalReward(Transform):
     Example:
         >>> import torch
         >>> from torchrl.envs import TransformedEnv
-        >>> from factorq_envs.grid import FactoredGridEnv
+        >>> from factorq_envs.torchrl_env import FactoredGridEnv
         >>> env = TransformedEnv(FactoredGridEnv(size=3, num_obstacles=0), SplitLocalReward())
         >>> td = env.reset()
         >>> td["action"] = torch.tensor(0)  # north: into the wall
@@ -169,7 +169,7 @@ class ExperimentIndex(Transform):
 
     Example:
         >>> from torchrl.envs import TransformedEnv
-        >>> from factorq_envs.grid import FactoredGridEnv
+        >>> from factorq_envs.torchrl_env import FactoredGridEnv
         >>> world = FactoredGridEnv(size=3, num_obstacles=1, batch_size=(2, 2))
         >>> env = TransformedEnv(world, ExperimentIndex())
         >>> env.reset()["experiment"]
@@ -216,7 +216,7 @@ class RenderPixels(Transform):
 
     Example:
         >>> from torchrl.envs import TransformedEnv
-        >>> from factorq_envs.grid import FactoredGridEnv
+        >>> from factorq_envs.torchrl_env import FactoredGridEnv
         >>> env = TransformedEnv(FactoredGridEnv(size=3, num_obstacles=1), RenderPixels())
         >>> env.reset()["pixels"].shape
         torch.Size([80, 80, 3])

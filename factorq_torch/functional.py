@@ -339,7 +339,7 @@ def epsilon_greedy(
 
 
 # --------------------------------------------------------------------------------------------
-# Learned dependencies (issue 12): the structure learner's math (factorq_torch.structure), shared
+# Learned dependencies: the structure learner's math (factorq_torch.structure), shared
 # with the compiled path. Float64 throughout; sums over the patterns of a candidate are explicit
 # left-to-right additions (log_posterior_of), as the kernel performs them.
 
@@ -480,7 +480,7 @@ def flip_log_marginal(
 ) -> torch.Tensor:
     """``[..., C]`` float64: ``log p(D, labels | c)`` of every candidate under the flip likelihood,
     from the counts of its patterns ``[..., C, P]`` (docs/decisions.md, "Learned dependencies with
-    noisy sensors (issue 27)").
+    noisy sensors").
 
     Each pattern ``p`` of a candidate has a label ``z_p`` (collides or not; a fair coin a priori,
     ``log 2`` per visited pattern) and every outcome disagrees with its pattern's label with the
@@ -515,7 +515,7 @@ def mixture_log_marginal(
     noisy_odds: float = NOISY_ODDS,
 ) -> torch.Tensor:
     """``log p(D_p, level_p)`` of every pattern under the mixture likelihood, elementwise
-    (docs/decisions.md, "Learned dependencies with noisy sensors (issue 27)"): the pattern's rate
+    (docs/decisions.md, "Learned dependencies with noisy sensors"): the pattern's rate
     is drawn from the clean population ``Beta(prior_a, prior_b)`` (prior mass ``1 / (1 + odds)``)
     or the noisy one ``Beta(*noisy_prior)`` (``odds / (1 + odds)``); at the more probable level,
 

@@ -30,7 +30,7 @@ predicts exactly no local reward), one network shared across actuators (equal ``
 sensed obstacle). Why, with the measurements behind it: ``docs/decisions.md``, "Neural
 Factor-Q's local network".
 
-``GatedLocalRewardNetwork`` (issue 12) is told no dependency: every actuator reads all ``K``
+``GatedLocalRewardNetwork`` is told no dependency: every actuator reads all ``K``
 sensors through learnable sigmoid gates with an L1 penalty, and its parents are read from the
 gates (``structure``).
 

@@ -1,4 +1,4 @@
-"""Learned sensor-actuator dependencies: Factor-Q that finds its own pairing (issue 12).
+"""Learned sensor-actuator dependencies: Factor-Q that finds its own pairing.
 
 The paper hand-pairs each actuator with its sensor (section 5.2, footnote 2) and names learning
 that pairing as future work. ``StructureLearner`` is a local value provider (it writes
@@ -29,12 +29,12 @@ of candidate ``c`` is
                                   - lgamma(a) - lgamma(b) + lgamma(a + b) ]
 
 in float64 (``beta_bernoulli_log_marginal``; ``likelihood="pattern"``). By default
-(``likelihood="mixture"``, issue 27) each pattern's rate comes from a clean population (that
+(``likelihood="mixture"``) each pattern's rate comes from a clean population (that
 ``Beta(prior_a, prior_b)``) or a noisy one (``functional.NOISY_PRIOR``, a sensor that reads wrong
 leaves the rate anywhere in between), at the more probable of the two
 (``functional.mixture_log_marginal``); ``likelihood="flip"`` gives each candidate one flip rate
 between its patterns' labels and the outcomes (``functional.flip_log_marginal``). Derivations and
-measurements: docs/decisions.md, "Learned dependencies with noisy sensors (issue 27)". The prior
+measurements: docs/decisions.md, "Learned dependencies with noisy sensors". The prior
 over candidates (``candidate_log_prior``,
 ``prior``) is by default ``"sparse"``: "no sensor" and the single sensors (together) the same
 mass, all pairs together 1/100 of it, uniform within a size (``"size"``: every size the same

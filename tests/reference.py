@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from factorq_envs.world import COL_DELTA, ROW_DELTA, WorldConfig
+from factorq_envs.grid_world import COL_DELTA, ROW_DELTA, WorldConfig
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import POLICY_DRAWS_PER_STEP, probability_threshold, random_bits_int
 

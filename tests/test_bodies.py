@@ -16,7 +16,7 @@ from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 from factorq_envs import FactoredGridEnv
-from factorq_envs.world import WorldConfig, sense, step_worlds
+from factorq_envs.grid_world import WorldConfig, sense, step_worlds
 from factorq_torch import functional
 from factorq_torch.base import keys
 from factorq_torch.tables import LocalRewardTable, TaskQTable
@@ -310,8 +310,8 @@ def test_the_paper_experiment_runs_other_bodies_on_the_modular_path(options):
 
 
 def test_factored_grid_implements_the_world_protocol_with_the_world_functions():
+    from factorq_envs.grid_world import FactoredGrid, reset_worlds, static_layout
     from factorq_envs.protocol import World
-    from factorq_envs.world import FactoredGrid, reset_worlds, static_layout
     from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 
     config = WorldConfig(size=5, num_obstacles=4, body="heading", sensors="ring", sensor_noise=0.1)

@@ -407,7 +407,7 @@ KERNEL_STATE = [
 )
 @pytest.mark.parametrize("threads", [1, 2])
 def test_the_kernel_refuses_a_state_out_of_range_whatever_its_source(field, value, threads):
-    from factorq_envs.world import WorldConfig
+    from factorq_envs.grid_world import WorldConfig
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
 

@@ -344,7 +344,9 @@ def test_stable_baselines3_make_vec_env_renders_rgb_arrays():
     vector = make_vec_env("FactoredGrid-v0", n_envs=2, env_kwargs=dict(size=4, num_obstacles=3))
     vector.reset()
     assert vector.render().ndim == 3  # tiled rgb frames
-    check_env(factorq_envs.gym.FactoredGridGym(size=4, num_obstacles=3, render_mode="rgb_array"))
+    check_env(
+        factorq_envs.gymnasium_env.FactoredGridGym(size=4, num_obstacles=3, render_mode="rgb_array")
+    )
 
 
 def test_torchrl_pixels_are_the_gymnasium_frames():

@@ -9,7 +9,7 @@ from tensordict.nn import TensorDictSequential
 from torchrl.envs import TransformedEnv
 
 from factorq_envs import FactoredGridEnv, SplitLocalReward
-from factorq_envs.world import WorldConfig, static_layout
+from factorq_envs.grid_world import WorldConfig, static_layout
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import MASK64, STREAM_POLICY, STREAM_WORLD, derive_keys
 from factorq_torch.collectors import OnlineCollector
@@ -265,7 +265,7 @@ def test_no_host_synchronisation_creeps_into_the_step(algorithm, monkeypatch):
     monkeypatch.undo()
     assert reads.pop("collectors.py:_record:tolist") == steps
     assert 0 < reads.pop("collectors.py:ended_rows:nonzero") < steps  # CPU: episodes ended
-    assert reads.pop("grid.py:_check_action", 0) <= steps
+    assert reads.pop("torchrl_env.py:_check_action", 0) <= steps
     assert reads.pop("validation.py:check_finite", 0) <= 8 * steps  # policy; loss: s, s', rewards
     assert reads.pop("validation.py:check_indices", 0) <= 4 * steps  # loss and tables' indices
     assert reads == {}

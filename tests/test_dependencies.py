@@ -10,8 +10,8 @@ import torch
 from torchrl.envs import TransformedEnv
 
 from factorq_envs import FactoredGridEnv
+from factorq_envs.grid_world import WorldConfig
 from factorq_envs.permutation import PermuteSensors, permuted_dependency
-from factorq_envs.world import WorldConfig
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import derive_keys
 from factorq_trainers import cli

@@ -164,7 +164,7 @@ def test_the_api_reference_walks_every_module():
     names = []
     for package, folder in namespace["PACKAGES"].items():
         names += namespace["module_names"](package, ROOT / folder)
-    assert {"factorq_torch", "factorq_torch.base.rng", "factorq_envs.grid"} <= set(names)
+    assert {"factorq_torch", "factorq_torch.base.rng", "factorq_envs.torchrl_env"} <= set(names)
     assert "factorq_trainers.analysis.stats" in names and not any("._" in name for name in names)
     for name in names:
         assert importlib.util.find_spec(name) is not None, name

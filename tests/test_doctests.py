@@ -32,7 +32,9 @@ def modules_with_examples() -> list[str]:
 
 
 def test_the_walk_finds_examples():
-    assert {"factorq_envs.grid", "factorq_trainers.analysis.stats"} <= set(modules_with_examples())
+    assert {"factorq_envs.torchrl_env", "factorq_trainers.analysis.stats"} <= set(
+        modules_with_examples()
+    )
 
 
 @pytest.mark.parametrize("name", modules_with_examples())

@@ -13,7 +13,7 @@ import pytest
 import torch
 from reference import run_experiment  # tests/reference.py: pytest puts tests/ on sys.path
 
-from factorq_envs.world import (
+from factorq_envs.grid_world import (
     WorldConfig,
     empty_state,
     reset_worlds,

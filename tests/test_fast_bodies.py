@@ -62,7 +62,7 @@ def test_kernel_results_for_a_body_do_not_depend_on_threads_or_chunking():
 def test_a_body_batch_resumes_exactly_from_its_state_dict():
     import torch
 
-    from factorq_envs.world import WorldConfig
+    from factorq_envs.grid_world import WorldConfig
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
 
@@ -105,7 +105,7 @@ def test_kernel_equals_the_reference_written_from_the_sensor_names(draw):
     import torch
     from reference import run_body_experiment  # tests/reference.py
 
-    from factorq_envs.world import static_layout
+    from factorq_envs.grid_world import static_layout
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import MASK64, STREAM_POLICY, STREAM_WORLD, derive_keys
 

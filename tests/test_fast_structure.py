@@ -120,7 +120,7 @@ def test_lgamma_tables_are_torch_lgamma_of_the_marginals_arguments():
 
 
 def test_structure_options_are_checked():
-    from factorq_envs.world import WorldConfig
+    from factorq_envs.grid_world import WorldConfig
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import derive_keys
 
@@ -155,7 +155,7 @@ def test_structure_options_are_checked():
 
 
 def test_sensor_orders_relabel_the_joint_table_and_q_learning_and_change_at_the_run():
-    from factorq_envs.world import WorldConfig
+    from factorq_envs.grid_world import WorldConfig
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import derive_keys
 

@@ -1,5 +1,5 @@
-"""FactoredGridEnv (envs/grid.py): the batched torchrl env, against SPEC sections 1-2, the slow
-reference and torchrl's own checks."""
+"""FactoredGridEnv (envs/torchrl_env.py): the batched torchrl env, against SPEC sections 1-2, the
+slow reference and torchrl's own checks."""
 
 import pytest
 import reference  # tests/reference.py: pytest puts tests/ on sys.path (no __init__.py)
@@ -8,7 +8,7 @@ import torch.nn.functional as F
 from torchrl.envs.utils import check_env_specs, step_mdp
 
 from factorq_envs import FactoredGridEnv
-from factorq_envs.world import COL_DELTA, ROW_DELTA
+from factorq_envs.grid_world import COL_DELTA, ROW_DELTA
 from factorq_torch.base.rng import MASK64, STREAM_WORLD, derive_keys
 
 

@@ -1,4 +1,4 @@
-"""The gymnasium env (envs/gym.py): API checks and the same world as the torchrl env."""
+"""The gymnasium env (envs/gymnasium_env.py): API checks and the same world as the torchrl env."""
 
 import gymnasium
 import numpy as np
@@ -9,7 +9,7 @@ from torchrl.envs.utils import step_mdp
 
 import factorq_envs  # noqa: F401  (registers "FactoredGrid-v0")
 from factorq_envs import FactoredGridEnv
-from factorq_envs.gym import FactoredGridGym
+from factorq_envs.gymnasium_env import FactoredGridGym
 
 
 @pytest.mark.parametrize("obstacle_period", [0, 10, 1])
@@ -171,7 +171,7 @@ def test_torchrl_gym_env_composes_with_split_local_reward_and_the_tables():
     from torchrl.envs import Compose, DTypeCastTransform, GymEnv, TransformedEnv
     from torchrl.envs.utils import check_env_specs
 
-    from factorq_envs.gym import torchrl_info_reader
+    from factorq_envs.gymnasium_env import torchrl_info_reader
     from factorq_envs.transforms import SplitLocalReward
     from factorq_torch.tables import TaskQTable
 

@@ -120,7 +120,7 @@ def test_sizes_share_one_interface():
     """``env.config`` answers every CONFIG_FIELD on the adapter, the torchrl grid env and the
     gymnasium grid env alike."""
     from factorq_envs import FactoredGridEnv
-    from factorq_envs.gym import FactoredGridGym
+    from factorq_envs.gymnasium_env import FactoredGridGym
 
     for env in (
         make_lake(),

@@ -82,7 +82,7 @@ GRAPH = {name: imports_of(name, path, MODULES) for name, path in MODULES.items()
 def test_every_package_has_modules_in_the_walk():
     assert {
         "factorq_torch.base.rng",
-        "factorq_envs.world",
+        "factorq_envs.grid_world",
         "factorq_torch.functional",
         "factorq_trainers.compiled.fast",
     } <= set(MODULES)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from factorq_envs import minigrid as adapter
+from factorq_envs import minigrid_adapter as adapter
 from factorq_torch.base import keys
 
 #: outcomes that depend on float rounding: `make test` reruns these under other CPU kernels
@@ -117,7 +117,7 @@ def test_hand_computed_collision_and_split():
     _need_minigrid()
     from torchrl.envs import TransformedEnv
 
-    from factorq_envs.minigrid_env import MiniGridEnv
+    from factorq_envs.minigrid_torchrl import MiniGridEnv
     from factorq_envs.transforms import SplitLocalReward
 
     for semantics, ends in (("minigrid", True), ("nodeath", False)):
@@ -139,7 +139,7 @@ def test_hand_computed_collision_and_split():
 
 
 def _rollout(seeds, steps=120):
-    from factorq_envs.minigrid_env import MiniGridEnv
+    from factorq_envs.minigrid_torchrl import MiniGridEnv
 
     env = MiniGridEnv(6, "nodeath", seeds=seeds)
     generator = torch.Generator().manual_seed(0)
@@ -169,7 +169,7 @@ def test_torchrl_citizenship():
     from torchrl.envs import GymWrapper, ParallelEnv, SerialEnv
     from torchrl.envs.utils import check_env_specs
 
-    from factorq_envs.minigrid_env import MiniGridEnv
+    from factorq_envs.minigrid_torchrl import MiniGridEnv
 
     for semantics in adapter.SEMANTICS:
         check_env_specs(MiniGridEnv(5, semantics, seeds=[0, 1], with_image=True))

@@ -157,7 +157,7 @@ def test_run_returns_the_results_schema(tiny_results):
     assert check_results(tiny_results) is tiny_results
     assert tiny_results["config"] == paper.config_dict(PaperConfig(**TINY))
     assert list(tiny_results["cells"]) == [
-        f"{world}/{algorithm}" for world in paper.WORLDS for algorithm in paper.ALGORITHMS
+        f"{world}/{algorithm}" for world in paper.REGIMES for algorithm in paper.ALGORITHMS
     ]
     for cell in tiny_results["cells"].values():
         for name in ("total_steps", "collisions", "greedy_collisions", "task_return"):

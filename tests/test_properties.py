@@ -8,7 +8,7 @@ import torch
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from factorq_envs.world import (
+from factorq_envs.grid_world import (
     NUM_ACTIONS,
     WorldConfig,
     empty_state,

@@ -292,8 +292,8 @@ def test_dqn_with_local_risk_collides_far_less_in_training(one_thread):
 
 
 def test_risky_faces_mark_the_side_of_each_penalised_actuator():
+    from factorq_envs.grid_world import WorldConfig
     from factorq_envs.render import mark_risk, render_rgb, risky_faces
-    from factorq_envs.world import WorldConfig
 
     body = WorldConfig().body_spec
     faces = risky_faces(torch.tensor([-1.0, 0.0, -0.01, -0.3]), 0, body)

@@ -14,7 +14,6 @@ from pathlib import Path
 import pytest
 
 from factorq_trainers import cli
-from factorq_trainers.analysis import worlds
 from factorq_trainers.runner import frame, options, registry
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -167,10 +166,19 @@ def test_report_redraws_dependencies_without_torch(tmp_path, layout):
     assert (tmp_path / "dependencies.png").stat().st_size > 0
 
 
-def test_the_torch_free_world_periods_equal_the_worlds():
-    from factorq_envs.world import WORLD_PERIODS
+def test_the_obstacle_regimes_load_without_torch_and_the_grid_runs_them():
+    code = (
+        "import sys\nfrom factorq_envs.regimes import REGIME_PERIODS, REGIMES\n"
+        "assert 'torch' not in sys.modules, 'factorq_envs.regimes imported torch'\n"
+        "print(REGIMES, REGIME_PERIODS)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
+    assert out.stdout.strip() == (
+        "('static', 'semi-dynamic', 'dynamic') {'static': 0, 'semi-dynamic': 10, 'dynamic': 1}"
+    )
+    from factorq_envs import grid_world, regimes
 
-    assert worlds.WORLD_PERIODS == WORLD_PERIODS
+    assert grid_world.WORLD_PERIODS is regimes.REGIME_PERIODS  # the former names, kept
 
 
 def test_architecture_names_every_registered_command():

@@ -30,7 +30,7 @@ import torch
 from tensordict.nn import TensorDictSequential
 
 from factorq_envs import FactoredGridEnv, WorldConfig
-from factorq_envs.world import static_layout
+from factorq_envs.grid_world import static_layout
 from factorq_torch.base import rng
 from factorq_torch.base.config import AgentConfig, check_algorithm
 from factorq_torch.collectors import OnlineCollector

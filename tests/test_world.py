@@ -1,5 +1,5 @@
-"""The world as pure batched functions (envs/world.py), checked against SPEC sections 1-2 and the
-slow reference (tests/reference.py)."""
+"""The world as pure batched functions (envs/grid_world.py), checked against SPEC sections 1-2 and
+the slow reference (tests/reference.py)."""
 
 from collections import deque
 from itertools import combinations
@@ -8,7 +8,7 @@ import pytest
 import reference  # tests/reference.py: pytest puts tests/ on sys.path (no __init__.py)
 import torch
 
-from factorq_envs.world import (
+from factorq_envs.grid_world import (
     NUM_ACTIONS,
     WorldConfig,
     WorldState,
@@ -383,7 +383,7 @@ def test_reset_step_and_observe_run_on_the_meta_device_so_never_synchronise_with
     # A meta tensor has no data: .item(), bool(), nonzero() and data-dependent shapes raise on it.
     # The world's functions running on meta is the proof that a step never waits for the device
     # (GPU readiness: CUDA graphs, torch.compile without graph breaks).
-    from factorq_envs.world import FactoredGrid
+    from factorq_envs.grid_world import FactoredGrid
 
     config = WorldConfig(**options)
     count = 6
@@ -432,7 +432,7 @@ def test_scatter_equals_floyds_sequential_loop_in_crowded_and_sparse_worlds(size
 
 @pytest.mark.parametrize("size", [2, 3, 10])
 def test_the_neighbour_lookup_equals_the_row_and_column_arithmetic(size):
-    from factorq_envs.world import _neighbour_cells, neighbours
+    from factorq_envs.grid_world import _neighbour_cells, neighbours
 
     cell = torch.arange(size * size).repeat(3).reshape(3, -1)  # any leading shape
     target, inside = neighbours(cell, size)
@@ -445,7 +445,7 @@ def test_the_neighbour_lookup_equals_the_row_and_column_arithmetic(size):
 
 @pytest.mark.parametrize("width", [1, 3, 4, 6, 8, 100, 101])
 def test_where_rows_equals_torch_where_on_any_width_offset_and_layout(width):
-    from factorq_envs.world import where_rows
+    from factorq_envs.grid_world import where_rows
 
     generator = torch.Generator().manual_seed(width)
     big = torch.rand(7, width + 1, generator=generator) < 0.5
@@ -466,7 +466,7 @@ def test_a_terminated_world_restarts_from_the_scatter_its_last_step_drew():
     # The draws kept by a step are a terminated world's next reset draws, exactly: start from
     # random positions next to the goal so that many worlds terminate, then compare the reset
     # with and without the kept draws on those worlds.
-    from factorq_envs.world import FactoredGrid
+    from factorq_envs.grid_world import FactoredGrid
 
     config = WorldConfig(size=4, num_obstacles=5, max_steps=3)
     count = 600

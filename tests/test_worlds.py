@@ -16,11 +16,11 @@ from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 from factorq_envs.corridor import MOVES, Corridor, CorridorConfig, CorridorState
-from factorq_envs.grid import FactoredGridEnv
-from factorq_envs.gym import FactoredGridGym
+from factorq_envs.grid_world import FactoredGrid, WorldConfig
+from factorq_envs.gymnasium_env import FactoredGridGym
 from factorq_envs.protocol import World, check_world
+from factorq_envs.torchrl_env import FactoredGridEnv
 from factorq_envs.transforms import SplitLocalReward
-from factorq_envs.world import FactoredGrid, WorldConfig
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys, probability_threshold, random_bits
 

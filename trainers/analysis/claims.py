@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from factorq_envs.regimes import REGIMES
 from factorq_torch.base.config import ALGORITHMS
 from factorq_trainers.analysis.stats import (
     bootstrap_indices,
@@ -21,7 +22,6 @@ from factorq_trainers.analysis.stats import (
     format_number,
     quantiles,
 )
-from factorq_trainers.analysis.worlds import WORLDS
 
 #: The measures of a cell, per run (totals over the episodes of a run, mean over the runs).
 MEASURES = ("total_steps", "collisions", "greedy_collisions")
@@ -82,7 +82,7 @@ def _ratio(numerator: Any, denominator: Any) -> Any:
 
 def _c1(means: _Means) -> dict[str, Any]:
     measures = {}
-    for world in WORLDS:
+    for world in REGIMES:
         for measure in MEASURES:
             factor_q = means(world, "factor-q", measure)
             q_learning = means(world, "q-learning", measure)
@@ -122,7 +122,7 @@ def _c4(means: _Means) -> dict[str, Any]:
 
 def _c5(means: _Means) -> dict[str, Any]:
     measures = {}
-    for world in WORLDS:
+    for world in REGIMES:
         ratio = _ratio(
             means(world, "q-learning", "greedy_collisions"),
             means(world, "factor-q", "greedy_collisions"),
@@ -153,11 +153,11 @@ def _headline(claim: str, measures: dict[str, Any]) -> tuple[Any, Any]:
 
 _CLAIM_MEASURES = {"C1": _c1, "C2": _c2, "C3": _c3, "C4": _c4, "C5": _c5}
 _CLAIM_CELLS = {
-    "C1": [(world, algorithm) for world in WORLDS for algorithm in ALGORITHMS],
+    "C1": [(world, algorithm) for world in REGIMES for algorithm in ALGORITHMS],
     "C2": [("static", algorithm) for algorithm in ALGORITHMS],
     "C3": [("static", algorithm) for algorithm in ALGORITHMS],
-    "C4": [(world, algorithm) for world in WORLDS for algorithm in ALGORITHMS],
-    "C5": [(world, algorithm) for world in WORLDS for algorithm in ALGORITHMS],
+    "C4": [(world, algorithm) for world in REGIMES for algorithm in ALGORITHMS],
+    "C5": [(world, algorithm) for world in REGIMES for algorithm in ALGORITHMS],
 }
 
 

@@ -2,7 +2,7 @@
  * The fused fast path of factorq_torch: whole experiments (SPEC section 4) in one tight C loop.
  *
  * This file mirrors, operation for operation, two Python sources and must stay identical to them:
- *   - envs/world.py            the FactoredGrid world (SPEC sections 1-2): move or collide ->
+ *   - envs/grid_world.py       the FactoredGrid world (SPEC sections 1-2): move or collide ->
  *                              reward -> maybe scatter (Floyd's algorithm) -> observation;
  *   - factorq_torch/functional.py  the paper's equations (eq. 1-5) with its float32 order
  *                              contract: explicit left-to-right sums, no fused multiply-add
@@ -24,8 +24,8 @@
  *   - C(s') computed for the eq. 4 target is reused for the next decision when nothing it read
  *     has changed; the spread of rho (eq. 3's denominator) is kept per proximity pattern;
  *   - walls are a ring of blocked cells around the obstacle map, so sensing is four loads;
- *   - the obstacle scatter after a move does not wait for the move (see scatter): in the
- *     dynamic world it used to lengthen every step's chain from one action to the next.
+ *   - the obstacle scatter after a move does not wait for the move (see scatter): waiting would
+ *     lengthen every step's chain from one action to the next in the dynamic world.
  */
 #include <float.h>
 #include <math.h>
@@ -127,7 +127,7 @@ typedef struct {
     int64_t kappa_stride;
     int64_t grid_stride;
     int64_t obstacle_stride;
-    /* The structure learner (factorq_torch/structure.py, issue 12) as the local value provider of
+    /* The structure learner (factorq_torch/structure.py) as the local value provider of
        the generic Factor-Q loop (learner != 0); see the learner section below. */
     int64_t learner;
     int64_t num_candidates;   /* C */
@@ -333,13 +333,45 @@ static inline void combined_values(const float q[NUM_ACTIONS], const local_patte
     combine(q, normaliser(q, patterns->spread[prox], eta_factor, g_min), local, out);
 }
 
+/* The end of an episode, in both loops (SPEC section 4): its metrics into its slot, the episode's
+   counts zeroed, the next episode (and run) begun; at the start of a further run the Q table
+   (q_floats entries, NULL: none) restarts at 0 while Factor-Q's local tables carry over, and a
+   moving world draws a fresh scatter with the agent at the start (grid_world.reset_worlds).
+   Putting the agent back at the start is the caller's. */
+static inline void end_episode(const fq_batch *b, int64_t i, int64_t episode_step, int64_t *run,
+                               int64_t *episode, int64_t *collisions, int64_t *greedy,
+                               float *task_return, float *q, size_t q_floats, uint8_t *grid,
+                               int32_t *obstacle_pads, int moving, uint64_t world_key,
+                               int64_t *scatters) {
+    const int64_t slot = (i * b->runs + *run) * b->episodes + *episode;
+    b->steps[slot] = episode_step;
+    b->collisions[slot] = *collisions;
+    b->greedy_collisions[slot] = *greedy;
+    b->task_return[slot] = *task_return;
+    *collisions = 0;
+    *greedy = 0;
+    *task_return = 0.0f;
+    if (++*episode == b->episodes) {
+        *episode = 0;
+        ++*run;
+    }
+    if (*run < b->runs) {
+        if (*episode == 0 && q != NULL) memset(q, 0, q_floats * sizeof(float));
+        if (moving) {
+            scatter(grid, obstacle_pads, b->pad_of_cell, b->size * b->size, b->num_obstacles,
+                    world_key, (uint64_t)*scatters, 0);
+            ++*scatters;
+        }
+    }
+}
+
 /* Run experiment i for up to budget steps; returns the episodes it completed. */
 static inline int64_t run_experiment(const fq_batch *b, int64_t i, int64_t budget,
                                      const int algorithm) {
     const int64_t size = b->size, width = size + 2, num_cells = size * size;
     const int64_t goal = num_cells - 1, num_obstacles = b->num_obstacles;
     const int64_t max_steps = b->max_steps;
-    const int64_t runs = b->runs, episodes = b->episodes;
+    const int64_t runs = b->runs;
     const int64_t period = b->periods[i];
     const int moving = period > 0 && num_obstacles > 0;
     const uint64_t world_key = (uint64_t)b->world_keys[i];
@@ -355,10 +387,6 @@ static inline int64_t run_experiment(const fq_batch *b, int64_t i, int64_t budge
     uint8_t *grid = b->grid + i * b->grid_stride;
     int32_t *obstacle_pads = num_obstacles > 0 ? b->obstacle_pads + i * b->obstacle_stride : NULL;
     uint8_t *bump = b->bump + i * NUM_ACTIONS;
-    int64_t *metric_steps = b->steps + i * runs * episodes;
-    int64_t *metric_collisions = b->collisions + i * runs * episodes;
-    int64_t *metric_greedy = b->greedy_collisions + i * runs * episodes;
-    float *metric_return = b->task_return + i * runs * episodes;
 
     /* Eq. 5's tables live in registers/L1 for the call and are written back at the end. */
     float rho[8];
@@ -424,7 +452,7 @@ static inline int64_t run_experiment(const fq_batch *b, int64_t i, int64_t budge
         }
         counter++;
 
-        /* --- world step (world.step_worlds): move or collide, reward, maybe scatter --- */
+        /* --- world step (grid_world.step_worlds): move or collide, reward, maybe scatter --- */
         const int collided = (prox >> action) & 1u;
         if (!collided) {
             pos += move_pad[action];
@@ -486,36 +514,17 @@ static inline int64_t run_experiment(const fq_batch *b, int64_t i, int64_t budge
         episode_greedy += collided && !exploratory;
         episode_return = episode_return + task_reward;
         if (terminated || truncated) {
-            const int64_t slot = run * episodes + episode;
-            metric_steps[slot] = episode_step;
-            metric_collisions[slot] = episode_collisions;
-            metric_greedy[slot] = episode_greedy;
-            metric_return[slot] = episode_return;
+            end_episode(b, i, episode_step, &run, &episode, &episode_collisions, &episode_greedy,
+                        &episode_return, q, (size_t)num_states * NUM_ACTIONS, grid, obstacle_pads,
+                        moving, world_key, &scatters);
             completed++;
-            episode_collisions = 0;
-            episode_greedy = 0;
-            episode_return = 0.0f;
-            if (++episode == episodes) {
-                episode = 0;
-                run++;
-            }
-            /* world.reset_worlds: the agent to the start, no bump, a fresh scatter when moving;
-               Q tables restart at 0 every run, Factor-Q's local tables carry over. */
+            /* grid_world.reset_worlds: the agent to the start, no bump */
             cell = 0;
             pos = pad_of_cell[0];
             episode_step = 0;
             last_bump = -1;
             until_scatter = period;
             cache_valid = 0;
-            if (run < runs) {
-                if (episode == 0 && q != NULL)
-                    memset(q, 0, (size_t)num_states * NUM_ACTIONS * sizeof(float));
-                if (moving) {
-                    scatter(grid, obstacle_pads, pad_of_cell, num_cells, num_obstacles, world_key,
-                            (uint64_t)scatters, 0);
-                    scatters++;
-                }
-            }
             prox = SENSE();
         } else {
             prox = next_prox;
@@ -588,7 +597,7 @@ static int64_t run_factor_q(const fq_batch *b, int64_t i, int64_t budget) {
 
 /* ----------------------------------------------------------------------------------------------
  * The generic loop: any body and sensor layout of envs/body.py, with distractors, a permutation
- * and noise (issue 11). The same equations and float order as the paper's loop above, without
+ * and noise. The same equations and float order as the paper's loop above, without
  * its caches: observations are bit masks of the K sensors in the agent's order (K <= 62).
  */
 
@@ -985,7 +994,7 @@ static inline int64_t run_experiment_body(const fq_batch *b, int64_t i, int64_t 
     const int64_t size = b->size, width = size + 2, num_cells = size * size;
     const int64_t goal = num_cells - 1, num_obstacles = b->num_obstacles;
     const int64_t max_steps = b->max_steps;
-    const int64_t runs = b->runs, episodes = b->episodes;
+    const int64_t runs = b->runs;
     const int64_t period = b->periods[i];
     const int moving = period > 0 && num_obstacles > 0;
     const int64_t A = b->num_actuators, K = b->num_sensors, H = b->num_headings;
@@ -1010,10 +1019,6 @@ static inline int64_t run_experiment_body(const fq_batch *b, int64_t i, int64_t 
     uint8_t *grid = b->grid + i * b->grid_stride;
     int32_t *obstacle_pads = num_obstacles > 0 ? b->obstacle_pads + i * b->obstacle_stride : NULL;
     uint8_t *bump = b->bump + i * A;
-    int64_t *metric_steps = b->steps + i * runs * episodes;
-    int64_t *metric_collisions = b->collisions + i * runs * episodes;
-    int64_t *metric_greedy = b->greedy_collisions + i * runs * episodes;
-    float *metric_return = b->task_return + i * runs * episodes;
 
     int64_t cell = b->cell[i], pos = pad_of_cell[cell], heading = b->heading[i];
     int64_t episode_step = b->episode_step[i], scatters = b->scatters[i];
@@ -1062,7 +1067,7 @@ static inline int64_t run_experiment_body(const fq_batch *b, int64_t i, int64_t 
         }
         counter++;
 
-        /* --- world step (world.step_worlds): actuator noise, move or collide, turn --- */
+        /* --- world step (grid_world.step_worlds): actuator noise, move or collide, turn --- */
         int64_t fired = action;
         if (slip_threshold > 0 &&
             random_bits(actuator_key, 2 * tick) < slip_threshold) {
@@ -1137,35 +1142,17 @@ static inline int64_t run_experiment_body(const fq_batch *b, int64_t i, int64_t 
         episode_greedy += collided && !exploratory;
         episode_return = episode_return + task_reward;
         if (terminated || truncated) {
-            const int64_t slot = run * episodes + episode;
-            metric_steps[slot] = episode_step;
-            metric_collisions[slot] = episode_collisions;
-            metric_greedy[slot] = episode_greedy;
-            metric_return[slot] = episode_return;
+            end_episode(b, i, episode_step, &run, &episode, &episode_collisions, &episode_greedy,
+                        &episode_return, q, (size_t)num_states * (size_t)A, grid, obstacle_pads,
+                        moving, world_key, &scatters);
             completed++;
-            episode_collisions = 0;
-            episode_greedy = 0;
-            episode_return = 0.0f;
-            if (++episode == episodes) {
-                episode = 0;
-                run++;
-            }
-            /* world.reset_worlds: start cell, heading north, a new observation */
+            /* grid_world.reset_worlds: start cell, heading north, a new observation */
             cell = 0;
             pos = pad_of_cell[0];
             heading = 0;
             episode_step = 0;
             last_bump = -1;
             tick++;
-            if (run < runs) {
-                if (episode == 0 && q != NULL)
-                    memset(q, 0, (size_t)num_states * (size_t)A * sizeof(float));
-                if (moving) {
-                    scatter(grid, obstacle_pads, pad_of_cell, num_cells, num_obstacles, world_key,
-                            (uint64_t)scatters, 0);
-                    scatters++;
-                }
-            }
             readings = agent_readings(
                 b, i, observe(b, grid, pos, heading, tick, distractor_key, noise_key), tick);
             /* the change (dependencies.py): from the observation after this reset on */

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import torch
 
-from factorq_envs.world import WorldConfig
+from factorq_envs.grid_world import WorldConfig
 from factorq_torch.base.validation import check_float, check_int
 from factorq_torch.functional import (
     LIKELIHOODS,

@@ -1,9 +1,9 @@
 """The fused fast path: whole experiments (SPEC section 4) advanced by a small compiled C kernel.
 
-The kernel (``_kernel.c``, plain C99) performs exactly the operations of ``factorq_envs.world`` and
-``factorq_torch.functional`` in the same float32 order, with the same counter-based random streams
-(``factorq_torch.base.rng``), so its metrics and tables equal the modular torch path and the slow
-reference (``tests/reference.py``) bit for bit. It runs one experiment at a time for many steps
+The kernel (``_kernel.c``, plain C99) performs exactly the operations of ``factorq_envs.grid_world``
+and ``factorq_torch.functional`` in the same float32 order, with the same counter-based random
+streams (``factorq_torch.base.rng``), so its metrics and tables equal the modular torch path and the
+slow reference (``tests/reference.py``) bit for bit. It runs one experiment at a time for many steps
 (its tables stay in the L1/L2 cache) and leaves Python only once per ``advance`` call.
 
 Building, the ABI and loading are ``factorq_trainers.compiled.loader``'s (whose public names
@@ -12,7 +12,7 @@ this module re-exports); the batch's options and their checks are
 ``is_available()`` is False and ``unavailable_reason()`` says why; callers fall back to the
 modular torchrl path.
 
->>> from factorq_envs.world import WorldConfig
+>>> from factorq_envs.grid_world import WorldConfig
 >>> from factorq_torch.base.config import AgentConfig
 >>> from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
 >>> if is_available():
@@ -32,10 +32,11 @@ import ctypes
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor, wait
+from typing import Any
 
 import torch
 
-from factorq_envs.world import WorldConfig, static_layout
+from factorq_envs.grid_world import WorldConfig, static_layout
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
 from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_torch.base.rng import probability_threshold
@@ -369,6 +370,17 @@ class ExperimentBatch:
             )
         return sum(results)
 
+    def run(self, progress: Callable[[int], object] | None = None) -> dict[str, torch.Tensor]:
+        """Advance every experiment to its end and return ``metrics()``; ``progress(n)`` is
+        called with the number of episodes completed since its last call."""
+        # Chunks only matter for progress reports (results do not depend on them).
+        chunk = 20_000 if progress is not None else 1 << 62
+        while not self.done:
+            completed = self.advance(chunk)
+            if progress is not None and completed:
+                progress(completed)
+        return self.metrics()
+
     def metrics(self) -> dict[str, torch.Tensor]:
         """Per-episode ``steps``, ``collisions``, ``greedy_collisions`` (int64) and
         ``task_return`` (float32), each ``[S, runs, episodes]``; zeros where not yet played."""
@@ -432,44 +444,11 @@ class ExperimentBatch:
 
 
 def run_experiments(
-    algorithm: str,
-    periods: torch.Tensor,
-    world: WorldConfig,
-    agent: AgentConfig,
-    runs: int,
-    episodes: int,
-    world_keys: torch.Tensor,
-    policy_keys: torch.Tensor,
-    *,
-    threads: int | None = None,
-    progress: Callable[[int], object] | None = None,
-    dependency: torch.Tensor | None = None,
-    structure: StructureOptions | None = None,
-    sensor_orders: SensorOrders | None = None,
+    *batch: Any, progress: Callable[[int], object] | None = None, **options: Any
 ) -> dict[str, torch.Tensor]:
-    """Run S experiments to the end (see ``ExperimentBatch``) and return their ``metrics()``.
+    """Run S experiments to the end and return their ``metrics()``: ``ExperimentBatch(*batch,
+    **options)`` (its arguments, the same names and order) advanced until done.
 
-    ``progress(n)`` is called with the number of episodes completed since its last call;
-    ``dependency`` replaces the world's in Factor-Q's local tables (``ExperimentBatch``).
+    ``progress(n)`` is called with the number of episodes completed since its last call.
     """
-    batch = ExperimentBatch(
-        algorithm,
-        periods,
-        world,
-        agent,
-        runs,
-        episodes,
-        world_keys,
-        policy_keys,
-        threads,
-        dependency=dependency,
-        structure=structure,
-        sensor_orders=sensor_orders,
-    )
-    # Chunks only matter for progress reports (results do not depend on them).
-    chunk = 20_000 if progress is not None else 1 << 62
-    while not batch.done:
-        completed = batch.advance(chunk)
-        if progress is not None and completed:
-            progress(completed)
-    return batch.metrics()
+    return ExperimentBatch(*batch, **options).run(progress)

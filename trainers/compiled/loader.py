@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-from factorq_envs.world import NUM_ACTIONS, FactoredGrid, WorldConfig
+from factorq_envs.grid_world import NUM_ACTIONS, FactoredGrid, WorldConfig
 
 #: The env-only mode of the kernel (benchmarks): uniformly random actions (the policy stream's
 #: action draw), no learning, every action counted as exploratory.
@@ -373,7 +373,7 @@ def kernel_scatter(
 ) -> torch.Tensor:
     """The kernel's obstacle scatter for one world: ``[size * size]`` bool.
 
-    For differential tests against ``factorq_envs.world.scatter_obstacles``.
+    For differential tests against ``factorq_envs.grid_world.scatter_obstacles``.
     """
     library = _require()
     WorldConfig(size=size, num_obstacles=num_obstacles)  # validates the pair
@@ -408,14 +408,14 @@ def unsupported_reason(world) -> str | None:
     actuators).
 
     ``world`` is a ``WorldConfig`` or an ``factorq_envs.protocol.World``: the kernel mirrors only
-    ``factorq_envs.world``'s ``FactoredGrid``, so any other world (a foreign one, or a subclass that
-    may change its rules) is refused here and runs on the modular path."""
+    ``factorq_envs.grid_world``'s ``FactoredGrid``, so any other world (a foreign one, or a subclass
+    that may change its rules) is refused here and runs on the modular path."""
     if type(world) is FactoredGrid:
         world = world.config
     if not isinstance(world, WorldConfig):
         return (
             f"the world is {type(world).__name__}, and the kernel mirrors only "
-            f"factorq_envs.world.FactoredGrid"
+            f"factorq_envs.grid_world.FactoredGrid"
         )
     if world.num_sensors > MAX_KERNEL_SENSORS:
         return f"{world.num_sensors} sensors, more than its {MAX_KERNEL_SENSORS}"

@@ -72,7 +72,7 @@ class Where:
             )
         timeout = self.connect_timeout_s
         if not (isinstance(timeout, int | float) and 0 < timeout <= MAX_CONNECT_TIMEOUT_S):
-            # inf used to reach Dask's timeout parser (KeyError), 1e300 to hang for good
+            # inf would reach Dask's timeout parser (KeyError), 1e300 would hang for good
             raise ClusterError(
                 f"--connect-timeout={timeout!r} is out of range: must be in "
                 f"(0, {MAX_CONNECT_TIMEOUT_S:g}] seconds"

@@ -307,8 +307,8 @@ def spec_from_mapping(data: dict[str, Any], source: str = "sweep file") -> Sweep
 #: A sweep file is a few hundred bytes; far larger ones are not sweep files.
 MAX_SPEC_BYTES = 1024 * 1024
 #: Configurations one sweep may hold (each is a whole run): checked from the axes' lengths
-#: before anything is expanded (10**9 points used to end in MemoryError, 10**5 in minutes of
-#: silence).
+#: before anything is expanded (expanding 10**9 points would end in MemoryError, 10**5 in
+#: minutes of silence).
 MAX_CONFIGURATIONS = 10_000
 #: TOML's strings, comments and brackets, for the nesting check before ``tomllib`` (which
 #: recurses on nested arrays and inline tables).

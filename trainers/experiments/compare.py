@@ -48,8 +48,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from factorq_envs.world import shortest_path_length as path_length_around
-from factorq_envs.world import static_layout
+from factorq_envs.grid_world import shortest_path_length as path_length_around
+from factorq_envs.grid_world import static_layout
+from factorq_envs.regimes import REGIMES
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import STREAM_LOCAL_NETWORK, STREAM_POLICY, STREAM_TASK_NETWORK
 from factorq_torch.base.validation import check_float, check_hidden, check_names, check_threads
@@ -58,9 +59,9 @@ from factorq_torch.neural import ACTIVATIONS, LocalRewardNetwork, TaskQNetwork
 from factorq_trainers.analysis.stats import bootstrap_mean_ci, finite_or_none, scalar_ci
 from factorq_trainers.experiments import dqn, experiment
 from factorq_trainers.experiments.dqn import METHODS, DQNConfig, batch_keys
-from factorq_trainers.experiments.experiment import WORLDS, EpisodeRecorder, ExperimentConfig
+from factorq_trainers.experiments.experiment import EpisodeRecorder, ExperimentConfig
 from factorq_trainers.reports.compare_report import THRESHOLD_FACTOR
-from factorq_trainers.runner import checkpoint, compare_checkpoint, resources
+from factorq_trainers.runner import checkpoint, compare_checkpoint, compare_state_checks, resources
 from factorq_trainers.runner.compare_checkpoint import CompareCheckpoint
 from factorq_trainers.runner.options import option
 from factorq_trainers.runner.results import SCHEMA_VERSION, software_versions
@@ -136,7 +137,7 @@ class CompareConfig(experiment.WorldOptions):
     )
     steps: int = option(15_000, "Budget of env steps per experiment.")
     worlds: tuple[str, ...] = option(
-        WORLDS, "Worlds to run: static, semi-dynamic, dynamic (comma-separated)."
+        REGIMES, "Worlds to run: static, semi-dynamic, dynamic (comma-separated)."
     )
     methods: tuple[str, ...] = option(
         METHODS, "Methods to run: factor-q, q-learning, dqn, factor-dqn (comma-separated)."
@@ -307,7 +308,7 @@ def run_online(
 
         def load_state(saved: dict[str, Any]) -> None:
             nonlocal done
-            saved = compare_checkpoint.check_online_state(
+            saved = compare_state_checks.check_online_state(
                 saved, fresh, collector.optimizer, experiments, neural=method == "factor-dqn"
             )
             collector.load_state_dict(saved["collector"])

@@ -1,4 +1,4 @@
-"""``factorq dependencies``: Factor-Q that learns its own sensor-actuator pairing (issue 12).
+"""``factorq dependencies``: Factor-Q that learns its own sensor-actuator pairing.
 
 Per *setting* (a body, a sensor layout, noise, a change), ``seeds`` experiments of ``runs`` x
 ``episodes`` episodes (task tables reset per run, local knowledge kept, SPEC section 4) for four

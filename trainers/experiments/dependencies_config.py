@@ -10,7 +10,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from factorq_envs.world import WORLDS, WorldConfig
+from factorq_envs.grid_world import WorldConfig
+from factorq_envs.regimes import REGIMES
 from factorq_torch.base.validation import (
     INT32_MAX,
     check_float,
@@ -33,7 +34,7 @@ SETTINGS: dict[str, dict[str, Any]] = {
     "noise-5": {"body": "translate", "sensors": "cross", "sensor_noise": 0.05},
     "noise-10": {"body": "translate", "sensors": "cross", "sensor_noise": 0.10},
     "change": {"body": "translate", "sensors": "cross"},
-    # issue 27: noise with many sensors (8 ring sensors and 12 distractors: 20)
+    # noise with many sensors (8 ring sensors and 12 distractors: 20)
     "ring-12-noise-5": {
         "body": "translate",
         "sensors": "ring",
@@ -109,7 +110,7 @@ class DependenciesConfig:
     sensor_noise: float | None = option(
         None, "Probability that each sensor bit of the custom setting flips at each observation."
     )
-    world: str = option("static", "World: static, semi-dynamic or dynamic.", choices=WORLDS)
+    world: str = option("static", "World: static, semi-dynamic or dynamic.", choices=REGIMES)
     runs: int = option(10, "Runs per experiment (task tables reset at each).")
     episodes: int = option(1, "Episodes per run.")
     size: int = option(6, "Side of the square grid, in cells.")

@@ -11,7 +11,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from factorq_envs.world import WORLD_PERIODS, WorldConfig
+from factorq_envs.grid_world import WorldConfig
+from factorq_envs.regimes import REGIME_PERIODS
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
 from factorq_trainers.experiments.dependencies_config import (
@@ -86,7 +87,7 @@ def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]
     world = config.world_of(setting)
     count, num_sensors = config.seeds, world.num_sensors
     world_keys, policy_keys = _keys(config, "learned")
-    periods = torch.full((count,), WORLD_PERIODS[config.world], dtype=torch.int64)
+    periods = torch.full((count,), REGIME_PERIODS[config.world], dtype=torch.int64)
     orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
     change = setting == "change"
     options = fast.StructureOptions(
@@ -212,7 +213,7 @@ def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, A
     world, agent = config.world_of(setting), AgentConfig()
     count, num_sensors = config.seeds, world.num_sensors
     world_keys, policy_keys = _keys(config, "learned")
-    periods = [WORLD_PERIODS[config.world]] * count
+    periods = [REGIME_PERIODS[config.world]] * count
     orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
     permute = PermuteSensors(orders)
     env = TransformedEnv(make_env(world, periods, world_keys), Compose(SplitLocalReward(), permute))
@@ -303,7 +304,7 @@ def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[
 
     world = config.world_of(setting)
     world_keys, policy_keys = _keys(config, method)
-    periods = torch.full((config.seeds,), WORLD_PERIODS[config.world], dtype=torch.int64)
+    periods = torch.full((config.seeds,), REGIME_PERIODS[config.world], dtype=torch.int64)
     dependency, algorithm = None, "factor-q"
     if method == "joint":
         dependency = torch.ones(world.num_actuators, world.num_sensors, dtype=torch.bool)
@@ -360,7 +361,7 @@ def run_gated(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     world_keys, policy_keys = _keys(config, "learned")  # common random numbers (KEYED_METHODS)
     orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
     permute = PermuteSensors(orders)
-    periods = [WORLD_PERIODS[config.world]] * count
+    periods = [REGIME_PERIODS[config.world]] * count
     env = TransformedEnv(make_env(world, periods, world_keys), Compose(SplitLocalReward(), permute))
     task = TaskQTable(
         count, world.num_cells, num_headings=world.num_headings, num_actions=world.num_actuators

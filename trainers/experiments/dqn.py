@@ -53,8 +53,8 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 from torchrl.modules import EGreedyModule, QValueModule
 from torchrl.objectives import DQNLoss, HardUpdate
 
-from factorq_envs.grid import FactoredGridEnv
-from factorq_envs.world import NUM_ACTIONS
+from factorq_envs.grid_world import NUM_ACTIONS
+from factorq_envs.torchrl_env import FactoredGridEnv
 from factorq_torch.base.rng import STREAM_TASK_NETWORK, STREAM_WORLD
 from factorq_torch.base.validation import INT32_MAX, check_float, check_hidden, check_int
 from factorq_torch.neural import TaskQNetwork
@@ -356,9 +356,9 @@ def run(
 
         def load_state(saved: dict[str, Any]) -> None:
             nonlocal done_steps, gradient_steps, loss_per_experiment
-            from factorq_trainers.runner import compare_checkpoint
+            from factorq_trainers.runner import compare_state_checks
 
-            saved = compare_checkpoint.check_dqn_state(
+            saved = compare_state_checks.check_dqn_state(
                 saved, fresh, agent, env, config, experiments, _STORED
             )
             # The storage is allocated by its first write (batch shape [buffer_size, E]): a row

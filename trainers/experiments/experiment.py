@@ -26,7 +26,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from factorq_envs.world import WORLD_PERIODS, WORLDS, WorldConfig, static_layout
+from factorq_envs.grid_world import WorldConfig, static_layout
+from factorq_envs.regimes import REGIME_PERIODS, REGIMES
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import derive_keys
 from factorq_torch.base.validation import (
@@ -42,7 +43,7 @@ from factorq_trainers.runner.options import option
 if TYPE_CHECKING:  # torchrl and tensordict load only on the paths that step an env
     from tensordict import TensorDictBase
 
-    from factorq_envs.grid import FactoredGridEnv
+    from factorq_envs.torchrl_env import FactoredGridEnv
 
 #: The largest seed a config accepts (keys are derived in 64-bit arithmetic).
 MAX_SEED = 2**63 - 1
@@ -67,14 +68,14 @@ def experiment_keys(
 ) -> torch.Tensor:
     """Keys ``[E]`` of ``stream`` for the experiments ``labels`` (``(world, seed index)`` each).
 
-    Experiment (seed index ``i``, world ``w`` = index in ``WORLDS``) takes key number ``3 i + w``
+    Experiment (seed index ``i``, world ``w`` = index in ``REGIMES``) takes key number ``3 i + w``
     (every algorithm or method meets the same worlds: common random numbers), or, for one of
     several ``variants`` (algorithms, methods), number ``V (3 i + w) + v`` with ``v`` the index
     of ``variant``. Neither depends on what else is selected.
     """
     slots = []
     for world, index in labels:
-        slot = len(WORLDS) * index + WORLDS.index(world)
+        slot = len(REGIMES) * index + REGIMES.index(world)
         slots.append(slot if variant is None else len(variants) * slot + variants.index(variant))
     low = min(slots)  # a shard of late seeds derives only its own range of keys
     return derive_keys(seed, stream, max(slots) - low + 1, low)[torch.tensor(slots) - low]
@@ -166,7 +167,9 @@ def make_env(
     drawing its obstacles from its own ``world_keys`` entry (``experiment_keys``). ``world``: a
     ``WorldConfig`` (the paper's grid) or any ``factorq_envs.protocol.World``
     (``FactoredGridEnv(world= ...)``)."""
-    from factorq_envs.grid import FactoredGridEnv  # torchrl: only for the paths that step the env
+    from factorq_envs.torchrl_env import (
+        FactoredGridEnv,  # torchrl: only for the paths that step the env
+    )
 
     if not isinstance(world, WorldConfig):
         return FactoredGridEnv(
@@ -310,14 +313,14 @@ class ExperimentConfig(WorldOptions):
     )
     seeds: int = option(3, "Independent experiments per world (and method).")
     worlds: tuple[str, ...] = option(
-        WORLDS, "Worlds to run: static, semi-dynamic, dynamic (comma-separated)."
+        REGIMES, "Worlds to run: static, semi-dynamic, dynamic (comma-separated)."
     )
     steps: int = option(15_000, "Budget of env steps per experiment (episodes are as many as fit).")
 
     def __post_init__(self) -> None:
         check_int("seed", self.seed, 0, MAX_SEED)
         check_int("seeds", self.seeds, 1, INT32_MAX)
-        object.__setattr__(self, "worlds", check_names("worlds", self.worlds, WORLDS))
+        object.__setattr__(self, "worlds", check_names("worlds", self.worlds, REGIMES))
         check_int("steps", self.steps, 1, INT32_MAX)
         check_world_options(
             self.size,
@@ -342,7 +345,7 @@ class ExperimentConfig(WorldOptions):
     @property
     def periods(self) -> list[int]:
         """The obstacle period of every experiment of the batch."""
-        return [WORLD_PERIODS[world] for world, _ in self.labels]
+        return [REGIME_PERIODS[world] for world, _ in self.labels]
 
     @property
     def labels(self) -> list[tuple[str, int]]:

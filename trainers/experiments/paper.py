@@ -28,7 +28,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from factorq_envs.world import WORLD_PERIODS, WORLDS  # noqa: F401 - paper.WORLDS
+from factorq_envs.regimes import REGIME_PERIODS, REGIMES  # noqa: F401 - paper.REGIMES
 from factorq_torch.base.config import ALGORITHMS  # noqa: F401 - paper.ALGORITHMS
 from factorq_trainers.analysis import stats
 from factorq_trainers.analysis.claims import compute_claims
@@ -249,8 +249,8 @@ def run(
 
 def _check_foreign_world(world: Any, checkpoint_every: Any, resume: Any) -> None:
     """Refuse a ``world`` that ``run`` cannot take: one error naming it."""
+    from factorq_envs.grid_world import FactoredGrid
     from factorq_envs.protocol import check_world
-    from factorq_envs.world import FactoredGrid
 
     check_world(world)
     if isinstance(world, FactoredGrid):
@@ -324,7 +324,7 @@ def summarise(
         cells[f"{world}/{algorithm}"] = {
             "world": world,
             "algorithm": algorithm,
-            "obstacle_period": WORLD_PERIODS[world],
+            "obstacle_period": REGIME_PERIODS[world],
             "per_seed": {name: values.tolist() for name, values in per_run.items()},
             "summary": summary,
             "curves": curves,

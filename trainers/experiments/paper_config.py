@@ -10,7 +10,8 @@ from typing import Any
 
 import torch
 
-from factorq_envs.world import WORLDS, WorldConfig
+from factorq_envs.grid_world import WorldConfig
+from factorq_envs.regimes import REGIMES
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
 from factorq_torch.base.validation import (
     INT32_MAX,
@@ -49,7 +50,7 @@ class PaperConfig(experiment.WorldOptions):
     )
     episodes: int = option(200, "Episodes per run.")
     worlds: tuple[str, ...] = option(
-        WORLDS, "Worlds to run: static, semi-dynamic, dynamic (comma-separated)."
+        REGIMES, "Worlds to run: static, semi-dynamic, dynamic (comma-separated)."
     )
     algorithms: tuple[str, ...] = option(
         ALGORITHMS, "Algorithms to run: q-learning, factor-q (comma-separated)."
@@ -79,7 +80,7 @@ class PaperConfig(experiment.WorldOptions):
         check_int("first_seed", self.first_seed, 0, INT32_MAX)
         check_int("runs", self.runs, 1, INT32_MAX)
         check_int("episodes", self.episodes, 1, INT32_MAX)
-        object.__setattr__(self, "worlds", check_names("worlds", self.worlds, WORLDS))
+        object.__setattr__(self, "worlds", check_names("worlds", self.worlds, REGIMES))
         world = check_world_options(
             self.size,
             self.obstacles,

@@ -13,7 +13,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from factorq_envs.world import WORLD_PERIODS
+from factorq_envs.regimes import REGIME_PERIODS
 from factorq_torch.base.config import ALGORITHMS
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
 from factorq_trainers.distributed import processes
@@ -155,12 +155,12 @@ def experiment_keys(config: PaperConfig, algorithm: str) -> BatchKeys:
     """Obstacle periods, world keys and policy keys ``[W * S]`` of one algorithm's experiments.
 
     Experiments are ordered world-major (``config.worlds``), seed-minor. The key of seed index
-    ``i`` (row ``i - config.first_seed``) in world ``w`` (index in ``WORLDS``) does not depend on
+    ``i`` (row ``i - config.first_seed``) in world ``w`` (index in ``REGIMES``) does not depend on
     what else is selected, so seeds ``[a, b)`` run alone draw what they draw in a larger run.
     """
     seeds = range(config.first_seed, config.first_seed + config.seeds)
     labels = [(world, index) for world in config.worlds for index in seeds]
-    periods = torch.tensor([WORLD_PERIODS[world] for world, _ in labels])  # [W * S]
+    periods = torch.tensor([REGIME_PERIODS[world] for world, _ in labels])  # [W * S]
     world_keys = experiment.experiment_keys(config.seed, STREAM_WORLD, labels)
     policy_keys = experiment.experiment_keys(
         config.seed, STREAM_POLICY, labels, ALGORITHMS, algorithm

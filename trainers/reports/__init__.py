@@ -31,7 +31,7 @@ def find(results_dir: str | os.PathLike) -> tuple[Any, Path]:
         path = directory / entry.files["json"]
         if path.is_file():
             return entry, path
-        if path.exists():  # a FIFO, a device, a directory: not "missing" (issue 29)
+        if path.exists():  # a FIFO, a device, a directory: not "missing"
             raise ValueError(f"{path} is not a regular file: not a results file")
     looked = ", ".join(entry.files["json"] for entry in entries)
     raise FileNotFoundError(

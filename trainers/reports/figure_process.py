@@ -13,7 +13,7 @@ One writer per output, nothing half-written: the helper writes the one temporary
 nothing else; the main process owns every rename, and ends the helper (and waits for it) before it
 removes the temporaries, falls back to drawing in-process, or returns. If the helper cannot start
 or fails, ``finish`` raises ``FigureProcessError`` and ``report`` draws the figure in the main
-process instead, as before (a one-line notice says why). The helper is in its own session, so a
+process instead (a one-line notice says why). The helper is in its own session, so a
 Ctrl-C at the terminal reaches the main process only, which ends it.
 
 Run as ``python -m factorq_trainers.reports.figure_process`` (``main``). Nothing here imports torch.

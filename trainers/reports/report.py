@@ -15,9 +15,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from factorq_envs.regimes import REGIME_PERIODS, REGIMES
 from factorq_trainers.analysis.claims import ALGORITHM_LABELS, MEASURE_LABELS, MEASURES
 from factorq_trainers.analysis.stats import format_number
-from factorq_trainers.analysis.worlds import WORLD_PERIODS, WORLDS
 from factorq_trainers.reports import FigureError, paper_figure
 from factorq_trainers.reports.figure_process import FigureProcess, FigureProcessError
 from factorq_trainers.runner.results import body_label, dumps, temporary_path, write_all_atomic
@@ -31,7 +31,7 @@ REPORT_FILE = "report.md"
 def _ordered_cells(results: dict[str, Any]) -> tuple[list[str], list[str]]:
     """The worlds and algorithms present in ``results``, in canonical order."""
     config = results["config"]
-    worlds = [world for world in WORLDS if world in config["worlds"]]
+    worlds = [world for world in REGIMES if world in config["worlds"]]
     algorithms = [name for name in ALGORITHM_LABELS if name in config["algorithms"]]
     return worlds, algorithms
 
@@ -134,7 +134,7 @@ def report_markdown(results: dict[str, Any]) -> str:
             )
     lines += [
         "",
-        f"Obstacle periods: {', '.join(f'{world} {WORLD_PERIODS[world]}' for world in worlds)} "
+        f"Obstacle periods: {', '.join(f'{world} {REGIME_PERIODS[world]}' for world in worlds)} "
         "(0 never moves, k moves after every k-th action).",
         "",
         f"![Figure 3: steps and collisions per episode]({FIGURE_FILE})",

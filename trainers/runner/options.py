@@ -8,7 +8,7 @@ metadata, so ``--help`` needs no source code, and ``add_options`` turns every pl
     @dataclass(frozen=True)
     class Config:
         seeds: int = option(100, "Independent experiments per cell.")
-        worlds: tuple[str, ...] = option(WORLDS, "Worlds to run (comma-separated).")
+        worlds: tuple[str, ...] = option(REGIMES, "Worlds to run (comma-separated).")
 
     add_options(parser, Config)              # --seeds SEEDS, --worlds NAME[,NAME] (repeatable)
     Config(**given_options(parser.parse_args(argv), Config))   # only what was given

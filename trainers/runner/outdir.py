@@ -14,7 +14,7 @@
   the run that owns them) is given;
 - temporaries left by writers that were killed mid-write (``.NAME.PID.tmp``) are removed: no one
   else can be writing them while we hold the lock;
-- no file of ours is ever opened through a link (issue 29): the lock, the probe and every
+- no file of ours is ever opened through a link: the lock, the probe and every
   temporary are created with ``O_NOFOLLOW`` (``O_EXCL`` where new, ``create_new``), and a
   symbolic link where the lock or an output belongs is refused in one line (``LinkRefused``),
   leaving the link's target untouched.
@@ -78,8 +78,8 @@ def create_new(path: str | os.PathLike) -> int:
 
 def _open_lock(lock_path: Path, what: str) -> int:
     """The lock file's descriptor (read-write), created new where missing; a link there is
-    refused (it used to be followed and its target truncated), and so is anything but a
-    regular file."""
+    refused (following it would truncate its target), and so is anything but a regular
+    file."""
     try:
         return os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_EXCL | _OWN, 0o644)
     except FileExistsError:

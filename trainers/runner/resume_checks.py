@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from factorq_envs.world import NUM_ACTIONS
+from factorq_envs.grid_world import NUM_ACTIONS
 from factorq_trainers.runner import checkpoint
 
 #: The experiment drivers a checkpoint may come from (``paper.BACKENDS`` less ``auto``).
@@ -210,7 +210,7 @@ def _check_world(state: dict[str, Any], config: Any, periods: torch.Tensor, wher
         raise ValueError(f"{where}['cell'] is on an obstacle")
     static = periods == 0
     if bool(static.any()) and config.obstacles:
-        from factorq_envs.world import static_layout
+        from factorq_envs.grid_world import static_layout
 
         if not bool((obstacles[static] == static_layout(config.world)).all()):
             raise ValueError(f"{where}['obstacles'] of a static world is not its layout")

@@ -19,10 +19,10 @@ import re
 from pathlib import Path
 from typing import Any
 
+from factorq_envs.regimes import REGIMES
 from factorq_torch.base.config import ALGORITHMS as ALGORITHM_NAMES
 from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_trainers.analysis.claims import CLAIM_STATEMENTS, MEASURES
-from factorq_trainers.analysis.worlds import WORLDS as WORLD_NAMES
 from factorq_trainers.runner.results import SCHEMA_VERSION, read_json
 
 #: The per-episode curves a results file holds per cell (task return is reported per run).
@@ -112,7 +112,7 @@ def _check_config(config: Any) -> dict[str, Any]:
     _integer(config["episodes"], "config.episodes", 1)
     _integer(config["size"], "config.size", 1)
     _integer(config["obstacles"], "config.obstacles", 0)
-    _names(config["worlds"], "config.worlds", WORLD_NAMES)
+    _names(config["worlds"], "config.worlds", REGIMES)
     _names(config["algorithms"], "config.algorithms", ALGORITHM_NAMES)
     return config
 

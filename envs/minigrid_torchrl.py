@@ -1,5 +1,5 @@
 """``MiniGridEnv``: ``S`` MiniGrid Dynamic-Obstacles worlds as one torchrl env, the adapter's
-``declared_torchrl_env`` over ``make_minigrid`` (see ``factorq_envs.minigrid`` for the
+``declared_torchrl_env`` over ``make_minigrid`` (see ``factorq_envs.minigrid_adapter`` for the
 observation, the rewards and the collision semantics)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from functools import partial
 import torch
 
 from factorq_envs.declared_env import DeclaredEnv, declared_torchrl_env
-from factorq_envs.minigrid import make_minigrid
+from factorq_envs.minigrid_adapter import make_minigrid
 
 
 def MiniGridEnv(  # noqa: N802  (a constructor: the torchrl env it returns is a DeclaredEnv)

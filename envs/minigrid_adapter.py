@@ -52,7 +52,7 @@ Two ways in:
   ``heading``, ``sensors``, ``bump``, ``collision``: Gymnasium's ``check_env``, MiniGrid's
   ``ImgObsWrapper`` and ``FlatObsWrapper``, ``gymnasium.vector`` envs and torchrl's
   ``GymWrapper`` / ``SerialEnv`` / ``ParallelEnv`` take it.
-- ``MiniGridEnv`` (``factorq_envs.minigrid_env``, loaded on first use, so this file needs no
+- ``MiniGridEnv`` (``factorq_envs.minigrid_torchrl``, loaded on first use, so this file needs no
   torchrl): ``S`` of them as one torchrl env of ``batch_size=(S,)`` (the adapter's
   ``declared_torchrl_env``), with the project's keys and dtypes, for the online collector and
   DQN. The compiled kernel (``trainers/fast.py``) cannot step MiniGrid: the tabular agents run on
@@ -214,5 +214,5 @@ def make_minigrid(
 
 def __getattr__(name: str):
     if name == "MiniGridEnv":
-        return importlib.import_module("factorq_envs.minigrid_env").MiniGridEnv
-    raise AttributeError(f"module 'factorq_envs.minigrid' has no attribute {name!r}")
+        return importlib.import_module("factorq_envs.minigrid_torchrl").MiniGridEnv
+    raise AttributeError(f"module 'factorq_envs.minigrid_adapter' has no attribute {name!r}")

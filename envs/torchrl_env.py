@@ -1,9 +1,9 @@
 """``FactoredGridEnv``: ``S`` independent worlds as one batched torchrl env.
 
 The world's rules live in a world (``factorq_envs.protocol.World``:
-``factorq_envs.world.FactoredGrid`` by default, any other world given as ``world=``); this module
-only validates arguments, reads the specs from the world's config, holds the state of the worlds in
-tensors and moves it in and out of TensorDicts.
+``factorq_envs.grid_world.FactoredGrid`` by default, any other world given as ``world=``); this
+module only validates arguments, reads the specs from the world's config, holds the state of the
+worlds in tensors and moves it in and out of TensorDicts.
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from factorq_envs.grid_world import FactoredGrid, WorldConfig, static_layout, where_rows
 from factorq_envs.protocol import check_world, optional_method
-from factorq_envs.world import FactoredGrid, WorldConfig, static_layout, where_rows
 from factorq_torch.base import keys
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 from factorq_torch.base.validation import check_device, check_seed, is_int

@@ -2,8 +2,8 @@
 
 State lives in a ``WorldState`` of plain tensors with a leading batch dimension ``S`` of
 independent worlds; functions return new states and never mutate their inputs. The torchrl env
-(``factorq_envs.grid``), the gymnasium env (``factorq_envs.gym``) and the compiled fast path all
-run this logic.
+(``factorq_envs.torchrl_env``), the gymnasium env (``factorq_envs.gymnasium_env``) and the
+compiled fast path all run this logic.
 
 Cells are numbered ``row * size + col``; the start is cell 0 (top-left), the goal the last cell.
 Actions, in the paper's order: 0 north (row - 1), 1 west (col - 1), 2 south (row + 1), 3 east
@@ -33,6 +33,7 @@ from factorq_envs.body import (
     draw_permutation,
     sensor_offsets,
 )
+from factorq_envs.regimes import REGIME_PERIODS, REGIMES
 from factorq_torch.base.indices import constant, row_starts
 from factorq_torch.base.rng import (
     GOLDEN,
@@ -60,9 +61,10 @@ START_HEADING = 0
 MAX_LAYOUT_ATTEMPTS = 10_000
 #: The most distractor bits a world may add.
 MAX_DISTRACTORS = 32
-#: The paper's three worlds by name and their obstacle periods (SPEC section 1).
-WORLD_PERIODS = {"static": 0, "semi-dynamic": 10, "dynamic": 1}
-WORLDS = tuple(WORLD_PERIODS)
+#: The former names of the obstacle regimes (``factorq_envs.regimes``), kept for code that
+#: imports them from here.
+WORLD_PERIODS = REGIME_PERIODS
+WORLDS = REGIMES
 
 
 def check_choice(name: str, value, allowed) -> str:

@@ -16,8 +16,8 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
+from factorq_envs.grid_world import FactoredGrid, WorldConfig, static_layout
 from factorq_envs.protocol import check_world, optional_method
-from factorq_envs.world import FactoredGrid, WorldConfig, static_layout
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 from factorq_torch.base.validation import check_int
 
@@ -84,7 +84,9 @@ class FactoredGridGym(gymnasium.Env):
         world=None,
     ) -> None:
         if world is not None:
-            from factorq_envs.grid import check_no_grid_arguments  # the one list of grid arguments
+            from factorq_envs.torchrl_env import (
+                check_no_grid_arguments,  # the one list of grid arguments
+            )
 
             check_world(world)
             check_no_grid_arguments(locals(), world)  # the grid arguments, read by name
