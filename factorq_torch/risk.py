@@ -52,6 +52,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import overload
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
@@ -218,8 +219,20 @@ class LocalRisk(TensorDictModuleBase):
             dict.fromkeys([out_key, TASK_VALUE, names.LOCAL_VALUE, NORMALISER, RISK_MASK])
         )
 
+    @overload
     @staticmethod
-    def _names(label: str, given, count: int | None, default: str) -> tuple[str, ...] | None:
+    def _names(
+        label: str, given: Sequence[str] | None, count: int, default: str
+    ) -> tuple[str, ...]: ...
+    @overload
+    @staticmethod
+    def _names(
+        label: str, given: Sequence[str] | None, count: int | None, default: str
+    ) -> tuple[str, ...] | None: ...
+    @staticmethod
+    def _names(
+        label: str, given: Sequence[str] | None, count: int | None, default: str
+    ) -> tuple[str, ...] | None:
         if given is None:
             return None if count is None else tuple(f"{default} {i}" for i in range(count))
         given = tuple(str(name) for name in given)
@@ -316,6 +329,10 @@ class LocalRisk(TensorDictModuleBase):
             return structure()[0]
         return None
 
+    def _sensor_name(self, k: int) -> str:
+        """Sensor ``k``'s name (``sensor k`` where neither the caller nor the provider says K)."""
+        return f"sensor {k}" if self.sensor_names is None else self.sensor_names[k]
+
     @torch.no_grad()
     def explain(self, tensordict: TensorDictBase, threshold: float = 0.05) -> list[list[dict]]:
         """For every state of the (flattened) batch: the actuators the layer penalises.
@@ -344,7 +361,7 @@ class LocalRisk(TensorDictModuleBase):
                 because = []
                 if parents is not None and readings is not None:
                     on = parents[actuator] & readings[row]
-                    because = [self.sensor_names[k] for k in on.nonzero().flatten().tolist()]
+                    because = [self._sensor_name(k) for k in on.nonzero().flatten().tolist()]
                 found.append(
                     {
                         "actuator": self.actuator_names[actuator],

@@ -29,8 +29,9 @@ module still imports; building any of its classes raises an ImportError naming t
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+import gymnasium
 import numpy as np
 import torch
 from tensordict import TensorDict
@@ -47,7 +48,8 @@ try:
 except ImportError as error:  # the optional extra: the module imports (docs, doctest
     # collection), its classes refuse to be built
     _MISSING = error
-    DQN = BaseCallback = MultiInputPolicy = object
+    if not TYPE_CHECKING:  # mypy checks against SB3's own types
+        DQN = BaseCallback = MultiInputPolicy = object
 
 
 def _require() -> None:
@@ -80,13 +82,24 @@ class LocalRiskPolicy(MultiInputPolicy):
         super().__init__(*args, **kwargs)
         if provider is None:
             raise ValueError("LocalRiskPolicy needs policy_kwargs={'provider': ...}")
-        if sensors_key not in self.observation_space.spaces:
+        space, action_space = self.observation_space, self.action_space
+        if not isinstance(space, gymnasium.spaces.Dict):
+            raise TypeError(f"LocalRiskPolicy needs a Dict observation space, got {space}")
+        if not isinstance(action_space, gymnasium.spaces.Discrete):
+            raise TypeError(f"LocalRiskPolicy needs a Discrete action space, got {action_space}")
+        if sensors_key not in space.spaces:
             raise ValueError(
                 f"LocalRiskPolicy reads the sensors from the observation entry {sensors_key!r}; "
-                f"the observation space has {list(self.observation_space.spaces)}"
+                f"the observation space has {list(space.spaces)}"
             )
-        sensors = self.observation_space.spaces[sensors_key].shape[-1]
-        actions = int(self.action_space.n)
+        shape = space.spaces[sensors_key].shape
+        if not shape:
+            raise ValueError(
+                f"the observation entry {sensors_key!r} must hold an array of sensor bits, got "
+                f"{space.spaces[sensors_key]}"
+            )
+        sensors = shape[-1]
+        actions = int(action_space.n)
         self.risk = LocalRisk(provider, num_actions=actions, **(risk_options or {}))
         declared = self.risk.num_sensors
         if declared is not None and declared != sensors:
@@ -138,6 +151,7 @@ class LocalRiskCallback(BaseCallback):
         actions = self.locals.get("actions")
         if sensors is None or infos is None or actions is None:
             return True
+        assert self.loss is not None  # SB3 calls _init_callback before the first step
         if any("local_reward" not in info for info in infos):
             raise KeyError(
                 "LocalRiskCallback reads info['local_reward'] (the collision vector) from every "
@@ -165,6 +179,8 @@ class LocalRiskDQN(DQN):
     ``policy`` defaults to ``LocalRiskPolicy`` (``"MultiInputPolicy"`` is taken as it), and
     ``learn`` adds ``LocalRiskCallback`` to the given callbacks."""
 
+    policy: LocalRiskPolicy  # what __init__ makes it (DQN's is any DQNPolicy)
+
     def __init__(self, policy="MultiInputPolicy", env=None, *, provider=None, **kwargs) -> None:
         _require()
         # DQN.load builds the model with _init_setup_model=False, then restores the saved
@@ -184,6 +200,7 @@ class LocalRiskDQN(DQN):
     def _risk_step(self, observation, exploration_rate: float) -> np.ndarray:
         """Epsilon-greedy on ``C(s)``, the random actions among the allowed ones."""
         obs, vectorized = self.policy.obs_to_tensor(observation)
+        assert isinstance(obs, dict)  # LocalRiskPolicy checked its Dict observation space
         out = self.policy.risk_values(obs)
         greedy = out.get(names.ACTION_VALUE).argmax(dim=-1)
         allowed = out.get(RISK_MASK)  # [n, A]
