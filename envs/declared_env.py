@@ -106,18 +106,29 @@ def declared_torchrl_env(
             mp_start_method="fork",  # the workers inherit the registered ids and the makers
             device=device,
         )
-        local = make_env(seeds[0])  # the sizes, read here (the workers hold the envs)
+        local = _adapter(make_env(seeds[0]))  # the sizes, read here (the workers hold the envs)
     else:
         autoreset = gymnasium.vector.AutoresetMode.DISABLED  # torchrl resets by mask
+        vector: gymnasium.vector.VectorEnv
         if backend == "sync":
             vector = gymnasium.vector.SyncVectorEnv(makers, autoreset_mode=autoreset)
-            envs = list(vector.envs)
+            envs = [_adapter(env) for env in vector.envs]
             local = envs[0]
         else:
             vector = gymnasium.vector.AsyncVectorEnv(makers, autoreset_mode=autoreset)
-            local = make_env(seeds[0])
+            local = _adapter(make_env(seeds[0]))
         base = GymWrapper(vector, categorical_action_encoding=True, device=device)
     return DeclaredEnv(base, local, envs, exclude)
+
+
+def _adapter(env: gymnasium.Env) -> FactorQEnv:
+    """``env`` if it is a ``FactorQEnv`` (what the sizes and the declaration are read from)."""
+    if not isinstance(env, FactorQEnv):
+        raise TypeError(
+            f"make_env must return a FactorQEnv (the adapter around the world), got "
+            f"{type(env).__name__}"
+        )
+    return env
 
 
 def _gym_wrapped(maker):

@@ -278,16 +278,16 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
     def _own_entries(self, space: spaces.Space) -> dict[str, spaces.Space]:
         if not isinstance(space, spaces.Dict):
             return {OBSERVATION: space}
-        own = {}
+        own: dict[str, spaces.Space] = {}
         for name, entry in space.spaces.items():
             if name in ADDED_KEYS:
                 raise ValueError(
                     f"{_name(self.env)}'s observation already has an entry {name!r}, a key the "
                     f"adapter writes: rename it with an observation wrapper first"
                 )
-            entry = self.declaration.spaces.get(name, entry)
-            if entry is not None:
-                own[name] = entry
+            declared = self.declaration.spaces.get(name, entry)
+            if declared is not None:
+                own[name] = declared
         return own
 
     def _spaces(self, space: spaces.Space) -> dict[str, spaces.Space]:

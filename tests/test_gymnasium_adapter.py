@@ -325,6 +325,19 @@ def test_the_experiment_summary_keeps_its_intervals_inside_the_possible_range():
     assert entry["bands"]["curve_crashes"]["low"][0] == 0.0  # every seed at 0: the band is 0
 
 
+@pytest.mark.parametrize("backend", ["sync", "async"])
+def test_a_maker_that_returns_no_adapter_is_refused(backend):
+    """``make_env`` must return a ``FactorQEnv``: a bare Gymnasium env gets one clear error."""
+    from factorq_envs.declared_env import declared_torchrl_env
+
+    with pytest.raises(TypeError, match=r"must return a FactorQEnv \(.*\), got TimeLimit"):
+        declared_torchrl_env(_bare_lake, [0], backend=backend)
+
+
+def _bare_lake(seed: int) -> gymnasium.Env:
+    return gymnasium.make("FrozenLake-v1")
+
+
 def test_a_partial_step_is_refused():
     """A vector env steps all its envs: a '_step' mask is refused, not silently ignored."""
     from factorq_envs.declared_env import declared_torchrl_env
