@@ -223,7 +223,6 @@ def value_providers(
     experiments = config.experiments
     cells = experiments.size**2
     world = experiments.world  # the body: tables and networks get its shapes and dependency
-    shapes = {"num_headings": world.num_headings, "num_actions": world.num_actuators}
     if method in ("q-learning", "factor-q"):
         return (*experiment.tabular_values(method, count, world), None)
     if method == "factor-dqn":
@@ -231,7 +230,8 @@ def value_providers(
         task = TaskQNetwork(
             count,
             cells,
-            **shapes,
+            num_headings=world.num_headings,
+            num_actions=world.num_actuators,
             hidden=settings.hidden,
             activation=settings.activation,
             keys=batch_keys(experiments, STREAM_TASK_NETWORK, method),
@@ -587,7 +587,7 @@ def run(
                 continue
             report = None if progress is None else (lambda d, t, m=method: progress(m, d, t))
             runs[method] = run_method(config, method, report, checkpoints=saver)
-            if checkpoints and len(runs) < len(config.methods):
+            if checkpoints and saver is not None and len(runs) < len(config.methods):
                 saver.save_finished(runs)
     finally:
         torch.set_num_threads(threads)

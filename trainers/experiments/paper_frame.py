@@ -58,7 +58,7 @@ class _Bar:
         from tqdm import tqdm
 
         self._tqdm = tqdm
-        self.bar = None
+        self.bar: Any = None  # a tqdm bar once the first progress arrives (tqdm: untyped)
 
     def __call__(self, progress: paper.Progress) -> None:
         if self.bar is None:

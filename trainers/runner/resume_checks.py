@@ -184,7 +184,11 @@ def _check_values(value: torch.Tensor, fresh: torch.Tensor | None, config, where
                 name, config.max_steps if name in METRIC_NAMES or "collisions" in name else steps
             ),
         )
-    if low is not None and (bool((value < low).any()) or bool((value > high).any())):
+    if (
+        low is not None
+        and high is not None
+        and (bool((value < low).any()) or bool((value > high).any()))
+    ):
         raise ValueError(f"{where} holds values outside [{low}, {high}]")
 
 
