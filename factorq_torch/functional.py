@@ -48,7 +48,7 @@ def qlearning_state(cell: torch.Tensor, readings: torch.Tensor) -> torch.Tensor:
     return cell * (1 << readings.shape[-1]) + sensor_pattern(readings)
 
 
-def check_dependency(dependency, num_sensors: int | None = None) -> torch.Tensor:
+def check_dependency(dependency: object, num_sensors: int | None = None) -> torch.Tensor:
     """``dependency`` as a bool ``[A, K]`` tensor, else a TypeError / ValueError naming it.
 
     ``num_sensors``: the ``K`` it must have (``None``: any). Row ``a`` marks the parent sensors

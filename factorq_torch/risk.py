@@ -50,9 +50,9 @@ blocked"``). ``RiskSummary`` keeps the per-episode counts for the logs.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import overload
+from typing import Any, overload
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
@@ -86,7 +86,7 @@ def _provider_size(provider: TensorDictModuleBase) -> tuple[int, int, int | None
     return provider.num_experiments, provider.num_actions, getattr(provider, "num_sensors", None)
 
 
-def _spec_actions(spec) -> tuple[int | None, tuple[int, ...]]:
+def _spec_actions(spec: Any) -> tuple[int | None, tuple[int, ...]]:
     """``(number of actions, shape)`` of an action spec (a ``Composite`` holding ``action``)."""
     if spec is None:
         return None, ()
@@ -99,7 +99,7 @@ def _spec_actions(spec) -> tuple[int | None, tuple[int, ...]]:
     return (int(count) if count is not None else None), shape
 
 
-def _value_module_spec(value_network: TensorDictModuleBase):
+def _value_module_spec(value_network: TensorDictModuleBase) -> Any:
     """The action spec of the ``QValueModule`` inside ``value_network`` (None if there is none)."""
     from torchrl.modules import QValueModule
 
@@ -395,9 +395,9 @@ def with_local_risk(
     value_network: TensorDictModuleBase,
     provider: TensorDictModuleBase,
     *,
-    env=None,
-    spec=None,
-    **options,
+    env: Any = None,
+    spec: Any = None,
+    **options: Any,
 ) -> TensorDictSequential:
     """``value_network`` with a ``LocalRisk`` layer placed before its action choice.
 
@@ -487,7 +487,7 @@ class LocalRiskLoss(LossModule):
         self.risk = LocalRisk(provider)  # the provider's values for any batch (and its checks)
         self.provider = provider
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
+    def _forward_value_estimator_keys(self, **kwargs: Any) -> None:
         pass
 
     @property
@@ -533,7 +533,13 @@ class LocalRiskLoss(LossModule):
         return out
 
     @torch.no_grad()
-    def _running_mean(self, update, sensors, action, local_reward) -> None:
+    def _running_mean(
+        self,
+        update: Callable[..., object],  # the provider's update_running_mean
+        sensors: torch.Tensor,
+        action: torch.Tensor,
+        local_reward: torch.Tensor,
+    ) -> None:
         count, width = self.risk.num_experiments, sensors.shape[-1]
         batch = tuple(action.shape)
         if count != 1 and len(batch) > 1 and batch[0] == count and batch[-1] != count:
