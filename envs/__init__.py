@@ -6,6 +6,7 @@ path) does not pay for importing torchrl and tensordict.
 """
 
 import importlib
+from typing import Any
 
 import gymnasium
 
@@ -21,7 +22,7 @@ _LAZY = {
 __all__ = ["WorldConfig", *_LAZY]
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> Any:
     if name in _LAZY:
         return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'envs' has no attribute {name!r}")
