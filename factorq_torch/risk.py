@@ -407,6 +407,14 @@ def with_local_risk(
     the parts: its batch against the provider's ``S``, its ``dependency`` (if it has one) against
     the provider's shape, and its names are used by the explanations. ``options`` go to
     ``LocalRisk``.
+
+    Args:
+        value_network: a ``QValueActor``, a sequence ending in a ``QValueModule``, or any
+            module writing ``action_value``.
+        provider: the local value provider (a table, a network, a ``StructureLearner``).
+        env: the env, checked against the parts and read for names (optional).
+        spec: the action spec of the ``QValueModule`` to append (a value network without one).
+        options: ``LocalRisk``'s keyword arguments (``eta``, ``g_min``, ``mask_threshold``, ...).
     """
     from torchrl.modules import QValueModule
 
@@ -470,6 +478,9 @@ class LocalRiskLoss(LossModule):
       the gated network's ``loss_regularisation`` folded in.
 
     Keys (``set_keys``): ``sensors``, ``action``, ``local_reward`` (under ``"next"``).
+
+    Args:
+        provider: the local value provider to train (the one the ``LocalRisk`` layer reads).
     """
 
     @dataclass
@@ -574,6 +585,13 @@ class RiskSummary:
 
     Call ``update(td)`` with each step's tensordict (after the policy), ``episode()`` at the end
     of an episode: it returns the summary and starts the next.
+
+    Args:
+        actuator_names: one name per actuator (``LocalRisk.actuator_names``).
+        threshold: a penalty ``G rho_a`` below ``-threshold`` counts as penalising ``a``.
+        combined_key: where the layer wrote ``C(s)`` (the policy's ``action_value``).
+        steps, risky_steps, overrides, penalised, penalty_sum: the episode's running counts
+            (start empty; ``episode()`` returns and clears them).
     """
 
     actuator_names: Sequence[str]
