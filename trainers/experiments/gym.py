@@ -492,6 +492,10 @@ def _run_factor_q(
     base, task = _env_and_task_network(config, unit, zero_output=True)
     oracle = base.dependency
     if unit["method"] == "factor-q-oracle":
+        if oracle is None:
+            raise ValueError(
+                f"factor-q-oracle needs a world that declares its oracle: {config.world}"
+            )
         local = LocalRewardTable(1, dependency=oracle)
     else:  # an open actuator predicts no local reward (docs/decisions.md, MiniGrid)
         local = StructureLearner(
@@ -527,7 +531,8 @@ def _run_factor_q(
     if isinstance(local, StructureLearner):
         learned = local.structure()[0]  # [A, K]
         result["structure"] = learned.to(torch.int64).tolist()
-        result["agrees_with_oracle"] = (learned == oracle).all(dim=-1).tolist()
+        if oracle is not None:  # a world without one: the structure alone
+            result["agrees_with_oracle"] = (learned == oracle).all(dim=-1).tolist()
     return result
 
 
@@ -702,6 +707,7 @@ def summarise(config: GymConfig, unit_results: list[dict[str, Any]]) -> dict[str
         entry["wall_s"] = sum(r["wall_s"] for r in results)
         if "structure" in results[0]:
             entry["structures"] = [r["structure"] for r in results]
+        if "agrees_with_oracle" in results[0]:
             entry["agrees_with_oracle"] = [
                 sum(r["agrees_with_oracle"][a] for r in results)
                 for a in range(len(results[0]["agrees_with_oracle"]))

@@ -342,6 +342,7 @@ def run_tabular(
     # one run of as many episodes as the budget could hold: the loop below stops at the budget
     collector = OnlineCollector(env, policy, loss, runs=1, episodes=budget)
     recorder = Recorder(count)
+    assert base.dependency is not None  # MiniGrid's declaration states its oracle
     truth = base.dependency[FORWARD]  # [K]
     found: list[int | None] = [None] * count
     started = time.perf_counter()
