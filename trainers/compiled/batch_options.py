@@ -193,8 +193,8 @@ def structure_setup(
                 truth[experiment, phase, actuator] = index_of.get(members, -2)
     num_candidates, patterns = len(sets), 1 << min(options.max_parents, num_sensors)
     candidate_sensors = torch.full((num_candidates, 2), -1, dtype=torch.int64)
-    for index, parents in enumerate(sets):
-        candidate_sensors[index, : len(parents)] = torch.tensor(parents, dtype=torch.int64)
+    for index, candidate in enumerate(sets):
+        candidate_sensors[index, : len(candidate)] = torch.tensor(candidate, dtype=torch.int64)
     log_prior = candidate_log_prior(sets, options.prior)
     steps = runs * episodes * world.max_steps
     length = steps + 2  # n + 1 of every count stays inside

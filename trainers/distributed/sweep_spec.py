@@ -142,6 +142,7 @@ def config_digest(config: Any) -> str:
         return shards.digest(config)
     from factorq_trainers.experiments import compare
 
+    ignored: tuple[str, ...]
     if isinstance(config, compare.CompareConfig):
         values, ignored = compare.config_dict(config), ("out", "threads", "logger")
     else:  # a command of the runner: its DIGEST_IGNORED (fields that leave the numbers alone)
