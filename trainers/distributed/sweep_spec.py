@@ -331,7 +331,7 @@ def _yaml_loader() -> type:
     class Loader(yaml.SafeLoader):
         depth = 0
 
-        def compose_node(self, parent, index):  # noqa: ANN001, ANN202 - PyYAML's signature
+        def compose_node(self, parent: Any, index: Any) -> Any:  # PyYAML's (untyped) signature
             if self.check_event(yaml.AliasEvent):
                 mark = self.peek_event().start_mark
                 raise yaml.YAMLError(

@@ -260,8 +260,8 @@ def value_providers(
 def run_online(
     method: str,
     config: CompareConfig,
-    logger=None,
-    progress=None,
+    logger: Any = None,
+    progress: Callable[[int, int], None] | None = None,
     checkpoints: compare_checkpoint.Saver | None = None,
 ) -> dict[str, Any]:
     """Tabular Factor-Q, tabular Q-learning or Factor-DQN for the step budget (OnlineCollector).
@@ -496,7 +496,9 @@ def resume_config(
 # Running
 
 
-def make_logger(config: CompareConfig, method: str, log_dir: str | os.PathLike | None = None):
+def make_logger(
+    config: CompareConfig, method: str, log_dir: str | os.PathLike | None = None
+) -> Any:
     """torchrl's CSVLogger or TensorboardLogger for ``method`` under ``log_dir`` (default
     ``out/logs/``)."""
     log_dir = str(Path(config.out) / "logs" if log_dir is None else log_dir)

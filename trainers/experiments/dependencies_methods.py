@@ -157,19 +157,19 @@ def _fill_curve(curve: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
 
 
 def _structure_result(
-    config,
-    setting,
-    metrics,
+    config: DependenciesConfig,
+    setting: str,
+    metrics: dict[str, torch.Tensor],
     *,
-    right_since,
-    samples_at_change,
-    wrong_commitments,
-    structure,
-    truth,
-    reopened,
-    samples,
-    curve,
-    state,
+    right_since: torch.Tensor,
+    samples_at_change: torch.Tensor,
+    wrong_commitments: torch.Tensor,
+    structure: torch.Tensor,
+    truth: torch.Tensor,
+    reopened: torch.Tensor,
+    samples: torch.Tensor,
+    curve: torch.Tensor,
+    state: dict[str, Any] | None,
 ) -> dict[str, Any]:
     right = (structure == truth).all(dim=-1)  # [S, A]
     final_right = right.all(dim=-1)

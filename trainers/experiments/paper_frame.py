@@ -130,7 +130,16 @@ def main(
         return frame.EXIT_USAGE
 
 
-def _run(parser, args, config, backend, every, resume, executor, figure_process) -> int:
+def _run(
+    parser: argparse.ArgumentParser,
+    args: argparse.Namespace,
+    config: paper.PaperConfig,
+    backend: str,
+    every: Any,
+    resume: Any,
+    executor: Any,
+    figure_process: Any,
+) -> int:
     from factorq_trainers.distributed import cluster_runs
     from factorq_trainers.reports import report
     from factorq_trainers.runner import checkpoint

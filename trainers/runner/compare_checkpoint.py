@@ -180,7 +180,9 @@ def check(resume: CompareCheckpoint, config: Any, saved_form: dict[str, Any]) ->
             )
 
 
-def _check_trace(trace, world, index, experiments, refuse) -> dict[str, Any]:
+def _check_trace(
+    trace: Any, world: str, index: int, experiments: Any, refuse: Callable[[str], Any]
+) -> dict[str, Any]:
     where = f"the trace of {world}/seed_{index}"
     if (
         not isinstance(trace, dict)
@@ -430,7 +432,9 @@ def check_optimizer(saved: Any, optimizer: torch.optim.Optimizer, steps: int, wh
 _SUMS = ("steps", "collisions", "greedy", "task", "loss_sum", "loss_count")
 
 
-def check_recorder(saved: Any, experiments: Any, step: int, where: str = "state['recorder']"):
+def check_recorder(
+    saved: Any, experiments: Any, step: int, where: str = "state['recorder']"
+) -> dict[str, Any]:
     """An ``EpisodeRecorder.state_dict()`` after ``step`` env steps of every experiment: its
     traces as a finished method's (``_check_trace``), the running sums float64 ``[E]``, whole,
     in range, and the episodes' steps adding up to ``step``. Returns the state with the traces'
