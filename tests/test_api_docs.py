@@ -1,6 +1,6 @@
-"""Every name a package exports (its ``__all__``) that takes arguments documents them in an
-``Args:`` section (issue 28: the API reference reads them; a class may keep them in its own
-docstring or its ``__init__``'s)."""
+"""Every name a package exports (its ``__all__``, and the public functions of a module it
+exports) that takes arguments documents them in an ``Args:`` section (issue 28: the API
+reference reads them; a class may keep them in its own docstring or its ``__init__``'s)."""
 
 import importlib
 import inspect
@@ -11,8 +11,21 @@ PACKAGES = ("factorq_torch", "factorq_envs")
 
 
 def _exported(package: str) -> list[tuple[str, object]]:
+    """The names of ``package.__all__``; for an exported module (``factorq_torch.functional``),
+    the public functions and classes defined in it."""
     module = importlib.import_module(package)
-    return [(name, getattr(module, name)) for name in module.__all__]
+    found = []
+    for name in module.__all__:
+        obj = getattr(module, name)
+        if inspect.ismodule(obj):
+            found += [
+                (f"{name}.{inner}", value)
+                for inner, value in vars(obj).items()
+                if not inner.startswith("_") and getattr(value, "__module__", None) == obj.__name__
+            ]
+        else:
+            found.append((name, obj))
+    return found
 
 
 def _arguments(obj: object) -> list[str]:
