@@ -77,8 +77,9 @@ class RiskConfig:
         seeds, seed: seeds per (world, method), from ``seed`` on.
         steps: training env steps per unit.
         grid_size, grid_obstacles, minigrid_size: the worlds.
-        hidden, lr, gamma, buffer_size, batch_size, learning_starts, train_every, tau,
-            eps_start, eps_end, exploration_fraction: the DQN recipe, the same for every method.
+        hidden, lr, gamma, buffer_size, batch_size: the DQN recipe, the same for every method.
+        learning_starts, train_every, tau: when it learns and how fast its target follows.
+        eps_start, eps_end, exploration_fraction: its exploration schedule.
         eval_episodes: greedy episodes after training.
         success_threshold: the success rate of 10 episodes that counts as learned.
         out: the output directory.
