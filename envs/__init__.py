@@ -15,6 +15,7 @@ import importlib.abc
 import importlib.util
 import sys
 import warnings
+from typing import Any
 
 import gymnasium
 
@@ -37,7 +38,7 @@ RENAMED = {
 __all__ = list(_LAZY)
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> Any:
     if name in _LAZY:
         return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'envs' has no attribute {name!r}")

@@ -168,7 +168,14 @@ class Corridor:
             layouts=zeros.clone(),
         )
 
-    def _relayout(self, state, where, key, agent, layouts) -> tuple[torch.Tensor, torch.Tensor]:
+    def _relayout(
+        self,
+        state: CorridorState,
+        where: torch.Tensor,
+        key: torch.Tensor,
+        agent: torch.Tensor,
+        layouts: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """New hurdles where ``where`` ``[S]`` is True (layout number ``layouts`` of ``key``)."""
         fresh = draw_hurdles(key, layouts, agent, self.config)
         hurdles = torch.where(where.unsqueeze(1), fresh, state.hurdles)

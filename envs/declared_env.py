@@ -10,9 +10,11 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from functools import partial
+from typing import Any
 
 import gymnasium
 import torch
+from tensordict import TensorDictBase
 from torchrl.envs import (
     Compose,
     DTypeCastTransform,
@@ -35,7 +37,9 @@ class DeclaredEnv(TransformedEnv):
     ``None``) and ``envs`` (the adapters, for the in-process ``"sync"`` backend; else ``None``).
     """
 
-    def __init__(self, base, local: FactorQEnv, envs, exclude: Sequence[str]) -> None:
+    def __init__(
+        self, base: Any, local: FactorQEnv, envs: list[FactorQEnv] | None, exclude: Sequence[str]
+    ) -> None:
         binary = [keys.BUMP] if local.declaration.features else [keys.SENSORS, keys.BUMP]
         transforms = [DTypeCastTransform(torch.int8, torch.bool, in_keys=binary)]
         if exclude:
@@ -46,7 +50,7 @@ class DeclaredEnv(TransformedEnv):
         self.dependency = local.dependency
         self.envs = envs
 
-    def _step(self, tensordict):
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         partial = tensordict.get("_step", None)
         if partial is not None and not bool(partial.all()):
             # a Gymnasium vector env steps all its envs: a partial step would silently step the
@@ -76,7 +80,7 @@ def declared_torchrl_env(
     *,
     backend: str = "sync",
     exclude: Sequence[str] = (),
-    device=None,
+    device: torch.device | str | None = None,
 ) -> DeclaredEnv:
     """``S = len(seeds)`` adapters as one torchrl env of ``batch_size=(S,)``.
 
@@ -106,19 +110,30 @@ def declared_torchrl_env(
             mp_start_method="fork",  # the workers inherit the registered ids and the makers
             device=device,
         )
-        local = make_env(seeds[0])  # the sizes, read here (the workers hold the envs)
+        local = _adapter(make_env(seeds[0]))  # the sizes, read here (the workers hold the envs)
     else:
         autoreset = gymnasium.vector.AutoresetMode.DISABLED  # torchrl resets by mask
+        vector: gymnasium.vector.VectorEnv
         if backend == "sync":
             vector = gymnasium.vector.SyncVectorEnv(makers, autoreset_mode=autoreset)
-            envs = list(vector.envs)
+            envs = [_adapter(env) for env in vector.envs]
             local = envs[0]
         else:
             vector = gymnasium.vector.AsyncVectorEnv(makers, autoreset_mode=autoreset)
-            local = make_env(seeds[0])
+            local = _adapter(make_env(seeds[0]))
         base = GymWrapper(vector, categorical_action_encoding=True, device=device)
     return DeclaredEnv(base, local, envs, exclude)
 
 
-def _gym_wrapped(maker):
+def _adapter(env: gymnasium.Env) -> FactorQEnv:
+    """``env`` if it is a ``FactorQEnv`` (what the sizes and the declaration are read from)."""
+    if not isinstance(env, FactorQEnv):
+        raise TypeError(
+            f"make_env must return a FactorQEnv (the adapter around the world), got "
+            f"{type(env).__name__}"
+        )
+    return env
+
+
+def _gym_wrapped(maker: Callable[[], FactorQEnv]) -> Any:
     return GymWrapper(maker(), categorical_action_encoding=True)

@@ -15,12 +15,15 @@ from __future__ import annotations
 
 import threading
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from functools import cached_property
-from typing import NamedTuple, cast
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple, cast, overload
 
 import torch
+
+if TYPE_CHECKING:
+    import numpy as np
 
 from factorq_envs.body import (
     BODIES,
@@ -67,14 +70,14 @@ WORLD_PERIODS = REGIME_PERIODS
 WORLDS = REGIMES
 
 
-def check_choice(name: str, value, allowed) -> str:
+def check_choice(name: str, value: object, allowed: Collection[str]) -> str:
     """``value`` if it is one of the names ``allowed``, else a ValueError naming them."""
     if not isinstance(value, str) or value not in allowed:
         raise ValueError(f"{name}={value!r} is unknown: choose one of {', '.join(allowed)}")
     return value
 
 
-def check_permutation(name: str, value, count: int) -> tuple[int, ...]:
+def check_permutation(name: str, value: Any, count: int) -> tuple[int, ...]:
     """``value`` as a tuple if it is a permutation of ``range(count)``, else an error naming it."""
     if isinstance(value, str) or not hasattr(value, "__iter__"):
         raise TypeError(
@@ -648,6 +651,24 @@ def _period_tables(period: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, to
     return tables
 
 
+@overload
+def step_worlds(
+    state: WorldState,
+    action: torch.Tensor,
+    key: torch.Tensor,
+    period: torch.Tensor,
+    config: WorldConfig,
+    keep_draws: Literal[False] = False,
+) -> tuple[WorldState, StepOutcome]: ...
+@overload
+def step_worlds(
+    state: WorldState,
+    action: torch.Tensor,
+    key: torch.Tensor,
+    period: torch.Tensor,
+    config: WorldConfig,
+    keep_draws: Literal[True],
+) -> tuple[WorldState, StepOutcome, torch.Tensor | None]: ...
 def step_worlds(
     state: WorldState,
     action: torch.Tensor,
@@ -655,7 +676,7 @@ def step_worlds(
     period: torch.Tensor,
     config: WorldConfig,
     keep_draws: bool = False,
-):
+) -> tuple[WorldState, StepOutcome] | tuple[WorldState, StepOutcome, torch.Tensor | None]:
     """One action in each of ``S`` worlds (SPEC section 1's order).
 
     Returns ``(state, outcome)``; with ``keep_draws``, ``(state, outcome, draws)``: the scatter
@@ -864,7 +885,7 @@ class FactoredGrid:
         size = self.config.size
         return state.obstacles.reshape(-1, size, size).clone()
 
-    def render_rgb(self, state: WorldState, index: int = 0):
+    def render_rgb(self, state: WorldState, index: int = 0) -> np.ndarray:
         """World ``index`` as an image ``uint8 [H, W, 3]`` (``factorq_envs.render.render_rgb``)."""
         from factorq_envs.render import bumped_faces, render_rgb
 

@@ -61,7 +61,8 @@ import importlib
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 import gymnasium
 import numpy as np
@@ -72,13 +73,16 @@ from factorq_envs.protocol import EnvSizes
 from factorq_torch.base import keys
 from factorq_torch.base.validation import check_int
 
+if TYPE_CHECKING:
+    import torch
+
 #: The entries the adapter adds to the observation (a Dict env may not already use them).
 ADDED_KEYS = (keys.CELL, keys.HEADING, keys.SENSORS, keys.BUMP, keys.COLLISION)
 #: The key of a non-Dict env's own observation.
 OBSERVATION = "observation"
 
 
-def require_extra(module: str, extra: str):
+def require_extra(module: str, extra: str) -> ModuleType:
     """Import ``module`` (registering its envs), or raise one ModuleNotFoundError naming the
     optional ``extra`` that installs it (e.g. ``factorq-torch[highway]``)."""
     try:
@@ -92,7 +96,7 @@ def require_extra(module: str, extra: str):
         ) from None
 
 
-def make_registered(env_id: str, **kwargs) -> gymnasium.Env:
+def make_registered(env_id: str, **kwargs: Any) -> gymnasium.Env:
     """``gymnasium.make(env_id, **kwargs)``, or one ValueError naming an id that is not
     registered (import the package that registers it first)."""
     if env_id not in gymnasium.registry:
@@ -103,7 +107,7 @@ def make_registered(env_id: str, **kwargs) -> gymnasium.Env:
     return gymnasium.make(env_id, **kwargs)
 
 
-def _callable_or_none(name: str, value) -> None:
+def _callable_or_none(name: str, value: object) -> None:
     if value is not None and not callable(value):
         raise TypeError(f"Declaration.{name} must be callable or None, got {value!r}")
 
@@ -196,7 +200,7 @@ class Declaration:
         return self.collision(reward, info)
 
 
-def _call(declaration_field: str, function, *args):
+def _call(declaration_field: str, function: Callable[..., Any], *args: Any) -> Any:
     """Call a declared function; a KeyError (a missing info or observation key) becomes one
     message naming the field and the keys the env's info has."""
     try:
@@ -277,16 +281,16 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
     def _own_entries(self, space: spaces.Space) -> dict[str, spaces.Space]:
         if not isinstance(space, spaces.Dict):
             return {OBSERVATION: space}
-        own = {}
+        own: dict[str, spaces.Space] = {}
         for name, entry in space.spaces.items():
             if name in ADDED_KEYS:
                 raise ValueError(
                     f"{_name(self.env)}'s observation already has an entry {name!r}, a key the "
                     f"adapter writes: rename it with an observation wrapper first"
                 )
-            entry = self.declaration.spaces.get(name, entry)
-            if entry is not None:
-                own[name] = entry
+            declared = self.declaration.spaces.get(name, entry)
+            if declared is not None:
+                own[name] = declared
         return own
 
     def _spaces(self, space: spaces.Space) -> dict[str, spaces.Space]:
@@ -312,7 +316,7 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
         return self.config.num_actuators
 
     @property
-    def dependency(self):
+    def dependency(self) -> torch.Tensor | None:
         """The declared oracle as a bool tensor ``[A, K]``, or ``None``."""
         if self.declaration.dependency is None:
             return None
@@ -323,7 +327,7 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
     # ---------------------------------------------------------------------------------------
     # Reading the env
 
-    def _sensors(self, observation, info) -> np.ndarray:
+    def _sensors(self, observation: Any, info: dict[str, Any]) -> np.ndarray:
         declaration = self.declaration
         value = _call("sensors", declaration.sensors, observation, info, self.env)
         array = np.asarray(value)
@@ -335,9 +339,11 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
             )
         return array.astype(np.float32) if declaration.features else array.astype(np.int8)
 
-    def _task_state(self, observation, info) -> tuple[int, int]:
+    def _task_state(
+        self, task_state: Callable[..., Any], observation: Any, info: dict[str, Any]
+    ) -> tuple[int, int]:
         declaration = self.declaration
-        state = _call("task_state", declaration.task_state, observation, info, self.env)
+        state = _call("task_state", task_state, observation, info, self.env)
         cell, heading = state if declaration.num_headings > 1 else (state, 0)
         cell, heading = int(cell), int(heading)
         if not (0 <= cell < declaration.num_cells and 0 <= heading < declaration.num_headings):
@@ -347,14 +353,17 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
             )
         return cell, heading
 
-    def _observe(self, observation, info, charged: int | None) -> dict[str, Any]:
+    def _observe(
+        self, observation: Any, info: dict[str, Any], charged: int | None
+    ) -> dict[str, Any]:
         config = self.config
         if isinstance(observation, dict):
             out = {name: observation[name] for name in self._own_keys}
         else:
             out = {OBSERVATION: observation}
-        if self.declaration.task_state is not None:
-            cell, heading = self._task_state(observation, info)
+        task_state = self.declaration.task_state
+        if task_state is not None:
+            cell, heading = self._task_state(task_state, observation, info)
             out[keys.CELL] = cell
             if config.num_headings > 1:
                 out[keys.HEADING] = heading
@@ -371,7 +380,9 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
     # ---------------------------------------------------------------------------------------
     # The Gymnasium API
 
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, Any], dict[str, Any]]:
         if seed is None and self._pending_seed is not None:
             seed = self._pending_seed
         self._pending_seed = None
@@ -379,7 +390,7 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
         info = dict(info, collided=False, task_reward=0.0)
         return self._observe(observation, info, None), info
 
-    def step(self, action):
+    def step(self, action: Any) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
         if isinstance(action, np.ndarray) and action.shape == ():
             action = action.item()
         count = self.config.num_actuators
@@ -421,6 +432,6 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
         self._pending_seed = pending
 
 
-def _name(env) -> str:
+def _name(env: gymnasium.Env) -> str:
     spec = getattr(env, "spec", None)
     return spec.id if spec is not None else type(env.unwrapped).__name__

@@ -9,6 +9,7 @@ from the same counter streams: ``reset(seed=s)`` gives the trajectories of
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import gymnasium
@@ -78,10 +79,10 @@ class FactoredGridGym(gymnasium.Env):
         body: str = "translate",
         sensors: str = "cross",
         num_distractors: int = 0,
-        sensor_permutation=None,
+        sensor_permutation: Sequence[int] | int | None = None,
         sensor_noise: float = 0.0,
         actuator_noise: float = 0.0,
-        world=None,
+        world: Any = None,  # a factorq_envs.protocol.World,
     ) -> None:
         if world is not None:
             from factorq_envs.torchrl_env import (
@@ -112,7 +113,7 @@ class FactoredGridGym(gymnasium.Env):
             static_obstacles = torch.zeros(config.num_cells, dtype=torch.bool)
         self._setup(FactoredGrid(config, static_obstacles), obstacle_period, render_mode)
 
-    def _setup(self, world, obstacle_period: int, render_mode: str | None) -> None:
+    def _setup(self, world: Any, obstacle_period: int, render_mode: str | None) -> None:
         """Spaces and state, read from ``world`` (an ``factorq_envs.protocol.World``)."""
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
@@ -179,7 +180,7 @@ class FactoredGridGym(gymnasium.Env):
         }
         return self._observation(), info
 
-    def step(self, action) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
+    def step(self, action: Any) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
         if isinstance(action, np.ndarray) and action.shape == ():
             action = action.item()
         count = self.config.num_actuators
@@ -248,7 +249,7 @@ class FactoredGridGym(gymnasium.Env):
 INFO_KEYS = ("task_reward",)
 
 
-def torchrl_info_reader():
+def torchrl_info_reader() -> Any:  # torchrl's reader (untyped)
     """torchrl's ``default_info_dict_reader`` for the step's ``task_reward`` with its spec
     declared (a float32 scalar per env), so torchrl need not infer it from a first step.
     ``local_reward`` is left out: the ``collision`` observation carries it, and

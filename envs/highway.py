@@ -37,6 +37,10 @@ learner say whether it agrees.
 
 from __future__ import annotations
 
+from types import ModuleType
+from typing import Any
+
+import gymnasium
 import numpy as np
 
 from factorq_envs.gymnasium_adapter import Declaration, FactorQEnv, make_registered, require_extra
@@ -71,13 +75,13 @@ def _oracle() -> tuple[tuple[bool, ...], ...]:
 ORACLE = _oracle()
 
 
-def require_highway():
+def require_highway() -> ModuleType:
     """Import ``highway_env`` (registering its envs), or one ModuleNotFoundError naming the
     extra."""
     return require_extra("highway_env", EXTRA)
 
 
-def ttc_sensors(observation, info, env) -> np.ndarray:
+def ttc_sensors(observation: Any, info: dict[str, Any], env: gymnasium.Env) -> np.ndarray:
     """``[6]`` bool from highway's ``TimeToCollisionObservation`` of the env (module docstring)."""
     from highway_env.envs.common.observation import TimeToCollisionObservation
 
@@ -100,7 +104,7 @@ DECLARATION = Declaration(
 )
 
 
-def make_highway(seed: int | None = None, env_id: str = ENV_ID, **config) -> FactorQEnv:
+def make_highway(seed: int | None = None, env_id: str = ENV_ID, **config: Any) -> FactorQEnv:
     """The adapter around highway-env's ``env_id`` (default ``highway-fast-v0``; ``config``
     entries update highway's own config); ``seed``: its first reset's seed."""
     require_highway()

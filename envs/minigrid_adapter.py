@@ -63,6 +63,9 @@ from __future__ import annotations
 
 import importlib
 import string
+from collections.abc import Callable
+from types import ModuleType
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -107,7 +110,7 @@ def minigrid_heading(agent_dir: int) -> int:
     return (NUM_HEADINGS - 1 - agent_dir) % NUM_HEADINGS
 
 
-def require_minigrid():
+def require_minigrid() -> ModuleType:
     """Import ``minigrid`` (registering its envs), or raise one ModuleNotFoundError naming the
     extra to install."""
     return require_extra("minigrid", EXTRA)
@@ -149,13 +152,20 @@ def sensor_names(layout: str = "front3") -> tuple[str, ...]:
     return check_layout(layout).names(HEADING)
 
 
-def _blocked_cells(cells: np.ndarray, observation, info, env) -> np.ndarray:
+def _blocked_cells(
+    cells: np.ndarray, observation: dict[str, Any], info: dict[str, Any], env: gym.Env
+) -> np.ndarray:
     """The view cells ``cells`` ``[K, 2]`` that hold a wall or a ball, ``[K]`` bool."""
     kinds = observation["image"][cells[:, 0], cells[:, 1], 0]
     return (kinds == BLOCKING["wall"]) | (kinds == BLOCKING["ball"])
 
 
-def _cell_and_heading(size: int, observation, info, env) -> tuple[int, int]:
+def _cell_and_heading(
+    size: int,
+    observation: dict[str, Any],
+    info: dict[str, Any],
+    env: Any,  # MiniGrid's
+) -> tuple[int, int]:
     x, y = env.unwrapped.agent_pos
     return int(y) * size + int(x), minigrid_heading(int(observation["direction"]))
 
@@ -183,7 +193,7 @@ def declaration(size: int, layout: str = "front3") -> Declaration:
     )
 
 
-def partial_of(function, *args):
+def partial_of(function: Callable[..., Any], *args: Any) -> Callable[..., Any]:
     """``functools.partial`` (picklable, so the declaration travels to worker processes)."""
     from functools import partial
 
@@ -212,7 +222,7 @@ def make_minigrid(
     return FactorQEnv(env, declaration(size, layout), seed=seed)
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> Any:
     if name == "MiniGridEnv":
         return importlib.import_module("factorq_envs.minigrid_torchrl").MiniGridEnv
     raise AttributeError(f"module 'factorq_envs.minigrid_adapter' has no attribute {name!r}")

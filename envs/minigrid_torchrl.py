@@ -10,6 +10,7 @@ from functools import partial
 import torch
 
 from factorq_envs.declared_env import DeclaredEnv, declared_torchrl_env
+from factorq_envs.gymnasium_adapter import FactorQEnv
 from factorq_envs.minigrid_adapter import make_minigrid
 
 
@@ -55,5 +56,5 @@ def MiniGridEnv(  # noqa: N802  (a constructor: the torchrl env it returns is a 
     )
 
 
-def _make(size: int, semantics: str, layout: str, seed: int):
+def _make(size: int, semantics: str, layout: str, seed: int) -> FactorQEnv:
     return make_minigrid(size, semantics, layout=layout, seed=seed)

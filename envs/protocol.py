@@ -33,6 +33,7 @@ terminated episodes draws nothing again). Nothing here imports a world.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol, runtime_checkable
 
@@ -137,7 +138,7 @@ def check_world(world: Any, name: str = "world") -> Any:
     return world
 
 
-def optional_method(world: Any, method: str):
+def optional_method(world: Any, method: str) -> Callable[..., Any]:
     """``world``'s optional ``method`` (``extra_observations``, ``obstacle_map``, ``render_rgb``,
     ``to``), or a TypeError naming the world that lacks it."""
     found = getattr(world, method, None)

@@ -10,6 +10,8 @@ actuator the layer penalises, deeper for a larger penalty.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import torch
 
@@ -29,7 +31,7 @@ RISK = (245, 150, 20)
 OFFSETS = ((-1, 0), (0, -1), (1, 0), (0, 1))
 
 
-def bumped_faces(bump, heading: int, body: Body) -> list[int]:
+def bumped_faces(bump: Sequence[bool] | torch.Tensor, heading: int, body: Body) -> list[int]:
     """The absolute directions (0 N, 1 W, 2 S, 3 E) of the actuators that bumped last step."""
     faces = []
     for actuator, hit in enumerate(bump):
@@ -39,7 +41,9 @@ def bumped_faces(bump, heading: int, body: Body) -> list[int]:
     return faces
 
 
-def risky_faces(penalties, heading: int, body: Body, threshold: float = 0.05) -> list:
+def risky_faces(
+    penalties: Sequence[float] | torch.Tensor, heading: int, body: Body, threshold: float = 0.05
+) -> list[tuple[int, float]]:
     """``(face, penalty)`` of every moving actuator whose penalty (``G rho_a``, ``[A]``) is below
     ``-threshold``: the absolute direction it would move in (as ``bumped_faces``)."""
     faces = []
@@ -50,7 +54,14 @@ def risky_faces(penalties, heading: int, body: Body, threshold: float = 0.05) ->
     return faces
 
 
-def mark_risk(image: np.ndarray, cell: int, size: int, faces, *, scale: int = SCALE) -> np.ndarray:
+def mark_risk(
+    image: np.ndarray,
+    cell: int,
+    size: int,
+    faces: Sequence[tuple[int, float]],
+    *,
+    scale: int = SCALE,
+) -> np.ndarray:
     """``image`` (a ``render_rgb`` frame, changed in place and returned) with an orange mark in
     the agent's cell next to each face of ``faces`` (``risky_faces``): a bar whose depth grows
     with the penalty, from an eighth of the cell (small) to a third (a penalty of 1 or more).
@@ -100,7 +111,7 @@ def render_rgb(
     image = np.empty((side, side, 3), dtype=np.uint8)
     image[:] = WALL
 
-    def fill(row: int, col: int, colour, inset: int = 0) -> None:
+    def fill(row: int, col: int, colour: Sequence[int], inset: int = 0) -> None:
         top, left = (row + 1) * scale + inset, (col + 1) * scale + inset
         image[top : top + scale - 2 * inset, left : left + scale - 2 * inset] = colour
 

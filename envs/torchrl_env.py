@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -26,7 +27,7 @@ from factorq_torch.base.validation import check_device, check_seed, is_int
 _INTEGER_DTYPES = (torch.int8, torch.int16, torch.int32, torch.int64, torch.uint8)
 
 
-def _check_batch_size(batch_size) -> torch.Size:
+def _check_batch_size(batch_size: Any) -> torch.Size:
     """``None`` -> ``()``, an int ``n`` -> ``(n,)``, a sequence of positive ints as it is."""
     if batch_size is None:
         return torch.Size(())
@@ -44,7 +45,7 @@ def _check_batch_size(batch_size) -> torch.Size:
     return torch.Size(batch_size)
 
 
-def _check_periods(obstacle_period, num_worlds: int) -> tuple[torch.Tensor, int]:
+def _check_periods(obstacle_period: Any, num_worlds: int) -> tuple[torch.Tensor, int]:
     """The period of every world ``[S]`` int64 and the one to record in the ``WorldConfig``.
 
     ``obstacle_period`` is an int (every world) or a sequence / 1-D integer tensor of length
@@ -103,11 +104,11 @@ GRID_ARGUMENTS = {
 }
 
 
-def check_no_grid_arguments(given: dict, world) -> None:
+def check_no_grid_arguments(given: dict[str, Any], world: object) -> None:
     """Refuse grid arguments beside ``world=``: one ValueError naming them. ``given``: the
     constructor's arguments by name (its ``locals()``); only ``GRID_ARGUMENTS`` are read."""
 
-    def differs(value, default) -> bool:
+    def differs(value: object, default: object) -> bool:
         if default is None or value is None:
             return value is not default
         try:
@@ -132,7 +133,7 @@ def _keep_rows(stepping: torch.Tensor, new: torch.Tensor, kept: torch.Tensor) ->
     return torch.where(stepping.view(-1, *([1] * (new.dim() - 1))), new, kept)
 
 
-def done_spec(batch: tuple[int, ...], device) -> Composite:
+def done_spec(batch: tuple[int, ...], device: torch.device | str | None) -> Composite:
     """The ``done`` / ``terminated`` / ``truncated`` flags ``[*batch, 1]`` bool of a batched env."""
     flag = Categorical(2, shape=(*batch, 1), dtype=torch.bool, device=device)
     return Composite(
@@ -250,7 +251,7 @@ class FactoredGridEnv(EnvBase):
         sensor_permutation: Sequence[int] | int | None = None,
         sensor_noise: float = 0.0,
         actuator_noise: float = 0.0,
-        world=None,
+        world: Any = None,  # a factorq_envs.protocol.World,
     ) -> None:
         batch_size = _check_batch_size(batch_size)
         device = check_device("device", device)
@@ -293,7 +294,15 @@ class FactoredGridEnv(EnvBase):
         world = FactoredGrid(config, self.static_obstacles)
         self._setup(world, num_worlds, experiment_offset, periods, seed, world_keys)
 
-    def _setup(self, world, num_worlds, experiment_offset, periods, seed, world_keys) -> None:
+    def _setup(
+        self,
+        world: Any,
+        num_worlds: int,
+        experiment_offset: int,
+        periods: torch.Tensor,
+        seed: int | None,
+        world_keys: torch.Tensor | None,
+    ) -> None:
         """Everything after the world is known: state, specs, keys."""
         device = self.device
         # The world behind the factorq_envs.protocol.World interface: every rule goes through it.
@@ -323,13 +332,13 @@ class FactoredGridEnv(EnvBase):
             self.world_keys = world_keys.to(self.device)
 
     @property
-    def world_state(self):
+    def world_state(self) -> Any:  # the world's NamedTuple
         """The worlds' state (the world's ``NamedTuple``, leading dim ``S``). Assigning it (a
         restored checkpoint, the fast path) counts as a reset: the env may be stepped from it."""
         return self._world_state
 
     @world_state.setter
-    def world_state(self, value) -> None:
+    def world_state(self, value: Any) -> None:
         self._world_state = value
         self._started = True
 
@@ -375,7 +384,9 @@ class FactoredGridEnv(EnvBase):
 
     # -- seeding -------------------------------------------------------------------------------
 
-    def _extra_observations(self, state, sensors: torch.Tensor | None) -> dict:
+    def _extra_observations(
+        self, state: Any, sensors: torch.Tensor | None
+    ) -> dict[str, torch.Tensor]:
         """The world's optional extra observation entries ``{key: [S, n] bool}`` (none when it
         has no ``extra_observations``); ``sensors`` None: the world observes them itself."""
         extra = getattr(self.world, "extra_observations", None)
@@ -401,7 +412,7 @@ class FactoredGridEnv(EnvBase):
 
     # -- reset and step ------------------------------------------------------------------------
 
-    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
         """Start new episodes where ``"_reset"`` ``[*B, 1]`` is True, or where the keyword
         ``reset_mask`` ``[*B]`` is (``accepts_reset_mask``); everywhere without either."""
         reset = None if tensordict is None else tensordict.get("_reset", None)
@@ -524,7 +535,7 @@ class FactoredGridEnv(EnvBase):
 
     def _output(
         self,
-        state,
+        state: Any,
         collision: torch.Tensor,
         terminated: torch.Tensor,
         truncated: torch.Tensor,

@@ -20,6 +20,7 @@ colliding; nothing in torchrl can tell):
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -226,7 +227,7 @@ class RenderPixels(Transform):
         super().__init__(in_keys=[], out_keys=[key])
         self.key = key
 
-    def _base(self):
+    def _base(self) -> Any:  # the env with render_rgb (torchrl: untyped)
         env = self.parent
         base = getattr(env, "base_env", env)
         if not hasattr(base, "render_rgb"):

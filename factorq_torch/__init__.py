@@ -14,6 +14,7 @@ The worlds are in ``envs`` (``FactoredGridEnv``, ``SplitLocalReward``, ``Experim
 from __future__ import annotations
 
 import importlib
+from typing import Any
 
 __version__ = "0.1.0"
 
@@ -42,7 +43,7 @@ _LAZY = {
 __all__ = ["__version__", *_LAZY]
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> Any:
     if name in _LAZY:
         module = importlib.import_module(_LAZY[name])
         value = module if module.__name__.endswith(f".{name}") else getattr(module, name)

@@ -27,6 +27,9 @@ def sensor_pattern(readings: torch.Tensor) -> torch.Tensor:
 
     Shapes: ``[..., K]`` (bool or integer 0/1) -> ``[...]`` int64 in ``[0, 2**K)``.
 
+    Args:
+        readings: ``[..., K]`` sensor bits (bool, or integers 0/1).
+
     >>> sensor_pattern(torch.tensor([[True, False, False, True], [False] * 4]))
     tensor([9, 0])
     """
@@ -42,17 +45,25 @@ def qlearning_state(cell: torch.Tensor, readings: torch.Tensor) -> torch.Tensor:
 
     Shapes: ``cell [...]`` int64, ``readings [..., K]`` -> ``[...]`` int64 in ``[0, 2**K N)``.
 
+    Args:
+        cell: ``[...]`` int64 cell indices.
+        readings: ``[..., K]`` sensor bits.
+
     >>> qlearning_state(torch.tensor([0, 3]), torch.tensor([[1, 1, 0, 0], [0, 0, 1, 0]]))
     tensor([ 3, 52])
     """
     return cell * (1 << readings.shape[-1]) + sensor_pattern(readings)
 
 
-def check_dependency(dependency, num_sensors: int | None = None) -> torch.Tensor:
+def check_dependency(dependency: object, num_sensors: int | None = None) -> torch.Tensor:
     """``dependency`` as a bool ``[A, K]`` tensor, else a TypeError / ValueError naming it.
 
     ``num_sensors``: the ``K`` it must have (``None``: any). Row ``a`` marks the parent sensors
     ``D(a)`` of actuator ``a``: those that decide its local reward.
+
+    Args:
+        dependency: the value to check (a bool tensor ``[A, K]``).
+        num_sensors: the ``K`` it must have (``None``: any).
     """
     if not isinstance(dependency, torch.Tensor) or dependency.dtype != torch.bool:
         raise TypeError(
@@ -79,7 +90,11 @@ _EXACT_FLOAT64_BITS = 53
 
 def parent_weights(dependency: torch.Tensor) -> torch.Tensor:
     """``[A, K]`` int64: ``2**r`` where sensor ``k`` is the ``r``-th parent of actuator ``a`` (in
-    sensor order), 0 where it is no parent; ``local_patterns`` sums them over the set bits."""
+    sensor order), 0 where it is no parent; ``local_patterns`` sums them over the set bits.
+
+    Args:
+        dependency: bool ``[A, K]``, actuator ``a``'s parent sensors in row ``a``.
+    """
     ranks = dependency.to(torch.int64).cumsum(dim=-1) - 1  # [A, K]
     return torch.where(dependency, 1 << ranks.clamp(min=0), 0)
 
@@ -90,6 +105,10 @@ def local_patterns(readings: torch.Tensor, dependency: torch.Tensor) -> torch.Te
 
     Shapes: ``readings [..., K]`` (bool), ``dependency [A, K]`` -> ``[..., A]`` int64 in
     ``[0, 2**|D(a)|)``. The paper's body (``dependency = eye(4)``): ``o_D(a) = readings[a]``.
+
+    Args:
+        readings: ``[..., K]`` sensor bits (bool).
+        dependency: bool ``[A, K]``, the parents of each actuator.
 
     >>> dependency = torch.tensor([[True, False, True], [False, False, False]])
     >>> local_patterns(torch.tensor([True, False, True]), dependency)
@@ -150,6 +169,11 @@ def project_local(
     Shapes: ``rho [..., A, P]`` (``P >= 2**max_a |D(a)|``), ``readings [..., K]`` bool,
     ``dependency [A, K]`` bool -> ``[..., A]`` (leading dimensions broadcast). The paper's body:
     ``rho(o) = (rho_0[o_0], ..., rho_3[o_3])``.
+
+    Args:
+        rho: ``[..., A, P]`` the local reward tables.
+        readings: ``[..., K]`` sensor bits (bool).
+        dependency: bool ``[A, K]``, the parents of each actuator.
     """
     pattern = local_patterns(readings, dependency)  # [..., A]
     if rho.shape[:-2] != pattern.shape[:-1]:  # (torch.broadcast_shapes costs ~40 us in Python)
@@ -220,6 +244,11 @@ def combined_values(q: torch.Tensor, rho: torch.Tensor, g: torch.Tensor) -> torc
 
     Values beyond the float range are capped at its ends (an identity for any real table), so the
     argmax is still defined when huge tables overflow.
+
+    Args:
+        q: ``[..., A]`` task values ``Q(s)``.
+        rho: ``[..., A]`` local values ``rho(o)``.
+        g: ``[...]`` eq. 3's normalisation factor ``G``.
     """
     largest = torch.finfo(q.dtype).max
     return (q + g.unsqueeze(-1) * rho).clamp(-largest, largest)
@@ -232,6 +261,12 @@ def q_learning_target(
 
     Truncated transitions still bootstrap: only ``terminated`` stops it.
     Shapes: ``[...], [..., A], [...] (bool) -> [...]``.
+
+    Args:
+        reward: ``[...]`` the rewards ``r``.
+        q_next: ``[..., A]`` the next state's values ``Q(s')``.
+        terminated: ``[...]`` bool, where the episode ended (no bootstrap).
+        gamma: the discount.
     """
     bootstrap = reward + gamma * q_next.amax(dim=-1)
     return torch.where(terminated, reward, bootstrap)
@@ -245,6 +280,12 @@ def factorq_target(
     ``C(s')`` is eq. 2 at the next state with its own ``G`` and ``rho``; the raw task value would
     overestimate what the agent can get there (paper, 5.2.1). Same bootstrapping rule as eq. 1.
     Shapes: ``[...], [..., A], [...] (bool) -> [...]``.
+
+    Args:
+        task_reward: ``[...]`` the task rewards ``r``.
+        c_next: ``[..., A]`` eq. 2's ``C(s')`` at the next state.
+        terminated: ``[...]`` bool, where the episode ended (no bootstrap).
+        gamma: the discount.
     """
     return q_learning_target(task_reward, c_next, terminated, gamma)
 
@@ -255,6 +296,11 @@ def q_update(q_sa: torch.Tensor, target: torch.Tensor, alpha: float) -> torch.Te
     Written as ``Q + alpha (target - Q)``: algebraically the same, and exactly (bit for bit) one
     SGD step of learning rate ``alpha`` on ``0.5 * (Q - target)**2``, which is how the losses
     apply it to tables and networks alike. Shapes broadcast.
+
+    Args:
+        q_sa: ``Q(s, a)``.
+        target: eq. 1's or eq. 4's target.
+        alpha: the learning rate.
     """
     return q_sa + alpha * (target - q_sa)
 
@@ -266,6 +312,11 @@ def running_mean_update(
 
     ``kappa <- kappa + 1``, ``rho <- rho + (r - rho) / kappa``. Shapes broadcast; ``kappa`` is an
     integer visit count. Returns the new ``(rho, kappa)``.
+
+    Args:
+        rho: the running means.
+        kappa: their visit counts (integer).
+        reward: the new rewards.
     """
     kappa = kappa + 1
     return rho + (reward - rho) / kappa, kappa
@@ -280,6 +331,12 @@ def running_mean_add(
     rounding, to ``running_mean_update`` applied ``n`` times); with ``n = 1`` it *is*
     ``running_mean_update``, bit for bit. Where ``count == 0`` nothing changes. Shapes broadcast.
 
+    Args:
+        rho: the running means.
+        kappa: their visit counts (integer).
+        step_sum: ``sum_i (r_i - rho)`` of the new rewards of each entry.
+        count: ``n``, the new rewards of each entry.
+
     >>> running_mean_add(torch.tensor([0.0]), torch.tensor([0]), torch.tensor([-2.0]),
     ...                  torch.tensor([4]))
     (tensor([-0.5000]), tensor([4]))
@@ -293,6 +350,10 @@ def greedy_action_from_bits(values: torch.Tensor, tie_bits: torch.Tensor) -> tor
 
     The ``k``-th of the ``n`` maximal actions (in index order) is taken, ``k = bits * n >> 32``.
     Shapes: ``[..., A], [...] -> [...]`` (int64).
+
+    Args:
+        values: ``[..., A]`` action values.
+        tie_bits: ``[...]`` int64 random words in ``[0, 2**32)``.
     """
     is_max = values == values.amax(dim=-1, keepdim=True)  # [..., A]
     count = is_max.sum(dim=-1)
@@ -315,6 +376,12 @@ def epsilon_greedy_from_bits(
     the ``A`` actions and flagged exploratory (even if it happens to be greedy); otherwise it is
     the greedy action with random tie-breaking. Bits are int64 in ``[0, 2**32)``, shape ``[...]``.
 
+    Args:
+        values: ``[..., A]`` action values.
+        epsilon: the exploration probability.
+        explore_bits, action_bits, tie_bits: ``[...]`` int64 random words in ``[0, 2**32)``:
+            explore or not, the uniform action, the tie-break.
+
     Returns:
         ``(action, exploratory)``: int64 ``[...]`` and bool ``[...]``.
     """
@@ -332,6 +399,11 @@ def epsilon_greedy(
     The convenience form of ``epsilon_greedy_from_bits``: the three random words are drawn from
     the given ``torch.Generator`` (the library's own modules use per-experiment counter streams
     instead, see ``factorq_torch.base.rng``). Shapes: ``[..., A] -> ([...], [...])``.
+
+    Args:
+        values: ``[..., A]`` action values.
+        epsilon: the exploration probability.
+        generator: where the random words come from (``None``: torch's default).
     """
     shape = (3, *values.shape[:-1])
     bits = torch.randint(0, 1 << 32, shape, generator=generator, device=values.device)
@@ -389,6 +461,11 @@ def beta_bernoulli_log_marginal(
     ``B(x, y) = Gamma(x) Gamma(y) / Gamma(x + y)``; ``n = s = 0`` gives 0. Fractional ``s`` (and
     ``n``) are allowed (a fractional success). Shapes broadcast.
 
+    Args:
+        count: ``n``, the outcomes.
+        successes: ``s``, the successes among them.
+        prior_a, prior_b: the Beta prior of the rate.
+
     >>> beta_bernoulli_log_marginal(torch.tensor([2.0]), torch.tensor([1.0]))  # 1!1!/3! = 1/6
     tensor([-1.7918], dtype=torch.float64)
     """
@@ -401,7 +478,12 @@ def beta_bernoulli_log_marginal(
 
 def candidate_sets(num_sensors: int, max_parents: int = MAX_CANDIDATE_PARENTS) -> list[tuple]:
     """The candidate parent sets: ``()``, then ``(j,)`` for every sensor, then ``(j, k)``,
-    ``j < k`` (with ``max_parents=2``), in that order."""
+    ``j < k`` (with ``max_parents=2``), in that order.
+
+    Args:
+        num_sensors: ``K``, the sensors.
+        max_parents: the largest set (1 or 2).
+    """
     check_int("num_sensors", num_sensors, 1, MAX_SENSORS)
     if not isinstance(max_parents, int) or isinstance(max_parents, bool) or max_parents < 0:
         raise ValueError(f"max_parents={max_parents!r} must be an integer >= 0")
@@ -421,7 +503,12 @@ def candidate_log_prior(sets: list[tuple], prior: str = "size") -> torch.Tensor:
     """``[C]`` float64 log prior of the candidates: ``"size"``, every size of parent set has the
     same mass, uniform within a size; ``"uniform"``, every candidate the same; ``"sparse"``, as
     ``"size"`` but all pairs together have ``SPARSE_PAIR_MASS`` times the mass of a size (an
-    actuator needs the evidence of a pair's second sensor before the pair competes)."""
+    actuator needs the evidence of a pair's second sensor before the pair competes).
+
+    Args:
+        sets: the candidates (``candidate_sets``).
+        prior: one of ``PRIORS``.
+    """
     if prior not in PRIORS:
         raise ValueError(f"prior={prior!r} is unknown: choose one of {PRIORS}")
     if prior == "uniform":
@@ -438,7 +525,11 @@ def candidate_log_prior(sets: list[tuple], prior: str = "size") -> torch.Tensor:
 def competitor_mask(sets: list[tuple]) -> torch.Tensor:
     """``[C, C]`` bool: ``[c, c']`` True where ``c'`` competes with ``c`` for commitment: every
     other candidate but the strict supersets of ``c``; for "no sensor", the single sensors.
-    (Vectorised: 529 candidates are 280,000 pairs, seconds as a Python loop.)"""
+    (Vectorised: 529 candidates are 280,000 pairs, seconds as a Python loop.)
+
+    Args:
+        sets: the candidates (``candidate_sets``).
+    """
     size = torch.tensor([len(parents) for parents in sets])
     width = 1 + max((max(parents) for parents in sets if parents), default=-1)
     members = torch.zeros(len(sets), width, dtype=torch.bool)
@@ -452,14 +543,23 @@ def competitor_mask(sets: list[tuple]) -> torch.Tensor:
 
 
 def posterior_weights(log_posterior: torch.Tensor) -> torch.Tensor:
-    """``softmax`` over the last dimension (candidates): ``p(c | D)``, float64."""
+    """``softmax`` over the last dimension (candidates): ``p(c | D)``, float64.
+
+    Args:
+        log_posterior: ``[..., C]`` log posterior of the candidates (up to a constant).
+    """
     return torch.softmax(log_posterior, dim=-1)
 
 
 def log_posterior_of(log_prior: torch.Tensor | float, log_marginal: torch.Tensor) -> torch.Tensor:
     """``[..., C]`` float64: ``log p(c) + sum_p log p(D_p | c)`` of every candidate, from the log
     marginal of each of its patterns ``[..., C, P]``, summed left to right (the kernel's order:
-    ``log_prior + (((m_0 + m_1) + m_2) + m_3)``)."""
+    ``log_prior + (((m_0 + m_1) + m_2) + m_3)``).
+
+    Args:
+        log_prior: ``[C]`` (or a float) log prior of the candidates.
+        log_marginal: ``[..., C, P]`` log marginal of each candidate's patterns.
+    """
     total = log_marginal[..., 0]
     for pattern in range(1, log_marginal.shape[-1]):
         total = total + log_marginal[..., pattern]
@@ -469,7 +569,12 @@ def log_posterior_of(log_prior: torch.Tensor | float, log_marginal: torch.Tensor
 def lgamma_tables(prior_a: float, prior_b: float, length: int) -> torch.Tensor:
     """``[3, length]`` float64: ``lgamma(a + m)``, ``lgamma(b + m)``, ``lgamma((a + b) + m)`` for
     ``m = 0 .. length - 1``, by ``torch.lgamma`` (the compiled path looks them up instead of
-    calling its C library's ``lgamma``, which differs from torch's in the last bit)."""
+    calling its C library's ``lgamma``, which differs from torch's in the last bit).
+
+    Args:
+        prior_a, prior_b: the Beta prior.
+        length: the entries ``m`` of each table.
+    """
     m = torch.arange(length, dtype=torch.float64)
     a, b = float(prior_a), float(prior_b)
     return torch.stack((torch.lgamma(a + m), torch.lgamma(b + m), torch.lgamma(a + b + m)))
@@ -492,6 +597,11 @@ def flip_log_marginal(
 
     (``beta_bernoulli_log_marginal(n, m)``). Sums over the patterns run left to right, as the
     kernel adds them (exact for integral counts).
+
+    Args:
+        count: ``[..., C, P]`` the visits of each candidate's patterns.
+        successes: ``[..., C, P]`` the collisions among them.
+        prior_a, prior_b: the Beta prior of the flip rate.
 
     >>> # one pattern seen 4 times with 1 collision: m = 1, n = 4, v = 1, Beta(1, 1):
     >>> # B(2, 4) / B(1, 1) / 2 = (1! 3! / 5!) / 2 = 1/40
@@ -523,6 +633,13 @@ def mixture_log_marginal(
 
     where ``n > 0``, and 0 for an unvisited pattern (no data: its level is not chosen). Float64,
     in this order (the kernel's).
+
+    Args:
+        count: ``n``, a pattern's visits.
+        successes: ``s``, its collisions.
+        prior_a, prior_b: the clean population's Beta prior.
+        noisy_prior: the noisy population's Beta prior.
+        noisy_odds: prior odds of the noisy population against the clean one.
 
     >>> # n = 2, s = 1 under Beta(1, 1) (clean) and Beta(2, 2) (noisy), odds 1:
     >>> # clean 1/6 * 1/2 = 1/12; noisy B(3, 3) / B(2, 2) = (1/30) / (1/6) = 1/5, * 1/2 = 1/10

@@ -45,7 +45,7 @@ import math
 from collections.abc import Sequence
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
@@ -146,7 +146,9 @@ class BatchedMLP(nn.Module):
         return x.transpose(0, 1).reshape(*before, *lead, x.shape[-1])  # [..., *lead, out]
 
 
-def _keys(keys, seed: int, stream: int, count: int, offset: int) -> torch.Tensor:
+def _keys(
+    keys: torch.Tensor | None, seed: int, stream: int, count: int, offset: int
+) -> torch.Tensor:
     """The given initialisation keys ``[S]`` int64, or those derived from ``seed``."""
     if keys is None:
         check_seed("seed", seed)  # [0, INT64_MAX]: the keys are 64-bit
@@ -160,7 +162,9 @@ def _keys(keys, seed: int, stream: int, count: int, offset: int) -> torch.Tensor
     return keys
 
 
-def _sensors(tensordict: TensorDictBase, owner: str, num_experiments: int, num_sensors: int):
+def _sensors(
+    tensordict: TensorDictBase, owner: str, num_experiments: int, num_sensors: int
+) -> torch.Tensor:
     """The ``sensors`` entry, checked to be ``[..., S, K]`` with ``K = num_sensors``."""
     sensors = tensordict.get(names.SENSORS, None)
     if sensors is None:
@@ -173,7 +177,9 @@ def _sensors(tensordict: TensorDictBase, owner: str, num_experiments: int, num_s
     return sensors
 
 
-def _experiment_dim(value: torch.Tensor, trailing: int, num_experiments: int, owner: str, key):
+def _experiment_dim(
+    value: torch.Tensor, trailing: int, num_experiments: int, owner: str, key: NestedKey
+) -> None:
     """Check that ``value`` is ``[..., S, *trailing]`` with ``S = num_experiments``."""
     dim = value.dim() - 1 - trailing
     if dim < 0 or value.shape[dim] != num_experiments:

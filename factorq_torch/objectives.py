@@ -47,6 +47,7 @@ their tables do not change (the collector masks finished experiments this way).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
@@ -102,7 +103,7 @@ class _TransitionLoss(LossModule):
     def _task_provider(self) -> TensorDictModuleBase:
         return self.task_value_network
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
+    def _forward_value_estimator_keys(self, **kwargs: Any) -> None:
         """No value estimator: the target is computed here, from ``functional`` (DESIGN 5)."""
 
     def _batch(self, tensordict: TensorDictBase) -> tuple[int, ...]:

@@ -50,8 +50,9 @@ blocked"``). ``RiskSummary`` keeps the per-episode counts for the logs.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any, overload
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
@@ -85,7 +86,7 @@ def _provider_size(provider: TensorDictModuleBase) -> tuple[int, int, int | None
     return provider.num_experiments, provider.num_actions, getattr(provider, "num_sensors", None)
 
 
-def _spec_actions(spec) -> tuple[int | None, tuple[int, ...]]:
+def _spec_actions(spec: Any) -> tuple[int | None, tuple[int, ...]]:
     """``(number of actions, shape)`` of an action spec (a ``Composite`` holding ``action``)."""
     if spec is None:
         return None, ()
@@ -98,7 +99,7 @@ def _spec_actions(spec) -> tuple[int | None, tuple[int, ...]]:
     return (int(count) if count is not None else None), shape
 
 
-def _value_module_spec(value_network: TensorDictModuleBase):
+def _value_module_spec(value_network: TensorDictModuleBase) -> Any:
     """The action spec of the ``QValueModule`` inside ``value_network`` (None if there is none)."""
     from torchrl.modules import QValueModule
 
@@ -218,8 +219,20 @@ class LocalRisk(TensorDictModuleBase):
             dict.fromkeys([out_key, TASK_VALUE, names.LOCAL_VALUE, NORMALISER, RISK_MASK])
         )
 
+    @overload
     @staticmethod
-    def _names(label: str, given, count: int | None, default: str) -> tuple[str, ...] | None:
+    def _names(
+        label: str, given: Sequence[str] | None, count: int, default: str
+    ) -> tuple[str, ...]: ...
+    @overload
+    @staticmethod
+    def _names(
+        label: str, given: Sequence[str] | None, count: int | None, default: str
+    ) -> tuple[str, ...] | None: ...
+    @staticmethod
+    def _names(
+        label: str, given: Sequence[str] | None, count: int | None, default: str
+    ) -> tuple[str, ...] | None:
         if given is None:
             return None if count is None else tuple(f"{default} {i}" for i in range(count))
         given = tuple(str(name) for name in given)
@@ -316,6 +329,10 @@ class LocalRisk(TensorDictModuleBase):
             return structure()[0]
         return None
 
+    def _sensor_name(self, k: int) -> str:
+        """Sensor ``k``'s name (``sensor k`` where neither the caller nor the provider says K)."""
+        return f"sensor {k}" if self.sensor_names is None else self.sensor_names[k]
+
     @torch.no_grad()
     def explain(self, tensordict: TensorDictBase, threshold: float = 0.05) -> list[list[dict]]:
         """For every state of the (flattened) batch: the actuators the layer penalises.
@@ -344,7 +361,7 @@ class LocalRisk(TensorDictModuleBase):
                 because = []
                 if parents is not None and readings is not None:
                     on = parents[actuator] & readings[row]
-                    because = [self.sensor_names[k] for k in on.nonzero().flatten().tolist()]
+                    because = [self._sensor_name(k) for k in on.nonzero().flatten().tolist()]
                 found.append(
                     {
                         "actuator": self.actuator_names[actuator],
@@ -378,9 +395,9 @@ def with_local_risk(
     value_network: TensorDictModuleBase,
     provider: TensorDictModuleBase,
     *,
-    env=None,
-    spec=None,
-    **options,
+    env: Any = None,
+    spec: Any = None,
+    **options: Any,
 ) -> TensorDictSequential:
     """``value_network`` with a ``LocalRisk`` layer placed before its action choice.
 
@@ -390,6 +407,14 @@ def with_local_risk(
     the parts: its batch against the provider's ``S``, its ``dependency`` (if it has one) against
     the provider's shape, and its names are used by the explanations. ``options`` go to
     ``LocalRisk``.
+
+    Args:
+        value_network: a ``QValueActor``, a sequence ending in a ``QValueModule``, or any
+            module writing ``action_value``.
+        provider: the local value provider (a table, a network, a ``StructureLearner``).
+        env: the env, checked against the parts and read for names (optional).
+        spec: the action spec of the ``QValueModule`` to append (a value network without one).
+        options: ``LocalRisk``'s keyword arguments (``eta``, ``g_min``, ``mask_threshold``, ...).
     """
     from torchrl.modules import QValueModule
 
@@ -453,6 +478,9 @@ class LocalRiskLoss(LossModule):
       the gated network's ``loss_regularisation`` folded in.
 
     Keys (``set_keys``): ``sensors``, ``action``, ``local_reward`` (under ``"next"``).
+
+    Args:
+        provider: the local value provider to train (the one the ``LocalRisk`` layer reads).
     """
 
     @dataclass
@@ -470,7 +498,7 @@ class LocalRiskLoss(LossModule):
         self.risk = LocalRisk(provider)  # the provider's values for any batch (and its checks)
         self.provider = provider
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
+    def _forward_value_estimator_keys(self, **kwargs: Any) -> None:
         pass
 
     @property
@@ -516,7 +544,13 @@ class LocalRiskLoss(LossModule):
         return out
 
     @torch.no_grad()
-    def _running_mean(self, update, sensors, action, local_reward) -> None:
+    def _running_mean(
+        self,
+        update: Callable[..., object],  # the provider's update_running_mean
+        sensors: torch.Tensor,
+        action: torch.Tensor,
+        local_reward: torch.Tensor,
+    ) -> None:
         count, width = self.risk.num_experiments, sensors.shape[-1]
         batch = tuple(action.shape)
         if count != 1 and len(batch) > 1 and batch[0] == count and batch[-1] != count:
@@ -551,6 +585,13 @@ class RiskSummary:
 
     Call ``update(td)`` with each step's tensordict (after the policy), ``episode()`` at the end
     of an episode: it returns the summary and starts the next.
+
+    Args:
+        actuator_names: one name per actuator (``LocalRisk.actuator_names``).
+        threshold: a penalty ``G rho_a`` below ``-threshold`` counts as penalising ``a``.
+        combined_key: where the layer wrote ``C(s)`` (the policy's ``action_value``).
+        steps, risky_steps, overrides, penalised, penalty_sum: the episode's running counts
+            (start empty; ``episode()`` returns and clears them).
     """
 
     actuator_names: Sequence[str]

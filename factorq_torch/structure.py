@@ -256,7 +256,9 @@ class StructureLearner(TensorDictModuleBase):
         """``[S, A, C]`` float64: ``log p(c) + log p(D | c)`` (up to a constant per actuator)."""
         return self._log_posterior_at(slice(None), slice(None), block)
 
-    def _log_posterior_at(self, rows, action, block: bool = False) -> torch.Tensor:
+    def _log_posterior_at(
+        self, rows: torch.Tensor | slice, action: torch.Tensor | slice, block: bool = False
+    ) -> torch.Tensor:
         """``[R, C]`` (or ``[S, A, C]``): the log posterior of the candidates of the given (rows,
         actuators) from all their counts or (``block``) the block's."""
         prefix = "block_" if block else ""
@@ -385,7 +387,7 @@ class StructureLearner(TensorDictModuleBase):
         self._decide(rows, action)
         self._refresh_cache(rows, action)
 
-    def _refresh_cache(self, rows, action) -> None:
+    def _refresh_cache(self, rows: torch.Tensor | slice, action: torch.Tensor | slice) -> None:
         """Recompute the running means and posterior weights of the given (rows, actuators)."""
         count, total = self.count[rows, action], self.reward_sum[rows, action]
         self.mean[rows, action] = torch.where(count > 0, total / count.clamp(min=1.0), 0.0)

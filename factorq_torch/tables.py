@@ -26,8 +26,10 @@ losses and the collector only read ``action_value`` / ``local_value``.
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
-from tensordict import TensorDictBase
+from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from factorq_torch.base import keys
@@ -184,7 +186,7 @@ def check_firing(
 
 
 def _check_entry(
-    tensordict: TensorDictBase, key, shape: tuple, dtypes: tuple, owner: str
+    tensordict: TensorDictBase, key: NestedKey, shape: tuple, dtypes: tuple, owner: str
 ) -> torch.Tensor:
     """Read ``key`` and check its shape and dtype, naming both in the error."""
     value = tensordict.get(key, None)
@@ -352,13 +354,15 @@ class _RowsWithSparseGrad(torch.autograd.Function):
     summed), the same floats, without materialising the zeros."""
 
     @staticmethod
-    def forward(ctx, table: torch.Tensor, experiment: torch.Tensor, state: torch.Tensor):
+    def forward(
+        ctx: Any, table: torch.Tensor, experiment: torch.Tensor, state: torch.Tensor
+    ) -> torch.Tensor:
         ctx.save_for_backward(experiment, state)
         ctx.table_shape = table.shape
         return table_rows(table, experiment, state)
 
     @staticmethod
-    def backward(ctx, grad: torch.Tensor):
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor, None, None]:
         experiment, state = ctx.saved_tensors
         indices = torch.stack((experiment.reshape(-1), state.reshape(-1)))  # [2, M]
         gradient = torch.sparse_coo_tensor(

@@ -256,6 +256,7 @@ def test_the_experiment_command_at_a_tiny_budget(tmp_path):
     deterministic ``run_unit``, a summary, the report and the figure (MiniGrid 8x8: fast)."""
     pytest.importorskip("minigrid")
     from factorq_trainers.experiments import gym as experiment
+    from factorq_trainers.reports import gym as report_module
 
     config = experiment.GymConfig(
         world="minigrid-8x8", seeds=1, steps=40, eval_episodes=1, curve_points=4
@@ -271,12 +272,70 @@ def test_the_experiment_command_at_a_tiny_budget(tmp_path):
         assert result["crashes_per_1000"] == 1000 * result["crashes"] / 40
     summary = experiment.summarise(config, results)
     summary["config"] = {"seeds": 1, "steps": 40, "eval_episodes": 1, "window": 5}
-    report = experiment.markdown(summary)
+    report = report_module.markdown(summary)
     assert "| neural Factor-Q, oracle dependency |" in report
-    experiment.figure(summary, tmp_path / "gym.png")
+    report_module.figure(summary, tmp_path / "gym.png")
     assert (tmp_path / "gym.png").stat().st_size > 0
     with pytest.raises(ValueError, match="world='atari'"):
         experiment.GymConfig(world="atari")
+
+
+def test_the_experiment_summary_keeps_its_intervals_inside_the_possible_range():
+    """``factorq gym``'s summary over 3 seeds: Wilson's interval for the greedy crash rate (hand
+    computed: p = 1/15, n = 3, z = 1.96), the BCa bootstrap for the other measures and the
+    curves' bands, each inside [min, max] of the seeds (a t interval went below 0 for these)."""
+    from factorq_trainers.experiments import gym as experiment
+
+    config = experiment.GymConfig(world="minigrid-8x8", seeds=3, methods=("dqn",), steps=30)
+    per_seed = [
+        (0.0, 0.0, None, [None, 1.0, 2.0]),
+        (10.0, 0.0, 300, [None, None, 4.0]),
+        (50.0, 0.2, 500, [0.5, 1.5, 3.0]),
+    ]
+    results = [
+        {
+            "crashes_per_1000": crashes,
+            "greedy_crash_rate": rate,
+            "greedy_return": 1.0,
+            "steps_to_threshold": reached,
+            "steps_per_s": 100.0 + crashes,
+            "curve_steps": [10, 20, 30],
+            "curve_crashes": [0, int(crashes) // 2, int(crashes)],
+            "curve_return": curve,
+            "wall_s": 1.0,
+        }
+        for crashes, rate, reached, curve in per_seed
+    ]
+    entry = experiment.summarise(config, results)["methods"]["dqn"]
+    rate = entry["greedy_crash_rate"]
+    assert rate["mean"] == pytest.approx(1 / 15)
+    assert rate["ci95"] == pytest.approx([0.0031597, 0.6168044], abs=1e-6)
+    crashes = entry["crashes_per_1000"]
+    assert crashes["mean"] == pytest.approx(20.0)
+    assert 0.0 <= crashes["ci95"][0] < 20.0 < crashes["ci95"][1] <= 50.0
+    reached = entry["steps_to_threshold"]
+    assert (reached["mean"], reached["n"]) == (400.0, 2)
+    assert 300 <= reached["ci95"][0] < 400 < reached["ci95"][1] <= 500
+    assert entry["greedy_return"] == {"mean": 1.0, "ci95": [1.0, 1.0], "n": 3}  # all seeds equal
+    band = entry["bands"]["curve_return"]
+    assert band["mean"] == pytest.approx([0.5, 1.25, 3.0])
+    assert band["low"][0] is None and band["high"][0] is None  # one seed: no band
+    assert 1.0 <= band["low"][1] < 1.25 < band["high"][1] <= 1.5
+    assert 2.0 <= band["low"][2] < 3.0 < band["high"][2] <= 4.0
+    assert entry["bands"]["curve_crashes"]["low"][0] == 0.0  # every seed at 0: the band is 0
+
+
+@pytest.mark.parametrize("backend", ["sync", "async"])
+def test_a_maker_that_returns_no_adapter_is_refused(backend):
+    """``make_env`` must return a ``FactorQEnv``: a bare Gymnasium env gets one clear error."""
+    from factorq_envs.declared_env import declared_torchrl_env
+
+    with pytest.raises(TypeError, match=r"must return a FactorQEnv \(.*\), got TimeLimit"):
+        declared_torchrl_env(_bare_lake, [0], backend=backend)
+
+
+def _bare_lake(seed: int) -> gymnasium.Env:
+    return gymnasium.make("FrozenLake-v1")
 
 
 def test_a_partial_step_is_refused():

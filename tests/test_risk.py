@@ -267,6 +267,31 @@ def test_learned_structure_explains_with_the_committed_parents():
     assert entries[0]["actuator"] == "actuator 2" and entries[0]["sensors"] == ["sensor 2"]
 
 
+def test_explain_names_sensors_of_a_provider_that_does_not_say_how_many():
+    """A provider without ``num_sensors`` and a given dependency: the parents are named
+    ``sensor k`` (explain raised TypeError, indexing the missing names)."""
+    from tensordict.nn import TensorDictModuleBase
+
+    class Provider(TensorDictModuleBase):
+        num_experiments, num_actions = 1, 4
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.in_keys, self.out_keys = ["sensors"], ["local_value"]
+
+        def forward(self, td):  # actuator a collides when sensor a reads 1
+            td.set("local_value", -td.get("sensors").to(torch.float32))
+            return td
+
+    risk = LocalRisk(Provider(), dependency=torch.eye(4, dtype=torch.bool))
+    assert risk.sensor_names is None
+    (entries,) = risk.explain(risk(step([[0.0, 0.0, 1.0, 0.0]], [[True, True, False, False]])))
+    assert [(e["actuator"], e["sensors"]) for e in entries] == [
+        ("actuator 0", ["sensor 0"]),
+        ("actuator 1", ["sensor 1"]),
+    ]
+
+
 # --- the recipe: torchrl's DQN alone vs DQN + local risk -------------------------------------
 
 

@@ -74,6 +74,19 @@ def test_the_callback_trains_the_provider_from_info_local_reward():
     assert provider.rho[0, :, 0].eq(0).all()
 
 
+def test_learn_takes_every_callback_form_sb3_takes():
+    """A function ``(locals, globals) -> bool`` is a callback in SB3: it is called every step
+    beside the layer's (it raised AttributeError: LocalRiskDQN put it in a CallbackList as is)."""
+    env = grid()
+    model = LocalRiskDQN("MultiInputPolicy", env, provider=LocalRewardTable(1), learning_starts=100)
+    steps = []
+    model.learn(20, callback=lambda local, variables: steps.append(local["infos"]) or True)
+    assert len(steps) == 20
+    collisions = Collisions()
+    model.learn(20, callback=[collisions, lambda local, variables: True])
+    assert int(model.policy.risk.provider.kappa.sum()) == 40  # the layer's callback ran too
+
+
 def test_bad_input_is_named_at_construction():
     env = grid()
     with pytest.raises(ValueError, match="provider"):

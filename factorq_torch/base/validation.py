@@ -8,7 +8,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import TypeGuard
+from typing import TYPE_CHECKING, Any, TypeGuard
+
+if TYPE_CHECKING:
+    import torch
 
 #: The largest value of a C ``int64_t`` (and of a torch int64 tensor entry).
 INT64_MAX = 2**63 - 1
@@ -41,7 +44,7 @@ def check_table_size(owner: str, what: str, entries: int) -> None:
 MAX_WIDTH = 65_536
 
 
-def check_hidden(name: str, value) -> tuple[int, ...]:
+def check_hidden(name: str, value: Any) -> tuple[int, ...]:
     """Hidden layer widths (one int, or a sequence such as ``(64, 64)``) as a tuple of ints in
     ``[1, MAX_WIDTH]``; errors name ``name`` (``hidden width=0 is out of range ...``)."""
     if is_int(value):
@@ -55,12 +58,12 @@ def check_hidden(name: str, value) -> tuple[int, ...]:
     return tuple(value)
 
 
-def is_int(value) -> TypeGuard[int]:
+def is_int(value: object) -> TypeGuard[int]:
     """An ``int`` that is not a ``bool``."""
     return isinstance(value, int) and not isinstance(value, bool)
 
 
-def check_int(name: str, value, low: int, high: int | None = None, hint: str = "") -> int:
+def check_int(name: str, value: object, low: int, high: int | None = None, hint: str = "") -> int:
     """Return ``value`` if it is an int in ``[low, high]`` (``high=None``: no upper bound)."""
     if not is_int(value):
         raise TypeError(f"{name} must be an int, got {value!r} ({type(value).__name__})")
@@ -70,19 +73,25 @@ def check_int(name: str, value, low: int, high: int | None = None, hint: str = "
     return value
 
 
-def check_seed(name: str, value) -> int:
+def check_seed(name: str, value: object) -> int:
     """A seed in the documented range ``[0, INT64_MAX]`` (keys are derived in 64 bits: past it
     a seed would silently equal a smaller one, ``2**80`` the same as 0)."""
     return check_int(name, value, 0, INT64_MAX)
 
 
-def check_threads(name: str, value) -> int:
+def check_threads(name: str, value: object) -> int:
     """A thread count in ``[1, MAX_THREADS]``."""
     return check_int(name, value, 1, MAX_THREADS)
 
 
 def check_float(
-    name: str, value, low: float, high: float, *, low_open: bool = False, high_open: bool = False
+    name: str,
+    value: object,
+    low: float,
+    high: float,
+    *,
+    low_open: bool = False,
+    high_open: bool = False,
 ) -> float:
     """Return ``value`` if it is a finite number in the interval (open ends as flagged)."""
     if isinstance(value, bool) or not isinstance(value, int | float):
@@ -99,7 +108,7 @@ def check_float(
     return value
 
 
-def check_names(name: str, value, allowed: tuple[str, ...] | list[str]) -> tuple[str, ...]:
+def check_names(name: str, value: Any, allowed: tuple[str, ...] | list[str]) -> tuple[str, ...]:
     """``value`` (names, or one comma-separated string) as a tuple in ``allowed``'s order."""
     names = value.split(",") if isinstance(value, str) else list(value)
     names = [item.strip() if isinstance(item, str) else item for item in names]
@@ -114,7 +123,9 @@ def check_names(name: str, value, allowed: tuple[str, ...] | list[str]) -> tuple
     return tuple(item for item in allowed if item in names)
 
 
-def check_device(name: str, value, *, allow_meta: bool = True, optional: bool = True):
+def check_device(
+    name: str, value: Any, *, allow_meta: bool = True, optional: bool = True
+) -> torch.device | None:
     """``value`` as a ``torch.device`` that exists on this machine (``None`` stays ``None``).
 
     Checked by allocating an empty tensor there, so a missing CUDA, MPS or other backend (or a
@@ -153,7 +164,9 @@ def check_device(name: str, value, *, allow_meta: bool = True, optional: bool = 
     return device
 
 
-def check_finite(owner: str, name: str, values, *, cause: str | None = None):
+def check_finite(
+    owner: str, name: str, values: torch.Tensor, *, cause: str | None = None
+) -> torch.Tensor:
     """Return ``values`` (a tensor ``[S, ...]``) if every entry is finite, else raise a
     ValueError naming ``owner``, the key and the first experiment (leading index) at fault.
 
@@ -183,7 +196,7 @@ def check_finite(owner: str, name: str, values, *, cause: str | None = None):
     )
 
 
-def _first(values, bad) -> tuple[str, object]:
+def _first(values: torch.Tensor, bad: torch.Tensor) -> tuple[str, object]:
     """`` (experiment i first)`` (the first experiment, leading index, holding a ``bad`` entry;
     empty for a 0-d tensor) and that experiment's first bad value."""
     if not values.dim():
@@ -193,7 +206,9 @@ def _first(values, bad) -> tuple[str, object]:
     return f" (experiment {experiment} first)", rows[experiment][flags[experiment]][0].item()
 
 
-def check_indices(owner: str, name: str, values, high: int, *, what: str = "values"):
+def check_indices(
+    owner: str, name: str, values: torch.Tensor, high: int, *, what: str = "values"
+) -> torch.Tensor:
     """Return ``values`` (an integer tensor ``[S, ...]``) if every entry is in ``[0, high)``,
     else raise a ValueError naming ``owner``, the key, the first experiment at fault and its
     value (a raw torch index error, or a silent read of another experiment's row, otherwise).
@@ -217,7 +232,9 @@ def check_indices(owner: str, name: str, values, high: int, *, what: str = "valu
     raise ValueError(f"{owner}: {name} holds {what} outside [0, {high}){where}: {value}")
 
 
-def check_same_device(owner: str, name: str, value, device) -> None:
+def check_same_device(
+    owner: str, name: str, value: torch.Tensor, device: torch.device | str
+) -> None:
     """Raise a ValueError naming the key when ``value`` is not on ``device`` (torch's own error
     names neither the key nor the remedy)."""
     if value.device != device:

@@ -29,8 +29,9 @@ module still imports; building any of its classes raises an ImportError naming t
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any, Self
 
+import gymnasium
 import numpy as np
 import torch
 from tensordict import TensorDict
@@ -38,16 +39,23 @@ from tensordict import TensorDict
 from factorq_torch.base import keys as names
 from factorq_torch.risk import RISK_MASK, LocalRisk, LocalRiskLoss
 
+if TYPE_CHECKING:
+    from stable_baselines3.common.noise import ActionNoise
+    from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs
+    from stable_baselines3.dqn.policies import DQNPolicy
+    from tensordict.nn import TensorDictModuleBase
+
 try:
     from stable_baselines3 import DQN
-    from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+    from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback
     from stable_baselines3.dqn.policies import MultiInputPolicy
 
     _MISSING: ImportError | None = None
 except ImportError as error:  # the optional extra: the module imports (docs, doctest
     # collection), its classes refuse to be built
     _MISSING = error
-    DQN = BaseCallback = MultiInputPolicy = object
+    if not TYPE_CHECKING:  # mypy checks against SB3's own types
+        DQN = BaseCallback = CallbackList = ConvertCallback = MultiInputPolicy = object
 
 
 def _require() -> None:
@@ -70,23 +78,34 @@ class LocalRiskPolicy(MultiInputPolicy):
 
     def __init__(
         self,
-        *args,
-        provider=None,
+        *args: Any,
+        provider: TensorDictModuleBase | None = None,
         sensors_key: str = names.SENSORS,
         risk_options: dict[str, Any] | None = None,
-        **kwargs,
+        **kwargs: Any,
     ) -> None:
         _require()
         super().__init__(*args, **kwargs)
         if provider is None:
             raise ValueError("LocalRiskPolicy needs policy_kwargs={'provider': ...}")
-        if sensors_key not in self.observation_space.spaces:
+        space, action_space = self.observation_space, self.action_space
+        if not isinstance(space, gymnasium.spaces.Dict):
+            raise TypeError(f"LocalRiskPolicy needs a Dict observation space, got {space}")
+        if not isinstance(action_space, gymnasium.spaces.Discrete):
+            raise TypeError(f"LocalRiskPolicy needs a Discrete action space, got {action_space}")
+        if sensors_key not in space.spaces:
             raise ValueError(
                 f"LocalRiskPolicy reads the sensors from the observation entry {sensors_key!r}; "
-                f"the observation space has {list(self.observation_space.spaces)}"
+                f"the observation space has {list(space.spaces)}"
             )
-        sensors = self.observation_space.spaces[sensors_key].shape[-1]
-        actions = int(self.action_space.n)
+        shape = space.spaces[sensors_key].shape
+        if not shape:
+            raise ValueError(
+                f"the observation entry {sensors_key!r} must hold an array of sensor bits, got "
+                f"{space.spaces[sensors_key]}"
+            )
+        sensors = shape[-1]
+        actions = int(action_space.n)
         self.risk = LocalRisk(provider, num_actions=actions, **(risk_options or {}))
         declared = self.risk.num_sensors
         if declared is not None and declared != sensors:
@@ -101,7 +120,7 @@ class LocalRiskPolicy(MultiInputPolicy):
             )
         self.sensors_key = sensors_key
 
-    def risk_values(self, obs) -> TensorDict:
+    def risk_values(self, obs: dict[str, torch.Tensor]) -> TensorDict:
         """The layer's output for a batch of observations (dict of tensors ``[n, ...]``):
         ``action_value`` (``C(s)``), ``task_value``, ``local_value``, ``risk_mask``."""
         with torch.no_grad():
@@ -110,7 +129,8 @@ class LocalRiskPolicy(MultiInputPolicy):
             td = TensorDict({names.ACTION_VALUE: q, names.SENSORS: sensors}, batch_size=q.shape[:1])
             return self.risk(td)
 
-    def _predict(self, obs, deterministic: bool = True) -> torch.Tensor:
+    def _predict(self, obs: PyTorchObs, deterministic: bool = True) -> torch.Tensor:
+        assert isinstance(obs, dict)  # __init__ checked the Dict observation space
         return self.risk_values(obs).get(names.ACTION_VALUE).argmax(dim=-1)
 
 
@@ -138,6 +158,7 @@ class LocalRiskCallback(BaseCallback):
         actions = self.locals.get("actions")
         if sensors is None or infos is None or actions is None:
             return True
+        assert self.loss is not None  # SB3 calls _init_callback before the first step
         if any("local_reward" not in info for info in infos):
             raise KeyError(
                 "LocalRiskCallback reads info['local_reward'] (the collision vector) from every "
@@ -165,7 +186,16 @@ class LocalRiskDQN(DQN):
     ``policy`` defaults to ``LocalRiskPolicy`` (``"MultiInputPolicy"`` is taken as it), and
     ``learn`` adds ``LocalRiskCallback`` to the given callbacks."""
 
-    def __init__(self, policy="MultiInputPolicy", env=None, *, provider=None, **kwargs) -> None:
+    policy: LocalRiskPolicy  # what __init__ makes it (DQN's is any DQNPolicy)
+
+    def __init__(
+        self,
+        policy: str | type[DQNPolicy] = "MultiInputPolicy",
+        env: GymEnv | str | None = None,
+        *,
+        provider: TensorDictModuleBase | None = None,
+        **kwargs: Any,
+    ) -> None:
         _require()
         # DQN.load builds the model with _init_setup_model=False, then restores the saved
         # policy_kwargs (the provider included) and the policy's state
@@ -179,11 +209,15 @@ class LocalRiskDQN(DQN):
         policy_kwargs = dict(kwargs.pop("policy_kwargs", None) or {})
         if provider is not None:
             policy_kwargs["provider"] = provider
-        super().__init__(policy, env, policy_kwargs=policy_kwargs, **kwargs)
+        # env=None is how DQN.load builds the model, as SB3 does itself; its annotation omits it
+        super().__init__(policy, env, policy_kwargs=policy_kwargs, **kwargs)  # type: ignore[arg-type]
 
-    def _risk_step(self, observation, exploration_rate: float) -> np.ndarray:
+    def _risk_step(
+        self, observation: np.ndarray | dict[str, np.ndarray], exploration_rate: float
+    ) -> np.ndarray:
         """Epsilon-greedy on ``C(s)``, the random actions among the allowed ones."""
         obs, vectorized = self.policy.obs_to_tensor(observation)
+        assert isinstance(obs, dict)  # LocalRiskPolicy checked its Dict observation space
         out = self.policy.risk_values(obs)
         greedy = out.get(names.ACTION_VALUE).argmax(dim=-1)
         allowed = out.get(RISK_MASK)  # [n, A]
@@ -193,18 +227,45 @@ class LocalRiskDQN(DQN):
         action = torch.where(explore, random, greedy).cpu().numpy()
         return action if vectorized else action[0]
 
-    def predict(self, observation, state=None, episode_start=None, deterministic=False):
+    def predict(
+        self,
+        observation: np.ndarray | dict[str, np.ndarray],
+        state: tuple[np.ndarray, ...] | None = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
         rate = 0.0 if deterministic else self.exploration_rate
         return self._risk_step(observation, rate), state
 
-    def _sample_action(self, learning_starts, action_noise=None, n_envs=1):
+    def _sample_action(
+        self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
+    ) -> tuple[np.ndarray, np.ndarray]:
         # SB3's warm-up (uniform before learning_starts) and epsilon branch, both masked
         warm = self.num_timesteps < learning_starts
+        assert self._last_obs is not None  # learn() reset the env before the first step
         action = self._risk_step(self._last_obs, 1.0 if warm else self.exploration_rate)
         return action, action
 
-    def learn(self, total_timesteps, callback=None, **kwargs):
-        callbacks = [LocalRiskCallback()]
-        if callback is not None:
-            callbacks.extend(callback if isinstance(callback, list) else [callback])
-        return super().learn(total_timesteps, callback=CallbackList(callbacks), **kwargs)
+    def learn(
+        self,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "DQN",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> Self:
+        """SB3's ``DQN.learn`` with ``LocalRiskCallback`` first among the callbacks (SB3's
+        forms: one callback, a list, or a function ``(locals, globals) -> bool``)."""
+        given = [] if callback is None else callback if isinstance(callback, list) else [callback]
+        callbacks: list[BaseCallback] = [LocalRiskCallback()]
+        for item in given:
+            callbacks.append(item if isinstance(item, BaseCallback) else ConvertCallback(item))
+        return super().learn(
+            total_timesteps,
+            callback=CallbackList(callbacks),
+            log_interval=log_interval,
+            tb_log_name=tb_log_name,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )

@@ -177,7 +177,7 @@ def compute_claims(cells: dict[str, Any], seed: int = 0) -> dict[str, Any]:
     boot_means = None if indices is None else _Means(cells, indices)
     claims = {}
     for claim, measure_fn in _CLAIM_MEASURES.items():
-        entry = {
+        entry: dict[str, Any] = {
             "statement": CLAIM_STATEMENTS[claim],
             "threshold": CLAIM_THRESHOLDS[claim],
             "value": None,
@@ -193,8 +193,8 @@ def compute_claims(cells: dict[str, Any], seed: int = 0) -> dict[str, Any]:
             continue
         point = measure_fn(point_means)
         value, passed = _headline(claim, point)
-        boot_value = None
-        if indices is not None:
+        boot_value = boot = None
+        if boot_means is not None:
             boot = measure_fn(boot_means)
             boot_value, _ = _headline(claim, boot)
         for name, (measure_value, measure_pass) in point.items():
@@ -202,7 +202,7 @@ def compute_claims(cells: dict[str, Any], seed: int = 0) -> dict[str, Any]:
                 {
                     "name": name,
                     "value": finite_or_none(measure_value),
-                    "ci95": None if indices is None else quantiles(boot[name][0]),
+                    "ci95": None if boot is None else quantiles(boot[name][0]),
                     "pass": None if measure_pass is None else bool(measure_pass),
                 }
             )

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -73,7 +74,9 @@ class SensorOrders:
 CACHE_LINE = 64
 
 
-def _padded_zeros(count: int, shape: tuple[int, ...], dtype: torch.dtype):
+def _padded_zeros(
+    count: int, shape: tuple[int, ...], dtype: torch.dtype
+) -> tuple[torch.Tensor, int]:
     """``(view, stride)``: zeros ``[count, *shape]`` as a view of a ``[count, stride]`` storage
     whose rows are whole cache lines (torch's CPU allocator aligns the storage itself to 64)."""
     per_line = CACHE_LINE // torch.empty((), dtype=dtype).element_size()
@@ -84,7 +87,7 @@ def _padded_zeros(count: int, shape: tuple[int, ...], dtype: torch.dtype):
     return torch.zeros(count, stride, dtype=dtype)[:, :numel].unflatten(1, shape), stride
 
 
-def _check_vector(name: str, value, count: int | None) -> torch.Tensor:
+def _check_vector(name: str, value: Any, count: int | None) -> torch.Tensor:
     """A 1-d int64 CPU tensor of ``count`` entries (any count when None), made contiguous."""
     if not isinstance(value, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
@@ -101,7 +104,7 @@ def _check_vector(name: str, value, count: int | None) -> torch.Tensor:
     return value.detach().contiguous().clone()
 
 
-def _check_orders(name: str, orders, count: int, num_sensors: int) -> torch.Tensor:
+def _check_orders(name: str, orders: Any, count: int, num_sensors: int) -> torch.Tensor:
     """``[count, K]`` int64, every row a permutation of ``range(K)``."""
     if not isinstance(orders, torch.Tensor) or orders.dtype != torch.int64:
         raise TypeError(f"{name} must be an int64 tensor [experiments, sensors]")
@@ -113,7 +116,7 @@ def _check_orders(name: str, orders, count: int, num_sensors: int) -> torch.Tens
     return orders.detach().cpu().contiguous().clone()
 
 
-def _check_threads(threads) -> int:
+def _check_threads(threads: object) -> int:
     if threads is None:
         return torch.get_num_threads()
     return check_int("threads", threads, 1)
@@ -193,8 +196,8 @@ def structure_setup(
                 truth[experiment, phase, actuator] = index_of.get(members, -2)
     num_candidates, patterns = len(sets), 1 << min(options.max_parents, num_sensors)
     candidate_sensors = torch.full((num_candidates, 2), -1, dtype=torch.int64)
-    for index, parents in enumerate(sets):
-        candidate_sensors[index, : len(parents)] = torch.tensor(parents, dtype=torch.int64)
+    for index, candidate in enumerate(sets):
+        candidate_sensors[index, : len(candidate)] = torch.tensor(candidate, dtype=torch.int64)
     log_prior = candidate_log_prior(sets, options.prior)
     steps = runs * episodes * world.max_steps
     length = steps + 2  # n + 1 of every count stays inside

@@ -197,7 +197,7 @@ class ExperimentBatch:
         }
         experiment_shape = (count, self.runs, self.episodes)
 
-        def zeros(*shape, dtype=torch.int64):
+        def zeros(*shape: int, dtype: torch.dtype = torch.int64) -> torch.Tensor:
             return torch.zeros(shape, dtype=dtype)
 
         # Written in the kernel's inner loop: one cache-line-aligned block per experiment.

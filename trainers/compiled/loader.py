@@ -402,7 +402,7 @@ MAX_KERNEL_SENSORS = 62
 MAX_KERNEL_ACTUATORS = 32
 
 
-def unsupported_reason(world) -> str | None:
+def unsupported_reason(world: object) -> str | None:
     """Why the kernel cannot run ``world``, or None when it can (every body and layout of
     ``factorq_envs.body`` up to ``MAX_KERNEL_SENSORS`` sensors and ``MAX_KERNEL_ACTUATORS``
     actuators).

@@ -104,7 +104,7 @@ class ShardBar:
     """A tqdm bar of shards (or other tasks) done, with the time left."""
 
     def __init__(self, description: str = "factorq sweep", unit: str = "shard") -> None:
-        self.bar = None
+        self.bar: Any = None  # a tqdm bar once the first count arrives (tqdm: untyped)
         self.description = description
         self.unit = unit
 

@@ -190,6 +190,7 @@ def _start(work: Callable[..., Any], args: tuple[Any, ...]) -> _Child:
     finally:
         os.close(write)  # the child holds the only writing end: end-of-file once it is gone
     child = _Child(process, Connection(read, writable=False))
+    assert process.stdin is not None  # Popen(stdin=PIPE)
     try:  # sys.path first: unpickling ``work`` imports its module
         process.stdin.write(pickle.dumps((list(sys.path), payload)))
         process.stdin.close()

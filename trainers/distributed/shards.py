@@ -196,7 +196,11 @@ def save(path: str | os.PathLike, shard: paper.PaperConfig, metrics: ShardMetric
     def write(temporary: Path) -> None:
         with open(temporary, "wb") as handle:
             np.savez_compressed(
-                handle, __config__=np.array(config), __sha256__=digest_of, **metrics
+                handle,
+                allow_pickle=False,  # numbers and text only (and no metric can take the name)
+                __config__=np.array(config),
+                __sha256__=digest_of,
+                **metrics,
             )
             handle.flush()
             os.fsync(handle.fileno())

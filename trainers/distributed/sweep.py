@@ -24,6 +24,7 @@ import os
 import sys
 import typing
 from pathlib import Path
+from typing import Any
 
 from factorq_trainers.distributed import cluster
 from factorq_trainers.distributed.cluster_runs import (  # noqa: F401 - the public names of factorq sweep
@@ -220,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
 
 
-def _run_sweep_command(parser, spec: SweepSpec, executor) -> int:
+def _run_sweep_command(parser: argparse.ArgumentParser, spec: SweepSpec, executor: Any) -> int:
     configs = spec.configurations()
     if spec.command == "compare":
         tasks = sum(len(config.methods) for config in configs)

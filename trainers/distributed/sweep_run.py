@@ -47,6 +47,10 @@ from factorq_trainers.experiments import paper
 from factorq_trainers.runner import results as result_files
 
 
+def _write_text(path: Path, text: str) -> None:
+    path.write_text(text)
+
+
 def run_shards(
     pending: Sequence[paper.PaperConfig],
     directory: Path,
@@ -54,6 +58,7 @@ def run_shards(
     done: Callable[[paper.PaperConfig], None],
 ) -> None:
     """Run ``pending`` shards on ``executor``, saving each one's file as soon as it arrives."""
+    function: Callable[[paper.PaperConfig], shards.ShardMetrics]
     if isinstance(executor, cluster.DaskExecutor):
         function = functools.partial(shards.run_shard, threads=1)
     else:
@@ -168,7 +173,7 @@ def run_compare_configs(
             text = result_files.dumps(results)
             directory.mkdir(parents=True, exist_ok=True)
             result_files.write_atomic(
-                compare_result_path(directory, config), lambda path, t=text: path.write_text(t)
+                compare_result_path(directory, config), functools.partial(_write_text, text=text)
             )
             runs[index] = {}
 
@@ -325,7 +330,8 @@ def run_units_sweep(
         text = result_files.dumps(results)
         directory.mkdir(parents=True, exist_ok=True)
         result_files.write_atomic(
-            compare_result_path(directory, pending[index]), lambda path, t=text: path.write_text(t)
+            compare_result_path(directory, pending[index]),
+            functools.partial(_write_text, text=text),
         )
         done += 1
         if progress is not None:

@@ -142,6 +142,7 @@ def config_digest(config: Any) -> str:
         return shards.digest(config)
     from factorq_trainers.experiments import compare
 
+    ignored: tuple[str, ...]
     if isinstance(config, compare.CompareConfig):
         values, ignored = compare.config_dict(config), ("out", "threads", "logger")
     else:  # a command of the runner: its DIGEST_IGNORED (fields that leave the numbers alone)
@@ -330,7 +331,7 @@ def _yaml_loader() -> type:
     class Loader(yaml.SafeLoader):
         depth = 0
 
-        def compose_node(self, parent, index):  # noqa: ANN001, ANN202 - PyYAML's signature
+        def compose_node(self, parent: Any, index: Any) -> Any:  # PyYAML's (untyped) signature
             if self.check_event(yaml.AliasEvent):
                 mark = self.peek_event().start_mark
                 raise yaml.YAMLError(

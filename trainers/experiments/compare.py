@@ -224,7 +224,6 @@ def value_providers(
     experiments = config.experiments
     cells = experiments.size**2
     world = experiments.world  # the body: tables and networks get its shapes and dependency
-    shapes = {"num_headings": world.num_headings, "num_actions": world.num_actuators}
     if method in ("q-learning", "factor-q"):
         return (*experiment.tabular_values(method, count, world), None)
     if method == "factor-dqn":
@@ -232,7 +231,8 @@ def value_providers(
         task = TaskQNetwork(
             count,
             cells,
-            **shapes,
+            num_headings=world.num_headings,
+            num_actions=world.num_actuators,
             hidden=settings.hidden,
             activation=settings.activation,
             keys=batch_keys(experiments, STREAM_TASK_NETWORK, method),
@@ -261,8 +261,8 @@ def value_providers(
 def run_online(
     method: str,
     config: CompareConfig,
-    logger=None,
-    progress=None,
+    logger: Any = None,
+    progress: Callable[[int, int], None] | None = None,
     checkpoints: compare_checkpoint.Saver | None = None,
 ) -> dict[str, Any]:
     """Tabular Factor-Q, tabular Q-learning or Factor-DQN for the step budget (OnlineCollector).
@@ -497,7 +497,9 @@ def resume_config(
 # Running
 
 
-def make_logger(config: CompareConfig, method: str, log_dir: str | os.PathLike | None = None):
+def make_logger(
+    config: CompareConfig, method: str, log_dir: str | os.PathLike | None = None
+) -> Any:
     """torchrl's CSVLogger or TensorboardLogger for ``method`` under ``log_dir`` (default
     ``out/logs/``)."""
     log_dir = str(Path(config.out) / "logs" if log_dir is None else log_dir)
@@ -588,7 +590,7 @@ def run(
                 continue
             report = None if progress is None else (lambda d, t, m=method: progress(m, d, t))
             runs[method] = run_method(config, method, report, checkpoints=saver)
-            if checkpoints and len(runs) < len(config.methods):
+            if checkpoints and saver is not None and len(runs) < len(config.methods):
                 saver.save_finished(runs)
     finally:
         torch.set_num_threads(threads)

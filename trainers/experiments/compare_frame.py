@@ -121,7 +121,9 @@ def main(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
                     )
                 else:  # one task per method
 
-                    def summarise(config, runs):
+                    def summarise(
+                        config: compare.CompareConfig, runs: dict[str, Any]
+                    ) -> dict[str, Any]:
                         compare.write_logs(config, runs, logs)
                         return compare.summarise(config, runs)
 

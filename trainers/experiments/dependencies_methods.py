@@ -90,13 +90,14 @@ def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]
     periods = torch.full((count,), REGIME_PERIODS[config.world], dtype=torch.int64)
     orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
     change = setting == "change"
+    orders_after = (
+        sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 1)
+        if change
+        else None
+    )
     options = fast.StructureOptions(
         orders=orders,
-        orders_after=sensor_orders(
-            config.seed, config.setting_stream(setting), count, num_sensors, 1
-        )
-        if change
-        else None,
+        orders_after=orders_after,
         change_run=config.change_run if change else 0,
         curve_every=CURVE_EVERY,
         **_learner_options(config),
@@ -122,7 +123,7 @@ def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]
         members[index, list(parents)] = True
     committed = state["committed"]
     structure = members[committed.clamp(min=0)] & (committed >= 0).unsqueeze(-1)
-    truth = _permuted(world, options.orders_after if change else orders)
+    truth = _permuted(world, orders if orders_after is None else orders_after)
     steps = batch.metrics()["steps"].sum(dim=(1, 2))
     return _structure_result(
         config,
@@ -157,19 +158,19 @@ def _fill_curve(curve: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
 
 
 def _structure_result(
-    config,
-    setting,
-    metrics,
+    config: DependenciesConfig,
+    setting: str,
+    metrics: dict[str, torch.Tensor],
     *,
-    right_since,
-    samples_at_change,
-    wrong_commitments,
-    structure,
-    truth,
-    reopened,
-    samples,
-    curve,
-    state,
+    right_since: torch.Tensor,
+    samples_at_change: torch.Tensor,
+    wrong_commitments: torch.Tensor,
+    structure: torch.Tensor,
+    truth: torch.Tensor,
+    reopened: torch.Tensor,
+    samples: torch.Tensor,
+    curve: torch.Tensor,
+    state: dict[str, Any] | None,
 ) -> dict[str, Any]:
     right = (structure == truth).all(dim=-1)  # [S, A]
     final_right = right.all(dim=-1)
@@ -297,9 +298,9 @@ def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, A
     )
 
 
-def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[str, Any] | None:
-    """The oracle, the joint table or Q-learning on the compiled path (``None``: does not fit
-    or cannot run this setting; the reason is in ``skipped``)."""
+def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[str, Any]:
+    """The oracle, the joint table or Q-learning on the compiled path (a method that does not
+    fit or cannot run the setting never gets here: ``skipped_reason``)."""
     from factorq_trainers.compiled import fast
 
     world = config.world_of(setting)

@@ -237,7 +237,9 @@ class DQNAgent:
     buffer: ReplayBuffer
 
 
-def build_dqn(config: DQNConfig, experiments: ExperimentConfig, device=None) -> DQNAgent:
+def build_dqn(
+    config: DQNConfig, experiments: ExperimentConfig, device: torch.device | str | None = None
+) -> DQNAgent:
     """Q-network, exploration, DQNLoss with a target network, Adam and a replay buffer."""
     device = torch.device("cpu" if device is None else device)
     count = experiments.num_experiments
@@ -257,7 +259,13 @@ def build_dqn(config: DQNConfig, experiments: ExperimentConfig, device=None) -> 
     return dqn_agent(q_network, world.num_actuators, config, experiments.steps, device)
 
 
-def dqn_agent(q_network, actions: int, config: DQNConfig, steps: int, device=None) -> DQNAgent:
+def dqn_agent(
+    q_network: TensorDictModuleBase,
+    actions: int,
+    config: DQNConfig,
+    steps: int,
+    device: torch.device | str | None = None,
+) -> DQNAgent:
     """The DQN agent around ``q_network`` (``actions`` actions, ``steps`` env steps of budget for
     the exploration schedule): greedy value module, exploration, DQNLoss with a target network,
     Adam and a replay buffer on ``device``."""
@@ -295,7 +303,7 @@ def run(
     config: DQNConfig,
     experiments: ExperimentConfig,
     *,
-    logger=None,
+    logger: Any = None,
     progress: ProgressCallback | None = None,
     device: torch.device | str | None = None,
     checkpoints: Any = None,

@@ -230,15 +230,15 @@ def tabular_values(
 
 
 def online_agent(
-    env,
-    task,
-    local,
+    env: Any,
+    task: Any,
+    local: Any,
     agent: AgentConfig,
     policy_keys: torch.Tensor,
     *,
     epsilon: float | None = None,
     device: torch.device | str | None = None,
-):
+) -> tuple[Any, Any, Any]:
     """``(env, policy, loss)`` of Q-learning (``local`` is ``None``) or Factor-Q around the value
     providers ``task`` and ``local`` (tables or networks: the rest is the same code).
 
@@ -370,7 +370,7 @@ class EpisodeRecorder:
     moving worlds a scatter can box the agent in; no policy avoids those).
     """
 
-    def __init__(self, labels: Sequence[tuple[str, int]], logger=None) -> None:
+    def __init__(self, labels: Sequence[tuple[str, int]], logger: Any = None) -> None:
         self.labels = list(labels)
         count = len(self.labels)
         self.logger = logger
@@ -500,14 +500,14 @@ class EpisodeRecorder:
 LOG_NAMES = {"steps": "path_length", "task_return": "return"}
 
 
-def _log_record(logger, world: str, index: int, record: dict[str, float]) -> None:
+def _log_record(logger: Any, world: str, index: int, record: dict[str, float]) -> None:
     step = record["env_steps"]
     for name, value in record.items():
         if name != "env_steps" and math.isfinite(value):
             logger.log_scalar(f"{world}/seed_{index}/{LOG_NAMES.get(name, name)}", value, step)
 
 
-def log_traces(logger, traces: list[dict[str, Any]]) -> None:
+def log_traces(logger: Any, traces: list[dict[str, Any]]) -> None:
     """Send ``EpisodeRecorder.traces()`` to ``logger`` as its live ``logger`` would have:
     every finished episode's records under ``"{world}/seed_{i}/{name}"`` at step = env steps."""
     for trace in traces:

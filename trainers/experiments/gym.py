@@ -23,20 +23,42 @@ off), training env steps until the mean return of the last ``window`` finished e
 reaches ``threshold``, env steps per second of training, and curves (cumulative crashes, mean
 return of the last ``window`` episodes) at ``curve_points`` points. The return is the
 conventional reward summed (highway's own reward).
+
+**Intervals** over seeds (``factorq_trainers.analysis.stats``): Wilson's for the greedy crash
+rate (a proportion), the BCa bootstrap of the mean for the other measures and the curves' bands
+(bounded or positive: its bounds stay between the seeds). The report and figure are
+``factorq_trainers.reports.gym``.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypedDict
+
+import numpy as np
 
 from factorq_torch.base.validation import check_float, check_int, check_names
+from factorq_trainers.analysis.stats import (
+    bootstrap_mean_ci,
+    finite_or_none,
+    interval,
+    scalar_ci,
+    wilson_ci,
+)
 from factorq_trainers.runner.options import option
 
+if TYPE_CHECKING:
+    import torch
+
+    from factorq_envs.declared_env import DeclaredEnv
+    from factorq_envs.gymnasium_adapter import FactorQEnv
+
 NAME = "gym"
+REPORT = "factorq_trainers.reports.gym"
 WORK_UNIT = "step"
 HELP = (
     "Factor-Q (oracle and learned dependencies) against DQN on a declared Gymnasium world "
@@ -45,16 +67,26 @@ HELP = (
 
 METHODS = ("dqn", "factor-q-oracle", "factor-q-learned", "sb3-dqn")
 DEFAULT_METHODS = ("dqn", "factor-q-oracle", "factor-q-learned")
-METHOD_LABELS = {
-    "dqn": "DQN (torchrl)",
-    "factor-q-oracle": "neural Factor-Q, oracle dependency",
-    "factor-q-learned": "neural Factor-Q, learned dependencies",
-    "sb3-dqn": "SB3 DQN",
-}
+
+
+class DQNSettings(TypedDict):
+    """``HIGHWAY_DQN``'s entries: ``DQNConfig``'s names (``experiments.dqn``)."""
+
+    hidden: tuple[int, ...]
+    lr: float
+    buffer_size: int
+    learning_starts: int
+    batch_size: int
+    gamma: float
+    train_every: int
+    target_update_interval: int
+    exploration_fraction: float
+
+
 #: highway-env's documented SB3 DQN (its README and scripts/sb3_highway_dqn.py): MlpPolicy
 #: [256, 256], learning rate 5e-4, buffer 15,000, learning starts 200, batch 32, gamma 0.8,
 #: a gradient step every env step, target update every 50, exploration over 70% of the budget.
-HIGHWAY_DQN = dict(
+HIGHWAY_DQN = DQNSettings(
     hidden=(256, 256),
     lr=5e-4,
     buffer_size=15_000,
@@ -98,7 +130,12 @@ WORLDS = {
 }
 
 
-def make_minigrid_8x8(seed: int):
+def make_minigrid_8x8(seed: int) -> FactorQEnv:
+    """MiniGrid Dynamic-Obstacles 8x8 with the "nodeath" semantics (``WORLDS["minigrid-8x8"]``).
+
+    Args:
+        seed: the env seed.
+    """
     from factorq_envs.minigrid import make_minigrid
 
     return make_minigrid(8, "nodeath", seed=seed)
@@ -141,10 +178,12 @@ class GymConfig:
 
     @property
     def spec(self) -> WorldSpec:
+        """The declared world (``WORLDS[world]``)."""
         return WORLDS[self.world]
 
     @property
     def return_threshold(self) -> float:
+        """``threshold``, else the world's default."""
         return self.spec.threshold if self.threshold is None else self.threshold
 
 
@@ -152,7 +191,11 @@ CONFIG = GymConfig
 
 
 def prepare(config: GymConfig) -> None:
-    """The world's extra (and SB3 when asked for) installed, else one ModuleNotFoundError."""
+    """The world's extra (and SB3 when asked for) installed, else one ModuleNotFoundError.
+
+    Args:
+        config: the experiment.
+    """
     from factorq_envs.gymnasium_adapter import require_extra
 
     modules = {"highway": "highway_env", "minigrid": "minigrid"}
@@ -162,7 +205,12 @@ def prepare(config: GymConfig) -> None:
         require_extra("stable_baselines3", "factorq-torch[sb3]")
 
 
-def units(config: GymConfig) -> list[dict]:
+def units(config: GymConfig) -> list[dict[str, Any]]:
+    """One unit per method and seed: ``{"id", "method", "seed_index"}``.
+
+    Args:
+        config: the experiment.
+    """
     return [
         {"id": f"{method}-seed{index}", "method": method, "seed_index": index}
         for method in config.methods
@@ -170,7 +218,13 @@ def units(config: GymConfig) -> list[dict]:
     ]
 
 
-def work(config: GymConfig, unit: dict) -> int:
+def work(config: GymConfig, unit: dict[str, Any]) -> int:
+    """A unit's training env steps (what ``run_unit`` reports to ``progress``).
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+    """
     return config.steps
 
 
@@ -186,21 +240,21 @@ def _env_seed(config: GymConfig, index: int, evaluation: bool = False) -> int:
     return int(derive_keys(config.seed, STREAM_WORLD, 1, offset)[0]) & 0x7FFFFFFF
 
 
-def _keys(config: GymConfig, unit: dict, stream: int):
+def _keys(config: GymConfig, unit: dict[str, Any], stream: int) -> torch.Tensor:
     from factorq_torch.base.rng import derive_keys
 
     slot = METHODS.index(unit["method"]) * config.seeds + unit["seed_index"]
     return derive_keys(config.seed, stream, 1, slot)
 
 
-def _maker(config: GymConfig) -> Callable[[int], Any]:
+def _maker(config: GymConfig) -> Callable[[int], FactorQEnv]:
     import importlib
 
     module, function = config.spec.make.split(":")
     return getattr(importlib.import_module(module), function)
 
 
-def _torchrl_env(config: GymConfig, seed: int):
+def _torchrl_env(config: GymConfig, seed: int) -> DeclaredEnv:
     from factorq_envs.declared_env import declared_torchrl_env
 
     return declared_torchrl_env(_maker(config), [seed], exclude=_excluded(config))
@@ -214,10 +268,28 @@ def _excluded(config: GymConfig) -> list[str]:
 # The networks and agents
 
 
-def observation_network(count: int, key: str, shape, actions: int, hidden, keys, zero_output):
+def observation_network(
+    count: int,
+    key: str,
+    shape: Sequence[int],
+    actions: int,
+    hidden: Sequence[int],
+    keys: torch.Tensor,
+    zero_output: bool,
+) -> Any:  # a tensordict module (tensordict: untyped)
     """``S`` MLPs on an observation entry: ``key`` ``[..., S, *shape]`` -> ``action_value``
     ``[..., S, A]`` (the entry flattened, as float32; MiniGrid's image divided by 10: its
-    indices are below 11)."""
+    indices are below 11).
+
+    Args:
+        count: ``S``, the MLPs (one per experiment).
+        key: the observation entry they read.
+        shape: the entry's shape per experiment.
+        actions: ``A``, the outputs.
+        hidden: the hidden layers' widths.
+        keys: ``[S]`` seeds of their initial weights (``BatchedMLP``).
+        zero_output: start with a zero output layer (every value 0).
+    """
     import torch
     from tensordict.nn import TensorDictModuleBase
 
@@ -234,7 +306,7 @@ def observation_network(count: int, key: str, shape, actions: int, hidden, keys,
                 (count,), size, actions, hidden=hidden, keys=keys, zero_output=zero_output
             )
 
-        def forward(self, tensordict):
+        def forward(self, tensordict: Any) -> Any:
             value = tensordict.get(key)
             x = value.reshape(*value.shape[: value.dim() - len(shape)], size)
             tensordict.set("action_value", self.mlp(x.to(torch.float32) * scale))
@@ -244,7 +316,11 @@ def observation_network(count: int, key: str, shape, actions: int, hidden, keys,
 
 
 class Recorder:
-    """Crashes, returns and curves of one training experiment."""
+    """Crashes, returns and curves of one training experiment.
+
+    Args:
+        config: the experiment (its ``steps``, ``window``, threshold and ``curve_points``).
+    """
 
     def __init__(self, config: GymConfig) -> None:
         self.config = config
@@ -259,6 +335,13 @@ class Recorder:
         self.curve_return: list[float | None] = []
 
     def update(self, crashed: bool, reward: float, done: bool) -> None:
+        """Count one env step.
+
+        Args:
+            crashed: the step collided.
+            reward: its conventional reward.
+            done: it ended the episode.
+        """
         self.step += 1
         self.crashes += int(crashed)
         self.episode_return += reward
@@ -276,6 +359,7 @@ class Recorder:
             self.curve_return.append(_mean(recent) if recent else None)
 
     def result(self) -> dict[str, Any]:
+        """The unit's training measures and curves (JSON)."""
         return {
             "crashes": self.crashes,
             "crashes_per_1000": 1000.0 * self.crashes / max(1, self.step),
@@ -287,11 +371,11 @@ class Recorder:
         }
 
 
-def _mean(values) -> float:
+def _mean(values: Sequence[float]) -> float:
     return float(sum(values) / len(values))
 
 
-def _transition(td) -> tuple[bool, float, bool]:
+def _transition(td: Any) -> tuple[bool, float, bool]:
     """(crashed, conventional reward, done) of a ``[1]`` transition (split or not)."""
     nxt = td.get("next")
     reward = float(nxt.get("reward").sum())
@@ -301,7 +385,17 @@ def _transition(td) -> tuple[bool, float, bool]:
     return bool(nxt.get("bump").any()), reward, bool(nxt.get("done").any())
 
 
-def run_unit(config: GymConfig, unit: dict, progress: Callable[[int], None] | None = None):
+def run_unit(
+    config: GymConfig, unit: dict[str, Any], progress: Callable[[int], None] | None = None
+) -> dict[str, Any]:
+    """Train and evaluate one unit (one method, one seed): ``Recorder.result()`` with the greedy
+    measures, ``wall_s`` and ``steps_per_s`` (and the structures, for Factor-Q).
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+        progress: called with env steps done, every 100.
+    """
     import torch
 
     threads = torch.get_num_threads()
@@ -319,12 +413,14 @@ def run_unit(config: GymConfig, unit: dict, progress: Callable[[int], None] | No
         torch.set_num_threads(threads)
 
 
-def _tick(progress, step: int, total: int) -> None:
+def _tick(progress: Callable[[int], None], step: int, total: int) -> None:
     if step % 100 == 0 or step == total:
         progress(100 if step % 100 == 0 else step % 100)
 
 
-def _env_and_task_network(config: GymConfig, unit: dict, *, zero_output: bool):
+def _env_and_task_network(
+    config: GymConfig, unit: dict[str, Any], *, zero_output: bool
+) -> tuple[DeclaredEnv, Any]:
     """The unit's env (its own env seed) and a task Q-network on the world's observation, with
     highway-env's documented hidden layers: what every torchrl method of a unit starts from."""
     from factorq_torch.base.rng import STREAM_TASK_NETWORK
@@ -343,7 +439,9 @@ def _env_and_task_network(config: GymConfig, unit: dict, *, zero_output: bool):
     return env, network
 
 
-def _run_dqn(config: GymConfig, unit: dict, progress) -> dict[str, Any]:
+def _run_dqn(
+    config: GymConfig, unit: dict[str, Any], progress: Callable[[int], None]
+) -> dict[str, Any]:
     import torch
 
     from factorq_torch.base.rng import STREAM_POLICY
@@ -379,7 +477,9 @@ def _run_dqn(config: GymConfig, unit: dict, progress) -> dict[str, Any]:
     return result
 
 
-def _run_factor_q(config: GymConfig, unit: dict, progress) -> dict[str, Any]:
+def _run_factor_q(
+    config: GymConfig, unit: dict[str, Any], progress: Callable[[int], None]
+) -> dict[str, Any]:
     import torch
 
     from factorq_torch.base.config import AgentConfig
@@ -392,6 +492,10 @@ def _run_factor_q(config: GymConfig, unit: dict, progress) -> dict[str, Any]:
     base, task = _env_and_task_network(config, unit, zero_output=True)
     oracle = base.dependency
     if unit["method"] == "factor-q-oracle":
+        if oracle is None:
+            raise ValueError(
+                f"factor-q-oracle needs a world that declares its oracle: {config.world}"
+            )
         local = LocalRewardTable(1, dependency=oracle)
     else:  # an open actuator predicts no local reward (docs/decisions.md, MiniGrid)
         local = StructureLearner(
@@ -419,19 +523,20 @@ def _run_factor_q(config: GymConfig, unit: dict, progress) -> dict[str, Any]:
     result["steps_per_s"] = config.steps / wall
     declaration = base.declaration
     if oracle is not None:  # the declared names and oracle, for a summary without torch
-        result["oracle"] = oracle.to(int).tolist()
+        result["oracle"] = oracle.to(torch.int64).tolist()
         result["actuator_names"] = list(base.config.actuator_names)
         result["sensor_names"] = list(declaration.sensor_names) or [
             f"s{k}" for k in range(base.num_sensors)
         ]
     if isinstance(local, StructureLearner):
         learned = local.structure()[0]  # [A, K]
-        result["structure"] = learned.to(int).tolist()
-        result["agrees_with_oracle"] = (learned == oracle).all(dim=-1).tolist()
+        result["structure"] = learned.to(torch.int64).tolist()
+        if oracle is not None:  # a world without one: the structure alone
+            result["agrees_with_oracle"] = (learned == oracle).all(dim=-1).tolist()
     return result
 
 
-def _evaluate(config: GymConfig, unit: dict, policy) -> dict[str, Any]:
+def _evaluate(config: GymConfig, unit: dict[str, Any], policy: Any) -> dict[str, Any]:
     """The greedy policy (exploration off) for ``eval_episodes`` episodes on fresh env seeds."""
     import torch
     from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -456,7 +561,9 @@ def _evaluate(config: GymConfig, unit: dict, policy) -> dict[str, Any]:
     return {"greedy_crash_rate": crashes / config.eval_episodes, "greedy_return": _mean(returns)}
 
 
-def _run_sb3(config: GymConfig, unit: dict, progress) -> dict[str, Any]:
+def _run_sb3(
+    config: GymConfig, unit: dict[str, Any], progress: Callable[[int], None]
+) -> dict[str, Any]:
     """SB3's DQN with the documented hyperparameters on the world's own observation; crashes
     and returns read from the adapter's ``info`` by a recording wrapper."""
     import gymnasium
@@ -466,14 +573,14 @@ def _run_sb3(config: GymConfig, unit: dict, progress) -> dict[str, Any]:
     recorder = Recorder(config)
 
     class Record(gymnasium.Wrapper):
-        def step(self, action):
+        def step(self, action: Any) -> Any:
             out = self.env.step(action)
             observation, reward, terminated, truncated, info = out
             recorder.update(bool(info["collided"]), float(reward), terminated or truncated)
             _tick(progress, recorder.step, config.steps)
             return out
 
-    def make(seed: int):
+    def make(seed: int) -> gymnasium.Env:
         env = _maker(config)(seed)
         return gymnasium.wrappers.FilterObservation(env, [config.spec.observation])
 
@@ -535,58 +642,82 @@ MEASURES = (
 )
 
 
-def _stat(values: list) -> dict[str, Any]:
-    from factorq_trainers.analysis.stats import interval, scalar_ci
+#: The measures that are proportions (per seed in [0, 1]): Wilson's interval.
+PROPORTIONS = ("greedy_crash_rate",)
+CURVES = ("curve_crashes", "curve_return")
 
+
+def _stat(values: list[float | None], seed: int, proportion: bool = False) -> dict[str, Any]:
+    """Mean over the seeds that have a value, its 95% interval (Wilson's for a proportion, the
+    BCa bootstrap's otherwise: neither leaves the possible range) and how many seeds have one."""
     present = [v for v in values if v is not None]
     if not present:
         return {"mean": None, "ci95": None, "n": 0}
-    mean, low, high = scalar_ci(present)
+    method = wilson_ci if proportion else functools.partial(bootstrap_mean_ci, seed=seed)
+    mean, low, high = scalar_ci(present, method)
     return {"mean": mean, "ci95": interval(low, high), "n": len(present)}
 
 
-#: What ``factorq sweep --command gym`` reports per configuration (``sweep_cells``).
-SWEEP_MEASURES = ("crashes_per_1000", "greedy_crash_rate", "greedy_return", "steps_to_threshold")
-
-
-def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """Per method of a ``gym.json`` dict: the ``SWEEP_MEASURES`` (means and 95% intervals)."""
+def _band(rows: list[list[float | None]], seed: int) -> dict[str, list[float | None]]:
+    """A curve's mean over seeds at each point and its 95% BCa bootstrap band, over the seeds
+    with a value there (``None``: no seed has one; no band from a single seed). One bootstrap
+    per set of seeds present (the return is missing before a seed's first episode)."""
+    points = max(len(row) for row in rows)
+    values = np.full((len(rows), points), np.nan)
+    for index, row in enumerate(rows):
+        values[index, : len(row)] = [np.nan if value is None else value for value in row]
+    mean, low, high = (np.full(points, np.nan) for _ in range(3))
+    present = ~np.isnan(values)  # [seeds, points]
+    for pattern in {tuple(column) for column in present.T.tolist()}:
+        seeds = np.array(pattern, dtype=bool)
+        if not seeds.any():
+            continue
+        columns = (present.T == seeds).all(axis=1)
+        centre, band_low, band_high = bootstrap_mean_ci(values[seeds][:, columns], seed)
+        mean[columns] = centre
+        if band_low is not None and band_high is not None:
+            low[columns], high[columns] = band_low, band_high
     return {
-        f"{results['world']}/{method}": {
-            "world": results["world"],
-            "algorithm": method,
-            **{
-                measure: {"mean": entry[measure]["mean"], "ci95": entry[measure]["ci95"]}
-                for measure in SWEEP_MEASURES
-            },
-        }
-        for method, entry in results["methods"].items()
+        name: [finite_or_none(value) for value in array]
+        for name, array in (("mean", mean), ("low", low), ("high", high))
     }
 
 
-def summarise(config: GymConfig, unit_results: list[dict]) -> dict[str, Any]:
-    """Per method: each measure's mean and 95% t interval over seeds, the curves of every seed,
-    and (learned dependencies) how many seeds' learner agrees with the oracle per actuator."""
-    by_method: dict[str, list[dict]] = {}
+def summarise(config: GymConfig, unit_results: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per method: each measure's mean and 95% interval over seeds (Wilson for the greedy crash
+    rate, else the BCa bootstrap), the curves of every seed and their mean and band over seeds,
+    and (learned dependencies) how many seeds' learner agrees with the oracle per actuator.
+
+    Args:
+        config: the experiment.
+        unit_results: ``run_unit``'s results, in ``units(config)`` order.
+    """
+    by_method: dict[str, list[dict[str, Any]]] = {}
     for unit, result in zip(units(config), unit_results, strict=True):
         by_method.setdefault(unit["method"], []).append(result)
     methods = {}
     for method, results in by_method.items():
-        entry = {name: _stat([r[name] for r in results]) for name in MEASURES}
-        entry["curves"] = {
-            name: [r[name] for r in results]
-            for name in ("curve_steps", "curve_crashes", "curve_return")
+        entry: dict[str, Any] = {
+            name: _stat([r[name] for r in results], config.seed, name in PROPORTIONS)
+            for name in MEASURES
         }
+        entry["curves"] = {name: [r[name] for r in results] for name in ("curve_steps", *CURVES)}
+        entry["bands"] = {name: _band(entry["curves"][name], config.seed) for name in CURVES}
         entry["reached"] = sum(r["steps_to_threshold"] is not None for r in results)
         entry["wall_s"] = sum(r["wall_s"] for r in results)
         if "structure" in results[0]:
             entry["structures"] = [r["structure"] for r in results]
+        if "agrees_with_oracle" in results[0]:
             entry["agrees_with_oracle"] = [
                 sum(r["agrees_with_oracle"][a] for r in results)
                 for a in range(len(results[0]["agrees_with_oracle"]))
             ]
         methods[method] = entry
-    out = {"methods": methods, "world": config.spec.label, "threshold": config.return_threshold}
+    out: dict[str, Any] = {
+        "methods": methods,
+        "world": config.spec.label,
+        "threshold": config.return_threshold,
+    }
     declared = next((r for r in unit_results if "oracle" in r), None)
     if declared is not None:
         out["sensors"] = declared["sensor_names"]
@@ -595,120 +726,13 @@ def summarise(config: GymConfig, unit_results: list[dict]) -> dict[str, Any]:
     return out
 
 
-def targets(results: dict[str, Any]) -> list[str]:
-    """The issue's targets, where the methods they compare ran."""
-    methods = results["methods"]
-    lines = []
-
-    def crashes(method):
-        return methods[method]["crashes_per_1000"]["mean"] if method in methods else None
-
-    oracle, learned = crashes("factor-q-oracle"), crashes("factor-q-learned")
-    for baseline in ("dqn", "sb3-dqn"):
-        theirs = crashes(baseline)
-        if oracle is None or theirs is None:
-            continue
-        ratio = math.inf if oracle == 0 else theirs / oracle
-        mine = methods["factor-q-oracle"]["greedy_return"]["mean"]
-        other = methods[baseline]["greedy_return"]["mean"]
-        lines.append(
-            f"- Oracle Factor-Q: {ratio:.2f}x fewer training crashes than "
-            f"{METHOD_LABELS[baseline]} (target >= 5x: {'met' if ratio >= 5 else 'not met'}); "
-            f"greedy return {mine:.2f} against {other:.2f} "
-            f"({'at least as high' if mine >= other else 'lower'})."
-        )
-    if oracle is not None and learned is not None:
-        ratio = math.inf if oracle == 0 else learned / oracle
-        lines.append(
-            f"- Learned dependencies: {ratio:.2f}x the oracle's training crashes (target <= 1.5x: "
-            f"{'met' if ratio <= 1.5 else 'not met'})."
-        )
-    return lines
-
-
-def _cell(stat: dict[str, Any], digits: int = 2) -> str:
-    if stat["mean"] is None:
-        return "-"
-    text = f"{stat['mean']:.{digits}f}"
-    if stat["ci95"] is not None and stat["ci95"][0] is not None:
-        text += f" [{stat['ci95'][0]:.{digits}f}, {stat['ci95'][1]:.{digits}f}]"
-    return text
-
-
-def markdown(results: dict[str, Any]) -> str:
-    config = results["config"]
-    seeds = config["seeds"]
-    lines = [
-        f"# Factor-Q on {results['world']}",
-        "",
-        f"{seeds} seeds per method, {config['steps']:,} training env steps each; means with 95% "
-        f"t intervals over seeds. Greedy: {config['eval_episodes']} episodes after training, "
-        f"exploration off. Steps to threshold: first env step at which the mean return of the "
-        f"last {config['window']} training episodes reached {results['threshold']:g} (k/{seeds} "
-        f"seeds got there).",
-        "",
-        "| method | crashes / 1,000 steps (training) | greedy crash rate | greedy return | "
-        "steps to threshold | env steps/s | wall s (all seeds) |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for method, entry in results["methods"].items():
-        lines.append(
-            f"| {METHOD_LABELS[method]} | {_cell(entry['crashes_per_1000'], 1)} | "
-            f"{_cell(entry['greedy_crash_rate'])} | {_cell(entry['greedy_return'])} | "
-            f"{_cell(entry['steps_to_threshold'], 0)} ({entry['reached']}/{seeds}) | "
-            f"{_cell(entry['steps_per_s'], 1)} | {entry['wall_s']:.0f} |"
-        )
-    lines += ["", *targets(results)]
-    learned = results["methods"].get("factor-q-learned")
-    if learned is not None and "oracle" in results:
-        agree = ", ".join(
-            f"{name} {count}/{seeds}"
-            for name, count in zip(results["actuators"], learned["agrees_with_oracle"], strict=True)
-        )
-        lines += ["", f"Learned structure equal to the oracle's row, per actuator: {agree}."]
-    return "\n".join(lines) + "\n"
-
-
-def figure(results: dict[str, Any], path) -> None:
-    """Crashes (cumulative) and return (last ``window`` episodes) against env steps, the mean
-    over seeds with a 95% t band."""
-    import numpy as np
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    from factorq_trainers.analysis.stats import mean_ci
-
-    figure = Figure(figsize=(11, 4))
-    FigureCanvasAgg(figure)
-    panels = (("curve_crashes", "crashes during training"), ("curve_return", "training return"))
-    for column, (name, title) in enumerate(panels):
-        axis = figure.add_subplot(1, 2, column + 1)
-        for method, entry in results["methods"].items():
-            steps = entry["curves"]["curve_steps"][0]
-            rows = entry["curves"][name]
-            means, lows, highs = [], [], []
-            for i in range(len(steps)):
-                column_values = [row[i] for row in rows if i < len(row) and row[i] is not None]
-                if not column_values:
-                    means.append(np.nan), lows.append(np.nan), highs.append(np.nan)
-                    continue
-                mean, low, high = mean_ci(column_values)
-                means.append(float(mean))
-                lows.append(float(mean if low is None else low))
-                highs.append(float(mean if high is None else high))
-            axis.plot(steps, means, label=METHOD_LABELS[method])
-            axis.fill_between(steps, lows, highs, alpha=0.2)
-        axis.set_xlabel("env steps")
-        axis.set_title(title)
-        axis.grid(alpha=0.3)
-    figure.axes[0].legend(fontsize=8)
-    figure.suptitle(f"{results['world']}: mean over seeds, 95% t bands")
-    figure.tight_layout()
-    figure.savefig(path, dpi=100, format="png")
-
-
 def run(config: GymConfig, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
-    """Every unit here, summarised into the runner's envelope (no files)."""
+    """Every unit here, summarised into the runner's envelope (no files).
+
+    Args:
+        config: the experiment.
+        progress: called with env steps done.
+    """
     import sys
 
     from factorq_trainers.runner import frame

@@ -34,7 +34,7 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -44,6 +44,11 @@ from factorq_trainers.analysis.stats import bootstrap_mean_ci, interval, scalar_
 from factorq_trainers.reports.minigrid import FOUND_TARGET_STEPS
 from factorq_trainers.runner import resources
 from factorq_trainers.runner.options import option
+
+if TYPE_CHECKING:
+    import torch
+
+    from factorq_envs.declared_env import DeclaredEnv
 
 NAME = "minigrid"
 HELP = (
@@ -89,7 +94,17 @@ NOTICE = (
 
 @dataclass(frozen=True)
 class MiniGridConfig:
-    """The MiniGrid experiment; the defaults run in a few minutes on 2 cores (README)."""
+    """The MiniGrid experiment; the defaults run in a few minutes on 2 cores (README).
+
+    Args:
+        seed, seeds: the master seed and the experiments per size and method.
+        sizes, methods: what runs (``SIZE_NAMES``, ``METHODS``).
+        steps: env steps per seed at 5x5 (size ``n`` gets ``steps * n / 5``).
+        semantics, layout: the collision semantics and the sensors (``factorq_envs.minigrid``).
+        window: finished episodes in the success rate behind "steps to 90%".
+        final_fraction: the share of the budget, at its end, of the final measures.
+        out: the output directory.
+    """
 
     seed: int = option(0, "Master seed: worlds, policies and networks derive from it.")
     seeds: int = option(10, "Independent experiments per size and method.")
@@ -133,7 +148,11 @@ class MiniGridConfig:
         check_float("final_fraction", self.final_fraction, 0.0, 1.0, low_open=True)
 
     def budget(self, size: int) -> int:
-        """Env steps per seed at ``size``."""
+        """Env steps per seed at ``size``.
+
+        Args:
+            size: the grid's side.
+        """
         return max(1, round(self.steps * size / 5))
 
 
@@ -145,7 +164,12 @@ CONFIG = MiniGridConfig
 
 
 def world_seeds(config: MiniGridConfig, size: int) -> list[int]:
-    """MiniGrid's reset seed of each experiment at ``size`` (the same for every method)."""
+    """MiniGrid's reset seed of each experiment at ``size`` (the same for every method).
+
+    Args:
+        config: the experiment.
+        size: the grid's side.
+    """
     from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 
     offset = SIZE_NAMES.index(str(size)) * config.seeds
@@ -153,8 +177,15 @@ def world_seeds(config: MiniGridConfig, size: int) -> list[int]:
     return [int(key) & 0x7FFFFFFF for key in keys.tolist()]
 
 
-def method_keys(config: MiniGridConfig, size: int, method: str, stream: int):
-    """Keys ``[S]`` of ``stream`` for ``method``'s experiments at ``size``."""
+def method_keys(config: MiniGridConfig, size: int, method: str, stream: int) -> torch.Tensor:
+    """Keys ``[S]`` of ``stream`` for ``method``'s experiments at ``size``.
+
+    Args:
+        config: the experiment.
+        size: the grid's side.
+        method: one of ``METHODS``.
+        stream: a stream of ``factorq_torch.base.rng``.
+    """
     from factorq_torch.base.rng import derive_keys
 
     slot = SIZE_NAMES.index(str(size)) * len(METHODS) + METHODS.index(method)
@@ -166,7 +197,11 @@ def method_keys(config: MiniGridConfig, size: int, method: str, stream: int):
 
 
 class Recorder:
-    """Per-step collisions and per-episode outcomes of ``S`` experiments stepped in lockstep."""
+    """Per-step collisions and per-episode outcomes of ``S`` experiments stepped in lockstep.
+
+    Args:
+        count: ``S``, the experiments.
+    """
 
     def __init__(self, count: int) -> None:
         self.count = count
@@ -178,9 +213,13 @@ class Recorder:
         # per experiment: (end step, success, return, length) of every finished episode
         self.episodes: list[list[tuple[int, bool, float, int]]] = [[] for _ in range(count)]
 
-    def update(self, td, conventional_reward) -> None:
-        """Record one step: ``td`` holds ``exploratory`` and ``("next", bump | done)``;
-        ``conventional_reward`` ``[S]``: MiniGrid's own reward of the step."""
+    def update(self, td: Any, conventional_reward: torch.Tensor) -> None:
+        """Record one step.
+
+        Args:
+            td: the step's tensordict: ``exploratory`` and ``("next", bump | done)``.
+            conventional_reward: ``[S]``, MiniGrid's own reward of the step.
+        """
         self.step += 1
         nxt = td.get("next")
         bump = nxt.get("bump").any(dim=-1).numpy()
@@ -198,10 +237,16 @@ class Recorder:
             )
             self.returns[i], self.lengths[i] = 0.0, 0
 
-    def summary(self, budget: int, window: int, final_fraction: float) -> dict[str, list]:
-        """Per-seed measures (module docstring); ``None`` where there is nothing to measure."""
+    def summary(self, budget: int, window: int, final_fraction: float) -> dict[str, list[Any]]:
+        """Per-seed measures (module docstring); ``None`` where there is nothing to measure.
+
+        Args:
+            budget: the env steps each seed ran.
+            window: finished episodes in the success rate behind ``steps_to_90``.
+            final_fraction: the share of the budget, at its end, of the final measures.
+        """
         start = budget - final_fraction * budget
-        out: dict[str, list] = {
+        out: dict[str, list[Any]] = {
             "success_rate": [],
             "return": [],
             "steps_to_goal": [],
@@ -231,7 +276,7 @@ class Recorder:
 # The methods
 
 
-def _env(config: MiniGridConfig, size: int, *, with_image: bool = False):
+def _env(config: MiniGridConfig, size: int, *, with_image: bool = False) -> DeclaredEnv:
     from factorq_envs.minigrid_env import MiniGridEnv
 
     return MiniGridEnv(
@@ -246,7 +291,16 @@ def _env(config: MiniGridConfig, size: int, *, with_image: bool = False):
 def run_tabular(
     config: MiniGridConfig, size: int, method: str, tick: Callable[[int], None]
 ) -> dict[str, Any]:
-    """Factor-Q (learned or oracle) or Q-learning through ``OnlineCollector``."""
+    """Factor-Q (learned or oracle) or Q-learning through ``OnlineCollector``.
+
+    Args:
+        config: the experiment.
+        size: the grid's side.
+        method: a tabular one of ``METHODS``.
+        tick: called with env steps done, every 100.
+    """
+    import torch
+
     from factorq_envs.body import HEADING
     from factorq_envs.minigrid import FORWARD
     from factorq_torch.base.config import AgentConfig
@@ -288,8 +342,9 @@ def run_tabular(
     # one run of as many episodes as the budget could hold: the loop below stops at the budget
     collector = OnlineCollector(env, policy, loss, runs=1, episodes=budget)
     recorder = Recorder(count)
+    assert base.dependency is not None  # MiniGrid's declaration states its oracle
     truth = base.dependency[FORWARD]  # [K]
-    found = [None] * count
+    found: list[int | None] = [None] * count
     started = time.perf_counter()
     for step, td in enumerate(collector, start=1):
         nxt = td.get("next")
@@ -308,15 +363,15 @@ def run_tabular(
             break
     wall = time.perf_counter() - started
     collector.shutdown()
-    result = recorder.summary(budget, config.window, config.final_fraction)
+    result: dict[str, Any] = recorder.summary(budget, config.window, config.final_fraction)
     result["wall_s"] = wall
     if learner is not None:
         result["found_forward_front"] = found
-        result["structure_at_end"] = learner.structure().to(int).tolist()
+        result["structure_at_end"] = learner.structure().to(torch.int64).tolist()
     return result
 
 
-def _image_network(count: int, hidden: tuple[int, ...], keys, actions: int):
+def _image_network(count: int, hidden: tuple[int, ...], keys: torch.Tensor, actions: int) -> Any:
     """``S`` MLPs on MiniGrid's image: ``image`` ``[..., S, 7, 7, 3]`` uint8 -> ``action_value``
     ``[..., S, A]``; the input is the image flattened and divided by 10 (object, colour and
     state indices are below 11)."""
@@ -331,7 +386,7 @@ def _image_network(count: int, hidden: tuple[int, ...], keys, actions: int):
             self.in_keys, self.out_keys = ["image"], ["action_value"]
             self.mlp = BatchedMLP((count,), 7 * 7 * 3, actions, hidden=hidden, keys=keys)
 
-        def forward(self, tensordict):
+        def forward(self, tensordict: Any) -> Any:
             image = tensordict.get("image")
             x = image.reshape(*image.shape[:-3], -1).to(torch.float32) / 10.0
             tensordict.set("action_value", self.mlp(x))
@@ -344,7 +399,14 @@ def run_dqn(
     config: MiniGridConfig, size: int, method: str, tick: Callable[[int], None]
 ) -> dict[str, Any]:
     """``factorq_trainers.experiments.dqn``'s DQN (its defaults) on the cell/heading/sensors or on
-    the image."""
+    the image.
+
+    Args:
+        config: the experiment.
+        size: the grid's side.
+        method: ``"dqn"`` or ``"dqn-image"``.
+        tick: called with env steps done, every 100.
+    """
     import torch
 
     from factorq_envs.body import HEADING
@@ -404,7 +466,7 @@ def run_dqn(
             tick(min(100, step - 100 * ((step - 1) // 100)))
     wall = time.perf_counter() - started
     env.close()
-    result = recorder.summary(budget, config.window, config.final_fraction)
+    result: dict[str, Any] = recorder.summary(budget, config.window, config.final_fraction)
     result["wall_s"] = wall
     return result
 
@@ -423,7 +485,7 @@ RUNNERS = {
 # The experiment
 
 
-def _stat(values: list, seed: int, proportion: bool = False) -> dict[str, Any]:
+def _stat(values: list[float | None], seed: int, proportion: bool = False) -> dict[str, Any]:
     """Mean and 95% interval of the seeds that have a value (Wilson's for a proportion, the
     bootstrap's otherwise: both stay inside the possible range, stats), and how many have one."""
     present = [v for v in values if v is not None]
@@ -446,7 +508,17 @@ MEASURES = (
 
 
 def summarise_method(result: dict[str, Any], budget: int, seed: int = 0) -> dict[str, Any]:
-    summary = {name: _stat(result[name], seed, name == "success_rate") for name in MEASURES}
+    """Each measure's mean over seeds and 95% interval (Wilson for the success rate, the BCa
+    bootstrap otherwise), and how often the learner found forward <- front.
+
+    Args:
+        result: a method's per-seed measures (``Recorder.summary`` and ``wall_s``).
+        budget: the env steps each seed ran.
+        seed: the master seed (the bootstrap's resamples).
+    """
+    summary: dict[str, Any] = {
+        name: _stat(result[name], seed, name == "success_rate") for name in MEASURES
+    }
     found = result.get("found_forward_front")
     if found is not None:
         within = [f is not None and f <= FOUND_TARGET_STEPS for f in found]
@@ -459,7 +531,11 @@ def summarise_method(result: dict[str, Any], budget: int, seed: int = 0) -> dict
 
 
 def estimate(config: MiniGridConfig) -> resources.Estimate:
-    """``resources.minigrid_estimate`` for the body of ``config``'s sensor layout."""
+    """``resources.minigrid_estimate`` for the body of ``config``'s sensor layout.
+
+    Args:
+        config: the experiment.
+    """
     from factorq_envs.body import HEADING
     from factorq_envs.minigrid import sensor_names
 
@@ -469,7 +545,11 @@ def estimate(config: MiniGridConfig) -> resources.Estimate:
 
 
 def units(config: MiniGridConfig) -> list[dict[str, Any]]:
-    """One unit per size and method (a method's seeds run as one batch)."""
+    """One unit per size and method (a method's seeds run as one batch).
+
+    Args:
+        config: the experiment.
+    """
     return [
         {"id": f"{size}/{method}", "size": int(size), "method": method}
         for size in config.sizes
@@ -478,12 +558,21 @@ def units(config: MiniGridConfig) -> list[dict[str, Any]]:
 
 
 def work(config: MiniGridConfig, unit: dict[str, Any]) -> int:
-    """A unit's env steps per seed (what ``run_unit`` reports to ``progress``)."""
+    """A unit's env steps per seed (what ``run_unit`` reports to ``progress``).
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+    """
     return config.budget(unit["size"])
 
 
 def prepare(config: MiniGridConfig) -> None:
-    """``factorq_envs.minigrid.require_minigrid`` (a ModuleNotFoundError naming the extra)."""
+    """``factorq_envs.minigrid.require_minigrid`` (a ModuleNotFoundError naming the extra).
+
+    Args:
+        config: the experiment.
+    """
     from factorq_envs.minigrid import require_minigrid
 
     require_minigrid()
@@ -492,7 +581,13 @@ def prepare(config: MiniGridConfig) -> None:
 def run_unit(
     config: MiniGridConfig, unit: dict[str, Any], progress: Callable[[int], None] | None = None
 ) -> dict[str, Any]:
-    """One method at one size, all seeds; ``progress(env_steps)`` after each 100 steps."""
+    """One method at one size, all seeds; ``progress(env_steps)`` after each 100 steps.
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+        progress: called with env steps done.
+    """
     import torch
 
     size, method = unit["size"], unit["method"]
@@ -506,7 +601,12 @@ def run_unit(
 
 
 def summarise(config: MiniGridConfig, outcomes: list[dict[str, Any]]) -> dict[str, Any]:
-    """``minigrid.json``'s entries from the units (in ``units`` order)."""
+    """``minigrid.json``'s entries from the units (in ``units`` order).
+
+    Args:
+        config: the experiment.
+        outcomes: ``run_unit``'s results.
+    """
     from factorq_envs.minigrid import sensor_names
 
     results: dict[str, Any] = {}
@@ -523,7 +623,12 @@ def summarise(config: MiniGridConfig, outcomes: list[dict[str, Any]]) -> dict[st
 
 
 def run(config: MiniGridConfig, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
-    """Every method on every size, here; the results (what ``minigrid.json`` holds)."""
+    """Every method on every size, here; the results (what ``minigrid.json`` holds).
+
+    Args:
+        config: the experiment.
+        progress: called with env steps done.
+    """
     from factorq_trainers.runner import frame
 
     return frame.run_in_process(sys.modules[__name__], config, progress)

@@ -268,7 +268,7 @@ def _check_foreign_world(world: Any, checkpoint_every: Any, resume: Any) -> None
 def world_description(world: Any) -> dict[str, Any]:
     """``{"name", "config"}`` of a world other than the config's grid (``results["world"]``)."""
     config = world.config
-    fields_ = asdict(config) if is_dataclass(config) else {}
+    fields_ = asdict(config) if is_dataclass(config) and not isinstance(config, type) else {}
     return {
         "name": type(world).__name__,
         "config": {key: value for key, value in fields_.items() if _json_scalar(value)},

@@ -147,6 +147,7 @@ def config_from_dict(data: dict[str, Any]) -> PaperConfig:
     unknown = sorted(set(data) - known)
     if unknown:
         raise ValueError(f"unknown config fields: {', '.join(unknown)}")
-    return PaperConfig(
-        **{key: tuple(value) if isinstance(value, list) else value for key, value in data.items()}
-    )
+    values: dict[str, Any] = {
+        key: tuple(value) if isinstance(value, list) else value for key, value in data.items()
+    }
+    return PaperConfig(**values)

@@ -58,7 +58,7 @@ class _Bar:
         from tqdm import tqdm
 
         self._tqdm = tqdm
-        self.bar = None
+        self.bar: Any = None  # a tqdm bar once the first progress arrives (tqdm: untyped)
 
     def __call__(self, progress: paper.Progress) -> None:
         if self.bar is None:
@@ -130,7 +130,16 @@ def main(
         return frame.EXIT_USAGE
 
 
-def _run(parser, args, config, backend, every, resume, executor, figure_process) -> int:
+def _run(
+    parser: argparse.ArgumentParser,
+    args: argparse.Namespace,
+    config: paper.PaperConfig,
+    backend: str,
+    every: Any,
+    resume: Any,
+    executor: Any,
+    figure_process: Any,
+) -> int:
     from factorq_trainers.distributed import cluster_runs
     from factorq_trainers.reports import report
     from factorq_trainers.runner import checkpoint

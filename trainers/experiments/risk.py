@@ -36,9 +36,18 @@ import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from factorq_trainers.runner.options import option
+
+if TYPE_CHECKING:
+    import torch
+
+    from factorq_torch.structure import StructureLearner
+    from factorq_torch.tables import LocalRewardTable
+
+Progress = Callable[[int], None]
 
 NAME = "risk"
 HELP = "torchrl's DQN (and SB3's) alone against DQN + local risk, side by side"
@@ -60,7 +69,21 @@ def _names(value: Any, field: str, allowed: tuple[str, ...]) -> tuple[str, ...]:
 
 @dataclass(frozen=True)
 class RiskConfig:
-    """One budget for every method (module docstring)."""
+    """One budget for every method (module docstring).
+
+    Args:
+        worlds, methods, sb3_worlds: what runs (``WORLDS``, ``METHODS``; comma-separated text
+            or a tuple).
+        seeds, seed: seeds per (world, method), from ``seed`` on.
+        steps: training env steps per unit.
+        grid_size, grid_obstacles, minigrid_size: the worlds.
+        hidden, lr, gamma, buffer_size, batch_size: the DQN recipe, the same for every method.
+        learning_starts, train_every, tau: when it learns and how fast its target follows.
+        eps_start, eps_end, exploration_fraction: its exploration schedule.
+        eval_episodes: greedy episodes after training.
+        success_threshold: the success rate of 10 episodes that counts as learned.
+        out: the output directory.
+    """
 
     worlds: tuple[str, ...] = option(("grid", "minigrid"), "Worlds: grid, minigrid.")
     methods: tuple[str, ...] = option(TORCHRL_METHODS, f"Methods, of {', '.join(METHODS)}.")
@@ -119,8 +142,12 @@ class RiskConfig:
 CONFIG = RiskConfig
 
 
-def units(config: RiskConfig) -> list[dict]:
-    """One unit per (world, method, seed); sb3 methods only on ``sb3_worlds``."""
+def units(config: RiskConfig) -> list[dict[str, Any]]:
+    """One unit per (world, method, seed); sb3 methods only on ``sb3_worlds``.
+
+    Args:
+        config: the experiment.
+    """
     found = []
     for world in config.worlds:
         for method in config.methods:
@@ -143,8 +170,14 @@ def units(config: RiskConfig) -> list[dict]:
 # One unit: the torchrl recipe
 
 
-def make_env(config: RiskConfig, world: str, seed: int):
-    """The world as a torchrl env of batch ``[1]`` with ``local_reward`` beside the reward."""
+def make_env(config: RiskConfig, world: str, seed: int) -> Any:  # a TransformedEnv (untyped)
+    """The world as a torchrl env of batch ``[1]`` with ``local_reward`` beside the reward.
+
+    Args:
+        config: the experiment.
+        world: ``"grid"`` or ``"minigrid"``.
+        seed: the world's seed.
+    """
     from torchrl.envs import TransformedEnv
 
     from factorq_envs import FactoredGridEnv, SplitLocalReward
@@ -164,9 +197,13 @@ def make_env(config: RiskConfig, world: str, seed: int):
     return TransformedEnv(base, SplitLocalReward(keep_reward=True))
 
 
-def features(env):
+def features(env: Any) -> tuple[Any, int]:
     """``observation`` ``[*B, N H + K]``: the (cell, heading) one-hot and the sensor bits, the
-    information Q-learning's state holds, as a TensorDict module."""
+    information Q-learning's state holds, as a TensorDict module, and its width.
+
+    Args:
+        env: a ``make_env`` env.
+    """
     import torch
     from tensordict.nn import TensorDictModule
 
@@ -175,7 +212,9 @@ def features(env):
     headings = int(spec["heading"].space.n) if "heading" in spec.keys() else 1
 
     class Features(torch.nn.Module):
-        def forward(self, cell, sensors, heading=None):
+        def forward(
+            self, cell: torch.Tensor, sensors: torch.Tensor, heading: torch.Tensor | None = None
+        ) -> torch.Tensor:
             position = cell if heading is None else cell * headings + heading
             one_hot = torch.nn.functional.one_hot(position, cells * headings).to(torch.float32)
             return torch.cat([one_hot, sensors.to(torch.float32)], dim=-1)
@@ -185,8 +224,13 @@ def features(env):
     return TensorDictModule(Features(), in_keys=in_keys, out_keys=["observation"]), width
 
 
-def provider(method: str, env):
-    """The local value provider of a ``dqn+risk-*`` method (None for plain DQN)."""
+def provider(method: str, env: Any) -> LocalRewardTable | StructureLearner | None:
+    """The local value provider of a ``dqn+risk-*`` method (None for plain DQN).
+
+    Args:
+        method: one of ``METHODS``.
+        env: a ``make_env`` env (its base env's dependency).
+    """
     from factorq_torch.structure import StructureLearner
     from factorq_torch.tables import LocalRewardTable
 
@@ -226,7 +270,7 @@ class _Tally:
                 self.steps_to_threshold = self.steps
 
 
-def _step_flags(td) -> tuple[list, list, list, list]:
+def _step_flags(td: Any) -> tuple[list[float], list[bool], list[bool], list[bool]]:
     """Per world of one collected step: reward, collided, done, success (the goal reached)."""
     reward = td["next", "reward"].reshape(-1).tolist()
     collided = (td["next", "collision"] < 0).any(-1).reshape(-1)
@@ -235,8 +279,16 @@ def _step_flags(td) -> tuple[list, list, list, list]:
     return reward, collided.tolist(), done.tolist(), success.tolist()
 
 
-def run_torchrl(config: RiskConfig, unit: dict, progress: Callable | None = None) -> dict:
-    """torchrl's DQN recipe, plus the two lines of the local-risk layer for ``dqn+risk-*``."""
+def run_torchrl(
+    config: RiskConfig, unit: dict[str, Any], progress: Progress | None = None
+) -> dict[str, Any]:
+    """torchrl's DQN recipe, plus the two lines of the local-risk layer for ``dqn+risk-*``.
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+        progress: called with the env steps of each collected batch.
+    """
     import torch
     from tensordict.nn import TensorDictSequential
     from torchrl.data import LazyTensorStorage, ReplayBuffer
@@ -310,15 +362,21 @@ def run_torchrl(config: RiskConfig, unit: dict, progress: Callable | None = None
     return _result(tally, greedy, wall)
 
 
-def _module(network):
+def _module(network: torch.nn.Module) -> Any:
     from tensordict.nn import TensorDictModule
 
     return TensorDictModule(network, in_keys=["observation"], out_keys=["action_value"])
 
 
-def evaluate(config: RiskConfig, unit: dict, acting) -> dict:
+def evaluate(config: RiskConfig, unit: dict[str, Any], acting: Any) -> dict[str, int]:
     """Greedy episodes after training (torchrl's ``DETERMINISTIC`` exploration) on fresh worlds
-    of the same kind: collisions and successes."""
+    of the same kind: collisions and successes.
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+        acting: the greedy policy (a tensordict module).
+    """
     import torch
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
@@ -334,7 +392,7 @@ def evaluate(config: RiskConfig, unit: dict, acting) -> dict:
     return {"collisions": collisions, "successes": successes, "episodes": config.eval_episodes}
 
 
-def _result(tally: _Tally, greedy: dict, wall: float) -> dict:
+def _result(tally: _Tally, greedy: dict[str, int], wall: float) -> dict[str, Any]:
     tail = tally.returns[-max(1, len(tally.returns) // 5) :] if tally.returns else [math.nan]
     return {
         "train_collisions": tally.collisions,
@@ -351,15 +409,24 @@ def _result(tally: _Tally, greedy: dict, wall: float) -> dict:
 # One unit: Stable-Baselines3
 
 
-def run_sb3(config: RiskConfig, unit: dict, progress: Callable | None = None) -> dict:
+def run_sb3(
+    config: RiskConfig, unit: dict[str, Any], progress: Progress | None = None
+) -> dict[str, Any]:
     """SB3's DQN on the gymnasium grid (``FactoredGrid-v0``), alone or as ``LocalRiskDQN`` with
     the oracle table (the ``sb3`` extra); the same budget and hyperparameters as the torchrl
-    units."""
+    units.
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)`` (its world must be ``"grid"``).
+        progress: called with the env steps of each callback.
+    """
     import gymnasium
     from stable_baselines3 import DQN
     from stable_baselines3.common.callbacks import BaseCallback
 
     import factorq_envs  # noqa: F401  (registers FactoredGrid-v0)
+    from factorq_envs.gym import FactoredGridGym
     from factorq_torch.integrations.sb3 import LocalRiskDQN
     from factorq_torch.tables import LocalRewardTable
 
@@ -379,7 +446,7 @@ def run_sb3(config: RiskConfig, unit: dict, progress: Callable | None = None) ->
                 progress(len(self.locals["infos"]))
             return True
 
-    def grid_env(seed: int):
+    def grid_env(seed: int) -> gymnasium.Env:
         env = gymnasium.make(
             "FactoredGrid-v0",
             size=config.grid_size,
@@ -390,7 +457,7 @@ def run_sb3(config: RiskConfig, unit: dict, progress: Callable | None = None) ->
         return env
 
     env = grid_env(unit["seed"])
-    settings = dict(
+    settings: dict[str, Any] = dict(
         learning_rate=config.lr,
         buffer_size=config.buffer_size,
         learning_starts=config.learning_starts,
@@ -409,7 +476,9 @@ def run_sb3(config: RiskConfig, unit: dict, progress: Callable | None = None) ->
     if unit["method"] == "sb3-dqn":
         model = DQN("MultiInputPolicy", env, **settings)
     else:
-        provider = LocalRewardTable(1, dependency=env.unwrapped.config.dependency)
+        grid = env.unwrapped
+        assert isinstance(grid, FactoredGridGym)  # what FactoredGrid-v0 makes; for mypy
+        provider = LocalRewardTable(1, dependency=grid.config.dependency)
         model = LocalRiskDQN("MultiInputPolicy", env, provider=provider, **settings)
     started = time.perf_counter()
     model.learn(config.steps, callback=Tally())
@@ -430,13 +499,26 @@ def run_sb3(config: RiskConfig, unit: dict, progress: Callable | None = None) ->
     return _result(tally, greedy, wall)
 
 
-def work(config: RiskConfig, unit: dict) -> int:
-    """The unit's share of the progress bar: its training env steps (what ``run_unit`` reports)."""
+def work(config: RiskConfig, unit: dict[str, Any]) -> int:
+    """The unit's share of the progress bar: its training env steps (what ``run_unit`` reports).
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+    """
     return config.steps
 
 
-def run_unit(config: RiskConfig, unit: dict, progress: Callable | None = None) -> dict:
-    """Train and evaluate one (world, method, seed)."""
+def run_unit(
+    config: RiskConfig, unit: dict[str, Any], progress: Progress | None = None
+) -> dict[str, Any]:
+    """Train and evaluate one (world, method, seed).
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+        progress: called with env steps done.
+    """
     if unit["method"].startswith("sb3"):
         result = run_sb3(config, unit, progress)
     else:
@@ -457,7 +539,7 @@ METRICS = (
 )
 
 
-def _mean(values: list) -> float | None:
+def _mean(values: list[float | None]) -> float | None:
     found = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
     return statistics.fmean(found) if found else None
 
@@ -467,8 +549,12 @@ def _mean(values: list) -> float | None:
 SWEEP_MEASURES = ("train_collisions", "greedy_collisions", "final_return", "greedy_success")
 
 
-def sweep_cells(results: dict) -> dict[str, dict]:
-    """Per world and method of a ``risk.json`` dict: the ``SWEEP_MEASURES``' means."""
+def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per world and method of a ``risk.json`` dict: the ``SWEEP_MEASURES``' means.
+
+    Args:
+        results: the dict of ``risk.json``.
+    """
     return {
         f"{row['world']}/{row['method']}": {
             "world": row["world"],
@@ -484,14 +570,19 @@ def _difference(first: float | None, second: float | None) -> float | None:
     return None if first is None or second is None else first - second
 
 
-def summarise(config: RiskConfig, unit_results: list[dict]) -> dict:
-    """Means over seeds per (world, method), and the ratios the issue's targets name."""
-    groups: dict[tuple[str, str], list[dict]] = {}
+def summarise(config: RiskConfig, unit_results: list[dict[str, Any]]) -> dict[str, Any]:
+    """Means over seeds per (world, method), and the ratios the issue's targets name.
+
+    Args:
+        config: the experiment.
+        unit_results: ``run_unit``'s results.
+    """
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for result in unit_results:
         groups.setdefault((result["world"], result["method"]), []).append(result)
     rows = []
     for (world, method), found in sorted(groups.items()):
-        row = {"world": world, "method": method, "seeds": len(found)}
+        row: dict[str, Any] = {"world": world, "method": method, "seeds": len(found)}
         for metric in METRICS:
             row[metric] = _mean([r[metric] for r in found])
         row["reached"] = sum(r["steps_to_threshold"] is not None for r in found)
@@ -529,14 +620,18 @@ def summarise(config: RiskConfig, unit_results: list[dict]) -> dict:
     return {"rows": rows, "ratios": ratios}
 
 
-def _cell(value, digits: int = 1) -> str:
+def _cell(value: float | None, digits: int = 1) -> str:
     if value is None:
         return "-"
     return f"{value:,.{digits}f}"
 
 
-def markdown(results: dict) -> str:
-    """The table of means and the ratios."""
+def markdown(results: dict[str, Any]) -> str:
+    """The table of means and the ratios.
+
+    Args:
+        results: the dict of ``risk.json``.
+    """
     config = results["config"]
     lines = [
         f"DQN alone vs DQN + local risk: {config['steps']:,} env steps per unit, "
@@ -568,8 +663,13 @@ def markdown(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def figure(results: dict, path) -> None:
-    """Training collisions and final return per method, one panel pair per world."""
+def figure(results: dict[str, Any], path: Path) -> None:
+    """Training collisions and final return per method, one panel pair per world.
+
+    Args:
+        results: the dict of ``risk.json``.
+        path: the PNG to write.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -594,8 +694,12 @@ def figure(results: dict, path) -> None:
     plt.close(fig)
 
 
-def run(config: RiskConfig) -> dict:
-    """All units here, summarised into the runner's envelope (no files)."""
+def run(config: RiskConfig) -> dict[str, Any]:
+    """All units here, summarised into the runner's envelope (no files).
+
+    Args:
+        config: the experiment.
+    """
     import sys
 
     from factorq_trainers.runner import frame

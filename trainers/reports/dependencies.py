@@ -38,7 +38,7 @@ def _index(results: dict[str, Any], method: str) -> int:
 
 def _percent_interval(bounds: list[float | None] | None) -> str:
     """``[lo, hi]% `` of a Wilson interval (results from before it: nothing)."""
-    if bounds is None:
+    if bounds is None or bounds[0] is None or bounds[1] is None:
         return ""
     return f"[{100 * bounds[0]:.0f}, {100 * bounds[1]:.0f}] "
 

@@ -106,6 +106,7 @@ class FigureProcess:
         self._sender.start()
 
     def _write(self, data: bytes) -> None:
+        assert self.process.stdin is not None  # Popen(stdin=PIPE)
         try:
             self.process.stdin.write(data)
             self.process.stdin.close()  # end of the message
@@ -115,7 +116,7 @@ class FigureProcess:
     def finish(self, path: str | os.PathLike) -> None:
         """Wait for the helper to have drawn ``path`` (what ``send`` was given); raise
         ``FigureProcessError`` if it did not. The helper has exited when this returns or raises."""
-        if self._path is None or os.path.abspath(path) != self._path:
+        if self._sender is None or self._path is None or os.path.abspath(path) != self._path:
             self.close()
             raise FigureProcessError(f"the figure process was not asked to draw {path}")
         try:

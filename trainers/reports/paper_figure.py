@@ -173,7 +173,15 @@ def draw(
     figure.savefig(path, format="png", dpi=150, pil_kwargs={"compress_level": 1})
 
 
-def _curve(axis, cell, name: str, colour: str, style: str, width: float, band_alpha: float) -> None:
+def _curve(
+    axis: Any,
+    cell: dict[str, Any],
+    name: str,
+    colour: str,
+    style: str,
+    width: float,
+    band_alpha: float,
+) -> None:
     mean = np.asarray(cell["curves"][name], dtype=np.float64)
     episodes = np.arange(1, mean.size + 1)
     axis.plot(episodes, mean, color=colour, ls=style, lw=width, zorder=3 if style == "--" else 2)

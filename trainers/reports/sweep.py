@@ -145,7 +145,7 @@ def write_outputs(sweep: dict[str, Any], out: str | Path) -> dict[str, Path]:
     """``sweep.json``, ``sweep.md`` and ``sweep-<axis>.png`` per axis, all written atomically."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    writers: dict[Path, Callable[[Path], None]] = {
+    writers: dict[Path, Callable[[Path], object]] = {
         out / JSON_FILE: lambda path: path.write_text(result_files.dumps(sweep)),
         out / REPORT_FILE: lambda path: path.write_text(report_markdown(sweep)),
     }

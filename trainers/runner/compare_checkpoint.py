@@ -180,7 +180,9 @@ def check(resume: CompareCheckpoint, config: Any, saved_form: dict[str, Any]) ->
             )
 
 
-def check_trace(trace, world, index, experiments, refuse) -> dict[str, Any]:
+def check_trace(
+    trace: Any, world: str, index: int, experiments: Any, refuse: Callable[[str], Any]
+) -> dict[str, Any]:
     where = f"the trace of {world}/seed_{index}"
     if (
         not isinstance(trace, dict)

@@ -353,7 +353,15 @@ def execute(module: ModuleType, parser: argparse.ArgumentParser, args: argparse.
             executor.close()
 
 
-def _run(module, config, units, store, executor, *, force: bool) -> int:
+def _run(
+    module: ModuleType,
+    config: Any,
+    units: list[dict[str, Any]],
+    store: UnitStore | None,
+    executor: Any,
+    *,
+    force: bool,
+) -> int:
     from tqdm.auto import tqdm
 
     started = time.perf_counter()

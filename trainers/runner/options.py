@@ -89,7 +89,8 @@ def add_options(parser: argparse.ArgumentParser, cls: type) -> None:
         default = field.default
         doc = field.metadata.get("doc", "")
         if _is_names(hints[field.name]):
-            help_text = f"{doc} Repeatable. (default: {','.join(default)})"
+            shown = ",".join(default) if isinstance(default, tuple) else default
+            help_text = f"{doc} Repeatable. (default: {shown})"
             kwargs: dict[str, Any] = {"action": "append", "metavar": NAMES_METAVAR}
         else:
             help_text = f"{doc} (default: {'auto' if default is None else default})"

@@ -59,7 +59,7 @@ def _dumps(value: Any, level: int) -> str:
     return json.dumps(value)
 
 
-def write_atomic(path: str | os.PathLike, write: Callable[[Path], None]) -> None:
+def write_atomic(path: str | os.PathLike, write: Callable[[Path], object]) -> None:
     """Call ``write(temporary)`` next to ``path``, then rename it to ``path`` (all or nothing).
 
     A reader never sees a partial file; an interrupted write leaves the old file (if any) intact.
@@ -74,7 +74,7 @@ def temporary_path(path: Path) -> Path:
 
 
 def write_all_atomic(
-    writers: dict[Path, Callable[[Path], None]], before_rename: Callable[[], None] | None = None
+    writers: dict[Path, Callable[[Path], object]], before_rename: Callable[[], None] | None = None
 ) -> None:
     """Write every file to a temporary next to it, then rename them all into place, in order.
 
@@ -124,6 +124,7 @@ def deeper_than(value: Any, limit: int) -> bool:
     stack = [(value, 0)]
     while stack:
         item, depth = stack.pop()
+        children: Iterable[Any]
         if isinstance(item, dict):
             children = item.values()
         elif isinstance(item, list | tuple):
@@ -216,11 +217,15 @@ def body_label(results: dict[str, Any]) -> str | None:
     results file is untrusted: callers escape for Markdown)."""
     world = results.get("world")
     if isinstance(world, dict):
-        options = world.get("config") if isinstance(world.get("config"), dict) else {}
+        options = world.get("config")
+        if not isinstance(options, dict):
+            options = {}
         described = ", ".join(f"{_shown(k)} {_shown(v)}" for k, v in list(options.items())[:6])
         name = _shown(world.get("name", "another"))
         return f"{name} world ({described})" if described else f"{name} world"
-    config = results.get("config") if isinstance(results.get("config"), dict) else {}
+    config = results.get("config")
+    if not isinstance(config, dict):
+        config = {}
     body = {name: config.get(name, default) for name, default in PAPER_BODY.items()}
     parts = []
     if body["body"] != PAPER_BODY["body"]:

@@ -10,7 +10,7 @@ module does not import ``paper`` (the config is read by its fields).
 from __future__ import annotations
 
 import typing
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import torch
@@ -143,7 +143,7 @@ def _check_observation(saved: Any, count: int, config: Any, where: str) -> None:
             raise ValueError(f"{name} must be a tensor, got {type(value).__name__}")
 
 
-def _leaves(tree: Any, where: str):
+def _leaves(tree: Any, where: str) -> Iterator[tuple[str, Any]]:
     if isinstance(tree, dict):
         for key, value in tree.items():
             yield from _leaves(value, f"{where}[{key!r}]")
@@ -151,7 +151,7 @@ def _leaves(tree: Any, where: str):
         yield where, tree
 
 
-def _check_values(value: torch.Tensor, fresh: torch.Tensor | None, config, where: str) -> None:
+def _check_values(value: torch.Tensor, fresh: torch.Tensor | None, config: Any, where: str) -> None:
     name = where.rsplit("[", 1)[-1].strip("]'").rsplit(".", 1)[-1].rsplit("/", 1)[-1]
     if value.numel() == 0 or value.dtype == torch.bool:
         return
@@ -184,7 +184,11 @@ def _check_values(value: torch.Tensor, fresh: torch.Tensor | None, config, where
                 name, config.max_steps if name in METRIC_NAMES or "collisions" in name else steps
             ),
         )
-    if low is not None and (bool((value < low).any()) or bool((value > high).any())):
+    if (
+        low is not None
+        and high is not None
+        and (bool((value < low).any()) or bool((value > high).any()))
+    ):
         raise ValueError(f"{where} holds values outside [{low}, {high}]")
 
 
@@ -192,7 +196,7 @@ def _check_values(value: torch.Tensor, fresh: torch.Tensor | None, config, where
 METRIC_NAMES = ("steps", "collisions", "greedy_collisions")
 
 
-def _check_world(state: dict[str, Any], config: Any, periods: torch.Tensor, where) -> None:
+def _check_world(state: dict[str, Any], config: Any, periods: torch.Tensor, where: str) -> None:
     """The obstacles and the agent of a saved world state (``obstacles`` ``[S, N]`` bool beside
     ``cell`` ``[S]``): ``config.obstacles`` cells per world, never the start, the goal or the
     agent's cell, the static layout where the world is static."""
@@ -255,7 +259,7 @@ def check_metric(
         refuse(f"{where} holds values outside [{low:g}, {high:g}]")
 
 
-def _tensors(tree: Any, where: str):
+def _tensors(tree: Any, where: str) -> Iterator[tuple[str, torch.Tensor]]:
     """``(path, tensor)`` for every tensor in nested dicts and lists."""
     if isinstance(tree, torch.Tensor):
         yield where, tree
