@@ -12,9 +12,12 @@ objects).
 
 import importlib
 import importlib.abc
+import importlib.machinery
 import importlib.util
 import sys
+import types
 import warnings
+from collections.abc import Sequence
 from typing import Any
 
 import gymnasium
@@ -47,12 +50,17 @@ def __getattr__(name: str) -> Any:
 class _RenamedModules(importlib.abc.MetaPathFinder, importlib.abc.Loader):
     """Imports a former module name as the renamed module itself, with a DeprecationWarning."""
 
-    def find_spec(self, name, path=None, target=None):  # noqa: ANN001, ANN201 - importlib's
+    def find_spec(
+        self,
+        name: str,
+        path: Sequence[str] | None = None,
+        target: types.ModuleType | None = None,
+    ) -> importlib.machinery.ModuleSpec | None:
         if name in RENAMED:
             return importlib.util.spec_from_loader(name, self)
         return None
 
-    def create_module(self, spec):  # noqa: ANN001, ANN201
+    def create_module(self, spec: importlib.machinery.ModuleSpec) -> types.ModuleType:
         warnings.warn(
             f"{spec.name} is deprecated: import {RENAMED[spec.name]}",
             DeprecationWarning,
@@ -62,7 +70,7 @@ class _RenamedModules(importlib.abc.MetaPathFinder, importlib.abc.Loader):
         self._spec = module.__spec__  # importlib writes the alias's spec over it: put it back
         return module
 
-    def exec_module(self, module) -> None:  # noqa: ANN001
+    def exec_module(self, module: types.ModuleType) -> None:
         module.__spec__ = self._spec
 
 

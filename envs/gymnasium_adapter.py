@@ -39,8 +39,8 @@ space, a declared function that returns the wrong shape or dtype or reads a miss
 key (one probing reset and step at construction, ``probe=True``), an env id that is not
 registered, an extra that is not installed (``require_extra``).
 
-Example (a third-party env would be declared the same way; the README's "Factor-Q on your own
-env" declares one):
+Example (a third-party env would be declared the same way; ``docs/tutorials/own-env.md``
+declares one):
 
     >>> import gymnasium, numpy as np
     >>> declaration = Declaration(

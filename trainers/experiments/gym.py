@@ -136,7 +136,7 @@ def make_minigrid_8x8(seed: int) -> FactorQEnv:
     Args:
         seed: the env seed.
     """
-    from factorq_envs.minigrid import make_minigrid
+    from factorq_envs.minigrid_adapter import make_minigrid
 
     return make_minigrid(8, "nodeath", seed=seed)
 
@@ -145,8 +145,8 @@ def make_minigrid_8x8(seed: int) -> FactorQEnv:
 class GymConfig:
     """The experiment. The defaults (3 seeds x 1,000 steps x 3 methods: at most 10,350 env
     steps with the greedy episodes) are about 2-3 minutes of highway's own stepping on 2 idle
-    cores at its 35-45 env steps/s per core, plus the learning (README: not yet measured on an
-    idle machine)."""
+    cores at its 35-45 env steps/s per core, plus the learning
+    (``docs/tutorials/highway.md``: not yet measured on an idle machine)."""
 
     world: str = option("highway", "The declared world.", choices=tuple(WORLDS))
     seed: int = option(0, "Master seed: env seeds, policies and networks derive from it.")

@@ -1,8 +1,9 @@
 """Factor-Q on MiniGrid Dynamic-Obstacles against Q-learning and DQN: ``factorq minigrid``.
 
-On each size of ``MiniGrid-Dynamic-Obstacles-{5x5,6x6,8x8,16x16}-v0`` (``factorq_envs.minigrid``:
-MiniGrid's real env, read through the adapter), every method trains ``seeds`` independent
-experiments for the same env-step budget, all seeds of a method in one batch:
+On each size of ``MiniGrid-Dynamic-Obstacles-{5x5,6x6,8x8,16x16}-v0``
+(``factorq_envs.minigrid_adapter``: MiniGrid's real env, read through the adapter), every method
+trains ``seeds`` independent experiments for the same env-step budget, all seeds of a method in
+one batch:
 
 - ``factor-q-learned``: Factor-Q with ``StructureLearner`` as its local value provider, told only
   ``A = 3`` actuators and ``K`` sensors (no pairing): it must find that only forward has a local
@@ -94,13 +95,15 @@ NOTICE = (
 
 @dataclass(frozen=True)
 class MiniGridConfig:
-    """The MiniGrid experiment; the defaults run in a few minutes on 2 cores (README).
+    """The MiniGrid experiment; the defaults run in a few minutes on 2 cores
+    (``docs/tutorials/minigrid.md``).
 
     Args:
         seed, seeds: the master seed and the experiments per size and method.
         sizes, methods: what runs (``SIZE_NAMES``, ``METHODS``).
         steps: env steps per seed at 5x5 (size ``n`` gets ``steps * n / 5``).
-        semantics, layout: the collision semantics and the sensors (``factorq_envs.minigrid``).
+        semantics, layout: the collision semantics and the sensors
+            (``factorq_envs.minigrid_adapter``).
         window: finished episodes in the success rate behind "steps to 90%".
         final_fraction: the share of the budget, at its end, of the final measures.
         out: the output directory.
@@ -123,7 +126,7 @@ class MiniGridConfig:
     )
     layout: str = option(
         "front3",
-        "Sensors read from the view: front3 or ahead6 (factorq_envs.minigrid).",
+        "Sensors read from the view: front3 or ahead6 (factorq_envs.minigrid_adapter).",
         choices=LAYOUT_NAMES,
     )
     window: int = option(10, "Finished episodes in the success rate behind 'steps to 90%'.")
@@ -277,7 +280,7 @@ class Recorder:
 
 
 def _env(config: MiniGridConfig, size: int, *, with_image: bool = False) -> DeclaredEnv:
-    from factorq_envs.minigrid_env import MiniGridEnv
+    from factorq_envs.minigrid_torchrl import MiniGridEnv
 
     return MiniGridEnv(
         size,
@@ -302,7 +305,7 @@ def run_tabular(
     import torch
 
     from factorq_envs.body import HEADING
-    from factorq_envs.minigrid import FORWARD
+    from factorq_envs.minigrid_adapter import FORWARD
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import STREAM_POLICY
     from factorq_torch.collectors import OnlineCollector
@@ -537,7 +540,7 @@ def estimate(config: MiniGridConfig) -> resources.Estimate:
         config: the experiment.
     """
     from factorq_envs.body import HEADING
-    from factorq_envs.minigrid import sensor_names
+    from factorq_envs.minigrid_adapter import sensor_names
 
     return resources.minigrid_estimate(
         config, len(sensor_names(config.layout)), HEADING.num_headings, len(HEADING.actuators)
@@ -568,12 +571,12 @@ def work(config: MiniGridConfig, unit: dict[str, Any]) -> int:
 
 
 def prepare(config: MiniGridConfig) -> None:
-    """``factorq_envs.minigrid.require_minigrid`` (a ModuleNotFoundError naming the extra).
+    """``factorq_envs.minigrid_adapter.require_minigrid`` (a ModuleNotFoundError naming the extra).
 
     Args:
         config: the experiment.
     """
-    from factorq_envs.minigrid import require_minigrid
+    from factorq_envs.minigrid_adapter import require_minigrid
 
     require_minigrid()
 
@@ -607,7 +610,7 @@ def summarise(config: MiniGridConfig, outcomes: list[dict[str, Any]]) -> dict[st
         config: the experiment.
         outcomes: ``run_unit``'s results.
     """
-    from factorq_envs.minigrid import sensor_names
+    from factorq_envs.minigrid_adapter import sensor_names
 
     results: dict[str, Any] = {}
     for unit, outcome in zip(units(config), outcomes, strict=True):

@@ -191,7 +191,7 @@ def make_env(config: RiskConfig, world: str, seed: int) -> Any:  # a Transformed
             seed=seed,
         )
     else:
-        from factorq_envs.minigrid_env import MiniGridEnv
+        from factorq_envs.minigrid_torchrl import MiniGridEnv
 
         base = MiniGridEnv(config.minigrid_size, seeds=[seed])
     return TransformedEnv(base, SplitLocalReward(keep_reward=True))
@@ -426,7 +426,7 @@ def run_sb3(
     from stable_baselines3.common.callbacks import BaseCallback
 
     import factorq_envs  # noqa: F401  (registers FactoredGrid-v0)
-    from factorq_envs.gym import FactoredGridGym
+    from factorq_envs.gymnasium_env import FactoredGridGym
     from factorq_torch.integrations.sb3 import LocalRiskDQN
     from factorq_torch.tables import LocalRewardTable
 

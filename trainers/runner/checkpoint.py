@@ -66,6 +66,7 @@ class Schedule:
             return False
         if self.every.episodes is not None:
             return self._episodes_since_save >= self.every.episodes
+        assert self.every.seconds is not None  # an interval is in episodes or in seconds
         return time.monotonic() - self._last_save >= self.every.seconds
 
     def saved(self, started: float | None = None) -> None:
@@ -126,7 +127,7 @@ class Checkpointer(Schedule):
         """Seconds of work on this run, in this process and the ones it resumed."""
         return self._elapsed_before + time.perf_counter() - self._started
 
-    def advance(self, episodes: int, experiments: int) -> None:
+    def advance(self, episodes: int, experiments: int = 0) -> None:
         """Count ``episodes`` more completed and ``experiments`` more finished."""
         self.episodes_completed += episodes
         self.experiments_finished += experiments
@@ -138,6 +139,7 @@ class Checkpointer(Schedule):
         running, self._running = self._running, None
         if running is None:
             return None
+        assert self.resumed is not None  # a running state comes only from a resumed checkpoint
         if running.get("algorithm") != algorithm:
             raise CheckpointError(
                 f"checkpoint {self.resumed.path} was taken during {running.get('algorithm')!r} "
@@ -151,6 +153,7 @@ class Checkpointer(Schedule):
         state = self.resume_state(algorithm)
         if state is None:
             return False
+        assert self.resumed is not None  # resume_state returns a state only when resumed
         try:
             load_state(state)
         except (KeyError, ValueError, TypeError, RuntimeError, AttributeError) as error:

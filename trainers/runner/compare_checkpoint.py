@@ -275,6 +275,7 @@ class Saver(checkpoint.Schedule):
         running, self._running = self._running, None
         if running is None:
             return None
+        assert self.resumed is not None  # a running state comes only from a resumed checkpoint
         if running["method"] != method:
             raise checkpoint.CheckpointError(
                 f"checkpoint {self.resumed.path} was taken during {running['method']!r} but this "

@@ -161,7 +161,9 @@ def check_optimizer(saved: Any, optimizer: torch.optim.Optimizer, steps: int, wh
 _SUMS = ("steps", "collisions", "greedy", "task", "loss_sum", "loss_count")
 
 
-def check_recorder(saved: Any, experiments: Any, step: int, where: str = "state['recorder']"):
+def check_recorder(
+    saved: Any, experiments: Any, step: int, where: str = "state['recorder']"
+) -> dict[str, Any]:
     """An ``EpisodeRecorder.state_dict()`` after ``step`` env steps of every experiment: its
     traces as a finished method's (``check_trace``), the running sums float64 ``[E]``, whole,
     in range, and the episodes' steps adding up to ``step``. Returns the state with the traces'

@@ -6,7 +6,8 @@ non-finite numbers as ``null``), ``write_all_atomic`` (a reader never sees a par
 ``software_versions`` (what computed the numbers).
 
 **Versions.** A results file without a ``"schema_version"`` entry is version 1: the layout of
-``results.json`` and ``comparison.json`` as documented in the README. A change that breaks
+``results.json`` and ``comparison.json`` as the tutorials document it
+(``docs/tutorials/paper.md``, ``docs/tutorials/dqn-local-risk.md``). A change that breaks
 readers raises ``SCHEMA_VERSION``, makes the writer add ``"schema_version"`` and teaches
 ``read_json``'s callers the old layouts they still accept; a reader refuses a file newer than
 it understands instead of misreading it.
