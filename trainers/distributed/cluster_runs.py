@@ -65,7 +65,7 @@ def run_paper_on(
     """``run_paper`` with ``args.shard_seeds``, closing ``executor`` afterwards."""
     try:
         shard_seeds = getattr(args, "shard_seeds", DEFAULT_PAPER_SHARD_SEEDS)
-        return run_paper(config, executor, shard_seeds, progress)
+        return run_paper(config, executor, shard_seeds, progress, hasattr(args, "force"))
     finally:
         executor.close()
 

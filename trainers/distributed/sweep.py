@@ -120,8 +120,9 @@ def build_parser(prog: str = "factorq sweep") -> argparse.ArgumentParser:
     parser.add_argument(
         "--force",
         action="store_true",
-        help="Replace the sweep.json and sweep.md of an earlier sweep in --out (its finished "
-        "shards are reused either way). Without it, an --out holding them is refused.",
+        help="Replace the sweep.json and sweep.md of an earlier sweep in --out, and recompute "
+        "any finished shard (configuration) whose kept file fails its checks (edited, damaged); "
+        "good ones are reused either way. Without it, an --out holding them is refused.",
     )
     cluster.add_options(parser)
     return parser
@@ -214,14 +215,16 @@ def main(argv: list[str] | None = None) -> int:
         with outdir.claim(
             spec.out, outputs=(sweep_report.JSON_FILE, sweep_report.REPORT_FILE), force=args.force
         ):
-            return _run_sweep_command(parser, spec, executor)
+            return _run_sweep_command(parser, spec, executor, args.force)
     except outdir.OutputDirError as error:
         executor.close()
         print(f"{parser.prog}: error: {str(error).replace('out=', '--out=')}", file=sys.stderr)
         return EXIT_USAGE
 
 
-def _run_sweep_command(parser: argparse.ArgumentParser, spec: SweepSpec, executor: Any) -> int:
+def _run_sweep_command(
+    parser: argparse.ArgumentParser, spec: SweepSpec, executor: Any, force: bool = False
+) -> int:
     configs = spec.configurations()
     if spec.command == "compare":
         tasks = sum(len(config.methods) for config in configs)
@@ -237,7 +240,7 @@ def _run_sweep_command(parser: argparse.ArgumentParser, spec: SweepSpec, executo
     unit = {"compare": "method", "paper": "shard"}.get(spec.command, "configuration")
     bar = ShardBar(unit=unit)
     try:
-        sweep = run_sweep(spec, executor, bar)
+        sweep = run_sweep(spec, executor, bar, force)
         bar.close()
         paths = sweep_report.write_outputs(sweep, spec.out)
     except KeyboardInterrupt:
