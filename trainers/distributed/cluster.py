@@ -246,12 +246,12 @@ class DaskExecutor:
             self.cluster.close()
 
 
-def _forget_half_made_client(error: BaseException, kind: type) -> None:
+def _forget_half_made_client(error: BaseException, kind: Any) -> None:
     """Mark the Client whose constructor raised ``error`` closed: when collected, it would try
     to close its connection for 20 s and then print an ignored-exception traceback."""
     frame = error.__traceback__
     while frame is not None:
-        made = frame.tb_frame.f_locals.get("self")
+        made: Any = frame.tb_frame.f_locals.get("self")
         if isinstance(made, kind):
             made.status = "closed"
         frame = frame.tb_next

@@ -79,9 +79,13 @@ def _missing(
         shard
         for shard in every
         if not kept.reusable(
-            shards.shard_path(directory, shard), lambda path, s=shard: shards.load(path, s), force
+            shards.shard_path(directory, shard), functools.partial(_load_shard, shard=shard), force
         )
     ]
+
+
+def _load_shard(path: Path, shard: paper.PaperConfig) -> shards.ShardMetrics:
+    return shards.load(path, shard)
 
 
 def run_paper(
