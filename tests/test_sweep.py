@@ -89,7 +89,14 @@ def test_grid_axes_are_crossed_with_the_configs_list(tmp_path):
         ({"grid": {"eta": []}}, "grid axis 'eta' needs a non-empty list"),
         ({"grid": {"eta": [0.1, 0.1]}}, "grid axis 'eta' repeats a value"),
         ({"grid": {"eta": 0.1}}, "grid axis 'eta' must be a list"),
-        ({"grid": {"eta": [0.1]}, "colour": "red"}, "unknown key(s) colour"),
+        ({"grid": {"eta": [0.1]}, "colour": "red"}, "unknown key(s) 'colour'"),
+        ({"grid": {"eta": [0.1]}, "a\nb": 1}, "unknown key(s) 'a\\nb'; known"),  # one line
+        ({"base": {"eta": {"a": 1}}, "grid": {"size": [5]}}, "field 'eta' in base holds {'a': 1}"),
+        ({"grid": {"eta": [{"x": 1}]}}, "field 'eta' in grid holds {'x': 1}: a table is not"),
+        (
+            {"grid": {"eta": [0.1]}, "configs": [{"size": 5}, {"size": 5}]},
+            "configurations 0 (size=5, eta=0.1) and 1 (size=5, eta=0.1) are the same",
+        ),
         ({"grid": {"eta": [0.1]}, "command": "dependencies"}, "unknown field 'eta' in grid"),
         ({"grid": {"prior_a": [0.1]}, "command": "dependencies"}, "configuration 0 (prior_a=0.1)"),
         ({"grid": {"runs": [2]}, "command": "dependencies", "shard_seeds": 1}, "shard_seeds does"),
@@ -108,6 +115,7 @@ def test_a_bad_spec_is_refused_naming_the_field_or_value(document, message):
     with pytest.raises((SweepError, ValueError, TypeError)) as raised:
         sweep.spec_from_mapping(document, "sweep.toml")
     assert message in str(raised.value)
+    assert str(raised.value).startswith("sweep.toml: ") and "\n" not in str(raised.value)
 
 
 def test_bad_input_on_the_command_line_is_one_line_exit_2_and_nothing_written(tmp_path, capsys):

@@ -185,22 +185,23 @@ def main(argv: list[str] | None = None) -> int:
             from factorq_trainers.runner import registry
 
             module = registry.load(spec.command)
-            estimate = max(
-                (
+            estimate = resources.tasks_estimate(
+                [
                     module.estimate(config)
                     if hasattr(module, "estimate")
                     else resources.Estimate({}, 0, exact_steps=False)
                     for config in spec.configurations()
-                ),
-                key=lambda estimate: estimate.bytes,
-            )  # per configuration: a worker runs one at a time
+                ],
+                workers,
+            )  # a worker runs one configuration at a time
             hint = getattr(module, "HINT", "use fewer --seeds or smaller configurations")
+            hint += ", or fewer --cluster workers" if workers > 1 else ""
         elif spec.command == "compare":
-            estimate = max(
-                (resources.compare_estimate(config) for config in spec.configurations()),
-                key=lambda estimate: estimate.bytes,
-            )  # per comparison: a worker runs one method of it at a time
+            estimate = resources.tasks_estimate(
+                [resources.compare_estimate(config) for config in spec.configurations()], workers
+            )  # a worker runs one method of a comparison at a time (counted as a whole one)
             hint = "use fewer --seeds, or smaller steps or size"
+            hint += ", or fewer --cluster workers" if workers > 1 else ""
         else:
             estimate = resources.sweep_estimate(spec.configurations(), spec.shard_seeds, workers)
             hint = resources.SWEEP_HINT
