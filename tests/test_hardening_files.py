@@ -1,10 +1,13 @@
 """Issue 29 item 1: files the project creates are never opened through links. A link planted
 where the lock, a temporary or an output belongs is refused in one line, and its target is left
 as it was (the lock used to be opened through the link and the target truncated to a pid).
-Item 2, for kept shards: their content digest and values are checked when a sweep reuses them."""
+Item 2: kept shards and kept configuration results (``OUT/configs/<digest>.json``) carry a content
+digest, checked with their values when a sweep reuses them; a bad one is refused naming the file
+before any work, and ``--force`` recomputes it."""
 
 from __future__ import annotations
 
+import json
 import os
 
 import numpy as np
@@ -209,4 +212,167 @@ def test_an_edited_kept_shard_is_refused_naming_the_file(tmp_path, change, messa
     _edit(path, change)
     with pytest.raises(ValueError, match=message) as error:
         shards.load(path, shard)
-    assert str(path) in one_line(error) and "delete it to recompute it" in str(error.value)
+    assert str(path) in one_line(error) and "pass --force to recompute it" in str(error.value)
+
+
+# --- kept configuration results (compare, dependencies, ... sweeps) ------------------------------
+
+
+def _compare_result(seeds=3):
+    """A compare configuration's result as a sweep keeps it (hand-made; two of three seeds
+    reached the threshold)."""
+    return {
+        "schema_version": 1,
+        "command": "compare",
+        "config": {"seeds": seeds, "steps": 300, "out": "x"},
+        "thresholds": {"static": {"shortest_path": 8, "threshold": 12.0}},
+        "results": {
+            "factor-q": {
+                "static": {
+                    "steps_to_threshold": 150.0,
+                    "collisions": 5.0,
+                    "greedy_collisions": 4.0,
+                    "wall_s": 0.5,
+                    "seeds_reached": 2,
+                    "steps_to_threshold_per_seed": [120, None, 180],
+                    "collisions_ci95": [3.0, 7.0],
+                    "episodes": 5.0,
+                }
+            }
+        },
+        "curves": {
+            "env_steps": [3.0, 6.0],
+            "factor-q": {"static": {"steps": {"mean": [None, 4.5]}}},
+        },
+        "timing": {"method_wall_s": 0.5, "where": "in-process"},
+    }
+
+
+def _entry(results):
+    return results["results"]["factor-q"]["static"]
+
+
+def _kept_result(tmp_path, results=None):
+    from factorq_trainers.runner import kept
+
+    path = tmp_path / "0123456789abcdef.json"
+    path.write_text(kept.dumps_sealed(results or _compare_result()))
+    return kept, path
+
+
+def _rewrite(path, change, sign):
+    from factorq_trainers.runner import kept
+
+    results = json.loads(path.read_text())
+    change(results)
+    if sign:
+        results[kept.DIGEST_KEY] = kept.json_digest(results)
+    path.write_text(json.dumps(results))
+
+
+def test_a_kept_configuration_result_reads_back_as_it_was_written(tmp_path):
+    kept, path = _kept_result(tmp_path)
+    assert kept.read_sealed(path, "configuration file") == _compare_result()
+
+
+@pytest.mark.parametrize(
+    ("change", "sign", "message"),
+    [
+        (lambda r: _entry(r).update(collisions=500.0), False, "does not match its digest"),
+        (lambda r: r.pop("content_sha256"), False, "has no digest"),
+        (lambda r: _entry(r).update(collisions=float("nan")), True, "collisions holds nan, not a"),
+        (lambda r: _entry(r).update(wall_s=float("inf")), True, "wall_s holds inf, not a finite"),
+        (lambda r: _entry(r).update(greedy_collisions=-4.0), True, "holds -4.0, negative"),
+        (lambda r: _entry(r)["collisions_ci95"].__setitem__(0, -1), True, "ci95.0. holds -1, neg"),
+        (lambda r: _entry(r).update(seeds_reached=2.5), True, "holds 2.5, not a whole count"),
+        (lambda r: _entry(r).update(seeds_reached=3), True, "but 2 seeds reached the threshold"),
+        (lambda r: _entry(r)["steps_to_threshold_per_seed"].pop(), True, "holds 2 seeds' steps"),
+        (
+            lambda r: r["curves"]["factor-q"]["static"]["steps"].update(mean=[1, -2]),
+            True,
+            "-2, neg",
+        ),
+        (lambda r: r.update(extra={"fraction_right": 1.5}), True, "1.5, not a fraction"),
+        (lambda r: _entry(r).update(collisions="many"), True, "holds 'many', not a number"),
+    ],
+    ids=[
+        "x100",
+        "no-digest",
+        "nan",
+        "inf",
+        "negative",
+        "negative-interval",
+        "fractional-count",
+        "seeds-reached",
+        "seed-missing",
+        "negative-curve",
+        "fraction",
+        "text",
+    ],
+)
+def test_an_edited_kept_configuration_result_is_refused_naming_the_file(
+    tmp_path, change, sign, message
+):
+    kept, path = _kept_result(tmp_path)
+    _rewrite(path, change, sign)
+    with pytest.raises(ValueError, match=message) as error:
+        kept.read_sealed(path, "configuration file")
+    assert str(path) in one_line(error) and "pass --force to recompute it" in str(error.value)
+
+
+def test_a_kept_results_negative_return_and_settings_are_not_refused(tmp_path):
+    """Only measured counts are range-checked: a return may be negative, a config holds
+    settings (the digest covers them)."""
+    results = _compare_result()
+    _entry(results)["return"] = -3.5
+    results["config"]["reward_collision"] = -1.0
+    kept, path = _kept_result(tmp_path, results)
+    assert kept.read_sealed(path, "configuration file") == results
+
+
+def test_reusable_refuses_a_bad_kept_file_unless_forced(tmp_path):
+    from factorq_trainers.runner import kept
+
+    def check(path):
+        return kept.read_sealed(path, "configuration file")
+
+    assert not kept.reusable(tmp_path / "none.json", check, force=False)
+    _, path = _kept_result(tmp_path)
+    assert kept.reusable(path, check, force=False) and kept.reusable(path, check, force=True)
+    path.write_text("{cut sho")
+    with pytest.raises(ValueError, match="is unreadable .*pass --force to recompute it"):
+        kept.reusable(path, check, force=False)
+    assert not kept.reusable(path, check, force=True)  # recomputed by the caller
+
+
+def test_a_sweep_refuses_an_edited_kept_shard_before_any_work_and_force_recomputes_it(tmp_path):
+    from factorq_trainers.distributed import cluster, sweep
+
+    class Counting(cluster.InProcess):
+        def __init__(self) -> None:
+            self.items: list = []
+
+        def map(self, function, items, names):
+            self.items += list(items)
+            return super().map(function, items, names)
+
+    spec = sweep.SweepSpec(
+        base=(("runs", 1), ("episodes", 3), ("size", 5), ("obstacles", 2)),
+        grid=(("eta", (0.1,)),),
+        seeds=2,
+        shard_seeds=1,
+        out=str(tmp_path / "sweep"),
+    )
+    first = sweep.run_sweep(spec, cluster.InProcess())
+    path = sorted((tmp_path / "sweep" / sweep.SHARDS_DIRECTORY).rglob("*.npz"))[1]
+    _edit(path, _times_100)
+    refused = Counting()
+    with pytest.raises(ValueError, match="does not match its digest") as error:
+        sweep.run_sweep(spec, refused)
+    assert str(path) in one_line(error) and "pass --force to recompute it" in str(error.value)
+    assert refused.items == []  # refused before any work
+    forced = Counting()
+    again = sweep.run_sweep(spec, forced, force=True)
+    assert [(shard.first_seed, shard.seeds) for shard in forced.items] == [(1, 1)]
+    assert again["configurations"] == first["configurations"]
+    assert again["timing"]["shards_run_now"] == 1

@@ -137,3 +137,32 @@ def test_a_sweep_that_does_not_fit_is_refused_before_any_work(tmp_path, monkeypa
     assert code == 2 and len(lines) == 1, err
     assert re.search(r"factorq sweep: error: this sweep needs about .* TiB .* but 16.0 GiB", err)
     assert not out.exists()
+
+
+def test_a_sweep_of_whole_runs_counts_its_workers_and_every_runs_env_steps():
+    tasks = [
+        resources.Estimate({"tables": 10, "records": 5}, 100, exact_steps=True),
+        resources.Estimate({"tables": 30, "records": 1}, 7, exact_steps=True),
+        resources.Estimate({"tables": 1}, 1, exact_steps=False),
+    ]
+    alone = resources.tasks_estimate(tasks, workers=1)  # in-process: one at a time
+    assert alone.parts == {"tables": 30, "records": 1} and alone.env_steps == 108
+    assert not alone.exact_steps
+    two = resources.tasks_estimate(tasks, workers=2)  # the largest, twice: hand-computed
+    assert two.parts == {"tables x 2 at once": 60, "records x 2 at once": 2} and two.bytes == 62
+    assert resources.tasks_estimate(tasks, workers=8).bytes == 31 * 3  # no more than 3 tasks
+
+
+def test_a_compare_sweep_too_large_for_its_workers_is_refused_before_the_cluster_starts(
+    tmp_path, monkeypatch
+):
+    config = CompareConfig(seeds=2000, steps=20000)
+    one = resources.compare_estimate(config).bytes
+    monkeypatch.setenv(resources.LIMIT_VARIABLE, str(int(one * 1.5)))  # one fits, two do not
+    command = "sweep --command compare --seeds 2000 --set steps=20000 --grid seed=0,1"
+    code, err = run_cli(f"{command} --cluster local:2", tmp_path)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, err
+    assert re.search(r"this sweep needs about .* \(episode records x 2 at once [\d.]+ GiB", err)
+    assert lines[0].endswith("or fewer --cluster workers")
+    assert not (tmp_path / "out").exists()

@@ -89,7 +89,14 @@ def test_grid_axes_are_crossed_with_the_configs_list(tmp_path):
         ({"grid": {"eta": []}}, "grid axis 'eta' needs a non-empty list"),
         ({"grid": {"eta": [0.1, 0.1]}}, "grid axis 'eta' repeats a value"),
         ({"grid": {"eta": 0.1}}, "grid axis 'eta' must be a list"),
-        ({"grid": {"eta": [0.1]}, "colour": "red"}, "unknown key(s) colour"),
+        ({"grid": {"eta": [0.1]}, "colour": "red"}, "unknown key(s) 'colour'"),
+        ({"grid": {"eta": [0.1]}, "a\nb": 1}, "unknown key(s) 'a\\nb'; known"),  # one line
+        ({"base": {"eta": {"a": 1}}, "grid": {"size": [5]}}, "field 'eta' in base holds {'a': 1}"),
+        ({"grid": {"eta": [{"x": 1}]}}, "field 'eta' in grid holds {'x': 1}: a table is not"),
+        (
+            {"grid": {"eta": [0.1]}, "configs": [{"size": 5}, {"size": 5}]},
+            "configurations 0 (size=5, eta=0.1) and 1 (size=5, eta=0.1) are the same",
+        ),
         ({"grid": {"eta": [0.1]}, "command": "dependencies"}, "unknown field 'eta' in grid"),
         ({"grid": {"prior_a": [0.1]}, "command": "dependencies"}, "configuration 0 (prior_a=0.1)"),
         ({"grid": {"runs": [2]}, "command": "dependencies", "shard_seeds": 1}, "shard_seeds does"),
@@ -108,6 +115,7 @@ def test_a_bad_spec_is_refused_naming_the_field_or_value(document, message):
     with pytest.raises((SweepError, ValueError, TypeError)) as raised:
         sweep.spec_from_mapping(document, "sweep.toml")
     assert message in str(raised.value)
+    assert str(raised.value).startswith("sweep.toml: ") and "\n" not in str(raised.value)
 
 
 def test_bad_input_on_the_command_line_is_one_line_exit_2_and_nothing_written(tmp_path, capsys):
@@ -288,6 +296,7 @@ def test_a_compare_sweep_cell_equals_factorq_compare_and_resumes(tmp_path, capsy
     expected = json.loads(result_files.dumps(compare.run(replace(config, out=str(tmp_path / "c")))))
     row = result["configurations"][1]
     stored = json.loads((out / row["results_file"]).read_text())
+    assert len(stored.pop("content_sha256")) == 64  # checked when the file is reused
     assert stored["config"].pop("out") == str(out) and expected["config"].pop("out")
     assert _without_wall_s(stored) == _without_wall_s(expected)
     cell = row["cells"]["static/factor-q"]
@@ -305,6 +314,14 @@ def test_a_compare_sweep_cell_equals_factorq_compare_and_resumes(tmp_path, capsy
     assert _without_wall_s(json.loads(result_files.dumps(resumed))["configurations"]) == (
         _without_wall_s(result["configurations"])
     )
+    # a kept result whose numbers were edited (its digest kept) is refused before any work
+    edited = json.loads((out / row["results_file"]).read_text())
+    edited["results"]["factor-q"]["static"]["collisions"] *= 100
+    (out / row["results_file"]).write_text(json.dumps(edited))
+    refused = CountingExecutor()
+    with pytest.raises(ValueError, match="does not match its digest .* pass --force to recompute"):
+        sweep.run_sweep(replace(spec, out=str(out)), refused)
+    assert refused.items == []
 
 
 DEPENDENCIES_TOML = """
@@ -346,6 +363,7 @@ def test_a_dependencies_sweep_cell_equals_factorq_dependencies_and_resumes(tmp_p
     expected = json.loads(result_files.dumps(dependencies.run(replace(config, out="unused"))))
     row = result["configurations"][1]
     stored = json.loads((out / row["results_file"]).read_text())
+    assert len(stored.pop("content_sha256")) == 64  # checked when the file is reused
     assert stored["config"].pop("out") == str(out) and expected["config"].pop("out")
     assert _without_wall_s(stored) == _without_wall_s(expected)
     cell = row["cells"]["change/learned"]
@@ -363,15 +381,30 @@ def test_a_dependencies_sweep_cell_equals_factorq_dependencies_and_resumes(tmp_p
     assert _without_wall_s(json.loads(result_files.dumps(resumed))["configurations"]) == (
         _without_wall_s(result["configurations"])
     )
-    # a kept configuration file edited or cut short: one line naming it, exit 1, no traceback
+    # a kept configuration file edited or cut short: refused naming it before any work, in one
+    # line without a traceback; --force recomputes it
     kept = out / row["results_file"]
-    for bad in ('{"settings": {"change": {}}}', "garbage{"):
+    good = json.loads(kept.read_text())
+    edited = json.loads(kept.read_text())
+    edited["settings"]["change"]["methods"]["learned"]["collisions_per_experiment"] *= 100
+    for bad in ('{"settings": {"change": {}}}', "garbage{", json.dumps(edited)):
         kept.write_text(bad)
-        err = io.StringIO()
-        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-            assert cli.main([*argv, "--force"]) == 1
-        assert f"configuration file {kept} is not a factorq dependencies result" in err.getvalue()
-        assert "Traceback" not in err.getvalue()
+        refused = CountingExecutor()
+        with pytest.raises(ValueError, match="configuration file .* pass --force to recompute"):
+            sweep.run_sweep(replace(spec, out=str(out)), refused)
+        assert refused.items == []
+    (out / "sweep.json").unlink()
+    (out / "sweep.md").unlink()  # (an --out with them is refused without --force)
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        assert cli.main(argv) == 1
+    message = f"configuration file {kept} does not match its digest (edited or damaged): pass"
+    assert message in err.getvalue() and "Traceback" not in err.getvalue()
+    with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
+        assert cli.main([*argv, "--force"]) == 0
+    recomputed = json.loads(kept.read_text())
+    assert recomputed.pop("content_sha256") != good.pop("content_sha256")  # (timing differs)
+    assert _without_wall_s(recomputed) == _without_wall_s(good)
 
 
 def test_bad_compare_input_on_the_command_line_is_one_line_exit_2_and_nothing_written(

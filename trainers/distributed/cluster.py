@@ -26,6 +26,7 @@ import argparse
 import os
 import re
 import tempfile
+import time
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -42,6 +43,11 @@ INSTALL_HINT = (
 DEFAULT_CONNECT_TIMEOUT_S = 10.0
 #: The longest wait for a scheduler (a day): a finite bound Dask's timeout parser takes.
 MAX_CONNECT_TIMEOUT_S = 86_400.0
+#: How long work may wait with no worker in the cluster before the run gives up (a nanny
+#: restarts a killed worker within seconds; a cluster whose workers are all gone never finishes).
+DEFAULT_WORKER_TIMEOUT_S = 120.0
+#: How often a wait for results looks for workers.
+WORKER_POLL_S = 1.0
 _LOCAL = re.compile(r"^local(?::(\d+))?$")
 
 
@@ -60,6 +66,8 @@ class Where:
     """Address of a running Dask scheduler (``--scheduler tcp://host:port``)."""
     connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S
     """Seconds to wait for the scheduler before giving up."""
+    worker_timeout_s: float = DEFAULT_WORKER_TIMEOUT_S
+    """Seconds work may wait with no worker in the cluster before the run gives up."""
 
     def __post_init__(self) -> None:
         if self.local_workers is not None and self.scheduler is not None:
@@ -70,13 +78,16 @@ class Where:
             raise ClusterError(
                 f"--scheduler={self.scheduler!r} is not an address like tcp://host:8786"
             )
-        timeout = self.connect_timeout_s
-        if not (isinstance(timeout, int | float) and 0 < timeout <= MAX_CONNECT_TIMEOUT_S):
-            # inf would reach Dask's timeout parser (KeyError), 1e300 would hang for good
-            raise ClusterError(
-                f"--connect-timeout={timeout!r} is out of range: must be in "
-                f"(0, {MAX_CONNECT_TIMEOUT_S:g}] seconds"
-            )
+        for option, timeout in (
+            ("--connect-timeout", self.connect_timeout_s),
+            ("--worker-timeout", self.worker_timeout_s),
+        ):
+            if not (isinstance(timeout, int | float) and 0 < timeout <= MAX_CONNECT_TIMEOUT_S):
+                # inf would reach Dask's timeout parser (KeyError), 1e300 would hang for good
+                raise ClusterError(
+                    f"{option}={timeout!r} is out of range: must be in "
+                    f"(0, {MAX_CONNECT_TIMEOUT_S:g}] seconds"
+                )
 
     @property
     def in_process(self) -> bool:
@@ -118,6 +129,31 @@ class InProcess:
         pass
 
 
+class _WorkerWatch:
+    """Raises a ``ClusterError`` once ``executor``'s cluster has had no worker for its
+    ``worker_timeout_s`` (looked at every ``WORKER_POLL_S``) while ``total`` tasks wait."""
+
+    def __init__(self, executor: DaskExecutor, total: int) -> None:
+        self.executor = executor
+        self.total = total
+        self.looked = self.seen = time.monotonic()
+
+    def check(self, left: int) -> None:
+        now = time.monotonic()
+        if now - self.looked < WORKER_POLL_S:
+            return
+        self.looked = now
+        if self.executor.workers:
+            self.seen = now
+        elif now - self.seen >= self.executor.worker_timeout_s:
+            raise ClusterError(
+                f"the Dask cluster at {self.executor.client.scheduler.address} has had no worker "
+                f"for {self.executor.worker_timeout_s:g} s, with {left} of {self.total} tasks "
+                f"left: start workers and run the command again (finished work is kept), or "
+                f"wait longer with --worker-timeout SECONDS"
+            )
+
+
 def _node_local_cache() -> str:
     user = os.environ.get("USER") or str(os.getuid())
     return str(Path(tempfile.gettempdir()) / f"factorq_torch-{user}")
@@ -147,21 +183,34 @@ def _import_distributed() -> Any:
 
 
 class DaskExecutor:
-    """Runs items as Dask futures; yields results as they complete."""
+    """Runs items as Dask futures; yields results as they complete. While results are awaited
+    the cluster must keep a worker: ``worker_timeout_s`` without any is a ``ClusterError``
+    (a cluster that lost every worker would otherwise wait for good, silently)."""
 
-    def __init__(self, client: Any, cluster: Any = None) -> None:
+    def __init__(
+        self,
+        client: Any,
+        cluster: Any = None,
+        worker_timeout_s: float = DEFAULT_WORKER_TIMEOUT_S,
+    ) -> None:
         self.client = client
         self.cluster = cluster
+        self.worker_timeout_s = worker_timeout_s
         distributed = _import_distributed()
         self._as_completed = distributed.as_completed
 
     @property
     def workers(self) -> int:
-        return max(1, len(self.client.scheduler_info(n_workers=-1)["workers"]))
+        """The workers in the cluster now (0 when none has joined yet, or all are gone)."""
+        info = self.client.scheduler_info(n_workers=0)
+        return int(info.get("n_workers", len(info.get("workers", ()))))
 
     @property
     def description(self) -> str:
-        return f"Dask scheduler {self.client.scheduler.address} ({self.workers} workers)"
+        count = self.workers
+        return (
+            f"Dask scheduler {self.client.scheduler.address} ({count} worker{'s' * (count != 1)})"
+        )
 
     def map(
         self, function: Callable[[Any], Any], items: Sequence[Any], names: Sequence[str]
@@ -171,9 +220,22 @@ class DaskExecutor:
             self.client.submit(_on_worker, function, item, key=f"{name}-{run}", pure=False): index
             for index, (item, name) in enumerate(zip(items, names, strict=True))
         }
+        watch = _WorkerWatch(self, len(futures))
         try:
-            for future in self._as_completed(futures, loop=self.client.loop):
-                yield futures[future], future.result()
+            completed = self._as_completed(futures, loop=self.client.loop)
+            while not completed.is_empty():
+                if not completed.has_ready():
+                    time.sleep(0.02)
+                    watch.check(completed.count())
+                    continue
+                for future in completed.next_batch(block=False):
+                    while True:  # its result may have been lost with its worker meanwhile
+                        try:
+                            result = future.result(timeout=WORKER_POLL_S)
+                            break
+                        except TimeoutError:
+                            watch.check(completed.count() + 1)
+                    yield futures[future], result
         finally:
             for future in futures:
                 future.release()
@@ -184,22 +246,49 @@ class DaskExecutor:
             self.cluster.close()
 
 
+def _forget_half_made_client(error: BaseException, kind: Any) -> None:
+    """Mark the Client whose constructor raised ``error`` closed: when collected, it would try
+    to close its connection for 20 s and then print an ignored-exception traceback."""
+    frame = error.__traceback__
+    while frame is not None:
+        made: Any = frame.tb_frame.f_locals.get("self")
+        if isinstance(made, kind):
+            made.status = "closed"
+        frame = frame.tb_next
+
+
 def open_executor(where: Where) -> InProcess | DaskExecutor:
     """The executor for ``where``; a ``ClusterError`` (one line) if it cannot be had."""
     if where.in_process:
         return InProcess()
     distributed = _import_distributed()
     if where.scheduler is not None:
+        unreachable = (
+            f"scheduler {where.scheduler} is unreachable within {where.connect_timeout_s:g} s"
+        )
+        try:  # before a Client: one that fails in its constructor prints a traceback when
+            # collected (its close times out), after the error
+            distributed.comm.resolve_address(where.scheduler)
+        except (ValueError, TypeError, KeyError) as error:
+            raise ClusterError(
+                f"--scheduler={where.scheduler!r} is not a Dask scheduler address like "
+                f"tcp://host:8786 ({error})"
+            ) from None
+        except OSError as error:  # a host name that does not resolve
+            raise ClusterError(f"{unreachable} ({error})") from None
         try:
             client = distributed.Client(
                 where.scheduler, timeout=f"{where.connect_timeout_s}s", set_as_default=False
             )
         except (OSError, TimeoutError) as error:
+            raise ClusterError(f"{unreachable} ({error})") from None
+        except (ValueError, TypeError) as error:  # an address resolve_address let through
+            _forget_half_made_client(error, distributed.Client)
             raise ClusterError(
-                f"scheduler {where.scheduler} is unreachable within "
-                f"{where.connect_timeout_s:g} s ({error})"
+                f"--scheduler={where.scheduler!r} is not a Dask scheduler address like "
+                f"tcp://host:8786 ({error})"
             ) from None
-        return DaskExecutor(client)
+        return DaskExecutor(client, worker_timeout_s=where.worker_timeout_s)
     cluster = distributed.LocalCluster(
         n_workers=where.local_workers or os.cpu_count() or 1,
         threads_per_worker=1,
@@ -207,7 +296,8 @@ def open_executor(where: Where) -> InProcess | DaskExecutor:
         dashboard_address=None,
         silence_logs=50,  # CRITICAL only: a killed worker's traceback is expected noise here
     )
-    return DaskExecutor(distributed.Client(cluster, set_as_default=False), cluster)
+    client = distributed.Client(cluster, set_as_default=False)
+    return DaskExecutor(client, cluster, worker_timeout_s=where.worker_timeout_s)
 
 
 # --------------------------------------------------------------------------------------------
@@ -238,6 +328,15 @@ def add_options(parser: argparse.ArgumentParser) -> None:
         f"(default: {DEFAULT_CONNECT_TIMEOUT_S:g})",
         default=argparse.SUPPRESS,
     )
+    parser.add_argument(
+        "--worker-timeout",
+        metavar="SECONDS",
+        type=options.finite_float,
+        help="Give up when the cluster has had no worker for this long while work is left "
+        f"(finished work is kept; at most {MAX_CONNECT_TIMEOUT_S:g}). "
+        f"(default: {DEFAULT_WORKER_TIMEOUT_S:g})",
+        default=argparse.SUPPRESS,
+    )
 
 
 def where_from_args(args: argparse.Namespace) -> Where:
@@ -249,6 +348,7 @@ def where_from_args(args: argparse.Namespace) -> Where:
         local_workers=workers,
         scheduler=getattr(args, "scheduler", None),
         connect_timeout_s=getattr(args, "connect_timeout", DEFAULT_CONNECT_TIMEOUT_S),
+        worker_timeout_s=getattr(args, "worker_timeout", DEFAULT_WORKER_TIMEOUT_S),
     )
 
 

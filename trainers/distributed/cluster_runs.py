@@ -40,7 +40,7 @@ def add_paper_options(parser: argparse.ArgumentParser) -> None:
 def paper_executor(args: argparse.Namespace) -> cluster.InProcess | cluster.DaskExecutor | None:
     """The executor ``factorq paper``'s options ask for: ``None`` for the usual in-process run,
     else an open one (a ``ValueError`` in one line when it cannot be had)."""
-    names = ("cluster", "scheduler", "connect_timeout", "shard_seeds")
+    names = ("cluster", "scheduler", "connect_timeout", "worker_timeout", "shard_seeds")
     if not any(hasattr(args, name) for name in names):
         return None
     for name in ("checkpoint_every", "resume"):
@@ -65,7 +65,7 @@ def run_paper_on(
     """``run_paper`` with ``args.shard_seeds``, closing ``executor`` afterwards."""
     try:
         shard_seeds = getattr(args, "shard_seeds", DEFAULT_PAPER_SHARD_SEEDS)
-        return run_paper(config, executor, shard_seeds, progress)
+        return run_paper(config, executor, shard_seeds, progress, hasattr(args, "force"))
     finally:
         executor.close()
 

@@ -31,7 +31,7 @@ import numpy as np
 from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_torch.base.validation import check_int
 from factorq_trainers.experiments import paper
-from factorq_trainers.runner import checkpoint
+from factorq_trainers.runner import checkpoint, kept
 from factorq_trainers.runner import results as result_files
 
 #: Config fields that do not change a shard's numbers (tested: backends and thread counts give
@@ -154,13 +154,8 @@ def _check_metrics(
     its digest, every metric of every cell, the shape ``[seeds, runs, episodes]``, finite
     values, counts whole and >= 0 (checked even when the digest matches: it proves integrity,
     not origin)."""
-    remedy = "delete it to recompute it"
-    if not stored:
-        raise ValueError(f"shard file {path} has no digest (an older factorq wrote it): {remedy}")
-    if stored != metrics_digest(metrics):
-        raise ValueError(
-            f"shard file {path} does not match its digest (edited or damaged): {remedy}"
-        )
+    kept.check_digest(path, "shard file", stored, metrics_digest(metrics))
+    remedy = kept.REMEDY
     shape = (shard.seeds, shard.runs, shard.episodes)
     for world in shard.worlds:
         for algorithm in shard.algorithms:
@@ -216,9 +211,9 @@ def load(path: str | os.PathLike, shard: paper.PaperConfig) -> ShardMetrics:
             stored = str(data["__sha256__"]) if "__sha256__" in data.files else ""
             metrics = {key: data[key] for key in data.files if not key.startswith("__")}
     except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as error:
-        raise ValueError(f"shard file {path} is unreadable ({error}): delete it to rerun") from None
+        raise ValueError(f"shard file {path} is unreadable ({error}): {kept.REMEDY}") from None
     if not isinstance(saved, dict):  # any JSON may stand there (tests/test_hardening_fuzz.py)
-        raise ValueError(f"shard file {path} holds no config: delete it to rerun")
+        raise ValueError(f"shard file {path} holds no config: {kept.REMEDY}")
     expected = paper.config_dict(shard)
     differing = sorted(
         key
@@ -227,7 +222,8 @@ def load(path: str | os.PathLike, shard: paper.PaperConfig) -> ShardMetrics:
     )
     if differing:
         raise ValueError(
-            f"shard file {path} holds another config (differs in {', '.join(differing)})"
+            f"shard file {path} holds another config (differs in {', '.join(differing)}): "
+            f"{kept.REMEDY}"
         )
     _check_metrics(Path(path), shard, metrics, stored)
     return metrics

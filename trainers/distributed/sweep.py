@@ -120,8 +120,9 @@ def build_parser(prog: str = "factorq sweep") -> argparse.ArgumentParser:
     parser.add_argument(
         "--force",
         action="store_true",
-        help="Replace the sweep.json and sweep.md of an earlier sweep in --out (its finished "
-        "shards are reused either way). Without it, an --out holding them is refused.",
+        help="Replace the sweep.json and sweep.md of an earlier sweep in --out, and recompute "
+        "any finished shard (configuration) whose kept file fails its checks (edited, damaged); "
+        "good ones are reused either way. Without it, an --out holding them is refused.",
     )
     cluster.add_options(parser)
     return parser
@@ -184,22 +185,23 @@ def main(argv: list[str] | None = None) -> int:
             from factorq_trainers.runner import registry
 
             module = registry.load(spec.command)
-            estimate = max(
-                (
+            estimate = resources.tasks_estimate(
+                [
                     module.estimate(config)
                     if hasattr(module, "estimate")
                     else resources.Estimate({}, 0, exact_steps=False)
                     for config in spec.configurations()
-                ),
-                key=lambda estimate: estimate.bytes,
-            )  # per configuration: a worker runs one at a time
+                ],
+                workers,
+            )  # a worker runs one configuration at a time
             hint = getattr(module, "HINT", "use fewer --seeds or smaller configurations")
+            hint += ", or fewer --cluster workers" if workers > 1 else ""
         elif spec.command == "compare":
-            estimate = max(
-                (resources.compare_estimate(config) for config in spec.configurations()),
-                key=lambda estimate: estimate.bytes,
-            )  # per comparison: a worker runs one method of it at a time
+            estimate = resources.tasks_estimate(
+                [resources.compare_estimate(config) for config in spec.configurations()], workers
+            )  # a worker runs one method of a comparison at a time (counted as a whole one)
             hint = "use fewer --seeds, or smaller steps or size"
+            hint += ", or fewer --cluster workers" if workers > 1 else ""
         else:
             estimate = resources.sweep_estimate(spec.configurations(), spec.shard_seeds, workers)
             hint = resources.SWEEP_HINT
@@ -214,14 +216,16 @@ def main(argv: list[str] | None = None) -> int:
         with outdir.claim(
             spec.out, outputs=(sweep_report.JSON_FILE, sweep_report.REPORT_FILE), force=args.force
         ):
-            return _run_sweep_command(parser, spec, executor)
+            return _run_sweep_command(parser, spec, executor, args.force)
     except outdir.OutputDirError as error:
         executor.close()
         print(f"{parser.prog}: error: {str(error).replace('out=', '--out=')}", file=sys.stderr)
         return EXIT_USAGE
 
 
-def _run_sweep_command(parser: argparse.ArgumentParser, spec: SweepSpec, executor: Any) -> int:
+def _run_sweep_command(
+    parser: argparse.ArgumentParser, spec: SweepSpec, executor: Any, force: bool = False
+) -> int:
     configs = spec.configurations()
     if spec.command == "compare":
         tasks = sum(len(config.methods) for config in configs)
@@ -237,7 +241,7 @@ def _run_sweep_command(parser: argparse.ArgumentParser, spec: SweepSpec, executo
     unit = {"compare": "method", "paper": "shard"}.get(spec.command, "configuration")
     bar = ShardBar(unit=unit)
     try:
-        sweep = run_sweep(spec, executor, bar)
+        sweep = run_sweep(spec, executor, bar, force)
         bar.close()
         paths = sweep_report.write_outputs(sweep, spec.out)
     except KeyboardInterrupt:

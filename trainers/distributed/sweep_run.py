@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -44,6 +43,7 @@ from factorq_trainers.distributed.sweep_spec import (
     config_digest,
 )
 from factorq_trainers.experiments import paper
+from factorq_trainers.runner import kept
 from factorq_trainers.runner import results as result_files
 
 
@@ -70,8 +70,22 @@ def run_shards(
         done(shard)
 
 
-def _missing(directory: Path, every: list[paper.PaperConfig]) -> list[paper.PaperConfig]:
-    return [shard for shard in every if not shards.shard_path(directory, shard).is_file()]
+def _missing(
+    directory: Path, every: list[paper.PaperConfig], force: bool = False
+) -> list[paper.PaperConfig]:
+    """The shards of ``every`` to run: those without a kept file, and (``force``) those whose
+    kept file fails its checks; without ``force`` such a file is refused before any work."""
+    return [
+        shard
+        for shard in every
+        if not kept.reusable(
+            shards.shard_path(directory, shard), functools.partial(_load_shard, shard=shard), force
+        )
+    ]
+
+
+def _load_shard(path: Path, shard: paper.PaperConfig) -> shards.ShardMetrics:
+    return shards.load(path, shard)
 
 
 def run_paper(
@@ -79,14 +93,16 @@ def run_paper(
     executor: cluster.InProcess | cluster.DaskExecutor,
     shard_seeds: int = DEFAULT_PAPER_SHARD_SEEDS,
     progress: paper.ProgressCallback | None = None,
+    force: bool = False,
 ) -> dict[str, Any]:
     """``paper.run(config)``'s results, computed as shards of ``shard_seeds`` seeds on
-    ``executor``, each kept in ``OUT/shards/`` (existing ones are not rerun). Identical numbers;
-    ``timing`` says where and how they were computed."""
+    ``executor``, each kept in ``OUT/shards/`` (existing ones are not rerun; one that fails its
+    checks is refused, or with ``force`` recomputed). Identical numbers; ``timing`` says where
+    and how they were computed."""
     started = time.perf_counter()
     directory = Path(config.out) / SHARDS_DIRECTORY
     every = shards.split(config, shard_seeds)
-    pending = _missing(directory, every)
+    pending = _missing(directory, every, force)
     per_seed = len(config.cells) * config.runs * config.episodes
     total_seeds = config.seeds
     state = {"seeds": total_seeds - sum(s.seeds for s in pending)}
@@ -137,6 +153,24 @@ def compare_result_path(directory: str | os.PathLike, config: Any) -> Path:
     return Path(directory) / f"{config_digest(config)}.json"
 
 
+#: What ``kept`` calls a kept configuration result in its messages.
+CONFIG_FILE = "configuration file"
+
+
+def _pending_configs(directory: Path, configs: Sequence[Any], force: bool) -> list[Any]:
+    """The configurations of ``configs`` to run: those without a kept result, and (``force``)
+    those whose kept result fails its checks; without ``force`` such a file is refused."""
+    return [
+        config
+        for config in configs
+        if not kept.reusable(
+            compare_result_path(directory, config),
+            lambda path: kept.read_sealed(path, CONFIG_FILE),
+            force,
+        )
+    ]
+
+
 def _compare_task(run_method: Callable[..., Any], item: tuple[Any, str]) -> Any:
     config, method = item
     return _compare_method(run_method, config, method)
@@ -170,7 +204,7 @@ def run_compare_configs(
                 "method_wall_s": round(sum(float(r["wall_s"]) for r in runs[index].values()), 3),
                 "where": executor.description,
             }
-            text = result_files.dumps(results)
+            text = kept.dumps_sealed(results)
             directory.mkdir(parents=True, exist_ok=True)
             result_files.write_atomic(
                 compare_result_path(directory, config), functools.partial(_write_text, text=text)
@@ -215,6 +249,7 @@ def run_compare_sweep(
     spec: SweepSpec,
     executor: cluster.InProcess | cluster.DaskExecutor,
     progress: Callable[[int, int], None] | None = None,
+    force: bool = False,
 ) -> dict[str, Any]:
     """``run_sweep`` of a compare spec: every configuration not already in ``OUT/configs/``
     run whole (one task per method), then gathered into ``sweep.json``'s dict."""
@@ -223,7 +258,7 @@ def run_compare_sweep(
     started = time.perf_counter()
     directory = Path(spec.out) / CONFIGS_DIRECTORY
     configs = spec.configurations()
-    pending = [c for c in configs if not compare_result_path(directory, c).is_file()]
+    pending = _pending_configs(directory, configs, force)
     total = sum(len(config.methods) for config in configs)
     count = {"done": total - sum(len(config.methods) for config in pending)}
     if progress is not None:
@@ -266,12 +301,13 @@ def _gathered(
     rows = []
     for config, point in zip(configs, spec.points(), strict=True):
         path = compare_result_path(directory, config)
+        results = kept.read_sealed(path, CONFIG_FILE)  # digest and values checked
         try:  # a kept file is the user's: it may have been edited or cut short
-            kept = cells(json.loads(path.read_text()))
+            cells_of = cells(results)
         except (ValueError, KeyError, TypeError, AttributeError, IndexError) as error:
             raise ValueError(
                 f"configuration file {path} is not a factorq {command} result ({error!r}): "
-                f"delete it to rerun that configuration"
+                f"{kept.REMEDY}"
             ) from None
         rows.append(
             {
@@ -279,7 +315,7 @@ def _gathered(
                 "digest": config_digest(config),
                 "config": config_dict(config),
                 "results_file": f"{CONFIGS_DIRECTORY}/{path.name}",
-                "cells": kept,
+                "cells": cells_of,
                 "claims": {},
             }
         )
@@ -312,6 +348,7 @@ def run_units_sweep(
     spec: SweepSpec,
     executor: cluster.InProcess | cluster.DaskExecutor,
     progress: Callable[[int, int], None] | None = None,
+    force: bool = False,
 ) -> dict[str, Any]:
     """``run_sweep`` of a spec of a command of the runner (``dependencies``, ``minigrid``, ...):
     every configuration not already in ``OUT/configs/`` run whole
@@ -320,14 +357,14 @@ def run_units_sweep(
     started = time.perf_counter()
     directory = Path(spec.out) / CONFIGS_DIRECTORY
     configs = spec.configurations()
-    pending = [c for c in configs if not compare_result_path(directory, c).is_file()]
+    pending = _pending_configs(directory, configs, force)
     done = len(configs) - len(pending)
     if progress is not None:
         progress(done, len(configs))
     names = [f"{spec.command}-{config_digest(config)}" for config in pending]
     task = functools.partial(_units_task, spec.command)
     for index, results in executor.map(task, pending, names):
-        text = result_files.dumps(results)
+        text = kept.dumps_sealed(results)
         directory.mkdir(parents=True, exist_ok=True)
         result_files.write_atomic(
             compare_result_path(directory, pending[index]),
@@ -353,21 +390,24 @@ def run_sweep(
     spec: SweepSpec,
     executor: cluster.InProcess | cluster.DaskExecutor,
     progress: Callable[[int, int], None] | None = None,
+    force: bool = False,
 ) -> dict[str, Any]:
     """Run every shard of ``spec`` not already on disk, then gather ``sweep.json``'s dict.
 
     ``progress(done, total)`` counts shards (those found on disk are done from the start); for
-    a compare spec, ``run_compare_sweep``, counting methods.
+    a compare spec, ``run_compare_sweep``, counting methods. A kept shard (configuration
+    result) that fails its checks (``kept``) is refused before any work, or with ``force``
+    recomputed.
     """
     if spec.command == "compare":
-        return run_compare_sweep(spec, executor, progress)
+        return run_compare_sweep(spec, executor, progress, force)
     if spec.command != "paper":
-        return run_units_sweep(spec, executor, progress)
+        return run_units_sweep(spec, executor, progress, force)
     started = time.perf_counter()
     directory = Path(spec.out) / SHARDS_DIRECTORY
     configs = spec.configurations()
     every = [shard for config in configs for shard in shards.split(config, spec.shard_seeds)]
-    pending = _missing(directory, every)
+    pending = _missing(directory, every, force)
     count = {"done": len(every) - len(pending)}
     if progress is not None:
         progress(count["done"], len(every))

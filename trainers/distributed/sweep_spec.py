@@ -210,6 +210,20 @@ class SweepSpec:
                 raise SweepError(f"grid axis {name!r} needs a non-empty list of values")
             if len(set(map(repr, values))) != len(values):
                 raise SweepError(f"grid axis {name!r} repeats a value: {list(values)}")
+        for where, pairs in (
+            ("base", self.base),
+            ("grid", [(name, value) for name, values in self.grid for value in values]),
+            ("configs", [pair for entry in self.configs for pair in entry]),
+        ):
+            for name, value in pairs:
+                try:  # a value, or a list of values (a table would reach no field's check)
+                    hash(value)
+                except TypeError:
+                    shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
+                    raise SweepError(
+                        f"field {name!r} in {where} holds {shown}: a table is not a value "
+                        f"(give a value or a list of values)"
+                    ) from None
         count = len(self.configs) * math.prod(len(values) for _, values in self.grid)
         if count > MAX_CONFIGURATIONS:  # from the axes' lengths: nothing expanded yet
             sizes = " x ".join(str(len(values)) for _, values in self.grid) or "1"
@@ -226,7 +240,15 @@ class SweepSpec:
         for index, config in enumerate(self.configurations()):
             key = config_digest(config)
             if key in seen:
-                raise SweepError(f"configurations {seen[key]} and {index} are the same")
+                points = self.points()
+                first, again = (
+                    ", ".join(f"{k}={v!r}" for k, v in points[i].items()) or "base"
+                    for i in (seen[key], index)
+                )
+                raise SweepError(
+                    f"configurations {seen[key]} ({first}) and {index} ({again}) are the same "
+                    f"configuration: give each once"
+                )
             seen[key] = index
 
     @property
@@ -269,7 +291,8 @@ def spec_from_mapping(data: dict[str, Any], source: str = "sweep file") -> Sweep
     unknown = sorted(set(data) - set(SPEC_KEYS))
     if unknown:
         raise SweepError(
-            f"{source}: unknown key(s) {', '.join(unknown)}; known: {', '.join(SPEC_KEYS)}"
+            f"{source}: unknown key(s) {', '.join(map(repr, unknown))}; known: "
+            f"{', '.join(SPEC_KEYS)}"
         )
     command = check_command(data.get("command", "paper"), source)
     if command != "paper" and "shard_seeds" in data:

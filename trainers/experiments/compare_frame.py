@@ -61,6 +61,9 @@ def main(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         if hasattr(args, "resume"):
             resume = compare.load_checkpoint(args.resume)
             config = compare.resume_config(resume.config, given, args.resume)
+            # checked before its progress line is printed (on a copy: the run checks the
+            # original again, converting its traces as it goes)
+            compare.check_checkpoint(resume._replace(finished=dict(resume.finished)), config)
         else:
             config = compare.CompareConfig(**given)
         checkpointing = every is not None or (resume is not None and resume.every is not None)

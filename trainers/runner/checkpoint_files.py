@@ -42,6 +42,7 @@ Every(episodes=5000, seconds=None)
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import math
 import os
@@ -184,6 +185,7 @@ def save(out: str | os.PathLike, content: dict[str, Any], kind: str = FORMAT) ->
     """Write ``content`` as the newest checkpoint of ``out``, keeping the one before it
     (``kind``: the file's format name, ``FORMAT`` or ``COMPARE_FORMAT``)."""
     directory = directory_of(out)
+    made = not directory.exists()
     directory.mkdir(parents=True, exist_ok=True)
     latest, previous = directory / LATEST, directory / PREVIOUS
     pid = os.getpid()
@@ -192,9 +194,12 @@ def save(out: str | os.PathLike, content: dict[str, Any], kind: str = FORMAT) ->
     record = {"format": kind, "version": FORMAT_VERSION, "sha256": digest(content)}
     try:
         with os.fdopen(outdir.create_new(temporary), "wb") as file:  # never through a link
-            torch.save({**record, "content": content}, file)
-            file.flush()
-            os.fsync(file.fileno())
+            try:
+                torch.save({**record, "content": content}, file)
+                file.flush()
+                os.fsync(file.fileno())
+            except (RuntimeError, OSError) as error:  # (torch's zip writer: a RuntimeError)
+                raise results.WriteError(latest, error, WRITE_KEPT) from None
         if latest.exists():
             try:  # previous := newest, while the newest name keeps its file
                 os.link(latest, link)
@@ -203,10 +208,20 @@ def save(out: str | os.PathLike, content: dict[str, Any], kind: str = FORMAT) ->
                 os.replace(latest, previous)
         os.replace(temporary, latest)
         _sync_directory(directory)
+    except BaseException:
+        if made:  # the first save failed: no half checkpoint directory left behind
+            with contextlib.suppress(OSError):
+                temporary.unlink(missing_ok=True)
+                directory.rmdir()
+        raise
     finally:
         temporary.unlink(missing_ok=True)
         link.unlink(missing_ok=True)
     return latest
+
+
+#: What a failed save keeps (``results.WriteError``): the newest checkpoint is replaced last.
+WRITE_KEPT = "the checkpoint before it, if any, is kept"
 
 
 def _sync_directory(directory: Path) -> None:

@@ -178,6 +178,12 @@ def check(resume: CompareCheckpoint, config: Any, saved_form: dict[str, Any]) ->
                 f"running method {resume.running['method']!r} is not the next one to run, "
                 f"{pending[0] if pending else None!r}"
             )
+        from factorq_trainers.runner.compare_state_checks import check_step  # (imports us)
+
+        try:  # the step its progress line shows (the whole state: when the method restarts)
+            check_step(resume.running["state"], experiments.steps)
+        except ValueError as error:
+            refuse(f"running {error}")
 
 
 def check_trace(

@@ -172,6 +172,19 @@ def sweep_estimate(configs: list[Any], shard_seeds: int, workers: int) -> Estima
     return Estimate(parts, steps, exact_steps=False)
 
 
+def tasks_estimate(tasks: list[Estimate], workers: int) -> Estimate:
+    """Peak memory and env steps of a sweep whose configurations each run whole, as tasks
+    (``compare``'s, a command of the runner's): ``workers`` of its largest task at once (each
+    task's estimate is its command's, ``compare_estimate``, ``dependencies_estimate``, ...),
+    and the env steps of every task, as a run's estimate counts its own."""
+    largest = max(tasks, key=lambda estimate: estimate.bytes)
+    at_once = min(max(workers, 1), len(tasks))
+    suffix = f" x {at_once} at once" if at_once > 1 else ""
+    parts = {name + suffix: value * at_once for name, value in largest.parts.items()}
+    steps = sum(estimate.env_steps for estimate in tasks)
+    return Estimate(parts, steps, exact_steps=all(estimate.exact_steps for estimate in tasks))
+
+
 def compare_estimate(config: Any, checkpointing: bool = False) -> Estimate:
     """Peak memory of ``factorq compare`` with ``config`` (a ``CompareConfig``): the largest
     method's tables, networks and replay buffer, and every method's per-episode records (kept

@@ -89,7 +89,10 @@ def write_all_atomic(
         for path, write in writers.items():
             # made new here (never through a link planted at the temporary's name), then filled
             os.close(outdir.create_new(temporaries[path]))
-            write(temporaries[path])
+            try:
+                write(temporaries[path])
+            except OSError as error:  # a full disk, a quota, a file size limit
+                raise WriteError(path, error) from None
         if before_rename is not None:
             before_rename()
         for path, temporary in temporaries.items():
@@ -97,6 +100,24 @@ def write_all_atomic(
     finally:
         for temporary in temporaries.values():
             temporary.unlink(missing_ok=True)
+
+
+class WriteError(OSError):
+    """A file that could not be written (a full disk, a quota, a file size limit, ...), in one
+    line naming it; what was at its place before is kept (every file is written to a temporary
+    first). An ``OSError``, as the commands expect of a failed write (their exit 1)."""
+
+    def __init__(self, path: Path, error: BaseException, kept: str = "what was there is kept"):
+        reason = error.strerror if isinstance(error, OSError) and error.strerror else str(error)
+        reason = " ".join(str(reason).split())[:200]
+        super().__init__(
+            getattr(error, "errno", None),
+            f"cannot write {path}: {reason} (a full disk, a quota or a file size limit?); {kept}",
+        )
+        self.path = path
+
+    def __str__(self) -> str:
+        return self.strerror or ""
 
 
 #: A results file of the default run is about 200 kB; far larger files are not ours.
