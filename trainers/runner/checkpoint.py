@@ -66,8 +66,8 @@ class Schedule:
             return False
         if self.every.episodes is not None:
             return self._episodes_since_save >= self.every.episodes
-        assert self.every.seconds is not None  # an interval is in episodes or in seconds
-        return time.monotonic() - self._last_save >= self.every.seconds
+        seconds = self.every.seconds  # an interval has episodes or seconds
+        return seconds is not None and time.monotonic() - self._last_save >= seconds
 
     def saved(self, started: float | None = None) -> None:
         """A save just ended (begun at ``perf_counter()`` ``started``, if counted): the
@@ -137,9 +137,8 @@ class Checkpointer(Schedule):
         """The saved state of ``algorithm``'s experiments if the checkpoint was taken during
         them (once: later calls return None)."""
         running, self._running = self._running, None
-        if running is None:
+        if running is None or self.resumed is None:  # running comes from the resumed file
             return None
-        assert self.resumed is not None  # a running state comes only from a resumed checkpoint
         if running.get("algorithm") != algorithm:
             raise CheckpointError(
                 f"checkpoint {self.resumed.path} was taken during {running.get('algorithm')!r} "
@@ -150,15 +149,14 @@ class Checkpointer(Schedule):
     def restore(self, algorithm: str, load_state: Callable[[dict[str, Any]], None]) -> bool:
         """Call ``load_state(state)`` with ``algorithm``'s saved state, if any; whatever it
         refuses becomes a ``CheckpointError`` naming the file. Returns whether it restored."""
-        state = self.resume_state(algorithm)
-        if state is None:
+        resumed, state = self.resumed, self.resume_state(algorithm)
+        if state is None or resumed is None:  # a state comes from the resumed file
             return False
-        assert self.resumed is not None  # resume_state returns a state only when resumed
         try:
             load_state(state)
         except (KeyError, ValueError, TypeError, RuntimeError, AttributeError) as error:
             raise CheckpointError(
-                f"checkpoint {self.resumed.path} does not fit this run: {error}"
+                f"checkpoint {resumed.path} does not fit this run: {error}"
             ) from None
         return True
 

@@ -279,9 +279,8 @@ class Saver(checkpoint.Schedule):
         during it (once); what it refuses becomes a ``CheckpointError`` naming the file.
         Returns the seconds the method had run before, or None when nothing was restored."""
         running, self._running = self._running, None
-        if running is None:
+        if running is None or self.resumed is None:  # running comes from the resumed file
             return None
-        assert self.resumed is not None  # a running state comes only from a resumed checkpoint
         if running["method"] != method:
             raise checkpoint.CheckpointError(
                 f"checkpoint {self.resumed.path} was taken during {running['method']!r} but this "
