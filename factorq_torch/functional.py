@@ -17,7 +17,7 @@ import math
 import torch
 from torch.utils.weak import WeakIdKeyDictionary
 
-from factorq_torch.base.indices import constant
+from factorq_torch.base.indices import constant, scalar
 from factorq_torch.base.rng import probability_threshold, randint_from_bits
 from factorq_torch.base.validation import check_int
 
@@ -194,8 +194,9 @@ def _left_sum(x: torch.Tensor) -> torch.Tensor:
 
 def _mean_of_others(x: torch.Tensor, excluded: torch.Tensor) -> torch.Tensor:
     """Mean of ``x[..., a]`` over ``a != excluded`` (``[..., A], [...] -> [...]``)."""
-    others = x.scatter(-1, excluded.unsqueeze(-1), 0.0)  # [..., A], +0.0 at excluded
-    return _left_sum(others) / (x.shape[-1] - 1)
+    where = excluded.unsqueeze(-1)
+    others = x.scatter(-1, where, scalar(0.0, x).expand(where.shape))  # +0.0 at excluded
+    return _left_sum(others) / scalar(x.shape[-1] - 1, x)
 
 
 def normaliser(
@@ -218,25 +219,30 @@ def normaliser(
     Returns:
         ``G``, ``[...]``.
     """
-    # max / min with their indices: the value and the first index holding it, what argmax /
-    # argmin and a gather give, in one reduction each
-    q_max, a_hat = q.max(dim=-1)  # [...]; which maximum is taken does not change Q_bar
-    rho_min, a_check = rho.min(dim=-1)
     if q.shape == rho.shape and q.dtype == rho.dtype and q.device == rho.device:
-        # both means in one pass over the stacked values (the same elementwise ops: half the
-        # calls of two passes over these small tensors)
-        both = _mean_of_others(torch.stack((q, rho)), torch.stack((a_hat, a_check)))
-        q_bar, p_bar = both.unbind(0)
+        # Both halves in one pass over [Q, -rho] (the fewest small ops: a step of one agent is a
+        # [1, A] row, where each op's dispatch, not its arithmetic, is the cost). max gives the
+        # value and the first index holding it (argmax's, and -rho's is rho's first minimum);
+        # negation is exact and rounding symmetric, so the mean of the others of -rho is -P_bar
+        # and ``-rho[a_check] - (-P_bar)`` is ``P_bar - rho[a_check]`` bit for bit (up to the
+        # sign of a zero, which the ``> 0`` test below does not see).
+        both = torch.stack((q, rho.neg()))  # [2, ..., A]
+        top, index = both.max(dim=-1)  # Q(s, a_hat), -rho[a_check]
+        x, y = (top - _mean_of_others(both, index)).unbind(0)  # Q - Q_bar, P_bar - rho_min
     else:
-        q_bar, p_bar = _mean_of_others(q, a_hat), _mean_of_others(rho, a_check)
-    x = q_max - q_bar
-    y = p_bar - rho_min
-    spread = y > 0
-    g = x / torch.where(spread, y, 1.0) * (1 + eta)
-    # `g >= g_min` is False for NaN (inf / inf) too; an overflowed ratio is capped at the largest
-    # finite value, so G stays finite for any finite input (never reached by real tables).
-    g = torch.where(spread & (g >= g_min), g, g_min)
-    return g.clamp(max=torch.finfo(g.dtype).max)
+        q_max, a_hat = q.max(dim=-1)  # [...]; which maximum is taken does not change Q_bar
+        rho_min, a_check = rho.min(dim=-1)
+        x = q_max - _mean_of_others(q, a_hat)
+        y = _mean_of_others(rho, a_check) - rho_min
+    # (the constants as cached 0-d tensors: the same values as Python numbers, fewer allocations)
+    spread = y > scalar(0.0, y)
+    g = x / torch.where(spread, y, scalar(1.0, y)) * scalar(1 + eta, x)  # (no 0 / 0: a gradient
+    # stays finite). `g >= g_min` is False for NaN (inf / inf) too; an overflowed ratio is capped
+    # at the largest finite value, so G stays finite for any finite input (never reached by real
+    # tables).
+    floor = scalar(g_min, g)
+    g = torch.where(spread & (g >= floor), g, floor)
+    return g.clamp_max(scalar(torch.finfo(g.dtype).max, g))
 
 
 def combined_values(q: torch.Tensor, rho: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
@@ -251,7 +257,7 @@ def combined_values(q: torch.Tensor, rho: torch.Tensor, g: torch.Tensor) -> torc
         g: ``[...]`` eq. 3's normalisation factor ``G``.
     """
     largest = torch.finfo(q.dtype).max
-    return (q + g.unsqueeze(-1) * rho).clamp(-largest, largest)
+    return (q + g.unsqueeze(-1) * rho).clamp(scalar(-largest, q), scalar(largest, q))
 
 
 def q_learning_target(
@@ -342,7 +348,8 @@ def running_mean_add(
     (tensor([-0.5000]), tensor([4]))
     """
     kappa = kappa + count
-    return torch.where(count > 0, rho + step_sum / kappa.clamp(min=1), rho), kappa
+    stepped = rho + step_sum / kappa.clamp_min(scalar(1, kappa))  # (0-d constants: base.indices)
+    return torch.where(count > scalar(0, count), stepped, rho), kappa
 
 
 def greedy_action_from_bits(values: torch.Tensor, tie_bits: torch.Tensor) -> torch.Tensor:
@@ -473,7 +480,15 @@ def beta_bernoulli_log_marginal(
     s = successes.to(torch.float64)
     a, b = float(prior_a), float(prior_b)
     log_beta_prior = math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b)
-    return torch.lgamma(a + s) + torch.lgamma(b + n - s) - torch.lgamma(a + b + n) - log_beta_prior
+    # the numbers as cached 0-d float64 tensors (base.indices.scalar): the same sums, a third of
+    # the time on the few patterns one firing touches
+    a_, b_, ab_ = scalar(a, n), scalar(b, n), scalar(a + b, n)
+    return (
+        torch.lgamma(a_ + s)
+        + torch.lgamma(b_ + n - s)
+        - torch.lgamma(ab_ + n)
+        - scalar(log_beta_prior, n)
+    )
 
 
 def candidate_sets(num_sensors: int, max_parents: int = MAX_CANDIDATE_PARENTS) -> list[tuple]:
@@ -560,9 +575,12 @@ def log_posterior_of(log_prior: torch.Tensor | float, log_marginal: torch.Tensor
         log_prior: ``[C]`` (or a float) log prior of the candidates.
         log_marginal: ``[..., C, P]`` log marginal of each candidate's patterns.
     """
-    total = log_marginal[..., 0]
-    for pattern in range(1, log_marginal.shape[-1]):
-        total = total + log_marginal[..., pattern]
+    first, *rest = log_marginal.unbind(-1)
+    total = first
+    for column in rest:
+        total = total + column
+    if not isinstance(log_prior, torch.Tensor):
+        log_prior = scalar(float(log_prior), total)
     return log_prior + total
 
 
@@ -647,8 +665,8 @@ def mixture_log_marginal(
     tensor([-2.3026], dtype=torch.float64)
     """
     log_total = math.log1p(noisy_odds)
-    clean = beta_bernoulli_log_marginal(count, successes, prior_a, prior_b) - log_total
-    noisy = beta_bernoulli_log_marginal(count, successes, *noisy_prior) + (
-        math.log(noisy_odds) - log_total
-    )
-    return torch.where(count > 0, torch.maximum(clean, noisy), 0.0)
+    clean = beta_bernoulli_log_marginal(count, successes, prior_a, prior_b)
+    clean = clean - scalar(log_total, clean)
+    noisy = beta_bernoulli_log_marginal(count, successes, *noisy_prior)
+    noisy = noisy + scalar(math.log(noisy_odds) - log_total, noisy)
+    return torch.where(count > scalar(0, count), torch.maximum(clean, noisy), scalar(0.0, clean))

@@ -34,7 +34,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from factorq_torch.base import keys
 from factorq_torch.base.config import PAPER_NUM_ACTIONS
-from factorq_torch.base.indices import row_starts
+from factorq_torch.base.indices import row_starts, scalar
 from factorq_torch.base.validation import (  # MAX_TABLE_ENTRIES: re-exported
     MAX_PARENTS,
     MAX_TABLE_ENTRIES,  # noqa: F401
@@ -453,6 +453,12 @@ class LocalRewardTable(TensorDictModuleBase):
         tensordict.set(keys.LOCAL_VALUE, local_value)
         return tensordict
 
+    def local_values(self, readings: torch.Tensor) -> torch.Tensor:
+        """``rho(o)`` ``[S, A]`` of the online step's readings ``[S, K]`` (bool, checked by the
+        caller): what ``forward`` writes for a ``[S]`` batch, without the tensordict
+        (``project_local``; ``StructureLearner.local_values`` is its counterpart)."""
+        return project_local(self.rho, readings, self.dependency)
+
     @torch.no_grad()
     def update_running_mean(
         self,
@@ -528,7 +534,8 @@ class LocalRewardTable(TensorDictModuleBase):
         if not distinct:
             assert experiment is not None  # for mypy: every branch but the distinct one sets it
             table_starts = experiment.reshape(-1) * (self.num_actions * patterns_per_table)
-        entry = table_starts + (action * patterns_per_table + reading)  # [M], into rho / kappa
+        width = scalar(patterns_per_table, action)  # (0-d constants: base.indices.scalar)
+        entry = table_starts + (action * width + reading)  # [M], into rho / kappa
         rho_flat, kappa_flat = self.rho.view(-1), self.kappa.view(-1)
         rho, kappa = rho_flat.index_select(0, entry), kappa_flat.index_select(0, entry)  # [M]
         step = reward - rho  # r_L[a] - rho_a[o]
@@ -536,12 +543,12 @@ class LocalRewardTable(TensorDictModuleBase):
             visits = torch.ones_like(kappa)
         else:
             mask = mask.reshape(-1)
-            step, visits = torch.where(mask, step, 0.0), mask.to(torch.int64)
+            step, visits = torch.where(mask, step, scalar(0.0, step)), mask.to(torch.int64)
         # Sums per entry (n transitions on one entry add n visits and their n steps). One
         # transition per experiment (the online step) hits distinct entries: the sums are the
         # transitions' own (``0.0 + step``, as index_add_ into zeros computes it: -0.0 -> 0.0).
         if distinct:
-            count, total = visits, step + 0.0
+            count, total = visits, step + scalar(0.0, step)
         else:
             count = torch.zeros_like(kappa_flat).index_add_(0, entry, visits)[entry]  # [M]
             total = torch.zeros_like(rho_flat).index_add_(0, entry, step)[entry]  # [M]
