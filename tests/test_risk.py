@@ -249,6 +249,8 @@ def test_explain_names_the_actuator_the_amount_and_the_sensor():
     summary.update(td)
     report = summary.episode()
     assert report["penalised"]["north"] == 1 and report["overrides"] == 1
+    assert report["mean_penalty"]["north"] == pytest.approx(entries[0]["penalty"])
+    assert report["penalised"]["south"] == 0 and report["mean_penalty"]["south"] == 0.0
     assert "north x1" in RiskSummary.line(report)
     assert summary.episode()["steps"] == 0  # the next episode starts empty
 
@@ -438,11 +440,49 @@ def test_over_the_projects_task_table_it_is_factor_q_policys_combined_value():
 def test_factorq_risk_runs_through_the_runner_and_writes_its_files(tmp_path, capsys):
     # the command as a user types it: the runner's frame calls units, run_unit, summarise,
     # markdown and figure, and writes the three files under --out
-    from factorq_trainers import cli
+    import json
 
+    from factorq_torch.risk import RiskSummary
+    from factorq_trainers import cli
+    from factorq_trainers.experiments import risk as experiment
+
+    class Records(logging.Handler):  # torchrl's logger does not propagate: listen on it
+        def __init__(self):
+            super().__init__(logging.DEBUG)
+            self.records = []
+
+        def emit(self, record):
+            self.records.append(record)
+
+    torchrl_logger = logging.getLogger("torchrl")
+    level, records = torchrl_logger.level, Records()
+    torchrl_logger.addHandler(records)
+    torchrl_logger.setLevel(logging.INFO)  # torchrl's default (this module quiets it above)
     out = tmp_path / "risk"
     args = ["risk", "--worlds", "grid", "--methods", "dqn,dqn+risk-oracle", "--seeds", "1"]
-    args += ["--steps", "40", "--learning-starts", "20", "--eval-episodes", "1", "--out", str(out)]
-    assert cli.main(args) == 0, capsys.readouterr().err
+    args += ["--steps", "60", "--learning-starts", "20", "--eval-episodes", "1", "--out", str(out)]
+    args += ["--grid-size", "3", "--grid-obstacles", "1"]  # episodes that end within 60 steps
+    try:
+        assert cli.main(args) == 0, capsys.readouterr().err
+        after = torchrl_logger.level
+    finally:
+        torchrl_logger.removeHandler(records)
+        torchrl_logger.setLevel(level)
+    # no torchrl INFO line during the command (its replay buffer logs one per unit), and
+    # torchrl's own level back after it
+    assert [r.getMessage() for r in records.records if r.levelno < logging.WARNING] == []
+    assert after == logging.INFO
     assert {path.name for path in out.iterdir()} >= {"risk.json", "risk.md", "risk.png"}
-    assert "dqn+risk-oracle" in (out / "risk.md").read_text()
+    report = (out / "risk.md").read_text()
+    assert "dqn+risk-oracle" in report
+    # the layer's per-episode RiskSummary in the results, summed in the report
+    results = json.loads((out / "risk.json").read_text())
+    (episodes,) = results["risk_log"].values()  # the layered unit only
+    assert episodes and sum(e["steps"] for e in episodes) <= 60
+    assert set(episodes[0]["penalised"]) == {"north", "east", "south", "west"}
+    (row,) = results["risk_rows"]
+    assert row["method"] == "dqn+risk-oracle" and row["episodes"] == len(episodes)
+    assert row["steps"] == sum(e["steps"] for e in episodes)
+    assert "What the layer did" in report
+    assert experiment._summary_line(episodes[-1]) == RiskSummary.line(episodes[-1])
+    assert f"- grid dqn+risk-oracle: {RiskSummary.line(episodes[-1])}" in report

@@ -25,16 +25,25 @@ highway-env waits for the Gymnasium-adapter issue.
 Per unit: collisions during training, greedy collisions and success over ``eval_episodes`` greedy
 episodes after training, the mean conventional return of the last 20% of training episodes, and
 ``steps_to_threshold``, the env steps until the success rate of the last 10 training episodes
-first reaches ``success_threshold`` (None if never).
+first reaches ``success_threshold`` (None if never). The ``dqn+risk-*`` units also log what the
+layer did in every training episode (``factorq_torch.risk.RiskSummary``: steps it penalised,
+greedy choices it overrode, how often and how much each actuator was penalised), kept in the
+results under ``risk_log`` and summarised in the report.
+
+torchrl's INFO messages (its ``torchrl`` logger prints one per replay buffer it allocates) are
+silenced while a unit runs, and its level restored after: the command's output is the report, and
+anyone using torchrl keeps its defaults.
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
 import statistics
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -295,7 +304,7 @@ def run_torchrl(
     from torchrl.modules import MLP, EGreedyModule, QValueActor
     from torchrl.objectives import DQNLoss, SoftUpdate
 
-    from factorq_torch.risk import RISK_MASK, LocalRiskLoss, with_local_risk
+    from factorq_torch.risk import RISK_MASK, LocalRisk, LocalRiskLoss, RiskSummary, with_local_risk
 
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", category=DeprecationWarning)
@@ -312,6 +321,11 @@ def run_torchrl(
     local = provider(unit["method"], env)
     acting = actor if local is None else with_local_risk(actor, local, env=env)  # line 1
     local_loss = None if local is None else LocalRiskLoss(local)  # line 2
+    summary: RiskSummary | None = None  # what the layer did, per training episode (the logs)
+    if local is not None:
+        layer = next(module for module in acting.modules() if isinstance(module, LocalRisk))
+        summary = RiskSummary(layer.actuator_names)
+    risk_log: list[dict[str, Any]] = []
     annealing = max(1, round(config.exploration_fraction * config.steps))
     mask = None if local is None else RISK_MASK  # explore among the actions not called risky
     egreedy = EGreedyModule(
@@ -341,8 +355,13 @@ def run_torchrl(
     for data in collector:  # [1, T]
         data = data.reshape(-1)
         for t in range(data.shape[0]):
-            for flags in zip(*_step_flags(data[t : t + 1]), strict=True):
+            step = data[t : t + 1]
+            if summary is not None:
+                summary.update(step)
+            for flags in zip(*_step_flags(step), strict=True):
                 tally.step(*flags)
+                if summary is not None and flags[2]:  # the episode is done
+                    risk_log.append(summary.episode())
         egreedy.step(data.shape[0])
         if local_loss is not None:
             local_loss(data)  # eq. 5 on every transition once (the running means)
@@ -359,7 +378,10 @@ def run_torchrl(
     collector.shutdown()
     wall = time.perf_counter() - started
     greedy = evaluate(config, unit, acting)
-    return _result(tally, greedy, wall)
+    result = _result(tally, greedy, wall)
+    if summary is not None:
+        result["risk_log"] = risk_log
+    return result
 
 
 def _module(network: torch.nn.Module) -> Any:
@@ -509,20 +531,38 @@ def work(config: RiskConfig, unit: dict[str, Any]) -> int:
     return config.steps
 
 
+@contextlib.contextmanager
+def quiet_torchrl() -> Iterator[None]:
+    """torchrl's logger at WARNING while the block runs (it prints an INFO line per replay buffer
+    it allocates, to stdout by default), its own level restored after."""
+    import torchrl  # noqa: F401  (its import sets the logger's level: before ours, not after)
+
+    logger = logging.getLogger("torchrl")
+    level = logger.level
+    if logger.getEffectiveLevel() < logging.WARNING:
+        logger.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
 def run_unit(
     config: RiskConfig, unit: dict[str, Any], progress: Progress | None = None
 ) -> dict[str, Any]:
-    """Train and evaluate one (world, method, seed).
+    """Train and evaluate one (world, method, seed), without torchrl's INFO lines
+    (``quiet_torchrl``).
 
     Args:
         config: the experiment.
         unit: one of ``units(config)``.
         progress: called with env steps done.
     """
-    if unit["method"].startswith("sb3"):
-        result = run_sb3(config, unit, progress)
-    else:
-        result = run_torchrl(config, unit, progress)
+    with quiet_torchrl():
+        if unit["method"].startswith("sb3"):
+            result = run_sb3(config, unit, progress)
+        else:
+            result = run_torchrl(config, unit, progress)
     return {**{key: unit[key] for key in ("world", "method", "seed")}, **result}
 
 
@@ -617,7 +657,47 @@ def summarise(config: RiskConfig, unit_results: list[dict[str, Any]]) -> dict[st
                     "return_gain": _difference(learned["final_return"], oracle["final_return"]),
                 }
             )
-    return {"rows": rows, "ratios": ratios}
+    return {"rows": rows, "ratios": ratios, **risk_logs(unit_results)}
+
+
+def risk_logs(unit_results: list[dict[str, Any]]) -> dict[str, Any]:
+    """The layer's per-episode ``RiskSummary`` of every ``dqn+risk-*`` unit (``risk_log``, by
+    unit id) and their totals per (world, method) over seeds (``risk_rows``): training episodes,
+    steps, the share of steps it penalised an actuator, greedy choices it overrode per episode,
+    and per actuator how often it was penalised and by how much on average."""
+    log: dict[str, list[dict]] = {}
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for result in unit_results:
+        episodes = result.get("risk_log")
+        if episodes is None:  # a method without the layer (or a unit kept before the log)
+            continue
+        log[f"{result['world']}/{result['method']}/{result['seed']}"] = episodes
+        groups.setdefault((result["world"], result["method"]), []).extend(episodes)
+    rows = []
+    for (world, method), episodes in sorted(groups.items()):
+        steps = sum(episode["steps"] for episode in episodes)
+        counts: dict[str, int] = {}
+        totals: dict[str, float] = {}
+        for episode in episodes:
+            for name, count in episode["penalised"].items():
+                counts[name] = counts.get(name, 0) + count
+                totals[name] = totals.get(name, 0.0) + count * episode["mean_penalty"][name]
+        rows.append(
+            {
+                "world": world,
+                "method": method,
+                "episodes": len(episodes),
+                "steps": steps,
+                "penalised_share": sum(e["risky_steps"] for e in episodes) / max(steps, 1),
+                "overrides_per_episode": sum(e["overrides"] for e in episodes)
+                / max(len(episodes), 1),
+                "penalised": counts,
+                "mean_penalty": {
+                    name: (totals[name] / counts[name] if counts[name] else 0.0) for name in counts
+                },
+            }
+        )
+    return {"risk_rows": rows, "risk_log": log}
 
 
 def _cell(value: float | None, digits: int = 1) -> str:
@@ -660,7 +740,60 @@ def markdown(results: dict[str, Any]) -> str:
                 + ("-" if ratio["return_gain"] is None else f"{ratio['return_gain']:+.2f}")
                 + " |"
             )
+    lines += _risk_markdown(results)
     return "\n".join(lines) + "\n"
+
+
+def _risk_markdown(results: dict[str, Any]) -> list[str]:
+    """What the layer did (``risk_rows``), and the last training episode's summary line of each
+    (world, method)'s first seed, as ``RiskSummary.line`` writes it."""
+    rows = results.get("risk_rows") or []
+    if not rows:
+        return []
+    lines = [
+        "",
+        "What the layer did in training (`RiskSummary` per episode; totals over seeds):",
+        "",
+        "| world | method | episodes | steps penalised | overrides per episode | penalised "
+        "(times, mean penalty) |",
+        "| --- | --- | ---: | ---: | ---: | --- |",
+    ]
+    for row in rows:
+        hits = ", ".join(
+            f"{name} x{count:,} ({row['mean_penalty'][name]:.2f})"
+            for name, count in sorted(row["penalised"].items(), key=lambda item: -item[1])
+            if count
+        )
+        lines.append(
+            f"| {row['world']} | {row['method']} | {row['episodes']:,} | "
+            f"{row['penalised_share']:.1%} | {row['overrides_per_episode']:.2f} | {hits or '-'} |"
+        )
+    log = results.get("risk_log") or {}
+    last: dict[tuple[str, str], dict[str, Any]] = {}
+    for unit_id, episodes in log.items():  # the first seed of each (world, method)
+        world, method, _ = unit_id.rsplit("/", 2)
+        if episodes and (world, method) not in last:
+            last[world, method] = episodes[-1]
+    if last:
+        lines += ["", "Last training episode of the first seed:", ""]
+        lines += [
+            f"- {world} {method}: {_summary_line(summary)}"
+            for (world, method), summary in last.items()
+        ]
+    return lines
+
+
+def _summary_line(summary: dict[str, Any]) -> str:
+    """``RiskSummary.line`` without importing torch (the report is drawn without it)."""
+    hits = ", ".join(
+        f"{name} x{count} ({summary['mean_penalty'][name]:.2f})"
+        for name, count in summary["penalised"].items()
+        if count
+    )
+    return (
+        f"risk: {summary['risky_steps']}/{summary['steps']} steps penalised, "
+        f"{summary['overrides']} overrides" + (f"; {hits}" if hits else "")
+    )
 
 
 def figure(results: dict[str, Any], path: Path) -> None:
