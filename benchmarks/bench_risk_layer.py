@@ -7,10 +7,19 @@ them against one DQN update of the recipe (``DQNLoss`` forward and backward, Ada
 on a minibatch of ``--batch`` transitions) and against the plain actor's forward, interleaved
 (``--repeats`` rounds, each timing ``--calls`` calls of every part in turn, so that a change of
 load on a shared machine hits them alike); the ratio is ``(layered forward - plain forward +
-local loss) / DQN update`` per round, its median printed with its range. Run from the
-repository root:
+local loss) / DQN update`` per round, its median printed with its range. Times are this
+thread's CPU time by default (``--clock cpu``: on a machine shared with other work, wall time
+mostly measures the others; one thread, so the DQN update's CPU time is its time); ``--clock
+wall`` times the wall clock. Run from the repository root:
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_risk_layer.py
+
+``--baseline DIR`` also times the layer of another checkout (``DIR``, e.g. ``git worktree add
+/tmp/before COMMIT``) in the same rounds, interleaved with this one, and prints the ratio of the
+two layers' costs per round: a before/after comparison that one machine's changing load cannot
+bias. Its ``factorq_torch`` is imported as ``factorq_torch_baseline`` (its files copied to a
+temporary folder with the package's name rewritten in their imports); the DQN parts are this
+checkout's for both.
 
 Not a package on purpose (the torchrl wheel installs a top-level ``benchmarks``).
 """
@@ -18,41 +27,80 @@ Not a package on purpose (the torchrl wheel installs a top-level ``benchmarks``)
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
+import re
+import shutil
 import statistics
+import sys
+import tempfile
 import time
 import warnings
+from pathlib import Path
 
 import torch
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.modules import MLP, QValueActor
 from torchrl.objectives import DQNLoss, SoftUpdate
 
-from factorq_torch.risk import LocalRiskLoss, with_local_risk
-from factorq_trainers.experiments.risk import RiskConfig, features, make_env, provider
+import factorq_torch.risk
+import factorq_torch.structure
+import factorq_torch.tables
+from factorq_trainers.experiments.risk import RiskConfig, features, make_env
 
 logging.getLogger("torchrl").setLevel(logging.WARNING)
 warnings.filterwarnings("ignore")
 
 
-def timed(function, calls: int) -> float:
+CLOCKS = {"cpu": time.thread_time, "wall": time.perf_counter}
+
+
+def timed(function, calls: int, clock=time.thread_time) -> float:
     """Seconds per call over ``calls`` calls."""
-    started = time.perf_counter()
+    started = clock()
     for _ in range(calls):
         function()
-    return (time.perf_counter() - started) / calls
+    return (clock() - started) / calls
 
 
-def interleaved(functions: dict, calls: dict, repeats: int) -> dict:
-    """Per repeat, every function timed in turn (so a load change hits them all alike); the
-    per-repeat times by name, after one warm-up call each."""
+def interleaved(functions: dict, calls: dict, repeats: int, clock=time.thread_time) -> dict:
+    """Per repeat, every function timed in turn (so a load change hits them all alike; every
+    other repeat in the reverse order, so neither end of a round is favoured); the per-repeat
+    times by name, after one warm-up call each."""
     for function in functions.values():
         function()
     times = {name: [] for name in functions}
-    for _ in range(repeats):
-        for name, function in functions.items():
-            times[name].append(timed(function, calls[name]))
+    for repeat in range(repeats):
+        order = list(functions.items())
+        for name, function in order if repeat % 2 == 0 else reversed(order):
+            times[name].append(timed(function, calls[name], clock))
     return times
+
+
+def load_baseline(root: str) -> tuple:
+    """``(risk, tables, structure)`` modules of the ``factorq_torch`` of another checkout."""
+    source = Path(root) / "factorq_torch"
+    if not (source / "risk.py").is_file():
+        raise SystemExit(f"--baseline {root}: no factorq_torch/risk.py there")
+    folder = Path(tempfile.mkdtemp(prefix="bench-risk-baseline-"))
+    target = folder / "factorq_torch_baseline"
+    shutil.copytree(source, target, ignore=shutil.ignore_patterns("__pycache__"))
+    for path in target.rglob("*.py"):
+        path.write_text(re.sub(r"\bfactorq_torch\b", "factorq_torch_baseline", path.read_text()))
+    sys.path.insert(0, str(folder))
+    return tuple(
+        importlib.import_module(f"factorq_torch_baseline.{name}")
+        for name in ("risk", "tables", "structure")
+    )
+
+
+def make_provider(method: str, env, tables, structure):
+    """``experiments.risk.provider`` with the given modules' classes."""
+    dependency = env.base_env.dependency
+    if method.endswith("risk-oracle"):
+        return tables.LocalRewardTable(1, dependency=dependency)
+    actions, sensors = dependency.shape
+    return structure.StructureLearner(1, num_actions=actions, num_sensors=sensors)
 
 
 def main() -> None:
@@ -62,6 +110,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--world", default="grid", choices=["grid", "minigrid"])
     parser.add_argument("--hidden", type=int, default=64, help="width of the two hidden layers")
+    parser.add_argument("--clock", default="cpu", choices=sorted(CLOCKS), help="what is timed")
+    parser.add_argument("--baseline", help="another checkout whose layer to time alongside")
     args = parser.parse_args()
     torch.manual_seed(0)
     config = RiskConfig(hidden=args.hidden)
@@ -85,47 +135,65 @@ def main() -> None:
         optimizer.step()
         target.step()
 
-    print(f"world {args.world}, hidden {args.hidden}x2, DQN minibatch {args.batch}")
+    codes = {"": (factorq_torch.risk, factorq_torch.tables, factorq_torch.structure)}
+    if args.baseline:
+        codes["baseline"] = load_baseline(args.baseline)
     print(
-        "| provider | DQN update (us) | plain actor (us) | layer forward (us) | local loss (us) "
-        "| layer / DQN update |"
+        f"world {args.world}, hidden {args.hidden}x2, DQN minibatch {args.batch}, "
+        f"{args.clock} time, {args.repeats} rounds"
     )
-    print("| --- | ---: | ---: | ---: | ---: | ---: |")
+    print(
+        "| provider | code | DQN update (us) | plain actor (us) | layer forward (us) "
+        "| local loss (us) | layer / DQN update |"
+    )
+    print("| --- | --- | ---: | ---: | ---: | ---: | ---: |")
+
+    def plain(actor=actor):
+        with torch.no_grad():
+            actor(step.clone())
+
     for method in ("dqn+risk-oracle", "dqn+risk-learned"):
-        local = provider(method, env)
-        acting = with_local_risk(actor, local, env=env)
-        local_loss = LocalRiskLoss(local)
-        transition = data[:1]
+        functions = {"update": update, "plain": plain}
+        calls = {"update": max(1, args.calls // 4), "plain": args.calls}
+        kinds = {}
+        for code, (risk, tables, structure) in codes.items():
+            local = make_provider(method, env, tables, structure)
+            kinds[code] = type(local).__name__
+            acting = risk.with_local_risk(actor, local, env=env)
+            local_loss = risk.LocalRiskLoss(local)
 
-        def plain(actor=actor):
-            with torch.no_grad():
-                actor(step.clone())
+            def layered(acting=acting):
+                with torch.no_grad():
+                    acting(step.clone())
 
-        def layered(acting=acting):
-            with torch.no_grad():
-                acting(step.clone())
-
-        functions = {
-            "update": update,
-            "plain": plain,
-            "layered": layered,
-            "loss": lambda ll=local_loss, t=transition: ll(t),
-        }
-        calls = {"update": max(1, args.calls // 4), "plain": args.calls, "layered": args.calls,
-                 "loss": args.calls}  # fmt: skip
-        times = interleaved(functions, calls, args.repeats)
-        ratios = [
-            (layered - plain + loss) / update
-            for update, plain, layered, loss in zip(
-                times["update"], times["plain"], times["layered"], times["loss"], strict=True
-            )
-        ]
+            functions[f"layered {code}"] = layered
+            functions[f"loss {code}"] = lambda ll=local_loss, t=data[:1]: ll(t)
+            calls[f"layered {code}"] = calls[f"loss {code}"] = args.calls
+        times = interleaved(functions, calls, args.repeats, CLOCKS[args.clock])
         median = {name: statistics.median(values) * 1e6 for name, values in times.items()}
-        print(
-            f"| {type(local).__name__} | {median['update']:,.0f} | {median['plain']:,.0f} | "
-            f"{median['layered'] - median['plain']:,.0f} | {median['loss']:,.0f} | "
-            f"{statistics.median(ratios):.1%} (repeats {min(ratios):.1%}-{max(ratios):.1%}) |"
-        )
+        costs = {}
+        for code in codes:
+            costs[code] = [  # the layer's cost per round
+                layered - plain + loss
+                for plain, layered, loss in zip(
+                    times["plain"], times[f"layered {code}"], times[f"loss {code}"], strict=True
+                )
+            ]
+            ratios = [
+                cost / update for cost, update in zip(costs[code], times["update"], strict=True)
+            ]
+            forward = median[f"layered {code}"] - median["plain"]
+            print(
+                f"| {kinds[code]} | {code or 'this checkout'} | {median['update']:,.0f} | "
+                f"{median['plain']:,.0f} | {forward:,.0f} | {median[f'loss {code}']:,.0f} | "
+                f"{statistics.median(ratios):.1%} (rounds {min(ratios):.1%}-{max(ratios):.1%}) |"
+            )
+        if args.baseline:
+            cut = [a / b for a, b in zip(costs[""], costs["baseline"], strict=True)]
+            print(
+                f"| {kinds['']} | this / baseline layer cost | | | | | "
+                f"{statistics.median(cut):.2f} (rounds {min(cut):.2f}-{max(cut):.2f}) |"
+            )
 
 
 if __name__ == "__main__":

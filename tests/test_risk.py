@@ -58,6 +58,36 @@ def test_combined_value_is_eqs_2_and_3_by_hand():
     assert td[RISK_MASK].all()
 
 
+def test_the_online_step_reads_a_table_or_learner_as_its_forward_does():
+    # the layer calls local_values on the sensors of a [S] step of a LocalRewardTable or
+    # StructureLearner (no module call): the values its forward writes; anything else goes
+    # through the provider (its hooks run, its errors name it)
+    generator = torch.Generator().manual_seed(3)
+    table = LocalRewardTable(2, dependency=torch.tensor([[1, 1, 0], [0, 0, 1]], dtype=torch.bool))
+    table.rho.uniform_(-1.0, 0.0, generator=generator)
+    learner = StructureLearner(2, num_actions=2, num_sensors=3)
+    for _ in range(40):
+        readings = torch.rand(2, 3, generator=generator) < 0.5
+        action = torch.randint(0, 2, (2,), generator=generator)
+        reward = -(readings[:, :2].any(-1, keepdim=True) & (action[:, None] == 0)).float()
+        learner.update_running_mean(readings, action, reward.expand(2, 2).contiguous())
+    for provider in (table, learner):
+        risk = LocalRisk(provider, num_actions=2, batch_size=(2,))
+        for _ in range(8):
+            sensors = torch.rand(2, 3, generator=generator) < 0.5
+            td = TensorDict(action_value=torch.randn(2, 2, generator=generator), sensors=sensors,
+                            batch_size=[2])  # fmt: skip
+            expected = provider(td.clone())["local_value"]
+            assert torch.equal(risk(td.clone())["local_value"], expected)
+        calls = []
+        handle = provider.register_forward_hook(lambda *args, calls=calls: calls.append(1))
+        risk(td.clone())
+        handle.remove()
+        assert calls == [1]  # with a hook: the module call
+        with pytest.raises(ValueError, match=type(provider).__name__):
+            risk(td.clone().set("sensors", sensors.float()))  # a float reading: its error
+
+
 def test_mask_never_leaves_no_action():
     local = LocalRewardTable(1)
     local.rho[:, :, 1] = -1.0
