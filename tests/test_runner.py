@@ -93,6 +93,29 @@ def test_a_command_runs_units_writes_the_envelope_and_resumes_per_unit(tmp_path,
     assert (out / "toy.md").read_text() == "# toy\n[0.5, 10.5, 20.5]\n"
 
 
+def test_an_edited_kept_unit_is_refused_on_resume_naming_it(tmp_path, capsys):
+    toy = _toy_module([])
+    out = tmp_path / "toy"
+    assert _execute(toy, ["--seeds", "3", "--fail-at", "2", "--out", str(out)]) == 130
+    unit = frame._unit_path(out / "units", "seed-1")
+    record = json.loads(unit.read_text())
+    assert record["result"]["value"] == 10.5 and len(record["content_sha256"]) == 64
+    record["result"]["value"] = 1050.0  # edited, its digest kept
+    unit.write_text(json.dumps(record))
+    capsys.readouterr()
+    fixed = _toy_module([])
+    fixed.run_unit = lambda config, unit, progress=None: {"value": unit["seed"] * 10 + 0.5}
+    assert _execute(fixed, ["--resume", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert f"unit file {unit} does not match its digest (edited or damaged)" in err[0]
+    assert "delete it to rerun unit 'seed-1'" in err[0]
+    unit.unlink()  # as it says: that unit runs again, the other is reused
+    assert _execute(fixed, ["--resume", str(out)]) == 0
+    results = json.loads((out / "toy.json").read_text())
+    assert results["values"] == [0.5, 10.5, 20.5] and results["timing"]["units_resumed"] == 1
+
+
 def test_an_uninterrupted_run_equals_a_resumed_one_and_run_in_process(tmp_path):
     calls: list[str] = []
     toy = _toy_module(calls)

@@ -375,6 +375,8 @@ TRIED = [
     factorq("paper --cluster remote", r"--cluster='remote' is not local or local:N with N >= 1"),
     factorq("paper --scheduler host:8786", r"--scheduler='host:8786' is not an address like tcp://"),
     factorq("paper --connect-timeout 0", r"--connect-timeout=0.0 is out of range: must be in \(0, 86400\] seconds"),
+    factorq("paper --worker-timeout 0", r"--worker-timeout=0.0 is out of range: must be in \(0, 86400\] seconds"),
+    factorq("paper --scheduler evil://x", r"--scheduler='evil://x' is not a Dask scheduler address like tcp://host:8786 \(unknown address scheme 'evil'"),
     factorq("paper --scheduler tcp://127.0.0.1:9 --connect-timeout 0.5", r"scheduler tcp://127.0.0.1:9 is unreachable within 0.5 s"),
     factorq("paper --cluster local:2 --checkpoint-every 5", r"--checkpoint-every does not apply to a sharded run"),
     # factorq paper: checkpoints
@@ -472,6 +474,7 @@ TRIED = [
     factorq("compare --cluster remote", r"--cluster='remote' is not local or local:N with N >= 1"),
     factorq("compare --scheduler host:8786", r"--scheduler='host:8786' is not an address like tcp://"),
     factorq("compare --connect-timeout 0", r"--connect-timeout=0.0 is out of range: must be in \(0, 86400\] seconds"),
+    factorq("compare --worker-timeout 1e9", r"--worker-timeout=1000000000.0 is out of range: must be in \(0, 86400\] seconds"),
     factorq("compare --out {finished-comparison}", r"--out='.*compared' already holds comparison.json from an earlier run: pass --force"),
     factorq("compare --force --seeds 0", rf"--seeds=0 {RANGE} in \[1, 2147483647\]"),
     factorq("compare --out {locked}", r"--out='.*live' is in use by another factorq run \(pid 4242\)"),

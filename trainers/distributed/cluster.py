@@ -356,6 +356,7 @@ def executor_from_args(
     args: argparse.Namespace,
 ) -> InProcess | DaskExecutor | None:
     """The executor of ``add_options``' options: ``None`` when none was given."""
-    if not any(hasattr(args, name) for name in ("cluster", "scheduler", "connect_timeout")):
+    names = ("cluster", "scheduler", "connect_timeout", "worker_timeout")
+    if not any(hasattr(args, name) for name in names):
         return None
     return open_executor(where_from_args(args))

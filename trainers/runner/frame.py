@@ -38,6 +38,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+from factorq_trainers.runner import kept as kept_files
 from factorq_trainers.runner import options, outdir, registry, resources, results
 
 EXIT_FAILURE = 1
@@ -233,17 +234,17 @@ class UnitStore:
             path = _unit_path(self.directory, unit["id"])
             if not path.is_file():
                 continue
-            try:
-                kept = results.read_json(path, ("id", "result"), "")
-            except ValueError as problem:
-                raise ValueError(f"{problem}: delete it to rerun unit {unit['id']!r}") from None
-            if kept["id"] != unit["id"]:
-                raise ValueError(f"{path} holds unit {kept['id']!r}, not {unit['id']!r}")
-            found[unit["id"]] = kept["result"]
+            remedy = f"delete it to rerun unit {unit['id']!r}"
+            # sealed: an edited or damaged unit is refused (its digest only: a unit's result is
+            # in its command's own layout, which kept.check_values does not know)
+            record = kept_files.read_sealed(path, "unit file", remedy, values=False)
+            if "result" not in record or record.get("id") != unit["id"]:
+                raise ValueError(f"{path} holds unit {record.get('id')!r}, not {unit['id']!r}")
+            found[unit["id"]] = record["result"]
         return found
 
     def keep(self, unit: dict[str, Any], result: Any) -> None:
-        text = results.dumps({"id": unit["id"], "result": result})
+        text = kept_files.dumps_sealed({"id": unit["id"], "result": result})
         results.write_atomic(
             _unit_path(self.directory, unit["id"]), lambda path: path.write_text(text)
         )

@@ -31,13 +31,14 @@ REMEDY = "pass --force to recompute it"
 DIGEST_KEY = "content_sha256"
 
 
-def check_digest(path: Path, what: str, stored: str, actual: str) -> None:
-    """A ValueError naming ``path`` (a ``what``: "shard file", ...) unless ``stored`` (the
-    digest written with it; empty when it has none) equals ``actual`` (that of its content)."""
+def check_digest(path: Path, what: str, stored: str, actual: str, remedy: str = REMEDY) -> None:
+    """A ValueError naming ``path`` (a ``what``: "shard file", ...) and ``remedy`` unless
+    ``stored`` (the digest written with it; empty when it has none) equals ``actual`` (that of
+    its content)."""
     if not stored:
-        raise ValueError(f"{what} {path} has no digest (an older factorq wrote it): {REMEDY}")
+        raise ValueError(f"{what} {path} has no digest (an older factorq wrote it): {remedy}")
     if stored != actual:
-        raise ValueError(f"{what} {path} does not match its digest (edited or damaged): {REMEDY}")
+        raise ValueError(f"{what} {path} does not match its digest (edited or damaged): {remedy}")
 
 
 def json_digest(results: dict[str, Any]) -> str:
@@ -137,16 +138,18 @@ def _check_compare_counts(path: Path, what: str, results: dict[str, Any]) -> Non
                 )
 
 
-def read_sealed(path: Path, what: str) -> dict[str, Any]:
-    """The results dict kept at ``path`` once its digest and values are checked (the digest
-    key removed); a ValueError naming ``path`` and the remedy otherwise."""
+def read_sealed(path: Path, what: str, remedy: str = REMEDY, values: bool = True) -> dict[str, Any]:
+    """The results dict kept at ``path`` once its digest and (``values``) its values are
+    checked (the digest key removed); a ValueError naming ``path`` and ``remedy`` otherwise."""
     try:
-        results = result_files.read_json(path, (), REMEDY)
+        results = result_files.read_json(path, (), remedy)
     except (ValueError, OSError) as error:
-        raise ValueError(f"{what} {path} is unreadable ({error}): {REMEDY}") from None
+        raise ValueError(f"{what} {path} is unreadable ({error}): {remedy}") from None
     stored = results.pop(DIGEST_KEY, "")
-    check_digest(path, what, stored if isinstance(stored, str) else "", json_digest(results))
-    check_values(path, what, results)
+    actual = json_digest(results)
+    check_digest(path, what, stored if isinstance(stored, str) else "", actual, remedy)
+    if values:
+        check_values(path, what, results)
     return results
 
 
