@@ -474,7 +474,7 @@ def test_factorq_risk_runs_through_the_runner_and_writes_its_files(tmp_path, cap
 
     from factorq_torch.risk import RiskSummary
     from factorq_trainers import cli
-    from factorq_trainers.experiments import risk as experiment
+    from factorq_trainers.reports import risk as risk_report
 
     class Records(logging.Handler):  # torchrl's logger does not propagate: listen on it
         def __init__(self):
@@ -514,5 +514,5 @@ def test_factorq_risk_runs_through_the_runner_and_writes_its_files(tmp_path, cap
     assert row["method"] == "dqn+risk-oracle" and row["episodes"] == len(episodes)
     assert row["steps"] == sum(e["steps"] for e in episodes)
     assert "What the layer did" in report
-    assert experiment._summary_line(episodes[-1]) == RiskSummary.line(episodes[-1])
+    assert risk_report._summary_line(episodes[-1]) == RiskSummary.line(episodes[-1])
     assert f"- grid dqn+risk-oracle: {RiskSummary.line(episodes[-1])}" in report

@@ -1,5 +1,5 @@
-"""The world as pure batched functions (envs/grid_world.py), checked against SPEC sections 1-2 and
-the slow reference (tests/reference.py)."""
+"""The world as pure batched functions (envs/grid_functions.py), checked against SPEC sections 1-2
+and the slow reference (tests/reference.py)."""
 
 from collections import deque
 from itertools import combinations

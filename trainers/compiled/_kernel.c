@@ -2,7 +2,7 @@
  * The fused fast path of factorq_torch: whole experiments (SPEC section 4) in one tight C loop.
  *
  * This file mirrors, operation for operation, two Python sources and must stay identical to them:
- *   - envs/grid_world.py       the FactoredGrid world (SPEC sections 1-2): move or collide ->
+ *   - envs/grid_functions.py   the FactoredGrid world (SPEC sections 1-2): move or collide ->
  *                              reward -> maybe scatter (Floyd's algorithm) -> observation;
  *   - factorq_torch/functional.py  the paper's equations (eq. 1-5) with its float32 order
  *                              contract: explicit left-to-right sums, no fused multiply-add
