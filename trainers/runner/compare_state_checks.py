@@ -9,13 +9,73 @@ from __future__ import annotations
 
 import math
 import typing
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 
 from factorq_trainers.runner import checkpoint
-from factorq_trainers.runner.compare_checkpoint import check_trace
+
+_TRACE_ARRAYS = {
+    "steps": torch.int64,
+    "collisions": torch.int64,
+    "greedy_collisions": torch.int64,
+    "task_return": torch.float64,
+    "env_steps": torch.int64,
+    "epsilon": torch.float64,
+    "loss": torch.float64,
+}
+_TRACE_TOTALS = (
+    "total_collisions",
+    "total_greedy_collisions",
+    "total_boxed_in_greedy_collisions",
+    "total_env_steps",
+)
+
+
+def check_trace(
+    trace: Any, world: str, index: int, experiments: Any, refuse: Callable[[str], Any]
+) -> dict[str, Any]:
+    where = f"the trace of {world}/seed_{index}"
+    if (
+        not isinstance(trace, dict)
+        or trace.get("world") != world
+        or (trace.get("seed_index") != index)
+    ):
+        refuse(f"{where} is missing or out of order")
+    known = {"world", "seed_index", *_TRACE_ARRAYS, *_TRACE_TOTALS}
+    if set(trace) != known:
+        refuse(f"{where} must hold exactly {', '.join(sorted(known))}")
+    episodes = None
+    out: dict[str, Any] = {"world": world, "seed_index": index}
+    for name, dtype in _TRACE_ARRAYS.items():
+        value = trace.get(name)
+        if not isinstance(value, torch.Tensor) or value.dtype != dtype or value.dim() != 1:
+            refuse(f"{where}: {name} must be a 1-d {dtype} tensor")
+        episodes = value.numel() if episodes is None else episodes
+        if value.numel() != episodes:
+            refuse(f"{where}: {name} has {value.numel()} episodes, not {episodes}")
+        if bool(torch.isinf(value).any()) or (name != "loss" and bool(torch.isnan(value).any())):
+            refuse(f"{where}: {name} holds NaN or infinite values")  # a loss is NaN w/o updates
+        out[name] = value.numpy().copy()
+    limits = {
+        "steps": (1, experiments.max_steps),
+        "collisions": (0, experiments.max_steps),
+        "greedy_collisions": (0, experiments.max_steps),
+        "env_steps": (1, experiments.steps),
+        "epsilon": (0.0, 1.0),
+        "task_return": (-experiments.max_steps, 0),
+    }
+    for name, (low, high) in limits.items():
+        if episodes and (out[name].min() < low or out[name].max() > high):
+            refuse(f"{where}: {name} holds values outside [{low}, {high}]")
+    for name in _TRACE_TOTALS:
+        value = trace.get(name)
+        if not checkpoint.is_int(value) or not 0 <= value <= experiments.steps:
+            refuse(f"{where}: {name} must be an int in [0, {experiments.steps}]")
+        out[name] = value
+    return out
 
 
 class Limits(NamedTuple):
