@@ -1,4 +1,4 @@
-"""Factor-Q's local model as a safety layer for any value-based agent (issue 26).
+"""Factor-Q's local model as a safety layer for any value-based agent.
 
 Factor-Q's combined value ``C(s) = Q(s) + G rho(o)`` (eqs. 2-3) needs two things: a task value
 ``Q(s, .)`` per action, and a model ``rho(o)`` of which actuator is dangerous given which
