@@ -62,6 +62,7 @@ from torchrl.objectives import LossModule
 from factorq_torch.base import keys as names
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.indices import scalar
+from factorq_torch.base.risk_text import summary_line
 from factorq_torch.base.validation import check_finite
 from factorq_torch.functional import check_dependency, combined_values, normaliser
 from factorq_torch.structure import StructureLearner
@@ -682,13 +683,5 @@ class RiskSummary:
 
     @staticmethod
     def line(summary: dict) -> str:
-        """One log line of an ``episode()`` summary."""
-        hits = ", ".join(
-            f"{name} x{count} ({summary['mean_penalty'][name]:.2f})"
-            for name, count in summary["penalised"].items()
-            if count
-        )
-        return (
-            f"risk: {summary['risky_steps']}/{summary['steps']} steps penalised, "
-            f"{summary['overrides']} overrides" + (f"; {hits}" if hits else "")
-        )
+        """One log line of an ``episode()`` summary (``base.risk_text.summary_line``)."""
+        return summary_line(summary)

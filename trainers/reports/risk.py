@@ -6,6 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from factorq_torch.base.risk_text import summary_line
+
 #: What ``factorq sweep --command risk`` reports per configuration (``sweep_cells``): means
 #: over seeds (the summary keeps no interval).
 SWEEP_MEASURES = ("train_collisions", "greedy_collisions", "final_return", "greedy_success")
@@ -110,17 +112,8 @@ def _risk_markdown(results: dict[str, Any]) -> list[str]:
     return lines
 
 
-def _summary_line(summary: dict[str, Any]) -> str:
-    """``RiskSummary.line`` without importing torch (the report is drawn without it)."""
-    hits = ", ".join(
-        f"{name} x{count} ({summary['mean_penalty'][name]:.2f})"
-        for name, count in summary["penalised"].items()
-        if count
-    )
-    return (
-        f"risk: {summary['risky_steps']}/{summary['steps']} steps penalised, "
-        f"{summary['overrides']} overrides" + (f"; {hits}" if hits else "")
-    )
+#: ``RiskSummary.line``, from its torch-free home: the report is drawn without torch.
+_summary_line = summary_line
 
 
 def figure(results: dict[str, Any], path: Path) -> None:
