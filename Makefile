@@ -30,10 +30,21 @@ test-float: $(STAMP)
 
 setup: $(STAMP)
 
+# torch through pip, which reads pip's own configuration (where the local CPU wheel is found);
+# the rest through uv (pinned), which resolves and installs the ~150 packages in seconds and
+# compiles them in parallel, so that no interpreter of the suite compiles what it imports
+# (docs/decisions.md, "CI time"). torch, installed by pip uncompiled, is compiled with the
+# project's own modules. The torch pin is pyproject.toml's (tests/test_docs.py holds them equal).
+# Where uv cannot reach an index that pip can (a private mirror named only in pip.conf), pip
+# installs the same things: slower, the same result.
+EXTRAS := .[dev,distributed,minigrid,highway,sb3,docs]
 $(STAMP): pyproject.toml Makefile
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/python -m pip install --quiet -e '.[dev,distributed,minigrid,highway,sb3,docs]'
-	$(VENV)/bin/python -m compileall -q envs trainers factorq_torch  # start-up: no module compiled per run
+	$(VENV)/bin/python -m pip install --quiet --no-compile torch==2.13.0 uv==0.13.9
+	$(VENV)/bin/uv pip install --quiet --python $(VENV)/bin/python --compile-bytecode -e '$(EXTRAS)' \
+	  || $(VENV)/bin/python -m pip install --quiet -e '$(EXTRAS)'
+	$(VENV)/bin/python -m compileall -q -j 0 envs trainers factorq_torch \
+	  "$$($(VENV)/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["platlib"])')/torch"
 	touch $(STAMP)
 
 lint: $(STAMP)

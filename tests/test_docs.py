@@ -222,3 +222,11 @@ def test_every_figure_in_docs_is_shown_on_a_page():
     }
     figures = sorted(DOCS.glob("*.png"))
     assert figures and not [f.name for f in figures if f.resolve() not in shown]
+
+
+def test_the_set_up_installs_the_torch_that_pyproject_pins():
+    # make setup installs torch through pip before uv installs the rest: were the two pins to
+    # differ, uv would replace the local CPU wheel with another torch from the index.
+    pinned = re.findall(r'"torch==([^"]+)"', (ROOT / "pyproject.toml").read_text())
+    installed = re.findall(r"pip install [^\n]*torch==(\S+)", (ROOT / "Makefile").read_text())
+    assert len(pinned) == 1 and installed == pinned, (pinned, installed)
