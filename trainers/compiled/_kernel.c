@@ -33,7 +33,7 @@
 #include <string.h>
 
 #define NUM_ACTIONS 4
-#define FQ_ABI_VERSION 7
+#define FQ_ABI_VERSION 8
 /* Most actuators of a body the generic loop handles (bit masks, small stack arrays). */
 #define MAX_ACTUATORS 32
 /* Most candidates of the structure learner (1 + K + K (K - 1) / 2 for K <= 62). */
@@ -142,6 +142,8 @@ typedef struct {
     int64_t reopen_body;      /* a reopening forgets every actuator (1) or its own (0) */
     int64_t likelihood_flip;  /* functional.LIKELIHOODS: 1 "flip", 0 "pattern" or "mixture" */
     int64_t mixture;          /* 1: "mixture" (each pattern's rate clean or noisy) */
+    int64_t prune_pairs;      /* 1: functional.PAIR_MODES "pruned" (pairs counted while active) */
+    int64_t history_capacity; /* L: firings the history of one experiment holds (pruned) */
     double log_bayes_factor;
     double log_reopen_factor;          /* the change-point test's threshold */
     double log_beta_prior;
@@ -157,6 +159,7 @@ typedef struct {
                                          the world's order (any algorithm may have orders) */
     const int64_t *orders_after;      /* [S, K] the order after the change */
     const int64_t *truth;             /* [S, 2, A] candidate index of the true parents, -2: none */
+    const uint8_t *initial_active;    /* [C] functional.initial_activity */
     double *counts;                   /* [S, stride]: 8 arrays [A, C, P] (learner_arrays) */
     int64_t *committed;               /* [S, A] candidate, -1 open */
     int64_t *samples;                 /* [S, A] */
@@ -169,6 +172,14 @@ typedef struct {
     int64_t *wrong_commitments;       /* [S] */
     int64_t *change_tick;             /* [S] tick of the last observation in the old order, -1 */
     uint8_t *curve;                   /* [S, curve_length] all right at step t * curve_every */
+    /* pair pruning (prune_pairs): the active candidates and every firing since the start */
+    uint8_t *active;                  /* [S, A, C] counted and scored */
+    int64_t *history_readings;        /* [S, L] the agent's sensor bits before the firing */
+    uint8_t *history_action;          /* [S, L] the fired actuator */
+    float *history_reward;            /* [S, L] its local reward */
+    int64_t *history_length;          /* [S] firings recorded */
+    int64_t *history_start;           /* [S, A] the actuator's counts start at this firing */
+    int64_t *block_start;             /* [S, A] its block starts at this firing */
 } fq_batch;
 
 int64_t fq_abi_version(void) { return FQ_ABI_VERSION; }
@@ -847,9 +858,13 @@ static void learner_predict(const fq_batch *b, int64_t i, uint64_t readings, flo
 static void learner_refresh(const fq_batch *b, int64_t i, int64_t a, double *lp, int have_lp) {
     const learner_view v = learner_of(b, i);
     const int64_t C = v.C, P = v.P, base = a * C * P;
-    if (!have_lp)
+    if (!have_lp) {
+        const uint8_t *active = b->prune_pairs ? b->active + (i * v.A + a) * C : NULL;
         for (int64_t c = 0; c < C; c++)
-            lp[c] = b->log_prior[c] + candidate_log_marginal(b, &v, base + c * P, 0);
+            lp[c] = active && !active[c]
+                        ? -INFINITY
+                        : b->log_prior[c] + candidate_log_marginal(b, &v, base + c * P, 0);
+    }
     const int64_t map = argmax_d(lp, C);
     b->map_cache[i * v.A + a] = map;
     const double floor = lp[map] - b->log_bayes_factor;
@@ -864,6 +879,77 @@ static void learner_forget(const fq_batch *b, int64_t i, int64_t a) {
     for (int k = 0; k < L_ARRAYS; k++) memset(v.array[k] + base, 0, (size_t)(v.C * v.P) * 8);
     b->committed[i * v.A + a] = -1;
     b->block_samples[i * v.A + a] = 0;
+    if (b->prune_pairs) { /* the history restarts after this firing, as the counts do */
+        memcpy(b->active + (i * v.A + a) * v.C, b->initial_active, (size_t)v.C);
+        b->history_start[i * v.A + a] = b->history_length[i];
+        b->block_start[i * v.A + a] = b->history_length[i];
+    }
+}
+
+/* StructureLearner._enter (pairs "pruned"): functional.pair_activity on lp [C] (the active
+   candidates' log posterior, -INFINITY elsewhere), then the counts of every entering pair
+   rebuilt from the actuator's firings since history_start (functional.rebuild_pair_counts: in
+   firing order, so the sums are the ones counting every firing would have left) and its lp. */
+static void learner_enter(const fq_batch *b, int64_t i, int64_t a, double *lp) {
+    const learner_view v = learner_of(b, i);
+    const int64_t C = v.C, P = v.P, base = a * C * P, L = b->history_capacity;
+    uint8_t *active = b->active + (i * v.A + a) * C;
+    double best = lp[0];
+    for (int64_t c = 1; c < C; c++)
+        if (lp[c] > best) best = lp[c];
+    const double floor = best - b->log_bayes_factor;
+    const int64_t held = b->committed[i * v.A + a];
+    int64_t entering[LEARNER_SCRATCH], count = 0;
+    for (int64_t c = 0; c < C; c++) {
+        const int64_t j = b->candidate_sensors[2 * c], k = b->candidate_sensors[2 * c + 1];
+        if (k < 0) continue; /* "no sensor" and the singles: always active */
+        const int now = lp[c] >= floor || lp[1 + j] >= floor || lp[1 + k] >= floor || c == held;
+        if (now && !active[c]) {
+            active[c] = 1;
+            entering[count++] = c;
+        } else if (!now && active[c]) {
+            active[c] = 0;
+            lp[c] = -INFINITY;
+        }
+    }
+    if (count == 0) return;
+    for (int64_t m = 0; m < count; m++)
+        for (int k = 0; k < L_ARRAYS; k++)
+            memset(v.array[k] + base + entering[m] * P, 0, (size_t)P * 8);
+    const int64_t start = b->history_start[i * v.A + a], length = b->history_length[i];
+    const int64_t block_start = b->block_start[i * v.A + a];
+    const int64_t *readings = b->history_readings + i * L;
+    const uint8_t *actions = b->history_action + i * L;
+    const float *rewards = b->history_reward + i * L;
+    for (int64_t t = start; t < length; t++) {
+        if (actions[t] != a) continue;
+        const double reward = (double)rewards[t];
+        const double negated = -reward;
+        const double success = negated < 0.0 ? 0.0 : (negated > 1.0 ? 1.0 : negated);
+        const int blocks = t >= block_start ? 2 : 1;
+        for (int64_t m = 0; m < count; m++) {
+            const int64_t e =
+                base + entering[m] * P + candidate_pattern(b, entering[m], (uint64_t)readings[t]);
+            for (int block = 0; block < blocks; block++) {
+                double *n = v.array[block ? L_BCOUNT : L_COUNT];
+                double *succ = v.array[block ? L_BSUCC : L_SUCC];
+                double *rsum = v.array[block ? L_BRSUM : L_RSUM];
+                n[e] = n[e] + 1.0;
+                succ[e] = succ[e] + success;
+                rsum[e] = rsum[e] + reward;
+            }
+        }
+    }
+    for (int64_t m = 0; m < count; m++) {
+        const int64_t h = base + entering[m] * P;
+        for (int block = 0; block < 2; block++) {
+            const double *n = v.array[block ? L_BCOUNT : L_COUNT] + h;
+            const double *succ = v.array[block ? L_BSUCC : L_SUCC] + h;
+            double *lm = v.array[block ? L_BLM : L_LM] + h;
+            for (int64_t p = 0; p < P; p++) lm[p] = n[p] > 0 ? pattern_log_marginal(b, n[p], succ[p]) : 0.0;
+        }
+        lp[entering[m]] = b->log_prior[entering[m]] + candidate_log_marginal(b, &v, h, 0);
+    }
 }
 
 /* StructureLearner.update_running_mean for one firing, then _decide and _refresh_cache. */
@@ -874,7 +960,9 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
     const double reward = (double)local_reward;
     const double negated = -reward;
     const double success = negated < 0.0 ? 0.0 : (negated > 1.0 ? 1.0 : negated);
+    const uint8_t *active = b->prune_pairs ? b->active + (i * v.A + a) * C : NULL;
     for (int64_t c = 0; c < C; c++) {
+        if (active && !active[c]) continue; /* an inactive pair keeps what it held */
         const int64_t e = (a * C + c) * P + candidate_pattern(b, c, readings);
         for (int block = 0; block < 2; block++) {
             double *count = v.array[block ? L_BCOUNT : L_COUNT];
@@ -896,7 +984,16 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
     const int64_t base = a * C * P;
     double *lp = scratch; /* [C] */
     for (int64_t c = 0; c < C; c++)
-        lp[c] = b->log_prior[c] + candidate_log_marginal(b, &v, base + c * P, 0);
+        lp[c] = active && !active[c]
+                    ? -INFINITY
+                    : b->log_prior[c] + candidate_log_marginal(b, &v, base + c * P, 0);
+    if (active) {
+        const int64_t t = b->history_length[i]++;
+        b->history_readings[i * b->history_capacity + t] = (int64_t)readings;
+        b->history_action[i * b->history_capacity + t] = (uint8_t)a;
+        b->history_reward[i * b->history_capacity + t] = local_reward;
+        learner_enter(b, i, a, lp);
+    }
     const int64_t best = argmax_d(lp, C);
     double rival_max = -INFINITY;
     const uint8_t *rivals = b->competitors + best * C;
@@ -928,6 +1025,7 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
         }
         double rival = -INFINITY;
         for (int64_t c = 0; c < C; c++) {
+            if (active && !active[c]) continue;
             const double x = b->log_prior[c] + candidate_log_marginal(b, &v, base + c * P, 1);
             if (x > rival) rival = x;
         }
@@ -947,6 +1045,7 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
     if (*block_samples >= b->window) {
         for (int k = L_BCOUNT; k < L_ARRAYS; k++) memset(v.array[k] + base, 0, (size_t)(C * P) * 8);
         *block_samples = 0;
+        if (active) b->block_start[i * v.A + a] = b->history_length[i];
     }
     /* _refresh_cache: the MAP candidate of the (possibly forgotten) counts */
     learner_refresh(b, i, a, lp, !reopen);
@@ -1252,6 +1351,24 @@ int64_t fq_check_experiment(const fq_batch *b, int64_t i) {
             }
     }
     if (b->orders != NULL && b->change_tick[i] < -1) return 16;
+    if (b->learner && b->prune_pairs) { /* the history an entering pair is rebuilt from */
+        const int64_t A = b->num_actuators, C = b->num_candidates, L = b->history_capacity;
+        const int64_t length = b->history_length[i];
+        if (length < 0 || length > L) return 17;
+        for (int64_t a = 0; a < A; a++) {
+            const int64_t start = b->history_start[i * A + a], block = b->block_start[i * A + a];
+            if (start < 0 || start > block || block > length) return 17;
+            const uint8_t *active = b->active + (i * A + a) * C;
+            for (int64_t c = 0; c < C; c++)
+                if (active[c] > 1 || (b->candidate_sensors[2 * c + 1] < 0 && !active[c])) return 17;
+        }
+        for (int64_t t = 0; t < length; t++) {
+            const float reward = b->history_reward[i * L + t];
+            /* an integral success (the lgamma tables' indices) */
+            if (b->history_action[i * L + t] >= A || !(reward == 0.0f || reward == -1.0f))
+                return 17;
+        }
+    }
     return 0;
 }
 

@@ -18,11 +18,13 @@ from factorq_torch.functional import (
     LIKELIHOODS,
     NOISY_ODDS,
     NOISY_PRIOR,
+    PAIR_MODES,
     PREDICTIONS,
     REOPENINGS,
     candidate_log_prior,
     candidate_sets,
     competitor_mask,
+    initial_activity,
     lgamma_tables,
 )
 from factorq_trainers.compiled.loader import _PREDICTION_CODES
@@ -52,6 +54,7 @@ class StructureOptions:
     reopen: str = "body"
     reopen_factor: float | None = None
     likelihood: str = "mixture"
+    pairs: str = "all"
     orders_after: torch.Tensor | None = None
     change_run: int = 0
     curve_every: int = 10
@@ -174,6 +177,10 @@ def structure_setup(
         raise ValueError(
             f"structure.likelihood={options.likelihood!r} is unknown: choose one of {LIKELIHOODS}"
         )
+    if options.pairs not in PAIR_MODES:
+        raise ValueError(
+            f"structure.pairs={options.pairs!r} is unknown: choose one of {PAIR_MODES}"
+        )
     if options.reopen not in REOPENINGS:
         raise ValueError(
             f"structure.reopen={options.reopen!r} is unknown: choose one of {REOPENINGS}"
@@ -201,6 +208,12 @@ def structure_setup(
     log_prior = candidate_log_prior(sets, options.prior)
     steps = runs * episodes * world.max_steps
     length = steps + 2  # n + 1 of every count stays inside
+    log_bayes_factor = math.log(float(options.bayes_factor))
+    pruned = options.pairs == "pruned" and options.max_parents >= 2 and num_sensors >= 2
+    initial = initial_activity(sets, log_prior, log_bayes_factor)
+    if not pruned:
+        initial = torch.ones_like(initial)
+    capacity = steps if pruned else 1  # every firing of an experiment (one per step)
     tables = {
         "candidate_sensors": candidate_sensors.contiguous(),
         "log_prior": log_prior.contiguous(),
@@ -210,6 +223,7 @@ def structure_setup(
         "orders": orders,
         "orders_after": after,
         "truth": truth,
+        "initial_active": initial.to(torch.uint8).contiguous(),
     }
     per_experiment = 8 * actuators * num_candidates * patterns
     counts, stride = _padded_zeros(count, (per_experiment,), torch.float64)
@@ -230,6 +244,13 @@ def structure_setup(
         "wrong_commitments": torch.zeros(count, dtype=torch.int64),
         "change_tick": torch.full((count,), -1, dtype=torch.int64),
         "curve": torch.zeros(count, curve_length, dtype=torch.uint8),
+        "active": initial.to(torch.uint8).expand(count, actuators, -1).contiguous(),
+        "history_readings": torch.zeros(count, capacity, dtype=torch.int64),
+        "history_action": torch.zeros(count, capacity, dtype=torch.uint8),
+        "history_reward": torch.zeros(count, capacity, dtype=torch.float32),
+        "history_length": torch.zeros(count, dtype=torch.int64),
+        "history_start": torch.zeros(count, actuators, dtype=torch.int64),
+        "block_start": torch.zeros(count, actuators, dtype=torch.int64),
     }
     a, b = float(options.prior_a), float(options.prior_b)
     noisy_a, noisy_b = NOISY_PRIOR
@@ -247,7 +268,9 @@ def structure_setup(
         "reopen_body": int(options.reopen == "body"),
         "likelihood_flip": int(options.likelihood == "flip"),
         "mixture": int(options.likelihood == "mixture"),
-        "log_bayes_factor": math.log(float(options.bayes_factor)),
+        "prune_pairs": int(pruned),
+        "history_capacity": capacity,
+        "log_bayes_factor": log_bayes_factor,
         "log_reopen_factor": math.log(
             float(options.bayes_factor if options.reopen_factor is None else options.reopen_factor)
         ),
