@@ -40,6 +40,18 @@ over candidates (``candidate_log_prior``,
 mass, all pairs together 1/100 of it, uniform within a size (``"size"``: every size the same
 mass; ``"uniform"``: every candidate the same).
 
+**Pair pruning.** With ``pairs="pruned"`` (the default) a pair ``{j, k}`` is counted and scored
+only while it is *active* (``functional.pair_activity``): while one of its singles is plausible
+(log posterior within ``log(bayes_factor)`` of the best active candidate: the evidence has not
+ruled out that ``j`` matters), while it is plausible itself, or while it is committed to. An
+inactive pair has no log posterior (``-inf``: no commitment, prediction or change-point test
+reads it). When it enters, its counts are rebuilt from the experiment's stored firings since the
+actuator's last reset (``functional.rebuild_pair_counts``), in firing order: the integer counts,
+and the sums of a collision world's rewards, are exactly those that counting it at every firing
+would have left, so a pair's evidence is never lost, only not looked at while its sensors are
+ruled out. After the first firings, a firing costs ``O(K + active pairs)`` instead of
+``O(K**2)``; the history costs one entry per firing. ``pairs="all"`` counts every pair always.
+
 **Commitment.** Until it commits, actuator ``a``'s local value is, by ``prediction``:
 ``"optimistic"`` (the default) the largest running mean ``rho_c[o_c]`` among the *plausible*
 candidates, those whose log posterior is within ``log(bayes_factor)`` of the best (a firing is
@@ -132,6 +144,9 @@ class StructureLearner(TensorDictModuleBase):
         prior_a, prior_b: the Beta prior of every pattern's rate (``likelihood="pattern"``;
             ``"mixture"``: of the clean population) or of every candidate's flip rate
             (``"flip"``).
+        pairs: ``"pruned"`` (the default: a pair is counted and scored only while it is active,
+            ``functional.pair_activity``; module docstring) or ``"all"`` (every pair at every
+            firing). The same counts where a pair is counted; less work with many sensors.
         likelihood: ``"mixture"`` (the default: each pattern's rate from a clean or a noisy
             population, sensors may read wrong), ``"pattern"`` (each pattern its own rate under
             ``Beta(prior_a, prior_b)``) or ``"flip"`` (one flip rate per candidate between its
@@ -175,7 +190,7 @@ class StructureLearner(TensorDictModuleBase):
         reopen: str = "body",
         reopen_factor: float | None = None,
         likelihood: str = "mixture",
-        pairs: str = "all",
+        pairs: str = "pruned",
         sensors_key: str = keys.SENSORS,
         device: torch.device | str | None = None,
     ) -> None:

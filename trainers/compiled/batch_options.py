@@ -13,7 +13,7 @@ from typing import Any
 import torch
 
 from factorq_envs.grid_world import WorldConfig
-from factorq_torch.base.validation import check_float, check_int
+from factorq_torch.base.validation import MAX_TABLE_ENTRIES, check_float, check_int
 from factorq_torch.functional import (
     LIKELIHOODS,
     NOISY_ODDS,
@@ -54,7 +54,7 @@ class StructureOptions:
     reopen: str = "body"
     reopen_factor: float | None = None
     likelihood: str = "mixture"
-    pairs: str = "all"
+    pairs: str = "pruned"
     orders_after: torch.Tensor | None = None
     change_run: int = 0
     curve_every: int = 10
@@ -214,6 +214,13 @@ def structure_setup(
     if not pruned:
         initial = torch.ones_like(initial)
     capacity = steps if pruned else 1  # every firing of an experiment (one per step)
+    if capacity > MAX_TABLE_ENTRIES:
+        raise ValueError(
+            f"structure.pairs='pruned' keeps every firing of an experiment to rebuild an entering "
+            f"pair: {steps} steps per experiment are past the cap of {MAX_TABLE_ENTRIES} (2**24): "
+            f"use pairs='all' (--pairs all) or fewer runs, episodes or max_steps"
+        )
+    scored = torch.where(initial, log_prior, -math.inf)
     tables = {
         "candidate_sensors": candidate_sensors.contiguous(),
         "log_prior": log_prior.contiguous(),
@@ -224,6 +231,7 @@ def structure_setup(
         "orders_after": after,
         "truth": truth,
         "initial_active": initial.to(torch.uint8).contiguous(),
+        "all_candidates": torch.arange(num_candidates, dtype=torch.int16),
     }
     per_experiment = 8 * actuators * num_candidates * patterns
     counts, stride = _padded_zeros(count, (per_experiment,), torch.float64)
@@ -234,8 +242,9 @@ def structure_setup(
         "samples": torch.zeros(count, actuators, dtype=torch.int64),
         "block_samples": torch.zeros(count, actuators, dtype=torch.int64),
         "reopened": torch.zeros(count, actuators, dtype=torch.int64),
-        "map_cache": torch.full((count, actuators), int(log_prior.argmax()), dtype=torch.int64),
-        "plausible": (log_prior >= log_prior.max() - math.log(float(options.bayes_factor)))
+        # over the initially active candidates (StructureLearner's first _refresh_cache)
+        "map_cache": torch.full((count, actuators), int(scored.argmax()), dtype=torch.int64),
+        "plausible": (scored >= scored.max() - log_bayes_factor)
         .to(torch.uint8)
         .expand(count, actuators, -1)
         .contiguous(),
@@ -251,6 +260,14 @@ def structure_setup(
         "history_length": torch.zeros(count, dtype=torch.int64),
         "history_start": torch.zeros(count, actuators, dtype=torch.int64),
         "block_start": torch.zeros(count, actuators, dtype=torch.int64),
+        # the active candidates in increasing order, then padding (the kernel's loops)
+        "active_list": torch.where(initial, torch.arange(num_candidates), num_candidates)
+        .sort()
+        .values.clamp(max=num_candidates - 1)
+        .to(torch.int16)
+        .expand(count, actuators, -1)
+        .contiguous(),
+        "active_count": torch.full((count, actuators), int(initial.sum()), dtype=torch.int64),
     }
     a, b = float(options.prior_a), float(options.prior_b)
     noisy_a, noisy_b = NOISY_PRIOR

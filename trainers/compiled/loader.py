@@ -70,6 +70,7 @@ _LEARNER_POINTERS = (
     "orders_after",
     "truth",
     "initial_active",
+    "all_candidates",
     "counts",
     "committed",
     "samples",
@@ -89,6 +90,8 @@ _LEARNER_POINTERS = (
     "history_length",
     "history_start",
     "block_start",
+    "active_list",
+    "active_count",
 )
 #: The kernel's codes of ``StructureOptions.prediction`` (``"posterior"`` is modular only).
 _PREDICTION_CODES = {"map": 0, "committed": 1, "optimistic": 2}

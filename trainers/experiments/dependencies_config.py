@@ -144,10 +144,11 @@ class DependenciesConfig:
         choices=("flip", "pattern", "mixture"),
     )
     pairs: str = option(
-        "all",
-        "Which pair candidates are counted: all (every pair at every firing) or pruned (a pair "
-        "only while one of its sensors, or the pair itself, is plausible; its counts rebuilt "
-        "from the stored firings when it enters: the same counts, less work with many sensors).",
+        "pruned",
+        "Which pair candidates are counted: pruned (a pair only while one of its sensors, or the "
+        "pair itself, is plausible, its counts rebuilt from the stored firings when it enters: "
+        "the same counts, a fraction of the work with many sensors) or all (every pair at every "
+        "firing).",
         choices=("all", "pruned"),
     )
     change_run: int = option(5, "Run at which the change setting redraws the sensor order.")
