@@ -456,7 +456,7 @@ class StructureLearner(TensorDictModuleBase):
         new_successes = old["successes"] + success
         new_reward_sum = old["reward_sum"] + reward
         new_log_marginal = self._pattern_log_marginal(new_count, new_successes)
-        new = (new_count, new_successes, new_reward_sum, new_log_marginal)
+        new: tuple[torch.Tensor, ...] = (new_count, new_successes, new_reward_sum, new_log_marginal)
         if self.pruned:  # an inactive pair is not counted: it keeps what it held
             active = self._rows_of("active", fired).reshape(-1)  # [R C]
             new = tuple(
@@ -475,8 +475,8 @@ class StructureLearner(TensorDictModuleBase):
             log_posterior = self._enter(rows, action, fired)
         else:
             log_posterior = self._log_posterior_rows(fired)
-        log_posterior = self._decide(rows, action, fired, log_posterior)
-        self._refresh_cache(rows, action, fired, log_posterior)
+        kept = self._decide(rows, action, fired, log_posterior)
+        self._refresh_cache(rows, action, fired, kept)
 
     def _refresh_cache(
         self,
