@@ -161,7 +161,7 @@ typedef struct {
     const int64_t *truth;             /* [S, 2, A] candidate index of the true parents, -2: none */
     const uint8_t *initial_active;    /* [C] functional.initial_activity */
     const int16_t *all_candidates;    /* [C] 0, 1, ..., C - 1 (the list without pruning) */
-    double *counts;                   /* [S, stride]: 8 arrays [A, C, P] (learner_arrays) */
+    double *counts;                   /* [S, stride]: [A, C, 8, P] (learner_view) */
     int64_t *committed;               /* [S, A] candidate, -1 open */
     int64_t *samples;                 /* [S, A] */
     int64_t *block_samples;           /* [S, A] */
@@ -727,20 +727,24 @@ static inline int64_t greedy_action_n(const float *values, int64_t n, uint64_t k
  * order as the torch module; tests/test_fast_structure.py checks equality bit for bit.
  */
 
-/* The 8 arrays [A, C, P] of one experiment's counts block, in this order. */
+/* The 8 arrays of one experiment's counts block, in this order, interleaved per candidate:
+   [A, C, 8, P] (one candidate's counts, sums and marginals, all and the block's, in 8 P adjacent
+   doubles: a firing touches 4 cache lines per candidate, not 8 scattered ones). array[k][h + p]
+   is array k at pattern p of the candidate whose block starts at h = (a C + c) W, W = 8 P. */
 enum { L_COUNT, L_SUCC, L_RSUM, L_LM, L_BCOUNT, L_BSUCC, L_BRSUM, L_BLM, L_ARRAYS };
 
 typedef struct {
     double *array[L_ARRAYS];
-    int64_t C, P, A;
+    int64_t C, P, A, W;
 } learner_view;
 
 static inline learner_view learner_of(const fq_batch *b, int64_t i) {
     learner_view v;
-    const int64_t size = b->num_actuators * b->num_candidates * b->learner_patterns;
-    for (int k = 0; k < L_ARRAYS; k++) v.array[k] = b->counts + i * b->learner_stride + k * size;
+    for (int k = 0; k < L_ARRAYS; k++)
+        v.array[k] = b->counts + i * b->learner_stride + k * b->learner_patterns;
     v.C = b->num_candidates;
     v.P = b->learner_patterns;
+    v.W = L_ARRAYS * v.P;
     v.A = b->num_actuators;
     return v;
 }
@@ -863,7 +867,7 @@ static void learner_predict(const fq_batch *b, int64_t i, uint64_t readings, flo
             for (int64_t m = 0; m < listed; m++) {
                 const int64_t d = list[m];
                 if (!plausible[d]) continue;
-                const int64_t e = (a * v.C + d) * v.P + candidate_pattern(b, d, readings);
+                const int64_t e = (a * v.C + d) * v.W + candidate_pattern(b, d, readings);
                 const double n = v.array[L_COUNT][e];
                 const double mean = n > 0 ? v.array[L_RSUM][e] / n : 0.0;
                 if (mean > best) best = mean;
@@ -878,7 +882,7 @@ static void learner_predict(const fq_batch *b, int64_t i, uint64_t readings, flo
             }
             c = map[a];
         }
-        const int64_t e = (a * v.C + c) * v.P + candidate_pattern(b, c, readings);
+        const int64_t e = (a * v.C + c) * v.W + candidate_pattern(b, c, readings);
         const double n = v.array[L_COUNT][e];
         local[a] = n > 0 ? (float)(v.array[L_RSUM][e] / n) : 0.0f;
     }
@@ -890,14 +894,14 @@ static void learner_predict(const fq_batch *b, int64_t i, uint64_t readings, flo
    learner_enter clears the flag of a pair that leaves. */
 static void learner_refresh(const fq_batch *b, int64_t i, int64_t a, double *lp, int have_lp) {
     const learner_view v = learner_of(b, i);
-    const int64_t C = v.C, P = v.P, base = a * C * P;
+    const int64_t C = v.C, W = v.W, base = a * C * W;
     int64_t listed;
     const int16_t *list = learner_list(b, i, a, &listed);
     uint8_t *plausible = b->plausible + (i * v.A + a) * C;
     if (!have_lp) {
         for (int64_t m = 0; m < listed; m++)
             lp[list[m]] =
-                b->log_prior[list[m]] + candidate_log_marginal(b, &v, base + list[m] * P, 0);
+                b->log_prior[list[m]] + candidate_log_marginal(b, &v, base + list[m] * W, 0);
         memset(plausible, 0, (size_t)C);
     }
     int64_t map = list[0];
@@ -911,8 +915,7 @@ static void learner_refresh(const fq_batch *b, int64_t i, int64_t a, double *lp,
 /* Forget everything actuator a of experiment i has counted (a reopening). */
 static void learner_forget(const fq_batch *b, int64_t i, int64_t a) {
     const learner_view v = learner_of(b, i);
-    const int64_t base = a * v.C * v.P;
-    for (int k = 0; k < L_ARRAYS; k++) memset(v.array[k] + base, 0, (size_t)(v.C * v.P) * 8);
+    memset(v.array[0] + a * v.C * v.W, 0, (size_t)(v.C * v.W) * 8); /* all 8 arrays */
     b->committed[i * v.A + a] = -1;
     b->block_samples[i * v.A + a] = 0;
     if (b->prune_pairs) { /* the history restarts after this firing, as the counts do */
@@ -936,7 +939,7 @@ static inline int64_t pair_index(int64_t K, int64_t j, int64_t k) {
    plausible (an inactive pair has no log posterior: it is never plausible itself). */
 static void learner_enter(const fq_batch *b, int64_t i, int64_t a, double *lp) {
     const learner_view v = learner_of(b, i);
-    const int64_t C = v.C, P = v.P, K = b->num_sensors, base = a * C * P;
+    const int64_t C = v.C, P = v.P, W = v.W, K = b->num_sensors, base = a * C * W;
     const int64_t L = b->history_capacity, row = i * v.A + a;
     uint8_t *active = b->active + row * C;
     uint8_t *plausible = b->plausible + row * C;
@@ -969,9 +972,7 @@ static void learner_enter(const fq_batch *b, int64_t i, int64_t a, double *lp) {
     }
     if (changed || count > 0) learner_relist(b, i, a);
     if (count == 0) return;
-    for (int64_t m = 0; m < count; m++)
-        for (int k = 0; k < L_ARRAYS; k++)
-            memset(v.array[k] + base + entering[m] * P, 0, (size_t)P * 8);
+    for (int64_t m = 0; m < count; m++) memset(v.array[0] + base + entering[m] * W, 0, (size_t)W * 8);
     const int64_t start = b->history_start[row], length = b->history_length[i];
     const int64_t block_start = b->block_start[row];
     const int64_t *readings = b->history_readings + i * L;
@@ -985,7 +986,7 @@ static void learner_enter(const fq_batch *b, int64_t i, int64_t a, double *lp) {
         const int blocks = t >= block_start ? 2 : 1;
         for (int64_t m = 0; m < count; m++) {
             const int64_t e =
-                base + entering[m] * P + candidate_pattern(b, entering[m], (uint64_t)readings[t]);
+                base + entering[m] * W + candidate_pattern(b, entering[m], (uint64_t)readings[t]);
             for (int block = 0; block < blocks; block++) {
                 double *n = v.array[block ? L_BCOUNT : L_COUNT];
                 double *succ = v.array[block ? L_BSUCC : L_SUCC];
@@ -997,7 +998,7 @@ static void learner_enter(const fq_batch *b, int64_t i, int64_t a, double *lp) {
         }
     }
     for (int64_t m = 0; m < count; m++) {
-        const int64_t h = base + entering[m] * P;
+        const int64_t h = base + entering[m] * W;
         for (int block = 0; block < 2; block++) {
             const double *n = v.array[block ? L_BCOUNT : L_COUNT] + h;
             const double *succ = v.array[block ? L_BSUCC : L_SUCC] + h;
@@ -1013,7 +1014,7 @@ static void learner_enter(const fq_batch *b, int64_t i, int64_t a, double *lp) {
 static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int64_t a,
                            float local_reward, double *scratch) {
     const learner_view v = learner_of(b, i);
-    const int64_t C = v.C, P = v.P;
+    const int64_t C = v.C, P = v.P, W = v.W;
     const double reward = (double)local_reward;
     const double negated = -reward;
     const double success = negated < 0.0 ? 0.0 : (negated > 1.0 ? 1.0 : negated);
@@ -1021,7 +1022,7 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
     const int16_t *list = learner_list(b, i, a, &listed); /* an inactive pair is not counted */
     for (int64_t m = 0; m < listed; m++) {
         const int64_t c = list[m];
-        const int64_t e = (a * C + c) * P + candidate_pattern(b, c, readings);
+        const int64_t e = (a * C + c) * W + candidate_pattern(b, c, readings);
         for (int block = 0; block < 2; block++) {
             double *count = v.array[block ? L_BCOUNT : L_COUNT];
             double *succ = v.array[block ? L_BSUCC : L_SUCC];
@@ -1039,10 +1040,10 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
     b->samples[i * v.A + a] += 1;
     *block_samples += 1;
     /* _decide, over the listed candidates (lp is read nowhere else) */
-    const int64_t base = a * C * P;
+    const int64_t base = a * C * W;
     double *lp = scratch; /* [C] */
     for (int64_t m = 0; m < listed; m++)
-        lp[list[m]] = b->log_prior[list[m]] + candidate_log_marginal(b, &v, base + list[m] * P, 0);
+        lp[list[m]] = b->log_prior[list[m]] + candidate_log_marginal(b, &v, base + list[m] * W, 0);
     if (b->prune_pairs) {
         const int64_t t = b->history_length[i]++;
         b->history_readings[i * b->history_capacity + t] = (int64_t)readings;
@@ -1063,7 +1064,7 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
     const int commit = held < 0 && margin >= b->log_bayes_factor;
     int reopen = 0;
     if (held >= 0) {
-        const int64_t h = base + held * P;
+        const int64_t h = base + held * W;
         double lead;
         if (b->likelihood_flip) { /* the whole candidate's ratio: it does not split over patterns */
             const double all = candidate_log_marginal(b, &v, h, 0);
@@ -1085,7 +1086,7 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
         double rival = -INFINITY;
         for (int64_t m = 0; m < listed; m++) {
             const int64_t c = list[m];
-            const double x = b->log_prior[c] + candidate_log_marginal(b, &v, base + c * P, 1);
+            const double x = b->log_prior[c] + candidate_log_marginal(b, &v, base + c * W, 1);
             if (x > rival) rival = x;
         }
         reopen = rival - lead >= b->log_reopen_factor;
@@ -1102,7 +1103,8 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
                 }
     }
     if (*block_samples >= b->window) {
-        for (int k = L_BCOUNT; k < L_ARRAYS; k++) memset(v.array[k] + base, 0, (size_t)(C * P) * 8);
+        for (int64_t c = 0; c < C; c++) /* the block's 4 arrays: adjacent in each candidate */
+            memset(v.array[L_BCOUNT] + base + c * W, 0, (size_t)(L_ARRAYS - L_BCOUNT) * P * 8);
         *block_samples = 0;
         if (b->prune_pairs) b->block_start[i * v.A + a] = b->history_length[i];
     }
@@ -1398,9 +1400,10 @@ int64_t fq_check_experiment(const fq_batch *b, int64_t i) {
                 return 14;
         }
         const learner_view v = learner_of(b, i);
-        const int64_t entries = A * C * b->learner_patterns;
-        for (int64_t e = 0; e < entries; e++)
+        const int64_t P = b->learner_patterns, entries = A * C * P;
+        for (int64_t x = 0; x < entries; x++) /* candidate x / P, pattern x % P */
             for (int block = 0; block < 2; block++) {
+                const int64_t e = (x / P) * v.W + x % P;
                 const double n = v.array[block ? L_BCOUNT : L_COUNT][e];
                 const double s = v.array[block ? L_BSUCC : L_SUCC][e];
                 /* integral 0 <= s <= n, and n + 1 still inside the lgamma tables */
