@@ -40,16 +40,16 @@ over candidates (``candidate_log_prior``,
 mass, all pairs together 1/100 of it, uniform within a size (``"size"``: every size the same
 mass; ``"uniform"``: every candidate the same).
 
-**Pair pruning.** With ``pairs="pruned"`` (the default) a pair ``{j, k}`` is counted and scored
-only while it is *active* (``functional.pair_activity``): while one of its singles is plausible
-(log posterior within ``log(bayes_factor)`` of the best active candidate: the evidence has not
-ruled out that ``j`` matters), while it is plausible itself, or while it is committed to. An
-inactive pair has no log posterior (``-inf``: no commitment, prediction or change-point test
-reads it). When it enters, its counts are rebuilt from the experiment's stored firings since the
-actuator's last reset (``functional.rebuild_pair_counts``), in firing order: the integer counts,
-and the sums of a collision world's rewards, are exactly those that counting it at every firing
-would have left, so a pair's evidence is never lost, only not looked at while its sensors are
-ruled out. After the first firings, a firing costs ``O(K + active pairs)`` instead of
+**Pair pruning.** With ``pairs="pruned"`` (``factorq dependencies``' default) a pair ``{j, k}`` is
+counted and scored only while it is *active* (``functional.pair_activity``): while one of its
+singles is plausible (log posterior within ``log(bayes_factor)`` of the best active candidate: the
+evidence has not ruled out that ``j`` matters), while it is plausible itself, or while it is
+committed to. An inactive pair has no log posterior (``-inf``: no commitment, prediction or
+change-point test reads it). When it enters, its counts are rebuilt from the experiment's stored
+firings since the actuator's last reset (``functional.rebuild_pair_counts``), in firing order: the
+integer counts, and the sums of a collision world's rewards, are exactly those that counting it at
+every firing would have left, so a pair's evidence is never lost, only not looked at while its
+sensors are ruled out. After the first firings, a firing costs ``O(K + active pairs)`` instead of
 ``O(K**2)``; the history costs one entry per firing. ``pairs="all"`` counts every pair always.
 
 **Commitment.** Until it commits, actuator ``a``'s local value is, by ``prediction``:
@@ -144,9 +144,12 @@ class StructureLearner(TensorDictModuleBase):
         prior_a, prior_b: the Beta prior of every pattern's rate (``likelihood="pattern"``;
             ``"mixture"``: of the clean population) or of every candidate's flip rate
             (``"flip"``).
-        pairs: ``"pruned"`` (the default: a pair is counted and scored only while it is active,
-            ``functional.pair_activity``; module docstring) or ``"all"`` (every pair at every
-            firing). The same counts where a pair is counted; less work with many sensors.
+        pairs: ``"all"`` (the default here: every pair at every firing, as every experiment
+            built on the learner has measured it) or ``"pruned"`` (a pair is counted and scored
+            only while it is active, ``functional.pair_activity``; module docstring: the same
+            counts where a pair is counted, a fraction of the work with many sensors; the
+            default of ``factorq dependencies`` and of the compiled path's
+            ``StructureOptions``).
         likelihood: ``"mixture"`` (the default: each pattern's rate from a clean or a noisy
             population, sensors may read wrong), ``"pattern"`` (each pattern its own rate under
             ``Beta(prior_a, prior_b)``) or ``"flip"`` (one flip rate per candidate between its
@@ -190,7 +193,7 @@ class StructureLearner(TensorDictModuleBase):
         reopen: str = "body",
         reopen_factor: float | None = None,
         likelihood: str = "mixture",
-        pairs: str = "pruned",
+        pairs: str = "all",
         sensors_key: str = keys.SENSORS,
         device: torch.device | str | None = None,
     ) -> None:
@@ -326,6 +329,15 @@ class StructureLearner(TensorDictModuleBase):
         return self._masked(
             self.log_prior + self._flip(count, successes), self.active[rows, action]
         )
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+        # the history buffers grow (``_record``): take the saved capacity before loading
+        for name in ("history_readings", "history_action", "history_reward"):
+            saved = state_dict.get(prefix + name)
+            buffer = getattr(self, name)
+            if isinstance(saved, torch.Tensor) and saved.dim() == 2 and saved.shape != buffer.shape:
+                setattr(self, name, buffer.new_zeros(buffer.shape[0], saved.shape[1]))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def _masked(self, log_posterior: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
         """``log_posterior`` with ``-inf`` at the inactive candidates (``pairs="pruned"``)."""
