@@ -695,3 +695,132 @@ def mixture_log_marginal(
     first, second, third = logs.unbind(0)  # [2, ...] each
     clean, noisy = (first + second - third - log_beta_prior + level).unbind(0)
     return torch.where(count > scalar(0, count), torch.maximum(clean, noisy), scalar(0.0, clean))
+
+
+#: Which pair candidates a ``StructureLearner`` counts and scores (docs/decisions.md, "Learned
+#: dependencies with noisy sensors", pair pruning): ``"all"``, every pair at every firing;
+#: ``"pruned"``, a pair only while it is *active* (``pair_activity``), its counts rebuilt from the
+#: actuator's stored firings when it enters (``rebuild_pair_counts``).
+PAIR_MODES = ("all", "pruned")
+
+
+def pair_members(sets: list[tuple]) -> torch.Tensor:
+    """``[2, C]`` int64: for a pair ``(j, k)``, the candidate indices of its singles ``(j,)`` and
+    ``(k,)``; for "no sensor" and a single, its own index twice (``pair_activity``).
+
+    Args:
+        sets: the candidates (``candidate_sets``).
+    """
+    index_of = {parents: index for index, parents in enumerate(sets)}
+    members = torch.zeros(2, len(sets), dtype=torch.int64)
+    for index, parents in enumerate(sets):
+        if len(parents) == 2:
+            members[0, index], members[1, index] = index_of[parents[:1]], index_of[parents[1:]]
+        else:
+            members[:, index] = index
+    return members
+
+
+def initial_activity(
+    sets: list[tuple], log_prior: torch.Tensor, log_bayes_factor: float
+) -> torch.Tensor:
+    """``[C]`` bool: the candidates active before any data (after a reset or a reopening):
+    "no sensor" and the singles, and every pair one of whose singles is plausible under the
+    prior alone (``log_prior >= max(log_prior) - log_bayes_factor``; with the ``"sparse"`` prior
+    every pair while ``K <= bayes_factor``).
+
+    Args:
+        sets: the candidates (``candidate_sets``).
+        log_prior: ``[C]`` their log prior (``candidate_log_prior``).
+        log_bayes_factor: ``log(bayes_factor)``.
+    """
+    plausible = log_prior >= log_prior.max() - log_bayes_factor
+    members = pair_members(sets)
+    small = torch.tensor([len(parents) < 2 for parents in sets])
+    return small | plausible[members[0]] | plausible[members[1]]
+
+
+def pair_activity(
+    log_posterior: torch.Tensor,
+    committed: torch.Tensor,
+    members: torch.Tensor,
+    small: torch.Tensor,
+    log_bayes_factor: float,
+) -> torch.Tensor:
+    """``[..., C]`` bool: the candidates active after a firing (``"pruned"`` pairs).
+
+    A candidate of at most one sensor is always active. A pair ``{j, k}`` is active when one of
+    its singles is *plausible* (log posterior within ``log_bayes_factor`` of the best active
+    candidate: the evidence has not ruled out that ``j`` matters), when it is itself plausible
+    (a pair that explains the data better than its singles stays, even once they are ruled out by
+    it), or when it is the committed candidate. ``log_posterior`` is that of the active
+    candidates before the firing's entries (``-inf`` for the inactive ones, which are never
+    plausible).
+
+    Args:
+        log_posterior: ``[..., C]`` float64, ``-inf`` where inactive.
+        committed: ``[...]`` int64, the committed candidate (-1: open).
+        members: ``[2, C]`` (``pair_members``).
+        small: ``[C]`` bool, the candidates of at most one sensor.
+        log_bayes_factor: ``log(bayes_factor)``.
+    """
+    best = log_posterior.max(dim=-1, keepdim=True).values
+    plausible = log_posterior >= best - scalar(log_bayes_factor, best)
+    candidates = torch.arange(log_posterior.shape[-1], device=log_posterior.device)
+    return (
+        small
+        | plausible
+        | plausible.index_select(-1, members[0])
+        | plausible.index_select(-1, members[1])
+        | (committed.unsqueeze(-1) == candidates)
+    )
+
+
+def rebuild_pair_counts(
+    readings: torch.Tensor,
+    reward: torch.Tensor,
+    block: torch.Tensor,
+    first: torch.Tensor,
+    second: torch.Tensor,
+) -> tuple[torch.Tensor, ...]:
+    """The counts of the pairs ``(first[m], second[m])`` over one actuator's stored firings, as
+    counting them at every firing would have left them (``"pruned"`` pairs entering).
+
+    The firings in order: ``readings`` ``[E]`` int64 (bit ``j`` is sensor ``j``), ``reward``
+    ``[E]`` float64 (the actuator's local reward), ``block`` ``[E]`` bool (the firing is in the
+    current block). Returns ``count``, ``successes``, ``reward_sum`` and their ``block_`` twins,
+    each ``[M, 4]`` float64 (pattern ``x_first + 2 x_second``). Counts are integers (exact in any
+    order); the success and reward sums are exact in any order when every reward is an integer
+    (the collision world's 0 and -1), else added one firing at a time, oldest first, as the
+    learner adds them.
+
+    Args:
+        readings: ``[E]`` int64 packed sensor bits of each firing.
+        reward: ``[E]`` float64 local rewards.
+        block: ``[E]`` bool, firings of the current block.
+        first, second: ``[M]`` int64 sensors of each pair.
+    """
+    one = scalar(1, readings)
+    pattern = ((readings.unsqueeze(0) >> first.unsqueeze(1)) & one) + (
+        ((readings.unsqueeze(0) >> second.unsqueeze(1)) & one) << one
+    )  # [M, E]
+    success = (-reward).clamp(scalar(0.0, reward), scalar(1.0, reward))
+    pairs = pattern.shape[0]
+    results = []
+    integral = bool((reward == reward.round()).all())
+    for selected in (torch.ones_like(block), block):
+        columns = selected.nonzero().flatten()
+        where = pattern.index_select(1, columns)  # [M, E']
+        values = (torch.ones_like(reward), success, reward)
+        sums = []
+        for index, value in enumerate(values):
+            value = value.index_select(0, columns)
+            total = torch.zeros(pairs, 4, dtype=torch.float64, device=readings.device)
+            if index == 0 or integral:
+                total.scatter_add_(1, where, value.expand(pairs, -1).contiguous())
+            else:  # one firing at a time, oldest first: the learner's order of additions
+                for e in range(value.numel()):
+                    total.scatter_add_(1, where[:, e : e + 1], value[e].expand(pairs, 1))
+            sums.append(total)
+        results.extend(sums)
+    return tuple(results)

@@ -40,6 +40,18 @@ over candidates (``candidate_log_prior``,
 mass, all pairs together 1/100 of it, uniform within a size (``"size"``: every size the same
 mass; ``"uniform"``: every candidate the same).
 
+**Pair pruning.** With ``pairs="pruned"`` (``factorq dependencies``' default) a pair ``{j, k}`` is
+counted and scored only while it is *active* (``functional.pair_activity``): while one of its
+singles is plausible (log posterior within ``log(bayes_factor)`` of the best active candidate: the
+evidence has not ruled out that ``j`` matters), while it is plausible itself, or while it is
+committed to. An inactive pair has no log posterior (``-inf``: no commitment, prediction or
+change-point test reads it). When it enters, its counts are rebuilt from the experiment's stored
+firings since the actuator's last reset (``functional.rebuild_pair_counts``), in firing order: the
+integer counts, and the sums of a collision world's rewards, are exactly those that counting it at
+every firing would have left, so a pair's evidence is never lost, only not looked at while its
+sensors are ruled out. After the first firings, a firing costs ``O(K + active pairs)`` instead of
+``O(K**2)``; the history costs one entry per firing. ``pairs="all"`` counts every pair always.
+
 **Commitment.** Until it commits, actuator ``a``'s local value is, by ``prediction``:
 ``"optimistic"`` (the default) the largest running mean ``rho_c[o_c]`` among the *plausible*
 candidates, those whose log posterior is within ``log(bayes_factor)`` of the best (a firing is
@@ -93,6 +105,7 @@ from factorq_torch.functional import (  # noqa: F401  (the structure math, re-ex
     LIKELIHOODS,
     MAX_CANDIDATE_PARENTS,
     MAX_SENSORS,
+    PAIR_MODES,
     PREDICTIONS,
     PRIORS,
     REOPENINGS,
@@ -102,9 +115,13 @@ from factorq_torch.functional import (  # noqa: F401  (the structure math, re-ex
     candidate_sets,
     competitor_mask,
     flip_log_marginal,
+    initial_activity,
     log_posterior_of,
     mixture_log_marginal,
+    pair_activity,
+    pair_members,
     posterior_weights,
+    rebuild_pair_counts,
 )
 from factorq_torch.tables import _check_entry, check_batch, check_firing, check_mask
 
@@ -127,6 +144,12 @@ class StructureLearner(TensorDictModuleBase):
         prior_a, prior_b: the Beta prior of every pattern's rate (``likelihood="pattern"``;
             ``"mixture"``: of the clean population) or of every candidate's flip rate
             (``"flip"``).
+        pairs: ``"all"`` (the default here: every pair at every firing, as every experiment
+            built on the learner has measured it) or ``"pruned"`` (a pair is counted and scored
+            only while it is active, ``functional.pair_activity``; module docstring: the same
+            counts where a pair is counted, a fraction of the work with many sensors; the
+            default of ``factorq dependencies`` and of the compiled path's
+            ``StructureOptions``).
         likelihood: ``"mixture"`` (the default: each pattern's rate from a clean or a noisy
             population, sensors may read wrong), ``"pattern"`` (each pattern its own rate under
             ``Beta(prior_a, prior_b)``) or ``"flip"`` (one flip rate per candidate between its
@@ -170,6 +193,7 @@ class StructureLearner(TensorDictModuleBase):
         reopen: str = "body",
         reopen_factor: float | None = None,
         likelihood: str = "mixture",
+        pairs: str = "all",
         sensors_key: str = keys.SENSORS,
         device: torch.device | str | None = None,
     ) -> None:
@@ -207,6 +231,10 @@ class StructureLearner(TensorDictModuleBase):
         if likelihood not in LIKELIHOODS:
             raise ValueError(f"likelihood={likelihood!r} is unknown: choose one of {LIKELIHOODS}")
         self.likelihood = likelihood
+        if pairs not in PAIR_MODES:
+            raise ValueError(f"pairs={pairs!r} is unknown: choose one of {PAIR_MODES}")
+        self.pairs = pairs
+        self.pruned = pairs == "pruned" and max_parents >= 2 and num_sensors >= 2
         self.prior = prior
         self.prior_a, self.prior_b = float(prior_a), float(prior_b)
         self.sensors_key = sensors_key
@@ -226,6 +254,34 @@ class StructureLearner(TensorDictModuleBase):
         self.register_buffer("members", members.to(device))
         self.register_buffer("log_prior", candidate_log_prior(self.sets, prior).to(device))
         self.register_buffer("competitors", competitor_mask(self.sets).to(device))
+        # pair pruning (pairs="pruned"): which candidates are counted, and the firings since the
+        # last reset of each experiment (every actuator's, in order) to rebuild an entering pair
+        self.register_buffer("pair_members", pair_members(self.sets).to(device))
+        small = torch.tensor([len(parents) < 2 for parents in self.sets])
+        self.register_buffer("small", small.to(device))
+        initial = initial_activity(self.sets, self.log_prior.cpu(), self.log_bayes_factor)
+        if not self.pruned:
+            initial = torch.ones_like(initial)
+        self.register_buffer("initial_active", initial.to(device))
+        self.register_buffer(
+            "active", initial.to(device).expand(num_experiments, num_actions, -1).clone()
+        )
+        for name in ("history_start", "block_start"):
+            self.register_buffer(
+                name, torch.zeros(num_experiments, num_actions, dtype=torch.int64, device=device)
+            )
+        self.register_buffer(
+            "history_length", torch.zeros(num_experiments, dtype=torch.int64, device=device)
+        )
+        capacity = 64 if self.pruned else 0
+        for name, dtype in (
+            ("history_readings", torch.int64),
+            ("history_action", torch.int64),
+            ("history_reward", torch.float64),
+        ):
+            self.register_buffer(
+                name, torch.zeros(num_experiments, capacity, dtype=dtype, device=device)
+            )
         shape = (num_experiments, num_actions, num_candidates, patterns)
         for prefix in ("", "block_"):
             for name in ("count", "successes", "reward_sum", "log_marginal"):
@@ -265,10 +321,29 @@ class StructureLearner(TensorDictModuleBase):
         prefix = "block_" if block else ""
         if self.likelihood != "flip":  # a sum over the patterns
             log_marginal = getattr(self, prefix + "log_marginal")[rows, action]
-            return log_posterior_of(self.log_prior, log_marginal)
+            return self._masked(
+                log_posterior_of(self.log_prior, log_marginal), self.active[rows, action]
+            )
         count = getattr(self, prefix + "count")[rows, action]
         successes = getattr(self, prefix + "successes")[rows, action]
-        return self.log_prior + self._flip(count, successes)
+        return self._masked(
+            self.log_prior + self._flip(count, successes), self.active[rows, action]
+        )
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+        # the history buffers grow (``_record``): take the saved capacity before loading
+        for name in ("history_readings", "history_action", "history_reward"):
+            saved = state_dict.get(prefix + name)
+            buffer = getattr(self, name)
+            if isinstance(saved, torch.Tensor) and saved.dim() == 2 and saved.shape != buffer.shape:
+                setattr(self, name, buffer.new_zeros(buffer.shape[0], saved.shape[1]))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def _masked(self, log_posterior: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
+        """``log_posterior`` with ``-inf`` at the inactive candidates (``pairs="pruned"``)."""
+        if not self.pruned:
+            return log_posterior
+        return torch.where(active, log_posterior, scalar(-math.inf, log_posterior))
 
     def _pattern_log_marginal(self, count: torch.Tensor, successes: torch.Tensor) -> torch.Tensor:
         """Each pattern's log marginal (``"pattern"`` and ``"flip"``: Beta-Bernoulli; the flip
@@ -363,6 +438,7 @@ class StructureLearner(TensorDictModuleBase):
         # (Python numbers as cached 0-d tensors and flat index_select / index_copy_ for
         # advanced indexing: the same values, in about half the time of a step's small ops)
         reward = local_reward.gather(1, action.unsqueeze(1)).squeeze(1).to(torch.float64)  # [R]
+        fired_reward = reward
         success = (-reward).clamp(scalar(0.0, reward), scalar(1.0, reward))  # [R], fractional
         pattern = self.patterns(readings)  # [R, C]
         candidates, width = self.num_candidates, self.count.shape[-1]
@@ -387,21 +463,32 @@ class StructureLearner(TensorDictModuleBase):
                 (flat[name].index_select(0, where), flat["block_" + name].index_select(0, where))
             )
 
-        new_count = read("count") + scalar(1.0, reward)
-        new_successes = read("successes") + success
-        new_reward_sum = read("reward_sum") + reward
+        old = {name: read(name) for name in names}
+        new_count = old["count"] + scalar(1.0, reward)
+        new_successes = old["successes"] + success
+        new_reward_sum = old["reward_sum"] + reward
         new_log_marginal = self._pattern_log_marginal(new_count, new_successes)
-        for name, values in zip(
-            names, (new_count, new_successes, new_reward_sum, new_log_marginal), strict=True
-        ):
+        new: tuple[torch.Tensor, ...] = (new_count, new_successes, new_reward_sum, new_log_marginal)
+        if self.pruned:  # an inactive pair is not counted: it keeps what it held
+            active = self._rows_of("active", fired).reshape(-1)  # [R C]
+            new = tuple(
+                torch.where(active, value, old[name])
+                for name, value in zip(names, new, strict=True)
+            )
+        for name, values in zip(names, new, strict=True):
             whole, block = values.unbind(0)
             flat[name].index_copy_(0, where, whole)
             flat["block_" + name].index_copy_(0, where, block)
         one = scalar(1, self.samples)
         self.samples.view(-1).index_add_(0, fired, one.expand(fired.shape))
         self.block_samples.view(-1).index_add_(0, fired, one.expand(fired.shape))
-        log_posterior = self._decide(rows, action, fired)
-        self._refresh_cache(rows, action, fired, log_posterior)
+        if self.pruned:
+            self._record(rows, readings, action, fired_reward)
+            log_posterior = self._enter(rows, action, fired)
+        else:
+            log_posterior = self._log_posterior_rows(fired)
+        kept = self._decide(rows, action, fired, log_posterior)
+        self._refresh_cache(rows, action, fired, kept)
 
     def _refresh_cache(
         self,
@@ -446,19 +533,88 @@ class StructureLearner(TensorDictModuleBase):
     def _log_posterior_rows(self, fired: torch.Tensor, block: bool = False) -> torch.Tensor:
         """``_log_posterior_at(rows, action, block)`` by the flat index ``fired``: ``[R, C]``."""
         prefix = "block_" if block else ""
+        active = self._rows_of("active", fired) if self.pruned else None
         if self.likelihood != "flip":  # a sum over the patterns
-            return log_posterior_of(self.log_prior, self._rows_of(prefix + "log_marginal", fired))
+            log_posterior = log_posterior_of(
+                self.log_prior, self._rows_of(prefix + "log_marginal", fired)
+            )
+            return log_posterior if active is None else self._masked(log_posterior, active)
         count = self._rows_of(prefix + "count", fired)
         successes = self._rows_of(prefix + "successes", fired)
-        return self.log_prior + self._flip(count, successes)
+        log_posterior = self.log_prior + self._flip(count, successes)
+        return log_posterior if active is None else self._masked(log_posterior, active)
+
+    def _record(
+        self, rows: torch.Tensor, readings: torch.Tensor, action: torch.Tensor, reward: torch.Tensor
+    ) -> None:
+        """Append the firings (``readings`` ``[R, K]``, ``action`` ``[R]``, the fired actuator's
+        local reward ``[R]`` float64) to the experiments' histories (``pairs="pruned"``)."""
+        at = self.history_length.index_select(0, rows)  # [R]
+        capacity = self.history_readings.shape[1]
+        if int(at.max()) >= capacity:  # double the capacity
+            for name in ("history_readings", "history_action", "history_reward"):
+                buffer = getattr(self, name)
+                setattr(self, name, torch.cat((buffer, torch.zeros_like(buffer)), dim=1))
+            capacity *= 2
+        weights = row_starts(self.num_sensors, 1, readings.device)  # arange(K)
+        packed = (readings.to(torch.int64) << weights).sum(dim=-1)  # [R]
+        where = rows * scalar(capacity, rows) + at
+        self.history_readings.view(-1).index_copy_(0, where, packed)
+        self.history_action.view(-1).index_copy_(0, where, action)
+        self.history_reward.view(-1).index_copy_(0, where, reward)
+        self.history_length.index_add_(0, rows, scalar(1, at).expand(at.shape))
+
+    def _enter(self, rows: torch.Tensor, action: torch.Tensor, fired: torch.Tensor) -> torch.Tensor:
+        """``pairs="pruned"``: the candidates active after the firing (``pair_activity``), the
+        counts of the entering pairs rebuilt from the history (``rebuild_pair_counts``); returns
+        the log posterior ``[R, C]`` of the given actuators over the new active set."""
+        log_posterior = self._log_posterior_rows(fired)  # over the old active set
+        committed = self.committed.view(-1).index_select(0, fired)
+        active = self._rows_of("active", fired)
+        new = pair_activity(
+            log_posterior, committed, self.pair_members, self.small, self.log_bayes_factor
+        )
+        entering = new & ~active  # [R, C]
+        self._flat_rows("active").index_copy_(0, fired, new)
+        if not bool(entering.any()):
+            return self._masked(log_posterior, new)
+        names = ("count", "successes", "reward_sum")
+        width = self.count.shape[-1]
+        for index in entering.any(dim=-1).nonzero().flatten().tolist():
+            row, actuator, flat = int(rows[index]), int(action[index]), int(fired[index])
+            start, length = int(self.history_start[row, actuator]), int(self.history_length[row])
+            firings = torch.arange(start, length, device=rows.device)
+            firings = firings[self.history_action[row, start:length] == actuator]
+            readings = self.history_readings[row].index_select(0, firings)
+            reward = self.history_reward[row].index_select(0, firings)
+            block = firings >= self.block_start[row, actuator]
+            candidates = entering[index].nonzero().flatten()
+            first = self.pair_members[0].index_select(0, candidates) - 1  # the singles' sensors
+            second = self.pair_members[1].index_select(0, candidates) - 1
+            sums = rebuild_pair_counts(readings, reward, block, first, second)
+            for prefix, values in (("", sums[:3]), ("block_", sums[3:])):
+                for name, value in zip(names, values, strict=True):
+                    getattr(self, prefix + name).view(-1, self.num_candidates, width)[
+                        flat, candidates
+                    ] = value
+                count, successes = values[0], values[1]
+                marginal = self._pattern_log_marginal(count, successes)
+                marginal = torch.where(count > scalar(0.0, count), marginal, scalar(0.0, count))
+                getattr(self, prefix + "log_marginal").view(-1, self.num_candidates, width)[
+                    flat, candidates
+                ] = marginal
+        return self._log_posterior_rows(fired)
 
     def _decide(
-        self, rows: torch.Tensor, action: torch.Tensor, fired: torch.Tensor
+        self,
+        rows: torch.Tensor,
+        action: torch.Tensor,
+        fired: torch.Tensor,
+        log_posterior: torch.Tensor,
     ) -> torch.Tensor | None:
         """Commit open actuators that have the evidence; reopen committed ones that lost it.
-        Returns the log posterior ``[R, C]`` of the given actuators when none reopened (their
-        counts are then as they were), else None."""
-        log_posterior = self._log_posterior_rows(fired)  # [R, C]
+        ``log_posterior`` ``[R, C]``: that of the given actuators (``_log_posterior_rows``).
+        Returns it when none reopened (their counts are then as they were), else None."""
         committed = self.committed.view(-1).index_select(0, fired)  # [R]
         best = log_posterior.argmax(dim=-1)  # [R]
         margin = self._margin(log_posterior, best)
@@ -502,6 +658,13 @@ class StructureLearner(TensorDictModuleBase):
                     getattr(self, prefix + name)[lost_rows, lost] = 0.0
             self.block_samples[lost_rows, lost] = 0
             self.committed[lost_rows, lost] = -1
+            self.active[lost_rows, lost] = self.initial_active
+            # the history restarts after this firing (the counts forget it too)
+            length = self.history_length[lost_rows]
+            if self.reopen == "body":
+                length = length.unsqueeze(1).expand(-1, self.num_actions)
+            self.history_start[lost_rows, lost] = length
+            self.block_start[lost_rows, lost] = length
             self.reopened[lost_rows, lost_actions] += 1
             if self.reopen == "body":
                 self._refresh_cache(lost_rows, slice(None))
@@ -513,6 +676,7 @@ class StructureLearner(TensorDictModuleBase):
             for name in ("count", "successes", "reward_sum", "log_marginal"):
                 getattr(self, "block_" + name)[full_rows, full_actions] = 0.0
             self.block_samples[full_rows, full_actions] = 0
+            self.block_start[full_rows, full_actions] = self.history_length[full_rows]
         return None if reopened else log_posterior
 
     def _margin(self, log_posterior: torch.Tensor, best: torch.Tensor) -> torch.Tensor:
@@ -532,5 +696,8 @@ class StructureLearner(TensorDictModuleBase):
                 getattr(self, prefix + name)[rows] = 0.0
         self.committed[rows] = -1
         for name in ("samples", "block_samples", "reopened"):
+            getattr(self, name)[rows] = 0
+        self.active[rows] = self.initial_active
+        for name in ("history_start", "block_start", "history_length"):
             getattr(self, name)[rows] = 0
         self._refresh_cache(rows, slice(None))

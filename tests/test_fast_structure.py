@@ -55,6 +55,7 @@ def draw_config(setting: str, generator: random.Random) -> DependenciesConfig:
         candidate_prior=generator.choice(["size", "sparse", "uniform"]),
         reopen_factor=generator.choice([None, 5.0, 1000.0]),
         likelihood=generator.choice(["mixture", "flip", "pattern"]),
+        pairs=generator.choice(["pruned", "all"]),
         out="unused",
     )
 
@@ -65,6 +66,23 @@ def test_kernel_learner_equals_the_modular_learner_on_random_configurations(sett
     fast_result = run_learned_fast(config, setting)
     assert_same(fast_result, run_learned_modular(config, setting))
     assert sum(fast_result["samples_per_actuator"][0]) > 0
+
+
+@pytest.mark.parametrize("setting", ["heading", "ring-12-noise-10"])
+def test_kernel_learner_equals_the_modular_learner_with_pruned_pairs(setting):
+    # pairs on (max_parents 2), pruned: pairs enter (rebuilt from the history) and leave on
+    # both paths alike; the active flags and the history's length are compared too
+    config = dataclasses.replace(
+        draw_config(setting, random.Random("pruned " + setting)),
+        max_parents=2,
+        pairs="pruned",
+        bayes_factor=100.0,
+    )
+    fast_result = run_learned_fast(config, setting)
+    assert_same(fast_result, run_learned_modular(config, setting))
+    active = fast_result["_state"]["active"]
+    if setting != "heading":  # (its turning actuators never collide: every sensor plausible)
+        assert int(active.sum()) < active.numel()  # some pairs out
 
 
 #: A configuration in which actuators commit, the change reopens them and they commit again

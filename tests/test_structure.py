@@ -373,3 +373,167 @@ def test_competitor_mask_is_the_definition_for_every_small_body():
                 ]
             )
             assert torch.equal(competitor_mask(sets), expected), (sensors, max_parents)
+
+
+# -- pair pruning (pairs="pruned"; docs/decisions.md, "Learned dependencies with noisy sensors") --
+
+
+def _pruned_and_all(**options):
+    return [
+        StructureLearner(1, num_actions=1, num_sensors=3, pairs=pairs, **options)
+        for pairs in ("pruned", "all")
+    ]
+
+
+def test_a_pair_enters_when_one_of_its_singles_is_plausible_with_the_counts_of_every_firing():
+    # K = 3: (), (0,), (1,), (2,), (0, 1), (0, 2), (1, 2). Sparse prior: p(none) = 1/2.01,
+    # p(single) = 1/(3 * 2.01), p(pair) = 0.01/(3 * 2.01); Bayes factor 2.5 (log 2.5 = 0.916) and
+    # Beta(1, 1) per pattern ("pattern": a sequence with s of n collisions has s! (n - s)! /
+    # (n + 1)!). Under the prior a single is 3 times less probable than "none": not plausible
+    # (3 > 2.5), so no pair is active before any data.
+    options = dict(bayes_factor=2.5, prior="sparse", likelihood="pattern", prior_a=1.0, prior_b=1.0)
+    pruned, full = _pruned_and_all(**options)
+    pairs = slice(4, 7)
+    assert pruned.active[0, 0].tolist() == [True] * 4 + [False] * 3
+    assert full.active[0, 0].all()
+
+    def fire(readings, reward):
+        for learner in (pruned, full):
+            learner.update_running_mean(
+                torch.tensor([readings], dtype=torch.bool),
+                torch.tensor([0]),
+                torch.tensor([[reward]]),
+            )
+
+    # 1: x = (1, 0, 0), collides. Every candidate has one pattern with n = s = 1 (1/2): the
+    # singles stay 1/3 of "none", the pairs stay out and are not counted.
+    fire([1, 0, 0], -1.0)
+    assert not pruned.active[0, 0, pairs].any()
+    assert not pruned.count[0, 0, pairs].any()
+    assert torch.isinf(pruned.log_posterior()[0, 0, pairs]).all()
+    # 2: x = (0, 0, 0), no collision. (0,): 1/2 * 1/2 = 1/4 against "none" (n = 2, s = 1) 1/6:
+    # odds (1/3 * 1/4) / (1/6) = 1/2 > 1/2.5, so (0,) is plausible and its pairs (0, 1), (0, 2)
+    # enter, rebuilt from the two firings; (1,) and (2,) read 0 twice: 1/3 of "none", so (1, 2)
+    # stays out.
+    fire([0, 0, 0], 0.0)
+    assert pruned.active[0, 0, pairs].tolist() == [True, True, False]
+    sensor = Fraction(1, 3) * Fraction(1, 4) / Fraction(1, 6)
+    log_posterior = pruned.log_posterior()[0, 0]
+    assert math.isclose((log_posterior[1] - log_posterior[0]).item(), math.log(sensor))
+    # (0, 1)'s pattern is x0 + 2 x1: firing 1 in pattern 1, firing 2 in pattern 0
+    assert pruned.count[0, 0, 4].tolist() == [1.0, 1.0, 0.0, 0.0]
+    assert pruned.successes[0, 0, 4].tolist() == [0.0, 1.0, 0.0, 0.0]
+    assert pruned.reward_sum[0, 0, 4].tolist() == [0.0, -1.0, 0.0, 0.0]
+    # the counts (and the block's, and the marginals) of every active pair: those of counting
+    # every firing, bit for bit; so are their log posteriors
+    _assert_active_counts_equal(pruned, full)
+    assert torch.equal(log_posterior[:6], full.log_posterior()[0, 0, :6])
+    # 3: x = (1, 0, 0), no collision. (0,): pattern 1 (1, 0) 1/6, pattern 0 (0) 1/2 = 1/12,
+    # "none" (1, 0, 0) 1/12: odds 1/3, not plausible; the pairs of sensor 0 read what (0,) reads
+    # (1/100 of its prior mass over 3 pairs): not plausible either, so they leave.
+    fire([1, 0, 0], 0.0)
+    assert not pruned.active[0, 0, pairs].any()
+    # 4: x = (1, 0, 0), collides. (0,): pattern 1 (1, 0, 1) 1/12, pattern 0 (0) 1/2 = 1/24;
+    # "none" (1, 0, 0, 1) 1/30: odds (1/3 * 1/24) / (1/30) = 5/12 > 1/2.5: they enter again,
+    # rebuilt from all four firings.
+    fire([1, 0, 0], -1.0)
+    assert pruned.active[0, 0, pairs].tolist() == [True, True, False]
+    assert pruned.count[0, 0, 4].tolist() == [1.0, 3.0, 0.0, 0.0]
+    assert pruned.successes[0, 0, 4].tolist() == [0.0, 2.0, 0.0, 0.0]
+    _assert_active_counts_equal(pruned, full)
+
+
+def _assert_active_counts_equal(pruned: StructureLearner, full: StructureLearner) -> None:
+    active = pruned.active
+    for prefix in ("", "block_"):
+        for name in ("count", "successes", "reward_sum", "log_marginal"):
+            mine, theirs = getattr(pruned, prefix + name), getattr(full, prefix + name)
+            assert torch.equal(mine[active], theirs[active]), prefix + name
+
+
+def test_active_pairs_hold_the_counts_of_counting_every_firing_on_random_data():
+    # 4 experiments, 3 actuators, 7 sensors: actuator 0 collides on sensor 1, actuator 1 on
+    # sensors 2 and 5 together, actuator 2 never; fractional rewards on actuator 2's firings
+    # (added one at a time on rebuild). With reopening off, the counts do not depend on the
+    # decisions: every active candidate's counts equal those of the learner that counts all.
+    generator = torch.Generator().manual_seed(3)
+    options = dict(num_actions=3, num_sensors=7, window=9, reopen_factor=1e300)
+    options |= dict(bayes_factor=20.0)
+    pruned = StructureLearner(4, pairs="pruned", **options)
+    full = StructureLearner(4, pairs="all", **options)
+    entered = left = 0
+    for step in range(120):
+        readings = torch.rand(4, 7, generator=generator) < 0.5
+        action = torch.randint(0, 3, (4,), generator=generator)
+        reward = torch.stack(
+            (
+                -readings[:, 1].float(),
+                -(readings[:, 2] & readings[:, 5]).float(),
+                -torch.rand(4, generator=generator) * 0.3,
+            ),
+            dim=1,
+        )
+        mask = torch.rand(4, generator=generator) < 0.8
+        before = pruned.active.clone()
+        for learner in (pruned, full):
+            learner.update_running_mean(readings, action, reward, mask)
+        entered += int((pruned.active & ~before).sum())
+        left += int((before & ~pruned.active).sum())
+        active = pruned.active
+        for prefix in ("", "block_"):
+            for name in ("count", "successes", "reward_sum", "log_marginal"):
+                mine, theirs = getattr(pruned, prefix + name), getattr(full, prefix + name)
+                assert torch.equal(mine[active], theirs[active]), (step, prefix + name)
+    assert entered > 0 and left > 0
+    assert int(pruned.active.sum()) < int(full.active.sum())
+    # the decisions too (here: the same commitments; actuator 1's pair (2, 5) is found and
+    # stays active wherever it is committed to)
+    assert torch.equal(pruned.committed, full.committed)
+    pair = candidate_sets(7).index((2, 5))
+    assert (pruned.committed[:, 1] == pair).any()
+    assert pruned.active[:, 1, pair][pruned.committed[:, 1] == pair].all()
+
+
+def test_rebuild_pair_counts_by_hand():
+    from factorq_torch.functional import rebuild_pair_counts
+
+    # firings: sensors 0 and 2 read (1, 1), (0, 1), (1, 1); rewards -1, 0, -0.5; the last two in
+    # the block. Pair (0, 2): patterns 3, 2, 3.
+    readings = torch.tensor([0b101, 0b100, 0b111])
+    reward = torch.tensor([-1.0, 0.0, -0.5], dtype=torch.float64)
+    block = torch.tensor([False, True, True])
+    sums = rebuild_pair_counts(readings, reward, block, torch.tensor([0]), torch.tensor([2]))
+    count, successes, reward_sum, block_count, block_successes, block_reward_sum = sums
+    assert count.tolist() == [[0.0, 0.0, 1.0, 2.0]]
+    assert successes.tolist() == [[0.0, 0.0, 0.0, 1.5]]
+    assert reward_sum.tolist() == [[0.0, 0.0, 0.0, -1.5]]
+    assert block_count.tolist() == [[0.0, 0.0, 1.0, 1.0]]
+    assert block_successes.tolist() == [[0.0, 0.0, 0.0, 0.5]]
+    assert block_reward_sum.tolist() == [[0.0, 0.0, 0.0, -0.5]]
+
+
+def test_pair_activity_and_the_initial_active_set():
+    from factorq_torch.functional import initial_activity, pair_activity, pair_members
+
+    sets = candidate_sets(3)
+    members = pair_members(sets)
+    assert members.tolist() == [[0, 1, 2, 3, 1, 1, 2], [0, 1, 2, 3, 2, 3, 3]]
+    small = torch.tensor([True] * 4 + [False] * 3)
+    log_prior = candidate_log_prior(sets, "sparse")
+    # singles 1/3 of "none": plausible at a Bayes factor of 4, not at 2.5
+    assert initial_activity(sets, log_prior, math.log(4.0)).all()
+    assert initial_activity(sets, log_prior, math.log(2.5)).tolist() == [True] * 4 + [False] * 3
+    inf = -math.inf
+    # (1,) plausible: (0, 1) and (1, 2) enter; (0, 2) is plausible itself; nothing committed
+    log_posterior = torch.tensor([[0.0, -5.0, -1.0, -5.0, inf, -0.5, inf]], dtype=torch.float64)
+    got = pair_activity(log_posterior, torch.tensor([-1]), members, small, math.log(4.0))
+    assert got.tolist() == [[True] * 7]
+    # nothing plausible but "none" and (1,) ... and (1, 2) committed: (0, 2) leaves
+    log_posterior[0, 5] = -3.0
+    got = pair_activity(log_posterior, torch.tensor([6]), members, small, 1.0)
+    assert got.tolist() == [[True] * 4 + [True, False, True]]
+
+
+def test_an_unknown_pair_mode_is_refused_by_name():
+    with pytest.raises(ValueError, match="pairs"):
+        StructureLearner(1, num_actions=1, num_sensors=3, pairs="some")

@@ -33,7 +33,7 @@
 #include <string.h>
 
 #define NUM_ACTIONS 4
-#define FQ_ABI_VERSION 7
+#define FQ_ABI_VERSION 8
 /* Most actuators of a body the generic loop handles (bit masks, small stack arrays). */
 #define MAX_ACTUATORS 32
 /* Most candidates of the structure learner (1 + K + K (K - 1) / 2 for K <= 62). */
@@ -142,6 +142,8 @@ typedef struct {
     int64_t reopen_body;      /* a reopening forgets every actuator (1) or its own (0) */
     int64_t likelihood_flip;  /* functional.LIKELIHOODS: 1 "flip", 0 "pattern" or "mixture" */
     int64_t mixture;          /* 1: "mixture" (each pattern's rate clean or noisy) */
+    int64_t prune_pairs;      /* 1: functional.PAIR_MODES "pruned" (pairs counted while active) */
+    int64_t history_capacity; /* L: firings the history of one experiment holds (pruned) */
     double log_bayes_factor;
     double log_reopen_factor;          /* the change-point test's threshold */
     double log_beta_prior;
@@ -157,7 +159,9 @@ typedef struct {
                                          the world's order (any algorithm may have orders) */
     const int64_t *orders_after;      /* [S, K] the order after the change */
     const int64_t *truth;             /* [S, 2, A] candidate index of the true parents, -2: none */
-    double *counts;                   /* [S, stride]: 8 arrays [A, C, P] (learner_arrays) */
+    const uint8_t *initial_active;    /* [C] functional.initial_activity */
+    const int16_t *all_candidates;    /* [C] 0, 1, ..., C - 1 (the list without pruning) */
+    double *counts;                   /* [S, stride]: [A, C, 8, P] (learner_view) */
     int64_t *committed;               /* [S, A] candidate, -1 open */
     int64_t *samples;                 /* [S, A] */
     int64_t *block_samples;           /* [S, A] */
@@ -169,6 +173,16 @@ typedef struct {
     int64_t *wrong_commitments;       /* [S] */
     int64_t *change_tick;             /* [S] tick of the last observation in the old order, -1 */
     uint8_t *curve;                   /* [S, curve_length] all right at step t * curve_every */
+    /* pair pruning (prune_pairs): the active candidates and every firing since the start */
+    uint8_t *active;                  /* [S, A, C] counted and scored */
+    int64_t *history_readings;        /* [S, L] the agent's sensor bits before the firing */
+    uint8_t *history_action;          /* [S, L] the fired actuator */
+    float *history_reward;            /* [S, L] its local reward */
+    int64_t *history_length;          /* [S] firings recorded */
+    int64_t *history_start;           /* [S, A] the actuator's counts start at this firing */
+    int64_t *block_start;             /* [S, A] its block starts at this firing */
+    int16_t *active_list;             /* [S, A, C] the active candidates, increasing */
+    int64_t *active_count;            /* [S, A] how many */
 } fq_batch;
 
 int64_t fq_abi_version(void) { return FQ_ABI_VERSION; }
@@ -713,20 +727,24 @@ static inline int64_t greedy_action_n(const float *values, int64_t n, uint64_t k
  * order as the torch module; tests/test_fast_structure.py checks equality bit for bit.
  */
 
-/* The 8 arrays [A, C, P] of one experiment's counts block, in this order. */
+/* The 8 arrays of one experiment's counts block, in this order, interleaved per candidate:
+   [A, C, 8, P] (one candidate's counts, sums and marginals, all and the block's, in 8 P adjacent
+   doubles: a firing touches 4 cache lines per candidate, not 8 scattered ones). array[k][h + p]
+   is array k at pattern p of the candidate whose block starts at h = (a C + c) W, W = 8 P. */
 enum { L_COUNT, L_SUCC, L_RSUM, L_LM, L_BCOUNT, L_BSUCC, L_BRSUM, L_BLM, L_ARRAYS };
 
 typedef struct {
     double *array[L_ARRAYS];
-    int64_t C, P, A;
+    int64_t C, P, A, W;
 } learner_view;
 
 static inline learner_view learner_of(const fq_batch *b, int64_t i) {
     learner_view v;
-    const int64_t size = b->num_actuators * b->num_candidates * b->learner_patterns;
-    for (int k = 0; k < L_ARRAYS; k++) v.array[k] = b->counts + i * b->learner_stride + k * size;
+    for (int k = 0; k < L_ARRAYS; k++)
+        v.array[k] = b->counts + i * b->learner_stride + k * b->learner_patterns;
     v.C = b->num_candidates;
     v.P = b->learner_patterns;
+    v.W = L_ARRAYS * v.P;
     v.A = b->num_actuators;
     return v;
 }
@@ -810,6 +828,31 @@ static inline int64_t argmax_d(const double *x, int64_t n) {
     return best;
 }
 
+/* The candidates actuator a of experiment i counts, in increasing order: the active ones with
+   pair pruning (active_list), else all (all_candidates); *count their number. Every loop over the
+   candidates below runs over this list: with pruning a firing costs O(K + active pairs), not
+   O(C), and the first maximum in index order is still torch.argmax's. */
+static inline const int16_t *learner_list(const fq_batch *b, int64_t i, int64_t a,
+                                          int64_t *count) {
+    if (!b->prune_pairs) {
+        *count = b->num_candidates;
+        return b->all_candidates;
+    }
+    *count = b->active_count[i * b->num_actuators + a];
+    return b->active_list + (i * b->num_actuators + a) * b->num_candidates;
+}
+
+/* active_list and active_count of actuator a from its active flags (after they changed). */
+static void learner_relist(const fq_batch *b, int64_t i, int64_t a) {
+    const int64_t C = b->num_candidates, row = i * b->num_actuators + a;
+    const uint8_t *active = b->active + row * C;
+    int16_t *list = b->active_list + row * C;
+    int64_t n = 0;
+    for (int64_t c = 0; c < C; c++)
+        if (active[c]) list[n++] = (int16_t)c;
+    b->active_count[row] = n;
+}
+
 /* StructureLearner.local_values for one experiment: local[a] for every actuator. */
 static void learner_predict(const fq_batch *b, int64_t i, uint64_t readings, float *local) {
     const learner_view v = learner_of(b, i);
@@ -819,9 +862,12 @@ static void learner_predict(const fq_batch *b, int64_t i, uint64_t readings, flo
         if (c < 0 && b->prediction == 2) { /* optimistic: the largest plausible mean */
             const uint8_t *plausible = b->plausible + (i * v.A + a) * v.C;
             double best = -INFINITY;
-            for (int64_t d = 0; d < v.C; d++) {
+            int64_t listed;
+            const int16_t *list = learner_list(b, i, a, &listed); /* plausible ones are active */
+            for (int64_t m = 0; m < listed; m++) {
+                const int64_t d = list[m];
                 if (!plausible[d]) continue;
-                const int64_t e = (a * v.C + d) * v.P + candidate_pattern(b, d, readings);
+                const int64_t e = (a * v.C + d) * v.W + candidate_pattern(b, d, readings);
                 const double n = v.array[L_COUNT][e];
                 const double mean = n > 0 ? v.array[L_RSUM][e] / n : 0.0;
                 if (mean > best) best = mean;
@@ -836,46 +882,147 @@ static void learner_predict(const fq_batch *b, int64_t i, uint64_t readings, flo
             }
             c = map[a];
         }
-        const int64_t e = (a * v.C + c) * v.P + candidate_pattern(b, c, readings);
+        const int64_t e = (a * v.C + c) * v.W + candidate_pattern(b, c, readings);
         const double n = v.array[L_COUNT][e];
         local[a] = n > 0 ? (float)(v.array[L_RSUM][e] / n) : 0.0f;
     }
 }
 
 /* StructureLearner._refresh_cache for actuator a: the MAP candidate and the plausible ones, from
-   lp [C] when given, else from the counts. */
+   lp (read at the listed candidates) when given, else from the counts (and every flag rewritten:
+   after a reopening the active set is new). An inactive candidate (-inf) is never plausible;
+   learner_enter clears the flag of a pair that leaves. */
 static void learner_refresh(const fq_batch *b, int64_t i, int64_t a, double *lp, int have_lp) {
     const learner_view v = learner_of(b, i);
-    const int64_t C = v.C, P = v.P, base = a * C * P;
-    if (!have_lp)
-        for (int64_t c = 0; c < C; c++)
-            lp[c] = b->log_prior[c] + candidate_log_marginal(b, &v, base + c * P, 0);
-    const int64_t map = argmax_d(lp, C);
+    const int64_t C = v.C, W = v.W, base = a * C * W;
+    int64_t listed;
+    const int16_t *list = learner_list(b, i, a, &listed);
+    uint8_t *plausible = b->plausible + (i * v.A + a) * C;
+    if (!have_lp) {
+        for (int64_t m = 0; m < listed; m++)
+            lp[list[m]] =
+                b->log_prior[list[m]] + candidate_log_marginal(b, &v, base + list[m] * W, 0);
+        memset(plausible, 0, (size_t)C);
+    }
+    int64_t map = list[0];
+    for (int64_t m = 1; m < listed; m++)
+        if (lp[list[m]] > lp[map]) map = list[m];
     b->map_cache[i * v.A + a] = map;
     const double floor = lp[map] - b->log_bayes_factor;
-    uint8_t *plausible = b->plausible + (i * v.A + a) * C;
-    for (int64_t c = 0; c < C; c++) plausible[c] = lp[c] >= floor;
+    for (int64_t m = 0; m < listed; m++) plausible[list[m]] = lp[list[m]] >= floor;
 }
 
 /* Forget everything actuator a of experiment i has counted (a reopening). */
 static void learner_forget(const fq_batch *b, int64_t i, int64_t a) {
     const learner_view v = learner_of(b, i);
-    const int64_t base = a * v.C * v.P;
-    for (int k = 0; k < L_ARRAYS; k++) memset(v.array[k] + base, 0, (size_t)(v.C * v.P) * 8);
+    memset(v.array[0] + a * v.C * v.W, 0, (size_t)(v.C * v.W) * 8); /* all 8 arrays */
     b->committed[i * v.A + a] = -1;
     b->block_samples[i * v.A + a] = 0;
+    if (b->prune_pairs) { /* the history restarts after this firing, as the counts do */
+        memcpy(b->active + (i * v.A + a) * v.C, b->initial_active, (size_t)v.C);
+        learner_relist(b, i, a);
+        b->history_start[i * v.A + a] = b->history_length[i];
+        b->block_start[i * v.A + a] = b->history_length[i];
+    }
+}
+
+/* Candidate index of the pair (j, k), j < k, in functional.candidate_sets' order. */
+static inline int64_t pair_index(int64_t K, int64_t j, int64_t k) {
+    return 1 + K + j * (2 * K - j - 1) / 2 + (k - j - 1);
+}
+
+/* StructureLearner._enter (pairs "pruned"): functional.pair_activity on lp (the active
+   candidates' log posterior), then the counts of every entering pair rebuilt from the actuator's
+   firings since history_start (functional.rebuild_pair_counts: in firing order, so the sums are
+   the ones counting every firing would have left) and its lp. A pair leaves when neither it nor
+   its singles are plausible and it is not committed; it enters when one of its singles is
+   plausible (an inactive pair has no log posterior: it is never plausible itself). */
+static void learner_enter(const fq_batch *b, int64_t i, int64_t a, double *lp) {
+    const learner_view v = learner_of(b, i);
+    const int64_t C = v.C, P = v.P, W = v.W, K = b->num_sensors, base = a * C * W;
+    const int64_t L = b->history_capacity, row = i * v.A + a;
+    uint8_t *active = b->active + row * C;
+    uint8_t *plausible = b->plausible + row * C;
+    int64_t listed;
+    const int16_t *list = learner_list(b, i, a, &listed);
+    double best = lp[list[0]];
+    for (int64_t m = 1; m < listed; m++)
+        if (lp[list[m]] > best) best = lp[list[m]];
+    const double floor = best - b->log_bayes_factor;
+    const int64_t held = b->committed[row];
+    int changed = 0;
+    for (int64_t m = 1 + K; m < listed; m++) { /* the active pairs: stay or leave */
+        const int64_t c = list[m];
+        const int64_t j = b->candidate_sensors[2 * c], k = b->candidate_sensors[2 * c + 1];
+        if (lp[c] >= floor || lp[1 + j] >= floor || lp[1 + k] >= floor || c == held) continue;
+        active[c] = 0;
+        plausible[c] = 0;
+        changed = 1;
+    }
+    int64_t entering[LEARNER_SCRATCH], count = 0;
+    for (int64_t j = 0; j < K; j++) { /* the pairs of a plausible single: enter */
+        if (!(lp[1 + j] >= floor)) continue;
+        for (int64_t k = 0; k < K; k++) {
+            if (k == j) continue;
+            const int64_t c = k < j ? pair_index(K, k, j) : pair_index(K, j, k);
+            if (active[c]) continue;
+            active[c] = 1;
+            entering[count++] = c;
+        }
+    }
+    if (changed || count > 0) learner_relist(b, i, a);
+    if (count == 0) return;
+    for (int64_t m = 0; m < count; m++) memset(v.array[0] + base + entering[m] * W, 0, (size_t)W * 8);
+    const int64_t start = b->history_start[row], length = b->history_length[i];
+    const int64_t block_start = b->block_start[row];
+    const int64_t *readings = b->history_readings + i * L;
+    const uint8_t *actions = b->history_action + i * L;
+    const float *rewards = b->history_reward + i * L;
+    for (int64_t t = start; t < length; t++) {
+        if (actions[t] != a) continue;
+        const double reward = (double)rewards[t];
+        const double negated = -reward;
+        const double success = negated < 0.0 ? 0.0 : (negated > 1.0 ? 1.0 : negated);
+        const int blocks = t >= block_start ? 2 : 1;
+        for (int64_t m = 0; m < count; m++) {
+            const int64_t e =
+                base + entering[m] * W + candidate_pattern(b, entering[m], (uint64_t)readings[t]);
+            for (int block = 0; block < blocks; block++) {
+                double *n = v.array[block ? L_BCOUNT : L_COUNT];
+                double *succ = v.array[block ? L_BSUCC : L_SUCC];
+                double *rsum = v.array[block ? L_BRSUM : L_RSUM];
+                n[e] = n[e] + 1.0;
+                succ[e] = succ[e] + success;
+                rsum[e] = rsum[e] + reward;
+            }
+        }
+    }
+    for (int64_t m = 0; m < count; m++) {
+        const int64_t h = base + entering[m] * W;
+        for (int block = 0; block < 2; block++) {
+            const double *n = v.array[block ? L_BCOUNT : L_COUNT] + h;
+            const double *succ = v.array[block ? L_BSUCC : L_SUCC] + h;
+            double *lm = v.array[block ? L_BLM : L_LM] + h;
+            for (int64_t p = 0; p < P; p++)
+                lm[p] = n[p] > 0 ? pattern_log_marginal(b, n[p], succ[p]) : 0.0;
+        }
+        lp[entering[m]] = b->log_prior[entering[m]] + candidate_log_marginal(b, &v, h, 0);
+    }
 }
 
 /* StructureLearner.update_running_mean for one firing, then _decide and _refresh_cache. */
 static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int64_t a,
                            float local_reward, double *scratch) {
     const learner_view v = learner_of(b, i);
-    const int64_t C = v.C, P = v.P;
+    const int64_t C = v.C, P = v.P, W = v.W;
     const double reward = (double)local_reward;
     const double negated = -reward;
     const double success = negated < 0.0 ? 0.0 : (negated > 1.0 ? 1.0 : negated);
-    for (int64_t c = 0; c < C; c++) {
-        const int64_t e = (a * C + c) * P + candidate_pattern(b, c, readings);
+    int64_t listed;
+    const int16_t *list = learner_list(b, i, a, &listed); /* an inactive pair is not counted */
+    for (int64_t m = 0; m < listed; m++) {
+        const int64_t c = list[m];
+        const int64_t e = (a * C + c) * W + candidate_pattern(b, c, readings);
         for (int block = 0; block < 2; block++) {
             double *count = v.array[block ? L_BCOUNT : L_COUNT];
             double *succ = v.array[block ? L_BSUCC : L_SUCC];
@@ -892,22 +1039,32 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
     int64_t *block_samples = b->block_samples + i * v.A + a;
     b->samples[i * v.A + a] += 1;
     *block_samples += 1;
-    /* _decide */
-    const int64_t base = a * C * P;
+    /* _decide, over the listed candidates (lp is read nowhere else) */
+    const int64_t base = a * C * W;
     double *lp = scratch; /* [C] */
-    for (int64_t c = 0; c < C; c++)
-        lp[c] = b->log_prior[c] + candidate_log_marginal(b, &v, base + c * P, 0);
-    const int64_t best = argmax_d(lp, C);
+    for (int64_t m = 0; m < listed; m++)
+        lp[list[m]] = b->log_prior[list[m]] + candidate_log_marginal(b, &v, base + list[m] * W, 0);
+    if (b->prune_pairs) {
+        const int64_t t = b->history_length[i]++;
+        b->history_readings[i * b->history_capacity + t] = (int64_t)readings;
+        b->history_action[i * b->history_capacity + t] = (uint8_t)a;
+        b->history_reward[i * b->history_capacity + t] = local_reward;
+        learner_enter(b, i, a, lp);
+        list = learner_list(b, i, a, &listed);
+    }
+    int64_t best = list[0];
+    for (int64_t m = 1; m < listed; m++)
+        if (lp[list[m]] > lp[best]) best = list[m];
     double rival_max = -INFINITY;
     const uint8_t *rivals = b->competitors + best * C;
-    for (int64_t c = 0; c < C; c++)
-        if (rivals[c] && lp[c] > rival_max) rival_max = lp[c];
+    for (int64_t m = 0; m < listed; m++)
+        if (rivals[list[m]] && lp[list[m]] > rival_max) rival_max = lp[list[m]];
     const double margin = lp[best] - rival_max;
     const int64_t held = *committed;
     const int commit = held < 0 && margin >= b->log_bayes_factor;
     int reopen = 0;
     if (held >= 0) {
-        const int64_t h = base + held * P;
+        const int64_t h = base + held * W;
         double lead;
         if (b->likelihood_flip) { /* the whole candidate's ratio: it does not split over patterns */
             const double all = candidate_log_marginal(b, &v, h, 0);
@@ -927,8 +1084,9 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
             lead = b->log_prior[held] + (0.0 + predicted);
         }
         double rival = -INFINITY;
-        for (int64_t c = 0; c < C; c++) {
-            const double x = b->log_prior[c] + candidate_log_marginal(b, &v, base + c * P, 1);
+        for (int64_t m = 0; m < listed; m++) {
+            const int64_t c = list[m];
+            const double x = b->log_prior[c] + candidate_log_marginal(b, &v, base + c * W, 1);
             if (x > rival) rival = x;
         }
         reopen = rival - lead >= b->log_reopen_factor;
@@ -945,8 +1103,10 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
                 }
     }
     if (*block_samples >= b->window) {
-        for (int k = L_BCOUNT; k < L_ARRAYS; k++) memset(v.array[k] + base, 0, (size_t)(C * P) * 8);
+        for (int64_t c = 0; c < C; c++) /* the block's 4 arrays: adjacent in each candidate */
+            memset(v.array[L_BCOUNT] + base + c * W, 0, (size_t)(L_ARRAYS - L_BCOUNT) * P * 8);
         *block_samples = 0;
+        if (b->prune_pairs) b->block_start[i * v.A + a] = b->history_length[i];
     }
     /* _refresh_cache: the MAP candidate of the (possibly forgotten) counts */
     learner_refresh(b, i, a, lp, !reopen);
@@ -1240,9 +1400,10 @@ int64_t fq_check_experiment(const fq_batch *b, int64_t i) {
                 return 14;
         }
         const learner_view v = learner_of(b, i);
-        const int64_t entries = A * C * b->learner_patterns;
-        for (int64_t e = 0; e < entries; e++)
+        const int64_t P = b->learner_patterns, entries = A * C * P;
+        for (int64_t x = 0; x < entries; x++) /* candidate x / P, pattern x % P */
             for (int block = 0; block < 2; block++) {
+                const int64_t e = (x / P) * v.W + x % P;
                 const double n = v.array[block ? L_BCOUNT : L_COUNT][e];
                 const double s = v.array[block ? L_BSUCC : L_SUCC][e];
                 /* integral 0 <= s <= n, and n + 1 still inside the lgamma tables */
@@ -1252,6 +1413,35 @@ int64_t fq_check_experiment(const fq_batch *b, int64_t i) {
             }
     }
     if (b->orders != NULL && b->change_tick[i] < -1) return 16;
+    if (b->learner && b->prune_pairs) { /* the history an entering pair is rebuilt from */
+        const int64_t A = b->num_actuators, C = b->num_candidates, L = b->history_capacity;
+        const int64_t length = b->history_length[i];
+        if (length < 0 || length > L) return 17;
+        for (int64_t a = 0; a < A; a++) {
+            const int64_t start = b->history_start[i * A + a], block = b->block_start[i * A + a];
+            if (start < 0 || start > block || block > length) return 17;
+            const uint8_t *active = b->active + (i * A + a) * C;
+            for (int64_t c = 0; c < C; c++)
+                if (active[c] > 1 || (b->candidate_sensors[2 * c + 1] < 0 && !active[c])) return 17;
+            /* the list: the active candidates in increasing order, the committed one among them */
+            const int16_t *list = b->active_list + (i * A + a) * C;
+            const int64_t listed = b->active_count[i * A + a];
+            int64_t flagged = 0;
+            for (int64_t c = 0; c < C; c++) flagged += active[c];
+            if (listed != flagged) return 17;
+            for (int64_t m = 0; m < listed; m++)
+                if (list[m] < 0 || list[m] >= C || !active[list[m]] || (m > 0 && list[m] <= list[m - 1]))
+                    return 17;
+            const int64_t held = b->committed[i * A + a];
+            if (held >= 0 && !active[held]) return 17;
+        }
+        for (int64_t t = 0; t < length; t++) {
+            const float reward = b->history_reward[i * L + t];
+            /* an integral success (the lgamma tables' indices) */
+            if (b->history_action[i * L + t] >= A || !(reward == 0.0f || reward == -1.0f))
+                return 17;
+        }
+    }
     return 0;
 }
 

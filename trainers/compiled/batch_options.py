@@ -13,16 +13,18 @@ from typing import Any
 import torch
 
 from factorq_envs.grid_world import WorldConfig
-from factorq_torch.base.validation import check_float, check_int
+from factorq_torch.base.validation import MAX_TABLE_ENTRIES, check_float, check_int
 from factorq_torch.functional import (
     LIKELIHOODS,
     NOISY_ODDS,
     NOISY_PRIOR,
+    PAIR_MODES,
     PREDICTIONS,
     REOPENINGS,
     candidate_log_prior,
     candidate_sets,
     competitor_mask,
+    initial_activity,
     lgamma_tables,
 )
 from factorq_trainers.compiled.loader import _PREDICTION_CODES
@@ -52,6 +54,7 @@ class StructureOptions:
     reopen: str = "body"
     reopen_factor: float | None = None
     likelihood: str = "mixture"
+    pairs: str = "pruned"
     orders_after: torch.Tensor | None = None
     change_run: int = 0
     curve_every: int = 10
@@ -174,6 +177,10 @@ def structure_setup(
         raise ValueError(
             f"structure.likelihood={options.likelihood!r} is unknown: choose one of {LIKELIHOODS}"
         )
+    if options.pairs not in PAIR_MODES:
+        raise ValueError(
+            f"structure.pairs={options.pairs!r} is unknown: choose one of {PAIR_MODES}"
+        )
     if options.reopen not in REOPENINGS:
         raise ValueError(
             f"structure.reopen={options.reopen!r} is unknown: choose one of {REOPENINGS}"
@@ -201,6 +208,19 @@ def structure_setup(
     log_prior = candidate_log_prior(sets, options.prior)
     steps = runs * episodes * world.max_steps
     length = steps + 2  # n + 1 of every count stays inside
+    log_bayes_factor = math.log(float(options.bayes_factor))
+    pruned = options.pairs == "pruned" and options.max_parents >= 2 and num_sensors >= 2
+    initial = initial_activity(sets, log_prior, log_bayes_factor)
+    if not pruned:
+        initial = torch.ones_like(initial)
+    capacity = steps if pruned else 1  # every firing of an experiment (one per step)
+    if capacity > MAX_TABLE_ENTRIES:
+        raise ValueError(
+            f"structure.pairs='pruned' keeps every firing of an experiment to rebuild an entering "
+            f"pair: {steps} steps per experiment are past the cap of {MAX_TABLE_ENTRIES} (2**24): "
+            f"use pairs='all' (--pairs all) or fewer runs, episodes or max_steps"
+        )
+    scored = torch.where(initial, log_prior, -math.inf)
     tables = {
         "candidate_sensors": candidate_sensors.contiguous(),
         "log_prior": log_prior.contiguous(),
@@ -210,6 +230,8 @@ def structure_setup(
         "orders": orders,
         "orders_after": after,
         "truth": truth,
+        "initial_active": initial.to(torch.uint8).contiguous(),
+        "all_candidates": torch.arange(num_candidates, dtype=torch.int16),
     }
     per_experiment = 8 * actuators * num_candidates * patterns
     counts, stride = _padded_zeros(count, (per_experiment,), torch.float64)
@@ -220,8 +242,9 @@ def structure_setup(
         "samples": torch.zeros(count, actuators, dtype=torch.int64),
         "block_samples": torch.zeros(count, actuators, dtype=torch.int64),
         "reopened": torch.zeros(count, actuators, dtype=torch.int64),
-        "map_cache": torch.full((count, actuators), int(log_prior.argmax()), dtype=torch.int64),
-        "plausible": (log_prior >= log_prior.max() - math.log(float(options.bayes_factor)))
+        # over the initially active candidates (StructureLearner's first _refresh_cache)
+        "map_cache": torch.full((count, actuators), int(scored.argmax()), dtype=torch.int64),
+        "plausible": (scored >= scored.max() - log_bayes_factor)
         .to(torch.uint8)
         .expand(count, actuators, -1)
         .contiguous(),
@@ -230,6 +253,21 @@ def structure_setup(
         "wrong_commitments": torch.zeros(count, dtype=torch.int64),
         "change_tick": torch.full((count,), -1, dtype=torch.int64),
         "curve": torch.zeros(count, curve_length, dtype=torch.uint8),
+        "active": initial.to(torch.uint8).expand(count, actuators, -1).contiguous(),
+        "history_readings": torch.zeros(count, capacity, dtype=torch.int64),
+        "history_action": torch.zeros(count, capacity, dtype=torch.uint8),
+        "history_reward": torch.zeros(count, capacity, dtype=torch.float32),
+        "history_length": torch.zeros(count, dtype=torch.int64),
+        "history_start": torch.zeros(count, actuators, dtype=torch.int64),
+        "block_start": torch.zeros(count, actuators, dtype=torch.int64),
+        # the active candidates in increasing order, then padding (the kernel's loops)
+        "active_list": torch.where(initial, torch.arange(num_candidates), num_candidates)
+        .sort()
+        .values.clamp(max=num_candidates - 1)
+        .to(torch.int16)
+        .expand(count, actuators, -1)
+        .contiguous(),
+        "active_count": torch.full((count, actuators), int(initial.sum()), dtype=torch.int64),
     }
     a, b = float(options.prior_a), float(options.prior_b)
     noisy_a, noisy_b = NOISY_PRIOR
@@ -247,7 +285,9 @@ def structure_setup(
         "reopen_body": int(options.reopen == "body"),
         "likelihood_flip": int(options.likelihood == "flip"),
         "mixture": int(options.likelihood == "mixture"),
-        "log_bayes_factor": math.log(float(options.bayes_factor)),
+        "prune_pairs": int(pruned),
+        "history_capacity": capacity,
+        "log_bayes_factor": log_bayes_factor,
         "log_reopen_factor": math.log(
             float(options.bayes_factor if options.reopen_factor is None else options.reopen_factor)
         ),

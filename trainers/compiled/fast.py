@@ -300,10 +300,11 @@ class ExperimentBatch:
         # the learner's own state: the pointers after its counts (committed ... curve)
         own = _LEARNER_POINTERS[_LEARNER_POINTERS.index("counts") + 1 :]
         state = {name: self._tensors[name].clone() for name in own}
-        shape = (self.num_experiments, 8, self.world.num_actuators, self._batch.num_candidates)
+        # the kernel's layout [S, A, C, 8, P]: one candidate's eight arrays side by side
+        shape = (self.num_experiments, self.world.num_actuators, self._batch.num_candidates, 8)
         counts = self._tensors["counts"].reshape(*shape, self._batch.learner_patterns)
         for index, name in enumerate((*names, *("block_" + name for name in names))):
-            state[name] = counts[:, index].clone()
+            state[name] = counts[:, :, :, index].clone()
         state["truth"] = self._learner_tables["truth"].clone()
         return state
 

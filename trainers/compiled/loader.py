@@ -36,7 +36,7 @@ _SOURCE = Path(__file__).with_name("_kernel.c")
 #: No FMA contraction and no fast-math: every float operation must round exactly as torch's
 #: separate ops do. -march=native is left out (measured no faster; keeps the cache portable).
 _FLAGS = ("-O3", "-std=c99", "-ffp-contract=off", "-fno-fast-math", "-fPIC", "-shared")
-_ABI_VERSION = 7
+_ABI_VERSION = 8
 #: The fields ``fq_check_experiment`` refuses, by code (1-based), and ``fq_advance``'s encoding.
 _STATE_FIELDS = (
     "cell",
@@ -55,6 +55,7 @@ _STATE_FIELDS = (
     "samples",
     "counts",
     "change_tick",
+    "history",
 )
 _CHECK_CODES = 64
 
@@ -68,6 +69,8 @@ _LEARNER_POINTERS = (
     "orders",
     "orders_after",
     "truth",
+    "initial_active",
+    "all_candidates",
     "counts",
     "committed",
     "samples",
@@ -80,6 +83,15 @@ _LEARNER_POINTERS = (
     "wrong_commitments",
     "change_tick",
     "curve",
+    "active",
+    "history_readings",
+    "history_action",
+    "history_reward",
+    "history_length",
+    "history_start",
+    "block_start",
+    "active_list",
+    "active_count",
 )
 #: The kernel's codes of ``StructureOptions.prediction`` (``"posterior"`` is modular only).
 _PREDICTION_CODES = {"map": 0, "committed": 1, "optimistic": 2}
@@ -174,6 +186,8 @@ class _Batch(ctypes.Structure):
                 "reopen_body",
                 "likelihood_flip",
                 "mixture",
+                "prune_pairs",
+                "history_capacity",
             )
         ]
         + [

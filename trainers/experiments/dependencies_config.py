@@ -143,6 +143,14 @@ class DependenciesConfig:
         "disagree at a flip rate learned per parent set).",
         choices=("flip", "pattern", "mixture"),
     )
+    pairs: str = option(
+        "pruned",
+        "Which pair candidates are counted: pruned (a pair only while one of its sensors, or the "
+        "pair itself, is plausible, its counts rebuilt from the stored firings when it enters: "
+        "the same counts, a fraction of the work with many sensors) or all (every pair at every "
+        "firing).",
+        choices=("all", "pruned"),
+    )
     change_run: int = option(5, "Run at which the change setting redraws the sensor order.")
     prediction: str = option(
         "optimistic",
@@ -205,6 +213,7 @@ class DependenciesConfig:
             ("reopen", ("body", "actuator")),
             ("candidate_prior", ("size", "sparse", "uniform")),
             ("likelihood", ("flip", "pattern", "mixture")),
+            ("pairs", ("all", "pruned")),
         ):
             if getattr(self, name) not in choices:
                 raise ValueError(

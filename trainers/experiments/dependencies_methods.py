@@ -60,6 +60,7 @@ def _learner_options(config: DependenciesConfig) -> dict[str, Any]:
         "reopen": config.reopen,
         "reopen_factor": config.reopen_factor,
         "likelihood": config.likelihood,
+        "pairs": config.pairs,
     }
 
 
@@ -275,6 +276,8 @@ def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, A
         "reopened": learner.reopened.clone(),
         "map_cache": learner.map_cache.clone(),
         "plausible": learner.plausible_cache.to(torch.uint8),
+        "active": learner.active.to(torch.uint8),
+        "history_length": learner.history_length.clone(),
         "right_since": right_since,
         "samples_at_change": samples_at_change,
         "wrong_commitments": wrong_commitments,

@@ -70,7 +70,8 @@ def markdown(results: dict[str, Any]) -> str:
         f"{config['obstacles']} obstacles, Bayes factor {format_number(config['bayes_factor'])}, "
         f"Beta({format_number(config['prior_a'])}, {format_number(config['prior_b'])}) prior, "
         f"candidate prior {config['candidate_prior']}, "
-        f"{config.get('likelihood', 'pattern')} likelihood"
+        f"{config.get('likelihood', 'pattern')} likelihood, "
+        f"{config.get('pairs', 'all')} pairs"
         + (
             f", reopening at Bayes factor {format_number(config['reopen_factor'])}"
             if config.get("reopen_factor") is not None
