@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -457,6 +458,48 @@ def running_mean_add(
     kappa = kappa + count
     stepped = rho + step_sum / kappa.clamp_min(scalar(1, kappa))  # (0-d constants: base.indices)
     return torch.where(count > scalar(0, count), stepped, rho), kappa
+
+
+def running_mean_add_one(
+    rho: np.float32, kappa: int, step_sum: np.float32
+) -> tuple[np.float32, int]:
+    """``running_mean_add`` of one reward (``count = 1``) on a float32 numpy scalar ``rho``
+    and a Python int ``kappa``: bit for bit the tensor function's values (the same float32
+    operations; ``kappa`` converted to float32 as torch's int64 / float32 division does). The
+    tables' update of one transition, where a dozen tensor ops would cost more than the
+    arithmetic (tests/test_functional.py compares the two).
+
+    Args:
+        rho: the running mean (float32).
+        kappa: its visit count.
+        step_sum: ``r - rho`` of the new reward (float32).
+    """
+    kappa = kappa + 1
+    return rho + step_sum / np.float32(max(kappa, 1)), kappa
+
+
+#: ``dependency -> (its version counter, parents)``: each actuator's parent sensors in order
+#: (``local_pattern_of``), read once per dependency tensor and version.
+_PARENT_LISTS = WeakIdKeyDictionary()
+
+
+def local_pattern_of(readings: Sequence[bool], dependency: torch.Tensor, actuator: int) -> int:
+    """``local_patterns(readings, dependency)[actuator]`` for one state's readings as Python
+    booleans: ``sum_r readings[k_r] << r`` over the parents ``k_0 < k_1 < ...`` of ``actuator``
+    (the parents read once per CPU dependency tensor and version).
+
+    >>> local_pattern_of([True, False, True], torch.tensor([[True, False, True]]), 0)
+    3
+    """
+    cached = _PARENT_LISTS.get(dependency)
+    if cached is None or cached[0] != dependency._version:
+        parents = tuple(tuple(row.nonzero().flatten().tolist()) for row in dependency)
+        cached = _PARENT_LISTS[dependency] = (dependency._version, parents)
+    pattern = 0
+    for rank, sensor in enumerate(cached[1][actuator]):
+        if readings[sensor]:
+            pattern |= 1 << rank
+    return pattern
 
 
 def greedy_action_from_bits(values: torch.Tensor, tie_bits: torch.Tensor) -> torch.Tensor:

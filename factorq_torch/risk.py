@@ -563,7 +563,10 @@ class LocalRiskLoss(LossModule):
             )
         if action.shape == (*batch, actions):  # one-hot actions
             action = action.argmax(-1)
-        action = action.reshape(*batch).to(torch.int64)
+        if action.shape != batch:
+            action = action.reshape(*batch)
+        if action.dtype != torch.int64:
+            action = action.to(torch.int64)
         if tuple(local_reward.shape) != (*batch, actions):
             raise ValueError(
                 f"LocalRiskLoss: ('next', {keys.local_reward!r}) has shape "
@@ -597,6 +600,9 @@ class LocalRiskLoss(LossModule):
     ) -> None:
         count, width = self.risk.num_experiments, sensors.shape[-1]
         batch = tuple(action.shape)
+        if batch == (count,):  # one transition per experiment (the online step): as it is
+            update(sensors, action, local_reward)
+            return
         if count != 1 and len(batch) > 1 and batch[0] == count and batch[-1] != count:
             # a [S, T] rollout: experiments last
             sensors, action = sensors.movedim(0, -2), action.movedim(0, -1)
