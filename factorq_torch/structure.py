@@ -460,10 +460,22 @@ class StructureLearner(TensorDictModuleBase):
         counts are then as they were), else None."""
         log_posterior = self._log_posterior_rows(fired)  # [R, C]
         committed = self.committed.view(-1).index_select(0, fired)  # [R]
-        best = log_posterior.argmax(dim=-1)  # [R]
-        margin = self._margin(log_posterior, best)
         none = scalar(0, committed)
-        commit = (committed < none) & (margin >= scalar(self.log_bayes_factor, margin))
+        # Each test only where it can change something: commitment for the open actuators,
+        # reopening for the committed ones (the other's result would be masked out: skipping it
+        # leaves every value as it is, and saves ~55 of a step's ~200 small ops while the
+        # actuator is open, ~13 once it committed)
+        held_rows = committed >= none
+        states = held_rows.tolist()
+        new = committed
+        if not all(states):  # an open actuator: commit where the evidence is enough
+            best = log_posterior.argmax(dim=-1)  # [R]
+            margin = self._margin(log_posterior, best)
+            commit = (committed < none) & (margin >= scalar(self.log_bayes_factor, margin))
+            new = torch.where(commit, best, committed)
+        if not any(states):
+            self.committed.view(-1).index_copy_(0, fired, new)
+            return self._close_blocks(rows, action, fired, log_posterior)
         # reopening, a change-point test on the block: the commitment's prediction of the block
         # from the data before it, p(block | c*, earlier) = p(all | c*) / p(earlier | c*), against
         # any candidate (c* too) fitted afresh to the block alone
@@ -488,8 +500,7 @@ class StructureLearner(TensorDictModuleBase):
         lead = self.log_prior.index_select(0, held) + predicted
         block_posterior = self._log_posterior_rows(fired, block=True)
         rival = block_posterior.max(dim=-1).values  # [R]
-        reopen = (committed >= none) & (rival - lead >= scalar(self.log_reopen_factor, lead))
-        new = torch.where(commit, best, committed)
+        reopen = held_rows & (rival - lead >= scalar(self.log_reopen_factor, lead))
         new = torch.where(reopen, scalar(-1, new), new)
         self.committed.view(-1).index_copy_(0, fired, new)
         reopened = bool(reopen.any())
@@ -505,6 +516,17 @@ class StructureLearner(TensorDictModuleBase):
             self.reopened[lost_rows, lost_actions] += 1
             if self.reopen == "body":
                 self._refresh_cache(lost_rows, slice(None))
+        return self._close_blocks(rows, action, fired, None if reopened else log_posterior)
+
+    def _close_blocks(
+        self,
+        rows: torch.Tensor,
+        action: torch.Tensor,
+        fired: torch.Tensor,
+        log_posterior: torch.Tensor | None,
+    ) -> torch.Tensor | None:
+        """``_decide``'s end: clear the block of the actuators whose block is full (``window``
+        firings); returns ``log_posterior``."""
         full = self.block_samples.view(-1).index_select(0, fired) >= scalar(
             self.window, self.block_samples
         )
@@ -513,7 +535,7 @@ class StructureLearner(TensorDictModuleBase):
             for name in ("count", "successes", "reward_sum", "log_marginal"):
                 getattr(self, "block_" + name)[full_rows, full_actions] = 0.0
             self.block_samples[full_rows, full_actions] = 0
-        return None if reopened else log_posterior
+        return log_posterior
 
     def _margin(self, log_posterior: torch.Tensor, best: torch.Tensor) -> torch.Tensor:
         """``[R]``: log posterior odds of ``best`` over its strongest competitor."""
