@@ -278,7 +278,7 @@ def risk_mask(rho: torch.Tensor, threshold: float = 0.5) -> torch.Tensor:
 #: ``local_risk_rows`` takes batches of at most this many values (rows x actions): there, a few
 #: dozen float32 scalar operations cost less than the ~40 tensor ops of ``normaliser``,
 #: ``combined_values`` and ``risk_mask`` (each a few microseconds of dispatch on a ``[1, A]``
-#: row); past it the tensor ops are faster.
+#: row); the two take about as long at 64 values (16 rows of 4 actions), the tensor ops win past it.
 ROW_KERNEL_VALUES = 32
 
 _FLOAT32_MAX = np.float32(np.finfo(np.float32).max)
