@@ -96,6 +96,7 @@ from factorq_torch.functional import (  # noqa: F401  (the structure math, re-ex
     PREDICTIONS,
     PRIORS,
     REOPENINGS,
+    ROW_KERNEL_VALUES,
     SPARSE_PAIR_MASS,
     beta_bernoulli_log_marginal,
     candidate_log_prior,
@@ -315,6 +316,17 @@ class StructureLearner(TensorDictModuleBase):
 
     def local_values(self, readings: torch.Tensor) -> torch.Tensor:
         """``[S, A]`` float32: each actuator's predicted local reward under ``readings``."""
+        if (
+            self.prediction in ("optimistic", "committed")
+            and readings.device.type == "cpu"
+            and self.mean.device.type == "cpu"
+            and readings.shape[0] * self.num_actions <= ROW_KERNEL_VALUES
+        ):
+            return self._local_values_read(readings)
+        return self._local_values_tensor(readings)
+
+    def _local_values_tensor(self, readings: torch.Tensor) -> torch.Tensor:
+        """``local_values`` by tensor ops (any batch, device and prediction)."""
         pattern = self.patterns(readings)  # [S, C]
         index = pattern.unsqueeze(1).unsqueeze(-1).expand(-1, self.num_actions, -1, 1)
         mean = self.mean.gather(-1, index).squeeze(-1)  # [S, A, C]
@@ -330,6 +342,39 @@ class StructureLearner(TensorDictModuleBase):
         none = scalar(0, self.committed)
         chosen = mean.gather(-1, self.committed.clamp_min(none).unsqueeze(-1)).squeeze(-1)
         return torch.where(self.committed >= none, chosen, before).to(torch.float32)
+
+    def _local_values_read(self, readings: torch.Tensor) -> torch.Tensor:
+        """``local_values`` of a few experiments on the CPU read from the caches as Python
+        numbers (``"optimistic"`` and ``"committed"`` predictions: a maximum and a lookup, no
+        arithmetic; a dozen tensor ops otherwise): each candidate's pattern (its sensors' bits,
+        ``patterns``), the committed candidate's running mean, else the largest among the
+        plausible candidates (``-inf`` if none, as ``max`` over ``where`` gives), rounded to
+        float32 as ``.to(torch.float32)`` does."""
+        optimistic = self.prediction == "optimistic"
+        members = self.sets
+        local = torch.empty(readings.shape[0], self.num_actions, dtype=torch.float32)
+        out = local.numpy()
+        means, plausibles = self.mean.tolist(), self.plausible_cache.tolist()  # [S][A][C](P)
+        committed = self.committed.tolist()  # [S][A]
+        for row, reading in enumerate(readings.tolist()):
+            patterns = [
+                sum(1 << rank for rank, sensor in enumerate(parents) if reading[sensor])
+                for parents in members
+            ]
+            plausible = plausibles[row]
+            for actuator, held in enumerate(committed[row]):
+                mean = means[row][actuator]
+                if held >= 0:
+                    value = mean[held][patterns[held]]
+                elif optimistic:
+                    value = -math.inf
+                    for candidate, allowed in enumerate(plausible[actuator]):
+                        if allowed and mean[candidate][patterns[candidate]] > value:
+                            value = mean[candidate][patterns[candidate]]
+                else:
+                    value = 0.0
+                out[row, actuator] = value  # float64 -> float32, rounded to nearest
+        return local
 
     @torch.no_grad()
     def update_running_mean(
