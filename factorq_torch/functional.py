@@ -488,6 +488,11 @@ def local_pattern_of(readings: Sequence[bool], dependency: torch.Tensor, actuato
     booleans: ``sum_r readings[k_r] << r`` over the parents ``k_0 < k_1 < ...`` of ``actuator``
     (the parents read once per CPU dependency tensor and version).
 
+    Args:
+        readings: one state's ``K`` sensor bits.
+        dependency: bool ``[A, K]``, the parents of each actuator.
+        actuator: ``a``.
+
     >>> local_pattern_of([True, False, True], torch.tensor([[True, False, True]]), 0)
     3
     """
