@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Sequence
 
+import numpy as np
 import torch
 from torch.utils.weak import WeakIdKeyDictionary
 
@@ -260,6 +262,112 @@ def combined_values(q: torch.Tensor, rho: torch.Tensor, g: torch.Tensor) -> torc
     return (q + g.unsqueeze(-1) * rho).clamp(scalar(-largest, q), scalar(largest, q))
 
 
+def risk_mask(rho: torch.Tensor, threshold: float = 0.5) -> torch.Tensor:
+    """The actuators a local-risk layer does not call risky, ``[..., A]`` bool: ``rho_a >=
+    -threshold`` (local reward units), every actuator of a state where none is left (never an
+    empty choice).
+
+    Args:
+        rho: ``[..., A]`` local values ``rho(o)``.
+        threshold: how negative ``rho_a`` may be (0.5: a collision more likely than not).
+    """
+    allowed = rho >= scalar(-threshold, rho)
+    return allowed | ~allowed.any(dim=-1, keepdim=True)
+
+
+#: ``local_risk_rows`` takes batches of at most this many values (rows x actions): there, a few
+#: dozen float32 scalar operations cost less than the ~40 tensor ops of ``normaliser``,
+#: ``combined_values`` and ``risk_mask`` (each a few microseconds of dispatch on a ``[1, A]``
+#: row); the two take about as long at 64 values (16 rows of 4 actions), the tensor ops win past it.
+ROW_KERNEL_VALUES = 32
+
+_FLOAT32_MAX = np.float32(np.finfo(np.float32).max)
+
+
+def local_risk_rows(
+    q: torch.Tensor,
+    rho: torch.Tensor,
+    eta: float = 0.1,
+    g_min: float = 0.01,
+    mask_threshold: float = 0.5,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """Eqs. 2-3 and the risk mask at once for a small batch: ``(C(s), G, allowed)``, bit for bit
+    ``combined_values(q, rho, G)``, ``G = normaliser(q, rho, eta, g_min)`` and ``risk_mask(rho,
+    mask_threshold)``; None where it does not apply (not a float32 CPU batch of at most
+    ``ROW_KERNEL_VALUES`` values, ``q`` and ``rho`` of one shape, or a value that is not finite:
+    the caller then uses those three functions, which are the definition).
+
+    A fused op for the step of one agent: computed row by row on float32 numpy scalars, the same
+    operations in the same order as ``normaliser``'s one pass over ``[Q, -rho]`` (per half the
+    first maximum, the left sum of the others with ``+0.0`` in the maximum's place, divided by
+    ``A - 1``), then ``G`` with its floor and cap, eq. 2 with its caps and the mask. numpy's
+    float32 scalar arithmetic rounds every operation as torch's float32 ops do (IEEE 754, no
+    fused multiply-add); tests/test_functional.py compares the two bit for bit. About a tenth of
+    the time of the ~40 tensor ops on a ``[1, A]`` row.
+
+    Args:
+        q: ``[..., A]`` task values ``Q(s)``.
+        rho: ``[..., A]`` local values ``rho(o)``.
+        eta, g_min: eq. 3's margin and floor of ``G``.
+        mask_threshold: ``risk_mask``'s threshold.
+    """
+    if (
+        q.dtype != torch.float32
+        or rho.dtype != torch.float32
+        or q.shape != rho.shape
+        or q.dim() == 0
+        or q.numel() > ROW_KERNEL_VALUES
+        or q.device.type != "cpu"
+        or rho.device.type != "cpu"
+        or q.numel() == 0
+    ):
+        return None
+    actions = q.shape[-1]
+    q_rows = (q.detach() if q.requires_grad else q).numpy().reshape(-1, actions)
+    rho_rows = (rho.detach() if rho.requires_grad else rho).numpy().reshape(-1, actions)
+    values = [(list(q_row), list(rho_row)) for q_row, rho_row in zip(q_rows, rho_rows, strict=True)]
+    isfinite = math.isfinite
+    if not all(isfinite(v) for q_row, rho_row in values for v in (*q_row, *rho_row)):
+        return None
+    combined = torch.empty(q.shape, dtype=torch.float32)
+    g_out = torch.empty(q.shape[:-1], dtype=torch.float32)
+    allowed_out = torch.empty(q.shape, dtype=torch.bool)
+    combined_rows = combined.numpy().reshape(-1, actions)
+    g_rows = g_out.numpy().reshape(-1)
+    allowed_rows = allowed_out.numpy().reshape(-1, actions)
+    f32 = np.float32
+    zero, others, factor = f32(0.0), f32(actions - 1), f32(1 + eta)
+    floor, limit, largest = f32(g_min), f32(-mask_threshold), _FLOAT32_MAX
+    columns = range(1, actions)
+    with np.errstate(all="ignore"):  # overflow to inf and 0 / 0 are handled as torch does
+        for row, (q_row, rho_row) in enumerate(values):
+            spreads = []
+            for half in (q_row, [-v for v in rho_row]):  # Q - Q_bar, then P_bar - rho_min
+                best = 0
+                for a in columns:
+                    if half[a] > half[best]:
+                        best = a
+                total = zero if best == 0 else half[0]
+                for a in columns:
+                    total = total + (zero if a == best else half[a])
+                spreads.append(half[best] - total / others)
+            x, y = spreads
+            if y > zero:
+                g = x / y * factor
+                g = g if g >= floor else floor  # (False for NaN too)
+                g = largest if g > largest else g
+            else:
+                g = floor
+            g_rows[row] = g
+            combined_rows[row] = [
+                min(max(q_a + g * rho_a, -largest), largest)
+                for q_a, rho_a in zip(q_row, rho_row, strict=True)
+            ]
+            allowed = [rho_a >= limit for rho_a in rho_row]
+            allowed_rows[row] = allowed if any(allowed) else True
+    return combined, g_out, allowed_out
+
+
 def q_learning_target(
     reward: torch.Tensor, q_next: torch.Tensor, terminated: torch.Tensor, gamma: float
 ) -> torch.Tensor:
@@ -350,6 +458,53 @@ def running_mean_add(
     kappa = kappa + count
     stepped = rho + step_sum / kappa.clamp_min(scalar(1, kappa))  # (0-d constants: base.indices)
     return torch.where(count > scalar(0, count), stepped, rho), kappa
+
+
+def running_mean_add_one(
+    rho: np.float32, kappa: int, step_sum: np.float32
+) -> tuple[np.float32, int]:
+    """``running_mean_add`` of one reward (``count = 1``) on a float32 numpy scalar ``rho``
+    and a Python int ``kappa``: bit for bit the tensor function's values (the same float32
+    operations; ``kappa`` converted to float32 as torch's int64 / float32 division does). The
+    tables' update of one transition, where a dozen tensor ops would cost more than the
+    arithmetic (tests/test_functional.py compares the two).
+
+    Args:
+        rho: the running mean (float32).
+        kappa: its visit count.
+        step_sum: ``r - rho`` of the new reward (float32).
+    """
+    kappa = kappa + 1
+    return rho + step_sum / np.float32(max(kappa, 1)), kappa
+
+
+#: ``dependency -> (its version counter, parents)``: each actuator's parent sensors in order
+#: (``local_pattern_of``), read once per dependency tensor and version.
+_PARENT_LISTS = WeakIdKeyDictionary()
+
+
+def local_pattern_of(readings: Sequence[bool], dependency: torch.Tensor, actuator: int) -> int:
+    """``local_patterns(readings, dependency)[actuator]`` for one state's readings as Python
+    booleans: ``sum_r readings[k_r] << r`` over the parents ``k_0 < k_1 < ...`` of ``actuator``
+    (the parents read once per CPU dependency tensor and version).
+
+    Args:
+        readings: one state's ``K`` sensor bits.
+        dependency: bool ``[A, K]``, the parents of each actuator.
+        actuator: ``a``.
+
+    >>> local_pattern_of([True, False, True], torch.tensor([[True, False, True]]), 0)
+    3
+    """
+    cached = _PARENT_LISTS.get(dependency)
+    if cached is None or cached[0] != dependency._version:
+        parents = tuple(tuple(row.nonzero().flatten().tolist()) for row in dependency)
+        cached = _PARENT_LISTS[dependency] = (dependency._version, parents)
+    pattern = 0
+    for rank, sensor in enumerate(cached[1][actuator]):
+        if readings[sensor]:
+            pattern |= 1 << rank
+    return pattern
 
 
 def greedy_action_from_bits(values: torch.Tensor, tie_bits: torch.Tensor) -> torch.Tensor:

@@ -61,10 +61,15 @@ from torchrl.objectives import LossModule
 
 from factorq_torch.base import keys as names
 from factorq_torch.base.config import AgentConfig
-from factorq_torch.base.indices import scalar
 from factorq_torch.base.risk_text import summary_line
 from factorq_torch.base.validation import check_finite
-from factorq_torch.functional import check_dependency, combined_values, normaliser
+from factorq_torch.functional import (
+    check_dependency,
+    combined_values,
+    local_risk_rows,
+    normaliser,
+    risk_mask,
+)
 from factorq_torch.structure import StructureLearner
 from factorq_torch.tables import LocalRewardTable
 
@@ -319,7 +324,6 @@ class LocalRisk(TensorDictModuleBase):
                 f"LocalRisk: {self.action_value_key!r} has {q.shape[-1]} actions, the provider "
                 f"{self.num_actions}"
             )
-        q = check_finite("LocalRisk", repr(self.action_value_key), q)
         if torch.is_grad_enabled():  # the layer chooses actions; nothing learns through it
             with torch.no_grad():
                 return self._combine(tensordict, q)
@@ -329,10 +333,16 @@ class LocalRisk(TensorDictModuleBase):
         rho = self.local_values(tensordict)  # [*B, A]
         if rho.dtype != q.dtype:
             rho = rho.to(q.dtype)
-        g = normaliser(q, rho, eta=self.eta, g_min=self.g_min)  # [*B], eq. 3
-        combined = combined_values(q, rho, g)  # [*B, A], eq. 2
-        allowed = rho >= scalar(-self.mask_threshold, rho)
-        allowed = allowed | ~allowed.any(dim=-1, keepdim=True)  # never an empty choice
+        # eqs. 2-3 and the mask: fused for a small batch (one agent's step), whose values it
+        # checks are finite; else the functions that define them
+        fused = local_risk_rows(q, rho, self.eta, self.g_min, self.mask_threshold)
+        if fused is None:
+            q = check_finite("LocalRisk", repr(self.action_value_key), q)
+            g = normaliser(q, rho, eta=self.eta, g_min=self.g_min)  # [*B], eq. 3
+            combined = combined_values(q, rho, g)  # [*B, A], eq. 2
+            allowed = risk_mask(rho, self.mask_threshold)  # never an empty choice
+        else:
+            combined, g, allowed = fused
         # one update (local_value: the provider wrote it already on the online step; written
         # again, it is the same tensor unless another dtype or batch was read)
         tensordict.update(
@@ -553,7 +563,10 @@ class LocalRiskLoss(LossModule):
             )
         if action.shape == (*batch, actions):  # one-hot actions
             action = action.argmax(-1)
-        action = action.reshape(*batch).to(torch.int64)
+        if action.shape != batch:
+            action = action.reshape(*batch)
+        if action.dtype != torch.int64:
+            action = action.to(torch.int64)
         if tuple(local_reward.shape) != (*batch, actions):
             raise ValueError(
                 f"LocalRiskLoss: ('next', {keys.local_reward!r}) has shape "
@@ -587,6 +600,9 @@ class LocalRiskLoss(LossModule):
     ) -> None:
         count, width = self.risk.num_experiments, sensors.shape[-1]
         batch = tuple(action.shape)
+        if batch == (count,):  # one transition per experiment (the online step): as it is
+            update(sensors, action, local_reward)
+            return
         if count != 1 and len(batch) > 1 and batch[0] == count and batch[-1] != count:
             # a [S, T] rollout: experiments last
             sensors, action = sensors.movedim(0, -2), action.movedim(0, -1)

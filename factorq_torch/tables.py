@@ -26,11 +26,14 @@ losses and the collector only read ``action_value`` / ``local_value``.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
+import numpy as np
 import torch
 from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torch.autograd.graph import increment_version
 
 from factorq_torch.base import keys
 from factorq_torch.base.config import PAPER_NUM_ACTIONS
@@ -46,11 +49,14 @@ from factorq_torch.base.validation import (  # MAX_TABLE_ENTRIES: re-exported
     check_table_size,
 )
 from factorq_torch.functional import (
+    ROW_KERNEL_VALUES,
     check_dependency,
+    local_pattern_of,
     local_patterns,
     project_local,
     qlearning_state,
     running_mean_add,
+    running_mean_add_one,
 )
 
 #: The paper's body: 4 actuators and 4 sensors (the defaults; other bodies pass theirs).
@@ -500,6 +506,13 @@ class LocalRewardTable(TensorDictModuleBase):
                 raise ValueError(
                     f"{owner}: {name} has shape {list(value.shape)}, expected {list(shape)}"
                 )
+        if (
+            mask is None
+            and experiment is None
+            and batch == (self.num_experiments,)
+            and self._update_online(readings, action, local_reward)
+        ):
+            return
         check_firing(owner, readings, action, local_reward, self.num_actions, self.rho.device)
         distinct = False  # whether the transitions' experiments are known to differ
         patterns_per_table = self.rho.shape[-1]
@@ -555,6 +568,50 @@ class LocalRewardTable(TensorDictModuleBase):
         new_rho, new_kappa = running_mean_add(rho, kappa, total, count)  # eq. 5, n at once
         rho_flat.index_copy_(0, entry, new_rho)  # every transition of an entry writes the same
         kappa_flat.index_copy_(0, entry, new_kappa)  # value
+
+    def _update_online(
+        self, readings: torch.Tensor, action: torch.Tensor, local_reward: torch.Tensor
+    ) -> bool:
+        """``update_running_mean`` of one transition per experiment (the online step, no mask)
+        on a small CPU table, read and written through numpy: the same entries and values
+        (``local_pattern_of``, ``running_mean_add_one``), without the dozens of tensor ops of
+        the batched update. False (nothing written) where it does not apply: another dtype or
+        device, a large batch, an action out of range or a local reward that is not finite (the
+        tensor path then runs, and names what is wrong)."""
+        rho, kappa, actions = self.rho, self.kappa, self.num_actions
+        if (
+            readings.dtype != torch.bool
+            or action.dtype not in (torch.int64, torch.int32)
+            or local_reward.dtype != torch.float32
+            or rho.dtype != torch.float32
+            or kappa.dtype != torch.int64
+            or local_reward.numel() > ROW_KERNEL_VALUES
+            or rho.device.type != "cpu"
+            or any(value.device.type != "cpu" for value in (readings, action, local_reward))
+            or local_reward.requires_grad
+            or rho.requires_grad
+            or not (rho.is_contiguous() and kappa.is_contiguous())
+        ):
+            return False
+        fired = action.tolist()
+        rewards = local_reward.numpy()  # [S, A]
+        if not all(0 <= a < actions for a in fired) or not all(
+            map(math.isfinite, rewards.reshape(-1).tolist())
+        ):
+            return False
+        sensors = readings.tolist()
+        rho_flat, kappa_flat = rho.view(-1).numpy(), kappa.view(-1).numpy()
+        table, width, zero = actions * rho.shape[-1], rho.shape[-1], np.float32(0.0)
+        for row, (a, reading) in enumerate(zip(fired, sensors, strict=True)):
+            entry = row * table + a * width + local_pattern_of(reading, self.dependency, a)
+            old = rho_flat[entry]  # eq. 5, as the batched update computes it for n = 1
+            new, visits = running_mean_add_one(
+                old, int(kappa_flat[entry]), rewards[row, a] - old + zero
+            )
+            rho_flat[entry], kappa_flat[entry] = new, visits
+        increment_version(rho)  # written as by index_copy_: in place, seen by autograd
+        increment_version(kappa)
+        return True
 
     @torch.no_grad()
     def reset(self, mask: torch.Tensor | None = None) -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -11,9 +13,11 @@ from factorq_torch.functional import (
     epsilon_greedy_from_bits,
     factorq_target,
     greedy_action_from_bits,
+    local_risk_rows,
     normaliser,
     q_learning_target,
     q_update,
+    risk_mask,
     running_mean_update,
 )
 
@@ -82,6 +86,63 @@ def test_combined_values_add_the_scaled_local_values_to_the_task_values():
     # row 0: [1 - 2, 2, 3 - 1, 4];  row 1: [-0.01, 0, 0, 0]
     expected = torch.tensor([[-1.0, 2.0, 2.0, 4.0], [-0.01, 0.0, 0.0, 0.0]])
     assert torch.allclose(combined_values(q, rho, g), expected)
+
+
+def _risk_reference(q, rho, eta=0.1, g_min=0.01, threshold=0.5):
+    g = normaliser(q, rho, eta=eta, g_min=g_min)
+    return combined_values(q, rho, g), g, risk_mask(rho, threshold)
+
+
+def _risk_cases():
+    """Random rows and the corner cases of eqs. 2-3: ties, signed zeros, overflow, A = 1."""
+    generator = torch.Generator().manual_seed(26)
+    cases = [
+        (torch.zeros(1, 4), torch.zeros(1, 4)),  # unvisited: G = g_min
+        (torch.tensor([[1.0, 1.0, 0.0, 1.0]]), torch.tensor([[-1.0, 0.0, -1.0, 0.0]])),  # ties
+        (torch.tensor([[-0.0, 0.0, -0.0, 0.0]]), torch.tensor([[0.0, -0.0, -0.0, 0.0]])),
+        (torch.tensor([[3e38, -3e38, 3e38, 0.0]]), torch.tensor([[-3e38, 3e38, 0.0, -1.0]])),
+        (torch.tensor([[1e30, 0.0, 0.0, 0.0]]), torch.tensor([[-1e-30, 0.0, 0.0, 0.0]])),  # inf G
+        (torch.tensor([[2.0]]), torch.tensor([[-1.0]])),  # one action: 0 / 0 spreads
+        (torch.tensor([2.0, 1.0, 0.5]), torch.tensor([-1.0, 0.0, -0.25])),  # no batch
+        (torch.randn(2, 1, 3, generator=generator), -torch.rand(2, 1, 3, generator=generator)),
+        (torch.full((1, 4), -1.0), torch.full((1, 4), -1.0)),  # every action risky: all kept
+    ]
+    for index in range(600):
+        rows, actions = 1 + index % 3, 1 + index % 7
+        q = torch.randn(rows, actions, generator=generator) * 10 ** (index % 5 - 2)
+        rho = -torch.rand(rows, actions, generator=generator)
+        if index % 2:  # the tables' values: 0, -1 and running means of them
+            rho = (rho * 4).round() / 4
+            q = q.round()
+        cases.append((q, rho))
+    return cases
+
+
+def test_the_fused_rows_are_eqs_2_3_and_the_mask_bit_for_bit():
+    for q, rho in _risk_cases():
+        for eta, g_min, threshold in ((0.1, 0.01, 0.5), (0.0, 0.3, 0.25)):
+            fused = local_risk_rows(q, rho, eta, g_min, threshold)
+            assert fused is not None
+            for got, expected in zip(
+                fused, _risk_reference(q, rho, eta, g_min, threshold), strict=True
+            ):
+                assert got.shape == expected.shape and got.dtype == expected.dtype
+                if got.dtype == torch.bool:
+                    assert torch.equal(got, expected), (q, rho)
+                else:  # the same bits (a signed zero or a NaN would show)
+                    assert torch.equal(got.view(torch.int32), expected.view(torch.int32)), (q, rho)
+
+
+def test_the_fused_rows_leave_what_they_do_not_mirror_to_the_tensor_ops():
+    q, rho = torch.zeros(1, 4), torch.zeros(1, 4)
+    assert local_risk_rows(q.double(), rho.double()) is None  # another dtype
+    assert local_risk_rows(torch.zeros(9, 4), torch.zeros(9, 4)) is None  # a large batch
+    assert local_risk_rows(q, torch.zeros(2, 4)) is None  # two shapes: broadcasting
+    for bad in (math.nan, math.inf):  # finiteness is checked (and reported) by the caller
+        assert local_risk_rows(torch.tensor([[bad, 0.0]]), torch.zeros(1, 2)) is None
+        assert local_risk_rows(torch.zeros(1, 2), torch.tensor([[0.0, bad]])) is None
+    grad = torch.ones(1, 4, requires_grad=True)  # read without its graph
+    assert torch.equal(local_risk_rows(grad, rho)[0], grad.detach() + 0.01 * rho)
 
 
 # -- eqs. 1 and 4, targets and update ----------------------------------------------------------

@@ -537,3 +537,24 @@ def test_pair_activity_and_the_initial_active_set():
 def test_an_unknown_pair_mode_is_refused_by_name():
     with pytest.raises(ValueError, match="pairs"):
         StructureLearner(1, num_actions=1, num_sensors=3, pairs="some")
+
+
+@pytest.mark.parametrize("pairs", ["all", "pruned"])
+@pytest.mark.parametrize("prediction", ["optimistic", "committed"])
+def test_a_few_experiments_on_the_cpu_are_read_as_the_tensor_ops_read_them(prediction, pairs):
+    """``local_values`` of a small CPU learner reads its caches as Python numbers
+    (``_local_values_read``): bit for bit the tensor path, open, committed and after a reopening."""
+    generator = torch.Generator().manual_seed(26)
+    learner = StructureLearner(
+        3, num_actions=4, num_sensors=4, prediction=prediction, window=30, pairs=pairs
+    )
+    for step in range(400):
+        readings = torch.rand(3, 4, generator=generator) < 0.5
+        action = torch.randint(0, 4, (3,), generator=generator)
+        parents = readings if step < 200 else readings.roll(1, dims=1)  # the body changes
+        reward = -parents.float() * torch.nn.functional.one_hot(action, 4).float()
+        learner.update_running_mean(readings, action, reward)
+        probe = torch.rand(3, 4, generator=generator) < 0.5
+        read, computed = learner._local_values_read(probe), learner._local_values_tensor(probe)
+        assert torch.equal(read.view(torch.int32), computed.view(torch.int32)), step
+    assert learner.is_committed().all() and int(learner.reopened.sum()) > 0

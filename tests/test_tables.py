@@ -103,6 +103,41 @@ def test_local_update_is_a_running_mean_of_the_fired_actuator_at_its_reading_bef
     assert local.kappa.sum() == 4  # nothing else was visited
 
 
+def test_the_online_update_through_numpy_is_the_batched_update_bit_for_bit():
+    """One transition per experiment on the CPU is read and written through numpy
+    (``LocalRewardTable._update_online``); a mask of all True takes the batched tensor ops."""
+    generator = torch.Generator().manual_seed(26)
+    dependency = torch.tensor(  # pairs, a single parent and none: patterns of 0-2 bits
+        [
+            [True, False, True, False],
+            [False, True, False, False],
+            [False] * 4,
+            [True] * 2 + [False] * 2,
+        ]
+    )
+    for experiments in (1, 3):
+        fast, batched = (LocalRewardTable(experiments, dependency=dependency) for _ in range(2))
+        versions = fast.rho._version, fast.kappa._version
+        for step in range(300):
+            readings = torch.rand(experiments, 4, generator=generator) < 0.5
+            action = torch.randint(0, 4, (experiments,), generator=generator)
+            reward = -torch.rand(experiments, 4, generator=generator) * (step % 3)
+            if step % 2:
+                fast.update_running_mean(readings, action, reward)
+            else:  # (the path it takes)
+                assert fast._update_online(readings, action, reward)
+            everything = torch.ones(experiments, dtype=torch.bool)
+            batched.update_running_mean(readings, action, reward, mask=everything)
+        assert torch.equal(fast.rho.view(torch.int32), batched.rho.view(torch.int32))
+        assert torch.equal(fast.kappa, batched.kappa) and fast.kappa.sum() == 300 * experiments
+        assert (fast.rho._version, fast.kappa._version) == (versions[0] + 300, versions[1] + 300)
+    with pytest.raises(ValueError, match="action"):  # its errors are the batched update's
+        fast.update_running_mean(readings, torch.tensor([4, 0, 0]), reward)
+    with pytest.raises(ValueError, match="local_reward"):
+        fast.update_running_mean(readings, action, torch.full((3, 4), float("nan")))
+    assert torch.equal(fast.kappa, batched.kappa)  # nothing written
+
+
 def test_local_update_leaves_masked_experiments_alone():
     local = LocalRewardTable(2)
     proximity = torch.ones(2, 4, dtype=torch.bool)
