@@ -20,27 +20,24 @@ test: $(STAMP)
 	$(VENV)/bin/python -m pytest $(XDIST) $(ARGS)
 	$(MAKE) --no-print-directory test-float
 
-# The two kernel sets run at the same time, each in one process with half the cores' threads:
-# a run of 40 tests, two of them long, keeps one process busy better than two workers, and only
-# the files that mark a test float_sensitive are collected (ARGS naming tests selects instead).
+# Only the files that mark a test float_sensitive are collected (ARGS naming tests selects
+# instead). A kernel set that is this CPU's own is skipped: the suite above just ran under it.
 FLOAT_FILES = $(shell grep -l float_sensitive tests/test_*.py)
 FLOAT_SELECTION = $(if $(filter-out -%,$(ARGS)),$(ARGS),$(FLOAT_FILES) $(ARGS))
-FLOAT_THREADS = $(shell $(VENV)/bin/python -c 'import os; print(max(1, (os.cpu_count() or 2) // 2))')
+NATIVE_CAPABILITY = $(shell $(VENV)/bin/python -c \
+  'import torch; print(torch.backends.cpu.get_cpu_capability().lower())')
 test-float: $(STAMP)
-	@mkdir -p build; pids=; \
+	@native=$(NATIVE_CAPABILITY); \
 	for capability in default avx2; do \
-	  ATEN_CPU_CAPABILITY=$$capability FACTORQ_TEST_THREADS=$(FLOAT_THREADS) \
-	    $(VENV)/bin/python -m pytest -q -p no:cacheprovider -m float_sensitive $(FLOAT_SELECTION) \
-	    > build/test-float-$$capability.log 2>&1 & pids="$$pids $$!"; \
-	done; \
-	set -- $$pids; failed=0; \
-	for capability in default avx2; do \
-	  wait $$1; code=$$?; shift; \
+	  if [ "$$capability" = "$$native" ]; then \
+	    echo "float-sensitive tests under $$capability: this CPU's own kernels, run above"; \
+	    continue; \
+	  fi; \
 	  echo "float-sensitive tests under ATEN_CPU_CAPABILITY=$$capability"; \
-	  cat build/test-float-$$capability.log; \
-	  [ $$code -eq 0 ] || [ $$code -eq 5 ] || failed=$$code; \
-	done; \
-	exit $$failed
+	  ATEN_CPU_CAPABILITY=$$capability $(VENV)/bin/python -m pytest -q -p no:cacheprovider \
+	    $(XDIST) -m float_sensitive $(FLOAT_SELECTION); \
+	  code=$$?; [ $$code -eq 0 ] || [ $$code -eq 5 ] || exit $$code; \
+	done
 
 setup: $(STAMP)
 
