@@ -305,7 +305,8 @@ def test_every_field_of_a_signed_mid_method_compare_checkpoint_mutated_is_refuse
     config = compare.CompareConfig(out=str(out), dqn=small_dqn, **MID_METHOD[running])
 
     def progress(method, done, total):
-        if method == running and done >= total * 3 // 4:
+        # late in the method: an accepted (harmless) mutation resumes and runs only the rest
+        if method == running and done >= total * 7 // 8:
             raise _Stop
 
     with pytest.raises(_Stop):

@@ -207,7 +207,7 @@ def test_a_compare_sweep_on_the_cluster_writes_what_it_writes_in_process(
     local_cluster, tmp_path, capsys
 ):
     argv = ["sweep", "--command", "compare", "--grid", "obstacles=1,2", "--seeds", "2"]
-    argv += ["--set", "steps=200", "--set", "size=4", "--set", "worlds=static,dynamic"]
+    argv += ["--set", "steps=100", "--set", "size=4", "--set", "worlds=static,dynamic"]
     argv += ["--set", "methods=factor-q,q-learning"]
     address = ["--scheduler", local_cluster.scheduler_address]  # what --cluster local:2 starts
     assert cli.main([*argv, *address, "--out", str(tmp_path / "cluster")]) == 0

@@ -113,7 +113,7 @@ def test_compare_replaces_its_files_and_logs_as_a_set(tmp_path, monkeypatch):
     assert Path(out / "logs").is_dir()
 
 
-COMPARED = ["--methods", "factor-q,q-learning,dqn", "--seeds", "2", "--steps", "700"]
+COMPARED = ["--methods", "factor-q,q-learning,dqn", "--seeds", "2", "--steps", "400"]
 COMPARED += ["--size", "5", "--obstacles", "2", "--worlds", "static,dynamic", "--out", "run"]
 
 
