@@ -17,13 +17,20 @@ paper-workload figures are also given as a ratio to ``NUMBA_ANCHOR``, the throug
 independent numba implementation of the same experiment measured on the project's 2-core machine
 (issue 17, a quoted figure), and, where numba is importable (it is not a dependency: ``pip install
 numba`` or the ``bench`` extra), to ``bench_numba_anchor.py``'s numba implementation measured in
-this run on the same batches (``--no-numba`` skips it). The torchrl path runs on ``--device``
+this run on the same batches (``--no-numba`` skips it). ``--shared-anchor DIR`` adds a third
+implementation, the numba code of another session (``fq_numba.py`` and ``common.py`` in ``DIR``;
+its own streams and scatter, so its env steps differ): the paper workload at ``--anchor-seeds``
+seeds per world (default 256 and 1024) runs on the fast path and on both numba anchors in
+alternating rounds (``--rounds``, the order rotating), 2 threads, and the rates, their spread and
+the ratios are printed with the load average (``--anchors-only`` prints only that table). The
+torchrl path runs on ``--device``
 (default ``cuda`` where one is present, else ``cpu``); on a GPU try ``--sizes 4096 16384 65536
 262144 --no-paper``. Run from the repository root:
 
     .venv/bin/python benchmarks/bench_speed.py
     .venv/bin/python benchmarks/bench_speed.py --sizes 1 1024 --seconds 0.3 --no-paper
     .venv/bin/python benchmarks/bench_speed.py --world dynamic --loops factor-q --no-memory
+    .venv/bin/python benchmarks/bench_speed.py --anchors-only --shared-anchor ../anchors/numba
 
 Timings are never asserted anywhere; not a package on purpose (the torchrl wheel installs a
 top-level ``benchmarks``).
@@ -41,6 +48,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -205,12 +213,38 @@ def build_times() -> tuple[float, float]:
     return built["seconds"], load
 
 
-def paper_workload(threads: int, seeds: int = 100) -> dict[str, tuple[float, int]]:
-    """{algorithm: (seconds, env steps)} for the paper's default experiment."""
+def kernel_variant(variant: str):
+    """The kernel built from ``variant``: compiler flags added to the loader's, optionally after
+    another source file of the same ABI (``old_kernel.c -march=native``), into a cache of its
+    own."""
+    words = variant.split()
+    source = Path(words.pop(0)) if words and words[0].endswith(".c") else loader._SOURCE
+    compiler = " ".join([*loader._compiler(), *words])
+    directory = tempfile.mkdtemp(prefix="fq-kernel-variant-")
+    saved = {name: os.environ.get(name) for name in ("FACTORQ_CC", "FACTORQ_CACHE_DIR")}
+    os.environ.update(FACTORQ_CC=compiler, FACTORQ_CACHE_DIR=directory)
+    default_source, loader._SOURCE = loader._SOURCE, source.resolve()
+    try:
+        library, _ = loader._build()
+    finally:
+        loader._SOURCE = default_source
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+    return library
+
+
+def paper_workload(threads: int, seeds: int = 100, library=None) -> dict[str, tuple[float, int]]:
+    """{algorithm: (seconds, env steps)} for the paper's default experiment (on ``library``, a
+    ``kernel_variant``, when given)."""
     periods = torch.tensor(PAPER_PERIODS).repeat_interleave(seeds)  # [3 * seeds]
     results = {}
     for algorithm in ("q-learning", "factor-q"):
         start = time.perf_counter()
+        if library is not None:
+            default, loader._library = loader._library, library
         batch = fast.ExperimentBatch(
             algorithm,
             periods,
@@ -222,10 +256,123 @@ def paper_workload(threads: int, seeds: int = 100) -> dict[str, tuple[float, int
             derive_keys(0, STREAM_POLICY, len(periods)),
             threads=threads,
         )
+        if library is not None:
+            loader._library = default
         while not batch.done:
             batch.advance(1 << 40)
         results[algorithm] = (time.perf_counter() - start, batch.total_steps)
     return results
+
+
+def load_shared_anchor(directory: str):
+    """The numba anchor of ``directory`` (its ``fq_numba.py`` and ``common.py``), imported and
+    compiled; exits with one line saying why where numba or the files are missing."""
+    if not numba_anchor.available():
+        sys.exit(
+            f"--shared-anchor {directory}: numba is not installed here, so the numba anchors "
+            "cannot run (pip install numba, or the bench extra)"
+        )
+    folder = Path(directory).expanduser().resolve()
+    missing = [name for name in ("fq_numba.py", "common.py") if not (folder / name).is_file()]
+    if missing:
+        sys.exit(f"--shared-anchor {directory}: no {' or '.join(missing)} in {folder}")
+    import importlib.util
+
+    modules = {}
+    for name in ("common", "fq_numba"):  # fq_numba imports "common" by that name
+        spec = importlib.util.spec_from_file_location(name, folder / f"{name}.py")
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+        modules[name] = module
+    anchor = modules["fq_numba"]
+    anchor.run_full([0], "parallel", runs=1, episodes=1)  # compile and warm up
+    return anchor
+
+
+def shared_paper_workload(anchor, threads: int, seeds: int) -> tuple[float, int]:
+    """(seconds, env steps) of the shared anchor's paper workload: ``seeds`` seeds x its 3 worlds
+    x 2 algorithms x its runs and episodes, in one ``many`` call on ``threads`` numba threads."""
+    constants = anchor.C
+    algos, periods, keys = anchor.jobs(range(seeds))
+    out = np.zeros((len(keys), 3, constants.RUNS, constants.EPISODES), np.int32)
+    layout = constants.static_layout()
+    numba_anchor.numba.set_num_threads(threads)
+    start = time.perf_counter()
+    anchor.many(
+        algos, periods, keys, layout, constants.N, constants.RUNS, constants.EPISODES,
+        constants.MAX_STEPS, out,
+    )  # fmt: skip
+    return time.perf_counter() - start, int(out[:, 0].sum())
+
+
+def _total(results: dict[str, tuple[float, int]]) -> tuple[float, int]:
+    return sum(v[0] for v in results.values()), sum(v[1] for v in results.values())
+
+
+def compare_anchors(
+    anchor, sizes: list[int], rounds: int, threads: int = 2, variants: tuple[str, ...] = ()
+) -> None:
+    """The paper workload at each number of seeds in ``sizes`` on the fast path, this project's
+    numba anchor and the shared one, ``rounds`` times, the three alternating within a round (the
+    order rotating from round to round): each rate, the ratios of the fast path per round, their
+    median and range, and the load average around every measurement."""
+    implementations = {
+        "fast": lambda seeds: _total(paper_workload(threads, seeds)),
+        "numba (project)": lambda seeds: _total(numba_anchor.paper_workload(threads, seeds)),
+    }
+    if anchor is not None:
+        implementations["numba (shared)"] = lambda seeds: shared_paper_workload(
+            anchor, threads, seeds
+        )
+    labels = {
+        variant: "fast " + " ".join(Path(w).name for w in variant.split()) for variant in variants
+    }
+    for variant in variants:  # the kernel of another source or with more flags
+        library = kernel_variant(variant)
+        implementations[labels[variant]] = lambda seeds, library=library: _total(
+            paper_workload(threads, seeds, library)
+        )
+    names = list(implementations)
+    others = {"project": "numba (project)", "shared": "numba (shared)"}
+    others = {key: name for key, name in others.items() if name in implementations}
+    others.update({label[5:]: label for label in labels.values()})
+    print(f"\npaper workload against the numba anchors, {threads} threads, {rounds} rounds, "
+          "implementations alternating (S: seeds per world; x 3 worlds x 2 algorithms x 10 runs "
+          "x 200 episodes)")  # fmt: skip
+    width = max(17, *(len(name) + 2 for name in names))
+    print(f"{'S':>5}{'round':>6}" + "".join(f"{name:>{width}}" for name in names)
+          + "".join(f"{'fast/' + key:>{width}}" for key in others) + f"{'load':>6}")  # fmt: skip
+    summary = {}
+    for count in sizes:
+        rates: dict[str, list[float]] = {name: [] for name in names}
+        ratios: dict[str, list[float]] = {key: [] for key in others}
+        for index in range(rounds):
+            load = os.getloadavg()[0]
+            order = names[index % len(names) :] + names[: index % len(names)]
+            for name in order:
+                seconds, steps = implementations[name](count)
+                rates[name].append(steps / seconds)
+            for key, name in others.items():
+                ratios[key].append(rates["fast"][-1] / rates[name][-1])
+            load = max(load, os.getloadavg()[0])  # the larger of before and after
+            print(f"{count:>5}{index + 1:>6}"
+                  + "".join(f"{rates[name][-1] / 1e6:>{width - 2}.1f} M" for name in names)
+                  + "".join(f"{ratios[key][-1]:>{width - 1}.2f}x" for key in others)
+                  + f"{load:>6.1f}")  # fmt: skip
+        summary[count] = rates, ratios
+    print("\nmedian [min - max] over the rounds")
+    for count, (rates, ratios) in summary.items():
+        cells = [
+            f"{name} {np.median(v) / 1e6:.1f} M [{min(v) / 1e6:.1f}-{max(v) / 1e6:.1f}]"
+            for name, v in rates.items()
+        ]
+        cells += [
+            f"fast/{name} {np.median(v):.2f}x [{min(v):.2f}-{max(v):.2f}]"
+            for name, v in ratios.items()
+        ]
+        print(f"S={count}: " + "; ".join(cells))
 
 
 def _status_bytes(field: str) -> int:
@@ -264,6 +411,16 @@ def _memory(loop: str, count: int) -> dict:
     return json.loads(output.strip().splitlines()[-1])
 
 
+def _machine(device: str) -> None:
+    """The kernel's build and the machine's CPUs and load, as the tables' header."""
+    info = fast.build_info()
+    print(f"kernel: {Path(info['path']).name}, cc {' '.join(loader._FLAGS)}")
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+    version = f", numba {numba_anchor.numba.__version__}" if numba_anchor.available() else ""
+    print(f"machine: {os.cpu_count()} CPUs, load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}"
+          f", torch {torch.__version__}{version}, torchrl path on {device}")  # fmt: skip
+
+
 def _rate(value) -> str:
     if not isinstance(value, float):
         return str(value)
@@ -290,6 +447,24 @@ def main() -> None:
     parser.add_argument(
         "--no-numba", action="store_true", help="do not measure the numba anchor (when installed)"
     )
+    parser.add_argument(
+        "--shared-anchor",
+        metavar="DIR",
+        help="folder of another numba anchor (fq_numba.py, common.py) to measure against",
+    )
+    parser.add_argument(
+        "--anchor-seeds", type=int, nargs="+", default=[256, 1024], metavar="S",
+        help="seeds per world of the paper workload against the anchors",
+    )  # fmt: skip
+    parser.add_argument("--rounds", type=int, default=3, help="rounds against the anchors")
+    parser.add_argument(
+        "--kernel-variant", action="append", default=[], metavar="FLAGS",
+        help="also run the kernel built with FLAGS added (e.g. -march=native), or from another "
+        "source file first in FLAGS (old_kernel.c [flags]), against the anchors",
+    )  # fmt: skip
+    parser.add_argument(
+        "--anchors-only", action="store_true", help="only the paper workload against the anchors"
+    )
     parser.add_argument("--memory-probe", nargs=2, metavar=("LOOP", "S"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.memory_probe:
@@ -299,13 +474,22 @@ def main() -> None:
         sys.exit(f"the fast path is unavailable: {fast.unavailable_reason()}")
     if args.world == "dynamic":
         WORLD["periods"] = (1,)
+    anchor = load_shared_anchor(args.shared_anchor) if args.shared_anchor else None
+    if args.anchors_only:
+        if not numba_anchor.available():
+            sys.exit(
+                "--anchors-only: numba is not installed (pip install numba or the bench extra)"
+            )
+        _machine(args.device)
+        if anchor is None:
+            print("no --shared-anchor: the fast path against this project's numba anchor only")
+        compare_anchors(anchor, args.anchor_seeds, args.rounds, variants=args.kernel_variant)
+        return
 
     compile_seconds, load_seconds = build_times()
     print(f"kernel: compiled in {compile_seconds:.2f} s, loaded from the cache in "
-          f"{load_seconds * 1e3:.1f} ms (cc {' '.join(loader._FLAGS)})")  # fmt: skip
-    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
-    print(f"machine: {os.cpu_count()} CPUs, load average {load[0]:.2f}, torch {torch.__version__}"
-          f", torchrl path on {args.device}")  # fmt: skip
+          f"{load_seconds * 1e3:.1f} ms")  # fmt: skip
+    _machine(args.device)
     worlds = "cycling static/semi/dynamic" if args.world == "paper" else "all dynamic"
     print(f"\nthroughput, env steps per second (10x10 worlds {worlds})")
     columns = [f"fast {t} thr" for t in args.threads]
@@ -353,6 +537,8 @@ def main() -> None:
                 print(f"{'':>7}numba anchor measured now: {rate / 1e6:.1f} M steps/s on 2 threads"
                       f" (same {sum(v[1] for v in anchor.values()):,} env steps): fast / numba "
                       f"{steps / seconds / rate:.2f}x")  # fmt: skip
+    if anchor is not None:
+        compare_anchors(anchor, args.anchor_seeds, args.rounds, variants=args.kernel_variant)
     if 2 in args.threads and not numba_anchor.available():
         print("\nnumba is not installed: the '/ numba' ratios are to the quoted anchor only "
               "(pip install numba, or the bench extra, to measure it in this run)")  # fmt: skip
