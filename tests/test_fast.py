@@ -160,6 +160,23 @@ def test_kernel_equations_equal_functional_on_random_rows_with_ties_and_zeros():
         assert torch.equal(_bits(combined), _bits(expected))
 
 
+def test_kernel_equations_equal_functional_on_infinities_nans_and_the_float_range():
+    """The kernel's vectorised eq. 2 (and its cap to the float range) on the values where a
+    scalar and a packed route could differ: +-0, +-inf, NaN, +-FLT_MAX, a subnormal."""
+    big = torch.finfo(torch.float32).max
+    values = torch.tensor([0.0, -0.0, 1.0, -1.0, big, -big, float("inf"), -float("inf")])
+    values = torch.cat([values, torch.tensor([float("nan"), 1e-45, -3e38, 2.5])])
+    generator = torch.Generator().manual_seed(1)
+    q = values[torch.randint(0, len(values), (20_000, 4), generator=generator)]
+    rho = values[torch.randint(0, len(values), (20_000, 4), generator=generator)]
+    for eta, g_min in ((0.1, 0.01), (1e30, 0.01)):
+        g, combined = fast.kernel_combined_values(q, rho, eta, g_min)
+        expected_g = functional.normaliser(q, rho, eta, g_min)
+        assert torch.equal(_bits(g), _bits(expected_g))
+        expected = functional.combined_values(q, rho, expected_g)
+        assert torch.equal(_bits(combined), _bits(expected))
+
+
 @pytest.mark.parametrize("size,num_obstacles", [(2, 1), (3, 6), (10, 10), (10, 97), (64, 300)])
 def test_kernel_scatter_equals_world_scatter_for_any_size(size, num_obstacles):
     key = derive_keys(5, STREAM_WORLD, 1)
