@@ -315,9 +315,12 @@ def compare_anchors(
     anchor, sizes: list[int], rounds: int, threads: int = 2, variants: tuple[str, ...] = ()
 ) -> None:
     """The paper workload at each number of seeds in ``sizes`` on the fast path, this project's
-    numba anchor and the shared one, ``rounds`` times, the three alternating within a round (the
-    order rotating from round to round): each rate, the ratios of the fast path per round, their
-    median and range, and the load average around every measurement."""
+    numba anchor, the shared one (``anchor``, if given) and the kernel ``variants``, ``rounds``
+    times, alternating within a round (the order rotating from round to round). Each rate is
+    given per wall second and per CPU second of the process (all its threads): on a machine
+    shared with other work the wall rate follows the CPU share the process gets, the CPU rate
+    much less. Then the ratios of the fast path per round, their median and range, and the load
+    average around every round."""
     implementations = {
         "fast": lambda seeds: _total(paper_workload(threads, seeds)),
         "numba (project)": lambda seeds: _total(numba_anchor.paper_workload(threads, seeds)),
@@ -338,41 +341,49 @@ def compare_anchors(
     others = {"project": "numba (project)", "shared": "numba (shared)"}
     others = {key: name for key, name in others.items() if name in implementations}
     others.update({label[5:]: label for label in labels.values()})
+    for name in names:  # compile (numba) and warm up, untimed
+        implementations[name](1)
+    print(f"numba threading layer: {numba_anchor.numba.threading_layer()}")
     print(f"\npaper workload against the numba anchors, {threads} threads, {rounds} rounds, "
           "implementations alternating (S: seeds per world; x 3 worlds x 2 algorithms x 10 runs "
-          "x 200 episodes)")  # fmt: skip
+          "x 200 episodes); env steps per wall second and per CPU second")  # fmt: skip
     width = max(17, *(len(name) + 2 for name in names))
-    print(f"{'S':>5}{'round':>6}" + "".join(f"{name:>{width}}" for name in names)
+    print(f"{'S':>5}{'round':>6}{'per':>5}" + "".join(f"{name:>{width}}" for name in names)
           + "".join(f"{'fast/' + key:>{width}}" for key in others) + f"{'load':>6}")  # fmt: skip
     summary = {}
     for count in sizes:
-        rates: dict[str, list[float]] = {name: [] for name in names}
-        ratios: dict[str, list[float]] = {key: [] for key in others}
+        rates = {clock: {name: [] for name in names} for clock in ("wall", "cpu")}
+        ratios = {clock: {key: [] for key in others} for clock in ("wall", "cpu")}
         for index in range(rounds):
             load = os.getloadavg()[0]
             order = names[index % len(names) :] + names[: index % len(names)]
             for name in order:
+                cpu = time.process_time()
                 seconds, steps = implementations[name](count)
-                rates[name].append(steps / seconds)
-            for key, name in others.items():
-                ratios[key].append(rates["fast"][-1] / rates[name][-1])
+                cpu = time.process_time() - cpu
+                rates["wall"][name].append(steps / seconds)
+                rates["cpu"][name].append(steps / cpu)
             load = max(load, os.getloadavg()[0])  # the larger of before and after
-            print(f"{count:>5}{index + 1:>6}"
-                  + "".join(f"{rates[name][-1] / 1e6:>{width - 2}.1f} M" for name in names)
-                  + "".join(f"{ratios[key][-1]:>{width - 1}.2f}x" for key in others)
-                  + f"{load:>6.1f}")  # fmt: skip
+            for clock in ("wall", "cpu"):
+                for key, name in others.items():
+                    ratios[clock][key].append(rates[clock]["fast"][-1] / rates[clock][name][-1])
+                print(f"{count:>5}{index + 1:>6}{clock:>5}"
+                      + "".join(f"{rates[clock][n][-1] / 1e6:>{width - 2}.1f} M" for n in names)
+                      + "".join(f"{ratios[clock][k][-1]:>{width - 1}.2f}x" for k in others)
+                      + (f"{load:>6.1f}" if clock == "wall" else ""))  # fmt: skip
         summary[count] = rates, ratios
     print("\nmedian [min - max] over the rounds")
     for count, (rates, ratios) in summary.items():
-        cells = [
-            f"{name} {np.median(v) / 1e6:.1f} M [{min(v) / 1e6:.1f}-{max(v) / 1e6:.1f}]"
-            for name, v in rates.items()
-        ]
-        cells += [
-            f"fast/{name} {np.median(v):.2f}x [{min(v):.2f}-{max(v):.2f}]"
-            for name, v in ratios.items()
-        ]
-        print(f"S={count}: " + "; ".join(cells))
+        for clock in ("wall", "cpu"):
+            cells = [
+                f"{name} {np.median(v) / 1e6:.1f} M [{min(v) / 1e6:.1f}-{max(v) / 1e6:.1f}]"
+                for name, v in rates[clock].items()
+            ]
+            cells += [
+                f"fast/{name} {np.median(v):.2f}x [{min(v):.2f}-{max(v):.2f}]"
+                for name, v in ratios[clock].items()
+            ]
+            print(f"S={count}, per {clock} second: " + "; ".join(cells))
 
 
 def _status_bytes(field: str) -> int:
