@@ -134,7 +134,8 @@ def _shared_workload(directory: str, period: int, algorithm: str, seeds: int):
     numba.set_num_threads(1)
     fq_numba.experiment.enable_caching()  # compiled once outside valgrind (count's warm-up run)
     fq_numba.many.enable_caching()
-    algos = np.full(seeds, common.ALGOS.index({"q-learning": "q"}.get(algorithm, algorithm)))
+    name = {"q-learning": "q", "factor-q": "factorq"}[algorithm]
+    algos = np.full(seeds, common.ALGOS.index(name))
     periods, keys = np.full(seeds, period, np.int64), np.arange(seeds, dtype=np.int64)
     layout = common.static_layout()
 
@@ -202,6 +203,14 @@ def count(implementation: str, seeds: int, directory: Path, anchor: str | None, 
     # One thread everywhere (no thread pool spinning while counted), numba's code cached.
     environment = dict(os.environ, PYTHONHASHSEED="0", OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1")
     environment["NUMBA_CACHE_DIR"] = str(directory / "numba-cache")
+    if implementation != "fast":
+        # numba keys its cache on the CPU it sees, and valgrind's CPUID shows another one:
+        # name the host's CPU for both runs, so that the counted run loads what the warm-up
+        # compiled (the same code as natively) instead of compiling under valgrind (very slow).
+        from llvmlite import binding
+
+        environment.setdefault("NUMBA_CPU_NAME", binding.get_host_cpu_name())
+        environment.setdefault("NUMBA_CPU_FEATURES", binding.get_host_cpu_features().flatten())
     if kernel_cc is not None:  # a -g build of the kernel, in a cache of its own
         environment.update(FACTORQ_CC=kernel_cc, FACTORQ_CACHE_DIR=str(directory / "cache"))
     # compile (numba's code, the kernel) into the caches at native speed first

@@ -34,7 +34,10 @@ RANDOM_WALK = "random-walk"
 _ALGORITHM_CODES = {RANDOM_WALK: 0, "q-learning": 1, "factor-q": 2}
 _SOURCE = Path(__file__).with_name("_kernel.c")
 #: No FMA contraction and no fast-math: every float operation must round exactly as torch's
-#: separate ops do. -march=native is left out (measured no faster; keeps the cache portable).
+#: separate ops do. No -march: the compiler's default target (on x86-64 SSE2, no POPCNT, BMI2 or
+#: AVX), so one build runs on every CPU of the architecture and a shared cache stays valid.
+#: -march=native was measured no faster twice (issue 17: 0.96x; issue 30 on a Zen 3: 0.98-1.00x,
+#: docs/decisions.md), so there is no per-machine build.
 _FLAGS = ("-O3", "-std=c99", "-ffp-contract=off", "-fno-fast-math", "-fPIC", "-shared")
 _ABI_VERSION = 8
 #: The fields ``fq_check_experiment`` refuses, by code (1-based), and ``fq_advance``'s encoding.
