@@ -21,16 +21,16 @@ this run on the same batches (``--no-numba`` skips it). ``--shared-anchor DIR`` 
 implementation, the numba code of another session (``fq_numba.py`` and ``common.py`` in ``DIR``;
 its own streams and scatter, so its env steps differ): the paper workload at ``--anchor-seeds``
 seeds per world (default 256 and 1024) runs on the fast path and on both numba anchors in
-alternating rounds (``--rounds``, the order rotating), 2 threads, and the rates, their spread and
-the ratios are printed with the load average (``--anchors-only`` prints only that table). The
-torchrl path runs on ``--device``
-(default ``cuda`` where one is present, else ``cpu``); on a GPU try ``--sizes 4096 16384 65536
-262144 --no-paper``. Run from the repository root:
+alternating rounds (``--rounds``, the order rotating), 2 threads, and the rates (per wall and per
+CPU second), their spread and the ratios are printed with the load average (``--anchors-only``
+prints only that table; ``--kernel-variant`` adds other builds of the kernel). The torchrl path
+runs on ``--device`` (default ``cuda`` where one is present, else ``cpu``); on a GPU try
+``--sizes 4096 16384 65536 262144 --no-paper``. Run from the repository root:
 
     .venv/bin/python benchmarks/bench_speed.py
     .venv/bin/python benchmarks/bench_speed.py --sizes 1 1024 --seconds 0.3 --no-paper
     .venv/bin/python benchmarks/bench_speed.py --world dynamic --loops factor-q --no-memory
-    .venv/bin/python benchmarks/bench_speed.py --anchors-only --shared-anchor ../anchors/numba
+    .venv/bin/python benchmarks/bench_speed.py --anchors-only --shared-anchor DIR --rounds 3
 
 Timings are never asserted anywhere; not a package on purpose (the torchrl wheel installs a
 top-level ``benchmarks``).
