@@ -418,7 +418,13 @@ def test_risk_experiment_units_summary_and_report(tmp_path):
 
 @pytest.mark.parametrize(
     "field, value",
-    [("worlds", ("highway",)), ("methods", ("ppo",)), ("seeds", 0), ("tau", 2.0)],
+    [
+        ("worlds", ("mars",)),
+        ("methods", ("ppo",)),
+        ("seeds", 0),
+        ("tau", 2.0),
+        ("sb3_worlds", ("highway",)),  # the sb3 methods run on the gymnasium grid only
+    ],
 )
 def test_risk_experiment_config_names_the_bad_field(field, value):
     from factorq_trainers.experiments.risk import RiskConfig
@@ -516,3 +522,56 @@ def test_factorq_risk_runs_through_the_runner_and_writes_its_files(tmp_path, cap
     assert "What the layer did" in report
     assert risk_report._summary_line(episodes[-1]) == RiskSummary.line(episodes[-1])
     assert f"- grid dqn+risk-oracle: {RiskSummary.line(episodes[-1])}" in report
+
+
+# --- highway-env through the Gymnasium adapter (the highway extra) ----------------------------
+
+
+def test_highway_world_reads_kinematics_and_sensors_and_masks_by_its_penalty():
+    pytest.importorskip("highway_env")
+    from factorq_envs import highway
+    from factorq_trainers.experiments import risk_methods
+    from factorq_trainers.experiments.risk import RiskConfig
+
+    env = risk_methods.make_env(RiskConfig(worlds=("highway",)), "highway", 0)
+    assert env.reward_key == "reward"  # the conventional reward, what the recipe reads
+    encoder, width = risk_methods.features(env)
+    assert encoder.out_keys == ["features"]  # the Kinematics stay under "observation"
+    td = encoder(env.reset())
+    assert width == 5 * 5 + 6 and td["features"].shape == (1, width)
+    assert td["observation"].shape == (1, 5, 5)
+    # "risky" is a crash more likely than not: half of highway's penalty 2/3
+    assert risk_methods._penalty(env) == pytest.approx(highway.PENALTY)
+    assert torch.equal(env.base_env.dependency, torch.tensor(highway.ORACLE))
+    env.close()
+
+
+def test_factorq_risk_runs_on_highway_through_the_runner(tmp_path, capsys):
+    # a few steps of each torchrl method on highway-fast-v0: the files, a crash counted as a
+    # collision, survival as success, the layer's log with highway's actuator names
+    pytest.importorskip("highway_env")
+    import json
+
+    from factorq_trainers import cli
+
+    out = tmp_path / "risk"
+    args = ["risk", "--worlds", "highway", "--seeds", "1", "--steps", "36"]  # an episode ends by 30
+    args += ["--learning-starts", "10", "--eval-episodes", "1", "--out", str(out)]
+    assert cli.main(args) == 0, capsys.readouterr().err
+    results = json.loads((out / "risk.json").read_text())
+    rows = {row["method"]: row for row in results["rows"]}
+    assert set(rows) == {"dqn", "dqn+risk-oracle", "dqn+risk-learned"}
+    for row in rows.values():
+        assert row["world"] == "highway" and 0 <= row["greedy_success"] <= 1
+        assert row["greedy_collisions"] in (0.0, 1.0)  # one greedy episode: a crash ends it
+        assert row["greedy_success"] == 1.0 - row["greedy_collisions"]
+    episodes = results["risk_log"]["highway/dqn+risk-oracle/0"]
+    assert set(episodes[0]["penalised"]) == set(
+        ("LANE_LEFT", "IDLE", "LANE_RIGHT", "FASTER", "SLOWER")
+    )
+    # the learner's structure kept beside the declared oracle, and shown in the report
+    found = results["structures"]["highway/dqn+risk-learned/0"]
+    assert found["actuators"][0] == "LANE_LEFT" and found["oracle"][0] == ["left<1s", "left<3s"]
+    assert len(found["parents"]) == 5
+    report = (out / "risk.md").read_text()
+    assert "| highway | dqn |" in report and "- highway/dqn+risk-learned/0: " in report

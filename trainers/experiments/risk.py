@@ -22,8 +22,14 @@ seed for every method; the methods differ only by the two lines of ``factorq_tor
 Every method reads the conventional reward (``SplitLocalReward(keep_reward=True)``: collisions
 included), so DQN alone can learn to avoid collisions itself; the layer only adds
 ``local_reward``. Worlds: ``grid``, the dynamic FactoredGrid world (obstacles move every step);
-``minigrid``, MiniGrid Dynamic-Obstacles (``size`` 8 by default; the ``minigrid`` extra).
-highway-env waits for the Gymnasium-adapter issue.
+``minigrid``, MiniGrid Dynamic-Obstacles (``size`` 8 by default; the ``minigrid`` extra);
+``highway`` (asked for by name: its steps cost about a hundred times the grid's),
+highway-env's ``highway-fast-v0`` as ``factorq_envs.highway`` declares it, through the
+Gymnasium adapter (the ``highway`` extra): the Q-network reads its ``Kinematics`` observation
+and the six time-to-collision sensors, the oracle is the declared ``highway.ORACLE``, a
+collision is a crash (penalty 2/3, so the layer's exploration mask drops an actuator whose
+crash is more likely than not: ``mask_threshold`` is half the penalty on every world), and a
+"success" is an episode that ran to highway's time limit without a crash.
 
 Per unit: collisions during training, greedy collisions and success over ``eval_episodes`` greedy
 episodes after training, the mean conventional return of the last 20% of training episodes, and
@@ -72,6 +78,24 @@ HELP = "torchrl's DQN (and SB3's) alone against DQN + local risk, side by side"
 REPORT = "factorq_trainers.reports.risk"
 WORK_UNIT = "step"
 CONFIG = RiskConfig
+
+
+def prepare(config: RiskConfig) -> None:
+    """The extras the asked-for worlds and methods need, else one ModuleNotFoundError naming
+    the extra, before any work.
+
+    Args:
+        config: the experiment.
+    """
+    from factorq_envs.gymnasium_adapter import require_extra
+
+    if "highway" in config.worlds:
+        require_extra("highway_env", "factorq-torch[highway]")
+    if "minigrid" in config.worlds:
+        require_extra("minigrid", "factorq-torch[minigrid]")
+    sb3 = any(method.startswith("sb3") for method in config.methods)
+    if sb3 and set(config.worlds) & set(config.sb3_worlds):
+        require_extra("stable_baselines3", "factorq-torch[sb3]")
 
 
 def units(config: RiskConfig) -> list[dict[str, Any]]:
@@ -151,7 +175,9 @@ def _difference(first: float | None, second: float | None) -> float | None:
 
 
 def summarise(config: RiskConfig, unit_results: list[dict[str, Any]]) -> dict[str, Any]:
-    """Means over seeds per (world, method), and the ratios the issue's targets name.
+    """Means over seeds per (world, method), the ratios the issue's targets name, the learned
+    structures (``structures``, by unit id: what ``dqn+risk-learned`` committed to, beside the
+    env's dependency) and the layer's logs (``risk_logs``).
 
     Args:
         config: the experiment.
@@ -197,7 +223,12 @@ def summarise(config: RiskConfig, unit_results: list[dict[str, Any]]) -> dict[st
                     "return_gain": _difference(learned["final_return"], oracle["final_return"]),
                 }
             )
-    return {"rows": rows, "ratios": ratios, **risk_logs(unit_results)}
+    structures = {
+        f"{r['world']}/{r['method']}/{r['seed']}": r["structure"]
+        for r in unit_results
+        if "structure" in r
+    }
+    return {"rows": rows, "ratios": ratios, "structures": structures, **risk_logs(unit_results)}
 
 
 def risk_logs(unit_results: list[dict[str, Any]]) -> dict[str, Any]:

@@ -12,9 +12,11 @@ from typing import Any
 from factorq_trainers.runner.options import option
 
 Progress = Callable[[int], None]
-WORLDS = ("grid", "minigrid")
+WORLDS = ("grid", "minigrid", "highway")
 METHODS = ("dqn", "dqn+risk-oracle", "dqn+risk-learned", "sb3-dqn", "sb3-dqn+risk-oracle")
 TORCHRL_METHODS = METHODS[:3]
+#: The worlds the sb3-* methods can run on (``risk_methods.run_sb3``: the gymnasium grid).
+SB3_WORLDS = ("grid",)
 
 
 def _names(value: Any, field: str, allowed: tuple[str, ...]) -> tuple[str, ...]:
@@ -36,7 +38,8 @@ class RiskConfig:
             or a tuple).
         seeds, seed: seeds per (world, method), from ``seed`` on.
         steps: training env steps per unit.
-        grid_size, grid_obstacles, minigrid_size: the worlds.
+        grid_size, grid_obstacles, minigrid_size: the worlds (``highway`` is
+            ``factorq_envs.highway``'s ``highway-fast-v0`` as declared there).
         hidden, lr, gamma, buffer_size, batch_size: the DQN recipe, the same for every method.
         learning_starts, train_every, tau: when it learns and how fast its target follows.
         eps_start, eps_end, exploration_fraction: its exploration schedule.
@@ -45,9 +48,11 @@ class RiskConfig:
         out: the output directory.
     """
 
-    worlds: tuple[str, ...] = option(("grid", "minigrid"), "Worlds: grid, minigrid.")
+    worlds: tuple[str, ...] = option(
+        ("grid", "minigrid"), "Worlds: grid, minigrid, highway (highway-fast-v0: ask for it)."
+    )
     methods: tuple[str, ...] = option(TORCHRL_METHODS, f"Methods, of {', '.join(METHODS)}.")
-    sb3_worlds: tuple[str, ...] = option(("grid",), "Worlds the sb3-* methods run on.")
+    sb3_worlds: tuple[str, ...] = option(SB3_WORLDS, "Worlds the sb3-* methods run on: grid.")
     seeds: int = option(3, "Seeds per (world, method).")
     seed: int = option(0, "First seed.")
     steps: int = option(3000, "Env steps of training per unit.")
@@ -72,7 +77,7 @@ class RiskConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, "worlds", _names(self.worlds, "worlds", WORLDS))
         object.__setattr__(self, "methods", _names(self.methods, "methods", METHODS))
-        object.__setattr__(self, "sb3_worlds", _names(self.sb3_worlds, "sb3_worlds", WORLDS))
+        object.__setattr__(self, "sb3_worlds", _names(self.sb3_worlds, "sb3_worlds", SB3_WORLDS))
         for name in ("seeds", "steps", "hidden", "buffer_size", "batch_size", "train_every"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:

@@ -28,6 +28,9 @@ if TYPE_CHECKING:
     from factorq_torch.structure import StructureLearner
     from factorq_torch.tables import LocalRewardTable
 
+#: The greedy episodes' step limit on highway (highway-fast-v0 truncates at 30 steps itself).
+HIGHWAY_EVAL_LIMIT = 1_000
+
 
 # --------------------------------------------------------------------------------------------
 # One unit: the torchrl recipe
@@ -38,13 +41,15 @@ def make_env(config: RiskConfig, world: str, seed: int) -> Any:  # a Transformed
 
     Args:
         config: the experiment.
-        world: ``"grid"`` or ``"minigrid"``.
+        world: ``"grid"``, ``"minigrid"`` or ``"highway"`` (``factorq_envs.highway``'s
+            declaration through the Gymnasium adapter: the ``highway`` extra).
         seed: the world's seed.
     """
     from torchrl.envs import TransformedEnv
 
     from factorq_envs import FactoredGridEnv, SplitLocalReward
 
+    base: Any
     if world == "grid":
         base = FactoredGridEnv(
             size=config.grid_size,
@@ -53,6 +58,11 @@ def make_env(config: RiskConfig, world: str, seed: int) -> Any:  # a Transformed
             batch_size=(1,),
             seed=seed,
         )
+    elif world == "highway":
+        from factorq_envs.declared_env import declared_torchrl_env
+        from factorq_envs.highway import make_highway
+
+        base = declared_torchrl_env(make_highway, [seed])
     else:
         from factorq_envs.minigrid_torchrl import MiniGridEnv
 
@@ -60,9 +70,23 @@ def make_env(config: RiskConfig, world: str, seed: int) -> Any:  # a Transformed
     return TransformedEnv(base, SplitLocalReward(keep_reward=True))
 
 
+def _is_highway(env: Any) -> bool:
+    """A ``make_env`` env of the ``highway`` world (no task state: no ``cell``)."""
+    return "cell" not in env.observation_spec.keys()
+
+
+def _penalty(env: Any) -> float:
+    """The world's collision penalty: the declared one (highway: 2/3), else 1."""
+    declaration = getattr(env.base_env, "declaration", None)
+    return 1.0 if declaration is None else float(declaration.penalty)
+
+
 def features(env: Any) -> tuple[Any, int]:
     """``observation`` ``[*B, N H + K]``: the (cell, heading) one-hot and the sensor bits, the
-    information Q-learning's state holds, as a TensorDict module, and its width.
+    information Q-learning's state holds, as a TensorDict module, and its width. highway (no
+    cell) writes ``features`` ``[*B, 25 + K]`` instead: its ``Kinematics`` observation
+    (``observation`` ``[*B, 5, 5]``, left as it is) flattened, and the sensor bits, so DQN alone
+    sees what the layer sees. The entry written is the module's ``out_keys[0]``.
 
     Args:
         env: a ``make_env`` env.
@@ -71,6 +95,19 @@ def features(env: Any) -> tuple[Any, int]:
     from tensordict.nn import TensorDictModule
 
     spec = env.observation_spec
+    if _is_highway(env):
+        kinematics = spec["observation"].shape[-2:]
+
+        class Kinematics(torch.nn.Module):
+            def forward(self, observation: torch.Tensor, sensors: torch.Tensor) -> torch.Tensor:
+                flat = observation.flatten(-2).to(torch.float32)
+                return torch.cat([flat, sensors.to(torch.float32)], dim=-1)
+
+        width = kinematics.numel() + spec["sensors"].shape[-1]
+        module = TensorDictModule(
+            Kinematics(), in_keys=["observation", "sensors"], out_keys=["features"]
+        )
+        return module, width
     cells = int(spec["cell"].space.n)
     headings = int(spec["heading"].space.n) if "heading" in spec.keys() else 1
 
@@ -133,12 +170,16 @@ class _Tally:
                 self.steps_to_threshold = self.steps
 
 
-def _step_flags(td: Any) -> tuple[list[float], list[bool], list[bool], list[bool]]:
-    """Per world of one collected step: reward, collided, done, success (the goal reached)."""
+def _step_flags(
+    td: Any, survive: bool = False
+) -> tuple[list[float], list[bool], list[bool], list[bool]]:
+    """Per world of one collected step: reward, collided, done, success (the goal reached;
+    ``survive``, highway: the episode ran to its time limit without a crash)."""
     reward = td["next", "reward"].reshape(-1).tolist()
     collided = (td["next", "collision"] < 0).any(-1).reshape(-1)
     done = td["next", "done"].reshape(-1)
-    success = td["next", "terminated"].reshape(-1) & ~collided
+    ended = td["next", "truncated" if survive else "terminated"].reshape(-1)
+    success = ended & ~collided
     return reward, collided.tolist(), done.tolist(), success.tolist()
 
 
@@ -159,6 +200,7 @@ def run_torchrl(
     from torchrl.objectives import DQNLoss, SoftUpdate
 
     from factorq_torch.risk import RISK_MASK, LocalRisk, LocalRiskLoss, RiskSummary, with_local_risk
+    from factorq_torch.structure import StructureLearner
 
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", category=DeprecationWarning)
@@ -170,10 +212,17 @@ def run_torchrl(
     encoder, width = features(env)
     network = MLP(in_features=width, out_features=int(spec.space.n), num_cells=[config.hidden] * 2)
     actor = QValueActor(
-        TensorDictSequential(encoder, _module(network)), in_keys=["cell"], spec=spec
+        TensorDictSequential(encoder, _module(network, encoder.out_keys[0])),
+        in_keys=list(encoder.in_keys),
+        spec=spec,
     )
     local = provider(unit["method"], env)
-    acting = actor if local is None else with_local_risk(actor, local, env=env)  # line 1
+    highway = _is_highway(env)
+    # "risky" in local-reward units: a collision more likely than not, whatever its penalty
+    options: dict[str, Any] = {"mask_threshold": 0.5 * _penalty(env)}
+    if highway:  # the declared names (the adapter's sizes carry the actuators' only)
+        options.update(sensor_names=env.base_env.declaration.sensor_names, active="on")
+    acting = actor if local is None else with_local_risk(actor, local, env=env, **options)  # 1
     local_loss = None if local is None else LocalRiskLoss(local)  # line 2
     summary: RiskSummary | None = None  # what the layer did, per training episode (the logs)
     if local is not None:
@@ -212,7 +261,7 @@ def run_torchrl(
             step = data[t : t + 1]
             if summary is not None:
                 summary.update(step)
-            for flags in zip(*_step_flags(step), strict=True):
+            for flags in zip(*_step_flags(step, highway), strict=True):
                 tally.step(*flags)
                 if summary is not None and flags[2]:  # the episode is done
                     risk_log.append(summary.episode())
@@ -235,13 +284,33 @@ def run_torchrl(
     result = _result(tally, greedy, wall)
     if summary is not None:
         result["risk_log"] = risk_log
+    if isinstance(local, StructureLearner):  # what it found, beside the env's declared oracle
+        result["structure"] = _structure(local, layer, env)
     return result
 
 
-def _module(network: torch.nn.Module) -> Any:
+def _structure(learner: StructureLearner, layer: Any, env: Any) -> dict[str, Any]:
+    """The learner's committed parents per actuator (sensor names; ``None`` while open) and the
+    env's dependency in the same form (``None`` where it declares none)."""
+    sensors, actuators = layer.sensor_names, layer.actuator_names
+
+    def parents(rows: Any) -> list[list[str]]:
+        return [[sensors[k] for k, on in enumerate(row) if on] for row in rows.tolist()]
+
+    committed = learner.is_committed()[0].tolist()
+    found = parents(learner.structure()[0])
+    dependency = getattr(env, "dependency", None)
+    return {
+        "actuators": list(actuators),
+        "parents": [names if done else None for names, done in zip(found, committed, strict=True)],
+        "oracle": None if dependency is None else parents(dependency),
+    }
+
+
+def _module(network: torch.nn.Module, key: str = "observation") -> Any:
     from tensordict.nn import TensorDictModule
 
-    return TensorDictModule(network, in_keys=["observation"], out_keys=["action_value"])
+    return TensorDictModule(network, in_keys=[key], out_keys=["action_value"])
 
 
 def evaluate(config: RiskConfig, unit: dict[str, Any], acting: Any) -> dict[str, int]:
@@ -258,13 +327,19 @@ def evaluate(config: RiskConfig, unit: dict[str, Any], acting: Any) -> dict[str,
 
     env = make_env(config, unit["world"], 10_000 + unit["seed"])
     collisions = successes = 0
-    limit = 4 * (config.grid_size if unit["world"] == "grid" else config.minigrid_size) ** 2
+    if unit["world"] == "highway":
+        limit = HIGHWAY_EVAL_LIMIT  # highway-fast-v0 ends its episodes itself (30 steps)
+    else:
+        limit = 4 * (config.grid_size if unit["world"] == "grid" else config.minigrid_size) ** 2
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         for _ in range(config.eval_episodes):
             rollout = env.rollout(limit, acting, break_when_any_done=True)
             collided = (rollout["next", "collision"] < 0).any(-1)
             collisions += int(collided.sum())
-            successes += int((rollout["next", "terminated"].squeeze(-1) & ~collided).any())
+            if unit["world"] == "highway":  # survived: ran to the time limit, no crash
+                successes += int(not bool(collided.any()))
+            else:
+                successes += int((rollout["next", "terminated"].squeeze(-1) & ~collided).any())
     return {"collisions": collisions, "successes": successes, "episodes": config.eval_episodes}
 
 

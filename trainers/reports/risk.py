@@ -70,7 +70,37 @@ def markdown(results: dict[str, Any]) -> str:
                 + " |"
             )
     lines += _risk_markdown(results)
+    lines += _structure_markdown(results)
     return "\n".join(lines) + "\n"
+
+
+def _structure_markdown(results: dict[str, Any]) -> list[str]:
+    """Per ``dqn+risk-learned`` unit, the actuators whose committed parents differ from the
+    env's dependency (or are still open): the disagreements stay visible."""
+    structures = results.get("structures") or {}
+    if not structures:
+        return []
+    lines = ["", "Learned structures against the env's dependency (actuators that differ):", ""]
+    for unit_id, found in structures.items():
+        oracle = found["oracle"]
+        differ = []
+        for name, parents, believed in zip(
+            found["actuators"],
+            found["parents"],
+            oracle or [None] * len(found["actuators"]),
+            strict=True,
+        ):
+            if parents is None:
+                differ.append(f"{name} open")
+            elif oracle is not None and sorted(parents) != sorted(believed):
+                differ.append(
+                    f"{name} <- {', '.join(parents) or 'none'} (oracle: "
+                    f"{', '.join(believed) or 'none'})"
+                )
+            elif oracle is None:
+                differ.append(f"{name} <- {', '.join(parents) or 'none'}")
+        lines.append(f"- {unit_id}: {'; '.join(differ) or 'all as the oracle'}")
+    return lines
 
 
 def _risk_markdown(results: dict[str, Any]) -> list[str]:
