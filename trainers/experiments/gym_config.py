@@ -62,9 +62,9 @@ def make_minigrid_8x8(seed: int) -> FactorQEnv:
 @dataclass(frozen=True)
 class GymConfig:
     """The experiment. The defaults (3 seeds x 1,000 steps x 3 methods: at most 10,350 env
-    steps with the greedy episodes) are about 2-3 minutes of highway's own stepping on 2 idle
-    cores at its 35-45 env steps/s per core, plus the learning
-    (``docs/tutorials/highway.md``: not yet measured on an idle machine)."""
+    steps with the greedy episodes) took about 75 s of CPU time per unit on highway (about 11 min
+    of CPU in all, about 6 min of wall time on 2 idle cores as two processes; with ``sb3-dqn`` 938 s
+    of CPU for the 12 units: ``docs/tutorials/highway.md``)."""
 
     world: str = option("highway", "The declared world.", choices=tuple(WORLDS))
     seed: int = option(0, "Master seed: env seeds, policies and networks derive from it.")
