@@ -8,7 +8,8 @@ time-to-collision sensors read before acting, the action, its crash) is counted 
 ``factorq gym`` uses. Printed per action: its firings and crashes, the learner's committed parents
 (or "open") beside the oracle's, and its crash rate with each sensor on and off; then, for each
 action whose learned parents differ from the oracle's, the crash rate per pattern of the union of
-both parent sets (what tells the two apart). ``--json`` writes the same as data.
+both parent sets and of the sensor whose reading "on" is the most dangerous (what tells them
+apart). ``--json`` writes the same as data.
 
     .venv/bin/python benchmarks/highway_structure.py --steps 2000 --seed 0
 
@@ -92,7 +93,8 @@ def _rate(crashes: np.ndarray) -> dict[str, Any]:
 
 def report(data: dict[str, np.ndarray], parents: list[list[int] | None]) -> dict[str, Any]:
     """Per action: firings, crashes, learned and oracle parents, the crash rate with each sensor
-    on and off, and (where they differ) per pattern of both parent sets."""
+    on and off, and (where they differ, or the most dangerous sensor is not the oracle's) per
+    pattern of both parent sets and that sensor."""
     from factorq_envs import highway
 
     names, oracle = highway.SENSOR_NAMES, np.array(highway.ORACLE, dtype=bool)
@@ -115,8 +117,14 @@ def report(data: dict[str, np.ndarray], parents: list[list[int] | None]) -> dict
                 for k in range(len(names))
             },
         }
-        if parents[a] is not None and sorted(parents[a]) != believed:
-            union = sorted(set(parents[a]) | set(believed))
+        on_rates = [
+            crashes[sensors[:, k]].mean() if sensors[:, k].any() else -1.0
+            for k in range(len(names))
+        ]
+        strongest = int(np.argmax(on_rates))  # the sensor whose reading "on" is most dangerous
+        entry["strongest"] = names[strongest]
+        if sorted(parents[a] or []) != believed or strongest not in believed:
+            union = sorted(set(parents[a] or []) | set(believed) | {strongest})
             entry["by_pattern"] = {
                 ", ".join(f"{names[k]}={int(v)}" for k, v in zip(union, values, strict=True)): (
                     _rate(crashes[(sensors[:, union] == np.array(values, dtype=bool)).all(1)])
