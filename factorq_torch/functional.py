@@ -852,6 +852,25 @@ def mixture_log_marginal(
     return torch.where(count > scalar(0, count), torch.maximum(clean, noisy), scalar(0.0, clean))
 
 
+def has_minority(count: torch.Tensor, successes: torch.Tensor) -> torch.Tensor:
+    """``[...]`` bool: whether a candidate's patterns ``[..., P]`` hold an outcome against their
+    majority, ``sum_p min(s_p, n_p - s_p) > 0`` (docs/decisions.md, "Learned dependencies with
+    noisy sensors", the noise gate).
+
+    A clean pairing is deterministic (a collision world with sensors that read right: every
+    visit of a pattern has the same outcome), so a *committed* candidate with a minority outcome
+    in the data it was committed on shows that the sensors read wrong: the learner then tests for
+    a change at ``noisy_reopen_factor``. Fractional rewards (modular path) count as minority
+    outcomes too.
+
+    >>> has_minority(torch.tensor([[3.0, 2.0], [3.0, 2.0]]), torch.tensor([[3.0, 0.0], [2.0, 0.0]]))
+    tensor([False,  True])
+    """
+    n = count.to(torch.float64)
+    s = successes.to(torch.float64)
+    return (torch.minimum(s, n - s) > 0).any(dim=-1)
+
+
 #: Which pair candidates a ``StructureLearner`` counts and scores (docs/decisions.md, "Learned
 #: dependencies with noisy sensors", pair pruning): ``"all"``, every pair at every firing;
 #: ``"pruned"``, a pair only while it is *active* (``pair_activity``), its counts rebuilt from the

@@ -116,6 +116,7 @@ from factorq_torch.functional import (  # noqa: F401  (the structure math, re-ex
     candidate_sets,
     competitor_mask,
     flip_log_marginal,
+    has_minority,
     initial_activity,
     log_posterior_of,
     mixture_log_marginal,
@@ -141,6 +142,12 @@ class StructureLearner(TensorDictModuleBase):
         reopen_factor: the posterior odds of the change-point test at which a commitment is
             reopened (``None``: ``bayes_factor``); must be > 1. A higher one ignores more false
             alarms under sensor noise and notices a changed body later.
+        noisy_reopen_factor: the change-point test's odds once the experiment's sensors are
+            known to read wrong (``noise_seen``: a commitment rested on data with an outcome
+            against its pattern's majority, ``functional.has_minority``; ``None``:
+            ``reopen_factor``). Under noise a pattern's collision rate drifts with the policy, so
+            the block test raises false alarms that a clean body does not (module docstring);
+            ``factorq dependencies`` uses 10,000.
         window: firings per actuator in the block the reopening test reads.
         prior_a, prior_b: the Beta prior of every pattern's rate (``likelihood="pattern"``;
             ``"mixture"``: of the clean population) or of every candidate's flip rate
@@ -165,7 +172,8 @@ class StructureLearner(TensorDictModuleBase):
 
     Buffers: ``count``, ``successes``, ``reward_sum`` ``[S, A, C, 4]`` float64 (and their
     ``block_*`` twins), ``committed`` ``[S, A]`` int64 (candidate index, -1 while open),
-    ``samples`` ``[S, A]`` int64 (firings so far), ``reopened`` ``[S, A]`` int64 (how often).
+    ``samples`` ``[S, A]`` int64 (firings so far), ``reopened`` ``[S, A]`` int64 (how often),
+    ``noise_seen`` ``[S]`` bool (the experiment's sensors read wrong: ``noisy_reopen_factor``).
 
     Example:
         >>> learner = StructureLearner(1, num_actions=1, num_sensors=3)
@@ -193,6 +201,7 @@ class StructureLearner(TensorDictModuleBase):
         prediction: str = "optimistic",
         reopen: str = "body",
         reopen_factor: float | None = None,
+        noisy_reopen_factor: float | None = None,
         likelihood: str = "mixture",
         pairs: str = "all",
         sensors_key: str = keys.SENSORS,
@@ -222,6 +231,19 @@ class StructureLearner(TensorDictModuleBase):
             )
         self.reopen_factor = self.bayes_factor if reopen_factor is None else float(reopen_factor)
         self.log_reopen_factor = math.log(self.reopen_factor)
+        if noisy_reopen_factor is not None:
+            check_float(
+                "noisy_reopen_factor",
+                noisy_reopen_factor,
+                1.0,
+                math.inf,
+                low_open=True,
+                high_open=True,
+            )
+        self.noisy_reopen_factor = (
+            self.reopen_factor if noisy_reopen_factor is None else float(noisy_reopen_factor)
+        )
+        self.log_noisy_reopen_factor = math.log(self.noisy_reopen_factor)
         self.window = check_int("window", window, 1)
         if prediction not in PREDICTIONS:
             raise ValueError(f"prediction={prediction!r} is unknown: choose one of {PREDICTIONS}")
@@ -307,6 +329,9 @@ class StructureLearner(TensorDictModuleBase):
             self.register_buffer(
                 name, torch.zeros(num_experiments, num_actions, dtype=torch.int64, device=device)
             )
+        self.register_buffer(
+            "noise_seen", torch.zeros(num_experiments, dtype=torch.bool, device=device)
+        )
 
     # -- what it holds -----------------------------------------------------------------------
 
@@ -332,6 +357,10 @@ class StructureLearner(TensorDictModuleBase):
         )
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+        # a state saved before noise_seen existed: that learner had one reopening threshold,
+        # which noise_seen False reproduces (a copy: the caller's dict is left as it was)
+        if prefix + "noise_seen" not in state_dict and prefix + "committed" in state_dict:
+            state_dict[prefix + "noise_seen"] = torch.zeros_like(self.noise_seen)
         # the history buffers grow (``_record``): take the saved capacity before loading
         for name in ("history_readings", "history_action", "history_reward"):
             saved = state_dict.get(prefix + name)
@@ -674,6 +703,14 @@ class StructureLearner(TensorDictModuleBase):
             margin = self._margin(log_posterior, best)
             commit = (committed < none) & (margin >= scalar(self.log_bayes_factor, margin))
             new = torch.where(commit, best, committed)
+            if bool(commit.any()):  # a commitment on data against a pattern's majority
+                cell = fired * scalar(self.num_candidates, fired) + best  # into [S A C]
+                width = self.count.shape[-1]
+                minority = has_minority(
+                    self.count.view(-1, width).index_select(0, cell),
+                    self.successes.view(-1, width).index_select(0, cell),
+                )
+                self.noise_seen[rows[commit & minority]] = True
         if not any(states):
             self.committed.view(-1).index_copy_(0, fired, new)
             return self._close_blocks(rows, action, fired, log_posterior)
@@ -701,7 +738,12 @@ class StructureLearner(TensorDictModuleBase):
         lead = self.log_prior.index_select(0, held) + predicted
         block_posterior = self._log_posterior_rows(fired, block=True)
         rival = block_posterior.max(dim=-1).values  # [R]
-        reopen = held_rows & (rival - lead >= scalar(self.log_reopen_factor, lead))
+        threshold = torch.where(
+            self.noise_seen.index_select(0, rows),
+            scalar(self.log_noisy_reopen_factor, lead),
+            scalar(self.log_reopen_factor, lead),
+        )
+        reopen = held_rows & (rival - lead >= threshold)
         new = torch.where(reopen, scalar(-1, new), new)
         self.committed.view(-1).index_copy_(0, fired, new)
         reopened = bool(reopen.any())
@@ -764,6 +806,7 @@ class StructureLearner(TensorDictModuleBase):
         self.committed[rows] = -1
         for name in ("samples", "block_samples", "reopened"):
             getattr(self, name)[rows] = 0
+        self.noise_seen[rows] = False
         self.active[rows] = self.initial_active
         for name in ("history_start", "block_start", "history_length"):
             getattr(self, name)[rows] = 0

@@ -92,6 +92,7 @@ def test_a_tiny_experiment_writes_its_three_files(tmp_path):
         ({"prior_a": 2.0**20}, "prior_a=1048576.0: the compiled path"),
         ({"reopen_factor": 1.0}, "reopen_factor=1.0 is out of range"),
         ({"reopen_factor": float("nan")}, "reopen_factor=nan is out of range"),
+        ({"noisy_reopen_factor": 0.5}, "noisy_reopen_factor=0.5 is out of range"),
     ],
 )
 def test_bad_options_are_one_clear_error(options, message):
@@ -120,6 +121,11 @@ def test_cli_refuses_a_reopen_factor_of_one_and_reports_a_given_one(capsys, tmp_
     results = {"config": dataclasses.asdict(config), "timing": {"wall_s": 1.0}}
     results["settings"] = {}
     assert "reopening at Bayes factor 10000" in dependencies_report.markdown(results)
+    assert "at 10000 once sensors read wrong" in dependencies_report.markdown(results)
+    config = dependencies.DependenciesConfig(noisy_reopen_factor=None)
+    results["config"] = dataclasses.asdict(config)
+    assert "once sensors read wrong" not in dependencies_report.markdown(results)
+    assert dependencies._learner_options(config)["noisy_reopen_factor"] is None
 
 
 def test_cli_refuses_a_prior_the_compiled_path_cannot_take(capsys):

@@ -56,6 +56,7 @@ def draw_config(setting: str, generator: random.Random) -> DependenciesConfig:
         reopen_factor=generator.choice([None, 5.0, 1000.0]),
         likelihood=generator.choice(["mixture", "flip", "pattern"]),
         pairs=generator.choice(["pruned", "all"]),
+        noisy_reopen_factor=generator.choice([None, 2.0, 1e4]),
         out="unused",
     )
 
@@ -222,3 +223,24 @@ def test_every_likelihood_reopens_alike_on_both_paths(likelihood):
     fast_result = run_learned_fast(config, "change")
     assert sum(fast_result["reopened"]) > 0
     assert_same(fast_result, run_learned_modular(config, "change"))
+
+
+def test_the_noise_gate_flags_noisy_sensors_only_and_raises_the_reopening_threshold_alike():
+    # noisy_reopen_factor: once a commitment rests on data against a pattern's majority the
+    # experiment's sensors read wrong (noise_seen) and the change-point test asks for its own odds.
+    # A clean world never sets the flag; a noisy one does, and an eager noisy threshold then
+    # reopens more than the default one, on both paths alike
+    base = dict(seeds=4, seed=3, runs=3, size=5, obstacles=2, max_steps=150, window=20)
+    clean = DependenciesConfig(**base, settings=("cross",), out="unused")
+    clean_result = run_learned_fast(clean, "cross")
+    assert int((clean_result["_state"]["committed"] >= 0).sum()) > 0
+    assert int(clean_result["_state"]["noise_seen"].sum()) == 0
+    noisy = DependenciesConfig(
+        **base, settings=("noise-10",), noisy_reopen_factor=None, out="unused"
+    )
+    default = run_learned_fast(noisy, "noise-10")
+    assert int(default["_state"]["noise_seen"].sum()) > 0
+    eager = dataclasses.replace(noisy, noisy_reopen_factor=1.01)
+    eager_result = run_learned_fast(eager, "noise-10")
+    assert sum(eager_result["reopened"]) > sum(default["reopened"])
+    assert_same(eager_result, run_learned_modular(eager, "noise-10"))

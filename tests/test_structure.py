@@ -22,6 +22,7 @@ from factorq_torch.structure import (
     candidate_sets,
     competitor_mask,
     flip_log_marginal,
+    has_minority,
     mixture_log_marginal,
 )
 from factorq_torch.tables import TaskQTable
@@ -90,6 +91,10 @@ def test_bad_options_are_refused_by_name():
     with pytest.raises(ValueError, match="reopen_factor=1"):
         StructureLearner(1, num_actions=1, num_sensors=2, reopen_factor=1)
     assert StructureLearner(1, num_actions=1, num_sensors=2).reopen_factor == 300.0
+    with pytest.raises(ValueError, match="noisy_reopen_factor"):
+        StructureLearner(1, num_actions=1, num_sensors=2, noisy_reopen_factor=0.5)
+    learner = StructureLearner(1, num_actions=1, num_sensors=2, reopen_factor=50.0)
+    assert learner.noisy_reopen_factor == 50.0  # None: the reopening factor's
 
 
 #: The hand computations below are with Beta(1, 1), the size prior and the pattern likelihood
@@ -185,6 +190,52 @@ def test_commits_to_the_deciding_sensor_and_reopens_when_the_body_changes():
     assert (learner.reopened >= 1).all()
     assert learner.is_committed().all()
     assert (learner.structure()[:, 0].nonzero()[:, 1] == 5).all()
+
+
+def _fire(learner, sensor, collided):
+    """One firing of actuator 0 of every experiment with sensor 0 reading ``sensor``."""
+    readings = torch.full((learner.num_experiments, learner.num_sensors), bool(sensor))
+    reward = torch.zeros(learner.num_experiments, learner.num_actions)
+    reward[:, 0] = -float(collided)
+    learner.update_running_mean(
+        readings, torch.zeros(learner.num_experiments, dtype=torch.int64), reward
+    )
+
+
+def _committed_after(learner, firings):
+    for sensor, collided in firings:
+        _fire(learner, sensor, collided)
+    return learner.committed[0, 0].item()
+
+
+def test_the_noise_gate_needs_a_minority_outcome_under_the_commitment():
+    # one sensor that decides, Bayes factor 3: 8 clean firings commit to {0}; one more with a
+    # collision in the "free" pattern first makes the commitment rest on data against a
+    # pattern's majority. Then a changed body (the sensor's meaning inverted): the default test
+    # reopens, the noisy odds of 1e300 do not, but only where noise was seen
+    clean = [(1, 1), (0, 0)] * 4
+    noisy = [(0, 1)] + clean + [(0, 0)] * 2
+    changed = [(1, 0), (0, 1)] * 20
+    for firings, expect_noise in ((clean, False), (noisy, True)):
+        for factor, reopens in ((None, True), (1e300, not expect_noise)):
+            learner = StructureLearner(
+                1,
+                num_actions=1,
+                num_sensors=1,
+                bayes_factor=3.0,
+                window=10,
+                noisy_reopen_factor=factor,
+            )
+            assert _committed_after(learner, firings) == 1  # {0}
+            assert learner.noise_seen.tolist() == [expect_noise]
+            _committed_after(learner, changed)
+            assert (learner.reopened[0, 0].item() > 0) == reopens, (firings, factor)
+    learner.reset()
+    assert learner.noise_seen.tolist() == [False]
+    # has_minority by hand: [n, s] per pattern
+    count = torch.tensor([[4.0, 4.0], [4.0, 4.0], [0.0, 3.0]])
+    successes = torch.tensor([[0.0, 4.0], [1.0, 4.0], [0.0, 1.5]])
+    assert has_minority(count, successes).tolist() == [False, True, True]
 
 
 def test_a_reopening_forgets_the_whole_body_or_one_actuator():

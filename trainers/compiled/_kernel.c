@@ -37,7 +37,7 @@
 #endif
 
 #define NUM_ACTIONS 4
-#define FQ_ABI_VERSION 8
+#define FQ_ABI_VERSION 9
 /* Most actuators of a body the generic loop handles (bit masks, small stack arrays). */
 #define MAX_ACTUATORS 32
 /* Most candidates of the structure learner (1 + K + K (K - 1) / 2 for K <= 62). */
@@ -150,6 +150,7 @@ typedef struct {
     int64_t history_capacity; /* L: firings the history of one experiment holds (pruned) */
     double log_bayes_factor;
     double log_reopen_factor;          /* the change-point test's threshold */
+    double log_noisy_reopen_factor;    /* its threshold once noise_seen (noisy_reopen_factor) */
     double log_beta_prior;
     double log_noisy_beta_prior;       /* functional.NOISY_PRIOR's log B(a, b) */
     double log_mixture_total;          /* log(1 + NOISY_ODDS) */
@@ -175,6 +176,7 @@ typedef struct {
     int64_t *right_since;             /* [S, A] samples when it last became right, -1 */
     int64_t *samples_at_change;       /* [S, A] */
     int64_t *wrong_commitments;       /* [S] */
+    int64_t *noise_seen;              /* [S] 1 once a commitment's data held a minority outcome */
     int64_t *change_tick;             /* [S] tick of the last observation in the old order, -1 */
     uint8_t *curve;                   /* [S, curve_length] all right at step t * curve_every */
     /* pair pruning (prune_pairs): the active candidates and every firing since the start */
@@ -1113,9 +1115,21 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
             const double x = b->log_prior[c] + candidate_log_marginal(b, &v, base + c * W, 1);
             if (x > rival) rival = x;
         }
-        reopen = rival - lead >= b->log_reopen_factor;
+        const double threshold =
+            b->noise_seen[i] ? b->log_noisy_reopen_factor : b->log_reopen_factor;
+        reopen = rival - lead >= threshold;
     }
-    if (commit) *committed = best;
+    if (commit) {
+        *committed = best;
+        /* functional.has_minority: an outcome against its pattern's majority in the data the
+           commitment rests on refutes clean sensors (a clean pairing is deterministic) */
+        const int64_t h = base + best * W;
+        for (int64_t p = 0; p < P; p++) {
+            const double n = v.array[L_COUNT][h + p], s = v.array[L_SUCC][h + p];
+            const double other = n - s;
+            if ((s < other ? s : other) > 0.0) b->noise_seen[i] = 1;
+        }
+    }
     if (reopen) {
         learner_forget(b, i, a);
         b->reopened[i * v.A + a] += 1;

@@ -53,6 +53,7 @@ class StructureOptions:
     prediction: str = "optimistic"
     reopen: str = "body"
     reopen_factor: float | None = None
+    noisy_reopen_factor: float | None = None
     likelihood: str = "mixture"
     pairs: str = "pruned"
     orders_after: torch.Tensor | None = None
@@ -152,15 +153,16 @@ def structure_setup(
         1 < options.bayes_factor < math.inf
     ):
         raise ValueError(f"structure.bayes_factor={options.bayes_factor!r} must be > 1")
-    if options.reopen_factor is not None:
-        check_float(
-            "structure.reopen_factor",
-            options.reopen_factor,
-            1.0,
-            math.inf,
-            low_open=True,
-            high_open=True,
-        )
+    for name in ("reopen_factor", "noisy_reopen_factor"):
+        if getattr(options, name) is not None:
+            check_float(
+                f"structure.{name}",
+                getattr(options, name),
+                1.0,
+                math.inf,
+                low_open=True,
+                high_open=True,
+            )
     for name in ("prior_a", "prior_b"):
         value = getattr(options, name)
         if (
@@ -251,6 +253,7 @@ def structure_setup(
         "right_since": torch.full((count, actuators), -1, dtype=torch.int64),
         "samples_at_change": torch.zeros(count, actuators, dtype=torch.int64),
         "wrong_commitments": torch.zeros(count, dtype=torch.int64),
+        "noise_seen": torch.zeros(count, dtype=torch.int64),
         "change_tick": torch.full((count,), -1, dtype=torch.int64),
         "curve": torch.zeros(count, curve_length, dtype=torch.uint8),
         "active": initial.to(torch.uint8).expand(count, actuators, -1).contiguous(),
@@ -271,6 +274,9 @@ def structure_setup(
     }
     a, b = float(options.prior_a), float(options.prior_b)
     noisy_a, noisy_b = NOISY_PRIOR
+    reopen_factor = float(
+        options.bayes_factor if options.reopen_factor is None else options.reopen_factor
+    )
     fields = {
         "learner": 1,
         "num_candidates": num_candidates,
@@ -288,8 +294,9 @@ def structure_setup(
         "prune_pairs": int(pruned),
         "history_capacity": capacity,
         "log_bayes_factor": log_bayes_factor,
-        "log_reopen_factor": math.log(
-            float(options.bayes_factor if options.reopen_factor is None else options.reopen_factor)
+        "log_reopen_factor": math.log(reopen_factor),
+        "log_noisy_reopen_factor": math.log(
+            reopen_factor if options.noisy_reopen_factor is None else options.noisy_reopen_factor
         ),
         # as functional.beta_bernoulli_log_marginal computes it (Python's lgamma)
         "log_beta_prior": math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b),

@@ -39,7 +39,7 @@ _SOURCE = Path(__file__).with_name("_kernel.c")
 #: -march=native was measured no faster twice (issue 17: 0.96x; issue 30 on a Zen 3: 0.98-1.00x,
 #: docs/decisions.md), so there is no per-machine build.
 _FLAGS = ("-O3", "-std=c99", "-ffp-contract=off", "-fno-fast-math", "-fPIC", "-shared")
-_ABI_VERSION = 8
+_ABI_VERSION = 9
 #: The fields ``fq_check_experiment`` refuses, by code (1-based), and ``fq_advance``'s encoding.
 _STATE_FIELDS = (
     "cell",
@@ -84,6 +84,7 @@ _LEARNER_POINTERS = (
     "right_since",
     "samples_at_change",
     "wrong_commitments",
+    "noise_seen",
     "change_tick",
     "curve",
     "active",
@@ -198,6 +199,7 @@ class _Batch(ctypes.Structure):
             for name in (
                 "log_bayes_factor",
                 "log_reopen_factor",
+                "log_noisy_reopen_factor",
                 "log_beta_prior",
                 "log_noisy_beta_prior",
                 "log_mixture_total",

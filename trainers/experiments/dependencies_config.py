@@ -171,6 +171,12 @@ class DependenciesConfig:
         "the Bayes factor). Higher: fewer false reopenings under sensor noise, a changed body "
         "noticed later.",
     )
+    noisy_reopen_factor: float | None = option(
+        10000.0,
+        "The change-point test's odds once a commitment rested on data with an outcome against "
+        "its pattern's majority (noisy sensors: the collision rate of a pattern then drifts with "
+        "the policy, no change of structure). auto: --reopen-factor's.",
+    )
     path: str = option(
         "fast",
         "Where the learner runs: fast (the compiled kernel, where available) or modular.",
@@ -224,10 +230,9 @@ class DependenciesConfig:
                 f"bayes_factor={self.bayes_factor!r} must be > 1 (a commitment needs evidence "
                 f"for the best candidate over the runner-up)"
             )
-        if self.reopen_factor is not None:
-            check_float(
-                "reopen_factor", self.reopen_factor, 1.0, math.inf, low_open=True, high_open=True
-            )
+        for name in ("reopen_factor", "noisy_reopen_factor"):
+            if getattr(self, name) is not None:
+                check_float(name, getattr(self, name), 1.0, math.inf, low_open=True, high_open=True)
         for name in ("prior_a", "prior_b"):
             value = getattr(self, name)
             if (

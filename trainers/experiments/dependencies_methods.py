@@ -59,6 +59,7 @@ def _learner_options(config: DependenciesConfig) -> dict[str, Any]:
         "prediction": config.prediction,
         "reopen": config.reopen,
         "reopen_factor": config.reopen_factor,
+        "noisy_reopen_factor": config.noisy_reopen_factor,
         "likelihood": config.likelihood,
         "pairs": config.pairs,
     }
@@ -281,6 +282,7 @@ def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, A
         "right_since": right_since,
         "samples_at_change": samples_at_change,
         "wrong_commitments": wrong_commitments,
+        "noise_seen": learner.noise_seen.to(torch.int64),
     }
     for prefix in ("", "block_"):
         for name in ("count", "successes", "reward_sum", "log_marginal"):

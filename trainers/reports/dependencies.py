@@ -77,6 +77,11 @@ def markdown(results: dict[str, Any]) -> str:
             if config.get("reopen_factor") is not None
             else ""
         )
+        + (
+            f", at {format_number(config['noisy_reopen_factor'])} once sensors read wrong"
+            if config.get("noisy_reopen_factor") is not None
+            else ""
+        )
         + "; "
         f"wall time {_wall_s(results):.1f} s.",
         "",
