@@ -83,6 +83,16 @@ and commits again by the rule above. Comparing only fresh fits on the block woul
 that keeps repeating one action in one place (into a wall its stale table calls safe) produces data
 every candidate fits equally well, while the stale prediction is refuted after a few collisions.
 
+**The noise gate.** With sensors that read wrong a fraction ``eps`` of the time, a pattern's
+collision rate is ``(1 - eps) q / ((1 - eps) q + eps (1 - q))`` for the pattern that reads an
+obstacle, where ``q`` is how often the actuator fires towards one: it drifts as the policy learns,
+so the block test raises alarms that are no change of structure; with clean sensors the rates
+are 0 and 1 whatever ``q``. A clean pairing is deterministic, so a commitment whose data hold an
+outcome against one of its patterns' majority (``functional.has_minority``, read at the moment
+of commitment, when the data are of one structure) shows that the sensors read wrong:
+``noise_seen`` is set for the experiment (kept through reopenings, cleared by ``reset``) and the
+test asks for ``noisy_reopen_factor`` instead (``docs/decisions.md``, "The noise gate").
+
 The float64 operations run in a fixed order (``functional.log_posterior_of``: left-to-right sums
 over patterns; ``argmax``: the first maximum), which the compiled path (``trainers/_kernel.c``)
 repeats bit for bit for every prediction but ``"posterior"`` (its ``exp``).
