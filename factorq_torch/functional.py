@@ -863,6 +863,10 @@ def has_minority(count: torch.Tensor, successes: torch.Tensor) -> torch.Tensor:
     a change at ``noisy_reopen_factor``. Fractional rewards (modular path) count as minority
     outcomes too.
 
+    Args:
+        count: ``[..., P]`` the visits of each of a candidate's patterns.
+        successes: ``[..., P]`` the collisions among them.
+
     >>> has_minority(torch.tensor([[3.0, 2.0], [3.0, 2.0]]), torch.tensor([[3.0, 0.0], [2.0, 0.0]]))
     tensor([False,  True])
     """
