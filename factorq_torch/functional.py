@@ -899,23 +899,34 @@ def pair_members(sets: list[tuple]) -> torch.Tensor:
     return members
 
 
-def initial_activity(
-    sets: list[tuple], log_prior: torch.Tensor, log_bayes_factor: float
-) -> torch.Tensor:
+def initial_activity(sets: list[tuple]) -> torch.Tensor:
     """``[C]`` bool: the candidates active before any data (after a reset or a reopening):
-    "no sensor" and the singles, and every pair one of whose singles is plausible under the
-    prior alone (``log_prior >= max(log_prior) - log_bayes_factor``; with the ``"sparse"`` prior
-    every pair while ``K <= bayes_factor``).
+    "no sensor" and the singles. No pair: with no data "no sensor" explains every firing
+    (``pair_activity``'s ``explained``), and a pair enters only once no candidate of at most one
+    sensor does.
 
     Args:
         sets: the candidates (``candidate_sets``).
-        log_prior: ``[C]`` their log prior (``candidate_log_prior``).
-        log_bayes_factor: ``log(bayes_factor)``.
     """
-    plausible = log_prior >= log_prior.max() - log_bayes_factor
-    members = pair_members(sets)
-    small = torch.tensor([len(parents) < 2 for parents in sets])
-    return small | plausible[members[0]] | plausible[members[1]]
+    return torch.tensor([len(parents) < 2 for parents in sets], dtype=torch.bool)
+
+
+def single_explains(
+    count: torch.Tensor, successes: torch.Tensor, small: torch.Tensor
+) -> torch.Tensor:
+    """``[...]`` bool: whether a candidate of at most one sensor ("no sensor" or a single) has no
+    outcome against its patterns' majority (``has_minority``) in the counts ``[..., C, P]``: it
+    then explains every firing, and no pair can explain them better (``pair_activity``).
+
+    Args:
+        count: ``[..., C, P]`` the visits of every candidate's patterns.
+        successes: ``[..., C, P]`` the collisions among them.
+        small: ``[C]`` bool, the candidates of at most one sensor.
+    """
+    index = small.nonzero().flatten()
+    return (~has_minority(count.index_select(-2, index), successes.index_select(-2, index))).any(
+        dim=-1
+    )
 
 
 def pair_activity(
@@ -924,16 +935,23 @@ def pair_activity(
     members: torch.Tensor,
     small: torch.Tensor,
     log_bayes_factor: float,
+    explained: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """``[..., C]`` bool: the candidates active after a firing (``"pruned"`` pairs).
 
-    A candidate of at most one sensor is always active. A pair ``{j, k}`` is active when one of
-    its singles is *plausible* (log posterior within ``log_bayes_factor`` of the best active
-    candidate: the evidence has not ruled out that ``j`` matters), when it is itself plausible
-    (a pair that explains the data better than its singles stays, even once they are ruled out by
-    it), or when it is the committed candidate. ``log_posterior`` is that of the active
-    candidates before the firing's entries (``-inf`` for the inactive ones, which are never
-    plausible).
+    A candidate of at most one sensor is always active. While a candidate of at most one sensor
+    explains every firing (``explained``, ``single_explains``: no outcome against its patterns'
+    majority) a pair is active only when it is the committed candidate: a pair that explains the
+    firings as well splits that candidate's patterns (with both outcomes seen, its two patterns
+    are the outcomes themselves), and splitting a pattern whose outcomes all agree lowers its
+    marginal (the rule of succession), while a pair with a mixed pattern pays for it; so no pair
+    is needed. Otherwise a
+    pair ``{j, k}`` is active when one of its singles is *plausible* (log posterior within
+    ``log_bayes_factor`` of the best active candidate: the evidence has not ruled out that ``j``
+    matters), when it is itself plausible (a pair that explains the data better than its singles
+    stays, even once they are ruled out by it), or when it is the committed candidate.
+    ``log_posterior`` is that of the active candidates before the firing's entries (``-inf`` for
+    the inactive ones, which are never plausible).
 
     Args:
         log_posterior: ``[..., C]`` float64, ``-inf`` where inactive.
@@ -941,17 +959,17 @@ def pair_activity(
         members: ``[2, C]`` (``pair_members``).
         small: ``[C]`` bool, the candidates of at most one sensor.
         log_bayes_factor: ``log(bayes_factor)``.
+        explained: ``[...]`` bool (``single_explains``), or None: never.
     """
     best = log_posterior.max(dim=-1, keepdim=True).values
     plausible = log_posterior >= best - scalar(log_bayes_factor, best)
     candidates = torch.arange(log_posterior.shape[-1], device=log_posterior.device)
-    return (
-        small
-        | plausible
-        | plausible.index_select(-1, members[0])
-        | plausible.index_select(-1, members[1])
-        | (committed.unsqueeze(-1) == candidates)
+    reasons = (
+        plausible | plausible.index_select(-1, members[0]) | plausible.index_select(-1, members[1])
     )
+    if explained is not None:
+        reasons = reasons & ~explained.unsqueeze(-1)
+    return small | reasons | (committed.unsqueeze(-1) == candidates)
 
 
 def rebuild_pair_counts(

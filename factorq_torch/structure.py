@@ -41,10 +41,14 @@ mass, all pairs together 1/100 of it, uniform within a size (``"size"``: every s
 mass; ``"uniform"``: every candidate the same).
 
 **Pair pruning.** With ``pairs="pruned"`` (``factorq dependencies``' default) a pair ``{j, k}`` is
-counted and scored only while it is *active* (``functional.pair_activity``): while one of its
-singles is plausible (log posterior within ``log(bayes_factor)`` of the best active candidate: the
-evidence has not ruled out that ``j`` matters), while it is plausible itself, or while it is
-committed to. An inactive pair has no log posterior (``-inf``: no commitment, prediction or
+counted and scored only while it is *active* (``functional.pair_activity``). No pair is active
+while "no sensor" or a single explains every firing (no outcome against one of its patterns'
+majority, ``functional.single_explains``: a pair that explains them as well splits that
+candidate's patterns, which lowers the marginal, and one with a mixed pattern pays for it, so no
+pair is needed); before any data, so, none is. Otherwise a pair is
+active while one of its singles is plausible (log posterior within ``log(bayes_factor)`` of the
+best active candidate: the evidence has not ruled out that ``j`` matters), while it is plausible
+itself, or while it is committed to. An inactive pair has no log posterior (``-inf``: no commitment, prediction or
 change-point test reads it). When it enters, its counts are rebuilt from the experiment's stored
 firings since the actuator's last reset (``functional.rebuild_pair_counts``), in firing order: the
 integer counts, and the sums of a collision world's rewards, are exactly those that counting it at
@@ -134,6 +138,7 @@ from factorq_torch.functional import (  # noqa: F401  (the structure math, re-ex
     pair_members,
     posterior_weights,
     rebuild_pair_counts,
+    single_explains,
 )
 from factorq_torch.tables import _check_entry, check_batch, check_firing, check_mask
 
@@ -292,7 +297,7 @@ class StructureLearner(TensorDictModuleBase):
         self.register_buffer("pair_members", pair_members(self.sets).to(device))
         small = torch.tensor([len(parents) < 2 for parents in self.sets])
         self.register_buffer("small", small.to(device))
-        initial = initial_activity(self.sets, self.log_prior.cpu(), self.log_bayes_factor)
+        initial = initial_activity(self.sets)
         if not self.pruned:
             initial = torch.ones_like(initial)
         self.register_buffer("initial_active", initial.to(device))
@@ -655,15 +660,26 @@ class StructureLearner(TensorDictModuleBase):
         log_posterior = self._log_posterior_rows(fired)  # over the old active set
         committed = self.committed.view(-1).index_select(0, fired)
         active = self._rows_of("active", fired)
+        width = self.count.shape[-1]
+        shape = (-1, self.num_candidates, width)
+        explained = single_explains(
+            self.count.view(shape).index_select(0, fired),
+            self.successes.view(shape).index_select(0, fired),
+            self.small,
+        )
         new = pair_activity(
-            log_posterior, committed, self.pair_members, self.small, self.log_bayes_factor
+            log_posterior,
+            committed,
+            self.pair_members,
+            self.small,
+            self.log_bayes_factor,
+            explained,
         )
         entering = new & ~active  # [R, C]
         self._flat_rows("active").index_copy_(0, fired, new)
         if not bool(entering.any()):
             return self._masked(log_posterior, new)
         names = ("count", "successes", "reward_sum")
-        width = self.count.shape[-1]
         for index in entering.any(dim=-1).nonzero().flatten().tolist():
             row, actuator, flat = int(rows[index]), int(action[index]), int(fired[index])
             start, length = int(self.history_start[row, actuator]), int(self.history_length[row])

@@ -436,61 +436,68 @@ def _pruned_and_all(**options):
     ]
 
 
-def test_a_pair_enters_when_one_of_its_singles_is_plausible_with_the_counts_of_every_firing():
+def test_a_pair_enters_when_no_single_explains_and_one_of_its_singles_is_plausible():
     # K = 3: (), (0,), (1,), (2,), (0, 1), (0, 2), (1, 2). Sparse prior: p(none) = 1/2.01,
     # p(single) = 1/(3 * 2.01), p(pair) = 0.01/(3 * 2.01); Bayes factor 2.5 (log 2.5 = 0.916) and
     # Beta(1, 1) per pattern ("pattern": a sequence with s of n collisions has s! (n - s)! /
-    # (n + 1)!). Under the prior a single is 3 times less probable than "none": not plausible
-    # (3 > 2.5), so no pair is active before any data.
+    # (n + 1)!). No pair is active before any data ("no sensor" explains every firing).
     options = dict(bayes_factor=2.5, prior="sparse", likelihood="pattern", prior_a=1.0, prior_b=1.0)
     pruned, full = _pruned_and_all(**options)
     pairs = slice(4, 7)
     assert pruned.active[0, 0].tolist() == [True] * 4 + [False] * 3
     assert full.active[0, 0].all()
 
-    def fire(readings, reward):
-        for learner in (pruned, full):
+    def fire(learners, readings, reward):
+        for learner in learners:
             learner.update_running_mean(
                 torch.tensor([readings], dtype=torch.bool),
                 torch.tensor([0]),
                 torch.tensor([[reward]]),
             )
 
-    # 1: x = (1, 0, 0), collides. Every candidate has one pattern with n = s = 1 (1/2): the
-    # singles stay 1/3 of "none", the pairs stay out and are not counted.
-    fire([1, 0, 0], -1.0)
+    # A single that explains every firing keeps the pairs out even where it is plausible: after
+    # x = (1, 0, 0) colliding and x = (0, 0, 0) not, (0,) has odds (1/3 * 1/4) / (1/6) = 1/2 >
+    # 1/2.5 over "none" (plausible) and both its patterns agree with themselves
+    clean = StructureLearner(1, num_actions=1, num_sensors=3, pairs="pruned", **options)
+    fire([clean], [1, 0, 0], -1.0)
+    fire([clean], [0, 0, 0], 0.0)
+    log_posterior = clean.log_posterior()[0, 0]
+    sensor = Fraction(1, 3) * Fraction(1, 4) / Fraction(1, 6)
+    assert math.isclose((log_posterior[1] - log_posterior[0]).item(), math.log(sensor))
+    assert not clean.active[0, 0, pairs].any()
+    # 1, 2: x = (0, 0, 0) collides, then does not: every candidate sees its one pattern with
+    # n = 2, s = 1 (1/6): none explains, but no single is plausible (1/3 of "none"): no pair
+    fire([pruned, full], [0, 0, 0], -1.0)
+    fire([pruned, full], [0, 0, 0], 0.0)
     assert not pruned.active[0, 0, pairs].any()
     assert not pruned.count[0, 0, pairs].any()
     assert torch.isinf(pruned.log_posterior()[0, 0, pairs]).all()
-    # 2: x = (0, 0, 0), no collision. (0,): 1/2 * 1/2 = 1/4 against "none" (n = 2, s = 1) 1/6:
-    # odds (1/3 * 1/4) / (1/6) = 1/2 > 1/2.5, so (0,) is plausible and its pairs (0, 1), (0, 2)
-    # enter, rebuilt from the two firings; (1,) and (2,) read 0 twice: 1/3 of "none", so (1, 2)
-    # stays out.
-    fire([0, 0, 0], 0.0)
+    # 3, 4: x = (1, 0, 0) collides twice. (0,): pattern 1 (1, 1) 1/3, pattern 0 (1, 0) 1/6 =
+    # 1/18; "none" (1, 0, 1, 1) 1/20: odds 1/3 * 20/18 = 10/27 < 1/2.5, still not plausible
+    fire([pruned, full], [1, 0, 0], -1.0)
+    fire([pruned, full], [1, 0, 0], -1.0)
+    assert not pruned.active[0, 0, pairs].any()
+    # 5: once more. (0,): pattern 1 (1, 1, 1) 1/4, * 1/6 = 1/24; "none" (4 of 5) 1/30: odds
+    # 1/3 * 30/24 = 5/12 > 1/2.5: (0,) is plausible and its pairs (0, 1), (0, 2) enter, rebuilt
+    # from the five firings; (1,) and (2,) read 0 throughout: 1/3 of "none", so (1, 2) stays out.
+    fire([pruned, full], [1, 0, 0], -1.0)
     assert pruned.active[0, 0, pairs].tolist() == [True, True, False]
-    sensor = Fraction(1, 3) * Fraction(1, 4) / Fraction(1, 6)
     log_posterior = pruned.log_posterior()[0, 0]
+    sensor = Fraction(1, 3) * Fraction(1, 24) / Fraction(1, 30)
     assert math.isclose((log_posterior[1] - log_posterior[0]).item(), math.log(sensor))
-    # (0, 1)'s pattern is x0 + 2 x1: firing 1 in pattern 1, firing 2 in pattern 0
-    assert pruned.count[0, 0, 4].tolist() == [1.0, 1.0, 0.0, 0.0]
-    assert pruned.successes[0, 0, 4].tolist() == [0.0, 1.0, 0.0, 0.0]
-    assert pruned.reward_sum[0, 0, 4].tolist() == [0.0, -1.0, 0.0, 0.0]
+    # (0, 1)'s pattern is x0 + 2 x1: firings 1, 2 in pattern 0, firings 3-5 in pattern 1
+    assert pruned.count[0, 0, 4].tolist() == [2.0, 3.0, 0.0, 0.0]
+    assert pruned.successes[0, 0, 4].tolist() == [1.0, 3.0, 0.0, 0.0]
+    assert pruned.reward_sum[0, 0, 4].tolist() == [-1.0, -3.0, 0.0, 0.0]
     # the counts (and the block's, and the marginals) of every active pair: those of counting
     # every firing, bit for bit; so are their log posteriors
     _assert_active_counts_equal(pruned, full)
     assert torch.equal(log_posterior[:6], full.log_posterior()[0, 0, :6])
-    # 3: x = (1, 0, 0), no collision. (0,): pattern 1 (1, 0) 1/6, pattern 0 (0) 1/2 = 1/12,
-    # "none" (1, 0, 0) 1/12: odds 1/3, not plausible; the pairs of sensor 0 read what (0,) reads
-    # (1/100 of its prior mass over 3 pairs): not plausible either, so they leave.
-    fire([1, 0, 0], 0.0)
+    # 6: x = (1, 0, 0), no collision. (0,): pattern 1 (3 of 4) 1/20, * 1/6 = 1/120; "none" (4 of
+    # 6) 1/105: odds 1/3 * 105/120 = 7/24 < 1/2.5, not plausible; the pairs of sensor 0 read what
+    # (0,) reads (1/100 of its prior mass over 3 pairs): not plausible either, so they leave.
+    fire([pruned, full], [1, 0, 0], 0.0)
     assert not pruned.active[0, 0, pairs].any()
-    # 4: x = (1, 0, 0), collides. (0,): pattern 1 (1, 0, 1) 1/12, pattern 0 (0) 1/2 = 1/24;
-    # "none" (1, 0, 0, 1) 1/30: odds (1/3 * 1/24) / (1/30) = 5/12 > 1/2.5: they enter again,
-    # rebuilt from all four firings.
-    fire([1, 0, 0], -1.0)
-    assert pruned.active[0, 0, pairs].tolist() == [True, True, False]
-    assert pruned.count[0, 0, 4].tolist() == [1.0, 3.0, 0.0, 0.0]
-    assert pruned.successes[0, 0, 4].tolist() == [0.0, 2.0, 0.0, 0.0]
     _assert_active_counts_equal(pruned, full)
 
 
@@ -564,16 +571,19 @@ def test_rebuild_pair_counts_by_hand():
 
 
 def test_pair_activity_and_the_initial_active_set():
-    from factorq_torch.functional import initial_activity, pair_activity, pair_members
+    from factorq_torch.functional import (
+        initial_activity,
+        pair_activity,
+        pair_members,
+        single_explains,
+    )
 
     sets = candidate_sets(3)
     members = pair_members(sets)
     assert members.tolist() == [[0, 1, 2, 3, 1, 1, 2], [0, 1, 2, 3, 2, 3, 3]]
     small = torch.tensor([True] * 4 + [False] * 3)
-    log_prior = candidate_log_prior(sets, "sparse")
-    # singles 1/3 of "none": plausible at a Bayes factor of 4, not at 2.5
-    assert initial_activity(sets, log_prior, math.log(4.0)).all()
-    assert initial_activity(sets, log_prior, math.log(2.5)).tolist() == [True] * 4 + [False] * 3
+    # before any data "no sensor" explains every firing: no pair
+    assert initial_activity(sets).tolist() == [True] * 4 + [False] * 3
     inf = -math.inf
     # (1,) plausible: (0, 1) and (1, 2) enter; (0, 2) is plausible itself; nothing committed
     log_posterior = torch.tensor([[0.0, -5.0, -1.0, -5.0, inf, -0.5, inf]], dtype=torch.float64)
@@ -583,6 +593,16 @@ def test_pair_activity_and_the_initial_active_set():
     log_posterior[0, 5] = -3.0
     got = pair_activity(log_posterior, torch.tensor([6]), members, small, 1.0)
     assert got.tolist() == [[True] * 4 + [True, False, True]]
+    # while a candidate of at most one sensor explains every firing only the committed pair stays
+    got = pair_activity(log_posterior, torch.tensor([6]), members, small, 1.0, torch.tensor([True]))
+    assert got.tolist() == [[True] * 4 + [False, False, True]]
+    # single_explains by hand: (0,) pure in the first row, nothing of size <= 1 in the second
+    count = torch.zeros(2, 7, 4)
+    successes = torch.zeros(2, 7, 4)
+    count[:, :4, 0], successes[:, :4, 0] = 2.0, 1.0  # every small candidate: pattern 0 mixed
+    count[0, 1] = torch.tensor([1.0, 1.0, 0.0, 0.0])
+    successes[0, 1] = torch.tensor([0.0, 1.0, 0.0, 0.0])
+    assert single_explains(count, successes, small).tolist() == [True, False]
 
 
 def test_an_unknown_pair_mode_is_refused_by_name():

@@ -957,12 +957,31 @@ static inline int64_t pair_index(int64_t K, int64_t j, int64_t k) {
     return 1 + K + j * (2 * K - j - 1) / 2 + (k - j - 1);
 }
 
+/* functional.has_minority for the P patterns of one candidate (its all-counts at h). */
+static inline int has_minority(const learner_view *v, int64_t h) {
+    for (int64_t p = 0; p < v->P; p++) {
+        const double n = v->array[L_COUNT][h + p], s = v->array[L_SUCC][h + p];
+        const double other = n - s;
+        if ((s < other ? s : other) > 0.0) return 1;
+    }
+    return 0;
+}
+
+/* functional.single_explains: "no sensor" or a single (candidates 0..K) without a minority
+   outcome, for the actuator whose counts start at base. */
+static inline int single_explains(const learner_view *v, int64_t base, int64_t K) {
+    for (int64_t c = 0; c <= K; c++)
+        if (!has_minority(v, base + c * v->W)) return 1;
+    return 0;
+}
+
 /* StructureLearner._enter (pairs "pruned"): functional.pair_activity on lp (the active
    candidates' log posterior), then the counts of every entering pair rebuilt from the actuator's
    firings since history_start (functional.rebuild_pair_counts: in firing order, so the sums are
-   the ones counting every firing would have left) and its lp. A pair leaves when neither it nor
-   its singles are plausible and it is not committed; it enters when one of its singles is
-   plausible (an inactive pair has no log posterior: it is never plausible itself). */
+   the ones counting every firing would have left) and its lp. While "no sensor" or a single
+   explains every firing (single_explains) only a committed pair stays; otherwise a pair leaves
+   when neither it nor its singles are plausible and it is not committed, and it enters when one
+   of its singles is plausible (an inactive pair has no log posterior: never plausible itself). */
 static void learner_enter(const fq_batch *b, int64_t i, int64_t a, double *lp) {
     const learner_view v = learner_of(b, i);
     const int64_t C = v.C, P = v.P, W = v.W, K = b->num_sensors, base = a * C * W;
@@ -976,18 +995,20 @@ static void learner_enter(const fq_batch *b, int64_t i, int64_t a, double *lp) {
         if (lp[list[m]] > best) best = lp[list[m]];
     const double floor = best - b->log_bayes_factor;
     const int64_t held = b->committed[row];
+    const int explained = single_explains(&v, base, K);
     int changed = 0;
     for (int64_t m = 1 + K; m < listed; m++) { /* the active pairs: stay or leave */
         const int64_t c = list[m];
         const int64_t j = b->candidate_sensors[2 * c], k = b->candidate_sensors[2 * c + 1];
-        if (lp[c] >= floor || lp[1 + j] >= floor || lp[1 + k] >= floor || c == held) continue;
+        if (!explained && (lp[c] >= floor || lp[1 + j] >= floor || lp[1 + k] >= floor)) continue;
+        if (c == held) continue;
         active[c] = 0;
         plausible[c] = 0;
         changed = 1;
     }
     int64_t entering[LEARNER_SCRATCH], count = 0;
     for (int64_t j = 0; j < K; j++) { /* the pairs of a plausible single: enter */
-        if (!(lp[1 + j] >= floor)) continue;
+        if (explained || !(lp[1 + j] >= floor)) continue;
         for (int64_t k = 0; k < K; k++) {
             if (k == j) continue;
             const int64_t c = k < j ? pair_index(K, k, j) : pair_index(K, j, k);
@@ -1123,12 +1144,7 @@ static void learner_update(const fq_batch *b, int64_t i, uint64_t readings, int6
         *committed = best;
         /* functional.has_minority: an outcome against its pattern's majority in the data the
            commitment rests on refutes clean sensors (a clean pairing is deterministic) */
-        const int64_t h = base + best * W;
-        for (int64_t p = 0; p < P; p++) {
-            const double n = v.array[L_COUNT][h + p], s = v.array[L_SUCC][h + p];
-            const double other = n - s;
-            if ((s < other ? s : other) > 0.0) b->noise_seen[i] = 1;
-        }
+        if (has_minority(&v, base + best * W)) b->noise_seen[i] = 1;
     }
     if (reopen) {
         learner_forget(b, i, a);

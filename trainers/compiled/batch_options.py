@@ -212,7 +212,7 @@ def structure_setup(
     length = steps + 2  # n + 1 of every count stays inside
     log_bayes_factor = math.log(float(options.bayes_factor))
     pruned = options.pairs == "pruned" and options.max_parents >= 2 and num_sensors >= 2
-    initial = initial_activity(sets, log_prior, log_bayes_factor)
+    initial = initial_activity(sets)
     if not pruned:
         initial = torch.ones_like(initial)
     capacity = steps if pruned else 1  # every firing of an experiment (one per step)
