@@ -41,20 +41,20 @@ mass, all pairs together 1/100 of it, uniform within a size (``"size"``: every s
 mass; ``"uniform"``: every candidate the same).
 
 **Pair pruning.** With ``pairs="pruned"`` (``factorq dependencies``' default) a pair ``{j, k}`` is
-counted and scored only while it is *active* (``functional.pair_activity``). No pair is active
-while "no sensor" or a single explains every firing (no outcome against one of its patterns'
-majority, ``functional.single_explains``: a pair that explains them as well splits that
-candidate's patterns, which lowers the marginal, and one with a mixed pattern pays for it, so no
-pair is needed); before any data, so, none is. Otherwise a pair is
-active while one of its singles is plausible (log posterior within ``log(bayes_factor)`` of the
-best active candidate: the evidence has not ruled out that ``j`` matters), while it is plausible
-itself, or while it is committed to. An inactive pair has no log posterior (``-inf``: no commitment, prediction or
-change-point test reads it). When it enters, its counts are rebuilt from the experiment's stored
-firings since the actuator's last reset (``functional.rebuild_pair_counts``), in firing order: the
-integer counts, and the sums of a collision world's rewards, are exactly those that counting it at
-every firing would have left, so a pair's evidence is never lost, only not looked at while its
-sensors are ruled out. After the first firings, a firing costs ``O(K + active pairs)`` instead of
-``O(K**2)``; the history costs one entry per firing. ``pairs="all"`` counts every pair always.
+counted and scored only while it is *active* (``functional.pair_activity``). No pair is active while
+"no sensor" or a single explains every firing (no outcome against one of its patterns' majority,
+``functional.single_explains``: a pair that explains them as well splits that candidate's patterns,
+which lowers the marginal, and one with a mixed pattern pays for it, so no pair is needed); before
+any data, so, none is. Otherwise a pair is active while one of its singles is plausible (log
+posterior within ``log(bayes_factor)`` of the best active candidate: the evidence has not ruled out
+that ``j`` matters), while it is plausible itself, or while it is committed to. An inactive pair has
+no log posterior (``-inf``: no commitment, prediction or change-point test reads it). When it
+enters, its counts are rebuilt from the experiment's stored firings since the actuator's last reset
+(``functional.rebuild_pair_counts``), in firing order: the integer counts, and the sums of a
+collision world's rewards, are exactly those that counting it at every firing would have left, so a
+pair's evidence is never lost, only not looked at while its sensors are ruled out. After the first
+firings, a firing costs ``O(K + active pairs)`` instead of ``O(K**2)``; the history costs one entry
+per firing. ``pairs="all"`` counts every pair always.
 
 **Commitment.** Until it commits, actuator ``a``'s local value is, by ``prediction``:
 ``"optimistic"`` (the default) the largest running mean ``rho_c[o_c]`` among the *plausible*
