@@ -230,6 +230,13 @@ def test_the_noise_gate_needs_a_minority_outcome_under_the_commitment():
             assert learner.noise_seen.tolist() == [expect_noise]
             _committed_after(learner, changed)
             assert (learner.reopened[0, 0].item() > 0) == reopens, (firings, factor)
+    # a state saved before the flag existed loads, with the flag clear (one threshold, as then)
+    learner.noise_seen.fill_(True)
+    state = learner.state_dict()
+    del state["noise_seen"]
+    learner.load_state_dict(state)
+    assert learner.noise_seen.tolist() == [False] and "noise_seen" not in state
+    learner.noise_seen.fill_(True)
     learner.reset()
     assert learner.noise_seen.tolist() == [False]
     # has_minority by hand: [n, s] per pattern
