@@ -921,10 +921,10 @@ def single_explains(
     Args:
         count: ``[..., C, P]`` the visits of every candidate's patterns.
         successes: ``[..., C, P]`` the collisions among them.
-        small: ``[C]`` bool, the candidates of at most one sensor.
+        small: ``[M]`` int64, the indices of the candidates of at most one sensor (``"no
+            sensor"`` and the singles: ``arange(K + 1)`` in ``candidate_sets``' order).
     """
-    index = small.nonzero().flatten()
-    return (~has_minority(count.index_select(-2, index), successes.index_select(-2, index))).any(
+    return (~has_minority(count.index_select(-2, small), successes.index_select(-2, small))).any(
         dim=-1
     )
 
@@ -942,16 +942,15 @@ def pair_activity(
     A candidate of at most one sensor is always active. While a candidate of at most one sensor
     explains every firing (``explained``, ``single_explains``: no outcome against its patterns'
     majority) a pair is active only when it is the committed candidate: a pair that explains the
-    firings as well splits that candidate's patterns (with both outcomes seen, its two patterns
-    are the outcomes themselves), and splitting a pattern whose outcomes all agree lowers its
-    marginal (the rule of succession), while a pair with a mixed pattern pays for it; so no pair
-    is needed. Otherwise a
-    pair ``{j, k}`` is active when one of its singles is *plausible* (log posterior within
-    ``log_bayes_factor`` of the best active candidate: the evidence has not ruled out that ``j``
-    matters), when it is itself plausible (a pair that explains the data better than its singles
-    stays, even once they are ruled out by it), or when it is the committed candidate.
-    ``log_posterior`` is that of the active candidates before the firing's entries (``-inf`` for
-    the inactive ones, which are never plausible).
+    firings as well splits that candidate's patterns (with both outcomes seen, its two patterns are
+    the outcomes themselves), and splitting a pattern whose outcomes all agree lowers its marginal
+    (the rule of succession), while a pair with a mixed pattern pays for it; so no pair is needed.
+    Otherwise a pair ``{j, k}`` is active when one of its singles is *plausible* (log posterior
+    within ``log_bayes_factor`` of the best active candidate: the evidence has not ruled out that
+    ``j`` matters), when it is itself plausible (a pair that explains the data better than its
+    singles stays, even once they are ruled out by it), or when it is the committed candidate.
+    ``log_posterior`` is that of the active candidates before the firing's entries (``-inf`` for the
+    inactive ones, which are never plausible).
 
     Args:
         log_posterior: ``[..., C]`` float64, ``-inf`` where inactive.

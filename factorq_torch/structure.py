@@ -240,21 +240,14 @@ class StructureLearner(TensorDictModuleBase):
                 raise ValueError(f"{name}={value!r} must be a finite number > 0")
         self.bayes_factor = float(bayes_factor)
         self.log_bayes_factor = math.log(self.bayes_factor)
-        if reopen_factor is not None:
-            check_float(
-                "reopen_factor", reopen_factor, 1.0, math.inf, low_open=True, high_open=True
-            )
+        for name, factor in (
+            ("reopen_factor", reopen_factor),
+            ("noisy_reopen_factor", noisy_reopen_factor),
+        ):
+            if factor is not None:
+                check_float(name, factor, 1.0, math.inf, low_open=True, high_open=True)
         self.reopen_factor = self.bayes_factor if reopen_factor is None else float(reopen_factor)
         self.log_reopen_factor = math.log(self.reopen_factor)
-        if noisy_reopen_factor is not None:
-            check_float(
-                "noisy_reopen_factor",
-                noisy_reopen_factor,
-                1.0,
-                math.inf,
-                low_open=True,
-                high_open=True,
-            )
         self.noisy_reopen_factor = (
             self.reopen_factor if noisy_reopen_factor is None else float(noisy_reopen_factor)
         )
@@ -297,6 +290,9 @@ class StructureLearner(TensorDictModuleBase):
         self.register_buffer("pair_members", pair_members(self.sets).to(device))
         small = torch.tensor([len(parents) < 2 for parents in self.sets])
         self.register_buffer("small", small.to(device))
+        self.register_buffer(  # derived: not in the state dict
+            "small_index", small.nonzero().flatten().to(device), persistent=False
+        )
         initial = initial_activity(self.sets)
         if not self.pruned:
             initial = torch.ones_like(initial)
@@ -665,7 +661,7 @@ class StructureLearner(TensorDictModuleBase):
         explained = single_explains(
             self.count.view(shape).index_select(0, fired),
             self.successes.view(shape).index_select(0, fired),
-            self.small,
+            self.small_index,
         )
         new = pair_activity(
             log_posterior,

@@ -609,7 +609,7 @@ def test_pair_activity_and_the_initial_active_set():
     count[:, :4, 0], successes[:, :4, 0] = 2.0, 1.0  # every small candidate: pattern 0 mixed
     count[0, 1] = torch.tensor([1.0, 1.0, 0.0, 0.0])
     successes[0, 1] = torch.tensor([0.0, 1.0, 0.0, 0.0])
-    assert single_explains(count, successes, small).tolist() == [True, False]
+    assert single_explains(count, successes, small.nonzero().flatten()).tolist() == [True, False]
 
 
 def test_an_unknown_pair_mode_is_refused_by_name():
