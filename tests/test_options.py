@@ -47,6 +47,18 @@ def test_only_given_options_are_returned_with_lists_split_and_typed():
     assert options.given_options(parser().parse_args([]), Example) == {}
 
 
+def test_an_optional_field_takes_auto_for_none_and_its_type_otherwise():
+    # the help shows "(default: auto)": a user can give that word back, as for any default
+    assert options.given_options(parser().parse_args(["--threads", "auto"]), Example) == {
+        "threads": None
+    }
+    assert options.given_options(parser().parse_args(["--threads", "2"]), Example) == {"threads": 2}
+    with pytest.raises(argparse.ArgumentError, match="invalid int value: 'two'"):
+        parser().parse_args(["--threads", "two"])
+    with pytest.raises(argparse.ArgumentError, match="invalid int value: 'auto'"):
+        parser().parse_args(["--count", "auto"])  # not optional: no auto
+
+
 def test_choices_come_from_the_field():
     with pytest.raises(argparse.ArgumentError, match="invalid choice: 'medium'"):
         parser().parse_args(["--mode", "medium"])

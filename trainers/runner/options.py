@@ -3,7 +3,8 @@
 A config declares each field with ``option(default, doc)``; the doc lives in the field's
 metadata, so ``--help`` needs no source code, and ``add_options`` turns every plain field
 (``int``, ``float``, ``str``, ``X | None``, or ``tuple[str, ...]`` for a list of names) into
-``--field-name``. Nested configs (a field whose default is a dataclass) are not options.
+``--field-name``; an ``X | None`` option takes ``auto`` for None (its default shown as
+``auto``). Nested configs (a field whose default is a dataclass) are not options.
 
     @dataclass(frozen=True)
     class Config:
@@ -41,6 +42,21 @@ def finite_float(text: str) -> float:
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
     return value
+
+
+#: What an ``X | None`` option takes for None: its help shows ``(default: auto)``.
+AUTO = "auto"
+
+
+def _or_auto(kind: Any) -> Any:
+    """argparse's type of an ``X | None`` option: ``auto`` is None, anything else ``kind``'s
+    (its name kept, so argparse's message still reads "invalid int value")."""
+
+    def parse(text: str) -> Any:
+        return None if text == AUTO else kind(text)
+
+    parse.__name__ = getattr(kind, "__name__", "value")
+    return parse
 
 
 def option(default: Any, doc: str, *, choices: tuple[str, ...] | None = None) -> Any:
@@ -93,12 +109,12 @@ def add_options(parser: argparse.ArgumentParser, cls: type) -> None:
             help_text = f"{doc} Repeatable. (default: {shown})"
             kwargs: dict[str, Any] = {"action": "append", "metavar": NAMES_METAVAR}
         else:
-            help_text = f"{doc} (default: {'auto' if default is None else default})"
+            help_text = f"{doc} (default: {AUTO if default is None else default})"
             kind = _value_type(hints[field.name])
-            kwargs = {
-                "type": finite_float if kind is float else kind,
-                "metavar": field.name.upper(),
-            }
+            parse: Any = finite_float if kind is float else kind
+            if isinstance(hints[field.name], types.UnionType):  # X | None: "auto" gives None
+                parse = _or_auto(parse)
+            kwargs = {"type": parse, "metavar": field.name.upper()}
             if "choices" in field.metadata:
                 kwargs["choices"] = field.metadata["choices"]
         parser.add_argument(
