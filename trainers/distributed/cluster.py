@@ -11,8 +11,9 @@ each result down at once. Two executors:
   another worker (up to ``distributed.scheduler.allowed-failures`` times), and since an item's
   result depends on the item alone, the rerun gives the same numbers.
 
-Workers run one intra-op torch thread each (``torch.set_num_threads(1)``: the tensors are tiny and
-threads would fight over the cores the other workers use) and build the fast path's kernel in a
+Worker processes run one intra-op torch thread each (``torch.set_num_threads(1)``: the tensors are
+tiny and threads would fight over the cores the other workers use; a worker thread in this process
+leaves the process's settings alone) and build the fast path's kernel in a
 node-local cache (``FACTORQ_CACHE_DIR``, unless the worker's environment already sets it), so
 workers on a shared home directory do not compile into one NFS folder.
 
@@ -23,6 +24,7 @@ Dask is the optional extra ``factorq-torch[distributed]``; asking for a cluster 
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import re
 import tempfile
@@ -159,6 +161,10 @@ def _node_local_cache() -> str:
     return str(Path(tempfile.gettempdir()) / f"factorq_torch-{user}")
 
 
+#: Tells this process from another: a worker in a process of its own imports this module anew.
+_PROCESS_TOKEN = uuid.uuid4().hex
+
+
 def _worker_setup() -> None:
     """Per worker process: one intra-op thread, a node-local kernel cache."""
     import torch
@@ -167,10 +173,12 @@ def _worker_setup() -> None:
     os.environ.setdefault("FACTORQ_CACHE_DIR", _node_local_cache())
 
 
-def _on_worker(function: Callable[[Any], Any], item: Any) -> Any:
+def _on_worker(function: Callable[[Any], Any], item: Any, submitter: str) -> Any:
     """What a worker runs: its set-up (idempotent, so a restarted worker gets it too), then the
-    item."""
-    _worker_setup()
+    item. A worker thread in the submitting process itself (a ``LocalCluster(processes=False)``)
+    skips the set-up: the process's thread count and environment are its owner's."""
+    if submitter != _PROCESS_TOKEN:
+        _worker_setup()
     return function(item)
 
 
@@ -192,9 +200,11 @@ class DaskExecutor:
         client: Any,
         cluster: Any = None,
         worker_timeout_s: float = DEFAULT_WORKER_TIMEOUT_S,
+        left_as_found: _Traces | None = None,
     ) -> None:
         self.client = client
         self.cluster = cluster
+        self._left_as_found = left_as_found
         self.worker_timeout_s = worker_timeout_s
         distributed = _import_distributed()
         self._as_completed = distributed.as_completed
@@ -217,7 +227,9 @@ class DaskExecutor:
     ) -> Iterator[tuple[int, Any]]:
         run = uuid.uuid4().hex[:8]  # fresh keys: never a cached result of an earlier call
         futures = {
-            self.client.submit(_on_worker, function, item, key=f"{name}-{run}", pure=False): index
+            self.client.submit(
+                _on_worker, function, item, _PROCESS_TOKEN, key=f"{name}-{run}", pure=False
+            ): index
             for index, (item, name) in enumerate(zip(items, names, strict=True))
         }
         watch = _WorkerWatch(self, len(futures))
@@ -244,6 +256,30 @@ class DaskExecutor:
         self.client.close()
         if self.cluster is not None:
             self.cluster.close()
+        if self._left_as_found is not None:
+            self._left_as_found.restore()
+
+
+class _Traces:
+    """What a ``LocalCluster`` leaves in this process, taken before it starts and put back when it
+    is closed: its nannies set environment variables here before spawning workers (thread counts,
+    ``PYTHONHASHSEED``, ...), its scheduler adds a log handler to its logger. A caller of
+    ``open_executor`` (a script, a test) gets its process back as it was."""
+
+    def __init__(self) -> None:
+        self.environment = dict(os.environ)
+        self.handlers = {name: list(logging.getLogger(name).handlers) for name in _DASK_LOGGERS}
+
+    def restore(self) -> None:
+        for name in set(os.environ) - set(self.environment):
+            del os.environ[name]
+        os.environ.update(self.environment)
+        for name, handlers in self.handlers.items():
+            logging.getLogger(name).handlers[:] = handlers
+
+
+#: The loggers a LocalCluster adds handlers to (its scheduler's and its nannies' log records).
+_DASK_LOGGERS = ("distributed.scheduler", "distributed.nanny", "distributed.worker")
 
 
 def _forget_half_made_client(error: BaseException, kind: Any) -> None:
@@ -289,6 +325,7 @@ def open_executor(where: Where) -> InProcess | DaskExecutor:
                 f"tcp://host:8786 ({error})"
             ) from None
         return DaskExecutor(client, worker_timeout_s=where.worker_timeout_s)
+    left_as_found = _Traces()
     cluster = distributed.LocalCluster(
         n_workers=where.local_workers or os.cpu_count() or 1,
         threads_per_worker=1,
@@ -297,7 +334,9 @@ def open_executor(where: Where) -> InProcess | DaskExecutor:
         silence_logs=50,  # CRITICAL only: a killed worker's traceback is expected noise here
     )
     client = distributed.Client(cluster, set_as_default=False)
-    return DaskExecutor(client, cluster, worker_timeout_s=where.worker_timeout_s)
+    return DaskExecutor(
+        client, cluster, worker_timeout_s=where.worker_timeout_s, left_as_found=left_as_found
+    )
 
 
 # --------------------------------------------------------------------------------------------
