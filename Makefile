@@ -10,7 +10,9 @@ STAMP := $(VENV)/.installed
 paper: $(STAMP)
 	$(VENV)/bin/factorq paper $(ARGS)
 
-# The suite on this CPU's kernels, then its float-sensitive part (networks, Adam, DQN) again under
+# The suite on this CPU's kernels in a shuffled order (pytest-randomly prints its seed: replay
+# with ARGS="--randomly-seed=N", keep the file order with ARGS="-p no:randomly"), then its
+# float-sensitive part (networks, Adam, DQN) again under
 # two other kernel sets, as another machine would round (docs/decisions.md, "Tests that hold on
 # any machine"). Where ARGS selects no float-sensitive test, pytest's "no tests" (exit 5) is fine.
 # One pytest-xdist worker per core, idle workers stealing tests (TEST_WORKERS=0: in-process).

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers.compiled import fast
 from factorq_trainers.experiments.paper import PaperConfig, run
@@ -177,7 +178,7 @@ def test_every_field_of_a_signed_checkpoint_mutated_is_refused_cleanly(config, e
         cwd=Path(__file__).parent,
         capture_output=True,
         text=True,
-        timeout=900,
+        timeout=patience(900),
     )
     lines = [json.loads(line) for line in child.stdout.splitlines() if line.startswith("{")]
     assert lines, child.stderr[-3000:]

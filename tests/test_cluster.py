@@ -12,6 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers import cli
 from factorq_trainers.compiled import fast
@@ -26,7 +27,10 @@ SMALL = {"seeds": 7, "runs": 2, "episodes": 6, "size": 6, "obstacles": 4}
 
 @pytest.fixture(scope="module")
 def local_cluster():
-    """One 2-worker cluster for the module (processes, one thread each): it starts in seconds."""
+    """One 2-worker cluster for the module (processes, one thread each): it starts in seconds.
+    What it leaves in this process (its nannies' environment variables, its scheduler's log
+    handler) is put back after it, as ``open_executor`` does."""
+    traces = cluster._Traces()
     with distributed.LocalCluster(
         n_workers=2,
         threads_per_worker=1,
@@ -35,12 +39,13 @@ def local_cluster():
         silence_logs=50,
     ) as started:
         yield started
+    traces.restore()
 
 
 @pytest.fixture
 def executor(local_cluster):
     client = distributed.Client(local_cluster.scheduler_address, set_as_default=False)
-    client.wait_for_workers(2, timeout=60)
+    client.wait_for_workers(2, timeout=patience(60))
     running = cluster.DaskExecutor(client)  # closes the client only, not the cluster
     yield running
     running.close()
@@ -113,13 +118,14 @@ def test_an_unreachable_scheduler_is_one_line_exit_2_within_the_timeout(tmp_path
     started = time.monotonic()
     argv = ["sweep", "--grid", "eta=0.1,0.2", "--scheduler", "tcp://127.0.0.1:9"]
     assert cli.main([*argv, "--connect-timeout", "1", "--out", str(out)]) == 2
-    assert time.monotonic() - started < 10
+    assert time.monotonic() - started < patience(10)
     error = capsys.readouterr().err
     assert error.count("\n") == 1
     assert "scheduler tcp://127.0.0.1:9 is unreachable within 1 s" in error
     assert not out.exists()
 
 
+@pytest.mark.module_threads  # the module's cluster restarts the killed worker: its watchers
 def test_a_worker_killed_mid_shard_loses_only_that_shard_and_the_numbers_stay(executor, tmp_path):
     # Shards of about a second each on one thread, so the kill lands inside one.
     config = paper.PaperConfig(seeds=60, out=str(tmp_path / "killed"))
@@ -136,7 +142,7 @@ def test_a_worker_killed_mid_shard_loses_only_that_shard_and_the_numbers_stay(ex
     runner = threading.Thread(target=run)
     runner.start()
     killed = None
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + patience(60)
     while killed is None and time.monotonic() < deadline and runner.is_alive():
         for address, keys in client.processing().items():
             if any(str(key).startswith("shard-") for key in keys) and address in pids:
@@ -145,7 +151,7 @@ def test_a_worker_killed_mid_shard_loses_only_that_shard_and_the_numbers_stay(ex
                 killed = address
                 break
         time.sleep(0.02)
-    runner.join(timeout=120)
+    runner.join(timeout=patience(120))
     assert killed is not None, "no shard was seen running: nothing was killed"
     assert "error" not in outcome, outcome.get("error")
     assert pids[killed] not in client.run(os.getpid).values()  # that process is gone

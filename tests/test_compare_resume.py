@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers import cli
 from factorq_trainers.experiments import compare
@@ -127,7 +128,7 @@ def test_sigkill_during_dqn_then_resume_equals_an_uninterrupted_run(tmp_path):
         stderr=subprocess.PIPE,
     )
     path = cut / checkpoint.DIRECTORY / checkpoint.LATEST
-    deadline = time.monotonic() + 300
+    deadline = time.monotonic() + patience(300)
     saved = None
     try:
         while time.monotonic() < deadline and child.poll() is None:

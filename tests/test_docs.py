@@ -21,6 +21,7 @@ extra and takes longer than a unit test should).
 from __future__ import annotations
 
 import doctest
+import logging
 import re
 import shlex
 import tomllib
@@ -68,13 +69,14 @@ def test_python_blocks_run(page, monkeypatch):
     monkeypatch.chdir(ROOT)
     import torch
 
-    threads = torch.get_num_threads()
+    threads, torchrl_level = torch.get_num_threads(), logging.getLogger("torchrl").level
     try:
         failed, attempted = doctest.testfile(
             str(page), module_relative=False, optionflags=FLAGS, verbose=False, report=True
         )
-    finally:
-        torch.set_num_threads(threads)  # the pages set one thread, as they recommend
+    finally:  # the pages set one thread and quiet torchrl's info lines, as they recommend
+        torch.set_num_threads(threads)
+        logging.getLogger("torchrl").setLevel(torchrl_level)
     assert attempted and not failed, f"{failed} of {attempted} examples failed in {page}"
 
 

@@ -9,6 +9,7 @@ import sys
 
 import pytest
 from test_report import synthetic_results
+from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers import cli
 from factorq_trainers.compiled import fast
@@ -74,7 +75,7 @@ def test_the_helper_does_not_import_torch():
         "paper_figure.warm_up()\n"
         "assert 'torch' not in sys.modules, 'the figure process imported torch'\n"
     )
-    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=patience(120))
 
 
 def test_a_helper_that_is_not_sent_anything_is_ended_by_close():
@@ -167,7 +168,7 @@ def test_the_command_line_run_writes_the_three_files_with_the_helpers_figure(tmp
     process = subprocess.run(
         [sys.executable, "-m", "factorq_trainers.cli", "paper", *TINY, "--out", str(out)],
         capture_output=True,
-        timeout=300,
+        timeout=patience(300),
     )
     assert process.returncode == 0, process.stderr.decode()
     assert b"Traceback" not in process.stderr and b"figure process" not in process.stderr
@@ -190,4 +191,4 @@ def test_paper_loads_neither_the_other_commands_nor_matplotlib_in_the_main_proce
         "          'factorq_trainers.experiments.compare') if name in sys.modules]\n"
         "assert not loaded, loaded\n"
     )
-    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=patience(120))

@@ -10,6 +10,7 @@ import sys
 import time
 
 import pytest
+from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers.distributed import cluster
 
@@ -18,13 +19,16 @@ distributed = pytest.importorskip("distributed")
 
 @pytest.fixture
 def scheduler_only():
-    """A scheduler in this process with no worker at all (starts in well under a second)."""
+    """A scheduler in this process with no worker at all (starts in well under a second); what
+    it leaves in this process is put back after it, as ``open_executor`` does."""
+    traces = cluster._Traces()
     with distributed.LocalCluster(
         n_workers=0, processes=False, dashboard_address=None, silence_logs=50
     ) as started:
         client = distributed.Client(started, set_as_default=False)
         yield started, client
         client.close()
+    traces.restore()
 
 
 def _slowly(item: int) -> int:
@@ -40,7 +44,7 @@ def test_work_on_a_cluster_without_workers_gives_up_after_the_worker_timeout(sch
     started = time.monotonic()
     with pytest.raises(cluster.ClusterError) as error:
         list(executor.map(_slowly, [1, 2, 3], ["a", "b", "c"]))
-    assert 1.5 <= time.monotonic() - started < 10
+    assert 1.5 <= time.monotonic() - started < patience(10)
     message = str(error.value)
     assert "\n" not in message
     assert f"the Dask cluster at {local.scheduler_address} has had no worker for 1.5 s" in message
@@ -50,7 +54,7 @@ def test_work_on_a_cluster_without_workers_gives_up_after_the_worker_timeout(sch
 def test_a_cluster_that_loses_its_last_worker_mid_run_says_so(scheduler_only):
     local, client = scheduler_only
     local.scale(1)
-    client.wait_for_workers(1, timeout=30)
+    client.wait_for_workers(1, timeout=patience(30))
     executor = cluster.DaskExecutor(client, worker_timeout_s=1.0)
     assert executor.description.endswith("(1 worker)")
     results = executor.map(_slowly, list(range(8)), [f"item-{i}" for i in range(8)])
@@ -79,7 +83,7 @@ def test_a_malformed_scheduler_address_is_one_line_without_an_ignored_traceback(
         + ["--scheduler", address, "--out", str(tmp_path / "out")],
         capture_output=True,
         text=True,
-        timeout=60,
+        timeout=patience(60),
         cwd=tmp_path,
     )
     assert done.returncode == 2
@@ -109,4 +113,4 @@ def test_an_address_only_the_client_refuses_leaves_no_client_to_close(recwarn):
     with pytest.raises(cluster.ClusterError, match="'inproc://' is not a Dask scheduler address"):
         cluster.open_executor(cluster.Where(scheduler="inproc://", connect_timeout_s=1))
     gc.collect()  # the half-made Client's __del__: nothing to close (was 20 s, then a traceback)
-    assert time.monotonic() - started < 10
+    assert time.monotonic() - started < patience(10)

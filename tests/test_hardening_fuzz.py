@@ -17,13 +17,14 @@ from pathlib import Path
 import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers.distributed import sweep
 from factorq_trainers.runner import checkpoint, results
 
 FUZZ = settings(
     max_examples=150,
-    deadline=timedelta(seconds=5),
+    deadline=timedelta(seconds=patience(5)),
     database=None,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
 )

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import pytest
 import torch
+from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_torch.base.validation import check_float
 from factorq_trainers.distributed import cluster, sweep, sweep_spec
@@ -79,7 +80,7 @@ def refused(path, match):
     with pytest.raises(sweep.SweepError, match=match) as error:
         sweep.spec_from_mapping(sweep.read_spec_file(path), str(path))
     assert "\n" not in str(error.value) and str(path) in str(error.value)
-    assert time.perf_counter() - start < 5  # bounded: no minute of alias expansion
+    assert time.perf_counter() - start < patience(5)  # bounded: no minute of alias expansion
 
 
 def test_a_yaml_alias_bomb_is_refused_at_once(tmp_path):
@@ -125,7 +126,7 @@ def test_the_grid_size_is_checked_from_the_axes_lengths_before_expanding():
     start = time.perf_counter()
     with pytest.raises(sweep.SweepError, match=r"1000000000 configurations .* more than 10000"):
         sweep.spec_from_mapping({"grid": {"alpha": axis, "gamma": axis, "epsilon": axis}})
-    assert time.perf_counter() - start < 5
+    assert time.perf_counter() - start < patience(5)
 
 
 def test_a_deeply_nested_checkpoint_is_refused_before_the_digest_walk(tmp_path):

@@ -13,6 +13,7 @@ import sys
 
 import pytest
 import torch
+from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers.runner import checkpoint, results
 
@@ -101,7 +102,7 @@ def test_a_file_size_limit_in_a_real_run_is_one_line_exit_1_and_no_directory(
         preexec_fn=_limited(4096),
         capture_output=True,
         text=True,
-        timeout=120,
+        timeout=patience(120),
         cwd=tmp_path,
     )
     error = done.stderr.strip().splitlines()[-1]

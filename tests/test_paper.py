@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers.compiled import fast, loader
 from factorq_trainers.distributed import processes
@@ -358,6 +359,9 @@ def _alive(pid: int) -> bool:
 def test_ctrl_c_ends_the_children_and_propagates():
     tests = str(Path(__file__).resolve().parent)
     script = (
+        # Python's own Ctrl-C handler, as at a terminal: a runner started in the background by
+        # a non-interactive shell ignores SIGINT, and the child would inherit that (POSIX)
+        "import signal; signal.signal(signal.SIGINT, signal.default_int_handler)\n"
         "import sys; sys.path.insert(0, sys.argv[1]); import processes_work\n"
         "from factorq_trainers.distributed import processes\n"
         "items = {'a': ('sleep', 60), 'b': ('sleep', 60)}\n"
@@ -377,7 +381,7 @@ def test_ctrl_c_ends_the_children_and_propagates():
         assert len(pids) == 2 and all(_alive(pid) for pid in pids)
         time.sleep(0.2)  # in wait()
         os.killpg(run.pid, signal.SIGINT)  # Ctrl-C: the terminal signals the process group
-        _, err = run.communicate(timeout=30)
+        _, err = run.communicate(timeout=patience(30))
     finally:
         if run.poll() is None:
             run.kill()

@@ -25,7 +25,16 @@ from factorq_torch.risk import (
 from factorq_torch.structure import StructureLearner
 from factorq_torch.tables import LocalRewardTable
 
-logging.getLogger("torchrl").setLevel(logging.WARNING)
+
+@pytest.fixture(autouse=True, scope="module")
+def quiet_torchrl():
+    """torchrl's INFO lines (one per replay buffer) quieted for this module, its level put back
+    after it (a level changed at import would stay for every later test of the worker)."""
+    logger = logging.getLogger("torchrl")
+    level = logger.level
+    logger.setLevel(logging.WARNING)
+    yield
+    logger.setLevel(level)
 
 
 def blocked_north_table(experiments: int = 1) -> LocalRewardTable:
@@ -493,7 +502,7 @@ def test_factorq_risk_runs_through_the_runner_and_writes_its_files(tmp_path, cap
     torchrl_logger = logging.getLogger("torchrl")
     level, records = torchrl_logger.level, Records()
     torchrl_logger.addHandler(records)
-    torchrl_logger.setLevel(logging.INFO)  # torchrl's default (this module quiets it above)
+    torchrl_logger.setLevel(logging.INFO)  # torchrl's default (quiet_torchrl quiets it)
     out = tmp_path / "risk"
     args = ["risk", "--worlds", "grid", "--methods", "dqn,dqn+risk-oracle", "--seeds", "1"]
     args += ["--steps", "60", "--learning-starts", "20", "--eval-episodes", "1", "--out", str(out)]

@@ -13,6 +13,7 @@ import time
 from dataclasses import fields, replace
 
 import pytest
+from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers import cli
 from factorq_trainers.compiled import fast
@@ -232,13 +233,13 @@ def test_a_sweep_killed_with_sigkill_resumes_from_its_shard_files_with_the_same_
     command = [sys.executable, "-m", "factorq_trainers.cli", "sweep", *argv]
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + patience(120)
         while not list(out.rglob("*.npz")) and time.monotonic() < deadline:
             assert process.poll() is None, "the sweep ended before any shard was written"
             time.sleep(0.05)
         process.send_signal(signal.SIGKILL)
     finally:
-        process.wait(timeout=60)
+        process.wait(timeout=patience(60))
     finished = list(out.rglob("*.npz"))
     assert 1 <= len(finished) < 16 and not (out / "sweep.json").exists()
     assert cli.main(["sweep", *argv]) == 0  # the same command again resumes

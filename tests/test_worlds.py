@@ -201,7 +201,9 @@ def test_torchrl_env_of_a_corridor_reads_its_specs_from_the_config_and_passes_ch
     rollout = env.rollout(30, break_when_any_done=False)
     assert rollout["next", "sensors"].shape == (3, 30, 4)
     picture = env.render(0)
-    assert len(picture) == 13 and picture.count("A") == 1 and picture.endswith("G#")
+    # the goal shows unless the agent stands on it (random actions may have walked it there)
+    assert len(picture) == 13 and picture.count("A") == 1 and picture[-2] in "GA"
+    assert picture.endswith("#") and picture.count("G") == (picture[-2] == "G")
     assert env.obstacle_map().shape == (3, 11)
 
 

@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
+from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers import cli
 from factorq_trainers.compiled import fast
@@ -41,7 +42,7 @@ def test_a_live_run_owns_its_out_until_it_dies(tmp_path):
         stderr=subprocess.PIPE,
     )
     try:
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + patience(120)
         while not (out / "checkpoint" / "checkpoint.pt").exists():
             assert process.poll() is None and time.monotonic() < deadline, "no checkpoint"
             time.sleep(0.01)
@@ -54,7 +55,7 @@ def test_a_live_run_owns_its_out_until_it_dies(tmp_path):
         assert code == 2 and holder in err, err  # --force replaces results, never a live run
     finally:
         process.send_signal(signal.SIGKILL)
-        process.wait(timeout=60)
+        process.wait(timeout=patience(60))
     # SIGKILL releases the lock with the process: the killed run resumes to its end.
     code, err = factorq("paper", "--resume", str(out))
     assert code == 0, err
@@ -138,12 +139,12 @@ def test_a_comparison_killed_and_resumed_writes_the_same_results(tmp_path, monke
     )
     saved = killed_dir / "run" / "checkpoint" / "checkpoint.pt"
     try:
-        deadline = time.monotonic() + 300
+        deadline = time.monotonic() + patience(300)
         while not saved.exists():
             assert process.poll() is None and time.monotonic() < deadline, "no checkpoint"
             time.sleep(0.01)
         process.send_signal(signal.SIGKILL)
-        process.wait(timeout=60)
+        process.wait(timeout=patience(60))
     finally:
         if process.poll() is None:
             process.kill()
