@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from factorq_trainers import cli
-from factorq_trainers.runner import frame, options, registry
+from factorq_trainers.runner import frame, kept, options, registry
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -34,6 +34,7 @@ def _toy_module(calls: list[str]) -> types.ModuleType:
     """A command declared as the protocol says, counting the units it runs."""
     toy = types.ModuleType("toy_command")
     toy.NAME, toy.CONFIG = "toy", ToyConfig
+    toy.UNIT_RESULT = {"value": kept.NUMBER, "inf?": kept.NUMBER}
     toy.units = lambda config: [{"id": f"seed-{s}", "seed": s} for s in range(config.seeds)]
 
     def run_unit(config, unit, progress=None):
@@ -97,7 +98,7 @@ def test_an_edited_kept_unit_is_refused_on_resume_naming_it(tmp_path, capsys):
     toy = _toy_module([])
     out = tmp_path / "toy"
     assert _execute(toy, ["--seeds", "3", "--fail-at", "2", "--out", str(out)]) == 130
-    unit = frame._unit_path(out / "units", "seed-1")
+    unit = kept.unit_path(out / "units", "seed-1")
     record = json.loads(unit.read_text())
     assert record["result"]["value"] == 10.5 and len(record["content_sha256"]) == 64
     record["result"]["value"] = 1050.0  # edited, its digest kept
@@ -109,9 +110,9 @@ def test_an_edited_kept_unit_is_refused_on_resume_naming_it(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1, err
     assert f"unit file {unit} does not match its digest (edited or damaged)" in err[0]
-    assert "delete it to rerun unit 'seed-1'" in err[0]
-    unit.unlink()  # as it says: that unit runs again, the other is reused
-    assert _execute(fixed, ["--resume", str(out)]) == 0
+    assert "pass --force (with --resume) to recompute it" in err[0]
+    # as it says: that unit runs again, the other is reused
+    assert _execute(fixed, ["--resume", str(out), "--force"]) == 0
     results = json.loads((out / "toy.json").read_text())
     assert results["values"] == [0.5, 10.5, 20.5] and results["timing"]["units_resumed"] == 1
 

@@ -16,7 +16,7 @@ import pytest
 
 from factorq_trainers import cli
 from factorq_trainers.compiled import fast
-from factorq_trainers.distributed import cluster, shards, sweep
+from factorq_trainers.distributed import cluster, shards, sweep, sweep_spec
 from factorq_trainers.distributed.sweep import SweepError, SweepSpec
 from factorq_trainers.experiments import paper
 from factorq_trainers.runner import results as result_files
@@ -297,6 +297,8 @@ def test_a_compare_sweep_cell_equals_factorq_compare_and_resumes(tmp_path, capsy
     row = result["configurations"][1]
     stored = json.loads((out / row["results_file"]).read_text())
     assert len(stored.pop("content_sha256")) == 64  # checked when the file is reused
+    tie = {"command": "compare", "config_sha256": sweep_spec.config_digest(config)}
+    assert stored.pop("kept_for") == tie  # a file of another configuration is refused
     assert stored["config"].pop("out") == str(out) and expected["config"].pop("out")
     assert _without_wall_s(stored) == _without_wall_s(expected)
     cell = row["cells"]["static/factor-q"]
@@ -364,6 +366,8 @@ def test_a_dependencies_sweep_cell_equals_factorq_dependencies_and_resumes(tmp_p
     row = result["configurations"][1]
     stored = json.loads((out / row["results_file"]).read_text())
     assert len(stored.pop("content_sha256")) == 64  # checked when the file is reused
+    tie = {"command": "dependencies", "config_sha256": sweep_spec.config_digest(config)}
+    assert stored.pop("kept_for") == tie  # a file of another configuration is refused
     assert stored["config"].pop("out") == str(out) and expected["config"].pop("out")
     assert _without_wall_s(stored) == _without_wall_s(expected)
     cell = row["cells"]["change/learned"]

@@ -157,7 +157,15 @@ def compare_result_path(directory: str | os.PathLike, config: Any) -> Path:
 CONFIG_FILE = "configuration file"
 
 
-def _pending_configs(directory: Path, configs: Sequence[Any], force: bool) -> list[Any]:
+def _read_config_result(path: Path, command: str, config: Any) -> dict[str, Any]:
+    """The results of ``command`` for ``config`` kept at ``path``: sealed, kept for this command
+    and configuration, values checked (a ValueError naming it otherwise)."""
+    return kept.read_sealed(path, CONFIG_FILE, kept_for=kept.tie(command, config_digest(config)))
+
+
+def _pending_configs(
+    directory: Path, configs: Sequence[Any], force: bool, command: str
+) -> list[Any]:
     """The configurations of ``configs`` to run: those without a kept result, and (``force``)
     those whose kept result fails its checks; without ``force`` such a file is refused."""
     return [
@@ -165,7 +173,7 @@ def _pending_configs(directory: Path, configs: Sequence[Any], force: bool) -> li
         for config in configs
         if not kept.reusable(
             compare_result_path(directory, config),
-            lambda path: kept.read_sealed(path, CONFIG_FILE),
+            functools.partial(_read_config_result, command=command, config=config),
             force,
         )
     ]
@@ -204,7 +212,7 @@ def run_compare_configs(
                 "method_wall_s": round(sum(float(r["wall_s"]) for r in runs[index].values()), 3),
                 "where": executor.description,
             }
-            text = kept.dumps_sealed(results)
+            text = kept.dumps_sealed(results, kept.tie("compare", config_digest(config)))
             directory.mkdir(parents=True, exist_ok=True)
             result_files.write_atomic(
                 compare_result_path(directory, config), functools.partial(_write_text, text=text)
@@ -258,7 +266,7 @@ def run_compare_sweep(
     started = time.perf_counter()
     directory = Path(spec.out) / CONFIGS_DIRECTORY
     configs = spec.configurations()
-    pending = _pending_configs(directory, configs, force)
+    pending = _pending_configs(directory, configs, force, "compare")
     total = sum(len(config.methods) for config in configs)
     count = {"done": total - sum(len(config.methods) for config in pending)}
     if progress is not None:
@@ -301,7 +309,7 @@ def _gathered(
     rows = []
     for config, point in zip(configs, spec.points(), strict=True):
         path = compare_result_path(directory, config)
-        results = kept.read_sealed(path, CONFIG_FILE)  # digest and values checked
+        results = _read_config_result(path, command, config)  # digest, tie, values checked
         try:  # a kept file is the user's: it may have been edited or cut short
             cells_of = cells(results)
         except (ValueError, KeyError, TypeError, AttributeError, IndexError) as error:
@@ -357,14 +365,14 @@ def run_units_sweep(
     started = time.perf_counter()
     directory = Path(spec.out) / CONFIGS_DIRECTORY
     configs = spec.configurations()
-    pending = _pending_configs(directory, configs, force)
+    pending = _pending_configs(directory, configs, force, spec.command)
     done = len(configs) - len(pending)
     if progress is not None:
         progress(done, len(configs))
     names = [f"{spec.command}-{config_digest(config)}" for config in pending]
     task = functools.partial(_units_task, spec.command)
     for index, results in executor.map(task, pending, names):
-        text = kept.dumps_sealed(results)
+        text = kept.dumps_sealed(results, kept.tie(spec.command, config_digest(pending[index])))
         directory.mkdir(parents=True, exist_ok=True)
         result_files.write_atomic(
             compare_result_path(directory, pending[index]),
