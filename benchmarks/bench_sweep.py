@@ -37,8 +37,10 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(ROOT))
 
-from factorq_trainers.distributed import cluster, shards, sweep  # noqa: E402
+from factorq_trainers.distributed import sweep  # noqa: E402
 from factorq_trainers.experiments import paper  # noqa: E402
+from factorq_trainers.experiments import paper_shards as shards  # noqa: E402
+from factorq_trainers.runner import cluster  # noqa: E402
 
 
 def _spec(out: Path, episodes: int, threads: int) -> sweep.SweepSpec:

@@ -15,8 +15,10 @@ import pytest
 
 from factorq_trainers import cli
 from factorq_trainers.compiled import fast
-from factorq_trainers.distributed import cluster, shards, sweep
+from factorq_trainers.distributed import sweep
 from factorq_trainers.experiments import paper
+from factorq_trainers.experiments import paper_shards as shards
+from factorq_trainers.runner import cluster
 from factorq_trainers.runner import results as result_files
 
 distributed = pytest.importorskip("distributed")

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from factorq_trainers.distributed import cluster
+from factorq_trainers.runner import cluster
 
 distributed = pytest.importorskip("distributed")
 

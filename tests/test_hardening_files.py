@@ -128,7 +128,7 @@ def test_a_fifo_where_a_results_file_belongs_is_named_as_such_not_missing(tmp_pa
 
 def _kept_shard(tmp_path):
 
-    from factorq_trainers.distributed import shards
+    from factorq_trainers.experiments import paper_shards as shards
     from factorq_trainers.experiments.paper import PaperConfig
 
     shard = PaperConfig(seeds=2, runs=2, episodes=3)
@@ -150,7 +150,7 @@ def _edit(path, change):
     """Rewrite a kept shard with ``change(metrics)`` applied, its stored digest kept or
     recomputed (``change`` returns whether to sign again)."""
 
-    from factorq_trainers.distributed import shards
+    from factorq_trainers.experiments import paper_shards as shards
 
     with np.load(path) as data:
         everything = {key: data[key] for key in data.files}
@@ -346,7 +346,8 @@ def test_reusable_refuses_a_bad_kept_file_unless_forced(tmp_path):
 
 
 def test_a_sweep_refuses_an_edited_kept_shard_before_any_work_and_force_recomputes_it(tmp_path):
-    from factorq_trainers.distributed import cluster, sweep
+    from factorq_trainers.distributed import sweep
+    from factorq_trainers.runner import cluster
 
     class Counting(cluster.InProcess):
         def __init__(self) -> None:

@@ -195,7 +195,7 @@ def test_the_harness_reaches_past_the_first_checks():
 def test_a_shard_file_of_any_content_gives_metrics_or_a_value_error(config, arrays, raw):
     import numpy as np
 
-    from factorq_trainers.distributed import shards
+    from factorq_trainers.experiments import paper_shards as shards
     from factorq_trainers.experiments.paper import PaperConfig
 
     with tempfile.TemporaryDirectory() as directory:

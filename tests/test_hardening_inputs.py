@@ -14,8 +14,8 @@ import pytest
 import torch
 
 from factorq_torch.base.validation import check_float
-from factorq_trainers.distributed import cluster, sweep, sweep_spec
-from factorq_trainers.runner import checkpoint, options, results
+from factorq_trainers.distributed import sweep, sweep_spec
+from factorq_trainers.runner import checkpoint, cluster, options, results
 from factorq_trainers.runner.frame import Parser
 
 

@@ -16,9 +16,11 @@ import pytest
 
 from factorq_trainers import cli
 from factorq_trainers.compiled import fast
-from factorq_trainers.distributed import cluster, shards, sweep, sweep_spec
+from factorq_trainers.distributed import sweep, sweep_spec
 from factorq_trainers.distributed.sweep import SweepError, SweepSpec
 from factorq_trainers.experiments import paper
+from factorq_trainers.experiments import paper_shards as shards
+from factorq_trainers.runner import cluster
 from factorq_trainers.runner import results as result_files
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")

@@ -26,21 +26,11 @@ import typing
 from pathlib import Path
 from typing import Any
 
-from factorq_trainers.distributed import cluster
-from factorq_trainers.distributed.cluster_runs import (  # noqa: F401 - the public names of factorq sweep
-    ShardBar,
-    add_paper_options,
-    paper_executor,
-    run_compare_on,
-    run_paper_on,
-)
 from factorq_trainers.distributed.sweep_run import (  # noqa: F401
     compare_cells,
     compare_result_path,
     run_compare_configs,
     run_compare_sweep,
-    run_paper,
-    run_shards,
     run_sweep,
     run_units_sweep,
 )
@@ -48,14 +38,12 @@ from factorq_trainers.distributed.sweep_spec import (  # noqa: F401
     COMPARE_RESERVED,
     CONFIGS_DIRECTORY,
     DEFAULT_OUT,
-    DEFAULT_PAPER_SHARD_SEEDS,
     DEFAULT_SEEDS,
     DEFAULT_SHARD_SEEDS,
     MAX_CONFIGURATIONS,
     MAX_SPEC_BYTES,
     MEASURES,
     RESERVED,
-    SHARDS_DIRECTORY,
     SPECIAL,
     SweepError,
     SweepSpec,
@@ -70,8 +58,21 @@ from factorq_trainers.distributed.sweep_spec import (  # noqa: F401
     spec_from_mapping,
     sweepable_fields,
 )
+from factorq_trainers.experiments.cluster_runs import (  # noqa: F401 - the public names of factorq sweep
+    ShardBar,
+    add_paper_options,
+    paper_executor,
+    run_compare_on,
+    run_paper_on,
+)
+from factorq_trainers.experiments.paper_shards import (  # noqa: F401
+    DEFAULT_PAPER_SHARD_SEEDS,
+    SHARDS_DIRECTORY,
+    run_paper,
+    run_shards,
+)
 from factorq_trainers.reports import sweep as sweep_report
-from factorq_trainers.runner import outdir, resources
+from factorq_trainers.runner import cluster, outdir, resources
 from factorq_trainers.runner.frame import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_USAGE, Parser
 
 HELP = "run a grid of paper configurations as shards, in-process or on a Dask cluster"

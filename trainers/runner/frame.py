@@ -205,7 +205,7 @@ def run_unit_task(module_name: str, config: Any, unit: dict[str, Any]) -> Any:
 def add_frame_options(parser: argparse.ArgumentParser) -> None:
     """``--force``, ``--resume DIR`` and the cluster options (``--cluster``, ``--scheduler``,
     ``--connect-timeout``)."""
-    from factorq_trainers.distributed import cluster
+    from factorq_trainers.runner import cluster
 
     parser.add_argument("--force", action="store_true", default=argparse.SUPPRESS, help=FORCE_HELP)
     parser.add_argument("--resume", metavar="DIR", default=argparse.SUPPRESS, help=RESUME_HELP)
@@ -268,7 +268,7 @@ def execute(module: ModuleType, parser: argparse.ArgumentParser, args: argparse.
             if large:
                 print(large, file=sys.stderr)
         units = checked_units(module, config)
-        from factorq_trainers.distributed import cluster
+        from factorq_trainers.runner import cluster
 
         executor = cluster.executor_from_args(args)
     except (ValueError, TypeError, ModuleNotFoundError) as problem:
