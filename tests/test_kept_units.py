@@ -326,3 +326,15 @@ def test_a_sweeps_kept_result_of_another_configuration_is_refused(tmp_path):
     assert sweep_run._pending_configs(tmp_path, [second], False, "dependencies") == []
     with pytest.raises(ValueError, match="kept by command 'dependencies', not `factorq risk`"):
         sweep_run._pending_configs(tmp_path, [second], False, "risk")
+
+
+def test_factorq_report_refuses_a_results_file_written_before_versioning(tmp_path, capsys):
+    from factorq_trainers.cli import main
+
+    _dependencies_file(tmp_path)
+    results = json.loads((tmp_path / "dependencies.json").read_text())
+    del results["schema_version"]
+    (tmp_path / "dependencies.json").write_text(json.dumps(results))
+    assert main(["report", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "has no schema_version (written before versioning)" in err[0]

@@ -158,8 +158,7 @@ def test_reports_import_no_torch():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
-@pytest.mark.parametrize("layout", ["envelope", "before the runner"])
-def test_report_redraws_dependencies_without_torch(tmp_path, layout):
+def test_report_redraws_dependencies_without_torch(tmp_path):
     results = {
         "schema_version": 1,
         "command": "dependencies",
@@ -175,9 +174,6 @@ def test_report_redraws_dependencies_without_torch(tmp_path, layout):
         "skipped": {},
         "methods": {"oracle": "oracle pairing"},
     }  # fmt: skip
-    if layout == "before the runner":  # timing.wall_seconds, no method labels
-        results["timing"] = {"wall_seconds": 1.0}
-        del results["methods"], results["schema_version"], results["command"]
     (tmp_path / "dependencies.json").write_text(json.dumps(results))
     code = (
         "import sys\nfrom factorq_trainers import cli\n"
@@ -185,8 +181,7 @@ def test_report_redraws_dependencies_without_torch(tmp_path, layout):
         "assert 'torch' not in sys.modules, 'factorq report imported torch'\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, capture_output=True)
-    label = "oracle pairing" if layout == "envelope" else "oracle"
-    assert f"| cross | {label} |" in (tmp_path / "dependencies.md").read_text()
+    assert "| cross | oracle pairing |" in (tmp_path / "dependencies.md").read_text()
     assert (tmp_path / "dependencies.png").stat().st_size > 0
 
 
@@ -200,9 +195,6 @@ def test_the_obstacle_regimes_load_without_torch_and_the_grid_runs_them():
     assert out.stdout.strip() == (
         "('static', 'semi-dynamic', 'dynamic') {'static': 0, 'semi-dynamic': 10, 'dynamic': 1}"
     )
-    from factorq_envs import grid_world, regimes
-
-    assert grid_world.WORLD_PERIODS is regimes.REGIME_PERIODS  # the former names, kept
 
 
 def test_architecture_names_every_registered_command():
