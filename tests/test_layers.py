@@ -220,3 +220,26 @@ def test_no_two_trainers_folders_import_each_other():
     through another."""
     circles = folder_circles(GRAPH)
     assert not circles, f"trainers folders that import each other: {circles}"
+
+
+#: The order of the trainers folders docs/architecture.md states: each imports only later ones
+#: (and ``compiled``, the layer below the trainers).
+FOLDER_ORDER = ("cli", "distributed", "experiments", "reports", "runner", "analysis")
+
+
+def test_the_folder_order_the_architecture_states_holds():
+    text = " ".join((ROOT / "docs" / "architecture.md").read_text().split())
+    stated = (
+        "`cli` -> `distributed` (`factorq sweep`) -> `experiments` -> `reports` -> `runner` -> "
+        "`analysis`"
+    )
+    assert stated in text
+    backwards = sorted(
+        f"{name} -> {target}"
+        for name, targets in GRAPH.items()
+        for target in targets
+        if (a := trainers_folder(name)) in FOLDER_ORDER
+        and (b := trainers_folder(target)) in FOLDER_ORDER
+        and FOLDER_ORDER.index(b) < FOLDER_ORDER.index(a)
+    )
+    assert not backwards, f"imports against the stated order of the folders: {backwards}"
