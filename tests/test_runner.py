@@ -211,11 +211,13 @@ def test_the_cli_knows_every_registered_command():
 
 
 def test_every_registered_command_can_be_swept_and_one_without_cells_is_refused(monkeypatch):
-    from factorq_trainers.distributed import sweep, sweep_spec
+    from factorq_trainers.distributed import sweep_spec
 
     for name in registry.commands():
-        assert sweep.check_command(name) == name
-    monkeypatch.setattr(sweep_spec, "commands", lambda: (*sweep.SPECIAL, "toy"))
+        assert sweep_spec.check_command(name) == name
+    monkeypatch.setattr(sweep_spec, "commands", lambda: (*sweep_spec.SPECIAL, "toy"))
     monkeypatch.setattr(sweep_spec, "_reports_of", lambda command: types.ModuleType("toy_report"))
-    with pytest.raises(sweep.SweepError, match="'toy' cannot be swept: toy_report declares no"):
-        sweep.check_command("toy")
+    with pytest.raises(
+        sweep_spec.SweepError, match="'toy' cannot be swept: toy_report declares no"
+    ):
+        sweep_spec.check_command("toy")
