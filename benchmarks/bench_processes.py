@@ -1,5 +1,5 @@
 """Child processes for the modular paper run: ``processes.run_each`` (a fresh interpreter per item,
-``python -m factorq_trainers.distributed.processes``, work pickled over stdin) against
+``python -m factorq_trainers.experiments.paper_processes``, work pickled over stdin) against
 ``concurrent.futures.ProcessPoolExecutor`` with a ``spawn`` and a ``forkserver`` context (issue 24
 item 5, issue 29 g).
 
@@ -34,8 +34,8 @@ import time
 from dataclasses import replace
 from typing import Any
 
-from factorq_trainers.distributed import processes
 from factorq_trainers.experiments import paper
+from factorq_trainers.experiments import paper_processes as processes
 
 _PROGRESS: Any = None
 

@@ -37,12 +37,14 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(ROOT))
 
-from factorq_trainers.distributed import cluster, shards, sweep  # noqa: E402
+from factorq_trainers.distributed import sweep_run, sweep_spec  # noqa: E402
 from factorq_trainers.experiments import paper  # noqa: E402
+from factorq_trainers.experiments import paper_shards as shards  # noqa: E402
+from factorq_trainers.runner import cluster  # noqa: E402
 
 
-def _spec(out: Path, episodes: int, threads: int) -> sweep.SweepSpec:
-    return sweep.SweepSpec(
+def _spec(out: Path, episodes: int, threads: int) -> sweep_spec.SweepSpec:
+    return sweep_spec.SweepSpec(
         base=(("episodes", episodes), ("threads", threads)),
         grid=(("obstacles", (5, 10, 15, 20)), ("eta", (0.05, 0.1, 0.2, 0.4))),
         seeds=100,
@@ -55,9 +57,9 @@ def _numbers(result: dict) -> list:
     return [{**row, "config": None} for row in result["configurations"]]
 
 
-def _timed_sweep(spec: sweep.SweepSpec, executor) -> tuple[float, dict]:
+def _timed_sweep(spec: sweep_spec.SweepSpec, executor) -> tuple[float, dict]:
     started = time.perf_counter()
-    result = sweep.run_sweep(spec, executor)
+    result = sweep_run.run_sweep(spec, executor)
     return time.perf_counter() - started, result
 
 
@@ -65,7 +67,7 @@ def _overhead(executor, directory: Path, count: int = 64) -> float:
     tiny = paper.PaperConfig(seeds=count, runs=1, episodes=1, size=5, obstacles=2, out="unused")
     pieces = shards.split(tiny, 1)
     started = time.perf_counter()
-    sweep.run_shards(pieces, directory, executor, lambda shard: None)
+    shards.run_shards(pieces, directory, executor, lambda shard: None)
     return (time.perf_counter() - started) / count
 
 

@@ -47,12 +47,6 @@ from factorq_envs.grid_functions import (  # noqa: F401 - the grid world's publi
     step_worlds,
     where_rows,
 )
-from factorq_envs.regimes import REGIME_PERIODS, REGIMES
-
-#: The former names of the obstacle regimes (``factorq_envs.regimes``), kept for code that
-#: imports them from here.
-WORLD_PERIODS = REGIME_PERIODS
-WORLDS = REGIMES
 
 
 class FactoredGrid:

@@ -1,4 +1,4 @@
-"""Work for child processes in the tests of ``factorq_trainers.distributed.processes`` (a
+"""Work for child processes in the tests of ``factorq_trainers.experiments.paper_processes`` (a
 module the children import: pytest puts tests/ on sys.path, and the children get the parent's
 sys.path)."""
 

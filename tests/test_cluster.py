@@ -16,8 +16,10 @@ from timing import patience  # tests/timing.py: bounds that stretch with the loa
 
 from factorq_trainers import cli
 from factorq_trainers.compiled import fast
-from factorq_trainers.distributed import cluster, shards, sweep
-from factorq_trainers.experiments import paper
+from factorq_trainers.distributed import sweep_run, sweep_spec
+from factorq_trainers.experiments import cluster_runs, paper
+from factorq_trainers.experiments import paper_shards as shards
+from factorq_trainers.runner import cluster
 from factorq_trainers.runner import results as result_files
 
 distributed = pytest.importorskip("distributed")
@@ -68,7 +70,7 @@ def _without_timing(results: dict) -> str:
 def test_shards_on_two_workers_equal_one_process_bit_for_bit(executor, tmp_path):
     config = paper.PaperConfig(**SMALL, threads=2, out=str(tmp_path / "cluster"))
     expected = paper.run(replace(config, out=str(tmp_path / "plain")))
-    gathered = sweep.run_paper(config, executor, shard_seeds=2)  # 4 shards: 2, 2, 2, 1 seeds
+    gathered = shards.run_paper(config, executor, shard_seeds=2)  # 4 shards: 2, 2, 2, 1 seeds
     assert gathered["timing"]["shards"]["where"].endswith("(2 workers)")
     assert gathered["timing"]["threads"] == 1
     expected["config"]["out"] = gathered["config"]["out"]
@@ -80,15 +82,15 @@ def test_shards_on_two_workers_equal_one_process_bit_for_bit(executor, tmp_path)
 
 
 def test_a_sweep_on_the_cluster_equals_the_sweep_in_process(executor, tmp_path):
-    spec = sweep.SweepSpec(
+    spec = sweep_spec.SweepSpec(
         base=(("runs", 1), ("episodes", 5), ("size", 5)),
         grid=(("obstacles", (2, 4)), ("epsilon", (0.01, 0.05))),
         seeds=3,
         shard_seeds=2,
         out=str(tmp_path / "cluster"),
     )
-    on_cluster = sweep.run_sweep(spec, executor)
-    in_process = sweep.run_sweep(replace(spec, out=str(tmp_path / "here")), cluster.InProcess())
+    on_cluster = sweep_run.run_sweep(spec, executor)
+    in_process = sweep_run.run_sweep(replace(spec, out=str(tmp_path / "here")), cluster.InProcess())
     strip = [
         {**row, "config": {**row["config"], "out": None}} for row in on_cluster["configurations"]
     ]
@@ -135,7 +137,7 @@ def test_a_worker_killed_mid_shard_loses_only_that_shard_and_the_numbers_stay(ex
 
     def run() -> None:
         try:
-            outcome["results"] = sweep.run_paper(config, executor, shard_seeds=30)
+            outcome["results"] = shards.run_paper(config, executor, shard_seeds=30)
         except BaseException as error:  # reported by the assertion below
             outcome["error"] = error
 
@@ -180,7 +182,7 @@ def test_factorq_compare_on_the_cluster_repeats_every_method_in_process(executor
     )
     expected = compare.run(config)
     remote = replace(config, out=str(tmp_path / "cluster"))
-    results = sweep.run_compare_on(executor, remote, compare.run_method, compare.summarise)
+    results = cluster_runs.run_compare_on(executor, remote, compare.run_method, compare.summarise)
     assert results["timing"]["where"].endswith("(2 workers)")
     for summary in (expected, results):
         summary.pop("timing")

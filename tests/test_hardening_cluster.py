@@ -12,7 +12,7 @@ import time
 import pytest
 from timing import patience  # tests/timing.py: bounds that stretch with the load
 
-from factorq_trainers.distributed import cluster
+from factorq_trainers.runner import cluster
 
 distributed = pytest.importorskip("distributed")
 

@@ -128,7 +128,7 @@ def test_a_fifo_where_a_results_file_belongs_is_named_as_such_not_missing(tmp_pa
 
 def _kept_shard(tmp_path):
 
-    from factorq_trainers.distributed import shards
+    from factorq_trainers.experiments import paper_shards as shards
     from factorq_trainers.experiments.paper import PaperConfig
 
     shard = PaperConfig(seeds=2, runs=2, episodes=3)
@@ -150,7 +150,7 @@ def _edit(path, change):
     """Rewrite a kept shard with ``change(metrics)`` applied, its stored digest kept or
     recomputed (``change`` returns whether to sign again)."""
 
-    from factorq_trainers.distributed import shards
+    from factorq_trainers.experiments import paper_shards as shards
 
     with np.load(path) as data:
         everything = {key: data[key] for key in data.files}
@@ -346,7 +346,9 @@ def test_reusable_refuses_a_bad_kept_file_unless_forced(tmp_path):
 
 
 def test_a_sweep_refuses_an_edited_kept_shard_before_any_work_and_force_recomputes_it(tmp_path):
-    from factorq_trainers.distributed import cluster, sweep
+    from factorq_trainers.distributed import sweep_run, sweep_spec
+    from factorq_trainers.experiments import paper_shards
+    from factorq_trainers.runner import cluster
 
     class Counting(cluster.InProcess):
         def __init__(self) -> None:
@@ -356,23 +358,23 @@ def test_a_sweep_refuses_an_edited_kept_shard_before_any_work_and_force_recomput
             self.items += list(items)
             return super().map(function, items, names)
 
-    spec = sweep.SweepSpec(
+    spec = sweep_spec.SweepSpec(
         base=(("runs", 1), ("episodes", 3), ("size", 5), ("obstacles", 2)),
         grid=(("eta", (0.1,)),),
         seeds=2,
         shard_seeds=1,
         out=str(tmp_path / "sweep"),
     )
-    first = sweep.run_sweep(spec, cluster.InProcess())
-    path = sorted((tmp_path / "sweep" / sweep.SHARDS_DIRECTORY).rglob("*.npz"))[1]
+    first = sweep_run.run_sweep(spec, cluster.InProcess())
+    path = sorted((tmp_path / "sweep" / paper_shards.SHARDS_DIRECTORY).rglob("*.npz"))[1]
     _edit(path, _times_100)
     refused = Counting()
     with pytest.raises(ValueError, match="does not match its digest") as error:
-        sweep.run_sweep(spec, refused)
+        sweep_run.run_sweep(spec, refused)
     assert str(path) in one_line(error) and "pass --force to recompute it" in str(error.value)
     assert refused.items == []  # refused before any work
     forced = Counting()
-    again = sweep.run_sweep(spec, forced, force=True)
+    again = sweep_run.run_sweep(spec, forced, force=True)
     assert [(shard.first_seed, shard.seeds) for shard in forced.items] == [(1, 1)]
     assert again["configurations"] == first["configurations"]
     assert again["timing"]["shards_run_now"] == 1

@@ -19,7 +19,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from timing import patience  # tests/timing.py: bounds that stretch with the load
 
-from factorq_trainers.distributed import sweep
+from factorq_trainers.distributed import sweep_spec
 from factorq_trainers.runner import checkpoint, results
 
 FUZZ = settings(
@@ -45,13 +45,13 @@ values = st.recursive(
     ),
     max_leaves=24,
 )
-FIELDS = list(sweep.sweepable_fields("paper"))[:12] + ["seeds", "unknown_field"]
+FIELDS = list(sweep_spec.sweepable_fields("paper"))[:12] + ["seeds", "unknown_field"]
 fields = st.sampled_from(FIELDS)
 #: Sweep documents near the valid ones, so the checks past the first are reached too.
 specs = st.fixed_dictionaries(
     {},
     optional={
-        "command": st.sampled_from([*sweep.commands(), "nope"]) | scalars,
+        "command": st.sampled_from([*sweep_spec.commands(), "nope"]) | scalars,
         "seeds": scalars,
         "shard_seeds": scalars,
         "out": st.sampled_from(["sweep-out", "", "/dev/null"]) | scalars,
@@ -70,11 +70,11 @@ def _one_line(error: Exception) -> None:
 @given(document=specs | values)
 def test_a_sweep_document_gives_a_spec_or_a_sweep_error(document):
     try:
-        spec = sweep.spec_from_mapping(document, "fuzz.toml")
-    except sweep.SweepError as error:
+        spec = sweep_spec.spec_from_mapping(document, "fuzz.toml")
+    except sweep_spec.SweepError as error:
         _one_line(error)
     else:
-        assert isinstance(spec, sweep.SweepSpec)
+        assert isinstance(spec, sweep_spec.SweepSpec)
 
 
 @FUZZ
@@ -84,8 +84,8 @@ def test_a_sweep_file_of_any_text_gives_a_spec_or_a_sweep_error(text, suffix):
         path = Path(directory) / f"spec{suffix}"
         path.write_text(text)
         try:
-            sweep.spec_from_mapping(sweep.read_spec_file(path), str(path))
-        except sweep.SweepError as error:
+            sweep_spec.spec_from_mapping(sweep_spec.read_spec_file(path), str(path))
+        except sweep_spec.SweepError as error:
             _one_line(error)
 
 
@@ -178,7 +178,7 @@ def test_a_checkpoint_of_any_bytes_is_a_checkpoint_error(content):
 def test_the_harness_reaches_past_the_first_checks():
     """The readers accept what they should: a valid spec and results file built from the same
     pieces are read back (so the fuzzing above is not all refused at the door)."""
-    spec = sweep.spec_from_mapping({"grid": {"alpha": [0.1, 0.2]}, "seeds": 2}, "fuzz.toml")
+    spec = sweep_spec.spec_from_mapping({"grid": {"alpha": [0.1, 0.2]}, "seeds": 2}, "fuzz.toml")
     assert len(spec.configurations()) == 2
     assert _read(json.dumps({"command": "paper"}).encode()) == {"command": "paper"}
 
@@ -196,7 +196,7 @@ def test_the_harness_reaches_past_the_first_checks():
 def test_a_shard_file_of_any_content_gives_metrics_or_a_value_error(config, arrays, raw):
     import numpy as np
 
-    from factorq_trainers.distributed import shards
+    from factorq_trainers.experiments import paper_shards as shards
     from factorq_trainers.experiments.paper import PaperConfig
 
     with tempfile.TemporaryDirectory() as directory:

@@ -15,8 +15,8 @@ import torch
 from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_torch.base.validation import check_float
-from factorq_trainers.distributed import cluster, sweep, sweep_spec
-from factorq_trainers.runner import checkpoint, options, results
+from factorq_trainers.distributed import sweep_spec
+from factorq_trainers.runner import checkpoint, cluster, options, results
 from factorq_trainers.runner.frame import Parser
 
 
@@ -77,8 +77,8 @@ def write(tmp_path, name, text):
 
 def refused(path, match):
     start = time.perf_counter()
-    with pytest.raises(sweep.SweepError, match=match) as error:
-        sweep.spec_from_mapping(sweep.read_spec_file(path), str(path))
+    with pytest.raises(sweep_spec.SweepError, match=match) as error:
+        sweep_spec.spec_from_mapping(sweep_spec.read_spec_file(path), str(path))
     assert "\n" not in str(error.value) and str(path) in str(error.value)
     assert time.perf_counter() - start < patience(5)  # bounded: no minute of alias expansion
 
@@ -94,7 +94,10 @@ def test_a_yaml_alias_bomb_is_refused_at_once(tmp_path):
 def test_a_plain_yaml_sweep_file_still_reads(tmp_path):
     pytest.importorskip("yaml")
     path = write(tmp_path, "ok.yaml", "grid:\n  alpha: [0.1, 0.2]\nbase: {episodes: 3}\n")
-    assert sweep.read_spec_file(path) == {"grid": {"alpha": [0.1, 0.2]}, "base": {"episodes": 3}}
+    assert sweep_spec.read_spec_file(path) == {
+        "grid": {"alpha": [0.1, 0.2]},
+        "base": {"episodes": 3},
+    }
 
 
 @pytest.mark.parametrize(
@@ -118,14 +121,16 @@ def test_brackets_inside_toml_strings_and_comments_do_not_count():
 
 
 def test_an_oversized_sweep_file_is_refused_unread(tmp_path):
-    refused(write(tmp_path, "big.toml", "# " + "x" * sweep.MAX_SPEC_BYTES), "larger than")
+    refused(write(tmp_path, "big.toml", "# " + "x" * sweep_spec.MAX_SPEC_BYTES), "larger than")
 
 
 def test_the_grid_size_is_checked_from_the_axes_lengths_before_expanding():
     axis = list(range(1000))
     start = time.perf_counter()
-    with pytest.raises(sweep.SweepError, match=r"1000000000 configurations .* more than 10000"):
-        sweep.spec_from_mapping({"grid": {"alpha": axis, "gamma": axis, "epsilon": axis}})
+    with pytest.raises(
+        sweep_spec.SweepError, match=r"1000000000 configurations .* more than 10000"
+    ):
+        sweep_spec.spec_from_mapping({"grid": {"alpha": axis, "gamma": axis, "epsilon": axis}})
     assert time.perf_counter() - start < patience(5)
 
 

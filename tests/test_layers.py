@@ -143,3 +143,103 @@ def test_nothing_imports_the_folder_names():
     ]
     bad = [hit for path in files for hit in bare_folder_imports(path)]
     assert not bad, f"imports of uninstalled folder names: {bad}"
+
+
+def trainers_folder(module: str) -> str | None:
+    """The folder of ``factorq_trainers`` a module sits in (``runner``, ``experiments``, ...;
+    ``cli`` for the modules at its top), None outside the trainers."""
+    parts = module.split(".")
+    if parts[0] != "factorq_trainers":
+        return None
+    if len(parts) > 1 and (ROOT / PACKAGES["factorq_trainers"] / parts[1]).is_dir():
+        return parts[1]
+    return "cli"  # the package's own modules: cli.py, __init__.py
+
+
+def folder_circles(graph: dict[str, set[str]]) -> list[tuple[str, ...]]:
+    """Every pair of trainers folders that reach each other through their modules' imports
+    (a chain of imports across folders, lazy ones included), with a chain that shows it."""
+    edges: dict[str, dict[str, str]] = {}
+    for name, targets in graph.items():
+        for target in targets:
+            a, b = trainers_folder(name), trainers_folder(target)
+            if a and b and a != b:
+                edges.setdefault(a, {}).setdefault(b, f"{name} -> {target}")
+
+    def path(start: str, goal: str) -> list[str] | None:
+        stack, seen = [(start, [])], set()
+        while stack:
+            node, via = stack.pop()
+            for nxt, why in edges.get(node, {}).items():
+                if nxt == goal:
+                    return [*via, why]
+                if nxt not in seen:
+                    seen.add(nxt)
+                    stack.append((nxt, [*via, why]))
+        return None
+
+    found = []
+    for a in sorted(edges):
+        for b in sorted(edges):
+            if a < b and (there := path(a, b)) and (back := path(b, a)):
+                found.append((a, b, *there, *back))
+    return found
+
+
+def test_folder_circles_are_found_lazy_imports_included():
+    graph = {
+        "factorq_trainers.runner.frame": {"factorq_trainers.distributed.cluster"},
+        "factorq_trainers.distributed.cluster": {"factorq_trainers.runner.options"},
+        "factorq_trainers.runner.options": set(),
+        "factorq_trainers.reports.x": {"factorq_trainers.runner.options"},
+    }
+    assert folder_circles(graph) == [
+        (
+            "distributed",
+            "runner",
+            "factorq_trainers.distributed.cluster -> factorq_trainers.runner.options",
+            "factorq_trainers.runner.frame -> factorq_trainers.distributed.cluster",
+        )
+    ]
+    graph["factorq_trainers.runner.frame"] = set()
+    assert folder_circles(graph) == []
+
+
+def test_a_lazy_import_is_an_edge(tmp_path):
+    source = tmp_path / "frame.py"
+    source.write_text("def f():\n    from factorq_trainers.distributed import cluster\n")
+    known = {"factorq_trainers.distributed.cluster": source}
+    assert imports_of("factorq_trainers.runner.frame", source, known) == {
+        "factorq_trainers.distributed.cluster"
+    }
+
+
+def test_no_two_trainers_folders_import_each_other():
+    """``runner`` holds what every command shares, a command's own pieces sit in
+    ``experiments``; no chain of imports (lazy ones included) leads from a folder back to itself
+    through another."""
+    circles = folder_circles(GRAPH)
+    assert not circles, f"trainers folders that import each other: {circles}"
+
+
+#: The order of the trainers folders docs/architecture.md states: each imports only later ones
+#: (and ``compiled``, the layer below the trainers).
+FOLDER_ORDER = ("cli", "distributed", "experiments", "reports", "runner", "analysis")
+
+
+def test_the_folder_order_the_architecture_states_holds():
+    text = " ".join((ROOT / "docs" / "architecture.md").read_text().split())
+    stated = (
+        "`cli` -> `distributed` (`factorq sweep`) -> `experiments` -> `reports` -> `runner` -> "
+        "`analysis`"
+    )
+    assert stated in text
+    backwards = sorted(
+        f"{name} -> {target}"
+        for name, targets in GRAPH.items()
+        for target in targets
+        if (a := trainers_folder(name)) in FOLDER_ORDER
+        and (b := trainers_folder(target)) in FOLDER_ORDER
+        and FOLDER_ORDER.index(b) < FOLDER_ORDER.index(a)
+    )
+    assert not backwards, f"imports against the stated order of the folders: {backwards}"

@@ -18,8 +18,8 @@ import torch
 from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers.compiled import fast, loader
-from factorq_trainers.distributed import processes
 from factorq_trainers.experiments import paper
+from factorq_trainers.experiments import paper_processes as processes
 from factorq_trainers.experiments.paper import PaperConfig
 from factorq_trainers.runner import options
 from factorq_trainers.runner.results import dumps as dumps_results
@@ -363,7 +363,7 @@ def test_ctrl_c_ends_the_children_and_propagates():
         # a non-interactive shell ignores SIGINT, and the child would inherit that (POSIX)
         "import signal; signal.signal(signal.SIGINT, signal.default_int_handler)\n"
         "import sys; sys.path.insert(0, sys.argv[1]); import processes_work\n"
-        "from factorq_trainers.distributed import processes\n"
+        "from factorq_trainers.experiments import paper_processes as processes\n"
         "items = {'a': ('sleep', 60), 'b': ('sleep', 60)}\n"
         "with processes.Children(processes_work.work, items, print) as children:\n"
         "    print(*children.pids.values(), flush=True)\n"

@@ -30,7 +30,7 @@ def test_write_atomic_leaves_the_old_file_when_writing_fails(tmp_path):
     assert [path.name for path in tmp_path.iterdir()] == ["results.json"]
 
 
-def test_a_file_without_a_schema_version_is_version_1_and_a_newer_one_is_refused(tmp_path):
+def test_json_without_a_schema_version_is_read_as_it_is_and_a_newer_one_is_refused(tmp_path):
     path = tmp_path / "results.json"
     path.write_text(dumps_results({"config": {}, "cells": {}}))
     assert read_json(path, ("config", "cells"), "make it") == {"config": {}, "cells": {}}

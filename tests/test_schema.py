@@ -95,7 +95,11 @@ def test_a_sample_of_accepted_mutations_draws_the_figure(results, tmp_path):
         ("5", "it holds no JSON object"),
         ("[]", "it holds no JSON object"),
         ('{"config": {}}', "cells, claims missing"),
-        ('{"config": {}, "cells": {}, "claims": {}}', "seeds, runs, .* missing in config"),
+        ('{"config": {}, "cells": {}, "claims": {}}', "schema_version missing: written before"),
+        (
+            '{"schema_version": 1, "config": {}, "cells": {}, "claims": {}}',
+            "seeds, runs, .* missing in config",
+        ),
         ("{", "is not valid JSON"),
         ("[" * (MAX_DEPTH + 1) + "]" * (MAX_DEPTH + 1), f"nests deeper than {MAX_DEPTH} levels"),
         ("[" * 100_000, f"nests deeper than {MAX_DEPTH} levels"),
@@ -126,9 +130,10 @@ def test_wrong_fields_are_named_with_what_was_expected(results, path, value, mes
         check_results(set_at(results, path, value))
 
 
-def test_a_file_without_schema_version_reads_as_version_1(results):
+def test_a_file_written_before_versioning_is_refused(results):
     legacy = {key: value for key, value in results.items() if key != "schema_version"}
-    assert check_results(legacy) is legacy
+    with pytest.raises(ResultsFileError, match="schema_version missing: written before"):
+        check_results(legacy)
 
 
 def test_markdown_specials_are_escaped_and_lines_joined():

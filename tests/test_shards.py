@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from factorq_trainers.compiled import fast
-from factorq_trainers.distributed import shards
 from factorq_trainers.experiments import paper
+from factorq_trainers.experiments import paper_shards as shards
 from factorq_trainers.experiments.paper import PaperConfig
 from factorq_trainers.runner import results as result_files
 

@@ -17,9 +17,11 @@ from timing import patience  # tests/timing.py: bounds that stretch with the loa
 
 from factorq_trainers import cli
 from factorq_trainers.compiled import fast
-from factorq_trainers.distributed import cluster, shards, sweep
-from factorq_trainers.distributed.sweep import SweepError, SweepSpec
+from factorq_trainers.distributed import sweep_run, sweep_spec
+from factorq_trainers.distributed.sweep_spec import SweepError, SweepSpec
 from factorq_trainers.experiments import paper
+from factorq_trainers.experiments import paper_shards as shards
+from factorq_trainers.runner import cluster
 from factorq_trainers.runner import results as result_files
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
@@ -60,9 +62,9 @@ def _spec(tmp_path, **changes) -> SweepSpec:
 
 
 def test_every_paper_config_field_but_the_sweeps_own_is_sweepable():
-    names = [f.name for f in fields(paper.PaperConfig) if f.name not in sweep.RESERVED]
-    assert list(sweep.sweepable_fields()) == names
-    assert "seeds" not in sweep.sweepable_fields()
+    names = [f.name for f in fields(paper.PaperConfig) if f.name not in sweep_spec.RESERVED]
+    assert list(sweep_spec.sweepable_fields()) == names
+    assert "seeds" not in sweep_spec.sweepable_fields()
 
 
 def test_grid_axes_are_crossed_with_the_configs_list(tmp_path):
@@ -114,7 +116,7 @@ def test_grid_axes_are_crossed_with_the_configs_list(tmp_path):
 )
 def test_a_bad_spec_is_refused_naming_the_field_or_value(document, message):
     with pytest.raises((SweepError, ValueError, TypeError)) as raised:
-        sweep.spec_from_mapping(document, "sweep.toml")
+        sweep_spec.spec_from_mapping(document, "sweep.toml")
     assert message in str(raised.value)
     assert str(raised.value).startswith("sweep.toml: ") and "\n" not in str(raised.value)
 
@@ -188,7 +190,7 @@ def test_a_sweep_writes_its_table_and_a_figure_per_axis(tmp_path, capsys):
 @needs_fast
 def test_a_sweep_cell_equals_the_paper_run_of_its_configuration(tmp_path):
     spec = _spec(tmp_path)
-    result = sweep.run_sweep(spec, cluster.InProcess())
+    result = sweep_run.run_sweep(spec, cluster.InProcess())
     config = spec.configurations()[1]
     expected = paper.run(replace(config, out=str(tmp_path / "paper")))
     cell = result["configurations"][1]["cells"]["dynamic/factor-q"]
@@ -200,12 +202,12 @@ def test_a_sweep_cell_equals_the_paper_run_of_its_configuration(tmp_path):
 def test_a_killed_sweep_resumes_running_only_the_missing_shards_with_the_same_numbers(tmp_path):
     spec = _spec(tmp_path)
     first = CountingExecutor()
-    complete = sweep.run_sweep(spec, first)
+    complete = sweep_run.run_sweep(spec, first)
     assert len(first.items) == 4  # 2 configurations x shards of seeds [0, 2) and [2, 3)
     lost = shards.shard_path(tmp_path / "sweep" / "shards", first.items[1])
     lost.unlink()  # as if the sweep had been killed before this shard finished
     again = CountingExecutor()
-    resumed = sweep.run_sweep(spec, again)
+    resumed = sweep_run.run_sweep(spec, again)
     assert again.items == [first.items[1]]
     assert resumed["configurations"] == complete["configurations"]
     assert resumed["timing"]["shards_run_now"] == 1
@@ -245,8 +247,8 @@ def test_a_sweep_killed_with_sigkill_resumes_from_its_shard_files_with_the_same_
     assert cli.main(["sweep", *argv]) == 0  # the same command again resumes
     resumed = json.loads((out / "sweep.json").read_text())
     assert resumed["timing"]["shards_run_now"] == 16 - len(finished)
-    spec = sweep.SweepSpec(grid=(("eta", (0.05, 0.1)),), seeds=40, shard_seeds=5, out=str(out))
-    fresh = sweep.run_sweep(replace(spec, out=str(tmp_path / "fresh")), cluster.InProcess())
+    spec = sweep_spec.SweepSpec(grid=(("eta", (0.05, 0.1)),), seeds=40, shard_seeds=5, out=str(out))
+    fresh = sweep_run.run_sweep(replace(spec, out=str(tmp_path / "fresh")), cluster.InProcess())
     for row in (*resumed["configurations"], *fresh["configurations"]):
         row["config"].pop("out")
     assert resumed["configurations"] == json.loads(result_files.dumps(fresh))["configurations"]
@@ -275,10 +277,10 @@ def _without_wall_s(value):
 def test_every_compare_config_field_but_nested_and_the_sweeps_own_is_sweepable():
     from factorq_trainers.experiments import compare
 
-    skipped = {*sweep.COMPARE_RESERVED, "agent", "dqn", "factor_dqn"}
+    skipped = {*sweep_spec.COMPARE_RESERVED, "agent", "dqn", "factor_dqn"}
     names = [f.name for f in fields(compare.CompareConfig) if f.name not in skipped]
-    assert list(sweep.sweepable_fields("compare")) == names
-    assert sweep.nested_fields("compare") == ["agent", "dqn", "factor_dqn"]
+    assert list(sweep_spec.sweepable_fields("compare")) == names
+    assert sweep_spec.nested_fields("compare") == ["agent", "dqn", "factor_dqn"]
 
 
 def test_a_compare_sweep_cell_equals_factorq_compare_and_resumes(tmp_path, capsys):
@@ -292,12 +294,16 @@ def test_a_compare_sweep_cell_equals_factorq_compare_and_resumes(tmp_path, capsy
     assert written == ["configs", "sweep-seed.png", "sweep.json", "sweep.md"]
     result = json.loads((out / "sweep.json").read_text())
     assert result["command"] == "compare" and result["axes"] == ["seed"]
-    spec = sweep.spec_from_mapping({**sweep.read_spec_file(spec_file), "grid": {"seed": [0, 1]}})
+    spec = sweep_spec.spec_from_mapping(
+        {**sweep_spec.read_spec_file(spec_file), "grid": {"seed": [0, 1]}}
+    )
     config = spec.configurations()[1]
     expected = json.loads(result_files.dumps(compare.run(replace(config, out=str(tmp_path / "c")))))
     row = result["configurations"][1]
     stored = json.loads((out / row["results_file"]).read_text())
     assert len(stored.pop("content_sha256")) == 64  # checked when the file is reused
+    tie = {"command": "compare", "config_sha256": sweep_spec.config_digest(config)}
+    assert stored.pop("kept_for") == tie  # a file of another configuration is refused
     assert stored["config"].pop("out") == str(out) and expected["config"].pop("out")
     assert _without_wall_s(stored) == _without_wall_s(expected)
     cell = row["cells"]["static/factor-q"]
@@ -309,7 +315,7 @@ def test_a_compare_sweep_cell_equals_factorq_compare_and_resumes(tmp_path, capsy
     # resumption: a lost configuration file is the only work of the next run
     (out / row["results_file"]).unlink()
     again = CountingExecutor()
-    resumed = sweep.run_sweep(replace(spec, out=str(out)), again)
+    resumed = sweep_run.run_sweep(replace(spec, out=str(out)), again)
     assert [method for _, method in again.items] == ["factor-q", "q-learning"]
     assert resumed["timing"]["configurations_run_now"] == 1
     assert _without_wall_s(json.loads(result_files.dumps(resumed))["configurations"]) == (
@@ -321,7 +327,7 @@ def test_a_compare_sweep_cell_equals_factorq_compare_and_resumes(tmp_path, capsy
     (out / row["results_file"]).write_text(json.dumps(edited))
     refused = CountingExecutor()
     with pytest.raises(ValueError, match="does not match its digest .* pass --force to recompute"):
-        sweep.run_sweep(replace(spec, out=str(out)), refused)
+        sweep_run.run_sweep(replace(spec, out=str(out)), refused)
     assert refused.items == []
 
 
@@ -343,7 +349,7 @@ def test_every_dependencies_config_field_but_seeds_and_out_is_sweepable():
     from factorq_trainers.experiments import dependencies
 
     names = [f.name for f in fields(dependencies.DependenciesConfig)]
-    assert list(sweep.sweepable_fields("dependencies")) == [
+    assert list(sweep_spec.sweepable_fields("dependencies")) == [
         name for name in names if name not in ("seeds", "out")
     ]
 
@@ -359,12 +365,14 @@ def test_a_dependencies_sweep_cell_equals_factorq_dependencies_and_resumes(tmp_p
     result = json.loads((out / "sweep.json").read_text())
     assert result["command"] == "dependencies" and result["axes"] == ["prior_a"]
     grid = {"prior_a": [1.0, 0.25]}
-    spec = sweep.spec_from_mapping({**sweep.read_spec_file(spec_file), "grid": grid})
+    spec = sweep_spec.spec_from_mapping({**sweep_spec.read_spec_file(spec_file), "grid": grid})
     config = spec.configurations()[1]
     expected = json.loads(result_files.dumps(dependencies.run(replace(config, out="unused"))))
     row = result["configurations"][1]
     stored = json.loads((out / row["results_file"]).read_text())
     assert len(stored.pop("content_sha256")) == 64  # checked when the file is reused
+    tie = {"command": "dependencies", "config_sha256": sweep_spec.config_digest(config)}
+    assert stored.pop("kept_for") == tie  # a file of another configuration is refused
     assert stored["config"].pop("out") == str(out) and expected["config"].pop("out")
     assert _without_wall_s(stored) == _without_wall_s(expected)
     cell = row["cells"]["change/learned"]
@@ -376,7 +384,7 @@ def test_a_dependencies_sweep_cell_equals_factorq_dependencies_and_resumes(tmp_p
     # resumption: a lost configuration file is the only work of the next run
     (out / row["results_file"]).unlink()
     again = CountingExecutor()
-    resumed = sweep.run_sweep(replace(spec, out=str(out)), again)
+    resumed = sweep_run.run_sweep(replace(spec, out=str(out)), again)
     assert again.items == [replace(config, out=str(out))]
     assert resumed["timing"]["configurations_run_now"] == 1
     assert _without_wall_s(json.loads(result_files.dumps(resumed))["configurations"]) == (
@@ -392,7 +400,7 @@ def test_a_dependencies_sweep_cell_equals_factorq_dependencies_and_resumes(tmp_p
         kept.write_text(bad)
         refused = CountingExecutor()
         with pytest.raises(ValueError, match="configuration file .* pass --force to recompute"):
-            sweep.run_sweep(replace(spec, out=str(out)), refused)
+            sweep_run.run_sweep(replace(spec, out=str(out)), refused)
         assert refused.items == []
     (out / "sweep.json").unlink()
     (out / "sweep.md").unlink()  # (an --out with them is refused without --force)

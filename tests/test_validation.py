@@ -367,7 +367,7 @@ TRIED = [
     factorq("paper --resume {locked-checkpoint}", r"--out='.*run' is in use by another factorq run \(pid 4242\): .* \(refusing to resume it at the same time\)"),
     factorq("paper --out {under-file}", r"--out='.*a_file.txt/out' is not writable: Not a directory"),
     factorq("paper --out /proc/factorq-out", r"--out='/proc/factorq-out' is not writable: "),
-    # factorq paper: shards and clusters (factorq_trainers.distributed.sweep, factorq_trainers.distributed.cluster)
+    # factorq paper: shards and clusters (factorq_trainers.distributed.sweep, factorq_trainers.runner.cluster)
     factorq("paper --first-seed -1", rf"--first-seed=-1 {RANGE} in \[0, 2147483647\]"),
     factorq("paper --first-seed 2147483648", rf"--first-seed=2147483648 {RANGE} in \[0, 2147483647\]"),
     factorq("paper --shard-seeds 0", rf"--shard-seeds=0 {RANGE} in \[1, 2147483647\]"),

@@ -6,13 +6,13 @@ each run whole (one task per method) and kept in ``OUT/configs/<digest>.json``
 of its configurations, one task each (``run_units_sweep``).
 
 This module is the command line (parser, options over the sweep file, the memory estimate, the
-claim of ``--out``, the progress bar, the files); the parts, whose names it re-exports:
+claim of ``--out``, the progress bar, the files); the parts (import their names from them):
 
 - ``sweep_spec``: the sweep file and its checks, ``SweepSpec`` (its file format is there);
 - ``sweep_run``: running shards and configurations on an executor, kept on disk as each
   finishes (resumption), and gathering ``sweep.json``'s dict;
-- ``cluster_runs``: ``factorq paper`` and ``factorq compare`` on an executor (their
-  ``--cluster`` options);
+- ``factorq_trainers.experiments.paper_shards``: a paper configuration's seed-range shards, run
+  on an executor;
 - ``factorq_trainers.reports.sweep``: ``sweep.md`` and the figures.
 """
 
@@ -26,52 +26,23 @@ import typing
 from pathlib import Path
 from typing import Any
 
-from factorq_trainers.distributed import cluster
-from factorq_trainers.distributed.cluster_runs import (  # noqa: F401 - the public names of factorq sweep
-    ShardBar,
-    add_paper_options,
-    paper_executor,
-    run_compare_on,
-    run_paper_on,
-)
-from factorq_trainers.distributed.sweep_run import (  # noqa: F401
-    compare_cells,
-    compare_result_path,
-    run_compare_configs,
-    run_compare_sweep,
-    run_paper,
-    run_shards,
-    run_sweep,
-    run_units_sweep,
-)
-from factorq_trainers.distributed.sweep_spec import (  # noqa: F401
-    COMPARE_RESERVED,
-    CONFIGS_DIRECTORY,
+from factorq_trainers.distributed.sweep_run import run_sweep
+from factorq_trainers.distributed.sweep_spec import (
     DEFAULT_OUT,
-    DEFAULT_PAPER_SHARD_SEEDS,
     DEFAULT_SEEDS,
     DEFAULT_SHARD_SEEDS,
-    MAX_CONFIGURATIONS,
-    MAX_SPEC_BYTES,
-    MEASURES,
-    RESERVED,
-    SHARDS_DIRECTORY,
     SPECIAL,
     SweepError,
     SweepSpec,
     check_command,
-    commands,
-    config_class,
-    config_digest,
-    nested_fields,
     parse_value,
     read_spec_file,
-    reserved_fields,
     spec_from_mapping,
     sweepable_fields,
 )
+from factorq_trainers.experiments.cluster_runs import ShardBar
 from factorq_trainers.reports import sweep as sweep_report
-from factorq_trainers.runner import outdir, resources
+from factorq_trainers.runner import cluster, outdir, resources
 from factorq_trainers.runner.frame import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_USAGE, Parser
 
 HELP = "run a grid of paper configurations as shards, in-process or on a Dask cluster"

@@ -13,8 +13,8 @@ killed sweep continues where it stopped, and a sweep that adds seeds or axis val
 new shards. Whole configurations are kept the same way in ``OUT/configs/<digest>.json``.
 
 **Identical results.** A shard's numbers depend on its configuration and seed range alone (see
-``factorq_trainers.distributed.shards``), so the per-experiment numbers and every summary are the
-same in-process, on any number of workers, and after any number of interruptions.
+``factorq_trainers.experiments.paper_shards``), so the per-experiment numbers and every summary
+are the same in-process, on any number of workers, and after any number of interruptions.
 """
 
 from __future__ import annotations
@@ -27,125 +27,26 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from factorq_trainers.analysis import stats
-from factorq_trainers.distributed import cluster, shards
 from factorq_trainers.distributed.sweep_spec import (
     COMPARE_MEASURES,
     CONFIGS_DIRECTORY,
-    DEFAULT_PAPER_SHARD_SEEDS,
     MEASURES,
-    SHARDS_DIRECTORY,
     SweepSpec,
     _json,
     _reports_of,
     config_digest,
 )
 from factorq_trainers.experiments import paper
-from factorq_trainers.runner import kept
+from factorq_trainers.experiments import paper_shards as shards
+from factorq_trainers.experiments.cluster_runs import _compare_method
+from factorq_trainers.experiments.paper_shards import SHARDS_DIRECTORY, _missing, run_shards
+from factorq_trainers.runner import cluster, kept
 from factorq_trainers.runner import results as result_files
 
 
 def _write_text(path: Path, text: str) -> None:
     path.write_text(text)
-
-
-def run_shards(
-    pending: Sequence[paper.PaperConfig],
-    directory: Path,
-    executor: cluster.InProcess | cluster.DaskExecutor,
-    done: Callable[[paper.PaperConfig], None],
-) -> None:
-    """Run ``pending`` shards on ``executor``, saving each one's file as soon as it arrives."""
-    function: Callable[[paper.PaperConfig], shards.ShardMetrics]
-    if isinstance(executor, cluster.DaskExecutor):
-        function = functools.partial(shards.run_shard, threads=1)
-    else:
-        function = shards.run_shard
-    names = [f"shard-{shards.digest(s)}-{s.first_seed}-{s.first_seed + s.seeds}" for s in pending]
-    for index, metrics in executor.map(function, list(pending), names):
-        shard = pending[index]
-        shards.save(shards.shard_path(directory, shard), shard, metrics)
-        done(shard)
-
-
-def _missing(
-    directory: Path, every: list[paper.PaperConfig], force: bool = False
-) -> list[paper.PaperConfig]:
-    """The shards of ``every`` to run: those without a kept file, and (``force``) those whose
-    kept file fails its checks; without ``force`` such a file is refused before any work."""
-    return [
-        shard
-        for shard in every
-        if not kept.reusable(
-            shards.shard_path(directory, shard), functools.partial(_load_shard, shard=shard), force
-        )
-    ]
-
-
-def _load_shard(path: Path, shard: paper.PaperConfig) -> shards.ShardMetrics:
-    return shards.load(path, shard)
-
-
-def run_paper(
-    config: paper.PaperConfig,
-    executor: cluster.InProcess | cluster.DaskExecutor,
-    shard_seeds: int = DEFAULT_PAPER_SHARD_SEEDS,
-    progress: paper.ProgressCallback | None = None,
-    force: bool = False,
-) -> dict[str, Any]:
-    """``paper.run(config)``'s results, computed as shards of ``shard_seeds`` seeds on
-    ``executor``, each kept in ``OUT/shards/`` (existing ones are not rerun; one that fails its
-    checks is refused, or with ``force`` recomputed). Identical numbers; ``timing`` says where
-    and how they were computed."""
-    started = time.perf_counter()
-    directory = Path(config.out) / SHARDS_DIRECTORY
-    every = shards.split(config, shard_seeds)
-    pending = _missing(directory, every, force)
-    per_seed = len(config.cells) * config.runs * config.episodes
-    total_seeds = config.seeds
-    state = {"seeds": total_seeds - sum(s.seeds for s in pending)}
-
-    def report() -> None:
-        if progress is not None:
-            progress(
-                paper.Progress(
-                    state["seeds"] * per_seed,
-                    total_seeds * per_seed,
-                    state["seeds"] * len(config.cells),
-                    total_seeds * len(config.cells),
-                )
-            )
-
-    def done(shard: paper.PaperConfig) -> None:
-        state["seeds"] += shard.seeds
-        report()
-
-    report()
-    run_shards(pending, directory, executor, done)
-    parts = [shards.load(shards.shard_path(directory, shard), shard) for shard in every]
-    wall = time.perf_counter() - started
-    env_steps = int(
-        sum(part[key].sum() for part in parts for key in part if key.endswith("/steps"))
-    )
-    timing = {
-        "wall_s": round(wall, 3),
-        "backend": paper.resolve_backend(config),
-        "threads": 1  # a worker's, or this process's as paper.run reports it
-        if isinstance(executor, cluster.DaskExecutor)
-        else config.threads or torch.get_num_threads(),
-        "env_steps": env_steps,
-        "env_steps_per_s": round(env_steps / max(wall, 1e-9)),
-        "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "shards": {
-            "where": executor.description,
-            "seeds_per_shard": shard_seeds,
-            "total": len(every),
-            "run_now": len(pending),
-        },
-    }
-    return shards.results(config, parts, timing)
 
 
 def compare_result_path(directory: str | os.PathLike, config: Any) -> Path:
@@ -157,7 +58,15 @@ def compare_result_path(directory: str | os.PathLike, config: Any) -> Path:
 CONFIG_FILE = "configuration file"
 
 
-def _pending_configs(directory: Path, configs: Sequence[Any], force: bool) -> list[Any]:
+def _read_config_result(path: Path, command: str, config: Any) -> dict[str, Any]:
+    """The results of ``command`` for ``config`` kept at ``path``: sealed, kept for this command
+    and configuration, values checked (a ValueError naming it otherwise)."""
+    return kept.read_sealed(path, CONFIG_FILE, kept_for=kept.tie(command, config_digest(config)))
+
+
+def _pending_configs(
+    directory: Path, configs: Sequence[Any], force: bool, command: str
+) -> list[Any]:
     """The configurations of ``configs`` to run: those without a kept result, and (``force``)
     those whose kept result fails its checks; without ``force`` such a file is refused."""
     return [
@@ -165,7 +74,7 @@ def _pending_configs(directory: Path, configs: Sequence[Any], force: bool) -> li
         for config in configs
         if not kept.reusable(
             compare_result_path(directory, config),
-            lambda path: kept.read_sealed(path, CONFIG_FILE),
+            functools.partial(_read_config_result, command=command, config=config),
             force,
         )
     ]
@@ -204,7 +113,7 @@ def run_compare_configs(
                 "method_wall_s": round(sum(float(r["wall_s"]) for r in runs[index].values()), 3),
                 "where": executor.description,
             }
-            text = kept.dumps_sealed(results)
+            text = kept.dumps_sealed(results, kept.tie("compare", config_digest(config)))
             directory.mkdir(parents=True, exist_ok=True)
             result_files.write_atomic(
                 compare_result_path(directory, config), functools.partial(_write_text, text=text)
@@ -258,7 +167,7 @@ def run_compare_sweep(
     started = time.perf_counter()
     directory = Path(spec.out) / CONFIGS_DIRECTORY
     configs = spec.configurations()
-    pending = _pending_configs(directory, configs, force)
+    pending = _pending_configs(directory, configs, force, "compare")
     total = sum(len(config.methods) for config in configs)
     count = {"done": total - sum(len(config.methods) for config in pending)}
     if progress is not None:
@@ -301,7 +210,7 @@ def _gathered(
     rows = []
     for config, point in zip(configs, spec.points(), strict=True):
         path = compare_result_path(directory, config)
-        results = kept.read_sealed(path, CONFIG_FILE)  # digest and values checked
+        results = _read_config_result(path, command, config)  # digest, tie, values checked
         try:  # a kept file is the user's: it may have been edited or cut short
             cells_of = cells(results)
         except (ValueError, KeyError, TypeError, AttributeError, IndexError) as error:
@@ -357,14 +266,14 @@ def run_units_sweep(
     started = time.perf_counter()
     directory = Path(spec.out) / CONFIGS_DIRECTORY
     configs = spec.configurations()
-    pending = _pending_configs(directory, configs, force)
+    pending = _pending_configs(directory, configs, force, spec.command)
     done = len(configs) - len(pending)
     if progress is not None:
         progress(done, len(configs))
     names = [f"{spec.command}-{config_digest(config)}" for config in pending]
     task = functools.partial(_units_task, spec.command)
     for index, results in executor.map(task, pending, names):
-        text = kept.dumps_sealed(results)
+        text = kept.dumps_sealed(results, kept.tie(spec.command, config_digest(pending[index])))
         directory.mkdir(parents=True, exist_ok=True)
         result_files.write_atomic(
             compare_result_path(directory, pending[index]),
@@ -463,14 +372,3 @@ def run_sweep(
         },
         "software": paper.software_versions(),
     }
-
-
-def _compare_method(run_method: Callable[..., Any], config: Any, method: str) -> Any:
-    import torch
-
-    threads = torch.get_num_threads()
-    torch.set_num_threads(config.threads)
-    try:
-        return run_method(config, method)
-    finally:
-        torch.set_num_threads(threads)

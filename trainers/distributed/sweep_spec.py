@@ -43,14 +43,12 @@ from typing import Any
 
 from factorq_torch.base.validation import INT32_MAX, check_int
 from factorq_trainers.analysis import claims
-from factorq_trainers.distributed import shards
 from factorq_trainers.experiments import paper
+from factorq_trainers.experiments import paper_shards as shards
 from factorq_trainers.runner import results as result_files
 
-SHARDS_DIRECTORY = "shards"
 DEFAULT_SEEDS = 100
 DEFAULT_SHARD_SEEDS = 25
-DEFAULT_PAPER_SHARD_SEEDS = 10
 DEFAULT_OUT = "results/sweep"
 #: Fields the sweep sets itself: neither axes nor base values.
 RESERVED = ("seeds", "first_seed", "out")

@@ -11,9 +11,8 @@ import shutil
 import sys
 from typing import Any
 
-from factorq_trainers.distributed import cluster
 from factorq_trainers.experiments import compare
-from factorq_trainers.runner import frame
+from factorq_trainers.runner import cluster, frame
 
 RESUME_NAMES = ("checkpoint_every", "resume")
 
@@ -48,7 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """Run ``factorq compare`` with the parsed ``args``; the exit status."""
-    from factorq_trainers.distributed import cluster_runs
+    from factorq_trainers.experiments import cluster_runs
     from factorq_trainers.reports import compare_report
     from factorq_trainers.runner import checkpoint, options, outdir, resources
 

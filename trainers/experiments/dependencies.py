@@ -70,6 +70,7 @@ from factorq_trainers.experiments.dependencies_methods import (  # noqa: F401
     skipped_reason,
 )
 from factorq_trainers.runner import resources
+from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, TEXT
 
 NAME = "dependencies"
 HELP = "learn which sensors each actuator depends on, against the oracle pairing"
@@ -82,6 +83,43 @@ REPORT = "factorq_trainers.reports.dependencies"
 HINT = resources.DEPENDENCIES_HINT
 
 CONFIG = DependenciesConfig
+
+_RATIO = {"ratio": NON_NEGATIVE, "ci": (None, [NON_NEGATIVE])}
+_AGAINST_ORACLE = {"collisions": _RATIO, "greedy_collisions": _RATIO, "learning_speed": _RATIO}
+#: A unit's result (``run_unit``), what a kept one must hold (``runner.kept``'s schema).
+UNIT_RESULT = {
+    "summary": {
+        "methods": {
+            "*": {
+                "collisions_per_experiment": NON_NEGATIVE,
+                "greedy_collisions_per_experiment": NON_NEGATIVE,
+                "steps_per_run": NON_NEGATIVE,
+                "step_budget?": COUNT,
+                "episodes_per_experiment?": NON_NEGATIVE,
+                "collisions_per_episode": [NON_NEGATIVE],
+            }
+        },
+        "gated_structure?": {
+            "fraction_right_at_end": FRACTION,
+            "hamming_at_end_mean": NON_NEGATIVE,
+        },
+        "gated_against_oracle?": _AGAINST_ORACLE,
+        "structure?": {
+            "samples_until_right_median": NON_NEGATIVE,
+            "samples_until_right_p90": NON_NEGATIVE,
+            "samples_target": COUNT,
+            "fraction_right_within_target": FRACTION,
+            "fraction_right_within_target_ci95": (None, [FRACTION]),
+            "fraction_right_at_end": FRACTION,
+            "wrong_commitments_per_1000": NON_NEGATIVE,
+            "hamming_at_end_mean": NON_NEGATIVE,
+            "reopened_per_experiment": NON_NEGATIVE,
+            "curve": {"env_steps": [COUNT], "fraction_right": [FRACTION]},
+        },
+        "against_oracle?": _AGAINST_ORACLE,
+    },
+    "skipped": {"*": TEXT},
+}
 
 
 # --------------------------------------------------------------------------------------------

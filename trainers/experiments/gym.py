@@ -66,6 +66,7 @@ from factorq_trainers.experiments.gym_methods import (  # noqa: F401 - the comma
     Recorder,
     observation_network,
 )
+from factorq_trainers.runner.kept import COUNT, FLAG, NON_NEGATIVE, NUMBER, TEXT
 
 NAME = "gym"
 REPORT = "factorq_trainers.reports.gym"
@@ -76,6 +77,26 @@ HELP = (
 )
 
 CONFIG = GymConfig
+
+#: A unit's result (``run_unit``), what a kept one must hold (``runner.kept``'s schema).
+UNIT_RESULT = {
+    "crashes": COUNT,
+    "crashes_per_1000": NON_NEGATIVE,
+    "episodes": COUNT,
+    "steps_to_threshold": (None, COUNT),
+    "curve_steps": [COUNT],
+    "curve_crashes": [COUNT],
+    "curve_return": [NUMBER],
+    "greedy_crash_rate": NON_NEGATIVE,
+    "greedy_return": NUMBER,
+    "wall_s": NON_NEGATIVE,
+    "steps_per_s": NON_NEGATIVE,
+    "oracle?": [[COUNT]],
+    "actuator_names?": [TEXT],
+    "sensor_names?": [TEXT],
+    "structure?": [[COUNT]],
+    "agrees_with_oracle?": [FLAG],
+}
 
 
 def prepare(config: GymConfig) -> None:

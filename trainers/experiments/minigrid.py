@@ -63,6 +63,7 @@ from factorq_trainers.experiments.minigrid_methods import (  # noqa: F401 - re-e
 )
 from factorq_trainers.reports.minigrid import FOUND_TARGET_STEPS
 from factorq_trainers.runner import resources
+from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, NUMBER
 
 NAME = "minigrid"
 HELP = (
@@ -85,6 +86,37 @@ NOTICE = (
 
 
 CONFIG = MiniGridConfig
+
+_STAT = {"mean": NUMBER, "ci95": (None, [NUMBER]), "n": COUNT}
+#: A unit's result (``run_unit``), what a kept one must hold (``runner.kept``'s schema).
+UNIT_RESULT = {
+    "seeds": {
+        "success_rate": [FRACTION],
+        "return": [NUMBER],
+        "steps_to_goal": [NON_NEGATIVE],
+        "episodes": [COUNT],
+        "steps_to_90": [(None, COUNT)],
+        "collisions": [COUNT],
+        "greedy_collisions": [COUNT],
+        "wall_s": NON_NEGATIVE,
+        "found_forward_front?": [(None, COUNT)],
+        "structure_at_end?": [[[COUNT]]],
+    },
+    "summary": {
+        "success_rate": _STAT,
+        "return": _STAT,
+        "steps_to_goal": _STAT,
+        "collisions": _STAT,
+        "greedy_collisions": _STAT,
+        "steps_to_90": _STAT,
+        "episodes": _STAT,
+        "found_forward_front?": _STAT,
+        "found_within_target?": FRACTION,
+        "found_at_all?": FRACTION,
+        "wall_s": NON_NEGATIVE,
+        "env_steps_per_seed": COUNT,
+    },
+}
 
 
 # --------------------------------------------------------------------------------------------

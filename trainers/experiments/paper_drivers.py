@@ -16,8 +16,8 @@ import torch
 from factorq_envs.regimes import REGIME_PERIODS
 from factorq_torch.base.config import ALGORITHMS
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
-from factorq_trainers.distributed import processes
 from factorq_trainers.experiments import experiment
+from factorq_trainers.experiments import paper_processes as processes
 from factorq_trainers.experiments.paper_config import PaperConfig, config_dict
 from factorq_trainers.runner import checkpoint, resources
 from factorq_trainers.runner.resume_checks import check_state

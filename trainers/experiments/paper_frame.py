@@ -27,7 +27,7 @@ def _as_option(message: str) -> str:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``--checkpoint-every``, ``--resume``, ``--force`` and the cluster options."""
-    from factorq_trainers.distributed import cluster_runs
+    from factorq_trainers.experiments import cluster_runs
 
     parser.add_argument(
         "--checkpoint-every",
@@ -88,7 +88,7 @@ def main(
     args: argparse.Namespace,
     figure_process: FigureProcess | None = None,
 ) -> int:
-    from factorq_trainers.distributed import cluster_runs
+    from factorq_trainers.experiments import cluster_runs
     from factorq_trainers.reports import report
     from factorq_trainers.runner import checkpoint, outdir, resources, resume_checks
 
@@ -140,7 +140,7 @@ def _run(
     executor: Any,
     figure_process: Any,
 ) -> int:
-    from factorq_trainers.distributed import cluster_runs
+    from factorq_trainers.experiments import cluster_runs
     from factorq_trainers.reports import report
     from factorq_trainers.runner import checkpoint
 

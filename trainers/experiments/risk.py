@@ -72,12 +72,41 @@ from factorq_trainers.reports.risk import (  # noqa: F401 - re-exported
     markdown,
     sweep_cells,
 )
+from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, NUMBER, TEXT
 
 NAME = "risk"
 HELP = "torchrl's DQN (and SB3's) alone against DQN + local risk, side by side"
 REPORT = "factorq_trainers.reports.risk"
 WORK_UNIT = "step"
 CONFIG = RiskConfig
+
+#: A unit's result (``run_unit``), what a kept one must hold (``runner.kept``'s schema).
+UNIT_RESULT = {
+    "world": TEXT,
+    "method": TEXT,
+    "seed": COUNT,
+    "train_collisions": COUNT,
+    "episodes": COUNT,
+    "final_return": NUMBER,
+    "steps_to_threshold": (None, COUNT),
+    "greedy_collisions": COUNT,
+    "greedy_success": FRACTION,
+    "wall_s": NON_NEGATIVE,
+    "risk_log?": [
+        {
+            "steps": COUNT,
+            "risky_steps": COUNT,
+            "overrides": COUNT,
+            "penalised": {"*": COUNT},
+            "mean_penalty": {"*": NUMBER},
+        }
+    ],
+    "structure?": {
+        "actuators": [TEXT],
+        "parents": [(None, [TEXT])],
+        "oracle": (None, [[TEXT]]),
+    },
+}
 
 
 def prepare(config: RiskConfig) -> None:

@@ -40,6 +40,25 @@ def find(results_dir: str | os.PathLike) -> tuple[Any, Path]:
     )
 
 
+def check_results(path: Path, command: str, data: dict[str, Any]) -> None:
+    """Refuse (a ValueError naming ``path``) a results file of another command, or whose values
+    are impossible (``runner.kept.check_values``: numbers finite, counts whole and >= 0,
+    fractions in [0, 1]), before anything is drawn from it."""
+    from factorq_trainers.runner import kept
+
+    remedy = f"run `factorq {command}` again to rewrite it"
+    if "schema_version" not in data:
+        raise ValueError(
+            f"results file {path} has no schema_version (written before versioning): {remedy}"
+        )
+    if data.get("command", command) != command:
+        raise ValueError(
+            f"results file {path} was written by command {data.get('command')!r}, not "
+            f"`factorq {command}` (whose file name it has): {remedy}"
+        )
+    kept.check_values(path, "results file", data, remedy)
+
+
 def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
     """Rewrite the Markdown and the figure in ``results_dir`` from its results file."""
     from factorq_trainers.runner import results
@@ -49,6 +68,7 @@ def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
     if hasattr(report, "regenerate"):  # a report with its own reading (paper: the schema)
         return report.regenerate(results_dir)
     data = results.read_json(path, ("config",), f"run `factorq {entry.name}`")
+    check_results(path, entry.name, data)
     directory = Path(results_dir)
     writers = {}
     if hasattr(report, "markdown"):

@@ -10,25 +10,17 @@ from factorq_trainers.runner.results import interval_or_none
 
 
 def _wall_s(results: dict[str, Any]) -> float:
-    """The run's wall time (``timing.wall_seconds`` in files written before the runner)."""
-    timing = results["timing"]
-    return timing["wall_s"] if "wall_s" in timing else timing["wall_seconds"]
+    """The run's wall time."""
+    return results["timing"]["wall_s"]
 
 
 def _methods(results: dict[str, Any]) -> list[str]:
-    """Every method the run knew, in its order (the methods present, in older files)."""
-    declared = results.get("methods")
-    if isinstance(declared, dict):
-        return list(declared)
-    seen: list[str] = []
-    for summary in results["settings"].values():
-        seen += [method for method in summary["methods"] if method not in seen]
-    return seen
+    """Every method the run knew, in its order."""
+    return list(results["methods"])
 
 
 def _label(results: dict[str, Any], method: str) -> str:
-    declared = results.get("methods")
-    return str(declared.get(method, method)) if isinstance(declared, dict) else method
+    return str(results["methods"].get(method, method))
 
 
 def _index(results: dict[str, Any], method: str) -> int:
@@ -37,7 +29,7 @@ def _index(results: dict[str, Any], method: str) -> int:
 
 
 def _percent_interval(bounds: list[float | None] | None) -> str:
-    """``[lo, hi]% `` of a Wilson interval (results from before it: nothing)."""
+    """``[lo, hi]% `` of a Wilson interval (nothing where it is undefined)."""
     if bounds is None or bounds[0] is None or bounds[1] is None:
         return ""
     return f"[{100 * bounds[0]:.0f}, {100 * bounds[1]:.0f}] "

@@ -64,7 +64,7 @@ def markdown(results: dict[str, Any]) -> str:
                 f"{_cell(s['steps_to_90'], 0, seeds)} | {format_number(s['wall_s'])} | {found} |"
             )
         lines += ["", *_targets(results, per_method), ""]
-    wall_s = results["timing"]["wall_s"] if "timing" in results else results["wall_s"]
+    wall_s = results["timing"]["wall_s"]
     lines.append(f"Total wall time {wall_s:.0f} s.")
     return "\n".join(lines) + "\n"
 

@@ -13,7 +13,9 @@ every command:
 **Resume** is per unit: ``OUT/units/run.json`` holds the command and its config, and one file per
 finished unit its result (JSON, written atomically), so ``--resume OUT`` after a kill reruns only
 the units without a file, with the saved config. A unit's result goes through JSON whether it was
-computed now or read back, so a resumed run writes the same files as an uninterrupted one.
+computed now or read back, so a resumed run writes the same files as an uninterrupted one. The
+files are ``kept.UnitStore``'s: sealed, tied to the command, the config and the unit, and every
+kept result checked against the command's ``UNIT_RESULT`` schema before any unit runs.
 
 **The envelope** of every results file: ``schema_version``, ``command``, ``config``,
 ``software``, ``timing`` (``wall_s``, ``where``, ``units``, ``units_resumed``) and the command's
@@ -25,11 +27,9 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
-import hashlib
 import importlib
 import json
 import re
-import shutil
 import sys
 import time
 import typing
@@ -44,9 +44,7 @@ from factorq_trainers.runner import options, outdir, registry, resources, result
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, what shells report for Ctrl-C
-UNITS_DIRECTORY = "units"
-RUN_FILE = "run.json"
-UNITS_FORMAT = "factorq-units"
+UNITS_DIRECTORY = kept_files.UNITS_DIRECTORY
 FORCE_HELP = (
     "Replace the results of an earlier run in --out (they are kept until the new ones are "
     "written, all at once). Without it, an --out holding results is refused before any work."
@@ -120,7 +118,9 @@ def config_from_dict(config_type: type, data: dict[str, Any]) -> Any:
 
 def checked_units(module: ModuleType, config: Any) -> list[dict[str, Any]]:
     """``module.units(config)``, each with a unique string ``id`` (a RuntimeError otherwise: the
-    declaration's bug, not the user's)."""
+    declaration's bug, not the user's, as is a command without a ``UNIT_RESULT`` schema)."""
+    if not hasattr(module, "UNIT_RESULT"):
+        raise RuntimeError(f"{module.NAME} declares no UNIT_RESULT (its units' schema, kept.py)")
     units = module.units(config)
     ids = [unit.get("id") if isinstance(unit, dict) else None for unit in units]
     if any(not isinstance(unit_id, str) or not unit_id for unit_id in ids):
@@ -133,6 +133,19 @@ def checked_units(module: ModuleType, config: Any) -> list[dict[str, Any]]:
 def through_json(value: Any) -> Any:
     """``value`` as a results file would give it back (non-finite numbers as None)."""
     return json.loads(results.dumps(value))
+
+
+def unit_result(module: ModuleType, unit: dict[str, Any], result: Any) -> Any:
+    """``result`` of ``unit`` computed now, through JSON and checked against the command's
+    ``UNIT_RESULT`` (what a kept one must pass too): a RuntimeError, the declaration's bug,
+    when it does not fit."""
+    result = through_json(result)
+    problem = kept_files.schema_problem(result, module.UNIT_RESULT)
+    if problem is not None:
+        raise RuntimeError(
+            f"{module.NAME}.run_unit({unit['id']!r}) does not fit UNIT_RESULT: {problem}"
+        )
+    return result
 
 
 def envelope(
@@ -172,85 +185,17 @@ def run_in_process(
     if hasattr(module, "estimate"):  # before any allocation
         resources.check(module.estimate(config), "experiment", getattr(module, "HINT", ""))
     units = checked_units(module, config)
-    outcomes = [through_json(module.run_unit(config, unit, progress)) for unit in units]
+    outcomes = [
+        unit_result(module, unit, module.run_unit(config, unit, progress)) for unit in units
+    ]
     summary = module.summarise(config, outcomes)
     return envelope(module, config, summary, wall_s=time.perf_counter() - started, units=len(units))
 
 
 def run_unit_task(module_name: str, config: Any, unit: dict[str, Any]) -> Any:
     """One unit on a worker (picklable: the module travels by name)."""
-    return through_json(importlib.import_module(module_name).run_unit(config, unit, None))
-
-
-# --------------------------------------------------------------------------------------------
-# The units kept in OUT/units/
-
-
-def _unit_path(directory: Path, unit_id: str) -> Path:
-    return directory / f"{hashlib.sha256(unit_id.encode()).hexdigest()[:20]}.json"
-
-
-class UnitStore:
-    """The finished units of one run, in ``OUT/units/``: ``run.json`` (command, config, unit
-    ids) and one ``<digest of the id>.json`` per finished unit."""
-
-    def __init__(self, out: str | Path) -> None:
-        self.directory = Path(out) / UNITS_DIRECTORY
-
-    def exists(self) -> bool:
-        return self.directory.exists()
-
-    def start(self, module: ModuleType, config: Any, units: list[dict[str, Any]]) -> None:
-        """A fresh run: an empty store recording the command and config."""
-        shutil.rmtree(self.directory, ignore_errors=True)
-        self.directory.mkdir(parents=True)
-        record = {
-            "format": UNITS_FORMAT,
-            "command": module.NAME,
-            "config": plain(config),
-            "units": [unit["id"] for unit in units],
-        }
-        results.write_atomic(
-            self.directory / RUN_FILE, lambda path: path.write_text(results.dumps(record))
-        )
-
-    def saved_run(self, module: ModuleType) -> dict[str, Any]:
-        """``run.json`` of an interrupted run of ``module`` (a ValueError naming why not)."""
-        hint = f"nothing to resume: run `factorq {module.NAME}` without --resume"
-        record = results.read_json(self.directory / RUN_FILE, ("format", "command", "config"), hint)
-        if record["format"] != UNITS_FORMAT or record["command"] != module.NAME:
-            raise ValueError(
-                f"{self.directory / RUN_FILE} is not an interrupted `factorq {module.NAME}` run "
-                f"(command {record['command']!r})"
-            )
-        if not isinstance(record["config"], dict):
-            raise ValueError(f"{self.directory / RUN_FILE}: its config is not a mapping")
-        return record
-
-    def finished(self, units: list[dict[str, Any]]) -> dict[str, Any]:
-        """Unit id -> its result, for every unit with a readable file."""
-        found = {}
-        for unit in units:
-            path = _unit_path(self.directory, unit["id"])
-            if not path.is_file():
-                continue
-            remedy = f"delete it to rerun unit {unit['id']!r}"
-            # sealed: an edited or damaged unit is refused (its digest only: a unit's result is
-            # in its command's own layout, which kept.check_values does not know)
-            record = kept_files.read_sealed(path, "unit file", remedy, values=False)
-            if "result" not in record or record.get("id") != unit["id"]:
-                raise ValueError(f"{path} holds unit {record.get('id')!r}, not {unit['id']!r}")
-            found[unit["id"]] = record["result"]
-        return found
-
-    def keep(self, unit: dict[str, Any], result: Any) -> None:
-        text = kept_files.dumps_sealed({"id": unit["id"], "result": result})
-        results.write_atomic(
-            _unit_path(self.directory, unit["id"]), lambda path: path.write_text(text)
-        )
-
-    def remove(self) -> None:
-        shutil.rmtree(self.directory, ignore_errors=True)
+    module = importlib.import_module(module_name)
+    return unit_result(module, unit, module.run_unit(config, unit, None))
 
 
 # --------------------------------------------------------------------------------------------
@@ -260,20 +205,22 @@ class UnitStore:
 def add_frame_options(parser: argparse.ArgumentParser) -> None:
     """``--force``, ``--resume DIR`` and the cluster options (``--cluster``, ``--scheduler``,
     ``--connect-timeout``)."""
-    from factorq_trainers.distributed import cluster
+    from factorq_trainers.runner import cluster
 
     parser.add_argument("--force", action="store_true", default=argparse.SUPPRESS, help=FORCE_HELP)
     parser.add_argument("--resume", metavar="DIR", default=argparse.SUPPRESS, help=RESUME_HELP)
     cluster.add_options(parser)
 
 
-def _config(module: ModuleType, args: argparse.Namespace, store: UnitStore | None) -> Any:
+def _config(
+    module: ModuleType, args: argparse.Namespace, store: kept_files.UnitStore | None
+) -> Any:
     given = options.given_options(args, module.CONFIG)
     if store is None:
         return module.CONFIG(**given)
     from factorq_trainers.runner import checkpoint
 
-    saved = store.saved_run(module)["config"]
+    saved = store.saved_run(module.NAME)["config"]
     return checkpoint.resumed_config(
         saved,
         given,
@@ -309,7 +256,7 @@ def report_module(module: ModuleType) -> ModuleType:
 
 def execute(module: ModuleType, parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """Run the command ``module`` declares with the parsed ``args``; the exit status."""
-    store = UnitStore(args.resume) if hasattr(args, "resume") else None
+    store = kept_files.UnitStore(args.resume) if hasattr(args, "resume") else None
     try:
         config = _config(module, args, store)
         if hasattr(module, "prepare"):
@@ -321,7 +268,7 @@ def execute(module: ModuleType, parser: argparse.ArgumentParser, args: argparse.
             if large:
                 print(large, file=sys.stderr)
         units = checked_units(module, config)
-        from factorq_trainers.distributed import cluster
+        from factorq_trainers.runner import cluster
 
         executor = cluster.executor_from_args(args)
     except (ValueError, TypeError, ModuleNotFoundError) as problem:
@@ -342,7 +289,7 @@ def execute(module: ModuleType, parser: argparse.ArgumentParser, args: argparse.
         error(parser, as_option(str(problem), module.CONFIG, ("resume",)))
         return EXIT_USAGE
     except KeyboardInterrupt:
-        kept = UnitStore(config.out).exists()
+        kept = kept_files.UnitStore(config.out).exists()
         resume = f" (resume it with --resume {config.out})" if kept else ""
         print(f"{parser.prog}: interrupted{resume}", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -358,7 +305,7 @@ def _run(
     module: ModuleType,
     config: Any,
     units: list[dict[str, Any]],
-    store: UnitStore | None,
+    store: kept_files.UnitStore | None,
     executor: Any,
     *,
     force: bool,
@@ -367,16 +314,16 @@ def _run(
 
     started = time.perf_counter()
     if store is None:
-        store = UnitStore(config.out)
+        store = kept_files.UnitStore(config.out)
         if store.exists() and not force:
             raise outdir.OutputDirError(
                 f"out='{config.out}' holds the units of an interrupted run ({UNITS_DIRECTORY}/): "
                 f"continue it with --resume {config.out}, or pass --force to start over"
             )
-        store.start(module, config, units)
+        store.start(module.NAME, plain(config), (unit["id"] for unit in units))
         done: dict[str, Any] = {}
-    else:
-        done = store.finished(units)
+    else:  # every kept unit checked before any unit runs
+        done = store.finished(units, module.UNIT_RESULT, force)
         print(f"resuming {config.out}: {len(done)} of {len(units)} units done", file=sys.stderr)
     pending = [unit for unit in units if unit["id"] not in done]
     bar = tqdm(
@@ -392,7 +339,7 @@ def _run(
         if executor is None:
             for unit in pending:
                 before = bar.n
-                result = through_json(module.run_unit(config, unit, bar.update))
+                result = unit_result(module, unit, module.run_unit(config, unit, bar.update))
                 # the unit's whole share, whatever it reported
                 bar.update(max(0, before + work(module, config, unit) - bar.n))
                 store.keep(unit, result)

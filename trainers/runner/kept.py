@@ -1,16 +1,28 @@
-"""Kept files: results a rerun reuses instead of recomputing (a sweep's shards and config
-results), sealed with a content digest and checked like a checkpoint before they are reused.
+"""Kept work: results a rerun reuses instead of recomputing (a run's finished units in
+``OUT/units/``, a sweep's configuration results in ``OUT/configs/``), sealed, tied to the run
+they belong to and checked before they are reused. One module writes and reads them all.
 
-A kept file is the user's as much as ours: it may have been edited, cut short or copied from
-elsewhere. Reusing one unchecked would put its numbers in a report silently, so each carries a
-SHA-256 of its content, checked on reuse, and its values are checked as well (finite, in range,
-counts whole and consistent), because a digest proves integrity, not origin. A file that fails
-is refused in one line naming it and saying that ``--force`` recomputes it (``reusable``).
+A kept file is the user's as much as ours: it may have been edited, cut short, resealed or copied
+from elsewhere. Reusing one unchecked would put its numbers in a report silently, so each
+
+- carries a SHA-256 of its content (``DIGEST_KEY``), checked on reuse: an edit is refused;
+- carries what it was kept for (``TIE_KEY``: the command, the digest of the configuration, the
+  unit), checked against the run that reads it: a file of another configuration, command or unit
+  is refused, resealed or not;
+- has its values checked against the command's declared schema (``check_schema``: keys as
+  declared, numbers finite, counts whole and >= 0, fractions in [0, 1]) or, for a whole results
+  dict, by the names of its measures (``check_values``), because a digest proves integrity, not
+  origin: anyone can edit a file and seal it again.
+
+A file that fails is refused in one line naming it and saying that ``--force`` recomputes it
+(``reusable``).
 
 - ``check_digest``: the shared digest check (shards' ``metrics_digest`` and ``json_digest``);
-- ``dumps_sealed`` / ``read_sealed``: a JSON results dict with its digest under ``DIGEST_KEY``;
+- ``dumps_sealed`` / ``read_sealed``: a JSON dict with its digest and its tie;
+- ``check_schema``: a unit result against its command's declared ``UNIT_RESULT``;
 - ``check_values``: the value checks of a kept JSON results dict;
-- ``reusable``: whether a kept file is to be reused, recomputed (``force``) or refused.
+- ``reusable``: whether a kept file is to be reused, recomputed (``force``) or refused;
+- ``UnitStore``: the finished units of one run (``OUT/units/``).
 """
 
 from __future__ import annotations
@@ -19,7 +31,8 @@ import hashlib
 import json
 import math
 import re
-from collections.abc import Callable
+import shutil
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +42,9 @@ from factorq_trainers.runner import results as result_files
 REMEDY = "pass --force to recompute it"
 #: Where a sealed JSON results file keeps the SHA-256 of the rest of its content.
 DIGEST_KEY = "content_sha256"
+#: Where a sealed file keeps what it was kept for: ``{"command", "config_sha256"}`` and, for a
+#: unit, ``"unit"`` (the unit as ``units(config)`` gave it).
+TIE_KEY = "kept_for"
 
 
 def check_digest(path: Path, what: str, stored: str, actual: str, remedy: str = REMEDY) -> None:
@@ -49,11 +65,64 @@ def json_digest(results: dict[str, Any]) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def dumps_sealed(results: dict[str, Any]) -> str:
-    """``results_file.dumps(results)`` with the digest of what a reader will parse added."""
+def config_digest(config: dict[str, Any]) -> str:
+    """SHA-256 of a configuration as its JSON dict (``json_digest``): what ties kept work to the
+    configuration that computed it."""
+    return json_digest(json.loads(result_files.dumps(config)))
+
+
+def tie(command: str, config: Any, unit: dict[str, Any] | None = None) -> dict[str, Any]:
+    """What a file kept by ``command`` for ``config`` (a JSON dict, or a digest of it already
+    made: a sweep's ``config_digest``; and ``unit``) carries."""
+    digest = config if isinstance(config, str) else config_digest(config)
+    kept_for: dict[str, Any] = {"command": command, "config_sha256": digest}
+    if unit is not None:
+        kept_for["unit"] = json.loads(result_files.dumps(unit))
+    return kept_for
+
+
+def dumps_sealed(results: dict[str, Any], kept_for: dict[str, Any] | None = None) -> str:
+    """``results_file.dumps(results)`` with what it is kept for (``tie``) and the digest of what
+    a reader will parse added."""
     parsed = json.loads(result_files.dumps(results))  # tuples as lists, non-finite as null
+    if kept_for is not None:
+        parsed[TIE_KEY] = kept_for
     parsed[DIGEST_KEY] = json_digest(parsed)
     return result_files.dumps(parsed)
+
+
+def check_tie(
+    path: Path, what: str, stored: Any, expected: dict[str, Any], remedy: str = REMEDY
+) -> None:
+    """A ValueError naming ``path`` and ``remedy`` unless the file was kept for ``expected``
+    (``tie``'s dict): the same command, configuration and unit."""
+    if not isinstance(stored, dict):
+        raise ValueError(f"{what} {path} does not say what run it was kept for: {remedy}")
+    if stored.get("command") != expected["command"]:
+        raise ValueError(
+            f"{what} {path} was kept by command {_short(stored.get('command'))}, not "
+            f"`factorq {expected['command']}`: {remedy}"
+        )
+    if stored.get("config_sha256") != expected["config_sha256"]:
+        raise ValueError(
+            f"{what} {path} was kept for another configuration (digest "
+            f"{_short(stored.get('config_sha256'))}, this run's {expected['config_sha256']!r}): "
+            f"{remedy}"
+        )
+    if "unit" in expected and stored.get("unit") != expected["unit"]:
+        unit = stored.get("unit")
+        named = unit.get("id") if isinstance(unit, dict) else unit
+        raise ValueError(
+            f"{what} {path} was kept for unit {_short(named)} ({_short(unit)}), not "
+            f"{expected['unit'].get('id')!r}: {remedy}"
+        )
+    if set(stored) != set(expected):
+        raise ValueError(f"{what} {path} says it was kept for {_short(stored)}: {remedy}")
+
+
+def _short(value: Any) -> str:
+    shown = repr(value)
+    return shown if len(shown) <= 60 else shown[:57] + "..."
 
 
 #: Leaf keys (or the key of their list) whose numbers are counts or sizes: never negative.
@@ -72,13 +141,13 @@ _SETTINGS = ("config", "software", "world", "methods", "timing")
 _GENERIC = re.compile(r"mean|low|high|ci|ci95|n|\d+")
 
 
-def check_values(path: Path, what: str, results: dict[str, Any]) -> None:
+def check_values(path: Path, what: str, results: dict[str, Any], remedy: str = REMEDY) -> None:
     """A ValueError naming ``path`` unless every number of ``results`` is finite, those of
     counts (collisions, steps, episodes, seeds, samples, ...) are >= 0, fractions are in
     [0, 1], whole counts are whole, and a compare result's ``seeds_reached`` is the number of
     its seeds that reached the threshold, ``steps_to_threshold_per_seed`` one per seed."""
     stack: list[tuple[Any, str, str]] = [
-        (value, key, key) for key, value in results.items() if key not in (DIGEST_KEY,)
+        (value, key, key) for key, value in results.items() if key not in (DIGEST_KEY, TIE_KEY)
     ]
     while stack:  # no recursion: read_json bounded the depth, this stays iterative anyway
         value, where, measure = stack.pop()
@@ -97,7 +166,9 @@ def check_values(path: Path, what: str, results: dict[str, Any]) -> None:
         if isinstance(value, str | bool) and not _NON_NEGATIVE.fullmatch(measure):
             continue  # a label, a verdict
         if not isinstance(value, int | float) or isinstance(value, bool):
-            raise ValueError(f"{what} {path}: {where} holds {value!r}, not a number: {REMEDY}")
+            raise ValueError(
+                f"{what} {path}: {where} holds {_short(value)}, not a number: {remedy}"
+            )
         problem = None
         if not math.isfinite(value):
             problem = "not a finite number"
@@ -108,11 +179,11 @@ def check_values(path: Path, what: str, results: dict[str, Any]) -> None:
         elif _WHOLE.fullmatch(measure) and value != math.floor(value):
             problem = "not a whole count"
         if problem is not None:
-            raise ValueError(f"{what} {path}: {where} holds {value!r}, {problem}: {REMEDY}")
-    _check_compare_counts(path, what, results)
+            raise ValueError(f"{what} {path}: {where} holds {value!r}, {problem}: {remedy}")
+    _check_compare_counts(path, what, results, remedy)
 
 
-def _check_compare_counts(path: Path, what: str, results: dict[str, Any]) -> None:
+def _check_compare_counts(path: Path, what: str, results: dict[str, Any], remedy: str) -> None:
     """A compare result's per-seed counts agree with its config and with each other."""
     if results.get("command") != "compare" or not isinstance(results.get("results"), dict):
         return
@@ -127,20 +198,27 @@ def _check_compare_counts(path: Path, what: str, results: dict[str, Any]) -> Non
                 count = len(per_seed) if isinstance(per_seed, list) else "no"
                 raise ValueError(
                     f"{what} {path}: results/{method}/{world} holds {count} seeds' steps to "
-                    f"the threshold, not {seeds}: {REMEDY}"
+                    f"the threshold, not {seeds}: {remedy}"
                 )
             reached = sum(step is not None for step in per_seed)
             if entry.get("seeds_reached") != reached:
                 raise ValueError(
                     f"{what} {path}: results/{method}/{world}/seeds_reached is "
                     f"{entry.get('seeds_reached')!r}, but {reached} seeds reached the threshold: "
-                    f"{REMEDY}"
+                    f"{remedy}"
                 )
 
 
-def read_sealed(path: Path, what: str, remedy: str = REMEDY, values: bool = True) -> dict[str, Any]:
-    """The results dict kept at ``path`` once its digest and (``values``) its values are
-    checked (the digest key removed); a ValueError naming ``path`` and ``remedy`` otherwise."""
+def read_sealed(
+    path: Path,
+    what: str,
+    remedy: str = REMEDY,
+    values: bool = True,
+    kept_for: dict[str, Any] | Callable[[dict[str, Any]], dict[str, Any]] | None = None,
+) -> dict[str, Any]:
+    """The dict kept at ``path`` once its digest, (``kept_for``: ``tie``'s dict, or a function
+    of the file's dict giving it) what it was kept for and (``values``) its values are checked,
+    the digest and the tie removed; a ValueError naming ``path`` and ``remedy`` otherwise."""
     try:
         results = result_files.read_json(path, (), remedy)
     except (ValueError, OSError) as error:
@@ -148,8 +226,13 @@ def read_sealed(path: Path, what: str, remedy: str = REMEDY, values: bool = True
     stored = results.pop(DIGEST_KEY, "")
     actual = json_digest(results)
     check_digest(path, what, stored if isinstance(stored, str) else "", actual, remedy)
+    stored_tie = results.pop(TIE_KEY, None)
+    if callable(kept_for):
+        kept_for = kept_for(results)
+    if kept_for is not None:
+        check_tie(path, what, stored_tie, kept_for, remedy)
     if values:
-        check_values(path, what, results)
+        check_values(path, what, results, remedy)
     return results
 
 
@@ -166,3 +249,200 @@ def reusable(path: Path, check: Callable[[Path], Any], force: bool) -> bool:
             return False
         raise
     return True
+
+
+# --------------------------------------------------------------------------------------------
+# A unit result against its command's declared schema
+#
+# A schema is data: a leaf kind (``NUMBER``, ``NON_NEGATIVE``, ``FRACTION``, ``COUNT``, ``TEXT``,
+# ``FLAG``); ``{"key": schema, "key?": schema}`` a dict with exactly these keys (``?``: may be
+# absent); ``{"*": schema}`` a dict of any text keys; ``[schema]`` a list; ``(None, schema)``
+# null or ``schema``. Numbers of the three float kinds may be null (a non-finite number is
+# written as null); counts, texts and flags only where ``(None, ...)`` says so.
+
+NUMBER = "number"  # finite
+NON_NEGATIVE = "non-negative number"
+FRACTION = "fraction"  # in [0, 1]
+COUNT = "count"  # whole and >= 0
+TEXT = "text"
+FLAG = "flag"  # true or false
+_NUMBER_KINDS = (NUMBER, NON_NEGATIVE, FRACTION, COUNT)
+
+
+def schema_problem(value: Any, schema: Any, where: str = "result") -> str | None:
+    """Why ``value`` does not fit ``schema`` (``where`` it sits, e.g. ``result/summary``), or
+    None when it does."""
+    if isinstance(schema, tuple):
+        problems = [schema_problem(value, option, where) for option in schema if option is not None]
+        if (value is None and None in schema) or None in problems:
+            return None
+        return problems[-1]
+    if isinstance(schema, dict):
+        if not isinstance(value, dict):
+            return f"{where} holds {_short(value)}, not a mapping"
+        if "*" in schema:
+            for key, item in value.items():
+                problem = schema_problem(item, schema["*"], f"{where}/{key}")
+                if problem is not None:
+                    return problem
+            return None
+        declared = {key.rstrip("?"): key for key in schema}
+        unknown = [key for key in value if key not in declared]
+        if unknown:
+            return (
+                f"{where} holds {_short(unknown[0])}, not one of its keys ({', '.join(declared)})"
+            )
+        for name, key in declared.items():
+            if name not in value:
+                if key.endswith("?"):
+                    continue
+                return f"{where} lacks {name!r}"
+            problem = schema_problem(value[name], schema[key], f"{where}/{name}")
+            if problem is not None:
+                return problem
+        return None
+    if isinstance(schema, list):
+        if not isinstance(value, list):
+            return f"{where} holds {_short(value)}, not a list"
+        for index, item in enumerate(value):
+            problem = schema_problem(item, schema[0], f"{where}[{index}]")
+            if problem is not None:
+                return problem
+        return None
+    problem = _leaf_problem(value, schema)
+    return None if problem is None else f"{where} holds {_short(value)}, {problem}"
+
+
+def _leaf_problem(value: Any, kind: str) -> str | None:
+    if kind == TEXT:
+        return None if isinstance(value, str) else "not a text"
+    if kind == FLAG:
+        return None if isinstance(value, bool) else "not true or false"
+    if kind not in _NUMBER_KINDS:
+        raise RuntimeError(f"a declared schema names the kind {kind!r}: not one of kept's")
+    if value is None and kind != COUNT:
+        return None  # a missing number (a non-finite one is written as null)
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return "not a number"
+    if not math.isfinite(value):
+        return "not a finite number"
+    if kind != NUMBER and value < 0:
+        return "negative"
+    if kind == FRACTION and value > 1:
+        return "not a fraction in [0, 1]"
+    if kind == COUNT and value != math.floor(value):
+        return "not a whole count"
+    return None
+
+
+def check_result(
+    path: Path, what: str, unit: dict[str, Any], result: Any, schema: Any, remedy: str = REMEDY
+) -> None:
+    """A ValueError naming ``path`` and ``remedy`` unless ``result`` fits its command's
+    ``schema`` and the labels it repeats from its ``unit`` (``"method"``, ``"seed"``, ...)
+    are the unit's."""
+    problem = schema_problem(result, schema)
+    if problem is not None:
+        raise ValueError(f"{what} {path}: {problem}: {remedy}")
+    for key, label in unit.items():
+        if key != "id" and key in result and result[key] != label:
+            raise ValueError(
+                f"{what} {path}: its result's {key} is {_short(result[key])}, but it is kept for "
+                f"unit {unit['id']!r}, whose {key} is {label!r}: {remedy}"
+            )
+
+
+# --------------------------------------------------------------------------------------------
+# The units of one run, kept in OUT/units/
+
+UNITS_DIRECTORY = "units"
+RUN_FILE = "run.json"
+UNITS_FORMAT = "factorq-units"
+UNIT_FILE = "unit file"
+
+
+def unit_path(directory: Path, unit_id: str) -> Path:
+    """Where unit ``unit_id``'s result is kept in ``directory`` (``OUT/units/``)."""
+    return directory / f"{hashlib.sha256(unit_id.encode()).hexdigest()[:20]}.json"
+
+
+class UnitStore:
+    """The finished units of one run, in ``OUT/units/``: ``run.json`` (the command, its config
+    and unit ids, sealed) and one ``<digest of the id>.json`` per finished unit (its result,
+    sealed and tied to the command, the config's digest and the unit)."""
+
+    def __init__(self, out: str | Path) -> None:
+        self.directory = Path(out) / UNITS_DIRECTORY
+
+    def exists(self) -> bool:
+        return self.directory.exists()
+
+    def start(self, command: str, config: dict[str, Any], unit_ids: Iterable[str]) -> None:
+        """A fresh run of ``command`` with ``config`` (its JSON dict): an empty store."""
+        shutil.rmtree(self.directory, ignore_errors=True)
+        self.directory.mkdir(parents=True)
+        record = {"format": UNITS_FORMAT, "command": command, "config": config}
+        record["units"] = list(unit_ids)
+        text = dumps_sealed(record, tie(command, config))
+        result_files.write_atomic(self.directory / RUN_FILE, lambda path: path.write_text(text))
+        self.kept_for = tie(command, config)
+
+    def saved_run(self, command: str) -> dict[str, Any]:
+        """``run.json`` of an interrupted run of ``command``, sealed and consistent (a
+        ValueError naming it and why not); its ``config`` ties the units read after it."""
+        path = self.directory / RUN_FILE
+        remedy = "start the run over with --force instead of --resume"
+        if not path.is_file() and not path.exists():
+            raise ValueError(
+                f"{path} does not exist: nothing to resume: run `factorq {command}` without "
+                f"--resume"
+            )
+        record = read_sealed(
+            path, "run file", remedy, False, lambda saved: tie(command, saved.get("config"))
+        )
+        if record.get("format") != UNITS_FORMAT or record.get("command") != command:
+            raise ValueError(
+                f"run file {path} is not an interrupted `factorq {command}` run (command "
+                f"{_short(record.get('command'))}): {remedy}"
+            )
+        config = record.get("config")
+        if not isinstance(config, dict):
+            raise ValueError(f"run file {path}: its config is not a mapping: {remedy}")
+        self.kept_for = tie(command, config)
+        return record
+
+    def finished(self, units: list[dict[str, Any]], schema: Any, force: bool) -> dict[str, Any]:
+        """Unit id -> its result, for every unit with a kept file that passes its checks (its
+        digest, tie and ``schema``); one that fails is refused (a ValueError naming it), or with
+        ``force`` left to recompute. ``saved_run`` first: it says which run the units are of."""
+        found = {}
+        remedy = "pass --force (with --resume) to recompute it"
+        for unit in units:
+            path = unit_path(self.directory, unit["id"])
+            if not path.exists() and not path.is_symlink():
+                continue
+            try:
+                expected = {**self.kept_for, "unit": json.loads(result_files.dumps(unit))}
+                record = read_sealed(path, UNIT_FILE, remedy, values=False, kept_for=expected)
+                if set(record) != {"result"}:
+                    raise ValueError(
+                        f"{UNIT_FILE} {path} holds {_short(sorted(record))}, not a unit's "
+                        f"result: {remedy}"
+                    )
+                check_result(path, UNIT_FILE, unit, record["result"], schema, remedy)
+            except ValueError:
+                if force:
+                    continue
+                raise
+            found[unit["id"]] = record["result"]
+        return found
+
+    def keep(self, unit: dict[str, Any], result: Any) -> None:
+        """Keep ``unit``'s ``result`` (after ``start`` or ``saved_run``)."""
+        text = dumps_sealed({"result": result}, {**self.kept_for, "unit": unit})
+        result_files.write_atomic(
+            unit_path(self.directory, unit["id"]), lambda path: path.write_text(text)
+        )
+
+    def remove(self) -> None:
+        shutil.rmtree(self.directory, ignore_errors=True)

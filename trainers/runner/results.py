@@ -5,12 +5,11 @@ non-finite numbers as ``null``), ``write_all_atomic`` (a reader never sees a par
 ``read_json`` (a clear error for a missing, malformed or too new file) and
 ``software_versions`` (what computed the numbers).
 
-**Versions.** A results file without a ``"schema_version"`` entry is version 1: the layout of
-``results.json`` and ``comparison.json`` as the tutorials document it
-(``docs/tutorials/paper.md``, ``docs/tutorials/dqn-local-risk.md``). A change that breaks
-readers raises ``SCHEMA_VERSION``, makes the writer add ``"schema_version"`` and teaches
-``read_json``'s callers the old layouts they still accept; a reader refuses a file newer than
-it understands instead of misreading it.
+**Versions.** Every results file carries ``"schema_version"`` (``SCHEMA_VERSION``, the layout of
+``results.json`` and ``comparison.json`` as the tutorials document it: ``docs/tutorials/paper.md``,
+``docs/tutorials/dqn-local-risk.md``); ``factorq report`` refuses a results file without it. A
+change that breaks readers raises ``SCHEMA_VERSION``; ``read_json`` refuses a file newer than it
+understands instead of misreading it (other JSON it reads, such as kept units, has no version).
 """
 
 from __future__ import annotations
@@ -29,7 +28,7 @@ import numpy as np
 from factorq_trainers.analysis.stats import finite_or_none
 from factorq_trainers.runner import outdir
 
-#: The newest layout this code reads and writes (files without the entry are version 1).
+#: The layout this code reads and writes.
 SCHEMA_VERSION = 1
 #: The packages whose versions a results file records.
 PACKAGES = ("factorq-torch", "torch", "torchrl", "tensordict", "gymnasium", "numpy", "matplotlib")
@@ -185,7 +184,9 @@ def read_json(path: Path, required: Iterable[str], missing_hint: str) -> dict[st
     missing = [key for key in required if key not in results]
     if missing:
         raise ValueError(f"{path} is not a results file: {', '.join(missing)} missing")
-    version = results.get("schema_version", 1)
+    if "schema_version" not in results:  # not a results file: kept units, a sweep's run file
+        return results
+    version = results["schema_version"]
     if not isinstance(version, int) or isinstance(version, bool) or version < 1:
         raise ValueError(f"{path} has schema_version={version!r}: must be a positive integer")
     if version > SCHEMA_VERSION:

@@ -6,9 +6,8 @@ size and nesting limits and ``check_results`` checks every field the report read
 lengths that must agree) so that drawing the figure and writing the Markdown cannot fail on it;
 any problem is one ``ResultsFileError`` naming the file, the field's path and what was expected.
 
-Versions: ``SCHEMA_VERSION`` is written into every results file. A file without the field was
-written before versioning, with the shape of version 1, and is read as version 1; a newer version
-is refused (this program cannot know its shape).
+Versions: ``SCHEMA_VERSION`` is written into every results file and checked here: a file without
+the field (written before versioning) or of a newer version is refused.
 """
 
 from __future__ import annotations
@@ -180,7 +179,12 @@ def _check_claim(claim: Any, where: str) -> None:
 def check_results(results: Any) -> dict[str, Any]:
     """Check every field the report reads; return ``results`` or raise a ResultsFileError."""
     results = _mapping(results, "the file", ("config", "cells", "claims"))
-    version = results.get("schema_version", 1)
+    if "schema_version" not in results:
+        raise ResultsFileError(
+            "schema_version missing: written before results files were versioned (rerun "
+            "`factorq paper` to write it again)"
+        )
+    version = results["schema_version"]
     if not isinstance(version, int) or isinstance(version, bool) or version < 1:
         _fail("schema_version", "a positive integer", version)
     if version > SCHEMA_VERSION:

@@ -13,14 +13,13 @@ from collections.abc import Callable
 from typing import Any
 
 from factorq_torch.base.validation import INT32_MAX, check_int
-from factorq_trainers.distributed import cluster
-from factorq_trainers.distributed.sweep_run import _compare_method, run_paper
-from factorq_trainers.distributed.sweep_spec import (
+from factorq_trainers.experiments import paper
+from factorq_trainers.experiments.paper_shards import (
     DEFAULT_PAPER_SHARD_SEEDS,
     SHARDS_DIRECTORY,
-    SweepError,
+    run_paper,
 )
-from factorq_trainers.experiments import paper
+from factorq_trainers.runner import cluster
 
 
 def add_paper_options(parser: argparse.ArgumentParser) -> None:
@@ -46,7 +45,7 @@ def paper_executor(args: argparse.Namespace) -> cluster.InProcess | cluster.Dask
     for name in ("checkpoint_every", "resume"):
         if hasattr(args, name):
             option = "--" + name.replace("_", "-")
-            raise SweepError(
+            raise ValueError(
                 f"{option} does not apply to a sharded run: its finished shards, kept in "
                 f"OUT/{SHARDS_DIRECTORY}/, are what a rerun resumes from (leave {option} out)"
             )
@@ -126,3 +125,14 @@ class ShardBar:
     def close(self) -> None:
         if self.bar is not None:
             self.bar.close()
+
+
+def _compare_method(run_method: Callable[..., Any], config: Any, method: str) -> Any:
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(config.threads)
+    try:
+        return run_method(config, method)
+    finally:
+        torch.set_num_threads(threads)

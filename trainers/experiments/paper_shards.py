@@ -18,10 +18,13 @@ config (``digest``) and the seed range, so a finished shard is never run twice.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
+import time
 import zipfile
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -31,7 +34,7 @@ import numpy as np
 from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_torch.base.validation import check_int
 from factorq_trainers.experiments import paper
-from factorq_trainers.runner import checkpoint, kept
+from factorq_trainers.runner import checkpoint, cluster, kept
 from factorq_trainers.runner import results as result_files
 
 #: Config fields that do not change a shard's numbers (tested: backends and thread counts give
@@ -39,6 +42,10 @@ from factorq_trainers.runner import results as result_files
 NUMBER_FREE_FIELDS = ("out", "threads", "backend", "device", "first_seed", "seeds")
 #: Metrics of a shard, per world and algorithm: ``[seeds, runs, episodes]`` each.
 METRICS = EPISODE_METRICS
+#: Where a sharded run (``factorq paper --cluster``, a paper sweep) keeps its shards in ``--out``.
+SHARDS_DIRECTORY = "shards"
+#: Seeds per shard of ``factorq paper --cluster`` unless ``--shard-seeds`` says otherwise.
+DEFAULT_PAPER_SHARD_SEEDS = 10
 SHARD_SUFFIX = ".npz"
 
 #: A shard's result: ``{"world/algorithm/metric": array [seeds, runs, episodes]}``.
@@ -227,3 +234,106 @@ def load(path: str | os.PathLike, shard: paper.PaperConfig) -> ShardMetrics:
         )
     _check_metrics(Path(path), shard, metrics, stored)
     return metrics
+
+
+# --------------------------------------------------------------------------------------------
+# Shards run on an executor, kept in OUT/shards/
+
+
+def run_shards(
+    pending: Sequence[paper.PaperConfig],
+    directory: Path,
+    executor: cluster.InProcess | cluster.DaskExecutor,
+    done: Callable[[paper.PaperConfig], None],
+) -> None:
+    """Run ``pending`` shards on ``executor``, saving each one's file as soon as it arrives."""
+    function: Callable[[paper.PaperConfig], ShardMetrics]
+    if isinstance(executor, cluster.DaskExecutor):
+        function = functools.partial(run_shard, threads=1)
+    else:
+        function = run_shard
+    names = [f"shard-{digest(s)}-{s.first_seed}-{s.first_seed + s.seeds}" for s in pending]
+    for index, metrics in executor.map(function, list(pending), names):
+        shard = pending[index]
+        save(shard_path(directory, shard), shard, metrics)
+        done(shard)
+
+
+def _missing(
+    directory: Path, every: list[paper.PaperConfig], force: bool = False
+) -> list[paper.PaperConfig]:
+    """The shards of ``every`` to run: those without a kept file, and (``force``) those whose
+    kept file fails its checks; without ``force`` such a file is refused before any work."""
+    return [
+        shard
+        for shard in every
+        if not kept.reusable(
+            shard_path(directory, shard), functools.partial(_load_shard, shard=shard), force
+        )
+    ]
+
+
+def _load_shard(path: Path, shard: paper.PaperConfig) -> ShardMetrics:
+    return load(path, shard)
+
+
+def run_paper(
+    config: paper.PaperConfig,
+    executor: cluster.InProcess | cluster.DaskExecutor,
+    shard_seeds: int = DEFAULT_PAPER_SHARD_SEEDS,
+    progress: paper.ProgressCallback | None = None,
+    force: bool = False,
+) -> dict[str, Any]:
+    """``paper.run(config)``'s results, computed as shards of ``shard_seeds`` seeds on
+    ``executor``, each kept in ``OUT/shards/`` (existing ones are not rerun; one that fails its
+    checks is refused, or with ``force`` recomputed). Identical numbers; ``timing`` says where
+    and how they were computed."""
+    import torch
+
+    started = time.perf_counter()
+    directory = Path(config.out) / SHARDS_DIRECTORY
+    every = split(config, shard_seeds)
+    pending = _missing(directory, every, force)
+    per_seed = len(config.cells) * config.runs * config.episodes
+    total_seeds = config.seeds
+    state = {"seeds": total_seeds - sum(s.seeds for s in pending)}
+
+    def report() -> None:
+        if progress is not None:
+            progress(
+                paper.Progress(
+                    state["seeds"] * per_seed,
+                    total_seeds * per_seed,
+                    state["seeds"] * len(config.cells),
+                    total_seeds * len(config.cells),
+                )
+            )
+
+    def done(shard: paper.PaperConfig) -> None:
+        state["seeds"] += shard.seeds
+        report()
+
+    report()
+    run_shards(pending, directory, executor, done)
+    parts = [load(shard_path(directory, shard), shard) for shard in every]
+    wall = time.perf_counter() - started
+    env_steps = int(
+        sum(part[key].sum() for part in parts for key in part if key.endswith("/steps"))
+    )
+    timing = {
+        "wall_s": round(wall, 3),
+        "backend": paper.resolve_backend(config),
+        "threads": 1  # a worker's, or this process's as paper.run reports it
+        if isinstance(executor, cluster.DaskExecutor)
+        else config.threads or torch.get_num_threads(),
+        "env_steps": env_steps,
+        "env_steps_per_s": round(env_steps / max(wall, 1e-9)),
+        "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "shards": {
+            "where": executor.description,
+            "seeds_per_shard": shard_seeds,
+            "total": len(every),
+            "run_now": len(pending),
+        },
+    }
+    return results(config, parts, timing)

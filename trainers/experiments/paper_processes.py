@@ -8,7 +8,7 @@ wait).
 
 - **Processes, started fresh.** The modular path steps its batch from Python, so two threads
   share one interpreter lock (measured 0.54x of running one after the other). A child is a new
-  interpreter, ``python -m factorq_trainers.distributed.processes``: not a ``fork`` (forking a
+  interpreter, ``python -m factorq_trainers.experiments.paper_processes``: not a ``fork`` (forking a
   process that already runs torch's OpenMP threads is unsafe), and not ``multiprocessing``'s
   ``spawn`` either, which re-runs the parent's main script in every child: a script calling
   ``paper.run`` without an ``if __name__ == "__main__":`` guard would then fail in its children.
@@ -178,7 +178,7 @@ def _start(work: Callable[..., Any], args: tuple[Any, ...]) -> _Child:
         # module however the parent found it (an installed package or a path added at run time).
         path = os.pathsep.join(entry for entry in sys.path if entry)
         process = subprocess.Popen(
-            [sys.executable, "-m", "factorq_trainers.distributed.processes", str(write)],
+            [sys.executable, "-m", "factorq_trainers.experiments.paper_processes", str(write)],
             stdin=subprocess.PIPE,
             pass_fds=(write,),
             start_new_session=True,  # a Ctrl-C at the terminal is the parent's to handle
@@ -302,7 +302,7 @@ def _traceback_note(error: BaseException) -> str:
 
 
 if __name__ == "__main__":
-    from factorq_trainers.distributed.processes import (
+    from factorq_trainers.experiments.paper_processes import (
         child_main as _main,  # the module, not __main__
     )
 
