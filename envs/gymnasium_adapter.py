@@ -33,7 +33,8 @@ Two ways in, the same numbers:
 - ``FactorQEnv(env, declaration)``: a ``gymnasium.Wrapper`` (and ``RecordConstructorArgs``, so
   Gymnasium's ``check_env`` and ``env.spec`` accept it) whose observation is the env's own
   (its ``Dict`` entries, or ``"observation"``) plus the project's keys: ``cell`` and ``heading``
-  (with a task state), ``sensors`` ``MultiBinary(K)``, ``bump`` ``MultiBinary(A)``,
+  (with a task state, ``IndexSpace``: a ``Discrete``), ``sensors`` and ``bump``
+  (``FlagSpace``: ``MultiBinary(K)``, ``MultiBinary(A)``),
   ``collision`` ``Box(-penalty, 0, (A,))``. Its reward is the conventional one, ``task reward +
   sum(collision)``; ``info`` adds ``collided`` and ``task_reward``. The env's own wrappers (a
   ``Dict`` env's observation wrappers) still find their entries.
@@ -41,9 +42,14 @@ Two ways in, the same numbers:
   needs no torchrl): ``S`` of them through torchrl's ``GymWrapper`` over a
   Gymnasium vector env (``backend="sync"`` in-process, ``"async"`` one process per env) or
   torchrl's ``ParallelEnv`` (``"parallel"``), categorical ``cell``/``heading``/``action`` and
-  bool ``sensors``/``bump`` (a ``DTypeCastTransform``), batch ``(S,)``: the keys the tables,
-  ``SplitLocalReward`` and the online collector read. torchrl's ``GymWrapper`` reads the specs
-  from the Gymnasium spaces; nothing here writes a spec by hand.
+  bool ``sensors``/``bump``, batch ``(S,)``: the keys the tables, ``SplitLocalReward`` and the
+  online collector read. torchrl's ``GymWrapper`` reads the specs from the Gymnasium spaces;
+  nothing here writes a spec by hand.
+
+torchrl's own ``GymEnv`` of an id whose entry point returns a ``FactorQEnv`` reads the same
+keys, with no transform: ``IndexSpace`` and ``FlagSpace`` (``factorq_envs.gym_spaces``) tell
+torchrl's Gym reader to give an index ``cell`` and bool flags whatever its
+``categorical_action_encoding``.
 
 Every env of the project states its sizes the same way: ``env.config`` holds the
 ``factorq_envs.protocol.CONFIG_FIELDS`` (``FactoredGridEnv``'s ``WorldConfig``, the adapter's
@@ -89,6 +95,7 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.utils import RecordConstructorArgs
 
+from factorq_envs.gym_spaces import FlagSpace, IndexSpace, register_if_torchrl_loaded
 from factorq_envs.protocol import EnvSizes
 from factorq_torch.base import keys
 from factorq_torch.base.validation import check_int, is_int
@@ -362,15 +369,16 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
     def _spaces(self, space: spaces.Space) -> dict[str, spaces.Space]:
         declaration, config = self.declaration, self.config
         entries = self._own_entries(space)
+        register_if_torchrl_loaded()  # IndexSpace, FlagSpace: what torchrl reads them as
         if declaration.task_state is not None:
-            entries[keys.CELL] = spaces.Discrete(config.num_cells)
+            entries[keys.CELL] = IndexSpace(config.num_cells)
             if config.num_headings > 1:
-                entries[keys.HEADING] = spaces.Discrete(config.num_headings)
+                entries[keys.HEADING] = IndexSpace(config.num_headings)
         if declaration.features:
             entries[keys.SENSORS] = spaces.Box(-np.inf, np.inf, (config.num_sensors,), np.float32)
         else:
-            entries[keys.SENSORS] = spaces.MultiBinary(config.num_sensors)
-        entries[keys.BUMP] = spaces.MultiBinary(config.num_actuators)
+            entries[keys.SENSORS] = FlagSpace(config.num_sensors)
+        entries[keys.BUMP] = FlagSpace(config.num_actuators)
         entries[keys.COLLISION] = spaces.Box(
             -declaration.penalty, 0.0, (config.num_actuators,), np.float32
         )
