@@ -402,3 +402,185 @@ def test_a_partial_step_is_refused():
     td["_step"] = torch.tensor([[True], [False]])
     with pytest.raises(NotImplementedError, match="'_step' mask"):
         env.step(td)
+
+
+# -------------------------------------------------------------------------------------------
+# Values at the library edge (issue 41): each refused in one line naming the env and the field
+
+
+class _Altered(gymnasium.Wrapper):
+    """CartPole whose reset or step returns are altered by ``reset_as`` / ``step_as``."""
+
+    def __init__(self, reset_as=None, step_as=None):
+        super().__init__(gymnasium.make("CartPole-v1"))
+        self.reset_as, self.step_as = reset_as, step_as
+
+    def reset(self, **kwargs):
+        returned = self.env.reset(**kwargs)
+        return returned if self.reset_as is None else self.reset_as(*returned)
+
+    def step(self, action):
+        returned = self.env.step(action)
+        return returned if self.step_as is None else self.step_as(*returned)
+
+
+def _pole(**fields) -> Declaration:
+    fields.setdefault("sensors", lambda step: np.array([step.observation[2] > 0]))
+    fields.setdefault("collision", lambda step: False)
+    return Declaration(num_sensors=1, **fields)
+
+
+@pytest.mark.parametrize(
+    "env, declaration, error, message",
+    [
+        # declared values
+        (
+            None,
+            _pole(sensors=lambda step: np.array([np.nan], np.float32), features=True),
+            ValueError,
+            r"CartPole-v1: Declaration.sensors returned features \[nan\]: every feature must be "
+            r"finite",
+        ),
+        (
+            None,
+            _pole(sensors=lambda step: np.array([np.inf], np.float32), features=True),
+            ValueError,
+            r"CartPole-v1: Declaration.sensors returned features \[inf\]",
+        ),
+        (
+            None,
+            _pole(task_state=lambda step: 2.9, num_cells=4),
+            TypeError,
+            r"CartPole-v1: Declaration.task_state \(the cell\) returned 2.9 \(float\): must be an "
+            r"int in \[0, 4\)",
+        ),
+        (
+            None,
+            _pole(task_state=lambda step: float("nan"), num_cells=4),
+            TypeError,
+            r"CartPole-v1: Declaration.task_state \(the cell\) returned nan",
+        ),
+        (
+            None,
+            _pole(task_state=lambda step: (1, 0.5), num_cells=4, num_headings=2),
+            TypeError,
+            r"CartPole-v1: Declaration.task_state \(the heading\) returned 0.5",
+        ),
+        (
+            None,
+            _pole(task_state=lambda step: 1, num_cells=4, num_headings=2),
+            TypeError,
+            r"CartPole-v1: Declaration.task_state returned 1: with num_headings=2 it must return "
+            r"\(cell, heading\)",
+        ),
+        (
+            None,
+            _pole(collision=lambda step: float("nan")),
+            TypeError,
+            r"CartPole-v1: Declaration.collision returned nan \(float\): must be a bool",
+        ),
+        (
+            None,
+            _pole(collision=lambda step: "yes"),
+            TypeError,
+            r"CartPole-v1: Declaration.collision returned 'yes' \(str\): must be a bool",
+        ),
+        (
+            _Altered(step_as=lambda o, r, te, tr, i: (o, r, te, tr, dict(i, hit=1))),
+            _pole(collision="hit"),
+            TypeError,
+            r"CartPole-v1: Declaration.collision \(info\['hit'\]\) returned 1 \(int\): must be a "
+            r"bool",
+        ),
+        (
+            None,
+            _pole(collision=lambda step: True, charge=lambda step: 1.7, task_reward=lambda s: 0.0),
+            TypeError,
+            r"CartPole-v1: Declaration.charge returned 1.7 \(float\): must be an int in \[0, 2\)",
+        ),
+        (
+            None,
+            _pole(collision=lambda step: True, charge=lambda step: None, task_reward=lambda s: 0.0),
+            TypeError,
+            r"CartPole-v1: Declaration.charge returned None \(NoneType\)",
+        ),
+        (
+            None,
+            _pole(collision=lambda step: True, charge=lambda step: 2, task_reward=lambda s: 0.0),
+            ValueError,
+            r"CartPole-v1: Declaration.charge returned 2: must be in \[0, 2\)",
+        ),
+        (
+            None,
+            _pole(task_reward=lambda step: float("nan")),
+            ValueError,
+            r"CartPole-v1: Declaration.task_reward's result is nan: must be finite",
+        ),
+        (
+            None,
+            _pole(task_reward=lambda step: "1"),
+            TypeError,
+            r"CartPole-v1: Declaration.task_reward's result must be a finite number, got '1'",
+        ),
+        # the env's own returns
+        (
+            _Altered(step_as=lambda o, r, te, tr, i: (o, float("nan"), te, tr, i)),
+            _pole(),
+            ValueError,
+            r"CartPole-v1: the env's reward is nan: must be finite",
+        ),
+        (
+            _Altered(step_as=lambda o, r, te, tr, i: (o, -np.inf, te, tr, i)),
+            _pole(),
+            ValueError,
+            r"CartPole-v1: the env's reward is -inf: must be finite",
+        ),
+        (
+            _Altered(reset_as=lambda o, i: o),
+            _pole(),
+            TypeError,
+            r"CartPole-v1: reset\(\) returned ndarray .*: a Gymnasium env's reset returns "
+            r"\(observation, info\)",
+        ),
+        (
+            _Altered(reset_as=lambda o, i: (o, None)),
+            _pole(),
+            TypeError,
+            r"CartPole-v1: reset\(\) returned info=None \(NoneType\): must be a dict",
+        ),
+        (
+            _Altered(step_as=lambda o, r, te, tr, i: (o, r, te or tr, i)),
+            _pole(),
+            TypeError,
+            r"CartPole-v1: step\(\) returned a tuple of 4: a Gymnasium env's step returns "
+            r"\(observation, reward, terminated, truncated, info\)",
+        ),
+        (
+            _Altered(step_as=lambda o, r, te, tr, i: (o, r, "no", tr, i)),
+            _pole(),
+            TypeError,
+            r"CartPole-v1: step\(\) returned terminated='no' \(str\): must be a bool",
+        ),
+    ],
+)
+def test_a_bad_value_is_refused_naming_the_env_and_the_field(env, declaration, error, message):
+    with pytest.raises(error, match=message):
+        FactorQEnv(env or gymnasium.make("CartPole-v1"), declaration)
+
+
+def test_bad_declared_numbers_are_refused_where_they_are_written():
+    sensors = _pole().sensors
+    with pytest.raises(TypeError, match=r"Declaration.penalty must be a number, got '1' \(str\)"):
+        Declaration(num_sensors=1, sensors=sensors, collision="hit", penalty="1")
+    with pytest.raises(TypeError, match=r"Declaration.actions\[0\] must be an int, got 1.9"):
+        Declaration(num_sensors=1, sensors=sensors, collision="hit", actions=(1.9, 0))
+    with pytest.raises(TypeError, match="Declaration.features must be a bool"):
+        Declaration(num_sensors=1, sensors=sensors, collision="hit", features="yes")
+
+
+def test_a_float_action_is_refused_naming_the_env():
+    env = FactorQEnv(gymnasium.make("CartPole-v1"), _pole())
+    env.reset(seed=0)
+    for action in (1.9, np.float64(1.9), np.array(1.9), True):
+        with pytest.raises(TypeError, match=r"CartPole-v1: action must be an int in \[0, 1\]"):
+            env.step(action)
