@@ -119,7 +119,8 @@ def require_minigrid() -> ModuleType:
 def env_id(size: int) -> str:
     """The gymnasium id of the Dynamic-Obstacles world of side ``size``."""
     if size not in SIZES:
-        raise ValueError(f"size={size!r} is not a Dynamic-Obstacles size: choose one of {SIZES}")
+        sizes = ", ".join(map(str, SIZES))
+        raise ValueError(f"size={size!r} is not a Dynamic-Obstacles size: choose one of {sizes}")
     return f"MiniGrid-Dynamic-Obstacles-{size}x{size}-v0"
 
 
