@@ -277,7 +277,7 @@ def _finite(where: str, what: str, value: object) -> float:
         or isinstance(value, np.complexfloating)
     ):
         raise TypeError(f"{where}: {what} must be a finite number, got {value!r}")
-    number = float(value)  # type: ignore[arg-type]
+    number = float(value)
     if not math.isfinite(number):
         raise ValueError(f"{where}: {what} is {number}: must be finite")
     return number

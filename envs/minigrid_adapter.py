@@ -160,7 +160,8 @@ def _blocked_cells(cells: np.ndarray, step: Transition) -> np.ndarray:
 
 
 def _cell_and_heading(size: int, step: Transition) -> tuple[int, int]:
-    x, y = step.env.unwrapped.agent_pos  # MiniGrid's
+    minigrid: Any = step.env.unwrapped
+    x, y = minigrid.agent_pos
     return int(y) * size + int(x), minigrid_heading(int(step.observation["direction"]))
 
 

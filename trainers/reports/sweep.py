@@ -4,6 +4,7 @@ row per configuration and cell, and ``sweep-<axis>.png`` per swept axis."""
 from __future__ import annotations
 
 import functools
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -167,7 +168,7 @@ def write_outputs(sweep: dict[str, Any], out: str | Path) -> dict[str, Path]:
 REQUIRED = ("axes", "configurations", "seeds", "base", "timing")
 
 
-def regenerate(out: str | Path) -> dict[str, Path]:
+def regenerate(out: str | os.PathLike[Any]) -> dict[str, Path]:
     """``factorq report`` on a sweep's ``--out``: ``sweep.md`` and the figures redrawn from
     ``sweep.json`` alone (the JSON itself is left as it is)."""
     out = Path(out)
