@@ -36,8 +36,9 @@ Two ways in, the same numbers:
   (with a task state, ``IndexSpace``: a ``Discrete``), ``sensors`` and ``bump``
   (``FlagSpace``: ``MultiBinary(K)``, ``MultiBinary(A)``),
   ``collision`` ``Box(-penalty, 0, (A,))``. Its reward is the conventional one, ``task reward +
-  sum(collision)``; ``info`` adds ``collided`` and ``task_reward``. The env's own wrappers (a
-  ``Dict`` env's observation wrappers) still find their entries.
+  sum(collision)``; ``info`` adds ``collided`` (a bool) and ``task_reward`` (a numpy float32,
+  which torchrl's ``GymEnv`` reads with ``factorq_envs.gymnasium_env.torchrl_info_reader()``).
+  The env's own wrappers (a ``Dict`` env's observation wrappers) still find their entries.
 - ``factorq_envs.declared_env.declared_torchrl_env(make_env, seeds)`` (its own file, so this one
   needs no torchrl): ``S`` of them through torchrl's ``GymWrapper`` over a
   Gymnasium vector env (``backend="sync"`` in-process, ``"async"`` one process per env) or
@@ -529,7 +530,8 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
         observation, info = returned
         info = self._info("reset", info)
         step = Transition(observation, 0.0, False, False, info, self.env, None)
-        info = dict(info, collided=False, task_reward=0.0)
+        # task_reward a numpy scalar: torchrl's info reader (torchrl_info_reader) reads numpy
+        info = dict(info, collided=False, task_reward=np.float32(0.0))
         return self._observe(step, None), info
 
     def step(self, action: Any) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
@@ -593,7 +595,7 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
                 self._call("task_reward", declaration.task_reward, step),
             )
             conventional = task - penalty
-        info = dict(info, collided=collided, task_reward=task)
+        info = dict(info, collided=collided, task_reward=np.float32(task))
         out = self._observe(step, charged)
         return out, conventional, step.terminated, step.truncated, info
 

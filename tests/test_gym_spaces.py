@@ -123,10 +123,11 @@ def test_gym_env_of_a_declared_id_feeds_split_local_reward(declared_id):
     from torchrl.envs.utils import check_env_specs
 
     from factorq_envs import SplitLocalReward
+    from factorq_envs.gymnasium_env import torchrl_info_reader
 
     base = GymEnv(declared_id)
     _check_the_keys(base)
-    env = TransformedEnv(base, SplitLocalReward())
+    env = TransformedEnv(base.set_info_dict_reader(torchrl_info_reader()), SplitLocalReward())
     check_env_specs(env)
     td = env.reset()
     td["action"] = torch.tensor([0, 0, 1, 0])  # right, to cell 1
@@ -135,7 +136,7 @@ def test_gym_env_of_a_declared_id_feeds_split_local_reward(declared_id):
     nxt = env.step(td)["next"]
     assert nxt["cell"].item() == 5 and nxt["terminated"].item()
     assert nxt["local_reward"].tolist() == [0.0, -1.0, 0.0, 0.0]
-    assert nxt["reward"].item() == 0.0  # the task reward: FrozenLake's own
+    assert nxt["reward"].item() == 0.0 == nxt["task_reward"].item()  # FrozenLake's own
 
 
 def test_the_dqn_recipe_with_the_layer_runs_on_gym_env():
