@@ -50,13 +50,26 @@ setup: $(STAMP)
 # project's own modules. The torch pin is pyproject.toml's (tests/test_docs.py holds them equal).
 # Where uv cannot reach an index that pip can (a private mirror named only in pip.conf), pip
 # installs the same things: slower, the same result.
+#
+# The project is installed in setuptools' strict editable mode (issue 38): a tree of links to the
+# source files, build/__editable__.*, on sys.path through a plain .pth entry, so plain mypy (and any
+# tool that reads sys.path without running import hooks) finds factorq_envs and factorq_trainers
+# from a user's script; the default mode's import hook hides them from mypy. The tree holds one link
+# per file, so the list of source files ($(FILES), rewritten only when it changes) is a
+# prerequisite: a file added or removed re-runs the set-up (everything else already there: seconds).
 EXTRAS := .[dev,distributed,minigrid,highway,sb3,docs]
-$(STAMP): pyproject.toml Makefile
+FILES := $(VENV)/.factorq-files
+$(shell mkdir -p $(VENV) && find envs trainers factorq_torch -type f -not -path '*/__pycache__/*' \
+  | LC_ALL=C sort > $(FILES).new && { cmp -s $(FILES).new $(FILES) || mv $(FILES).new $(FILES); }; \
+  rm -f $(FILES).new)
+$(STAMP): pyproject.toml Makefile $(FILES)
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/python -m pip install --quiet --no-compile torch==2.13.0 uv==0.13.9
-	$(VENV)/bin/uv pip install --quiet --python $(VENV)/bin/python --compile-bytecode -e '$(EXTRAS)' \
-	  || $(VENV)/bin/python -m pip install --quiet -e '$(EXTRAS)'
-	$(VENV)/bin/python -m compileall -q -j 0 envs trainers factorq_torch
+	$(VENV)/bin/uv pip install --quiet --python $(VENV)/bin/python --compile-bytecode \
+	  --config-setting editable_mode=strict --reinstall-package factorq-torch -e '$(EXTRAS)' \
+	  || $(VENV)/bin/python -m pip install --quiet --config-settings editable_mode=strict \
+	     -e '$(EXTRAS)'
+	$(VENV)/bin/python -m compileall -q -j 0 envs trainers factorq_torch build/__editable__.*
 	$(VENV)/bin/python -m compileall -q -j 0 -x '/torch/testing/_internal/' \
 	  "$$($(VENV)/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["platlib"])')/torch"
 	touch $(STAMP)

@@ -1,9 +1,8 @@
 """``S`` declared Gymnasium envs (``factorq_envs.gymnasium_adapter.FactorQEnv``) as one torchrl
 env of ``batch_size=(S,)``, built from torchrl's own pieces: ``GymWrapper`` over a Gymnasium
-vector env, or torchrl's ``ParallelEnv``, plus a ``DTypeCastTransform`` (torchrl's
-``GymWrapper`` keeps ``MultiBinary`` as int8; the tables read bool). The specs are torchrl's
-reading of the Gymnasium spaces (``categorical_action_encoding=True``: ``cell``, ``heading`` and
-``action`` categorical).
+vector env, or torchrl's ``ParallelEnv``. The specs are torchrl's reading of the Gymnasium
+spaces (``categorical_action_encoding=True``: ``cell``, ``heading`` and ``action`` categorical;
+the adapter's ``FlagSpace`` sensors and bumps bool, ``factorq_envs.gym_spaces``).
 """
 
 from __future__ import annotations
@@ -15,18 +14,13 @@ from typing import Any
 import gymnasium
 import torch
 from tensordict import TensorDictBase
-from torchrl.envs import (
-    Compose,
-    DTypeCastTransform,
-    ExcludeTransform,
-    GymWrapper,
-    ParallelEnv,
-    TransformedEnv,
-)
+from torchrl.envs import ExcludeTransform, GymWrapper, ParallelEnv, TransformedEnv
 
+from factorq_envs.gym_spaces import register_torchrl_conversions
 from factorq_envs.gymnasium_adapter import FactorQEnv
-from factorq_torch.base import keys
 from factorq_torch.base.validation import check_int
+
+register_torchrl_conversions()  # torchrl reads the adapter's FlagSpace / IndexSpace entries
 
 BACKENDS = ("sync", "async", "parallel")
 
@@ -40,11 +34,7 @@ class DeclaredEnv(TransformedEnv):
     def __init__(
         self, base: Any, local: FactorQEnv, envs: list[FactorQEnv] | None, exclude: Sequence[str]
     ) -> None:
-        binary = [keys.BUMP] if local.declaration.features else [keys.SENSORS, keys.BUMP]
-        transforms = [DTypeCastTransform(torch.int8, torch.bool, in_keys=binary)]
-        if exclude:
-            transforms.append(ExcludeTransform(*exclude))
-        super().__init__(base, Compose(*transforms))
+        super().__init__(base, ExcludeTransform(*exclude) if exclude else None)
         self.config = local.config
         self.declaration = local.declaration
         self.dependency = local.dependency

@@ -2,42 +2,67 @@
 
 A user's env is stepped as it is; a ``Declaration`` says what Factor-Q reads from it:
 
-- ``sensors(observation, info, env) -> [K]`` bool (or float32 features with ``features=True``);
-  ``env`` is the env inside the adapter, for what an env keeps outside its observation (a
-  second observation type, the agent's position);
-- ``collision(reward, info) -> bool`` (or the name of a bool ``info`` key), charged to the chosen
-  actuator unless ``charge(actuator, info) -> actuator`` says otherwise;
-- optionally the task state for tables (``task_state(observation, info, env) -> cell`` or
-  ``(cell, heading)``, with ``num_cells`` and ``num_headings``), the task reward
-  (``task_reward(reward, info) -> float``; default: the env's reward without the collision's
-  part, so that the conventional reward stays the env's own), the actuators (``actions``: the
-  env action of each, ``actuator_names``) and the oracle ``dependency`` ``[A][K]``.
+- ``sensors(step) -> [K]`` bool (or float32 features with ``features=True``);
+- ``collision(step) -> bool`` (or the name of a bool ``info`` key), charged to the chosen
+  actuator unless ``charge(step) -> actuator`` says otherwise;
+- optionally the task state for tables (``task_state(step) -> cell`` or ``(cell, heading)``,
+  with ``num_cells`` and ``num_headings``), the task reward (``task_reward(step) -> float``;
+  default: the env's reward without the collision's part, for an env whose reward holds the
+  penalty), the actuators (``actions``: the env action of each, ``actuator_names``) and the
+  oracle ``dependency`` ``[A][K]``.
+
+Every declared function reads one ``Transition``, the whole step of the env: ``observation``,
+``reward``, ``terminated``, ``truncated`` and ``info`` as the env returned them, ``env`` (the env
+inside the adapter, for what an env keeps outside its observation: a second observation type,
+the agent's position) and ``action`` (the chosen actuator; ``None`` at a reset, where ``reward``
+is 0.0 and ``terminated``/``truncated`` are False). So a hazard that ends the episode with
+reward 0 (FrozenLake's holes, MiniGrid's lava) is one line,
+``collision=lambda step: step.terminated and step.reward == 0``, no wrapper.
+
+**The default task reward never pays for a collision.** It is the env's reward plus the
+penalty on a collision step, right for an env whose reward holds the penalty (MiniGrid's -1,
+CliffWalking's -100); on an env whose reward holds none (a hole worth 0, the goal worth 1) it
+would turn the fall into the goal's +1. So on a collision with the default, the env's reward
+must be at most ``-penalty`` (the task reward then at most 0): otherwise the adapter stops at
+that step (the probing step or the first collision) and says what to declare
+(``task_reward=lambda step: step.reward``: the env's reward is the task's, the collision is the
+penalty beside it).
 
 Two ways in, the same numbers:
 
 - ``FactorQEnv(env, declaration)``: a ``gymnasium.Wrapper`` (and ``RecordConstructorArgs``, so
   Gymnasium's ``check_env`` and ``env.spec`` accept it) whose observation is the env's own
   (its ``Dict`` entries, or ``"observation"``) plus the project's keys: ``cell`` and ``heading``
-  (with a task state), ``sensors`` ``MultiBinary(K)``, ``bump`` ``MultiBinary(A)``,
+  (with a task state, ``IndexSpace``: a ``Discrete``), ``sensors`` and ``bump``
+  (``FlagSpace``: ``MultiBinary(K)``, ``MultiBinary(A)``),
   ``collision`` ``Box(-penalty, 0, (A,))``. Its reward is the conventional one, ``task reward +
-  sum(collision)``; ``info`` adds ``collided`` and ``task_reward``. The env's own wrappers (a
-  ``Dict`` env's observation wrappers) still find their entries.
+  sum(collision)``; ``info`` adds ``collided`` (a bool) and ``task_reward`` (a numpy float32,
+  which torchrl's ``GymEnv`` reads with ``factorq_envs.gymnasium_env.torchrl_info_reader()``).
+  The env's own wrappers (a ``Dict`` env's observation wrappers) still find their entries.
 - ``factorq_envs.declared_env.declared_torchrl_env(make_env, seeds)`` (its own file, so this one
   needs no torchrl): ``S`` of them through torchrl's ``GymWrapper`` over a
   Gymnasium vector env (``backend="sync"`` in-process, ``"async"`` one process per env) or
   torchrl's ``ParallelEnv`` (``"parallel"``), categorical ``cell``/``heading``/``action`` and
-  bool ``sensors``/``bump`` (a ``DTypeCastTransform``), batch ``(S,)``: the keys the tables,
-  ``SplitLocalReward`` and the online collector read. torchrl's ``GymWrapper`` reads the specs
-  from the Gymnasium spaces; nothing here writes a spec by hand.
+  bool ``sensors``/``bump``, batch ``(S,)``: the keys the tables, ``SplitLocalReward`` and the
+  online collector read. torchrl's ``GymWrapper`` reads the specs from the Gymnasium spaces;
+  nothing here writes a spec by hand.
+
+torchrl's own ``GymEnv`` of an id whose entry point returns a ``FactorQEnv`` reads the same
+keys, with no transform: ``IndexSpace`` and ``FlagSpace`` (``factorq_envs.gym_spaces``) tell
+torchrl's Gym reader to give an index ``cell`` and bool flags whatever its
+``categorical_action_encoding``.
 
 Every env of the project states its sizes the same way: ``env.config`` holds the
 ``factorq_envs.protocol.CONFIG_FIELDS`` (``FactoredGridEnv``'s ``WorldConfig``, the adapter's
 ``EnvSizes``), so an agent is built from ``env.config`` whatever the env.
 
-Bad input is refused where it enters, in one message naming it: a non-``Discrete`` action
-space, a declared function that returns the wrong shape or dtype or reads a missing ``info``
-key (one probing reset and step at construction, ``probe=True``), an env id that is not
-registered, an extra that is not installed (``require_extra``).
+Bad input is refused where it enters, in one message naming the env and the field: a
+non-``Discrete`` action space, a declared function that returns the wrong shape, dtype or type
+(a collision that is not a bool, a cell or charged actuator that is not an int, NaN or inf
+features, rewards or task rewards) or reads a missing ``info`` key (one probing reset and step
+at construction, ``probe=True``, then every step), an env whose ``reset``/``step`` returns
+something else than Gymnasium's tuples, an env id that is not registered, an extra that is not
+installed (``require_extra``).
 
 Example (a third-party env would be declared the same way; ``docs/tutorials/own-env.md``
 declares one):
@@ -45,8 +70,9 @@ declares one):
     >>> import gymnasium, numpy as np
     >>> declaration = Declaration(
     ...     num_sensors=1,
-    ...     sensors=lambda obs, info, env: np.array([obs[2] > 0.1]),  # pole leaning right
-    ...     collision=lambda reward, info: False,
+    ...     sensors=lambda step: np.array([step.observation[2] > 0.1]),  # pole leaning right
+    ...     collision=lambda step: step.terminated,  # the pole fell (or the cart left)
+    ...     task_reward=lambda step: step.reward,  # CartPole's +1 holds no penalty
     ...     actuator_names=("left", "right"),
     ... )
     >>> env = FactorQEnv(gymnasium.make("CartPole-v1"), declaration)
@@ -61,6 +87,7 @@ import importlib
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from numbers import Real
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
@@ -69,9 +96,10 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.utils import RecordConstructorArgs
 
+from factorq_envs.gym_spaces import FlagSpace, IndexSpace, register_if_torchrl_loaded
 from factorq_envs.protocol import EnvSizes
 from factorq_torch.base import keys
-from factorq_torch.base.validation import check_int
+from factorq_torch.base.validation import check_int, is_int
 
 if TYPE_CHECKING:
     import torch
@@ -112,26 +140,56 @@ def _callable_or_none(name: str, value: object) -> None:
         raise TypeError(f"Declaration.{name} must be callable or None, got {value!r}")
 
 
+@dataclass(frozen=True, slots=True)
+class Transition:
+    """One step of the env, as every declared function reads it (``step`` in the examples).
+
+    Attributes:
+        observation: the env's own observation after the step (or the reset).
+        reward: the env's own reward of the step, a finite float (0.0 at a reset).
+        terminated, truncated: the env's own flags (False at a reset).
+        info: the env's own ``info`` of the step (or the reset; ``{}`` when it gives none).
+        env: the env inside the adapter (what it keeps outside its observation: MiniGrid's
+            ``agent_pos``, highway's second observation type).
+        action: the chosen actuator (``None`` at a reset).
+    """
+
+    observation: Any
+    reward: float
+    terminated: bool
+    truncated: bool
+    info: Mapping[str, Any]
+    env: gymnasium.Env
+    action: int | None = None
+
+
 @dataclass(frozen=True)
 class Declaration:
     """What Factor-Q reads from a Gymnasium env (module docstring); the env itself is not part
     of it, so one declaration serves every env of a family (MiniGrid's sizes, highway's ids).
+    Every function reads the step as one ``Transition`` (``step.observation``, ``step.reward``,
+    ``step.terminated``, ``step.truncated``, ``step.info``, ``step.env``, ``step.action``).
 
     Args:
         num_sensors: ``K``, the length of what ``sensors`` returns.
-        sensors: ``(observation, info, env) -> [K]`` bool numpy array (float32 features with
-            ``features=True``); ``info`` is ``{}`` at a reset unless the env gives one.
-        collision: ``(reward, info) -> bool``, or the name of a bool ``info`` key.
-        charge: ``(actuator, info) -> actuator`` that pays for a collision; ``None``: the chosen
-            one.
+        sensors: ``step -> [K]`` bool numpy array (finite float32 features with
+            ``features=True``); at a reset ``step.info`` is the reset's info.
+        collision: ``step -> bool`` (a Python or numpy bool, nothing else), or the name of a
+            bool ``info`` key. A hazard that ends the episode with reward 0:
+            ``lambda step: step.terminated and step.reward == 0``.
+        charge: ``step -> actuator`` (an int) that pays for a collision; ``None``: the chosen
+            one, ``step.action``.
         actions: the env action of each actuator (default: actuator ``a`` is action ``a``).
         actuator_names: one name per actuator (default: the action numbers).
-        task_state: ``(observation, info, env) -> cell`` or ``(cell, heading)`` for tables;
-            ``None``: no ``cell`` in the observation (networks only).
+        task_state: ``step -> cell`` or ``(cell, heading)`` (ints) for tables; ``None``: no
+            ``cell`` in the observation (networks only).
         num_cells, num_headings: the task state's ranges (``num_headings > 1``: ``task_state``
             returns ``(cell, heading)``).
-        task_reward: ``(reward, info) -> float``; ``None``: the env's reward minus the
-            collision vector's sum, so the conventional reward is the env's own.
+        task_reward: ``step -> float``; ``None``: the env's reward plus ``penalty`` on a
+            collision (the env's reward without the collision's part, so the conventional reward
+            is the env's own), only for an env whose reward holds the penalty: a collision whose
+            env reward is above ``-penalty`` is refused, naming what to declare (module
+            docstring).
         dependency: the oracle, ``A`` rows of ``K`` bools (which sensors decide each actuator's
             collision), or ``None`` when nobody states it.
         sensor_names: one name per sensor (default ``s0 ... s{K-1}``).
@@ -143,15 +201,15 @@ class Declaration:
     """
 
     num_sensors: int
-    sensors: Callable[[Any, dict, gymnasium.Env], Any]
-    collision: Callable[[float, dict], bool] | str
-    charge: Callable[[int, dict], int] | None = None
+    sensors: Callable[[Transition], Any]
+    collision: Callable[[Transition], bool] | str
+    charge: Callable[[Transition], int] | None = None
     actions: tuple[int, ...] = ()
     actuator_names: tuple[str, ...] = ()
-    task_state: Callable[[Any, dict, gymnasium.Env], Any] | None = None
+    task_state: Callable[[Transition], Any] | None = None
     num_cells: int = 1
     num_headings: int = 1
-    task_reward: Callable[[float, dict], float] | None = None
+    task_reward: Callable[[Transition], float] | None = None
     dependency: tuple[tuple[bool, ...], ...] | None = None
     sensor_names: tuple[str, ...] = ()
     features: bool = False
@@ -166,12 +224,16 @@ class Declaration:
             raise TypeError(f"Declaration.sensors must be callable, got {self.sensors!r}")
         if not (callable(self.collision) or isinstance(self.collision, str)):
             raise TypeError(
-                f"Declaration.collision must be callable (reward, info) -> bool or an info key, "
+                f"Declaration.collision must be callable (step) -> bool or an info key, "
                 f"got {self.collision!r}"
             )
         for name in ("charge", "task_state", "task_reward"):
             _callable_or_none(name, getattr(self, name))
-        object.__setattr__(self, "actions", tuple(int(a) for a in self.actions))
+        object.__setattr__(
+            self,
+            "actions",
+            tuple(check_int(f"Declaration.actions[{i}]", a, 0) for i, a in enumerate(self.actions)),
+        )
         object.__setattr__(self, "actuator_names", tuple(self.actuator_names))
         if self.actions and self.actuator_names and len(self.actions) != len(self.actuator_names):
             raise ValueError(
@@ -191,26 +253,35 @@ class Declaration:
                     f"rows of lengths {[len(row) for row in rows]}"
                 )
             object.__setattr__(self, "dependency", rows)
-        if not (math.isfinite(self.penalty) and self.penalty > 0):
-            raise ValueError(f"Declaration.penalty={self.penalty!r} must be finite and > 0")
+        if not isinstance(self.features, bool):
+            raise TypeError(f"Declaration.features must be a bool, got {self.features!r}")
+        penalty = self.penalty
+        if isinstance(penalty, bool) or not isinstance(penalty, Real):
+            raise TypeError(
+                f"Declaration.penalty must be a number, got {penalty!r} ({type(penalty).__name__})"
+            )
+        if not (math.isfinite(penalty) and penalty > 0):
+            raise ValueError(f"Declaration.penalty={penalty!r} must be finite and > 0")
+        object.__setattr__(self, "penalty", float(penalty))
 
-    def collided(self, reward: float, info: dict) -> bool:
-        if isinstance(self.collision, str):
-            return bool(info[self.collision])  # a missing key: _call names it
-        return self.collision(reward, info)
+
+def _is_bool(value: object) -> bool:
+    return isinstance(value, bool | np.bool_)
 
 
-def _call(declaration_field: str, function: Callable[..., Any], *args: Any) -> Any:
-    """Call a declared function; a KeyError (a missing info or observation key) becomes one
-    message naming the field and the keys the env's info has."""
-    try:
-        return function(*args)
-    except KeyError as error:
-        info = args[1]  # every declared function takes the info second
-        raise KeyError(
-            f"Declaration.{declaration_field} read the key {error.args[0]!r}, which the env "
-            f"does not provide (its info has {sorted(info)})"
-        ) from None
+def _finite(where: str, what: str, value: object) -> float:
+    """``value`` as a float if it is a finite real number (not a bool), else one ValueError
+    naming ``where`` (the env) and ``what`` (the field)."""
+    if (
+        _is_bool(value)
+        or not isinstance(value, Real | np.number)
+        or isinstance(value, np.complexfloating)
+    ):
+        raise TypeError(f"{where}: {what} must be a finite number, got {value!r}")
+    number = float(value)
+    if not math.isfinite(number):
+        raise ValueError(f"{where}: {what} is {number}: must be finite")
+    return number
 
 
 class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
@@ -244,12 +315,15 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
                 f"{_name(env)} has {env.action_space}"
             )
         self.declaration = declaration
+        self._label = _name(env)
         self._pending_seed = None if seed is None else check_int("seed", seed, 0)
         count = int(env.action_space.n)
         actions = declaration.actions or tuple(range(count))
         bad = [a for a in actions if not 0 <= a < count]
         if bad:
-            raise ValueError(f"Declaration.actions {bad} are not actions of {env.action_space}")
+            raise ValueError(
+                f"{self._label}: Declaration.actions {bad} are not actions of {env.action_space}"
+            )
         self._actions = actions
         names = declaration.actuator_names or tuple(str(a) for a in actions)
         if len(names) != len(actions):
@@ -296,15 +370,16 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
     def _spaces(self, space: spaces.Space) -> dict[str, spaces.Space]:
         declaration, config = self.declaration, self.config
         entries = self._own_entries(space)
+        register_if_torchrl_loaded()  # IndexSpace, FlagSpace: what torchrl reads them as
         if declaration.task_state is not None:
-            entries[keys.CELL] = spaces.Discrete(config.num_cells)
+            entries[keys.CELL] = IndexSpace(config.num_cells)
             if config.num_headings > 1:
-                entries[keys.HEADING] = spaces.Discrete(config.num_headings)
+                entries[keys.HEADING] = IndexSpace(config.num_headings)
         if declaration.features:
             entries[keys.SENSORS] = spaces.Box(-np.inf, np.inf, (config.num_sensors,), np.float32)
         else:
-            entries[keys.SENSORS] = spaces.MultiBinary(config.num_sensors)
-        entries[keys.BUMP] = spaces.MultiBinary(config.num_actuators)
+            entries[keys.SENSORS] = FlagSpace(config.num_sensors)
+        entries[keys.BUMP] = FlagSpace(config.num_actuators)
         entries[keys.COLLISION] = spaces.Box(
             -declaration.penalty, 0.0, (config.num_actuators,), np.float32
         )
@@ -327,47 +402,107 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
     # ---------------------------------------------------------------------------------------
     # Reading the env
 
-    def _sensors(self, observation: Any, info: dict[str, Any]) -> np.ndarray:
+    def _call(self, declaration_field: str, function: Callable[..., Any], step: Transition) -> Any:
+        """Call a declared function on ``step``; a KeyError (a missing info or observation key)
+        becomes one message naming the env, the field and the keys the env's info has."""
+        try:
+            return function(step)
+        except KeyError as error:
+            raise KeyError(
+                f"{self._label}: Declaration.{declaration_field} read the key "
+                f"{error.args[0]!r}, which the env does not provide (its info has "
+                f"{sorted(step.info)})"
+            ) from None
+
+    def _sensors(self, step: Transition) -> np.ndarray:
         declaration = self.declaration
-        value = _call("sensors", declaration.sensors, observation, info, self.env)
-        array = np.asarray(value)
+        array = np.asarray(self._call("sensors", declaration.sensors, step))
         want = np.float32 if declaration.features else np.bool_
         if array.shape != (declaration.num_sensors,) or array.dtype != want:
             raise ValueError(
-                f"Declaration.sensors must return [{declaration.num_sensors}] "
+                f"{self._label}: Declaration.sensors must return [{declaration.num_sensors}] "
                 f"{np.dtype(want).name}, got shape {array.shape} dtype {array.dtype}"
             )
-        return array.astype(np.float32) if declaration.features else array.astype(np.int8)
+        if declaration.features:
+            if not np.isfinite(array).all():
+                raise ValueError(
+                    f"{self._label}: Declaration.sensors returned features {array.tolist()}: "
+                    f"every feature must be finite"
+                )
+            return array
+        return array.astype(np.int8)
 
-    def _task_state(
-        self, task_state: Callable[..., Any], observation: Any, info: dict[str, Any]
-    ) -> tuple[int, int]:
-        declaration = self.declaration
-        state = _call("task_state", task_state, observation, info, self.env)
-        cell, heading = state if declaration.num_headings > 1 else (state, 0)
-        cell, heading = int(cell), int(heading)
-        if not (0 <= cell < declaration.num_cells and 0 <= heading < declaration.num_headings):
-            raise ValueError(
-                f"Declaration.task_state returned cell={cell}, heading={heading}: must be in "
-                f"[0, {declaration.num_cells}) and [0, {declaration.num_headings})"
+    def _index(self, what: str, value: object, size: int) -> int:
+        """``value`` if it is an int in ``[0, size)`` (a numpy integer is one; a float, a bool
+        or NaN is not), else one error naming the env and the field."""
+        if isinstance(value, np.ndarray) and value.shape == () and value.dtype.kind in "iu":
+            value = value.item()
+        if isinstance(value, np.integer):
+            value = int(value)
+        if not is_int(value):
+            raise TypeError(
+                f"{self._label}: Declaration.{what} returned {value!r} "
+                f"({type(value).__name__}): must be an int in [0, {size})"
             )
+        if not 0 <= value < size:
+            raise ValueError(
+                f"{self._label}: Declaration.{what} returned {value}: must be in [0, {size})"
+            )
+        return value
+
+    def _task_state(self, task_state: Callable[..., Any], step: Transition) -> tuple[int, int]:
+        declaration = self.declaration
+        state = self._call("task_state", task_state, step)
+        if declaration.num_headings > 1:
+            if not (isinstance(state, tuple | list) and len(state) == 2):
+                raise TypeError(
+                    f"{self._label}: Declaration.task_state returned {state!r}: with "
+                    f"num_headings={declaration.num_headings} it must return (cell, heading)"
+                )
+            cell, heading = state
+        else:
+            cell, heading = state, 0
+        cell = self._index("task_state (the cell)", cell, declaration.num_cells)
+        heading = self._index("task_state (the heading)", heading, declaration.num_headings)
         return cell, heading
 
-    def _observe(
-        self, observation: Any, info: dict[str, Any], charged: int | None
-    ) -> dict[str, Any]:
-        config = self.config
+    def _collided(self, step: Transition) -> bool:
+        collision = self.declaration.collision
+        if isinstance(collision, str):
+            if collision not in step.info:
+                raise KeyError(
+                    f"{self._label}: Declaration.collision read the key {collision!r}, which the "
+                    f"env does not provide (its info has {sorted(step.info)})"
+                )
+            value, what = step.info[collision], f"collision (info[{collision!r}])"
+        else:
+            value, what = self._call("collision", collision, step), "collision"
+        if not _is_bool(value):
+            raise TypeError(
+                f"{self._label}: Declaration.{what} returned {value!r} "
+                f"({type(value).__name__}): must be a bool"
+            )
+        return bool(value)
+
+    def _observe(self, step: Transition, charged: int | None) -> dict[str, Any]:
+        config, observation = self.config, step.observation
         if isinstance(observation, dict):
+            missing = [name for name in self._own_keys if name not in observation]
+            if missing:
+                raise ValueError(
+                    f"{self._label}: the env's observation lacks the entries {missing} of its "
+                    f"observation space"
+                )
             out = {name: observation[name] for name in self._own_keys}
         else:
             out = {OBSERVATION: observation}
         task_state = self.declaration.task_state
         if task_state is not None:
-            cell, heading = self._task_state(task_state, observation, info)
+            cell, heading = self._task_state(task_state, step)
             out[keys.CELL] = cell
             if config.num_headings > 1:
                 out[keys.HEADING] = heading
-        out[keys.SENSORS] = self._sensors(observation, info)
+        out[keys.SENSORS] = self._sensors(step)
         bump = np.zeros(config.num_actuators, dtype=np.int8)
         collision = np.zeros(config.num_actuators, dtype=np.float32)
         if charged is not None:
@@ -386,40 +521,91 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
         if seed is None and self._pending_seed is not None:
             seed = self._pending_seed
         self._pending_seed = None
-        observation, info = self.env.reset(seed=seed, options=options)
-        info = dict(info, collided=False, task_reward=0.0)
-        return self._observe(observation, info, None), info
+        returned = self.env.reset(seed=seed, options=options)
+        if not (isinstance(returned, tuple) and len(returned) == 2):
+            raise TypeError(
+                f"{self._label}: reset() returned {_shape_of(returned)}: a Gymnasium env's "
+                f"reset returns (observation, info)"
+            )
+        observation, info = returned
+        info = self._info("reset", info)
+        step = Transition(observation, 0.0, False, False, info, self.env, None)
+        # task_reward a numpy scalar: torchrl's info reader (torchrl_info_reader) reads numpy
+        info = dict(info, collided=False, task_reward=np.float32(0.0))
+        return self._observe(step, None), info
 
     def step(self, action: Any) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
         if isinstance(action, np.ndarray) and action.shape == ():
             action = action.item()
         count = self.config.num_actuators
         if isinstance(action, bool | np.bool_) or not isinstance(action, int | np.integer):
-            raise TypeError(f"action must be an int in [0, {count - 1}], got {action!r}")
+            raise TypeError(
+                f"{self._label}: action must be an int in [0, {count - 1}], got {action!r}"
+            )
         actuator = int(action)
         if not 0 <= actuator < count:
             names = ", ".join(f"{i} {n}" for i, n in enumerate(self.config.actuator_names))
             raise ValueError(
-                f"action={actuator} is out of range: must be in [0, {count}) ({names})"
+                f"{self._label}: action={actuator} is out of range: must be in [0, {count}) "
+                f"({names})"
             )
         declaration = self.declaration
-        observation, reward, terminated, truncated, info = self.env.step(self._actions[actuator])
-        collided = bool(_call("collision", declaration.collided, reward, info))
+        returned = self.env.step(self._actions[actuator])
+        if not (isinstance(returned, tuple) and len(returned) == 5):
+            raise TypeError(
+                f"{self._label}: step() returned {_shape_of(returned)}: a Gymnasium env's step "
+                f"returns (observation, reward, terminated, truncated, info)"
+            )
+        observation, reward, terminated, truncated, info = returned
+        reward = _finite(self._label, "the env's reward", reward)
+        for name, flag in (("terminated", terminated), ("truncated", truncated)):
+            if not _is_bool(flag):
+                raise TypeError(
+                    f"{self._label}: step() returned {name}={flag!r} "
+                    f"({type(flag).__name__}): must be a bool"
+                )
+        info = self._info("step", info)
+        step = Transition(
+            observation, reward, bool(terminated), bool(truncated), info, self.env, actuator
+        )
+        collided = self._collided(step)
         charged = None
         if collided:
-            charged = actuator if declaration.charge is None else declaration.charge(actuator, info)
-            if not 0 <= int(charged) < count:
-                raise ValueError(f"Declaration.charge returned {charged}: not in [0, {count})")
+            charged = actuator
+            if declaration.charge is not None:
+                charged = self._index(
+                    "charge", self._call("charge", declaration.charge, step), count
+                )
         penalty = declaration.penalty if collided else 0.0
         if declaration.task_reward is None:
-            task = float(reward) + penalty
-            conventional = float(reward)  # the env's own, exactly
+            task = reward + penalty
+            if collided and task > 1e-9 * max(1.0, penalty):  # rounding is no reward
+                raise ValueError(
+                    f"{self._label}: a collision with the env's reward {reward!r}: the default "
+                    f"task reward (the env's reward + penalty {penalty!r} = {task!r}) would pay "
+                    f"for it, as the env's reward holds no penalty of {penalty!r}. Declare "
+                    f"task_reward=lambda step: step.reward (the env's reward is the task's, the "
+                    f"collision is the penalty beside it), or the penalty the env's reward holds"
+                )
+            conventional = reward  # the env's own, exactly
         else:
-            task = float(_call("task_reward", declaration.task_reward, reward, info))
+            task = _finite(
+                self._label,
+                "Declaration.task_reward's result",
+                self._call("task_reward", declaration.task_reward, step),
+            )
             conventional = task - penalty
-        info = dict(info, collided=collided, task_reward=task)
-        out = self._observe(observation, info, charged)
-        return out, conventional, bool(terminated), bool(truncated), info
+        info = dict(info, collided=collided, task_reward=np.float32(task))
+        out = self._observe(step, charged)
+        return out, conventional, step.terminated, step.truncated, info
+
+    def _info(self, where: str, info: object) -> dict[str, Any]:
+        if not isinstance(info, Mapping):
+            raise TypeError(
+                f"{self._label}: {where}() returned info={info!r} ({type(info).__name__}): "
+                f"must be a dict"
+            )
+        return dict(info)
 
     def _probe(self) -> None:
         """One reset and one step (actuator 0), checking every declared function; the seed of
@@ -427,9 +613,17 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
         pending = self._pending_seed
         observation, info = self.reset()
         if observation not in self.observation_space:
-            raise ValueError(f"the adapter's observation is not in its space: {observation}")
+            raise ValueError(
+                f"{self._label}: the adapter's observation is not in its space: {observation}"
+            )
         self.step(0)
         self._pending_seed = pending
+
+
+def _shape_of(value: object) -> str:
+    if isinstance(value, tuple):
+        return f"a tuple of {len(value)}"
+    return f"{type(value).__name__} {value!r}"[:80]
 
 
 def _name(env: gymnasium.Env) -> str:

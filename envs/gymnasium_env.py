@@ -18,6 +18,7 @@ import torch
 from gymnasium import spaces
 
 from factorq_envs.grid_world import FactoredGrid, WorldConfig, static_layout
+from factorq_envs.gym_spaces import FlagSpace, IndexSpace, register_if_torchrl_loaded
 from factorq_envs.protocol import check_world, optional_method
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 from factorq_torch.base.validation import check_int
@@ -34,7 +35,10 @@ class FactoredGridGym(gymnasium.Env):
             read from its config (``cell``: ``Discrete(num_cells)``, ``sensors``:
             ``MultiBinary(num_sensors)``, ``heading`` when ``num_headings > 1``, ``bump``:
             ``MultiBinary(num_actuators)``, the world's extra observations; action
-            ``Discrete(num_actuators)``).
+            ``Discrete(num_actuators)``). The index entries are ``IndexSpace`` and the flags
+            ``FlagSpace`` (``factorq_envs.gym_spaces``): torchrl's ``GymEnv`` reads them as a
+            categorical ``cell`` and bool sensors, so ``SplitLocalReward`` and the tables take
+            ``GymEnv("FactoredGrid-v0")`` with no transform.
         size, num_obstacles, obstacle_period, max_steps, layout_seed: as ``WorldConfig``
             (``obstacle_period``: 0 static, 10 semi-dynamic, 1 dynamic).
         body, sensors, num_distractors, sensor_permutation, sensor_noise, actuator_noise: the
@@ -127,18 +131,21 @@ class FactoredGridGym(gymnasium.Env):
         self.periods = torch.tensor([obstacle_period], dtype=torch.int64)  # [1]
         self.world_state = self.world.initial_state(1)
         self._collision = np.zeros(config.num_actuators, dtype=np.float32)
+        # IndexSpace and FlagSpace: torchrl's GymEnv reads a categorical cell and bool flags
+        # (factorq_envs.gym_spaces), Gymnasium and SB3 a Discrete and a MultiBinary
+        register_if_torchrl_loaded()
         entries = {
-            "cell": spaces.Discrete(config.num_cells),
-            "sensors": spaces.MultiBinary(config.num_sensors),
-            "bump": spaces.MultiBinary(config.num_actuators),
+            "cell": IndexSpace(config.num_cells),
+            "sensors": FlagSpace(config.num_sensors),
+            "bump": FlagSpace(config.num_actuators),
             # the collision vector (as FactoredGridEnv's), so that torchrl's GymEnv composes with
             # SplitLocalReward; info["local_reward"] keeps it for gymnasium users
             "collision": spaces.Box(-1.0, 0.0, (config.num_actuators,), np.float32),
         }
         if config.num_headings > 1:
-            entries["heading"] = spaces.Discrete(config.num_headings)
+            entries["heading"] = IndexSpace(config.num_headings)
         for name, value in self._extra_observations(None).items():
-            entries[name] = spaces.MultiBinary(value.shape[-1])
+            entries[name] = FlagSpace(value.shape[-1])
         self.observation_space = spaces.Dict(entries)
         self.action_space = spaces.Discrete(config.num_actuators)
         self._seed_world(0)

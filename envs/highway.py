@@ -23,9 +23,12 @@ the horizon; highway quantises the time to collision to whole seconds up and dow
 
 **Collision**: ``info["crashed"]``, charged to the chosen action. **Rewards**: highway's reward
 is normalised, ``(0.1 right_lane + 0.4 high_speed - 1 crashed + 1) / 1.5``, times ``on_road``;
-a crash takes ``1 / 1.5`` off it. So the declared ``penalty`` is ``2/3`` and the default task
-reward (the env's reward plus the penalty on a crash) is highway's reward without its collision
-term; the conventional reward (task + collision vector) is highway's own, exactly as it was.
+a crash takes ``1 / 1.5`` off it. So the declared ``penalty`` is ``2/3`` and the declared
+``task_reward`` (highway's reward plus the penalty on a crash) is highway's reward without its
+collision term; the conventional reward (task + collision vector) is highway's own (on a crash
+to rounding: ``(r + 2/3) - 2/3``). It is declared, not the adapter's default: a crash still earns
+highway's normalised reward ``>= 0``, where the default needs an env reward of at most
+``-penalty`` on a collision, so that it never pays for one.
 
 **The oracle** (``ORACLE``, what we believe before any data): a lane change is decided by the
 lane it moves to (LANE_LEFT by the left lane, LANE_RIGHT by the right lane, near and far), and
@@ -40,10 +43,15 @@ from __future__ import annotations
 from types import ModuleType
 from typing import Any
 
-import gymnasium
 import numpy as np
 
-from factorq_envs.gymnasium_adapter import Declaration, FactorQEnv, make_registered, require_extra
+from factorq_envs.gymnasium_adapter import (
+    Declaration,
+    FactorQEnv,
+    Transition,
+    make_registered,
+    require_extra,
+)
 
 #: The optional extra that installs highway-env.
 EXTRA = "factorq-torch[highway]"
@@ -81,11 +89,11 @@ def require_highway() -> ModuleType:
     return require_extra("highway_env", EXTRA)
 
 
-def ttc_sensors(observation: Any, info: dict[str, Any], env: gymnasium.Env) -> np.ndarray:
+def ttc_sensors(step: Transition) -> np.ndarray:
     """``[6]`` bool from highway's ``TimeToCollisionObservation`` of the env (module docstring)."""
     from highway_env.envs.common.observation import TimeToCollisionObservation
 
-    grid = TimeToCollisionObservation(env.unwrapped, horizon=HORIZON_S).observe()  # [3, 3, T]
+    grid = TimeToCollisionObservation(step.env.unwrapped, horizon=HORIZON_S).observe()  # [3, 3, T]
     current = grid[1]  # the current ego speed: [lanes (left, current, right), time bins]
     # a collision predicted in time bin t (t s up or down): within h s is bins 0..h
     near = (current[:, : NEAR_S + 1] > 0).any(axis=1)
@@ -93,10 +101,18 @@ def ttc_sensors(observation: Any, info: dict[str, Any], env: gymnasium.Env) -> n
     return np.stack([near, far], axis=1).reshape(-1)  # left<1, left<3, front<1, ...
 
 
+def task_reward(step: Transition) -> float:
+    """highway's reward without its crash term: its reward plus ``PENALTY`` on a crash (a crash
+    still earns highway's normalised reward ``>= 0``, so the adapter's default, which needs an
+    env reward of at most ``-penalty`` on a collision, cannot see the penalty in it)."""
+    return step.reward + PENALTY if step.info["crashed"] else step.reward
+
+
 DECLARATION = Declaration(
     num_sensors=len(SENSOR_NAMES),
     sensors=ttc_sensors,
     collision="crashed",
+    task_reward=task_reward,
     actuator_names=ACTUATOR_NAMES,
     dependency=ORACLE,
     sensor_names=SENSOR_NAMES,

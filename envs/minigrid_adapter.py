@@ -72,7 +72,7 @@ import numpy as np
 import torch
 
 from factorq_envs.body import HEADING, NUM_HEADINGS, SensorLayout, base_dependency
-from factorq_envs.gymnasium_adapter import Declaration, FactorQEnv, require_extra
+from factorq_envs.gymnasium_adapter import Declaration, FactorQEnv, Transition, require_extra
 
 #: The optional extra that installs MiniGrid.
 EXTRA = "factorq-torch[minigrid]"
@@ -119,7 +119,8 @@ def require_minigrid() -> ModuleType:
 def env_id(size: int) -> str:
     """The gymnasium id of the Dynamic-Obstacles world of side ``size``."""
     if size not in SIZES:
-        raise ValueError(f"size={size!r} is not a Dynamic-Obstacles size: choose one of {SIZES}")
+        sizes = ", ".join(map(str, SIZES))
+        raise ValueError(f"size={size!r} is not a Dynamic-Obstacles size: choose one of {sizes}")
     return f"MiniGrid-Dynamic-Obstacles-{size}x{size}-v0"
 
 
@@ -152,26 +153,20 @@ def sensor_names(layout: str = "front3") -> tuple[str, ...]:
     return check_layout(layout).names(HEADING)
 
 
-def _blocked_cells(
-    cells: np.ndarray, observation: dict[str, Any], info: dict[str, Any], env: gym.Env
-) -> np.ndarray:
+def _blocked_cells(cells: np.ndarray, step: Transition) -> np.ndarray:
     """The view cells ``cells`` ``[K, 2]`` that hold a wall or a ball, ``[K]`` bool."""
-    kinds = observation["image"][cells[:, 0], cells[:, 1], 0]
+    kinds = step.observation["image"][cells[:, 0], cells[:, 1], 0]
     return (kinds == BLOCKING["wall"]) | (kinds == BLOCKING["ball"])
 
 
-def _cell_and_heading(
-    size: int,
-    observation: dict[str, Any],
-    info: dict[str, Any],
-    env: Any,  # MiniGrid's
-) -> tuple[int, int]:
-    x, y = env.unwrapped.agent_pos
-    return int(y) * size + int(x), minigrid_heading(int(observation["direction"]))
+def _cell_and_heading(size: int, step: Transition) -> tuple[int, int]:
+    minigrid: Any = step.env.unwrapped
+    x, y = minigrid.agent_pos
+    return int(y) * size + int(x), minigrid_heading(int(step.observation["direction"]))
 
 
-def _collided(reward: float, info: dict) -> bool:
-    return reward < 0  # only a collision gives MiniGrid a negative reward
+def _collided(step: Transition) -> bool:
+    return step.reward < 0  # only a collision gives MiniGrid a negative reward
 
 
 def declaration(size: int, layout: str = "front3") -> Declaration:

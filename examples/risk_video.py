@@ -52,9 +52,9 @@ def record(path: str = "risk.gif", *, size: int = 6, steps: int = 3000, seed: in
     world = dict(size=size, num_obstacles=6, obstacle_period=1, batch_size=(1,))
     env = TransformedEnv(FactoredGridEnv(**world, seed=seed), SplitLocalReward(keep_reward=True))
     spec = env.action_spec_unbatched
-    features = TensorDictModule(Features(size * size), ["cell", "sensors"], ["observation"])
+    features = TensorDictModule(Features(size * size), ["cell", "sensors"], ["q_input"])
     network = MLP(in_features=size * size + 4, out_features=4, num_cells=[64, 64])
-    head = TensorDictModule(network, ["observation"], ["action_value"])
+    head = TensorDictModule(network, ["q_input"], ["action_value"])
     actor = QValueActor(TensorDictSequential(features, head), in_keys=["cell"], spec=spec)
     provider = LocalRewardTable(1, dependency=env.base_env.dependency)
     acting = with_local_risk(actor, provider, env=env)  # the layer: line 1

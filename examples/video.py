@@ -5,7 +5,8 @@ write it as an animated GIF with Pillow (installed with matplotlib; no video cod
 Run: ``.venv/bin/python examples/video.py [OUT.gif]`` (a few seconds). The frames are the
 gymnasium env's ``rgb_array`` pictures: walls grey, obstacles black, the goal green, the agent
 blue, the face that bumped on the last step red. For an MP4 instead, gymnasium's
-``RecordVideo`` (with ``moviepy``) or torchrl's ``VideoRecorder`` take the same frames.
+``RecordVideo`` (with ``moviepy``: the ``video`` extra, ``pip install 'factorq-torch[video]'``)
+or torchrl's ``VideoRecorder`` take the same frames.
 """
 
 from __future__ import annotations

@@ -320,7 +320,7 @@ def test_gymnasium_rgb_array_frames_show_the_world_and_pass_the_env_checker():
 
 
 def test_gymnasium_record_video_writes_a_clip(tmp_path):
-    pytest.importorskip("moviepy", reason="gymnasium's RecordVideo writes with moviepy")
+    pytest.importorskip("moviepy", reason="RecordVideo writes with moviepy (the video extra)")
     import gymnasium
     from gymnasium.wrappers import RecordVideo
 

@@ -163,3 +163,19 @@ def test_ctrl_c_stops_a_real_run_cleanly_with_exit_130(tmp_path):
     assert b"interrupted" in err
     assert b"Traceback" not in err + out_text
     assert not (out / "results.json").exists()
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        ("risk --worlds mars", "--worlds=mars is unknown: choose one or more of grid, minigrid, "),
+        ("risk --methods foo,dqn", "--methods=foo is unknown: choose one or more of dqn, "),
+    ],
+)
+def test_a_bad_choice_names_the_choices_as_words(argv, words, capsys, tmp_path):
+    """Choices are printed as words, never as a Python tuple (issue 38)."""
+    from factorq_trainers import cli
+
+    assert cli.main([*argv.split(), "--out", str(tmp_path / "out")]) == 2
+    error = capsys.readouterr().err
+    assert words in error and "('" not in error and "')" not in error

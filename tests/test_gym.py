@@ -166,9 +166,10 @@ def test_bad_constructor_argument_raises_naming_it(kwargs, error, message):
 
 def test_torchrl_gym_env_composes_with_split_local_reward_and_the_tables():
     """torchrl's own GymEnv of "FactoredGrid-v0" feeds the project's agent: categorical cell,
-    bool sensors (a dtype cast), the collision observation split by SplitLocalReward, the task
-    reward read from info with its declared spec; the split equals the world's own."""
-    from torchrl.envs import Compose, DTypeCastTransform, GymEnv, TransformedEnv
+    bool sensors (no transform: factorq_envs.gym_spaces), the collision observation split by
+    SplitLocalReward, the task reward read from info with its declared spec; the split equals the
+    world's own."""
+    from torchrl.envs import GymEnv, TransformedEnv
     from torchrl.envs.utils import check_env_specs
 
     from factorq_envs.gymnasium_env import torchrl_info_reader
@@ -177,10 +178,7 @@ def test_torchrl_gym_env_composes_with_split_local_reward_and_the_tables():
 
     env = GymEnv("FactoredGrid-v0", size=3, num_obstacles=0, categorical_action_encoding=True)
     env.set_info_dict_reader(torchrl_info_reader())
-    binary = ["sensors", "proximity", "bump"]
-    env = TransformedEnv(
-        env, Compose(DTypeCastTransform(torch.int8, torch.bool, in_keys=binary), SplitLocalReward())
-    )
+    env = TransformedEnv(env, SplitLocalReward())
     check_env_specs(env)
     td = env.reset()
     assert td["cell"].dtype == torch.int64 and td["cell"].shape == ()

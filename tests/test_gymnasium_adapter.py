@@ -8,6 +8,8 @@ declared collision is falling into a hole, the sensors are the holes around the 
 
 from __future__ import annotations
 
+import dataclasses
+
 import gymnasium
 import numpy as np
 import pytest
@@ -27,48 +29,37 @@ def _hole(row: int, col: int) -> bool:
     return 0 <= row < 4 and 0 <= col < 4 and LAKE[row][col] == "H"
 
 
-def hole_sensors(observation, info, env) -> np.ndarray:
+def hole_sensors(step) -> np.ndarray:
     """One sensor per action: a hole in that direction (off the map is no hole)."""
-    row, col = divmod(int(observation), 4)
+    row, col = divmod(int(step.observation), 4)
     return np.array([_hole(row + dr, col + dc) for dr, dc in MOVES])
 
 
-def fell(reward: float, info: dict) -> bool:
-    return bool(info.get("fell", False))
-
-
-class MarkHoles(gymnasium.Wrapper, gymnasium.utils.RecordConstructorArgs):
-    """FrozenLake's info says nothing about holes: this puts ``fell`` in it (the user's side)."""
-
-    def __init__(self, env):
-        gymnasium.utils.RecordConstructorArgs.__init__(self)
-        gymnasium.Wrapper.__init__(self, env)
-
-    def step(self, action):
-        observation, reward, terminated, truncated, info = self.env.step(action)
-        row, col = divmod(int(observation), 4)
-        return observation, reward, terminated, truncated, dict(info, fell=LAKE[row][col] == "H")
+def fell(step) -> bool:
+    """FrozenLake's hole ends the episode with reward 0 (its goal with 1): read from the step."""
+    return step.terminated and step.reward == 0
 
 
 DECLARATION = Declaration(
     num_sensors=4,
     sensors=hole_sensors,
     collision=fell,
+    task_reward=lambda step: step.reward,  # FrozenLake's reward holds no penalty
     actuator_names=("left", "down", "right", "up"),
-    task_state=lambda observation, info, env: int(observation),
+    task_state=lambda step: step.observation,
     num_cells=16,
     dependency=tuple(tuple(a == k for k in range(4)) for a in range(4)),
 )
 
 
 def make_lake(seed: int | None = None, declaration: Declaration = DECLARATION) -> FactorQEnv:
-    env = MarkHoles(gymnasium.make("FrozenLake-v1", is_slippery=False))
-    return FactorQEnv(env, declaration, seed=seed)
+    return FactorQEnv(gymnasium.make("FrozenLake-v1", is_slippery=False), declaration, seed=seed)
 
 
 def test_a_hand_worked_episode():
     """From the start (cell 0): right to 1 (hole below it), down into the hole at 5: collision
-    charged to 'down', task reward 0 + the default penalty put back, episode over."""
+    charged to 'down', task reward FrozenLake's 0, conventional reward 0 - 1, episode over; no
+    wrapper: the hole is read from the step's ``terminated`` and reward."""
     env = make_lake()
     observation, info = env.reset(seed=0)
     assert observation[keys.CELL] == 0 and observation[keys.SENSORS].tolist() == [0, 0, 0, 0]
@@ -81,9 +72,70 @@ def test_a_hand_worked_episode():
     assert terminated and info["collided"] is True
     assert observation[keys.BUMP].tolist() == [0, 1, 0, 0]
     assert observation[keys.COLLISION].tolist() == [0.0, -1.0, 0.0, 0.0]
-    assert reward == 0.0  # the conventional reward is FrozenLake's own
-    assert info["task_reward"] == 1.0  # its reward without the collision's part (default)
+    assert info["task_reward"] == 0.0  # the declared task reward: FrozenLake's own
+    assert reward == -1.0  # the conventional reward: task + collision
     assert observation["observation"] == 5  # the env's own observation passes through
+
+
+def test_every_declared_function_reads_the_whole_step():
+    """One ``Transition`` per reset and step: the env's own observation, reward, flags and info,
+    the env inside the adapter and the chosen actuator (``None``, reward 0 at a reset)."""
+    seen = []
+
+    def sensors(step):
+        seen.append(step)
+        return hole_sensors(step)
+
+    env = make_lake(declaration=dataclasses.replace(DECLARATION, sensors=sensors))
+    seen.clear()  # the probe's reset and step
+    env.reset(seed=0)
+    env.step(2)  # right, to cell 1
+    env.step(1)  # down, into the hole at 5
+    reset, right, down = seen
+    assert (reset.observation, reset.reward, reset.action) == (0, 0.0, None)
+    assert (reset.terminated, reset.truncated) == (False, False) and reset.env is env.env
+    assert (right.observation, right.reward, right.terminated, right.action) == (1, 0.0, False, 2)
+    assert (down.observation, down.reward, down.terminated, down.truncated) == (5, 0.0, True, False)
+    assert down.action == 1 and down.info == {"prob": 1.0}  # FrozenLake's own info
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        down.reward = 1.0
+
+
+def test_the_default_task_reward_never_pays_for_a_collision():
+    """FrozenLake's hole is worth 0 and its goal 1: the default task reward (the env's reward +
+    the penalty on a collision) would make a fall worth +1, the goal's reward. The adapter stops
+    at the first fall (or at the probing step, when the probe falls) and names what to declare."""
+    without = dataclasses.replace(DECLARATION, task_reward=None)
+    env = make_lake(declaration=without)  # the probe (left, at the start) does not fall
+    env.reset(seed=0)
+    env.step(2)
+    message = (
+        r"FrozenLake-v1: a collision with the env's reward 0.0: the default task reward \(the "
+        r"env's reward \+ penalty 1.0 = 1.0\) would pay for it.*Declare task_reward=lambda step: "
+        r"step.reward"
+    )
+    with pytest.raises(ValueError, match=message):
+        env.step(1)
+    hole_on_the_left = gymnasium.make("FrozenLake-v1", desc=["HSFG"], is_slippery=False)
+    with pytest.raises(ValueError, match=message):
+        FactorQEnv(hole_on_the_left, without)  # the probe steps left, into the hole
+    # an env whose reward holds the penalty keeps the default: the fall's -1 is the collision
+    penalised = dataclasses.replace(without, collision=lambda step: step.reward < 0)
+    env = FactorQEnv(_PenalisedLake(gymnasium.make("FrozenLake-v1", is_slippery=False)), penalised)
+    env.reset(seed=0)
+    env.step(2)
+    observation, reward, terminated, _, info = env.step(1)
+    assert (reward, info["task_reward"], terminated) == (-1.0, 0.0, True)
+    assert observation[keys.COLLISION].tolist() == [0.0, -1.0, 0.0, 0.0]
+
+
+class _PenalisedLake(gymnasium.Wrapper):
+    """FrozenLake whose hole costs -1: an env whose reward holds the penalty."""
+
+    def step(self, action):
+        observation, reward, terminated, truncated, info = self.env.step(action)
+        hole = terminated and reward == 0
+        return observation, -1.0 if hole else reward, terminated, truncated, info
 
 
 def test_a_declared_task_reward_and_charge():
@@ -93,8 +145,8 @@ def test_a_declared_task_reward_and_charge():
         num_sensors=4,
         sensors=hole_sensors,
         collision=fell,
-        task_reward=lambda reward, info: 10.0 * reward,
-        charge=lambda actuator, info: 0,
+        task_reward=lambda step: 10.0 * step.reward,
+        charge=lambda step: 0,
         penalty=2.0,
     )
     env = make_lake(declaration=declaration)
@@ -145,8 +197,8 @@ def test_first_reset_uses_the_seed():
 def _cartpole_declaration() -> Declaration:
     return Declaration(
         num_sensors=1,
-        sensors=lambda obs, info, env: np.array([obs[2] > 0]),
-        collision=lambda reward, info: False,
+        sensors=lambda step: np.array([step.observation[2] > 0]),
+        collision=lambda step: False,
     )
 
 
@@ -193,7 +245,7 @@ def test_highway_style_info_key_collision():
     construction (the probe), naming the key and what the info has."""
     declaration = Declaration(
         num_sensors=1,
-        sensors=lambda obs, info, env: np.array([False]),
+        sensors=lambda step: np.array([False]),
         collision="crashed",
     )
     with pytest.raises(KeyError, match=r"collision read the key 'crashed'.*info has \[\]"):
@@ -203,13 +255,13 @@ def test_highway_style_info_key_collision():
 @pytest.mark.parametrize(
     "sensors, message",
     [
-        (lambda obs, info, env: np.array([True, False]), r"\[1\] bool, got shape \(2,\)"),
-        (lambda obs, info, env: np.array([1]), r"\[1\] bool, got shape \(1,\) dtype int64"),
-        (lambda obs, info, env: info["missing"], r"sensors read the key 'missing'"),
+        (lambda step: np.array([True, False]), r"\[1\] bool, got shape \(2,\)"),
+        (lambda step: np.array([1]), r"\[1\] bool, got shape \(1,\) dtype int64"),
+        (lambda step: step.info["missing"], r"sensors read the key 'missing'"),
     ],
 )
 def test_a_bad_sensors_function_is_refused_at_construction(sensors, message):
-    declaration = Declaration(num_sensors=1, sensors=sensors, collision=lambda reward, info: False)
+    declaration = Declaration(num_sensors=1, sensors=sensors, collision=lambda step: False)
     with pytest.raises((ValueError, KeyError), match=message):
         FactorQEnv(gymnasium.make("CartPole-v1"), declaration)
 
@@ -239,13 +291,15 @@ def test_other_bad_input_names_the_problem():
         )
     with pytest.raises(TypeError, match="Declaration.collision must be callable"):
         Declaration(num_sensors=1, sensors=declaration.sensors, collision=3)
-    with pytest.raises(ValueError, match="task_state returned cell=16"):
+    with pytest.raises(
+        ValueError, match=r"FrozenLake-v1: Declaration.task_state \(the cell\) returned 16"
+    ):
         make_lake(
             declaration=Declaration(
                 num_sensors=4,
                 sensors=hole_sensors,
                 collision=fell,
-                task_state=lambda observation, info, env: 16,
+                task_state=lambda step: 16,
                 num_cells=16,
             )
         )
@@ -348,3 +402,185 @@ def test_a_partial_step_is_refused():
     td["_step"] = torch.tensor([[True], [False]])
     with pytest.raises(NotImplementedError, match="'_step' mask"):
         env.step(td)
+
+
+# -------------------------------------------------------------------------------------------
+# Values at the library edge (issue 41): each refused in one line naming the env and the field
+
+
+class _Altered(gymnasium.Wrapper):
+    """CartPole whose reset or step returns are altered by ``reset_as`` / ``step_as``."""
+
+    def __init__(self, reset_as=None, step_as=None):
+        super().__init__(gymnasium.make("CartPole-v1"))
+        self.reset_as, self.step_as = reset_as, step_as
+
+    def reset(self, **kwargs):
+        returned = self.env.reset(**kwargs)
+        return returned if self.reset_as is None else self.reset_as(*returned)
+
+    def step(self, action):
+        returned = self.env.step(action)
+        return returned if self.step_as is None else self.step_as(*returned)
+
+
+def _pole(**fields) -> Declaration:
+    fields.setdefault("sensors", lambda step: np.array([step.observation[2] > 0]))
+    fields.setdefault("collision", lambda step: False)
+    return Declaration(num_sensors=1, **fields)
+
+
+@pytest.mark.parametrize(
+    "env, declaration, error, message",
+    [
+        # declared values
+        (
+            None,
+            _pole(sensors=lambda step: np.array([np.nan], np.float32), features=True),
+            ValueError,
+            r"CartPole-v1: Declaration.sensors returned features \[nan\]: every feature must be "
+            r"finite",
+        ),
+        (
+            None,
+            _pole(sensors=lambda step: np.array([np.inf], np.float32), features=True),
+            ValueError,
+            r"CartPole-v1: Declaration.sensors returned features \[inf\]",
+        ),
+        (
+            None,
+            _pole(task_state=lambda step: 2.9, num_cells=4),
+            TypeError,
+            r"CartPole-v1: Declaration.task_state \(the cell\) returned 2.9 \(float\): must be an "
+            r"int in \[0, 4\)",
+        ),
+        (
+            None,
+            _pole(task_state=lambda step: float("nan"), num_cells=4),
+            TypeError,
+            r"CartPole-v1: Declaration.task_state \(the cell\) returned nan",
+        ),
+        (
+            None,
+            _pole(task_state=lambda step: (1, 0.5), num_cells=4, num_headings=2),
+            TypeError,
+            r"CartPole-v1: Declaration.task_state \(the heading\) returned 0.5",
+        ),
+        (
+            None,
+            _pole(task_state=lambda step: 1, num_cells=4, num_headings=2),
+            TypeError,
+            r"CartPole-v1: Declaration.task_state returned 1: with num_headings=2 it must return "
+            r"\(cell, heading\)",
+        ),
+        (
+            None,
+            _pole(collision=lambda step: float("nan")),
+            TypeError,
+            r"CartPole-v1: Declaration.collision returned nan \(float\): must be a bool",
+        ),
+        (
+            None,
+            _pole(collision=lambda step: "yes"),
+            TypeError,
+            r"CartPole-v1: Declaration.collision returned 'yes' \(str\): must be a bool",
+        ),
+        (
+            _Altered(step_as=lambda o, r, te, tr, i: (o, r, te, tr, dict(i, hit=1))),
+            _pole(collision="hit"),
+            TypeError,
+            r"CartPole-v1: Declaration.collision \(info\['hit'\]\) returned 1 \(int\): must be a "
+            r"bool",
+        ),
+        (
+            None,
+            _pole(collision=lambda step: True, charge=lambda step: 1.7, task_reward=lambda s: 0.0),
+            TypeError,
+            r"CartPole-v1: Declaration.charge returned 1.7 \(float\): must be an int in \[0, 2\)",
+        ),
+        (
+            None,
+            _pole(collision=lambda step: True, charge=lambda step: None, task_reward=lambda s: 0.0),
+            TypeError,
+            r"CartPole-v1: Declaration.charge returned None \(NoneType\)",
+        ),
+        (
+            None,
+            _pole(collision=lambda step: True, charge=lambda step: 2, task_reward=lambda s: 0.0),
+            ValueError,
+            r"CartPole-v1: Declaration.charge returned 2: must be in \[0, 2\)",
+        ),
+        (
+            None,
+            _pole(task_reward=lambda step: float("nan")),
+            ValueError,
+            r"CartPole-v1: Declaration.task_reward's result is nan: must be finite",
+        ),
+        (
+            None,
+            _pole(task_reward=lambda step: "1"),
+            TypeError,
+            r"CartPole-v1: Declaration.task_reward's result must be a finite number, got '1'",
+        ),
+        # the env's own returns
+        (
+            _Altered(step_as=lambda o, r, te, tr, i: (o, float("nan"), te, tr, i)),
+            _pole(),
+            ValueError,
+            r"CartPole-v1: the env's reward is nan: must be finite",
+        ),
+        (
+            _Altered(step_as=lambda o, r, te, tr, i: (o, -np.inf, te, tr, i)),
+            _pole(),
+            ValueError,
+            r"CartPole-v1: the env's reward is -inf: must be finite",
+        ),
+        (
+            _Altered(reset_as=lambda o, i: o),
+            _pole(),
+            TypeError,
+            r"CartPole-v1: reset\(\) returned ndarray .*: a Gymnasium env's reset returns "
+            r"\(observation, info\)",
+        ),
+        (
+            _Altered(reset_as=lambda o, i: (o, None)),
+            _pole(),
+            TypeError,
+            r"CartPole-v1: reset\(\) returned info=None \(NoneType\): must be a dict",
+        ),
+        (
+            _Altered(step_as=lambda o, r, te, tr, i: (o, r, te or tr, i)),
+            _pole(),
+            TypeError,
+            r"CartPole-v1: step\(\) returned a tuple of 4: a Gymnasium env's step returns "
+            r"\(observation, reward, terminated, truncated, info\)",
+        ),
+        (
+            _Altered(step_as=lambda o, r, te, tr, i: (o, r, "no", tr, i)),
+            _pole(),
+            TypeError,
+            r"CartPole-v1: step\(\) returned terminated='no' \(str\): must be a bool",
+        ),
+    ],
+)
+def test_a_bad_value_is_refused_naming_the_env_and_the_field(env, declaration, error, message):
+    with pytest.raises(error, match=message):
+        FactorQEnv(env or gymnasium.make("CartPole-v1"), declaration)
+
+
+def test_bad_declared_numbers_are_refused_where_they_are_written():
+    sensors = _pole().sensors
+    with pytest.raises(TypeError, match=r"Declaration.penalty must be a number, got '1' \(str\)"):
+        Declaration(num_sensors=1, sensors=sensors, collision="hit", penalty="1")
+    with pytest.raises(TypeError, match=r"Declaration.actions\[0\] must be an int, got 1.9"):
+        Declaration(num_sensors=1, sensors=sensors, collision="hit", actions=(1.9, 0))
+    with pytest.raises(TypeError, match="Declaration.features must be a bool"):
+        Declaration(num_sensors=1, sensors=sensors, collision="hit", features="yes")
+
+
+def test_a_float_action_is_refused_naming_the_env():
+    env = FactorQEnv(gymnasium.make("CartPole-v1"), _pole())
+    env.reset(seed=0)
+    for action in (1.9, np.float64(1.9), np.array(1.9), True):
+        with pytest.raises(TypeError, match=r"CartPole-v1: action must be an int in \[0, 1\]"):
+            env.step(action)

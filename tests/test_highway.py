@@ -46,6 +46,13 @@ def _alone_with_one_vehicle(env, gap: float, speed: float):
     return ego
 
 
+def _step_of(env):
+    """The adapter's view of the env now, as the declared functions read it."""
+    from factorq_envs.gymnasium_adapter import Transition
+
+    return Transition(None, 0.0, False, False, {}, env.env)
+
+
 def test_a_vehicle_ahead_is_sensed_then_hit_and_the_crash_charged_to_idle():
     """Ego at 25 m/s, a vehicle 8 m ahead at 15 m/s: time to collision 0.8 s (under 1 s, so
     front<1s and front<3s); IDLE for one second closes 10 m: a crash, charged to IDLE."""
@@ -54,7 +61,7 @@ def test_a_vehicle_ahead_is_sensed_then_hit_and_the_crash_charged_to_idle():
     env.reset(seed=0)
     ego = _alone_with_one_vehicle(env, gap=8.0, speed=15.0)
     assert ego.speed == 25.0
-    sensors = highway.ttc_sensors(None, {}, env.env)
+    sensors = highway.ttc_sensors(_step_of(env))
     names = [n for n, on in zip(highway.SENSOR_NAMES, sensors, strict=True) if on]
     assert "front<1s" in names and "front<3s" in names
     assert "left<1s" not in names  # nobody in the left lane (or no lane at all: see below)
@@ -73,7 +80,7 @@ def test_a_far_vehicle_is_only_far():
     env = highway.make_highway(seed=0)
     env.reset(seed=0)
     _alone_with_one_vehicle(env, gap=30.0, speed=20.0)
-    sensors = dict(zip(highway.SENSOR_NAMES, highway.ttc_sensors(None, {}, env.env), strict=True))
+    sensors = dict(zip(highway.SENSOR_NAMES, highway.ttc_sensors(_step_of(env)), strict=True))
     assert not sensors["front<1s"] and not sensors["front<3s"]
 
 

@@ -3,6 +3,7 @@ what the distributions carry (licence, one version, examples and docs in the sdi
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -127,3 +128,55 @@ def test_the_sdist_carries_examples_docs_licence_and_changelog(distributions):
     assert not missing, f"not in the sdist: {missing}"
     assert "examples/offpolicy_replay.py" in names and "docs/decisions.md" in names
     assert not any("__pycache__" in name for name in names)
+
+
+USER_SCRIPT = '''"""A user's script, outside the repository, against the installed packages."""
+import gymnasium
+import numpy as np
+
+from factorq_envs.gymnasium_adapter import Declaration, FactorQEnv, Transition
+from factorq_torch.tables import TaskQTable
+from factorq_trainers.analysis.stats import count_ratio
+
+
+def holes(step: Transition) -> np.ndarray:
+    return np.array([step.terminated and step.reward == 0] * 4)
+
+
+declaration = Declaration(num_sensors=4, sensors=holes, collision=lambda step: False)
+env = FactorQEnv(gymnasium.make("FrozenLake-v1"), declaration)
+table = TaskQTable(1, env.config.num_cells, num_actions=env.config.num_actuators)
+ratio: float | None = count_ratio(2.0, 1.0)
+'''
+WRONG_SCRIPT = """from factorq_envs.gymnasium_adapter import Declaration
+
+name: str = Declaration.penalty  # a float: mypy must say so
+"""
+
+
+@pytest.mark.slow
+def test_a_user_script_type_checks_with_plain_mypy(tmp_path):
+    """``make setup`` installs in setuptools' strict editable mode (a tree of links on
+    ``sys.path``), so plain ``mypy`` in a user's folder, with no configuration, finds the three
+    packages, checks a correct script clean (under ``--strict``: the public API it calls is
+    typed) and finds the error in a wrong one (issue 38; the default editable mode's import hook
+    left every ``factorq_*`` import "not found")."""
+    pytest.importorskip("mypy")
+    (tmp_path / "user_script.py").write_text(USER_SCRIPT)
+    (tmp_path / "wrong_script.py").write_text(WRONG_SCRIPT)
+    done = subprocess.run(
+        [sys.executable, "-m", "mypy", "--strict", "--cache-dir", str(tmp_path / "cache"),
+         "user_script.py", "wrong_script.py"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=1800,
+        env={key: value for key, value in os.environ.items() if key != "MYPYPATH"},
+    )  # fmt: skip
+    lines = done.stdout.splitlines()
+    assert "import-not-found" not in done.stdout, done.stdout
+    assert [line for line in lines if line.startswith("user_script.py")] == [], done.stdout
+    assert any(line.startswith("wrong_script.py:3: error: Incompatible types") for line in lines), (
+        done.stdout
+    )
+    assert lines[-1] == "Found 1 error in 1 file (checked 2 source files)", done.stdout

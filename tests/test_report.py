@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import struct
 
@@ -124,3 +125,76 @@ def test_regenerate_without_results_json_says_what_is_missing(tmp_path):
     (tmp_path / "results.json").write_text('{"config": {}}')
     with pytest.raises(ValueError, match="cells, claims missing"):
         report.regenerate(tmp_path)
+
+
+def test_factorq_report_redraws_a_sweep_output_folder(tmp_path, capsys):
+    """``factorq report DIR`` on ``factorq sweep``'s ``--out``: ``sweep.md`` and the figure per
+    axis come back from ``sweep.json`` alone, the same Markdown, the JSON untouched (issue 38)."""
+    from factorq_trainers import cli
+
+    spec_file = tmp_path / "sweep.toml"
+    spec_file.write_text(
+        "seeds = 2\nshard_seeds = 2\n[base]\nruns = 1\nepisodes = 3\nsize = 4\nobstacles = 2\n"
+        "[grid]\neta = [0.05, 0.1]\n"
+    )
+    out = tmp_path / "sweep"
+    assert cli.main(["sweep", str(spec_file), "--out", str(out)]) == 0
+    markdown = (out / "sweep.md").read_text()
+    stored = (out / "sweep.json").read_bytes()
+    (out / "sweep.md").unlink()
+    (out / "sweep-eta.png").unlink()
+    capsys.readouterr()
+    assert cli.main(["report", str(out)]) == 0
+    assert (out / "sweep.md").read_text() == markdown
+    assert (out / "sweep-eta.png").stat().st_size > 0
+    assert (out / "sweep.json").read_bytes() == stored
+    printed = capsys.readouterr().out.split()
+    assert printed == [str(out / "sweep.md"), str(out / "sweep-eta.png")]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert cli.main(["report", str(empty)]) == 2
+    assert "sweep.json" in capsys.readouterr().err  # the files looked for name the sweep's
+
+
+def test_reports_say_too_little_data_instead_of_a_ratio_of_zeros():
+    """At a tiny budget the counts are 0: a ratio with a zero side (0.00x, or unbounded) says
+    nothing, so the targets say "too little data" with both counts (issue 38)."""
+    from factorq_trainers.reports import gym, minigrid
+    from factorq_trainers.reports import risk as risk_report
+
+    def gym_methods(**crashes):
+        return {
+            method: {"crashes_per_1000": {"mean": value}, "greedy_return": {"mean": 0.0}}
+            for method, value in crashes.items()
+        }
+
+    lines = gym.targets({"methods": gym_methods(dqn=0.0, **{"factor-q-oracle": 2.0})})
+    assert lines[0].startswith("- Oracle Factor-Q: too little data to compare training crashes")
+    lines = gym.targets(
+        {"methods": gym_methods(dqn=0.0, **{"factor-q-oracle": 0.0, "factor-q-learned": 0.0})}
+    )
+    assert all("too little data" in line and "0.00x" not in line for line in lines), lines
+    lines = gym.targets({"methods": gym_methods(dqn=30.0, **{"factor-q-oracle": 3.0})})
+    assert "10.00x fewer training crashes" in lines[0] and "(target >= 5x: met)" in lines[0]
+
+    summary = {"collisions": {"mean": 0.0}, "success_rate": {"mean": 0.0}}
+    per_method = {"dqn": {"summary": summary}, "factor-q-oracle": {"summary": summary}}
+    (line,) = minigrid._targets({"methods": {}}, per_method)
+    assert "too little data to compare training collisions" in line and "x below" not in line
+
+    from factorq_trainers.experiments import risk as experiment
+
+    config = experiment.RiskConfig(worlds=("grid",), methods=("dqn", "dqn+risk-oracle"), seeds=1)
+    unit = {"world": "grid", "seed": 0, "greedy_collisions": 0, "final_return": -10.0}
+    unit |= {"greedy_success": 1.0, "steps_to_threshold": None, "wall_s": 1.0}
+    results = experiment.summarise(
+        config,
+        [
+            {**unit, "method": "dqn", "train_collisions": 0},
+            {**unit, "method": "dqn+risk-oracle", "train_collisions": 0},
+        ],
+    )
+    (ratio,) = results["ratios"]
+    assert ratio["collision_ratio"] is None  # 0 / 0: no ratio (it was 0 / 1e-9 = 0.0)
+    results["config"] = dataclasses.asdict(config)  # the runner's envelope adds it
+    assert "| grid | dqn / dqn+risk-oracle | too little data |" in risk_report.markdown(results)

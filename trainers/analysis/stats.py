@@ -213,3 +213,21 @@ def format_number(value: float | None) -> str:
     if magnitude >= 3:
         return f"{value:.0f}"
     return f"{value:.{max(2 - magnitude, 0)}f}"
+
+
+#: What a report says where a ratio of counts would say nothing (``count_ratio``).
+TOO_LITTLE_DATA = "too little data"
+
+
+def count_ratio(numerator: float | None, denominator: float | None) -> float | None:
+    """``numerator / denominator`` of two counts (or means of counts), or ``None`` when either
+    is 0 or missing: a ratio with a zero side is 0 or unbounded, which says nothing about how
+    far apart they are (a report then says ``TOO_LITTLE_DATA`` and gives both counts).
+
+    Example:
+        >>> count_ratio(150.0, 7.5), count_ratio(0.0, 3.0), count_ratio(0.0, 0.0)
+        (20.0, None, None)
+    """
+    if numerator is None or denominator is None or numerator <= 0 or denominator <= 0:
+        return None
+    return float(numerator) / float(denominator)

@@ -223,7 +223,7 @@ class DependenciesConfig:
         ):
             if getattr(self, name) not in choices:
                 raise ValueError(
-                    f"{name}={getattr(self, name)!r} is unknown: choose one of {choices}"
+                    f"{name}={getattr(self, name)!r} is unknown: choose one of {', '.join(choices)}"
                 )
         if not isinstance(self.bayes_factor, (int, float)) or not self.bayes_factor > 1:
             raise ValueError(

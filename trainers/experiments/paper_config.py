@@ -98,7 +98,9 @@ class PaperConfig(experiment.WorldOptions):
         if self.threads is not None:
             check_threads("threads", self.threads)
         if self.backend not in BACKENDS:
-            raise ValueError(f"backend={self.backend!r} is unknown: choose one of {BACKENDS}")
+            raise ValueError(
+                f"backend={self.backend!r} is unknown: choose one of {', '.join(BACKENDS)}"
+            )
         try:
             kind = torch.device(self.device).type
         except (RuntimeError, TypeError):

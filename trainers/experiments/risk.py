@@ -50,6 +50,7 @@ import math
 import statistics
 from typing import Any
 
+from factorq_trainers.analysis.stats import count_ratio
 from factorq_trainers.experiments.risk_config import (  # noqa: F401 - re-exported
     METHODS,
     TORCHRL_METHODS,
@@ -236,8 +237,9 @@ def summarise(config: RiskConfig, unit_results: list[dict[str, Any]]) -> dict[st
                     {
                         "world": world,
                         "pair": f"{base} / {with_risk}",
-                        "collision_ratio": alone["train_collisions"]
-                        / max(risk["train_collisions"], 1e-9),
+                        "collision_ratio": count_ratio(
+                            alone["train_collisions"], risk["train_collisions"]
+                        ),
                         "return_gain": _difference(risk["final_return"], alone["final_return"]),
                     }
                 )
@@ -247,8 +249,9 @@ def summarise(config: RiskConfig, unit_results: list[dict[str, Any]]) -> dict[st
                 {
                     "world": world,
                     "pair": "learned / oracle collisions",
-                    "collision_ratio": learned["train_collisions"]
-                    / max(oracle["train_collisions"], 1e-9),
+                    "collision_ratio": count_ratio(
+                        learned["train_collisions"], oracle["train_collisions"]
+                    ),
                     "return_gain": _difference(learned["final_return"], oracle["final_return"]),
                 }
             )

@@ -24,8 +24,11 @@ def _names(value: Any, field: str, allowed: tuple[str, ...]) -> tuple[str, ...]:
         value = tuple(part.strip() for part in value.split(",") if part.strip())
     value = tuple(value)
     unknown = [name for name in value if name not in allowed]
-    if not value or unknown:
-        raise ValueError(f"{field}={value!r}: choose one or more of {allowed}")
+    choices = ", ".join(allowed)
+    if not value:
+        raise ValueError(f"{field} is empty: choose one or more of {choices}")
+    if unknown:
+        raise ValueError(f"{field}={','.join(unknown)} is unknown: choose one or more of {choices}")
     return value
 
 

@@ -5,7 +5,8 @@ a fresh interpreter).
 A command's report module (its ``REPORT``, else its own module) provides ``markdown(results) ->
 str`` and/or ``figure(results, path)``; ``regenerate`` finds which command wrote ``DIR`` by the
 results file's name (each command's ``FILES["json"]``, read by the registry without importing
-the command) and rewrites the other files from it, all at once.
+the command) and rewrites the other files from it, all at once; a ``factorq sweep`` output
+folder (its ``sweep.json``) gets its ``sweep.md`` and figures redrawn.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ def find(results_dir: str | os.PathLike) -> tuple[Any, Path]:
             return entry, path
         if path.exists():  # a FIFO, a device, a directory: not "missing"
             raise ValueError(f"{path} is not a regular file: not a results file")
-    looked = ", ".join(entry.files["json"] for entry in entries)
+    looked = ", ".join([*(entry.files["json"] for entry in entries), "sweep.json"])
     raise FileNotFoundError(
         f"{directory} holds no results file of a factorq command ({looked}): run one with "
         f"--out {directory}"
@@ -63,7 +64,14 @@ def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
     """Rewrite the Markdown and the figure in ``results_dir`` from its results file."""
     from factorq_trainers.runner import results
 
-    entry, path = find(results_dir)
+    try:
+        entry, path = find(results_dir)
+    except FileNotFoundError:
+        from factorq_trainers.reports import sweep
+
+        if not (Path(results_dir) / sweep.JSON_FILE).exists():
+            raise
+        return sweep.regenerate(results_dir)  # factorq sweep's --out
     report = importlib.import_module(entry.report)
     if hasattr(report, "regenerate"):  # a report with its own reading (paper: the schema)
         return report.regenerate(results_dir)

@@ -7,6 +7,8 @@ import math
 from pathlib import Path
 from typing import Any
 
+from factorq_trainers.analysis.stats import TOO_LITTLE_DATA, count_ratio
+
 METHOD_LABELS = {
     "dqn": "DQN (torchrl)",
     "factor-q-oracle": "neural Factor-Q, oracle dependency",
@@ -55,21 +57,35 @@ def targets(results: dict[str, Any]) -> list[str]:
         theirs = crashes(baseline)
         if oracle is None or theirs is None:
             continue
-        ratio = math.inf if oracle == 0 else theirs / oracle
+        ratio = count_ratio(theirs, oracle)
         mine = methods["factor-q-oracle"]["greedy_return"]["mean"]
         other = methods[baseline]["greedy_return"]["mean"]
+        if ratio is None:
+            compared = (
+                f"{TOO_LITTLE_DATA} to compare training crashes with {METHOD_LABELS[baseline]} "
+                f"({oracle:.2f} against {theirs:.2f} per 1000 steps)"
+            )
+        else:
+            compared = (
+                f"{ratio:.2f}x fewer training crashes than {METHOD_LABELS[baseline]} "
+                f"(target >= 5x: {'met' if ratio >= 5 else 'not met'})"
+            )
         lines.append(
-            f"- Oracle Factor-Q: {ratio:.2f}x fewer training crashes than "
-            f"{METHOD_LABELS[baseline]} (target >= 5x: {'met' if ratio >= 5 else 'not met'}); "
-            f"greedy return {mine:.2f} against {other:.2f} "
+            f"- Oracle Factor-Q: {compared}; greedy return {mine:.2f} against {other:.2f} "
             f"({'at least as high' if mine >= other else 'lower'})."
         )
     if oracle is not None and learned is not None:
-        ratio = math.inf if oracle == 0 else learned / oracle
-        lines.append(
-            f"- Learned dependencies: {ratio:.2f}x the oracle's training crashes (target <= 1.5x: "
-            f"{'met' if ratio <= 1.5 else 'not met'})."
-        )
+        ratio = count_ratio(learned, oracle)
+        if ratio is None:
+            lines.append(
+                f"- Learned dependencies: {TOO_LITTLE_DATA} to compare training crashes with the "
+                f"oracle's ({learned:.2f} against {oracle:.2f} per 1000 steps)."
+            )
+        else:
+            lines.append(
+                f"- Learned dependencies: {ratio:.2f}x the oracle's training crashes (target <= "
+                f"1.5x: {'met' if ratio <= 1.5 else 'not met'})."
+            )
     return lines
 
 

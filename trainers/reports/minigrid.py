@@ -3,11 +3,10 @@ results alone (no torch)."""
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any
 
-from factorq_trainers.analysis.stats import format_number
+from factorq_trainers.analysis.stats import TOO_LITTLE_DATA, count_ratio, format_number
 
 #: The issue's target: the learner finds forward <- front within this many env steps.
 FOUND_TARGET_STEPS = 2_000
@@ -83,11 +82,20 @@ def _targets(results: dict[str, Any], per_method: dict[str, Any]) -> list[str]:
         if mine is None or dqn is None:
             continue
         ours, theirs = mine["collisions"]["mean"], dqn["collisions"]["mean"]
-        ratio = math.inf if ours == 0 else theirs / ours
+        ratio = count_ratio(theirs, ours)
         success_ok = (mine["success_rate"]["mean"] or 0.0) >= (dqn["success_rate"]["mean"] or 0.0)
+        if ratio is None:
+            compared = (
+                f"{TOO_LITTLE_DATA} to compare training collisions with DQN's ({ours:.2f} "
+                f"against {theirs:.2f})"
+            )
+        else:
+            compared = (
+                f"training collisions {ratio:.2f}x below DQN's (target >= 10x: "
+                f"{'met' if ratio >= 10 else 'not met'})"
+            )
         out.append(
-            f"- {_label(results, method)}: training collisions {ratio:.2f}x below DQN's "
-            f"(target >= 10x: {'met' if ratio >= 10 else 'not met'}); success rate "
+            f"- {_label(results, method)}: {compared}; success rate "
             f"{'no worse than' if success_ok else 'below'} DQN's."
         )
     return out

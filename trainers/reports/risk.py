@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from factorq_torch.base.risk_text import summary_line
+from factorq_trainers.analysis.stats import TOO_LITTLE_DATA
 
 #: What ``factorq sweep --command risk`` reports per configuration (``sweep_cells``): means
 #: over seeds (the summary keeps no interval).
@@ -65,7 +66,7 @@ def markdown(results: dict[str, Any]) -> str:
         ]
         for ratio in results["ratios"]:
             lines.append(
-                f"| {ratio['world']} | {ratio['pair']} | {ratio['collision_ratio']:.1f}x | "
+                f"| {ratio['world']} | {ratio['pair']} | {_times(ratio['collision_ratio'])} | "
                 + ("-" if ratio["return_gain"] is None else f"{ratio['return_gain']:+.2f}")
                 + " |"
             )
@@ -175,3 +176,8 @@ def figure(results: dict[str, Any], path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100, format="png")  # the runner writes a temporary name first
     plt.close(fig)
+
+
+def _times(ratio: float | None) -> str:
+    """A collision ratio, or ``too little data`` where a side had none (``count_ratio``)."""
+    return TOO_LITTLE_DATA if ratio is None else f"{ratio:.1f}x"

@@ -4,6 +4,7 @@ row per configuration and cell, and ``sweep-<axis>.png`` per swept axis."""
 from __future__ import annotations
 
 import functools
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -141,15 +142,37 @@ def write_axis_figure(sweep: dict[str, Any], axis: str, path: Path) -> None:
     figure.savefig(path, dpi=100, format="png")
 
 
+def _drawn(sweep: dict[str, Any], out: Path) -> dict[Path, Callable[[Path], object]]:
+    """The writers of ``sweep.md`` and of a figure per axis."""
+    writers: dict[Path, Callable[[Path], object]] = {
+        out / REPORT_FILE: lambda path: path.write_text(report_markdown(sweep)),
+    }
+    for axis in sweep["axes"]:
+        writers[figure_path(out, axis)] = functools.partial(write_axis_figure, sweep, axis)
+    return writers
+
+
 def write_outputs(sweep: dict[str, Any], out: str | Path) -> dict[str, Path]:
     """``sweep.json``, ``sweep.md`` and ``sweep-<axis>.png`` per axis, all written atomically."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     writers: dict[Path, Callable[[Path], object]] = {
         out / JSON_FILE: lambda path: path.write_text(result_files.dumps(sweep)),
-        out / REPORT_FILE: lambda path: path.write_text(report_markdown(sweep)),
+        **_drawn(sweep, out),
     }
-    for axis in sweep["axes"]:
-        writers[figure_path(out, axis)] = functools.partial(write_axis_figure, sweep, axis)
+    result_files.write_all_atomic(writers)
+    return {path.name: path for path in writers}
+
+
+#: The entries ``factorq report`` needs in a ``sweep.json``.
+REQUIRED = ("axes", "configurations", "seeds", "base", "timing")
+
+
+def regenerate(out: str | os.PathLike[Any]) -> dict[str, Path]:
+    """``factorq report`` on a sweep's ``--out``: ``sweep.md`` and the figures redrawn from
+    ``sweep.json`` alone (the JSON itself is left as it is)."""
+    out = Path(out)
+    sweep = result_files.read_json(out / JSON_FILE, REQUIRED, "run `factorq sweep`")
+    writers = _drawn(sweep, out)
     result_files.write_all_atomic(writers)
     return {path.name: path for path in writers}
