@@ -10,11 +10,13 @@ over the master seeds.
 ``--exploration``: tabular Factor-Q with the oracle dependency, uniform against risk-aware
 exploration (``AgentConfig.exploration``), and Q-learning, on the paper's grid (dynamic world,
 ``factorq paper``'s defaults but ``--runs`` runs) and on Gymnasium's CliffWalking declared as in
-``docs/tutorials/own-env.md`` (``--steps`` env steps per experiment, one run): collisions (falls)
-and success (episodes that reached the goal) per master seed, the median and range over them.
+``docs/tutorials/own-env.md`` (``--steps`` env steps per experiment, ``--cliff-seeds``
+experiments): collisions (falls) and the task measure (grid: steps per episode, every episode
+reaching the goal; CliffWalking: goals reached per experiment) per master seed, the median and
+range over them.
 
     .venv/bin/python benchmarks/bench_risk_options.py --stall --masters 5 --seeds 48
-    .venv/bin/python benchmarks/bench_risk_options.py --exploration --masters 5
+    .venv/bin/python benchmarks/bench_risk_options.py --exploration --masters 5 --seeds 20
 
 Not a package on purpose (the torchrl wheel installs a top-level ``benchmarks``).
 """
@@ -126,17 +128,17 @@ def _cliff_falls(exploration: str | None, master: int, seeds: int, steps: int) -
     return falls / seeds, goals / seeds
 
 
-def _grid(exploration: str | None, master: int, seeds: int, runs: int) -> tuple:
-    """The paper's dynamic grid (``factorq paper``'s defaults, ``runs`` runs): collisions per run
-    and the share of episodes that reached the goal."""
+def _grid(exploration: str | None, master: int, seeds: int, runs: int, regime: str) -> tuple:
+    """The paper's grid in ``regime`` (``factorq paper``'s defaults, ``runs`` runs): collisions per
+    run and steps per episode."""
     from factorq_envs.regimes import REGIME_PERIODS
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
     from factorq_trainers.compiled import fast
     from factorq_trainers.experiments.experiment import check_world_options
 
-    world = check_world_options(10, 10, 10_000, 0, ("dynamic",))
-    periods = torch.full((seeds,), REGIME_PERIODS["dynamic"], dtype=torch.int64)
+    world = check_world_options(10, 10, 10_000, 0, (regime,))
+    periods = torch.full((seeds,), REGIME_PERIODS[regime], dtype=torch.int64)
     algorithm = "q-learning" if exploration is None else "factor-q"
     agent = AgentConfig() if exploration is None else AgentConfig(exploration=exploration)
     metrics = fast.run_experiments(
@@ -150,24 +152,28 @@ def _grid(exploration: str | None, master: int, seeds: int, runs: int) -> tuple:
         derive_keys(master, STREAM_POLICY, seeds),
         threads=1,
     )
-    steps, returns = metrics["steps"].double(), metrics["task_return"].double()
-    success = float((returns != -steps).double().mean())
-    return float(metrics["collisions"].double().sum(dim=(1, 2)).mean()) / runs, success
+    steps = metrics["steps"].double()
+    # every episode reaches the goal within 10,000 steps: the task measure is its length
+    return float(metrics["collisions"].double().sum(dim=(1, 2)).mean()) / runs, float(steps.mean())
 
 
-def exploration(masters: list[int], seeds: int, steps: int, runs: int) -> None:
+def exploration(
+    masters: list[int], seeds: int, steps: int, runs: int, worlds: list[str], regime: str
+) -> None:
     methods = {
         "Factor-Q, uniform": "uniform",
         "Factor-Q, risk-aware": "risk-aware",
         "Q-learning": None,
     }
-    for world, measure in (("grid (dynamic)", "grid"), ("CliffWalking", "cliff")):
+    names = {"grid": f"grid ({regime})", "cliff": "CliffWalking"}
+    for measure in worlds:
+        world = names[measure]
         results: dict[str, dict[str, list[float]]] = {}
         for master in masters:
             for name, kind in methods.items():
                 started = time.perf_counter()
                 if measure == "grid":
-                    collisions, success = _grid(kind, master, seeds, runs)
+                    collisions, success = _grid(kind, master, seeds, runs, regime)
                 else:
                     collisions, success = _cliff_falls(kind, master, seeds, steps)
                 entry = results.setdefault(name, {"collisions": [], "success": []})
@@ -180,7 +186,8 @@ def exploration(masters: list[int], seeds: int, steps: int, runs: int) -> None:
                 )
         q = results["Q-learning"]["collisions"]
         print(f"\n{world}: median [range] over master seeds {masters}")
-        print("| method | collisions | success | Q-learning / method, collisions |")
+        task = "steps per episode" if measure == "grid" else "goals reached per experiment"
+        print(f"| method | collisions | {task} | Q-learning / method, collisions |")
         print("| --- | ---: | ---: | ---: |")
         for name, entry in results.items():
             ratios = [
@@ -199,7 +206,10 @@ def main() -> None:
     parser.add_argument("--masters", type=int, default=5, help="master seeds 0 .. N-1")
     parser.add_argument("--seeds", type=int, default=48, help="experiments per master seed")
     parser.add_argument("--noises", default="0,0.01,0.05,0.1")
-    parser.add_argument("--steps", type=int, default=3000, help="CliffWalking env steps")
+    parser.add_argument("--steps", type=int, default=1000, help="CliffWalking env steps")
+    parser.add_argument("--worlds", default="grid,cliff", help="grid, cliff (comma-separated)")
+    parser.add_argument("--regime", default="dynamic", help="the grid's obstacle regime")
+    parser.add_argument("--cliff-seeds", type=int, default=10, help="CliffWalking experiments")
     parser.add_argument("--runs", type=int, default=10, help="grid runs of 200 episodes")
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -207,7 +217,10 @@ def main() -> None:
     if args.stall:
         stall(masters, args.seeds, [float(n) for n in args.noises.split(",")])
     if args.exploration:
-        exploration(masters, min(args.seeds, 20), args.steps, args.runs)
+        worlds = args.worlds.split(",")
+        for world in worlds:
+            seeds = args.cliff_seeds if world == "cliff" else args.seeds
+            exploration(masters, seeds, args.steps, args.runs, [world], args.regime)
 
 
 if __name__ == "__main__":

@@ -348,3 +348,16 @@ def test_a_partial_step_is_refused():
     td["_step"] = torch.tensor([[True], [False]])
     with pytest.raises(NotImplementedError, match="'_step' mask"):
         env.step(td)
+
+
+def test_the_gym_command_takes_risk_aware_exploration_for_neural_factor_q():
+    # issue 39: neural Factor-Q explores among the actuators not called risky; DQN is untouched
+    pytest.importorskip("minigrid")
+    from factorq_trainers.experiments import gym as experiment
+
+    options = dict(world="minigrid-8x8", seeds=1, steps=40, eval_episodes=1, curve_points=4)
+    unit = {"id": "factor-q-oracle-seed0", "method": "factor-q-oracle", "seed_index": 0}
+    careful = experiment.run_unit(experiment.GymConfig(**options, exploration="risk-aware"), unit)
+    assert careful["curve_steps"] == [10, 20, 30, 40]
+    with pytest.raises(ValueError, match="exploration='careful' is unknown"):
+        experiment.GymConfig(**options, exploration="careful")
