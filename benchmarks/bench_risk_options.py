@@ -128,6 +128,75 @@ def _cliff_falls(exploration: str | None, master: int, seeds: int, steps: int) -
     return falls / seeds, goals / seeds
 
 
+def _lake_falls(exploration: str | None, master: int, seeds: int, steps: int) -> tuple:
+    """Falls into holes and goals of ``seeds`` FrozenLake 8x8 experiments (not slippery) of
+    ``steps`` env steps, declared as ``tests/test_gymnasium_adapter.py`` declares the 4x4 lake:
+    one sensor per move (a hole that way), a fall the collision (-1, charged to the move)."""
+    import gymnasium
+
+    from factorq_envs.declared_env import declared_torchrl_env
+    from factorq_envs.gymnasium_adapter import Declaration, FactorQEnv
+    from factorq_torch.base.config import AgentConfig
+    from factorq_torch.base.rng import STREAM_POLICY, derive_keys
+    from factorq_torch.collectors import OnlineCollector
+    from factorq_torch.tables import LocalRewardTable, TaskQTable
+    from factorq_trainers.experiments.experiment import online_agent
+
+    lake = gymnasium.make("FrozenLake-v1", map_name="8x8", is_slippery=False)
+    desc = [row.decode() if isinstance(row, bytes) else row for row in lake.unwrapped.desc.tolist()]
+    desc = ["".join(c.decode() if isinstance(c, bytes) else c for c in row) for row in desc]
+    moves = ((0, -1), (1, 0), (0, 1), (-1, 0))  # left, down, right, up
+
+    def hole(row: int, col: int) -> bool:
+        return 0 <= row < 8 and 0 <= col < 8 and desc[row][col] == "H"
+
+    class MarkHoles(gymnasium.Wrapper, gymnasium.utils.RecordConstructorArgs):
+        def __init__(self, env):
+            gymnasium.utils.RecordConstructorArgs.__init__(self)
+            gymnasium.Wrapper.__init__(self, env)
+
+        def step(self, action):
+            observation, reward, terminated, truncated, info = self.env.step(action)
+            row, col = divmod(int(observation), 8)
+            return observation, reward, terminated, truncated, dict(info, fell=hole(row, col))
+
+    declaration = Declaration(
+        num_sensors=4,
+        sensors=lambda o, info, env: np.array(
+            [hole(int(o) // 8 + dr, int(o) % 8 + dc) for dr, dc in moves]
+        ),
+        collision=lambda reward, info: bool(info.get("fell", False)),
+        actuator_names=("left", "down", "right", "up"),
+        task_state=lambda observation, info, env: int(observation),
+        num_cells=64,
+        dependency=tuple(tuple(a == k for k in range(4)) for a in range(4)),
+    )
+    base = declared_torchrl_env(
+        lambda seed: FactorQEnv(
+            MarkHoles(gymnasium.make("FrozenLake-v1", map_name="8x8", is_slippery=False)),
+            declaration,
+            seed=seed,
+        ),
+        seeds=[master * 1000 + index for index in range(seeds)],
+    )
+    task = TaskQTable(seeds, 64, num_actions=4)
+    local, agent = None, AgentConfig()
+    if exploration is not None:
+        local = LocalRewardTable(seeds, dependency=base.dependency)
+        agent = AgentConfig(exploration=exploration)  # a fall is -1: threshold 0.5
+    keys = derive_keys(master, STREAM_POLICY, seeds)
+    collector = OnlineCollector(
+        *online_agent(base, task, local, agent, keys), runs=1, episodes=steps
+    )
+    falls = goals = 0
+    for step, td in enumerate(collector, start=1):
+        falls += int(td["next", "bump"].sum())
+        goals += int((td["next", "terminated"].squeeze(-1) & ~td["next", "bump"].any(-1)).sum())
+        if step == steps:
+            break
+    return falls / seeds, goals / seeds
+
+
 def _grid(exploration: str | None, master: int, seeds: int, runs: int, regime: str) -> tuple:
     """The paper's grid in ``regime`` (``factorq paper``'s defaults, ``runs`` runs): collisions per
     run and steps per episode."""
@@ -165,7 +234,7 @@ def exploration(
         "Factor-Q, risk-aware": "risk-aware",
         "Q-learning": None,
     }
-    names = {"grid": f"grid ({regime})", "cliff": "CliffWalking"}
+    names = {"grid": f"grid ({regime})", "cliff": "CliffWalking", "lake": "FrozenLake 8x8"}
     for measure in worlds:
         world = names[measure]
         results: dict[str, dict[str, list[float]]] = {}
@@ -174,6 +243,8 @@ def exploration(
                 started = time.perf_counter()
                 if measure == "grid":
                     collisions, success = _grid(kind, master, seeds, runs, regime)
+                elif measure == "lake":
+                    collisions, success = _lake_falls(kind, master, seeds, steps)
                 else:
                     collisions, success = _cliff_falls(kind, master, seeds, steps)
                 entry = results.setdefault(name, {"collisions": [], "success": []})
@@ -207,7 +278,9 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=48, help="experiments per master seed")
     parser.add_argument("--noises", default="0,0.01,0.05,0.1")
     parser.add_argument("--steps", type=int, default=1000, help="CliffWalking env steps")
-    parser.add_argument("--worlds", default="grid,cliff", help="grid, cliff (comma-separated)")
+    parser.add_argument(
+        "--worlds", default="grid,cliff", help="grid, cliff, lake (comma-separated)"
+    )
     parser.add_argument("--regime", default="dynamic", help="the grid's obstacle regime")
     parser.add_argument("--cliff-seeds", type=int, default=10, help="CliffWalking experiments")
     parser.add_argument("--runs", type=int, default=10, help="grid runs of 200 episodes")
@@ -219,7 +292,7 @@ def main() -> None:
     if args.exploration:
         worlds = args.worlds.split(",")
         for world in worlds:
-            seeds = args.cliff_seeds if world == "cliff" else args.seeds
+            seeds = args.cliff_seeds if world in ("cliff", "lake") else args.seeds
             exploration(masters, seeds, args.steps, args.runs, [world], args.regime)
 
 

@@ -225,11 +225,22 @@ def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, A
     learner = StructureLearner(
         count, num_actions=world.num_actuators, num_sensors=num_sensors, **_learner_options(config)
     )
-    risk = {"risk_threshold": agent.risk_threshold, "risk_gate": agent.risk_gate}
     policy = FactorQPolicy(
-        count, keys=policy_keys, epsilon=agent.epsilon, exploration=agent.exploration, **risk
+        count,
+        keys=policy_keys,
+        epsilon=agent.epsilon,
+        exploration=agent.exploration,
+        risk_threshold=agent.risk_threshold,
+        risk_gate=agent.risk_gate,
     )
-    loss = FactorQLoss(task, learner, gamma=agent.gamma, alpha=agent.alpha, **risk)
+    loss = FactorQLoss(
+        task,
+        learner,
+        gamma=agent.gamma,
+        alpha=agent.alpha,
+        risk_threshold=agent.risk_threshold,
+        risk_gate=agent.risk_gate,
+    )
     collector = OnlineCollector(
         env,
         TensorDictSequential(task, learner, policy),
@@ -365,7 +376,6 @@ def run_gated(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     from factorq_trainers.experiments.experiment import make_env
 
     world, agent = config.world_of(setting), config.agent_of("gated")
-    risk = {"risk_threshold": agent.risk_threshold, "risk_gate": agent.risk_gate}
     count, num_sensors = config.seeds, world.num_sensors
     world_keys, policy_keys = _keys(config, "learned")  # common random numbers (KEYED_METHODS)
     orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
@@ -393,10 +403,18 @@ def run_gated(config: DependenciesConfig, setting: str) -> dict[str, Any]:
                 keys=policy_keys,
                 epsilon=agent.epsilon,
                 exploration=agent.exploration,
-                **risk,
+                risk_threshold=agent.risk_threshold,
+                risk_gate=agent.risk_gate,
             ),
         ),
-        FactorQLoss(task, local, gamma=agent.gamma, alpha=agent.alpha, **risk),
+        FactorQLoss(
+            task,
+            local,
+            gamma=agent.gamma,
+            alpha=agent.alpha,
+            risk_threshold=agent.risk_threshold,
+            risk_gate=agent.risk_gate,
+        ),
         runs=config.runs,
         episodes=config.episodes,
         optimizer=optimizer,

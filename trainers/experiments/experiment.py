@@ -260,7 +260,6 @@ def online_agent(
         )
         loss = TabularQLoss(task, gamma=agent.gamma, alpha=agent.alpha)
         return env, TensorDictSequential(task, chooser), loss
-    risk = {"risk_threshold": agent.risk_threshold, "risk_gate": agent.risk_gate}
     chooser = FactorQPolicy(
         count,
         keys=policy_keys,
@@ -269,10 +268,18 @@ def online_agent(
         g_min=agent.g_min,
         device=device,
         exploration=agent.exploration,
-        **risk,
+        risk_threshold=agent.risk_threshold,
+        risk_gate=agent.risk_gate,
     )
     loss = FactorQLoss(
-        task, local, gamma=agent.gamma, alpha=agent.alpha, eta=agent.eta, g_min=agent.g_min, **risk
+        task,
+        local,
+        gamma=agent.gamma,
+        alpha=agent.alpha,
+        eta=agent.eta,
+        g_min=agent.g_min,
+        risk_threshold=agent.risk_threshold,
+        risk_gate=agent.risk_gate,
     )
     env = TransformedEnv(env, SplitLocalReward())
     return env, TensorDictSequential(task, local, chooser), loss
