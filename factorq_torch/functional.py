@@ -275,6 +275,47 @@ def risk_mask(rho: torch.Tensor, threshold: float = 0.5) -> torch.Tensor:
     return allowed | ~allowed.any(dim=-1, keepdim=True)
 
 
+def significant_local(rho: torch.Tensor, threshold: float = 0.5) -> torch.Tensor:
+    """The local values eqs. 2-3 see under the risk gate: ``rho_a`` where ``|rho_a| >
+    threshold``, else 0 (``[..., A] -> [..., A]``; docs/decisions.md, "The heading-noise stall").
+
+    Eq. 3 scales *any* local spread above the task spread, so it ranks local values
+    lexicographically: the least rewarded actuator is never the greedy choice, however small its
+    deficit. That is the paper's intent for deterministic local rewards (0 or -1). A sensor that
+    reads wrong makes ``rho_a(o) = -P(collision | o, a)`` a small probability in every pattern,
+    and the lexicographic rule then forbids ``a`` wherever a riskless actuator exists (a heading
+    body turns on the spot). The gate keeps the deterministic model the data support best:
+    ``rho_a`` counts where the more probable outcome is the local reward (``|rho_a|`` above half
+    the collision penalty: ``threshold = 0.5``, ``risk_mask``'s rule), and is 0 where the more
+    probable outcome is nothing. Tables of 0 and -1 (the paper's noise-free worlds) are
+    unchanged.
+
+    Args:
+        rho: ``[..., A]`` local values ``rho(o)``.
+        threshold: the largest ``|rho_a|`` that counts as 0 (local reward units, >= 0).
+
+    >>> significant_local(torch.tensor([-0.9, -0.02, 0.0, 0.7]))
+    tensor([-0.9000,  0.0000,  0.0000,  0.7000])
+    """
+    return torch.where(rho.abs() > scalar(threshold, rho), rho, scalar(0.0, rho))
+
+
+def safe_exploration_from_bits(allowed: torch.Tensor, action_bits: torch.Tensor) -> torch.Tensor:
+    """The exploratory action drawn uniformly among the ``allowed`` actuators (``risk_mask``):
+    the ``k``-th allowed one in index order, ``k = bits * n >> 32`` with ``n`` of them (the
+    uniform draw of ``epsilon_greedy_from_bits`` when all are allowed, from the same bits).
+    Shapes: ``[..., A] (bool, at least one True per row), [...] -> [...]`` (int64).
+
+    Args:
+        allowed: ``[..., A]`` bool, the actuators the local model does not call risky.
+        action_bits: ``[...]`` int64 random words in ``[0, 2**32)``.
+    """
+    count = allowed.sum(dim=-1)
+    k = randint_from_bits(action_bits, count)
+    rank = allowed.cumsum(dim=-1) - 1
+    return (allowed & (rank == k.unsqueeze(-1))).to(torch.int8).max(dim=-1).indices
+
+
 #: ``local_risk_rows`` takes batches of at most this many values (rows x actions): there, a few
 #: dozen float32 scalar operations cost less than the ~40 tensor ops of ``normaliser``,
 #: ``combined_values`` and ``risk_mask`` (each a few microseconds of dispatch on a ``[1, A]``
@@ -531,24 +572,31 @@ def epsilon_greedy_from_bits(
     explore_bits: torch.Tensor,
     action_bits: torch.Tensor,
     tie_bits: torch.Tensor,
+    allowed: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Epsilon-greedy on ``values`` given its random bits (the deterministic core).
 
     With probability ``epsilon`` (``explore_bits < epsilon * 2**32``) the action is uniform over
-    the ``A`` actions and flagged exploratory (even if it happens to be greedy); otherwise it is
-    the greedy action with random tie-breaking. Bits are int64 in ``[0, 2**32)``, shape ``[...]``.
+    the ``A`` actions (over the ``allowed`` ones if given: ``safe_exploration_from_bits``) and
+    flagged exploratory (even if it happens to be greedy); otherwise it is the greedy action with
+    random tie-breaking. Bits are int64 in ``[0, 2**32)``, shape ``[...]``.
 
     Args:
         values: ``[..., A]`` action values.
         epsilon: the exploration probability.
         explore_bits, action_bits, tie_bits: ``[...]`` int64 random words in ``[0, 2**32)``:
             explore or not, the uniform action, the tie-break.
+        allowed: ``[..., A]`` bool, where exploration may go (``risk_mask``); None: everywhere
+            (the paper).
 
     Returns:
         ``(action, exploratory)``: int64 ``[...]`` and bool ``[...]``.
     """
     exploratory = explore_bits < probability_threshold(epsilon)
-    random_action = randint_from_bits(action_bits, values.shape[-1])
+    if allowed is None:
+        random_action = randint_from_bits(action_bits, values.shape[-1])
+    else:
+        random_action = safe_exploration_from_bits(allowed, action_bits)
     action = torch.where(exploratory, random_action, greedy_action_from_bits(values, tie_bits))
     return action, exploratory
 

@@ -64,6 +64,7 @@ from factorq_torch.functional import (
     normaliser,
     q_learning_target,
     q_update,
+    significant_local,
 )
 from factorq_torch.tables import TaskQTable, experiment_index
 
@@ -419,6 +420,8 @@ class FactorQLoss(_TransitionLoss):
         gamma, alpha: discount and task learning rate (eq. 4).
         eta, g_min: eq. 3's margin and floor of ``G`` (the policy's values).
         reduction: ``"sum"`` (exact tabular update) or ``"mean"`` over experiments.
+        risk_threshold, risk_gate: eq. 4's ``C(s')`` from ``functional.significant_local(rho,
+            risk_threshold)`` where ``risk_gate`` (the policy's values; default: the paper).
 
     Keys (``set_keys``): ``action_value``, ``local_value``, ``action``, ``sensors`` (all
     sensors before acting, ``[S, K]``), ``reward`` (task reward), ``local_reward`` and
@@ -454,10 +457,13 @@ class FactorQLoss(_TransitionLoss):
         eta: float = 0.1,
         g_min: float = 0.01,
         reduction: str = "sum",
+        risk_threshold: float = 0.5,
+        risk_gate: bool = False,
     ) -> None:
         super().__init__(gamma=gamma, alpha=alpha, reduction=reduction)
-        AgentConfig(eta=eta, g_min=g_min)
+        AgentConfig(eta=eta, g_min=g_min, risk_threshold=risk_threshold, risk_gate=risk_gate)
         self.eta, self.g_min = float(eta), float(g_min)
+        self.risk_threshold, self.risk_gate = float(risk_threshold), risk_gate
         _check_provider("task_value_network", task_value_network)
         self.task_value_network = task_value_network
         _check_provider("local_value_network", local_value_network)
@@ -504,6 +510,8 @@ class FactorQLoss(_TransitionLoss):
             rho_next = self._provide(local, next_td, keys.local_value, experiment)
         # compute: eq. 4's target from C(s') (eqs. 2-3 at s'), then the loss whose SGD step is
         # eq. 4's update; the local regression error on the fired actuator
+        if self.risk_gate:  # the policy's local values (significant_local)
+            rho_next = significant_local(rho_next, self.risk_threshold)  # [*B, A]
         g_next = normaliser(q_next, rho_next, eta=self.eta, g_min=self.g_min)  # [*B], eq. 3
         c_next = combined_values(q_next, rho_next, g_next)  # [*B, A], eq. 2
         target = factorq_target(reward, c_next, terminated, self.gamma)  # [*B], eq. 4
@@ -558,6 +566,8 @@ class FactorQLoss(_TransitionLoss):
         next_td = tensordict.get("next")
         q_next = self._provide(task, next_td, keys.action_value)  # [S, A]
         rho_next = self._provide(local, next_td, keys.local_value)  # [S, A]
+        if self.risk_gate:  # the policy's local values (significant_local)
+            rho_next = significant_local(rho_next, self.risk_threshold)  # [S, A]
         g_next = normaliser(q_next, rho_next, eta=self.eta, g_min=self.g_min)  # [S], eq. 3
         c_next = combined_values(q_next, rho_next, g_next)  # [S, A], eq. 2
         target = factorq_target(reward, c_next, terminated, self.gamma)  # [S], eq. 4

@@ -36,11 +36,17 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.nn.probabilistic import InteractionType, interaction_type
 
-from factorq_torch.base.config import AgentConfig
+from factorq_torch.base.config import AgentConfig, check_exploration
 from factorq_torch.base.indices import row_starts
 from factorq_torch.base.rng import POLICY_DRAWS_PER_STEP, STREAM_POLICY, derive_keys, random_bits
 from factorq_torch.base.validation import check_device, check_finite, check_seed
-from factorq_torch.functional import combined_values, epsilon_greedy_from_bits, normaliser
+from factorq_torch.functional import (
+    combined_values,
+    epsilon_greedy_from_bits,
+    normaliser,
+    risk_mask,
+    significant_local,
+)
 from factorq_torch.tables import check_mask, experiment_index, is_online
 
 #: The mask entry the collector writes: True where the experiment is still running.
@@ -70,6 +76,8 @@ class EpsilonGreedyPolicy(TensorDictModuleBase):
         offset: index of this batch's first experiment among all experiments.
         keys: explicit stream keys ``[S]`` int64 instead of ``seed`` / ``offset``.
         device: where the keys and counters live.
+        exploration: ``"uniform"`` only: it reads no local values, so nothing can say which
+            actuators are risky (``"risk-aware"`` is refused; ``FactorQPolicy`` takes it).
 
     Keys: reads ``action_value`` ``[S, A]`` (and ``("collector", "mask")`` ``[S]`` if present),
     writes ``action`` ``[S]`` int64 and ``exploratory`` ``[S]`` bool.
@@ -93,8 +101,17 @@ class EpsilonGreedyPolicy(TensorDictModuleBase):
         offset: int = 0,
         keys: torch.Tensor | None = None,
         device: torch.device | str | None = None,
+        exploration: str = "uniform",
     ) -> None:
         super().__init__()
+        check_exploration(exploration)
+        if exploration != "uniform" and not isinstance(self, FactorQPolicy):
+            raise ValueError(
+                f"exploration={exploration!r} needs a local model to say which actuators are "
+                f"risky, and {type(self).__name__} reads none (only {self.value_key!r}): use "
+                f"FactorQPolicy with a local value provider, or exploration='uniform'"
+            )
+        self.exploration = exploration
         if isinstance(num_experiments, bool) or not isinstance(num_experiments, int):
             raise TypeError(f"num_experiments must be an int, got {num_experiments!r}")
         if num_experiments < 1:
@@ -139,9 +156,10 @@ class EpsilonGreedyPolicy(TensorDictModuleBase):
         self.stream_keys.copy_(keys)
         self.counter.zero_()
 
-    def _values(self, tensordict: TensorDictBase) -> torch.Tensor:
-        """The values the greedy choice maximises, ``[*B, A]``."""
-        return self._read_values(tensordict, self.value_key)
+    def _values(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The values the greedy choice maximises, ``[*B, A]``, and where exploration may go
+        (``[*B, A]`` bool; None: everywhere)."""
+        return self._read_values(tensordict, self.value_key), None
 
     def _read_values(self, tensordict: TensorDictBase, key: str) -> torch.Tensor:
         value = tensordict.get(key, None)
@@ -164,7 +182,7 @@ class EpsilonGreedyPolicy(TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         owner = type(self).__name__
         batch = tuple(tensordict.batch_size)
-        values = self._values(tensordict)  # [*B, A]
+        values, allowed = self._values(tensordict)  # [*B, A], [*B, A] bool or None
         epsilon = self.epsilon if explores() else 0.0
         # [[0], [1], ...]: draw k of a decision (a cached constant)
         draws = row_starts(POLICY_DRAWS_PER_STEP, 1, self.counter.device, column=True)
@@ -185,8 +203,14 @@ class EpsilonGreedyPolicy(TensorDictModuleBase):
             keys, position = self.stream_keys[flat], self.counter[flat] + rank
             advance = taken.sum(0)  # [S]
         bits = random_bits(keys, position * POLICY_DRAWS_PER_STEP + draws)  # [3, M]
+        width = values.shape[-1]
         action, exploratory = epsilon_greedy_from_bits(
-            values.detach().reshape(-1, values.shape[-1]), epsilon, bits[0], bits[1], bits[2]
+            values.detach().reshape(-1, width),
+            epsilon,
+            bits[0],
+            bits[1],
+            bits[2],
+            None if allowed is None else allowed.reshape(-1, width),
         )
         # The stream advances with each decision (only where the experiment is still running).
         self.counter.add_(advance)  # (in place: no Module.__setattr__ per step)
@@ -198,7 +222,12 @@ class EpsilonGreedyPolicy(TensorDictModuleBase):
 class FactorQPolicy(EpsilonGreedyPolicy):
     """Factor-Q's action choice: epsilon-greedy on ``C(s) = Q(s) + G rho`` (eqs. 2-3).
 
-    Args: as ``EpsilonGreedyPolicy``, plus ``eta`` and ``g_min`` of eq. 3's normaliser.
+    Args: as ``EpsilonGreedyPolicy``, plus ``eta`` and ``g_min`` of eq. 3's normaliser, and
+    ``AgentConfig``'s ``risk_threshold``, ``risk_gate`` (eqs. 2-3 on
+    ``functional.significant_local(rho, risk_threshold)``) and ``exploration`` (``"risk-aware"``:
+    exploratory actions uniform among ``functional.risk_mask(rho, risk_threshold)``, the
+    actuators the local model does not call risky; docs/decisions.md, "Exploration that respects
+    known risk"). Their defaults are the paper's.
 
     Keys: reads ``action_value`` ``[S, A]`` and ``local_value`` ``[S, A]``, writes
     ``combined_value`` ``[S, A]``, ``action`` ``[S]`` and ``exploratory`` ``[S]``.
@@ -227,16 +256,32 @@ class FactorQPolicy(EpsilonGreedyPolicy):
         offset: int = 0,
         keys: torch.Tensor | None = None,
         device: torch.device | str | None = None,
+        risk_threshold: float = 0.5,
+        risk_gate: bool = False,
+        exploration: str = "uniform",
     ) -> None:
         super().__init__(
-            num_experiments, seed=seed, epsilon=epsilon, offset=offset, keys=keys, device=device
+            num_experiments,
+            seed=seed,
+            epsilon=epsilon,
+            offset=offset,
+            keys=keys,
+            device=device,
+            exploration=exploration,
         )
-        AgentConfig(eta=eta, g_min=g_min)
+        AgentConfig(
+            eta=eta,
+            g_min=g_min,
+            risk_threshold=risk_threshold,
+            risk_gate=risk_gate,
+            exploration=exploration,
+        )
         self.eta, self.g_min = float(eta), float(g_min)
+        self.risk_threshold, self.risk_gate = float(risk_threshold), risk_gate
         self.in_keys = ["action_value", "local_value"]
         self.out_keys = ["combined_value", "action", "exploratory"]
 
-    def _values(self, tensordict: TensorDictBase) -> torch.Tensor:
+    def _values(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor | None]:
         q = self._read_values(tensordict, "action_value")  # [S, A]
         rho = self._read_values(tensordict, "local_value")  # [S, A]
         if rho.shape != q.shape:
@@ -244,7 +289,12 @@ class FactorQPolicy(EpsilonGreedyPolicy):
                 f"FactorQPolicy: local_value has shape {list(rho.shape)} but action_value has "
                 f"{list(q.shape)}: one local value per action is needed"
             )
+        allowed = None
+        if self.exploration == "risk-aware":
+            allowed = risk_mask(rho.detach(), self.risk_threshold)  # [S, A], never all False
+        if self.risk_gate:
+            rho = significant_local(rho, self.risk_threshold)  # [S, A]
         g = normaliser(q, rho, eta=self.eta, g_min=self.g_min)  # [S], eq. 3
         combined = combined_values(q, rho, g)  # [S, A], eq. 2
         tensordict.set("combined_value", combined)
-        return combined
+        return combined, allowed

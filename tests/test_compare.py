@@ -153,3 +153,30 @@ def test_bad_command_line_input_is_a_usage_error_that_names_it(capsys):
     assert "worlds: 'windy' is unknown" in capsys.readouterr().err
     assert cli.main(["compare", "--bogus", "1"]) == 2
     assert "factorq compare: error: unrecognized arguments: --bogus 1" in capsys.readouterr().err
+
+
+def test_risk_aware_exploration_reaches_factor_q_and_factor_dqn_and_leaves_q_learning_uniform(
+    one_thread,
+):
+    # issue 39: the agent's exploration is Factor-Q's (tabular and neural); Q-learning has no
+    # local model, so it keeps uniform exploration instead of being refused
+    from factorq_torch.base.config import AgentConfig
+
+    def collisions(exploration: str) -> dict:
+        config = compare.CompareConfig(
+            seeds=2,
+            steps=300,
+            size=4,
+            obstacles=3,
+            worlds=("dynamic",),
+            methods=("factor-q", "q-learning", "factor-dqn"),
+            agent=AgentConfig(epsilon=0.3, exploration=exploration),
+            out="unused",
+        )
+        results = compare.run(config)["results"]
+        return {method: cells["dynamic"]["collisions"] for method, cells in results.items()}
+
+    uniform, careful = collisions("uniform"), collisions("risk-aware")
+    assert careful["q-learning"] == uniform["q-learning"]
+    assert careful["factor-q"] < uniform["factor-q"]
+    assert careful["factor-dqn"] != uniform["factor-dqn"]

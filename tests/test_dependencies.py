@@ -239,3 +239,32 @@ def test_body_options_declare_the_custom_setting(tmp_path):
         dependencies.DependenciesConfig(settings=("cross",), sensor_noise=0.1)
     with pytest.raises(ValueError, match="'custom' needs"):
         dependencies.DependenciesConfig(settings=("custom",))
+
+
+def test_the_summary_shows_the_absolute_task_measures_beside_the_ratios():
+    # two experiments, one run of two episodes each: a truncated episode (1,000 steps, return
+    # -1,000) and three that reached the goal (return -steps + 1)
+    config = dependencies.DependenciesConfig(**TINY, out="unused")
+    metrics = {
+        "steps": torch.tensor([[[1000, 10]], [[20, 30]]]),
+        "task_return": torch.tensor([[[-1000.0, -9.0]], [[-19.0, -29.0]]]),
+        "collisions": torch.zeros(2, 1, 2, dtype=torch.int64),
+        "greedy_collisions": torch.zeros(2, 1, 2, dtype=torch.int64),
+    }
+    summary = dependencies.summarise_setting(
+        config, "cross", {"oracle": {"metrics": metrics}, "q-learning": {"metrics": metrics}}
+    )
+    oracle = summary["methods"]["oracle"]
+    assert oracle["steps_per_episode"] == (1000 + 10 + 20 + 30) / 4  # 265
+    assert oracle["fraction_truncated"] == 0.25
+    absolute = dependencies._absolute(summary["methods"], "q-learning")
+    assert absolute["steps_per_episode"] == {"q-learning": 265.0, "oracle": 265.0}
+    text = dependencies_report.markdown(
+        {
+            "config": dataclasses.asdict(config),
+            "settings": {"cross": summary},
+            "timing": {"wall_s": 1.0},
+        }
+    )
+    assert "| cross | oracle | 0 | 0 | 530 | 265 | 25% |" in text
+    assert "uniform exploration" in text

@@ -135,3 +135,94 @@ def test_kernel_equals_the_reference_written_from_the_sensor_names(draw):
             for name in ("steps", "collisions", "greedy_collisions", "task_return"):
                 got = metrics[name][index].tolist()
                 assert got == getattr(want, name), (algorithm, period, name, options)
+
+
+def _risk_metrics(world, agent, backend: str, seeds: int = 3, runs: int = 2, episodes: int = 2):
+    """Factor-Q with ``agent``'s risk options on ``backend``: metrics and tables."""
+    import torch
+
+    from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
+    from factorq_torch.collectors import OnlineCollector
+    from factorq_trainers.experiments import experiment
+
+    periods = torch.tensor([0, 1, 10][:seeds])
+    world_keys = derive_keys(5, STREAM_WORLD, seeds)
+    policy_keys = derive_keys(5, STREAM_POLICY, seeds)
+    if backend == "fast":
+        batch = fast.ExperimentBatch(
+            "factor-q", periods, world, agent, runs, episodes, world_keys, policy_keys, threads=1
+        )
+        metrics = batch.run()
+        return metrics, batch.tables()["rho"]
+    env = experiment.make_env(world, periods, world_keys)
+    task, local = experiment.tabular_values("factor-q", seeds, world)
+    env, policy, loss = experiment.online_agent(env, task, local, agent, policy_keys)
+    collector = OnlineCollector(env, policy, loss, runs=runs, episodes=episodes)
+    while not collector.done:
+        collector.step()
+    return dict(collector.metrics.items()), local.rho.detach().clone()
+
+
+@pytest.mark.parametrize(
+    ("body", "noise", "gate", "exploration"),
+    [
+        ("heading", 0.1, True, "uniform"),
+        ("heading", 0.1, True, "risk-aware"),
+        ("translate", 0.05, False, "risk-aware"),
+        ("translate", 0.0, True, "risk-aware"),
+    ],
+)
+def test_kernel_equals_the_modular_path_with_the_risk_gate_and_risk_aware_exploration(
+    body, noise, gate, exploration
+):
+    import torch
+
+    from factorq_torch.base.config import AgentConfig
+    from factorq_trainers.experiments.experiment import check_world_options
+
+    world = check_world_options(
+        4, 3, 60, 0, ("static", "dynamic"), {"body": body, "sensor_noise": noise}
+    )
+    # epsilon 0.3: many exploratory actions, so the mask's draw is exercised
+    agent = AgentConfig(epsilon=0.3, risk_gate=gate, exploration=exploration)
+    compiled, compiled_rho = _risk_metrics(world, agent, "fast")
+    modular, modular_rho = _risk_metrics(world, agent, "modular")
+    for name, values in compiled.items():
+        assert torch.equal(values, modular[name]), name
+    assert torch.equal(compiled_rho[..., : modular_rho.shape[-1]], modular_rho)
+    assert int(compiled["collisions"].sum()) > 0  # the local tables were exercised
+
+
+def test_the_risk_options_change_what_the_kernel_does():
+    import torch
+
+    from factorq_torch.base.config import AgentConfig
+    from factorq_trainers.experiments.experiment import check_world_options
+
+    world = check_world_options(4, 3, 60, 0, ("static",), {"body": "heading", "sensor_noise": 0.1})
+    paper_agent, _ = _risk_metrics(world, AgentConfig(epsilon=0.3), "fast")
+    for options in ({"risk_gate": True}, {"exploration": "risk-aware"}):
+        changed, _ = _risk_metrics(world, AgentConfig(epsilon=0.3, **options), "fast")
+        assert any(not torch.equal(changed[k], paper_agent[k]) for k in changed), options
+
+
+def test_risk_aware_exploration_is_refused_for_q_learning_naming_both():
+    import torch
+
+    from factorq_torch.base.config import AgentConfig
+    from factorq_torch.base.rng import derive_keys
+    from factorq_trainers.experiments.experiment import check_world_options
+
+    world = check_world_options(4, 0, 60, 0, ("static",))
+    keys = derive_keys(0, 0, 1)
+    with pytest.raises(ValueError, match=r"exploration='risk-aware'.*algorithm='q-learning'"):
+        fast.ExperimentBatch(
+            "q-learning",
+            torch.tensor([0]),
+            world,
+            AgentConfig(exploration="risk-aware"),
+            1,
+            1,
+            keys,
+            keys,
+        )

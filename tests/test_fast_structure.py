@@ -244,3 +244,15 @@ def test_the_noise_gate_flags_noisy_sensors_only_and_raises_the_reopening_thresh
     eager_result = run_learned_fast(eager, "noise-10")
     assert sum(eager_result["reopened"]) > sum(default["reopened"])
     assert_same(eager_result, run_learned_modular(eager, "noise-10"))
+
+
+@pytest.mark.parametrize("setting", ["heading", "noise-10"])
+def test_kernel_learner_equals_the_modular_learner_with_the_risk_options(setting):
+    # the learner as the local provider under the risk gate and risk-aware exploration (issue 39)
+    config = dataclasses.replace(
+        draw_config(setting, random.Random("risk " + setting)),
+        risk_gate="on",
+        exploration="risk-aware",
+    )
+    fast_result = run_learned_fast(config, setting)
+    assert_same(fast_result, run_learned_modular(config, setting))

@@ -19,6 +19,8 @@ from factorq_torch.functional import (
     q_update,
     risk_mask,
     running_mean_update,
+    safe_exploration_from_bits,
+    significant_local,
 )
 
 TWO_32 = 1 << 32
@@ -264,3 +266,69 @@ def test_epsilon_greedy_with_the_same_generator_seed_repeats_and_does_not_mutate
     second = epsilon_greedy(values, 0.5, torch.Generator().manual_seed(7))
     assert torch.equal(first[0], second[0]) and torch.equal(first[1], second[1])
     assert torch.equal(values, before)
+
+
+# -- the risk gate and risk-aware exploration (issue 39) -----------------------------------------
+
+
+def test_eq_3_never_lets_the_least_rewarded_actuator_be_greedy_however_small_its_risk():
+    # the heading body under sensor noise: forward (0) is the task's choice, a 2% risk
+    q = torch.tensor([[1.0, 0.0, 0.0]])  # a_hat = 0, Q_bar = 0, x = 1
+    rho = torch.tensor([[-0.02, 0.0, 0.0]])  # a_check = 0, P_bar = 0, y = 0.02
+    g = normaliser(q, rho)  # 1 / 0.02 * 1.1 = 55
+    assert torch.allclose(g, torch.tensor([55.0]))
+    # C = [1 - 55 * 0.02, 0, 0] = [-0.1, 0, 0]: forward loses to both turns
+    assert torch.allclose(combined_values(q, rho, g), torch.tensor([[-0.1, 0.0, 0.0]]))
+
+
+def test_significant_local_keeps_only_values_beyond_the_threshold():
+    rho = torch.tensor([[-0.02, 0.0, -0.5, -0.51, 0.6, 0.4]])
+    # |rho| > 0.5 kept; -0.5 itself (a collision exactly one time in two) is not significant
+    expected = torch.tensor([[0.0, 0.0, 0.0, -0.51, 0.6, 0.0]])
+    assert torch.equal(significant_local(rho, 0.5), expected)
+    assert torch.equal(rho, torch.tensor([[-0.02, 0.0, -0.5, -0.51, 0.6, 0.4]]))  # not mutated
+
+
+def test_the_gated_combination_lets_the_task_choose_under_small_risks_and_vetoes_large_ones():
+    q = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    rho = torch.tensor([[-0.02, 0.0, 0.0], [-0.9, 0.0, 0.0]])
+    gated = significant_local(rho)  # [[0, 0, 0], [-0.9, 0, 0]]
+    g = normaliser(q, gated)
+    # row 0: y = 0, G = g_min = 0.01, C = Q; row 1: x = 1, y = 0.9, G = 1 / 0.9 * 1.1
+    assert torch.allclose(g, torch.tensor([0.01, 1.1 / 0.9]))
+    combined = combined_values(q, gated, g)
+    # row 1: C_forward = 1 - 1.1 / 0.9 * 0.9 = -0.1 (vetoed, as without the gate)
+    assert torch.allclose(combined, torch.tensor([[1.0, 0.0, 0.0], [-0.1, 0.0, 0.0]]))
+
+
+def test_an_all_zero_or_all_minus_one_table_is_unchanged_by_the_gate():
+    rho = torch.tensor([[0.0, -1.0, 0.0, -1.0], [0.0, 0.0, 0.0, 0.0]])
+    assert torch.equal(significant_local(rho), rho)
+
+
+def test_safe_exploration_draws_the_kth_allowed_actuator():
+    allowed = torch.tensor([[True, False, True, True]] * 3 + [[False] * 3 + [True]])
+    # n = 3 allowed: k = bits * 3 >> 32; 0 -> 0 (actuator 0), 2**31 -> 1 (actuator 2),
+    # 2**32 - 1 -> 2 (actuator 3); one allowed: always it
+    bits = torch.tensor([0, 1 << 31, TWO_32 - 1, 1 << 31])
+    assert torch.equal(safe_exploration_from_bits(allowed, bits), torch.tensor([0, 2, 3, 3]))
+
+
+def test_risk_aware_epsilon_greedy_explores_only_among_the_actuators_not_risky():
+    values = torch.tensor([[0.0, 0.0, 5.0, 0.0]] * 2)
+    rho = torch.tensor([[-1.0, 0.0, -0.6, 0.0], [-1.0, -1.0, -1.0, -1.0]])
+    allowed = risk_mask(rho)  # [[F, T, F, T], all True: none left]
+    explore = torch.zeros(2, dtype=torch.int64)  # both explore
+    # row 0: n = 2, bits 2**31 -> k = 1 -> actuator 3; row 1: n = 4, 2**31 -> k = 2
+    bits = torch.tensor([1 << 31, 1 << 31])
+    action, exploratory = epsilon_greedy_from_bits(
+        values, 0.5, explore, bits, torch.zeros(2, dtype=torch.int64), allowed
+    )
+    assert torch.equal(action, torch.tensor([3, 2]))
+    assert bool(exploratory.all())
+    # with every actuator allowed it is the paper's uniform draw from the same bits
+    uniform, _ = epsilon_greedy_from_bits(values, 0.5, explore, bits, explore)
+    everywhere, _ = epsilon_greedy_from_bits(
+        values, 0.5, explore, bits, explore, torch.ones(2, 4, dtype=torch.bool)
+    )
+    assert torch.equal(uniform, everywhere)

@@ -584,3 +584,16 @@ def test_a_float_action_is_refused_naming_the_env():
     for action in (1.9, np.float64(1.9), np.array(1.9), True):
         with pytest.raises(TypeError, match=r"CartPole-v1: action must be an int in \[0, 1\]"):
             env.step(action)
+
+
+def test_the_gym_command_takes_risk_aware_exploration_for_neural_factor_q():
+    # issue 39: neural Factor-Q explores among the actuators not called risky; DQN is untouched
+    pytest.importorskip("minigrid")
+    from factorq_trainers.experiments import gym as experiment
+
+    options = dict(world="minigrid-8x8", seeds=1, steps=40, eval_episodes=1, curve_points=4)
+    unit = {"id": "factor-q-oracle-seed0", "method": "factor-q-oracle", "seed_index": 0}
+    careful = experiment.run_unit(experiment.GymConfig(**options, exploration="risk-aware"), unit)
+    assert careful["curve_steps"] == [10, 20, 30, 40]
+    with pytest.raises(ValueError, match="exploration='careful' is unknown"):
+        experiment.GymConfig(**options, exploration="careful")

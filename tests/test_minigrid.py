@@ -263,3 +263,22 @@ def test_gymnasium_and_minigrid_tools_accept_the_adapter():
     observation, _ = env.reset()
     assert observation["mission"] == "get to the green goal square"
     assert env.config.num_cells == 25 and env.config.actuator_names == adapter.HEADING.actuators
+
+
+def test_the_minigrid_command_takes_risk_aware_exploration_for_tabular_factor_q():
+    # issue 39: Factor-Q's exploration is the option's, Q-learning's stays uniform (not refused)
+    pytest.importorskip("minigrid")
+    from factorq_trainers.experiments import minigrid as command
+
+    config = command.MiniGridConfig(
+        seeds=1,
+        sizes=("5",),
+        steps=60,
+        methods=("factor-q-oracle", "q-learning"),
+        exploration="risk-aware",
+        out="unused",
+    )
+    results = command.run(config)["results"]["5"]
+    assert set(results) == {"factor-q-oracle", "q-learning"}
+    with pytest.raises(ValueError, match="exploration='careful' is unknown"):
+        command.MiniGridConfig(exploration="careful", out="unused")

@@ -126,3 +126,41 @@ def test_misshapen_values_and_mismatched_batches_are_refused():
         policy(values_td(torch.zeros(2, 4)))
     with pytest.raises(ValueError, match="keys has shape \\[3\\], expected \\[2\\]"):
         EpsilonGreedyPolicy(2, keys=torch.zeros(3, dtype=torch.int64))
+
+
+def test_risk_aware_exploration_never_explores_into_a_risky_actuator():
+    # epsilon 1: every action explores; actuators 0 and 2 are risky (rho < -0.5)
+    policy = FactorQPolicy(4, seed=3, epsilon=1.0, exploration="risk-aware")
+    rho = torch.tensor([[-1.0, 0.0, -0.75, -0.5]] * 4)
+    seen = set()
+    for _ in range(50):
+        td = policy(values_td(torch.zeros(4, 4), local_value=rho))
+        assert bool(td["exploratory"].all())
+        seen.update(td["action"].tolist())
+    assert seen == {1, 3}
+
+
+def test_risk_aware_exploration_falls_back_to_every_actuator_when_all_are_risky():
+    policy = FactorQPolicy(4, seed=3, epsilon=1.0, exploration="risk-aware")
+    seen = set()
+    for _ in range(50):
+        td = policy(values_td(torch.zeros(4, 4), local_value=torch.full((4, 4), -1.0)))
+        seen.update(td["action"].tolist())
+    assert seen == {0, 1, 2, 3}
+
+
+def test_the_risk_gate_lets_the_task_value_choose_under_a_small_risk():
+    values = torch.tensor([[1.0, 0.0, 0.0]])
+    rho = torch.tensor([[-0.02, 0.0, 0.0]])
+    paper = FactorQPolicy(1, epsilon=0.0)(values_td(values, local_value=rho))
+    gated = FactorQPolicy(1, epsilon=0.0, risk_gate=True)(values_td(values, local_value=rho))
+    assert paper["action"].item() in (1, 2)  # eq. 3 turns on the spot
+    assert gated["action"].item() == 0
+    assert torch.equal(gated["combined_value"], values)  # G = g_min times zeros
+
+
+def test_risk_aware_exploration_is_refused_where_no_local_value_is_read():
+    with pytest.raises(ValueError, match=r"exploration='risk-aware'.*EpsilonGreedyPolicy"):
+        EpsilonGreedyPolicy(1, exploration="risk-aware")
+    with pytest.raises(ValueError, match="exploration='careful' is unknown"):
+        FactorQPolicy(1, exploration="careful")

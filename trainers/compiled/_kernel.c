@@ -37,7 +37,7 @@
 #endif
 
 #define NUM_ACTIONS 4
-#define FQ_ABI_VERSION 9
+#define FQ_ABI_VERSION 10
 /* Most actuators of a body the generic loop handles (bit masks, small stack arrays). */
 #define MAX_ACTUATORS 32
 /* Most candidates of the structure learner (1 + K + K (K - 1) / 2 for K <= 62). */
@@ -189,6 +189,10 @@ typedef struct {
     int64_t *block_start;             /* [S, A] its block starts at this firing */
     int16_t *active_list;             /* [S, A, C] the active candidates, increasing */
     int64_t *active_count;            /* [S, A] how many */
+    /* Factor-Q's risk options (AgentConfig; generic loop only, docs/decisions.md, issue 39). */
+    int64_t risk_gate;    /* eqs. 2-3 see functional.significant_local(rho, risk_threshold) */
+    int64_t risk_explore; /* exploration "risk-aware": epsilon actions among risk_mask(rho) */
+    float risk_threshold; /* float32(risk_threshold), as torch's 0-d constant */
 } fq_batch;
 
 int64_t fq_abi_version(void) { return FQ_ABI_VERSION; }
@@ -744,6 +748,30 @@ static inline int64_t greedy_action_n(const float *values, int64_t n, uint64_t k
     return __builtin_ctzll(is_max);
 }
 
+/* functional.significant_local in place: rho_a where |rho_a| > threshold, else +0.0. */
+static inline void significant_local_n(float *local, int64_t n, float threshold) {
+    for (int64_t a = 0; a < n; a++)
+        if (!(fabsf(local[a]) > threshold)) local[a] = 0.0f;
+}
+
+/* functional.safe_exploration_from_bits over functional.risk_mask(rho, threshold): the k-th
+   actuator with rho_a >= -threshold, k = bits * n >> 32 (every actuator where none is). */
+static inline int64_t safe_exploration_n(const float *local, int64_t n, float threshold,
+                                         uint64_t bits) {
+    const float limit = -threshold;
+    int64_t allowed = 0;
+    for (int64_t a = 0; a < n; a++) allowed += local[a] >= limit;
+    const int all = allowed == 0;
+    if (all) allowed = n;
+    int64_t k = (int64_t)((bits * (uint64_t)allowed) >> 32);
+    for (int64_t a = 0; a < n; a++)
+        if (all || local[a] >= limit) {
+            if (k == 0) return a;
+            k--;
+        }
+    return n - 1; /* not reached */
+}
+
 /* ----------------------------------------------------------------------------------------------
  * The structure learner (factorq_torch/structure.py StructureLearner, with the math of
  * factorq_torch/functional.py): per actuator, counts of every candidate parent set and pattern,
@@ -1254,7 +1282,7 @@ static inline int64_t run_experiment_body(const fq_batch *b, int64_t i, int64_t 
         const int64_t position = cell * H + heading;
         const int64_t state =
             algorithm == ALG_Q_LEARNING ? (position << K) + (int64_t)readings : position;
-        float values[MAX_ACTUATORS], local[MAX_ACTUATORS];
+        float values[MAX_ACTUATORS], local[MAX_ACTUATORS], raw_local[MAX_ACTUATORS];
         int64_t action;
         int exploratory;
         if (algorithm == ALG_RANDOM_WALK) {
@@ -1269,11 +1297,17 @@ static inline int64_t run_experiment_body(const fq_batch *b, int64_t i, int64_t 
                     learner_predict(b, i, readings, local);
                 else
                     project_local_body(b, rho, readings, local);
+                if (b->risk_explore) memcpy(raw_local, local, (size_t)A * sizeof(float));
+                if (b->risk_gate) significant_local_n(local, A, b->risk_threshold);
                 combined_values_n(q + state * A, local, A, eta_factor, g_min, values);
             }
             exploratory =
                 random_bits(policy_key, counter * POLICY_DRAWS + DRAW_EXPLORE) < explore_threshold;
-            if (exploratory)
+            if (exploratory && algorithm == ALG_FACTOR_Q && b->risk_explore)
+                action = safe_exploration_n(
+                    raw_local, A, b->risk_threshold,
+                    random_bits(policy_key, counter * POLICY_DRAWS + DRAW_ACTION));
+            else if (exploratory)
                 action = (int64_t)((random_bits(policy_key, counter * POLICY_DRAWS + DRAW_ACTION) *
                                     (uint64_t)A) >> 32);
             else
@@ -1334,6 +1368,7 @@ static inline int64_t run_experiment_body(const fq_batch *b, int64_t i, int64_t 
                     learner_predict(b, i, next_readings, next_local);
                 else
                     project_local_body(b, rho, next_readings, next_local);
+                if (b->risk_gate) significant_local_n(next_local, A, b->risk_threshold);
                 combined_values_n(q + next_position * A, next_local, A, eta_factor, g_min,
                                   next_values);
                 target = task_reward + gamma * max_n(next_values, A);

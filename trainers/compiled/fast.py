@@ -166,6 +166,16 @@ class ExperimentBatch:
         # only in the generic loop.
         generic = not world.is_paper_body or dependency is not None or structure is not None
         generic = generic or sensor_orders is not None
+        # the risk options (AgentConfig) live in the generic loop only; the paper's defaults
+        # keep the specialised one
+        risky = agent.risk_gate or agent.exploration != "uniform"
+        if agent.exploration != "uniform" and algorithm != "factor-q":
+            raise ValueError(
+                f"agent.exploration={agent.exploration!r} needs a local model to say which "
+                f"actuators are risky, and algorithm={algorithm!r} has none: use 'factor-q' or "
+                f"exploration='uniform'"
+            )
+        generic = generic or risky
         num_actuators, num_sensors = world.num_actuators, world.num_sensors
         positions = num_cells * world.num_headings
         num_states = positions << num_sensors if algorithm == "q-learning" else positions
@@ -283,6 +293,9 @@ class ExperimentBatch:
             kappa_stride=kappa_stride,
             grid_stride=grid_stride,
             obstacle_stride=obstacle_stride,
+            risk_gate=int(agent.risk_gate),
+            risk_explore=int(agent.exploration == "risk-aware"),
+            risk_threshold=agent.risk_threshold,
             **learner_fields,
             **pointers,
         )

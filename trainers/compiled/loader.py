@@ -39,7 +39,7 @@ _SOURCE = Path(__file__).with_name("_kernel.c")
 #: -march=native was measured no faster twice (issue 17: 0.96x; issue 30 on a Zen 3: 0.98-1.00x,
 #: docs/decisions.md), so there is no per-machine build.
 _FLAGS = ("-O3", "-std=c99", "-ffp-contract=off", "-fno-fast-math", "-fPIC", "-shared")
-_ABI_VERSION = 9
+_ABI_VERSION = 10
 #: The fields ``fq_check_experiment`` refuses, by code (1-based), and ``fq_advance``'s encoding.
 _STATE_FIELDS = (
     "cell",
@@ -207,6 +207,8 @@ class _Batch(ctypes.Structure):
             )
         ]
         + [(name, ctypes.c_void_p) for name in _LEARNER_POINTERS]
+        + [(name, ctypes.c_int64) for name in ("risk_gate", "risk_explore")]
+        + [("risk_threshold", ctypes.c_float)]
     )
 
 

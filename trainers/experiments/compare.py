@@ -41,7 +41,7 @@ import json
 import os
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -277,6 +277,8 @@ def run_online(
     count, steps = experiments.num_experiments, experiments.steps
     task, local, optimizer = value_providers(method, config, count)
     epsilon = config.factor_dqn.epsilon if method == "factor-dqn" else agent.epsilon
+    if local is None:  # Q-learning: no local model, uniform exploration (AgentConfig: Factor-Q's)
+        agent = replace(agent, exploration="uniform", risk_gate=False)
     grid = dqn.batch_env(experiments)
     env, policy, loss = experiment.online_agent(
         grid,

@@ -168,10 +168,14 @@ def summarise_setting(
         greedy = metrics["greedy_collisions"].sum(dim=(1, 2)).double().numpy()
         per_run = steps.sum(dim=2).mean(dim=1).numpy()
         totals[method] = {"collisions": collisions, "greedy": greedy, "steps": per_run}
+        # truncated: not at the goal after max_steps (a goal step's task return is -steps + 1)
+        truncated = (metrics["task_return"].to(torch.float64) == -steps).double()
         summary["methods"][method] = {
             "collisions_per_experiment": float(collisions.mean()),
             "greedy_collisions_per_experiment": float(greedy.mean()),
             "steps_per_run": float(per_run.mean()),
+            "steps_per_episode": float(steps.mean()),
+            "fraction_truncated": float(truncated.mean()),
             "collisions_per_episode": metrics["collisions"]
             .double()
             .flatten(1)
@@ -190,6 +194,7 @@ def summarise_setting(
                 "collisions": _ratio(mine["collisions"], oracle["collisions"], config.seed),
                 "greedy_collisions": _ratio(mine["greedy"], oracle["greedy"], config.seed),
                 "learning_speed": _ratio(oracle["steps"], mine["steps"], config.seed),
+                "absolute": _absolute(summary["methods"], "gated"),
             }
     learned = runs.get("learned")
     if learned is None:
@@ -216,7 +221,17 @@ def summarise_setting(
             # learning speed = 1 / steps per run: learned speed / oracle speed
             "learning_speed": _ratio(oracle["steps"], mine["steps"], config.seed),
         }
+        summary["against_oracle"]["absolute"] = _absolute(summary["methods"], "learned")
     return summary
+
+
+def _absolute(methods: dict[str, Any], method: str) -> dict[str, Any]:
+    """The task measures beside a ratio to the oracle (issue 39: a failure both share shows):
+    steps per episode and the fraction of episodes truncated, of ``method`` and the oracle."""
+    return {
+        name: {side: methods[side][name] for side in (method, "oracle")}
+        for name in ("steps_per_episode", "fraction_truncated")
+    }
 
 
 # --------------------------------------------------------------------------------------------

@@ -12,6 +12,7 @@ from typing import Any
 
 from factorq_envs.grid_world import WorldConfig
 from factorq_envs.regimes import REGIMES
+from factorq_torch.base.config import EXPLORATIONS, AgentConfig
 from factorq_torch.base.validation import (
     INT32_MAX,
     check_float,
@@ -177,6 +178,20 @@ class DependenciesConfig:
         "its pattern's majority (noisy sensors: the collision rate of a pattern then drifts with "
         "the policy, no change of structure). auto: --reopen-factor's.",
     )
+    risk_gate: str = option(
+        "off",
+        "on: Factor-Q (learned, oracle, joint, gated) sees only significant local values in eqs. "
+        "2-3 (|rho_a| > 0.5: a collision more likely than not), the rest as 0, the fix of the "
+        "heading-noise stall (docs/decisions.md). off: the paper's eqs. 2-3.",
+        choices=("off", "on"),
+    )
+    exploration: str = option(
+        "uniform",
+        "Factor-Q's exploratory actions (learned, oracle, joint, gated): uniform (the paper) or "
+        "risk-aware (uniform among the actuators its local model does not call risky, rho_a >= "
+        "-0.5). Q-learning and DQN always explore uniformly.",
+        choices=EXPLORATIONS,
+    )
     path: str = option(
         "fast",
         "Where the learner runs: fast (the compiled kernel, where available) or modular.",
@@ -213,6 +228,9 @@ class DependenciesConfig:
         check_int("max_parents", self.max_parents, 0)
         check_int("window", self.window, 1, INT32_MAX)
         check_threads("threads", self.threads)
+        if self.risk_gate not in ("off", "on"):
+            raise ValueError(f"risk_gate={self.risk_gate!r} is unknown: choose one of off, on")
+        AgentConfig(exploration=self.exploration)  # named if unknown
         for name, choices in (
             ("prediction", ("optimistic", "map", "posterior", "committed")),
             ("path", ("fast", "modular")),
@@ -262,6 +280,13 @@ class DependenciesConfig:
                     f"settings: {name!r} has a body without local rewards (no actuator can "
                     f"collide): there is no structure to learn"
                 )
+
+    def agent_of(self, method: str) -> AgentConfig:
+        """The learning parameters of ``method``: the paper's, with ``risk_gate`` and
+        ``exploration`` for the Factor-Q methods (Q-learning and DQN have no local model)."""
+        if method in ("q-learning", "dqn"):
+            return AgentConfig()
+        return AgentConfig(risk_gate=self.risk_gate == "on", exploration=self.exploration)
 
     def setting_options(self, setting: str) -> dict[str, Any]:
         """The body options of ``setting`` (a preset, or the custom one), defaults filled in."""

@@ -13,7 +13,6 @@ import torch
 
 from factorq_envs.grid_world import WorldConfig
 from factorq_envs.regimes import REGIME_PERIODS
-from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
 from factorq_trainers.experiments.dependencies_config import (
     CURVE_EVERY,
@@ -108,7 +107,7 @@ def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]
         "factor-q",
         periods,
         world,
-        AgentConfig(),
+        config.agent_of("learned"),
         config.runs,
         config.episodes,
         world_keys,
@@ -213,7 +212,7 @@ def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, A
     from factorq_torch.tables import TaskQTable
     from factorq_trainers.experiments.experiment import make_env
 
-    world, agent = config.world_of(setting), AgentConfig()
+    world, agent = config.world_of(setting), config.agent_of("learned")
     count, num_sensors = config.seeds, world.num_sensors
     world_keys, policy_keys = _keys(config, "learned")
     periods = [REGIME_PERIODS[config.world]] * count
@@ -226,8 +225,22 @@ def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, A
     learner = StructureLearner(
         count, num_actions=world.num_actuators, num_sensors=num_sensors, **_learner_options(config)
     )
-    policy = FactorQPolicy(count, keys=policy_keys, epsilon=agent.epsilon)
-    loss = FactorQLoss(task, learner, gamma=agent.gamma, alpha=agent.alpha)
+    policy = FactorQPolicy(
+        count,
+        keys=policy_keys,
+        epsilon=agent.epsilon,
+        exploration=agent.exploration,
+        risk_threshold=agent.risk_threshold,
+        risk_gate=agent.risk_gate,
+    )
+    loss = FactorQLoss(
+        task,
+        learner,
+        gamma=agent.gamma,
+        alpha=agent.alpha,
+        risk_threshold=agent.risk_threshold,
+        risk_gate=agent.risk_gate,
+    )
     collector = OnlineCollector(
         env,
         TensorDictSequential(task, learner, policy),
@@ -331,7 +344,7 @@ def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[
         algorithm,
         periods,
         world,
-        AgentConfig(),
+        config.agent_of(method),
         config.runs,
         config.episodes,
         world_keys,
@@ -362,7 +375,7 @@ def run_gated(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     from factorq_torch.tables import TaskQTable
     from factorq_trainers.experiments.experiment import make_env
 
-    world, agent = config.world_of(setting), AgentConfig()
+    world, agent = config.world_of(setting), config.agent_of("gated")
     count, num_sensors = config.seeds, world.num_sensors
     world_keys, policy_keys = _keys(config, "learned")  # common random numbers (KEYED_METHODS)
     orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
@@ -383,9 +396,25 @@ def run_gated(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     collector = OnlineCollector(
         env,
         TensorDictSequential(
-            task, local, FactorQPolicy(count, keys=policy_keys, epsilon=agent.epsilon)
+            task,
+            local,
+            FactorQPolicy(
+                count,
+                keys=policy_keys,
+                epsilon=agent.epsilon,
+                exploration=agent.exploration,
+                risk_threshold=agent.risk_threshold,
+                risk_gate=agent.risk_gate,
+            ),
         ),
-        FactorQLoss(task, local, gamma=agent.gamma, alpha=agent.alpha),
+        FactorQLoss(
+            task,
+            local,
+            gamma=agent.gamma,
+            alpha=agent.alpha,
+            risk_threshold=agent.risk_threshold,
+            risk_gate=agent.risk_gate,
+        ),
         runs=config.runs,
         episodes=config.episodes,
         optimizer=optimizer,

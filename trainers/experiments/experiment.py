@@ -255,14 +255,31 @@ def online_agent(
     count = policy_keys.numel()
     epsilon = agent.epsilon if epsilon is None else epsilon
     if local is None:
-        chooser = EpsilonGreedyPolicy(count, keys=policy_keys, epsilon=epsilon, device=device)
+        chooser = EpsilonGreedyPolicy(
+            count, keys=policy_keys, epsilon=epsilon, device=device, exploration=agent.exploration
+        )
         loss = TabularQLoss(task, gamma=agent.gamma, alpha=agent.alpha)
         return env, TensorDictSequential(task, chooser), loss
     chooser = FactorQPolicy(
-        count, keys=policy_keys, epsilon=epsilon, eta=agent.eta, g_min=agent.g_min, device=device
+        count,
+        keys=policy_keys,
+        epsilon=epsilon,
+        eta=agent.eta,
+        g_min=agent.g_min,
+        device=device,
+        exploration=agent.exploration,
+        risk_threshold=agent.risk_threshold,
+        risk_gate=agent.risk_gate,
     )
     loss = FactorQLoss(
-        task, local, gamma=agent.gamma, alpha=agent.alpha, eta=agent.eta, g_min=agent.g_min
+        task,
+        local,
+        gamma=agent.gamma,
+        alpha=agent.alpha,
+        eta=agent.eta,
+        g_min=agent.g_min,
+        risk_threshold=agent.risk_threshold,
+        risk_gate=agent.risk_gate,
     )
     env = TransformedEnv(env, SplitLocalReward())
     return env, TensorDictSequential(task, local, chooser), loss

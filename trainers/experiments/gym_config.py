@@ -9,6 +9,7 @@ import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from factorq_torch.base.config import EXPLORATIONS, check_exploration
 from factorq_torch.base.validation import check_float, check_int, check_names
 from factorq_trainers.runner.options import option
 
@@ -78,6 +79,13 @@ class GymConfig:
     threshold: float | None = option(
         None, "Return threshold for 'steps to threshold' (default: the world's)."
     )
+    exploration: str = option(
+        "uniform",
+        "Neural Factor-Q's exploratory actions: uniform or risk-aware (uniform among the actuators "
+        "its local model does not call risky: rho_a below minus half the declared collision "
+        "penalty). DQN and SB3's DQN explore uniformly.",
+        choices=EXPLORATIONS,
+    )
     curve_points: int = option(20, "Points of the curves in the figure.")
     out: str = option("results/gym", "Directory for the json, figure and report.")
 
@@ -93,6 +101,7 @@ class GymConfig:
         if self.threshold is not None:
             check_float("threshold", self.threshold, -math.inf, math.inf)
         check_int("curve_points", self.curve_points, 1, 1_000)
+        check_exploration(self.exploration)
 
     @property
     def spec(self) -> WorldSpec:

@@ -298,7 +298,11 @@ def _run_factor_q(
         local = StructureLearner(
             1, num_actions=base.num_actions, num_sensors=base.num_sensors, prediction="committed"
         )
-    agent = AgentConfig(gamma=HIGHWAY_DQN["gamma"])
+    # "risky": a collision more likely than not, half the declared penalty (highway: 2/3)
+    threshold = 0.5 * float(base.declaration.penalty)
+    agent = AgentConfig(
+        gamma=HIGHWAY_DQN["gamma"], exploration=config.exploration, risk_threshold=threshold
+    )
     env, policy, loss = online_agent(
         base, task, local, agent, _keys(config, unit, STREAM_POLICY), epsilon=FACTOR_Q_EPSILON
     )

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from factorq_torch.base.config import EXPLORATIONS, check_exploration
 from factorq_torch.base.validation import check_int
 from factorq_trainers.runner.options import option
 
@@ -46,6 +47,7 @@ class MiniGridConfig:
         steps: env steps per seed at 5x5 (size ``n`` gets ``steps * n / 5``).
         semantics, layout: the collision semantics and the sensors
             (``factorq_envs.minigrid_adapter``).
+        exploration: tabular Factor-Q's (``AgentConfig.exploration``).
         window: finished episodes in the success rate behind "steps to 90%".
         final_fraction: the share of the budget, at its end, of the final measures.
         out: the output directory.
@@ -71,6 +73,13 @@ class MiniGridConfig:
         "Sensors read from the view: front3 or ahead6 (factorq_envs.minigrid_adapter).",
         choices=LAYOUT_NAMES,
     )
+    exploration: str = option(
+        "uniform",
+        "Tabular Factor-Q's exploratory actions: uniform (the paper) or risk-aware (uniform among "
+        "the actuators its local model does not call risky, rho_a >= -0.5). Q-learning and DQN "
+        "explore uniformly.",
+        choices=EXPLORATIONS,
+    )
     window: int = option(10, "Finished episodes in the success rate behind 'steps to 90%'.")
     final_fraction: float = option(
         0.2, "Fraction of the budget, at its end, whose episodes give the final measures."
@@ -91,6 +100,7 @@ class MiniGridConfig:
             )
         if self.layout not in LAYOUT_NAMES:
             raise ValueError(f"layout={self.layout!r}: choose one of {', '.join(LAYOUT_NAMES)}")
+        check_exploration(self.exploration)
         check_int("window", self.window, 1, 10_000)
         check_float("final_fraction", self.final_fraction, 0.0, 1.0, low_open=True)
 

@@ -204,6 +204,8 @@ def run_tabular(
             local = learner = StructureLearner(
                 count, num_actions=actions, num_sensors=sensors, prediction="committed"
             )
+    if local is not None:  # Factor-Q: its exploration (Q-learning's is uniform)
+        agent = AgentConfig(exploration=config.exploration)
     keys = method_keys(config, size, method, STREAM_POLICY)
     env, policy, loss = online_agent(base, task, local, agent, keys)
     # one run of as many episodes as the budget could hold: the loop below stops at the budget

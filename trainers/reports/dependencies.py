@@ -36,9 +36,22 @@ def _percent_interval(bounds: list[float | None] | None) -> str:
 
 
 def _against_cells(against: dict[str, Any]) -> str:
-    """The three learned / oracle ratio cells of a row: collisions, greedy, learning speed."""
+    """The learned / oracle cells of a row: the three ratios (collisions, greedy, learning
+    speed), then the absolute task measures of both (steps per episode, episodes truncated)."""
     names = ("collisions", "greedy_collisions", "learning_speed")
-    return " | ".join(_ratio_text(against.get(name)) for name in names)
+    cells = [_ratio_text(against.get(name)) for name in names]
+    absolute = against.get("absolute")  # (results from before issue 39: none)
+    if absolute is None:
+        return " | ".join([*cells, "n/a", "n/a"])
+    (mine, steps), (_, oracle_steps) = absolute["steps_per_episode"].items()
+    truncated = absolute["fraction_truncated"]
+    cells.append(f"{format_number(steps)} / {format_number(oracle_steps)}")
+    cells.append(f"{100 * truncated[mine]:.0f}% / {100 * truncated['oracle']:.0f}%")
+    return " | ".join(cells)
+
+
+def _percent(value: float | None) -> str:
+    return "n/a" if value is None else f"{100 * value:.0f}%"
 
 
 def _ratio_text(entry: dict[str, Any] | None) -> str:
@@ -75,12 +88,19 @@ def markdown(results: dict[str, Any]) -> str:
             else ""
         )
         + "; "
-        f"wall time {_wall_s(results):.1f} s.",
+        f"wall time {_wall_s(results):.1f} s. Factor-Q (learned, oracle, joint, gated): eqs. 2-3 "
+        + (
+            "under the risk gate (local values within 0.5 of 0 count as 0)"
+            if config.get("risk_gate", "off") == "on"
+            else "as the paper's"
+        )
+        + f", {config.get('exploration', 'uniform')} exploration; Q-learning and DQN explore "
+        "uniformly.",
         "",
         "| setting | samples until right (median, p90) | right within target | wrong commitments "
         "/ 1000 | SHD at end | collisions vs oracle | greedy collisions vs oracle | learning speed "
-        "vs oracle |",
-        "| --- | --- | --- | ---: | ---: | --- | --- | --- |",
+        "vs oracle | steps per episode, learned / oracle | episodes truncated, learned / oracle |",
+        "| --- | --- | --- | ---: | ---: | --- | --- | --- | --- | --- |",
     ]
     for setting, summary in results["settings"].items():
         structure = summary.get("structure")
@@ -110,10 +130,12 @@ def markdown(results: dict[str, Any]) -> str:
         )
     lines += [
         "",
-        "Per experiment (means): collisions, greedy collisions, env steps per run.",
+        "Per experiment (means): collisions, greedy collisions, env steps per run and per "
+        f"episode, episodes truncated (not at the goal after {config['max_steps']} steps).",
         "",
-        "| setting | method | collisions | greedy collisions | steps per run |",
-        "| --- | --- | ---: | ---: | ---: |",
+        "| setting | method | collisions | greedy collisions | steps per run | steps per episode "
+        "| episodes truncated |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
     ]
     for setting, summary in results["settings"].items():
         for method, entry in summary["methods"].items():
@@ -121,7 +143,9 @@ def markdown(results: dict[str, Any]) -> str:
                 f"| {setting} | {_label(results, method)} | "
                 f"{format_number(entry['collisions_per_experiment'])} | "
                 f"{format_number(entry['greedy_collisions_per_experiment'])} | "
-                f"{format_number(entry['steps_per_run'])} |"
+                f"{format_number(entry['steps_per_run'])} | "
+                f"{format_number(entry.get('steps_per_episode'))} | "
+                f"{_percent(entry.get('fraction_truncated'))} |"
             )
     for setting, summary in results["settings"].items():
         entry = summary["methods"].get("dqn")

@@ -113,7 +113,8 @@ def markdown(results: dict[str, Any]) -> str:
         f"intervals over seeds ({INTERVALS}; neither leaves the possible range). Greedy: "
         f"{config['eval_episodes']} episodes after training, exploration off. Steps to "
         f"threshold: first env step at which the mean return of the last {config['window']} "
-        f"training episodes reached {results['threshold']:g} (k/{seeds} seeds got there).",
+        f"training episodes reached {results['threshold']:g} (k/{seeds} seeds got there). "
+        f"Exploration: neural Factor-Q {config.get('exploration', 'uniform')}, DQN uniform.",
         "",
         "| method | crashes / 1,000 steps (training) | greedy crash rate | greedy return | "
         "steps to threshold | env steps/s | wall s (all seeds) |",

@@ -36,7 +36,8 @@ def markdown(results: dict[str, Any]) -> str:
         f"and steps to goal over the episodes ending in the last "
         f"{config['final_fraction']:.0%} of the budget; collisions over the whole budget; "
         f"'steps to 90%' over the seeds that got there (k/{seeds}); wall time for all seeds of "
-        f"a method together. {results['notice']}.",
+        f"a method together. {results['notice']}. Exploration: tabular Factor-Q "
+        f"{config.get('exploration', 'uniform')}, Q-learning and DQN uniform.",
         "",
     ]
     for size, per_method in results["results"].items():
