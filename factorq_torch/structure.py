@@ -611,7 +611,7 @@ class StructureLearner(TensorDictModuleBase):
         tensor), cached while the buffers are the same tensors on the same memory (a module moved,
         copied or given new buffers builds them again)."""
         tensors = tuple(self._buffers[name] for name in self._READ_BUFFERS)
-        pointers = tuple(tensor.data_ptr() for tensor in tensors)  # type: ignore[union-attr]
+        pointers = tuple(tensor.data_ptr() for tensor in tensors)
         cached = self.__dict__.get("_views")
         if (
             cached is not None
@@ -625,7 +625,7 @@ class StructureLearner(TensorDictModuleBase):
         ):
             return None
         arrays = {
-            name: tensor.view(-1).numpy()  # type: ignore[union-attr]
+            name: tensor.view(-1).numpy()
             for name, tensor in zip(self._READ_BUFFERS, tensors, strict=True)
         }
         self.__dict__["_views"] = (tensors, pointers, arrays)
@@ -672,7 +672,10 @@ class StructureLearner(TensorDictModuleBase):
         block_size = candidates * width  # one actuator's [C, P]
         log_prior = arrays["log_prior"].tolist()  # [C]
         # one firing per experiment: the entry of every candidate (its sensors' pattern)
-        fired_rows, wheres, rewards_fired, successes_fired = [], [], [], []
+        fired_rows: list[int] = []
+        wheres: list[int] = []
+        rewards_fired: list[float] = []
+        successes_fired: list[float] = []
         for row, (fired, reading) in enumerate(zip(fired_actions, readings.tolist(), strict=True)):
             reward = float(rewards[row][fired])  # exact: float32 -> float64
             rewards_fired.append(reward)
@@ -719,7 +722,7 @@ class StructureLearner(TensorDictModuleBase):
         rows = row_starts(self.num_experiments, 1, action.device)  # arange(S), cached
         written = [self._buffers[name] for name in self._READ_BUFFERS[:-2]]
         if reopened is not None:  # the tensor code forgets, closes the blocks and refreshes
-            increment_version(written)  # type: ignore[arg-type]
+            increment_version(written)
             fired_tensor = torch.tensor(fired_rows, dtype=torch.int64)
             action = action.to(torch.int64)
             self._forget(rows, action, torch.tensor(reopened))
@@ -747,7 +750,7 @@ class StructureLearner(TensorDictModuleBase):
             best = max(log_posterior)
             arrays["map_cache"][flat] = log_posterior.index(best)  # the first maximum (argmax)
             arrays["plausible_cache"][span] = [value >= best - threshold for value in log_posterior]
-        increment_version(written)  # type: ignore[arg-type]  # in place, as by index_copy_
+        increment_version(written)  # in place, as by index_copy_: seen by autograd
         return True
 
     def _read_log_marginal(self, count: list[float], successes: list[float]) -> list[float]:
@@ -776,7 +779,7 @@ class StructureLearner(TensorDictModuleBase):
                     ),
                 ]
             self.__dict__["_marginal_levels"] = levels
-        arguments = []
+        arguments: list[float] = []
         for level_a, level_b, level_ab, _, _ in levels:
             for n, s in zip(count, successes, strict=True):
                 arguments += (level_a + s, level_b + n - s, level_ab + n)
@@ -866,8 +869,8 @@ class StructureLearner(TensorDictModuleBase):
                          zip(count, block_count, strict=True)]  # fmt: skip
         earlier_successes = [[s - b for s, b in zip(*pair, strict=True)] for pair in
                              zip(successes, block_successes, strict=True)]  # fmt: skip
-        flat = self._read_log_marginal(sum(earlier_count, []), sum(earlier_successes, []))
-        earlier = [flat[row * width : (row + 1) * width] for row in range(len(cells))]
+        marginals = self._read_log_marginal(sum(earlier_count, []), sum(earlier_successes, []))
+        earlier = [marginals[row * width : (row + 1) * width] for row in range(len(cells))]
         reopen = []
         for row, (flat, held) in enumerate(zip(fired_rows, committed, strict=True)):
             if held < 0:
