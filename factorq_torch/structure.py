@@ -620,10 +620,13 @@ class StructureLearner(TensorDictModuleBase):
         ):
             return cached[2]
         if not all(
-            tensor is not None and tensor.device.type == "cpu" and tensor.is_contiguous()
+            tensor is not None
+            and tensor.device.type == "cpu"
+            and tensor.is_contiguous()
+            and (tensor.dtype == torch.float64 or not tensor.is_floating_point())
             for tensor in tensors
         ):
-            return None
+            return None  # (float buffers of another dtype: the tensor path's arithmetic)
         arrays = {
             name: tensor.view(-1).numpy()
             for name, tensor in zip(self._READ_BUFFERS, tensors, strict=True)
