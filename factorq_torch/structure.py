@@ -147,6 +147,10 @@ from factorq_torch.functional import (  # noqa: F401  (the structure math, re-ex
 )
 from factorq_torch.tables import _check_entry, check_batch, check_firing, check_mask
 
+#: The read update (``StructureLearner._update_read``) looks ``lgamma`` up in tables for counts
+#: below this (a few MiB of tables at most); larger counts go through ``torch.lgamma``.
+_LGAMMA_TABLE_COUNTS = 8192
+
 
 class StructureLearner(TensorDictModuleBase):
     """A local value provider that learns each actuator's parent sensors (module docstring).
@@ -782,11 +786,7 @@ class StructureLearner(TensorDictModuleBase):
                     ),
                 ]
             self.__dict__["_marginal_levels"] = levels
-        arguments: list[float] = []
-        for level_a, level_b, level_ab, _, _ in levels:
-            for n, s in zip(count, successes, strict=True):
-                arguments += (level_a + s, level_b + n - s, level_ab + n)
-        logs = iter(torch.lgamma(torch.tensor(arguments, dtype=torch.float64)).tolist())
+        logs = iter(self._read_lgamma(levels, count, successes))
         size = len(count)
         by_level = []
         for _, _, _, log_beta_prior, _ in levels:
@@ -804,6 +804,43 @@ class StructureLearner(TensorDictModuleBase):
             clean, noisy = clean + clean_level, noisy + noisy_level
             marginal.append((clean if clean > noisy else noisy) if n > 0 else 0.0)
         return marginal
+
+    def _read_lgamma(
+        self, levels: list[tuple[float, ...]], count: list[float], successes: list[float]
+    ) -> list[float]:
+        """``lgamma`` of ``(a + s, b + n - s, a + b + n)`` for every level and entry, in that
+        order, as ``torch.lgamma`` computes them: integral counts (every firing of a collision
+        world: ``s`` and ``n`` whole numbers) are looked up in tables of ``torch.lgamma(base +
+        arange(M))`` per base (the same doubles in, the same function: the compiled kernel's
+        tables too), anything else in one ``torch.lgamma`` call."""
+        largest = max(count, default=0.0)
+        bases = {value for level in levels for value in level[:3]}
+        if (
+            largest < _LGAMMA_TABLE_COUNTS
+            # dyadic bases: b + n - s is then exactly b + (n - s), the table's argument
+            and all((base * 1024.0).is_integer() for base in bases)
+            and all(value.is_integer() for value in successes)
+            and all(value.is_integer() for value in count)
+        ):
+            tables = self.__dict__.setdefault("_lgamma_tables", {})
+            size = tables.get("size", 0)
+            if largest >= size:  # (re)build the tables past the largest count
+                size = min(max(2 * int(largest) + 2, 256), _LGAMMA_TABLE_COUNTS + 1)
+                steps = torch.arange(size, dtype=torch.float64)
+                for base in bases:
+                    tables[base] = torch.lgamma(base + steps).tolist()
+                tables["size"] = size
+            out: list[float] = []
+            for level_a, level_b, level_ab, _, _ in levels:
+                first, second, third = tables[level_a], tables[level_b], tables[level_ab]
+                for n, s in zip(count, successes, strict=True):
+                    out += (first[int(s)], second[int(n - s)], third[int(n)])
+            return out
+        arguments: list[float] = []
+        for level_a, level_b, level_ab, _, _ in levels:
+            for n, s in zip(count, successes, strict=True):
+                arguments += (level_a + s, level_b + n - s, level_ab + n)
+        return torch.lgamma(torch.tensor(arguments, dtype=torch.float64)).tolist()
 
     def _read_log_posterior(
         self, arrays: dict, prefix: str, flat: int, log_prior: list[float]

@@ -639,23 +639,27 @@ def test_a_few_experiments_on_the_cpu_are_read_as_the_tensor_ops_read_them(predi
 
 
 @pytest.mark.parametrize(
-    ("likelihood", "reopen", "experiments", "fractional"),
+    ("likelihood", "reopen", "experiments", "fractional", "prior"),
     [
-        ("mixture", "body", 1, False),
-        ("mixture", "actuator", 3, True),
-        ("pattern", "body", 3, False),
-        ("pattern", "actuator", 1, True),
+        ("mixture", "body", 1, False, 0.25),
+        ("mixture", "actuator", 3, True, 0.25),
+        ("mixture", "body", 1, False, 0.3),
+        ("pattern", "body", 3, False, 0.25),
+        ("pattern", "actuator", 1, True, 0.25),
     ],
 )
 def test_the_online_update_read_as_numbers_is_the_tensor_update_bit_for_bit(
-    likelihood, reopen, experiments, fractional
+    likelihood, reopen, experiments, fractional, prior
 ):
     """``update_running_mean`` of one firing per experiment on a small CPU learner takes the
     read path (``_update_read``): every buffer equal, bit for bit, to the tensor path's (run
     here through a mask of all experiments) after every firing, through commitments, noisy
-    readings (the noise gate), fractional rewards and reopenings."""
+    readings (the noise gate), fractional rewards and reopenings; ``lgamma`` from its tables
+    (integral counts, dyadic priors) and from ``torch.lgamma`` (fractional rewards, a prior of
+    0.3)."""
     generator = torch.Generator().manual_seed(42)
     options = dict(num_actions=4, num_sensors=4, window=30, likelihood=likelihood, reopen=reopen)
+    options.update(prior_a=prior, prior_b=prior)
     read = StructureLearner(experiments, **options)
     tensor = StructureLearner(experiments, **options)
     everyone = torch.ones(experiments, dtype=torch.bool)
