@@ -107,10 +107,13 @@ Keys: reads ``sensors`` ``[S, K]`` bool, writes ``local_value`` ``[S, A]`` float
 from __future__ import annotations
 
 import math
+from itertools import islice
 
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torch.autograd.graph import increment_version
 
 from factorq_torch.base import keys
 from factorq_torch.base.indices import row_starts, scalar
@@ -119,6 +122,8 @@ from factorq_torch.functional import (  # noqa: F401  (the structure math, re-ex
     LIKELIHOODS,
     MAX_CANDIDATE_PARENTS,
     MAX_SENSORS,
+    NOISY_ODDS,
+    NOISY_PRIOR,
     PAIR_MODES,
     PREDICTIONS,
     PRIORS,
@@ -141,6 +146,10 @@ from factorq_torch.functional import (  # noqa: F401  (the structure math, re-ex
     single_explains,
 )
 from factorq_torch.tables import _check_entry, check_batch, check_firing, check_mask
+
+#: The read update (``StructureLearner._update_read``) looks ``lgamma`` up in tables for counts
+#: below this (a few MiB of tables at most); larger counts go through ``torch.lgamma``.
+_LGAMMA_TABLE_COUNTS = 8192
 
 
 class StructureLearner(TensorDictModuleBase):
@@ -512,6 +521,8 @@ class StructureLearner(TensorDictModuleBase):
                     f"StructureLearner.update_running_mean: {name} has shape "
                     f"{list(value.shape)}, expected {list(shape)}"
                 )
+        if mask is None and self._update_read(readings, action, local_reward):
+            return
         owner, device = "StructureLearner.update_running_mean", self.count.device
         check_firing(owner, readings, action, local_reward, self.num_actions, device)
         rows = row_starts(batch, 1, action.device)  # arange(S), cached
@@ -574,6 +585,353 @@ class StructureLearner(TensorDictModuleBase):
             log_posterior = self._log_posterior_rows(fired)
         kept = self._decide(rows, action, fired, log_posterior)
         self._refresh_cache(rows, action, fired, kept)
+
+    #: The buffers the read update (``_update_read``) reads or writes, as flat numpy views.
+    _READ_BUFFERS = (
+        "count",
+        "successes",
+        "reward_sum",
+        "log_marginal",
+        "block_count",
+        "block_successes",
+        "block_reward_sum",
+        "block_log_marginal",
+        "samples",
+        "block_samples",
+        "committed",
+        "noise_seen",
+        "block_start",
+        "history_length",
+        "mean",
+        "weights_cache",
+        "map_cache",
+        "plausible_cache",
+        "log_prior",
+        "competitors",
+    )
+
+    def _numpy_views(self) -> dict | None:
+        """``{name: flat numpy view}`` of ``_READ_BUFFERS`` (None if one is not a contiguous CPU
+        tensor), cached while the buffers are the same tensors on the same memory (a module moved,
+        copied or given new buffers builds them again)."""
+        tensors = tuple(self._buffers[name] for name in self._READ_BUFFERS)
+        pointers = tuple(tensor.data_ptr() for tensor in tensors)
+        cached = self.__dict__.get("_views")
+        if (
+            cached is not None
+            and cached[1] == pointers
+            and all(old is new for old, new in zip(cached[0], tensors, strict=True))
+        ):
+            return cached[2]
+        if not all(
+            tensor is not None
+            and tensor.device.type == "cpu"
+            and tensor.is_contiguous()
+            and (tensor.dtype == torch.float64 or not tensor.is_floating_point())
+            for tensor in tensors
+        ):
+            return None  # (float buffers of another dtype: the tensor path's arithmetic)
+        arrays = {
+            name: tensor.view(-1).numpy()
+            for name, tensor in zip(self._READ_BUFFERS, tensors, strict=True)
+        }
+        self.__dict__["_views"] = (tensors, pointers, arrays)
+        return arrays
+
+    def _update_read(
+        self, readings: torch.Tensor, action: torch.Tensor, local_reward: torch.Tensor
+    ) -> bool:
+        """``update_running_mean`` of one firing per experiment (the online step, no mask) on a
+        small CPU learner, its few entries read and written through numpy as Python numbers:
+        bit for bit the tensor ops (every sum, difference, quotient and comparison is the same
+        IEEE double operation in the same order; the log marginals and the posterior weights are
+        computed by the same torch functions on tensors of the same shapes), in a fraction of the
+        time of the tensor path's ~200 small ops (the local-risk layer of one agent learns on
+        every env step). A reopening's forgetting is left to the tensor code.
+
+        Returns False (nothing written) where it does not apply: pair pruning, the flip
+        likelihood, another device, a large batch, or inputs the tensor path refuses (it then
+        runs, and names what is wrong).
+        """
+        num_actions = self.num_actions
+        if (
+            self.pruned
+            or self.likelihood == "flip"
+            or self.count.device.type != "cpu"
+            or self.num_experiments * num_actions > ROW_KERNEL_VALUES
+            or readings.dtype != torch.bool
+            or action.dtype not in (torch.int64, torch.int32)
+            or local_reward.dtype not in (torch.float32, torch.float64)
+            or local_reward.requires_grad
+            or any(value.device.type != "cpu" for value in (readings, action, local_reward))
+        ):
+            return False
+        fired_actions = action.tolist()  # [S]
+        rewards = local_reward.tolist()  # [S][A]
+        if not all(0 <= fired < num_actions for fired in fired_actions) or not all(
+            math.isfinite(value) for row in rewards for value in row
+        ):
+            return False
+        arrays = self._numpy_views()
+        if arrays is None:
+            return False
+        candidates, width = self.num_candidates, self.count.shape[-1]
+        block_size = candidates * width  # one actuator's [C, P]
+        log_prior = arrays["log_prior"].tolist()  # [C]
+        # one firing per experiment: the entry of every candidate (its sensors' pattern)
+        fired_rows: list[int] = []
+        wheres: list[int] = []
+        rewards_fired: list[float] = []
+        successes_fired: list[float] = []
+        for row, (fired, reading) in enumerate(zip(fired_actions, readings.tolist(), strict=True)):
+            reward = float(rewards[row][fired])  # exact: float32 -> float64
+            rewards_fired.append(reward)
+            successes_fired.append(min(max(-reward, 0.0), 1.0))  # clamp(-r, 0, 1)
+            flat = row * num_actions + fired
+            fired_rows.append(flat)
+            start = flat * block_size
+            wheres.extend(
+                start
+                + candidate * width
+                + sum(1 << rank for rank, sensor in enumerate(parents) if reading[sensor])
+                for candidate, parents in enumerate(self.sets)
+            )
+        per_row = [index // candidates for index in range(len(wheres))]
+        where_index = np.array(wheres, dtype=np.intp)  # (a list index is converted at every use)
+        new: dict[str, list[list[float]]] = {}
+        for prefix in ("", "block_"):
+            count = arrays[prefix + "count"][where_index].tolist()
+            successes = arrays[prefix + "successes"][where_index].tolist()
+            reward_sum = arrays[prefix + "reward_sum"][where_index].tolist()
+            new.setdefault("count", []).append([value + 1.0 for value in count])
+            new.setdefault("successes", []).append(
+                [
+                    value + successes_fired[row]
+                    for value, row in zip(successes, per_row, strict=True)
+                ]
+            )
+            new.setdefault("reward_sum", []).append(
+                [value + rewards_fired[row] for value, row in zip(reward_sum, per_row, strict=True)]
+            )
+        marginal = self._read_log_marginal(
+            new["count"][0] + new["count"][1], new["successes"][0] + new["successes"][1]
+        )
+        new["log_marginal"] = [marginal[: len(wheres)], marginal[len(wheres) :]]
+        for name, (whole, block) in new.items():
+            arrays[name][where_index] = whole
+            arrays["block_" + name][where_index] = block
+        for name in ("samples", "block_samples"):
+            arrays[name][fired_rows] += 1
+        log_posteriors = [
+            self._read_log_posterior(arrays, "", flat, log_prior) for flat in fired_rows
+        ]
+        reopened = self._decide_read(arrays, fired_rows, log_posteriors, log_prior)
+        rows = row_starts(self.num_experiments, 1, action.device)  # arange(S), cached
+        written = [self._buffers[name] for name in self._READ_BUFFERS[:-2]]
+        if reopened is not None:  # the tensor code forgets, closes the blocks and refreshes
+            increment_version(written)
+            fired_tensor = torch.tensor(fired_rows, dtype=torch.int64)
+            action = action.to(torch.int64)
+            self._forget(rows, action, torch.tensor(reopened))
+            self._close_blocks(rows, action, fired_tensor, None)
+            self._refresh_cache(rows, action, fired_tensor, None)
+            return True
+        for row, flat in enumerate(fired_rows):  # _close_blocks
+            if arrays["block_samples"][flat] >= self.window:
+                for name in ("count", "successes", "reward_sum", "log_marginal"):
+                    arrays["block_" + name][flat * block_size : (flat + 1) * block_size] = 0.0
+                arrays["block_samples"][flat] = 0
+                arrays["block_start"][flat] = arrays["history_length"][row]
+        # _refresh_cache of the fired actuators, with their log posterior
+        weights = posterior_weights(torch.tensor(log_posteriors, dtype=torch.float64)).tolist()
+        threshold = self.log_bayes_factor
+        for flat, log_posterior, weight in zip(fired_rows, log_posteriors, weights, strict=True):
+            entries = slice(flat * block_size, (flat + 1) * block_size)
+            count = arrays["count"][entries].tolist()
+            total = arrays["reward_sum"][entries].tolist()
+            arrays["mean"][entries] = [
+                t / max(n, 1.0) if n > 0.0 else 0.0 for n, t in zip(count, total, strict=True)
+            ]
+            span = slice(flat * candidates, (flat + 1) * candidates)
+            arrays["weights_cache"][span] = weight
+            best = max(log_posterior)
+            arrays["map_cache"][flat] = log_posterior.index(best)  # the first maximum (argmax)
+            arrays["plausible_cache"][span] = [value >= best - threshold for value in log_posterior]
+        increment_version(written)  # in place, as by index_copy_: seen by autograd
+        return True
+
+    def _read_log_marginal(self, count: list[float], successes: list[float]) -> list[float]:
+        """``_pattern_log_marginal`` of Python numbers (``"mixture"`` or ``"pattern"``): the same
+        double operations in the same order as ``functional.mixture_log_marginal`` /
+        ``beta_bernoulli_log_marginal``, with the same constants (Python floats there too), and
+        their ``lgamma`` values from one ``torch.lgamma`` call (elementwise, the values torch's
+        gives there)."""
+        levels = self.__dict__.get("_marginal_levels")
+        if levels is None:  # (a, b, a + b, log B(a, b), the level's log prior mass) per level
+            a, b = self.prior_a, self.prior_b
+            levels = [(a, b, a + b, math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b), 0.0)]
+            if self.likelihood == "mixture":
+                log_total = math.log1p(NOISY_ODDS)
+                noisy_a, noisy_b = (float(value) for value in NOISY_PRIOR)
+                levels = [
+                    (*levels[0][:4], -log_total),
+                    (
+                        noisy_a,
+                        noisy_b,
+                        noisy_a + noisy_b,
+                        math.lgamma(noisy_a)
+                        + math.lgamma(noisy_b)
+                        - math.lgamma(noisy_a + noisy_b),
+                        math.log(NOISY_ODDS) - log_total,
+                    ),
+                ]
+            self.__dict__["_marginal_levels"] = levels
+        logs = iter(self._read_lgamma(levels, count, successes))
+        size = len(count)
+        by_level = []
+        for _, _, _, log_beta_prior, _ in levels:
+            by_level.append(
+                [
+                    first + second - third - log_beta_prior
+                    for first, second, third in islice(zip(logs, logs, logs, strict=False), size)
+                ]
+            )
+        if len(levels) == 1:  # "pattern"
+            return by_level[0]
+        clean_level, noisy_level = levels[0][4], levels[1][4]
+        marginal = []
+        for n, clean, noisy in zip(count, by_level[0], by_level[1], strict=True):
+            clean, noisy = clean + clean_level, noisy + noisy_level
+            marginal.append((clean if clean > noisy else noisy) if n > 0 else 0.0)
+        return marginal
+
+    def _read_lgamma(
+        self, levels: list[tuple[float, ...]], count: list[float], successes: list[float]
+    ) -> list[float]:
+        """``lgamma`` of ``(a + s, b + n - s, a + b + n)`` for every level and entry, in that
+        order, as ``torch.lgamma`` computes them: integral counts (every firing of a collision
+        world: ``s`` and ``n`` whole numbers) are looked up in tables of ``torch.lgamma(base +
+        arange(M))`` per base (the same doubles in, the same function: the compiled kernel's
+        tables too), anything else in one ``torch.lgamma`` call."""
+        largest = max(count, default=0.0)
+        bases = {value for level in levels for value in level[:3]}
+        if (
+            largest < _LGAMMA_TABLE_COUNTS
+            # dyadic bases: b + n - s is then exactly b + (n - s), the table's argument
+            and all((base * 1024.0).is_integer() for base in bases)
+            and all(value.is_integer() for value in successes)
+            and all(value.is_integer() for value in count)
+        ):
+            tables = self.__dict__.setdefault("_lgamma_tables", {})
+            size = tables.get("size", 0)
+            if largest >= size:  # (re)build the tables past the largest count
+                size = min(max(2 * int(largest) + 2, 256), _LGAMMA_TABLE_COUNTS + 1)
+                steps = torch.arange(size, dtype=torch.float64)
+                for base in bases:
+                    tables[base] = torch.lgamma(base + steps).tolist()
+                tables["size"] = size
+            out: list[float] = []
+            for level_a, level_b, level_ab, _, _ in levels:
+                first, second, third = tables[level_a], tables[level_b], tables[level_ab]
+                for n, s in zip(count, successes, strict=True):
+                    out += (first[int(s)], second[int(n - s)], third[int(n)])
+            return out
+        arguments: list[float] = []
+        for level_a, level_b, level_ab, _, _ in levels:
+            for n, s in zip(count, successes, strict=True):
+                arguments += (level_a + s, level_b + n - s, level_ab + n)
+        return torch.lgamma(torch.tensor(arguments, dtype=torch.float64)).tolist()
+
+    def _read_log_posterior(
+        self, arrays: dict, prefix: str, flat: int, log_prior: list[float]
+    ) -> list[float]:
+        """``log_posterior_of`` of the actuator at flat index ``flat`` (``row * A + action``) from
+        the numpy views (``_update_read``): ``log_prior + (((m_0 + m_1) + m_2) + m_3)``."""
+        width = self.count.shape[-1]
+        values = arrays[prefix + "log_marginal"][
+            flat * self.num_candidates * width : (flat + 1) * self.num_candidates * width
+        ].tolist()
+        posterior = []
+        for candidate, prior in enumerate(log_prior):
+            total = values[candidate * width]
+            for pattern in range(1, width):
+                total = total + values[candidate * width + pattern]
+            posterior.append(prior + total)
+        return posterior
+
+    def _decide_read(
+        self,
+        arrays: dict,
+        fired_rows: list[int],
+        log_posteriors: list[list[float]],
+        log_prior: list[float],
+    ) -> list[bool] | None:
+        """``_decide`` on the numpy views (``_update_read``): commit open actuators, test the
+        committed ones for a change; writes ``committed`` and ``noise_seen``. Returns the
+        reopening flags ``[R]`` where some actuator reopened (the caller forgets), else None."""
+        candidates, width = self.num_candidates, self.count.shape[-1]
+        committed = arrays["committed"][fired_rows].tolist()
+        new = list(committed)
+        if not all(held >= 0 for held in committed):
+            competitors = arrays["competitors"]  # [C C] bool
+            for row, (held, log_posterior) in enumerate(
+                zip(committed, log_posteriors, strict=True)
+            ):
+                if held >= 0:
+                    continue
+                lead = max(log_posterior)
+                best = log_posterior.index(lead)  # the first maximum (argmax)
+                rivals = competitors[best * candidates : (best + 1) * candidates].tolist()
+                rival = max(
+                    (value for value, rival in zip(log_posterior, rivals, strict=True) if rival),
+                    default=-math.inf,
+                )
+                if lead - rival >= self.log_bayes_factor:
+                    new[row] = best
+                    cell = (fired_rows[row] * candidates + best) * width
+                    count = arrays["count"][cell : cell + width].tolist()
+                    successes = arrays["successes"][cell : cell + width].tolist()
+                    if any(min(s, n - s) > 0 for n, s in zip(count, successes, strict=True)):
+                        arrays["noise_seen"][row] = True  # has_minority
+        if not any(held >= 0 for held in committed):
+            arrays["committed"][fired_rows] = new
+            return None
+        # the change-point test (every row, as the tensor path computes it, shape [R, P])
+        cells = [(flat * candidates + max(held, 0)) * width for flat, held in
+                 zip(fired_rows, committed, strict=True)]  # fmt: skip
+
+        def at(name: str) -> list[list[float]]:
+            return [arrays[name][cell : cell + width].tolist() for cell in cells]
+
+        count, successes = at("count"), at("successes")
+        block_count, block_successes = at("block_count"), at("block_successes")
+        earlier_count = [[n - b for n, b in zip(*pair, strict=True)] for pair in
+                         zip(count, block_count, strict=True)]  # fmt: skip
+        earlier_successes = [[s - b for s, b in zip(*pair, strict=True)] for pair in
+                             zip(successes, block_successes, strict=True)]  # fmt: skip
+        marginals = self._read_log_marginal(sum(earlier_count, []), sum(earlier_successes, []))
+        earlier = [marginals[row * width : (row + 1) * width] for row in range(len(cells))]
+        reopen = []
+        for row, (flat, held) in enumerate(zip(fired_rows, committed, strict=True)):
+            if held < 0:
+                reopen.append(False)
+                continue
+            marginal = arrays["log_marginal"][cells[row] : cells[row] + width].tolist()
+            differences = [m - e for m, e in zip(marginal, earlier[row], strict=True)]
+            total = differences[0]
+            for value in differences[1:]:
+                total = total + value
+            lead = log_prior[held] + (0.0 + total)  # log_posterior_of(0.0, ...)
+            rival = max(self._read_log_posterior(arrays, "block_", flat, log_prior))
+            threshold = (
+                self.log_noisy_reopen_factor
+                if arrays["noise_seen"][flat // self.num_actions]
+                else self.log_reopen_factor
+            )
+            reopen.append(rival - lead >= threshold)
+        arrays["committed"][fired_rows] = [-1 if gone else held for gone, held in
+                                           zip(reopen, new, strict=True)]  # fmt: skip
+        return reopen if any(reopen) else None
 
     def _refresh_cache(
         self,
@@ -769,26 +1127,31 @@ class StructureLearner(TensorDictModuleBase):
         new = torch.where(reopen, scalar(-1, new), new)
         self.committed.view(-1).index_copy_(0, fired, new)
         reopened = bool(reopen.any())
-        if reopened:  # forget everything: the block may straddle the change
-            lost_rows, lost_actions = rows[reopen], action[reopen]
-            # "body": every actuator of the experiment forgets (a body changes as a whole)
-            lost = slice(None) if self.reopen == "body" else lost_actions
-            for prefix in ("", "block_"):
-                for name in ("count", "successes", "reward_sum", "log_marginal"):
-                    getattr(self, prefix + name)[lost_rows, lost] = 0.0
-            self.block_samples[lost_rows, lost] = 0
-            self.committed[lost_rows, lost] = -1
-            self.active[lost_rows, lost] = self.initial_active
-            # the history restarts after this firing (the counts forget it too)
-            length = self.history_length[lost_rows]
-            if self.reopen == "body":
-                length = length.unsqueeze(1).expand(-1, self.num_actions)
-            self.history_start[lost_rows, lost] = length
-            self.block_start[lost_rows, lost] = length
-            self.reopened[lost_rows, lost_actions] += 1
-            if self.reopen == "body":
-                self._refresh_cache(lost_rows, slice(None))
+        if reopened:
+            self._forget(rows, action, reopen)
         return self._close_blocks(rows, action, fired, None if reopened else log_posterior)
+
+    def _forget(self, rows: torch.Tensor, action: torch.Tensor, reopen: torch.Tensor) -> None:
+        """``_decide``'s reopening of the actuators where ``reopen`` ``[R]``: forget everything
+        (the block may straddle the change)."""
+        lost_rows, lost_actions = rows[reopen], action[reopen]
+        # "body": every actuator of the experiment forgets (a body changes as a whole)
+        lost = slice(None) if self.reopen == "body" else lost_actions
+        for prefix in ("", "block_"):
+            for name in ("count", "successes", "reward_sum", "log_marginal"):
+                getattr(self, prefix + name)[lost_rows, lost] = 0.0
+        self.block_samples[lost_rows, lost] = 0
+        self.committed[lost_rows, lost] = -1
+        self.active[lost_rows, lost] = self.initial_active
+        # the history restarts after this firing (the counts forget it too)
+        length = self.history_length[lost_rows]
+        if self.reopen == "body":
+            length = length.unsqueeze(1).expand(-1, self.num_actions)
+        self.history_start[lost_rows, lost] = length
+        self.block_start[lost_rows, lost] = length
+        self.reopened[lost_rows, lost_actions] += 1
+        if self.reopen == "body":
+            self._refresh_cache(lost_rows, slice(None))
 
     def _close_blocks(
         self,

@@ -636,3 +636,62 @@ def test_a_few_experiments_on_the_cpu_are_read_as_the_tensor_ops_read_them(predi
         read, computed = learner._local_values_read(probe), learner._local_values_tensor(probe)
         assert torch.equal(read.view(torch.int32), computed.view(torch.int32)), step
     assert learner.is_committed().all() and int(learner.reopened.sum()) > 0
+
+
+@pytest.mark.parametrize(
+    ("likelihood", "reopen", "experiments", "fractional", "prior"),
+    [
+        ("mixture", "body", 1, False, 0.25),
+        ("mixture", "actuator", 3, True, 0.25),
+        ("mixture", "body", 1, False, 0.3),
+        ("pattern", "body", 3, False, 0.25),
+        ("pattern", "actuator", 1, True, 0.25),
+    ],
+)
+def test_the_online_update_read_as_numbers_is_the_tensor_update_bit_for_bit(
+    likelihood, reopen, experiments, fractional, prior
+):
+    """``update_running_mean`` of one firing per experiment on a small CPU learner takes the
+    read path (``_update_read``): every buffer equal, bit for bit, to the tensor path's (run
+    here through a mask of all experiments) after every firing, through commitments, noisy
+    readings (the noise gate), fractional rewards and reopenings; ``lgamma`` from its tables
+    (integral counts, dyadic priors) and from ``torch.lgamma`` (fractional rewards, a prior of
+    0.3)."""
+    generator = torch.Generator().manual_seed(42)
+    options = dict(num_actions=4, num_sensors=4, window=30, likelihood=likelihood, reopen=reopen)
+    options.update(prior_a=prior, prior_b=prior)
+    read = StructureLearner(experiments, **options)
+    tensor = StructureLearner(experiments, **options)
+    everyone = torch.ones(experiments, dtype=torch.bool)
+    taken = 0
+    original = StructureLearner._update_read
+
+    def counted(self, *args):
+        nonlocal taken
+        done = original(self, *args)
+        taken += done
+        return done
+
+    for step in range(500):
+        readings = torch.rand(experiments, 4, generator=generator) < 0.5
+        action = torch.randint(0, 4, (experiments,), generator=generator)
+        parents = readings if step < 250 else readings.roll(1, dims=1)  # the body changes
+        flips = torch.rand(experiments, 4, generator=generator) < 0.05  # sensors read wrong
+        hit = (parents ^ flips).float() * (2.0 / 3.0 if fractional else 1.0)
+        reward = -hit * torch.nn.functional.one_hot(action, 4).float()
+        StructureLearner._update_read = counted
+        try:
+            read.update_running_mean(readings, action, reward)
+        finally:
+            StructureLearner._update_read = original
+        tensor.update_running_mean(readings, action, reward, mask=everyone)
+        if step % 5 and step < 495:  # every 5th firing and the last ones (a difference stays)
+            continue
+        for (name, got), value in zip(read.named_buffers(), tensor.buffers(), strict=True):
+            assert got.dtype == value.dtype and torch.equal(got, value), (step, name)
+            if value.is_floating_point():  # -0.0 and 0.0, NaN payloads: the bits themselves
+                width = {torch.float64: torch.int64, torch.float32: torch.int32}[value.dtype]
+                assert torch.equal(got.view(width), value.view(width)), (step, name)
+    assert taken == 500
+    assert int(read.reopened.sum()) > 0 and bool(read.is_committed().any())
+    assert bool(read.noise_seen.any())
