@@ -263,6 +263,7 @@ def test_the_summary_shows_the_absolute_task_measures_beside_the_ratios():
         {
             "config": dataclasses.asdict(config),
             "settings": {"cross": summary},
+            "methods": {"oracle": "oracle", "q-learning": "Q-learning"},  # the labels
             "timing": {"wall_s": 1.0},
         }
     )

@@ -85,7 +85,13 @@ HINT = resources.DEPENDENCIES_HINT
 CONFIG = DependenciesConfig
 
 _RATIO = {"ratio": NON_NEGATIVE, "ci": (None, [NON_NEGATIVE])}
-_AGAINST_ORACLE = {"collisions": _RATIO, "greedy_collisions": _RATIO, "learning_speed": _RATIO}
+_AGAINST_ORACLE = {
+    "collisions": _RATIO,
+    "greedy_collisions": _RATIO,
+    "learning_speed": _RATIO,
+    # the task measures of both sides beside the ratios (issue 39)
+    "absolute?": {"steps_per_episode": {"*": NON_NEGATIVE}, "fraction_truncated": {"*": FRACTION}},
+}
 #: A unit's result (``run_unit``), what a kept one must hold (``runner.kept``'s schema).
 UNIT_RESULT = {
     "summary": {
@@ -94,6 +100,8 @@ UNIT_RESULT = {
                 "collisions_per_experiment": NON_NEGATIVE,
                 "greedy_collisions_per_experiment": NON_NEGATIVE,
                 "steps_per_run": NON_NEGATIVE,
+                "steps_per_episode?": NON_NEGATIVE,
+                "fraction_truncated?": FRACTION,
                 "step_budget?": COUNT,
                 "episodes_per_experiment?": NON_NEGATIVE,
                 "collisions_per_episode": [NON_NEGATIVE],
