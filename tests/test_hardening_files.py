@@ -120,7 +120,7 @@ def test_a_fifo_where_a_results_file_belongs_is_named_as_such_not_missing(tmp_pa
 
     fifo = tmp_path / "results.json"
     os.mkfifo(fifo)
-    with pytest.raises(ValueError, match="results.json is not a regular file: not a results file"):
+    with pytest.raises(ValueError, match=r"results.json is not a regular file \(a FIFO\): not a results file"):
         results.read_json(fifo, ["config"], "run factorq paper")  # (reading it would block)
     with pytest.raises(ValueError, match="is not a regular file"):
         reports.find(tmp_path)

@@ -53,7 +53,7 @@ from typing import Any, NamedTuple
 
 import torch
 
-from factorq_trainers.runner import outdir, results
+from factorq_trainers.runner import outdir, reading, resources, results
 
 FORMAT = "factorq-paper-checkpoint"
 #: ``factorq compare``'s checkpoints: the methods finished so far and the running one's state.
@@ -292,12 +292,21 @@ def read(path: str | os.PathLike) -> Checkpoint:
     return loaded
 
 
+def max_checkpoint_bytes() -> int:
+    """The largest checkpoint file read: what this machine's memory allows (a checkpoint is read
+    whole, and the run it resumes holds at least as much), 1 TiB where that is unknown."""
+    limit, _ = resources.available_memory()
+    return limit if limit is not None else 2**40
+
+
 def read_content(path: Path, kind: str) -> dict[str, Any]:
     """The content of the checkpoint file ``path`` of format ``kind``, its digest checked."""
     try:
-        record = torch.load(path, map_location="cpu", weights_only=True)
-    except FileNotFoundError:
+        record = reading.load_torch(path, "checkpoint", max_checkpoint_bytes())
+    except reading.FileMissing:
         raise CheckpointError(f"checkpoint {path} is missing") from None
+    except reading.ReadError as error:  # a link, a FIFO, a device, too large, compressed
+        raise CheckpointError(str(error)) from None
     except Exception as error:  # torch raises many kinds on a damaged file: all mean the same
         raise CheckpointError(
             f"checkpoint {path} is corrupted or truncated ({_why(error)})"
@@ -311,9 +320,9 @@ def read_content(path: Path, kind: str) -> dict[str, Any]:
             f"reads version {FORMAT_VERSION}: resume it with the factorq that wrote it"
         )
     content = record.get("content")
-    if results.deeper_than(content, results.MAX_DEPTH):  # before the digest walk recurses
+    if reading.deeper_than(content, reading.MAX_DEPTH):  # before the digest walk recurses
         raise CheckpointError(
-            f"checkpoint {path} nests deeper than {results.MAX_DEPTH} levels: not a checkpoint "
+            f"checkpoint {path} nests deeper than {reading.MAX_DEPTH} levels: not a checkpoint "
             f"factorq wrote"
         )
     if not isinstance(content, dict) or digest(content) != record.get("sha256"):

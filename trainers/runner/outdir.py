@@ -32,6 +32,8 @@ import stat
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+from factorq_trainers.runner import reading
+
 LOCK_FILE = ".factorq.lock"
 #: What ``write_all_atomic`` and the checkpoint writer leave behind when killed mid-write.
 _TEMPORARY = re.compile(r"^\..+\.\d+\.tmp$")
@@ -119,8 +121,8 @@ def _prepare(path: Path, what: str) -> None:
 def _holder(lock_path: Path) -> str:
     """The pid recorded by the run that holds the lock, for the message."""
     try:
-        text = lock_path.read_text().strip()
-    except OSError:
+        text = reading.read_text(lock_path, "lock", 64).strip()
+    except (OSError, ValueError):
         return "another factorq run"
     return f"another factorq run (pid {text})" if text.isdigit() else "another factorq run"
 
