@@ -42,13 +42,16 @@ def find(results_dir: str | os.PathLike) -> tuple[Any, Path]:
 
 def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
     """Rewrite the Markdown and the figure in ``results_dir`` from its results file."""
-    from factorq_trainers.runner import results
+    from factorq_trainers.runner import kept, results
 
     entry, path = find(results_dir)
     report = importlib.import_module(entry.report)
     if hasattr(report, "regenerate"):  # a report with its own reading (paper: the schema)
         return report.regenerate(results_dir)
     data = results.read_json(path, ("config",), f"run `factorq {entry.name}`")
+    # untrusted numbers: finite, counts >= 0, fractions in [0, 1] (a fraction of 1e308 drawn
+    # as an axis of 1e310 %), before anything is drawn or written
+    kept.check_values(path, "results file", data, remedy=f"rerun `factorq {entry.name}`")
     directory = Path(results_dir)
     writers = {}
     if hasattr(report, "markdown"):

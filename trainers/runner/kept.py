@@ -72,7 +72,7 @@ _SETTINGS = ("config", "software", "world", "methods", "timing")
 _GENERIC = re.compile(r"mean|low|high|ci|ci95|n|\d+")
 
 
-def check_values(path: Path, what: str, results: dict[str, Any]) -> None:
+def check_values(path: Path, what: str, results: dict[str, Any], remedy: str = REMEDY) -> None:
     """A ValueError naming ``path`` unless every number of ``results`` is finite, those of
     counts (collisions, steps, episodes, seeds, samples, ...) are >= 0, fractions are in
     [0, 1], whole counts are whole, and a compare result's ``seeds_reached`` is the number of
@@ -97,7 +97,7 @@ def check_values(path: Path, what: str, results: dict[str, Any]) -> None:
         if isinstance(value, str | bool) and not _NON_NEGATIVE.fullmatch(measure):
             continue  # a label, a verdict
         if not isinstance(value, int | float) or isinstance(value, bool):
-            raise ValueError(f"{what} {path}: {where} holds {value!r}, not a number: {REMEDY}")
+            raise ValueError(f"{what} {path}: {where} holds {value!r}, not a number: {remedy}")
         problem = None
         if not math.isfinite(value):
             problem = "not a finite number"
@@ -108,11 +108,11 @@ def check_values(path: Path, what: str, results: dict[str, Any]) -> None:
         elif _WHOLE.fullmatch(measure) and value != math.floor(value):
             problem = "not a whole count"
         if problem is not None:
-            raise ValueError(f"{what} {path}: {where} holds {value!r}, {problem}: {REMEDY}")
-    _check_compare_counts(path, what, results)
+            raise ValueError(f"{what} {path}: {where} holds {value!r}, {problem}: {remedy}")
+    _check_compare_counts(path, what, results, remedy)
 
 
-def _check_compare_counts(path: Path, what: str, results: dict[str, Any]) -> None:
+def _check_compare_counts(path: Path, what: str, results: dict[str, Any], remedy: str) -> None:
     """A compare result's per-seed counts agree with its config and with each other."""
     if results.get("command") != "compare" or not isinstance(results.get("results"), dict):
         return
@@ -127,14 +127,14 @@ def _check_compare_counts(path: Path, what: str, results: dict[str, Any]) -> Non
                 count = len(per_seed) if isinstance(per_seed, list) else "no"
                 raise ValueError(
                     f"{what} {path}: results/{method}/{world} holds {count} seeds' steps to "
-                    f"the threshold, not {seeds}: {REMEDY}"
+                    f"the threshold, not {seeds}: {remedy}"
                 )
             reached = sum(step is not None for step in per_seed)
             if entry.get("seeds_reached") != reached:
                 raise ValueError(
                     f"{what} {path}: results/{method}/{world}/seeds_reached is "
                     f"{entry.get('seeds_reached')!r}, but {reached} seeds reached the threshold: "
-                    f"{REMEDY}"
+                    f"{remedy}"
                 )
 
 
