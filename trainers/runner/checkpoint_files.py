@@ -63,7 +63,9 @@ DIRECTORY = "checkpoint"
 LATEST = "checkpoint.pt"
 PREVIOUS = "checkpoint.prev.pt"
 _UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0}
-_TEMPORARY = re.compile(r"^\.(checkpoint\.pt|checkpoint\.prev\.pt)\.\d+\.tmp$")
+_TEMPORARY = re.compile(
+    r"^\.(checkpoint\.pt|checkpoint\.prev\.pt)\.\d+" + re.escape(outdir.TEMPORARY_SUFFIX) + "$"
+)
 
 
 def is_int(value: Any) -> bool:
@@ -185,12 +187,14 @@ def save(out: str | os.PathLike, content: dict[str, Any], kind: str = FORMAT) ->
     """Write ``content`` as the newest checkpoint of ``out``, keeping the one before it
     (``kind``: the file's format name, ``FORMAT`` or ``COMPARE_FORMAT``)."""
     directory = directory_of(out)
+    if directory.is_symlink():  # (claim refuses it first; a library caller gets it here)
+        raise outdir.LinkRefused(directory)
     made = not directory.exists()
     directory.mkdir(parents=True, exist_ok=True)
     latest, previous = directory / LATEST, directory / PREVIOUS
     pid = os.getpid()
-    temporary = directory / f".{LATEST}.{pid}.tmp"
-    link = directory / f".{PREVIOUS}.{pid}.tmp"
+    temporary = directory / outdir.temporary_name(LATEST, pid)
+    link = directory / outdir.temporary_name(PREVIOUS, pid)
     record = {"format": kind, "version": FORMAT_VERSION, "sha256": digest(content)}
     try:
         with os.fdopen(outdir.create_new(temporary), "wb") as file:  # never through a link
@@ -254,7 +258,7 @@ def remove_temporaries(directory: Path) -> None:
     """Delete temporaries left by a save that was killed midway."""
     if directory.is_dir():
         for path in directory.iterdir():
-            if _TEMPORARY.match(path.name):
+            if _TEMPORARY.match(path.name) and not path.is_dir():
                 path.unlink(missing_ok=True)
 
 

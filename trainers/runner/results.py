@@ -68,9 +68,9 @@ def write_atomic(path: str | os.PathLike, write: Callable[[Path], object]) -> No
 
 
 def temporary_path(path: Path) -> Path:
-    """Where ``write_all_atomic`` writes ``path`` before renaming it: ``.NAME.PID.tmp`` beside it
-    (``factorq_trainers.runner.outdir`` removes those of killed writers)."""
-    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    """Where ``write_all_atomic`` writes ``path`` before renaming it: ``.NAME.PID.factorq-tmp``
+    beside it (``factorq_trainers.runner.outdir`` removes those of killed writers)."""
+    return path.with_name(outdir.temporary_name(path.name))
 
 
 def write_all_atomic(
@@ -83,6 +83,9 @@ def write_all_atomic(
     ``before_rename`` runs once every temporary is complete, just before the renames (e.g. to
     swap in a directory written beside them).
     """
+    links = [path for path in writers if path.is_symlink()]
+    if links:  # the rename would replace the link, not write through it, but it is not ours
+        raise outdir.LinkRefused(links[0])
     temporaries = {path: temporary_path(path) for path in writers}
     try:
         for path, write in writers.items():
