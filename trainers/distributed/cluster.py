@@ -335,7 +335,8 @@ def probe_scheduler(address: str, timeout_s: float) -> None:
             (size,) = struct.unpack("Q", receive(8))
             if size > MAX_HANDSHAKE_BYTES:
                 raise ClusterError(f"{not_dask}: its first message announces {size} bytes")
-            frames, more = unpack_frames(receive(size), partial=True)
+            unpacked, more = unpack_frames(receive(size), partial=True)
+            frames: list[Any] = list(unpacked)
             if sum(more) > MAX_HANDSHAKE_BYTES:
                 raise ClusterError(f"{not_dask}: its first message announces {sum(more)} bytes")
             frames.extend(receive(count) for count in more)

@@ -321,8 +321,8 @@ def read_npz(
                                 f"which its {member.file_size - header} bytes do not hold"
                             )
                         raw = data.read(size)
-                    order = "F" if fortran else "C"
-                    array = np.frombuffer(raw, dtype=dtype).reshape(shape, order=order)
+                    flat = np.frombuffer(raw, dtype=dtype)
+                    array = flat.reshape(shape, order="F") if fortran else flat.reshape(shape)
                     arrays[member.filename[: -len(".npy")]] = array
         except ReadError:
             raise
