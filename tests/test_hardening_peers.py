@@ -97,7 +97,7 @@ def test_a_port_that_refuses_is_retried_briefly_not_for_the_whole_timeout():
 
 def test_a_real_scheduler_passes_the_probe():
     with distributed.LocalCluster(
-        n_workers=0, processes=False, dashboard_address=None, silence_logs=50
+        n_workers=0, processes=False, dashboard_address=":0", silence_logs=50
     ) as local:
         cluster.probe_scheduler(local.scheduler_address, 60)
         executor = cluster.open_executor(

@@ -61,7 +61,7 @@ class LinkRefused(OutputDirError):
 
     def __init__(self, path: str | os.PathLike) -> None:
         super().__init__(
-            f"'{path}' is a symbolic link where factorq writes its own file: remove the link "
+            f"'{path}' is a symbolic link where factorq writes its own files: remove the link "
             f"(factorq never writes through links; its target was left as it is)"
         )
 
