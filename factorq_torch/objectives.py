@@ -160,14 +160,33 @@ class _TransitionLoss(LossModule):
         return value
 
     def _read_reward(
-        self, tensordict: TensorDictBase, key: NestedKey, trailing: tuple, device: torch.device
+        self,
+        tensordict: TensorDictBase,
+        key: NestedKey,
+        trailing: tuple,
+        device: torch.device,
+        dtype: torch.dtype,
     ) -> torch.Tensor:
-        """A reward ``[*B, *trailing]`` on the tables' ``device``, finite (a NaN or an infinity
-        would make the loss, the targets and the local tables NaN from then on)."""
+        """A reward ``[*B, *trailing]`` on the tables' ``device``, of the values' ``dtype`` (a
+        float64 reward against float32 tables would be rounded differently by the two update
+        paths, or fail in ``index_copy_``), finite (a NaN or an infinity would make the loss, the
+        targets and the local tables NaN from then on)."""
         value = self._read(tensordict, key, trailing)
         name = type(self).__name__
         check_same_device(name, repr(key), value, device)
+        if value.dtype != dtype:
+            raise TypeError(
+                f"{name}: {key!r} is {value.dtype} but the values are {dtype}: give {dtype} "
+                f"rewards (e.g. torchrl's DoubleToFloat transform on the env)"
+            )
         return check_finite(name, repr(key), value, cause="the env or a transform gave it")
+
+    def _check_overflow(self, what: str, value: torch.Tensor) -> None:
+        """Refuse a target (eqs. 1 and 4), TD error or updated value that overflowed float32:
+        finite rewards and values can still add up past float32's range (a reward of 3e38), and
+        the step would write an infinity into the table (nothing is written then)."""
+        cause = "rewards or values too large for float32 (|r + gamma * max C(s')| > 3.4e38)"
+        check_finite(type(self).__name__, what, value, cause=cause)
 
     def _read_action(self, tensordict: TensorDictBase, num_actions: int) -> torch.Tensor:
         key = self.tensor_keys.action
@@ -259,6 +278,7 @@ class _TransitionLoss(LossModule):
         new = q_update(q_sa, target, self.alpha)  # eqs. 1 and 4
         if mask is not None:
             new = torch.where(mask, new, q_sa)
+        self._check_overflow("the updated Q(s, a) (eqs. 1, 4)", new)  # an infinite target too
         flat.index_copy_(0, entry, new)
 
     @staticmethod
@@ -368,7 +388,7 @@ class TabularQLoss(_TransitionLoss):
         provider = self.task_value_network
         q = self._provide(provider, tensordict, keys.action_value, experiment)  # [*B, A]
         action = self._read_action(tensordict, q.shape[-1])  # [*B]
-        reward = self._read_reward(tensordict, ("next", keys.reward), (), q.device)  # [*B]
+        reward = self._read_reward(tensordict, ("next", keys.reward), (), q.device, q.dtype)
         terminated = self._read_terminated(tensordict)  # [*B]
         mask = self._mask(tensordict, batch)
         weight = self._entry_weight(tensordict, experiment, action)
@@ -378,6 +398,7 @@ class TabularQLoss(_TransitionLoss):
         # compute: eq. 1's target and the loss whose SGD step is eq. 1's update
         target = q_learning_target(reward, q_next, terminated, self.gamma)  # [*B]
         loss_task, td_error = self._task_loss(q, action, target, mask, weight)
+        self._check_overflow("the TD error Q(s, a) - target (eq. 1)", td_error)  # and target
         # write
         return TensorDict(loss_task=loss_task, td_error=td_error.detach(), batch_size=[])
 
@@ -392,7 +413,8 @@ class TabularQLoss(_TransitionLoss):
         keys, batch = self.tensor_keys, self._batch(tensordict)
         provider = self.task_value_network
         action = self._read_action(tensordict, provider.num_actions)  # [S]
-        reward = self._read_reward(tensordict, ("next", keys.reward), (), provider.table.device)
+        table = provider.table
+        reward = self._read_reward(tensordict, ("next", keys.reward), (), table.device, table.dtype)
         terminated = self._read_terminated(tensordict)  # [S]
         mask = self._mask(tensordict, batch)
         q_next = self._provide(provider, tensordict.get("next"), keys.action_value)  # [S, A]
@@ -497,9 +519,11 @@ class FactorQLoss(_TransitionLoss):
         if num_sensors is None:  # a provider that does not declare K: take the entry's own
             num_sensors = getattr(tensordict.get(keys.sensors, None), "shape", (0,))[-1]
         sensors = self._read(tensordict, keys.sensors, (num_sensors,))  # [*B, K], before acting
-        reward = self._read_reward(tensordict, ("next", keys.reward), (), q.device)  # [*B], task
+        reward = self._read_reward(
+            tensordict, ("next", keys.reward), (), q.device, q.dtype
+        )  # [*B], task
         local_reward = self._read_reward(
-            tensordict, ("next", keys.local_reward), (num_actions,), q.device
+            tensordict, ("next", keys.local_reward), (num_actions,), q.device, q.dtype
         )
         terminated = self._read_terminated(tensordict)  # [*B]
         mask = self._mask(tensordict, batch)
@@ -516,6 +540,7 @@ class FactorQLoss(_TransitionLoss):
         c_next = combined_values(q_next, rho_next, g_next)  # [*B, A], eq. 2
         target = factorq_target(reward, c_next, terminated, self.gamma)  # [*B], eq. 4
         loss_task, td_error = self._task_loss(q, action, target, mask, weight)
+        self._check_overflow("the TD error Q(s, a) - target (eq. 4)", td_error)  # and target
         fired = action.unsqueeze(-1)
         local_error = rho.gather(-1, fired).squeeze(-1) - local_reward.gather(-1, fired).squeeze(-1)
         loss_local = self._reduce(0.5 * local_error.pow(2), mask)
@@ -556,10 +581,10 @@ class FactorQLoss(_TransitionLoss):
         if num_sensors is None:  # a provider that does not declare K: take the entry's own
             num_sensors = getattr(tensordict.get(keys.sensors, None), "shape", (0,))[-1]
         sensors = self._read(tensordict, keys.sensors, (num_sensors,))  # [S, K], before acting
-        device = task.table.device
-        reward = self._read_reward(tensordict, ("next", keys.reward), (), device)  # [S], task
+        device, dtype = task.table.device, task.table.dtype
+        reward = self._read_reward(tensordict, ("next", keys.reward), (), device, dtype)  # [S]
         local_reward = self._read_reward(
-            tensordict, ("next", keys.local_reward), (num_actions,), device
+            tensordict, ("next", keys.local_reward), (num_actions,), device, dtype
         )
         terminated = self._read_terminated(tensordict)  # [S]
         mask = self._mask(tensordict, batch)

@@ -206,6 +206,28 @@ def _check_entry(
     return value
 
 
+def _check_loaded(owner: str, state_dict: dict, prefix: str, floats: tuple, counts: tuple) -> None:
+    """Refuse a state dict whose tables hold NaN or infinite values (``floats``) or negative
+    counts (``counts``), before anything is loaded: a table loaded so would be refused only at
+    its first use, far from the file or the code that made it."""
+    for name in floats:
+        value = state_dict.get(prefix + name)
+        if isinstance(value, torch.Tensor):
+            check_finite(f"{owner}.load_state_dict", repr(prefix + name), value, cause=_LOADED)
+    for name in counts:
+        value = state_dict.get(prefix + name)
+        if isinstance(value, torch.Tensor) and value.numel() and value.device.type != "meta":
+            if bool((value < 0).any()):
+                raise ValueError(
+                    f"{owner}.load_state_dict: {prefix + name!r} holds negative counts "
+                    f"(first: {int(value[value < 0][0])}): {_LOADED}"
+                )
+
+
+#: What a bad loaded table means.
+_LOADED = "the state was saved from a diverged run or edited; nothing was loaded"
+
+
 class TaskQTable(TensorDictModuleBase):
     """Task values ``Q(s, .)`` of ``S`` experiments, one row of ``A`` actions per state.
 
@@ -289,6 +311,10 @@ class TaskQTable(TensorDictModuleBase):
         self.table = torch.nn.Parameter(
             torch.zeros(num_experiments, self.num_states, num_actions, device=device)
         )
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+        _check_loaded(type(self).__name__, state_dict, prefix, ("table",), ())
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def state_index(self, tensordict: TensorDictBase) -> torch.Tensor:
         """The row of each transition's table, ``[*B]`` int64 (validated)."""
@@ -380,6 +406,14 @@ class _RowsWithSparseGrad(torch.autograd.Function):
         return gradient, None, None
 
 
+#: Why eq. 5 can overflow: ``r - rho`` of two finite float32 numbers of opposite signs
+#: exceeds float32's range when they are beyond half of it.
+_OVERFLOW = (
+    "a local reward beyond half float32's range (|r| > 1.7e38) overflows r - rho; "
+    "the table is unchanged"
+)
+
+
 class LocalRewardTable(TensorDictModuleBase):
     """Factor-Q's local reward tables ``rho_a[o_D(a)]`` and visit counts ``kappa_a[o_D(a)]``.
 
@@ -466,6 +500,10 @@ class LocalRewardTable(TensorDictModuleBase):
         return project_local(self.rho, readings, self.dependency)
 
     @torch.no_grad()
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+        _check_loaded(type(self).__name__, state_dict, prefix, ("rho",), ("kappa",))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
     def update_running_mean(
         self,
         readings: torch.Tensor,
@@ -566,6 +604,7 @@ class LocalRewardTable(TensorDictModuleBase):
             count = torch.zeros_like(kappa_flat).index_add_(0, entry, visits)[entry]  # [M]
             total = torch.zeros_like(rho_flat).index_add_(0, entry, step)[entry]  # [M]
         new_rho, new_kappa = running_mean_add(rho, kappa, total, count)  # eq. 5, n at once
+        check_finite(owner, "the running mean (eq. 5)", new_rho, cause=_OVERFLOW)
         rho_flat.index_copy_(0, entry, new_rho)  # every transition of an entry writes the same
         kappa_flat.index_copy_(0, entry, new_kappa)  # value
 
@@ -602,12 +641,18 @@ class LocalRewardTable(TensorDictModuleBase):
         sensors = readings.tolist()
         rho_flat, kappa_flat = rho.view(-1).numpy(), kappa.view(-1).numpy()
         table, width, zero = actions * rho.shape[-1], rho.shape[-1], np.float32(0.0)
-        for row, (a, reading) in enumerate(zip(fired, sensors, strict=True)):
-            entry = row * table + a * width + local_pattern_of(reading, self.dependency, a)
-            old = rho_flat[entry]  # eq. 5, as the batched update computes it for n = 1
-            new, visits = running_mean_add_one(
-                old, int(kappa_flat[entry]), rewards[row, a] - old + zero
-            )
+        updates = []
+        with np.errstate(over="ignore", invalid="ignore"):  # an overflow is refused below
+            for row, (a, reading) in enumerate(zip(fired, sensors, strict=True)):
+                entry = row * table + a * width + local_pattern_of(reading, self.dependency, a)
+                old = rho_flat[entry]  # eq. 5, as the batched update computes it for n = 1
+                new, visits = running_mean_add_one(
+                    old, int(kappa_flat[entry]), rewards[row, a] - old + zero
+                )
+                updates.append((entry, new, visits))
+        if not all(math.isfinite(new) for _, new, _ in updates):
+            return False  # nothing written: the tensor path refuses it, naming the experiment
+        for entry, new, visits in updates:
             rho_flat[entry], kappa_flat[entry] = new, visits
         increment_version(rho)  # written as by index_copy_: in place, seen by autograd
         increment_version(kappa)

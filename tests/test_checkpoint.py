@@ -217,7 +217,7 @@ def test_a_crash_between_the_renames_still_leaves_a_complete_newest_checkpoint(
 
 def test_stray_temporaries_of_a_killed_save_are_ignored_and_then_removed(tmp_path):
     checkpoint.save(tmp_path, content(1))
-    stray = tmp_path / "checkpoint" / ".checkpoint.pt.99999.tmp"
+    stray = tmp_path / "checkpoint" / ".checkpoint.pt.99999.factorq-tmp"
     stray.write_bytes(b"PK half")
     assert checkpoint.load(tmp_path).episodes_completed == 1
     checkpoint.remove(tmp_path)

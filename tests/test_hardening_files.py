@@ -108,7 +108,7 @@ def test_a_link_planted_at_the_checkpoints_temporary_is_refused_and_its_target_k
     out = tmp_path / "out"
     directory = checkpoint.directory_of(out)
     directory.mkdir(parents=True)
-    (directory / f".{checkpoint.LATEST}.{os.getpid()}.tmp").symlink_to(victim)
+    (directory / f".{checkpoint.LATEST}.{os.getpid()}.factorq-tmp").symlink_to(victim)
     with pytest.raises(outdir.LinkRefused):
         checkpoint.save(out, {"episodes": 1})
     assert victim.read_bytes() == PRECIOUS
@@ -120,7 +120,8 @@ def test_a_fifo_where_a_results_file_belongs_is_named_as_such_not_missing(tmp_pa
 
     fifo = tmp_path / "results.json"
     os.mkfifo(fifo)
-    with pytest.raises(ValueError, match="results.json is not a regular file: not a results file"):
+    fifo_refused = r"results.json is not a regular file \(a FIFO\): not a results file"
+    with pytest.raises(ValueError, match=fifo_refused):
         results.read_json(fifo, ["config"], "run factorq paper")  # (reading it would block)
     with pytest.raises(ValueError, match="is not a regular file"):
         reports.find(tmp_path)

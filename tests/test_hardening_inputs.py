@@ -16,7 +16,7 @@ from timing import patience  # tests/timing.py: bounds that stretch with the loa
 
 from factorq_torch.base.validation import check_float
 from factorq_trainers.distributed import sweep_spec
-from factorq_trainers.runner import checkpoint, cluster, options, results
+from factorq_trainers.runner import checkpoint, cluster, options, reading
 from factorq_trainers.runner.frame import Parser
 
 
@@ -117,11 +117,11 @@ def test_deep_nesting_in_a_sweep_file_is_refused_before_recursion(tmp_path, name
 
 def test_brackets_inside_toml_strings_and_comments_do_not_count():
     text = 'a = "[[[[" # [[[[\nb = \'{{{{\'\nc = """\n[[[[\n"""\n[[configs]]\n'
-    assert results.nesting_depth(text, sweep_spec._TOML_TOKENS) == 2
+    assert reading.nesting_depth(text, reading.TOML_TOKENS) == 2
 
 
 def test_an_oversized_sweep_file_is_refused_unread(tmp_path):
-    refused(write(tmp_path, "big.toml", "# " + "x" * sweep_spec.MAX_SPEC_BYTES), "larger than")
+    refused(write(tmp_path, "big.toml", "# " + "x" * sweep_spec.MAX_SPEC_BYTES), "bytes, more than")
 
 
 def test_the_grid_size_is_checked_from_the_axes_lengths_before_expanding():
@@ -149,9 +149,9 @@ def test_deeper_than_walks_without_recursion():
     nested: list = []
     for _ in range(100_000):  # far past the interpreter's recursion limit
         nested = [nested]
-    assert results.deeper_than(nested, 32)
-    assert not results.deeper_than({"a": [1, (2, {"b": 3})]}, 4)
-    assert results.deeper_than({"a": [1, (2, {"b": [3]})]}, 4)
+    assert reading.deeper_than(nested, 32)
+    assert not reading.deeper_than({"a": [1, (2, {"b": 3})]}, 4)
+    assert reading.deeper_than({"a": [1, (2, {"b": [3]})]}, 4)
 
 
 def _compare_checkpoint(out, finished, running):

@@ -99,7 +99,7 @@ def test_existing_results_are_kept_unless_forced_or_resumed(tmp_path):
 
 
 def test_stale_temporaries_of_killed_writers_are_removed(tmp_path):
-    stale = tmp_path / ".results.json.12345.tmp"
+    stale = tmp_path / ".results.json.12345.factorq-tmp"
     stale.write_text("partial")
     kept = tmp_path / "notes.tmp"
     kept.write_text("mine")

@@ -10,7 +10,8 @@ import pytest
 from test_report import synthetic_results
 
 from factorq_trainers.reports import report
-from factorq_trainers.runner.results import MAX_DEPTH, SCHEMA_VERSION
+from factorq_trainers.runner.reading import MAX_DEPTH
+from factorq_trainers.runner.results import SCHEMA_VERSION
 from factorq_trainers.runner.schema import (
     ResultsFileError,
     check_results,

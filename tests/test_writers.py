@@ -77,8 +77,8 @@ def test_results_are_replaced_only_with_force(tmp_path):
 
 def test_stale_temporaries_of_a_killed_writer_are_removed(tmp_path):
     out = tmp_path / "compare"
-    (out / ".logs.99999.tmp" / "q-learning").mkdir(parents=True)
-    (out / ".comparison.json.99999.tmp").write_text("{half")
+    (out / ".logs.99999.factorq-tmp" / "q-learning").mkdir(parents=True)
+    (out / ".comparison.json.99999.factorq-tmp").write_text("{half")
     args = ["compare", "--methods", "q-learning", "--seeds", "1", "--steps", "30"]
     code, err = factorq(*args, "--size", "4", "--obstacles", "1", "--out", str(out))
     assert code == 0, err
@@ -110,7 +110,7 @@ def test_compare_replaces_its_files_and_logs_as_a_set(tmp_path, monkeypatch):
     assert json.loads((out / "comparison.json").read_text())["config"]["seed"] == 1
     rows = [path.read_text().splitlines() for path in logged]
     assert all(len(lines) == len(set(lines)) for lines in rows)  # nothing appended twice
-    assert not [path for path in out.iterdir() if path.name.endswith(".tmp")]
+    assert not [path for path in out.iterdir() if path.name.endswith("tmp")]
     assert Path(out / "logs").is_dir()
 
 

@@ -6,6 +6,7 @@ Errors name the argument, the value and the allowed range, e.g.
 
 from __future__ import annotations
 
+import collections
 import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, TypeGuard
@@ -117,7 +118,8 @@ def check_names(name: str, value: Any, allowed: tuple[str, ...] | list[str]) -> 
     for item in names:
         if item not in allowed:
             raise ValueError(f"{name}: {item!r} is unknown: choose from {', '.join(allowed)}")
-    duplicates = sorted({item for item in names if names.count(item) > 1})
+    counts = collections.Counter(names)  # linear: a checkpoint's config may hold 10**6 names
+    duplicates = sorted(item for item, count in counts.items() if count > 1)
     if duplicates:
         raise ValueError(f"{name}: {', '.join(duplicates)} given more than once")
     return tuple(item for item in allowed if item in names)

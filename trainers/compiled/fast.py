@@ -40,7 +40,7 @@ from factorq_envs.grid_world import WorldConfig, static_layout
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
 from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_torch.base.rng import probability_threshold
-from factorq_torch.base.validation import MAX_PARENTS, check_int, check_table_size
+from factorq_torch.base.validation import INT64_MAX, MAX_PARENTS, check_int, check_table_size
 from factorq_torch.functional import check_dependency, parent_weights
 from factorq_trainers.compiled.batch_options import (
     CACHE_LINE,  # noqa: F401 - a public name of the fast path
@@ -349,7 +349,7 @@ class ExperimentBatch:
     def advance(self, max_steps: int) -> int:
         """Run each unfinished experiment for up to ``max_steps`` more env steps (stopping early
         at its end); return the number of episodes completed in this call (all experiments)."""
-        check_int("max_steps", max_steps, 0)
+        check_int("max_steps", max_steps, 0, INT64_MAX)  # the kernel's int64 (2**64 + 5 wrapped)
         if max_steps == 0 or self.done:
             return 0
         next_experiment = ctypes.c_int64(0)
@@ -434,6 +434,9 @@ class ExperimentBatch:
                     f"state[{name!r}] has shape {tuple(value.shape)} and dtype {value.dtype}, "
                     f"expected {tuple(reference.shape)} and {reference.dtype}"
                 )
+        for name, value in state.items():  # tables, metrics: no NaN or infinity into the kernel
+            if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+                raise ValueError(f"state[{name!r}] holds NaN or infinite values")
         for name in ("periods", "world_keys", "policy_keys"):
             if not torch.equal(state[name], expected[name]):
                 raise ValueError(f"state[{name!r}] belongs to a different batch")

@@ -26,6 +26,7 @@ from pathlib import Path
 import torch
 
 from factorq_envs.grid_world import NUM_ACTIONS, FactoredGrid, WorldConfig
+from factorq_torch.base.validation import INT64_MAX, check_int
 
 #: The env-only mode of the kernel (benchmarks): uniformly random actions (the policy stream's
 #: action draw), no learning, every action counted as exploratory.
@@ -398,6 +399,11 @@ def kernel_scatter(
     """
     library = _require()
     WorldConfig(size=size, num_obstacles=num_obstacles)  # validates the pair
+    # ctypes wraps ints into int64 silently (a key of 2**64 would be key 0): keys are int64 bit
+    # patterns (``rng.derive_keys``), the counter and the cell are indices
+    check_int("key", key, -(2**63), INT64_MAX)
+    check_int("scatter_index", scatter_index, 0, INT64_MAX)
+    check_int("agent", agent, 0, size * size - 1)
     num_cells, width = size * size, size + 2
     cells = torch.arange(num_cells)
     pad_of_cell = ((cells // size + 1) * width + cells % size + 1).to(torch.int32)

@@ -32,9 +32,7 @@ import hashlib
 import itertools
 import json
 import math
-import re
 import sys
-import tomllib
 import types
 import typing
 from dataclasses import dataclass, fields
@@ -45,7 +43,7 @@ from factorq_torch.base.validation import INT32_MAX, check_int
 from factorq_trainers.analysis import claims
 from factorq_trainers.experiments import paper
 from factorq_trainers.experiments import paper_shards as shards
-from factorq_trainers.runner import results as result_files
+from factorq_trainers.runner import reading
 
 DEFAULT_SEEDS = 100
 DEFAULT_SHARD_SEEDS = 25
@@ -332,76 +330,27 @@ MAX_SPEC_BYTES = 1024 * 1024
 #: before anything is expanded (expanding 10**9 points would end in MemoryError, 10**5 in
 #: minutes of silence).
 MAX_CONFIGURATIONS = 10_000
-#: TOML's strings, comments and brackets, for the nesting check before ``tomllib`` (which
-#: recurses on nested arrays and inline tables).
-_TOML_TOKENS = re.compile(
-    r'"""[\s\S]*?"""'
-    r"|'''[\s\S]*?'''"
-    r'|"(?:[^"\\\n]|\\.)*"'
-    r"|'[^'\n]*'"
-    r"|#[^\n]*"
-    r"|[\[\]{}]"
-)
-
-
-def _yaml_loader() -> type:
-    """PyYAML's safe loader refusing aliases (a 433-byte alias bomb took a minute and gigabytes)
-    and nesting past ``results.MAX_DEPTH`` (checked before the composer recurses)."""
-    import yaml
-
-    class Loader(yaml.SafeLoader):
-        depth = 0
-
-        def compose_node(self, parent: Any, index: Any) -> Any:  # PyYAML's (untyped) signature
-            if self.check_event(yaml.AliasEvent):
-                mark = self.peek_event().start_mark
-                raise yaml.YAMLError(
-                    f"aliases (*name) are not allowed in a sweep file (line {mark.line + 1})"
-                )
-            if self.depth >= result_files.MAX_DEPTH:
-                raise yaml.YAMLError(f"it nests deeper than {result_files.MAX_DEPTH} levels")
-            self.depth += 1
-            try:
-                return super().compose_node(parent, index)
-            finally:
-                self.depth -= 1
-
-    return Loader
 
 
 def read_spec_file(path: str | Path) -> dict[str, Any]:
-    """The document of a ``.toml`` sweep file (or ``.yaml``/``.yml`` where PyYAML is installed):
-    bounded in size and nesting before it is parsed, YAML without aliases."""
+    """The document of a ``.toml`` sweep file (or ``.yaml``/``.yml`` where PyYAML is installed),
+    read by ``reading``: a regular file, bounded in size and nesting before it is parsed, YAML
+    without aliases."""
     path = Path(path)
     try:
-        if path.is_file() and path.stat().st_size > MAX_SPEC_BYTES:
-            raise SweepError(f"sweep file {path} is larger than {MAX_SPEC_BYTES} bytes")
-        text = path.read_text()
-    except OSError as error:
-        raise SweepError(f"cannot read sweep file {path}: {error.strerror}") from None
-    except UnicodeDecodeError:
-        raise SweepError(f"sweep file {path} is not UTF-8 text") from None
-    if path.suffix in (".yaml", ".yml"):
-        try:
-            import yaml
-        except ImportError:
-            raise SweepError(
-                f"{path}: YAML needs PyYAML (pip install pyyaml); or use TOML"
-            ) from None
-        try:
-            data = yaml.load(text, Loader=_yaml_loader()) or {}  # noqa: S506 - a safe loader
-        except yaml.YAMLError as error:
-            raise SweepError(f"{path}: not valid YAML ({' '.join(str(error).split())})") from None
-    else:
-        if result_files.nesting_depth(text, _TOML_TOKENS) > result_files.MAX_DEPTH:
-            raise SweepError(f"{path} nests deeper than {result_files.MAX_DEPTH} levels")
-        try:
-            data = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as error:
-            raise SweepError(f"{path}: not valid TOML ({error})") from None
-    if result_files.deeper_than(data, result_files.MAX_DEPTH):  # dotted keys nest too
-        raise SweepError(f"{path} nests deeper than {result_files.MAX_DEPTH} levels")
-    return data
+        if path.suffix in (".yaml", ".yml"):
+            try:
+                import yaml  # noqa: F401 - only to say what is missing
+            except ImportError:
+                raise SweepError(
+                    f"{path}: YAML needs PyYAML (pip install pyyaml); or use TOML"
+                ) from None
+            data = reading.read_yaml(path, "sweep file", MAX_SPEC_BYTES)
+        else:
+            data = reading.read_toml(path, "sweep file", MAX_SPEC_BYTES)
+    except reading.ReadError as error:
+        raise SweepError(str(error)) from None
+    return {} if data is None else data
 
 
 def parse_value(name: str, text: str, command: str = "paper") -> Any:

@@ -23,7 +23,6 @@ import hashlib
 import json
 import os
 import time
-import zipfile
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -34,7 +33,7 @@ import numpy as np
 from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_torch.base.validation import check_int
 from factorq_trainers.experiments import paper
-from factorq_trainers.runner import checkpoint, cluster, kept
+from factorq_trainers.runner import checkpoint, cluster, kept, reading
 from factorq_trainers.runner import results as result_files
 
 #: Config fields that do not change a shard's numbers (tested: backends and thread counts give
@@ -212,12 +211,17 @@ def save(path: str | os.PathLike, shard: paper.PaperConfig, metrics: ShardMetric
 
 def load(path: str | os.PathLike, shard: paper.PaperConfig) -> ShardMetrics:
     """The metrics saved at ``path``; a ValueError naming the file if it is not ``shard``'s."""
+    # what the shard's metrics take unpacked (8 bytes a value at most), its config and digest
+    cells = len(shard.worlds) * len(shard.algorithms) * len(METRICS)
+    limit = cells * (shard.seeds * shard.runs * shard.episodes * 8 + 1024) + 2**20
     try:
-        with np.load(path, allow_pickle=False) as data:
-            saved = json.loads(str(data["__config__"]))
-            stored = str(data["__sha256__"]) if "__sha256__" in data.files else ""
-            metrics = {key: data[key] for key in data.files if not key.startswith("__")}
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as error:
+        data = reading.read_npz(path, "shard file", limit, limit)
+        saved = json.loads(str(data["__config__"]))
+        stored = str(data["__sha256__"]) if "__sha256__" in data else ""
+        metrics = {key: value for key, value in data.items() if not key.startswith("__")}
+    except reading.ReadError as error:
+        raise ValueError(f"{error}: {kept.REMEDY}") from None
+    except (ValueError, KeyError) as error:
         raise ValueError(f"shard file {path} is unreadable ({error}): {kept.REMEDY}") from None
     if not isinstance(saved, dict):  # any JSON may stand there (tests/test_hardening_fuzz.py)
         raise ValueError(f"shard file {path} holds no config: {kept.REMEDY}")

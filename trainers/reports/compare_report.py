@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from factorq_trainers.runner import outdir
 from factorq_trainers.runner.results import body_label, dumps, write_all_atomic
 
 #: A method reached the threshold when an episode took at most this many times the shortest path.
@@ -144,7 +145,7 @@ def staging_logs(out: str | os.PathLike) -> Path:
     """A fresh directory in ``out`` for this run's logs until ``write_outputs`` renames it to
     ``out/logs`` (named like the temporaries ``factorq_trainers.runner.outdir`` cleans up after a
     kill)."""
-    staging = Path(out) / f".{LOGS_DIRECTORY}.{os.getpid()}.tmp"
+    staging = Path(out) / outdir.temporary_name(LOGS_DIRECTORY)
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)
     return staging
@@ -166,7 +167,7 @@ def write_outputs(
             return
         target = out / LOGS_DIRECTORY
         if target.exists():
-            old = out / f".{LOGS_DIRECTORY}.old.{os.getpid()}.tmp"
+            old = out / outdir.temporary_name(f"{LOGS_DIRECTORY}.old")
             os.replace(target, old)
             shutil.rmtree(old, ignore_errors=True)
         os.replace(logs, target)

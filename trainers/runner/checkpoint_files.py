@@ -53,7 +53,7 @@ from typing import Any, NamedTuple
 
 import torch
 
-from factorq_trainers.runner import outdir, results
+from factorq_trainers.runner import outdir, reading, resources, results
 
 FORMAT = "factorq-paper-checkpoint"
 #: ``factorq compare``'s checkpoints: the methods finished so far and the running one's state.
@@ -63,7 +63,9 @@ DIRECTORY = "checkpoint"
 LATEST = "checkpoint.pt"
 PREVIOUS = "checkpoint.prev.pt"
 _UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0}
-_TEMPORARY = re.compile(r"^\.(checkpoint\.pt|checkpoint\.prev\.pt)\.\d+\.tmp$")
+_TEMPORARY = re.compile(
+    r"^\.(checkpoint\.pt|checkpoint\.prev\.pt)\.\d+" + re.escape(outdir.TEMPORARY_SUFFIX) + "$"
+)
 
 
 def is_int(value: Any) -> bool:
@@ -185,12 +187,14 @@ def save(out: str | os.PathLike, content: dict[str, Any], kind: str = FORMAT) ->
     """Write ``content`` as the newest checkpoint of ``out``, keeping the one before it
     (``kind``: the file's format name, ``FORMAT`` or ``COMPARE_FORMAT``)."""
     directory = directory_of(out)
+    if directory.is_symlink():  # (claim refuses it first; a library caller gets it here)
+        raise outdir.LinkRefused(directory)
     made = not directory.exists()
     directory.mkdir(parents=True, exist_ok=True)
     latest, previous = directory / LATEST, directory / PREVIOUS
     pid = os.getpid()
-    temporary = directory / f".{LATEST}.{pid}.tmp"
-    link = directory / f".{PREVIOUS}.{pid}.tmp"
+    temporary = directory / outdir.temporary_name(LATEST, pid)
+    link = directory / outdir.temporary_name(PREVIOUS, pid)
     record = {"format": kind, "version": FORMAT_VERSION, "sha256": digest(content)}
     try:
         with os.fdopen(outdir.create_new(temporary), "wb") as file:  # never through a link
@@ -254,7 +258,7 @@ def remove_temporaries(directory: Path) -> None:
     """Delete temporaries left by a save that was killed midway."""
     if directory.is_dir():
         for path in directory.iterdir():
-            if _TEMPORARY.match(path.name):
+            if _TEMPORARY.match(path.name) and not path.is_dir():
                 path.unlink(missing_ok=True)
 
 
@@ -292,12 +296,21 @@ def read(path: str | os.PathLike) -> Checkpoint:
     return loaded
 
 
+def max_checkpoint_bytes() -> int:
+    """The largest checkpoint file read: what this machine's memory allows (a checkpoint is read
+    whole, and the run it resumes holds at least as much), 1 TiB where that is unknown."""
+    limit, _ = resources.available_memory()
+    return limit if limit is not None else 2**40
+
+
 def read_content(path: Path, kind: str) -> dict[str, Any]:
     """The content of the checkpoint file ``path`` of format ``kind``, its digest checked."""
     try:
-        record = torch.load(path, map_location="cpu", weights_only=True)
-    except FileNotFoundError:
+        record = reading.load_torch(path, "checkpoint", max_checkpoint_bytes())
+    except reading.FileMissing:
         raise CheckpointError(f"checkpoint {path} is missing") from None
+    except reading.ReadError as error:  # a link, a FIFO, a device, too large, compressed
+        raise CheckpointError(str(error)) from None
     except Exception as error:  # torch raises many kinds on a damaged file: all mean the same
         raise CheckpointError(
             f"checkpoint {path} is corrupted or truncated ({_why(error)})"
@@ -311,9 +324,9 @@ def read_content(path: Path, kind: str) -> dict[str, Any]:
             f"reads version {FORMAT_VERSION}: resume it with the factorq that wrote it"
         )
     content = record.get("content")
-    if results.deeper_than(content, results.MAX_DEPTH):  # before the digest walk recurses
+    if reading.deeper_than(content, reading.MAX_DEPTH):  # before the digest walk recurses
         raise CheckpointError(
-            f"checkpoint {path} nests deeper than {results.MAX_DEPTH} levels: not a checkpoint "
+            f"checkpoint {path} nests deeper than {reading.MAX_DEPTH} levels: not a checkpoint "
             f"factorq wrote"
         )
     if not isinstance(content, dict) or digest(content) != record.get("sha256"):

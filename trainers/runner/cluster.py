@@ -293,6 +293,104 @@ def _forget_half_made_client(error: BaseException, kind: Any) -> None:
         frame = frame.tb_next
 
 
+#: The longest a port that refuses connections at once is tried again (with backoff): long
+#: enough for a scheduler that is still starting, short of a long ``--connect-timeout`` spent on
+#: a wrong port.
+REFUSED_RETRY_S = 10.0
+#: A Dask scheduler's first message (its handshake: compression, python and pickle versions) is a
+#: few hundred bytes; a peer announcing more is not one (an HTTP reply's first 8 bytes read as
+#: a length announce exabytes).
+MAX_HANDSHAKE_BYTES = 64 * 1024
+
+
+def probe_scheduler(address: str, timeout_s: float) -> None:
+    """Prove that a Dask scheduler answers at the ``tcp://`` ``address`` within ``timeout_s``,
+    before a Client trusts it: a ``ClusterError`` in one line otherwise.
+
+    A Dask peer sends its handshake as soon as the connection is accepted; this reads it on a
+    plain socket under one deadline, bounded in size, and decodes it with Dask's own
+    ``unpack_frames`` and ``loads``. Dask's own handshake has no timeout (``distributed.comm.
+    core.connect``): an HTTP server, which waits for a request, held a Client for good, and
+    another peer's bytes read as a frame length made it allocate 3 EiB. A refused connection is
+    tried again with backoff for at most ``REFUSED_RETRY_S`` (a scheduler still starting), not the
+    whole timeout. Other schemes (``tls://``, ``inproc://``) are left to the Client."""
+    import socket
+    import struct
+
+    from distributed.comm.addressing import parse_address, parse_host_port
+    from distributed.protocol.core import loads
+    from distributed.protocol.utils import unpack_frames
+
+    scheme, location = parse_address(address)
+    if scheme != "tcp":
+        return
+    host, port = parse_host_port(location)
+    start = time.monotonic()
+    deadline = start + timeout_s
+    refused_until = start + min(timeout_s, REFUSED_RETRY_S)
+    pause, refusals = 0.1, 0
+
+    def left() -> float:
+        return deadline - time.monotonic()
+
+    not_dask = f"{address} is not a Dask scheduler"
+    while True:
+        try:
+            connection = socket.create_connection((host, port), timeout=max(left(), 0.001))
+            break
+        except ConnectionRefusedError:
+            refusals += 1
+            if time.monotonic() + pause >= refused_until:
+                raise ClusterError(
+                    f"scheduler {address} refused the connection {refusals} times in "
+                    f"{time.monotonic() - start:.1f} s: is a Dask scheduler listening there?"
+                ) from None
+            time.sleep(pause)
+            pause = min(pause * 2, 2.0)
+        except (TimeoutError, OSError) as error:
+            reason = getattr(error, "strerror", None) or type(error).__name__
+            raise ClusterError(
+                f"scheduler {address} is unreachable within {timeout_s:g} s ({reason})"
+            ) from None
+
+    def receive(count: int) -> bytes:
+        data = bytearray()
+        while len(data) < count:
+            remaining = left()
+            if remaining <= 0:
+                raise TimeoutError
+            connection.settimeout(remaining)
+            chunk = connection.recv(min(count - len(data), 65536))
+            if not chunk:
+                raise ConnectionError("it closed the connection")
+            data += chunk
+        return bytes(data)
+
+    with connection:
+        try:
+            (size,) = struct.unpack("Q", receive(8))
+            if size > MAX_HANDSHAKE_BYTES:
+                raise ClusterError(f"{not_dask}: its first message announces {size} bytes")
+            unpacked, more = unpack_frames(receive(size), partial=True)
+            frames: list[Any] = list(unpacked)
+            if sum(more) > MAX_HANDSHAKE_BYTES:
+                raise ClusterError(f"{not_dask}: its first message announces {sum(more)} bytes")
+            frames.extend(receive(count) for count in more)
+            handshake = loads(frames, deserialize=False)
+        except ClusterError:
+            raise
+        except TimeoutError:
+            raise ClusterError(
+                f"{not_dask}: it did not answer as one within {timeout_s:g} s (a Dask scheduler "
+                f"speaks first)"
+            ) from None
+        except Exception as error:  # bytes that are not Dask's framing or msgpack
+            reason = " ".join(str(error).split())[:120] or type(error).__name__
+            raise ClusterError(f"{not_dask}: its first message is not Dask's ({reason})") from None
+    if not isinstance(handshake, dict) or "pickle-protocol" not in handshake:
+        raise ClusterError(f"{not_dask}: its first message is not a Dask handshake")
+
+
 def open_executor(where: Where) -> InProcess | DaskExecutor:
     """The executor for ``where``; a ``ClusterError`` (one line) if it cannot be had."""
     if where.in_process:
@@ -312,6 +410,7 @@ def open_executor(where: Where) -> InProcess | DaskExecutor:
             ) from None
         except OSError as error:  # a host name that does not resolve
             raise ClusterError(f"{unreachable} ({error})") from None
+        probe_scheduler(where.scheduler, where.connect_timeout_s)
         try:
             client = distributed.Client(
                 where.scheduler, timeout=f"{where.connect_timeout_s}s", set_as_default=False

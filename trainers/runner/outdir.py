@@ -12,8 +12,8 @@
   shared by several machines it may not exclude writers on other machines;
 - results of an earlier run are not overwritten unless ``force`` (or ``resume``, which continues
   the run that owns them) is given;
-- temporaries left by writers that were killed mid-write (``.NAME.PID.tmp``) are removed: no one
-  else can be writing them while we hold the lock;
+- temporaries left by writers that were killed mid-write (``.NAME.PID.factorq-tmp``) are
+  removed: no one else can be writing them while we hold the lock;
 - no file of ours is ever opened through a link: the lock, the probe and every
   temporary are created with ``O_NOFOLLOW`` (``O_EXCL`` where new, ``create_new``), and a
   symbolic link where the lock or an output belongs is refused in one line (``LinkRefused``),
@@ -32,9 +32,24 @@ import stat
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+from factorq_trainers.runner import reading
+
 LOCK_FILE = ".factorq.lock"
+#: The suffix of every temporary factorq writes (``temporary_name``): a name no user writes, so
+#: ``remove_temporaries`` deletes only ours (a user's ``.backup.2024.tmp`` is left alone).
+TEMPORARY_SUFFIX = ".factorq-tmp"
 #: What ``write_all_atomic`` and the checkpoint writer leave behind when killed mid-write.
-_TEMPORARY = re.compile(r"^\..+\.\d+\.tmp$")
+_TEMPORARY = re.compile(r"^\..+\.\d+" + re.escape(TEMPORARY_SUFFIX) + "$")
+#: The folders factorq writes into directly under an output directory (the checkpoints, a
+#: sweep's shards and configuration results, a runner command's kept units, compare's logs):
+#: a link at one of these names is refused by ``claim`` before any work, as a file's is.
+OWN_DIRECTORIES = ("checkpoint", "shards", "configs", "units", "logs")
+
+
+def temporary_name(name: str, pid: int | None = None) -> str:
+    """``.NAME.PID.factorq-tmp``: where a file (or staging folder) ``name`` is written before it
+    is renamed into place."""
+    return f".{name}.{os.getpid() if pid is None else pid}{TEMPORARY_SUFFIX}"
 
 
 class OutputDirError(ValueError):
@@ -46,7 +61,7 @@ class LinkRefused(OutputDirError):
 
     def __init__(self, path: str | os.PathLike) -> None:
         super().__init__(
-            f"'{path}' is a symbolic link where factorq writes its own file: remove the link "
+            f"'{path}' is a symbolic link where factorq writes its own files: remove the link "
             f"(factorq never writes through links; its target was left as it is)"
         )
 
@@ -106,35 +121,43 @@ def _prepare(path: Path, what: str) -> None:
     """Create ``path`` and prove it writable, or raise an OutputDirError naming why."""
     if path.exists() and not path.is_dir():
         raise OutputDirError(f"{what}='{path}' is not a directory")
+    created = not path.exists()
+    probe = path / temporary_name("factorq-probe")
     try:
         path.mkdir(parents=True, exist_ok=True)
-        probe = path / f".factorq-probe.{os.getpid()}.tmp"
-        os.close(create_new(probe))
-        probe.unlink()
+        descriptor = create_new(probe)
+        try:  # one byte, so a full disk is found here (an empty file needs no space)
+            os.write(descriptor, b"p")
+        finally:
+            os.close(descriptor)
+            probe.unlink()
     except OSError as error:
         reason = error.strerror or type(error).__name__
+        if created:
+            with contextlib.suppress(OSError):
+                path.rmdir()
         raise OutputDirError(f"{what}='{path}' is not writable: {reason}") from None
 
 
 def _holder(lock_path: Path) -> str:
     """The pid recorded by the run that holds the lock, for the message."""
     try:
-        text = lock_path.read_text().strip()
-    except OSError:
+        text = reading.read_text(lock_path, "lock", 64).strip()
+    except (OSError, ValueError):
         return "another factorq run"
     return f"another factorq run (pid {text})" if text.isdigit() else "another factorq run"
 
 
 def remove_temporaries(path: Path) -> list[Path]:
-    """Delete the ``.NAME.PID.tmp`` files (and directories) directly in ``path``; return what was
-    deleted."""
+    """Delete the ``.NAME.PID.factorq-tmp`` files (and staging directories) directly in
+    ``path``, never following a link; return what was deleted."""
     removed = []
     for entry in path.iterdir():
         if not _TEMPORARY.match(entry.name) or entry.is_symlink():
             continue
         if entry.is_file():
             entry.unlink(missing_ok=True)
-        elif entry.is_dir():  # factorq compare's staging logs (.logs.PID.tmp/)
+        elif entry.is_dir():  # factorq compare's staging logs (.logs.PID.factorq-tmp/)
             shutil.rmtree(entry, ignore_errors=True)
         else:
             continue
@@ -183,11 +206,29 @@ def claim(
                 f"{what}='{path}' is in use by {_holder(lock_path)}: wait for it to finish, or "
                 f"choose another --{what.replace('_', '-')} (refusing to {action} at the same time)"
             ) from None
-        os.ftruncate(descriptor, 0)
-        os.write(descriptor, str(os.getpid()).encode())
-        links = [name for name in outputs if (path / name).is_symlink()]
+        try:
+            os.ftruncate(descriptor, 0)
+            os.write(descriptor, str(os.getpid()).encode())
+        except OSError as error:  # a disk that filled since the probe
+            if created:
+                with contextlib.suppress(OSError):
+                    lock_path.unlink()
+                    path.rmdir()
+            raise OutputDirError(
+                f"{what}='{path}' is not writable: {error.strerror or type(error).__name__}"
+            ) from None
+        outputs = tuple(outputs)
+        names = (*outputs, *OWN_DIRECTORIES)
+        links = [name for name in names if (path / name).is_symlink()]
         if links:  # renaming over a link would not follow it, but it is not ours to remove
             raise LinkRefused(path / links[0])
+        for name in outputs:  # --force replaces files, never a directory in a file's place
+            target = path / name
+            if name not in OWN_DIRECTORIES and target.exists() and not target.is_file():
+                raise OutputDirError(
+                    f"{what}='{path}' holds {name}, which is not a regular file, where factorq "
+                    f"writes its {name}: remove or rename it (--force replaces files only)"
+                )
         existing = [name for name in outputs if (path / name).exists()]
         if existing and not (force or resume):
             raise OutputDirError(

@@ -17,7 +17,6 @@ from __future__ import annotations
 import json
 import os
 import platform
-import re
 from collections.abc import Callable, Iterable
 from importlib import metadata
 from pathlib import Path
@@ -26,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from factorq_trainers.analysis.stats import finite_or_none
-from factorq_trainers.runner import outdir
+from factorq_trainers.runner import outdir, reading
 
 #: The layout this code reads and writes.
 SCHEMA_VERSION = 1
@@ -68,9 +67,9 @@ def write_atomic(path: str | os.PathLike, write: Callable[[Path], object]) -> No
 
 
 def temporary_path(path: Path) -> Path:
-    """Where ``write_all_atomic`` writes ``path`` before renaming it: ``.NAME.PID.tmp`` beside it
-    (``factorq_trainers.runner.outdir`` removes those of killed writers)."""
-    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    """Where ``write_all_atomic`` writes ``path`` before renaming it: ``.NAME.PID.factorq-tmp``
+    beside it (``factorq_trainers.runner.outdir`` removes those of killed writers)."""
+    return path.with_name(outdir.temporary_name(path.name))
 
 
 def write_all_atomic(
@@ -83,6 +82,9 @@ def write_all_atomic(
     ``before_rename`` runs once every temporary is complete, just before the renames (e.g. to
     swap in a directory written beside them).
     """
+    links = [path for path in writers if path.is_symlink()]
+    if links:  # the rename would replace the link, not write through it, but it is not ours
+        raise outdir.LinkRefused(links[0])
     temporaries = {path: temporary_path(path) for path in writers}
     try:
         for path, write in writers.items():
@@ -121,64 +123,19 @@ class WriteError(OSError):
 
 #: A results file of the default run is about 200 kB; far larger files are not ours.
 MAX_FILE_BYTES = 256 * 1024 * 1024
-#: JSON nesting deeper than this is refused before parsing (a results file nests 6 levels).
-MAX_DEPTH = 32
-_BRACKETS = re.compile(r'"(?:[^"\\]|\\.)*"|[\[\]{}]')
-
-
-def nesting_depth(text: str, tokens: re.Pattern = _BRACKETS) -> int:
-    """The deepest ``[``/``{`` nesting of JSON ``text`` (brackets inside strings do not count;
-    ``tokens``: the strings and brackets of another syntax, e.g. TOML's)."""
-    depth = deepest = 0
-    for token in tokens.findall(text):
-        if token in "[{":
-            depth += 1
-            deepest = max(deepest, depth)
-        elif token in "]}":
-            depth -= 1
-    return deepest
-
-
-def deeper_than(value: Any, limit: int) -> bool:
-    """Whether ``value``'s dicts, lists and tuples nest more than ``limit`` levels, found without
-    recursion (a walk that recursed would raise RecursionError on a hostile file first)."""
-    stack = [(value, 0)]
-    while stack:
-        item, depth = stack.pop()
-        children: Iterable[Any]
-        if isinstance(item, dict):
-            children = item.values()
-        elif isinstance(item, list | tuple):
-            children = item
-        else:
-            continue
-        if depth >= limit:
-            return True
-        stack.extend((child, depth + 1) for child in children)
-    return False
 
 
 def read_json(path: Path, required: Iterable[str], missing_hint: str) -> dict[str, Any]:
-    """The results stored in ``path``; a clear error when it is missing, too large or deep, not
-    JSON, lacks one of the ``required`` entries or was written by a newer version
-    (``missing_hint``: how to make the file, for the error when it does not exist)."""
-    if not path.is_file():
-        if path.exists():  # a FIFO (reading it would block), a device, a directory
-            raise ValueError(f"{path} is not a regular file: not a results file")
-        raise FileNotFoundError(f"{path} does not exist: {missing_hint}")
-    size = path.stat().st_size
-    if size > MAX_FILE_BYTES:
-        raise ValueError(f"{path} is {size} bytes, more than a results file's {MAX_FILE_BYTES}")
+    """The results stored in ``path``; a clear error when it is missing, not a regular file, too
+    large or deep (``reading.read_json``), not JSON, lacks one of the ``required`` entries or was
+    written by a newer version (``missing_hint``: how to make the file, for the error when it
+    does not exist)."""
     try:
-        text = path.read_bytes().decode("utf-8")
-    except UnicodeDecodeError:
-        raise ValueError(f"{path} is not UTF-8 text") from None
-    if nesting_depth(text) > MAX_DEPTH:
-        raise ValueError(f"{path} nests deeper than {MAX_DEPTH} levels: not a results file")
-    try:
-        results = json.loads(text)
-    except json.JSONDecodeError as error:
-        raise ValueError(f"{path} is not valid JSON ({error})") from None
+        results = reading.read_json(path, "", MAX_FILE_BYTES)
+    except reading.FileMissing:
+        raise FileNotFoundError(f"{path} does not exist: {missing_hint}") from None
+    except reading.ReadError as error:
+        raise ValueError(f"{error}: not a results file") from None
     if not isinstance(results, dict):
         raise ValueError(f"{path} is not a results file: it holds no JSON object")
     missing = [key for key in required if key not in results]
