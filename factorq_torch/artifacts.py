@@ -1,8 +1,9 @@
 """Agents as artifacts: save a Factor-Q agent's parts to one file and load them back.
 
 ``save_agent(module, path)`` writes a ``TaskQTable``, a ``LocalRewardTable`` (the learned local
-model, or the oracle's: a table built on ``env.dependency``), a ``StructureLearner`` or a whole
-``LocalRisk`` layer with its provider; ``load_agent(path)`` rebuilds it. The file is one
+model, or the oracle's: a table built on ``env.dependency``), a ``StructureLearner``, a network
+(``TaskQNetwork``, ``LocalRewardNetwork``, ``GatedLocalRewardNetwork``) or a whole ``LocalRisk``
+layer with its provider; ``load_agent(path)`` rebuilds it. The file is one
 ``torch.save`` of plain data, read by ``torch.load(weights_only=True)`` (tensors, numbers,
 strings, lists and dicts, never pickled code)::
 
@@ -10,10 +11,14 @@ strings, lists and dicts, never pickled code)::
     package_version          factorq_torch.__version__ of the writer: another version is refused
     sha256                   digest of the content, tensor bytes included (base.files.digest)
     content:
-      kind                   "TaskQTable", "LocalRewardTable", "StructureLearner" or "LocalRisk"
+      kind                   the class: "TaskQTable", "LocalRewardTable", "StructureLearner",
+                             "TaskQNetwork", "LocalRewardNetwork", "GatedLocalRewardNetwork",
+                             "LocalRisk"
       body                   the actuators and sensors it was trained on: num_actions,
                              num_sensors, actuator_names, sensor_names (names None when unknown)
-      config                 the constructor's arguments (the dependency among them)
+      config                 the constructor's arguments (the dependency among them; a
+                             network's hidden widths, activation and bias read off its layers;
+                             its initialisation seed is not kept: the state overwrites it)
       state                  the module's state_dict (tables, counts, a learner's evidence)
       provider               (LocalRisk only) the provider's own kind, body, config and state
 
@@ -25,9 +30,6 @@ every argument and size cap) and its state loaded strictly (every tensor's name 
 ``sensor_names`` and ``dependency``): another body is one error naming both sides. Every refusal
 is an ``AgentFileError`` (a ``ValueError``) of one line naming the file; nothing half-built is
 returned.
-
-Neural providers (``LocalRewardNetwork``, ``TaskQNetwork``) are not covered yet: save their
-``state_dict`` with ``torch.save``.
 """
 
 from __future__ import annotations
@@ -43,6 +45,12 @@ from tensordict.nn import TensorDictModuleBase
 
 import factorq_torch
 from factorq_torch.base.files import digest, read_regular
+from factorq_torch.neural import (
+    BatchedMLP,
+    GatedLocalRewardNetwork,
+    LocalRewardNetwork,
+    TaskQNetwork,
+)
 from factorq_torch.risk import LocalRisk
 from factorq_torch.structure import StructureLearner
 from factorq_torch.tables import LocalRewardTable, TaskQTable
@@ -85,6 +93,32 @@ _CONFIG: dict[str, tuple[str, ...]] = {
         "pairs",
         "sensors_key",
     ),
+    "TaskQNetwork": (
+        "num_experiments",
+        "num_cells",
+        "with_proximity",
+        "num_sensors",
+        "num_headings",
+        "num_actions",
+        "hidden",
+        "activation",
+    ),
+    "LocalRewardNetwork": (
+        "num_experiments",
+        "dependency",
+        "hidden",
+        "bias",
+        "activation",
+        "shared",
+    ),
+    "GatedLocalRewardNetwork": (
+        "num_experiments",
+        "num_actions",
+        "num_sensors",
+        "hidden",
+        "l1",
+        "threshold",
+    ),
     "LocalRisk": (
         "dependency",
         "sensor_names",
@@ -101,10 +135,16 @@ _CLASSES: dict[str, type[TensorDictModuleBase]] = {
     "TaskQTable": TaskQTable,
     "LocalRewardTable": LocalRewardTable,
     "StructureLearner": StructureLearner,
+    "TaskQNetwork": TaskQNetwork,
+    "LocalRewardNetwork": LocalRewardNetwork,
+    "GatedLocalRewardNetwork": GatedLocalRewardNetwork,
     "LocalRisk": LocalRisk,
 }
 #: Arguments taken positionally by the constructor (the rest are keywords).
-_POSITIONAL = {"TaskQTable": ("num_experiments", "num_cells")}
+_POSITIONAL = {
+    "TaskQTable": ("num_experiments", "num_cells"),
+    "TaskQNetwork": ("num_experiments", "num_cells"),
+}
 _BODY = ("num_actions", "num_sensors", "actuator_names", "sensor_names")
 
 
@@ -186,7 +226,7 @@ def load_agent(
             f"saved agent {where} was written by factorq_torch {saved_version!r}; this is "
             f"{factorq_torch.__version__}: load it with the version that saved it"
         )
-    content = record.get("content")
+    content: Any = record.get("content")
     if digest(content) != record.get("sha256"):
         raise AgentFileError(
             f"saved agent {where} is corrupted or edited (its content does not match its digest)"
@@ -204,11 +244,8 @@ def load_agent(
 def _content(module: TensorDictModuleBase) -> dict[str, Any]:
     kind = next((name for name, cls in _CLASSES.items() if type(module) is cls), None)
     if kind is None:
-        raise TypeError(
-            f"save_agent saves a TaskQTable, LocalRewardTable, StructureLearner or LocalRisk, "
-            f"got {type(module).__name__}"
-        )
-    config = {name: _plain(getattr(module, name)) for name in _CONFIG[kind]}
+        raise TypeError(f"save_agent saves a {', '.join(_CLASSES)}, got {type(module).__name__}")
+    config = {name: _plain(_argument(module, name)) for name in _CONFIG[kind]}
     state = {name: value.detach().cpu() for name, value in module.state_dict().items()}
     content: dict[str, Any] = {"kind": kind, "config": config}
     if isinstance(module, LocalRisk):
@@ -227,6 +264,25 @@ def _content(module: TensorDictModuleBase) -> dict[str, Any]:
         }
     content["body"], content["state"] = body, state
     return content
+
+
+def _argument(module: TensorDictModuleBase, name: str) -> Any:
+    """The constructor argument ``name`` of ``module``: its attribute, or for a network what its
+    layers show (the hidden widths, the activation, the bias, the parents of each actuator)."""
+    network = getattr(module, "network", None)
+    if isinstance(network, BatchedMLP):
+        if name == "hidden":
+            return [int(weight.shape[-1]) for weight in network.weights[:-1]]
+        if name == "activation":
+            return str(network.activation.__name__)
+        if name == "bias":
+            return network.biases is not None
+        if name == "dependency" and isinstance(module, LocalRewardNetwork):
+            parents = module.parent_index.cpu()  # [A, R]: sensor indices, K past the last
+            dependency = torch.zeros(module.num_actions, module.num_sensors + 1, dtype=torch.bool)
+            dependency.scatter_(1, parents, True)
+            return dependency[:, :-1]
+    return getattr(module, name)
 
 
 def _plain(value: Any) -> Any:
@@ -309,6 +365,8 @@ def _env_body(env: Any) -> dict[str, Any]:
         given = getattr(env, key, None) if given is None else given
         names[key] = None if given is None else [str(name) for name in given]
     dependency = getattr(env, "dependency", None)
+    actions: int | None
+    sensors: int | None
     if isinstance(dependency, torch.Tensor) and dependency.dim() == 2:
         actions, sensors = int(dependency.shape[0]), int(dependency.shape[1])
     else:

@@ -12,6 +12,7 @@ import factorq_torch
 from factorq_envs.torchrl_env import FactoredGridEnv
 from factorq_torch.artifacts import AgentFileError, load_agent, save_agent
 from factorq_torch.base.files import digest
+from factorq_torch.neural import GatedLocalRewardNetwork, LocalRewardNetwork, TaskQNetwork
 from factorq_torch.risk import LocalRisk, RiskSummary, find_local_risk, with_local_risk
 from factorq_torch.structure import StructureLearner
 from factorq_torch.tables import LocalRewardTable, TaskQTable
@@ -62,6 +63,33 @@ def test_tables_and_learner_round_trip(tmp_path):
     rebuilt = load_agent(tmp_path / "StructureLearner.pt")
     assert torch.equal(rebuilt.structure(), learner.structure())
     assert (rebuilt.pairs, rebuilt.window) == ("pruned", 20)
+
+
+def test_networks_round_trip_with_their_shapes_and_outputs(tmp_path):
+    dependency = torch.tensor([[True, True, False], [False, False, True], [False, False, False]])
+    networks = (
+        TaskQNetwork(2, 9, with_proximity=True, num_sensors=3, hidden=(5, 3), seed=4),
+        LocalRewardNetwork(2, dependency=dependency, hidden=(6,), bias=True, shared=False, seed=5),
+        LocalRewardNetwork(1, activation="relu", zero_output=False, seed=6),
+        GatedLocalRewardNetwork(1, num_actions=3, num_sensors=3, hidden=(4,), l1=0.01, seed=7),
+    )
+    generator = torch.Generator().manual_seed(2)
+    for number, network in enumerate(networks):
+        with torch.no_grad():  # trained-looking weights, none of them zero
+            for parameter in network.parameters():
+                parameter.copy_(torch.randn(parameter.shape, generator=generator))
+        loaded = load_agent(save_agent(network, tmp_path / f"{number}.pt"))
+        assert type(loaded) is type(network) and _states_equal(loaded, network)
+        size = network.num_experiments
+        sensors = torch.rand(size, network.num_sensors, generator=generator) < 0.5
+        td = TensorDict(cell=torch.tensor([0, 8][:size]), sensors=sensors, batch_size=[size])
+        key = network.out_keys[0]
+        assert torch.equal(loaded(td.clone())[key], network(td.clone())[key])
+    assert torch.equal(load_agent(tmp_path / "1.pt").parent_index, networks[1].parent_index)
+    assert load_agent(tmp_path / "2.pt").network.activation is torch.relu
+    assert load_agent(tmp_path / "3.pt").l1 == 0.01
+    layer = LocalRisk(networks[3])
+    assert _states_equal(load_agent(save_agent(layer, tmp_path / "layer.pt")), layer)
 
 
 def test_a_layer_round_trips_with_its_provider_and_gives_the_same_outputs(tmp_path, env):
