@@ -252,9 +252,11 @@ def _content(module: TensorDictModuleBase) -> dict[str, Any]:
         content["provider"] = _content(module.provider)
         state = {name: value for name, value in state.items() if not name.startswith("provider.")}
         body = dict(content["provider"]["body"])
-        body["actuator_names"] = list(module.actuator_names)
-        if module.sensor_names is not None:
-            body["sensor_names"] = list(module.sensor_names)
+        for key, default in (("actuator_names", "actuator"), ("sensor_names", "sensor")):
+            given = getattr(module, key)
+            unnamed = given is None or given == tuple(f"{default} {i}" for i in range(len(given)))
+            if not unnamed:  # the layer's default names say nothing about the body
+                body[key] = list(given)
     else:
         body = {
             "num_actions": int(module.num_actions),

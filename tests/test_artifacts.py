@@ -142,6 +142,19 @@ def test_another_body_is_one_error_naming_both_sides(tmp_path, env):
         save_agent(LocalRewardTable(1, num_actions=3), tmp_path / "x.pt", env=env)
 
 
+def test_a_layer_without_names_is_checked_by_its_counts(tmp_path, env):
+    path = save_agent(LocalRisk(LocalRewardTable(1)), tmp_path / "layer.pt")
+    assert load_agent(path, env=env).actuator_names == (
+        "actuator 0",
+        "actuator 1",
+        "actuator 2",
+        "actuator 3",
+    )
+    other = FactoredGridEnv(size=5, num_obstacles=2, batch_size=(1,), body="heading", seed=0)
+    with pytest.raises(AgentFileError, match=r"actuators \(4 unnamed\)"):
+        load_agent(path, env=other)
+
+
 def _rewrite(path, change):
     record = torch.load(path, weights_only=True)
     change(record)
