@@ -37,6 +37,7 @@ from __future__ import annotations
 import io
 import os
 import tempfile
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -206,8 +207,10 @@ def load_agent(
         data = read_regular(path, "a saved agent", MAX_AGENT_BYTES)
     except (OSError, ValueError) as error:
         raise AgentFileError(str(error)) from None
-    try:
-        record = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+    try:  # torch warns of what it meets in a damaged file; the error below says it in one line
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            record = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises many kinds on a damaged file: all mean the same
         raise AgentFileError(
             f"saved agent {where} is corrupted or truncated, or not a torch file "

@@ -211,6 +211,28 @@ def test_a_truncated_file_is_one_line_naming_it(tmp_path, keep):
     assert str(path) in str(caught.value) and "\n" not in str(caught.value)
 
 
+def test_a_flipped_byte_anywhere_is_refused_or_changes_nothing(tmp_path):
+    """Bytes the zip container does not read (padding, names) may change; any change that
+    reaches the content fails the digest: nothing else escapes as another exception."""
+    layer = LocalRisk(LocalRewardTable(1))
+    layer.provider.rho.fill_(-0.5)
+    path = save_agent(layer, tmp_path / "layer.pt")
+    data = path.read_bytes()
+    refused = 0
+    for position in range(0, len(data), 5):
+        flipped = bytearray(data)
+        flipped[position] ^= 0x41
+        path.write_bytes(bytes(flipped))
+        try:
+            loaded = load_agent(path)
+        except AgentFileError as error:
+            assert "\n" not in str(error) and str(path) in str(error)
+            refused += 1
+        else:
+            assert _states_equal(loaded, layer)
+    assert refused > len(data) // 20  # the check is not vacuous
+
+
 def test_a_link_a_fifo_a_directory_and_a_missing_file_are_refused(tmp_path):
     path = save_agent(LocalRewardTable(1), tmp_path / "table.pt")
     link = tmp_path / "link.pt"
