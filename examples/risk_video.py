@@ -26,7 +26,13 @@ from torchrl.objectives import DQNLoss, SoftUpdate
 
 from factorq_envs import FactoredGridEnv, RenderPixels, SplitLocalReward
 from factorq_envs.render import mark_risk, risky_faces
-from factorq_torch.risk import RISK_MASK, LocalRiskLoss, RiskSummary, with_local_risk
+from factorq_torch.risk import (
+    RISK_MASK,
+    LocalRiskLoss,
+    RiskSummary,
+    find_local_risk,
+    with_local_risk,
+)
 from factorq_torch.tables import LocalRewardTable
 
 with warnings.catch_warnings():
@@ -66,8 +72,8 @@ def record(path: str = "risk.gif", *, size: int = 6, steps: int = 3000, seed: in
     buffer = ReplayBuffer(storage=LazyTensorStorage(10_000), batch_size=64)
     policy = TensorDictSequential(acting, explore)
     collector = Collector(env, policy, frames_per_batch=2, total_frames=steps)
-    risk = acting.module[-2]
-    summary, episode = RiskSummary(risk.actuator_names), 0
+    risk = find_local_risk(acting)  # the layer, found by type
+    summary, episode = RiskSummary.for_env(env), 0  # named by the env's actuators
     for batches, data in enumerate(collector):
         data = data.reshape(-1)
         local_loss(data)  # eq. 5 on each transition once

@@ -38,6 +38,10 @@ _LAZY = {
     "LocalRiskLoss": "factorq_torch.risk",
     "RiskSummary": "factorq_torch.risk",
     "with_local_risk": "factorq_torch.risk",
+    "find_local_risk": "factorq_torch.risk",
+    "save_agent": "factorq_torch.artifacts",
+    "load_agent": "factorq_torch.artifacts",
+    "AgentFileError": "factorq_torch.artifacts",
 }
 
 __all__ = ["__version__", *_LAZY]

@@ -435,6 +435,35 @@ def format_explanation(penalised: list[dict], active: str = "on") -> str:
     return "; ".join(parts)
 
 
+def find_local_risk(module: torch.nn.Module) -> LocalRisk:
+    """The ``LocalRisk`` layer inside a composed policy (``with_local_risk``'s output, an actor
+    wrapped further, a ``TensorDictSequential`` with an exploration module), found by type.
+
+    Args:
+        module: the policy (or any module holding exactly one ``LocalRisk``).
+
+    Example:
+        >>> from factorq_torch.tables import LocalRewardTable, TaskQTable
+        >>> policy = with_local_risk(TaskQTable(1, num_cells=4), LocalRewardTable(1))
+        >>> find_local_risk(policy).num_actions
+        4
+    """
+    if not isinstance(module, torch.nn.Module):
+        raise TypeError(f"find_local_risk takes a module, got {type(module).__name__}")
+    found = [inner for inner in module.modules() if isinstance(inner, LocalRisk)]
+    if not found:
+        raise ValueError(
+            f"{type(module).__name__} holds no LocalRisk layer: build the policy with "
+            f"with_local_risk(value_network, provider)"
+        )
+    if len({id(layer) for layer in found}) > 1:
+        raise ValueError(
+            f"{type(module).__name__} holds {len(found)} LocalRisk layers: pass the part that "
+            f"holds the one you mean"
+        )
+    return found[0]
+
+
 def with_local_risk(
     value_network: TensorDictModuleBase,
     provider: TensorDictModuleBase,
@@ -656,6 +685,25 @@ class RiskSummary:
     def __post_init__(self) -> None:
         self.actuator_names = tuple(self.actuator_names)
         self._clear()
+
+    @classmethod
+    def for_env(cls, env: Any, **options: Any) -> RiskSummary:
+        """A summary named by ``env``'s actuators (``env.config.actuator_names``, or the env's
+        own ``actuator_names``), so nothing is typed by hand.
+
+        Args:
+            env: the env the policy acts in.
+            options: the other fields (``threshold``, ``combined_key``).
+        """
+        config = getattr(env, "config", None)
+        given = getattr(config, "actuator_names", None)
+        given = getattr(env, "actuator_names", None) if given is None else given
+        if given is None:
+            raise ValueError(
+                f"{type(env).__name__} names no actuators (no config.actuator_names): pass "
+                f"RiskSummary(actuator_names=...) or find_local_risk(policy).actuator_names"
+            )
+        return cls(actuator_names=tuple(str(name) for name in given), **options)
 
     def _clear(self) -> None:
         self.steps = self.risky_steps = self.overrides = 0
