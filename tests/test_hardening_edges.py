@@ -177,6 +177,7 @@ def test_report_refuses_a_results_file_with_impossible_fractions(tmp_path):
     (tmp_path / "dependencies.json").write_text(
         json.dumps(
             {
+                "schema_version": 1,
                 "command": "dependencies",
                 "config": {},
                 "settings": {"x": {"structure": {"fraction_right_within_target": 1e308}}},

@@ -34,12 +34,13 @@ def test_a_link_where_factorq_writes_a_folder_is_refused_before_any_work(tmp_pat
 
 def test_the_folders_claim_guards_are_the_ones_the_commands_write():
     from factorq_trainers.distributed import sweep_spec
+    from factorq_trainers.experiments import paper_shards
     from factorq_trainers.reports import compare_report
     from factorq_trainers.runner import checkpoint, frame
 
     written = {
         checkpoint.DIRECTORY,
-        sweep_spec.SHARDS_DIRECTORY,
+        paper_shards.SHARDS_DIRECTORY,
         sweep_spec.CONFIGS_DIRECTORY,
         frame.UNITS_DIRECTORY,
         compare_report.LOGS_DIRECTORY,
@@ -85,7 +86,9 @@ def test_an_atomic_write_refuses_a_link_at_its_destination(tmp_path):
 def test_report_refuses_a_linked_report_instead_of_replacing_it(tmp_path):
     from factorq_trainers import reports
 
-    (tmp_path / "dependencies.json").write_text('{"command": "dependencies", "config": {}}')
+    (tmp_path / "dependencies.json").write_text(
+        '{"schema_version": 1, "command": "dependencies", "config": {}}'
+    )
     victim = tmp_path / "victim.md"
     victim.write_text("mine")
     (tmp_path / "dependencies.md").symlink_to(victim)

@@ -96,6 +96,7 @@ def test_a_port_that_refuses_is_retried_briefly_not_for_the_whole_timeout():
 
 
 def test_a_real_scheduler_passes_the_probe():
+    traces = cluster._Traces()  # what the in-process scheduler leaves here, put back after it
     with distributed.LocalCluster(
         n_workers=0, processes=False, dashboard_address=":0", silence_logs=50
     ) as local:
@@ -104,3 +105,4 @@ def test_a_real_scheduler_passes_the_probe():
             cluster.Where(scheduler=local.scheduler_address, connect_timeout_s=60)
         )
         executor.close()
+    traces.restore()

@@ -61,6 +61,7 @@ LEAKY = textwrap.dedent(
 def test_the_guard_fails_each_test_that_leaks_and_gives_the_next_one_the_state_back(tmp_path):
     (tmp_path / "test_leaky.py").write_text(LEAKY)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), *sys.path])}
+    env["FACTORQ_TEST_THREAD_GRACE"] = "0.2"  # its one thread left running: no need to wait
     done = subprocess.run(
         [sys.executable, "-m", "pytest", "-p", "process_state", "-p", "no:randomly"]
         + ["-p", "no:cacheprovider", "-q", "-rE", "test_leaky.py"],

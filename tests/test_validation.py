@@ -377,7 +377,7 @@ TRIED = [
     factorq("paper --connect-timeout 0", r"--connect-timeout=0.0 is out of range: must be in \(0, 86400\] seconds"),
     factorq("paper --worker-timeout 0", r"--worker-timeout=0.0 is out of range: must be in \(0, 86400\] seconds"),
     factorq("paper --scheduler evil://x", r"--scheduler='evil://x' is not a Dask scheduler address like tcp://host:8786 \(unknown address scheme 'evil'"),
-    factorq("paper --scheduler tcp://127.0.0.1:9 --connect-timeout 0.5", r"scheduler tcp://127.0.0.1:9 is unreachable within 0.5 s"),
+    factorq("paper --scheduler tcp://127.0.0.1:9 --connect-timeout 0.5", r"scheduler tcp://127.0.0.1:9 refused the connection \d+ times in"),
     factorq("paper --cluster local:2 --checkpoint-every 5", r"--checkpoint-every does not apply to a sharded run"),
     # factorq paper: checkpoints
     factorq("paper --checkpoint-every 0", rf"--checkpoint-every='0' {RANGE} in \[1, 2\*\*63 - 1\] episodes"),
@@ -578,7 +578,7 @@ TRIED = [
     fast_row("ExperimentBatch(periods=[-1])", lambda _: batch(periods=(-1,)), ValueError, r"periods must be >= 0 \(0 static, k > 0 moving\), got -1"),
     fast_row("ExperimentBatch(keys of another S)", lambda _: batch(keys=2), ValueError, r"world_keys has 2 entries but periods has 1"),
     fast_row("ExperimentBatch(world=dict)", lambda _: batch(world={"size": 4}), TypeError, r"world must be a WorldConfig, got dict"),
-    fast_row("ExperimentBatch.advance(-1)", lambda _: batch().advance(-1), ValueError, rf"max_steps=-1 {RANGE} >= 0"),
+    fast_row("ExperimentBatch.advance(-1)", lambda _: batch().advance(-1), ValueError, rf"max_steps=-1 {RANGE} in \[0, 9223372036854775807\]"),
     fast_row("ExperimentBatch.load_state_dict(other)", lambda _: batch(periods=(0, 1)).load_state_dict(batch(periods=(1, 0)).state_dict()), ValueError, r"state\['periods'\] belongs to a different batch"),
 ]  # fmt: skip
 
