@@ -20,11 +20,16 @@ LEAKY = textwrap.dedent(
     import logging, os, signal, threading, time
     import torch
 
-    def test_a_ignores_sigint():
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # whatever this runner's SIGINT is (Python's handler, or SIG_IGN when started in the
+    # background by a non-interactive shell), test_a sets another
+    INITIAL = signal.getsignal(signal.SIGINT)
+
+    def test_a_changes_sigint():
+        other = signal.default_int_handler if INITIAL is signal.SIG_IGN else signal.SIG_IGN
+        signal.signal(signal.SIGINT, other)
 
     def test_b_sigint_is_back():
-        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        assert signal.getsignal(signal.SIGINT) is INITIAL
 
     def test_c_moves_the_cwd():
         os.chdir("/")
@@ -75,7 +80,7 @@ def test_the_guard_fails_each_test_that_leaks_and_gives_the_next_one_the_state_b
     assert done.returncode == 1, out + done.stderr
     # the leaking tests pass their own call and fail at teardown, naming what leaked
     leaked = {
-        "test_a_ignores_sigint": "signal dispositions: SIGINT",
+        "test_a_changes_sigint": "signal dispositions: SIGINT",
         "test_c_moves_the_cwd": "working directory: ",
         "test_e_sets_a_variable": "environment variables: FACTORQ_LEAKED",
         "test_g_changes_torch_threads": "torch threads: ",
