@@ -330,7 +330,9 @@ def test_the_experiment_command_at_a_tiny_budget(tmp_path):
     assert "| neural Factor-Q, oracle dependency |" in report
     report_module.figure(summary, tmp_path / "gym.png")
     assert (tmp_path / "gym.png").stat().st_size > 0
-    with pytest.raises(ValueError, match="world='atari'"):
+    with pytest.raises(
+        ValueError, match="world 'atari' is unknown: choose one of highway, minigrid-8x8"
+    ):
         experiment.GymConfig(world="atari")
 
 

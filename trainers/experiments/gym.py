@@ -29,9 +29,10 @@ rate (a proportion), the BCa bootstrap of the mean for the other measures and th
 (bounded or positive: its bounds stay between the seeds). The report and figure are
 ``factorq_trainers.reports.gym``.
 
-This module is the command: its units, their results summarised. ``GymConfig`` and the declared
-worlds are ``gym_config.py``'s, the methods (settings, envs, networks, ``Recorder``)
-``gym_methods.py``'s; their public names import from here too.
+This module is the command: its units, their results summarised. ``GymConfig`` is
+``gym_config.py``'s, the declared worlds ``factorq_envs.worlds``' registry, the methods
+(settings, envs, networks, ``Recorder``) ``gym_methods.py``'s; their public names import from
+here too.
 """
 
 from __future__ import annotations
@@ -52,10 +53,7 @@ from factorq_trainers.analysis.stats import (
 from factorq_trainers.experiments.gym_config import (  # noqa: F401 - the command's public names
     DEFAULT_METHODS,
     METHODS,
-    WORLDS,
     GymConfig,
-    WorldSpec,
-    make_minigrid_8x8,
 )
 from factorq_trainers.experiments.gym_methods import (  # noqa: F401 - the command's public names
     FACTOR_Q_EPSILON,
@@ -107,9 +105,8 @@ def prepare(config: GymConfig) -> None:
     """
     from factorq_envs.gymnasium_adapter import require_extra
 
-    modules = {"highway": "highway_env", "minigrid": "minigrid"}
-    extra = config.spec.extra
-    require_extra(modules[extra], f"factorq-torch[{extra}]")
+    for module, extra in config.spec.requires:
+        require_extra(module, f"factorq-torch[{extra}]")
     if "sb3-dqn" in config.methods:
         require_extra("stable_baselines3", "factorq-torch[sb3]")
 

@@ -1,6 +1,7 @@
-"""``factorq gym``'s configuration: ``GymConfig``, its methods and the declared worlds it runs
-(``WORLDS``). The command is ``factorq_trainers.experiments.gym``, which re-exports these names;
-the methods are ``factorq_trainers.experiments.gym_methods``.
+"""``factorq gym``'s configuration: ``GymConfig`` and its methods; the declared worlds it runs
+are ``factorq_envs.worlds``' registry (``--world``). The command is
+``factorq_trainers.experiments.gym``, which re-exports these names; the methods are
+``factorq_trainers.experiments.gym_methods``.
 """
 
 from __future__ import annotations
@@ -14,50 +15,10 @@ from factorq_torch.base.validation import check_float, check_int, check_names
 from factorq_trainers.runner.options import option
 
 if TYPE_CHECKING:
-    from factorq_envs.gymnasium_adapter import FactorQEnv
+    from factorq_envs.worlds import DeclaredWorld
 
 METHODS = ("dqn", "factor-q-oracle", "factor-q-learned", "sb3-dqn")
 DEFAULT_METHODS = ("dqn", "factor-q-oracle", "factor-q-learned")
-
-
-@dataclass(frozen=True)
-class WorldSpec:
-    """A declared world as the experiment runs it."""
-
-    make: str  # "module:function", seed -> FactorQEnv
-    observation: str  # the entry the networks read
-    threshold: float  # the default return threshold
-    extra: str  # what prepare() imports
-    label: str
-
-
-WORLDS = {
-    "highway": WorldSpec(
-        "factorq_envs.highway:make_highway",
-        "observation",
-        20.0,
-        "highway",
-        "highway-fast-v0",
-    ),
-    "minigrid-8x8": WorldSpec(
-        f"{__name__}:make_minigrid_8x8",  # this module, wherever the runner puts it
-        "image",
-        0.5,
-        "minigrid",
-        "MiniGrid-Dynamic-Obstacles-8x8-v0 (nodeath)",
-    ),
-}
-
-
-def make_minigrid_8x8(seed: int) -> FactorQEnv:
-    """MiniGrid Dynamic-Obstacles 8x8 with the "nodeath" semantics (``WORLDS["minigrid-8x8"]``).
-
-    Args:
-        seed: the env seed.
-    """
-    from factorq_envs.minigrid_adapter import make_minigrid
-
-    return make_minigrid(8, "nodeath", seed=seed)
 
 
 @dataclass(frozen=True)
@@ -67,7 +28,12 @@ class GymConfig:
     of CPU in all, about 6 min of wall time on 2 idle cores as two processes; with ``sb3-dqn`` 938 s
     of CPU for the 12 units: ``docs/tutorials/highway.md``)."""
 
-    world: str = option("highway", "The declared world.", choices=tuple(WORLDS))
+    world: str = option(
+        "highway",
+        "The declared world: highway, minigrid-8x8, a world an installed package adds (entry "
+        "point group factorq.worlds), or your own as package.module:NAME (a "
+        "factorq_envs.worlds.DeclaredWorld).",
+    )
     seed: int = option(0, "Master seed: env seeds, policies and networks derive from it.")
     seeds: int = option(3, "Independent experiments per method.")
     methods: tuple[str, ...] = option(
@@ -90,8 +56,7 @@ class GymConfig:
     out: str = option("results/gym", "Directory for the json, figure and report.")
 
     def __post_init__(self) -> None:
-        if self.world not in WORLDS:
-            raise ValueError(f"world={self.world!r}: choose one of {', '.join(WORLDS)}")
+        self.spec  # noqa: B018 - resolved (imported) now: a bad --world is refused before any work
         check_int("seed", self.seed, 0, 2**31 - 1)
         check_int("seeds", self.seeds, 1, 1_000)
         object.__setattr__(self, "methods", check_names("methods", self.methods, METHODS))
@@ -104,9 +69,11 @@ class GymConfig:
         check_exploration(self.exploration)
 
     @property
-    def spec(self) -> WorldSpec:
-        """The declared world (``WORLDS[world]``)."""
-        return WORLDS[self.world]
+    def spec(self) -> DeclaredWorld:
+        """The declared world ``world`` names (``factorq_envs.worlds.resolve_world``)."""
+        from factorq_envs.worlds import resolve_world
+
+        return resolve_world(self.world)
 
     @property
     def return_threshold(self) -> float:

@@ -73,10 +73,7 @@ def _keys(config: GymConfig, unit: dict[str, Any], stream: int) -> torch.Tensor:
 
 
 def _maker(config: GymConfig) -> Callable[[int], FactorQEnv]:
-    import importlib
-
-    module, function = config.spec.make.split(":")
-    return getattr(importlib.import_module(module), function)
+    return config.spec.make
 
 
 def _torchrl_env(config: GymConfig, seed: int) -> DeclaredEnv:
@@ -86,7 +83,7 @@ def _torchrl_env(config: GymConfig, seed: int) -> DeclaredEnv:
 
 
 def _excluded(config: GymConfig) -> list[str]:
-    return ["mission", "direction"] if config.world.startswith("minigrid") else []
+    return list(config.spec.exclude)
 
 
 # --------------------------------------------------------------------------------------------

@@ -53,8 +53,8 @@ from typing import Any
 from factorq_trainers.analysis.stats import count_ratio
 from factorq_trainers.experiments.risk_config import (  # noqa: F401 - re-exported
     METHODS,
+    OWN_WORLDS,
     TORCHRL_METHODS,
-    WORLDS,
     Progress,
     RiskConfig,
 )
@@ -118,9 +118,12 @@ def prepare(config: RiskConfig) -> None:
         config: the experiment.
     """
     from factorq_envs.gymnasium_adapter import require_extra
+    from factorq_envs.worlds import resolve_world
 
-    if "highway" in config.worlds:
-        require_extra("highway_env", "factorq-torch[highway]")
+    for world in config.worlds:
+        if world not in OWN_WORLDS:
+            for module, extra in resolve_world(world).requires:
+                require_extra(module, f"factorq-torch[{extra}]")
     if "minigrid" in config.worlds:
         require_extra("minigrid", "factorq-torch[minigrid]")
     sb3 = any(method.startswith("sb3") for method in config.methods)

@@ -12,23 +12,47 @@ from typing import Any
 from factorq_trainers.runner.options import option
 
 Progress = Callable[[int], None]
-WORLDS = ("grid", "minigrid", "highway")
+#: The worlds that are the project's own torchrl envs (sized by grid_size, minigrid_size); any
+#: other name is a declared world of ``factorq_envs.worlds``' registry (highway, an installed
+#: one, or package.module:NAME).
+OWN_WORLDS = ("grid", "minigrid")
 METHODS = ("dqn", "dqn+risk-oracle", "dqn+risk-learned", "sb3-dqn", "sb3-dqn+risk-oracle")
 TORCHRL_METHODS = METHODS[:3]
 #: The worlds the sb3-* methods can run on (``risk_methods.run_sb3``: the gymnasium grid).
 SB3_WORLDS = ("grid",)
 
 
-def _names(value: Any, field: str, allowed: tuple[str, ...]) -> tuple[str, ...]:
+def _names(
+    value: Any, field: str, allowed: tuple[str, ...], declared: bool = False
+) -> tuple[str, ...]:
+    """``value`` (comma-separated text or a tuple) as names of ``allowed``; with ``declared``,
+    any other name must be a declared world (``factorq_envs.worlds.resolve_world``)."""
     if isinstance(value, str):
         value = tuple(part.strip() for part in value.split(",") if part.strip())
     value = tuple(value)
-    unknown = [name for name in value if name not in allowed]
+    suffix = ""
+    if declared:
+        from factorq_envs.worlds import WorldError, names, resolve_world
+
+        allowed = (*OWN_WORLDS, *(name for name in names() if name not in OWN_WORLDS))
+        suffix = ", or a declared world of your own as package.module:NAME"
+        for name in value:
+            if name not in OWN_WORLDS and (name in allowed or ":" in name):
+                try:
+                    resolve_world(name)
+                except WorldError as error:  # one line naming the field and the world
+                    raise WorldError(f"{field}: {error}") from None
+        allowed_here = (*allowed, *(name for name in value if ":" in name))
+    else:
+        allowed_here = allowed
+    unknown = [name for name in value if name not in allowed_here]
     choices = ", ".join(allowed)
     if not value:
-        raise ValueError(f"{field} is empty: choose one or more of {choices}")
+        raise ValueError(f"{field} is empty: choose one or more of {choices}{suffix}")
     if unknown:
-        raise ValueError(f"{field}={','.join(unknown)} is unknown: choose one or more of {choices}")
+        raise ValueError(
+            f"{field}={','.join(unknown)} is unknown: choose one or more of {choices}{suffix}"
+        )
     return value
 
 
@@ -37,8 +61,8 @@ class RiskConfig:
     """One budget for every method (``factorq_trainers.experiments.risk``'s docstring).
 
     Args:
-        worlds, methods, sb3_worlds: what runs (``WORLDS``, ``METHODS``; comma-separated text
-            or a tuple).
+        worlds, methods, sb3_worlds: what runs (``OWN_WORLDS`` and the declared
+            worlds of ``factorq_envs.worlds``, ``METHODS``; comma-separated text or a tuple).
         seeds, seed: seeds per (world, method), from ``seed`` on.
         steps: training env steps per unit.
         grid_size, grid_obstacles, minigrid_size: the worlds (``highway`` is
@@ -52,7 +76,10 @@ class RiskConfig:
     """
 
     worlds: tuple[str, ...] = option(
-        ("grid", "minigrid"), "Worlds: grid, minigrid, highway (highway-fast-v0: ask for it)."
+        ("grid", "minigrid"),
+        "Worlds: grid, minigrid, and declared worlds: highway (highway-fast-v0: ask for it), one "
+        "an installed package adds (entry point group factorq.worlds), or your own as "
+        "package.module:NAME (a factorq_envs.worlds.DeclaredWorld).",
     )
     methods: tuple[str, ...] = option(TORCHRL_METHODS, f"Methods, of {', '.join(METHODS)}.")
     sb3_worlds: tuple[str, ...] = option(SB3_WORLDS, "Worlds the sb3-* methods run on: grid.")
@@ -78,7 +105,7 @@ class RiskConfig:
     out: str = option("results/risk", "Directory for the json, figure and report.")
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "worlds", _names(self.worlds, "worlds", WORLDS))
+        object.__setattr__(self, "worlds", _names(self.worlds, "worlds", OWN_WORLDS, declared=True))
         object.__setattr__(self, "methods", _names(self.methods, "methods", METHODS))
         object.__setattr__(self, "sb3_worlds", _names(self.sb3_worlds, "sb3_worlds", SB3_WORLDS))
         for name in ("seeds", "steps", "hidden", "buffer_size", "batch_size", "train_every"):

@@ -17,7 +17,9 @@ import warnings
 from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
+from factorq_envs.worlds import resolve_world
 from factorq_trainers.experiments.risk_config import (
+    OWN_WORLDS,
     Progress,
     RiskConfig,
 )
@@ -27,9 +29,6 @@ if TYPE_CHECKING:
 
     from factorq_torch.structure import StructureLearner
     from factorq_torch.tables import LocalRewardTable
-
-#: The greedy episodes' step limit on highway (highway-fast-v0 truncates at 30 steps itself).
-HIGHWAY_EVAL_LIMIT = 1_000
 
 
 # --------------------------------------------------------------------------------------------
@@ -41,8 +40,9 @@ def make_env(config: RiskConfig, world: str, seed: int) -> Any:  # a Transformed
 
     Args:
         config: the experiment.
-        world: ``"grid"``, ``"minigrid"`` or ``"highway"`` (``factorq_envs.highway``'s
-            declaration through the Gymnasium adapter: the ``highway`` extra).
+        world: ``"grid"``, ``"minigrid"`` or a declared world's name
+            (``factorq_envs.worlds``: ``highway``, an installed one, ``package.module:NAME``),
+            through the Gymnasium adapter.
         seed: the world's seed.
     """
     from torchrl.envs import TransformedEnv
@@ -58,21 +58,27 @@ def make_env(config: RiskConfig, world: str, seed: int) -> Any:  # a Transformed
             batch_size=(1,),
             seed=seed,
         )
-    elif world == "highway":
-        from factorq_envs.declared_env import declared_torchrl_env
-        from factorq_envs.highway import make_highway
-
-        base = declared_torchrl_env(make_highway, [seed])
-    else:
+    elif world == "minigrid":
         from factorq_envs.minigrid_torchrl import MiniGridEnv
 
         base = MiniGridEnv(config.minigrid_size, seeds=[seed])
+    else:
+        from factorq_envs.declared_env import declared_torchrl_env
+
+        declared = resolve_world(world)
+        base = declared_torchrl_env(declared.make, [seed], exclude=list(declared.exclude))
     return TransformedEnv(base, SplitLocalReward(keep_reward=True))
 
 
-def _is_highway(env: Any) -> bool:
-    """A ``make_env`` env of the ``highway`` world (no task state: no ``cell``)."""
-    return "cell" not in env.observation_spec.keys()
+def _is_declared(env: Any) -> bool:
+    """A ``make_env`` env of a declared world (the Gymnasium adapter's declaration)."""
+    return getattr(env.base_env, "declaration", None) is not None
+
+
+def _survival(world: str) -> bool:
+    """Whether ``world``'s success is running to the time limit without a collision (highway)
+    rather than ending without one (``DeclaredWorld.survival``)."""
+    return world not in OWN_WORLDS and resolve_world(world).survival
 
 
 def _penalty(env: Any) -> float:
@@ -82,11 +88,12 @@ def _penalty(env: Any) -> float:
 
 
 def features(env: Any) -> tuple[Any, int]:
-    """``observation`` ``[*B, N H + K]``: the (cell, heading) one-hot and the sensor bits, the
-    information Q-learning's state holds, as a TensorDict module, and its width. highway (no
-    cell) writes ``features`` ``[*B, 25 + K]`` instead: its ``Kinematics`` observation
-    (``observation`` ``[*B, 5, 5]``, left as it is) flattened, and the sensor bits, so DQN alone
-    sees what the layer sees. The entry written is the module's ``out_keys[0]``.
+    """``features`` ``[*B, N H + K]``: the (cell, heading) one-hot and the sensor bits, the
+    information Q-learning's state holds, as a TensorDict module, and its width. A declared world
+    without a task state (no ``cell``: highway) has its own observation (``observation``, left as
+    it is; highway's ``Kinematics`` ``[*B, 5, 5]``) flattened instead of the one-hot, so DQN alone
+    sees what the layer sees. ``features`` never collides with an env's own entry (a non-Dict
+    env's observation is ``observation``).
 
     Args:
         env: a ``make_env`` env.
@@ -95,17 +102,17 @@ def features(env: Any) -> tuple[Any, int]:
     from tensordict.nn import TensorDictModule
 
     spec = env.observation_spec
-    if _is_highway(env):
-        kinematics = spec["observation"].shape[-2:]
+    if "cell" not in spec.keys():
+        own = spec["observation"].shape[len(env.batch_size) :]
 
-        class Kinematics(torch.nn.Module):
+        class Observation(torch.nn.Module):
             def forward(self, observation: torch.Tensor, sensors: torch.Tensor) -> torch.Tensor:
-                flat = observation.flatten(-2).to(torch.float32)
+                flat = observation.flatten(observation.dim() - len(own)).to(torch.float32)
                 return torch.cat([flat, sensors.to(torch.float32)], dim=-1)
 
-        width = kinematics.numel() + spec["sensors"].shape[-1]
+        width = own.numel() + spec["sensors"].shape[-1]
         module = TensorDictModule(
-            Kinematics(), in_keys=["observation", "sensors"], out_keys=["features"]
+            Observation(), in_keys=["observation", "sensors"], out_keys=["features"]
         )
         return module, width
     cells = int(spec["cell"].space.n)
@@ -121,7 +128,7 @@ def features(env: Any) -> tuple[Any, int]:
 
     in_keys = ["cell", "sensors"] + (["heading"] if headings > 1 else [])
     width = cells * headings + spec["sensors"].shape[-1]
-    return TensorDictModule(Features(), in_keys=in_keys, out_keys=["observation"]), width
+    return TensorDictModule(Features(), in_keys=in_keys, out_keys=["features"]), width
 
 
 def provider(method: str, env: Any) -> LocalRewardTable | StructureLearner | None:
@@ -174,7 +181,7 @@ def _step_flags(
     td: Any, survive: bool = False
 ) -> tuple[list[float], list[bool], list[bool], list[bool]]:
     """Per world of one collected step: reward, collided, done, success (the goal reached;
-    ``survive``, highway: the episode ran to its time limit without a crash)."""
+    ``survive``, as on highway: the episode ran to its time limit without a crash)."""
     reward = td["next", "reward"].reshape(-1).tolist()
     collided = (td["next", "collision"] < 0).any(-1).reshape(-1)
     done = td["next", "done"].reshape(-1)
@@ -217,11 +224,12 @@ def run_torchrl(
         spec=spec,
     )
     local = provider(unit["method"], env)
-    highway = _is_highway(env)
+    survive = _survival(unit["world"])
     # "risky" in local-reward units: a collision more likely than not, whatever its penalty
     options: dict[str, Any] = {"mask_threshold": 0.5 * _penalty(env)}
-    if highway:  # the declared names (the adapter's sizes carry the actuators' only)
-        options.update(sensor_names=env.base_env.declaration.sensor_names, active="on")
+    if _is_declared(env):  # the declared names (the adapter's sizes carry the actuators' only)
+        names = env.base_env.declaration.sensor_names
+        options.update(active="on", **({"sensor_names": names} if names else {}))
     acting = actor if local is None else with_local_risk(actor, local, env=env, **options)  # 1
     local_loss = None if local is None else LocalRiskLoss(local)  # line 2
     summary: RiskSummary | None = None  # what the layer did, per training episode (the logs)
@@ -261,7 +269,7 @@ def run_torchrl(
             step = data[t : t + 1]
             if summary is not None:
                 summary.update(step)
-            for flags in zip(*_step_flags(step, highway), strict=True):
+            for flags in zip(*_step_flags(step, survive), strict=True):
                 tally.step(*flags)
                 if summary is not None and flags[2]:  # the episode is done
                     risk_log.append(summary.episode())
@@ -307,7 +315,7 @@ def _structure(learner: StructureLearner, layer: Any, env: Any) -> dict[str, Any
     }
 
 
-def _module(network: torch.nn.Module, key: str = "observation") -> Any:
+def _module(network: torch.nn.Module, key: str) -> Any:
     from tensordict.nn import TensorDictModule
 
     return TensorDictModule(network, in_keys=[key], out_keys=["action_value"])
@@ -327,8 +335,9 @@ def evaluate(config: RiskConfig, unit: dict[str, Any], acting: Any) -> dict[str,
 
     env = make_env(config, unit["world"], 10_000 + unit["seed"])
     collisions = successes = 0
-    if unit["world"] == "highway":
-        limit = HIGHWAY_EVAL_LIMIT  # highway-fast-v0 ends its episodes itself (30 steps)
+    survive = _survival(unit["world"])
+    if unit["world"] not in OWN_WORLDS:
+        limit = resolve_world(unit["world"]).max_steps  # the env's own time limit ends sooner
     else:
         limit = 4 * (config.grid_size if unit["world"] == "grid" else config.minigrid_size) ** 2
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
@@ -336,7 +345,7 @@ def evaluate(config: RiskConfig, unit: dict[str, Any], acting: Any) -> dict[str,
             rollout = env.rollout(limit, acting, break_when_any_done=True)
             collided = (rollout["next", "collision"] < 0).any(-1)
             collisions += int(collided.sum())
-            if unit["world"] == "highway":  # survived: ran to the time limit, no crash
+            if survive:  # survived: ran to the time limit, no crash
                 successes += int(not bool(collided.any()))
             else:
                 successes += int((rollout["next", "terminated"].squeeze(-1) & ~collided).any())

@@ -1,0 +1,188 @@
+"""One registry of declared worlds (issue 38): ``--world`` names a built-in world, one an installed
+package adds through the ``factorq.worlds`` entry point group, or a user's own
+``package.module:NAME``; every bad name is one line naming it, before any work.
+
+The user's world is Gymnasium's CliffWalking declared in a module written into ``tmp_path`` (as a
+user's own file next to their script), run through ``factorq gym`` and ``factorq risk`` in-process.
+"""
+
+from __future__ import annotations
+
+import json
+import textwrap
+
+import pytest
+
+from factorq_envs import worlds
+from factorq_envs.worlds import BUILT_IN, DeclaredWorld, WorldError, resolve_world
+from factorq_trainers import cli
+
+USER_MODULE = '''
+"""A user's own declared world: CliffWalking, the fall as the collision."""
+
+import gymnasium
+import numpy as np
+
+from factorq_envs.gymnasium_adapter import Declaration, FactorQEnv
+from factorq_envs.worlds import DeclaredWorld
+
+MOVES = ((-1, 0), (0, 1), (1, 0), (0, -1))
+
+
+def cliff_ahead(step):
+    row, col = divmod(int(step.observation), 12)
+    return np.array([row + dr == 3 and 0 < col + dc < 11 for dr, dc in MOVES])
+
+
+DECLARATION = Declaration(
+    num_sensors=4,
+    sensors=cliff_ahead,
+    collision=lambda step: step.reward == -100,
+    penalty=100.0,
+    actuator_names=("up", "right", "down", "left"),
+    task_state=lambda step: int(step.observation),
+    num_cells=48,
+    dependency=tuple(tuple(a == k for k in range(4)) for a in range(4)),
+)
+
+
+def make(seed):
+    env = gymnasium.make("CliffWalking-v1", max_episode_steps=50)
+    return FactorQEnv(env, DECLARATION, seed=seed)
+
+
+CLIFF = DeclaredWorld(make, "CliffWalking-v1", threshold=-60.0, max_steps=50)
+NOT_A_WORLD = 42
+'''
+
+
+@pytest.fixture(autouse=True)
+def fresh_registry():
+    """``resolve_world`` caches by name: every test starts and ends with an empty cache."""
+    resolve_world.cache_clear()
+    yield
+    resolve_world.cache_clear()
+
+
+@pytest.fixture
+def user_world(tmp_path, monkeypatch):
+    """``<module>:CLIFF`` importable, as a user's own module is from where they run the command."""
+    folder = tmp_path / "user"
+    folder.mkdir()
+    (folder / "cliff_user_world.py").write_text(USER_MODULE)
+    (folder / "broken_user_world.py").write_text("raise RuntimeError('the module is broken')\n")
+    monkeypatch.syspath_prepend(str(folder))
+    yield "cliff_user_world"
+    import sys
+
+    for name in ("cliff_user_world", "broken_user_world"):
+        sys.modules.pop(name, None)
+
+
+def test_built_in_names_resolve_to_their_declared_worlds():
+    assert worlds.names()[:2] == ["highway", "minigrid-8x8"]
+    assert resolve_world("highway") is BUILT_IN["highway"]
+    assert resolve_world("highway").survival and not resolve_world("minigrid-8x8").survival
+    assert resolve_world("minigrid-8x8").observation == "image"
+
+
+def test_a_users_own_world_runs_through_factorq_gym(user_world, tmp_path, capsys):
+    name = f"{user_world}:CLIFF"
+    out = tmp_path / "out"
+    args = ["gym", "--world", name, "--seeds", "1", "--steps", "40", "--eval-episodes", "1"]
+    args += ["--methods", "dqn,factor-q-oracle", "--curve-points", "4", "--out", str(out)]
+    assert cli.main(args) == 0
+    summary = json.loads((out / "gym.json").read_text())
+    assert summary["config"]["world"] == name  # kept as given: --resume resolves it again
+    assert summary["world"] == "CliffWalking-v1"
+    assert summary["actuators"] == ["up", "right", "down", "left"]
+    assert set(summary["methods"]) == {"dqn", "factor-q-oracle"}
+    assert "# Factor-Q on CliffWalking-v1" in (out / "gym.md").read_text()
+
+
+def test_a_users_own_world_runs_beside_the_grid_in_factorq_risk(user_world, tmp_path):
+    out = tmp_path / "risk"
+    args = ["risk", "--worlds", f"{user_world}:CLIFF", "--methods", "dqn", "--seeds", "1"]
+    args += ["--steps", "60", "--learning-starts", "20", "--eval-episodes", "1", "--out", str(out)]
+    assert cli.main(args) == 0
+    summary = json.loads((out / "risk.json").read_text())
+    assert summary["config"]["worlds"] == [f"{user_world}:CLIFF"]
+
+
+@pytest.mark.parametrize(
+    ("name", "message"),
+    [
+        ("no_such_module_here:CLIFF", "module 'no_such_module_here' does not import"),
+        ("broken_user_world:CLIFF", "does not import (RuntimeError: the module is broken)"),
+        ("cliff_user_world:NOWHERE", "module 'cliff_user_world' has no 'NOWHERE'"),
+        ("cliff_user_world:NOT_A_WORLD", "names a 'int' object, not a factorq_envs.worlds"),
+        ("cliff_user_world:CLIFF:x", "is not package.module:NAME"),
+        ("atari", "is unknown: choose one of highway, minigrid-8x8"),
+    ],
+)
+def test_a_bad_world_is_one_line_naming_it_before_any_work(
+    user_world, tmp_path, capsys, name, message
+):
+    out = tmp_path / "out"
+    assert cli.main(["gym", "--world", name, "--steps", "40", "--out", str(out)]) == 2
+    error = capsys.readouterr().err.strip()
+    assert message in error and name in error
+    assert len(error.splitlines()) == 1
+    assert not out.exists()
+    with pytest.raises(WorldError, match="world '"):
+        resolve_world(name)
+
+
+def _install(site, module: str, entry_points: dict[str, str]) -> None:
+    """A package installed into ``site`` (a folder on sys.path) adding ``entry_points``."""
+    info = site / "user_worlds_pkg-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: user-worlds-pkg\nVersion: 1.0\n")
+    lines = [f"{name} = {value}" for name, value in entry_points.items()]
+    (info / "entry_points.txt").write_text("[factorq.worlds]\n" + "\n".join(lines) + "\n")
+    (site / f"{module}.py").write_text(textwrap.dedent(USER_MODULE))
+
+
+def test_an_installed_package_adds_worlds_through_the_entry_point_group(tmp_path, monkeypatch):
+    site = tmp_path / "site"
+    site.mkdir()
+    entry_points = {"cliff": "pkg_cliff_world:CLIFF", "lost": "pkg_cliff_world:GONE"}
+    entry_points["highway"] = "pkg_cliff_world:CLIFF"  # a built-in name is never shadowed
+    _install(site, "pkg_cliff_world", entry_points)
+    monkeypatch.syspath_prepend(str(site))
+    try:
+        assert worlds.names() == ["highway", "minigrid-8x8", "cliff", "lost"]
+        assert resolve_world("cliff").label == "CliffWalking-v1"
+        assert resolve_world("highway") is BUILT_IN["highway"]
+        with pytest.raises(WorldError, match="entry point 'pkg_cliff_world:GONE' of factorq"):
+            resolve_world("lost")
+        with pytest.raises(WorldError, match="choose one of highway, minigrid-8x8, cliff, lost"):
+            resolve_world("atari")
+    finally:
+        import sys
+
+        sys.modules.pop("pkg_cliff_world", None)
+    monkeypatch.undo()
+    assert "cliff" not in worlds.names()  # nothing left behind once the folder leaves sys.path
+
+
+def _make(seed):
+    raise AssertionError("never called")
+
+
+@pytest.mark.parametrize(
+    ("fields", "error", "message"),
+    [
+        ({"make": 3}, TypeError, "DeclaredWorld.make must be callable"),
+        ({"label": ""}, TypeError, "DeclaredWorld.label must be a non-empty string"),
+        ({"observation": 1}, TypeError, "DeclaredWorld.observation must be a non-empty"),
+        ({"threshold": "high"}, TypeError, "DeclaredWorld.threshold must be a number"),
+        ({"threshold": float("nan")}, ValueError, "threshold=nan must be finite"),
+        ({"requires": (("minigrid",),)}, TypeError, "must be \\(module, extra\\) string pairs"),
+        ({"survival": 1}, TypeError, "DeclaredWorld.survival must be a bool"),
+        ({"max_steps": 0}, ValueError, "DeclaredWorld.max_steps=0 must be an integer >= 1"),
+    ],
+)
+def test_a_declared_world_checks_its_fields(fields, error, message):
+    with pytest.raises(error, match=message):
+        DeclaredWorld(**{"make": _make, "label": "x", **fields})
