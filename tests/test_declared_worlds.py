@@ -100,6 +100,36 @@ def test_a_users_own_world_runs_through_factorq_gym(user_world, tmp_path, capsys
     assert "# Factor-Q on CliffWalking-v1" in (out / "gym.md").read_text()
 
 
+def test_a_users_own_world_resumes_to_the_same_numbers(user_world, tmp_path, monkeypatch, capsys):
+    """Interrupted after its first unit, the run resumes from the name kept in its config (the
+    world resolved again) and equals an uninterrupted one."""
+    from factorq_trainers.experiments import gym
+
+    args = ["gym", "--world", f"{user_world}:CLIFF", "--seeds", "1", "--steps", "40"]
+    args += ["--eval-episodes", "1", "--methods", "dqn,factor-q-oracle", "--curve-points", "4"]
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    assert cli.main([*args, "--out", str(whole)]) == 0
+    run_unit = gym.run_unit
+
+    def interrupted(config, unit, *rest, **keywords):
+        if unit["method"] == "factor-q-oracle":
+            raise KeyboardInterrupt
+        return run_unit(config, unit, *rest, **keywords)
+
+    monkeypatch.setattr(gym, "run_unit", interrupted)
+    assert cli.main([*args, "--out", str(cut)]) == 130
+    monkeypatch.setattr(gym, "run_unit", run_unit)
+    resolve_world.cache_clear()
+    assert cli.main(["gym", "--resume", str(cut)]) == 0
+    capsys.readouterr()
+    resumed = json.loads((cut / "gym.json").read_text())
+    expected = json.loads((whole / "gym.json").read_text())
+    assert resumed["timing"]["units_resumed"] == 1
+    for method in ("dqn", "factor-q-oracle"):
+        for key in ("crashes_per_1000", "greedy_return", "curves"):
+            assert resumed["methods"][method][key] == expected["methods"][method][key]
+
+
 def test_a_users_own_world_runs_beside_the_grid_in_factorq_risk(user_world, tmp_path):
     out = tmp_path / "risk"
     args = ["risk", "--worlds", f"{user_world}:CLIFF", "--methods", "dqn", "--seeds", "1"]
