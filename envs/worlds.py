@@ -26,6 +26,8 @@ import importlib
 import importlib.metadata
 import math
 import re
+import statistics
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -100,6 +102,25 @@ class DeclaredWorld:
         steps = self.max_steps
         if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
             raise ValueError(f"DeclaredWorld.max_steps={steps!r} must be an integer >= 1")
+
+    def step_seconds(self, steps: int = 20) -> float:
+        """The median wall time of one step of the world's env (seed 0, after a reset, actions
+        drawn from its own action space): what tells a command whether its units are worth
+        processes of their own (``factorq_trainers.runner.cluster.default_workers``)."""
+        env = self.make(0)
+        try:
+            env.reset(seed=0)
+            env.action_space.seed(0)
+            times = []
+            for _ in range(steps):
+                start = time.perf_counter()
+                _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+                times.append(time.perf_counter() - start)
+                if terminated or truncated:
+                    env.reset()
+        finally:
+            env.close()
+        return statistics.median(times)
 
 
 def make_highway(seed: int) -> FactorQEnv:

@@ -53,6 +53,24 @@ def make(seed):
 
 CLIFF = DeclaredWorld(make, "CliffWalking-v1", threshold=-60.0, max_steps=50)
 NOT_A_WORLD = 42
+
+
+class Slow(gymnasium.Wrapper):
+    """CliffWalking as slow as a simulator: 2 ms a step."""
+
+    def step(self, action):
+        import time
+
+        time.sleep(0.002)
+        return self.env.step(action)
+
+
+def make_slow(seed):
+    env = Slow(gymnasium.make("CliffWalking-v1", max_episode_steps=50))
+    return FactorQEnv(env, DECLARATION, seed=seed)
+
+
+SLOW = DeclaredWorld(make_slow, "slow CliffWalking", threshold=-60.0, max_steps=50)
 '''
 
 
@@ -128,6 +146,37 @@ def test_a_users_own_world_resumes_to_the_same_numbers(user_world, tmp_path, mon
     for method in ("dqn", "factor-q-oracle"):
         for key in ("crashes_per_1000", "greedy_return", "curves"):
             assert resumed["methods"][method][key] == expected["methods"][method][key]
+
+
+def test_a_slow_world_runs_its_units_in_processes_by_default_with_the_same_numbers(
+    user_world, tmp_path, monkeypatch, capsys
+):
+    """Issue 42: where the env steps slowly (2 ms here) and the run is long enough (the bar
+    lowered to 0 s, one core per unit assumed), the units go to one process per core by
+    default; ``--cluster off`` keeps them here; the numbers are the same."""
+    from factorq_trainers.runner import cluster
+
+    monkeypatch.setattr(cluster, "PROCESSES_AFTER_S", 0.0)
+    monkeypatch.setattr(cluster, "_cores", lambda: 2)
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path / "user"))  # the workers import the world too
+    args = ["gym", "--world", f"{user_world}:SLOW", "--seeds", "2", "--steps", "30"]
+    args += ["--eval-episodes", "1", "--methods", "dqn", "--curve-points", "3"]
+    assert cli.main([*args, "--out", str(tmp_path / "default")]) == 0
+    assert "the 2 units run in 2 processes" in capsys.readouterr().err
+    assert cli.main([*args, "--cluster", "off", "--out", str(tmp_path / "here")]) == 0
+    assert "processes" not in capsys.readouterr().err
+    default = json.loads((tmp_path / "default" / "gym.json").read_text())
+    here = json.loads((tmp_path / "here" / "gym.json").read_text())
+    assert default["timing"]["where"] != here["timing"]["where"] == "in-process"
+    for key in ("crashes_per_1000", "greedy_return", "curves"):
+        assert default["methods"]["dqn"][key] == here["methods"]["dqn"][key]
+
+
+def test_a_fast_world_stays_in_process(user_world, tmp_path):
+    from factorq_trainers.experiments import gym
+
+    config = gym.GymConfig(world=f"{user_world}:CLIFF", seeds=3, steps=10**6)
+    assert gym.processes(config, gym.units(config))[0] == 1  # microseconds a step
 
 
 def test_a_users_own_world_runs_beside_the_grid_in_factorq_risk(user_world, tmp_path):

@@ -111,6 +111,21 @@ def prepare(config: GymConfig) -> None:
         require_extra("stable_baselines3", "factorq-torch[sb3]")
 
 
+def processes(config: GymConfig, units: list[dict[str, Any]]) -> tuple[int, str]:
+    """How many processes the units take by default (``runner.cluster.default_workers``): one
+    per core where the world's env steps slowly (highway-env), else 1 (in-process); and why.
+
+    Args:
+        config: the experiment.
+        units: ``units(config)``.
+    """
+    from factorq_trainers.runner.cluster import default_workers
+
+    step_s = config.spec.step_seconds()
+    why = f"{config.spec.label} takes {1e3 * step_s:.1f} ms an env step"
+    return default_workers(step_s, config.steps, len(units)), why
+
+
 def units(config: GymConfig) -> list[dict[str, Any]]:
     """One unit per method and seed: ``{"id", "method", "seed_index"}``.
 

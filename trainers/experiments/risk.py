@@ -131,6 +131,28 @@ def prepare(config: RiskConfig) -> None:
         require_extra("stable_baselines3", "factorq-torch[sb3]")
 
 
+def processes(config: RiskConfig, units: list[dict[str, Any]]) -> tuple[int, str]:
+    """How many processes the units take by default (``runner.cluster.default_workers``): one
+    per core where a declared world's env steps slowly (highway-env), else 1 (in-process); and
+    why. The grid and MiniGrid step in microseconds: measured only for the declared worlds.
+
+    Args:
+        config: the experiment.
+        units: ``units(config)``.
+    """
+    from factorq_envs.worlds import resolve_world
+    from factorq_trainers.runner.cluster import default_workers
+
+    slowest, why = 0.0, ""
+    for world in config.worlds:
+        if world not in OWN_WORLDS:
+            declared = resolve_world(world)
+            step_s = declared.step_seconds()
+            if step_s > slowest:
+                slowest, why = step_s, f"{declared.label} takes {1e3 * step_s:.1f} ms an env step"
+    return default_workers(slowest, config.steps, len(units)), why
+
+
 def units(config: RiskConfig) -> list[dict[str, Any]]:
     """One unit per (world, method, seed); sb3 methods only on ``sb3_worlds``.
 

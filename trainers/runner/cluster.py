@@ -51,6 +51,12 @@ DEFAULT_WORKER_TIMEOUT_S = 120.0
 #: How often a wait for results looks for workers.
 WORKER_POLL_S = 1.0
 _LOCAL = re.compile(r"^local(?::(\d+))?$")
+#: ``--cluster off``: in-process, one unit after another, whatever the command would choose.
+OFF = "off"
+#: An env step at least this slow (seconds) makes a command's units worth processes ...
+SLOW_STEP_S = 1e-3
+#: ... when their env steps alone would take at least this long (seconds) in one process.
+PROCESSES_AFTER_S = 20.0
 
 
 class ClusterError(ValueError):
@@ -109,7 +115,7 @@ def parse_cluster(text: str) -> int:
         )
     if match is None or match[1] == "0":
         raise ClusterError(
-            f"--cluster={text!r} is not local or local:N with N >= 1 (for a running cluster, "
+            f"--cluster={text!r} is not local, local:N with N >= 1 or off (for a running cluster, "
             f"use --scheduler tcp://host:port)"
         )
     return int(match[1] or 0)
@@ -446,9 +452,11 @@ def add_options(parser: argparse.ArgumentParser) -> None:
     """``--cluster``, ``--scheduler``, ``--connect-timeout`` (``factorq sweep``, every command)."""
     parser.add_argument(
         "--cluster",
-        metavar="local[:N]",
+        metavar="local[:N]|off",
         help="Run the shards on a Dask LocalCluster of N worker processes started here (plain "
-        "'local': one per core). Needs the 'distributed' extra. (default: in-process)",
+        "'local': one per core). Needs the 'distributed' extra. 'off': in-process, one after "
+        "another. (default: in-process, except where a command's env steps slowly enough "
+        "for processes to pay: then one per core)",
         default=argparse.SUPPRESS,
     )
     parser.add_argument(
@@ -480,8 +488,10 @@ def add_options(parser: argparse.ArgumentParser) -> None:
 def where_from_args(args: argparse.Namespace) -> Where:
     """Where to run, from ``add_options``' options (a ``ClusterError`` when invalid)."""
     workers = None
-    if hasattr(args, "cluster"):
+    if getattr(args, "cluster", OFF) != OFF:
         workers = parse_cluster(args.cluster)
+    elif hasattr(args, "cluster") and hasattr(args, "scheduler"):
+        raise ClusterError("give --cluster or --scheduler, not both")
     return Where(
         local_workers=workers,
         scheduler=getattr(args, "scheduler", None),
@@ -493,8 +503,32 @@ def where_from_args(args: argparse.Namespace) -> Where:
 def executor_from_args(
     args: argparse.Namespace,
 ) -> InProcess | DaskExecutor | None:
-    """The executor of ``add_options``' options: ``None`` when none was given."""
+    """The executor of ``add_options``' options: ``None`` (in-process) when none was given and
+    for ``--cluster off`` (in-process whatever the command would choose: ``default_workers``)."""
+    if getattr(args, "cluster", None) == OFF:
+        where_from_args(args)  # checked all the same
+        return None
     names = ("cluster", "scheduler", "connect_timeout", "worker_timeout")
     if not any(hasattr(args, name) for name in names):
         return None
     return open_executor(where_from_args(args))
+
+
+def _cores() -> int:
+    """The cores this process may run on (its affinity, where the system says)."""
+    affinity = getattr(os, "sched_getaffinity", None)
+    return len(affinity(0)) if affinity is not None else os.cpu_count() or 1
+
+
+def default_workers(step_s: float, steps: int, units: int) -> int:
+    """How many processes a command's ``units`` take by default, each stepping an env
+    ``steps`` times at ``step_s`` seconds a step: one per core (at most one per unit) where the
+    env is slow (``SLOW_STEP_S``) and the steps alone would take ``PROCESSES_AFTER_S`` in one
+    process, else 1 (in-process: starting processes costs seconds).
+
+    >>> default_workers(0.005, 10_000, 1), default_workers(0.0001, 10_000, 6)
+    (1, 1)
+    """
+    cores = _cores()
+    slow = step_s >= SLOW_STEP_S and step_s * steps * units >= PROCESSES_AFTER_S
+    return min(cores, units) if slow and units > 1 and cores > 1 else 1

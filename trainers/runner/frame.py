@@ -271,6 +271,9 @@ def execute(module: ModuleType, parser: argparse.ArgumentParser, args: argparse.
         from factorq_trainers.runner import cluster
 
         executor = cluster.executor_from_args(args)
+        chosen = any(hasattr(args, name) for name in ("cluster", "scheduler"))
+        if executor is None and not chosen and hasattr(module, "processes"):
+            executor = _default_processes(parser, module, config, units)
     except (ValueError, TypeError, ModuleNotFoundError) as problem:
         error(parser, as_option(str(problem), module.CONFIG, ("resume",)))
         return EXIT_USAGE
@@ -299,6 +302,30 @@ def execute(module: ModuleType, parser: argparse.ArgumentParser, args: argparse.
     finally:
         if executor is not None:
             executor.close()
+
+
+def _default_processes(
+    parser: argparse.ArgumentParser, module: ModuleType, config: Any, units: list[dict[str, Any]]
+) -> Any:
+    """A local cluster of the workers the command asks for its ``units`` (``processes(config,
+    units) -> (workers, why)``: where its env steps slowly), with a notice saying why; None
+    (in-process) where it asks for one, or where Dask is not installed."""
+    from factorq_trainers.runner import cluster
+
+    workers, why = module.processes(config, units)
+    if workers < 2:
+        return None
+    try:
+        executor = cluster.open_executor(cluster.Where(local_workers=workers))
+    except cluster.ClusterError:  # no 'distributed' extra: in-process, as everywhere else
+        return None
+    print(
+        f"{parser.prog}: {why}: the {len(units)} units run in {workers} processes "
+        f"(--cluster off: here, one after another)",
+        file=sys.stderr,
+        flush=True,
+    )
+    return executor
 
 
 def _run(
