@@ -35,7 +35,7 @@ def test_the_command_writes_its_report_and_the_body_model_saves_the_learning_col
     results = json.loads((out / "transfer.json").read_text())
     assert set(results["results"]) == {"static", "semi-dynamic", "dynamic"}
     static = results["results"]["static"]
-    assert set(static) == set(transfer.METHODS)
+    assert set(static) == set(transfer.DEFAULT_METHODS)
     # A body model that knows every actuator's risk (rho = -1 where its sensor reads an obstacle,
     # eq. 5 after one collision) and risk-aware exploration: no collision in a static world, where
     # every collision is one the sensors foresee; from scratch, each actuator learns by colliding.
@@ -43,9 +43,10 @@ def test_the_command_writes_its_report_and_the_body_model_saves_the_learning_col
     assert static["factor-q"]["early_collisions"]["range"][0] >= 1
     assert static["q-learning"]["early_collisions"]["mean"] > static["factor-q"][
         "early_collisions"]["mean"]  # fmt: skip
-    assert results["body_against_fresh"]["static"]["target_met"] is True
+    assert results["body_against_fresh"]["factor-q-body"]["static"]["target_met"] is True
     report = (out / "transfer.md").read_text()
     assert "## Target: dynamic" in report and "| Factor-Q with the body model |" in report
+    assert "- Factor-Q with the body model: no collisions in the first 3 episodes" in report
     assert (out / "transfer.png").stat().st_size > 0
     capsys.readouterr()
 
@@ -120,3 +121,27 @@ def test_a_body_model_of_another_seed_count_or_through_a_link_is_refused(tmp_pat
 )
 def test_bad_options_are_one_line_naming_the_option(tmp_path, capsys, extra, words):
     _refused(tmp_path, capsys, extra, words)
+
+
+def test_the_learned_structure_is_carried_whole_and_saves_as_an_artifact(tmp_path):
+    """The structure learner's whole evidence goes into the target (its samples go on counting
+    from the source's), and the learner saved by ``save_agent`` loads back the same."""
+    import torch
+
+    from factorq_torch.artifacts import load_agent, save_agent
+
+    options = {**SMALL, "regimes": ("static",), "episodes": 2, "early": 1, "size": 5}
+    options.update(obstacles=2, source_size=4, source_obstacles=1, source_episodes=2, seeds=2)
+    config = transfer.TransferConfig(**options, methods=("learned", "learned-body"))
+    assert transfer.work(config, transfer.units(config)[1]) == 2 * (2 + 2)
+    learner = transfer.train_body_model(config, learned=True)
+    assert bool((learner.samples > 0).all())  # every actuator fired in the source task
+    again = load_agent(save_agent(learner, tmp_path / "learner.pt"))
+    for name, value in learner.state_dict().items():
+        assert torch.equal(again.state_dict()[name], value), name
+    state = {name: value.detach() for name, value in learner.state_dict().items()}
+    _, carried, path = transfer.run_batch(
+        config, "factor-q", config.target_world, "static", 2, body=state, learned=True
+    )
+    assert path == "modular"
+    assert bool((carried["samples"] > learner.samples).all())  # it went on from the source's

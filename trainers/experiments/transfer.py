@@ -57,7 +57,12 @@ DESCRIPTION = (
     "and transfer.md to --out."
 )
 REPORT = "factorq_trainers.reports.transfer"
-METHODS = ("factor-q", "factor-q-body", "q-learning")
+METHODS = ("factor-q", "factor-q-body", "q-learning", "learned", "learned-body")
+#: What runs unless ``--methods`` says otherwise (the learned structure runs on the torchrl path
+#: only, minutes where the rest takes seconds: opt-in).
+DEFAULT_METHODS = METHODS[:3]
+#: The fresh method each carried one is measured against.
+PAIRS = {"factor-q-body": "factor-q", "learned-body": "learned"}
 #: The issue's target: the body model's collisions in the first ``early`` episodes of the target
 #: at most a fifth of a fresh Factor-Q's.
 TARGET_RATIO = 5.0
@@ -105,7 +110,11 @@ class TransferConfig(WorldOptions):
         "body model can save). Q-learning explores uniformly.",
         choices=EXPLORATIONS,
     )
-    methods: tuple[str, ...] = option(METHODS, "Methods: " + ", ".join(METHODS) + ".")
+    methods: tuple[str, ...] = option(
+        DEFAULT_METHODS,
+        "Methods: " + ", ".join(METHODS) + " (learned, learned-body: the structure learner, told "
+        "nothing of the pairing, on the torchrl path only: slow, opt-in).",
+    )
     seed: int = option(0, "Master seed: worlds and policies derive from it.")
     seeds: int = option(20, "Independent experiments per (method, regime).")
     path: str = option(
@@ -197,15 +206,18 @@ def run_batch(
     source: bool = False,
     body: dict[str, torch.Tensor] | None = None,
     progress: Callable[[int], None] | None = None,
+    learned: bool = False,
 ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor] | None, str]:
     """``seeds`` experiments of ``algorithm`` for one run of ``episodes`` in ``world`` with
-    ``regime``'s obstacle period, Factor-Q's local tables starting from ``body`` (``rho``,
-    ``kappa`` ``[seeds, A, 2**parents]``) when given. Returns the per-episode metrics ``[seeds,
-    1, episodes]``, Factor-Q's local tables at the end (else None) and the path it ran on."""
+    ``regime``'s obstacle period, Factor-Q's local model starting from ``body`` when given: the
+    oracle's tables (``rho``, ``kappa`` ``[seeds, A, 2**parents]``) or, with ``learned``, a
+    ``StructureLearner``'s whole state (its evidence; on the torchrl path only). Returns the
+    per-episode metrics ``[seeds, 1, episodes]``, Factor-Q's local model at the end (else None)
+    and the path it ran on."""
     world_keys, policy_keys = _keys(config, regime, source)
     periods = torch.full((config.seeds,), REGIME_PERIODS[regime], dtype=torch.int64)
     agent = config.agent(algorithm)
-    if _uses_fast(config, world):
+    if not learned and _uses_fast(config, world):
         from factorq_trainers.compiled import fast
 
         batch = fast.ExperimentBatch(
@@ -224,7 +236,15 @@ def run_batch(
     from factorq_trainers.experiments.experiment import make_env, online_agent, tabular_values
 
     task, table = tabular_values(algorithm, config.seeds, world)
-    if table is not None and body is not None:
+    if learned:
+        from factorq_torch.structure import StructureLearner
+
+        table = StructureLearner(
+            config.seeds, num_actions=world.num_actuators, num_sensors=world.num_sensors
+        )
+        if body is not None:
+            table.load_state_dict(body)
+    elif table is not None and body is not None:
         table.load_state_dict({**table.state_dict(), **body})
     env, policy, loss = online_agent(
         make_env(world, periods, world_keys), task, table, agent, policy_keys
@@ -233,20 +253,31 @@ def run_batch(
     collector = OnlineCollector(env, policy, loss, runs=1, episodes=episodes, progress=on_episodes)
     result = collector.run()
     metrics = {name: result.get(name).clone() for name in result.keys()}
-    local = None if table is None else {"rho": table.rho.clone(), "kappa": table.kappa.clone()}
-    return metrics, local, "modular"
+    if table is None:
+        return metrics, None, "modular"
+    kept = table.state_dict() if learned else {"rho": table.rho, "kappa": table.kappa}
+    return metrics, {name: value.clone() for name, value in kept.items()}, "modular"
 
 
-def train_body_model(config: TransferConfig) -> Any:
-    """The body model of every seed: a ``LocalRewardTable`` ``[seeds]`` learned by Factor-Q in the
-    source task (``save_agent`` writes it for ``--body-model``)."""
+def train_body_model(config: TransferConfig, learned: bool = False) -> Any:
+    """The body model of every seed, learned by Factor-Q in the source task: a
+    ``LocalRewardTable`` ``[seeds]`` on the oracle pairing, or with ``learned`` a
+    ``StructureLearner`` told nothing of it (``save_agent`` writes either)."""
+    from factorq_torch.structure import StructureLearner
     from factorq_torch.tables import LocalRewardTable
 
     world = config.source_world
     _, local, _ = run_batch(
-        config, "factor-q", world, config.source_regime, config.source_episodes, source=True
-    )
+        config, "factor-q", world, config.source_regime, config.source_episodes, source=True,
+        learned=learned,
+    )  # fmt: skip
     assert local is not None
+    if learned:
+        learner = StructureLearner(
+            config.seeds, num_actions=world.num_actuators, num_sensors=world.num_sensors
+        )
+        learner.load_state_dict(local)
+        return learner
     table = LocalRewardTable(config.seeds, dependency=world.dependency)
     table.load_state_dict({**table.state_dict(), **local})
     return table
@@ -305,8 +336,10 @@ def units(config: TransferConfig) -> list[dict[str, Any]]:
 
 def work(config: TransferConfig, unit: dict[str, Any]) -> int:
     """The progress bar's share of a unit: its episodes (the source's included)."""
-    source = config.source_episodes if unit["method"] == "factor-q-body" else 0
-    return config.seeds * (config.episodes + (0 if config.body_model else source))
+    method = unit["method"]
+    carried_file = method == "factor-q-body" and config.body_model is not None
+    source = config.source_episodes if method in PAIRS and not carried_file else 0
+    return config.seeds * (config.episodes + source)
 
 
 def run_unit(
@@ -314,21 +347,22 @@ def run_unit(
 ) -> dict[str, Any]:
     """The unit's method in its regime: per-seed measures and the per-episode collision curve."""
     method, regime = unit["method"], unit["regime"]
+    learned = method.startswith("learned")
     body, body_from = None, "none"
-    if method == "factor-q-body":
-        if config.body_model is not None:
-            body, body_from = load_body_model(config), "file"
-        else:
-            body = {
-                name: getattr(train_body_model(config), name).detach() for name in ("rho", "kappa")
-            }
-            body_from = "source task"
-            if progress is not None:
-                progress(config.seeds * config.source_episodes)
+    if method == "factor-q-body" and config.body_model is not None:
+        body, body_from = load_body_model(config), "file"
+    elif method in PAIRS:
+        model = train_body_model(config, learned=learned)
+        body = {name: value.detach() for name, value in model.state_dict().items()}
+        if not learned:
+            body = {name: body[name] for name in ("rho", "kappa")}
+        body_from = "source task"
+        if progress is not None:
+            progress(config.seeds * config.source_episodes)
     algorithm = "q-learning" if method == "q-learning" else "factor-q"
     metrics, _, path = run_batch(
         config, algorithm, config.target_world, regime, config.episodes, body=body,
-        progress=progress,
+        progress=progress, learned=learned,
     )  # fmt: skip
     collisions = metrics["collisions"][:, 0].to(torch.int64)  # [seeds, episodes]
     steps = metrics["steps"][:, 0].to(torch.int64)
@@ -373,12 +407,15 @@ def summarise(config: TransferConfig, unit_results: list[dict[str, Any]]) -> dic
             "collisions_per_episode": outcome["collisions_per_episode"],
         }
     against: dict[str, Any] = {}
-    for regime, methods in results.items():
-        if "factor-q" in methods and "factor-q-body" in methods:
-            fresh, body = methods["factor-q"], methods["factor-q-body"]
+    for (carried, fresh_method), regime in (
+        (pair, regime) for pair in PAIRS.items() for regime in config.regimes
+    ):
+        methods = results[regime]
+        if fresh_method in methods and carried in methods:
+            fresh, body = methods[fresh_method], methods[carried]
             ratio = count_ratio(fresh["early_collisions"]["mean"], body["early_collisions"]["mean"])
             fewer = body["early_collisions"]["mean"] * TARGET_RATIO
-            against[regime] = {
+            against.setdefault(carried, {})[regime] = {
                 "early_collisions_ratio": ratio,
                 "target_met": bool(0 < fewer <= fresh["early_collisions"]["mean"])
                 or (fewer == 0 < fresh["early_collisions"]["mean"]),

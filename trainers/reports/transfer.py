@@ -11,7 +11,11 @@ METHOD_LABELS = {
     "factor-q": "Factor-Q from scratch",
     "factor-q-body": "Factor-Q with the body model",
     "q-learning": "Q-learning from scratch",
+    "learned": "learned structure from scratch",
+    "learned-body": "learned structure, carried",
 }
+#: The fresh method each carried one is measured against (``transfer.PAIRS``).
+FRESH = {"factor-q-body": "factor-q", "learned-body": "learned"}
 
 
 def _cell(stat: dict[str, Any], digits: int = 1) -> str:
@@ -59,10 +63,12 @@ def markdown(results: dict[str, Any]) -> str:
                 f"{_cell(entry['late_collisions'])} | {_cell(entry['late_steps'])} | "
                 f"{_cell(entry['late_truncated'], 2)} |"
             )
-        against = results["body_against_fresh"].get(regime)
-        if against is not None:
-            fresh = methods["factor-q"]["early_collisions"]["mean"]
-            body = methods["factor-q-body"]["early_collisions"]["mean"]
+        for carried, per_regime in results["body_against_fresh"].items():
+            against = per_regime.get(regime)
+            if against is None:
+                continue
+            fresh = methods[FRESH[carried]]["early_collisions"]["mean"]
+            body = methods[carried]["early_collisions"]["mean"]
             ratio = against["early_collisions_ratio"]
             if ratio is not None:
                 said = f"{ratio:.1f}x fewer"
@@ -73,8 +79,8 @@ def markdown(results: dict[str, Any]) -> str:
             verdict = "met" if against["target_met"] else "not met"
             lines += [
                 "",
-                f"- With the body model: {said} collisions in the first {early} episodes "
-                f"({body:.2f} against {fresh:.2f} per seed; target "
+                f"- {METHOD_LABELS[carried]}: {said} collisions in the first {early} episodes "
+                f"({body:.2f} against {fresh:.2f} per seed from scratch; target "
                 f"{results['target_ratio']:.0f}x: {verdict}); steps per episode over the last "
                 f"{early}: {against['late_steps_body']:.1f} against "
                 f"{against['late_steps_fresh']:.1f} from scratch.",
