@@ -132,6 +132,7 @@ RUNS = {
             "gym.json",
             expensive=True,
         ),
+        Run("transfer", lambda k: ["transfer", "--seed", str(k)], "transfer.json"),
         Run(
             "highway-risk",
             lambda k: [
@@ -302,6 +303,23 @@ def risk_ratio(world: str, base: str, other: str) -> Callable[[dict[str, Any]], 
     return read
 
 
+def transfer_ratio(regime: str) -> Callable[[dict[str, Any]], Reading]:
+    """Factor-Q from scratch / with the carried body model: collisions in the target's first
+    episodes (``factorq transfer``), the final steps per episode beside them."""
+
+    def read(results: dict[str, Any]) -> Reading:
+        methods = results["results"][regime]
+        fresh, body = methods["factor-q"], methods["factor-q-body"]
+        return ratio(fresh["early_collisions"]["mean"], body["early_collisions"]["mean"]), {
+            "fresh early collisions": fresh["early_collisions"]["mean"],
+            "carried early collisions": body["early_collisions"]["mean"],
+            "fresh final steps": fresh["late_steps"]["mean"],
+            "carried final steps": body["late_steps"]["mean"],
+        }
+
+    return read
+
+
 def gym_ratio(base: str, other: str) -> Callable[[dict[str, Any]], Reading]:
     """``base`` / ``other`` training crashes per 1,000 steps (``factorq gym``)."""
 
@@ -332,6 +350,16 @@ def _at_least(bar: float) -> Callable[[float], bool]:
 
 
 CLAIMS = [
+    *(
+        Claim(
+            f"transfer-{regime}",
+            ("transfer",),
+            f"transfer {regime}: a carried body model, fewer early collisions (target 5x)",
+            transfer_ratio(regime),
+            _at_least(5),
+        )
+        for regime in ("static", "semi-dynamic", "dynamic")
+    ),
     Claim(
         "paper-c1",
         ("paper",),
