@@ -86,13 +86,16 @@ def test_a_peer_that_speaks_another_protocol_is_refused_in_one_line(speaking_pee
     assert "\n" not in str(error.value) and f"{address} is not a Dask scheduler" in str(error.value)
 
 
-def test_a_port_that_refuses_is_retried_briefly_not_for_the_whole_timeout():
+def test_a_port_that_refuses_is_retried_briefly_not_for_the_whole_timeout(monkeypatch):
+    monkeypatch.setattr(cluster, "REFUSED_RETRY_S", 1.0)  # its 10 s, shortened: the same rule
     with socket.create_server(("127.0.0.1", 0)) as server:
         port = server.getsockname()[1]  # closed below: a port that refuses at once
     started = time.monotonic()
-    with pytest.raises(cluster.ClusterError, match=r"refused the connection \d+ times in"):
+    with pytest.raises(cluster.ClusterError, match=r"refused the connection \d+ times in") as got:
         cluster.probe_scheduler(f"tcp://127.0.0.1:{port}", 3600)
     assert time.monotonic() - started < 3600 / 4  # about REFUSED_RETRY_S, not an hour
+    tries = int(str(got.value).split("refused the connection ")[1].split(" times")[0])
+    assert tries >= 2  # retried (a scheduler still starting), not given up at the first refusal
 
 
 def test_a_real_scheduler_passes_the_probe():
