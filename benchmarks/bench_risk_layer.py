@@ -119,7 +119,7 @@ def main() -> None:
     spec = env.action_spec_unbatched
     encoder, width = features(env)
     network = MLP(in_features=width, out_features=int(spec.space.n), num_cells=[config.hidden] * 2)
-    head = TensorDictModule(network, in_keys=["observation"], out_keys=["action_value"])
+    head = TensorDictModule(network, in_keys=["features"], out_keys=["action_value"])
     actor = QValueActor(TensorDictSequential(encoder, head), in_keys=["cell"], spec=spec)
     loss = DQNLoss(actor, action_space=spec, delay_value=True, loss_function="l2")
     loss.make_value_estimator(gamma=config.gamma)
