@@ -332,3 +332,45 @@ def test_risk_aware_epsilon_greedy_explores_only_among_the_actuators_not_risky()
         values, 0.5, explore, bits, explore, torch.ones(2, 4, dtype=torch.bool)
     )
     assert torch.equal(uniform, everywhere)
+
+
+# -- eqs. 2-3 with local rewards of either sign (issue 40, item 2) -----------------------------
+
+
+@pytest.mark.parametrize("shift", [-2.0, -1.0, 0.5, 1.0, 3.0])
+def test_eqs_2_and_3_do_not_see_the_sign_of_the_local_rewards(shift):
+    """``G`` depends on ``rho`` only through ``P_bar - rho[a_check]``, a difference, and eq. 2
+    adds ``G * shift`` to every action alike: adding a constant to ``rho`` changes neither ``G``
+    (up to the rounding of the mean) nor the greedy action (where no two actions tie within
+    that rounding)."""
+    generator = torch.Generator().manual_seed(0)
+    q = torch.randint(-8, 9, (256, 4), generator=generator).double() / 4
+    rho = torch.randint(-4, 1, (256, 4), generator=generator).double() / 2  # collisions: <= 0
+    shifted = rho + shift  # rewards of the other sign, or of both
+    g, g_shifted = normaliser(q, rho), normaliser(q, shifted)
+    assert torch.allclose(g, g_shifted, rtol=1e-12, atol=0)
+    combined = combined_values(q, rho, g)
+    top2 = combined.topk(2, dim=-1).values
+    clear = (top2[:, 0] - top2[:, 1]) > 1e-9  # a tie within rounding may break either way
+    assert int(clear.sum()) > 128
+    greedy = combined.argmax(-1)
+    assert torch.equal(greedy[clear], combined_values(q, shifted, g_shifted).argmax(-1)[clear])
+
+
+def test_a_paying_actuator_is_always_greedy_as_a_colliding_one_never_is():
+    # q: the task prefers action 0 (x = Q(a_hat) - Q_bar = 3 - 1 = 2)
+    q = torch.tensor([3.0, 0.0, 1.0, 2.0])
+    # one actuator pays (rho = +1, a charger under the body), the others nothing:
+    # a_check = 0 (the first minimum, 0), P_bar = (1 + 0 + 0) / 3, y = 1/3, G = 2 / (1/3) * 1.1
+    paying = torch.tensor([0.0, 1.0, 0.0, 0.0])
+    g = normaliser(q, paying, eta=0.1, g_min=0.01)
+    assert torch.allclose(g, torch.tensor(6.6))
+    assert combined_values(q, paying, g).argmax().item() == 1  # 0 + 6.6 against 3
+    # the same with a collision: a_check = 1, P_bar = 0, y = 1, G = 2.2; action 1 is never chosen
+    colliding = -paying
+    g = normaliser(q, colliding, eta=0.1, g_min=0.01)
+    assert torch.allclose(g, torch.tensor(2.2))
+    assert combined_values(q, colliding, g).argmax().item() == 0
+    # the bound behind it (docs/decisions.md): Q(a_hat) - Q(a) <= (A - 1) x for every a, and
+    # a lone paying actuator gets G rho = (1 + eta) (A - 1) x: more than any task preference
+    assert (q.max() - q).max() <= 3 * 2.0
