@@ -1,7 +1,8 @@
 """The frame every command declared by units runs in (``factorq_trainers.runner.registry``).
 
 A command module declares what differs (``CONFIG``, ``units``, ``run_unit``, ``summarise``,
-optionally ``markdown``, ``figure``, ``estimate``, ``prepare``, ``work``, ``FILES``; the protocol
+optionally ``markdown``, ``figure``, ``estimate``, ``prepare``, ``work``, ``processes``,
+``FILES``; the protocol
 is written out in docs/architecture.md, "Adding a command"); ``execute`` does the rest, once for
 every command:
 
