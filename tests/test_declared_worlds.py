@@ -172,11 +172,26 @@ def test_a_slow_world_runs_its_units_in_processes_by_default_with_the_same_numbe
         assert default["methods"]["dqn"][key] == here["methods"]["dqn"][key]
 
 
-def test_a_fast_world_stays_in_process(user_world, tmp_path):
+@pytest.mark.parametrize(
+    ("step_s", "steps", "workers"), [(1e-5, 10**6, 1), (2e-3, 10, 1), (2e-3, 10**4, 2)]
+)
+def test_only_a_slow_world_with_enough_steps_goes_to_processes(
+    user_world, monkeypatch, step_s, steps, workers
+):
+    """The decision from the measured step (fixed here: a busy machine slows any measurement),
+    the budget and the cores (2 here, at most one per unit)."""
     from factorq_trainers.experiments import gym
+    from factorq_trainers.runner import cluster
 
-    config = gym.GymConfig(world=f"{user_world}:CLIFF", seeds=3, steps=10**6)
-    assert gym.processes(config, gym.units(config))[0] == 1  # microseconds a step
+    monkeypatch.setattr(cluster, "_cores", lambda: 2)
+    monkeypatch.setattr(DeclaredWorld, "step_seconds", lambda self: step_s)
+    config = gym.GymConfig(world=f"{user_world}:CLIFF", seeds=3, steps=steps, methods=("dqn",))
+    assert gym.processes(config, gym.units(config))[0] == workers
+
+
+def test_a_world_measures_its_own_step(user_world):
+    slow = resolve_world(f"{user_world}:SLOW").step_seconds()
+    assert slow >= 0.002  # it sleeps 2 ms a step: never less, however idle the machine
 
 
 def test_a_users_own_world_runs_beside_the_grid_in_factorq_risk(user_world, tmp_path):

@@ -18,7 +18,6 @@ if TYPE_CHECKING:
     import torch
 
     from factorq_envs.declared_env import DeclaredEnv
-    from factorq_envs.gymnasium_adapter import FactorQEnv
 
 
 class DQNSettings(TypedDict):
@@ -72,18 +71,10 @@ def _keys(config: GymConfig, unit: dict[str, Any], stream: int) -> torch.Tensor:
     return derive_keys(config.seed, stream, 1, slot)
 
 
-def _maker(config: GymConfig) -> Callable[[int], FactorQEnv]:
-    return config.spec.make
-
-
 def _torchrl_env(config: GymConfig, seed: int) -> DeclaredEnv:
     from factorq_envs.declared_env import declared_torchrl_env
 
-    return declared_torchrl_env(_maker(config), [seed], exclude=_excluded(config))
-
-
-def _excluded(config: GymConfig) -> list[str]:
-    return list(config.spec.exclude)
+    return declared_torchrl_env(config.spec.make, [seed], exclude=list(config.spec.exclude))
 
 
 # --------------------------------------------------------------------------------------------
@@ -379,7 +370,7 @@ def _run_sb3(
             return out
 
     def make(seed: int) -> gymnasium.Env:
-        env = _maker(config)(seed)
+        env = config.spec.make(seed)
         return gymnasium.wrappers.FilterObservation(env, [config.spec.observation])
 
     torch.manual_seed(_env_seed(config, unit["seed_index"]))

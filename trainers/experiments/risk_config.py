@@ -23,37 +23,37 @@ SB3_WORLDS = ("grid",)
 
 
 def _names(
-    value: Any, field: str, allowed: tuple[str, ...], declared: bool = False
+    value: Any, field: str, allowed: tuple[str, ...], paths: bool = False
 ) -> tuple[str, ...]:
-    """``value`` (comma-separated text or a tuple) as names of ``allowed``; with ``declared``,
-    any other name must be a declared world (``factorq_envs.worlds.resolve_world``)."""
+    """``value`` (comma-separated text or a tuple) as names of ``allowed`` (with ``paths``, a
+    ``package.module:NAME`` too)."""
     if isinstance(value, str):
         value = tuple(part.strip() for part in value.split(",") if part.strip())
     value = tuple(value)
-    suffix = ""
-    if declared:
-        from factorq_envs.worlds import WorldError, names, resolve_world
-
-        allowed = (*OWN_WORLDS, *(name for name in names() if name not in OWN_WORLDS))
-        suffix = ", or a declared world of your own as package.module:NAME"
-        for name in value:
-            if name not in OWN_WORLDS and (name in allowed or ":" in name):
-                try:
-                    resolve_world(name)
-                except WorldError as error:  # one line naming the field and the world
-                    raise WorldError(f"{field}: {error}") from None
-        allowed_here = (*allowed, *(name for name in value if ":" in name))
-    else:
-        allowed_here = allowed
-    unknown = [name for name in value if name not in allowed_here]
+    unknown = [name for name in value if name not in allowed and not (paths and ":" in name)]
     choices = ", ".join(allowed)
+    choices += ", or a declared world of your own as package.module:NAME" if paths else ""
     if not value:
-        raise ValueError(f"{field} is empty: choose one or more of {choices}{suffix}")
+        raise ValueError(f"{field} is empty: choose one or more of {choices}")
     if unknown:
-        raise ValueError(
-            f"{field}={','.join(unknown)} is unknown: choose one or more of {choices}{suffix}"
-        )
+        raise ValueError(f"{field}={','.join(unknown)} is unknown: choose one or more of {choices}")
     return value
+
+
+def _worlds(value: Any) -> tuple[str, ...]:
+    """``worlds``: the own worlds and declared ones (``factorq_envs.worlds``), each declared
+    world resolved now (one line naming the field and the world)."""
+    from factorq_envs.worlds import WorldError, names, resolve_world
+
+    declared = tuple(name for name in names() if name not in OWN_WORLDS)
+    worlds = _names(value, "worlds", (*OWN_WORLDS, *declared), paths=True)
+    for name in worlds:
+        if name not in OWN_WORLDS:
+            try:
+                resolve_world(name)
+            except WorldError as error:
+                raise WorldError(f"worlds: {error}") from None
+    return worlds
 
 
 @dataclass(frozen=True)
@@ -105,7 +105,7 @@ class RiskConfig:
     out: str = option("results/risk", "Directory for the json, figure and report.")
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "worlds", _names(self.worlds, "worlds", OWN_WORLDS, declared=True))
+        object.__setattr__(self, "worlds", _worlds(self.worlds))
         object.__setattr__(self, "methods", _names(self.methods, "methods", METHODS))
         object.__setattr__(self, "sb3_worlds", _names(self.sb3_worlds, "sb3_worlds", SB3_WORLDS))
         for name in ("seeds", "steps", "hidden", "buffer_size", "batch_size", "train_every"):

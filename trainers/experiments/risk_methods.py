@@ -70,11 +70,6 @@ def make_env(config: RiskConfig, world: str, seed: int) -> Any:  # a Transformed
     return TransformedEnv(base, SplitLocalReward(keep_reward=True))
 
 
-def _is_declared(env: Any) -> bool:
-    """A ``make_env`` env of a declared world (the Gymnasium adapter's declaration)."""
-    return getattr(env.base_env, "declaration", None) is not None
-
-
 def _survival(world: str) -> bool:
     """Whether ``world``'s success is running to the time limit without a collision (highway)
     rather than ending without one (``DeclaredWorld.survival``)."""
@@ -227,7 +222,7 @@ def run_torchrl(
     survive = _survival(unit["world"])
     # "risky" in local-reward units: a collision more likely than not, whatever its penalty
     options: dict[str, Any] = {"mask_threshold": 0.5 * _penalty(env)}
-    if _is_declared(env):  # the declared names (the adapter's sizes carry the actuators' only)
+    if unit["world"] not in OWN_WORLDS:  # a declared world: sensor names from its declaration
         names = env.base_env.declaration.sensor_names
         options.update(active="on", **({"sensor_names": names} if names else {}))
     acting = actor if local is None else with_local_risk(actor, local, env=env, **options)  # 1

@@ -413,12 +413,10 @@ def summarise(config: TransferConfig, unit_results: list[dict[str, Any]]) -> dic
         methods = results[regime]
         if fresh_method in methods and carried in methods:
             fresh, body = methods[fresh_method], methods[carried]
-            ratio = count_ratio(fresh["early_collisions"]["mean"], body["early_collisions"]["mean"])
-            fewer = body["early_collisions"]["mean"] * TARGET_RATIO
+            early = fresh["early_collisions"]["mean"], body["early_collisions"]["mean"]
             against.setdefault(carried, {})[regime] = {
-                "early_collisions_ratio": ratio,
-                "target_met": bool(0 < fewer <= fresh["early_collisions"]["mean"])
-                or (fewer == 0 < fresh["early_collisions"]["mean"]),
+                "early_collisions_ratio": count_ratio(*early),
+                "target_met": bool(early[0] > 0 and early[0] >= TARGET_RATIO * early[1]),
                 "late_steps_fresh": fresh["late_steps"]["mean"],
                 "late_steps_body": body["late_steps"]["mean"],
             }

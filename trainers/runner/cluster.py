@@ -503,15 +503,11 @@ def where_from_args(args: argparse.Namespace) -> Where:
 def executor_from_args(
     args: argparse.Namespace,
 ) -> InProcess | DaskExecutor | None:
-    """The executor of ``add_options``' options: ``None`` (in-process) when none was given and
-    for ``--cluster off`` (in-process whatever the command would choose: ``default_workers``)."""
-    if getattr(args, "cluster", None) == OFF:
-        where_from_args(args)  # checked all the same
-        return None
-    names = ("cluster", "scheduler", "connect_timeout", "worker_timeout")
-    if not any(hasattr(args, name) for name in names):
-        return None
-    return open_executor(where_from_args(args))
+    """The executor of ``add_options``' options: ``None`` (in-process) unless they name a cluster
+    or a scheduler (``--cluster off``: in-process whatever the command would choose,
+    ``default_workers``)."""
+    where = where_from_args(args)
+    return None if where.in_process else open_executor(where)
 
 
 def _cores() -> int:

@@ -2,9 +2,8 @@
 
 A command module declares what differs (``CONFIG``, ``units``, ``run_unit``, ``summarise``,
 optionally ``markdown``, ``figure``, ``estimate``, ``prepare``, ``work``, ``processes``,
-``FILES``; the protocol
-is written out in docs/architecture.md, "Adding a command"); ``execute`` does the rest, once for
-every command:
+``FILES``; the protocol is written out in docs/architecture.md, "Adding a command"); ``execute``
+does the rest, once for every command:
 
     options -> config -> prepare -> memory estimate -> claim --out -> resume -> the pending units
     (in-process, or on Dask with --cluster/--scheduler) under one progress bar, each result kept
