@@ -36,7 +36,8 @@ def read_regular(path: str | os.PathLike, what: str, max_bytes: int) -> bytes:
     try:
         descriptor = os.open(path, _OPEN_FLAGS | getattr(os, "O_NONBLOCK", 0))
     except FileNotFoundError:
-        raise FileNotFoundError(f"{os.fspath(path)} does not exist: no {what} there") from None
+        where = os.fspath(path)
+        raise FileNotFoundError(f"{where} does not exist (expected {what} there)") from None
     except OSError as error:  # ELOOP: a link planted after the check above
         raise ValueError(
             f"{os.fspath(path)} cannot be opened as {what} ({error.strerror})"
