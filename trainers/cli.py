@@ -2,12 +2,13 @@
 (``factorq_trainers.runner.registry``): one subcommand per module of
 ``factorq_trainers.experiments`` that declares ``NAME``, its options the fields of its
 ``CONFIG`` (``factorq_trainers.runner.options``), run by the runner's frame
-(``factorq_trainers.runner.frame``) or, for ``paper`` and ``compare``, by the finer frame their
-``FRAME`` names; plus ``factorq report DIR`` (redraw any command's files) and ``factorq sweep``.
+(``factorq_trainers.runner.frame``); plus ``factorq report DIR`` (redraw any command's files)
+and ``factorq sweep``.
 
 A command imports only what it runs (torch included, inside ``main``): ``factorq paper`` starts
-without torchrl, and starts its figure process (``factorq_trainers.reports.figure_process``)
-before torch loads, so that matplotlib loads on the core that importing torch leaves idle.
+without torchrl, and a command that declares ``FIGURE_PROCESS`` (``paper``) starts its figure
+process (``factorq_trainers.reports.figure_process``) before torch loads, so that matplotlib
+loads on the core that importing torch leaves idle.
 """
 
 from __future__ import annotations
@@ -63,11 +64,7 @@ def build_parser(
             name, help=entry.help, description=getattr(module, "DESCRIPTION", entry.help)
         )
         options.add_options(sub, module.CONFIG)
-        custom = getattr(module, "FRAME", None)
-        if custom is not None:
-            importlib.import_module(custom).add_arguments(sub)
-        else:
-            frame.add_frame_options(sub)
+        frame.add_frame_options(sub)
         sub.set_defaults(module=module, command_parser=sub)
     report_parser = commands.add_parser(
         "report",
@@ -104,15 +101,9 @@ def _handle(args: argparse.Namespace, figure_process: FigureProcess | None) -> i
     parser = args.command_parser
     if args.module is None:
         return _report(parser, args)
-    custom = getattr(args.module, "FRAME", None)
-    if custom is None:
-        from factorq_trainers.runner import frame
+    from factorq_trainers.runner import frame
 
-        return frame.execute(args.module, parser, args)
-    main_of = importlib.import_module(custom).main
-    if args.command == "paper":
-        return main_of(parser, args, figure_process)
-    return main_of(parser, args)
+    return frame.execute(args.module, parser, args, figure_process)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -120,8 +111,8 @@ def main(argv: list[str] | None = None) -> int:
 
     Without ``argv`` (the ``factorq`` command, ``python -m factorq_trainers.cli``) the process is
     the command's own: modules load with the garbage collector paused, are then frozen out of its
-    work (``gc.freeze``), and ``factorq paper`` ends the process as soon as its output is flushed
-    and the atexit handlers ran, without the interpreter's teardown of torch (``_exit``).
+    work (``gc.freeze``), and a command ends the process as soon as its output is flushed and the
+    atexit handlers ran, without the interpreter's teardown of torch (``_exit``).
     """
     command_line = argv is None
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -131,7 +122,8 @@ def main(argv: list[str] | None = None) -> int:
         return sweep.main(argv[1:])
     command = argv[0] if argv and argv[0] in commands() else None
     figure_process = None
-    if command == "paper" and not {"-h", "--help"} & set(argv):
+    drawn_aside = command is not None and registry.commands()[command].figure_process
+    if drawn_aside and not {"-h", "--help"} & set(argv):
         # First, before torch loads: the helper loads matplotlib on the other core meanwhile.
         from factorq_trainers.reports.figure_process import FigureProcess
 
@@ -141,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if figure_process is not None:
             figure_process.close()
-    if command_line and command == "paper":
+    if command_line and command is not None:
         _exit(code)
     return code
 
@@ -162,8 +154,8 @@ def _main(
         gc.disable()
     try:
         parser = build_parser(compare_options=command == "compare", command=command)
-        if command == "paper":
-            _load_paper_modules()
+        if command is not None:
+            _load_command(command)
     except KeyboardInterrupt:  # while torch loads: nothing started, nothing written
         print(f"factorq{' ' + command if command else ''}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -189,13 +181,14 @@ def _main(
         return EXIT_INTERRUPTED
 
 
-def _load_paper_modules() -> None:
-    """Import what ``factorq paper`` runs (``main`` does it with the garbage collector paused)."""
+def _load_command(command: str) -> None:
+    """Import what ``command`` runs besides its module (``main`` does it with the garbage
+    collector paused): the progress bar, the frame and the command's report module."""
     import tqdm  # noqa: F401
 
-    from factorq_trainers.compiled import fast  # noqa: F401
-    from factorq_trainers.reports import report  # noqa: F401
-    from factorq_trainers.runner import checkpoint, outdir, resources, resume_checks  # noqa: F401
+    from factorq_trainers.runner import frame  # noqa: F401
+
+    importlib.import_module(registry.commands()[command].report)
 
 
 def _exit(code: int) -> typing.NoReturn:

@@ -1,25 +1,20 @@
-"""``factorq sweep``: a grid (or list) of paper configurations, each with its seeds, run as shards
-in-process or on a Dask cluster, gathered into ``sweep.json``, ``sweep.md`` and one figure per
-swept axis. With ``command = "compare"``, a grid of ``factorq compare`` configurations instead,
-each run whole (one task per method) and kept in ``OUT/configs/<digest>.json``
-(``run_compare_sweep``); with any other registered command (``dependencies``, ``minigrid``, ...),
-of its configurations, one task each (``run_units_sweep``).
+"""``factorq sweep``: a grid (or list) of a command's configurations (``paper`` by default),
+each with its seeds, run in-process or on a Dask cluster, one task per configuration (compare:
+per method), each kept in ``OUT/configs/<digest>.json`` as it finishes, gathered into
+``sweep.json``, ``sweep.md`` and one figure per swept axis.
 
 This module is the command line (parser, options over the sweep file, the memory estimate, the
 claim of ``--out``, the progress bar, the files); the parts (import their names from them):
 
 - ``sweep_spec``: the sweep file and its checks, ``SweepSpec`` (its file format is there);
-- ``sweep_run``: running shards and configurations on an executor, kept on disk as each
-  finishes (resumption), and gathering ``sweep.json``'s dict;
-- ``factorq_trainers.experiments.paper_shards``: a paper configuration's seed-range shards, run
-  on an executor;
+- ``sweep_run``: running configurations on an executor, kept on disk as each finishes
+  (resumption), and gathering ``sweep.json``'s dict;
 - ``factorq_trainers.reports.sweep``: ``sweep.md`` and the figures.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 import typing
@@ -30,7 +25,6 @@ from factorq_trainers.distributed.sweep_run import run_sweep
 from factorq_trainers.distributed.sweep_spec import (
     DEFAULT_OUT,
     DEFAULT_SEEDS,
-    DEFAULT_SHARD_SEEDS,
     SPECIAL,
     SweepError,
     SweepSpec,
@@ -40,31 +34,28 @@ from factorq_trainers.distributed.sweep_spec import (
     spec_from_mapping,
     sweepable_fields,
 )
-from factorq_trainers.experiments.cluster_runs import ShardBar
 from factorq_trainers.reports import sweep as sweep_report
 from factorq_trainers.runner import cluster, outdir, resources
 from factorq_trainers.runner.frame import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_USAGE, Parser
 
-HELP = "run a grid of paper configurations as shards, in-process or on a Dask cluster"
+HELP = "run a grid of a command's configurations, in-process or on a Dask cluster"
 
 
 def build_parser(prog: str = "factorq sweep") -> argparse.ArgumentParser:
     parser = Parser(
         prog=prog,
-        description="Run a grid of `factorq paper` configurations, each with --seeds seeds, as "
-        "shards of --shard-seeds seeds (or, with --command compare, of `factorq compare` "
-        "configurations, each run whole); write sweep.json, sweep.md and a figure per axis to "
-        "--out. Finished shards (configurations) are kept in OUT/shards/ (OUT/configs/) and not "
-        "rerun (a killed sweep resumes).",
+        description="Run a grid of `factorq paper` configurations (or, with --command, of "
+        "another command's), each with --seeds seeds; write sweep.json, sweep.md and a figure "
+        "per axis to --out. Finished configurations are kept in OUT/configs/ and not rerun (a "
+        "killed sweep resumes).",
     )
     parser.add_argument("spec", nargs="?", metavar="SPEC", help="a .toml (or .yaml) sweep file")
     parser.add_argument(
         "--command",
         metavar="NAME",
         default=argparse.SUPPRESS,
-        help="Whose configs to sweep: paper (seeds sharded), compare (each configuration "
-        "run whole, one task per method) or any other command (dependencies, minigrid, ...: "
-        "each configuration one task). "
+        help="Whose configs to sweep: paper, compare (one task per method) or any other "
+        "command (dependencies, minigrid, ...), each configuration one task. "
         "(default: the file's command, else paper)",
     )
     parser.add_argument(
@@ -84,15 +75,13 @@ def build_parser(prog: str = "factorq sweep") -> argparse.ArgumentParser:
     )
     parser.add_argument("--seeds", type=int, metavar="N", default=argparse.SUPPRESS,
                         help=f"Seeds per configuration. (default: {DEFAULT_SEEDS})")  # fmt: skip
-    parser.add_argument("--shard-seeds", type=int, metavar="K", default=argparse.SUPPRESS,
-                        help=f"Seeds per shard. (default: {DEFAULT_SHARD_SEEDS})")  # fmt: skip
     parser.add_argument("--out", metavar="DIR", default=argparse.SUPPRESS,
                         help=f"Output directory. (default: {DEFAULT_OUT})")  # fmt: skip
     parser.add_argument(
         "--force",
         action="store_true",
         help="Replace the sweep.json and sweep.md of an earlier sweep in --out, and recompute "
-        "any finished shard (configuration) whose kept file fails its checks (edited, damaged); "
+        "any finished configuration whose kept file fails its checks (edited, damaged); "
         "good ones are reused either way. Without it, an --out holding them is refused.",
     )
     cluster.add_options(parser)
@@ -133,7 +122,7 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
         data["base"] = base
     if grid:
         data["grid"] = grid
-    for key in ("seeds", "shard_seeds", "out"):
+    for key in ("seeds", "out"):
         if hasattr(args, key):
             data[key] = getattr(args, key)
     if not data.get("grid") and data.get("configs", [{}]) == [{}]:
@@ -173,9 +162,6 @@ def main(argv: list[str] | None = None) -> int:
             )  # a worker runs one method of a comparison at a time (counted as a whole one)
             hint = "use fewer --seeds, or smaller steps or size"
             hint += ", or fewer --cluster workers" if workers > 1 else ""
-        else:
-            estimate = resources.sweep_estimate(spec.configurations(), spec.shard_seeds, workers)
-            hint = resources.SWEEP_HINT
         large = resources.check(estimate, "sweep", hint)
         if large is not None:
             print(large, file=sys.stderr)
@@ -201,16 +187,14 @@ def _run_sweep_command(
     if spec.command == "compare":
         tasks = sum(len(config.methods) for config in configs)
         work = f"{tasks} method tasks (factorq compare)"
-    elif spec.command == "paper":
-        work = f"{len(configs) * math.ceil(spec.seeds / spec.shard_seeds)} shards"
     else:
         work = f"{len(configs)} configuration tasks (factorq {spec.command})"
     print(
         f"{len(configs)} configurations x {spec.seeds} seeds = {work}, {executor.description}",
         file=sys.stderr,
     )
-    unit = {"compare": "method", "paper": "shard"}.get(spec.command, "configuration")
-    bar = ShardBar(unit=unit)
+    unit = {"compare": "method"}.get(spec.command, "configuration")
+    bar = Bar(unit=unit)
     try:
         sweep = run_sweep(spec, executor, bar, force)
         bar.close()
@@ -219,7 +203,7 @@ def _run_sweep_command(
         bar.close()
         print(f"{parser.prog}: interrupted (run it again to resume)", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except (OSError, ValueError) as error:  # a full disk; a kept shard or result file gone bad
+    except (OSError, ValueError) as error:  # a full disk; a kept result file gone bad
         bar.close()
         print(f"{parser.prog}: error: {error}", file=sys.stderr)
         return EXIT_FAILURE
@@ -229,3 +213,31 @@ def _run_sweep_command(
     for path in paths.values():
         print(f"  {path}")
     return 0
+
+
+class Bar:
+    """A tqdm bar of tasks done (configurations, methods), with the time left."""
+
+    def __init__(self, description: str = "factorq sweep", unit: str = "configuration") -> None:
+        self.bar: Any = None  # a tqdm bar once the first count arrives (tqdm: untyped)
+        self.description = description
+        self.unit = unit
+
+    def __call__(self, done: int, total: int) -> None:
+        from tqdm import tqdm
+
+        if self.bar is None:
+            self.bar = tqdm(
+                total=total,
+                initial=done,
+                desc=self.description,
+                unit=self.unit,
+                dynamic_ncols=True,
+                mininterval=0.5 if sys.stderr.isatty() else 30.0,
+                file=sys.stderr,
+            )
+        self.bar.update(done - self.bar.n)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()

@@ -1,20 +1,19 @@
-"""Running a sweep (``factorq sweep``) and gathering it: the shards of a paper sweep, the whole
-configurations of a compare sweep (one task per method) or of any other registered command (one
-task each), on an executor, each kept on disk as it finishes; then ``sweep.json``'s dict.
+"""Running a sweep (``factorq sweep``) and gathering it: every configuration of a registered
+command run whole (``frame.run_in_process``: its units, one task per configuration; compare's
+methods one task each), on an executor, each kept on disk as it finishes; then
+``sweep.json``'s dict.
 
-    spec -> configurations -> shards (contiguous seed ranges) or whole configurations
-         -> executor (in-process or Dask) -> one .npz per shard (OUT/shards/) or one JSON file
-            per configuration (OUT/configs/), written as it finishes
-         -> per configuration: its cells and claims -> sweep.json's dict
+    spec -> configurations -> executor (in-process or Dask) -> one sealed JSON file per
+         configuration (OUT/configs/<digest>.json), written as it finishes
+         -> per configuration: its cells (the command's ``sweep_cells``) and claims
+         -> sweep.json's dict
 
-**Resumption.** Shard files live in ``OUT/shards/<digest>/<first>-<stop>.npz``, where the digest
-hashes the fields that decide the numbers. A shard whose file exists is not run again, so a
-killed sweep continues where it stopped, and a sweep that adds seeds or axis values runs only the
-new shards. Whole configurations are kept the same way in ``OUT/configs/<digest>.json``.
+**Resumption.** A configuration whose kept file exists (and passes its checks: digest, tie to
+the command and the configuration's digest, values) is not run again, so a killed sweep
+continues where it stopped, and a sweep that adds axis values runs only the new configurations.
 
-**Identical results.** A shard's numbers depend on its configuration and seed range alone (see
-``factorq_trainers.experiments.paper_shards``), so the per-experiment numbers and every summary
-are the same in-process, on any number of workers, and after any number of interruptions.
+**Identical results.** A configuration's numbers depend on it alone, so every summary is the same
+in-process, on any number of workers, and after any number of interruptions.
 """
 
 from __future__ import annotations
@@ -31,16 +30,12 @@ from factorq_trainers.analysis import stats
 from factorq_trainers.distributed.sweep_spec import (
     COMPARE_MEASURES,
     CONFIGS_DIRECTORY,
-    MEASURES,
     SweepSpec,
     _json,
     _reports_of,
     config_digest,
 )
-from factorq_trainers.experiments import paper
-from factorq_trainers.experiments import paper_shards as shards
 from factorq_trainers.experiments.cluster_runs import _compare_method
-from factorq_trainers.experiments.paper_shards import SHARDS_DIRECTORY, _missing, run_shards
 from factorq_trainers.runner import cluster, kept
 from factorq_trainers.runner import results as result_files
 
@@ -225,7 +220,10 @@ def _gathered(
                 "config": config_dict(config),
                 "results_file": f"{CONFIGS_DIRECTORY}/{path.name}",
                 "cells": cells_of,
-                "claims": {},
+                "claims": {  # the paper's claims, where the command has them
+                    name: {key: claim[key] for key in ("value", "ci95", "pass")}
+                    for name, claim in results.get("claims", {}).items()
+                },
             }
         )
     return {
@@ -234,7 +232,6 @@ def _gathered(
         "axes": spec.axes,
         "base": {name: _json(value) for name, value in spec.base},
         "seeds": spec.seeds,
-        "shard_seeds": None,
         "configurations": [_json(row) for row in rows],
         "timing": {
             "wall_s": round(time.perf_counter() - started, 3),
@@ -243,7 +240,7 @@ def _gathered(
             "configurations_total": len(configs),
             "configurations_run_now": len(pending),
         },
-        "software": paper.software_versions(),
+        "software": result_files.software_versions(),
     }
 
 
@@ -301,74 +298,13 @@ def run_sweep(
     progress: Callable[[int, int], None] | None = None,
     force: bool = False,
 ) -> dict[str, Any]:
-    """Run every shard of ``spec`` not already on disk, then gather ``sweep.json``'s dict.
+    """Run every configuration of ``spec`` not already kept in ``OUT/configs/``, then gather
+    ``sweep.json``'s dict.
 
-    ``progress(done, total)`` counts shards (those found on disk are done from the start); for
-    a compare spec, ``run_compare_sweep``, counting methods. A kept shard (configuration
-    result) that fails its checks (``kept``) is refused before any work, or with ``force``
-    recomputed.
+    ``progress(done, total)`` counts configurations (those found on disk are done from the
+    start); for a compare spec, ``run_compare_sweep``, methods. A kept configuration result that
+    fails its checks (``kept``) is refused before any work, or with ``force`` recomputed.
     """
     if spec.command == "compare":
         return run_compare_sweep(spec, executor, progress, force)
-    if spec.command != "paper":
-        return run_units_sweep(spec, executor, progress, force)
-    started = time.perf_counter()
-    directory = Path(spec.out) / SHARDS_DIRECTORY
-    configs = spec.configurations()
-    every = [shard for config in configs for shard in shards.split(config, spec.shard_seeds)]
-    pending = _missing(directory, every, force)
-    count = {"done": len(every) - len(pending)}
-    if progress is not None:
-        progress(count["done"], len(every))
-
-    def done(_: paper.PaperConfig) -> None:
-        count["done"] += 1
-        if progress is not None:
-            progress(count["done"], len(every))
-
-    run_shards(pending, directory, executor, done)
-    computed = time.perf_counter() - started
-    rows = []
-    for config, point in zip(configs, spec.points(), strict=True):
-        parts = [
-            shards.load(shards.shard_path(directory, shard), shard)
-            for shard in shards.split(config, spec.shard_seeds)
-        ]
-        summary = paper.summarise(config, shards.concatenate(config, parts))
-        rows.append(
-            {
-                "values": point,
-                "digest": shards.digest(config),
-                "config": paper.config_dict(config),
-                "cells": {
-                    name: {
-                        "world": cell["world"],
-                        "algorithm": cell["algorithm"],
-                        **cell["summary"],
-                        "per_seed": cell["per_seed"],
-                    }
-                    for name, cell in summary["cells"].items()
-                },
-                "claims": {
-                    name: {key: claim[key] for key in ("value", "ci95", "pass")}
-                    for name, claim in summary["claims"].items()
-                },
-            }
-        )
-    return {
-        "command": "paper",
-        "measures": list(MEASURES),
-        "axes": spec.axes,
-        "base": {name: _json(value) for name, value in spec.base},
-        "seeds": spec.seeds,
-        "shard_seeds": spec.shard_seeds,
-        "configurations": [_json(row) for row in rows],
-        "timing": {
-            "wall_s": round(time.perf_counter() - started, 3),
-            "compute_s": round(computed, 3),
-            "where": executor.description,
-            "shards_total": len(every),
-            "shards_run_now": len(pending),
-        },
-        "software": paper.software_versions(),
-    }
+    return run_units_sweep(spec, executor, progress, force)

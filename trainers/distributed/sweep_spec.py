@@ -4,7 +4,6 @@ the configurations of one command, before anything runs or is written.
 A sweep file (every key optional but the axes; options given on the command line win)::
 
     seeds = 100              # per configuration
-    shard_seeds = 25         # seeds per shard: the unit of work, of files and of resumption
     out = "results/sweep"
 
     [base]                   # fields every configuration shares
@@ -17,9 +16,9 @@ A sweep file (every key optional but the axes; options given on the command line
     [[configs]]              # ... crossed with this list (each entry one configuration)
     size = 8
 
-Any field of ``PaperConfig`` is an axis or a base value, but for ``seeds``, ``first_seed`` and
-``out``, which the sweep sets: the fields are read from the dataclass, so new ones are sweepable
-without edits here. Unknown fields and invalid values are refused before anything is written.
+Any field of ``PaperConfig`` is an axis or a base value, but for ``seeds`` and ``out``, which
+the sweep sets: the fields are read from the dataclass, so new ones are sweepable without edits
+here. Unknown fields and invalid values are refused before anything is written.
 With ``command = "compare"`` (or any other registered command) the fields are those of that
 command's config.
 """
@@ -40,22 +39,15 @@ from pathlib import Path
 from typing import Any
 
 from factorq_torch.base.validation import INT32_MAX, check_int
-from factorq_trainers.analysis import claims
-from factorq_trainers.experiments import paper
-from factorq_trainers.experiments import paper_shards as shards
 from factorq_trainers.runner import reading
 
 DEFAULT_SEEDS = 100
-DEFAULT_SHARD_SEEDS = 25
 DEFAULT_OUT = "results/sweep"
-#: Fields the sweep sets itself: neither axes nor base values.
-RESERVED = ("seeds", "first_seed", "out")
-SPEC_KEYS = ("command", "seeds", "shard_seeds", "out", "base", "grid", "configs")
-MEASURES = claims.MEASURES  # a paper sweep reports the paper's measures
+SPEC_KEYS = ("command", "seeds", "out", "base", "grid", "configs")
 #: The commands whose configs a sweep runs by their own rules (``command = "..."`` in a sweep
 #: file, ``--command``); every other registered command runs each configuration whole, one task
 #: each (``run_units_sweep``).
-SPECIAL = ("paper", "compare")
+SPECIAL = ("compare",)
 #: ``CompareConfig`` fields the sweep sets itself (``logger``: a sweep writes no per-episode logs).
 COMPARE_RESERVED = ("seeds", "out", "logger")
 #: The fields of another command's config that the sweep sets itself.
@@ -71,10 +63,10 @@ class SweepError(ValueError):
 
 
 def commands() -> tuple[str, ...]:
-    """Every command a sweep can run: ``paper``, ``compare`` and each registered command."""
+    """Every command a sweep can run: each registered command."""
     from factorq_trainers.runner import registry
 
-    return (*SPECIAL, *(name for name in registry.commands() if name not in SPECIAL))
+    return tuple(registry.commands())
 
 
 def check_command(command: Any, source: str = "sweep file") -> str:
@@ -102,8 +94,6 @@ def _reports_of(command: str) -> Any:
 
 def config_class(command: str = "paper") -> type:
     """The config dataclass of ``command`` (``PaperConfig``, ``CompareConfig``, ...)."""
-    if command == "paper":
-        return paper.PaperConfig
     from factorq_trainers.runner import registry
 
     return registry.load(command).CONFIG
@@ -111,7 +101,7 @@ def config_class(command: str = "paper") -> type:
 
 def reserved_fields(command: str = "paper") -> tuple[str, ...]:
     """The fields of ``command``'s config that the sweep sets itself."""
-    return {"compare": COMPARE_RESERVED, "paper": RESERVED}.get(command, UNITS_RESERVED)
+    return {"compare": COMPARE_RESERVED}.get(command, UNITS_RESERVED)
 
 
 def nested_fields(command: str = "paper") -> list[str]:
@@ -130,12 +120,10 @@ def sweepable_fields(command: str = "paper") -> dict[str, Any]:
 
 
 def config_digest(config: Any) -> str:
-    """A short hash of the fields that decide ``config``'s numbers: a paper config's shard
-    digest, or for a compare config every field but ``out``, ``threads`` and ``logger``; for a
-    dependencies config every field but ``out``, ``threads`` and ``path`` (the compiled and the
-    modular path give the same numbers bit for bit)."""
-    if isinstance(config, paper.PaperConfig):
-        return shards.digest(config)
+    """A short hash of the fields that decide ``config``'s numbers: every field but those its
+    command's ``DIGEST_IGNORED`` names (default ``out`` and ``threads``; for a compare config
+    ``out``, ``threads`` and ``logger``; ``paper`` also leaves out its backend, device and
+    ``shard_seeds``: the numbers are the same bit for bit)."""
     from factorq_trainers.experiments import compare
 
     ignored: tuple[str, ...]
@@ -157,7 +145,7 @@ def _plain(value: Any) -> Any:
 @dataclass(frozen=True)
 class SweepSpec:
     """A sweep: ``base`` values, ``grid`` axes (crossed with the ``configs`` list), ``seeds``
-    per configuration in shards of ``shard_seeds``, results in ``out``."""
+    per configuration, results in ``out``."""
 
     base: tuple[tuple[str, Any], ...] = ()
     """Fields every configuration shares, as (name, value) pairs."""
@@ -167,18 +155,14 @@ class SweepSpec:
     """Explicit configurations (each crossed with the grid)."""
     seeds: int = DEFAULT_SEEDS
     """Seeds (independent experiments per world and algorithm) of every configuration."""
-    shard_seeds: int = DEFAULT_SHARD_SEEDS
-    """Seeds per shard."""
     out: str = DEFAULT_OUT
-    """Directory for sweep.json, sweep.md, the figures and shards/ (configs/ for compare)."""
+    """Directory for sweep.json, sweep.md, the figures and configs/."""
     command: str = "paper"
-    """Whose configs are swept: ``paper`` (sharded seeds), ``compare`` or ``dependencies``
-    (whole configs)."""
+    """Whose configs are swept: ``paper``, ``compare``, ``dependencies``, ..."""
 
     def __post_init__(self) -> None:
         check_command(self.command, "sweep")
         check_int("seeds", self.seeds, 1, INT32_MAX)
-        check_int("shard_seeds", self.shard_seeds, 1, INT32_MAX)
         if not isinstance(self.out, str) or not self.out:
             raise SweepError(f"out={self.out!r} must be a directory path")
         if Path(self.out).exists() and not Path(self.out).is_dir():
@@ -291,11 +275,6 @@ def spec_from_mapping(data: dict[str, Any], source: str = "sweep file") -> Sweep
             f"{', '.join(SPEC_KEYS)}"
         )
     command = check_command(data.get("command", "paper"), source)
-    if command != "paper" and "shard_seeds" in data:
-        raise SweepError(
-            f"{source}: shard_seeds does not apply to command={command!r}: its unit of work is a "
-            "whole configuration (DQN's seeds share a random stream within their batch)"
-        )
     for key in ("base", "grid"):
         if not isinstance(data.get(key, {}), dict):
             raise SweepError(f"{source}: [{key}] must be a table")
@@ -311,7 +290,7 @@ def spec_from_mapping(data: dict[str, Any], source: str = "sweep file") -> Sweep
         if not isinstance(values, list):
             raise SweepError(f"{source}: grid axis {name!r} must be a list, got {values!r}")
         grid.append((name, tuple(_plain(value) for value in values)))
-    extra = {key: data[key] for key in ("seeds", "shard_seeds", "out") if key in data}
+    extra = {key: data[key] for key in ("seeds", "out") if key in data}
     try:
         return SweepSpec(
             base=tuple((k, _plain(v)) for k, v in data.get("base", {}).items()),

@@ -5,68 +5,13 @@ one task each, under one progress bar.
 
 from __future__ import annotations
 
-import argparse
 import functools
 import sys
 import time
 from collections.abc import Callable
 from typing import Any
 
-from factorq_torch.base.validation import INT32_MAX, check_int
-from factorq_trainers.experiments import paper
-from factorq_trainers.experiments.paper_shards import (
-    DEFAULT_PAPER_SHARD_SEEDS,
-    SHARDS_DIRECTORY,
-    run_paper,
-)
 from factorq_trainers.runner import cluster
-
-
-def add_paper_options(parser: argparse.ArgumentParser) -> None:
-    """The cluster options of ``factorq paper``: ``cluster.add_options`` and ``--shard-seeds``."""
-    cluster.add_options(parser)
-    parser.add_argument(
-        "--shard-seeds",
-        type=int,
-        metavar="K",
-        help="With --cluster or --scheduler: seeds per shard (the unit of work; finished shards "
-        "are kept in OUT/shards/ and not rerun, so a killed run resumes). Same numbers as one "
-        f"process. (default: {DEFAULT_PAPER_SHARD_SEEDS})",
-        default=argparse.SUPPRESS,
-    )
-
-
-def paper_executor(args: argparse.Namespace) -> cluster.InProcess | cluster.DaskExecutor | None:
-    """The executor ``factorq paper``'s options ask for: ``None`` for the usual in-process run,
-    else an open one (a ``ValueError`` in one line when it cannot be had)."""
-    names = ("cluster", "scheduler", "connect_timeout", "worker_timeout", "shard_seeds")
-    if not any(hasattr(args, name) for name in names):
-        return None
-    for name in ("checkpoint_every", "resume"):
-        if hasattr(args, name):
-            option = "--" + name.replace("_", "-")
-            raise ValueError(
-                f"{option} does not apply to a sharded run: its finished shards, kept in "
-                f"OUT/{SHARDS_DIRECTORY}/, are what a rerun resumes from (leave {option} out)"
-            )
-    check_int(
-        "--shard-seeds", getattr(args, "shard_seeds", DEFAULT_PAPER_SHARD_SEEDS), 1, INT32_MAX
-    )
-    return cluster.executor_from_args(args) or cluster.InProcess()
-
-
-def run_paper_on(
-    executor: cluster.InProcess | cluster.DaskExecutor,
-    config: paper.PaperConfig,
-    args: argparse.Namespace,
-    progress: paper.ProgressCallback | None = None,
-) -> dict[str, Any]:
-    """``run_paper`` with ``args.shard_seeds``, closing ``executor`` afterwards."""
-    try:
-        shard_seeds = getattr(args, "shard_seeds", DEFAULT_PAPER_SHARD_SEEDS)
-        return run_paper(config, executor, shard_seeds, progress, hasattr(args, "force"))
-    finally:
-        executor.close()
 
 
 def run_compare_on(

@@ -1,66 +1,49 @@
-"""The paper's experiment (SPEC section 4): config -> results.
+"""The paper's experiment (SPEC section 4): ``factorq paper``, a command of the runner's frame.
 
 One *experiment* is one world x one algorithm: ``runs`` runs of ``episodes`` episodes. We run
 ``seeds`` independent experiments per cell of the paper's table and summarise them across seeds:
 
-    config -> keys per experiment -> one batch per algorithm (all worlds, all seeds) -> metrics
-           -> per-seed means and per-episode curves -> claims C1-C5 -> results (a JSON-ready dict)
+    config -> units (an algorithm x a shard of ``shard_seeds`` seeds, every selected world in one
+           batch) -> per-seed totals and per-episode curves (each unit's, kept in OUT/units/)
+           -> means and intervals across seeds -> claims C1-C5 -> results.json
 
 Keys make experiment ``(seed index i, world w, algorithm a)`` draw the same numbers whatever else is
 selected: its world key is number ``3 i + w`` of the world stream (shared by both algorithms:
 common random numbers) and its policy key number ``2 (3 i + w) + a`` of the policy stream
-(``factorq_trainers.experiments.experiment.experiment_keys``).
+(``paper_drivers.experiment_keys``). So a unit run alone, in any process, gives each of its
+experiments the numbers it has in a run of all seeds at once, and ``results.json`` repeats to the
+last digit (but for its ``timing``) whatever ``shard_seeds``, the backend, the threads, the
+processes or the interruptions.
 
 The intervals are ``factorq_trainers.analysis.stats``' (Student's t for means, a paired bootstrap
 over seeds for the claims, seeded with ``config.seed``), the claims
-``factorq_trainers.analysis.claims``', and the files
-``factorq_trainers.reports.report.write_results``'.
+``factorq_trainers.analysis.claims``', the files ``factorq_trainers.reports.report``'s.
 """
 
 from __future__ import annotations
 
-import os
 import sys
-import time
 from collections.abc import Callable
-from dataclasses import asdict, is_dataclass
-from typing import Any, NamedTuple
+from dataclasses import asdict, is_dataclass, replace
+from typing import Any
 
 import numpy as np
 
-from factorq_envs.regimes import REGIME_PERIODS, REGIMES  # noqa: F401 - paper.REGIMES
-from factorq_torch.base.config import ALGORITHMS  # noqa: F401 - paper.ALGORITHMS
+from factorq_envs.regimes import REGIME_PERIODS
 from factorq_trainers.analysis import stats
 from factorq_trainers.analysis.claims import compute_claims
 from factorq_trainers.analysis.stats import interval, mean_ci
-from factorq_trainers.experiments.paper_config import (  # noqa: F401 - its public names
-    BACKENDS,
-    PaperConfig,
-    config_dict,
-    config_from_dict,
-)
-from factorq_trainers.experiments.paper_drivers import (  # noqa: F401
-    MODULAR_PARALLEL_SECONDS_PER_EPISODE,
-    MODULAR_SECONDS_PER_EPISODE,
-    PROCESS_BYTES,
-    BatchKeys,
-    Job,
-    _modular_in_process,
-    _processes_fit,
-    _run_fast,
-    _run_modular,
-    _run_side_by_side,
-    backend_driver,
+from factorq_trainers.experiments.paper_config import PaperConfig
+from factorq_trainers.experiments.paper_drivers import (
     experiment_keys,
     fallback_notice,
-    modular_processes,
-    modular_threads,
     resolve_backend,
+    run_fast,
+    run_modular,
     threads_used,
 )
-from factorq_trainers.runner import checkpoint, resources
-from factorq_trainers.runner.results import SCHEMA_VERSION, software_versions
-from factorq_trainers.runner.resume_checks import check_checkpoint
+from factorq_trainers.runner import resources
+from factorq_trainers.runner.kept import COUNT, NON_NEGATIVE, NUMBER, TEXT
 from factorq_trainers.runner.schema import CURVE_NAMES
 
 NAME = "paper"
@@ -69,185 +52,329 @@ DESCRIPTION = (
     "Run the paper's experiment (SPEC section 4) over many seeds and write results.json, "
     "figure3.png and report.md to --out."
 )
-#: paper keeps its finer frame (mid-run checkpoints, the figure process, shards on Dask).
-FRAME = "factorq_trainers.experiments.paper_frame"
 FILES = {"json": "results.json", "report": "report.md", "figure": "figure3.png"}
 REPORT = "factorq_trainers.reports.report"
+HINT = resources.PAPER_HINT
+WORK_UNIT = "episode"
+#: The figure is drawn by a helper process started before torch loads (``cli``).
+FIGURE_PROCESS = True
 CURVES = CURVE_NAMES  # per-episode curves; task return is reported per run
-#: Seconds between two calls of ``run``'s ``progress``, at most (a bar needs no more).
-PROGRESS_SECONDS = 0.1
-
+#: Per-seed totals of a run, averaged over the runs (``per_run``).
+TOTALS = ("total_steps", "collisions", "greedy_collisions", "task_return")
 
 CONFIG = PaperConfig
 
+#: A unit's result: per world, each seed's totals and per-episode counts summed over its runs
+#: (whole numbers), and its task return per run.
+UNIT_RESULT = {
+    "algorithm": TEXT,
+    "backend": TEXT,
+    "env_steps": COUNT,
+    "worlds": [
+        {
+            "world": TEXT,
+            "run_sums": {
+                "total_steps": [COUNT],
+                "collisions": [COUNT],
+                "greedy_collisions": [COUNT],
+            },
+            "task_return": [NUMBER],
+            "curve_sums": {name: [[COUNT]] for name in CURVE_NAMES},
+        }
+    ],
+}
 
-class Progress(NamedTuple):
-    """What ``run`` reports to its ``progress`` callback after every chunk of work."""
 
-    episodes_completed: int
-    episodes_total: int
-    experiments_finished: int
-    experiments_total: int
+# --------------------------------------------------------------------------------------------
+# The units
 
 
-ProgressCallback = Callable[[Progress], None]
+def units(config: PaperConfig) -> list[dict[str, Any]]:
+    """One unit per algorithm and shard of ``shard_seeds`` seeds (every selected world in its
+    batch: the modular path steps a batch at about the cost of one experiment).
 
-
-def run(
-    config: PaperConfig,
-    progress: ProgressCallback | None = None,
-    *,
-    checkpoint_every: checkpoint.Every | str | int | None = None,
-    resume: checkpoint.Checkpoint | None = None,
-    world: Any = None,
-    curves_ready: Callable[[dict[str, Any]], None] | None = None,
-) -> dict[str, Any]:
-    """Run the paper's experiment and return its results (the schema of ``results.json``).
-
-    ``progress`` is called with a ``Progress`` after every chunk of work. Everything but the
-    ``"timing"`` section is a function of ``config`` alone (same config, same numbers), however
-    often the run was interrupted and resumed.
-
-    ``checkpoint_every`` (episodes summed over all experiments, or seconds: ``"30s"``) saves the
-    whole state to ``<config.out>/checkpoint/`` that often (see
-    ``factorq_trainers.runner.checkpoint``);
-    the caller removes it with ``checkpoint.remove(config.out)`` once the results are written.
-    ``resume`` (``checkpoint.load(out)``, with ``config`` from ``resume_config``) continues from
-    a checkpoint, saving at its interval unless ``checkpoint_every`` is given. A new run refuses
-    an ``out`` that holds an unfinished run's checkpoint.
-
-    ``world``: another world than the config's grid, an ``factorq_envs.protocol.World`` (e.g.
-    ``factorq_envs.corridor.Corridor``): the experiments of world name ``w`` run in it with ``w``'s
-    obstacle period, on the modular path (``auto`` falls back to it with a one-line notice;
-    ``backend="fast"`` is refused), without checkpoints; the config's grid options are unused and
-    ``results["world"]`` names the world.
-
-    ``curves_ready`` is called with the results so far (``config``, ``cells`` and, for another
-    world, ``world``: what Figure 3 reads) as soon as the curves are summarised, before the claims
-    are computed: ``factorq paper`` has the figure drawn meanwhile.
-
-    On the modular path the algorithms run side by side, each in a process of its own
-    (``modular_processes``: with two or more CPU threads allowed, without checkpoints and another
-    ``world``; a checkpoint holds one running algorithm's state, so a checkpointed run keeps
-    them one after the other in this process): the same numbers, ``results["timing"]`` records
-    ``processes``. An error in a process is raised here; a process that dies is a
-    ``processes.WorkerError`` naming its algorithm; Ctrl-C ends them.
+    Args:
+        config: the experiment.
     """
-    started = time.perf_counter()
-    if world is not None:
-        _check_foreign_world(world, checkpoint_every, resume)
-    checkpointing = checkpoint_every is not None or resume is not None
-    estimate = resources.paper_estimate(
-        config, checkpointing=checkpoint_every is not None, world=world
-    )
-    resources.check(estimate, "run", resources.PAPER_HINT)  # before anything is allocated
-    backend = resolve_backend(config, world)
-    driver = backend_driver(backend)
-    count = 1
-    if backend == "modular":
-        count = modular_processes(config, world, checkpointing)
-        if count > 1 and not _processes_fit(config, count):
-            count = 1  # the batches side by side do not fit: one after the other, as they do
-    notice = fallback_notice(config, backend, world, count)
+    stop = config.first_seed + config.seeds
+    return [
+        {
+            "id": f"{algorithm}/{first}-{min(first + config.shard_seeds, stop)}",
+            "algorithm": algorithm,
+            "first_seed": first,
+            "seeds": min(config.shard_seeds, stop - first),
+        }
+        for algorithm in config.algorithms
+        for first in range(config.first_seed, stop, config.shard_seeds)
+    ]
+
+
+def work(config: PaperConfig, unit: dict[str, Any]) -> int:
+    """A unit's episodes (what ``run_unit`` reports to ``progress``).
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+    """
+    return unit["seeds"] * len(config.worlds) * config.runs * config.episodes
+
+
+def estimate(config: PaperConfig) -> resources.Estimate:
+    """``resources.paper_estimate`` of ``config``.
+
+    Args:
+        config: the experiment.
+    """
+    return resources.paper_estimate(config)
+
+
+def prepare(config: PaperConfig) -> None:
+    """Choose the backend (a ValueError where the one asked for cannot run) and say what runs,
+    and why not on the fast path where ``auto`` fell back.
+
+    Args:
+        config: the experiment.
+    """
+    backend = resolve_backend(config)
+    notice = fallback_notice(config, backend, _modular_workers(config, len(config.algorithms)))
     if notice is not None:
         print(notice, file=sys.stderr)
-    if resume is not None:
-        saved = {"first_seed": 0, **resume.config}  # from before shards: no first_seed
-        checkpoint.check_same_config(
-            saved, config_dict(config), f"resume='{resume.path.parents[1]}'"
-        )
-        check_checkpoint(resume, config)
-    if checkpoint_every is None and resume is not None:
-        checkpoint_every = resume.every  # a resumed run goes on saving as it did
-    checkpoints = checkpoint.Checkpointer(
-        config.out, config_dict(config), backend, every=checkpoint_every, resume=resume
+    print(
+        f"{len(config.cells) * config.seeds} experiments ({config.seeds} seeds x "
+        f"{len(config.worlds)} worlds x {len(config.algorithms)} algorithms), "
+        f"{config.runs} runs x {config.episodes} episodes each, {backend} backend",
+        file=sys.stderr,
     )
-    experiments_total = len(config.cells) * config.seeds
-    episodes_total = experiments_total * config.runs * config.episodes
 
-    def report_progress() -> None:
-        if progress is not None:
-            progress(
-                Progress(
-                    checkpoints.episodes_completed,
-                    episodes_total,
-                    checkpoints.experiments_finished,
-                    experiments_total,
-                )
-            )
 
-    reported = [time.monotonic()]
+def _modular_workers(config: PaperConfig, count: int) -> int:
+    import torch
 
-    def advance_progress(episodes: int, experiments: int) -> None:
-        # (the modular path reports after almost every step: the callback is passed on at most
-        # every PROGRESS_SECONDS, and once more when the experiments are done)
-        checkpoints.advance(episodes, experiments)
-        now = time.monotonic()
-        if now - reported[0] >= PROGRESS_SECONDS:
-            reported[0] = now
-            report_progress()
+    allowed = config.threads if config.threads is not None else torch.get_num_threads()
+    return max(1, min(allowed, count))
 
-    report_progress()
-    if count > 1:  # the algorithms side by side (nothing finished: no resume)
-        _run_side_by_side(config, count, checkpoints, advance_progress)
-    metrics: dict[tuple[str, str], dict[str, np.ndarray]] = {}
-    for algorithm in config.algorithms:
-        batch = checkpoints.finished.get(algorithm)
-        if batch is None:
-            keys = experiment_keys(config, algorithm)
-            batch = driver(Job(config, algorithm, keys, advance_progress, checkpoints, world))
-            checkpoints.finish(algorithm, batch)
-        for position, name in enumerate(config.worlds):
-            rows = slice(position * config.seeds, (position + 1) * config.seeds)
-            metrics[name, algorithm] = {
-                name: values[rows].cpu().numpy() for name, values in batch.items()
+
+def processes(config: PaperConfig, units_: list[dict[str, Any]]) -> tuple[int, str]:
+    """Processes for the units: on the modular path one per unit up to ``threads`` (default the
+    cores torch sees; a batch of tiny tensors runs on one core), on the fast path one (the kernel
+    uses every thread itself).
+
+    Args:
+        config: the experiment.
+        units_: ``units(config)``.
+    """
+    if resolve_backend(config) == "fast":
+        return 1, "the compiled path uses every thread itself"
+    return _modular_workers(config, len(units_)), "the modular path steps one batch per core"
+
+
+def _metrics(
+    config: PaperConfig, unit: dict[str, Any], progress: Callable[[int], None], world: Any
+) -> tuple[str, dict[str, np.ndarray]]:
+    """The backend and raw metrics ``[W * seeds, runs, episodes]`` of ``unit``'s experiments."""
+    shard = replace(
+        config,
+        first_seed=unit["first_seed"],
+        seeds=unit["seeds"],
+        algorithms=(unit["algorithm"],),
+    )
+    backend = "modular" if world is not None else resolve_backend(shard)
+    keys = experiment_keys(shard, unit["algorithm"])
+
+    def report(episodes: int, experiments: int) -> None:
+        progress(episodes)
+
+    if backend == "fast":
+        batch = run_fast(shard, unit["algorithm"], keys, report)
+    else:
+        batch = run_modular(shard, unit["algorithm"], keys, report, world)
+    return backend, {name: values.cpu().numpy() for name, values in batch.items()}
+
+
+def run_unit(
+    config: PaperConfig,
+    unit: dict[str, Any],
+    progress: Callable[[int], None] | None = None,
+    world: Any = None,
+) -> dict[str, Any]:
+    """One algorithm's experiments of one seed shard, every selected world: per world, each
+    seed's totals per run (averaged over its runs) and per-episode curves (means over its runs).
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+        progress: called with the episodes done since its last call.
+        world: another world than the grid (``run``'s), on the modular path.
+    """
+    backend, metrics = _metrics(config, unit, progress or (lambda episodes: None), world)
+    seeds = unit["seeds"]
+    worlds = []
+    for position, name in enumerate(config.worlds):
+        cell = {
+            key: values[position * seeds : (position + 1) * seeds]
+            for key, values in metrics.items()
+        }
+        # Counts are kept as whole sums over the runs (exact in float64, and short in JSON):
+        # ``summarise`` divides them by ``runs``, which is what numpy's mean over runs does.
+        per_run = {  # [S]: totals over the episodes of each run, summed over the runs
+            "total_steps": cell["steps"].sum(axis=(1, 2)),
+            "collisions": cell["collisions"].sum(axis=(1, 2)),
+            "greedy_collisions": cell["greedy_collisions"].sum(axis=(1, 2)),
+        }
+        worlds.append(
+            {
+                "world": name,
+                "run_sums": {key: values.tolist() for key, values in per_run.items()},
+                # task return: per run, averaged over the runs (not a count)
+                "task_return": cell["task_return"]
+                .astype(np.float64)
+                .sum(axis=2)
+                .mean(axis=1)
+                .tolist(),
+                # [S, E]: per episode, summed over the runs
+                "curve_sums": {key: cell[key].sum(axis=1).tolist() for key in CURVES},
             }
-    report_progress()  # where the experiments ended
-    summarised = None
-    if curves_ready is not None:
-
-        def summarised(partial: dict[str, Any]) -> None:
-            if world is not None:
-                partial = {**partial, "world": world_description(world)}
-            curves_ready(partial)
-
-    results = summarise(config, metrics, curves_ready=summarised)
-    wall = checkpoints.elapsed_s
-    env_steps = int(sum(cell["steps"].sum() for cell in metrics.values()))
-    results["timing"] = {
-        "wall_s": round(wall, 3),
+        )
+    return {
+        "algorithm": unit["algorithm"],
         "backend": backend,
-        "threads": threads_used(config, backend, count),
-        "env_steps": env_steps,
-        "env_steps_per_s": round(env_steps / max(wall, 1e-9)),
-        "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "env_steps": int(metrics["steps"].sum()),
+        "worlds": worlds,
     }
-    if backend == "modular":
-        results["timing"]["processes"] = count
-    if backend == "modular" and config.backend == "auto":
+
+
+def check_unit(config: PaperConfig, unit: dict[str, Any], result: dict[str, Any]) -> str | None:
+    """Why a kept ``result`` (``UNIT_RESULT``'s shape) cannot be ``unit``'s, or None: its worlds
+    are the config's, each seed's numbers are there, each curve has ``episodes`` points.
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+        result: a kept result.
+    """
+    worlds = [entry["world"] for entry in result["worlds"]]
+    if worlds != list(config.worlds):
+        return f"it holds the worlds {worlds}, not {list(config.worlds)}"
+    for entry in result["worlds"]:
+        lengths = [len(values) for values in entry["run_sums"].values()]
+        lengths += [len(entry["task_return"])]
+        lengths += [len(rows) for rows in entry["curve_sums"].values()]
+        if set(lengths) != {unit["seeds"]}:
+            return f"{entry['world']} holds {sorted(set(lengths))} seeds, not {unit['seeds']}"
+        if None in entry["task_return"]:  # a run's return is always a finite number
+            return f"{entry['world']}'s task_return holds null, not a finite number"
+        points = {len(row) for rows in entry["curve_sums"].values() for row in rows}
+        if points != {config.episodes}:
+            return (
+                f"{entry['world']}'s curves hold {sorted(points)} episodes, not {config.episodes}"
+            )
+    return None
+
+
+# --------------------------------------------------------------------------------------------
+# Summaries
+
+
+def summarise(config: PaperConfig, outcomes: list[dict[str, Any]]) -> dict[str, Any]:
+    """``results.json``'s entries from the units (in ``units`` order): per cell, the seeds'
+    means with 95% intervals and the per-episode curves, then the claims.
+
+    Args:
+        config: the experiment.
+        outcomes: ``run_unit``'s results.
+    """
+    totals: dict[tuple[str, str], dict[str, list]] = {}
+    episodes: dict[tuple[str, str], dict[str, list]] = {}
+    for outcome in outcomes:  # in seed order within each algorithm
+        for entry in outcome["worlds"]:
+            key = (entry["world"], outcome["algorithm"])
+            for name, values in (*entry["run_sums"].items(), ("task_return", None)):
+                values = entry["task_return"] if values is None else values
+                totals.setdefault(key, {}).setdefault(name, []).extend(values)
+            for name, rows in entry["curve_sums"].items():
+                episodes.setdefault(key, {}).setdefault(name, []).extend(rows)
+    cells, runs = {}, config.runs
+    for world, algorithm in config.cells:  # canonical order, whatever order they ran in
+        # sums over the runs / runs: numpy's mean over the runs, to the last bit
+        cell = {
+            name: np.asarray(values, dtype=np.float64) / (1 if name == "task_return" else runs)
+            for name, values in totals[world, algorithm].items()
+        }
+        curve_rows = {
+            name: np.asarray(rows, dtype=np.float64) / runs
+            for name, rows in episodes[world, algorithm].items()
+        }
+        summary = {}
+        for name in TOTALS:
+            mean, low, high = mean_ci(cell[name])
+            summary[name] = {"mean": float(mean), "ci95": interval(low, high)}
+        curves, lows, highs = {}, {}, {}
+        for name in CURVES:
+            mean, low, high = mean_ci(curve_rows[name])
+            curves[name] = mean.tolist()
+            lows[name] = None if low is None else low.tolist()
+            highs[name] = None if high is None else high.tolist()
+        cells[f"{world}/{algorithm}"] = {
+            "world": world,
+            "algorithm": algorithm,
+            "obstacle_period": REGIME_PERIODS[world],
+            "per_seed": {name: cell[name].tolist() for name in TOTALS},
+            "summary": summary,
+            "curves": curves,
+            "curves_ci_low": lows,
+            "curves_ci_high": highs,
+        }
+    backends = sorted({outcome["backend"] for outcome in outcomes})
+    backend = backends[0] if len(backends) == 1 else "+".join(backends)
+    timing: dict[str, Any] = {
+        "backend": backend,
+        "threads": threads_used(config, backends[0]) if backends else 1,
+        "env_steps": sum(outcome["env_steps"] for outcome in outcomes),
+    }
+    if "modular" in backends and config.backend == "auto":
         from factorq_trainers.compiled import fast
 
         # Why the compiled path did not run (a missing compiler, an unsupported body).
-        reason = (
-            fast.unsupported_reason(config.world if world is None else world)
-            or fast.unavailable_reason()
-        )
+        reason = fast.unsupported_reason(config.world) or fast.unavailable_reason()
         if reason is not None:
-            results["timing"]["fast_unavailable"] = reason
-    if world is not None:
-        results["world"] = world_description(world)
-    if checkpoint_every is not None or resume is not None:
-        results["timing"]["checkpoints"] = {
-            "every": None if checkpoints.every is None else str(checkpoints.every),
-            "saved": checkpoints.saves,
-            "save_s": round(checkpoints.save_seconds, 3),
-            "resumed_at_episode": None if resume is None else resume.episodes_completed,
-            "this_process_s": round(time.perf_counter() - started, 3),
-        }
+            timing["fast_unavailable"] = reason
+    return {
+        "cells": cells,
+        "claims": compute_claims(cells, config.seed),
+        "statistics": dict(stats.DESCRIPTION),
+        "timing": timing,
+    }
+
+
+def run(
+    config: PaperConfig, progress: Callable[[int], None] | None = None, *, world: Any = None
+) -> dict[str, Any]:
+    """Every unit here, one after another; the results (what ``results.json`` holds).
+
+    ``world``: another world than the config's grid, an ``factorq_envs.protocol.World`` (e.g.
+    ``factorq_envs.corridor.Corridor``): the experiments of regime ``w`` run in it with ``w``'s
+    obstacle period, on the modular path (``backend="fast"`` is refused); the config's grid
+    options are unused and ``results["world"]`` names the world.
+
+    Args:
+        config: the experiment.
+        progress: called with the episodes done since its last call.
+        world: another world than the grid.
+    """
+    from factorq_trainers.runner import frame
+
+    module = sys.modules[__name__]
+    if world is None:
+        return frame.run_in_process(module, config, progress)
+    _check_foreign_world(world, config)
+    results = frame.run_in_process(
+        module, config, progress, lambda unit, report: run_unit(config, unit, report, world)
+    )
+    results["world"] = world_description(world)
     return results
 
 
-def _check_foreign_world(world: Any, checkpoint_every: Any, resume: Any) -> None:
+def _check_foreign_world(world: Any, config: PaperConfig) -> None:
     """Refuse a ``world`` that ``run`` cannot take: one error naming it."""
     from factorq_envs.grid_world import FactoredGrid
     from factorq_envs.protocol import check_world
@@ -258,10 +385,10 @@ def _check_foreign_world(world: Any, checkpoint_every: Any, resume: Any) -> None
             "world=FactoredGrid(...): the paper's grid is the config's own world; set its options "
             "in the PaperConfig (size, obstacles, body, sensors, ...) instead"
         )
-    if checkpoint_every is not None or resume is not None:
+    if config.backend == "fast":
         raise ValueError(
-            f"world={type(world).__name__}(...): checkpoints hold the paper grid's state only; "
-            f"run another world without checkpoint_every and resume"
+            f"backend='fast' cannot run world={type(world).__name__}(...): the compiled path "
+            f"runs the grid only (use backend='auto' or 'modular')"
         )
 
 
@@ -277,64 +404,3 @@ def world_description(world: Any) -> dict[str, Any]:
 
 def _json_scalar(value: Any) -> bool:
     return value is None or isinstance(value, bool | int | float | str)
-
-
-def resume_config(
-    saved: dict[str, Any], given: dict[str, Any], directory: str | os.PathLike
-) -> PaperConfig:
-    """The config to resume the run of ``directory`` with (``checkpoint.resumed_config``); a
-    checkpoint from before shards had no ``first_seed`` (it reads as 0)."""
-    saved = {"first_seed": 0, **saved}
-    return checkpoint.resumed_config(saved, given, directory, config_from_dict, config_dict)
-
-
-# --------------------------------------------------------------------------------------------
-# Summaries
-
-
-def summarise(
-    config: PaperConfig,
-    metrics: dict[tuple[str, str], dict[str, np.ndarray]],
-    *,
-    curves_ready: Callable[[dict[str, Any]], None] | None = None,
-) -> dict[str, Any]:
-    """Results from raw metrics ``{(world, algorithm): {name: [S, runs, episodes]}}``;
-    ``curves_ready`` is called with the results so far (``schema_version``, ``config``, ``cells``)
-    before the claims are computed (``run``)."""
-    cells = {}
-    for world, algorithm in config.cells:  # canonical order, whatever order they ran in
-        cell = metrics[world, algorithm]
-        per_run = {  # [S]: totals over the episodes of a run, averaged over the runs
-            "total_steps": cell["steps"].sum(axis=2).mean(axis=1),
-            "collisions": cell["collisions"].sum(axis=2).mean(axis=1),
-            "greedy_collisions": cell["greedy_collisions"].sum(axis=2).mean(axis=1),
-            "task_return": cell["task_return"].astype(np.float64).sum(axis=2).mean(axis=1),
-        }
-        summary = {}
-        for name, values in per_run.items():
-            mean, low, high = mean_ci(values)
-            summary[name] = {"mean": float(mean), "ci95": interval(low, high)}
-        curves, lows, highs = {}, {}, {}
-        for name in CURVES:
-            per_episode = cell[name].mean(axis=1)  # [S, E], mean over runs
-            mean, low, high = mean_ci(per_episode)
-            curves[name] = mean.tolist()
-            lows[name] = None if low is None else low.tolist()
-            highs[name] = None if high is None else high.tolist()
-        cells[f"{world}/{algorithm}"] = {
-            "world": world,
-            "algorithm": algorithm,
-            "obstacle_period": REGIME_PERIODS[world],
-            "per_seed": {name: values.tolist() for name, values in per_run.items()},
-            "summary": summary,
-            "curves": curves,
-            "curves_ci_low": lows,
-            "curves_ci_high": highs,
-        }
-    results = {"schema_version": SCHEMA_VERSION, "config": config_dict(config), "cells": cells}
-    if curves_ready is not None:
-        curves_ready(results)
-    results["claims"] = compute_claims(cells, config.seed)
-    results["statistics"] = dict(stats.DESCRIPTION)
-    results["software"] = software_versions()
-    return results

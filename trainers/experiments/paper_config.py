@@ -1,12 +1,10 @@
-"""``factorq paper``'s config (``PaperConfig``): its options, their checks, and its dict form
-in results and checkpoints (``config_dict``, ``config_from_dict``)."""
+"""``factorq paper``'s config (``PaperConfig``): its options and their checks."""
 
 from __future__ import annotations
 
 import os
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import torch
 
@@ -28,10 +26,12 @@ from factorq_trainers.experiments.experiment import (
     check_world_options,
 )
 from factorq_trainers.runner.options import option
-from factorq_trainers.runner.resume_checks import DRIVERS
 
+#: Fields that leave the numbers alone (tested: backends, devices, threads and shards give
+#: identical results): a sweep's digest of a configuration leaves them out.
+DIGEST_IGNORED = ("out", "threads", "backend", "device", "shard_seeds")
 #: Experiment drivers: the compiled kernel, the modular torchrl path, or the first available.
-BACKENDS = ("auto", *DRIVERS)
+BACKENDS = ("auto", "fast", "modular")
 
 
 @dataclass(frozen=True)
@@ -44,6 +44,12 @@ class PaperConfig(experiment.WorldOptions):
     )
     first_seed: int = option(
         0, "Index of the first seed: a run of seeds first_seed .. first_seed + seeds - 1 (a shard)."
+    )
+    shard_seeds: int = option(
+        100,
+        "Seeds per unit of work (an algorithm's experiments of shard_seeds seeds in every world): "
+        "a finished unit is kept in OUT/units/ and a resumed run does not rerun it; the numbers "
+        "do not depend on it.",
     )
     runs: int = option(
         10, "Runs per experiment (task tables reset each run; Factor-Q's local tables carry over)."
@@ -78,6 +84,7 @@ class PaperConfig(experiment.WorldOptions):
         check_int("seed", self.seed, 0, MAX_SEED)
         check_int("seeds", self.seeds, 1, INT32_MAX)
         check_int("first_seed", self.first_seed, 0, INT32_MAX)
+        check_int("shard_seeds", self.shard_seeds, 1, INT32_MAX)
         check_int("runs", self.runs, 1, INT32_MAX)
         check_int("episodes", self.episodes, 1, INT32_MAX)
         object.__setattr__(self, "worlds", check_names("worlds", self.worlds, REGIMES))
@@ -133,23 +140,3 @@ class PaperConfig(experiment.WorldOptions):
     def cells(self) -> list[tuple[str, str]]:
         """The selected ``(world, algorithm)`` cells, in canonical order."""
         return [(world, algorithm) for world in self.worlds for algorithm in self.algorithms]
-
-
-def config_dict(config: PaperConfig) -> dict[str, Any]:
-    """Every field of ``config``, JSON-ready (tuples as lists)."""
-    return {
-        key: list(value) if isinstance(value, tuple) else value
-        for key, value in asdict(config).items()
-    }
-
-
-def config_from_dict(data: dict[str, Any]) -> PaperConfig:
-    """The inverse of ``config_dict`` (unknown keys are an error)."""
-    known = {item.name for item in fields(PaperConfig)}
-    unknown = sorted(set(data) - known)
-    if unknown:
-        raise ValueError(f"unknown config fields: {', '.join(unknown)}")
-    values: dict[str, Any] = {
-        key: tuple(value) if isinstance(value, list) else value for key, value in data.items()
-    }
-    return PaperConfig(**values)

@@ -1,8 +1,8 @@
 """The paper's output files: ``results.json``, Figure 3 and the claims report.
 
-``write_results`` writes all three from the results dict of
-``factorq_trainers.experiments.paper.run``;
-``factorq report`` (``regenerate``) redraws the figure and the report from ``results.json`` alone.
+The runner writes all three from the results dict of ``factorq paper`` (``markdown``,
+``figure``); ``factorq report`` (``regenerate``) redraws the figure and the report from
+``results.json`` alone, checked against the paper's schema.
 Everything here reads the results and computes nothing new: the numbers in the report are the
 numbers in the file.
 """
@@ -20,7 +20,7 @@ from factorq_trainers.analysis.claims import ALGORITHM_LABELS, MEASURE_LABELS, M
 from factorq_trainers.analysis.stats import format_number
 from factorq_trainers.reports import FigureError, paper_figure
 from factorq_trainers.reports.figure_process import FigureProcess, FigureProcessError
-from factorq_trainers.runner.results import body_label, dumps, temporary_path, write_all_atomic
+from factorq_trainers.runner.results import body_label, temporary_path, write_all_atomic
 from factorq_trainers.runner.schema import escape_markdown, load_results_file, markdown_code
 
 RESULTS_FILE = "results.json"
@@ -167,18 +167,35 @@ def report_markdown(results: dict[str, Any]) -> str:
     timing = results.get("timing", {})
     lines += ["", "## Timing", ""]
     if timing:
-        backend, finished = (
-            escape_markdown(timing["backend"]),
-            escape_markdown(timing["finished_utc"]),
-        )
+        rate = timing["env_steps"] / max(timing["wall_s"], 1e-9)
         lines.append(
-            f"Wall time {timing['wall_s']:.1f} s on the {backend} backend with "
-            f"{timing['threads']} thread(s): {timing['env_steps']} environment steps, "
-            f"{timing['env_steps_per_s']} steps/s (finished {finished})."
+            f"Wall time {timing['wall_s']:.1f} s on the {escape_markdown(timing['backend'])} "
+            f"backend with {timing['threads']} thread(s): {timing['env_steps']} environment "
+            f"steps, {rate:.0f} steps/s."
         )
     else:
         lines.append("not recorded")
     return "\n".join(lines) + "\n"
+
+
+#: The report's Markdown (the runner's ``markdown`` protocol).
+markdown = report_markdown
+#: What ``factorq sweep`` reports per configuration: the paper's measures per run.
+SWEEP_MEASURES = MEASURES
+
+
+def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per world and algorithm of a ``results.json`` dict: its per-run summary (means with 95%
+    intervals) and per-seed values (``factorq sweep``'s rows; the claims go beside them)."""
+    return {
+        name: {
+            "world": cell["world"],
+            "algorithm": cell["algorithm"],
+            **cell["summary"],
+            "per_seed": cell["per_seed"],
+        }
+        for name, cell in results["cells"].items()
+    }
 
 
 def load_results(results_dir: str | os.PathLike) -> dict[str, Any]:
@@ -189,31 +206,11 @@ def load_results(results_dir: str | os.PathLike) -> dict[str, Any]:
     return load_results_file(path)
 
 
-def write_results(
-    results: dict[str, Any],
-    out_dir: str | os.PathLike,
-    *,
-    figure_process: FigureProcess | None = None,
-) -> dict[str, Path]:
-    """Write ``results.json``, ``figure3.png`` and ``report.md`` to ``out_dir``, atomically.
-
-    ``results.json`` is renamed into place first: a results file on disk is always complete, and
-    ``factorq report`` can redraw the other two from it. ``figure_process``
-    (``factorq_trainers.reports.figure_process``): the helper that draws the figure while this
-    process writes the other two; if it fails, the figure is drawn here (a one-line notice says
-    why).
-    """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    return _write(results, out, with_results_file=True, figure_process=figure_process)
-
-
 def send_figure(
     figure_process: FigureProcess, results: dict[str, Any], out_dir: str | os.PathLike
 ) -> None:
-    """Have ``figure_process`` draw Figure 3 of ``results`` (``config``, ``cells`` and ``world``
-    suffice: ``paper.run``'s ``curves_ready``) into the temporary of ``out_dir/figure3.png``, which
-    ``write_results`` then renames into place with the other files."""
+    """Have ``figure_process`` draw Figure 3 of ``results`` into the temporary of
+    ``out_dir/figure3.png``, which the runner then renames into place with the other files."""
     figure_process.send(
         paper_figure.drawn_part(results),
         temporary_path(Path(out_dir) / FIGURE_FILE),
@@ -221,42 +218,32 @@ def send_figure(
     )
 
 
-def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
-    """Rewrite ``figure3.png`` and ``report.md`` in ``results_dir`` from its ``results.json``."""
-    return _write(load_results(results_dir), Path(results_dir), with_results_file=False)
-
-
-def _write(
-    results: dict[str, Any],
-    out: Path,
-    *,
-    with_results_file: bool,
-    figure_process: FigureProcess | None = None,
-) -> dict[str, Path]:
-    """The files of ``results`` in ``out``, in this order, all atomically."""
-    if figure_process is not None and not figure_process.sent:
-        send_figure(figure_process, results, out)  # it draws while the others are written
-
-    def figure(path: Path) -> None:
-        if figure_process is not None:
-            try:
-                figure_process.finish(path)
-                return
-            except FigureProcessError as error:
-                print(f"factorq: {error}; drawing {FIGURE_FILE} here instead", file=sys.stderr)
+def figure(
+    results: dict[str, Any], path: str | os.PathLike, figure_process: FigureProcess | None = None
+) -> None:
+    """Figure 3 of ``results`` at ``path``: by ``figure_process`` (``send_figure`` first) where
+    one is given, here where it fails (a one-line notice says why) or none is."""
+    if figure_process is not None:
         try:
-            figure3(results, path)
-        except Exception as error:  # matplotlib's, from deep inside: one line, no file written
-            raise FigureError(
-                f"drawing {FIGURE_FILE} failed: {type(error).__name__}: {error}"
-            ) from error
+            figure_process.finish(Path(path))
+            return
+        except FigureProcessError as error:
+            print(f"factorq: {error}; drawing {FIGURE_FILE} here instead", file=sys.stderr)
+    try:
+        figure3(results, path)
+    except Exception as error:  # matplotlib's, from deep inside: one line, no file written
+        raise FigureError(
+            f"drawing {FIGURE_FILE} failed: {type(error).__name__}: {error}"
+        ) from error
 
+
+def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
+    """Rewrite ``figure3.png`` and ``report.md`` in ``results_dir`` from its ``results.json``
+    (checked against the paper's schema first)."""
+    results, out = load_results(results_dir), Path(results_dir)
     writers: dict[str, tuple[Path, Callable[[Path], Any]]] = {
-        "results": (out / RESULTS_FILE, lambda path: path.write_text(dumps(results))),
-        "figure": (out / FIGURE_FILE, figure),
+        "figure": (out / FIGURE_FILE, lambda path: figure(results, path)),
         "report": (out / REPORT_FILE, lambda path: path.write_text(report_markdown(results))),
     }
-    if not with_results_file:
-        del writers["results"]
     write_all_atomic(dict(writers.values()))
     return {name: path for name, (path, _) in writers.items()}

@@ -38,10 +38,9 @@ def report_markdown(sweep: dict[str, Any]) -> str:
     axes = sweep["axes"]
     measures = _measures(sweep)
     is_paper = sweep.get("command", "paper") == "paper"
-    unit = {
-        "paper": f"shards of {sweep['shard_seeds']}",
-        "compare": "one task per method",
-    }.get(sweep.get("command", "paper"), "one task per configuration")
+    unit = {"compare": "one task per method"}.get(
+        sweep.get("command", "paper"), "one task per configuration"
+    )
     per = "Per run" if is_paper else "Per experiment"
     claims_column = ["claims passed"] if is_paper else []
     lines = [

@@ -110,10 +110,16 @@ def plain(value: Any) -> Any:
 
 
 def config_from_dict(config_type: type, data: dict[str, Any]) -> Any:
-    """``config_type(**data)`` with JSON lists back as the tuples the dataclass holds."""
-    return config_type(
-        **{key: tuple(value) if isinstance(value, list) else value for key, value in data.items()}
-    )
+    """``config_type(**data)`` with JSON lists back as the tuples the dataclass holds and a
+    nested config's dict back as its dataclass (an unknown field: a TypeError naming it)."""
+    hints = typing.get_type_hints(config_type)
+    values = {}
+    for key, value in data.items():
+        kind = hints.get(key)
+        if isinstance(value, dict) and isinstance(kind, type) and dataclasses.is_dataclass(kind):
+            value = config_from_dict(kind, value)
+        values[key] = tuple(value) if isinstance(value, list) else value
+    return config_type(**values)
 
 
 def checked_units(module: ModuleType, config: Any) -> list[dict[str, Any]]:
@@ -135,12 +141,14 @@ def through_json(value: Any) -> Any:
     return json.loads(results.dumps(value))
 
 
-def unit_result(module: ModuleType, unit: dict[str, Any], result: Any) -> Any:
+def unit_result(module: ModuleType, config: Any, unit: dict[str, Any], result: Any) -> Any:
     """``result`` of ``unit`` computed now, through JSON and checked against the command's
     ``UNIT_RESULT`` (what a kept one must pass too): a RuntimeError, the declaration's bug,
     when it does not fit."""
     result = through_json(result)
     problem = kept_files.schema_problem(result, module.UNIT_RESULT)
+    if problem is None and hasattr(module, "check_unit"):
+        problem = module.check_unit(config, unit, result)
     if problem is not None:
         raise RuntimeError(
             f"{module.NAME}.run_unit({unit['id']!r}) does not fit UNIT_RESULT: {problem}"
@@ -175,19 +183,23 @@ def envelope(
 
 
 def run_in_process(
-    module: ModuleType, config: Any, progress: Callable[[int], None] | None = None
+    module: ModuleType,
+    config: Any,
+    progress: Callable[[int], None] | None = None,
+    run_unit: Callable[[dict[str, Any], Any], Any] | None = None,
 ) -> dict[str, Any]:
     """Every unit here, in order, summarised into the envelope; no files (the protocol's
-    ``run(config)``, for tests and notebooks)."""
+    ``run(config)``, for tests and notebooks). ``run_unit(unit, progress)``: what runs a unit
+    instead of ``module.run_unit(config, unit, progress)`` (``paper.run``'s other world)."""
     started = time.perf_counter()
     if hasattr(module, "prepare"):
         module.prepare(config)
     if hasattr(module, "estimate"):  # before any allocation
         resources.check(module.estimate(config), "experiment", getattr(module, "HINT", ""))
     units = checked_units(module, config)
-    outcomes = [
-        unit_result(module, unit, module.run_unit(config, unit, progress)) for unit in units
-    ]
+    if run_unit is None:
+        run_unit = functools.partial(module.run_unit, config)
+    outcomes = [unit_result(module, config, unit, run_unit(unit, progress)) for unit in units]
     summary = module.summarise(config, outcomes)
     return envelope(module, config, summary, wall_s=time.perf_counter() - started, units=len(units))
 
@@ -195,7 +207,7 @@ def run_in_process(
 def run_unit_task(module_name: str, config: Any, unit: dict[str, Any]) -> Any:
     """One unit on a worker (picklable: the module travels by name)."""
     module = importlib.import_module(module_name)
-    return unit_result(module, unit, module.run_unit(config, unit, None))
+    return unit_result(module, config, unit, module.run_unit(config, unit, None))
 
 
 # --------------------------------------------------------------------------------------------
@@ -212,28 +224,76 @@ def add_frame_options(parser: argparse.ArgumentParser) -> None:
     cluster.add_options(parser)
 
 
+#: Config fields a resumed run may change: they do not change the numbers.
+RESUMABLE_CHANGES = ("out", "threads")
+
+
 def _config(
     module: ModuleType, args: argparse.Namespace, store: kept_files.UnitStore | None
 ) -> Any:
     given = options.given_options(args, module.CONFIG)
     if store is None:
         return module.CONFIG(**given)
-    from factorq_trainers.runner import checkpoint
-
     saved = store.saved_run(module.NAME)["config"]
-    return checkpoint.resumed_config(
-        saved,
-        given,
-        args.resume,
-        functools.partial(config_from_dict, module.CONFIG),
-        plain,
-    )
+    return resumed_config(saved, given, args.resume, module.CONFIG)
 
 
-def write_outputs(module: ModuleType, results_dict: dict[str, Any], out: Path) -> dict[str, Path]:
-    """The results file, the Markdown and the figure (those the command declares), at once."""
+def resumed_config(
+    saved: dict[str, Any], given: dict[str, Any], directory: str, config_type: type
+) -> Any:
+    """The config to resume the run kept in ``directory`` with: the ``saved`` config dict, with
+    the ``given`` options (field -> value) that may change (``RESUMABLE_CHANGES``).
+
+    Any other given option must equal the saved value (a ValueError names each that differs);
+    ``out`` must be ``directory`` (the saved spelling is kept when it names the same directory,
+    so the results repeat it).
+    """
+    out = saved.get("out", "")
+    if not out or Path(out).resolve() != Path(directory).resolve():
+        out = str(directory)
+    if "out" in given and Path(given["out"]).resolve() != Path(directory).resolve():
+        raise ValueError(
+            f"out='{given['out']}' differs from the resumed directory '{directory}': a resumed "
+            f"run writes where its units are kept (leave --out out)"
+        )
+    try:
+        kept_config = config_from_dict(config_type, {**saved, "out": out})
+    except (ValueError, TypeError) as problem:
+        raise ValueError(
+            f"resume='{directory}': the kept run's config is unusable here ({problem})"
+        ) from None
+    merged = config_from_dict(config_type, {**plain(kept_config), **given, "out": out})
+    differing = [
+        f"{name}={_show(value)} given, {_show(saved.get(name))} kept"
+        for name, value in plain(merged).items()
+        if name not in RESUMABLE_CHANGES and saved.get(name) != value
+    ]
+    if differing:
+        raise ValueError(
+            f"resume='{directory}' holds a run of a different config: {'; '.join(differing)} "
+            f"(leave these options out to resume it, or start a new run with another --out)"
+        )
+    return merged
+
+
+def _show(value: Any) -> str:
+    shown = repr(value)
+    return shown if len(shown) <= 40 else shown[:37] + "..."
+
+
+def write_outputs(
+    module: ModuleType, results_dict: dict[str, Any], out: Path, figure_process: Any = None
+) -> dict[str, Path]:
+    """The results file, the Markdown and the figure (those the command declares), at once;
+    ``figure_process`` (``reports.figure_process``, a command declaring ``FIGURE_PROCESS``)
+    draws the figure meanwhile."""
     names = files(module)
     report = report_module(module)
+    draw = functools.partial(report.figure, results_dict) if hasattr(report, "figure") else None
+    if draw is not None and figure_process is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        report.send_figure(figure_process, results_dict, out)  # drawn while the rest is written
+        draw = functools.partial(draw, figure_process=figure_process)
     writers: dict[str, tuple[Path, Callable[[Path], Any]]] = {
         "json": (out / names["json"], lambda p: p.write_text(results.dumps(results_dict)))
     }
@@ -242,8 +302,8 @@ def write_outputs(module: ModuleType, results_dict: dict[str, Any], out: Path) -
             out / names["report"],
             lambda p: p.write_text(report.markdown(results_dict)),
         )
-    if hasattr(report, "figure"):
-        writers["figure"] = (out / names["figure"], lambda p: report.figure(results_dict, p))
+    if draw is not None:
+        writers["figure"] = (out / names["figure"], draw)
     results.write_all_atomic(dict(writers.values()))
     return {name: path for name, (path, _) in writers.items()}
 
@@ -254,8 +314,15 @@ def report_module(module: ModuleType) -> ModuleType:
     return importlib.import_module(name) if name else module
 
 
-def execute(module: ModuleType, parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
-    """Run the command ``module`` declares with the parsed ``args``; the exit status."""
+def execute(
+    module: ModuleType,
+    parser: argparse.ArgumentParser,
+    args: argparse.Namespace,
+    figure_process: Any = None,
+) -> int:
+    """Run the command ``module`` declares with the parsed ``args``; the exit status.
+    ``figure_process``: the helper that draws the figure (``cli`` starts it for a command that
+    declares ``FIGURE_PROCESS``)."""
     store = kept_files.UnitStore(args.resume) if hasattr(args, "resume") else None
     try:
         config = _config(module, args, store)
@@ -287,7 +354,9 @@ def execute(module: ModuleType, parser: argparse.ArgumentParser, args: argparse.
             force=hasattr(args, "force"),
             resume=store is not None,
         ):
-            return _run(module, config, units, store, executor, force=hasattr(args, "force"))
+            return _run(
+                module, config, units, store, executor, hasattr(args, "force"), figure_process
+            )
     except (outdir.OutputDirError, ValueError) as problem:
         error(parser, as_option(str(problem), module.CONFIG, ("resume",)))
         return EXIT_USAGE
@@ -334,8 +403,8 @@ def _run(
     units: list[dict[str, Any]],
     store: kept_files.UnitStore | None,
     executor: Any,
-    *,
     force: bool,
+    figure_process: Any = None,
 ) -> int:
     from tqdm.auto import tqdm
 
@@ -350,7 +419,10 @@ def _run(
         store.start(module.NAME, plain(config), (unit["id"] for unit in units))
         done: dict[str, Any] = {}
     else:  # every kept unit checked before any unit runs
-        done = store.finished(units, module.UNIT_RESULT, force)
+        check = (
+            functools.partial(module.check_unit, config) if hasattr(module, "check_unit") else None
+        )
+        done = store.finished(units, module.UNIT_RESULT, force, check)
         print(f"resuming {config.out}: {len(done)} of {len(units)} units done", file=sys.stderr)
     pending = [unit for unit in units if unit["id"] not in done]
     bar = tqdm(
@@ -366,7 +438,9 @@ def _run(
         if executor is None:
             for unit in pending:
                 before = bar.n
-                result = unit_result(module, unit, module.run_unit(config, unit, bar.update))
+                result = unit_result(
+                    module, config, unit, module.run_unit(config, unit, bar.update)
+                )
                 # the unit's whole share, whatever it reported
                 bar.update(max(0, before + work(module, config, unit) - bar.n))
                 store.keep(unit, result)
@@ -391,7 +465,7 @@ def _run(
         units=len(units),
         resumed=len(units) - len(pending),
     )
-    paths = write_outputs(module, results_dict, Path(config.out))
+    paths = write_outputs(module, results_dict, Path(config.out), figure_process)
     store.remove()  # the results are complete: nothing left to resume
     report = report_module(module)
     if hasattr(report, "markdown"):

@@ -81,14 +81,19 @@ def tie(command: str, config: Any, unit: dict[str, Any] | None = None) -> dict[s
     return kept_for
 
 
-def dumps_sealed(results: dict[str, Any], kept_for: dict[str, Any] | None = None) -> str:
+def dumps_sealed(
+    results: dict[str, Any], kept_for: dict[str, Any] | None = None, parsed: bool = False
+) -> str:
     """``results_file.dumps(results)`` with what it is kept for (``tie``) and the digest of what
-    a reader will parse added."""
-    parsed = json.loads(result_files.dumps(results))  # tuples as lists, non-finite as null
+    a reader will parse added (``parsed``: ``results`` and ``kept_for`` are JSON values already,
+    as a reader will parse them)."""
+    if not parsed:
+        results = json.loads(result_files.dumps(results))  # tuples as lists, non-finite as null
+    parsed_ = dict(results)
     if kept_for is not None:
-        parsed[TIE_KEY] = kept_for
-    parsed[DIGEST_KEY] = json_digest(parsed)
-    return result_files.dumps(parsed)
+        parsed_[TIE_KEY] = kept_for
+    parsed_[DIGEST_KEY] = json_digest(parsed_)
+    return result_files.dumps(parsed_)
 
 
 def check_tie(
@@ -137,6 +142,8 @@ _WHOLE = re.compile(r"seeds_reached|samples_target|shortest_path|steps_to_thresh
 _FRACTION = re.compile(r"fraction\w*|success_rate")
 #: Subtrees that hold settings and descriptions, not measured numbers (the digest covers them).
 _SETTINGS = ("config", "software", "world", "methods", "timing")
+#: Keys of an interval's bounds: a t interval of a count may reach below 0, so only finite.
+_BOUND = re.compile(r"ci95|\w*_ci95|curves_ci_low|curves_ci_high|low|high")
 #: Keys that only label a number by the measure above them.
 _GENERIC = re.compile(r"mean|low|high|ci|ci95|n|\d+")
 
@@ -156,6 +163,8 @@ def check_values(path: Path, what: str, results: dict[str, Any], remedy: str = R
                 continue
             for key, item in value.items():
                 named = measure if _GENERIC.fullmatch(str(key)) else str(key)
+                if measure == "bound" or _BOUND.fullmatch(str(key)):
+                    named = "bound"  # an interval's bound: finite, of either sign (Student's t)
                 stack.append((item, f"{where}/{key}", named))
             continue
         if isinstance(value, list):
@@ -163,8 +172,10 @@ def check_values(path: Path, what: str, results: dict[str, Any], remedy: str = R
             continue
         if value is None:
             continue  # a missing number (a non-finite one is written as null)
-        if isinstance(value, str | bool) and not _NON_NEGATIVE.fullmatch(measure):
-            continue  # a label, a verdict
+        if isinstance(value, str | bool) and (
+            not _NON_NEGATIVE.fullmatch(measure) or where.startswith("claims/")
+        ):
+            continue  # a label, a verdict (a claim's threshold is its statement's words)
         if not isinstance(value, int | float) or isinstance(value, bool):
             raise ValueError(
                 f"{what} {path}: {where} holds {_short(value)}, not a number: {remedy}"
@@ -411,9 +422,16 @@ class UnitStore:
         self.kept_for = tie(command, config)
         return record
 
-    def finished(self, units: list[dict[str, Any]], schema: Any, force: bool) -> dict[str, Any]:
+    def finished(
+        self,
+        units: list[dict[str, Any]],
+        schema: Any,
+        force: bool,
+        check: Callable[[dict[str, Any], Any], str | None] | None = None,
+    ) -> dict[str, Any]:
         """Unit id -> its result, for every unit with a kept file that passes its checks (its
-        digest, tie and ``schema``); one that fails is refused (a ValueError naming it), or with
+        digest, tie, ``schema`` and ``check(unit, result)``, the command's own: why it cannot be
+        the unit's, or None); one that fails is refused (a ValueError naming it), or with
         ``force`` left to recompute. ``saved_run`` first: it says which run the units are of."""
         found = {}
         remedy = "pass --force (with --resume) to recompute it"
@@ -430,6 +448,9 @@ class UnitStore:
                         f"result: {remedy}"
                     )
                 check_result(path, UNIT_FILE, unit, record["result"], schema, remedy)
+                problem = None if check is None else check(unit, record["result"])
+                if problem is not None:
+                    raise ValueError(f"{UNIT_FILE} {path}: {problem}: {remedy}")
             except ValueError:
                 if force:
                     continue
@@ -438,8 +459,10 @@ class UnitStore:
         return found
 
     def keep(self, unit: dict[str, Any], result: Any) -> None:
-        """Keep ``unit``'s ``result`` (after ``start`` or ``saved_run``)."""
-        text = dumps_sealed({"result": result}, {**self.kept_for, "unit": unit})
+        """Keep ``unit``'s ``result`` (as JSON gives it back: ``frame.unit_result``'s) after
+        ``start`` or ``saved_run``."""
+        unit = json.loads(result_files.dumps(unit))
+        text = dumps_sealed({"result": result}, {**self.kept_for, "unit": unit}, parsed=True)
         result_files.write_atomic(
             unit_path(self.directory, unit["id"]), lambda path: path.write_text(text)
         )

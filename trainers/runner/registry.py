@@ -23,14 +23,16 @@ BUILT_IN = ("report", "sweep")
 
 class Entry(NamedTuple):
     """A registered command: its name, its module's dotted name, its one-line help, its files
-    (``FILES``, else ``NAME.json/.md/.png``) and the module of its report (``REPORT``, else the
-    command's own)."""
+    (``FILES``, else ``NAME.json/.md/.png``), the module of its report (``REPORT``, else the
+    command's own) and whether its figure is drawn by a helper process started before torch
+    loads (``FIGURE_PROCESS = True``; its report then provides ``send_figure``)."""
 
     name: str
     module: str
     help: str
     files: dict[str, str]
     report: str
+    figure_process: bool = False
 
 
 def _constant(tree: ast.Module, name: str, kind: type = str) -> Any:
@@ -69,7 +71,9 @@ def commands() -> dict[str, Entry]:
         help_text = _constant(tree, "HELP") or docstring
         module = f"{PACKAGE}.{path.stem}"
         files = {**default_files(name), **(_constant(tree, "FILES", dict) or {})}
-        found[name] = Entry(name, module, help_text, files, _constant(tree, "REPORT") or module)
+        report = _constant(tree, "REPORT") or module
+        figure_process = _constant(tree, "FIGURE_PROCESS", bool) is True
+        found[name] = Entry(name, module, help_text, files, report, figure_process)
     return found
 
 

@@ -49,6 +49,12 @@ def _dumps(value: Any, level: int) -> str:
         return "{\n" + ",\n".join(items) + "\n" + "  " * level + "}"
     if isinstance(value, list | tuple):
         if all(not isinstance(item, dict | list | tuple) for item in value):
+            try:  # plain finite numbers and texts: json's own, in C
+                text = json.dumps(value)
+            except TypeError:  # numpy scalars
+                text = "NaN"
+            if "NaN" not in text and "Infinity" not in text:
+                return text
             return "[" + ", ".join(_dumps(item, level) for item in value) + "]"
         inner = "  " * (level + 1)
         items = [f"{inner}{_dumps(item, level + 1)}" for item in value]
