@@ -155,8 +155,7 @@ def compare_restarts(collector: OnlineCollector, blocks: int, steps: int) -> Non
 
 def batched_steps() -> None:
     from factorq_trainers.compiled import fast
-    from factorq_trainers.experiments import paper
-    from factorq_trainers.runner import checkpoint
+    from factorq_trainers.experiments import paper, paper_drivers
 
     if not fast.is_available():
         print("\nbatched steps: the fast path is unavailable here")
@@ -164,9 +163,8 @@ def batched_steps() -> None:
     config = paper.PaperConfig(out="unused")
     print("\nbatched steps of the default paper batch (the slowest experiment's total steps)")
     for algorithm in config.algorithms:
-        keys = paper.experiment_keys(config, algorithm)
-        counter = checkpoint.Checkpointer(config.out, paper.config_dict(config), "fast")
-        metrics = paper._run_fast(paper.Job(config, algorithm, keys, lambda e, x: None, counter))
+        keys = paper_drivers.experiment_keys(config, algorithm)
+        metrics = paper_drivers.run_fast(config, algorithm, keys, lambda e, x: None)
         steps = metrics["steps"].sum(dim=(1, 2)).double().view(len(config.worlds), -1)
         worst = [
             f"{world} {int(row.max()):,}" for world, row in zip(config.worlds, steps, strict=True)

@@ -1,9 +1,9 @@
-"""Wall time of a sweep in-process and on a 2-worker Dask ``LocalCluster``, per-shard overhead,
-scaling efficiency, and what one shard's result weighs.
+"""Wall time of a sweep in-process and on a 2-worker Dask ``LocalCluster``, and the scaling
+efficiency.
 
 The sweep: 16 configurations (obstacles 5, 10, 15, 20 x eta 0.05, 0.1, 0.2, 0.4) x 100 seeds of the
 paper's experiment (3 worlds x 2 algorithms x 10 runs x 200 episodes; ``--episodes`` to shrink it),
-in shards of 25 seeds (64 shards). Measured, each into a fresh directory:
+one task per configuration. Measured, each into a fresh directory:
 
 - ``in-process, 1 thread``: ``run_sweep`` with ``InProcess`` and ``threads=1``: the work of one
   worker, the baseline of the scaling efficiency;
@@ -11,10 +11,6 @@ in shards of 25 seeds (64 shards). Measured, each into a fresh directory:
   process does on 2 cores);
 - ``local cluster, 2 workers``: ``LocalCluster(2 processes x 1 thread)``; its start-up is timed
   apart. Every run is checked to give the same ``sweep.json`` numbers.
-
-Per-shard overhead: 64 shards of one tiny experiment each (1 seed, 1 run, 1 episode, 5x5 grid),
-in-process and on the cluster: the cost of scheduling, shipping the result back and writing its
-file, with next to no work inside.
 
 Scaling efficiency = T(in-process, 1 thread) / (2 x T(cluster)). Run from the repository root:
 
@@ -39,7 +35,6 @@ if str(ROOT) not in sys.path:  # run as a script from anywhere
 
 from factorq_trainers.distributed import sweep_run, sweep_spec  # noqa: E402
 from factorq_trainers.experiments import paper  # noqa: E402
-from factorq_trainers.experiments import paper_shards as shards  # noqa: E402
 from factorq_trainers.runner import cluster  # noqa: E402
 
 
@@ -48,7 +43,6 @@ def _spec(out: Path, episodes: int, threads: int) -> sweep_spec.SweepSpec:
         base=(("episodes", episodes), ("threads", threads)),
         grid=(("obstacles", (5, 10, 15, 20)), ("eta", (0.05, 0.1, 0.2, 0.4))),
         seeds=100,
-        shard_seeds=25,
         out=str(out),
     )
 
@@ -63,29 +57,20 @@ def _timed_sweep(spec: sweep_spec.SweepSpec, executor) -> tuple[float, dict]:
     return time.perf_counter() - started, result
 
 
-def _overhead(executor, directory: Path, count: int = 64) -> float:
-    tiny = paper.PaperConfig(seeds=count, runs=1, episodes=1, size=5, obstacles=2, out="unused")
-    pieces = shards.split(tiny, 1)
-    started = time.perf_counter()
-    shards.run_shards(pieces, directory, executor, lambda shard: None)
-    return (time.perf_counter() - started) / count
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=200, help="episodes per run (200)")
     args = parser.parse_args()
     root = Path(tempfile.mkdtemp(prefix="bench_sweep-"))
-    print(f"16 configurations x 100 seeds, {args.episodes} episodes per run, shards of 25 seeds; "
+    print(f"16 configurations x 100 seeds, {args.episodes} episodes per run; "
           f"{os.cpu_count()} CPUs; scratch {root}", flush=True)  # fmt: skip
-    shards.run_shard(paper.PaperConfig(seeds=1, runs=1, episodes=1, out="unused"))  # build kernel
+    paper.run(paper.PaperConfig(seeds=1, runs=1, episodes=1, out="unused"))  # build the kernel
 
     one, reference = _timed_sweep(_spec(root / "one", args.episodes, 1), cluster.InProcess())
     print(f"in-process, 1 thread: {one:.1f} s", flush=True)
     two, result = _timed_sweep(_spec(root / "two", args.episodes, 2), cluster.InProcess())
     assert _numbers(result) == _numbers(reference)
     print(f"in-process, 2 threads: {two:.1f} s", flush=True)
-    overhead_here = _overhead(cluster.InProcess(), root / "tiny-here")
 
     import distributed
 
@@ -98,16 +83,12 @@ def main() -> None:
     executor = cluster.DaskExecutor(client)
     startup = time.perf_counter() - started
     print(f"cluster start-up: {startup:.1f} s", flush=True)
-    _overhead(executor, root / "warm-up", count=4)  # workers import torch and load the kernel
     on_cluster, result = _timed_sweep(_spec(root / "cluster", args.episodes, 1), executor)
     assert _numbers(result) == _numbers(reference)
     print(f"local cluster, 2 workers: {on_cluster:.1f} s", flush=True)
-    overhead_cluster = _overhead(executor, root / "tiny-cluster")
     executor.close()
     local.close()
 
-    shard_files = sorted((root / "cluster" / "shards").rglob("*.npz"))
-    size = sum(path.stat().st_size for path in shard_files) / len(shard_files)
     gather = result["timing"]["wall_s"] - result["timing"]["compute_s"]
     rows = [
         ("in-process, 1 thread", one, 1.0),
@@ -119,11 +100,8 @@ def main() -> None:
         print(f"| {name} | {seconds:.1f} | {speedup:.2f}x |")
     print(
         f"\nscaling efficiency (2 workers): {one / (2 * on_cluster):.0%}; cluster start-up "
-        f"{startup:.1f} s (not in the sweep's time)\n"
-        f"per-shard overhead (64 one-episode shards): in-process {overhead_here * 1e3:.1f} ms, "
-        f"cluster {overhead_cluster * 1e3:.1f} ms\n"
-        f"shard file (25 seeds, compressed): {size / 1e6:.2f} MB; gathering 16 configurations "
-        f"(load, concatenate, summarise with the bootstrap): {gather:.1f} s"
+        f"{startup:.1f} s (not in the sweep's time); gathering 16 configurations (read back, "
+        f"checked): {gather:.1f} s"
     )
 
 

@@ -76,7 +76,7 @@ DESCRIPTION = (
     "equal env-step budgets; write minigrid.json, minigrid.png and minigrid.md to --out. Needs "
     f"pip install '{EXTRA}'."
 )
-HINT = resources.MINIGRID_HINT
+HINT = "use fewer --seeds or --steps, or smaller --sizes"
 REPORT = "factorq_trainers.reports.minigrid"
 WORK_UNIT = "step"
 NOTICE = (
@@ -169,7 +169,9 @@ def summarise_method(result: dict[str, Any], budget: int, seed: int = 0) -> dict
 
 
 def estimate(config: MiniGridConfig) -> resources.Estimate:
-    """``resources.minigrid_estimate`` for the body of ``config``'s sensor layout.
+    """Peak memory: each method's per-episode records hold a slot per env step of the budget
+    (an episode lasts at least one), and Q-learning's table is ``[S, cells * headings * 2**K,
+    A]`` at the largest size, for the body of ``config``'s sensor layout.
 
     Args:
         config: the experiment.
@@ -177,9 +179,13 @@ def estimate(config: MiniGridConfig) -> resources.Estimate:
     from factorq_envs.body import HEADING
     from factorq_envs.minigrid_adapter import sensor_names
 
-    return resources.minigrid_estimate(
-        config, len(sensor_names(config.layout)), HEADING.num_headings, len(HEADING.actuators)
-    )
+    sensors, headings = len(sensor_names(config.layout)), HEADING.num_headings
+    budget = max(config.budget(int(size)) for size in config.sizes)
+    cells = max(int(size) ** 2 for size in config.sizes)
+    records = 3 * config.seeds * budget * resources.METRIC_BYTES
+    tables = config.seeds * cells * headings * (1 << sensors) * len(HEADING.actuators) * 4
+    parts = {"episode records": records, "tables": tables}
+    return resources.Estimate(parts, budget * config.seeds * len(config.methods), exact_steps=True)
 
 
 def units(config: MiniGridConfig) -> list[dict[str, Any]]:

@@ -43,7 +43,7 @@ from factorq_trainers.experiments.paper_drivers import (
     threads_used,
 )
 from factorq_trainers.runner import resources
-from factorq_trainers.runner.kept import COUNT, NON_NEGATIVE, NUMBER, TEXT
+from factorq_trainers.runner.kept import COUNT, NUMBER, TEXT
 from factorq_trainers.runner.schema import CURVE_NAMES
 
 NAME = "paper"
@@ -54,7 +54,7 @@ DESCRIPTION = (
 )
 FILES = {"json": "results.json", "report": "report.md", "figure": "figure3.png"}
 REPORT = "factorq_trainers.reports.report"
-HINT = resources.PAPER_HINT
+HINT = "use fewer --seeds, --shard-seeds, --runs or --episodes, or a smaller --size"
 WORK_UNIT = "episode"
 #: The figure is drawn by a helper process started before torch loads (``cli``).
 FIGURE_PROCESS = True
@@ -120,12 +120,38 @@ def work(config: PaperConfig, unit: dict[str, Any]) -> int:
 
 
 def estimate(config: PaperConfig) -> resources.Estimate:
-    """``resources.paper_estimate`` of ``config``.
+    """Peak memory of ``factorq paper`` with ``config``: one unit's batch (the larger
+    algorithm's tables, the kernel's or the env's state, the metrics and their reduction) and
+    every unit's result gathered for the summary (per-seed, per-episode counts and curves).
 
     Args:
         config: the experiment.
     """
-    return resources.paper_estimate(config)
+    world = config.world
+    count = len(config.worlds) * min(config.shard_seeds, config.seeds)  # experiments of a unit
+    positions, actions = world.num_cells * world.num_headings, world.num_actuators
+    tables = 0
+    for algorithm in config.algorithms:
+        states = positions << world.num_sensors if algorithm == "q-learning" else positions
+        # Q [E, states, A] float32, and Factor-Q's rho and kappa [E, A, 2**parents] (12 bytes)
+        local = 0 if algorithm == "q-learning" else actions * (2 << world.num_sensors) * 12
+        tables = max(tables, count * (states * actions * 4 + local))
+    # The kernel's padded grid, obstacle positions and counters; the modular env holds the
+    # obstacles [E, N] bool and a few observation TensorDicts besides.
+    state = count * ((config.size + 2) ** 2 + 4 * config.obstacles + resources.EXPERIMENT_BYTES)
+    if config.backend == "modular":
+        state += 4 * count * world.num_cells
+    unit_metrics = count * config.runs * config.episodes * resources.METRIC_BYTES
+    # every seed's per-episode counts, kept and gathered: a number and its JSON text each
+    gathered = len(config.cells) * config.seeds * config.episodes * len(CURVES) * (32 + 24)
+    parts = {
+        "tables": tables,
+        "run state": state,
+        "metrics": unit_metrics * 2,
+        "curves": gathered + len(config.cells) * config.episodes * resources.CURVE_POINT_BYTES,
+    }
+    episodes = len(config.cells) * config.seeds * config.runs * config.episodes
+    return resources.Estimate(parts, episodes * 2 * (config.size - 1), exact_steps=False)
 
 
 def prepare(config: PaperConfig) -> None:

@@ -23,26 +23,22 @@ True
 
 from __future__ import annotations
 
-import math
 import os
-from dataclasses import replace
 from pathlib import Path
 from typing import Any, NamedTuple
-
-from factorq_torch.base.validation import MAX_PARENTS
 
 #: A run needing at least this much memory prints its estimate before it starts.
 LARGE_BYTES = 2**30
 #: Overrides (lowers) the memory limit, in bytes: for tests, and for users sharing a machine.
 LIMIT_VARIABLE = "FACTORQ_MEMORY_LIMIT"
 #: Bytes per episode of metrics: steps, collisions, greedy collisions (int64), task return (f32).
-_METRIC_BYTES = 8 + 8 + 8 + 4
+METRIC_BYTES = 8 + 8 + 8 + 4
 #: Bytes per point of a per-episode curve in the results: a Python float in a list, and its
 #: JSON text (mean, low and high, for each of the 3 curves).
-_CURVE_POINT_BYTES = 9 * (32 + 24)
+CURVE_POINT_BYTES = 9 * (32 + 24)
 #: Bytes per experiment of the kernel's and the env's small per-experiment state (keys, counters,
 #: local tables, bump bits, per-episode sums), rounded up.
-_EXPERIMENT_BYTES = 512
+EXPERIMENT_BYTES = 512
 
 
 class ResourceError(ValueError):
@@ -108,70 +104,6 @@ def available_memory() -> tuple[int | None, str]:
     return min(limits)
 
 
-def paper_estimate(config: Any, checkpointing: bool = False, world: Any = None) -> Estimate:
-    """Peak memory of ``factorq paper`` with ``config`` (a ``PaperConfig``): the running
-    algorithm's tables, state and metrics, the finished algorithms' metrics, the results' curves
-    (and, with ``checkpointing``, a copy of the running state being saved). ``world``: another
-    world than the config's grid (an ``factorq_envs.protocol.World``), whose config gives the
-    sizes."""
-    count = len(config.worlds) * config.seeds  # experiments of one algorithm
-    # the body: sensors, actuators, headings
-    world = config.world if world is None else world.config
-    cells = world.num_cells
-    positions = cells * world.num_headings
-    actions = world.num_actuators
-    episodes = count * config.runs * config.episodes
-    metrics = episodes * _METRIC_BYTES
-    tables, state = 0, 0
-    for algorithm in config.algorithms:
-        states = positions << world.num_sensors if algorithm == "q-learning" else positions
-        # Q [E, states, A] float32, and Factor-Q's rho and kappa [E, A, 2**parents] (12 bytes)
-        local = 0 if algorithm == "q-learning" else actions * (2 << world.num_sensors) * 12
-        tables = max(tables, count * (states * actions * 4 + local))
-    # The kernel's padded grid, obstacle positions and counters; the modular env holds the
-    # obstacles [E, N] bool and a few observation TensorDicts besides.
-    state = count * ((config.size + 2) ** 2 + 4 * config.obstacles + _EXPERIMENT_BYTES)
-    if config.backend == "modular":
-        state += 4 * count * cells
-    parts = {
-        "tables": tables,
-        "run state": state,
-        # the running algorithm's metrics, its copy when it finishes, the finished ones'
-        "metrics": metrics * (len(config.algorithms) + 1),
-        "curves": len(config.worlds)
-        * len(config.algorithms)
-        * config.episodes
-        * _CURVE_POINT_BYTES,
-    }
-    if checkpointing:
-        parts["checkpoint"] = tables + state + metrics * 2  # state_dict copy and its file buffer
-    shortest = 2 * (config.size - 1)  # no episode is shorter than the Manhattan distance
-    return Estimate(parts, episodes * len(config.algorithms) * shortest, exact_steps=False)
-
-
-def sweep_estimate(configs: list[Any], shard_seeds: int, workers: int) -> Estimate:
-    """Peak memory of a sweep on this machine: ``workers`` shards of the largest configuration
-    at once (``shard_seeds`` seeds each; ``workers`` local processes, 1 in-process), plus the
-    metrics and curves of the largest configuration, gathered here for its summary."""
-    shard = max(
-        (
-            paper_estimate(replace(config, seeds=min(shard_seeds, config.seeds)))
-            for config in configs
-        ),
-        key=lambda estimate: estimate.bytes,
-    )
-    gathered = max(
-        (paper_estimate(config) for config in configs),
-        key=lambda estimate: estimate.parts["metrics"],
-    )
-    parts = {
-        "shards at once": shard.bytes * max(workers, 1),
-        "gathered metrics": gathered.parts["metrics"] + gathered.parts["curves"],
-    }
-    steps = sum(paper_estimate(config).env_steps for config in configs)
-    return Estimate(parts, steps, exact_steps=False)
-
-
 def tasks_estimate(tasks: list[Estimate], workers: int) -> Estimate:
     """Peak memory and env steps of a sweep whose configurations each run whole, as tasks
     (``compare``'s, a command of the runner's): ``workers`` of its largest task at once (each
@@ -227,7 +159,7 @@ def compare_estimate(config: Any, checkpointing: bool = False) -> Estimate:
             # train_every steps of every experiment (all of a step's entries, ~200 bytes each).
             parts["replay buffer"] = min(settings.buffer_size, experiments.steps) * count * 38
             parts["collector"] = settings.train_every * count * (200 + 4 * width)
-        parts["env"] = count * (cells + _EXPERIMENT_BYTES)
+        parts["env"] = count * (cells + EXPERIMENT_BYTES)
         if checkpointing:  # the saved state: copied once (state_dict, the records' arrays)
             saved = ("tables", "networks", "replay buffer")
             parts["checkpoint copy"] = sum(parts.get(name, 0) for name in saved) + records
@@ -273,44 +205,5 @@ def info(estimate: Estimate) -> dict[str, Any]:
     return {"bytes": estimate.bytes, "parts": dict(estimate.parts), "env_steps": estimate.env_steps}
 
 
-def dependencies_estimate(config: Any) -> Estimate:
-    """Peak memory of ``factorq dependencies`` with ``config`` (a ``DependenciesConfig``): the
-    settings run one after another, so the largest one's learner counts (8 float64 arrays
-    ``[S, A, C, 2**max_parents]``, ``C`` the candidate parent sets, and their copy), task tables,
-    local tables (the joint table's ``2**K`` entries where they fit) and metrics. Measured: 3.0
-    GiB estimated for 3,000 seeds against a peak RSS 3.2 GiB above the interpreter's."""
-    largest, steps = 0, 0
-    episodes = config.seeds * config.runs * config.episodes
-    for setting in config.settings:
-        world = config.world_of(setting)
-        sensors, actions = world.num_sensors, world.num_actuators
-        candidates = sum(math.comb(sensors, p) for p in range(min(config.max_parents, sensors) + 1))
-        # the kernel's counts and the copy ``learner_state()`` hands the summary
-        counts = 2 * 8 * 8 * actions * candidates * (1 << min(config.max_parents, sensors))
-        tables = world.num_cells * world.num_headings * actions * 4
-        joint = actions * (1 << sensors) * 12 if sensors <= MAX_PARENTS else 0
-        per_experiment = counts + 2 * tables + joint + _EXPERIMENT_BYTES
-        largest = max(largest, config.seeds * per_experiment + 3 * episodes * _METRIC_BYTES)
-        steps += episodes * len(config.methods) * 2 * (config.size - 1)
-    return Estimate({"learners, tables and metrics": largest}, steps, exact_steps=False)
-
-
-def minigrid_estimate(config: Any, sensors: int, headings: int, actions: int) -> Estimate:
-    """Peak memory of ``factorq minigrid`` with ``config`` (a ``MiniGridConfig``) for a body of
-    ``sensors``, ``headings`` and ``actions``: each method's per-episode records hold a slot per
-    env step of the budget (an episode lasts at least one), and Q-learning's table is
-    ``[S, cells * headings * 2**K, A]`` at the largest size."""
-    budget = max(config.budget(int(size)) for size in config.sizes)
-    cells = max(int(size) ** 2 for size in config.sizes)
-    records = 3 * config.seeds * budget * _METRIC_BYTES
-    tables = config.seeds * cells * headings * (1 << sensors) * actions * 4
-    parts = {"episode records": records, "tables": tables}
-    return Estimate(parts, budget * config.seeds * len(config.methods), exact_steps=True)
-
-
-#: What to make smaller, per command.
-PAPER_HINT = "use fewer --seeds, --runs or --episodes, or a smaller --size"
+#: What to make smaller (a command declares its own ``HINT``).
 COMPARE_HINT = "use fewer --seeds or --steps, or a smaller --size"
-SWEEP_HINT = "use fewer --seeds, --shard-seeds or --cluster workers, or smaller configurations"
-DEPENDENCIES_HINT = "use fewer --seeds, --runs or --episodes, or fewer --settings"
-MINIGRID_HINT = "use fewer --seeds or --steps, or smaller --sizes"
