@@ -9,7 +9,8 @@
   The digest was re-recorded once, in issue 28: Student's t quantile from ``scipy.stats.t``
   instead of a series (closer to the exact value by 2.4e-15 at 99 dof) moved 3,537 interval
   bounds by at most 6e-14 relative; every mean, per-seed value and claim stayed the same, and the
-  old quantile still gives the old digest (docs/decisions.md, issue 28's section).
+  old quantile still gives the old digest (docs/decisions.md, "Which interval
+  each report uses").
 """
 
 from __future__ import annotations

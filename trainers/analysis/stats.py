@@ -1,7 +1,7 @@
 """Confidence intervals across seeds: every seed is one independent experiment.
 
-Which interval a measure gets depends on what values it can take (docs/decisions.md, "Documentation,
-types and statistics"):
+Which interval a measure gets depends on what values it can take (docs/decisions.md, "Which
+interval each report uses"):
 
 - An unbounded mean, or one far from its bounds over many seeds (the paper's cells and curves):
   Student's t interval, ``mean +- t(0.975, S - 1) * sd / sqrt(S)`` (``mean_ci``; the quantile
