@@ -17,7 +17,7 @@ from factorq_trainers.experiments import paper, paper_drivers
 from factorq_trainers.experiments.paper import PaperConfig
 from factorq_trainers.runner import frame, options
 from factorq_trainers.runner.results import dumps as dumps_results
-from factorq_trainers.runner.schema import SCHEMA_VERSION, check_results
+from factorq_trainers.reports.paper_schema import SCHEMA_VERSION, check_results
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 TINY = {"seeds": 2, "runs": 2, "episodes": 3, "size": 5, "obstacles": 3}

@@ -12,7 +12,7 @@ from test_report import synthetic_results
 from factorq_trainers.reports import report
 from factorq_trainers.runner.reading import MAX_DEPTH
 from factorq_trainers.runner.results import SCHEMA_VERSION
-from factorq_trainers.runner.schema import (
+from factorq_trainers.reports.paper_schema import (
     ResultsFileError,
     check_results,
     escape_markdown,

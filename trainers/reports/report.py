@@ -21,7 +21,7 @@ from factorq_trainers.analysis.stats import format_number
 from factorq_trainers.reports import FigureError, paper_figure
 from factorq_trainers.reports.figure_process import FigureProcess, FigureProcessError
 from factorq_trainers.runner.results import body_label, temporary_path, write_all_atomic
-from factorq_trainers.runner.schema import escape_markdown, load_results_file, markdown_code
+from factorq_trainers.reports.paper_schema import escape_markdown, load_results_file, markdown_code
 
 RESULTS_FILE = "results.json"
 FIGURE_FILE = "figure3.png"
