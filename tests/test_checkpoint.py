@@ -19,9 +19,9 @@ from timing import patience  # tests/timing.py: bounds that stretch with the loa
 from factorq_trainers import cli
 from factorq_trainers.compiled import fast
 from factorq_trainers.experiments import paper
-from factorq_trainers.experiments.paper import PaperConfig
+from factorq_trainers.experiments.paper_config import PaperConfig
 from factorq_trainers.runner import checkpoint
-from factorq_trainers.runner.checkpoint import CheckpointError
+from factorq_trainers.runner.checkpoint_files import CheckpointError
 from factorq_trainers.runner.results import dumps as dumps_results
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")

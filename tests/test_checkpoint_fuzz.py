@@ -21,7 +21,8 @@ import torch
 from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers.compiled import fast
-from factorq_trainers.experiments.paper import PaperConfig, run
+from factorq_trainers.experiments.paper import run
+from factorq_trainers.experiments.paper_config import PaperConfig
 from factorq_trainers.runner import checkpoint
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")

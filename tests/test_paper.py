@@ -20,10 +20,11 @@ from timing import patience  # tests/timing.py: bounds that stretch with the loa
 from factorq_trainers.compiled import fast, loader
 from factorq_trainers.experiments import paper
 from factorq_trainers.experiments import paper_processes as processes
-from factorq_trainers.experiments.paper import PaperConfig
+from factorq_trainers.experiments.paper_config import PaperConfig
 from factorq_trainers.runner import options
+from factorq_trainers.runner.results import SCHEMA_VERSION
 from factorq_trainers.runner.results import dumps as dumps_results
-from factorq_trainers.runner.schema import SCHEMA_VERSION, check_results
+from factorq_trainers.runner.schema import check_results
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 TINY = {"seeds": 2, "runs": 2, "episodes": 3, "size": 5, "obstacles": 3}

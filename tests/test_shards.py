@@ -10,7 +10,7 @@ import pytest
 from factorq_trainers.compiled import fast
 from factorq_trainers.experiments import paper
 from factorq_trainers.experiments import paper_shards as shards
-from factorq_trainers.experiments.paper import PaperConfig
+from factorq_trainers.experiments.paper_config import PaperConfig
 from factorq_trainers.runner import results as result_files
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
