@@ -172,7 +172,7 @@ def modular_throughput(
             loss = FactorQLoss(task, local, gamma=agent.gamma, alpha=agent.alpha)
         else:
             task = TaskQTable(
-                count, world.num_cells, with_proximity=True, device=device, sparse_grad=True
+                count, world.num_cells, with_sensors=True, device=device, sparse_grad=True
             )
             chooser = EpsilonGreedyPolicy(count, seed=0, epsilon=agent.epsilon, device=device)
             policy = TensorDictSequential(task, chooser)
@@ -424,7 +424,7 @@ def _memory(loop: str, count: int) -> dict:
 
 def _machine(device: str) -> None:
     """The kernel's build and the machine's CPUs and load, as the tables' header."""
-    info = fast.build_info()
+    info = loader.build_info()
     print(f"kernel: {Path(info['path']).name}, cc {' '.join(loader._FLAGS)}")
     load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
     version = f", numba {numba_anchor.numba.__version__}" if numba_anchor.available() else ""

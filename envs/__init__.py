@@ -1,4 +1,5 @@
-"""envs: the FactoredGrid world of the paper, for torchrl and gymnasium.
+"""factorq_envs (the folder ``envs/``): the FactoredGrid world of the paper, for torchrl and
+gymnasium.
 
 Importing the package registers the gymnasium id ``"FactoredGrid-v0"``. The torchrl classes and
 the grid world load on first use, so code that needs only the obstacle regimes
@@ -24,7 +25,7 @@ __all__ = list(_LAZY)
 def __getattr__(name: str) -> Any:
     if name in _LAZY:
         return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'envs' has no attribute {name!r}")
+    raise AttributeError(f"module 'factorq_envs' has no attribute {name!r}")
 
 
 # Episodes end inside the env (truncated at max_steps), so no TimeLimit wrapper is added.

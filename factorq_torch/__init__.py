@@ -7,7 +7,7 @@ importable from the package itself and load on first use, so ``import factorq_to
 
     from factorq_torch import FactorQLoss, FactorQPolicy, LocalRewardTable, TaskQTable
 
-The worlds are in ``envs`` (``FactoredGridEnv``, ``SplitLocalReward``, ``ExperimentIndex``,
+The worlds are in ``factorq_envs`` (``FactoredGridEnv``, ``SplitLocalReward``, ``ExperimentIndex``,
 ``RenderPixels``, the gymnasium id ``"FactoredGrid-v0"``), which this package never imports.
 """
 

@@ -104,7 +104,7 @@ class OnlineCollector(BaseCollector):
         >>> from factorq_torch.policy import EpsilonGreedyPolicy
         >>> from factorq_torch.tables import TaskQTable
         >>> env = FactoredGridEnv(size=3, num_obstacles=1, batch_size=(2,))
-        >>> table = TaskQTable(2, num_cells=9, with_proximity=True)
+        >>> table = TaskQTable(2, num_cells=9, with_sensors=True)
         >>> policy = TensorDictSequential(table, EpsilonGreedyPolicy(2, seed=0))
         >>> collector = OnlineCollector(env, policy, TabularQLoss(table), runs=2, episodes=3)
         >>> metrics = collector.run()

@@ -333,7 +333,7 @@ class TabularQLoss(_TransitionLoss):
 
     Args:
         task_value_network: writes ``action_value`` ``[S, A]`` (e.g. ``TaskQTable`` with
-            ``with_proximity=True``); run with gradients at ``s``, without at ``s'``.
+            ``with_sensors=True``); run with gradients at ``s``, without at ``s'``.
         gamma: discount, in ``[0, 1)``.
         alpha: learning rate of eq. 1, in ``(0, 1]``.
         reduction: ``"sum"`` (exact tabular update) or ``"mean"`` over experiments.

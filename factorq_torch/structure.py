@@ -118,7 +118,7 @@ from torch.autograd.graph import increment_version
 from factorq_torch.base import keys
 from factorq_torch.base.indices import row_starts, scalar
 from factorq_torch.base.validation import check_float, check_int
-from factorq_torch.functional import (  # noqa: F401  (the structure math, re-exported)
+from factorq_torch.functional import (
     LIKELIHOODS,
     MAX_CANDIDATE_PARENTS,
     MAX_SENSORS,
@@ -126,10 +126,8 @@ from factorq_torch.functional import (  # noqa: F401  (the structure math, re-ex
     NOISY_PRIOR,
     PAIR_MODES,
     PREDICTIONS,
-    PRIORS,
     REOPENINGS,
     ROW_KERNEL_VALUES,
-    SPARSE_PAIR_MASS,
     beta_bernoulli_log_marginal,
     candidate_log_prior,
     candidate_sets,

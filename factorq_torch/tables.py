@@ -38,9 +38,8 @@ from torch.autograd.graph import increment_version
 from factorq_torch.base import keys
 from factorq_torch.base.config import PAPER_NUM_ACTIONS
 from factorq_torch.base.indices import row_starts, scalar
-from factorq_torch.base.validation import (  # MAX_TABLE_ENTRIES: re-exported
+from factorq_torch.base.validation import (
     MAX_PARENTS,
-    MAX_TABLE_ENTRIES,  # noqa: F401
     check_device,
     check_finite,
     check_indices,
@@ -243,8 +242,7 @@ class TaskQTable(TensorDictModuleBase):
     Args:
         num_experiments: ``S``, the experiments of the batch.
         num_cells: ``N``, cells of the grid (``size**2``).
-        with_sensors: add the pattern of all sensors to the state (Q-learning);
-            ``with_proximity`` is its older name.
+        with_sensors: add the pattern of all sensors to the state (Q-learning).
         num_sensors: ``K`` (4 in the paper's body).
         num_headings: ``H``, 1 without a heading, 4 with one (read from ``heading``).
         num_actions: ``A`` (4 in the paper's body).
@@ -275,7 +273,6 @@ class TaskQTable(TensorDictModuleBase):
         num_cells: int,
         *,
         with_sensors: bool = False,
-        with_proximity: bool = False,
         num_sensors: int = NUM_ACTIONS,
         num_headings: int = 1,
         num_actions: int = NUM_ACTIONS,
@@ -291,8 +288,7 @@ class TaskQTable(TensorDictModuleBase):
         self.num_actions = check_int("num_actions", num_actions, 1)
         self.num_sensors = check_int("num_sensors", num_sensors, 0, 62)
         self.num_headings = check_int("num_headings", num_headings, 1)
-        self.with_sensors = bool(with_sensors or with_proximity)
-        self.with_proximity = self.with_sensors  # the older name
+        self.with_sensors = bool(with_sensors)
         self.sensors_key = sensors_key
         positions = num_cells * num_headings
         self.num_states = positions << num_sensors if self.with_sensors else positions

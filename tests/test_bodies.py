@@ -298,7 +298,7 @@ def test_task_table_indexes_cell_heading_and_the_pattern_of_all_sensors():
 )
 def test_the_paper_experiment_runs_other_bodies_on_the_modular_path(options):
     from factorq_trainers.experiments import paper
-    from factorq_trainers.experiments.paper import PaperConfig
+    from factorq_trainers.experiments.paper_config import PaperConfig
 
     # Episodes cut at 60 steps: the heading body wanders for up to 200 at first, and its equality
     # with the kernel on random bodies is test_fast_bodies.py's; this one runs the whole command.
@@ -337,7 +337,7 @@ def test_factorq_with_the_oracle_dependency_ignores_diagonals_distractors_and_or
     # The tables only read each actuator's parent sensor: on ring + distractors, permuted, Factor-Q
     # makes exactly the paper body's decisions (same world and policy streams), bit for bit.
     from factorq_trainers.experiments import paper
-    from factorq_trainers.experiments.paper import PaperConfig
+    from factorq_trainers.experiments.paper_config import PaperConfig
     from factorq_trainers.runner.results import dumps as dumps_results
 
     small = {

@@ -151,7 +151,7 @@ def test_tabular_q_learning_trains_from_replay_minibatches():
     S = 2
     env = FactoredGridEnv(size=4, num_obstacles=2, batch_size=(S,))
     env = TransformedEnv(env, ExperimentIndex())
-    table = TaskQTable(S, num_cells=16, with_proximity=True)
+    table = TaskQTable(S, num_cells=16, with_sensors=True)
     actor = TensorDictSequential(table, EpsilonGreedyPolicy(S, epsilon=0.3))
     buffer = ReplayBuffer(storage=LazyTensorStorage(1000), batch_size=32)
     with torch.no_grad():

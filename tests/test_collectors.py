@@ -42,7 +42,7 @@ def build(algorithm, periods, world, agent, seed, runs, episodes, progress=None)
             task, local, gamma=agent.gamma, alpha=agent.alpha, eta=agent.eta, g_min=agent.g_min
         )
     else:
-        task, local = TaskQTable(batch, world.num_cells, with_proximity=True), None
+        task, local = TaskQTable(batch, world.num_cells, with_sensors=True), None
         policy = TensorDictSequential(
             task, EpsilonGreedyPolicy(batch, seed=seed, epsilon=agent.epsilon)
         )
@@ -186,7 +186,7 @@ def test_collector_state_round_trips_through_state_dict():
 
 def test_tables_built_for_another_batch_size_than_the_env_are_refused():
     env = FactoredGridEnv(size=3, num_obstacles=1, batch_size=(3,))
-    table = TaskQTable(2, num_cells=9, with_proximity=True)
+    table = TaskQTable(2, num_cells=9, with_sensors=True)
     policy = TensorDictSequential(table, EpsilonGreedyPolicy(2))
     with pytest.raises(ValueError, match="env has batch_size \\[3\\] but TaskQTable holds S=2"):
         OnlineCollector(env, policy, TabularQLoss(table), runs=1, episodes=1)
@@ -194,7 +194,7 @@ def test_tables_built_for_another_batch_size_than_the_env_are_refused():
 
 def test_bad_budgets_and_env_shapes_are_refused():
     env = FactoredGridEnv(size=3, num_obstacles=1, batch_size=(2,))
-    table = TaskQTable(2, num_cells=9, with_proximity=True)
+    table = TaskQTable(2, num_cells=9, with_sensors=True)
     policy = TensorDictSequential(table, EpsilonGreedyPolicy(2))
     with pytest.raises(ValueError, match="runs=0 is out of range"):
         OnlineCollector(env, policy, TabularQLoss(table), runs=0, episodes=1)

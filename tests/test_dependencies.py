@@ -16,7 +16,7 @@ from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import derive_keys
 from factorq_trainers import cli
 from factorq_trainers.compiled import fast
-from factorq_trainers.experiments import dependencies
+from factorq_trainers.experiments import dependencies, dependencies_config, dependencies_methods
 from factorq_trainers.reports import dependencies as dependencies_report
 from factorq_trainers.runner import frame
 
@@ -101,7 +101,9 @@ def test_bad_options_are_one_clear_error(options, message):
 
 
 def test_a_body_without_local_rewards_is_refused(monkeypatch):
-    monkeypatch.setitem(dependencies.SETTINGS, "cross", {"body": "translate", "sensors": "cross"})
+    monkeypatch.setitem(
+        dependencies_config.SETTINGS, "cross", {"body": "translate", "sensors": "cross"}
+    )
     no_collisions = torch.zeros(4, 4, dtype=torch.bool)
     monkeypatch.setattr(WorldConfig, "dependency", property(lambda self: no_collisions))
     with pytest.raises(ValueError, match="without local rewards"):
@@ -117,7 +119,7 @@ def test_cli_refuses_a_reopen_factor_of_one_and_reports_a_given_one(capsys, tmp_
     assert cli.main(["dependencies", "--reopen-factor", "1"]) == 2
     assert "--reopen-factor=1.0 is out of range" in capsys.readouterr().err
     config = dependencies.DependenciesConfig(reopen_factor=1e4)
-    assert dependencies._learner_options(config)["reopen_factor"] == 1e4
+    assert dependencies_methods._learner_options(config)["reopen_factor"] == 1e4
     results = {"config": dataclasses.asdict(config), "timing": {"wall_s": 1.0}}
     results["settings"] = {}
     assert "reopening at Bayes factor 10000" in dependencies_report.markdown(results)
@@ -125,7 +127,7 @@ def test_cli_refuses_a_reopen_factor_of_one_and_reports_a_given_one(capsys, tmp_
     config = dependencies.DependenciesConfig(noisy_reopen_factor=None)
     results["config"] = dataclasses.asdict(config)
     assert "once sensors read wrong" not in dependencies_report.markdown(results)
-    assert dependencies._learner_options(config)["noisy_reopen_factor"] is None
+    assert dependencies_methods._learner_options(config)["noisy_reopen_factor"] is None
 
 
 def test_cli_refuses_a_prior_the_compiled_path_cannot_take(capsys):
@@ -133,7 +135,7 @@ def test_cli_refuses_a_prior_the_compiled_path_cannot_take(capsys):
     assert "--prior-a=0.1: the compiled path" in capsys.readouterr().err
     # the modular path takes it (nothing runs: the check is the config's)
     config = dependencies.DependenciesConfig(prior_a=0.1, path="modular")
-    assert dependencies._learner_options(config)["prior_a"] == 0.1
+    assert dependencies_methods._learner_options(config)["prior_a"] == 0.1
 
 
 def test_the_priors_reach_the_learner(tmp_path):
@@ -223,7 +225,9 @@ def test_a_settings_streams_derive_from_its_content_not_its_position(monkeypatch
     assert custom.settings == ("custom",)
     assert custom.setting_stream("custom") == before["cross"]  # the same content
     monkeypatch.setattr(
-        dependencies, "SETTINGS", {"new": {"body": "heading"}, **dependencies.SETTINGS}
+        dependencies_config,
+        "SETTINGS",
+        {"new": {"body": "heading"}, **dependencies_config.SETTINGS},
     )
     assert {name: config.setting_stream(name) for name in config.settings} == before
 

@@ -310,13 +310,14 @@ def test_the_experiment_command_at_a_tiny_budget(tmp_path):
     deterministic ``run_unit``, a summary, the report and the figure (MiniGrid 8x8: fast)."""
     pytest.importorskip("minigrid")
     from factorq_trainers.experiments import gym as experiment
+    from factorq_trainers.experiments.gym_config import DEFAULT_METHODS
     from factorq_trainers.reports import gym as report_module
 
     config = experiment.GymConfig(
         world="minigrid-8x8", seeds=1, steps=40, eval_episodes=1, curve_points=4
     )
     units = experiment.units(config)
-    assert [u["id"] for u in units] == [f"{m}-seed0" for m in experiment.DEFAULT_METHODS]
+    assert [u["id"] for u in units] == [f"{m}-seed0" for m in DEFAULT_METHODS]
     results = [experiment.run_unit(config, unit) for unit in units]
     again = experiment.run_unit(config, units[1])  # factor-q-oracle, seed 0
     assert again["curve_crashes"] == results[1]["curve_crashes"]

@@ -130,7 +130,7 @@ def test_a_fifo_where_a_results_file_belongs_is_named_as_such_not_missing(tmp_pa
 def _kept_shard(tmp_path):
 
     from factorq_trainers.experiments import paper_shards as shards
-    from factorq_trainers.experiments.paper import PaperConfig
+    from factorq_trainers.experiments.paper_config import PaperConfig
 
     shard = PaperConfig(seeds=2, runs=2, episodes=3)
     rng = np.random.default_rng(0)

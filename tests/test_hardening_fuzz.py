@@ -197,7 +197,7 @@ def test_a_shard_file_of_any_content_gives_metrics_or_a_value_error(config, arra
     import numpy as np
 
     from factorq_trainers.experiments import paper_shards as shards
-    from factorq_trainers.experiments.paper import PaperConfig
+    from factorq_trainers.experiments.paper_config import PaperConfig
 
     with tempfile.TemporaryDirectory() as directory:
         path = Path(directory) / "000000-000001.npz"

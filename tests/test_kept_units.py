@@ -337,4 +337,4 @@ def test_factorq_report_refuses_a_results_file_written_before_versioning(tmp_pat
     (tmp_path / "dependencies.json").write_text(json.dumps(results))
     assert main(["report", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "has no schema_version (written before versioning)" in err[0]
+    assert len(err) == 1 and "has no schema_version: run" in err[0]

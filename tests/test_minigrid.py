@@ -242,7 +242,7 @@ def test_cli_runs_a_tiny_budget(tmp_path, capsys):
 
 
 def default_methods():
-    from factorq_trainers.experiments.minigrid import DEFAULT_METHODS
+    from factorq_trainers.experiments.minigrid_config import DEFAULT_METHODS
 
     return DEFAULT_METHODS
 

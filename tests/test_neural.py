@@ -9,10 +9,9 @@ from tensordict.nn import TensorDictSequential
 from torchrl.envs import TransformedEnv
 
 from factorq_envs import FactoredGridEnv, SplitLocalReward
-from factorq_torch.base.rng import derive_keys
+from factorq_torch.base.rng import STREAM_TASK_NETWORK, derive_keys
 from factorq_torch.collectors import OnlineCollector
 from factorq_torch.neural import (
-    STREAM_TASK_NETWORK,
     BatchedMLP,
     GatedLocalRewardNetwork,
     LocalRewardNetwork,

@@ -111,7 +111,7 @@ def test_factorq_loss_does_not_bootstrap_past_the_goal():
 
 
 def test_tabular_q_loss_applies_eq_1_with_the_conventional_reward():
-    task = TaskQTable(1, num_cells=2, with_proximity=True)
+    task = TaskQTable(1, num_cells=2, with_sensors=True)
     proximity = torch.tensor([[True, False, False, False]])  # pattern 1
     with torch.no_grad():
         task.table[0, 0 * 16 + 1, 0] = 0.5  # Q(s, north)
@@ -180,7 +180,7 @@ def test_one_sgd_step_of_learning_rate_1_on_the_factorq_loss_equals_q_update_bit
 def test_one_sgd_step_of_learning_rate_1_on_the_tabular_loss_equals_q_update_bit_for_bit():
     generator = torch.Generator().manual_seed(1)
     batch, num_cells = 256, 3
-    task = TaskQTable(batch, num_cells, with_proximity=True)
+    task = TaskQTable(batch, num_cells, with_sensors=True)
     with torch.no_grad():
         task.table.copy_(torch.randn(task.table.shape, generator=generator) * 3)
     td = random_batch(batch, num_cells, generator, local=False)

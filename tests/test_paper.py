@@ -14,10 +14,11 @@ from factorq_envs.regimes import REGIMES
 from factorq_torch.base.config import ALGORITHMS
 from factorq_trainers.compiled import fast, loader
 from factorq_trainers.experiments import paper, paper_drivers
-from factorq_trainers.experiments.paper import PaperConfig
+from factorq_trainers.experiments.paper_config import PaperConfig
+from factorq_trainers.reports.paper_schema import check_results
 from factorq_trainers.runner import frame, options
+from factorq_trainers.runner.results import SCHEMA_VERSION
 from factorq_trainers.runner.results import dumps as dumps_results
-from factorq_trainers.reports.paper_schema import SCHEMA_VERSION, check_results
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 TINY = {"seeds": 2, "runs": 2, "episodes": 3, "size": 5, "obstacles": 3}

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from factorq_trainers.experiments import paper
-from factorq_trainers.experiments.paper import PaperConfig
+from factorq_trainers.experiments.paper_config import PaperConfig
 from factorq_trainers.reports import report
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

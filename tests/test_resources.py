@@ -13,7 +13,7 @@ import pytest
 
 from factorq_trainers import cli
 from factorq_trainers.experiments.compare import CompareConfig
-from factorq_trainers.experiments.paper import PaperConfig
+from factorq_trainers.experiments.paper_config import PaperConfig
 from factorq_trainers.runner import resources
 
 NEEDS = r"needs about [\d.]+ [KMGTP]iB of memory \(.+\) but [\d.]+ [KMGTP]?i?B is available"
@@ -101,7 +101,7 @@ def test_the_library_entry_points_check_too(tmp_path, monkeypatch):
 
 
 def test_the_dependencies_estimate_grows_with_the_candidate_sets():
-    from factorq_trainers.experiments.dependencies import DependenciesConfig
+    from factorq_trainers.experiments.dependencies_config import DependenciesConfig
 
     cross = resources.dependencies_estimate(DependenciesConfig(seeds=10, settings=("cross",)))
     ring = resources.dependencies_estimate(DependenciesConfig(seeds=10, settings=("ring-24",)))

@@ -339,7 +339,8 @@ def test_explain_names_sensors_of_a_provider_that_does_not_say_how_many():
 @pytest.mark.slow
 @pytest.mark.float_sensitive  # a learned outcome of a network: tried under other CPU kernels
 def test_dqn_with_local_risk_collides_far_less_in_training(one_thread):
-    from factorq_trainers.experiments.risk import RiskConfig, run_unit
+    from factorq_trainers.experiments.risk import run_unit
+    from factorq_trainers.experiments.risk_config import RiskConfig
 
     config = RiskConfig(
         steps=250, grid_size=4, grid_obstacles=2, learning_starts=50, eval_episodes=0
@@ -377,6 +378,7 @@ def test_risky_faces_mark_the_side_of_each_penalised_actuator():
 
 def test_risk_experiment_units_summary_and_report(tmp_path):
     from factorq_trainers.experiments import risk as experiment
+    from factorq_trainers.reports import risk as risk_report
 
     config = experiment.RiskConfig(
         worlds=("grid",), methods=("dqn", "dqn+risk-oracle", "sb3-dqn"), seeds=2
@@ -419,9 +421,9 @@ def test_risk_experiment_units_summary_and_report(tmp_path):
     (ratio,) = results["ratios"]
     assert ratio["collision_ratio"] == pytest.approx(150.0 / 7.5)
     assert ratio["return_gain"] == pytest.approx(1.0)
-    report = experiment.markdown(results)
+    report = risk_report.markdown(results)
     assert "| grid | dqn | 150.0 |" in report and "20.0x" in report and "(1/2)" in report
-    experiment.figure(results, tmp_path / "risk.png")
+    risk_report.figure(results, tmp_path / "risk.png")
     assert (tmp_path / "risk.png").stat().st_size > 0
 
 
@@ -436,7 +438,7 @@ def test_risk_experiment_units_summary_and_report(tmp_path):
     ],
 )
 def test_risk_experiment_config_names_the_bad_field(field, value):
-    from factorq_trainers.experiments.risk import RiskConfig
+    from factorq_trainers.experiments.risk_config import RiskConfig
 
     with pytest.raises(ValueError, match=field):
         RiskConfig(**{field: value})
@@ -487,9 +489,9 @@ def test_factorq_risk_runs_through_the_runner_and_writes_its_files(tmp_path, cap
     # markdown and figure, and writes the three files under --out
     import json
 
+    from factorq_torch.base import risk_text
     from factorq_torch.risk import RiskSummary
     from factorq_trainers import cli
-    from factorq_trainers.reports import risk as risk_report
 
     class Records(logging.Handler):  # torchrl's logger does not propagate: listen on it
         def __init__(self):
@@ -529,7 +531,7 @@ def test_factorq_risk_runs_through_the_runner_and_writes_its_files(tmp_path, cap
     assert row["method"] == "dqn+risk-oracle" and row["episodes"] == len(episodes)
     assert row["steps"] == sum(e["steps"] for e in episodes)
     assert "What the layer did" in report
-    assert risk_report._summary_line(episodes[-1]) == RiskSummary.line(episodes[-1])
+    assert risk_text.summary_line(episodes[-1]) == RiskSummary.line(episodes[-1])
     assert f"- grid dqn+risk-oracle: {RiskSummary.line(episodes[-1])}" in report
 
 
@@ -540,7 +542,7 @@ def test_highway_world_reads_kinematics_and_sensors_and_masks_by_its_penalty():
     pytest.importorskip("highway_env")
     from factorq_envs import highway
     from factorq_trainers.experiments import risk_methods
-    from factorq_trainers.experiments.risk import RiskConfig
+    from factorq_trainers.experiments.risk_config import RiskConfig
 
     env = risk_methods.make_env(RiskConfig(worlds=("highway",)), "highway", 0)
     assert env.reward_key == "reward"  # the conventional reward, what the recipe reads

@@ -12,11 +12,8 @@ from torchrl.envs import TransformedEnv
 
 from factorq_envs import FactoredGridEnv, SplitLocalReward
 from factorq_torch.collectors import OnlineCollector
-from factorq_torch.objectives import FactorQLoss
-from factorq_torch.policy import FactorQPolicy
-from factorq_torch.structure import (
+from factorq_torch.functional import (
     SPARSE_PAIR_MASS,
-    StructureLearner,
     beta_bernoulli_log_marginal,
     candidate_log_prior,
     candidate_sets,
@@ -25,6 +22,9 @@ from factorq_torch.structure import (
     has_minority,
     mixture_log_marginal,
 )
+from factorq_torch.objectives import FactorQLoss
+from factorq_torch.policy import FactorQPolicy
+from factorq_torch.structure import StructureLearner
 from factorq_torch.tables import TaskQTable
 
 

@@ -20,7 +20,7 @@ def test_task_table_writes_each_experiments_row_for_its_cell():
 
 
 def test_qlearning_table_indexes_cell_times_16_plus_the_proximity_pattern():
-    table = TaskQTable(1, num_cells=4, with_proximity=True)
+    table = TaskQTable(1, num_cells=4, with_sensors=True)
     assert table.table.shape == (1, 64, 4)
     with torch.no_grad():
         table.table[0, 3 * 16 + 9] = torch.tensor([1.0, 0.0, 0.0, 0.0])  # pattern N + E = 1 + 8
@@ -180,7 +180,7 @@ def test_a_tensordict_with_another_batch_size_is_refused_with_both_sizes_named()
 
 
 def test_misshapen_or_mistyped_observations_are_refused():
-    table = TaskQTable(1, num_cells=4, with_proximity=True)
+    table = TaskQTable(1, num_cells=4, with_sensors=True)
     bad_proximity = TensorDict(
         cell=torch.tensor([0]), sensors=torch.ones(1, 3, dtype=torch.bool), batch_size=[1]
     )

@@ -41,7 +41,7 @@ def test_body_label_names_what_differs_from_the_paper(options, label):
     assert body_label(results) == label
 
 
-def test_body_label_of_a_file_from_before_the_body_options_is_the_paper_and_of_another_world():
+def test_body_label_of_a_config_without_body_options_is_the_paper_and_of_another_world():
     assert body_label({"config": {"size": 10}}) is None
     world = {"name": "Corridor", "config": {"length": 12, "density": 0.4}}
     assert body_label({"config": {}, "world": world}) == "Corridor world (length 12, density 0.4)"

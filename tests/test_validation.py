@@ -44,10 +44,10 @@ from factorq_trainers.compiled import fast
 from factorq_trainers.experiments import paper
 from factorq_trainers.experiments.dqn import DQNConfig
 from factorq_trainers.experiments.experiment import ExperimentConfig
-from factorq_trainers.experiments.paper import PaperConfig
+from factorq_trainers.experiments.paper_config import PaperConfig
 from factorq_trainers.reports import report
 from factorq_trainers.runner import checkpoint
-from factorq_trainers.runner.checkpoint import CheckpointError
+from factorq_trainers.runner.checkpoint_files import CheckpointError
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 # Prepended to `factorq paper` and `factorq compare` rows (later options win): should a check ever
@@ -217,7 +217,7 @@ def gym_step(action: int) -> None:
 
 def collector(**options) -> OnlineCollector:
     env = options.pop("env", FactoredGridEnv(size=3, num_obstacles=1, batch_size=(2,)))
-    table = TaskQTable(options.pop("tables", 2), num_cells=9, with_proximity=True)
+    table = TaskQTable(options.pop("tables", 2), num_cells=9, with_sensors=True)
     policy = TensorDictSequential(table, EpsilonGreedyPolicy(table.num_experiments))
     return OnlineCollector(
         env, policy, TabularQLoss(table), **{"runs": 1, "episodes": 1, **options}
@@ -244,7 +244,7 @@ def nan_table_to(what: str) -> None:
     -inf (local)."""
     env = FactoredGridEnv(size=3, num_obstacles=1, batch_size=(2,))
     factor = what.startswith("factor")
-    task = TaskQTable(2, num_cells=9, with_proximity=not factor)
+    task = TaskQTable(2, num_cells=9, with_sensors=not factor)
     local = LocalRewardTable(2)
     with torch.no_grad():
         if factor:

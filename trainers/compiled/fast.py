@@ -6,11 +6,10 @@ streams (``factorq_torch.base.rng``), so its metrics and tables equal the modula
 slow reference (``tests/reference.py``) bit for bit. It runs one experiment at a time for many steps
 (its tables stay in the L1/L2 cache) and leaves Python only once per ``advance`` call.
 
-Building, the ABI and loading are ``factorq_trainers.compiled.loader``'s (whose public names
-this module re-exports); the batch's options and their checks are
-``factorq_trainers.compiled.batch_options``'s. Where the kernel cannot be built,
-``is_available()`` is False and ``unavailable_reason()`` says why; callers fall back to the
-modular torchrl path.
+Building, the ABI and loading are ``factorq_trainers.compiled.loader``'s; the batch's options
+and their checks are ``factorq_trainers.compiled.batch_options``'s. Where the kernel cannot be
+built, ``is_available()`` is False and ``unavailable_reason()`` says why (the loader's, named here
+too, as callers of the fast path ask them); callers fall back to the modular torchrl path.
 
 >>> from factorq_envs.grid_world import WorldConfig
 >>> from factorq_torch.base.config import AgentConfig
@@ -43,7 +42,6 @@ from factorq_torch.base.rng import probability_threshold
 from factorq_torch.base.validation import INT64_MAX, MAX_PARENTS, check_int, check_table_size
 from factorq_torch.functional import check_dependency, parent_weights
 from factorq_trainers.compiled.batch_options import (
-    CACHE_LINE,  # noqa: F401 - a public name of the fast path
     SensorOrders,
     StructureOptions,
     _check_threads,
@@ -52,21 +50,15 @@ from factorq_trainers.compiled.batch_options import (
     sensor_orders_setup,
     structure_setup,
 )
-from factorq_trainers.compiled.loader import (  # noqa: F401 - the fast path's public names
+from factorq_trainers.compiled.loader import (  # noqa: F401 - the availability check callers use
     _ALGORITHM_CODES,
     _CHECK_CODES,
     _LEARNER_POINTERS,
     _STATE_FIELDS,
-    MAX_KERNEL_ACTUATORS,
-    MAX_KERNEL_SENSORS,
     RANDOM_WALK,
     _Batch,
     _require,
-    build_info,
-    cache_dir,
     is_available,
-    kernel_combined_values,
-    kernel_scatter,
     unavailable_reason,
     unsupported_reason,
 )

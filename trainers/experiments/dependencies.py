@@ -12,8 +12,8 @@ methods on the same worlds (common random numbers: the same world keys):
   redrawn at run ``change_run`` in the ``change`` setting;
 - ``oracle``: ``LocalRewardTable`` with the true dependency (the paper), on the compiled path;
 - ``joint``: Factor-Q with one local table per actuator over the pattern of *all* sensors (the
-  paper's footnote 2), compiled, where ``2**K`` entries fit (``tables.MAX_PARENTS``);
-- ``q-learning``: compiled, where its table fits (``tables.MAX_TABLE_ENTRIES``);
+  paper's footnote 2), compiled, where ``2**K`` entries fit (``base.validation.MAX_PARENTS``);
+- ``q-learning``: compiled, where its table fits (``base.validation.MAX_TABLE_ENTRIES``);
 - ``dqn`` (opt-in, ``--methods``): ``factorq_trainers.experiments.dqn`` on the oracle's step
   budget (``run_dqn``);
 - ``gated`` (opt-in, ``--methods``): Factor-Q with ``factorq_torch.neural.
@@ -44,30 +44,19 @@ import torch
 
 from factorq_torch.base.validation import MAX_PARENTS
 from factorq_trainers.analysis.stats import bootstrap_indices, interval, quantiles, wilson_ci
-from factorq_trainers.experiments.dependencies_config import (  # noqa: F401 - its public names
-    CURVE_EVERY,
-    CUSTOM,
-    DEFAULT_METHODS,
-    DIGEST_IGNORED,
-    KEYED_METHODS,
+from factorq_trainers.experiments.dependencies_config import (
     METHOD_LABELS,
     METHODS,
     SAMPLES_TARGET,
     SAMPLES_TARGET_CHANGE,
-    SETTING_DEFAULTS,
-    SETTINGS,
     DependenciesConfig,
 )
-from factorq_trainers.experiments.dependencies_methods import (  # noqa: F401
+from factorq_trainers.experiments.dependencies_methods import (
     _budget,
-    _learner_options,
     run_compiled,
     run_dqn,
     run_gated,
     run_learned,
-    run_learned_fast,
-    run_learned_modular,
-    sensor_orders,
     skipped_reason,
 )
 from factorq_trainers.runner import resources

@@ -268,7 +268,7 @@ class DependenciesConfig:
                     f"1/{PRIOR_DENOMINATOR} below {PRIOR_LIMIT} (e.g. 0.0625); --path modular "
                     f"takes any finite value > 0"
                 )
-        from factorq_torch.structure import candidate_sets
+        from factorq_torch.functional import candidate_sets
 
         if "change" in self.settings:
             check_int("change_run", self.change_run, 1, self.runs - 1)

@@ -492,7 +492,7 @@ def run_dqn(config: DependenciesConfig, setting: str, budget: int) -> dict[str, 
 
 def skipped_reason(config: DependenciesConfig, setting: str, method: str) -> str | None:
     """Why ``method`` does not run in ``setting`` (``None``: it runs)."""
-    from factorq_torch.tables import MAX_PARENTS, MAX_TABLE_ENTRIES
+    from factorq_torch.base.validation import MAX_PARENTS, MAX_TABLE_ENTRIES
     from factorq_trainers.compiled import fast
 
     world = config.world_of(setting)

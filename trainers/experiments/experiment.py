@@ -143,8 +143,8 @@ def body_of(world: Any) -> Any:
 
 
 def check_qlearning_table(world: Any) -> None:
-    """Refuse a Q-learning table past ``tables.MAX_TABLE_ENTRIES``: its state is the cell (x
-    heading) x the pattern of all the body's sensors (``world``: a ``WorldConfig`` or a
+    """Refuse a Q-learning table past ``base.validation.MAX_TABLE_ENTRIES``: its state is the
+    cell (x heading) x the pattern of all the body's sensors (``world``: a ``WorldConfig`` or a
     ``World``)."""
     world = body_of(world)
     check_table_size(

@@ -50,19 +50,11 @@ from factorq_trainers.analysis.stats import (
     scalar_ci,
     wilson_ci,
 )
-from factorq_trainers.experiments.gym_config import (  # noqa: F401 - the command's public names
-    DEFAULT_METHODS,
-    METHODS,
+from factorq_trainers.experiments.gym_config import (
     GymConfig,
 )
-from factorq_trainers.experiments.gym_methods import (  # noqa: F401 - the command's public names
-    FACTOR_Q_EPSILON,
-    FACTOR_Q_LR,
-    HIGHWAY_DQN,
+from factorq_trainers.experiments.gym_methods import (
     RUNNERS,
-    DQNSettings,
-    Recorder,
-    observation_network,
 )
 from factorq_trainers.runner.kept import COUNT, FLAG, NON_NEGATIVE, NUMBER, TEXT
 

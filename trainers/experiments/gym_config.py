@@ -1,6 +1,6 @@
 """``factorq gym``'s configuration: ``GymConfig`` and its methods; the declared worlds it runs
 are ``factorq_envs.worlds``' registry (``--world``). The command is
-``factorq_trainers.experiments.gym``, which re-exports these names; the methods are
+``factorq_trainers.experiments.gym``; the methods are
 ``factorq_trainers.experiments.gym_methods``.
 """
 

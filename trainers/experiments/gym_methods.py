@@ -1,8 +1,8 @@
 """``factorq gym``'s methods, each training and evaluating one unit (one method, one seed):
 torchrl's DQN, neural Factor-Q (oracle or learned dependencies) and SB3's DQN, with the
 settings they share (``HIGHWAY_DQN``), the unit's seeds and envs, the observation networks and
-the ``Recorder`` of a training run. The command is ``factorq_trainers.experiments.gym``, which
-re-exports these names (``RUNNERS``: method -> its function).
+the ``Recorder`` of a training run. The command is ``factorq_trainers.experiments.gym``
+(``RUNNERS``: method -> its function).
 """
 
 from __future__ import annotations

@@ -43,23 +43,12 @@ import numpy as np
 
 from factorq_trainers.analysis.stats import DESCRIPTION as DESCRIPTION_OF_STATISTICS
 from factorq_trainers.analysis.stats import bootstrap_mean_ci, interval, scalar_ci, wilson_ci
-from factorq_trainers.experiments.minigrid_config import (  # noqa: F401 - re-exported
-    DEFAULT_METHODS,
-    LAYOUT_NAMES,
+from factorq_trainers.experiments.minigrid_config import (
     METHOD_LABELS,
-    METHODS,
-    SEMANTICS_NAMES,
-    SIZE_NAMES,
-    SUCCESS_THRESHOLD,
     MiniGridConfig,
 )
-from factorq_trainers.experiments.minigrid_methods import (  # noqa: F401 - re-exported
+from factorq_trainers.experiments.minigrid_methods import (
     RUNNERS,
-    Recorder,
-    method_keys,
-    run_dqn,
-    run_tabular,
-    world_seeds,
 )
 from factorq_trainers.reports.minigrid import FOUND_TARGET_STEPS
 from factorq_trainers.runner import resources

@@ -1,6 +1,6 @@
 """``factorq minigrid``'s configuration: ``MiniGridConfig``, the methods and their labels, the
 sizes, collision semantics and sensor layouts it runs. The command is
-``factorq_trainers.experiments.minigrid``, which re-exports these names; the methods are
+``factorq_trainers.experiments.minigrid``; the methods are
 ``factorq_trainers.experiments.minigrid_methods``.
 """
 

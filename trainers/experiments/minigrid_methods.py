@@ -1,8 +1,8 @@
 """``factorq minigrid``'s methods, each running all seeds of one method at one size: the keys
 (common random numbers: every method meets the same worlds at a size), the ``Recorder`` of
 collisions and episodes, the tabular agents through ``OnlineCollector`` and torchrl's DQN
-(``RUNNERS``: method -> its function). The command is ``factorq_trainers.experiments.minigrid``,
-which re-exports these names.
+(``RUNNERS``: method -> its function). The command is
+``factorq_trainers.experiments.minigrid``.
 """
 
 from __future__ import annotations

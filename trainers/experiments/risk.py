@@ -5,7 +5,7 @@ output folder, resume and progress; this module declares the units (one per worl
 seed), what one unit runs and how the units are summarised. The config and the names it checks
 against are ``risk_config.py``'s, the methods (the torchrl recipe, SB3, ``quiet_torchrl``)
 ``risk_methods.py``'s, the Markdown, figure and sweep cells ``factorq_trainers.reports.risk``'s
-(``REPORT``: drawn without torch); their public names import from here too.
+(``REPORT``: drawn without torch): import each name from its own module.
 
 Every unit trains torchrl's DQN recipe (``QValueActor``, ``EGreedyModule``, ``DQNLoss``,
 ``SoftUpdate``, ``Collector``, a ``ReplayBuffer``) on one world, with the same budget, network and
@@ -51,27 +51,15 @@ import statistics
 from typing import Any
 
 from factorq_trainers.analysis.stats import count_ratio
-from factorq_trainers.experiments.risk_config import (  # noqa: F401 - re-exported
-    METHODS,
+from factorq_trainers.experiments.risk_config import (
     OWN_WORLDS,
-    TORCHRL_METHODS,
     Progress,
     RiskConfig,
 )
-from factorq_trainers.experiments.risk_methods import (  # noqa: F401 - re-exported
-    evaluate,
-    features,
-    make_env,
-    provider,
+from factorq_trainers.experiments.risk_methods import (
     quiet_torchrl,
     run_sb3,
     run_torchrl,
-)
-from factorq_trainers.reports.risk import (  # noqa: F401 - re-exported
-    SWEEP_MEASURES,
-    figure,
-    markdown,
-    sweep_cells,
 )
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, NUMBER, TEXT
 

@@ -1,6 +1,6 @@
 """``factorq risk``'s configuration: ``RiskConfig`` (one budget and DQN recipe for every
-method), the worlds and methods it runs. The command is ``factorq_trainers.experiments.risk``,
-which re-exports these names; the methods are ``factorq_trainers.experiments.risk_methods``.
+method), the worlds and methods it runs. The command is ``factorq_trainers.experiments.risk``;
+the methods are ``factorq_trainers.experiments.risk_methods``.
 """
 
 from __future__ import annotations

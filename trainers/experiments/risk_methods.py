@@ -2,8 +2,7 @@
 seed): torchrl's DQN recipe alone or with ``factorq_torch.risk``'s layer (``run_torchrl``: the
 env, its features, the local reward provider, the greedy evaluation) and Stable-Baselines3's DQN
 alone or with ``factorq_torch.integrations.sb3`` (``run_sb3``); ``quiet_torchrl`` silences
-torchrl's INFO lines while a unit runs. The command is ``factorq_trainers.experiments.risk``,
-which re-exports these names.
+torchrl's INFO lines while a unit runs. The command is ``factorq_trainers.experiments.risk``.
 """
 
 from __future__ import annotations

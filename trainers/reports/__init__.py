@@ -49,9 +49,7 @@ def check_results(path: Path, command: str, data: dict[str, Any]) -> None:
 
     remedy = f"run `factorq {command}` again to rewrite it"
     if "schema_version" not in data:
-        raise ValueError(
-            f"results file {path} has no schema_version (written before versioning): {remedy}"
-        )
+        raise ValueError(f"results file {path} has no schema_version: {remedy}")
     if data.get("command", command) != command:
         raise ValueError(
             f"results file {path} was written by command {data.get('command')!r}, not "

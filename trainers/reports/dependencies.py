@@ -40,7 +40,7 @@ def _against_cells(against: dict[str, Any]) -> str:
     speed), then the absolute task measures of both (steps per episode, episodes truncated)."""
     names = ("collisions", "greedy_collisions", "learning_speed")
     cells = [_ratio_text(against.get(name)) for name in names]
-    absolute = against.get("absolute")  # (results from before issue 39: none)
+    absolute = against.get("absolute")  # none where the oracle did not run
     if absolute is None:
         return " | ".join([*cells, "n/a", "n/a"])
     (mine, steps), (_, oracle_steps) = absolute["steps_per_episode"].items()

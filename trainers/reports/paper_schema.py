@@ -7,7 +7,7 @@ lengths that must agree) so that drawing the figure and writing the Markdown can
 any problem is one ``ResultsFileError`` naming the file, the field's path and what was expected.
 
 Versions: ``SCHEMA_VERSION`` is written into every results file and checked here: a file without
-the field (written before versioning) or of a newer version is refused.
+the field or of a newer version is refused.
 """
 
 from __future__ import annotations

@@ -137,14 +137,10 @@ def _risk_markdown(results: dict[str, Any]) -> list[str]:
     if last:
         lines += ["", "Last training episode of the first seed:", ""]
         lines += [
-            f"- {world} {method}: {_summary_line(summary)}"
+            f"- {world} {method}: {summary_line(summary)}"
             for (world, method), summary in last.items()
         ]
     return lines
-
-
-#: ``RiskSummary.line``, from its torch-free home: the report is drawn without torch.
-_summary_line = summary_line
 
 
 def figure(results: dict[str, Any], path: Path) -> None:

@@ -52,7 +52,7 @@ def check_digest(path: Path, what: str, stored: str, actual: str, remedy: str = 
     ``stored`` (the digest written with it; empty when it has none) equals ``actual`` (that of
     its content)."""
     if not stored:
-        raise ValueError(f"{what} {path} has no digest (an older factorq wrote it): {remedy}")
+        raise ValueError(f"{what} {path} has no digest: {remedy}")
     if stored != actual:
         raise ValueError(f"{what} {path} does not match its digest (edited or damaged): {remedy}")
 

@@ -178,8 +178,8 @@ def software_versions() -> dict[str, str]:
     return versions
 
 
-#: The paper's body as a results file's config spells it; a file written before the
-#: body options existed lacks them and ran this body.
+#: The paper's body as a results file's config spells it (an option a config lacks reads as
+#: the paper's: the label names only what differs).
 PAPER_BODY = {
     "body": "translate",
     "sensors": "cross",
