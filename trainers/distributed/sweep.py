@@ -1,7 +1,7 @@
 """``factorq sweep``: a grid (or list) of a command's configurations (``paper`` by default),
-each with its seeds, run in-process or on a Dask cluster, one task per configuration (compare:
-per method), each kept in ``OUT/configs/<digest>.json`` as it finishes, gathered into
-``sweep.json``, ``sweep.md`` and one figure per swept axis.
+each with its seeds, run in-process or on a Dask cluster, one task per configuration, each kept
+in ``OUT/configs/<digest>.json`` as it finishes, gathered into ``sweep.json``, ``sweep.md`` and
+one figure per swept axis.
 
 This module is the command line (parser, options over the sweep file, the memory estimate, the
 claim of ``--out``, the progress bar, the files); the parts (import their names from them):
@@ -25,7 +25,6 @@ from factorq_trainers.distributed.sweep_run import run_sweep
 from factorq_trainers.distributed.sweep_spec import (
     DEFAULT_OUT,
     DEFAULT_SEEDS,
-    SPECIAL,
     SweepError,
     SweepSpec,
     check_command,
@@ -54,8 +53,8 @@ def build_parser(prog: str = "factorq sweep") -> argparse.ArgumentParser:
         "--command",
         metavar="NAME",
         default=argparse.SUPPRESS,
-        help="Whose configs to sweep: paper, compare (one task per method) or any other "
-        "command (dependencies, minigrid, ...), each configuration one task. "
+        help="Whose configs to sweep: paper, compare or any other command (dependencies, "
+        "minigrid, ...), each configuration one task. "
         "(default: the file's command, else paper)",
     )
     parser.add_argument(
@@ -141,27 +140,20 @@ def main(argv: list[str] | None = None) -> int:
         spec = spec_from_args(args)
         where = cluster.where_from_args(args)
         workers = 1 if where.local_workers is None else where.local_workers or os.cpu_count() or 1
-        if spec.command not in SPECIAL:  # a command of the runner: its own estimate, if any
-            from factorq_trainers.runner import registry
+        from factorq_trainers.runner import registry
 
-            module = registry.load(spec.command)
-            estimate = resources.tasks_estimate(
-                [
-                    module.estimate(config)
-                    if hasattr(module, "estimate")
-                    else resources.Estimate({}, 0, exact_steps=False)
-                    for config in spec.configurations()
-                ],
-                workers,
-            )  # a worker runs one configuration at a time
-            hint = getattr(module, "HINT", "use fewer --seeds or smaller configurations")
-            hint += ", or fewer --cluster workers" if workers > 1 else ""
-        elif spec.command == "compare":
-            estimate = resources.tasks_estimate(
-                [resources.compare_estimate(config) for config in spec.configurations()], workers
-            )  # a worker runs one method of a comparison at a time (counted as a whole one)
-            hint = "use fewer --seeds, or smaller steps or size"
-            hint += ", or fewer --cluster workers" if workers > 1 else ""
+        module = registry.load(spec.command)  # its own estimate, if any
+        estimate = resources.tasks_estimate(
+            [
+                module.estimate(config)
+                if hasattr(module, "estimate")
+                else resources.Estimate({}, 0, exact_steps=False)
+                for config in spec.configurations()
+            ],
+            workers,
+        )  # a worker runs one configuration at a time
+        hint = getattr(module, "HINT", "use fewer --seeds or smaller configurations")
+        hint += ", or fewer --cluster workers" if workers > 1 else ""
         large = resources.check(estimate, "sweep", hint)
         if large is not None:
             print(large, file=sys.stderr)
@@ -184,17 +176,12 @@ def _run_sweep_command(
     parser: argparse.ArgumentParser, spec: SweepSpec, executor: Any, force: bool = False
 ) -> int:
     configs = spec.configurations()
-    if spec.command == "compare":
-        tasks = sum(len(config.methods) for config in configs)
-        work = f"{tasks} method tasks (factorq compare)"
-    else:
-        work = f"{len(configs)} configuration tasks (factorq {spec.command})"
+    work = f"{len(configs)} configuration tasks (factorq {spec.command})"
     print(
         f"{len(configs)} configurations x {spec.seeds} seeds = {work}, {executor.description}",
         file=sys.stderr,
     )
-    unit = {"compare": "method"}.get(spec.command, "configuration")
-    bar = Bar(unit=unit)
+    bar = Bar(unit="configuration")
     try:
         sweep = run_sweep(spec, executor, bar, force)
         bar.close()

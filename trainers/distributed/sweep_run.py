@@ -1,6 +1,6 @@
 """Running a sweep (``factorq sweep``) and gathering it: every configuration of a registered
-command run whole (``frame.run_in_process``: its units, one task per configuration; compare's
-methods one task each), on an executor, each kept on disk as it finishes; then
+command run whole (``frame.run_in_process``: its units, one task per configuration), on an
+executor, each kept on disk as it finishes; then
 ``sweep.json``'s dict.
 
     spec -> configurations -> executor (in-process or Dask) -> one sealed JSON file per
@@ -26,16 +26,13 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from factorq_trainers.analysis import stats
 from factorq_trainers.distributed.sweep_spec import (
-    COMPARE_MEASURES,
     CONFIGS_DIRECTORY,
     SweepSpec,
     _json,
     _reports_of,
     config_digest,
 )
-from factorq_trainers.experiments.cluster_runs import _compare_method
 from factorq_trainers.runner import cluster, kept
 from factorq_trainers.runner import results as result_files
 
@@ -44,8 +41,8 @@ def _write_text(path: Path, text: str) -> None:
     path.write_text(text)
 
 
-def compare_result_path(directory: str | os.PathLike, config: Any) -> Path:
-    """``directory/<digest>.json``: where a compare configuration's results are kept."""
+def config_result_path(directory: str | os.PathLike, config: Any) -> Path:
+    """``directory/<digest>.json``: where a configuration's results are kept."""
     return Path(directory) / f"{config_digest(config)}.json"
 
 
@@ -68,122 +65,11 @@ def _pending_configs(
         config
         for config in configs
         if not kept.reusable(
-            compare_result_path(directory, config),
+            config_result_path(directory, config),
             functools.partial(_read_config_result, command=command, config=config),
             force,
         )
     ]
-
-
-def _compare_task(run_method: Callable[..., Any], item: tuple[Any, str]) -> Any:
-    config, method = item
-    return _compare_method(run_method, config, method)
-
-
-def run_compare_configs(
-    configs: Sequence[Any],
-    directory: Path,
-    executor: cluster.InProcess | cluster.DaskExecutor,
-    done: Callable[[], None],
-) -> None:
-    """Run every method of every compare config in ``configs`` as one task each on
-    ``executor``; when a config's methods are all in, write its ``compare.summarise`` dict
-    (what ``compare.run`` returns, ``timing`` aside) to ``compare_result_path``, atomically.
-    ``done()`` is called per method finished."""
-    from factorq_trainers.experiments import compare
-
-    items = [(config, method) for config in configs for method in config.methods]
-    owner = [index for index, config in enumerate(configs) for _ in config.methods]
-    names = [f"compare-{config_digest(config)}-{method}" for config, method in items]
-    runs: list[dict[str, Any]] = [{} for _ in configs]
-    function = functools.partial(_compare_task, compare.run_method)
-    for task, result in executor.map(function, items, names):
-        index = owner[task]
-        config = configs[index]
-        runs[index][items[task][1]] = result
-        done()
-        if len(runs[index]) == len(config.methods):
-            results = compare.summarise(config, {m: runs[index][m] for m in config.methods})
-            results["timing"] = {
-                "method_wall_s": round(sum(float(r["wall_s"]) for r in runs[index].values()), 3),
-                "where": executor.description,
-            }
-            text = kept.dumps_sealed(results, kept.tie("compare", config_digest(config)))
-            directory.mkdir(parents=True, exist_ok=True)
-            result_files.write_atomic(
-                compare_result_path(directory, config), functools.partial(_write_text, text=text)
-            )
-            runs[index] = {}
-
-
-def compare_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """Per method and world of a ``comparison.json`` dict: its measures as means with 95%
-    intervals across seeds (``steps_to_threshold`` only where every seed reached it)."""
-    cells = {}
-    for method, worlds in results["results"].items():
-        for world, entry in worlds.items():
-            reached = entry["steps_to_threshold_per_seed"]
-            steps = {"mean": entry["steps_to_threshold"], "ci95": None}
-            if entry["steps_to_threshold"] is not None:
-                seed = results["config"].get("seed", 0)  # compare's bootstrap, its seed
-                bounded = functools.partial(stats.bootstrap_mean_ci, seed=seed)
-                steps["ci95"] = result_files.interval_or_none(stats.scalar_ci(reached, bounded)[1:])
-            cells[f"{world}/{method}"] = {
-                "world": world,
-                "algorithm": method,
-                "steps_to_threshold": steps,
-                **{
-                    measure: {
-                        "mean": entry[measure],
-                        "ci95": result_files.interval_or_none(entry[f"{measure}_ci95"]),
-                    }
-                    for measure in (
-                        "collisions",
-                        "greedy_collisions",
-                        "avoidable_greedy_collisions",
-                    )
-                },
-                "seeds_reached": entry["seeds_reached"],
-                "per_seed": {"steps_to_threshold": reached},
-            }
-    return cells
-
-
-def run_compare_sweep(
-    spec: SweepSpec,
-    executor: cluster.InProcess | cluster.DaskExecutor,
-    progress: Callable[[int, int], None] | None = None,
-    force: bool = False,
-) -> dict[str, Any]:
-    """``run_sweep`` of a compare spec: every configuration not already in ``OUT/configs/``
-    run whole (one task per method), then gathered into ``sweep.json``'s dict."""
-    from factorq_trainers.experiments import compare
-
-    started = time.perf_counter()
-    directory = Path(spec.out) / CONFIGS_DIRECTORY
-    configs = spec.configurations()
-    pending = _pending_configs(directory, configs, force, "compare")
-    total = sum(len(config.methods) for config in configs)
-    count = {"done": total - sum(len(config.methods) for config in pending)}
-    if progress is not None:
-        progress(count["done"], total)
-
-    def done() -> None:
-        count["done"] += 1
-        if progress is not None:
-            progress(count["done"], total)
-
-    run_compare_configs(pending, directory, executor, done)
-    return _gathered(
-        spec,
-        "compare",
-        COMPARE_MEASURES,
-        pending,
-        started,
-        executor,
-        compare.config_dict,
-        compare_cells,
-    )
 
 
 def _gathered(
@@ -196,15 +82,14 @@ def _gathered(
     config_dict: Callable[[Any], dict[str, Any]],
     cells: Callable[[dict[str, Any]], dict[str, dict[str, Any]]],
 ) -> dict[str, Any]:
-    """``sweep.json``'s dict of a sweep whose configurations each ran whole (``compare``,
-    ``dependencies``): one row per configuration read back from ``OUT/configs/``, its cells
-    taken by ``cells``; ``pending``: the configurations run by this call."""
+    """``sweep.json``'s dict of a sweep: one row per configuration read back from
+    ``OUT/configs/``, its cells taken by ``cells``; ``pending``: the configurations run now."""
     computed = time.perf_counter() - started
     directory = Path(spec.out) / CONFIGS_DIRECTORY
     configs = spec.configurations()
     rows = []
     for config, point in zip(configs, spec.points(), strict=True):
-        path = compare_result_path(directory, config)
+        path = config_result_path(directory, config)
         results = _read_config_result(path, command, config)  # digest, tie, values checked
         try:  # a kept file is the user's: it may have been edited or cut short
             cells_of = cells(results)
@@ -273,7 +158,7 @@ def run_units_sweep(
         text = kept.dumps_sealed(results, kept.tie(spec.command, config_digest(pending[index])))
         directory.mkdir(parents=True, exist_ok=True)
         result_files.write_atomic(
-            compare_result_path(directory, pending[index]),
+            config_result_path(directory, pending[index]),
             functools.partial(_write_text, text=text),
         )
         done += 1
@@ -302,9 +187,7 @@ def run_sweep(
     ``sweep.json``'s dict.
 
     ``progress(done, total)`` counts configurations (those found on disk are done from the
-    start); for a compare spec, ``run_compare_sweep``, methods. A kept configuration result that
-    fails its checks (``kept``) is refused before any work, or with ``force`` recomputed.
+    start). A kept configuration result that fails its checks (``kept``) is refused before any
+    work, or with ``force`` recomputed.
     """
-    if spec.command == "compare":
-        return run_compare_sweep(spec, executor, progress, force)
     return run_units_sweep(spec, executor, progress, force)

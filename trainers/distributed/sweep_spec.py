@@ -44,16 +44,10 @@ from factorq_trainers.runner import reading
 DEFAULT_SEEDS = 100
 DEFAULT_OUT = "results/sweep"
 SPEC_KEYS = ("command", "seeds", "out", "base", "grid", "configs")
-#: The commands whose configs a sweep runs by their own rules (``command = "..."`` in a sweep
-#: file, ``--command``); every other registered command runs each configuration whole, one task
-#: each (``run_units_sweep``).
-SPECIAL = ("compare",)
 #: ``CompareConfig`` fields the sweep sets itself (``logger``: a sweep writes no per-episode logs).
 COMPARE_RESERVED = ("seeds", "out", "logger")
 #: The fields of another command's config that the sweep sets itself.
 UNITS_RESERVED = ("seeds", "out")
-#: What a compare sweep reports per method and world (``compare.summarise``'s measures).
-COMPARE_MEASURES = ("steps_to_threshold", "collisions", "greedy_collisions")
 #: Where a compare sweep keeps each finished configuration's ``comparison.json`` dict.
 CONFIGS_DIRECTORY = "configs"
 
@@ -73,13 +67,12 @@ def check_command(command: Any, source: str = "sweep file") -> str:
     """``command`` if a sweep can run its configs, else a ``SweepError`` saying which can."""
     if command not in commands():
         raise SweepError(f"{source}: command={command!r} is not one of {', '.join(commands())}")
-    if command not in SPECIAL:
-        reports = _reports_of(command)
-        if not (hasattr(reports, "sweep_cells") and hasattr(reports, "SWEEP_MEASURES")):
-            raise SweepError(
-                f"{source}: command={command!r} cannot be swept: {reports.__name__} declares no "
-                f"sweep_cells and SWEEP_MEASURES (what a sweep reports per configuration)"
-            )
+    reports = _reports_of(command)
+    if not (hasattr(reports, "sweep_cells") and hasattr(reports, "SWEEP_MEASURES")):
+        raise SweepError(
+            f"{source}: command={command!r} cannot be swept: {reports.__name__} declares no "
+            f"sweep_cells and SWEEP_MEASURES (what a sweep reports per configuration)"
+        )
     return command
 
 
@@ -120,19 +113,13 @@ def sweepable_fields(command: str = "paper") -> dict[str, Any]:
 
 
 def config_digest(config: Any) -> str:
-    """A short hash of the fields that decide ``config``'s numbers: every field but those its
-    command's ``DIGEST_IGNORED`` names (default ``out`` and ``threads``; for a compare config
-    ``out``, ``threads`` and ``logger``; ``paper`` also leaves out its backend, device and
+    """A short hash of the fields that decide ``config``'s numbers: every field but those the
+    module of its config declares in ``DIGEST_IGNORED`` (default ``out`` and ``threads``;
+    ``compare`` also leaves out its ``logger``, ``paper`` its backend, device and
     ``shard_seeds``: the numbers are the same bit for bit)."""
-    from factorq_trainers.experiments import compare
-
-    ignored: tuple[str, ...]
-    if isinstance(config, compare.CompareConfig):
-        values, ignored = compare.config_dict(config), ("out", "threads", "logger")
-    else:  # a command of the runner: its DIGEST_IGNORED (fields that leave the numbers alone)
-        module = sys.modules[type(config).__module__]
-        values = _json(dataclasses.asdict(config))
-        ignored = getattr(module, "DIGEST_IGNORED", ("out", "threads"))
+    module = sys.modules[type(config).__module__]
+    values = _json(dataclasses.asdict(config))
+    ignored = getattr(module, "DIGEST_IGNORED", ("out", "threads"))
     relevant = {key: value for key, value in values.items() if key not in ignored}
     return hashlib.sha256(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:16]
 

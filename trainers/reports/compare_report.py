@@ -6,6 +6,7 @@ nothing new.
 
 from __future__ import annotations
 
+import functools
 import os
 import shutil
 from pathlib import Path
@@ -13,8 +14,9 @@ from typing import Any
 
 import numpy as np
 
+from factorq_trainers.analysis import stats
 from factorq_trainers.runner import outdir
-from factorq_trainers.runner.results import body_label, dumps, write_all_atomic
+from factorq_trainers.runner.results import body_label, dumps, interval_or_none, write_all_atomic
 
 #: A method reached the threshold when an episode took at most this many times the shortest path.
 THRESHOLD_FACTOR = 1.5
@@ -187,3 +189,40 @@ def write_outputs(
 
 #: The runner's names (``factorq report``).
 markdown, figure = report_markdown, write_figure
+
+
+#: What ``factorq sweep --command compare`` reports per method and world.
+SWEEP_MEASURES = ("steps_to_threshold", "collisions", "greedy_collisions")
+
+
+def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per method and world of a ``comparison.json`` dict: its measures as means with 95%
+    intervals across seeds (``steps_to_threshold`` only where every seed reached it)."""
+    cells = {}
+    for method, worlds in results["results"].items():
+        for world, entry in worlds.items():
+            reached = entry["steps_to_threshold_per_seed"]
+            steps = {"mean": entry["steps_to_threshold"], "ci95": None}
+            if entry["steps_to_threshold"] is not None:
+                seed = results["config"].get("seed", 0)  # compare's bootstrap, its seed
+                bounded = functools.partial(stats.bootstrap_mean_ci, seed=seed)
+                steps["ci95"] = interval_or_none(stats.scalar_ci(reached, bounded)[1:])
+            cells[f"{world}/{method}"] = {
+                "world": world,
+                "algorithm": method,
+                "steps_to_threshold": steps,
+                **{
+                    measure: {
+                        "mean": entry[measure],
+                        "ci95": interval_or_none(entry[f"{measure}_ci95"]),
+                    }
+                    for measure in (
+                        "collisions",
+                        "greedy_collisions",
+                        "avoidable_greedy_collisions",
+                    )
+                },
+                "seeds_reached": entry["seeds_reached"],
+                "per_seed": {"steps_to_threshold": reached},
+            }
+    return cells
