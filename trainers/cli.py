@@ -2,8 +2,8 @@
 (``factorq_trainers.runner.registry``): one subcommand per module of
 ``factorq_trainers.experiments`` that declares ``NAME``, its options the fields of its
 ``CONFIG`` (``factorq_trainers.runner.options``), run by the runner's frame
-(``factorq_trainers.runner.frame``) or, for ``paper`` and ``compare``, by the finer frame their
-``FRAME`` names; plus ``factorq report DIR`` (redraw any command's files) and ``factorq sweep``.
+(``factorq_trainers.runner.frame``) or, for ``paper``, by the finer frame its ``FRAME``
+names; plus ``factorq report DIR`` (redraw any command's files) and ``factorq sweep``.
 
 A command imports only what it runs (torch included, inside ``main``): ``factorq paper`` starts
 without torchrl, and starts its figure process (``factorq_trainers.reports.figure_process``)
