@@ -405,6 +405,12 @@ def comparison(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[s
     results: dict[str, Any] = {}
     curves: dict[str, Any] = {}
     for method, run in runs.items():
+        labels = [(trace["world"], trace["seed_index"]) for trace in run["traces"]]
+        if labels != [tuple(label) for label in experiments.labels]:
+            raise ValueError(
+                f"{method}'s traces are of the experiments {labels}, not this run's "
+                f"{list(experiments.labels)} (a kept unit edited?): start over with --force"
+            )
         results[method], curves[method] = {}, {}
         for world in experiments.worlds:
             traces = [_arrays(trace) for trace in run["traces"] if trace["world"] == world]
@@ -452,11 +458,17 @@ def _arrays(trace: dict[str, Any]) -> dict[str, Any]:
     """A trace with its per-episode fields as numpy arrays (a kept unit holds lists; a missing
     float, written as null, is NaN again)."""
     arrays = dict(trace)
-    for name in EPISODE_FIELDS:
+    fields = [name for name in EPISODE_FIELDS if name in trace]
+    for name in fields:
         values = trace[name]
         if not isinstance(values, np.ndarray):
             values = [math.nan if value is None else value for value in values]
         arrays[name] = np.asarray(values, dtype=np.float64 if name in FLOAT_FIELDS else np.int64)
+    if len({arrays[name].size for name in fields}) > 1:
+        raise ValueError(
+            f"a trace of {trace['world']}, seed {trace['seed_index']}, has per-episode fields "
+            f"of different lengths (a kept unit edited?): start over with --force"
+        )
     return arrays
 
 

@@ -95,6 +95,10 @@ def _number(value: float | None, digits: int = 0) -> str:
     return f"{value:,.{digits}f}"
 
 
+def _seconds(value: float | None) -> str:
+    return "-" if value is None else f"{value:.0f}"
+
+
 def report_markdown(results: dict[str, Any]) -> str:
     """``comparison.md``: one row per method and world."""
     config = results["config"]
@@ -132,7 +136,7 @@ def report_markdown(results: dict[str, Any]) -> str:
                 f"| {METHOD_LABELS[method]} | {world} | {_number(cell['steps_to_threshold'])} "
                 f"| {cell['seeds_reached']}/{config['seeds']} | {collisions} | {greedy} "
                 f"| {_number(cell['avoidable_greedy_collisions'], 1)} "
-                f"| {_number(cell['final_path_length'], 1)} | {cell['wall_s']:.0f} |"
+                f"| {_number(cell['final_path_length'], 1)} | {_seconds(cell['wall_s'])} |"
             )
     thresholds = ", ".join(
         f"{world} {entry['shortest_path']} -> {entry['threshold']:g}"
