@@ -472,7 +472,7 @@ def _arrays(trace: dict[str, Any]) -> dict[str, Any]:
     return arrays
 
 
-def summarise(config: CompareConfig, outcomes: Sequence[Any]) -> dict[str, Any]:
+def summarise(config: CompareConfig, outcomes: Sequence[Any] | Mapping[str, Any]) -> dict[str, Any]:
     """``comparison.json``'s entries (the frame's envelope goes around them) from the units'
     results, in ``units`` order.
 
