@@ -17,7 +17,7 @@ from timing import patience  # tests/timing.py: bounds that stretch with the loa
 from factorq_trainers import cli
 from factorq_trainers.compiled import fast
 from factorq_trainers.distributed import sweep_run, sweep_spec
-from factorq_trainers.experiments import cluster_runs, paper
+from factorq_trainers.experiments import paper
 from factorq_trainers.experiments import paper_shards as shards
 from factorq_trainers.runner import cluster
 from factorq_trainers.runner import results as result_files
@@ -168,30 +168,27 @@ def test_a_worker_killed_mid_shard_loses_only_that_shard_and_the_numbers_stay(ex
     assert len(list((tmp_path / "killed" / "shards").rglob("*.npz"))) == 2
 
 
-def test_factorq_compare_on_the_cluster_repeats_every_method_in_process(executor, tmp_path):
-    from factorq_trainers.experiments import compare
-    from factorq_trainers.experiments.dqn import DQNConfig
-
-    config = compare.CompareConfig(
-        seeds=2,
-        steps=120,
-        size=4,
-        obstacles=2,
-        worlds=("static", "dynamic"),
-        out=str(tmp_path / "here"),
-        dqn=DQNConfig(learning_starts=40, batch_size=16),
-    )
-    expected = compare.run(config)
-    remote = replace(config, out=str(tmp_path / "cluster"))
-    results = cluster_runs.run_compare_on(executor, remote, compare.run_method, compare.summarise)
-    assert results["timing"]["where"].endswith("(2 workers)")
+def test_factorq_compare_on_the_cluster_repeats_every_method_in_process(
+    local_cluster, tmp_path, capsys
+):
+    """One unit (a method's batch) per task on the runner's frame: every method, DQN included,
+    repeats its in-process numbers."""
+    options = ["--seeds", "2", "--steps", "300", "--size", "4", "--obstacles", "2"]
+    options += ["--worlds", "static,dynamic", "--threads", "1"]
+    assert cli.main(["compare", *options, "--out", str(tmp_path / "here")]) == 0
+    address = local_cluster.scheduler_address
+    argv = ["compare", *options, "--scheduler", address, "--out", str(tmp_path / "cluster")]
+    assert cli.main(argv) == 0
+    expected = json.loads((tmp_path / "here" / "comparison.json").read_text())
+    results = json.loads((tmp_path / "cluster" / "comparison.json").read_text())
+    assert address in results["timing"]["where"] and results["timing"]["units"] == 4
     for summary in (expected, results):
         summary.pop("timing")
         summary["config"].pop("out")
         for worlds in summary["results"].values():
             for cell in worlds.values():
                 cell.pop("wall_s")
-    assert json.dumps(results, sort_keys=True) == json.dumps(expected, sort_keys=True)
+    assert results == expected
 
 
 def test_factorq_sweep_on_a_running_scheduler_writes_what_it_writes_in_process(

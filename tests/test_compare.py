@@ -13,18 +13,19 @@ from factorq_trainers import cli
 from factorq_trainers.experiments import compare
 from factorq_trainers.experiments.dqn import DQNConfig
 from factorq_trainers.experiments.experiment import ExperimentConfig
-from factorq_trainers.reports import compare_report
-from factorq_trainers.runner import options
+from factorq_trainers.runner import frame, options
 
 #: outcomes that depend on float rounding: `make test` reruns these under other CPU kernels
 pytestmark = pytest.mark.float_sensitive
 
 
-def _trace(world: str, steps: list[int], collisions: int = 0, greedy: int = 0) -> dict:
+def _trace(
+    world: str, steps: list[int], collisions: int = 0, greedy: int = 0, seed: int = 0
+) -> dict:
     lengths = np.asarray(steps, dtype=np.int64)
     return {
         "world": world,
-        "seed_index": 0,
+        "seed_index": seed,
         "steps": lengths,
         "env_steps": np.cumsum(lengths),
         "collisions": np.zeros_like(lengths),
@@ -43,10 +44,13 @@ def test_compare_writes_the_comparison_schema_of_issue_7(tmp_path, one_thread):
         out=str(tmp_path),
         dqn=DQNConfig(learning_starts=40, batch_size=16),
     )
-    logs = compare_report.staging_logs(config.out)
-    results = compare.run(config, logs_dir=logs)
-    paths = compare_report.write_outputs(results, config.out, logs=logs)
-    assert not logs.exists() and paths["logs"].is_dir()
+    # the runner's frame, step by step: units, their results through JSON, summary, files, logs
+    units = compare.units(config)
+    outcomes = [frame.unit_result(compare, unit, compare.run_unit(config, unit)) for unit in units]
+    results = frame.envelope(compare, config, compare.summarise(config, outcomes), wall_s=1.0)
+    paths = frame.write_outputs(compare, results, tmp_path)
+    paths.update(compare.finish(config, outcomes, tmp_path))
+    assert paths["logs"].is_dir() and not list(tmp_path.glob(".*factorq-tmp"))
     saved = json.loads(paths["json"].read_text())
     assert saved["config"]["seeds"] == 2 and saved["config"]["steps"] == 120
     assert list(saved["results"]) == ["factor-q", "q-learning", "dqn", "factor-dqn"]
@@ -99,18 +103,18 @@ def test_summary_is_null_unless_every_seed_reached_the_threshold():
         "dqn": {
             "traces": [
                 _trace("dynamic", [100, 20, 25], collisions=10, greedy=4),
-                _trace("dynamic", [300, 50], collisions=30, greedy=8),
+                _trace("dynamic", [300, 50], collisions=30, greedy=8, seed=1),
             ],
             "wall_s": 2.0,
         }
     }
-    cell = compare.summarise(config, runs)["results"]["dqn"]["dynamic"]
+    cell = compare.summarise(config, [runs["dqn"]])["results"]["dqn"]["dynamic"]
     assert cell["steps_to_threshold"] is None and cell["seeds_reached"] == 1
     assert cell["steps_to_threshold_per_seed"] == [120, None]
     assert cell["collisions"] == 20.0 and cell["greedy_collisions"] == 6.0
     assert cell["avoidable_greedy_collisions"] == 5.0  # one boxed-in collision each
-    runs["dqn"]["traces"][1] = _trace("dynamic", [300, 26])
-    cell = compare.summarise(config, runs)["results"]["dqn"]["dynamic"]
+    runs["dqn"]["traces"][1] = _trace("dynamic", [300, 26], seed=1)
+    cell = compare.summarise(config, [runs["dqn"]])["results"]["dqn"]["dynamic"]
     assert cell["steps_to_threshold"] == (120 + 326) / 2
 
 

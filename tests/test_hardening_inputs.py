@@ -6,7 +6,6 @@ lengths before anything is expanded."""
 
 from __future__ import annotations
 
-import re
 import time
 from dataclasses import dataclass
 
@@ -152,38 +151,3 @@ def test_deeper_than_walks_without_recursion():
     assert reading.deeper_than(nested, 32)
     assert not reading.deeper_than({"a": [1, (2, {"b": 3})]}, 4)
     assert reading.deeper_than({"a": [1, (2, {"b": [3]})]}, 4)
-
-
-def _compare_checkpoint(out, finished, running):
-    from factorq_trainers.experiments import compare
-
-    config = compare.CompareConfig(
-        out=str(out), methods=("factor-q", "q-learning"), seeds=1, steps=60, size=4,
-        obstacles=1, worlds=("static",),
-    )  # fmt: skip
-    content = {"config": compare.config_dict(config), "finished": finished, "running": running,
-               "every": "1"}  # fmt: skip
-    checkpoint.save(out, content, kind=checkpoint.COMPARE_FORMAT)  # signed: only its values lie
-
-
-@pytest.mark.parametrize(
-    ("finished", "running", "message"),
-    [
-        ({}, {"method": "factor-q", "state": {"step": 10**12}, "wall_s": 0.0},
-         r"running state\['step'\]=1000000000000 must be an int in \[1, 59\]"),
-        ({"factor-q": {"traces": [], "wall_s": 1.0}}, None,
-         r"finished\['factor-q'\] holds 0 traces, not 1"),
-    ],
-    ids=["step", "traces"],
-)  # fmt: skip
-def test_compare_resume_checks_the_checkpoint_before_printing_its_progress(
-    tmp_path, capsys, finished, running, message
-):
-    from factorq_trainers import cli
-
-    _compare_checkpoint(tmp_path / "cut", finished, running)
-    assert cli.main(["compare", "--resume", str(tmp_path / "cut")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1, err  # no "resuming ... (dqn at env step 1000000000000)" first
-    assert "is not usable" in err[0]
-    assert re.search(message, err[0]), err[0]

@@ -92,7 +92,7 @@ def test_the_library_entry_points_check_too(tmp_path, monkeypatch):
 
     with pytest.raises(resources.ResourceError, match=r"this run needs about .* but 1000 B is"):
         paper.run(PaperConfig(seeds=1, runs=1, episodes=1, size=4, obstacles=1, out=str(tmp_path)))
-    with pytest.raises(resources.ResourceError, match=r"this comparison needs about"):
+    with pytest.raises(resources.ResourceError, match=r"this experiment needs about"):
         compare.run(CompareConfig(seeds=1, steps=1, size=4, obstacles=1, out=str(tmp_path)))
     from factorq_trainers.experiments import dependencies
 

@@ -440,11 +440,6 @@ TRIED = [
     ),
     # factorq compare: every option
     factorq("compare --seed -1", rf"--seed=-1 {RANGE} in \[0, 9223372036854775807\]"),
-    # factorq compare: mid-method checkpoints
-    factorq("compare --checkpoint-every 0", rf"--checkpoint-every='0' {RANGE} in \[1, 2\*\*63 - 1\] episodes"),
-    factorq("compare --checkpoint-every abc", r"--checkpoint-every='abc' is not a number of episodes"),
-    factorq("compare --checkpoint-every 0s", rf"--checkpoint-every='0s' {RANGE} > 0 seconds and fi"),
-    factorq("compare --cluster local:2 --checkpoint-every 5", r"checkpoint_every does not apply to a run on a cluster"),
     factorq("compare --seeds 0", rf"--seeds=0 {RANGE} in \[1, 2147483647\]"),
     factorq("compare --seeds 2147483648", rf"--seeds=2147483648 {RANGE} in \[1, 2147483647\]"),
     factorq("compare --seeds 1.5", r"argument --seeds: invalid int value: '1.5'"),
@@ -479,8 +474,8 @@ TRIED = [
     factorq("compare --force --seeds 0", rf"--seeds=0 {RANGE} in \[1, 2147483647\]"),
     factorq("compare --out {locked}", r"--out='.*live' is in use by another factorq run \(pid 4242\)"),
     factorq("compare --out /proc/factorq-out", r"--out='/proc/factorq-out' is not writable: "),
-    factorq("compare --resume {missing}", r"--resume='.*missing' does not exist: give the --out directory of an interrupted run"),
-    factorq("compare --resume {checkpoint}", r"checkpoint .*checkpoint.pt is not a factorq compare checkpoint"),
+    factorq("compare --resume {missing}", r"missing/units/run.json does not exist: nothing to resume: run `factorq compare` without --resume"),
+    factorq("compare --resume {checkpoint}", r"units/run.json does not exist: nothing to resume"),
     factorq("compare --sides 4", r"factorq compare: error: unrecognized arguments: --sides 4"),
     # factorq report, factorq
     factorq("report {tmp}", r"holds no results file of a factorq command \(.*results\.json.*\)"),

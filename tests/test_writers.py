@@ -19,6 +19,7 @@ from timing import patience  # tests/timing.py: bounds that stretch with the loa
 from factorq_trainers import cli
 from factorq_trainers.compiled import fast
 from factorq_trainers.reports import compare_report
+from factorq_trainers.runner import kept
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 # Some seconds of work on one thread, a checkpoint every 20 k episodes.
@@ -99,10 +100,12 @@ def test_compare_replaces_its_files_and_logs_as_a_set(tmp_path, monkeypatch):
     def killed(results, path):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(compare_report, "write_figure", killed)
+    monkeypatch.setattr(compare_report, "figure", killed)  # what the frame draws with
     assert factorq(*args, "--seed", "1", "--force")[0] == 130
     now = {path: path.read_bytes() for path in sorted(out.rglob("*")) if path.is_file()}
-    assert now == first  # and no temporary left behind
+    kept_units = {path for path in now if path.parent.name == "units"}  # to resume it
+    assert {path: now[path] for path in now if path not in kept_units} == first  # no temporary
+    assert kept_units
 
     # A finished second run replaces every file, the logs included: no row of the first run.
     monkeypatch.undo()
@@ -137,11 +140,11 @@ def test_a_comparison_killed_and_resumed_writes_the_same_results(tmp_path, monke
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
     )
-    saved = killed_dir / "run" / "checkpoint" / "checkpoint.pt"
+    saved = kept.unit_path(killed_dir / "run" / "units", "factor-q")  # the first method's
     try:
         deadline = time.monotonic() + patience(300)
         while not saved.exists():
-            assert process.poll() is None and time.monotonic() < deadline, "no checkpoint"
+            assert process.poll() is None and time.monotonic() < deadline, "no unit kept"
             time.sleep(0.01)
         process.send_signal(signal.SIGKILL)
         process.wait(timeout=patience(60))
@@ -153,7 +156,7 @@ def test_a_comparison_killed_and_resumed_writes_the_same_results(tmp_path, monke
     monkeypatch.chdir(killed_dir)
     code, err = factorq("compare", "--resume", "run")
     assert code == 0, err
-    assert not (killed_dir / "run" / "checkpoint").exists()
+    assert not (killed_dir / "run" / "units").exists()
     monkeypatch.chdir(reference_dir)
     assert factorq("compare", *COMPARED)[0] == 0
     resumed = (killed_dir / "run" / "comparison.json").read_text()

@@ -23,11 +23,19 @@ in the moving worlds, where the shortest path changes with every scatter, the ob
 Manhattan distance ``2 (size - 1)``. Per method and world it is the mean over seeds when every
 seed reached it, ``null`` otherwise (``seeds_reached`` says how many did).
 
+**Units.** The command runs on the runner's frame (``factorq_trainers.runner.frame``): one unit
+per method, its worlds x seeds one batch (DQN's experiments share torch's stream and every
+minibatch, so a smaller unit would change its numbers). A unit's result is the method's traces
+(JSON lists) and wall time, kept in ``out/units/`` as it finishes: ``--resume`` reruns only the
+methods without a kept unit, ``--cluster`` runs one method per task, and the numbers are those of
+an uninterrupted run in one process.
+
 **Wall time.** Each method runs all selected worlds and seeds as one batch, so ``wall_s`` is that
 batch's time, the same for each of its worlds.
 
 **Logging.** torchrl's ``CSVLogger`` (default) or ``TensorboardLogger`` (``logger="tensorboard"``)
-under ``out/logs/<method>/``: per experiment and finished episode, ``return`` (task return),
+under ``out/logs/<method>/``, written from the traces once the run is over (``finish``): per
+experiment and finished episode, ``return`` (task return),
 ``path_length``, ``collisions``, ``greedy_collisions``, ``epsilon`` and ``loss`` (0.5 x squared TD
 error: of each step's update for the online methods, of the latest minibatch for DQN; averaged
 over the episode's steps), at step = that experiment's env steps.
@@ -38,10 +46,13 @@ from __future__ import annotations
 import functools
 import importlib.util
 import json
+import math
 import os
+import shutil
+import sys
 import time
-from collections.abc import Callable
-from dataclasses import asdict, dataclass, fields, replace
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -59,10 +70,15 @@ from factorq_torch.neural import ACTIVATIONS, LocalRewardNetwork, TaskQNetwork
 from factorq_trainers.analysis.stats import bootstrap_mean_ci, finite_or_none, scalar_ci
 from factorq_trainers.experiments import dqn, experiment
 from factorq_trainers.experiments.dqn import METHODS, DQNConfig, batch_keys
-from factorq_trainers.experiments.experiment import EpisodeRecorder, ExperimentConfig
+from factorq_trainers.experiments.experiment import (
+    EPISODE_FIELDS,
+    EpisodeRecorder,
+    ExperimentConfig,
+)
+from factorq_trainers.reports import compare_report
 from factorq_trainers.reports.compare_report import THRESHOLD_FACTOR
-from factorq_trainers.runner import checkpoint, compare_checkpoint, compare_state_checks, resources
-from factorq_trainers.runner.compare_checkpoint import CompareCheckpoint
+from factorq_trainers.runner import resources
+from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, NUMBER, TEXT
 from factorq_trainers.runner.options import option
 from factorq_trainers.runner.results import SCHEMA_VERSION, software_versions
 
@@ -73,11 +89,36 @@ DESCRIPTION = (
     "Run factor-q, q-learning, dqn and factor-dqn for --seeds experiments of --steps env steps "
     "per world; write comparison.json, comparison.png and comparison.md to --out."
 )
-#: compare keeps its finer frame (a checkpoint per method and mid-method).
-FRAME = "factorq_trainers.experiments.compare_frame"
 FILES = {"json": "comparison.json", "report": "comparison.md", "figure": "comparison.png"}
 REPORT = "factorq_trainers.reports.compare_report"
+HINT = resources.COMPARE_HINT
+WORK_UNIT = "step"
 CURVE_POINTS = 100
+#: The per-episode fields that are floats (the others are whole counts).
+FLOAT_FIELDS = ("task_return", "epsilon", "loss")
+#: A unit's result (``run_unit``), what a kept one must hold (``runner.kept``'s schema): one
+#: trace per experiment, its per-episode fields as lists.
+UNIT_RESULT = {
+    "method": TEXT,
+    "traces": [
+        {
+            "world": TEXT,
+            "seed_index": COUNT,
+            "steps": [COUNT],
+            "collisions": [COUNT],
+            "greedy_collisions": [COUNT],
+            "task_return": [NUMBER],
+            "env_steps": [COUNT],
+            "epsilon": [FRACTION],
+            "loss": [NON_NEGATIVE],  # 0.5 x squared TD error; null before DQN's first minibatch
+            "total_collisions": COUNT,
+            "total_greedy_collisions": COUNT,
+            "total_boxed_in_greedy_collisions": COUNT,
+            "total_env_steps": COUNT,
+        }
+    ],
+    "wall_s": NON_NEGATIVE,
+}
 
 
 @dataclass(frozen=True)
@@ -263,14 +304,11 @@ def run_online(
     config: CompareConfig,
     logger: Any = None,
     progress: Callable[[int, int], None] | None = None,
-    checkpoints: compare_checkpoint.Saver | None = None,
 ) -> dict[str, Any]:
     """Tabular Factor-Q, tabular Q-learning or Factor-DQN for the step budget (OnlineCollector).
 
-    Returns ``{"traces", "wall_s"}`` like ``factorq_trainers.experiments.dqn.run``. ``checkpoints``
-    (a
-    ``compare_checkpoint.Saver``): restore the method's saved state if the run resumes during it,
-    and save its state whenever one is due (between two steps; the numbers do not change).
+    Returns ``{"traces", "wall_s"}`` like ``factorq_trainers.experiments.dqn.run``;
+    ``progress(done, total)``: env steps per experiment, every 1% of the budget.
     """
     started = time.perf_counter()
     experiments, agent = config.experiments, config.agent
@@ -295,44 +333,13 @@ def run_online(
     hook = loss.register_forward_hook(lambda module, inputs, output: captured.update(output))
     recorder = EpisodeRecorder(experiments.labels, logger)
     report_every = max(1, steps // 100)
-    done, before = 0, 0.0
-    if checkpoints is not None:
-
-        def state(step: int) -> dict[str, Any]:
-            return {
-                "step": step,
-                "collector": collector.state_dict(),
-                "world_state": grid.world_state._asdict(),
-                "recorder": recorder.state_dict(),
-            }
-
-        fresh = state(0)
-
-        def load_state(saved: dict[str, Any]) -> None:
-            nonlocal done
-            saved = compare_state_checks.check_online_state(
-                saved, fresh, collector.optimizer, experiments, neural=method == "factor-dqn"
-            )
-            collector.load_state_dict(saved["collector"])
-            grid.world_state = type(grid.world_state)(**saved["world_state"])
-            recorder.load_state_dict(saved["recorder"])
-            done = saved["step"]
-
-        before = checkpoints.restore(method, load_state) or 0.0
-    seen = recorder.finished_episodes
-    for step in range(done + 1, steps + 1):
+    for step in range(1, steps + 1):
         td = collector.step()
         recorder.update(td, epsilon, 0.5 * captured["td_error"].pow(2))
         if progress is not None and (step % report_every == 0 or step == steps):
             progress(step, steps)
-        if checkpoints is not None and step < steps:
-            checkpoints.advance(recorder.finished_episodes - seen)
-            seen = recorder.finished_episodes
-            if checkpoints.due():
-                wall = before + time.perf_counter() - started
-                checkpoints.save(method, state(step), wall)
     hook.remove()
-    return {"traces": recorder.traces(), "wall_s": before + time.perf_counter() - started}
+    return {"traces": recorder.traces(), "wall_s": time.perf_counter() - started}
 
 
 # --------------------------------------------------------------------------------------------
@@ -386,8 +393,9 @@ def _json_list(values: np.ndarray) -> list[float | None]:
     return [finite_or_none(value) for value in values]
 
 
-def summarise(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """The ``comparison.json`` dict from every method's ``{"traces", "wall_s"}``."""
+def comparison(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """``comparison.json``'s own entries (``thresholds``, ``results``, ``curves``) from every
+    method's ``{"traces", "wall_s"}`` (the traces' arrays as numpy arrays or lists)."""
     experiments = config.experiments
     grid = np.linspace(experiments.steps / CURVE_POINTS, experiments.steps, CURVE_POINTS)
     thresholds = {}
@@ -397,9 +405,15 @@ def summarise(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[st
     results: dict[str, Any] = {}
     curves: dict[str, Any] = {}
     for method, run in runs.items():
+        labels = [(trace["world"], trace["seed_index"]) for trace in run["traces"]]
+        if labels != [tuple(label) for label in experiments.labels]:
+            raise ValueError(
+                f"{method}'s traces are of the experiments {labels}, not this run's "
+                f"{list(experiments.labels)} (a kept unit edited?): start over with --force"
+            )
         results[method], curves[method] = {}, {}
         for world in experiments.worlds:
-            traces = [trace for trace in run["traces"] if trace["world"] == world]
+            traces = [_arrays(trace) for trace in run["traces"] if trace["world"] == world]
             reached = [steps_to_threshold(t, thresholds[world]["threshold"]) for t in traces]
             hit = [value for value in reached if value is not None]
             bounded = functools.partial(bootstrap_mean_ci, seed=experiments.seed)  # counts: >= 0
@@ -414,11 +428,12 @@ def summarise(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[st
             )
             tail = [t["steps"][t["env_steps"] > 0.8 * experiments.steps] for t in traces]
             tail = [float(values.mean()) for values in tail if values.size]
+            wall_s = run["wall_s"]
             results[method][world] = {
                 "steps_to_threshold": float(np.mean(hit)) if len(hit) == len(traces) else None,
                 "collisions": collisions[0],
                 "greedy_collisions": greedy[0],
-                "wall_s": round(float(run["wall_s"]), 3),
+                "wall_s": None if wall_s is None else round(float(wall_s), 3),
                 "seeds_reached": len(hit),
                 "steps_to_threshold_per_seed": reached,
                 "collisions_ci95": [collisions[1], collisions[2]],
@@ -432,15 +447,48 @@ def summarise(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[st
                 name: _curve(traces, name, grid, experiments.seed)
                 for name in ("steps", "collisions")
             }
-    return {  # the runner's envelope (schema_version, command, config, software) around them
-        "schema_version": SCHEMA_VERSION,
-        "command": NAME,
-        "config": config_dict(config),
-        "software": software_versions(),
+    return {
         "thresholds": thresholds,
         "results": results,
         "curves": {"env_steps": [float(x) for x in grid], **curves},
     }
+
+
+def _arrays(trace: dict[str, Any]) -> dict[str, Any]:
+    """A trace with its per-episode fields as numpy arrays (a kept unit holds lists; a missing
+    float, written as null, is NaN again)."""
+    arrays = dict(trace)
+    fields = [name for name in EPISODE_FIELDS if name in trace]
+    for name in fields:
+        values = trace[name]
+        if not isinstance(values, np.ndarray):
+            values = [math.nan if value is None else value for value in values]
+        arrays[name] = np.asarray(values, dtype=np.float64 if name in FLOAT_FIELDS else np.int64)
+    if len({arrays[name].size for name in fields}) > 1:
+        raise ValueError(
+            f"a trace of {trace['world']}, seed {trace['seed_index']}, has per-episode fields "
+            f"of different lengths (a kept unit edited?): start over with --force"
+        )
+    return arrays
+
+
+def summarise(config: CompareConfig, outcomes: Sequence[Any] | Mapping[str, Any]) -> dict[str, Any]:
+    """``comparison.json``'s entries (the frame's envelope goes around them) from the units'
+    results, in ``units`` order.
+
+    ``outcomes`` as a mapping, method -> ``run_method``'s result, is the compare sweep's call
+    (``distributed.sweep_run``): it gets the envelope's ``schema_version``, ``command``,
+    ``config`` and ``software`` too, the dict it keeps per configuration."""
+    if isinstance(outcomes, Mapping):
+        return {
+            "schema_version": SCHEMA_VERSION,
+            "command": NAME,
+            "config": config_dict(config),
+            "software": software_versions(),
+            **comparison(config, dict(outcomes)),
+        }
+    runs = {unit["method"]: outcome for unit, outcome in zip(units(config), outcomes, strict=True)}
+    return comparison(config, runs)
 
 
 def config_dict(config: CompareConfig) -> dict[str, Any]:
@@ -448,51 +496,93 @@ def config_dict(config: CompareConfig) -> dict[str, Any]:
     return json.loads(json.dumps(asdict(config)))
 
 
-_NESTED = {"agent": AgentConfig, "dqn": DQNConfig, "factor_dqn": FactorDQNConfig}
-
-
-def config_from_dict(data: dict[str, Any]) -> CompareConfig:
-    """The inverse of ``config_dict`` (unknown or malformed fields: ValueError or TypeError)."""
-    known = {field.name for field in fields(CompareConfig)}
-    unknown = sorted(set(data) - known)
-    if unknown:
-        raise ValueError(f"unknown config fields: {', '.join(unknown)}")
-
-    def plain(values: dict[str, Any]) -> dict[str, Any]:
-        return {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
-
-    values = plain(data)
-    for name, kind in _NESTED.items():
-        if name in values:
-            if not isinstance(values[name], dict):
-                raise TypeError(f"{name} must be a table of {kind.__name__} fields")
-            values[name] = kind(**plain(values[name]))
-    return CompareConfig(**values)
-
-
 # --------------------------------------------------------------------------------------------
-# Checkpoints (trainers/runner/compare_checkpoint.py holds the file format and its checks)
+# The command: a unit per method
 
 
-def save_checkpoint(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> Path:
-    """Save the finished methods' traces to ``out/checkpoint/`` (between methods)."""
-    return compare_checkpoint.save(config.out, config_dict(config), runs)
+def units(config: CompareConfig) -> list[dict[str, Any]]:
+    """One unit per method: its worlds x seeds are one batch (DQN's seeds and worlds share
+    torch's stream and every minibatch, so a smaller unit would change its numbers).
+
+    Args:
+        config: the comparison.
+    """
+    return [{"id": method, "method": method} for method in config.methods]
 
 
-def check_checkpoint(resume: CompareCheckpoint, config: CompareConfig) -> None:
-    """Refuse a checkpoint whose content does not fit ``config`` (one line)."""
-    compare_checkpoint.check(resume, config, config_dict(config))
+def work(config: CompareConfig, unit: dict[str, Any]) -> int:
+    """A unit's env steps per experiment (what ``run_unit`` reports to ``progress``).
+
+    Args:
+        config: the comparison.
+        unit: one of ``units(config)``.
+    """
+    return config.steps
 
 
-load_checkpoint = compare_checkpoint.load
+def estimate(config: CompareConfig) -> resources.Estimate:
+    """``resources.compare_estimate``: the largest method's tables, networks, replay buffer and
+    every method's records.
+
+    Args:
+        config: the comparison.
+    """
+    return resources.compare_estimate(config)
 
 
-def resume_config(
-    saved: dict[str, Any], given: dict[str, Any], directory: str | os.PathLike
-) -> CompareConfig:
-    """The config to resume the comparison of ``directory`` with
-    (``checkpoint.resumed_config``)."""
-    return checkpoint.resumed_config(saved, given, directory, config_from_dict, config_dict)
+def run_unit(
+    config: CompareConfig, unit: dict[str, Any], progress: Callable[[int], None] | None = None
+) -> dict[str, Any]:
+    """One method's batch (all selected worlds and seeds) with ``config.threads`` torch threads:
+    ``{"method", "traces", "wall_s"}``, the traces' arrays as lists.
+
+    Args:
+        config: the comparison.
+        unit: one of ``units(config)``.
+        progress: called with the env steps per experiment done since its last call.
+    """
+    report = None
+    if progress is not None:
+        done = 0
+
+        def report(now: int, total: int) -> None:
+            nonlocal done
+            progress(now - done)
+            done = now
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(config.threads)
+    try:
+        run = run_method(config, unit["method"], report)
+    finally:
+        torch.set_num_threads(threads)
+    traces = [
+        {
+            key: value.tolist() if isinstance(value, np.ndarray) else value
+            for key, value in t.items()
+        }
+        for t in run["traces"]
+    ]
+    return {"method": unit["method"], "traces": traces, "wall_s": run["wall_s"]}
+
+
+def finish(config: CompareConfig, outcomes: list[Any], out: Path) -> dict[str, Path]:
+    """The per-episode logs (``write_logs``), written once the run is over from the units'
+    traces to a staging folder renamed to ``out/logs`` (an earlier run's logs replaced, never
+    appended to): one run's logs, the same after a resume.
+
+    Args:
+        config: the comparison.
+        outcomes: the units' results, in ``units`` order.
+        out: the output directory.
+    """
+    runs = {unit["method"]: outcome for unit, outcome in zip(units(config), outcomes, strict=True)}
+    staging = compare_report.staging_logs(out)
+    try:
+        write_logs(config, runs, staging)
+        return {"logs": compare_report.replace_logs(staging, out)}
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)  # renamed away unless writing failed
 
 
 # --------------------------------------------------------------------------------------------
@@ -514,96 +604,35 @@ def make_logger(
     return CSVLogger(exp_name=method, log_dir=log_dir)
 
 
-#: ``progress(method, done, total)``: env steps per experiment done so far for ``method``.
-Progress = Callable[[str, int, int], None]
-
-
 def run_method(
-    config: CompareConfig,
-    method: str,
-    progress: Callable[[int, int], None] | None = None,
-    checkpoints: compare_checkpoint.Saver | None = None,
+    config: CompareConfig, method: str, progress: Callable[[int, int], None] | None = None
 ) -> dict[str, Any]:
     """One method's batch (all selected worlds and seeds): ``{"traces", "wall_s"}``. A method's
     numbers do not depend on the others (DQN seeds torch's global stream first), so methods may
-    run in any order, in any process (``factorq compare --cluster``). ``checkpoints``: restore
-    and save the method's state mid-method (``compare_checkpoint.Saver``)."""
+    run in any order, in any process (``factorq compare --cluster``)."""
     if method == "dqn":
-        return dqn.run(config.dqn, config.experiments, progress=progress, checkpoints=checkpoints)
-    return run_online(method, config, progress=progress, checkpoints=checkpoints)
+        return dqn.run(config.dqn, config.experiments, progress=progress)
+    return run_online(method, config, progress=progress)
 
 
 def write_logs(
     config: CompareConfig, runs: dict[str, dict[str, Any]], log_dir: str | os.PathLike
 ) -> None:
     """Every method's per-episode records, from its traces, as ``config.logger`` logs under
-    ``log_dir`` (written once a run is over: one run's logs, the same after a resume)."""
+    ``log_dir``."""
     for method, run in runs.items():
-        experiment.log_traces(make_logger(config, method, log_dir), run["traces"])
+        traces = [_arrays(trace) for trace in run["traces"]]
+        experiment.log_traces(make_logger(config, method, log_dir), traces)
 
 
-def run(
-    config: CompareConfig,
-    progress: Progress | None = None,
-    *,
-    logs_dir: str | os.PathLike | None = None,
-    checkpoints: bool = False,
-    resume: CompareCheckpoint | None = None,
-    checkpoint_every: checkpoint.Every | str | int | None = None,
-) -> dict[str, Any]:
-    """Run every selected method on every selected world; return the ``comparison.json`` dict.
+def run(config: CompareConfig, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
+    """Every selected method on every selected world, here; the ``comparison.json`` dict (no
+    files written; ``progress``: env steps per experiment done since its last call).
 
-    ``logs_dir``: where to write the per-episode logs (``write_logs``) when the run is over
-    (``factorq compare`` gives a staging directory that ``compare_report.write_outputs`` renames
-    to ``out/logs`` with the other outputs); None writes none.
+    Args:
+        config: the comparison.
+        progress: called with env steps done.
+    """
+    from factorq_trainers.runner import frame
 
-    ``checkpoints``: save the traces of the finished methods to ``out/checkpoint/`` after each
-    method (the caller removes them once the outputs are written); ``resume``
-    (``load_checkpoint(out)``) skips the methods it holds and continues the one it was taken
-    during from its saved state. A method's numbers do not depend on the others
-    (``run_method``), so a resumed run gives the numbers of an uninterrupted one.
-
-    ``checkpoint_every`` (episodes summed over the method's experiments, or seconds: ``"30s"``,
-    as ``factorq paper``'s) also saves the running method's whole state that often (with
-    ``checkpoints``); a resumed run goes on at its checkpoint's interval unless given one."""
-    started = time.perf_counter()
-    if checkpoint_every is None and resume is not None:
-        checkpoint_every = resume.every  # a resumed run goes on saving as it did
-    if checkpoint_every is not None:
-        checkpoint_every = checkpoint.parse_every(checkpoint_every)
-    estimate = resources.compare_estimate(config, checkpointing=checkpoint_every is not None)
-    resources.check(estimate, "comparison", resources.COMPARE_HINT)  # before any allocation
-    threads = torch.get_num_threads()
-    torch.set_num_threads(config.threads)
-    if resume is not None:
-        check_checkpoint(resume, config)
-    elif checkpoints:
-        checkpoint.check_none_in(config.out)
-    saver = None
-    if checkpoints or resume is not None:
-        every = checkpoint_every if checkpoints else None
-        saver = compare_checkpoint.Saver(config.out, config_dict(config), every, resume=resume)
-    try:
-        runs = {} if resume is None else dict(resume.finished)
-        if saver is not None:
-            saver.finished = dict(runs)
-        for method in config.methods:
-            if method in runs:
-                continue
-            report = None if progress is None else (lambda d, t, m=method: progress(m, d, t))
-            runs[method] = run_method(config, method, report, checkpoints=saver)
-            if checkpoints and saver is not None and len(runs) < len(config.methods):
-                saver.save_finished(runs)
-    finally:
-        torch.set_num_threads(threads)
-    if logs_dir is not None:
-        write_logs(config, runs, logs_dir)
-    results = summarise(config, runs)
-    results["timing"] = {"wall_s": round(time.perf_counter() - started, 3)}
-    if saver is not None and saver.every is not None:
-        results["timing"]["checkpoints"] = {
-            "every": str(saver.every),
-            "saved_mid_method": saver.saves,
-            "save_s": round(saver.save_seconds, 3),
-        }
-    return results
+    return frame.run_in_process(sys.modules[__name__], config, progress)

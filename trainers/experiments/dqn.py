@@ -46,7 +46,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.data import Categorical, LazyTensorStorage, ReplayBuffer
 from torchrl.envs.utils import ExplorationType, exploration_type
@@ -64,7 +64,6 @@ from factorq_trainers.experiments.experiment import (
     experiment_keys,
     make_env,
 )
-from factorq_trainers.runner.checkpoint import to_device
 from factorq_trainers.runner.options import option
 
 with warnings.catch_warnings():
@@ -306,20 +305,12 @@ def run(
     logger: Any = None,
     progress: ProgressCallback | None = None,
     device: torch.device | str | None = None,
-    checkpoints: Any = None,
 ) -> dict[str, Any]:
     """Train DQN on every experiment of ``experiments`` for its step budget.
 
     Returns ``{"config", "experiments", "traces", "wall_s", "env_steps"}``: ``traces`` holds one
     ``EpisodeRecorder`` trace per experiment (world-major, seed-minor). ``progress(done, total)``
     is called with env steps per experiment after every collector batch.
-
-    ``checkpoints`` (a ``factorq_trainers.runner.compare_checkpoint.Saver``): restore the saved
-    state if the run resumes during DQN, and save the whole state whenever one is due, after a
-    collector batch: torch's global generator, the world state, the collector's next observation,
-    the policy (network, epsilon), the loss module (network and target network), Adam, the target
-    updater's counter, the replay buffer (``ReplayBuffer.state_dict``) and the records. Saving
-    draws nothing and changes nothing, so the numbers are those of an uninterrupted run.
     """
     started = time.perf_counter()
     device = torch.device("cpu" if device is None else device)
@@ -339,67 +330,6 @@ def run(
     recorder = EpisodeRecorder(experiments.labels, logger)
     loss_per_experiment = torch.full((count,), math.nan)
     done_steps, gradient_steps = 0, 0
-    before = 0.0
-    if checkpoints is not None:
-        # The next observation: the entries of the env's reset (the policy's outputs the carrier
-        # also holds after a step are overwritten by the next step before anything reads them).
-        carried = list(collector._carrier.keys(include_nested=True, leaves_only=True))
-
-        def state(step: int) -> dict[str, Any]:
-            return {
-                "step": step,
-                "rng": torch.get_rng_state(),
-                "loss": loss_per_experiment.clone(),
-                "updates": agent.target_updater.counter,
-                "world_state": env.world_state._asdict(),
-                "carrier": collector._carrier.select(*carried).to_dict(),
-                "policy": agent.policy.state_dict(),
-                "loss_module": agent.loss.state_dict(),
-                "optimizer": agent.optimizer.state_dict(),
-                "buffer": agent.buffer.state_dict(),
-                "recorder": recorder.state_dict(),
-            }
-
-        fresh = _to_cpu(state(0))
-
-        def load_state(saved: dict[str, Any]) -> None:
-            nonlocal done_steps, gradient_steps, loss_per_experiment
-            from factorq_trainers.runner import compare_state_checks
-
-            saved = compare_state_checks.check_dqn_state(
-                saved, fresh, agent, env, config, experiments, _STORED
-            )
-            # The storage is allocated by its first write (batch shape [buffer_size, E]): a row
-            # of zeros allocates it, the saved rows are written over it (TensorDict's
-            # load_state_dict skips the nested "next.*" entries of a storage's state), then
-            # ReplayBuffer.load_state_dict restores the length and the writer's cursor.
-            row = env.fake_tensordict().select(*_STORED, strict=False).unsqueeze(0)
-            agent.buffer.extend(row.zero_())
-            buffer = to_device(saved["buffer"], device)
-            rows = buffer["_storage"]["_storage"]
-            rows = TensorDict(
-                {tuple(key.split(".")): value for key, value in rows.items()},
-                batch_size=[config.buffer_size, count],
-                device=device,
-            )
-            agent.buffer.storage.set(torch.arange(config.buffer_size), rows)
-            agent.buffer.load_state_dict(buffer)
-            torch.set_rng_state(saved["rng"])
-            loss_per_experiment = saved["loss"].clone()
-            agent.target_updater.counter = saved["updates"]
-            env.world_state = type(env.world_state)(**to_device(saved["world_state"], device))
-            collector._carrier.update_(to_device(saved["carrier"], device))
-            agent.policy.load_state_dict(to_device(saved["policy"], device))
-            agent.loss.load_state_dict(to_device(saved["loss_module"], device))
-            agent.optimizer.load_state_dict(saved["optimizer"])
-            recorder.load_state_dict(saved["recorder"])
-            done_steps = saved["step"]
-            gradient_steps = done_steps // config.train_every  # the one count both branches keep
-            collector._frames = done_steps * frames_per_step
-            collector._iter = gradient_steps - 1
-
-        before = checkpoints.restore("dqn", load_state) or 0.0
-    seen = recorder.finished_episodes
     for data in collector:  # [E, T]
         data = data.select(
             *_STORED, "exploratory", ("next", "bump"), ("next", "collision"), strict=False
@@ -422,14 +352,8 @@ def run(
             progress(done_steps, steps)
         if done_steps >= steps:
             break
-        if checkpoints is not None:
-            checkpoints.advance(recorder.finished_episodes - seen)
-            seen = recorder.finished_episodes
-            if checkpoints.due():
-                wall = before + time.perf_counter() - started
-                checkpoints.save("dqn", _to_cpu(state(done_steps)), wall)
     collector.shutdown()
-    wall = before + time.perf_counter() - started
+    wall = time.perf_counter() - started
     return {
         "config": asdict(config),
         "experiments": asdict(experiments),
@@ -437,10 +361,6 @@ def run(
         "wall_s": wall,
         "env_steps": done_steps * count,
     }
-
-
-def _to_cpu(tree: Any) -> Any:
-    return to_device(tree, torch.device("cpu"))
 
 
 def _gradient_step(agent: DQNAgent, batch_size: int) -> torch.Tensor:

@@ -460,41 +460,6 @@ class EpisodeRecorder:
     def _log(self, row: int, record: dict[str, float]) -> None:
         _log_record(self.logger, *self.labels[row], record)
 
-    def state_dict(self) -> dict[str, Any]:
-        """The records so far as plain tensors (``torch.load(weights_only=True)`` reads them):
-        ``traces`` (``traces()`` with tensors for arrays) and the running episode's sums
-        ``sums`` (steps, collisions, greedy, task, loss_sum, loss_count: float64 ``[E]``).
-        ``load_state_dict`` continues from it exactly (a resumed ``factorq compare``)."""
-        traces = [
-            {
-                key: torch.from_numpy(value.copy()) if isinstance(value, np.ndarray) else value
-                for key, value in trace.items()
-            }
-            for trace in self.traces()
-        ]
-        sums = {name: torch.from_numpy(value.copy()) for name, value in self._sums.items()}
-        sums["loss_sum"] = torch.from_numpy(self._loss_sum.copy())
-        sums["loss_count"] = torch.from_numpy(self._loss_count.copy())
-        return {"traces": traces, "sums": sums}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Continue from ``state_dict()`` (checked by the caller: ``compare_checkpoint``)."""
-        for row, trace in enumerate(state["traces"]):
-            for name in EPISODE_FIELDS:
-                self.episodes[row][name] = trace[name].tolist()
-            self.totals["collisions"][row] = trace["total_collisions"]
-            self.totals["greedy_collisions"][row] = trace["total_greedy_collisions"]
-            self.totals["boxed_in_greedy_collisions"][row] = trace[
-                "total_boxed_in_greedy_collisions"
-            ]
-            self.env_steps[row] = trace["total_env_steps"]
-        self.finished_episodes = sum(len(episodes["steps"]) for episodes in self.episodes)
-        sums = state["sums"]
-        for name in self._sums:
-            self._sums[name] = sums[name].numpy().copy()
-        self._loss_sum = sums["loss_sum"].numpy().copy()
-        self._loss_count = sums["loss_count"].numpy().copy()
-
     def traces(self) -> list[dict[str, Any]]:
         """One dict per experiment: the per-episode arrays, totals and label."""
         out = []

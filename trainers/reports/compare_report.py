@@ -1,7 +1,8 @@
 """The files of ``factorq compare``: ``comparison.json``, ``comparison.png``, ``comparison.md``.
 
 Everything here reads the results dict of ``factorq_trainers.experiments.compare.run`` and computes
-nothing new.
+nothing new; the runner's frame writes the three files (``markdown``, ``figure``), and
+``compare.finish`` the logs (``staging_logs``, ``replace_logs``).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import numpy as np
 
 from factorq_trainers.analysis import stats
 from factorq_trainers.runner import outdir
-from factorq_trainers.runner.results import body_label, dumps, interval_or_none, write_all_atomic
+from factorq_trainers.runner.results import body_label, interval_or_none
 
 #: A method reached the threshold when an episode took at most this many times the shortest path.
 THRESHOLD_FACTOR = 1.5
@@ -96,6 +97,10 @@ def _number(value: float | None, digits: int = 0) -> str:
     return f"{value:,.{digits}f}"
 
 
+def _seconds(value: float | None) -> str:
+    return "-" if value is None else f"{value:.0f}"
+
+
 def report_markdown(results: dict[str, Any]) -> str:
     """``comparison.md``: one row per method and world."""
     config = results["config"]
@@ -133,7 +138,7 @@ def report_markdown(results: dict[str, Any]) -> str:
                 f"| {METHOD_LABELS[method]} | {world} | {_number(cell['steps_to_threshold'])} "
                 f"| {cell['seeds_reached']}/{config['seeds']} | {collisions} | {greedy} "
                 f"| {_number(cell['avoidable_greedy_collisions'], 1)} "
-                f"| {_number(cell['final_path_length'], 1)} | {cell['wall_s']:.0f} |"
+                f"| {_number(cell['final_path_length'], 1)} | {_seconds(cell['wall_s'])} |"
             )
     thresholds = ", ".join(
         f"{world} {entry['shortest_path']} -> {entry['threshold']:g}"
@@ -144,7 +149,7 @@ def report_markdown(results: dict[str, Any]) -> str:
 
 
 def staging_logs(out: str | os.PathLike) -> Path:
-    """A fresh directory in ``out`` for this run's logs until ``write_outputs`` renames it to
+    """A fresh directory in ``out`` for this run's logs until ``replace_logs`` renames it to
     ``out/logs`` (named like the temporaries ``factorq_trainers.runner.outdir`` cleans up after a
     kill)."""
     staging = Path(out) / outdir.temporary_name(LOGS_DIRECTORY)
@@ -153,38 +158,16 @@ def staging_logs(out: str | os.PathLike) -> Path:
     return staging
 
 
-def write_outputs(
-    results: dict[str, Any], out: str | os.PathLike, logs: str | os.PathLike | None = None
-) -> dict[str, Path]:
-    """Write comparison.json, comparison.png and comparison.md to ``out`` as a set: each is
-    written to a temporary first, then all are renamed into place; ``logs`` (a staging
-    directory, ``staging_logs``) replaces ``out/logs`` in the same step, so the files of two
-    runs never mix (a kill during the few renames can leave the old logs removed, never mixed)."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {"json": out / JSON_FILE, "figure": out / FIGURE_FILE, "report": out / REPORT_FILE}
-
-    def swap_logs() -> None:
-        if logs is None:
-            return
-        target = out / LOGS_DIRECTORY
-        if target.exists():
-            old = out / outdir.temporary_name(f"{LOGS_DIRECTORY}.old")
-            os.replace(target, old)
-            shutil.rmtree(old, ignore_errors=True)
-        os.replace(logs, target)
-
-    write_all_atomic(
-        {
-            paths["json"]: lambda path: path.write_text(dumps(results)),
-            paths["figure"]: lambda path: write_figure(results, path),
-            paths["report"]: lambda path: path.write_text(report_markdown(results)),
-        },
-        before_rename=swap_logs,
-    )
-    if logs is not None:
-        paths["logs"] = out / LOGS_DIRECTORY
-    return paths
+def replace_logs(staging: str | os.PathLike, out: str | os.PathLike) -> Path:
+    """Rename ``staging`` (``staging_logs``) to ``out/logs``, an earlier run's logs moved aside
+    and deleted first, so the logs of two runs never mix; ``out/logs``."""
+    target = Path(out) / LOGS_DIRECTORY
+    if target.exists():
+        old = Path(out) / outdir.temporary_name(f"{LOGS_DIRECTORY}.old")
+        os.replace(target, old)
+        shutil.rmtree(old, ignore_errors=True)
+    os.replace(staging, target)
+    return target
 
 
 #: The runner's names (``factorq report``).

@@ -2,13 +2,18 @@
 
 A command module declares what differs (``CONFIG``, ``units``, ``run_unit``, ``summarise``,
 optionally ``markdown``, ``figure``, ``estimate``, ``prepare``, ``work``, ``processes``,
-``FILES``; the protocol is written out in docs/architecture.md, "Adding a command"); ``execute``
-does the rest, once for every command:
+``FILES``, ``finish``; the protocol is written out in docs/architecture.md, "Adding a command");
+``execute`` does the rest, once for every command:
 
     options -> config -> prepare -> memory estimate -> claim --out -> resume -> the pending units
     (in-process, or on Dask with --cluster/--scheduler) under one progress bar, each result kept
     in OUT/units/ as it finishes -> summarise -> the results envelope -> json, Markdown and figure
-    written all at once -> OUT/units/ removed -> the Markdown and the paths printed
+    written all at once -> finish -> OUT/units/ removed -> the Markdown and the paths printed
+
+``finish(config, outcomes, out)`` (optional): outputs beyond the three files, written from the
+units' results (in ``units`` order) once those are written and before the kept units go (a kill
+during it resumes to it again); it returns their paths by name (printed with the others).
+``factorq compare`` writes its per-episode logs there.
 
 **Resume** is per unit: ``OUT/units/run.json`` holds the command and its config, and one file per
 finished unit its result (JSON, written atomically), so ``--resume OUT`` after a kill reruns only
@@ -110,15 +115,21 @@ def plain(value: Any) -> Any:
 
 
 def config_from_dict(config_type: type, data: dict[str, Any]) -> Any:
-    """``config_type(**data)`` with JSON lists back as the tuples the dataclass holds and a
-    nested config's dict back as its dataclass (an unknown field: a TypeError naming it)."""
-    hints = typing.get_type_hints(config_type)
+    """``config_type(**data)`` with JSON lists back as the tuples the dataclass holds, and a
+    JSON object back as the nested config of a field whose default is one (``compare``'s
+    ``dqn``, ...)."""
+    nested = {
+        field.name: type(field.default)
+        for field in dataclasses.fields(config_type)
+        if dataclasses.is_dataclass(field.default)
+    }
     values = {}
     for key, value in data.items():
-        kind = hints.get(key)
-        if isinstance(value, dict) and isinstance(kind, type) and dataclasses.is_dataclass(kind):
-            value = config_from_dict(kind, value)
-        values[key] = tuple(value) if isinstance(value, list) else value
+        if isinstance(value, list):
+            value = tuple(value)
+        elif isinstance(value, dict) and key in nested:
+            value = config_from_dict(nested[key], value)
+        values[key] = value
     return config_type(**values)
 
 
@@ -455,7 +466,8 @@ def _run(
                 bar.update(work(module, config, pending[index]))
     finally:
         bar.close()
-    summary = module.summarise(config, [done[unit["id"]] for unit in units])
+    outcomes = [done[unit["id"]] for unit in units]
+    summary = module.summarise(config, outcomes)
     results_dict = envelope(
         module,
         config,
@@ -466,6 +478,8 @@ def _run(
         resumed=len(units) - len(pending),
     )
     paths = write_outputs(module, results_dict, Path(config.out), figure_process)
+    if hasattr(module, "finish"):
+        paths.update(module.finish(config, outcomes, Path(config.out)))
     store.remove()  # the results are complete: nothing left to resume
     report = report_module(module)
     if hasattr(report, "markdown"):

@@ -117,12 +117,11 @@ def tasks_estimate(tasks: list[Estimate], workers: int) -> Estimate:
     return Estimate(parts, steps, exact_steps=all(estimate.exact_steps for estimate in tasks))
 
 
-def compare_estimate(config: Any, checkpointing: bool = False) -> Estimate:
+def compare_estimate(config: Any) -> Estimate:
     """Peak memory of ``factorq compare`` with ``config`` (a ``CompareConfig``): the largest
     method's tables, networks and replay buffer, and every method's per-episode records (kept
-    until the summary; counted as if every episode were as short as possible); with
-    ``checkpointing`` (``--checkpoint-every``), the copy a mid-method checkpoint makes of the
-    running method's state (its tables or networks, replay buffer and records)."""
+    until the summary, as each unit's result; counted as if every episode were as short as
+    possible)."""
     experiments = config.experiments
     count = experiments.num_experiments
     world = experiments.world
@@ -160,9 +159,6 @@ def compare_estimate(config: Any, checkpointing: bool = False) -> Estimate:
             parts["replay buffer"] = min(settings.buffer_size, experiments.steps) * count * 38
             parts["collector"] = settings.train_every * count * (200 + 4 * width)
         parts["env"] = count * (cells + EXPERIMENT_BYTES)
-        if checkpointing:  # the saved state: copied once (state_dict, the records' arrays)
-            saved = ("tables", "networks", "replay buffer")
-            parts["checkpoint copy"] = sum(parts.get(name, 0) for name in saved) + records
         if sum(parts.values()) > sum(largest.values()):
             largest = parts
     largest["episode records"] = records * len(config.methods)
