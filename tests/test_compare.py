@@ -46,7 +46,9 @@ def test_compare_writes_the_comparison_schema_of_issue_7(tmp_path, one_thread):
     )
     # the runner's frame, step by step: units, their results through JSON, summary, files, logs
     units = compare.units(config)
-    outcomes = [frame.unit_result(compare, unit, compare.run_unit(config, unit)) for unit in units]
+    outcomes = [
+        frame.unit_result(compare, config, unit, compare.run_unit(config, unit)) for unit in units
+    ]
     results = frame.envelope(compare, config, compare.summarise(config, outcomes), wall_s=1.0)
     paths = frame.write_outputs(compare, results, tmp_path)
     paths.update(compare.finish(config, outcomes, tmp_path))

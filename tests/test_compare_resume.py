@@ -186,7 +186,7 @@ def test_a_comparison_resumes_on_a_local_cluster(whole, tmp_path, monkeypatch):
 @pytest.mark.parametrize(
     ("edit", "words"),
     [
-        (lambda traces: traces.pop(), "factor-q's traces are of the experiments"),
+        (lambda traces: traces.pop(), "its traces are of the experiments"),
         (lambda traces: traces[0]["loss"].pop(), "per-episode fields of different lengths"),
     ],
     ids=["a-trace-removed", "an-episode-cut"],
@@ -194,13 +194,13 @@ def test_a_comparison_resumes_on_a_local_cluster(whole, tmp_path, monkeypatch):
 def test_a_kept_unit_whose_traces_do_not_fit_the_run_is_refused_in_one_line(
     edit, words, tmp_path, monkeypatch
 ):
-    """What the schema cannot say (how many traces, episodes of equal length): the summary
-    refuses it in one line (after the pending units ran; the kept units are left)."""
+    """What the schema cannot say (how many traces, episodes of equal length): the command's
+    ``check_unit`` refuses it in one line naming the file, before any unit runs."""
     out = _cut(tmp_path / "cut", monkeypatch)
     path = kept.unit_path(out / "units", "factor-q")
     _reseal(path, lambda record: edit(record["result"]["traces"]))
     code, err = _cli_quiet("compare", "--resume", str(out))
     lines = [line for line in err.strip().splitlines() if "error:" in line]
     assert code == cli.EXIT_USAGE and len(lines) == 1 and words in lines[0], err
-    assert "--force" in lines[0] and "Traceback" not in err
+    assert "--force" in lines[0] and str(path) in lines[0] and "Traceback" not in err
     assert not (out / "comparison.json").exists()

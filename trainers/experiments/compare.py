@@ -45,14 +45,13 @@ from __future__ import annotations
 
 import functools
 import importlib.util
-import json
 import math
 import os
 import shutil
 import sys
 import time
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, replace
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -80,7 +79,6 @@ from factorq_trainers.reports.compare_report import THRESHOLD_FACTOR
 from factorq_trainers.runner import resources
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, NUMBER, TEXT
 from factorq_trainers.runner.options import option
-from factorq_trainers.runner.results import SCHEMA_VERSION, software_versions
 
 LOGGERS = ("csv", "tensorboard")
 NAME = "compare"
@@ -91,7 +89,9 @@ DESCRIPTION = (
 )
 FILES = {"json": "comparison.json", "report": "comparison.md", "figure": "comparison.png"}
 REPORT = "factorq_trainers.reports.compare_report"
-HINT = resources.COMPARE_HINT
+HINT = "use fewer --seeds or --steps, or a smaller --size"
+#: Fields that leave the numbers alone: a sweep's digest of a configuration leaves them out.
+DIGEST_IGNORED = ("out", "threads", "logger")
 WORK_UNIT = "step"
 CURVE_POINTS = 100
 #: The per-episode fields that are floats (the others are whole counts).
@@ -405,12 +405,6 @@ def comparison(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[s
     results: dict[str, Any] = {}
     curves: dict[str, Any] = {}
     for method, run in runs.items():
-        labels = [(trace["world"], trace["seed_index"]) for trace in run["traces"]]
-        if labels != [tuple(label) for label in experiments.labels]:
-            raise ValueError(
-                f"{method}'s traces are of the experiments {labels}, not this run's "
-                f"{list(experiments.labels)} (a kept unit edited?): start over with --force"
-            )
         results[method], curves[method] = {}, {}
         for world in experiments.worlds:
             traces = [_arrays(trace) for trace in run["traces"] if trace["world"] == world]
@@ -464,36 +458,44 @@ def _arrays(trace: dict[str, Any]) -> dict[str, Any]:
         if not isinstance(values, np.ndarray):
             values = [math.nan if value is None else value for value in values]
         arrays[name] = np.asarray(values, dtype=np.float64 if name in FLOAT_FIELDS else np.int64)
-    if len({arrays[name].size for name in fields}) > 1:
-        raise ValueError(
-            f"a trace of {trace['world']}, seed {trace['seed_index']}, has per-episode fields "
-            f"of different lengths (a kept unit edited?): start over with --force"
-        )
     return arrays
 
 
-def summarise(config: CompareConfig, outcomes: Sequence[Any] | Mapping[str, Any]) -> dict[str, Any]:
+def check_unit(config: CompareConfig, unit: dict[str, Any], result: dict[str, Any]) -> str | None:
+    """Why a kept ``result`` (``UNIT_RESULT``'s shape) cannot be ``unit``'s, or None: one trace
+    per experiment of the run, in its order, each with per-episode fields of one length.
+
+    Args:
+        config: the comparison.
+        unit: one of ``units(config)``.
+        result: a kept result.
+    """
+    experiments = config.experiments
+    labels = [(trace["world"], trace["seed_index"]) for trace in result["traces"]]
+    if labels != [tuple(label) for label in experiments.labels]:
+        return (
+            f"its traces are of the experiments {labels}, not this run's {list(experiments.labels)}"
+        )
+    for trace in result["traces"]:
+        lengths = {len(trace[name]) for name in EPISODE_FIELDS if name in trace}
+        if len(lengths) > 1:
+            return (
+                f"a trace of {trace['world']}, seed {trace['seed_index']}, has per-episode "
+                f"fields of different lengths {sorted(lengths)}"
+            )
+    return None
+
+
+def summarise(config: CompareConfig, outcomes: Sequence[Any]) -> dict[str, Any]:
     """``comparison.json``'s entries (the frame's envelope goes around them) from the units'
     results, in ``units`` order.
 
-    ``outcomes`` as a mapping, method -> ``run_method``'s result, is the compare sweep's call
-    (``distributed.sweep_run``): it gets the envelope's ``schema_version``, ``command``,
-    ``config`` and ``software`` too, the dict it keeps per configuration."""
-    if isinstance(outcomes, Mapping):
-        return {
-            "schema_version": SCHEMA_VERSION,
-            "command": NAME,
-            "config": config_dict(config),
-            "software": software_versions(),
-            **comparison(config, dict(outcomes)),
-        }
+    Args:
+        config: the comparison.
+        outcomes: ``run_unit``'s results.
+    """
     runs = {unit["method"]: outcome for unit, outcome in zip(units(config), outcomes, strict=True)}
     return comparison(config, runs)
-
-
-def config_dict(config: CompareConfig) -> dict[str, Any]:
-    """``config`` as JSON-ready values (tuples as lists, nested configs as dicts)."""
-    return json.loads(json.dumps(asdict(config)))
 
 
 # --------------------------------------------------------------------------------------------
@@ -521,13 +523,61 @@ def work(config: CompareConfig, unit: dict[str, Any]) -> int:
 
 
 def estimate(config: CompareConfig) -> resources.Estimate:
-    """``resources.compare_estimate``: the largest method's tables, networks, replay buffer and
-    every method's records.
+    """Peak memory of ``factorq compare`` with ``config`` (a ``CompareConfig``): the largest
+    method's tables, networks and replay buffer, and every method's per-episode records (kept
+    until the summary, as each unit's result; counted as if every episode were as short as
+    possible)."""
+    experiments = config.experiments
+    count = experiments.num_experiments
+    world = experiments.world
+    cells = experiments.size**2 * world.num_headings
+    sensors, actions = world.num_sensors, world.num_actuators
+    # An episode takes at least the Manhattan distance: at most this many fit the budget.
+    episodes = experiments.steps // (2 * (experiments.size - 1)) + 1
+    # Per episode: 7 records as Python floats in lists, their numpy copies, the collector's
+    # metrics [E, 1, episodes] (4 x 8 bytes).
+    records = count * episodes * (7 * 32 + 7 * 8 + 32)
+    largest: dict[str, int] = {}
+    for method in config.methods:
+        parts: dict[str, int] = {}
+        if method == "q-learning":
+            parts["tables"] = count * (cells << sensors) * actions * 4
+        elif method == "factor-q":
+            parts["tables"] = count * (cells * actions * 4 + actions * (2 << sensors) * 12)
+        elif method == "factor-dqn":
+            settings = config.factor_dqn
+            weights = _mlp_weights(cells, settings.hidden, actions)
+            copies = 1 if settings.local_shared else actions
+            weights += _mlp_weights(sensors, settings.local_hidden, 1) * copies
+            # weights, gradients, Adam's two moments; activations of one step
+            parts["networks"] = count * (4 * weights * 4 + 4 * (cells + sum(settings.hidden)) * 3)
+        else:  # dqn
+            settings = config.dqn
+            weights = _mlp_weights(cells + sensors, settings.hidden, actions)
+            width = cells + sensors + sum(settings.hidden) + actions
+            parts["networks"] = count * 5 * weights * 4  # + gradients, Adam moments, target copy
+            # A minibatch [B, E]: its one-hot features and activations, forward and backward,
+            # for the network and the target network.
+            parts["minibatch"] = settings.batch_size * count * width * 4 * 3
+            # One row [E] of 38 bytes per stored transition, and the collector's batch of
+            # train_every steps of every experiment (all of a step's entries, ~200 bytes each).
+            parts["replay buffer"] = min(settings.buffer_size, experiments.steps) * count * 38
+            parts["collector"] = settings.train_every * count * (200 + 4 * width)
+        parts["env"] = count * (cells + resources.EXPERIMENT_BYTES)
+        if sum(parts.values()) > sum(largest.values()):
+            largest = parts
+    largest["episode records"] = records * len(config.methods)
+    points = len(config.methods) * len(experiments.worlds) * 100 * 6 * 56  # the curves
+    largest["curves"] = points
+    return resources.Estimate(
+        largest, len(config.methods) * count * experiments.steps, exact_steps=True
+    )
 
-    Args:
-        config: the comparison.
-    """
-    return resources.compare_estimate(config)
+
+def _mlp_weights(inputs: int, hidden: tuple[int, ...], outputs: int) -> int:
+    """Weights and biases of one MLP ``inputs -> hidden... -> outputs``."""
+    widths = [inputs, *hidden, outputs]
+    return sum(a * b + b for a, b in zip(widths, widths[1:], strict=False))
 
 
 def run_unit(

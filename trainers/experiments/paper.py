@@ -42,9 +42,9 @@ from factorq_trainers.experiments.paper_drivers import (
     run_modular,
     threads_used,
 )
+from factorq_trainers.reports.paper_schema import CURVE_NAMES
 from factorq_trainers.runner import resources
 from factorq_trainers.runner.kept import COUNT, NUMBER, TEXT
-from factorq_trainers.reports.paper_schema import CURVE_NAMES
 
 NAME = "paper"
 HELP = "run the paper's experiment (3 worlds x 2 algorithms, many seeds) and report it"

@@ -1,11 +1,12 @@
 """What a run will need, estimated from its config before any work, against what the machine has.
 
-``paper_estimate(config)`` and ``compare_estimate(config)`` add up the big allocations a run
-makes, from its config alone (no tensor is allocated): the tables ``[E, states, 4]`` float32,
-the kernel's or the env's per-experiment state, the metrics ``[E, runs, episodes]``, the
-per-episode curves of the results, DQN's replay buffer, networks (weights, gradients, Adam's
-moments, the target copy) and minibatch activations, and the per-episode records of
-``factorq compare``. It is an estimate: the constant overhead of Python, torch and torchrl
+Each command's ``estimate(config)`` (``paper.estimate``, ``compare.estimate``, ...) adds up the
+big allocations a run makes, from its config alone (no tensor is allocated): the tables
+``[E, states, 4]`` float32, the kernel's or the env's per-experiment state, the metrics
+``[E, runs, episodes]``, the per-episode curves of the results, DQN's replay buffer, networks
+(weights, gradients, Adam's moments, the target copy) and minibatch activations, per-episode
+records; this module holds what they share (``Estimate``, the byte sizes, the check). It is an
+estimate: the constant overhead of Python, torch and torchrl
 (already loaded when it is made) is left out, and small per-run tensors are rounded up.
 
 ``check(estimate)`` compares it with the memory available (``available_memory``: the least of
@@ -15,9 +16,9 @@ its largest parts and the limit when the run would not fit; it returns a line to
 that fits but is large (at least ``LARGE_BYTES`` or a quarter of what is available), with the
 number of env steps it will take, the cheap part of a time estimate.
 
->>> from factorq_trainers.experiments.paper import PaperConfig
->>> estimate = paper_estimate(PaperConfig())
->>> 30 * 2**20 < estimate.bytes < 120 * 2**20  # the default run: some 56 MiB (measured 60)
+>>> from factorq_trainers.experiments import paper
+>>> estimate = paper.estimate(paper.PaperConfig())
+>>> 30 * 2**20 < estimate.bytes < 120 * 2**20  # the default run: some 59 MiB
 True
 """
 
@@ -107,7 +108,7 @@ def available_memory() -> tuple[int | None, str]:
 def tasks_estimate(tasks: list[Estimate], workers: int) -> Estimate:
     """Peak memory and env steps of a sweep whose configurations each run whole, as tasks
     (``compare``'s, a command of the runner's): ``workers`` of its largest task at once (each
-    task's estimate is its command's, ``compare_estimate``, ``dependencies_estimate``, ...),
+    task's estimate is its command's ``estimate``),
     and the env steps of every task, as a run's estimate counts its own."""
     largest = max(tasks, key=lambda estimate: estimate.bytes)
     at_once = min(max(workers, 1), len(tasks))
@@ -115,62 +116,6 @@ def tasks_estimate(tasks: list[Estimate], workers: int) -> Estimate:
     parts = {name + suffix: value * at_once for name, value in largest.parts.items()}
     steps = sum(estimate.env_steps for estimate in tasks)
     return Estimate(parts, steps, exact_steps=all(estimate.exact_steps for estimate in tasks))
-
-
-def compare_estimate(config: Any) -> Estimate:
-    """Peak memory of ``factorq compare`` with ``config`` (a ``CompareConfig``): the largest
-    method's tables, networks and replay buffer, and every method's per-episode records (kept
-    until the summary, as each unit's result; counted as if every episode were as short as
-    possible)."""
-    experiments = config.experiments
-    count = experiments.num_experiments
-    world = experiments.world
-    cells = experiments.size**2 * world.num_headings
-    sensors, actions = world.num_sensors, world.num_actuators
-    # An episode takes at least the Manhattan distance: at most this many fit the budget.
-    episodes = experiments.steps // (2 * (experiments.size - 1)) + 1
-    # Per episode: 7 records as Python floats in lists, their numpy copies, the collector's
-    # metrics [E, 1, episodes] (4 x 8 bytes).
-    records = count * episodes * (7 * 32 + 7 * 8 + 32)
-    largest: dict[str, int] = {}
-    for method in config.methods:
-        parts: dict[str, int] = {}
-        if method == "q-learning":
-            parts["tables"] = count * (cells << sensors) * actions * 4
-        elif method == "factor-q":
-            parts["tables"] = count * (cells * actions * 4 + actions * (2 << sensors) * 12)
-        elif method == "factor-dqn":
-            settings = config.factor_dqn
-            weights = _mlp_weights(cells, settings.hidden, actions)
-            copies = 1 if settings.local_shared else actions
-            weights += _mlp_weights(sensors, settings.local_hidden, 1) * copies
-            # weights, gradients, Adam's two moments; activations of one step
-            parts["networks"] = count * (4 * weights * 4 + 4 * (cells + sum(settings.hidden)) * 3)
-        else:  # dqn
-            settings = config.dqn
-            weights = _mlp_weights(cells + sensors, settings.hidden, actions)
-            width = cells + sensors + sum(settings.hidden) + actions
-            parts["networks"] = count * 5 * weights * 4  # + gradients, Adam moments, target copy
-            # A minibatch [B, E]: its one-hot features and activations, forward and backward,
-            # for the network and the target network.
-            parts["minibatch"] = settings.batch_size * count * width * 4 * 3
-            # One row [E] of 38 bytes per stored transition, and the collector's batch of
-            # train_every steps of every experiment (all of a step's entries, ~200 bytes each).
-            parts["replay buffer"] = min(settings.buffer_size, experiments.steps) * count * 38
-            parts["collector"] = settings.train_every * count * (200 + 4 * width)
-        parts["env"] = count * (cells + EXPERIMENT_BYTES)
-        if sum(parts.values()) > sum(largest.values()):
-            largest = parts
-    largest["episode records"] = records * len(config.methods)
-    points = len(config.methods) * len(experiments.worlds) * 100 * 6 * 56  # the curves
-    largest["curves"] = points
-    return Estimate(largest, len(config.methods) * count * experiments.steps, exact_steps=True)
-
-
-def _mlp_weights(inputs: int, hidden: tuple[int, ...], outputs: int) -> int:
-    """Weights and biases of one MLP ``inputs -> hidden... -> outputs``."""
-    widths = [inputs, *hidden, outputs]
-    return sum(a * b + b for a, b in zip(widths, widths[1:], strict=False))
 
 
 def describe(estimate: Estimate) -> str:
@@ -199,7 +144,3 @@ def check(estimate: Estimate, what: str, hint: str) -> str | None:
 def info(estimate: Estimate) -> dict[str, Any]:
     """The estimate as JSON-ready numbers (for logs and tests)."""
     return {"bytes": estimate.bytes, "parts": dict(estimate.parts), "env_steps": estimate.env_steps}
-
-
-#: What to make smaller (a command declares its own ``HINT``).
-COMPARE_HINT = "use fewer --seeds or --steps, or a smaller --size"
