@@ -97,7 +97,7 @@ def _report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
 
 def _handle(args: argparse.Namespace, figure_process: FigureProcess | None) -> int:
-    """Run the parsed command: its own frame (``FRAME``), or the runner's."""
+    """Run the parsed command in the runner's frame (``report`` redraws files instead)."""
     parser = args.command_parser
     if args.module is None:
         return _report(parser, args)
