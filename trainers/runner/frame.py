@@ -365,7 +365,7 @@ def execute(
         resume = f" (resume it with --resume {config.out})" if kept else ""
         print(f"{parser.prog}: interrupted{resume}", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except OSError as problem:  # a full disk, a directory that vanished: one line
+    except (OSError, results.FigureError) as problem:  # a full disk, a figure not drawn: one line
         failure(parser, problem)
         return EXIT_FAILURE
     finally:
