@@ -1,11 +1,12 @@
 """The frame every command declared by units runs in (``factorq_trainers.runner.registry``).
 
 A command module declares what differs (``CONFIG``, ``units``, ``run_unit``, ``summarise``,
-optionally ``markdown``, ``figure``, ``estimate``, ``prepare``, ``work``, ``processes``,
-``FILES``; the protocol is written out in docs/architecture.md, "Adding a command"); ``execute``
-does the rest, once for every command:
+optionally ``markdown``, ``figure``, ``estimate``, ``prepare``, ``describe``, ``work``,
+``processes``, ``FILES``; the protocol is written out in docs/architecture.md, "Adding a
+command"); ``execute`` does the rest, once for every command:
 
-    options -> config -> prepare -> memory estimate -> claim --out -> resume -> the pending units
+    options -> config -> prepare -> memory estimate -> claim --out -> resume -> describe -> the
+    pending units
     (in-process, or on Dask with --cluster/--scheduler) under one progress bar, each result kept
     in OUT/units/ as it finishes -> summarise -> the results envelope -> json, Markdown and figure
     written all at once -> OUT/units/ removed -> the Markdown and the paths printed
@@ -202,6 +203,13 @@ def run_in_process(
     outcomes = [unit_result(module, config, unit, run_unit(unit, progress)) for unit in units]
     summary = module.summarise(config, outcomes)
     return envelope(module, config, summary, wall_s=time.perf_counter() - started, units=len(units))
+
+
+def describe(module: ModuleType, config: Any) -> None:
+    """Print the command's ``describe(config)`` (what runs, e.g. paper's backend) on stderr, once
+    the run is accepted (``execute``): a refusal before it stays one line."""
+    if hasattr(module, "describe"):
+        print(module.describe(config), file=sys.stderr, flush=True)
 
 
 def run_unit_task(module_name: str, config: Any, unit: dict[str, Any]) -> Any:
@@ -424,6 +432,7 @@ def _run(
         )
         done = store.finished(units, module.UNIT_RESULT, force, check)
         print(f"resuming {config.out}: {len(done)} of {len(units)} units done", file=sys.stderr)
+    describe(module, config)
     pending = [unit for unit in units if unit["id"] not in done]
     bar = tqdm(
         total=sum(work(module, config, unit) for unit in pending),
