@@ -1,7 +1,7 @@
 """Issue 29 item 4: every failure while writing is handled. A full disk, a quota or a file size
 limit during any save (a checkpoint included: torch's zip writer raises a RuntimeError that names
-none of them) gives one line naming the file, keeps what was there, and leaves no half
-directory."""
+none of them) gives one line naming the file, keeps what was there (a run's finished units, for
+``--resume``), and leaves no half-written file."""
 
 from __future__ import annotations
 
@@ -81,25 +81,25 @@ def _limited(limit: int):
     return apply
 
 
-# The smallest run whose fast driver checkpoints inside each algorithm (tests/test_checkpoint.py).
+# Two units (an algorithm each) of some 8 kB kept each, results of some 68 kB.
 PAPER = ["--seeds", "3", "--runs", "3", "--episodes", "60", "--size", "6", "--obstacles", "4"]
 
 
 @pytest.mark.parametrize(
-    ("options", "file"),
-    [(["--checkpoint-every", "1"], "checkpoint/checkpoint.pt"), ([], "results.json")],
-    ids=["checkpoint", "results"],
+    ("limit", "file", "kept"),
+    [(4096, "units/", 0), (2**15, "results.json", 2)],  # a unit's file is some 8 kB, results 68
+    ids=["unit", "results"],
 )
-def test_a_file_size_limit_in_a_real_run_is_one_line_exit_1_and_no_directory(
-    tmp_path, options, file
+def test_a_file_size_limit_in_a_real_run_is_one_line_exit_1_and_resumes_from_its_units(
+    tmp_path, limit, file, kept
 ):
     """A real ``factorq paper`` under ``RLIMIT_FSIZE`` (Python ignores SIGXFSZ: the write fails
-    with EFBIG, or inside torch's zip writer with a RuntimeError)."""
+    with EFBIG): no file half-written, the units finished before it kept for ``--resume``."""
     out = tmp_path / "run"
     command = [sys.executable, "-m", "factorq_trainers.cli", "paper", *PAPER, "--threads", "1"]
     done = subprocess.run(
-        [*command, "--out", str(out), *options],
-        preexec_fn=_limited(4096),
+        [*command, "--out", str(out)],
+        preexec_fn=_limited(limit),
         capture_output=True,
         text=True,
         timeout=patience(120),
@@ -107,6 +107,22 @@ def test_a_file_size_limit_in_a_real_run_is_one_line_exit_1_and_no_directory(
     )
     error = done.stderr.strip().splitlines()[-1]
     assert done.returncode == 1, done.stderr
-    assert error.startswith(f"factorq paper: error: cannot write {out / file}: "), done.stderr
+    assert error.startswith(f"factorq paper: error: cannot write {out}/{file}"), done.stderr
     assert "Traceback" not in done.stderr
-    assert not out.exists()  # the run's directory, made by it, is not left half-written
+    assert sorted(path.name for path in out.iterdir()) == [".factorq.lock", "units"]
+    assert len(list((out / "units").iterdir())) == 1 + kept  # run.json and the finished units
+    resumed = subprocess.run(
+        [sys.executable, "-m", "factorq_trainers.cli", "paper", "--resume", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=patience(120),
+        cwd=tmp_path,
+    )
+    assert resumed.returncode == 0, resumed.stderr
+    assert f"{kept} of 2 units done" in resumed.stderr
+    assert sorted(path.name for path in out.iterdir()) == [
+        ".factorq.lock",
+        "figure3.png",
+        "report.md",
+        "results.json",
+    ]
