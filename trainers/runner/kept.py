@@ -335,7 +335,11 @@ def _leaf_problem(value: Any, kind: str) -> str | None:
         return None  # a missing number (a non-finite one is written as null)
     if isinstance(value, bool) or not isinstance(value, int | float):
         return "not a number"
-    if not math.isfinite(value):
+    try:  # (an int past a float's range: JSON reads any number of digits)
+        finite = math.isfinite(value)
+    except OverflowError:
+        finite = False
+    if not finite:
         return "not a finite number"
     if kind != NUMBER and value < 0:
         return "negative"
