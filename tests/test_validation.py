@@ -356,6 +356,7 @@ TRIED = [
     factorq("paper --sides 4", r"unrecognized arguments: --sides 4"),
     # factorq paper: one writer per --out, checked before any work (factorq_trainers.runner.outdir)
     factorq("paper --out {finished-run}", r"--out='.*finished' already holds results.json from an earlier run: pass --force to replace them, or choose another --out"),
+    factorq("paper --backend modular --threads 2 --out {finished-run}", r"--out='.*finished' already holds results.json"),  # (its processes' notice waits for the run)
     factorq("paper --force --seeds 0", rf"--seeds=0 {RANGE} in \[1, 2147483647\]"),
     factorq("paper --out {locked}", r"--out='.*live' is in use by another factorq run \(pid 4242\): wait for it to finish, or choose another --out \(refusing to write to it at the same time\)"),
     factorq("paper --resume {locked-interrupted}", r"--out='.*run' is in use by another factorq run \(pid 4242\): .* \(refusing to resume it at the same time\)"),

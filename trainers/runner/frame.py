@@ -332,6 +332,7 @@ def execute(
     ``figure_process``: the helper that draws the figure (``cli`` starts it for a command that
     declares ``FIGURE_PROCESS``)."""
     store = kept_files.UnitStore(args.resume) if hasattr(args, "resume") else None
+    told: list[str] = []  # notices, printed once the run is accepted: a refusal stays one line
     try:
         config = _config(module, args, store)
         if hasattr(module, "prepare"):
@@ -341,20 +342,18 @@ def execute(
                 module.estimate(config), "experiment", getattr(module, "HINT", "")
             )
             if large:
-                print(large, file=sys.stderr)
+                told.append(large)
         units = checked_units(module, config)
         from factorq_trainers.runner import cluster
 
         executor = cluster.executor_from_args(args)
         chosen = any(hasattr(args, name) for name in ("cluster", "scheduler"))
         if executor is None and not chosen and hasattr(module, "processes"):
-            executor = _default_processes(parser, module, config, units)
+            executor = _default_processes(parser, module, config, units, told)
     except (ValueError, TypeError, ModuleNotFoundError) as problem:
         error(parser, as_option(str(problem), module.CONFIG, ("resume",)))
         return EXIT_USAGE
-    notice = getattr(module, "NOTICE", None)
-    if notice:
-        print(notice, file=sys.stderr, flush=True)
+    told += [getattr(module, "NOTICE", None) or ""]
     try:
         with outdir.claim(
             config.out,
@@ -363,7 +362,14 @@ def execute(
             resume=store is not None,
         ):
             return _run(
-                module, config, units, store, executor, hasattr(args, "force"), figure_process
+                module,
+                config,
+                units,
+                store,
+                executor,
+                hasattr(args, "force"),
+                figure_process,
+                [line for line in told if line],
             )
     except (outdir.OutputDirError, ValueError) as problem:
         error(parser, as_option(str(problem), module.CONFIG, ("resume",)))
@@ -382,11 +388,15 @@ def execute(
 
 
 def _default_processes(
-    parser: argparse.ArgumentParser, module: ModuleType, config: Any, units: list[dict[str, Any]]
+    parser: argparse.ArgumentParser,
+    module: ModuleType,
+    config: Any,
+    units: list[dict[str, Any]],
+    told: list[str],
 ) -> Any:
     """A local cluster of the workers the command asks for its ``units`` (``processes(config,
-    units) -> (workers, why)``: where its env steps slowly), with a notice saying why; None
-    (in-process) where it asks for one, or where Dask is not installed."""
+    units) -> (workers, why)``: where its env steps slowly), with a notice saying why added to
+    ``told``; None (in-process) where it asks for one, or where Dask is not installed."""
     from factorq_trainers.runner import cluster
 
     workers, why = module.processes(config, units)
@@ -396,11 +406,9 @@ def _default_processes(
         executor = cluster.open_executor(cluster.Where(local_workers=workers))
     except cluster.ClusterError:  # no 'distributed' extra: in-process, as everywhere else
         return None
-    print(
+    told.append(
         f"{parser.prog}: {why}: the {len(units)} units run in {workers} processes "
-        f"(--cluster off: here, one after another)",
-        file=sys.stderr,
-        flush=True,
+        f"(--cluster off: here, one after another)"
     )
     return executor
 
@@ -413,6 +421,7 @@ def _run(
     executor: Any,
     force: bool,
     figure_process: Any = None,
+    told: list[str] | None = None,
 ) -> int:
     from tqdm.auto import tqdm
 
@@ -432,6 +441,8 @@ def _run(
         )
         done = store.finished(units, module.UNIT_RESULT, force, check)
         print(f"resuming {config.out}: {len(done)} of {len(units)} units done", file=sys.stderr)
+    for line in told or ():  # the run is accepted: the notices held until now
+        print(line, file=sys.stderr, flush=True)
     describe(module, config)
     pending = [unit for unit in units if unit["id"] not in done]
     bar = tqdm(
