@@ -108,8 +108,9 @@ def test_paper_writes_results_figure_and_report_and_report_regenerates(tmp_path,
     names = sorted(path.name for path in out.iterdir() if path.name != ".factorq.lock")
     assert names == ["figure3.png", "report.md", "results.json"]  # and no temporary files
     assert str(out) in captured.out
-    for claim in ("C1", "C2", "C3", "C4", "C5"):
-        assert any(line.startswith(f"{claim} ") for line in captured.out.splitlines())
+    for claim in ("C1", "C2", "C3", "C4", "C5"):  # the report, with its claims table
+        assert any(line.startswith(f"| {claim} |") for line in captured.out.splitlines())
+    assert captured.out.startswith((out / "report.md").read_text())
     assert "episode" in captured.err  # the progress bar
     (out / "figure3.png").unlink()
     (out / "report.md").unlink()
@@ -123,16 +124,17 @@ def test_report_of_a_directory_without_results_is_an_error(tmp_path, capsys):
     assert "holds no results file of a factorq command" in err and "results.json" in err
 
 
-def test_interrupt_during_the_run_exits_130_and_writes_nothing(tmp_path, capsys, monkeypatch):
-    def interrupted_run(config, progress=None, **checkpointing):
+def test_interrupt_during_the_run_exits_130_and_writes_no_results(tmp_path, capsys, monkeypatch):
+    def interrupted_unit(config, unit, progress=None, world=None):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(paper, "run", interrupted_run)
-    monkeypatch.setattr(paper, "resolve_backend", lambda config: "fast")
+    monkeypatch.setattr(paper, "run_unit", interrupted_unit)
+    monkeypatch.setattr(paper, "resolve_backend", lambda config, world=None: "fast")
     out = tmp_path / "paper"
     assert cli.main(["paper", *TINY, "--out", str(out)]) == 130
-    assert "interrupted" in capsys.readouterr().err
-    assert not out.exists()
+    err = capsys.readouterr().err
+    assert f"interrupted (resume it with --resume {out})" in err and "Traceback" not in err
+    assert sorted(path.name for path in out.iterdir()) == [".factorq.lock", "units"]
 
 
 @needs_fast

@@ -1,8 +1,9 @@
-"""Shards on a real 2-worker Dask ``LocalCluster``: the same numbers as one process, bit for bit,
-also when a worker is killed (SIGKILL) in the middle of a shard."""
+"""Units and sweeps on a real 2-worker Dask ``LocalCluster``: the same numbers as one process, bit
+for bit, also when a worker is killed (SIGKILL) in the middle of a unit."""
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import signal
@@ -10,7 +11,6 @@ import threading
 import time
 from dataclasses import replace
 
-import numpy as np
 import pytest
 from timing import patience  # tests/timing.py: bounds that stretch with the load
 
@@ -18,8 +18,7 @@ from factorq_trainers import cli
 from factorq_trainers.compiled import fast
 from factorq_trainers.distributed import sweep_run, sweep_spec
 from factorq_trainers.experiments import paper
-from factorq_trainers.experiments import paper_shards as shards
-from factorq_trainers.runner import cluster
+from factorq_trainers.runner import cluster, frame
 from factorq_trainers.runner import results as result_files
 
 distributed = pytest.importorskip("distributed")
@@ -53,11 +52,11 @@ def executor(local_cluster):
     running.close()
 
 
-def _shards_lost_with_a_worker(dask_scheduler) -> list[str]:
+def _units_lost_with_a_worker(dask_scheduler) -> list[str]:
     return [
         str(key)
         for key, start, finish, _, stimulus, _ in dask_scheduler.transition_log
-        if str(key).startswith("shard-")
+        if str(key).startswith("paper-")
         and (start, finish) == ("processing", "released")
         and stimulus.startswith("handle-worker-cleanup")
     ]
@@ -67,26 +66,29 @@ def _without_timing(results: dict) -> str:
     return result_files.dumps({**results, "timing": None})
 
 
-def test_shards_on_two_workers_equal_one_process_bit_for_bit(executor, tmp_path):
-    config = paper.PaperConfig(**SMALL, threads=2, out=str(tmp_path / "cluster"))
-    expected = paper.run(replace(config, out=str(tmp_path / "plain")))
-    gathered = shards.run_paper(config, executor, shard_seeds=2)  # 4 shards: 2, 2, 2, 1 seeds
-    assert gathered["timing"]["shards"]["where"].endswith("(2 workers)")
-    assert gathered["timing"]["threads"] == 1
-    expected["config"]["out"] = gathered["config"]["out"]
+def test_paper_units_on_two_workers_equal_one_process_bit_for_bit(executor, tmp_path):
+    config = paper.PaperConfig(**SMALL, shard_seeds=2, threads=2, out=str(tmp_path / "cluster"))
+    expected = paper.run(replace(config, shard_seeds=SMALL["seeds"]))  # one unit per algorithm
+    units = paper.units(config)  # 2 algorithms x 4 shards: 2, 2, 2, 1 seeds
+    task = functools.partial(frame.run_unit_task, paper.__name__, config)
+    names = [f"paper-{unit['id']}" for unit in units]
+    remote = dict(executor.map(task, units, names))
+    assert executor.description.endswith("(2 workers)") and len(remote) == len(units) == 8
+    outcomes = [remote[index] for index in range(len(units))]
+    gathered = frame.envelope(paper, config, paper.summarise(config, outcomes), wall_s=0.0)
+    for results in (gathered, expected):
+        results["config"].pop("shard_seeds")
     assert _without_timing(gathered) == _without_timing(expected)
-    for shard in shards.split(config, 2):  # and each shard file holds its rows of the full run
-        saved = shards.load(shards.shard_path(tmp_path / "cluster" / "shards", shard), shard)
-        alone = shards.run_shard(shard)
-        assert all(np.array_equal(saved[key], alone[key]) for key in alone)
+    for unit, outcome in zip(units, outcomes, strict=True):  # each the unit's alone, here
+        alone = frame.unit_result(paper, config, unit, paper.run_unit(config, unit))
+        assert result_files.dumps(outcome) == result_files.dumps(alone)
 
 
 def test_a_sweep_on_the_cluster_equals_the_sweep_in_process(executor, tmp_path):
     spec = sweep_spec.SweepSpec(
-        base=(("runs", 1), ("episodes", 5), ("size", 5)),
+        base=(("runs", 1), ("episodes", 5), ("size", 5), ("shard_seeds", 2)),
         grid=(("obstacles", (2, 4)), ("epsilon", (0.01, 0.05))),
         seeds=3,
-        shard_seeds=2,
         out=str(tmp_path / "cluster"),
     )
     on_cluster = sweep_run.run_sweep(spec, executor)
@@ -108,10 +110,12 @@ def test_factorq_paper_joins_a_running_scheduler(local_cluster, tmp_path, capsys
     assert cli.main([*argv, "--out", str(tmp_path / "joined")]) == 0
     plain = json.loads((tmp_path / "plain" / "results.json").read_text())
     joined = json.loads((tmp_path / "joined" / "results.json").read_text())
-    assert joined["timing"]["shards"]["where"].startswith(f"Dask scheduler {address}")
+    assert joined["timing"]["where"].startswith(f"Dask scheduler {address}")
+    assert joined["timing"]["units"] == 4  # 2 algorithms x seeds [0, 3) and [3, 4)
     for results in (plain, joined):
         results.pop("timing")
         results["config"].pop("out")
+        results["config"].pop("shard_seeds")
     assert joined == plain
 
 
@@ -129,16 +133,21 @@ def test_an_unreachable_scheduler_is_one_line_exit_2_within_the_timeout(tmp_path
 
 
 @pytest.mark.module_threads  # the module's cluster restarts the killed worker: its watchers
-def test_a_worker_killed_mid_shard_loses_only_that_shard_and_the_numbers_stay(executor, tmp_path):
-    # Shards of about a second each on one thread, so the kill lands inside one.
-    config = paper.PaperConfig(seeds=60, out=str(tmp_path / "killed"))
+def test_a_worker_killed_mid_unit_loses_only_that_unit_and_the_numbers_stay(
+    local_cluster, executor, tmp_path, capsys
+):
+    # Units of a second or two each on one thread (an algorithm's 60 seeds), so the kill lands
+    # inside one.
+    out = tmp_path / "killed"
+    options = ["--seeds", "60", "--shard-seeds", "60", "--threads", "1"]
+    argv = ["paper", *options, "--scheduler", local_cluster.scheduler_address, "--out", str(out)]
     client = executor.client
     pids = client.run(os.getpid)  # worker address -> process id
     outcome: dict = {}
 
     def run() -> None:
         try:
-            outcome["results"] = shards.run_paper(config, executor, shard_seeds=30)
+            outcome["code"] = cli.main(argv)
         except BaseException as error:  # reported by the assertion below
             outcome["error"] = error
 
@@ -148,24 +157,26 @@ def test_a_worker_killed_mid_shard_loses_only_that_shard_and_the_numbers_stay(ex
     deadline = time.monotonic() + patience(60)
     while killed is None and time.monotonic() < deadline and runner.is_alive():
         for address, keys in client.processing().items():
-            if any(str(key).startswith("shard-") for key in keys) and address in pids:
-                time.sleep(0.3)  # well inside the shard's second of work
+            if any(str(key).startswith("paper-") for key in keys) and address in pids:
+                time.sleep(0.3)  # well inside the unit's seconds of work
                 os.kill(pids[address], signal.SIGKILL)
                 killed = address
                 break
         time.sleep(0.02)
     runner.join(timeout=patience(120))
-    assert killed is not None, "no shard was seen running: nothing was killed"
+    assert killed is not None, "no unit was seen running: nothing was killed"
     assert "error" not in outcome, outcome.get("error")
+    assert outcome["code"] == 0, capsys.readouterr().err
     assert pids[killed] not in client.run(os.getpid).values()  # that process is gone
-    # The scheduler's log: exactly one shard was lost with its worker (processing -> released on
+    # The scheduler's log: exactly one unit was lost with its worker (processing -> released on
     # the worker's clean-up) and computed again; the other ran once.
-    lost = client.run_on_scheduler(_shards_lost_with_a_worker)
+    lost = client.run_on_scheduler(_units_lost_with_a_worker)
     assert len(lost) == 1, lost
-    results = outcome["results"]
-    expected = shards.results(config, [shards.run_shard(config)], results["timing"])
-    assert _without_timing(results) == _without_timing(expected)
-    assert len(list((tmp_path / "killed" / "shards").rglob("*.npz"))) == 2
+    results = json.loads((out / "results.json").read_text())
+    assert results["timing"]["units"] == 2 and results["timing"]["units_resumed"] == 0
+    expected = paper.run(paper.PaperConfig(seeds=60, shard_seeds=60, threads=1, out=str(out)))
+    assert _without_timing(results) == _without_timing(json.loads(result_files.dumps(expected)))
+    assert not (out / "units").exists()  # the kept units go once the results are written
 
 
 def test_factorq_compare_on_the_cluster_repeats_every_method_in_process(
@@ -195,7 +206,7 @@ def test_factorq_sweep_on_a_running_scheduler_writes_what_it_writes_in_process(
     local_cluster, tmp_path, capsys
 ):
     argv = ["sweep", "--grid", "obstacles=2,3", "--set", "runs=1", "--set", "episodes=3"]
-    argv += ["--set", "size=5", "--seeds", "3", "--shard-seeds", "2"]
+    argv += ["--set", "size=5", "--set", "shard_seeds=2", "--seeds", "3"]
     address = local_cluster.scheduler_address
     assert cli.main([*argv, "--scheduler", address, "--out", str(tmp_path / "joined")]) == 0
     assert cli.main([*argv, "--out", str(tmp_path / "here")]) == 0

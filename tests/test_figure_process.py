@@ -16,6 +16,7 @@ from factorq_trainers.compiled import fast
 from factorq_trainers.experiments import paper
 from factorq_trainers.reports import figure_process, paper_figure, report
 from factorq_trainers.reports.figure_process import FigureProcess, FigureProcessError
+from factorq_trainers.runner import frame
 from factorq_trainers.runner.results import temporary_path
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
@@ -50,7 +51,7 @@ def test_the_helper_draws_the_bytes_drawn_in_process(results, shape, tmp_path):
 
 
 def test_the_prepared_frame_is_that_of_the_paper_defaults():
-    results = {"config": paper.config_dict(paper.PaperConfig())}
+    results = {"config": frame.plain(paper.PaperConfig())}
     spec = paper_figure.frame_spec(results, *report.figure_arguments(results))
     assert paper_figure.default_spec() == spec
 
@@ -110,7 +111,7 @@ def test_ctrl_c_while_the_helper_draws_ends_it_and_leaves_no_file(results, tmp_p
 
     monkeypatch.setattr(helper.process, "wait", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        report.write_results(results, tmp_path, figure_process=helper)
+        frame.write_outputs(paper, results, tmp_path, figure_process=helper)
     assert helper.process.poll() is not None  # ended before the temporaries were removed
     assert output_names(tmp_path) == []
     helper.close()
@@ -159,7 +160,12 @@ def test_a_figure_that_cannot_be_drawn_is_one_error_line_and_no_file(tmp_path, m
         "factorq paper: error: drawing figure3.png failed: RuntimeError: Agg ran out of memory"
     )
     assert "Traceback" not in "\n".join(err)
-    assert not out.exists() or output_names(out) == []  # nothing written, nothing half-written
+    # nothing written, nothing half-written; the finished units are kept for --resume
+    assert output_names(out) == ["units"]
+    monkeypatch.undo()
+    assert cli.main(["paper", "--resume", str(out)]) == 0
+    assert "resuming" in capsys.readouterr().err
+    assert output_names(out) == ["figure3.png", "report.md", "results.json"]
 
 
 @needs_fast

@@ -1,19 +1,18 @@
 """Issue 29 item 1: files the project creates are never opened through links. A link planted
 where the lock, a temporary or an output belongs is refused in one line, and its target is left
 as it was (the lock used to be opened through the link and the target truncated to a pid).
-Item 2: kept shards and kept configuration results (``OUT/configs/<digest>.json``) carry a content
-digest, checked with their values when a sweep reuses them; a bad one is refused naming the file
-before any work, and ``--force`` recomputes it."""
+Item 2: kept configuration results (``OUT/configs/<digest>.json``) carry a content digest,
+checked with their values when a sweep reuses them; a bad one is refused naming the file before
+any work, and ``--force`` recomputes it (a run's kept units: tests/test_kept_units.py)."""
 
 from __future__ import annotations
 
 import json
 import os
 
-import numpy as np
 import pytest
 
-from factorq_trainers.runner import checkpoint, outdir, results
+from factorq_trainers.runner import outdir, results
 
 PRECIOUS = b"a user's file, not ours\n"
 
@@ -102,19 +101,6 @@ def test_a_stale_regular_temporary_of_a_reused_pid_is_replaced(tmp_path):
     assert not results.temporary_path(path).exists()
 
 
-def test_a_link_planted_at_the_checkpoints_temporary_is_refused_and_its_target_kept(
-    tmp_path, victim
-):
-    out = tmp_path / "out"
-    directory = checkpoint.directory_of(out)
-    directory.mkdir(parents=True)
-    (directory / f".{checkpoint.LATEST}.{os.getpid()}.factorq-tmp").symlink_to(victim)
-    with pytest.raises(outdir.LinkRefused):
-        checkpoint.save(out, {"episodes": 1})
-    assert victim.read_bytes() == PRECIOUS
-    assert not (directory / checkpoint.LATEST).exists()
-
-
 def test_a_fifo_where_a_results_file_belongs_is_named_as_such_not_missing(tmp_path):
     from factorq_trainers import reports
 
@@ -125,95 +111,6 @@ def test_a_fifo_where_a_results_file_belongs_is_named_as_such_not_missing(tmp_pa
         results.read_json(fifo, ["config"], "run factorq paper")  # (reading it would block)
     with pytest.raises(ValueError, match="is not a regular file"):
         reports.find(tmp_path)
-
-
-def _kept_shard(tmp_path):
-
-    from factorq_trainers.experiments import paper_shards as shards
-    from factorq_trainers.experiments.paper_config import PaperConfig
-
-    shard = PaperConfig(seeds=2, runs=2, episodes=3)
-    rng = np.random.default_rng(0)
-    metrics = {
-        f"{world}/{algorithm}/{name}": (
-            rng.integers(0, 50, (2, 2, 3)) if name != "task_return" else rng.normal(size=(2, 2, 3))
-        )
-        for world in shard.worlds
-        for algorithm in shard.algorithms
-        for name in shards.METRICS
-    }
-    path = tmp_path / "000000-000002.npz"
-    shards.save(path, shard, metrics)
-    return shards, shard, path, metrics
-
-
-def _edit(path, change):
-    """Rewrite a kept shard with ``change(metrics)`` applied, its stored digest kept or
-    recomputed (``change`` returns whether to sign again)."""
-
-    from factorq_trainers.experiments import paper_shards as shards
-
-    with np.load(path) as data:
-        everything = {key: data[key] for key in data.files}
-    metrics = {key: value for key, value in everything.items() if not key.startswith("__")}
-    if change(metrics):
-        everything["__sha256__"] = np.array(shards.metrics_digest(metrics))
-    everything = {**everything, **metrics}
-    for key in [key for key in everything if not key.startswith("__") and key not in metrics]:
-        del everything[key]
-    with open(path, "wb") as handle:
-        np.savez(handle, **everything)
-
-
-def test_a_kept_shard_reads_back_as_it_was_written(tmp_path):
-
-    shards, shard, path, metrics = _kept_shard(tmp_path)
-    loaded = shards.load(path, shard)
-    assert sorted(loaded) == sorted(metrics)
-    assert all(np.array_equal(loaded[key], metrics[key]) for key in metrics)
-
-
-def _times_100(metrics):
-    key = next(iter(metrics))
-    metrics[key] = metrics[key] * 100
-    return False  # the digest of the original numbers stays
-
-
-def _nan_signed(metrics):
-    key = next(key for key in metrics if key.endswith("/task_return"))
-    metrics[key] = metrics[key].copy()
-    metrics[key][0, 0, 0] = np.nan
-    return True
-
-
-def _negative_signed(metrics):
-    key = next(key for key in metrics if key.endswith("/collisions"))
-    metrics[key] = metrics[key].copy()
-    metrics[key][1, 0, 2] = -4
-    return True
-
-
-def _missing_signed(metrics):
-    del metrics[next(key for key in metrics if key.endswith("/steps"))]
-    return True
-
-
-@pytest.mark.parametrize(
-    ("change", "message"),
-    [
-        (_times_100, "does not match its digest"),
-        (_nan_signed, "holds nan, not a finite number"),
-        (_negative_signed, "holds -4, not a count"),
-        (_missing_signed, "lacks the metric .*/steps"),
-    ],
-    ids=["x100", "nan", "negative", "missing"],
-)
-def test_an_edited_kept_shard_is_refused_naming_the_file(tmp_path, change, message):
-    shards, shard, path, _ = _kept_shard(tmp_path)
-    _edit(path, change)
-    with pytest.raises(ValueError, match=message) as error:
-        shards.load(path, shard)
-    assert str(path) in one_line(error) and "pass --force to recompute it" in str(error.value)
 
 
 # --- kept configuration results (compare, dependencies, ... sweeps) ------------------------------
@@ -283,8 +180,9 @@ def test_a_kept_configuration_result_reads_back_as_it_was_written(tmp_path):
         (lambda r: r.pop("content_sha256"), False, "has no digest"),
         (lambda r: _entry(r).update(collisions=float("nan")), True, "collisions holds nan, not a"),
         (lambda r: _entry(r).update(wall_s=float("inf")), True, "wall_s holds inf, not a finite"),
+        (lambda r: _entry(r).update(collisions=10**400), True, "0, not a finite number"),
         (lambda r: _entry(r).update(greedy_collisions=-4.0), True, "holds -4.0, negative"),
-        (lambda r: _entry(r)["collisions_ci95"].__setitem__(0, -1), True, "ci95.0. holds -1, neg"),
+        (lambda r: _entry(r)["collisions_ci95"].__setitem__(0, 1e999), True, "ci95.0. holds inf"),
         (lambda r: _entry(r).update(seeds_reached=2.5), True, "holds 2.5, not a whole count"),
         (lambda r: _entry(r).update(seeds_reached=3), True, "but 2 seeds reached the threshold"),
         (lambda r: _entry(r)["steps_to_threshold_per_seed"].pop(), True, "holds 2 seeds' steps"),
@@ -301,8 +199,9 @@ def test_a_kept_configuration_result_reads_back_as_it_was_written(tmp_path):
         "no-digest",
         "nan",
         "inf",
+        "past-float",
         "negative",
-        "negative-interval",
+        "infinite-interval",
         "fractional-count",
         "seeds-reached",
         "seed-missing",
@@ -322,10 +221,11 @@ def test_an_edited_kept_configuration_result_is_refused_naming_the_file(
 
 
 def test_a_kept_results_negative_return_and_settings_are_not_refused(tmp_path):
-    """Only measured counts are range-checked: a return may be negative, a config holds
-    settings (the digest covers them)."""
+    """Only measured counts are range-checked: a return may be negative, so may the lower bound
+    of a count's t interval, a config holds settings (the digest covers them)."""
     results = _compare_result()
     _entry(results)["return"] = -3.5
+    _entry(results)["collisions_ci95"][0] = -1.5
     results["config"]["reward_collision"] = -1.0
     kept, path = _kept_result(tmp_path, results)
     assert kept.read_sealed(path, "configuration file") == results
@@ -346,9 +246,25 @@ def test_reusable_refuses_a_bad_kept_file_unless_forced(tmp_path):
     assert not kept.reusable(path, check, force=True)  # recomputed by the caller
 
 
-def test_a_sweep_refuses_an_edited_kept_shard_before_any_work_and_force_recomputes_it(tmp_path):
+def _times_100(results):
+    cell = next(iter(results["cells"].values()))
+    cell["summary"]["collisions"]["mean"] *= 100
+
+
+def _negative(results):
+    cell = next(iter(results["cells"].values()))
+    cell["per_seed"]["collisions"][0] = -4.0
+
+
+@pytest.mark.parametrize(
+    ("change", "sign", "message"),
+    [(_times_100, False, "does not match its digest"), (_negative, True, "holds -4.0, negative")],
+    ids=["x100", "negative-resealed"],
+)
+def test_a_paper_sweep_refuses_an_edited_kept_configuration_before_any_work_and_force_recomputes_it(
+    tmp_path, change, sign, message
+):
     from factorq_trainers.distributed import sweep_run, sweep_spec
-    from factorq_trainers.experiments import paper_shards
     from factorq_trainers.runner import cluster
 
     class Counting(cluster.InProcess):
@@ -360,22 +276,21 @@ def test_a_sweep_refuses_an_edited_kept_shard_before_any_work_and_force_recomput
             return super().map(function, items, names)
 
     spec = sweep_spec.SweepSpec(
-        base=(("runs", 1), ("episodes", 3), ("size", 5), ("obstacles", 2)),
-        grid=(("eta", (0.1,)),),
+        base=(("runs", 1), ("episodes", 3), ("size", 5), ("obstacles", 2), ("shard_seeds", 1)),
+        grid=(("eta", (0.1, 0.2)),),
         seeds=2,
-        shard_seeds=1,
         out=str(tmp_path / "sweep"),
     )
     first = sweep_run.run_sweep(spec, cluster.InProcess())
-    path = sorted((tmp_path / "sweep" / paper_shards.SHARDS_DIRECTORY).rglob("*.npz"))[1]
-    _edit(path, _times_100)
+    path = tmp_path / "sweep" / first["configurations"][1]["results_file"]
+    _rewrite(path, change, sign)
     refused = Counting()
-    with pytest.raises(ValueError, match="does not match its digest") as error:
+    with pytest.raises(ValueError, match=message) as error:
         sweep_run.run_sweep(spec, refused)
     assert str(path) in one_line(error) and "pass --force to recompute it" in str(error.value)
     assert refused.items == []  # refused before any work
     forced = Counting()
     again = sweep_run.run_sweep(spec, forced, force=True)
-    assert [(shard.first_seed, shard.seeds) for shard in forced.items] == [(1, 1)]
+    assert forced.items == [spec.configurations()[1]]
     assert again["configurations"] == first["configurations"]
-    assert again["timing"]["shards_run_now"] == 1
+    assert again["timing"]["configurations_run_now"] == 1

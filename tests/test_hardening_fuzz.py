@@ -1,6 +1,7 @@
 """Issue 29 item 7: a fuzz harness for what is read from disk. Arbitrary structure and values go
-to the sweep file parser, the results reader and the checkpoint reader: each gives a valid result
-or the project's own one-line error, never another exception, in bounded time.
+to the sweep file parser, the results reader and a run's kept units: each
+gives a valid result or the project's own one-line error, never another exception, in bounded
+time.
 
 Bounded for CI: a fixed number of examples each (``max_examples``), a generous per-example
 ``deadline`` (the machine may be loaded), no example database written to the tree.
@@ -8,19 +9,17 @@ Bounded for CI: a fixed number of examples each (``max_examples``), a generous p
 
 from __future__ import annotations
 
-import io
 import json
 import tempfile
 from datetime import timedelta
 from pathlib import Path
 
-import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers.distributed import sweep_spec
-from factorq_trainers.runner import checkpoint, results
+from factorq_trainers.runner import results
 
 FUZZ = settings(
     max_examples=150,
@@ -115,66 +114,6 @@ def test_a_results_file_of_any_bytes_gives_the_results_or_a_value_error(content)
     _read(content)
 
 
-tensors = st.builds(
-    lambda shape, dtype: torch.zeros(shape, dtype=dtype),
-    st.lists(st.integers(0, 3), max_size=3),
-    st.sampled_from([torch.float32, torch.int64, torch.bool]),
-)
-#: What ``torch.load(weights_only=True)`` can give back: containers, numbers, strings, tensors.
-checkpoint_values = st.recursive(
-    st.none()
-    | st.booleans()
-    | st.integers(-(2**70), 2**70)
-    | st.floats()
-    | st.text(max_size=8)
-    | tensors,
-    lambda children: (
-        st.lists(children, max_size=3)
-        | st.dictionaries(st.text(max_size=8), children, max_size=3)
-        | st.lists(children, max_size=3).map(tuple)
-    ),
-    max_leaves=16,
-)
-
-
-@FUZZ
-@given(
-    content=checkpoint_values
-    | st.fixed_dictionaries(
-        {name: checkpoint_values for name in checkpoint.Checkpoint._fields[1:]}
-    ),
-    signed=st.booleans(),
-)
-def test_a_checkpoint_of_any_structure_gives_a_checkpoint_or_a_checkpoint_error(content, signed):
-    record = {"format": checkpoint.FORMAT, "version": checkpoint.FORMAT_VERSION}
-    record["sha256"] = checkpoint.digest(content) if signed else "0" * 64
-    with tempfile.TemporaryDirectory() as directory:
-        out = Path(directory)
-        path = checkpoint.directory_of(out) / checkpoint.LATEST
-        path.parent.mkdir()
-        buffer = io.BytesIO()
-        torch.save({**record, "content": content}, buffer)
-        path.write_bytes(buffer.getvalue())
-        try:
-            loaded = checkpoint.load(out)
-        except checkpoint.CheckpointError as error:
-            _one_line(error)
-        else:
-            assert isinstance(loaded, checkpoint.Checkpoint)
-
-
-@FUZZ
-@given(content=st.binary(max_size=400))
-def test_a_checkpoint_of_any_bytes_is_a_checkpoint_error(content):
-    with tempfile.TemporaryDirectory() as directory:
-        path = Path(directory) / "checkpoint.pt"
-        path.write_bytes(content)
-        try:
-            checkpoint.read_content(path, checkpoint.FORMAT)
-        except checkpoint.CheckpointError as error:
-            _one_line(error)
-
-
 def test_the_harness_reaches_past_the_first_checks():
     """The readers accept what they should: a valid spec and results file built from the same
     pieces are read back (so the fuzzing above is not all refused at the door)."""
@@ -183,33 +122,111 @@ def test_the_harness_reaches_past_the_first_checks():
     assert _read(json.dumps({"command": "paper"}).encode()) == {"command": "paper"}
 
 
-@FUZZ
-@given(
-    config=values.map(lambda value: json.dumps(value, allow_nan=True)) | st.text(max_size=40),
-    arrays=st.dictionaries(
-        st.sampled_from(["collisions", "total_steps", "x"]),
-        st.lists(st.floats(allow_nan=True, allow_infinity=True), max_size=4),
-        max_size=3,
-    ),
-    raw=st.none() | st.binary(max_size=200),
-)
-def test_a_shard_file_of_any_content_gives_metrics_or_a_value_error(config, arrays, raw):
-    import numpy as np
+#: Numbers as a kept unit may hold them: mostly counts, some of every other kind.
+unit_numbers = st.one_of(*[st.integers(0, 5)] * 12, scalars)
 
-    from factorq_trainers.experiments import paper_shards as shards
-    from factorq_trainers.experiments.paper_config import PaperConfig
+
+def _unit_lists(items):
+    """Mostly one item (the unit's one seed, world), some of any length."""
+    one = st.lists(items, min_size=1, max_size=1)
+    return st.one_of(one, one, one, one, one, st.lists(items, max_size=2))
+
+
+#: Paper unit results near the valid ones (``paper.UNIT_RESULT``'s shape), so that the checks past
+#: the schema (``paper.check_unit``) are reached too.
+paper_units = st.fixed_dictionaries(
+    {
+        "algorithm": st.sampled_from(["factor-q", "q-learning"]) | scalars,
+        "backend": st.sampled_from(["fast", "modular"]) | scalars,
+        "env_steps": unit_numbers,
+        "worlds": _unit_lists(
+            st.fixed_dictionaries(
+                {
+                    "world": st.one_of(*[st.just("static")] * 4, st.just("dynamic"), scalars),
+                    "run_sums": st.fixed_dictionaries(
+                        {
+                            name: _unit_lists(unit_numbers)
+                            for name in ("total_steps", "collisions", "greedy_collisions")
+                        }
+                    ),
+                    "task_return": _unit_lists(unit_numbers),
+                    "curve_sums": st.fixed_dictionaries(
+                        {
+                            name: _unit_lists(st.lists(unit_numbers, min_size=2, max_size=3))
+                            for name in ("steps", "collisions", "greedy_collisions")
+                        }
+                    ),
+                }
+            )
+        ),
+    }
+)
+
+
+@FUZZ
+@given(result=paper_units | values, raw=st.none() | st.binary(max_size=200))
+def test_a_kept_paper_unit_of_any_content_is_reused_and_summarised_or_refused_in_one_line(
+    result, raw
+):
+    """A unit file kept sealed and tied to its run (so the checks reach its values), or any bytes:
+    ``--resume`` reuses it only if the paper can summarise it, else refuses it in one line."""
+    import functools
+
+    from factorq_trainers.experiments import paper
+    from factorq_trainers.runner import frame, kept
 
     with tempfile.TemporaryDirectory() as directory:
-        path = Path(directory) / "000000-000001.npz"
+        config = paper.PaperConfig(
+            seeds=1, runs=1, episodes=2, worlds=("static",), algorithms=("factor-q",), out=directory
+        )
+        (unit,) = paper.units(config)
+        store = kept.UnitStore(directory)
+        store.start(paper.NAME, frame.plain(config), [unit["id"]])
         if raw is None:
-            numbers = {key: np.array(value) for key, value in arrays.items()}
-            with open(path, "wb") as handle:
-                np.savez(handle, __config__=np.array(config), **numbers)
+            store.keep(unit, frame.through_json(result))
         else:
-            path.write_bytes(raw)
+            kept.unit_path(store.directory, unit["id"]).write_bytes(raw)
+        check = functools.partial(paper.check_unit, config)
         try:
-            metrics = shards.load(path, PaperConfig(seeds=1))
+            found = store.finished([unit], paper.UNIT_RESULT, False, check)
         except ValueError as error:
             _one_line(error)
         else:
-            assert isinstance(metrics, dict)
+            summary = paper.summarise(config, [found[unit["id"]]])
+            assert set(summary["cells"]) == {"static/factor-q"}
+
+
+def test_a_valid_kept_paper_unit_is_reused():
+    """The fuzzing above is not all refused at the door: a unit as ``run_unit`` gives it is."""
+    import functools
+
+    from factorq_trainers.experiments import paper
+    from factorq_trainers.runner import frame, kept
+
+    with tempfile.TemporaryDirectory() as directory:
+        config = paper.PaperConfig(
+            seeds=1, runs=1, episodes=2, worlds=("static",), algorithms=("factor-q",), out=directory
+        )
+        (unit,) = paper.units(config)
+        result = {
+            "algorithm": "factor-q",
+            "backend": "fast",
+            "env_steps": 9,
+            "worlds": [
+                {
+                    "world": "static",
+                    "run_sums": {"total_steps": [9], "collisions": [2], "greedy_collisions": [1]},
+                    "task_return": [-7.5],
+                    "curve_sums": {
+                        "steps": [[5, 4]],
+                        "collisions": [[2, 0]],
+                        "greedy_collisions": [[1, 0]],
+                    },
+                }
+            ],
+        }
+        store = kept.UnitStore(directory)
+        store.start(paper.NAME, frame.plain(config), [unit["id"]])
+        store.keep(unit, result)
+        check = functools.partial(paper.check_unit, config)
+        assert store.finished([unit], paper.UNIT_RESULT, False, check) == {unit["id"]: result}

@@ -1,5 +1,5 @@
 """Issue 41 item 5: the red team's classes as properties. Every reader of a file factorq reads
-(sweep files, results, checkpoints, shards) refuses a hostile file of every kind (a FIFO, a
+(sweep files, results, checkpoints) refuses a hostile file of every kind (a FIFO, a
 device, a directory, a link, a dangling link, an oversized sparse file, deep nesting, a
 compressed bomb) with its own one-line error; a hostile peer at the scheduler address (any
 bytes, any announced length, silence) is refused in one line within the timeout.
@@ -27,9 +27,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from factorq_trainers.distributed import sweep_spec as sweep
-from factorq_trainers.experiments import paper
-from factorq_trainers.experiments import paper_shards as shards
-from factorq_trainers.runner import checkpoint, cluster, reading, results
+from factorq_trainers.runner import cluster, reading, results
 
 FUZZ = settings(
     max_examples=60,
@@ -56,20 +54,11 @@ def deadline(seconds: float):
         signal.signal(signal.SIGALRM, previous)
 
 
-def _shard():
-    config = paper.PaperConfig(
-        seeds=1, runs=1, episodes=2, size=4, obstacles=1, worlds=("static",), out="unused"
-    )
-    return shards.split(config, 1)[0]
-
-
 #: Every reader of a file, with the error it refuses with.
 READERS = {
     "sweep toml": (".toml", sweep.read_spec_file, sweep.SweepError),
     "sweep yaml": (".yaml", sweep.read_spec_file, sweep.SweepError),
     "results": (".json", lambda p: results.read_json(p, ["config"], "run it"), ValueError),
-    "checkpoint": (".pt", lambda p: checkpoint.read_content(p, checkpoint.FORMAT), ValueError),
-    "shard": (".npz", lambda p: shards.load(p, _shard()), ValueError),
 }
 KINDS = ("fifo", "zero", "urandom", "directory", "link", "dangling", "oversize", "deep", "bomb")
 

@@ -10,12 +10,11 @@ import time
 from dataclasses import dataclass
 
 import pytest
-import torch
 from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_torch.base.validation import check_float
 from factorq_trainers.distributed import sweep_spec
-from factorq_trainers.runner import checkpoint, cluster, options, reading
+from factorq_trainers.runner import cluster, options, reading
 from factorq_trainers.runner.frame import Parser
 
 
@@ -131,17 +130,6 @@ def test_the_grid_size_is_checked_from_the_axes_lengths_before_expanding():
     ):
         sweep_spec.spec_from_mapping({"grid": {"alpha": axis, "gamma": axis, "epsilon": axis}})
     assert time.perf_counter() - start < patience(5)
-
-
-def test_a_deeply_nested_checkpoint_is_refused_before_the_digest_walk(tmp_path):
-    nested: list = []
-    for _ in range(200):
-        nested = [nested]
-    path = tmp_path / "checkpoint.pt"
-    record = {"format": checkpoint.FORMAT, "version": checkpoint.FORMAT_VERSION, "sha256": "x"}
-    torch.save({**record, "content": {"config": nested}}, path)
-    with pytest.raises(checkpoint.CheckpointError, match="nests deeper than 32 levels"):
-        checkpoint.read_content(path, checkpoint.FORMAT)
 
 
 def test_deeper_than_walks_without_recursion():

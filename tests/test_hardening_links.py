@@ -34,29 +34,26 @@ def test_a_link_where_factorq_writes_a_folder_is_refused_before_any_work(tmp_pat
 
 def test_the_folders_claim_guards_are_the_ones_the_commands_write():
     from factorq_trainers.distributed import sweep_spec
-    from factorq_trainers.experiments import paper_shards
     from factorq_trainers.reports import compare_report
-    from factorq_trainers.runner import checkpoint, frame
+    from factorq_trainers.runner import kept
 
     written = {
-        checkpoint.DIRECTORY,
-        paper_shards.SHARDS_DIRECTORY,
         sweep_spec.CONFIGS_DIRECTORY,
-        frame.UNITS_DIRECTORY,
+        kept.UNITS_DIRECTORY,
         compare_report.LOGS_DIRECTORY,
     }
     assert written == set(outdir.OWN_DIRECTORIES)
 
 
-def test_paper_refuses_a_linked_checkpoint_folder_in_one_line(tmp_path, elsewhere, capsys):
+def test_paper_refuses_a_linked_units_folder_in_one_line(tmp_path, elsewhere, capsys):
     out = tmp_path / "out"
     out.mkdir()
-    (out / "checkpoint").symlink_to(elsewhere, target_is_directory=True)
+    (out / "units").symlink_to(elsewhere, target_is_directory=True)
     argv = ["paper", "--seeds", "1", "--runs", "1", "--episodes", "2", "--size", "4"]
-    code = cli.main([*argv, "--obstacles", "1", "--checkpoint-every", "1", "--out", str(out)])
+    code = cli.main([*argv, "--obstacles", "1", "--out", str(out)])
     assert code == 2
     lines = capsys.readouterr().err.strip().splitlines()
-    assert len(lines) <= 2 and "checkpoint' is a symbolic link" in lines[-1], lines
+    assert len(lines) == 1 and "units' is a symbolic link" in lines[-1], lines
     assert list(elsewhere.iterdir()) == []
     assert not (out / "results.json").exists()
 

@@ -21,9 +21,7 @@ import pytest
 
 from factorq_torch.base.validation import check_names
 from factorq_trainers.distributed import sweep_spec as sweep
-from factorq_trainers.experiments import paper
-from factorq_trainers.experiments import paper_shards as shards
-from factorq_trainers.runner import checkpoint, reading, results
+from factorq_trainers.runner import reading, results
 
 #: The cases that hung (a FIFO, a device, TOML's dotted keys, a quadratic duplicate check) or ran
 #: out of memory before the fix: each prints ``name<TAB>outcome`` in a child process.
@@ -34,7 +32,7 @@ _CHILD = textwrap.dedent(
     from pathlib import Path
     from factorq_torch.base.validation import check_names
     from factorq_trainers.distributed import sweep
-    from factorq_trainers.runner import checkpoint
+    from factorq_trainers.runner import kept
 
     tmp = Path(sys.argv[1])
 
@@ -59,9 +57,9 @@ _CHILD = textwrap.dedent(
     (tmp / "header.toml").write_text("[" + ".".join(["a"] * 16_000) + "]\\nx = 1\\n")
     attempt("dotted table header", lambda: sweep.read_spec_file(tmp / "header.toml"))
     out = tmp / "run"
-    (out / "checkpoint").mkdir(parents=True)
-    os.mkfifo(out / "checkpoint" / "checkpoint.pt")
-    attempt("fifo checkpoint", lambda: checkpoint.load(out))
+    (out / "units").mkdir(parents=True)
+    os.mkfifo(out / "units" / "run.json")
+    attempt("fifo run file", lambda: kept.UnitStore(out).saved_run("paper"))
     worlds = ["static"] * 10**6
     attempt("10**6 worlds", lambda: check_names("worlds", worlds, ("static", "dynamic")))
     """
@@ -99,11 +97,7 @@ def child_outcomes(tmp_path_factory):
         ("dotted toml", r"SweepError: sweep file .*dotted.toml nests deeper than 32 levels"),
         ("dotted toml 200 KB", r"SweepError: sweep file .*dotted200k.toml nests deeper than 32"),
         ("dotted table header", r"SweepError: sweep file .*header.toml nests deeper than 32"),
-        (
-            "fifo checkpoint",
-            r"CheckpointError: checkpoint .*checkpoint.pt is not a regular file \(a FIFO\); "
-            r"there is no previous",
-        ),
+        ("fifo run file", r"ValueError: run file .*run.json is unreadable \(.*not a regular file"),
         ("10**6 worlds", r"ValueError: worlds: static given more than once"),
     ],
 )
@@ -125,13 +119,6 @@ def test_a_link_is_refused_by_every_reader_naming_its_target(tmp_path):
     (tmp_path / "results.json").symlink_to(tmp_path / "real.json")
     with pytest.raises(ValueError, match="results.json is a symbolic link"):
         results.read_json(tmp_path / "results.json", ["config"], "make it")
-    directory = checkpoint.directory_of(tmp_path / "out")
-    directory.mkdir(parents=True)
-    checkpoint.save(tmp_path / "elsewhere", {"episodes": 1})
-    real = checkpoint.directory_of(tmp_path / "elsewhere") / checkpoint.LATEST
-    (directory / checkpoint.LATEST).symlink_to(real)
-    with pytest.raises(checkpoint.CheckpointError, match="checkpoint.pt is a symbolic link"):
-        checkpoint.read_content(directory / checkpoint.LATEST, checkpoint.FORMAT)
 
 
 def test_a_directory_is_refused_where_a_file_belongs(tmp_path):
@@ -146,13 +133,6 @@ def test_toml_depth_counts_dotted_keys_and_headers_but_not_strings_numbers_or_co
     assert reading.toml_depth('a = "x.y.z.w"\nb = 1.5 # p.q.r.s.t') == 2  # the number: 2 parts
     assert reading.toml_depth('"a.b".c = 1') == 2
     assert reading.toml_depth("a = [[1], [2]]") == 2 + 1
-
-
-def _shard(tmp_path):
-    config = paper.PaperConfig(
-        seeds=1, runs=1, episodes=2, size=4, obstacles=1, worlds=("static",), out=str(tmp_path)
-    )
-    return shards.split(config, 1)[0]
 
 
 def _bomb(path: Path, members: dict[str, tuple[bytes, int]]) -> None:
@@ -176,21 +156,11 @@ def _npy_header(shape: tuple[int, ...]) -> bytes:
     return buffer.getvalue()
 
 
-def test_a_compressed_shard_bomb_is_refused_before_decompression(tmp_path):
-    shard = _shard(tmp_path)
-    path = tmp_path / "bomb.npz"
-    zeros = 64 * 2**20  # 64 MiB of zeros, about 64 kB deflated; the shard holds a few kB
-    _bomb(path, {"x.npy": (_npy_header((zeros // 8,)), zeros)})
-    assert path.stat().st_size < 2**20
-    with pytest.raises(ValueError, match=r"bomb.npz unpacks to \d+ bytes .* before decompressing"):
-        shards.load(path, shard)
-
-
 def test_an_array_header_larger_than_its_member_is_refused_unallocated(tmp_path):
     path = tmp_path / "liar.npz"
     _bomb(path, {"x.npy": (_npy_header((10**15,)), 8)})  # claims 8 PB, holds 8 bytes
     with pytest.raises(reading.ReadError, match=r"declares float64 \[1000000000000000\]"):
-        reading.read_npz(path, "shard file", 2**20, 2**20)
+        reading.read_npz(path, "npz file", 2**20, 2**20)
 
 
 def test_read_npz_gives_back_what_numpy_saved(tmp_path):
@@ -201,22 +171,10 @@ def test_read_npz_gives_back_what_numpy_saved(tmp_path):
         "c": np.array("x"),
     }
     np.savez_compressed(path, **arrays)
-    read = reading.read_npz(path, "shard file", 2**20, 2**20)
+    read = reading.read_npz(path, "npz file", 2**20, 2**20)
     assert set(read) == set(arrays)
     for name, value in arrays.items():
         np.testing.assert_array_equal(read[name], value)
-
-
-def test_a_checkpoint_with_a_compressed_member_is_refused(tmp_path):
-    path = tmp_path / "checkpoint.pt"
-    checkpoint.save(tmp_path, {"episodes": 1})
-    stored = checkpoint.directory_of(tmp_path) / checkpoint.LATEST
-    with zipfile.ZipFile(stored) as source, zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as out:
-        for member in source.infolist():
-            out.writestr(member.filename, source.read(member))
-    with pytest.raises(checkpoint.CheckpointError, match=r"is compressed \(torch.save stores"):
-        checkpoint.read_content(path, checkpoint.FORMAT)
-    assert checkpoint.read_content(stored, checkpoint.FORMAT) == {"episodes": 1}
 
 
 def test_an_oversized_file_is_refused_unread(tmp_path):

@@ -1,7 +1,7 @@
 """Issue 29 item 4: every failure while writing is handled. A full disk, a quota or a file size
 limit during any save (a checkpoint included: torch's zip writer raises a RuntimeError that names
-none of them) gives one line naming the file, keeps what was there, and leaves no half
-directory."""
+none of them) gives one line naming the file, keeps what was there (a run's finished units, for
+``--resume``), and leaves no half-written file."""
 
 from __future__ import annotations
 
@@ -12,10 +12,9 @@ import subprocess
 import sys
 
 import pytest
-import torch
 from timing import patience  # tests/timing.py: bounds that stretch with the load
 
-from factorq_trainers.runner import checkpoint, results
+from factorq_trainers.runner import results
 
 #: What torch's zip writer raises when a write comes up short (seen with RLIMIT_FSIZE).
 TORCH_SHORT_WRITE = RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 704")
@@ -29,31 +28,6 @@ def _one_line(error: pytest.ExceptionInfo) -> str:
     message = str(error.value)
     assert "\n" not in message
     return message
-
-
-def test_a_failed_first_checkpoint_save_is_one_line_and_leaves_no_directory(tmp_path, monkeypatch):
-    monkeypatch.setattr(torch, "save", _failing_torch_save)
-    with pytest.raises(OSError) as error:
-        checkpoint.save(tmp_path, {"episodes": 1})
-    message = _one_line(error)
-    assert message.startswith(
-        f"cannot write {checkpoint.directory_of(tmp_path) / checkpoint.LATEST}"
-    )
-    assert "a full disk, a quota or a file size limit?" in message and "inline_container" in message
-    assert not checkpoint.directory_of(tmp_path).exists()  # no empty checkpoint/ left
-
-
-def test_a_failed_later_checkpoint_save_keeps_the_checkpoint_before_it(tmp_path, monkeypatch):
-    checkpoint.save(tmp_path, {"episodes": 1})
-    monkeypatch.setattr(torch, "save", _failing_torch_save)
-    with pytest.raises(OSError, match="the checkpoint before it, if any, is kept"):
-        checkpoint.save(tmp_path, {"episodes": 2})
-    monkeypatch.undo()
-    directory = checkpoint.directory_of(tmp_path)
-    assert sorted(path.name for path in directory.iterdir()) == [checkpoint.LATEST]
-    assert checkpoint.read_content(directory / checkpoint.LATEST, checkpoint.FORMAT) == {
-        "episodes": 1
-    }
 
 
 def test_a_failed_results_write_names_the_file_and_keeps_the_old_one(tmp_path):
@@ -81,25 +55,25 @@ def _limited(limit: int):
     return apply
 
 
-# The smallest run whose fast driver checkpoints inside each algorithm (tests/test_checkpoint.py).
+# Two units (an algorithm each) of some 8 kB kept each, results of some 68 kB.
 PAPER = ["--seeds", "3", "--runs", "3", "--episodes", "60", "--size", "6", "--obstacles", "4"]
 
 
 @pytest.mark.parametrize(
-    ("options", "file"),
-    [(["--checkpoint-every", "1"], "checkpoint/checkpoint.pt"), ([], "results.json")],
-    ids=["checkpoint", "results"],
+    ("limit", "file", "kept"),
+    [(4096, "units/", 0), (2**15, "results.json", 2)],  # a unit's file is some 8 kB, results 68
+    ids=["unit", "results"],
 )
-def test_a_file_size_limit_in_a_real_run_is_one_line_exit_1_and_no_directory(
-    tmp_path, options, file
+def test_a_file_size_limit_in_a_real_run_is_one_line_exit_1_and_resumes_from_its_units(
+    tmp_path, limit, file, kept
 ):
     """A real ``factorq paper`` under ``RLIMIT_FSIZE`` (Python ignores SIGXFSZ: the write fails
-    with EFBIG, or inside torch's zip writer with a RuntimeError)."""
+    with EFBIG): no file half-written, the units finished before it kept for ``--resume``."""
     out = tmp_path / "run"
     command = [sys.executable, "-m", "factorq_trainers.cli", "paper", *PAPER, "--threads", "1"]
     done = subprocess.run(
-        [*command, "--out", str(out), *options],
-        preexec_fn=_limited(4096),
+        [*command, "--out", str(out)],
+        preexec_fn=_limited(limit),
         capture_output=True,
         text=True,
         timeout=patience(120),
@@ -107,6 +81,22 @@ def test_a_file_size_limit_in_a_real_run_is_one_line_exit_1_and_no_directory(
     )
     error = done.stderr.strip().splitlines()[-1]
     assert done.returncode == 1, done.stderr
-    assert error.startswith(f"factorq paper: error: cannot write {out / file}: "), done.stderr
+    assert error.startswith(f"factorq paper: error: cannot write {out}/{file}"), done.stderr
     assert "Traceback" not in done.stderr
-    assert not out.exists()  # the run's directory, made by it, is not left half-written
+    assert sorted(path.name for path in out.iterdir()) == [".factorq.lock", "units"]
+    assert len(list((out / "units").iterdir())) == 1 + kept  # run.json and the finished units
+    resumed = subprocess.run(
+        [sys.executable, "-m", "factorq_trainers.cli", "paper", "--resume", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=patience(120),
+        cwd=tmp_path,
+    )
+    assert resumed.returncode == 0, resumed.stderr
+    assert f"{kept} of 2 units done" in resumed.stderr
+    assert sorted(path.name for path in out.iterdir()) == [
+        ".factorq.lock",
+        "figure3.png",
+        "report.md",
+        "results.json",
+    ]

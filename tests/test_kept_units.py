@@ -163,8 +163,9 @@ def test_a_unit_of_another_command_is_refused(tmp_path, capsys):
         (2.5, ("not a whole count",)),
         ("many", ("result/collisions holds 'many', not a number",)),
         (None, ("result/collisions holds None",)),
+        (10**400, ("not a finite number",)),  # JSON's digits past a float (was an OverflowError)
     ],
-    ids=["negative", "nan", "fractional", "string", "null"],
+    ids=["negative", "nan", "fractional", "string", "null", "past-float"],
 )
 def test_a_resealed_unit_with_an_impossible_value_is_refused(tmp_path, capsys, value, words):
     """The red team: -999 collisions, NaN (reported, exit 0), a string ("could not convert

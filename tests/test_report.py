@@ -12,12 +12,49 @@ import pytest
 from factorq_trainers.experiments import paper
 from factorq_trainers.experiments.paper_config import PaperConfig
 from factorq_trainers.reports import report
+from factorq_trainers.runner import frame
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
+def unit_outcomes(config: PaperConfig, metrics: dict) -> list[dict]:
+    """``paper.run_unit``'s results (``UNIT_RESULT``) of ``config``'s units from made-up metrics
+    ``[seeds, runs, episodes]`` per cell."""
+    outcomes = []
+    for unit in paper.units(config):
+        start = unit["first_seed"] - config.first_seed
+        seeds = slice(start, start + unit["seeds"])
+        worlds = []
+        for world in config.worlds:
+            cell = {key: values[seeds] for key, values in metrics[world, unit["algorithm"]].items()}
+            totals = ("total_steps", "steps"), ("collisions",) * 2, ("greedy_collisions",) * 2
+            worlds.append(
+                {
+                    "world": world,
+                    "run_sums": {name: cell[key].sum(axis=(1, 2)).tolist() for name, key in totals},
+                    "task_return": cell["task_return"]
+                    .astype(np.float64)
+                    .sum(axis=2)
+                    .mean(axis=1)
+                    .tolist(),
+                    "curve_sums": {key: cell[key].sum(axis=1).tolist() for key in paper.CURVES},
+                }
+            )
+        steps = sum(int(metrics[w, unit["algorithm"]]["steps"][seeds].sum()) for w in config.worlds)
+        outcomes.append(
+            {
+                "algorithm": unit["algorithm"],
+                "backend": "fast",
+                "env_steps": steps,
+                "worlds": worlds,
+            }
+        )
+    return outcomes
+
+
 def synthetic_results(seeds=6, runs=2, episodes=40, **options):
-    """Results of ``paper.summarise`` on made-up metrics shaped like the paper's curves."""
+    """Results of ``paper.summarise`` (in the runner's envelope) on made-up metrics shaped like the
+    paper's curves."""
     config = PaperConfig(seeds=seeds, runs=runs, episodes=episodes, **options)
     generator = np.random.default_rng(1)
     decay = np.exp(-np.arange(episodes) / 10.0)  # [E]
@@ -32,16 +69,18 @@ def synthetic_results(seeds=6, runs=2, episodes=40, **options):
             "greedy_collisions": generator.binomial(collisions, 0.5 if scale < 1 else 0.98),
             "task_return": -generator.poisson(300 * decay + 30, shape).astype(np.float32),
         }
-    results = paper.summarise(config, metrics)
+    summary = paper.summarise(config, unit_outcomes(config, metrics))
+    results = frame.envelope(paper, config, summary, wall_s=1.5, units=2)
     results["timing"] = {
         "wall_s": 1.5,
+        "where": "in-process",
+        "units": 2,
+        "units_resumed": 0,
         "backend": "fast",
         "threads": 2,
         "env_steps": 123,
-        "env_steps_per_s": 82,
-        "finished_utc": "2026-01-01T00:00:00Z",
     }
-    return results
+    return frame.through_json(results)  # as results.json gives it back
 
 
 @pytest.fixture(scope="module")
@@ -87,7 +126,9 @@ def test_report_has_cells_config_software_and_wall_time(results):
     assert "| static | Q-learning |" in text and "| dynamic | Factor-Q |" in text
     assert "| `--seeds` | `6` |" in text and "| `--g-min` | `0.01` |" in text
     assert "| torch |" in text and "| matplotlib |" in text and "| platform |" in text
-    assert "Wall time 1.5 s" in text
+    assert (
+        "Wall time 1.5 s on the fast backend with 2 thread(s): 123 environment steps, 82 " in text
+    )
     assert "figure3.png" in text
 
 
@@ -100,7 +141,8 @@ def test_report_marks_claims_that_were_not_evaluated(tmp_path):
 
 
 def test_regenerate_rebuilds_figure_and_report_from_results_json_alone(results, tmp_path):
-    paths = report.write_results(results, tmp_path)
+    paths = frame.write_outputs(paper, results, tmp_path)
+    assert sorted(paths) == ["figure", "json", "report"]
     original = paths["report"].read_text()
     paths["figure"].unlink()
     paths["report"].unlink()
@@ -108,7 +150,7 @@ def test_regenerate_rebuilds_figure_and_report_from_results_json_alone(results, 
     assert regenerated["report"].read_text() == original
     png_size(regenerated["figure"].read_bytes())
     # results.json is strict JSON (no NaN/Infinity) and round-trips the claims exactly
-    loaded = json.loads(paths["results"].read_text(), parse_constant=_reject)
+    loaded = json.loads(paths["json"].read_text(), parse_constant=_reject)
     assert loaded["claims"] == json.loads(json.dumps(results["claims"]))
 
 
@@ -134,7 +176,7 @@ def test_factorq_report_redraws_a_sweep_output_folder(tmp_path, capsys):
 
     spec_file = tmp_path / "sweep.toml"
     spec_file.write_text(
-        "seeds = 2\nshard_seeds = 2\n[base]\nruns = 1\nepisodes = 3\nsize = 4\nobstacles = 2\n"
+        "seeds = 2\n[base]\nshard_seeds = 1\nruns = 1\nepisodes = 3\nsize = 4\nobstacles = 2\n"
         "[grid]\neta = [0.05, 0.1]\n"
     )
     out = tmp_path / "sweep"

@@ -82,7 +82,7 @@ def test_a_large_run_that_fits_prints_its_estimate_first(tmp_path, monkeypatch):
     code, err = run_cli("paper --seeds 1 --runs 1 --episodes 2 --size 4 --obstacles 1", tmp_path)
     assert code == 0, err
     line = err.splitlines()[0]
-    assert line.startswith("this run needs about ") and "available, and at least " in line
+    assert line.startswith("this experiment needs about ") and "available, and at least " in line
     assert (tmp_path / "out" / "results.json").is_file()
 
 
@@ -90,7 +90,7 @@ def test_the_library_entry_points_check_too(tmp_path, monkeypatch):
     monkeypatch.setenv(resources.LIMIT_VARIABLE, "1000")
     from factorq_trainers.experiments import compare, paper
 
-    with pytest.raises(resources.ResourceError, match=r"this run needs about .* but 1000 B is"):
+    with pytest.raises(resources.ResourceError, match=r"this experiment needs about .* 1000 B is"):
         paper.run(PaperConfig(seeds=1, runs=1, episodes=1, size=4, obstacles=1, out=str(tmp_path)))
     with pytest.raises(resources.ResourceError, match=r"this experiment needs about"):
         compare.run(CompareConfig(seeds=1, steps=1, size=4, obstacles=1, out=str(tmp_path)))

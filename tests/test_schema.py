@@ -10,8 +10,6 @@ import pytest
 from test_report import synthetic_results
 
 from factorq_trainers.reports import report
-from factorq_trainers.runner.reading import MAX_DEPTH
-from factorq_trainers.runner.results import SCHEMA_VERSION
 from factorq_trainers.reports.paper_schema import (
     ResultsFileError,
     check_results,
@@ -19,6 +17,8 @@ from factorq_trainers.reports.paper_schema import (
     load_results_file,
     markdown_code,
 )
+from factorq_trainers.runner.reading import MAX_DEPTH
+from factorq_trainers.runner.results import SCHEMA_VERSION
 
 BAD_VALUES = (None, "x", -1, 0, 2.5, True, [], {}, [1, 2], {"a": 1}, float("nan"), 10**30)
 

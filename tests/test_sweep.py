@@ -20,16 +20,15 @@ from factorq_trainers.compiled import fast
 from factorq_trainers.distributed import sweep_run, sweep_spec
 from factorq_trainers.distributed.sweep_spec import SweepError, SweepSpec
 from factorq_trainers.experiments import paper
-from factorq_trainers.experiments import paper_shards as shards
 from factorq_trainers.runner import cluster
 from factorq_trainers.runner import results as result_files
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
-BASE = (("runs", 1), ("episodes", 4), ("size", 5), ("obstacles", 3))
+BASE = (("runs", 1), ("episodes", 4), ("size", 5), ("obstacles", 3), ("shard_seeds", 2))
 SPEC_TOML = """
 seeds = 3
-shard_seeds = 2
 [base]
+shard_seeds = 2
 runs = 1
 episodes = 4
 size = 5
@@ -55,16 +54,16 @@ def _spec(tmp_path, **changes) -> SweepSpec:
         "base": BASE,
         "grid": (("eta", (0.05, 0.1)),),
         "seeds": 3,
-        "shard_seeds": 2,
         "out": str(tmp_path / "sweep"),
     }
     return SweepSpec(**{**values, **changes})
 
 
 def test_every_paper_config_field_but_the_sweeps_own_is_sweepable():
-    names = [f.name for f in fields(paper.PaperConfig) if f.name not in sweep_spec.RESERVED]
+    assert sweep_spec.reserved_fields("paper") == ("seeds", "out")
+    names = [f.name for f in fields(paper.PaperConfig) if f.name not in ("seeds", "out")]
     assert list(sweep_spec.sweepable_fields()) == names
-    assert "seeds" not in sweep_spec.sweepable_fields()
+    assert "shard_seeds" in sweep_spec.sweepable_fields()  # a config field: units of its seeds
 
 
 def test_grid_axes_are_crossed_with_the_configs_list(tmp_path):
@@ -102,16 +101,20 @@ def test_grid_axes_are_crossed_with_the_configs_list(tmp_path):
         ),
         ({"grid": {"eta": [0.1]}, "command": "dependencies"}, "unknown field 'eta' in grid"),
         ({"grid": {"prior_a": [0.1]}, "command": "dependencies"}, "configuration 0 (prior_a=0.1)"),
-        ({"grid": {"runs": [2]}, "command": "dependencies", "shard_seeds": 1}, "shard_seeds does"),
-        ({"grid": {"eta": [0.1]}, "command": "tune"}, "command='tune' is not one of paper"),
+        ({"grid": {"runs": [2]}, "shard_seeds": 1}, "unknown key(s) 'shard_seeds'; known"),
+        (
+            {"base": {"shard_seeds": 1}, "command": "dependencies"},
+            "unknown field 'shard_seeds' in base",
+        ),
+        ({"grid": {"eta": [0.1]}, "command": "tune"}, "command='tune' is not one of compare, "),
         ({"grid": {"stepz": [1]}, "command": "compare"}, "unknown field 'stepz' in grid"),
         ({"grid": {"eta": [0.1]}, "command": "compare"}, "unknown field 'eta' in grid"),
         ({"base": {"dqn": {}}, "command": "compare"}, "'dqn' in base is a nested config"),
         ({"grid": {"steps": [1, 0]}, "command": "compare"}, "configuration 1 (steps=0)"),
         ({"grid": {"methods": [["sarsa"]]}, "command": "compare"}, "configuration 0 (methods"),
         ({"base": {"logger": "csv"}, "command": "compare"}, "'logger' in base (the sweep sets"),
-        ({"grid": {"steps": [9]}, "command": "compare", "shard_seeds": 1}, "shard_seeds does not"),
-        ({"grid": {"eta": [0.1]}, "shard_seeds": 0}, "shard_seeds=0 is out of range"),
+        ({"base": {"shard_seeds": 1}, "command": "compare"}, "unknown field 'shard_seeds'"),
+        ({"grid": {"shard_seeds": [2, 0]}}, "configuration 1 (shard_seeds=0): shard_seeds=0 is"),
     ],
 )
 def test_a_bad_spec_is_refused_naming_the_field_or_value(document, message):
@@ -133,6 +136,7 @@ def test_bad_input_on_the_command_line_is_one_line_exit_2_and_nothing_written(tm
         ["--out", str(out)],
         [str(tmp_path / "missing.toml")],
         ["--grid", "eta=0.1", "--cluster", "remote", "--out", str(out)],
+        ["--grid", "eta=0.1", "--shard-seeds", "2", "--out", str(out)],  # (--set shard_seeds=2)
         ["--grid", "eta=0.1", "--cluster", "local:2", "--scheduler", "tcp://x:1"],
     ):
         assert cli.main(["sweep", *argv]) == 2, argv
@@ -163,14 +167,6 @@ def test_a_cluster_without_the_extra_names_the_extra(tmp_path, capsys, monkeypat
     assert not paper_out.exists()
 
 
-def test_a_sharded_paper_run_refuses_checkpoint_options(tmp_path, capsys):
-    out = tmp_path / "paper"
-    argv = ["paper", "--shard-seeds", "2", "--checkpoint-every", "30s", "--out", str(out)]
-    assert cli.main(argv) == 2
-    assert "--checkpoint-every does not apply to a sharded run" in capsys.readouterr().err
-    assert not out.exists()
-
-
 @needs_fast
 def test_a_sweep_writes_its_table_and_a_figure_per_axis(tmp_path, capsys):
     spec_file = tmp_path / "sweep.toml"
@@ -178,11 +174,12 @@ def test_a_sweep_writes_its_table_and_a_figure_per_axis(tmp_path, capsys):
     out = tmp_path / "sweep"
     assert cli.main(["sweep", str(spec_file), "--out", str(out)]) == 0
     written = sorted(path.name for path in out.iterdir() if path.name != ".factorq.lock")
-    assert written == ["shards", "sweep-eta.png", "sweep-obstacles.png", "sweep.json", "sweep.md"]
+    assert written == ["configs", "sweep-eta.png", "sweep-obstacles.png", "sweep.json", "sweep.md"]
     result = json.loads((out / "sweep.json").read_text())
     assert result["axes"] == ["obstacles", "eta"]
     assert [row["values"] for row in result["configurations"]][1] == {"obstacles": 2, "eta": 0.1}
-    assert result["timing"]["shards_total"] == 8  # 4 configurations x 2 shards (2 + 1 seeds)
+    assert result["timing"]["configurations_total"] == 4
+    assert len(list((out / "configs").glob("*.json"))) == 4  # one kept file per configuration
     row = (out / "sweep.md").read_text().splitlines()[6]
     assert row.startswith("| 2 | 0.05 | static | q-learning | ")
 
@@ -199,18 +196,20 @@ def test_a_sweep_cell_equals_the_paper_run_of_its_configuration(tmp_path):
 
 
 @needs_fast
-def test_a_killed_sweep_resumes_running_only_the_missing_shards_with_the_same_numbers(tmp_path):
+def test_a_killed_sweep_resumes_running_only_the_missing_configurations_with_the_same_numbers(
+    tmp_path,
+):
     spec = _spec(tmp_path)
     first = CountingExecutor()
     complete = sweep_run.run_sweep(spec, first)
-    assert len(first.items) == 4  # 2 configurations x shards of seeds [0, 2) and [2, 3)
-    lost = shards.shard_path(tmp_path / "sweep" / "shards", first.items[1])
-    lost.unlink()  # as if the sweep had been killed before this shard finished
+    assert first.items == spec.configurations()  # one task per configuration
+    lost = tmp_path / "sweep" / complete["configurations"][1]["results_file"]
+    lost.unlink()  # as if the sweep had been killed before this configuration finished
     again = CountingExecutor()
     resumed = sweep_run.run_sweep(spec, again)
     assert again.items == [first.items[1]]
     assert resumed["configurations"] == complete["configurations"]
-    assert resumed["timing"]["shards_run_now"] == 1
+    assert resumed["timing"]["configurations_run_now"] == 1
 
 
 @needs_fast
@@ -221,33 +220,39 @@ def test_paper_shard_seeds_in_process_writes_the_same_results_as_a_plain_run(tmp
     plain = json.loads((tmp_path / "plain" / "results.json").read_text())
     cut = json.loads((tmp_path / "cut" / "results.json").read_text())
     assert isinstance(cut["timing"]["threads"], int) and cut["timing"]["threads"] >= 1
+    assert cut["timing"]["units"] == 6 and plain["timing"]["units"] == 2  # 2 algorithms x 3, 1
+    assert (cut["config"]["shard_seeds"], plain["config"]["shard_seeds"]) == (2, 100)
     for results in (plain, cut):
         results.pop("timing")
         results["config"].pop("out")
+        results["config"].pop("shard_seeds")
     assert cut == plain
-    assert len(list((tmp_path / "cut" / "shards").rglob("*.npz"))) == 3
+    assert not (tmp_path / "cut" / "units").exists()  # the kept units go with the results
 
 
 @needs_fast
-def test_a_sweep_killed_with_sigkill_resumes_from_its_shard_files_with_the_same_numbers(tmp_path):
+def test_a_sweep_killed_with_sigkill_resumes_from_its_kept_configurations_with_the_same_numbers(
+    tmp_path,
+):
     out = tmp_path / "killed"
-    argv = ["--grid", "eta=0.05,0.1", "--seeds", "40", "--shard-seeds", "5", "--out", str(out)]
+    # configurations of about a second each: the kill lands between two of them
+    argv = ["--grid", "eta=0.05,0.1,0.2", "--seeds", "40", "--out", str(out)]
     command = [sys.executable, "-m", "factorq_trainers.cli", "sweep", *argv]
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + patience(120)
-        while not list(out.rglob("*.npz")) and time.monotonic() < deadline:
-            assert process.poll() is None, "the sweep ended before any shard was written"
+        while not list(out.glob("configs/*.json")) and time.monotonic() < deadline:
+            assert process.poll() is None, "the sweep ended before any configuration was kept"
             time.sleep(0.05)
         process.send_signal(signal.SIGKILL)
     finally:
         process.wait(timeout=patience(60))
-    finished = list(out.rglob("*.npz"))
-    assert 1 <= len(finished) < 16 and not (out / "sweep.json").exists()
+    finished = list(out.glob("configs/*.json"))
+    assert 1 <= len(finished) < 3 and not (out / "sweep.json").exists()
     assert cli.main(["sweep", *argv]) == 0  # the same command again resumes
     resumed = json.loads((out / "sweep.json").read_text())
-    assert resumed["timing"]["shards_run_now"] == 16 - len(finished)
-    spec = sweep_spec.SweepSpec(grid=(("eta", (0.05, 0.1)),), seeds=40, shard_seeds=5, out=str(out))
+    assert resumed["timing"]["configurations_run_now"] == 3 - len(finished)
+    spec = sweep_spec.SweepSpec(grid=(("eta", (0.05, 0.1, 0.2)),), seeds=40, out=str(out))
     fresh = sweep_run.run_sweep(replace(spec, out=str(tmp_path / "fresh")), cluster.InProcess())
     for row in (*resumed["configurations"], *fresh["configurations"]):
         row["config"].pop("out")
@@ -425,7 +430,6 @@ def test_bad_compare_input_on_the_command_line_is_one_line_exit_2_and_nothing_wr
         ["--command", "compare", "--grid", "steps=100,abc", "--out", str(out)],
         ["--command", "compare", "--set", "agent=x", "--grid", "steps=9", "--out", str(out)],
         ["--command", "compare", "--grid", "methods=factor-q,sarsa", "--out", str(out)],
-        ["--command", "compare", "--grid", "steps=9", "--shard-seeds", "2", "--out", str(out)],
         ["--command", "dependencies", "--grid", "steps=9", "--out", str(out)],
         ["--command", "dependencies", "--grid", "prior_b=0.3", "--out", str(out)],
     ):

@@ -4,7 +4,7 @@ One table, ``TRIED``: a row per fault with what was tried, the call, the excepti
 its message must match. Messages name the option (as the caller spelled it), the value and what
 is allowed. Command-line rows run ``factorq`` in process and pass when it exits 2 with exactly
 one error line and no traceback (``CommandFailed``, its message that line); ``{file}``,
-``{checkpoint}`` and the like in their arguments are made fresh for the row. The per-module tests
+``{interrupted}`` and the like in their arguments are made fresh for the row. The per-module tests
 check the same errors in context; this table is where the whole surface is seen at once.
 
 Not validated, by design: the pure equations of ``factorq_torch.functional`` (they take tensors
@@ -46,8 +46,7 @@ from factorq_trainers.experiments.dqn import DQNConfig
 from factorq_trainers.experiments.experiment import ExperimentConfig
 from factorq_trainers.experiments.paper_config import PaperConfig
 from factorq_trainers.reports import report
-from factorq_trainers.runner import checkpoint
-from factorq_trainers.runner.checkpoint_files import CheckpointError
+from factorq_trainers.runner import frame, kept
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 # Prepended to `factorq paper` and `factorq compare` rows (later options win): should a check ever
@@ -77,42 +76,20 @@ def a_file(tmp: Path) -> str:
     return str(path)
 
 
-def a_checkpoint(tmp: Path) -> str:
-    """An unfinished run's directory with a valid checkpoint (taken before any work) of the
+def an_interrupted_run(tmp: Path) -> str:
+    """An interrupted ``factorq paper`` run's directory (its ``units/``, no unit finished) of the
     config ``--seeds 3 --size 6 --obstacles 4``."""
     out = tmp / "run"
     config = PaperConfig(seeds=3, size=6, obstacles=4, out=str(out))
-    checkpoint.save(
-        out,
-        {
-            "config": paper.config_dict(config),
-            "backend": "fast",
-            "every": "30s",
-            "finished": {},
-            "running": None,
-            "episodes_completed": 0,
-            "experiments_finished": 0,
-            "elapsed_s": 0.0,
-            "saved_utc": "2026-01-01T00:00:00Z",
-        },
-    )
+    store = kept.UnitStore(out)
+    store.start(paper.NAME, frame.plain(config), (unit["id"] for unit in paper.units(config)))
     return str(out)
 
 
-def a_damaged_checkpoint(data: bytes):
-    def make(tmp: Path) -> str:
-        out = a_checkpoint(tmp)
-        a_checkpoint(tmp)  # a second save: the first becomes the previous checkpoint
-        (Path(out) / "checkpoint" / "checkpoint.pt").write_bytes(data)
-        return out
-
-    return make
-
-
-def only_a_damaged_previous_checkpoint(tmp: Path) -> str:
-    out = a_damaged_checkpoint(b"")(tmp)
-    directory = Path(out) / "checkpoint"
-    (directory / "checkpoint.pt").replace(directory / "checkpoint.prev.pt")
+def a_damaged_run_file(tmp: Path) -> str:
+    out = an_interrupted_run(tmp)
+    run_file = Path(out) / kept.UNITS_DIRECTORY / kept.RUN_FILE
+    run_file.write_text(run_file.read_text()[:50])  # cut short
     return out
 
 
@@ -161,16 +138,14 @@ def a_finished_comparison(tmp: Path) -> str:
 
 MADE = {
     "{locked}": locked(lambda tmp: str(tmp / "live")),
-    "{locked-checkpoint}": locked(a_checkpoint),
+    "{locked-interrupted}": locked(an_interrupted_run),
     "{finished-comparison}": a_finished_comparison,
     "{under-file}": lambda tmp: a_file(tmp) + "/out",
     "{tmp}": str,
     "{missing}": lambda tmp: str(tmp / "missing"),
     "{file}": a_file,
-    "{checkpoint}": a_checkpoint,
-    "{truncated-checkpoint}": a_damaged_checkpoint(b"PK\x03\x04"),
-    "{empty-checkpoint}": a_damaged_checkpoint(b""),
-    "{only-damaged-previous}": only_a_damaged_previous_checkpoint,
+    "{interrupted}": an_interrupted_run,
+    "{damaged-run-file}": a_damaged_run_file,
     "{finished-run}": a_finished_run,
     "{bad-results}": bad_json,
 }
@@ -269,14 +244,10 @@ def nan_table_to(what: str) -> None:
         (FactorQLoss(task, local) if factor else TabularQLoss(task))(td)
 
 
-def resume_config(tmp: Path, **given) -> None:
-    out = a_checkpoint(tmp)
-    paper.resume_config(checkpoint.load(out).config, given, out)
-
-
-def tiny_run(tmp: Path, **options) -> None:
-    config = PaperConfig(seeds=1, runs=1, episodes=1, size=4, obstacles=1, out=str(tmp / "out"))
-    paper.run(config, **options)
+def resumed_config(tmp: Path, **given) -> None:
+    out = an_interrupted_run(tmp)
+    saved = kept.UnitStore(out).saved_run(paper.NAME)["config"]
+    frame.resumed_config(saved, given, out, PaperConfig)
 
 
 def fast_row(what: str, call, error: type, pattern: str):
@@ -286,7 +257,6 @@ def fast_row(what: str, call, error: type, pattern: str):
 # -- the table -------------------------------------------------------------------------------
 
 RANGE = "is out of range: must be"
-UNUSABLE_CHECKPOINT = "is corrupted or truncated"
 
 
 def env_action(action: int):
@@ -362,12 +332,13 @@ TRIED = [
     factorq("paper --sides 4", r"unrecognized arguments: --sides 4"),
     # factorq paper: one writer per --out, checked before any work (factorq_trainers.runner.outdir)
     factorq("paper --out {finished-run}", r"--out='.*finished' already holds results.json from an earlier run: pass --force to replace them, or choose another --out"),
+    factorq("paper --backend modular --threads 2 --out {finished-run}", r"--out='.*finished' already holds results.json"),  # (its processes' notice waits for the run)
     factorq("paper --force --seeds 0", rf"--seeds=0 {RANGE} in \[1, 2147483647\]"),
     factorq("paper --out {locked}", r"--out='.*live' is in use by another factorq run \(pid 4242\): wait for it to finish, or choose another --out \(refusing to write to it at the same time\)"),
-    factorq("paper --resume {locked-checkpoint}", r"--out='.*run' is in use by another factorq run \(pid 4242\): .* \(refusing to resume it at the same time\)"),
+    factorq("paper --resume {locked-interrupted}", r"--out='.*run' is in use by another factorq run \(pid 4242\): .* \(refusing to resume it at the same time\)"),
     factorq("paper --out {under-file}", r"--out='.*a_file.txt/out' is not writable: Not a directory"),
     factorq("paper --out /proc/factorq-out", r"--out='/proc/factorq-out' is not writable: "),
-    # factorq paper: shards and clusters (factorq_trainers.distributed.sweep, factorq_trainers.runner.cluster)
+    # factorq paper: shards and clusters (factorq_trainers.runner.frame, factorq_trainers.runner.cluster)
     factorq("paper --first-seed -1", rf"--first-seed=-1 {RANGE} in \[0, 2147483647\]"),
     factorq("paper --first-seed 2147483648", rf"--first-seed=2147483648 {RANGE} in \[0, 2147483647\]"),
     factorq("paper --shard-seeds 0", rf"--shard-seeds=0 {RANGE} in \[1, 2147483647\]"),
@@ -378,66 +349,31 @@ TRIED = [
     factorq("paper --worker-timeout 0", r"--worker-timeout=0.0 is out of range: must be in \(0, 86400\] seconds"),
     factorq("paper --scheduler evil://x", r"--scheduler='evil://x' is not a Dask scheduler address like tcp://host:8786 \(unknown address scheme 'evil'"),
     factorq("paper --scheduler tcp://127.0.0.1:9 --connect-timeout 0.5", r"scheduler tcp://127.0.0.1:9 refused the connection \d+ times in"),
-    factorq("paper --cluster local:2 --checkpoint-every 5", r"--checkpoint-every does not apply to a sharded run"),
-    # factorq paper: checkpoints
-    factorq("paper --checkpoint-every 0", rf"--checkpoint-every='0' {RANGE} in \[1, 2\*\*63 - 1\] episodes"),
-    factorq("paper --checkpoint-every -5", rf"--checkpoint-every='-5' {RANGE} in \[1, 2\*\*63 - 1\] episodes"),
-    factorq("paper --checkpoint-every 9223372036854775808", rf"--checkpoint-every='9223372036854775808' {RANGE} in \[1, 2\*\*63 - 1\]"),
+    # factorq paper: resuming an interrupted run from its kept units (factorq_trainers.runner.kept)
     factorq(
-        "paper --checkpoint-every abc",
-        r"--checkpoint-every='abc' is not a number of episodes \(e.g. 5000\) "
-        r"or of seconds with a unit \(e.g. 30s, 10m, 1h\)",
-    ),
-    factorq("paper --checkpoint-every 2.5", r"--checkpoint-every='2.5' is not a number of epi"),
-    factorq("paper --checkpoint-every 0s", rf"--checkpoint-every='0s' {RANGE} > 0 seconds and fi"),
-    factorq("paper --checkpoint-every 1e400s", rf"--checkpoint-every='1e400s' {RANGE} > 0 second"),
-    factorq(
-        "paper --out {checkpoint}",
-        r"--out='.*run' holds the checkpoint of an unfinished run \(.*\): continue it with "
-        r"--resume .*run, or delete .*checkpoint to start afresh",
+        "paper --out {interrupted}",
+        r"--out='.*run' holds the units of an interrupted run \(units/\): continue it with "
+        r"--resume .*run, or pass --force to start over",
     ),
     factorq(
         "paper --resume {missing}",
-        r"--resume='.*missing' does not exist: give the --out directory of an interrupted run",
+        r"missing/units/run.json does not exist: nothing to resume: run `factorq paper` without "
+        r"--resume",
+    ),
+    factorq("paper --resume {file}", r"a_file.txt/units/run.json does not exist: nothing to resume"),
+    factorq("paper --resume {finished-run}", r"finished/units/run.json does not exist: nothing to"),
+    factorq(
+        "paper --resume {interrupted} --seeds 5 --worlds static",
+        r"--resume='.*run' holds a run of a different config: --seeds=5 given, 3 kept; "
+        r"--worlds=\['static'\] given, \['static', 'semi-dynamic', 'dynamic'\] kept \(leave these "
+        r"options out to resume it, or start a new run with another --out\)",
     ),
     factorq(
-        "paper --resume {file}",
-        r"--resume='.*a_file.txt' is a file: give the --out directory of an interrupted run",
+        "paper --resume {interrupted} --shard-seeds 2",
+        r"--shard-seeds=2 given, 100 kept",  # other units: refused, not mixed
     ),
-    factorq(
-        "paper --resume {tmp}",
-        r"--resume='.*' holds no checkpoint \(.*checkpoint.pt is missing\): was the run started "
-        r"with --checkpoint-every",
-    ),
-    factorq("paper --resume {finished-run}", r"holds no checkpoint: its run finished"),
-    factorq(
-        "paper --resume {checkpoint} --seeds 5 --worlds static",
-        r"--resume='.*run' has a checkpoint of a different config: --seeds=5 given, 3 in the "
-        r"checkpoint; --worlds=static given, static,semi-dynamic,dynamic in the checkpoint",
-    ),
-    factorq(
-        "paper --resume {checkpoint} --backend modular",
-        r"--backend='modular' given, 'auto' in the checkpoint",
-    ),
-    factorq("paper --resume {checkpoint} --out {missing}", r"differs from the resumed directory"),
-    factorq(
-        "paper --resume {checkpoint} --checkpoint-every soon",
-        r"--checkpoint-every='soon' is not a number",
-    ),
-    factorq(
-        "paper --resume {truncated-checkpoint}",
-        rf"checkpoint .*checkpoint.pt {UNUSABLE_CHECKPOINT} \(.*\); the previous checkpoint "
-        r".*checkpoint.prev.pt is intact \(0 episodes done\): move the damaged file away",
-    ),
-    factorq(
-        "paper --resume {empty-checkpoint}",
-        rf"checkpoint .*checkpoint.pt {UNUSABLE_CHECKPOINT} \(not a zip archive",
-    ),
-    factorq(
-        "paper --resume {only-damaged-previous}",
-        rf"checkpoint .*checkpoint.prev.pt {UNUSABLE_CHECKPOINT} \(.*\); no other checkpoint is "
-        r"left: start the run again",
-    ),
+    factorq("paper --resume {interrupted} --out {missing}", r"differs from the resumed directory"),
+    factorq("paper --resume {damaged-run-file}", r"run file .*run.json .*: start the run over with --force"),
     # factorq compare: every option
     factorq("compare --seed -1", rf"--seed=-1 {RANGE} in \[0, 9223372036854775807\]"),
     factorq("compare --seeds 0", rf"--seeds=0 {RANGE} in \[1, 2147483647\]"),
@@ -475,7 +411,7 @@ TRIED = [
     factorq("compare --out {locked}", r"--out='.*live' is in use by another factorq run \(pid 4242\)"),
     factorq("compare --out /proc/factorq-out", r"--out='/proc/factorq-out' is not writable: "),
     factorq("compare --resume {missing}", r"missing/units/run.json does not exist: nothing to resume: run `factorq compare` without --resume"),
-    factorq("compare --resume {checkpoint}", r"units/run.json does not exist: nothing to resume"),
+    factorq("compare --resume {finished-run}", r"units/run.json does not exist: nothing to resume"),
     factorq("compare --sides 4", r"factorq compare: error: unrecognized arguments: --sides 4"),
     # factorq report, factorq
     factorq("report {tmp}", r"holds no results file of a factorq command \(.*results\.json.*\)"),
@@ -490,12 +426,8 @@ TRIED = [
     ("DQNConfig(buffer_size=2**31)", lambda _: DQNConfig(buffer_size=2**31), ValueError, rf"buffer_size=2147483648 {RANGE} in \[1, 2147483647\]"),
     ("DQNConfig(hidden=(10**6,))", lambda _: DQNConfig(hidden=(10**6,)), ValueError, rf"hidden width=1000000 {RANGE} in \[1, 65536\]"),
     ("ExperimentConfig(steps=2**31)", lambda _: ExperimentConfig(steps=2**31), ValueError, rf"steps=2147483648 {RANGE} in \[1, 2147483647\]"),
-    ("config_from_dict(unknown field)", lambda _: paper.config_from_dict({"seedz": 1}), ValueError, r"unknown config fields: seedz"),
-    ("run(checkpoint_every='often')", lambda tmp: tiny_run(tmp, checkpoint_every="often"), ValueError, r"checkpoint_every='often' is not a number of episodes"),
-    ("resume_config(other config)", lambda tmp: resume_config(tmp, seeds=5), ValueError, r"resume='.*run' has a checkpoint of a different config: seeds=5 given, 3 in the"),
-    ("parse_every(2.5)", lambda _: checkpoint.parse_every(2.5), TypeError, r"checkpoint_every must be a number of episodes .* got 2.5"),
-    ("parse_every(True)", lambda _: checkpoint.parse_every(True), TypeError, r"checkpoint_every must be .* got True"),
-    ("checkpoint.read(a foreign file)", lambda tmp: checkpoint.read(a_file(tmp)), CheckpointError, rf"checkpoint .*a_file.txt {UNUSABLE_CHECKPOINT} \(not a zip archive"),
+    ("config_from_dict(unknown field)", lambda _: frame.config_from_dict(PaperConfig, {"seedz": 1}), TypeError, r"unexpected keyword argument 'seedz'"),
+    ("resumed_config(other config)", lambda tmp: resumed_config(tmp, seeds=5), ValueError, r"resume='.*run' holds a run of a different config: seeds=5 given, 3 kept"),
     ("report.regenerate(missing dir)", lambda tmp: report.regenerate(tmp / "none"), FileNotFoundError, r"none/results.json does not exist"),
     ("t_critical(0)", lambda _: t_critical(0), ValueError, r"df=0 must be >= 1"),
     ("compute_claims(seed counts differ)", lambda _: compute_claims({"a": {"per_seed": {"total_steps": [1]}}, "b": {"per_seed": {"total_steps": [1, 2]}}}), ValueError, r"cells have different numbers of seeds: \[1, 2\]"),

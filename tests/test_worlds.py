@@ -366,7 +366,7 @@ def test_paper_run_falls_back_to_the_modular_path_for_a_foreign_world(tmp_path, 
     if fast.is_available():
         with pytest.raises(ValueError, match="backend='fast' cannot run this config: the world"):
             paper.resolve_backend(paper.PaperConfig(backend="fast"), world)
-    with pytest.raises(ValueError, match="checkpoints hold the paper grid's state only"):
-        paper.run(config, world=world, checkpoint_every=10)
+    with pytest.raises(ValueError, match="the compiled path runs the grid only"):
+        paper.run(paper.PaperConfig(backend="fast", out=str(tmp_path)), world=world)
     with pytest.raises(ValueError, match="the paper's grid is the config's own world"):
         paper.run(config, world=FactoredGrid(WorldConfig()))

@@ -22,8 +22,9 @@ from factorq_trainers.reports import compare_report
 from factorq_trainers.runner import kept
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
-# Some seconds of work on one thread, a checkpoint every 20 k episodes.
+# Some seconds of work on one thread, in 32 units (each kept in OUT/units/ as it finishes).
 LIVE = ["--seeds", "400", "--runs", "5", "--episodes", "100", "--size", "8", "--threads", "1"]
+LIVE += ["--shard-seeds", "25"]
 
 
 def factorq(*args: str) -> tuple[int, str]:
@@ -37,15 +38,14 @@ def factorq(*args: str) -> tuple[int, str]:
 def test_a_live_run_owns_its_out_until_it_dies(tmp_path):
     out = tmp_path / "run"
     process = subprocess.Popen(
-        [sys.executable, "-m", "factorq_trainers.cli", "paper", *LIVE, "--out", str(out)]
-        + ["--checkpoint-every", "20000"],
+        [sys.executable, "-m", "factorq_trainers.cli", "paper", *LIVE, "--out", str(out)],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
     )
     try:
         deadline = time.monotonic() + patience(120)
-        while not (out / "checkpoint" / "checkpoint.pt").exists():
-            assert process.poll() is None and time.monotonic() < deadline, "no checkpoint"
+        while len(list(out.glob("units/*.json"))) < 2:  # run.json and a finished unit
+            assert process.poll() is None and time.monotonic() < deadline, "no unit kept"
             time.sleep(0.01)
         holder = f"in use by another factorq run (pid {process.pid})"
         code, err = factorq("paper", "--seeds", "1", "--out", str(out))
@@ -60,7 +60,8 @@ def test_a_live_run_owns_its_out_until_it_dies(tmp_path):
     # SIGKILL releases the lock with the process: the killed run resumes to its end.
     code, err = factorq("paper", "--resume", str(out))
     assert code == 0, err
-    assert json.loads((out / "results.json").read_text())["config"]["seeds"] == 400
+    results = json.loads((out / "results.json").read_text())
+    assert results["config"]["seeds"] == 400 and results["timing"]["units_resumed"] >= 1
 
 
 @needs_fast
@@ -70,7 +71,7 @@ def test_results_are_replaced_only_with_force(tmp_path):
     assert factorq(*tiny)[0] == 0
     before = (out / "results.json").read_bytes()
     code, err = factorq(*tiny, "--seed", "1")
-    assert code == 2 and "already holds results.json, figure3.png, report.md" in err
+    assert code == 2 and "already holds results.json, report.md, figure3.png" in err
     assert (out / "results.json").read_bytes() == before
     assert factorq(*tiny, "--seed", "1", "--force")[0] == 0
     assert json.loads((out / "results.json").read_text())["config"]["seed"] == 1

@@ -38,7 +38,7 @@ if TYPE_CHECKING:
 
 __all__ = ["EXIT_FAILURE", "EXIT_INTERRUPTED", "EXIT_USAGE", "build_parser", "main"]
 REPORT_HELP = "redraw the figure and Markdown of any command's results directory"
-SWEEP_HELP = "run a grid of a command's configurations as shards, in-process or on a Dask cluster"
+SWEEP_HELP = "run a grid of a command's configurations, in-process or on a Dask cluster"
 
 
 def build_parser(
@@ -122,7 +122,8 @@ def main(argv: list[str] | None = None) -> int:
         return sweep.main(argv[1:])
     command = argv[0] if argv and argv[0] in commands() else None
     figure_process = None
-    drawn_aside = command is not None and registry.commands()[command].figure_process
+    experiments = registry.commands()  # (``report`` is built in: no entry, no figure process)
+    drawn_aside = command in experiments and experiments[command].figure_process
     if drawn_aside and not {"-h", "--help"} & set(argv):
         # First, before torch loads: the helper loads matplotlib on the other core meanwhile.
         from factorq_trainers.reports.figure_process import FigureProcess
@@ -154,7 +155,7 @@ def _main(
         gc.disable()
     try:
         parser = build_parser(compare_options=command == "compare", command=command)
-        if command is not None:
+        if command in registry.commands():  # (not ``report``: built in)
             _load_command(command)
     except KeyboardInterrupt:  # while torch loads: nothing started, nothing written
         print(f"factorq{' ' + command if command else ''}: interrupted", file=sys.stderr)

@@ -155,22 +155,29 @@ def estimate(config: PaperConfig) -> resources.Estimate:
 
 
 def prepare(config: PaperConfig) -> None:
-    """Choose the backend (a ValueError where the one asked for cannot run) and say what runs,
-    and why not on the fast path where ``auto`` fell back.
+    """Choose the backend: a ValueError where the one asked for cannot run.
+
+    Args:
+        config: the experiment.
+    """
+    resolve_backend(config)
+
+
+def describe(config: PaperConfig) -> str:
+    """What runs (printed once the run is accepted), after why not on the fast path where
+    ``auto`` fell back.
 
     Args:
         config: the experiment.
     """
     backend = resolve_backend(config)
     notice = fallback_notice(config, backend, _modular_workers(config, len(config.algorithms)))
-    if notice is not None:
-        print(notice, file=sys.stderr)
-    print(
+    told = (
         f"{len(config.cells) * config.seeds} experiments ({config.seeds} seeds x "
         f"{len(config.worlds)} worlds x {len(config.algorithms)} algorithms), "
-        f"{config.runs} runs x {config.episodes} episodes each, {backend} backend",
-        file=sys.stderr,
+        f"{config.runs} runs x {config.episodes} episodes each, {backend} backend"
     )
+    return told if notice is None else f"{notice}\n{told}"
 
 
 def _modular_workers(config: PaperConfig, count: int) -> int:
@@ -379,8 +386,9 @@ def run(
 
     ``world``: another world than the config's grid, an ``factorq_envs.protocol.World`` (e.g.
     ``factorq_envs.corridor.Corridor``): the experiments of regime ``w`` run in it with ``w``'s
-    obstacle period, on the modular path (``backend="fast"`` is refused); the config's grid
-    options are unused and ``results["world"]`` names the world.
+    obstacle period, on the modular path (``auto`` falls back to it with a one-line notice,
+    ``backend="fast"`` is refused); the config's grid options are unused and ``results["world"]``
+    names the world.
 
     Args:
         config: the experiment.
@@ -390,9 +398,14 @@ def run(
     from factorq_trainers.runner import frame
 
     module = sys.modules[__name__]
+    if world is not None:
+        _check_foreign_world(world, config)
+    # why not on the fast path, once (the units run here one after another)
+    notice = fallback_notice(config, resolve_backend(config, world), 1, world)
+    if notice is not None:
+        print(notice, file=sys.stderr)
     if world is None:
         return frame.run_in_process(module, config, progress)
-    _check_foreign_world(world, config)
     results = frame.run_in_process(
         module, config, progress, lambda unit, report: run_unit(config, unit, report, world)
     )

@@ -49,15 +49,17 @@ def resolve_backend(config: PaperConfig, world: Any = None) -> str:
 MODULAR_SECONDS_PER_EPISODE = 68.0 / (2 * 1 * 200)
 
 
-def fallback_notice(config: PaperConfig, backend: str, workers: int = 1) -> str | None:
-    """The one-line notice of ``auto`` falling back to the modular path: why, about how long the
-    run will take (its units on ``workers`` processes), how to get the fast path (None when
-    nothing fell back)."""
+def fallback_notice(
+    config: PaperConfig, backend: str, workers: int = 1, world: Any = None
+) -> str | None:
+    """The one-line notice of ``auto`` falling back to the modular path: why (``world``: another
+    world than the grid, ``paper.run``'s), about how long the run will take (its units on
+    ``workers`` processes), how to get the fast path (None when nothing fell back)."""
     from factorq_trainers.compiled import fast
 
     if backend != "modular" or config.backend != "auto":
         return None
-    unsupported = fast.unsupported_reason(config.world)
+    unsupported = fast.unsupported_reason(config.world if world is None else world)
     if unsupported is not None:  # the one-line notice of a fall-back
         return (
             f"factorq: the fast path cannot run this config ({unsupported}): running on "

@@ -16,9 +16,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-
-class FigureError(RuntimeError):
-    """Drawing a figure failed (matplotlib's error, in one line)."""
+from factorq_trainers.runner.results import FigureError  # reports.FigureError: the reports'
 
 
 def find(results_dir: str | os.PathLike) -> tuple[Any, Path]:

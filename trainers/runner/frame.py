@@ -1,11 +1,12 @@
 """The frame every command declared by units runs in (``factorq_trainers.runner.registry``).
 
 A command module declares what differs (``CONFIG``, ``units``, ``run_unit``, ``summarise``,
-optionally ``markdown``, ``figure``, ``estimate``, ``prepare``, ``work``, ``processes``,
-``FILES``, ``finish``; the protocol is written out in docs/architecture.md, "Adding a command");
-``execute`` does the rest, once for every command:
+optionally ``markdown``, ``figure``, ``estimate``, ``prepare``, ``describe``, ``work``,
+``processes``, ``FILES``, ``finish``; the protocol is written out in docs/architecture.md,
+"Adding a command"); ``execute`` does the rest, once for every command:
 
-    options -> config -> prepare -> memory estimate -> claim --out -> resume -> the pending units
+    options -> config -> prepare -> memory estimate -> claim --out -> resume -> describe -> the
+    pending units
     (in-process, or on Dask with --cluster/--scheduler) under one progress bar, each result kept
     in OUT/units/ as it finishes -> summarise -> the results envelope -> json, Markdown and figure
     written all at once -> finish -> OUT/units/ removed -> the Markdown and the paths printed
@@ -215,6 +216,13 @@ def run_in_process(
     return envelope(module, config, summary, wall_s=time.perf_counter() - started, units=len(units))
 
 
+def describe(module: ModuleType, config: Any) -> None:
+    """Print the command's ``describe(config)`` (what runs, e.g. paper's backend) on stderr, once
+    the run is accepted (``execute``): a refusal before it stays one line."""
+    if hasattr(module, "describe"):
+        print(module.describe(config), file=sys.stderr, flush=True)
+
+
 def run_unit_task(module_name: str, config: Any, unit: dict[str, Any]) -> Any:
     """One unit on a worker (picklable: the module travels by name)."""
     module = importlib.import_module(module_name)
@@ -335,6 +343,7 @@ def execute(
     ``figure_process``: the helper that draws the figure (``cli`` starts it for a command that
     declares ``FIGURE_PROCESS``)."""
     store = kept_files.UnitStore(args.resume) if hasattr(args, "resume") else None
+    told: list[str] = []  # notices, printed once the run is accepted: a refusal stays one line
     try:
         config = _config(module, args, store)
         if hasattr(module, "prepare"):
@@ -344,20 +353,18 @@ def execute(
                 module.estimate(config), "experiment", getattr(module, "HINT", "")
             )
             if large:
-                print(large, file=sys.stderr)
+                told.append(large)
         units = checked_units(module, config)
         from factorq_trainers.runner import cluster
 
         executor = cluster.executor_from_args(args)
         chosen = any(hasattr(args, name) for name in ("cluster", "scheduler"))
         if executor is None and not chosen and hasattr(module, "processes"):
-            executor = _default_processes(parser, module, config, units)
+            executor = _default_processes(parser, module, config, units, told)
     except (ValueError, TypeError, ModuleNotFoundError) as problem:
         error(parser, as_option(str(problem), module.CONFIG, ("resume",)))
         return EXIT_USAGE
-    notice = getattr(module, "NOTICE", None)
-    if notice:
-        print(notice, file=sys.stderr, flush=True)
+    told += [getattr(module, "NOTICE", None) or ""]
     try:
         with outdir.claim(
             config.out,
@@ -366,7 +373,14 @@ def execute(
             resume=store is not None,
         ):
             return _run(
-                module, config, units, store, executor, hasattr(args, "force"), figure_process
+                module,
+                config,
+                units,
+                store,
+                executor,
+                hasattr(args, "force"),
+                figure_process,
+                [line for line in told if line],
             )
     except (outdir.OutputDirError, ValueError) as problem:
         error(parser, as_option(str(problem), module.CONFIG, ("resume",)))
@@ -376,7 +390,7 @@ def execute(
         resume = f" (resume it with --resume {config.out})" if kept else ""
         print(f"{parser.prog}: interrupted{resume}", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except OSError as problem:  # a full disk, a directory that vanished: one line
+    except (OSError, results.FigureError) as problem:  # a full disk, a figure not drawn: one line
         failure(parser, problem)
         return EXIT_FAILURE
     finally:
@@ -385,11 +399,15 @@ def execute(
 
 
 def _default_processes(
-    parser: argparse.ArgumentParser, module: ModuleType, config: Any, units: list[dict[str, Any]]
+    parser: argparse.ArgumentParser,
+    module: ModuleType,
+    config: Any,
+    units: list[dict[str, Any]],
+    told: list[str],
 ) -> Any:
     """A local cluster of the workers the command asks for its ``units`` (``processes(config,
-    units) -> (workers, why)``: where its env steps slowly), with a notice saying why; None
-    (in-process) where it asks for one, or where Dask is not installed."""
+    units) -> (workers, why)``: where its env steps slowly), with a notice saying why added to
+    ``told``; None (in-process) where it asks for one, or where Dask is not installed."""
     from factorq_trainers.runner import cluster
 
     workers, why = module.processes(config, units)
@@ -399,11 +417,9 @@ def _default_processes(
         executor = cluster.open_executor(cluster.Where(local_workers=workers))
     except cluster.ClusterError:  # no 'distributed' extra: in-process, as everywhere else
         return None
-    print(
+    told.append(
         f"{parser.prog}: {why}: the {len(units)} units run in {workers} processes "
-        f"(--cluster off: here, one after another)",
-        file=sys.stderr,
-        flush=True,
+        f"(--cluster off: here, one after another)"
     )
     return executor
 
@@ -416,6 +432,7 @@ def _run(
     executor: Any,
     force: bool,
     figure_process: Any = None,
+    told: list[str] | None = None,
 ) -> int:
     from tqdm.auto import tqdm
 
@@ -435,6 +452,9 @@ def _run(
         )
         done = store.finished(units, module.UNIT_RESULT, force, check)
         print(f"resuming {config.out}: {len(done)} of {len(units)} units done", file=sys.stderr)
+    for line in told or ():  # the run is accepted: the notices held until now
+        print(line, file=sys.stderr, flush=True)
+    describe(module, config)
     pending = [unit for unit in units if unit["id"] not in done]
     bar = tqdm(
         total=sum(work(module, config, unit) for unit in pending),

@@ -181,7 +181,7 @@ def check_values(path: Path, what: str, results: dict[str, Any], remedy: str = R
                 f"{what} {path}: {where} holds {_short(value)}, not a number: {remedy}"
             )
         problem = None
-        if not math.isfinite(value):
+        if not _finite(value):
             problem = "not a finite number"
         elif _NON_NEGATIVE.fullmatch(measure) and value < 0:
             problem = "negative"
@@ -324,6 +324,15 @@ def schema_problem(value: Any, schema: Any, where: str = "result") -> str | None
     return None if problem is None else f"{where} holds {_short(value)}, {problem}"
 
 
+def _finite(value: int | float) -> bool:
+    """Whether ``value`` is a finite float, or an int within a float's range (JSON reads any
+    number of digits: ``math.isfinite`` raises OverflowError past it)."""
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
 def _leaf_problem(value: Any, kind: str) -> str | None:
     if kind == TEXT:
         return None if isinstance(value, str) else "not a text"
@@ -335,7 +344,7 @@ def _leaf_problem(value: Any, kind: str) -> str | None:
         return None  # a missing number (a non-finite one is written as null)
     if isinstance(value, bool) or not isinstance(value, int | float):
         return "not a number"
-    if not math.isfinite(value):
+    if not _finite(value):
         return "not a finite number"
     if kind != NUMBER and value < 0:
         return "negative"

@@ -41,9 +41,9 @@ TEMPORARY_SUFFIX = ".factorq-tmp"
 #: What ``write_all_atomic`` and the checkpoint writer leave behind when killed mid-write.
 _TEMPORARY = re.compile(r"^\..+\.\d+" + re.escape(TEMPORARY_SUFFIX) + "$")
 #: The folders factorq writes into directly under an output directory (the checkpoints, a
-#: sweep's shards and configuration results, a runner command's kept units, compare's logs):
+#: sweep's configuration results, a runner command's kept units, compare's logs):
 #: a link at one of these names is refused by ``claim`` before any work, as a file's is.
-OWN_DIRECTORIES = ("checkpoint", "shards", "configs", "units", "logs")
+OWN_DIRECTORIES = ("configs", "units", "logs")
 
 
 def temporary_name(name: str, pid: int | None = None) -> str:

@@ -33,6 +33,11 @@ SCHEMA_VERSION = 1
 PACKAGES = ("factorq-torch", "torch", "torchrl", "tensordict", "gymnasium", "numpy", "matplotlib")
 
 
+class FigureError(RuntimeError):
+    """Drawing a figure failed (matplotlib's error, in one line): ``reports.FigureError``, here so
+    that the runner's frame, below the reports, can tell it from a bug."""
+
+
 def dumps(results: dict[str, Any]) -> str:
     """``results`` as JSON: indented, lists of numbers on one line, non-finite numbers as null."""
     return _dumps(results, 0) + "\n"
