@@ -570,6 +570,14 @@ class LocalRiskLoss(LossModule):
         super().__init__()
         self.risk = LocalRisk(provider)  # the provider's values for any batch (and its checks)
         self.provider = provider
+        # the online step of a table or learner goes straight to its update_running_mean (its own
+        # no_grad, or none needed: the learner's read path writes numbers through numpy)
+        self._online = self.risk.num_experiments
+        if getattr(type(provider), "update_running_mean", None) not in (
+            LocalRewardTable.update_running_mean,
+            StructureLearner.update_running_mean,
+        ):
+            self._online = None  # another provider's: under no_grad (_running_mean)
 
     def _forward_value_estimator_keys(self, **kwargs: Any) -> None:
         pass
@@ -603,12 +611,16 @@ class LocalRiskLoss(LossModule):
                 f"actuator of the provider)"
             )
         update = getattr(self.provider, "update_running_mean", None)
-        out = TensorDict(batch_size=[])
         if update is not None:
             if self.training:
-                self._running_mean(update, tensordict.get(keys.sensors), action, local_reward)
-            out.set("loss_local", torch.zeros((), device=local_reward.device))
-            return out
+                sensors = tensordict.get(keys.sensors)
+                if batch == (self._online,):  # the online step of a table or learner
+                    update(sensors, action, local_reward)
+                else:
+                    self._running_mean(update, sensors, action, local_reward)
+            zero = torch.zeros((), device=local_reward.device)
+            return TensorDict({"loss_local": zero}, batch_size=[])
+        out = TensorDict(batch_size=[])
         rho = self.risk.local_values(tensordict)  # [*B, A], with a gradient
         fired = action.unsqueeze(-1)
         error = rho.gather(-1, fired).squeeze(-1) - local_reward.gather(-1, fired).squeeze(-1)
