@@ -481,8 +481,7 @@ class StructureLearner(TensorDictModuleBase):
             lists = [self.mean.tolist(), self.plausible_cache.tolist(), self.committed.tolist()]
             self._read_lists_current(lists)
         means, plausibles, committed = lists  # [S][A][C][P], [S][A][C], [S][A]
-        local = torch.empty(readings.shape[0], self.num_actions, dtype=torch.float32)
-        out = local.numpy()
+        out = np.empty((readings.shape[0], self.num_actions), dtype=np.float32)
         for row, reading in enumerate(readings.tolist()):
             patterns = self._reading_entries(reading)[0]
             plausible = plausibles[row]
@@ -498,7 +497,7 @@ class StructureLearner(TensorDictModuleBase):
                 else:
                     value = 0.0
                 out[row, actuator] = value  # float64 -> float32, rounded to nearest
-        return local
+        return torch.from_numpy(out)
 
     def update_running_mean(
         self,
