@@ -108,6 +108,7 @@ from __future__ import annotations
 
 import math
 import operator
+from functools import reduce
 from itertools import islice
 
 import numpy as np
@@ -961,16 +962,17 @@ class StructureLearner(TensorDictModuleBase):
         """``log_posterior_of`` of the actuator at flat index ``flat`` (``row * A + action``) from
         the numpy views (``_update_read``): ``log_prior + (((m_0 + m_1) + m_2) + m_3)``."""
         width = self.count.shape[-1]
-        values = arrays[prefix + "log_marginal"][
-            flat * self.num_candidates * width : (flat + 1) * self.num_candidates * width
-        ].tolist()
-        posterior = []
-        for candidate, prior in enumerate(log_prior):
-            total = values[candidate * width]
-            for pattern in range(1, width):
-                total = total + values[candidate * width + pattern]
-            posterior.append(prior + total)
-        return posterior
+        values = iter(
+            arrays[prefix + "log_marginal"][
+                flat * self.num_candidates * width : (flat + 1) * self.num_candidates * width
+            ].tolist()
+        )
+        # each candidate's patterns in turn, summed left to right (reduce: ((m_0 + m_1) + ...))
+        patterns = zip(*(values,) * width, strict=True)
+        return [
+            prior + reduce(operator.add, row)
+            for prior, row in zip(log_prior, patterns, strict=True)
+        ]
 
     def _decide_read(
         self,
