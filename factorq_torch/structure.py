@@ -928,11 +928,15 @@ class StructureLearner(TensorDictModuleBase):
         arange(M))`` per base (the same doubles in, the same function: the compiled kernel's
         tables too; then True), anything else in one ``torch.lgamma`` call (False)."""
         largest = max(count, default=0.0)
-        bases = {value for level in levels for value in level[:3]}
+        bases, dyadic = self.__dict__.get("_lgamma_bases") or (None, None)
+        if bases is None:  # (the levels are fixed at construction)
+            bases = {value for level in levels for value in level[:3]}
+            dyadic = all((base * 1024.0).is_integer() for base in bases)
+            self.__dict__["_lgamma_bases"] = (bases, dyadic)
         if (
             largest < _LGAMMA_TABLE_COUNTS
             # dyadic bases: b + n - s is then exactly b + (n - s), the table's argument
-            and all((base * 1024.0).is_integer() for base in bases)
+            and dyadic
             and all(value.is_integer() for value in successes)
             and all(value.is_integer() for value in count)
         ):
