@@ -21,6 +21,12 @@ bias. Its ``factorq_torch`` is imported as ``factorq_torch_baseline`` (its files
 temporary folder with the package's name rewritten in their imports); the DQN parts are this
 checkout's for both.
 
+``--stream N`` times the layer as an agent runs it instead: per call, one layered forward and
+the loss on the next of ``N`` collected transitions (a random-action rollout, cycled), so the
+learner sees varied readings, actions and collisions (commitments, the change-point test, now
+and then a reopening) rather than one transition repeated, and the two parts alternate as in
+the recipe; the ratio is ``(step - plain forward) / DQN update``.
+
 Not a package on purpose (the torchrl wheel installs a top-level ``benchmarks``).
 """
 
@@ -113,6 +119,9 @@ def main() -> None:
     parser.add_argument("--hidden", type=int, default=64, help="width of the two hidden layers")
     parser.add_argument("--clock", default="cpu", choices=sorted(CLOCKS), help="what is timed")
     parser.add_argument("--baseline", help="another checkout whose layer to time alongside")
+    parser.add_argument(
+        "--stream", type=int, default=0, help="time forward + loss over N real transitions"
+    )
     args = parser.parse_args()
     torch.manual_seed(0)
     config = RiskConfig(hidden=args.hidden)
@@ -127,6 +136,10 @@ def main() -> None:
     target = SoftUpdate(loss, tau=config.tau)
     optimizer = torch.optim.Adam(loss.parameters(), lr=config.lr)
     data = env.rollout(args.batch, break_when_any_done=False).reshape(-1)  # [batch]
+    stream = []
+    if args.stream:
+        collected = env.rollout(args.stream, break_when_any_done=False).reshape(-1)
+        stream = [collected[i : i + 1] for i in range(args.stream)]  # (sliced before timing)
     step = env.reset()
 
     def update() -> None:
@@ -142,10 +155,12 @@ def main() -> None:
     print(
         f"world {args.world}, hidden {args.hidden}x2, DQN minibatch {args.batch}, "
         f"{args.clock} time, {args.repeats} rounds"
+        + (f", forward + loss over {args.stream} transitions" if args.stream else "")
     )
     print(
-        "| provider | code | DQN update (us) | plain actor (us) | layer forward (us) "
-        "| local loss (us) | layer / DQN update |"
+        "| provider | code | DQN update (us) | plain actor (us) | "
+        + ("layer step: forward + loss (us) " if args.stream else "layer forward (us) ")
+        + "| local loss (us) | layer / DQN update |"
     )
     print("| --- | --- | ---: | ---: | ---: | ---: | ---: |")
 
@@ -167,8 +182,19 @@ def main() -> None:
                 with torch.no_grad():
                     acting(step.clone())
 
-            functions[f"layered {code}"] = layered
-            functions[f"loss {code}"] = lambda ll=local_loss, t=data[:1]: ll(t)
+            if stream:
+
+                def both(acting=acting, local_loss=local_loss, at=[0]):  # noqa: B006
+                    with torch.no_grad():
+                        acting(step.clone())
+                    local_loss(stream[at[0] % len(stream)])
+                    at[0] += 1
+
+                functions[f"layered {code}"] = both
+                functions[f"loss {code}"] = lambda: None  # (inside the step)
+            else:
+                functions[f"layered {code}"] = layered
+                functions[f"loss {code}"] = lambda ll=local_loss, t=data[:1]: ll(t)
             calls[f"layered {code}"] = calls[f"loss {code}"] = args.calls
         times = interleaved(functions, calls, args.repeats, CLOCKS[args.clock])
         median = {name: statistics.median(values) * 1e6 for name, values in times.items()}
@@ -184,9 +210,10 @@ def main() -> None:
                 cost / update for cost, update in zip(costs[code], times["update"], strict=True)
             ]
             forward = median[f"layered {code}"] - median["plain"]
+            loss_text = "(in step)" if stream else f"{median[f'loss {code}']:,.0f}"
             print(
                 f"| {kinds[code]} | {code or 'this checkout'} | {median['update']:,.0f} | "
-                f"{median['plain']:,.0f} | {forward:,.0f} | {median[f'loss {code}']:,.0f} | "
+                f"{median['plain']:,.0f} | {forward:,.0f} | {loss_text} | "
                 f"{statistics.median(ratios):.1%} (rounds {min(ratios):.1%}-{max(ratios):.1%}) |"
             )
         if args.baseline:

@@ -221,6 +221,7 @@ class LocalRisk(TensorDictModuleBase):
             raise ValueError(f"mask_threshold={mask_threshold!r} must be a finite number")
         self.mask_threshold = float(mask_threshold)
         self.action_value_key, self.out_key = action_value_key, out_key
+        self._str_keys = isinstance(out_key, str)  # (every other key the layer writes is)
         # The online step of a LocalRewardTable or StructureLearner (their own forward, not a
         # subclass's) reads the sensors and calls local_values: the same values, without the
         # module call and a tensordict write and read (a third of the layer's time on a [1] step)
@@ -345,15 +346,23 @@ class LocalRisk(TensorDictModuleBase):
             combined, g, allowed = fused
         # one update (local_value: the provider wrote it already on the online step; written
         # again, it is the same tensor unless another dtype or batch was read)
-        tensordict.update(
-            {
-                names.LOCAL_VALUE: rho,
-                RISK_MASK: allowed,
-                TASK_VALUE: q,
-                NORMALISER: g,
-                self.out_key: combined,
-            }
-        )
+        values = {
+            names.LOCAL_VALUE: rho,
+            RISK_MASK: allowed,
+            TASK_VALUE: q,
+            NORMALISER: g,
+            self.out_key: combined,
+        }
+        if fused is not None and type(tensordict) is TensorDict and self._str_keys:
+            # the fused step's CPU tensors, shaped [*B, A] / [*B] from the tensordict's own
+            # entry: what set() would validate holds, so they are stored as they are (a plain
+            # TensorDict on no device or the CPU; a locked one still raises)
+            device = tensordict.device
+            if device is None or device.type == "cpu":
+                for key, value in values.items():
+                    tensordict._set_str(key, value, inplace=False, validated=True)
+                return tensordict
+        tensordict.update(values)
         return tensordict
 
     # -- explanations ---------------------------------------------------------------------------
@@ -570,6 +579,14 @@ class LocalRiskLoss(LossModule):
         super().__init__()
         self.risk = LocalRisk(provider)  # the provider's values for any batch (and its checks)
         self.provider = provider
+        # the online step of a table or learner goes straight to its update_running_mean (its own
+        # no_grad, or none needed: the learner's read path writes numbers through numpy)
+        self._online = self.risk.num_experiments
+        if getattr(type(provider), "update_running_mean", None) not in (
+            LocalRewardTable.update_running_mean,
+            StructureLearner.update_running_mean,
+        ):
+            self._online = None  # another provider's: under no_grad (_running_mean)
 
     def _forward_value_estimator_keys(self, **kwargs: Any) -> None:
         pass
@@ -603,12 +620,16 @@ class LocalRiskLoss(LossModule):
                 f"actuator of the provider)"
             )
         update = getattr(self.provider, "update_running_mean", None)
-        out = TensorDict(batch_size=[])
         if update is not None:
             if self.training:
-                self._running_mean(update, tensordict.get(keys.sensors), action, local_reward)
-            out.set("loss_local", torch.zeros((), device=local_reward.device))
-            return out
+                sensors = tensordict.get(keys.sensors)
+                if batch == (self._online,):  # the online step of a table or learner
+                    update(sensors, action, local_reward)
+                else:
+                    self._running_mean(update, sensors, action, local_reward)
+            zero = torch.zeros((), device=local_reward.device)
+            return TensorDict({"loss_local": zero}, batch_size=[])
+        out = TensorDict(batch_size=[])
         rho = self.risk.local_values(tensordict)  # [*B, A], with a gradient
         fired = action.unsqueeze(-1)
         error = rho.gather(-1, fired).squeeze(-1) - local_reward.gather(-1, fired).squeeze(-1)

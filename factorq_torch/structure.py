@@ -107,6 +107,8 @@ Keys: reads ``sensors`` ``[S, K]`` bool, writes ``local_value`` ``[S, A]`` float
 from __future__ import annotations
 
 import math
+import operator
+from functools import reduce
 from itertools import islice
 
 import numpy as np
@@ -148,6 +150,8 @@ from factorq_torch.tables import _check_entry, check_batch, check_firing, check_
 #: The read update (``StructureLearner._update_read``) looks ``lgamma`` up in tables for counts
 #: below this (a few MiB of tables at most); larger counts go through ``torch.lgamma``.
 _LGAMMA_TABLE_COUNTS = 8192
+#: The read path's memos (by reading, by count) are cleared when they reach this many entries.
+_MEMO_SIZE = 1 << 16
 
 
 class StructureLearner(TensorDictModuleBase):
@@ -473,16 +477,14 @@ class StructureLearner(TensorDictModuleBase):
         plausible candidates (``-inf`` if none, as ``max`` over ``where`` gives), rounded to
         float32 as ``.to(torch.float32)`` does."""
         optimistic = self.prediction == "optimistic"
-        members = self.sets
-        local = torch.empty(readings.shape[0], self.num_actions, dtype=torch.float32)
-        out = local.numpy()
-        means, plausibles = self.mean.tolist(), self.plausible_cache.tolist()  # [S][A][C](P)
-        committed = self.committed.tolist()  # [S][A]
+        lists = self._read_lists()
+        if lists is None:  # the buffers changed since the copy was taken (or patched): again
+            lists = [self.mean.tolist(), self.plausible_cache.tolist(), self.committed.tolist()]
+            self._read_lists_current(lists)
+        means, plausibles, committed = lists  # [S][A][C][P], [S][A][C], [S][A]
+        out = np.empty((readings.shape[0], self.num_actions), dtype=np.float32)
         for row, reading in enumerate(readings.tolist()):
-            patterns = [
-                sum(1 << rank for rank, sensor in enumerate(parents) if reading[sensor])
-                for parents in members
-            ]
+            patterns = self._reading_entries(reading)[0]
             plausible = plausibles[row]
             for actuator, held in enumerate(committed[row]):
                 mean = means[row][actuator]
@@ -496,9 +498,8 @@ class StructureLearner(TensorDictModuleBase):
                 else:
                     value = 0.0
                 out[row, actuator] = value  # float64 -> float32, rounded to nearest
-        return local
+        return torch.from_numpy(out)
 
-    @torch.no_grad()
     def update_running_mean(
         self,
         readings: torch.Tensor,
@@ -510,17 +511,30 @@ class StructureLearner(TensorDictModuleBase):
         (for every candidate), then commit or reopen (module docstring). Same arguments as
         ``LocalRewardTable.update_running_mean``."""
         batch = self.num_experiments
-        mask = check_mask(mask, batch, "StructureLearner.update_running_mean")
+        if mask is not None:
+            mask = check_mask(mask, batch, "StructureLearner.update_running_mean")
         shapes = {"readings": (readings, (batch, self.num_sensors)), "action": (action, (batch,))}
         shapes["local_reward"] = (local_reward, (batch, self.num_actions))
         for name, (value, shape) in shapes.items():
-            if tuple(value.shape) != shape:
+            if value.shape != shape:
                 raise ValueError(
                     f"StructureLearner.update_running_mean: {name} has shape "
                     f"{list(value.shape)}, expected {list(shape)}"
                 )
         if mask is None and self._update_read(readings, action, local_reward):
-            return
+            return  # (numbers through numpy: no autograd to turn off)
+        with torch.no_grad():
+            self._update_tensor(readings, action, local_reward, mask)
+
+    def _update_tensor(
+        self,
+        readings: torch.Tensor,
+        action: torch.Tensor,
+        local_reward: torch.Tensor,
+        mask: torch.Tensor | None,
+    ) -> None:
+        """``update_running_mean`` by tensor ops (any batch, mask and device)."""
+        batch = self.num_experiments
         owner, device = "StructureLearner.update_running_mean", self.count.device
         check_firing(owner, readings, action, local_reward, self.num_actions, device)
         rows = row_starts(batch, 1, action.device)  # arange(S), cached
@@ -608,17 +622,16 @@ class StructureLearner(TensorDictModuleBase):
         "competitors",
     )
 
-    def _numpy_views(self) -> dict | None:
-        """``{name: flat numpy view}`` of ``_READ_BUFFERS`` (None if one is not a contiguous CPU
-        tensor), cached while the buffers are the same tensors on the same memory (a module moved,
-        copied or given new buffers builds them again)."""
-        tensors = tuple(self._buffers[name] for name in self._READ_BUFFERS)
-        pointers = tuple(tensor.data_ptr() for tensor in tensors)
+    def _numpy_views(self) -> tuple[dict, list[torch.Tensor]] | None:
+        """``({name: flat numpy view}, the tensors written)`` of ``_READ_BUFFERS`` (None if one is
+        not a contiguous CPU tensor), cached while the buffers are the same tensors on the same
+        memory (a module moved, copied or given new buffers builds them again)."""
+        tensors = tuple(map(self._buffers.__getitem__, self._READ_BUFFERS))
         cached = self.__dict__.get("_views")
         if (
             cached is not None
-            and cached[1] == pointers
-            and all(old is new for old, new in zip(cached[0], tensors, strict=True))
+            and all(map(operator.is_, cached[0], tensors))
+            and cached[1] == tuple(map(torch.Tensor.data_ptr, tensors))
         ):
             return cached[2]
         if not all(
@@ -633,8 +646,64 @@ class StructureLearner(TensorDictModuleBase):
             name: tensor.view(-1).numpy()
             for name, tensor in zip(self._READ_BUFFERS, tensors, strict=True)
         }
-        self.__dict__["_views"] = (tensors, pointers, arrays)
-        return arrays
+        pointers = tuple(map(torch.Tensor.data_ptr, tensors))
+        views = (arrays, list(tensors[:-2]))  # (log_prior and competitors are only read)
+        self.__dict__["_views"] = (tensors, pointers, views)
+        return views
+
+    #: The buffers ``_local_values_read`` reads, kept as Python lists between calls.
+    _LIST_BUFFERS = ("mean", "plausible_cache", "committed")
+
+    def _list_state(self) -> tuple | None:
+        """What the Python copy of ``_LIST_BUFFERS`` was taken from: the tensors, their memory
+        and their version counters (which every in-place write advances, ``_update_read``'s
+        numpy writes by ``increment_version``); None where a buffer has no version counter."""
+        tensors = tuple(map(self._buffers.__getitem__, self._LIST_BUFFERS))
+        try:
+            versions = tuple(tensor._version for tensor in tensors)
+        except (RuntimeError, AttributeError):  # an inference tensor: no version counter
+            return None
+        return tensors, (*map(torch.Tensor.data_ptr, tensors), *versions)
+
+    def _read_lists(self) -> list | None:
+        """``[mean, plausible_cache, committed]`` as nested lists if the copy is current (the
+        buffers unchanged since it was taken or patched), else None."""
+        cached = self.__dict__.get("_lists")
+        if cached is None:
+            return None
+        state = self._list_state()
+        if (
+            state is None
+            or not all(map(operator.is_, cached[0][0], state[0]))  # the same tensors
+            or cached[0][1] != state[1]  # on the same memory, not written since
+        ):
+            return None
+        return cached[1]
+
+    def _read_lists_current(self, lists: list) -> None:
+        """Record ``lists`` as the copy of the buffers as they are now."""
+        state = self._list_state()
+        if state is not None:
+            self.__dict__["_lists"] = (state, lists)
+
+    def _reading_entries(self, reading: list[bool]) -> tuple[list[int], list[int]]:
+        """``(patterns, offsets)`` of one reading ``[K]``: each candidate's pattern (its sensors'
+        bits, ``patterns``) and its entry in one actuator's ``[C, P]`` (``c * P + pattern``),
+        cached by reading (a few thousand at most)."""
+        key = tuple(reading)
+        memo = self.__dict__.setdefault("_entries", {})
+        found = memo.get(key)
+        if found is None:
+            width = self.count.shape[-1]
+            patterns = [
+                sum(1 << rank for rank, sensor in enumerate(parents) if reading[sensor])
+                for parents in self.sets
+            ]
+            found = (patterns, [c * width + p for c, p in enumerate(patterns)])
+            if len(memo) >= _MEMO_SIZE:
+                memo.clear()
+            memo[key] = found
+        return found
 
     def _update_read(
         self, readings: torch.Tensor, action: torch.Tensor, local_reward: torch.Tensor
@@ -655,13 +724,12 @@ class StructureLearner(TensorDictModuleBase):
         if (
             self.pruned
             or self.likelihood == "flip"
-            or self.count.device.type != "cpu"
             or self.num_experiments * num_actions > ROW_KERNEL_VALUES
             or readings.dtype != torch.bool
             or action.dtype not in (torch.int64, torch.int32)
             or local_reward.dtype not in (torch.float32, torch.float64)
             or local_reward.requires_grad
-            or any(value.device.type != "cpu" for value in (readings, action, local_reward))
+            or not (readings.is_cpu and action.is_cpu and local_reward.is_cpu)
         ):
             return False
         fired_actions = action.tolist()  # [S]
@@ -670,9 +738,11 @@ class StructureLearner(TensorDictModuleBase):
             math.isfinite(value) for row in rewards for value in row
         ):
             return False
-        arrays = self._numpy_views()
-        if arrays is None:
+        views = self._numpy_views()  # (None off the CPU)
+        if views is None:
             return False
+        arrays, written = views
+        lists = self._read_lists()  # local_values' Python copy, patched below if it is current
         candidates, width = self.num_candidates, self.count.shape[-1]
         block_size = candidates * width  # one actuator's [C, P]
         log_prior = arrays["log_prior"].tolist()  # [C]
@@ -681,34 +751,35 @@ class StructureLearner(TensorDictModuleBase):
         wheres: list[int] = []
         rewards_fired: list[float] = []
         successes_fired: list[float] = []
-        for row, (fired, reading) in enumerate(zip(fired_actions, readings.tolist(), strict=True)):
+        readings_rows = readings.tolist()
+        for row, (fired, reading) in enumerate(zip(fired_actions, readings_rows, strict=True)):
             reward = float(rewards[row][fired])  # exact: float32 -> float64
             rewards_fired.append(reward)
             successes_fired.append(min(max(-reward, 0.0), 1.0))  # clamp(-r, 0, 1)
             flat = row * num_actions + fired
             fired_rows.append(flat)
             start = flat * block_size
-            wheres.extend(
-                start
-                + candidate * width
-                + sum(1 << rank for rank, sensor in enumerate(parents) if reading[sensor])
-                for candidate, parents in enumerate(self.sets)
-            )
-        per_row = [index // candidates for index in range(len(wheres))]
+            wheres.extend([start + offset for offset in self._reading_entries(reading)[1]])
         where_index = np.array(wheres, dtype=np.intp)  # (a list index is converted at every use)
-        new: dict[str, list[list[float]]] = {}
+        new: dict[str, list[list[float]]] = {"count": [], "successes": [], "reward_sum": []}
         for prefix in ("", "block_"):
             count = arrays[prefix + "count"][where_index].tolist()
             successes = arrays[prefix + "successes"][where_index].tolist()
             reward_sum = arrays[prefix + "reward_sum"][where_index].tolist()
-            new.setdefault("count", []).append([value + 1.0 for value in count])
-            new.setdefault("successes", []).append(
+            new["count"].append([value + 1.0 for value in count])
+            if len(fired_rows) == 1:  # (the online step of one agent: one reward for all)
+                success, reward = successes_fired[0], rewards_fired[0]
+                new["successes"].append([value + success for value in successes])
+                new["reward_sum"].append([value + reward for value in reward_sum])
+                continue
+            per_row = [index // candidates for index in range(len(wheres))]
+            new["successes"].append(
                 [
                     value + successes_fired[row]
                     for value, row in zip(successes, per_row, strict=True)
                 ]
             )
-            new.setdefault("reward_sum", []).append(
+            new["reward_sum"].append(
                 [value + rewards_fired[row] for value, row in zip(reward_sum, per_row, strict=True)]
             )
         marginal = self._read_log_marginal(
@@ -718,52 +789,96 @@ class StructureLearner(TensorDictModuleBase):
         for name, (whole, block) in new.items():
             arrays[name][where_index] = whole
             arrays["block_" + name][where_index] = block
-        for name in ("samples", "block_samples"):
-            arrays[name][fired_rows] += 1
+        samples, block_samples = arrays["samples"], arrays["block_samples"]
+        for flat in fired_rows:  # (one firing per experiment: no index twice)
+            samples[flat] += 1
+            block_samples[flat] += 1
         log_posteriors = [
             self._read_log_posterior(arrays, "", flat, log_prior) for flat in fired_rows
         ]
         reopened = self._decide_read(arrays, fired_rows, log_posteriors, log_prior)
-        rows = row_starts(self.num_experiments, 1, action.device)  # arange(S), cached
-        written = [self._buffers[name] for name in self._READ_BUFFERS[:-2]]
         if reopened is not None:  # the tensor code forgets, closes the blocks and refreshes
             increment_version(written)
+            rows = row_starts(self.num_experiments, 1, action.device)  # arange(S), cached
             fired_tensor = torch.tensor(fired_rows, dtype=torch.int64)
             action = action.to(torch.int64)
-            self._forget(rows, action, torch.tensor(reopened))
-            self._close_blocks(rows, action, fired_tensor, None)
-            self._refresh_cache(rows, action, fired_tensor, None)
+            with torch.no_grad():
+                self._forget(rows, action, torch.tensor(reopened))
+                self._close_blocks(rows, action, fired_tensor, None)
+                self._refresh_cache(rows, action, fired_tensor, None)
             return True
         for row, flat in enumerate(fired_rows):  # _close_blocks
-            if arrays["block_samples"][flat] >= self.window:
+            if block_samples[flat] >= self.window:
                 for name in ("count", "successes", "reward_sum", "log_marginal"):
                     arrays["block_" + name][flat * block_size : (flat + 1) * block_size] = 0.0
-                arrays["block_samples"][flat] = 0
+                block_samples[flat] = 0
                 arrays["block_start"][flat] = arrays["history_length"][row]
-        # _refresh_cache of the fired actuators, with their log posterior
+        # _refresh_cache of the fired actuators, with their log posterior: the running means of
+        # the entries counted (the others' counts are as they were, so are their means)
+        means = [
+            t / max(n, 1.0) if n > 0.0 else 0.0
+            for n, t in zip(new["count"][0], new["reward_sum"][0], strict=True)
+        ]
+        arrays["mean"][where_index] = means
         weights = posterior_weights(torch.tensor(log_posteriors, dtype=torch.float64)).tolist()
         threshold = self.log_bayes_factor
-        for flat, log_posterior, weight in zip(fired_rows, log_posteriors, weights, strict=True):
-            entries = slice(flat * block_size, (flat + 1) * block_size)
-            count = arrays["count"][entries].tolist()
-            total = arrays["reward_sum"][entries].tolist()
-            arrays["mean"][entries] = [
-                t / max(n, 1.0) if n > 0.0 else 0.0 for n, t in zip(count, total, strict=True)
-            ]
+        committed = arrays["committed"]
+        for index, (flat, log_posterior, weight) in enumerate(
+            zip(fired_rows, log_posteriors, weights, strict=True)
+        ):
             span = slice(flat * candidates, (flat + 1) * candidates)
             arrays["weights_cache"][span] = weight
             best = max(log_posterior)
             arrays["map_cache"][flat] = log_posterior.index(best)  # the first maximum (argmax)
-            arrays["plausible_cache"][span] = [value >= best - threshold for value in log_posterior]
+            plausible = [value >= best - threshold for value in log_posterior]
+            arrays["plausible_cache"][span] = plausible
+            if lists is not None:  # local_values' copy: the same numbers, written above
+                row, actuator = divmod(flat, num_actions)
+                entries = lists[0][row][actuator]
+                patterns = self._reading_entries(readings_rows[index])[0]
+                for candidate, pattern in enumerate(patterns):
+                    entries[candidate][pattern] = means[index * candidates + candidate]
+                lists[1][row][actuator] = plausible
+                lists[2][row][actuator] = int(committed[flat])
         increment_version(written)  # in place, as by index_copy_: seen by autograd
+        if lists is not None:
+            self._read_lists_current(lists)
         return True
 
     def _read_log_marginal(self, count: list[float], successes: list[float]) -> list[float]:
+        """``_pattern_log_marginal`` of Python numbers (``_read_log_marginal_of``), remembered by
+        ``(n, s)`` where the ``lgamma`` tables gave them (integral counts). Each entry's value is a
+        function of its own ``n`` and ``s`` (the tables hold ``torch.lgamma`` of the same
+        arguments), so the entries not remembered are computed alone, each once."""
+        memo = self.__dict__.setdefault("_marginals", {})
+        keys = list(zip(count, successes, strict=True))
+        marginal = list(map(memo.get, keys))
+        if None not in marginal:
+            return marginal
+        missing = list(
+            dict.fromkeys(key for key, value in zip(keys, marginal, strict=True) if value is None)
+        )
+        computed, tabled = self._read_log_marginal_of(
+            [key[0] for key in missing], [key[1] for key in missing]
+        )
+        found = dict(zip(missing, computed, strict=True))
+        if tabled:  # from the tables: remember them
+            if len(memo) + len(found) > _MEMO_SIZE:
+                memo.clear()
+            memo.update(found)
+        return [
+            found[key] if value is None else value
+            for key, value in zip(keys, marginal, strict=True)
+        ]
+
+    def _read_log_marginal_of(
+        self, count: list[float], successes: list[float]
+    ) -> tuple[list[float], bool]:
         """``_pattern_log_marginal`` of Python numbers (``"mixture"`` or ``"pattern"``): the same
         double operations in the same order as ``functional.mixture_log_marginal`` /
         ``beta_bernoulli_log_marginal``, with the same constants (Python floats there too), and
         their ``lgamma`` values from one ``torch.lgamma`` call (elementwise, the values torch's
-        gives there)."""
+        gives there); and whether the ``lgamma`` tables gave them (``_read_lgamma``)."""
         levels = self.__dict__.get("_marginal_levels")
         if levels is None:  # (a, b, a + b, log B(a, b), the level's log prior mass) per level
             a, b = self.prior_a, self.prior_b
@@ -784,7 +899,8 @@ class StructureLearner(TensorDictModuleBase):
                     ),
                 ]
             self.__dict__["_marginal_levels"] = levels
-        logs = iter(self._read_lgamma(levels, count, successes))
+        values, tabled = self._read_lgamma(levels, count, successes)
+        logs = iter(values)
         size = len(count)
         by_level = []
         for _, _, _, log_beta_prior, _ in levels:
@@ -795,28 +911,32 @@ class StructureLearner(TensorDictModuleBase):
                 ]
             )
         if len(levels) == 1:  # "pattern"
-            return by_level[0]
+            return by_level[0], tabled
         clean_level, noisy_level = levels[0][4], levels[1][4]
         marginal = []
         for n, clean, noisy in zip(count, by_level[0], by_level[1], strict=True):
             clean, noisy = clean + clean_level, noisy + noisy_level
             marginal.append((clean if clean > noisy else noisy) if n > 0 else 0.0)
-        return marginal
+        return marginal, tabled
 
     def _read_lgamma(
         self, levels: list[tuple[float, ...]], count: list[float], successes: list[float]
-    ) -> list[float]:
+    ) -> tuple[list[float], bool]:
         """``lgamma`` of ``(a + s, b + n - s, a + b + n)`` for every level and entry, in that
         order, as ``torch.lgamma`` computes them: integral counts (every firing of a collision
         world: ``s`` and ``n`` whole numbers) are looked up in tables of ``torch.lgamma(base +
         arange(M))`` per base (the same doubles in, the same function: the compiled kernel's
-        tables too), anything else in one ``torch.lgamma`` call."""
+        tables too; then True), anything else in one ``torch.lgamma`` call (False)."""
         largest = max(count, default=0.0)
-        bases = {value for level in levels for value in level[:3]}
+        bases, dyadic = self.__dict__.get("_lgamma_bases") or (None, None)
+        if bases is None:  # (the levels are fixed at construction)
+            bases = {value for level in levels for value in level[:3]}
+            dyadic = all((base * 1024.0).is_integer() for base in bases)
+            self.__dict__["_lgamma_bases"] = (bases, dyadic)
         if (
             largest < _LGAMMA_TABLE_COUNTS
             # dyadic bases: b + n - s is then exactly b + (n - s), the table's argument
-            and all((base * 1024.0).is_integer() for base in bases)
+            and dyadic
             and all(value.is_integer() for value in successes)
             and all(value.is_integer() for value in count)
         ):
@@ -833,12 +953,12 @@ class StructureLearner(TensorDictModuleBase):
                 first, second, third = tables[level_a], tables[level_b], tables[level_ab]
                 for n, s in zip(count, successes, strict=True):
                     out += (first[int(s)], second[int(n - s)], third[int(n)])
-            return out
+            return out, True
         arguments: list[float] = []
         for level_a, level_b, level_ab, _, _ in levels:
             for n, s in zip(count, successes, strict=True):
                 arguments += (level_a + s, level_b + n - s, level_ab + n)
-        return torch.lgamma(torch.tensor(arguments, dtype=torch.float64)).tolist()
+        return torch.lgamma(torch.tensor(arguments, dtype=torch.float64)).tolist(), False
 
     def _read_log_posterior(
         self, arrays: dict, prefix: str, flat: int, log_prior: list[float]
@@ -846,16 +966,17 @@ class StructureLearner(TensorDictModuleBase):
         """``log_posterior_of`` of the actuator at flat index ``flat`` (``row * A + action``) from
         the numpy views (``_update_read``): ``log_prior + (((m_0 + m_1) + m_2) + m_3)``."""
         width = self.count.shape[-1]
-        values = arrays[prefix + "log_marginal"][
-            flat * self.num_candidates * width : (flat + 1) * self.num_candidates * width
-        ].tolist()
-        posterior = []
-        for candidate, prior in enumerate(log_prior):
-            total = values[candidate * width]
-            for pattern in range(1, width):
-                total = total + values[candidate * width + pattern]
-            posterior.append(prior + total)
-        return posterior
+        values = iter(
+            arrays[prefix + "log_marginal"][
+                flat * self.num_candidates * width : (flat + 1) * self.num_candidates * width
+            ].tolist()
+        )
+        # each candidate's patterns in turn, summed left to right (reduce: ((m_0 + m_1) + ...))
+        patterns = zip(*(values,) * width, strict=True)
+        return [
+            prior + reduce(operator.add, row)
+            for prior, row in zip(log_prior, patterns, strict=True)
+        ]
 
     def _decide_read(
         self,
