@@ -317,7 +317,7 @@ def test_a_sweeps_kept_result_of_another_configuration_is_refused(tmp_path):
     first = dependencies.DependenciesConfig(seeds=2)
     second = dependencies.DependenciesConfig(seeds=3)
     results = {"schema_version": 1, "command": "dependencies", "config": {"seeds": 2}}
-    path = sweep_run.compare_result_path(tmp_path, second)
+    path = sweep_run.config_result_path(tmp_path, second)
     path.write_text(kept.dumps_sealed(results, kept.tie("dependencies", config_digest(first))))
     with pytest.raises(ValueError, match="was kept for another configuration") as error:
         sweep_run._pending_configs(tmp_path, [second], False, "dependencies")
