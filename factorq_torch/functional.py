@@ -391,8 +391,8 @@ def local_risk_rows(
     g_rows = np.empty(q_rows.shape[:1], dtype=np.float32)
     allowed_rows = np.empty(q_rows.shape, dtype=np.bool_)
     with np.errstate(all="ignore"):  # overflow to inf and 0 / 0 are handled as torch does
-        for row, (q_row, rho_row) in enumerate(zip(q_rows, rho_rows, strict=True)):
-            q_row, rho_row = list(q_row), list(rho_row)  # float32 scalars
+        for row, (q_array, rho_array) in enumerate(zip(q_rows, rho_rows, strict=True)):
+            q_row, rho_row = list(q_array), list(rho_array)  # float32 scalars
             spreads = []
             for half in (q_row, [-v for v in rho_row]):  # Q - Q_bar, then P_bar - rho_min
                 best = 0

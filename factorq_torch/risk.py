@@ -581,7 +581,7 @@ class LocalRiskLoss(LossModule):
         self.provider = provider
         # the online step of a table or learner goes straight to its update_running_mean (its own
         # no_grad, or none needed: the learner's read path writes numbers through numpy)
-        self._online = self.risk.num_experiments
+        self._online: int | None = self.risk.num_experiments
         if getattr(type(provider), "update_running_mean", None) not in (
             LocalRewardTable.update_running_mean,
             StructureLearner.update_running_mean,

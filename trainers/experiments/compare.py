@@ -545,12 +545,12 @@ def estimate(config: CompareConfig) -> resources.Estimate:
         elif method == "factor-q":
             parts["tables"] = count * (cells * actions * 4 + actions * (2 << sensors) * 12)
         elif method == "factor-dqn":
-            settings = config.factor_dqn
-            weights = _mlp_weights(cells, settings.hidden, actions)
-            copies = 1 if settings.local_shared else actions
-            weights += _mlp_weights(sensors, settings.local_hidden, 1) * copies
+            neural = config.factor_dqn
+            weights = _mlp_weights(cells, neural.hidden, actions)
+            copies = 1 if neural.local_shared else actions
+            weights += _mlp_weights(sensors, neural.local_hidden, 1) * copies
             # weights, gradients, Adam's two moments; activations of one step
-            parts["networks"] = count * (4 * weights * 4 + 4 * (cells + sum(settings.hidden)) * 3)
+            parts["networks"] = count * (4 * weights * 4 + 4 * (cells + sum(neural.hidden)) * 3)
         else:  # dqn
             settings = config.dqn
             weights = _mlp_weights(cells + sensors, settings.hidden, actions)
