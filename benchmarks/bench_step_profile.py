@@ -165,9 +165,9 @@ def batched_steps() -> None:
     for algorithm in config.algorithms:
         keys = paper_drivers.experiment_keys(config, algorithm)
         metrics = paper_drivers.run_fast(config, algorithm, keys, lambda e, x: None)
-        steps = metrics["steps"].sum(dim=(1, 2)).double().view(len(config.worlds), -1)
+        steps = metrics["steps"].sum(dim=(1, 2)).double().view(len(config.regimes), -1)
         worst = [
-            f"{world} {int(row.max()):,}" for world, row in zip(config.worlds, steps, strict=True)
+            f"{world} {int(row.max()):,}" for world, row in zip(config.regimes, steps, strict=True)
         ]
         print(
             f"{algorithm:>12}: {int(steps.max()):,} (mean experiment {float(steps.mean()):,.0f}; "

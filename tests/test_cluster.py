@@ -185,7 +185,7 @@ def test_factorq_compare_on_the_cluster_repeats_every_method_in_process(
     """One unit (a method's batch) per task on the runner's frame: every method, DQN included,
     repeats its in-process numbers."""
     options = ["--seeds", "2", "--steps", "300", "--size", "4", "--obstacles", "2"]
-    options += ["--worlds", "static,dynamic", "--threads", "1"]
+    options += ["--regimes", "static,dynamic", "--threads", "1"]
     assert cli.main(["compare", *options, "--out", str(tmp_path / "here")]) == 0
     address = local_cluster.scheduler_address
     argv = ["compare", *options, "--scheduler", address, "--out", str(tmp_path / "cluster")]
@@ -224,7 +224,7 @@ def test_a_compare_sweep_on_the_cluster_writes_what_it_writes_in_process(
     local_cluster, tmp_path, capsys
 ):
     argv = ["sweep", "--command", "compare", "--grid", "obstacles=1,2", "--seeds", "2"]
-    argv += ["--set", "steps=100", "--set", "size=4", "--set", "worlds=static,dynamic"]
+    argv += ["--set", "steps=100", "--set", "size=4", "--set", "regimes=static,dynamic"]
     argv += ["--set", "methods=factor-q,q-learning"]
     address = ["--scheduler", local_cluster.scheduler_address]  # what --cluster local:2 starts
     assert cli.main([*argv, *address, "--out", str(tmp_path / "cluster")]) == 0

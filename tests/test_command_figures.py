@@ -47,7 +47,7 @@ def test_minigrid_tabular_methods_give_the_stored_numbers():
 
 def test_the_networks_results_keep_their_structure(one_thread):
     config = compare.CompareConfig(
-        seeds=2, steps=300, methods=("dqn", "factor-dqn"), worlds=("static",), **DEVNULL
+        seeds=2, steps=300, methods=("dqn", "factor-dqn"), regimes=("static",), **DEVNULL
     )
     results = compare.run(config)
     tabular = STORED["compare"]["exact"]["results"]["factor-q"]["static"]

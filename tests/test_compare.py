@@ -100,7 +100,7 @@ def test_steps_to_threshold_is_the_end_of_the_first_short_enough_episode():
 
 
 def test_summary_is_null_unless_every_seed_reached_the_threshold():
-    config = compare.CompareConfig(seeds=2, steps=400, worlds=("dynamic",), methods=("dqn",))
+    config = compare.CompareConfig(seeds=2, steps=400, regimes=("dynamic",), methods=("dqn",))
     runs = {
         "dqn": {
             "traces": [
@@ -144,19 +144,19 @@ def test_command_line_options_become_the_config():
     command = next(action for action in parser._actions if action.dest == "command")
     assert "--steps STEPS" in command.choices["compare"].format_help()  # field docs: the help
     args = parser.parse_args(
-        "compare --seeds 2 --steps 500 --worlds dynamic,static --methods dqn,factor-dqn "
+        "compare --seeds 2 --steps 500 --regimes dynamic,static --methods dqn,factor-dqn "
         "--out somewhere --seed 7 --logger csv".split()
     )
     config = compare.CompareConfig(**options.given_options(args, compare.CompareConfig))
     assert (config.seeds, config.steps, config.seed, config.out) == (2, 500, 7, "somewhere")
-    assert config.worlds == ("static", "dynamic") and config.methods == ("dqn", "factor-dqn")
+    assert config.regimes == ("static", "dynamic") and config.methods == ("dqn", "factor-dqn")
 
 
 def test_bad_command_line_input_is_a_usage_error_that_names_it(capsys):
     assert cli.main(["compare", "--seeds", "0"]) == 2
     assert "seeds=0 is out of range" in capsys.readouterr().err
-    assert cli.main(["compare", "--worlds", "windy"]) == 2
-    assert "worlds: 'windy' is unknown" in capsys.readouterr().err
+    assert cli.main(["compare", "--regimes", "windy"]) == 2
+    assert "regimes: 'windy' is unknown" in capsys.readouterr().err
     assert cli.main(["compare", "--bogus", "1"]) == 2
     assert "factorq compare: error: unrecognized arguments: --bogus 1" in capsys.readouterr().err
 
@@ -174,7 +174,7 @@ def test_risk_aware_exploration_reaches_factor_q_and_factor_dqn_and_leaves_q_lea
             steps=300,
             size=4,
             obstacles=3,
-            worlds=("dynamic",),
+            regimes=("dynamic",),
             methods=("factor-q", "q-learning", "factor-dqn"),
             agent=AgentConfig(epsilon=0.3, exploration=exploration),
             out="unused",

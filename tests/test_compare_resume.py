@@ -27,7 +27,7 @@ from factorq_trainers.runner import kept
 
 #: A comparison on the command line that runs in seconds: factor-q, then DQN (the one cut).
 ARGS = ["--methods", "factor-q,dqn", "--seeds", "1", "--steps", "300", "--size", "4",
-        "--obstacles", "1", "--worlds", "static,dynamic", "--threads", "1"]  # fmt: skip
+        "--obstacles", "1", "--regimes", "static,dynamic", "--threads", "1"]  # fmt: skip
 
 
 def _cli_quiet(*argv: str) -> tuple[int, str]:

@@ -37,7 +37,7 @@ def test_exploratory_egreedy_anneals_itself_once_per_call():
 
 def test_experiment_keys_do_not_depend_on_what_else_is_selected():
     everything = experiment.ExperimentConfig(seed=4, seeds=3)
-    dynamic_only = experiment.ExperimentConfig(seed=4, seeds=3, worlds=("dynamic",))
+    dynamic_only = experiment.ExperimentConfig(seed=4, seeds=3, regimes=("dynamic",))
     all_keys = dqn.batch_keys(everything, STREAM_WORLD, "dqn")
     assert torch.equal(dqn.batch_keys(dynamic_only, STREAM_WORLD, "dqn"), all_keys[6:])
     other_method = dqn.batch_keys(everything, STREAM_WORLD, "factor-dqn")
@@ -55,7 +55,7 @@ def test_config_names_the_option_and_its_range():
 
 def test_dqn_learns_a_tiny_static_world_better_than_random(one_thread):
     experiments = experiment.ExperimentConfig(
-        seeds=2, worlds=("static",), steps=1500, size=4, obstacles=2, seed=3
+        seeds=2, regimes=("static",), steps=1500, size=4, obstacles=2, seed=3
     )
     config = dqn.DQNConfig(learning_starts=100, train_every=1, exploration_fraction=0.3)
     results = dqn.run(config, experiments)

@@ -59,8 +59,8 @@ def test_factor_q_learns_from_the_split_reward_and_q_learning_from_the_plain_one
 
 
 def test_experiment_config_names_the_option_and_its_range():
-    with pytest.raises(ValueError, match="worlds: 'windy' is unknown"):
-        experiment.ExperimentConfig(worlds=("static", "windy"))
+    with pytest.raises(ValueError, match="regimes: 'windy' is unknown"):
+        experiment.ExperimentConfig(regimes=("static", "windy"))
     with pytest.raises(ValueError, match="obstacles=200 is out of range"):
         experiment.ExperimentConfig(obstacles=200)
 

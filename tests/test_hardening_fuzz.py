@@ -177,7 +177,12 @@ def test_a_kept_paper_unit_of_any_content_is_reused_and_summarised_or_refused_in
 
     with tempfile.TemporaryDirectory() as directory:
         config = paper.PaperConfig(
-            seeds=1, runs=1, episodes=2, worlds=("static",), algorithms=("factor-q",), out=directory
+            seeds=1,
+            runs=1,
+            episodes=2,
+            regimes=("static",),
+            algorithms=("factor-q",),
+            out=directory,
         )
         (unit,) = paper.units(config)
         store = kept.UnitStore(directory)
@@ -205,7 +210,12 @@ def test_a_valid_kept_paper_unit_is_reused():
 
     with tempfile.TemporaryDirectory() as directory:
         config = paper.PaperConfig(
-            seeds=1, runs=1, episodes=2, worlds=("static",), algorithms=("factor-q",), out=directory
+            seeds=1,
+            runs=1,
+            episodes=2,
+            regimes=("static",),
+            algorithms=("factor-q",),
+            out=directory,
         )
         (unit,) = paper.units(config)
         result = {

@@ -39,9 +39,9 @@ TINY = {"seeds": 2, "runs": 2, "episodes": 3, "size": 5, "obstacles": 3}
         ({"max_steps": 0}, ValueError, "max_steps=0"),
         ({"seeds": 2.5}, TypeError, "seeds must be an int"),
         ({"runs": True}, TypeError, "runs must be an int"),
-        ({"worlds": ("static", "windy")}, ValueError, "'windy' is unknown"),
-        ({"worlds": ("static", "static")}, ValueError, "static given more than once"),
-        ({"worlds": ()}, ValueError, "worlds is empty"),
+        ({"regimes": ("static", "windy")}, ValueError, "'windy' is unknown"),
+        ({"regimes": ("static", "static")}, ValueError, "static given more than once"),
+        ({"regimes": ()}, ValueError, "regimes is empty"),
         ({"algorithms": ("sarsa",)}, ValueError, "'sarsa' is unknown"),
         ({"size": 1}, ValueError, "size=1"),
         ({"size": 3, "obstacles": 7}, ValueError, "obstacles=7 is out of range: must be in [0, 6]"),
@@ -74,13 +74,13 @@ def test_config_defaults_are_the_papers_experiment_with_100_seeds():
     config = PaperConfig()
     assert (config.seeds, config.runs, config.episodes) == (100, 10, 200)
     assert (config.size, config.obstacles, config.max_steps) == (10, 10, 10_000)
-    assert config.worlds == ("static", "semi-dynamic", "dynamic")
+    assert config.regimes == ("static", "semi-dynamic", "dynamic")
     assert config.algorithms == ("q-learning", "factor-q")
     assert config.agent.epsilon == 0.01 and config.agent.gamma == 0.9 and config.agent.alpha == 0.2
 
 
 def test_config_takes_names_in_any_order_or_comma_separated_and_keeps_canonical_order():
-    assert PaperConfig(worlds="dynamic, static").worlds == ("static", "dynamic")
+    assert PaperConfig(regimes="dynamic, static").regimes == ("static", "dynamic")
     assert PaperConfig(algorithms=["factor-q", "q-learning"]).algorithms == (
         "q-learning",
         "factor-q",
@@ -95,7 +95,7 @@ def test_every_config_field_has_a_one_line_doc_for_help():
 
 
 def test_config_round_trips_through_its_json_dict():
-    config = PaperConfig(seeds=3, worlds=("static",), threads=2)
+    config = PaperConfig(seeds=3, regimes=("static",), threads=2)
     data = json.loads(json.dumps(frame.plain(config)))
     assert frame.config_from_dict(PaperConfig, data) == config
 
@@ -106,7 +106,7 @@ def test_config_round_trips_through_its_json_dict():
 
 def test_keys_of_a_seed_and_world_do_not_depend_on_what_else_is_selected():
     full = PaperConfig(seeds=3)
-    part = PaperConfig(seeds=5, worlds=("dynamic",))
+    part = PaperConfig(seeds=5, regimes=("dynamic",))
     for algorithm in ("q-learning", "factor-q"):
         periods, world_keys, policy_keys = paper_drivers.experiment_keys(full, algorithm)
         part_periods, part_world, part_policy = paper_drivers.experiment_keys(part, algorithm)
@@ -192,7 +192,7 @@ def test_another_seed_gives_other_numbers(tiny_results):
 
 @needs_fast
 def test_a_seeds_results_do_not_depend_on_the_number_of_seeds_or_worlds(tiny_results):
-    more = paper.run(PaperConfig(**{**TINY, "seeds": 3, "worlds": ("dynamic",)}))
+    more = paper.run(PaperConfig(**{**TINY, "seeds": 3, "regimes": ("dynamic",)}))
     for algorithm in ("q-learning", "factor-q"):
         few = tiny_results["cells"][f"dynamic/{algorithm}"]["per_seed"]
         many = more["cells"][f"dynamic/{algorithm}"]["per_seed"]
@@ -203,7 +203,7 @@ def test_a_seeds_results_do_not_depend_on_the_number_of_seeds_or_worlds(tiny_res
 @needs_fast
 def test_run_reports_progress_up_to_every_episode_and_experiment():
     reports: list[int] = []
-    paper.run(PaperConfig(**{**TINY, "worlds": ("static",)}), progress=reports.append)
+    paper.run(PaperConfig(**{**TINY, "regimes": ("static",)}), progress=reports.append)
     assert all(episodes >= 0 for episodes in reports)
     assert sum(reports) == 2 * TINY["seeds"] * TINY["runs"] * TINY["episodes"]
 
@@ -226,7 +226,7 @@ def test_without_a_compiler_auto_says_why_once_and_records_what_ran(monkeypatch,
     # get the fast path) and results.json records the backend and the threads actually used.
     monkeypatch.setattr(loader, "_load", lambda: None)
     monkeypatch.setattr(loader, "_reason", "no C compiler found (test)")
-    config = PaperConfig(**{**TINY, "worlds": ("static",), "threads": None})
+    config = PaperConfig(**{**TINY, "regimes": ("static",), "threads": None})
     results = paper.run(config)
     err = capsys.readouterr().err
     assert err.count("the compiled fast path is unavailable (no C compiler found (test))") == 1

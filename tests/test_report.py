@@ -25,7 +25,7 @@ def unit_outcomes(config: PaperConfig, metrics: dict) -> list[dict]:
         start = unit["first_seed"] - config.first_seed
         seeds = slice(start, start + unit["seeds"])
         worlds = []
-        for world in config.worlds:
+        for world in config.regimes:
             cell = {key: values[seeds] for key, values in metrics[world, unit["algorithm"]].items()}
             totals = ("total_steps", "steps"), ("collisions",) * 2, ("greedy_collisions",) * 2
             worlds.append(
@@ -40,7 +40,9 @@ def unit_outcomes(config: PaperConfig, metrics: dict) -> list[dict]:
                     "curve_sums": {key: cell[key].sum(axis=1).tolist() for key in paper.CURVES},
                 }
             )
-        steps = sum(int(metrics[w, unit["algorithm"]]["steps"][seeds].sum()) for w in config.worlds)
+        steps = sum(
+            int(metrics[w, unit["algorithm"]]["steps"][seeds].sum()) for w in config.regimes
+        )
         outcomes.append(
             {
                 "algorithm": unit["algorithm"],
@@ -105,7 +107,7 @@ def test_figure3_is_a_valid_png_of_paper_size_under_a_megabyte(results, tmp_path
 
 
 def test_figure3_draws_a_single_world_and_a_single_seed(tmp_path):
-    single = synthetic_results(seeds=1, worlds=("dynamic",), algorithms=("factor-q",))
+    single = synthetic_results(seeds=1, regimes=("dynamic",), algorithms=("factor-q",))
     path = tmp_path / "figure3.png"
     report.figure3(single, path)
     width, height = png_size(path.read_bytes())
@@ -133,7 +135,7 @@ def test_report_has_cells_config_software_and_wall_time(results):
 
 
 def test_report_marks_claims_that_were_not_evaluated(tmp_path):
-    text = report.report_markdown(synthetic_results(worlds=("static",)))
+    text = report.report_markdown(synthetic_results(regimes=("static",)))
     c1 = next(line for line in text.splitlines() if line.startswith("| C1 |"))
     assert "not evaluated" in c1 and c1.endswith("| n/a |")
     c2 = next(line for line in text.splitlines() if line.startswith("| C2 |"))

@@ -121,7 +121,7 @@ def test_malformed_files_get_one_line_naming_the_file(tmp_path, content, message
         (("cells",), [], "cells must be an object"),
         (("cells", "static/q-learning", "curves", "steps"), [1.0], "must be a list of 4 numbers"),
         (("claims", "C9"), {}, "claims keys must be claim names"),
-        (("config", "worlds"), ["lava"], r"config.worlds\[0\] must be one of static"),
+        (("config", "regimes"), ["lava"], r"config.regimes\[0\] must be one of static"),
         (("schema_version",), SCHEMA_VERSION + 1, "newer than this factorq-torch reads"),
         (("schema_version",), "1", "schema_version must be a positive integer"),
     ],

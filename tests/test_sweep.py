@@ -126,7 +126,7 @@ def test_a_bad_spec_is_refused_naming_the_field_or_value(document, message):
 
 def test_bad_input_on_the_command_line_is_one_line_exit_2_and_nothing_written(tmp_path, capsys):
     spec_file = tmp_path / "bad.toml"
-    spec_file.write_text('[grid]\nworlds = [["static"], ["windy"]]\n')
+    spec_file.write_text('[grid]\nregimes = [["static"], ["windy"]]\n')
     out = tmp_path / "sweep"
     for argv in (
         [str(spec_file), "--out", str(out)],
@@ -264,7 +264,7 @@ command = "compare"
 seeds = 1
 [base]
 steps = 300
-worlds = ["static"]
+regimes = ["static"]
 methods = ["factor-q", "q-learning"]
 size = 5
 obstacles = 2

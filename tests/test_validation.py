@@ -308,9 +308,9 @@ TRIED = [
     factorq("paper --g-min inf", r"argument --g-min: 'inf' is not a finite number"),
     factorq("paper --threads 0", rf"--threads=0 {RANGE} in \[1, 256\]"),
     factorq("paper --threads 100000", rf"--threads=100000 {RANGE} in \[1, 256\]"),
-    factorq("paper --worlds static,windy", r"--worlds: 'windy' is unknown: choose from static, "),
-    factorq("paper --worlds static --worlds static", r"--worlds: static given more than once"),
-    factorq("paper --worlds ''", r"--worlds: '' is unknown: choose from static, semi-dynamic"),
+    factorq("paper --regimes static,windy", r"--regimes: 'windy' is unknown: choose from static, "),
+    factorq("paper --regimes static --regimes static", r"--regimes: static given more than once"),
+    factorq("paper --regimes ''", r"--regimes: '' is unknown: choose from static, semi-dynamic"),
     factorq("paper --algorithms sarsa", r"--algorithms: 'sarsa' is unknown: choose from q-learn"),
     factorq("paper --backend gpu", r"argument --backend: invalid choice: 'gpu'"),
     factorq("paper --body walker", r"--body='walker' is unknown: choose one of translate, heading"),
@@ -363,9 +363,9 @@ TRIED = [
     factorq("paper --resume {file}", r"a_file.txt/units/run.json does not exist: nothing to resume"),
     factorq("paper --resume {finished-run}", r"finished/units/run.json does not exist: nothing to"),
     factorq(
-        "paper --resume {interrupted} --seeds 5 --worlds static",
+        "paper --resume {interrupted} --seeds 5 --regimes static",
         r"--resume='.*run' holds a run of a different config: --seeds=5 given, 3 kept; "
-        r"--worlds=\['static'\] given, \['static', 'semi-dynamic', 'dynamic'\] kept \(leave these "
+        r"--regimes=\['static'\] given, \['static', 'semi-dynamic', 'dynamic'\] kept \(leave these "
         r"options out to resume it, or start a new run with another --out\)",
     ),
     factorq(
@@ -381,7 +381,7 @@ TRIED = [
     factorq("compare --seeds 1.5", r"argument --seeds: invalid int value: '1.5'"),
     factorq("compare --steps 0", rf"--steps=0 {RANGE} in \[1, 2147483647\]"),
     factorq("compare --steps 18446744073709551616", rf"--steps=18446744073709551616 {RANGE} in \[1, 2147483647\]"),
-    factorq("compare --worlds windy", r"--worlds: 'windy' is unknown: choose from static, "),
+    factorq("compare --regimes windy", r"--regimes: 'windy' is unknown: choose from static, "),
     factorq("compare --methods sarsa", r"--methods: 'sarsa' is unknown: choose from factor-q, "),
     factorq("compare --out ''", r"--out='' must be a directory path"),
     factorq("compare --logger wandb", r"argument --logger: invalid choice: 'wandb'"),
@@ -420,7 +420,7 @@ TRIED = [
     # trainers: the API under the commands
     ("PaperConfig(seeds=2.5)", lambda _: PaperConfig(seeds=2.5), TypeError, r"seeds must be an int, got 2.5 \(float\)"),
     ("PaperConfig(runs=True)", lambda _: PaperConfig(runs=True), TypeError, r"runs must be an int, got True \(bool\)"),
-    ("PaperConfig(worlds=())", lambda _: PaperConfig(worlds=()), ValueError, r"worlds is empty: choose one or more of static"),
+    ("PaperConfig(regimes=())", lambda _: PaperConfig(regimes=()), ValueError, r"regimes is empty: choose one or more of static"),
     ("PaperConfig(out='')", lambda _: PaperConfig(out=""), ValueError, r"out='' must be a directory path"),
     ("PaperConfig(device='meta')", lambda _: PaperConfig(device="meta"), ValueError, r"device='meta' holds no data"),
     ("DQNConfig(buffer_size=2**31)", lambda _: DQNConfig(buffer_size=2**31), ValueError, rf"buffer_size=2147483648 {RANGE} in \[1, 2147483647\]"),

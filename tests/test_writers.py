@@ -119,7 +119,7 @@ def test_compare_replaces_its_files_and_logs_as_a_set(tmp_path, monkeypatch):
 
 
 COMPARED = ["--methods", "factor-q,q-learning,dqn", "--seeds", "2", "--steps", "400"]
-COMPARED += ["--size", "5", "--obstacles", "2", "--worlds", "static,dynamic", "--out", "run"]
+COMPARED += ["--size", "5", "--obstacles", "2", "--regimes", "static,dynamic", "--out", "run"]
 
 
 def without_wall_time(text: str) -> dict:

@@ -113,7 +113,7 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
     grid = dict(data.get("grid", {}) if isinstance(data.get("grid", {}), dict) else {})
     for name, text in _pairs(args.grid, "--grid"):
         annotation = sweepable_fields(command).get(name)
-        if typing.get_origin(annotation) is tuple:  # one name per value: worlds=static,dynamic
+        if typing.get_origin(annotation) is tuple:  # one name per value: regimes=static,dynamic
             grid[name] = [[item] for item in text.split(",") if item]
         else:
             grid[name] = [parse_value(name, item, command) for item in text.split(",") if item]

@@ -177,8 +177,8 @@ class CompareConfig(experiment.WorldOptions):
         3, "Independent experiments per method and world; 95% intervals are across them."
     )
     steps: int = option(15_000, "Budget of env steps per experiment.")
-    worlds: tuple[str, ...] = option(
-        REGIMES, "Worlds to run: static, semi-dynamic, dynamic (comma-separated)."
+    regimes: tuple[str, ...] = option(
+        REGIMES, "Obstacle regimes to run: static, semi-dynamic, dynamic (comma-separated)."
     )
     methods: tuple[str, ...] = option(
         METHODS, "Methods to run: factor-q, q-learning, dqn, factor-dqn (comma-separated)."
@@ -226,8 +226,8 @@ class CompareConfig(experiment.WorldOptions):
         ):
             if not isinstance(getattr(self, name), kind):
                 raise TypeError(f"{name} must be a {kind.__name__}, got {getattr(self, name)!r}")
-        # ExperimentConfig validates seed, seeds, steps, worlds and the world, naming the option.
-        object.__setattr__(self, "worlds", self.experiments.worlds)
+        # ExperimentConfig validates seed, seeds, steps, regimes and the world, naming the option.
+        object.__setattr__(self, "regimes", self.experiments.regimes)
         if "q-learning" in self.methods:  # its state holds the pattern of all sensors
             experiment.check_qlearning_table(self.experiments.world)
 
@@ -236,7 +236,7 @@ class CompareConfig(experiment.WorldOptions):
         return ExperimentConfig(
             seed=self.seed,
             seeds=self.seeds,
-            worlds=self.worlds,
+            regimes=self.regimes,
             steps=self.steps,
             size=self.size,
             obstacles=self.obstacles,
@@ -399,14 +399,14 @@ def comparison(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[s
     experiments = config.experiments
     grid = np.linspace(experiments.steps / CURVE_POINTS, experiments.steps, CURVE_POINTS)
     thresholds = {}
-    for world in experiments.worlds:
+    for world in experiments.regimes:
         shortest = shortest_path_length(experiments, world)
         thresholds[world] = {"shortest_path": shortest, "threshold": THRESHOLD_FACTOR * shortest}
     results: dict[str, Any] = {}
     curves: dict[str, Any] = {}
     for method, run in runs.items():
         results[method], curves[method] = {}, {}
-        for world in experiments.worlds:
+        for world in experiments.regimes:
             traces = [_arrays(trace) for trace in run["traces"] if trace["world"] == world]
             reached = [steps_to_threshold(t, thresholds[world]["threshold"]) for t in traces]
             hit = [value for value in reached if value is not None]
@@ -567,7 +567,7 @@ def estimate(config: CompareConfig) -> resources.Estimate:
         if sum(parts.values()) > sum(largest.values()):
             largest = parts
     largest["episode records"] = records * len(config.methods)
-    points = len(config.methods) * len(experiments.worlds) * 100 * 6 * 56  # the curves
+    points = len(config.methods) * len(experiments.regimes) * 100 * 6 * 56  # the curves
     largest["curves"] = points
     return resources.Estimate(
         largest, len(config.methods) * count * experiments.steps, exact_steps=True

@@ -463,7 +463,7 @@ def run_dqn(config: DependenciesConfig, setting: str, budget: int) -> dict[str, 
     experiments = ExperimentConfig(
         seed=config.seed,
         seeds=config.seeds,
-        worlds=(config.world,),
+        regimes=(config.world,),
         steps=budget,
         size=config.size,
         obstacles=config.obstacles,

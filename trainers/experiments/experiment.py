@@ -329,22 +329,22 @@ class ExperimentConfig(WorldOptions):
         0, "Master seed: worlds, policies and network initialisations derive from it."
     )
     seeds: int = option(3, "Independent experiments per world (and method).")
-    worlds: tuple[str, ...] = option(
-        REGIMES, "Worlds to run: static, semi-dynamic, dynamic (comma-separated)."
+    regimes: tuple[str, ...] = option(
+        REGIMES, "Obstacle regimes to run: static, semi-dynamic, dynamic (comma-separated)."
     )
     steps: int = option(15_000, "Budget of env steps per experiment (episodes are as many as fit).")
 
     def __post_init__(self) -> None:
         check_int("seed", self.seed, 0, MAX_SEED)
         check_int("seeds", self.seeds, 1, INT32_MAX)
-        object.__setattr__(self, "worlds", check_names("worlds", self.worlds, REGIMES))
+        object.__setattr__(self, "regimes", check_names("regimes", self.regimes, REGIMES))
         check_int("steps", self.steps, 1, INT32_MAX)
         check_world_options(
             self.size,
             self.obstacles,
             self.max_steps,
             self.layout_seed,
-            self.worlds,
+            self.regimes,
             body_options(self),
         )
 
@@ -357,7 +357,7 @@ class ExperimentConfig(WorldOptions):
 
     @property
     def num_experiments(self) -> int:
-        return len(self.worlds) * self.seeds
+        return len(self.regimes) * self.seeds
 
     @property
     def periods(self) -> list[int]:
@@ -367,7 +367,7 @@ class ExperimentConfig(WorldOptions):
     @property
     def labels(self) -> list[tuple[str, int]]:
         """``(world, seed index)`` of every experiment of the batch, world-major."""
-        return [(world, index) for world in self.worlds for index in range(self.seeds)]
+        return [(world, index) for world in self.regimes for index in range(self.seeds)]
 
 
 class EpisodeRecorder:

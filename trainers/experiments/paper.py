@@ -120,7 +120,7 @@ def work(config: PaperConfig, unit: dict[str, Any]) -> int:
         config: the experiment.
         unit: one of ``units(config)``.
     """
-    return unit["seeds"] * len(config.worlds) * config.runs * config.episodes
+    return unit["seeds"] * len(config.regimes) * config.runs * config.episodes
 
 
 def estimate(config: PaperConfig) -> resources.Estimate:
@@ -132,7 +132,7 @@ def estimate(config: PaperConfig) -> resources.Estimate:
         config: the experiment.
     """
     world = config.world
-    count = len(config.worlds) * min(config.shard_seeds, config.seeds)  # experiments of a unit
+    count = len(config.regimes) * min(config.shard_seeds, config.seeds)  # experiments of a unit
     positions, actions = world.num_cells * world.num_headings, world.num_actuators
     tables = 0
     for algorithm in config.algorithms:
@@ -180,7 +180,7 @@ def describe(config: PaperConfig) -> str:
     notice = fallback_notice(config, backend, _modular_workers(config, len(config.algorithms)))
     told = (
         f"{len(config.cells) * config.seeds} experiments ({config.seeds} seeds x "
-        f"{len(config.worlds)} worlds x {len(config.algorithms)} algorithms), "
+        f"{len(config.regimes)} worlds x {len(config.algorithms)} algorithms), "
         f"{config.runs} runs x {config.episodes} episodes each, {backend} backend"
     )
     return told if notice is None else f"{notice}\n{told}"
@@ -248,7 +248,7 @@ def run_unit(
     backend, metrics = _metrics(config, unit, progress or (lambda episodes: None), world)
     seeds = unit["seeds"]
     worlds = []
-    for position, name in enumerate(config.worlds):
+    for position, name in enumerate(config.regimes):
         cell = {
             key: values[position * seeds : (position + 1) * seeds]
             for key, values in metrics.items()
@@ -292,8 +292,8 @@ def check_unit(config: PaperConfig, unit: dict[str, Any], result: dict[str, Any]
         result: a kept result.
     """
     worlds = [entry["world"] for entry in result["worlds"]]
-    if worlds != list(config.worlds):
-        return f"it holds the worlds {worlds}, not {list(config.worlds)}"
+    if worlds != list(config.regimes):
+        return f"it holds the worlds {worlds}, not {list(config.regimes)}"
     for entry in result["worlds"]:
         lengths = [len(values) for values in entry["run_sums"].values()]
         lengths += [len(entry["task_return"])]

@@ -55,8 +55,8 @@ class PaperConfig(experiment.WorldOptions):
         10, "Runs per experiment (task tables reset each run; Factor-Q's local tables carry over)."
     )
     episodes: int = option(200, "Episodes per run.")
-    worlds: tuple[str, ...] = option(
-        REGIMES, "Worlds to run: static, semi-dynamic, dynamic (comma-separated)."
+    regimes: tuple[str, ...] = option(
+        REGIMES, "Obstacle regimes to run: static, semi-dynamic, dynamic (comma-separated)."
     )
     algorithms: tuple[str, ...] = option(
         ALGORITHMS, "Algorithms to run: q-learning, factor-q (comma-separated)."
@@ -87,13 +87,13 @@ class PaperConfig(experiment.WorldOptions):
         check_int("shard_seeds", self.shard_seeds, 1, INT32_MAX)
         check_int("runs", self.runs, 1, INT32_MAX)
         check_int("episodes", self.episodes, 1, INT32_MAX)
-        object.__setattr__(self, "worlds", check_names("worlds", self.worlds, REGIMES))
+        object.__setattr__(self, "regimes", check_names("regimes", self.regimes, REGIMES))
         world = check_world_options(
             self.size,
             self.obstacles,
             self.max_steps,
             self.layout_seed,
-            self.worlds,
+            self.regimes,
             body_options(self),
         )
         object.__setattr__(
@@ -139,4 +139,4 @@ class PaperConfig(experiment.WorldOptions):
     @property
     def cells(self) -> list[tuple[str, str]]:
         """The selected ``(world, algorithm)`` cells, in canonical order."""
-        return [(world, algorithm) for world in self.worlds for algorithm in self.algorithms]
+        return [(world, algorithm) for world in self.regimes for algorithm in self.algorithms]

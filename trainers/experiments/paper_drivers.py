@@ -88,7 +88,7 @@ def threads_used(config: PaperConfig, backend: str) -> int:
     the modular path's torch intra-op threads (1 unless --threads says more)."""
     if backend == "fast":
         threads = config.threads if config.threads is not None else torch.get_num_threads()
-        return max(1, min(threads, len(config.worlds) * config.seeds))
+        return max(1, min(threads, len(config.regimes) * config.seeds))
     return config.threads or 1
 
 
@@ -103,12 +103,12 @@ class BatchKeys(NamedTuple):
 def experiment_keys(config: PaperConfig, algorithm: str) -> BatchKeys:
     """Obstacle periods, world keys and policy keys ``[W * S]`` of one algorithm's experiments.
 
-    Experiments are ordered world-major (``config.worlds``), seed-minor. The key of seed index
+    Experiments are ordered world-major (``config.regimes``), seed-minor. The key of seed index
     ``i`` (row ``i - config.first_seed``) in world ``w`` (index in ``REGIMES``) does not depend on
     what else is selected, so seeds ``[a, b)`` run alone draw what they draw in a larger run.
     """
     seeds = range(config.first_seed, config.first_seed + config.seeds)
-    labels = [(world, index) for world in config.worlds for index in seeds]
+    labels = [(world, index) for world in config.regimes for index in seeds]
     periods = torch.tensor([REGIME_PERIODS[world] for world, _ in labels])  # [W * S]
     world_keys = experiment.experiment_keys(config.seed, STREAM_WORLD, labels)
     policy_keys = experiment.experiment_keys(

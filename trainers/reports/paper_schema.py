@@ -96,7 +96,9 @@ def _names(value: Any, where: str, allowed: tuple[str, ...]) -> list[str]:
 
 def _check_config(config: Any) -> dict[str, Any]:
     config = _mapping(
-        config, "config", ("seeds", "runs", "episodes", "size", "obstacles", "worlds", "algorithms")
+        config,
+        "config",
+        ("seeds", "runs", "episodes", "size", "obstacles", "regimes", "algorithms"),
     )
     for key, value in config.items():
         if not isinstance(key, str):
@@ -111,7 +113,7 @@ def _check_config(config: Any) -> dict[str, Any]:
     _integer(config["episodes"], "config.episodes", 1)
     _integer(config["size"], "config.size", 1)
     _integer(config["obstacles"], "config.obstacles", 0)
-    _names(config["worlds"], "config.worlds", REGIMES)
+    _names(config["regimes"], "config.regimes", REGIMES)
     _names(config["algorithms"], "config.algorithms", ALGORITHM_NAMES)
     return config
 
@@ -194,11 +196,11 @@ def check_results(results: Any) -> dict[str, Any]:
         )
     config = _check_config(results["config"])
     cells = _mapping(results["cells"], "cells")
-    for world in config["worlds"]:
+    for world in config["regimes"]:
         for algorithm in config["algorithms"]:
             key = f"{world}/{algorithm}"
             if key not in cells:
-                raise ResultsFileError(f"cells lacks {key} (config.worlds x config.algorithms)")
+                raise ResultsFileError(f"cells lacks {key} (config.regimes x config.algorithms)")
             _check_cell(cells[key], f"cells.{key}", config["seeds"], config["episodes"])
     claims = _mapping(results["claims"], "claims")
     for name, claim in claims.items():
