@@ -410,14 +410,15 @@ def test_factorq_paper_command_runs_another_body_and_records_it(tmp_path, capsys
 
 def test_factorq_compare_runs_every_method_on_another_body(tmp_path):
     from factorq_trainers.experiments import compare
-    from factorq_trainers.experiments.compare import CompareConfig
+    from factorq_trainers.experiments.compare_config import CompareConfig
+    from factorq_trainers.experiments.dqn import METHODS
 
     config = CompareConfig(
         seeds=1, steps=300, size=4, obstacles=1, out=str(tmp_path / "compare"),
         body="heading", sensors="ring", distractors=1, sensor_permutation=2,
     )  # fmt: skip
     results = compare.run(config)
-    assert set(results["config"]["methods"]) == set(compare.METHODS)
+    assert set(results["config"]["methods"]) == set(METHODS)
     assert results["config"]["body"] == "heading"
 
 

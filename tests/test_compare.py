@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from factorq_trainers import cli
-from factorq_trainers.experiments import compare
-from factorq_trainers.experiments.dqn import DQNConfig
+from factorq_trainers.experiments import compare, compare_config
+from factorq_trainers.experiments.dqn import METHODS, DQNConfig
 from factorq_trainers.experiments.experiment import ExperimentConfig
 from factorq_trainers.runner import frame, options
 
@@ -67,7 +67,7 @@ def test_compare_writes_the_comparison_schema_of_issue_7(tmp_path, one_thread):
             assert isinstance(cell["wall_s"], float) and cell["wall_s"] > 0
     # Per-episode logs from torchrl's CSVLogger: "env steps,value" rows, one file per scalar.
     logged = sorted(tmp_path.glob("logs/*/scalars/*/seed_*/path_length.csv"))
-    assert logged and {path.parts[-5] for path in logged} <= set(compare.METHODS)
+    assert logged and {path.parts[-5] for path in logged} <= set(METHODS)
     for path in logged:
         step, value = path.read_text().splitlines()[0].split(",")
         assert int(step) >= float(value) >= 3  # a path of >= 3 steps, ending by that env step
@@ -128,7 +128,7 @@ def test_compare_config_names_the_bad_option_and_its_range():
     with pytest.raises(ValueError, match="logger='wandb' is unknown: choose one of csv"):
         compare.CompareConfig(logger="wandb")
     with pytest.raises(ValueError, match="local_activation='gelu' is unknown"):
-        compare.FactorDQNConfig(local_activation="gelu")
+        compare_config.FactorDQNConfig(local_activation="gelu")
 
 
 @pytest.mark.skipif(

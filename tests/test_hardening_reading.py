@@ -16,7 +16,6 @@ import textwrap
 import zipfile
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from factorq_torch.base.validation import check_names
@@ -154,27 +153,6 @@ def _npy_header(shape: tuple[int, ...]) -> bytes:
     buffer = BytesIO()
     npy.write_array_header_1_0(buffer, {"descr": "<f8", "fortran_order": False, "shape": shape})
     return buffer.getvalue()
-
-
-def test_an_array_header_larger_than_its_member_is_refused_unallocated(tmp_path):
-    path = tmp_path / "liar.npz"
-    _bomb(path, {"x.npy": (_npy_header((10**15,)), 8)})  # claims 8 PB, holds 8 bytes
-    with pytest.raises(reading.ReadError, match=r"declares float64 \[1000000000000000\]"):
-        reading.read_npz(path, "npz file", 2**20, 2**20)
-
-
-def test_read_npz_gives_back_what_numpy_saved(tmp_path):
-    path = tmp_path / "ok.npz"
-    arrays = {
-        "a": np.arange(6.0).reshape(2, 3),
-        "b": np.asfortranarray(np.eye(3)),
-        "c": np.array("x"),
-    }
-    np.savez_compressed(path, **arrays)
-    read = reading.read_npz(path, "npz file", 2**20, 2**20)
-    assert set(read) == set(arrays)
-    for name, value in arrays.items():
-        np.testing.assert_array_equal(read[name], value)
 
 
 def test_an_oversized_file_is_refused_unread(tmp_path):

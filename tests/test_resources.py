@@ -12,7 +12,7 @@ import re
 import pytest
 
 from factorq_trainers import cli
-from factorq_trainers.experiments.compare import CompareConfig
+from factorq_trainers.experiments.compare_config import CompareConfig
 from factorq_trainers.experiments.paper_config import PaperConfig
 from factorq_trainers.runner import resources
 

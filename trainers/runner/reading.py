@@ -1,4 +1,4 @@
-"""The one way factorq reads a file: results, sweep files, checkpoints, shards, kept units.
+"""The one way factorq reads a file: results, sweep files, kept units and configurations.
 
 Every file factorq reads is untrusted (another user, a damaged disk, an attacker who can write
 to ``--out``), so every read goes through here, and each function refuses before any parsing:
@@ -14,10 +14,7 @@ to ``--out``), so every read goes through here, and each function refuses before
 - **depth**: JSON's and TOML's nesting is counted on the text before a recursive parser sees it
   (TOML's dotted keys too: ``a.a.a...`` nests one level per dot, and ``tomllib``'s time grows with
   the square of that depth), YAML's while it is composed; the parsed value is then walked without
-  recursion (``deeper_than``);
-- **compression**: a ``.npz``'s members are checked by their declared sizes (the zip directory
-  and each array's header) before anything is decompressed, and a torch checkpoint's members must
-  be stored uncompressed (as ``torch.save`` writes them), so no small file expands to gigabytes.
+  recursion (``deeper_than``).
 
 Errors are ``ReadError`` (a ``ValueError``) in one line naming the file; ``FileMissing`` where
 nothing is there. Callers re-raise them as their own error types, message unchanged.
@@ -31,12 +28,9 @@ import json
 import os
 import re
 import stat
-import zipfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
-
-import numpy as np
 
 #: Nesting deeper than this is refused before parsing (a results file nests 6 levels, a sweep
 #: file 3, a checkpoint 8).
@@ -271,87 +265,3 @@ def read_yaml(path: str | os.PathLike, what: str, max_bytes: int) -> Any:
     if deeper_than(value, MAX_DEPTH):
         raise _too_deep(path, what)
     return value
-
-
-# --------------------------------------------------------------------------------------------
-# Archives: .npz (numpy) and torch checkpoints, sizes checked before decompression
-
-
-def _members(archive: zipfile.ZipFile, name: str, max_unpacked: int) -> list[zipfile.ZipInfo]:
-    members = archive.infolist()
-    declared = sum(member.file_size for member in members)
-    if declared > max_unpacked:
-        raise ReadError(
-            f"{name} unpacks to {declared} bytes (its declared sizes), more than the "
-            f"{max_unpacked} allowed: refused before decompressing"
-        )
-    return members
-
-
-def read_npz(
-    path: str | os.PathLike, what: str, max_bytes: int, max_unpacked: int
-) -> dict[str, np.ndarray]:
-    """The arrays of the ``.npz`` file ``path`` (numbers and text, never pickled objects): the
-    file at most ``max_bytes``, its members' declared sizes together at most ``max_unpacked``,
-    each array's header (shape x dtype) equal to its member's size, all before decompressing."""
-    from numpy.lib import format as npy
-
-    path = Path(path)
-    name = _name(path, what)
-    arrays: dict[str, np.ndarray] = {}
-    with open_regular(path, what, max_bytes) as handle:
-        try:
-            with zipfile.ZipFile(handle) as archive:
-                for member in _members(archive, name, max_unpacked):
-                    if not member.filename.endswith(".npy"):
-                        raise ReadError(f"{name} holds {member.filename!r}, not an array")
-                    with archive.open(member) as data:
-                        version = npy.read_magic(data)
-                        if version == (1, 0):
-                            shape, fortran, dtype = npy.read_array_header_1_0(data)
-                        elif version == (2, 0):
-                            shape, fortran, dtype = npy.read_array_header_2_0(data)
-                        else:
-                            raise ReadError(f"{name}: {member.filename} has npy version {version}")
-                        size = int(np.prod(shape, dtype=object)) * dtype.itemsize
-                        header = data.tell()
-                        if dtype.hasobject or size != member.file_size - header:
-                            raise ReadError(
-                                f"{name}: {member.filename} declares {dtype} {list(shape)}, "
-                                f"which its {member.file_size - header} bytes do not hold"
-                            )
-                        raw = data.read(size)
-                    flat = np.frombuffer(raw, dtype=dtype)
-                    array = flat.reshape(shape, order="F") if fortran else flat.reshape(shape)
-                    arrays[member.filename[: -len(".npy")]] = array
-        except ReadError:
-            raise
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:
-            reason = " ".join(str(error).split())[:200]
-            raise ReadError(f"{name} is unreadable ({type(error).__name__}: {reason})") from None
-    return arrays
-
-
-def load_torch(path: str | os.PathLike, what: str, max_bytes: int) -> Any:
-    """``torch.load(weights_only=True)`` of the regular file ``path`` (at most ``max_bytes``),
-    once its zip members are proven stored, not compressed (``torch.save`` stores them; a
-    compressed member could expand to any size). Errors of ``torch.load`` itself propagate."""
-    import torch
-
-    path = Path(path)
-    name = _name(path, what)
-    with open_regular(path, what, max_bytes) as handle:
-        try:
-            with zipfile.ZipFile(handle) as archive:
-                compressed = [m.filename for m in archive.infolist() if m.compress_type]
-        except (zipfile.BadZipFile, OSError, ValueError, EOFError) as error:
-            raise ReadError(
-                f"{name} is corrupted or truncated (not a zip archive: {error})"
-            ) from None
-        if compressed:
-            raise ReadError(
-                f"{name} is corrupted or not factorq's: {compressed[0]} is compressed "
-                f"(torch.save stores its members)"
-            )
-        handle.seek(0)
-        return torch.load(handle, map_location="cpu", weights_only=True)
