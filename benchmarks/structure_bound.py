@@ -50,8 +50,16 @@ sum_c w_c [x_c[a] = y] p^{d(z^sigma, x_c)} (1 - p)^{8 - d}`` over the free cells
 ring ``x_c``; the posterior follows each firing (cumulative sums), so the committing learner's
 first crossing of odds ``B`` is exact per draw.
 
+``--streams D,...`` drops the sampling assumption: it runs ``factorq dependencies --sensors ring
+--distractors D --sensor-noise P --seed S`` (compiled path) and scores each actuator's first
+``n`` firings of that very run (the history the kernel keeps for pair pruning, put back in the
+world's sensor order) with the same ideal learner (uniform cell weights, told ``p`` and the side
+information), beside the learner's own measure of the run. Not a bound (the ideal's cell weights
+are not the run's); what a learner told that much does on the data the policy gathered.
+
     .venv/bin/python benchmarks/structure_bound.py
     .venv/bin/python benchmarks/structure_bound.py --noise 0.08,0.10 --q 0.1 --confusable 5
+    .venv/bin/python benchmarks/structure_bound.py --streams 5,12 --noise 0.08 --confusable 5
 
 Not a package on purpose (the torchrl wheel installs a top-level ``benchmarks``).
 """
@@ -133,6 +141,20 @@ def arrangement_maps(confusable: list[int]) -> tuple[np.ndarray, np.ndarray]:
     return np.stack(maps), np.array(parent_position)
 
 
+def posterior_path(
+    code: np.ndarray, y: np.ndarray, table: np.ndarray, maps: np.ndarray, group: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The ideal learner after each firing of ``[batch, n]`` readings ``code`` and collisions
+    ``y``: the index (into the parent positions of ``group``) of the most probable position and
+    its posterior, both ``[batch, n]``."""
+    loglik = table[maps[:, code], y[None]]  # [sigmas, batch, n]
+    cumulative = np.cumsum(loglik, axis=-1)
+    mass = np.exp(cumulative - cumulative.max(axis=0, keepdims=True))
+    per_position = np.einsum("ps,sbn->pbn", group.astype(float), mass)
+    posterior = per_position / per_position.sum(axis=0, keepdims=True)  # [positions, batch, n]
+    return posterior.argmax(axis=0), posterior.max(axis=0)
+
+
 def simulate(
     clean: np.ndarray,
     actuator: int,
@@ -165,15 +187,8 @@ def simulate(
         z = x ^ (rng.random(x.shape) < p)
         code = (z.astype(np.int64) << np.arange(RING_BITS)).sum(axis=-1)  # [size, n]
         y = x[..., parent].astype(np.int64)
-        loglik = table[maps[:, code], y[None]]  # [sigmas, size, n]
-        cumulative = np.cumsum(loglik, axis=-1)
-        top = cumulative.max(axis=0, keepdims=True)
-        mass = np.exp(cumulative - top)  # [sigmas, size, n]
-        per_position = np.einsum("ps,sbn->pbn", group.astype(float), mass)
-        posterior = per_position / per_position.sum(axis=0, keepdims=True)  # [positions, size, n]
-        best = posterior.argmax(axis=0)
+        best, best_posterior = posterior_path(code, y, table, maps, group)
         map_right[start : start + size] = best == truth
-        best_posterior = posterior.max(axis=0)
         for f in factors:
             crossed = best_posterior >= f / (1 + f)  # odds f against all other positions
             any_crossed = crossed.any(axis=-1)
@@ -182,6 +197,69 @@ def simulate(
             right = best[np.arange(size), np.minimum(when, n - 1)] == truth
             first_right[f][start : start + size] = any_crossed & right
     return {"map_right": map_right, "first": first, "first_right": first_right}
+
+
+def learner_streams(
+    distractors: int, p: float, seed: int, m: int, factor: float, n: int, seeds: int
+) -> None:
+    """The ideal learner (uniform cell weights, told ``p`` and the side information) on the very
+    firings ``factorq dependencies --sensors ring --distractors D --sensor-noise P --seed S``
+    gave the learner: each actuator's first ``n`` firings, put back into the world's sensor
+    order; printed beside the learner's own measure of the same run."""
+    from factorq_trainers.experiments import dependencies_methods as methods
+    from factorq_trainers.experiments.dependencies_config import DependenciesConfig
+
+    config = DependenciesConfig(
+        seed=seed, seeds=seeds, sensors="ring", distractors=distractors, sensor_noise=p,
+        threads=1, out="unused",
+    )  # fmt: skip
+    result = methods.run_learned_fast(config, "custom")
+    state = result["_state"]
+    world = config.world_of("custom")
+    sensors = world.num_sensors
+    orders = methods.sensor_orders(seed, config.setting_stream("custom"), seeds, sensors, 0)
+    clean = ring_readings(config.size, config.obstacles, config.layout_seed)
+    actuators = [a for a, move in enumerate(TRANSLATE.moves) if move is not None]
+    right = np.ones(seeds, dtype=bool)
+    wrong = short = 0
+    for a in actuators:
+        confusable = confusable_set(a, m)
+        table = likelihood_table(clean, cell_weights(clean, a, None), confusable[0], p)
+        maps, parent_position = arrangement_maps(confusable)
+        positions = np.unique(parent_position)
+        group = parent_position[None, :] == positions[:, None]
+        truth = int(np.flatnonzero(positions == confusable[0])[0])
+        for i in range(seeds):
+            length = int(state["history_length"][i])
+            fired = state["history_action"][i, :length].long()
+            index = (fired == a).nonzero().flatten()[:n]
+            if index.numel() == 0:
+                right[i] = False
+                continue
+            short += index.numel() < n
+            raw = state["history_readings"][i, index].long()
+            agent = ((raw[:, None] >> torch.arange(sensors)) & 1).numpy()  # agent's order
+            world_bits = np.zeros_like(agent)
+            world_bits[:, orders[i].numpy()] = agent  # agent's sensor j is world bit orders[i, j]
+            code = (world_bits[:, :RING_BITS] << np.arange(RING_BITS)).sum(axis=1)[None]
+            y = (state["history_reward"][i, index] < 0).numpy().astype(np.int64)[None]
+            best, best_posterior = posterior_path(code, y, table, maps, group)
+            crossed = best_posterior[0] >= factor / (1 + factor)
+            if not crossed.any():
+                right[i] = False
+                continue
+            first = int(crossed.argmax())
+            if best[0, first] != truth:
+                right[i] = False
+                wrong += 1
+    until = np.asarray(result["samples_until_right"], dtype=np.float64)
+    print(
+        f"ring + {distractors} distractors, p = {p:.2f}, master seed {seed}, {seeds} experiments: "
+        f"learner right within {n} samples {(until <= n).mean():.0%}, wrong commitments "
+        f"{1000 * np.mean(result['wrong_commitments']):.0f} / 1000; ideal learner at odds "
+        f"{factor:g} on the same firings {right.mean():.0%}, wrong first commitments "
+        f"{1000 * wrong / seeds:.0f} / 1000 ({short} actuators fired fewer than {n} times)"
+    )
 
 
 def distractor_chance(n: int, p: float, distractors: int) -> float:
@@ -203,7 +281,12 @@ def main() -> None:
     parser.add_argument("--factors", default="30,300,3000", help="commitment odds B (comma list)")
     parser.add_argument("--draws", type=int, default=4000, help="Monte Carlo data sets")
     parser.add_argument("--distractors", default="5,12", help="for --distractor-check")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="Monte Carlo's, or the run's")
+    parser.add_argument(
+        "--streams", default="", help="D,D,...: score factorq dependencies' own firings with "
+        "ring + D distractors at each --noise (master seed --seed) instead of i.i.d. draws",
+    )  # fmt: skip
+    parser.add_argument("--seeds", type=int, default=100, help="experiments of --streams")
     parser.add_argument("--size", type=int, default=6)
     parser.add_argument("--obstacles", type=int, default=4)
     parser.add_argument("--layout-seed", type=int, default=0)
@@ -213,6 +296,10 @@ def main() -> None:
     samples = [int(v) for v in args.samples.split(",")]
     factors = [float(v) for v in args.factors.split(",")]
     n = max(samples)
+    if args.streams:
+        for d, p in itertools.product((int(v) for v in args.streams.split(",")), noises):
+            learner_streams(d, p, args.seed, args.confusable, 300.0, n, args.seeds)
+        return
     clean = ring_readings(args.size, args.obstacles, args.layout_seed)
     actuators = [a for a, move in enumerate(TRANSLATE.moves) if move is not None]
     rng = np.random.default_rng(args.seed)
