@@ -213,10 +213,12 @@ def test_a_kept_configuration_result_reads_back_as_it_was_written(tmp_path):
 def test_an_edited_kept_configuration_result_is_refused_naming_the_file(
     tmp_path, change, sign, message
 ):
+    from factorq_trainers.reports import compare_report
+
     kept, path = _kept_result(tmp_path)
     _rewrite(path, change, sign)
-    with pytest.raises(ValueError, match=message) as error:
-        kept.read_sealed(path, "configuration file")
+    with pytest.raises(ValueError, match=message) as error:  # compare's own check included
+        kept.read_sealed(path, "configuration file", check=compare_report.results_problem)
     assert str(path) in one_line(error) and "pass --force to recompute it" in str(error.value)
 
 

@@ -339,3 +339,23 @@ def test_factorq_report_refuses_a_results_file_written_before_versioning(tmp_pat
     assert main(["report", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "has no schema_version: run" in err[0]
+
+
+def test_a_commands_own_results_check_is_applied_by_factorq_report(tmp_path):
+    """``factorq report`` checks a results file with its command's report's ``results_problem``
+    too (compare's: ``seeds_reached`` counts the seeds that reached the threshold)."""
+    from factorq_trainers import reports
+
+    entry = {"steps_to_threshold_per_seed": [120, None], "seeds_reached": 2}
+    data = {
+        "schema_version": 1,
+        "command": "compare",
+        "config": {"seeds": 2},
+        "results": {"factor-q": {"static": entry}},
+    }
+    path = tmp_path / "comparison.json"
+    with pytest.raises(ValueError, match="seeds_reached is 2, but 1 seeds reached") as error:
+        reports.check_results(path, "compare", data)
+    assert str(path) in str(error.value)
+    entry["seeds_reached"] = 1
+    reports.check_results(path, "compare", data)  # consistent: accepted

@@ -53,7 +53,10 @@ CONFIG_FILE = "configuration file"
 def _read_config_result(path: Path, command: str, config: Any) -> dict[str, Any]:
     """The results of ``command`` for ``config`` kept at ``path``: sealed, kept for this command
     and configuration, values checked (a ValueError naming it otherwise)."""
-    return kept.read_sealed(path, CONFIG_FILE, kept_for=kept.tie(command, config_digest(config)))
+    check = getattr(_reports_of(command), "results_problem", None)  # the command's own check
+    return kept.read_sealed(
+        path, CONFIG_FILE, kept_for=kept.tie(command, config_digest(config)), check=check
+    )
 
 
 def _pending_configs(

@@ -42,8 +42,9 @@ def find(results_dir: str | os.PathLike) -> tuple[Any, Path]:
 def check_results(path: Path, command: str, data: dict[str, Any]) -> None:
     """Refuse (a ValueError naming ``path``) a results file of another command, or whose values
     are impossible (``runner.kept.check_values``: numbers finite, counts whole and >= 0,
-    fractions in [0, 1]), before anything is drawn from it."""
-    from factorq_trainers.runner import kept
+    fractions in [0, 1], and the command's report's own ``results_problem``), before anything
+    is drawn from it."""
+    from factorq_trainers.runner import kept, registry
 
     remedy = f"run `factorq {command}` again to rewrite it"
     if "schema_version" not in data:
@@ -53,7 +54,8 @@ def check_results(path: Path, command: str, data: dict[str, Any]) -> None:
             f"results file {path} was written by command {data.get('command')!r}, not "
             f"`factorq {command}` (whose file name it has): {remedy}"
         )
-    kept.check_values(path, "results file", data, remedy)
+    report = importlib.import_module(registry.commands()[command].report)
+    kept.check_values(path, "results file", data, remedy, getattr(report, "results_problem", None))
 
 
 def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:

@@ -209,3 +209,31 @@ def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
                 "per_seed": {"steps_to_threshold": reached},
             }
     return cells
+
+
+def results_problem(results: dict[str, Any]) -> str | None:
+    """What is wrong with a ``comparison.json`` dict beyond its values' kinds (``factorq report``
+    and a sweep's kept configurations check it): each method and regime holds one steps to the
+    threshold per seed, and ``seeds_reached`` counts those reached; None when nothing is."""
+    if not isinstance(results.get("results"), dict):
+        return None
+    config = results.get("config")
+    seeds = config.get("seeds") if isinstance(config, dict) else None
+    for method, regimes in results["results"].items():
+        for regime, entry in regimes.items() if isinstance(regimes, dict) else ():
+            if not isinstance(entry, dict) or "steps_to_threshold_per_seed" not in entry:
+                continue
+            per_seed = entry["steps_to_threshold_per_seed"]
+            if not isinstance(per_seed, list) or (seeds is not None and len(per_seed) != seeds):
+                count = len(per_seed) if isinstance(per_seed, list) else "no"
+                return (
+                    f"results/{method}/{regime} holds {count} seeds' steps to the threshold, "
+                    f"not {seeds}"
+                )
+            reached = sum(step is not None for step in per_seed)
+            if entry.get("seeds_reached") != reached:
+                return (
+                    f"results/{method}/{regime}/seeds_reached is {entry.get('seeds_reached')!r}, "
+                    f"but {reached} seeds reached the threshold"
+                )
+    return None

@@ -148,11 +148,17 @@ _BOUND = re.compile(r"ci95|\w*_ci95|curves_ci_low|curves_ci_high|low|high")
 _GENERIC = re.compile(r"mean|low|high|ci|ci95|n|\d+")
 
 
-def check_values(path: Path, what: str, results: dict[str, Any], remedy: str = REMEDY) -> None:
+def check_values(
+    path: Path,
+    what: str,
+    results: dict[str, Any],
+    remedy: str = REMEDY,
+    check: Callable[[dict[str, Any]], str | None] | None = None,
+) -> None:
     """A ValueError naming ``path`` unless every number of ``results`` is finite, those of
     counts (collisions, steps, episodes, seeds, samples, ...) are >= 0, fractions are in
-    [0, 1], whole counts are whole, and a compare result's ``seeds_reached`` is the number of
-    its seeds that reached the threshold, ``steps_to_threshold_per_seed`` one per seed."""
+    [0, 1], whole counts are whole, and ``check(results)`` (the command's own check, its report
+    module's ``results_problem``: e.g. compare's per-seed counts) finds nothing wrong."""
     stack: list[tuple[Any, str, str]] = [
         (value, key, key) for key, value in results.items() if key not in (DIGEST_KEY, TIE_KEY)
     ]
@@ -191,33 +197,9 @@ def check_values(path: Path, what: str, results: dict[str, Any], remedy: str = R
             problem = "not a whole count"
         if problem is not None:
             raise ValueError(f"{what} {path}: {where} holds {value!r}, {problem}: {remedy}")
-    _check_compare_counts(path, what, results, remedy)
-
-
-def _check_compare_counts(path: Path, what: str, results: dict[str, Any], remedy: str) -> None:
-    """A compare result's per-seed counts agree with its config and with each other."""
-    if results.get("command") != "compare" or not isinstance(results.get("results"), dict):
-        return
-    config = results.get("config")
-    seeds = config.get("seeds") if isinstance(config, dict) else None
-    for method, worlds in results["results"].items():
-        for world, entry in worlds.items() if isinstance(worlds, dict) else ():
-            if not isinstance(entry, dict) or "steps_to_threshold_per_seed" not in entry:
-                continue
-            per_seed = entry["steps_to_threshold_per_seed"]
-            if not isinstance(per_seed, list) or (seeds is not None and len(per_seed) != seeds):
-                count = len(per_seed) if isinstance(per_seed, list) else "no"
-                raise ValueError(
-                    f"{what} {path}: results/{method}/{world} holds {count} seeds' steps to "
-                    f"the threshold, not {seeds}: {remedy}"
-                )
-            reached = sum(step is not None for step in per_seed)
-            if entry.get("seeds_reached") != reached:
-                raise ValueError(
-                    f"{what} {path}: results/{method}/{world}/seeds_reached is "
-                    f"{entry.get('seeds_reached')!r}, but {reached} seeds reached the threshold: "
-                    f"{remedy}"
-                )
+    problem = None if check is None else check(results)  # the command's own (its report's)
+    if problem is not None:
+        raise ValueError(f"{what} {path}: {problem}: {remedy}")
 
 
 def read_sealed(
@@ -226,6 +208,7 @@ def read_sealed(
     remedy: str = REMEDY,
     values: bool = True,
     kept_for: dict[str, Any] | Callable[[dict[str, Any]], dict[str, Any]] | None = None,
+    check: Callable[[dict[str, Any]], str | None] | None = None,
 ) -> dict[str, Any]:
     """The dict kept at ``path`` once its digest, (``kept_for``: ``tie``'s dict, or a function
     of the file's dict giving it) what it was kept for and (``values``) its values are checked,
@@ -243,7 +226,7 @@ def read_sealed(
     if kept_for is not None:
         check_tie(path, what, stored_tie, kept_for, remedy)
     if values:
-        check_values(path, what, results, remedy)
+        check_values(path, what, results, remedy, check)
     return results
 
 
