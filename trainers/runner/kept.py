@@ -298,6 +298,8 @@ def schema_problem(value: Any, schema: Any, where: str = "result") -> str | None
     if isinstance(schema, list):
         if not isinstance(value, list):
             return f"{where} holds {_short(value)}, not a list"
+        if isinstance(schema[0], str) and _plain_numbers(value, schema[0]):
+            return None  # the common case, checked at C speed; the loop below says what is wrong
         for index, item in enumerate(value):
             problem = schema_problem(item, schema[0], f"{where}[{index}]")
             if problem is not None:
@@ -314,6 +316,20 @@ def _finite(value: int | float) -> bool:
         return math.isfinite(value)
     except OverflowError:
         return False
+
+
+def _plain_numbers(values: list[Any], kind: str) -> bool:
+    """Whether every item of ``values`` is a plain number that fits ``kind`` (ints for a count;
+    ints or floats, finite, in range, for the others): a quick yes, or no to look closer."""
+    kinds = set(map(type, values))
+    if kind == COUNT:
+        return kinds <= {int} and (not values or min(values) >= 0)
+    if kind not in (NUMBER, NON_NEGATIVE, FRACTION) or not kinds <= {int, float}:
+        return False
+    if not all(map(math.isfinite, values)):
+        return False
+    low, high = (min(values), max(values)) if values else (0, 0)
+    return (kind == NUMBER or low >= 0) and (kind != FRACTION or high <= 1)
 
 
 def _leaf_problem(value: Any, kind: str) -> str | None:

@@ -53,7 +53,7 @@ def _dumps(value: Any, level: int) -> str:
         items = [f"{inner}{json.dumps(str(k))}: {_dumps(v, level + 1)}" for k, v in value.items()]
         return "{\n" + ",\n".join(items) + "\n" + "  " * level + "}"
     if isinstance(value, list | tuple):
-        if all(not isinstance(item, dict | list | tuple) for item in value):
+        if not set(map(type, value)) & {dict, list, tuple}:
             try:  # plain finite numbers and texts: json's own, in C
                 text = json.dumps(value)
             except TypeError:  # numpy scalars
