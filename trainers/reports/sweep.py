@@ -38,9 +38,7 @@ def report_markdown(sweep: dict[str, Any]) -> str:
     axes = sweep["axes"]
     measures = _measures(sweep)
     is_paper = sweep.get("command", "paper") == "paper"
-    unit = {"compare": "one task per method"}.get(
-        sweep.get("command", "paper"), "one task per configuration"
-    )
+    unit = "one task per configuration"
     per = "Per run" if is_paper else "Per experiment"
     claims_column = ["claims passed"] if is_paper else []
     lines = [
