@@ -162,7 +162,7 @@ def batched_steps() -> None:
         return
     config = paper.PaperConfig(out="unused")
     print("\nbatched steps of the default paper batch (the slowest experiment's total steps)")
-    for algorithm in config.algorithms:
+    for algorithm in config.methods:
         keys = paper_drivers.experiment_keys(config, algorithm)
         metrics = paper_drivers.run_fast(config, algorithm, keys, lambda e, x: None)
         steps = metrics["steps"].sum(dim=(1, 2)).double().view(len(config.regimes), -1)

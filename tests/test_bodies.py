@@ -346,7 +346,7 @@ def test_factorq_with_the_oracle_dependency_ignores_diagonals_distractors_and_or
         "episodes": 5,
         "size": 5,
         "obstacles": 4,
-        "algorithms": ("factor-q",),
+        "methods": ("factor-q",),
     }
     plain = paper.run(PaperConfig(**small))
     other = paper.run(

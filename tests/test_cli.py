@@ -64,7 +64,7 @@ def test_paper_help_has_every_config_field_with_its_doc(capsys):
         (["--episodes", "ten"], "argument --episodes: invalid int value: 'ten'"),
         (["--regimes", "static,windy"], "--regimes: 'windy' is unknown"),
         (["--regimes", "static", "--regimes", "static"], "--regimes: static given more than once"),
-        (["--algorithms", "sarsa"], "--algorithms: 'sarsa' is unknown"),
+        (["--methods", "sarsa"], "--methods: 'sarsa' is unknown"),
         (["--size", "3", "--obstacles", "7"], "--obstacles=7 is out of range: must be in [0, 6]"),
         (["--epsilon", "1.5"], "--epsilon=1.5 is out of range: must be in [0.0, 1.0]"),
         (["--g-min", "0"], "--g-min=0.0 is out of range"),

@@ -181,7 +181,7 @@ def test_a_kept_paper_unit_of_any_content_is_reused_and_summarised_or_refused_in
             runs=1,
             episodes=2,
             regimes=("static",),
-            algorithms=("factor-q",),
+            methods=("factor-q",),
             out=directory,
         )
         (unit,) = paper.units(config)
@@ -214,7 +214,7 @@ def test_a_valid_kept_paper_unit_is_reused():
             runs=1,
             episodes=2,
             regimes=("static",),
-            algorithms=("factor-q",),
+            methods=("factor-q",),
             out=directory,
         )
         (unit,) = paper.units(config)

@@ -42,7 +42,7 @@ TINY = {"seeds": 2, "runs": 2, "episodes": 3, "size": 5, "obstacles": 3}
         ({"regimes": ("static", "windy")}, ValueError, "'windy' is unknown"),
         ({"regimes": ("static", "static")}, ValueError, "static given more than once"),
         ({"regimes": ()}, ValueError, "regimes is empty"),
-        ({"algorithms": ("sarsa",)}, ValueError, "'sarsa' is unknown"),
+        ({"methods": ("sarsa",)}, ValueError, "'sarsa' is unknown"),
         ({"size": 1}, ValueError, "size=1"),
         ({"size": 3, "obstacles": 7}, ValueError, "obstacles=7 is out of range: must be in [0, 6]"),
         ({"size": 3, "obstacles": 6}, ValueError, "obstacles=6"),  # no static layout with a path
@@ -75,13 +75,13 @@ def test_config_defaults_are_the_papers_experiment_with_100_seeds():
     assert (config.seeds, config.runs, config.episodes) == (100, 10, 200)
     assert (config.size, config.obstacles, config.max_steps) == (10, 10, 10_000)
     assert config.regimes == ("static", "semi-dynamic", "dynamic")
-    assert config.algorithms == ("q-learning", "factor-q")
+    assert config.methods == ("q-learning", "factor-q")
     assert config.agent.epsilon == 0.01 and config.agent.gamma == 0.9 and config.agent.alpha == 0.2
 
 
 def test_config_takes_names_in_any_order_or_comma_separated_and_keeps_canonical_order():
     assert PaperConfig(regimes="dynamic, static").regimes == ("static", "dynamic")
-    assert PaperConfig(algorithms=["factor-q", "q-learning"]).algorithms == (
+    assert PaperConfig(methods=["factor-q", "q-learning"]).methods == (
         "q-learning",
         "factor-q",
     )

@@ -49,7 +49,7 @@ def test_the_modular_path_gives_the_figures_recorded_before_bodies_were_data():
     # The other cells are held by the fast path's test above and by the two paths' equality on
     # every cell (test_paper.py).
     small = {**FIGURES["small"]["config"], "seeds": 1, "threads": 1}
-    config = PaperConfig(**small, regimes=("dynamic",), algorithms=("factor-q",), backend="modular")
+    config = PaperConfig(**small, regimes=("dynamic",), methods=("factor-q",), backend="modular")
     results = paper.run(config)
     assert list(results["cells"]) == ["dynamic/factor-q"]
     for measure, values in FIGURES["small"]["per_seed"]["dynamic/factor-q"].items():

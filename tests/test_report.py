@@ -107,7 +107,7 @@ def test_figure3_is_a_valid_png_of_paper_size_under_a_megabyte(results, tmp_path
 
 
 def test_figure3_draws_a_single_world_and_a_single_seed(tmp_path):
-    single = synthetic_results(seeds=1, regimes=("dynamic",), algorithms=("factor-q",))
+    single = synthetic_results(seeds=1, regimes=("dynamic",), methods=("factor-q",))
     path = tmp_path / "figure3.png"
     report.figure3(single, path)
     width, height = png_size(path.read_bytes())

@@ -27,12 +27,12 @@ REFUSED = [
     ("paper --runs 2000000000", r"metrics [\d.]+ PiB", PAPER_HINT),
     # a unit of 1,000 seeds (in every regime) holds 3,000 experiments' tables at once
     (
-        "paper --size 1000 --algorithms factor-q --seeds 1000 --shard-seeds 1000",
+        "paper --size 1000 --methods factor-q --seeds 1000 --shard-seeds 1000",
         r"tables [\d.]+ GiB",
         PAPER_HINT,
     ),
     (
-        "paper --size 1000 --algorithms factor-q --seeds 1000 --shard-seeds 1000 --backend modular",
+        "paper --size 1000 --methods factor-q --seeds 1000 --shard-seeds 1000 --backend modular",
         r"tables [\d.]+ GiB",
         PAPER_HINT,
     ),

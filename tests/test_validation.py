@@ -311,7 +311,7 @@ TRIED = [
     factorq("paper --regimes static,windy", r"--regimes: 'windy' is unknown: choose from static, "),
     factorq("paper --regimes static --regimes static", r"--regimes: static given more than once"),
     factorq("paper --regimes ''", r"--regimes: '' is unknown: choose from static, semi-dynamic"),
-    factorq("paper --algorithms sarsa", r"--algorithms: 'sarsa' is unknown: choose from q-learn"),
+    factorq("paper --methods sarsa", r"--methods: 'sarsa' is unknown: choose from q-learn"),
     factorq("paper --backend gpu", r"argument --backend: invalid choice: 'gpu'"),
     factorq("paper --body walker", r"--body='walker' is unknown: choose one of translate, heading"),
     factorq("paper --sensors eyes", r"--sensors='eyes' is unknown: choose one of cross, ring"),

@@ -361,7 +361,7 @@ def test_paper_run_falls_back_to_the_modular_path_for_a_foreign_world(tmp_path, 
         "config": {"length": 8, "density": 0.4, "max_steps": 1000, "layout_seed": 0},
     }
     assert set(results["cells"]) == {
-        f"{w}/{a}" for w in ("static", "semi-dynamic", "dynamic") for a in config.algorithms
+        f"{w}/{a}" for w in ("static", "semi-dynamic", "dynamic") for a in config.methods
     }
     if fast.is_available():
         with pytest.raises(ValueError, match="backend='fast' cannot run this config: the world"):

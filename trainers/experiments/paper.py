@@ -108,7 +108,7 @@ def units(config: PaperConfig) -> list[dict[str, Any]]:
             "first_seed": first,
             "seeds": min(config.shard_seeds, stop - first),
         }
-        for algorithm in config.algorithms
+        for algorithm in config.methods
         for first in range(config.first_seed, stop, config.shard_seeds)
     ]
 
@@ -135,7 +135,7 @@ def estimate(config: PaperConfig) -> resources.Estimate:
     count = len(config.regimes) * min(config.shard_seeds, config.seeds)  # experiments of a unit
     positions, actions = world.num_cells * world.num_headings, world.num_actuators
     tables = 0
-    for algorithm in config.algorithms:
+    for algorithm in config.methods:
         states = positions << world.num_sensors if algorithm == "q-learning" else positions
         # Q [E, states, A] float32, and Factor-Q's rho and kappa [E, A, 2**parents] (12 bytes)
         local = 0 if algorithm == "q-learning" else actions * (2 << world.num_sensors) * 12
@@ -177,10 +177,10 @@ def describe(config: PaperConfig) -> str:
         config: the experiment.
     """
     backend = resolve_backend(config)
-    notice = fallback_notice(config, backend, _modular_workers(config, len(config.algorithms)))
+    notice = fallback_notice(config, backend, _modular_workers(config, len(config.methods)))
     told = (
         f"{len(config.cells) * config.seeds} experiments ({config.seeds} seeds x "
-        f"{len(config.regimes)} worlds x {len(config.algorithms)} algorithms), "
+        f"{len(config.regimes)} worlds x {len(config.methods)} algorithms), "
         f"{config.runs} runs x {config.episodes} episodes each, {backend} backend"
     )
     return told if notice is None else f"{notice}\n{told}"
@@ -215,7 +215,7 @@ def _metrics(
         config,
         first_seed=unit["first_seed"],
         seeds=unit["seeds"],
-        algorithms=(unit["algorithm"],),
+        methods=(unit["algorithm"],),
     )
     backend = "modular" if world is not None else resolve_backend(shard)
     keys = experiment_keys(shard, unit["algorithm"])

@@ -58,8 +58,8 @@ class PaperConfig(experiment.WorldOptions):
     regimes: tuple[str, ...] = option(
         REGIMES, "Obstacle regimes to run: static, semi-dynamic, dynamic (comma-separated)."
     )
-    algorithms: tuple[str, ...] = option(
-        ALGORITHMS, "Algorithms to run: q-learning, factor-q (comma-separated)."
+    methods: tuple[str, ...] = option(
+        ALGORITHMS, "Methods to run: q-learning, factor-q (comma-separated)."
     )
     epsilon: float = option(0.01, "Probability of a uniformly random (exploratory) action.")
     gamma: float = option(0.9, "Discount of future reward, in [0, 1).")
@@ -96,11 +96,9 @@ class PaperConfig(experiment.WorldOptions):
             self.regimes,
             body_options(self),
         )
-        object.__setattr__(
-            self, "algorithms", check_names("algorithms", self.algorithms, ALGORITHMS)
-        )
+        object.__setattr__(self, "methods", check_names("methods", self.methods, ALGORITHMS))
         _ = self.agent  # AgentConfig validates epsilon, gamma, alpha, eta and g_min
-        if "q-learning" in self.algorithms:  # its state holds the pattern of all sensors
+        if "q-learning" in self.methods:  # its state holds the pattern of all sensors
             check_qlearning_table(world)
         if self.threads is not None:
             check_threads("threads", self.threads)
@@ -139,4 +137,4 @@ class PaperConfig(experiment.WorldOptions):
     @property
     def cells(self) -> list[tuple[str, str]]:
         """The selected ``(world, algorithm)`` cells, in canonical order."""
-        return [(world, algorithm) for world in self.regimes for algorithm in self.algorithms]
+        return [(world, algorithm) for world in self.regimes for algorithm in self.methods]

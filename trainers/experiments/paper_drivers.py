@@ -69,10 +69,10 @@ def fallback_notice(
         return None  # asked for: a device the compiled path does not run on
     estimate = (
         MODULAR_SECONDS_PER_EPISODE
-        * len(config.algorithms)
+        * len(config.methods)
         * config.runs
         * config.episodes
-        / max(1, min(workers, len(config.algorithms)))
+        / max(1, min(workers, len(config.methods)))
     )
     duration = f"{estimate / 60:.0f} min" if estimate >= 90 else f"{max(estimate, 1):.0f} s"
     return (

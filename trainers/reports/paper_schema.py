@@ -98,7 +98,7 @@ def _check_config(config: Any) -> dict[str, Any]:
     config = _mapping(
         config,
         "config",
-        ("seeds", "runs", "episodes", "size", "obstacles", "regimes", "algorithms"),
+        ("seeds", "runs", "episodes", "size", "obstacles", "regimes", "methods"),
     )
     for key, value in config.items():
         if not isinstance(key, str):
@@ -114,7 +114,7 @@ def _check_config(config: Any) -> dict[str, Any]:
     _integer(config["size"], "config.size", 1)
     _integer(config["obstacles"], "config.obstacles", 0)
     _names(config["regimes"], "config.regimes", REGIMES)
-    _names(config["algorithms"], "config.algorithms", ALGORITHM_NAMES)
+    _names(config["methods"], "config.methods", ALGORITHM_NAMES)
     return config
 
 
@@ -197,10 +197,10 @@ def check_results(results: Any) -> dict[str, Any]:
     config = _check_config(results["config"])
     cells = _mapping(results["cells"], "cells")
     for world in config["regimes"]:
-        for algorithm in config["algorithms"]:
+        for algorithm in config["methods"]:
             key = f"{world}/{algorithm}"
             if key not in cells:
-                raise ResultsFileError(f"cells lacks {key} (config.regimes x config.algorithms)")
+                raise ResultsFileError(f"cells lacks {key} (config.regimes x config.methods)")
             _check_cell(cells[key], f"cells.{key}", config["seeds"], config["episodes"])
     claims = _mapping(results["claims"], "claims")
     for name, claim in claims.items():

@@ -32,7 +32,7 @@ def _ordered_cells(results: dict[str, Any]) -> tuple[list[str], list[str]]:
     """The worlds and algorithms present in ``results``, in canonical order."""
     config = results["config"]
     worlds = [world for world in REGIMES if world in config["regimes"]]
-    algorithms = [name for name in ALGORITHM_LABELS if name in config["algorithms"]]
+    algorithms = [name for name in ALGORITHM_LABELS if name in config["methods"]]
     return worlds, algorithms
 
 
