@@ -12,6 +12,7 @@ import pytest
 from factorq_trainers.experiments import paper
 from factorq_trainers.experiments.paper_config import PaperConfig
 from factorq_trainers.reports import report
+from factorq_trainers.reports.paper_schema import CURVE_NAMES
 from factorq_trainers.runner import frame
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -37,7 +38,7 @@ def unit_outcomes(config: PaperConfig, metrics: dict) -> list[dict]:
                     .sum(axis=2)
                     .mean(axis=1)
                     .tolist(),
-                    "curve_sums": {key: cell[key].sum(axis=1).tolist() for key in paper.CURVES},
+                    "curve_sums": {key: cell[key].sum(axis=1).tolist() for key in CURVE_NAMES},
                 }
             )
         steps = sum(

@@ -58,7 +58,6 @@ HINT = "use fewer --seeds, --shard-seeds, --runs or --episodes, or a smaller --s
 WORK_UNIT = "episode"
 #: The figure is drawn by a helper process started before torch loads (``cli``).
 FIGURE_PROCESS = True
-CURVES = CURVE_NAMES  # per-episode curves; task return is reported per run
 #: Memory of the summary besides the curves: the claims' bootstrap resamples, the results file's
 #: text (measured: the default run peaks 90 MiB above the interpreter with torch, 1,000 seeds
 #: 292 MiB; the estimate is within 5% of both).
@@ -148,7 +147,7 @@ def estimate(config: PaperConfig) -> resources.Estimate:
     unit_metrics = count * config.runs * config.episodes * resources.METRIC_BYTES
     # every seed's per-episode counts, kept and gathered: their JSON text and Python objects,
     # about 64 bytes a number (measured: 0.22 MiB more peak memory per seed of the default run)
-    gathered = len(config.cells) * config.seeds * config.episodes * len(CURVES) * 64
+    gathered = len(config.cells) * config.seeds * config.episodes * len(CURVE_NAMES) * 64
     parts = {
         "tables": tables,
         "run state": state,
@@ -271,7 +270,7 @@ def run_unit(
                 .mean(axis=1)
                 .tolist(),
                 # [S, E]: per episode, summed over the runs
-                "curve_sums": {key: cell[key].sum(axis=1).tolist() for key in CURVES},
+                "curve_sums": {key: cell[key].sum(axis=1).tolist() for key in CURVE_NAMES},
             }
         )
     return {
@@ -348,7 +347,7 @@ def summarise(config: PaperConfig, outcomes: list[dict[str, Any]]) -> dict[str, 
             mean, low, high = mean_ci(cell[name])
             summary[name] = {"mean": float(mean), "ci95": interval(low, high)}
         curves, lows, highs = {}, {}, {}
-        for name in CURVES:
+        for name in CURVE_NAMES:
             mean, low, high = mean_ci(curve_rows[name])
             curves[name] = mean.tolist()
             lows[name] = None if low is None else low.tolist()

@@ -50,7 +50,6 @@ from factorq_trainers.runner import options, outdir, registry, resources, result
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, what shells report for Ctrl-C
-UNITS_DIRECTORY = kept_files.UNITS_DIRECTORY
 FORCE_HELP = (
     "Replace the results of an earlier run in --out (they are kept until the new ones are "
     "written, all at once). Without it, an --out holding results is refused before any work."
@@ -441,8 +440,9 @@ def _run(
         store = kept_files.UnitStore(config.out)
         if store.exists() and not force:
             raise outdir.OutputDirError(
-                f"out='{config.out}' holds the units of an interrupted run ({UNITS_DIRECTORY}/): "
-                f"continue it with --resume {config.out}, or pass --force to start over"
+                f"out='{config.out}' holds the units of an interrupted run "
+                f"({kept_files.UNITS_DIRECTORY}/): continue it with --resume {config.out}, or "
+                f"pass --force to start over"
             )
         store.start(module.NAME, plain(config), (unit["id"] for unit in units))
         done: dict[str, Any] = {}
