@@ -282,7 +282,7 @@ def _without_wall_s(value):
 def test_every_compare_config_field_but_nested_and_the_sweeps_own_is_sweepable():
     from factorq_trainers.experiments import compare
 
-    skipped = {*sweep_spec.COMPARE_RESERVED, "agent", "dqn", "factor_dqn"}
+    skipped = {*sweep_spec.reserved_fields("compare"), "agent", "dqn", "factor_dqn"}
     names = [f.name for f in fields(compare.CompareConfig) if f.name not in skipped]
     assert list(sweep_spec.sweepable_fields("compare")) == names
     assert sweep_spec.nested_fields("compare") == ["agent", "dqn", "factor_dqn"]

@@ -44,11 +44,10 @@ from factorq_trainers.runner import reading
 DEFAULT_SEEDS = 100
 DEFAULT_OUT = "results/sweep"
 SPEC_KEYS = ("command", "seeds", "out", "base", "grid", "configs")
-#: ``CompareConfig`` fields the sweep sets itself (``logger``: a sweep writes no per-episode logs).
-COMPARE_RESERVED = ("seeds", "out", "logger")
-#: The fields of another command's config that the sweep sets itself.
+#: The fields of a command's config that the sweep sets itself, unless the module of its config
+#: declares more (``SWEEP_RESERVED``: compare's ``logger``).
 UNITS_RESERVED = ("seeds", "out")
-#: Where a compare sweep keeps each finished configuration's ``comparison.json`` dict.
+#: Where a sweep keeps each finished configuration's results dict.
 CONFIGS_DIRECTORY = "configs"
 
 
@@ -93,8 +92,10 @@ def config_class(command: str = "paper") -> type:
 
 
 def reserved_fields(command: str = "paper") -> tuple[str, ...]:
-    """The fields of ``command``'s config that the sweep sets itself."""
-    return {"compare": COMPARE_RESERVED}.get(command, UNITS_RESERVED)
+    """The fields of ``command``'s config that the sweep sets itself: ``seeds`` and ``out``, or
+    what the module of its config declares in ``SWEEP_RESERVED``."""
+    module = sys.modules[config_class(command).__module__]
+    return tuple(getattr(module, "SWEEP_RESERVED", UNITS_RESERVED))
 
 
 def nested_fields(command: str = "paper") -> list[str]:

@@ -19,6 +19,8 @@ from factorq_trainers.runner.options import option
 LOGGERS = ("csv", "tensorboard")
 #: Fields that leave the numbers alone: a sweep's digest of a configuration leaves them out.
 DIGEST_IGNORED = ("out", "threads", "logger")
+#: Fields a sweep sets itself (``logger``: a sweep writes no per-episode logs).
+SWEEP_RESERVED = ("seeds", "out", "logger")
 
 
 @dataclass(frozen=True)
