@@ -163,6 +163,23 @@ paper_units = st.fixed_dictionaries(
 )
 
 
+def _paper_unit_store(directory: str):
+    """A one-unit paper run started in ``directory``: its config, its unit, its store, and the
+    check ``--resume`` gives its kept units."""
+    import functools
+
+    from factorq_trainers.experiments import paper
+    from factorq_trainers.runner import frame, kept
+
+    config = paper.PaperConfig(
+        seeds=1, runs=1, episodes=2, regimes=("static",), methods=("factor-q",), out=directory
+    )
+    (unit,) = paper.units(config)
+    store = kept.UnitStore(directory)
+    store.start(paper.NAME, frame.plain(config), [unit["id"]])
+    return config, unit, store, functools.partial(paper.check_unit, config)
+
+
 @FUZZ
 @given(result=paper_units | values, raw=st.none() | st.binary(max_size=200))
 def test_a_kept_paper_unit_of_any_content_is_reused_and_summarised_or_refused_in_one_line(
@@ -170,28 +187,15 @@ def test_a_kept_paper_unit_of_any_content_is_reused_and_summarised_or_refused_in
 ):
     """A unit file kept sealed and tied to its run (so the checks reach its values), or any bytes:
     ``--resume`` reuses it only if the paper can summarise it, else refuses it in one line."""
-    import functools
-
     from factorq_trainers.experiments import paper
     from factorq_trainers.runner import frame, kept
 
     with tempfile.TemporaryDirectory() as directory:
-        config = paper.PaperConfig(
-            seeds=1,
-            runs=1,
-            episodes=2,
-            regimes=("static",),
-            methods=("factor-q",),
-            out=directory,
-        )
-        (unit,) = paper.units(config)
-        store = kept.UnitStore(directory)
-        store.start(paper.NAME, frame.plain(config), [unit["id"]])
+        config, unit, store, check = _paper_unit_store(directory)
         if raw is None:
             store.keep(unit, frame.through_json(result))
         else:
             kept.unit_path(store.directory, unit["id"]).write_bytes(raw)
-        check = functools.partial(paper.check_unit, config)
         try:
             found = store.finished([unit], paper.UNIT_RESULT, False, check)
         except ValueError as error:
@@ -203,21 +207,10 @@ def test_a_kept_paper_unit_of_any_content_is_reused_and_summarised_or_refused_in
 
 def test_a_valid_kept_paper_unit_is_reused():
     """The fuzzing above is not all refused at the door: a unit as ``run_unit`` gives it is."""
-    import functools
-
     from factorq_trainers.experiments import paper
-    from factorq_trainers.runner import frame, kept
 
     with tempfile.TemporaryDirectory() as directory:
-        config = paper.PaperConfig(
-            seeds=1,
-            runs=1,
-            episodes=2,
-            regimes=("static",),
-            methods=("factor-q",),
-            out=directory,
-        )
-        (unit,) = paper.units(config)
+        _, unit, store, check = _paper_unit_store(directory)
         result = {
             "algorithm": "factor-q",
             "backend": "fast",
@@ -235,8 +228,5 @@ def test_a_valid_kept_paper_unit_is_reused():
                 }
             ],
         }
-        store = kept.UnitStore(directory)
-        store.start(paper.NAME, frame.plain(config), [unit["id"]])
         store.keep(unit, result)
-        check = functools.partial(paper.check_unit, config)
         assert store.finished([unit], paper.UNIT_RESULT, False, check) == {unit["id"]: result}

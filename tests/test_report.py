@@ -12,7 +12,6 @@ import pytest
 from factorq_trainers.experiments import paper
 from factorq_trainers.experiments.paper_config import PaperConfig
 from factorq_trainers.reports import report
-from factorq_trainers.reports.paper_schema import CURVE_NAMES
 from factorq_trainers.runner import frame
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -25,33 +24,13 @@ def unit_outcomes(config: PaperConfig, metrics: dict) -> list[dict]:
     for unit in paper.units(config):
         start = unit["first_seed"] - config.first_seed
         seeds = slice(start, start + unit["seeds"])
-        worlds = []
-        for world in config.regimes:
-            cell = {key: values[seeds] for key, values in metrics[world, unit["algorithm"]].items()}
-            totals = ("total_steps", "steps"), ("collisions",) * 2, ("greedy_collisions",) * 2
-            worlds.append(
-                {
-                    "world": world,
-                    "run_sums": {name: cell[key].sum(axis=(1, 2)).tolist() for name, key in totals},
-                    "task_return": cell["task_return"]
-                    .astype(np.float64)
-                    .sum(axis=2)
-                    .mean(axis=1)
-                    .tolist(),
-                    "curve_sums": {key: cell[key].sum(axis=1).tolist() for key in CURVE_NAMES},
-                }
+        batch = {  # regime-major, as a unit's batch is
+            key: np.concatenate(
+                [metrics[world, unit["algorithm"]][key][seeds] for world in config.regimes]
             )
-        steps = sum(
-            int(metrics[w, unit["algorithm"]]["steps"][seeds].sum()) for w in config.regimes
-        )
-        outcomes.append(
-            {
-                "algorithm": unit["algorithm"],
-                "backend": "fast",
-                "env_steps": steps,
-                "worlds": worlds,
-            }
-        )
+            for key in metrics[config.regimes[0], unit["algorithm"]]
+        }
+        outcomes.append(paper.reduced(config, unit, "fast", batch))
     return outcomes
 
 

@@ -62,6 +62,12 @@ FIGURE_PROCESS = True
 #: text (measured: the default run peaks 90 MiB above the interpreter with torch, 1,000 seeds
 #: 292 MiB; the estimate is within 5% of both).
 SUMMARY_BYTES = 24 * 2**20
+#: A unit's per-seed totals (summed over its runs) and the metric each sums.
+RUN_SUMS = {
+    "total_steps": "steps",
+    "collisions": "collisions",
+    "greedy_collisions": "greedy_collisions",
+}
 #: Per-seed totals of a run, averaged over the runs (``per_run``).
 TOTALS = ("total_steps", "collisions", "greedy_collisions", "task_return")
 
@@ -235,8 +241,7 @@ def run_unit(
     progress: Callable[[int], None] | None = None,
     world: Any = None,
 ) -> dict[str, Any]:
-    """One algorithm's experiments of one seed shard, every selected world: per world, each
-    seed's totals per run (averaged over its runs) and per-episode curves (means over its runs).
+    """One algorithm's experiments of one seed shard, every selected regime (``reduced``).
 
     Args:
         config: the experiment.
@@ -245,6 +250,23 @@ def run_unit(
         world: another world than the grid (``run``'s), on the modular path.
     """
     backend, metrics = _metrics(config, unit, progress or (lambda episodes: None), world)
+    return reduced(config, unit, backend, metrics)
+
+
+def reduced(
+    config: PaperConfig, unit: dict[str, Any], backend: str, metrics: dict[str, np.ndarray]
+) -> dict[str, Any]:
+    """``unit``'s result from its raw metrics ``[W * seeds, runs, episodes]`` (regime-major):
+    per regime, each seed's counts as whole sums over the runs (exact in float64, short in JSON;
+    ``summarise`` divides them by ``runs``, which is what numpy's mean over the runs does), its
+    task return per run averaged over the runs, and its per-episode counts summed over the runs.
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+        backend: the path that ran it.
+        metrics: its experiments' metrics.
+    """
     seeds = unit["seeds"]
     worlds = []
     for position, name in enumerate(config.regimes):
@@ -252,24 +274,17 @@ def run_unit(
             key: values[position * seeds : (position + 1) * seeds]
             for key, values in metrics.items()
         }
-        # Counts are kept as whole sums over the runs (exact in float64, and short in JSON):
-        # ``summarise`` divides them by ``runs``, which is what numpy's mean over runs does.
-        per_run = {  # [S]: totals over the episodes of each run, summed over the runs
-            "total_steps": cell["steps"].sum(axis=(1, 2)),
-            "collisions": cell["collisions"].sum(axis=(1, 2)),
-            "greedy_collisions": cell["greedy_collisions"].sum(axis=(1, 2)),
-        }
         worlds.append(
             {
                 "world": name,
-                "run_sums": {key: values.tolist() for key, values in per_run.items()},
-                # task return: per run, averaged over the runs (not a count)
+                "run_sums": {
+                    total: cell[key].sum(axis=(1, 2)).tolist() for total, key in RUN_SUMS.items()
+                },
                 "task_return": cell["task_return"]
                 .astype(np.float64)
                 .sum(axis=2)
                 .mean(axis=1)
                 .tolist(),
-                # [S, E]: per episode, summed over the runs
                 "curve_sums": {key: cell[key].sum(axis=1).tolist() for key in CURVE_NAMES},
             }
         )
@@ -326,9 +341,10 @@ def summarise(config: PaperConfig, outcomes: list[dict[str, Any]]) -> dict[str, 
     for outcome in outcomes:  # in seed order within each algorithm
         for entry in outcome["worlds"]:
             key = (entry["world"], outcome["algorithm"])
-            for name, values in (*entry["run_sums"].items(), ("task_return", None)):
-                values = entry["task_return"] if values is None else values
-                totals.setdefault(key, {}).setdefault(name, []).extend(values)
+            sums = totals.setdefault(key, {})
+            for name, values in entry["run_sums"].items():
+                sums.setdefault(name, []).extend(values)
+            sums.setdefault("task_return", []).extend(entry["task_return"])
             for name, rows in entry["curve_sums"].items():
                 episodes.setdefault(key, {}).setdefault(name, []).extend(rows)
     cells, runs = {}, config.runs
