@@ -81,6 +81,7 @@ def build_parser(
 
 def _report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     from factorq_trainers import reports
+    from factorq_trainers.runner import results
 
     try:
         paths = reports.regenerate(args.results_dir)
@@ -88,7 +89,7 @@ def _report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         message = f"missing field {problem}" if isinstance(problem, KeyError) else str(problem)
         error(parser, message)
         return EXIT_USAGE
-    except reports.FigureError as problem:
+    except results.FigureError as problem:
         failure(parser, problem)
         return EXIT_FAILURE
     for path in paths.values():

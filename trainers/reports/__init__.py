@@ -16,7 +16,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from factorq_trainers.runner.results import FigureError  # reports.FigureError: the reports'
+from factorq_trainers.runner.results import FigureError
 
 
 def find(results_dir: str | os.PathLike) -> tuple[Any, Path]:

@@ -18,10 +18,15 @@ from typing import Any
 from factorq_envs.regimes import REGIME_PERIODS, REGIMES
 from factorq_trainers.analysis.claims import ALGORITHM_LABELS, MEASURE_LABELS, MEASURES
 from factorq_trainers.analysis.stats import format_number
-from factorq_trainers.reports import FigureError, paper_figure
+from factorq_trainers.reports import paper_figure
 from factorq_trainers.reports.figure_process import FigureProcess, FigureProcessError
 from factorq_trainers.reports.paper_schema import escape_markdown, load_results_file, markdown_code
-from factorq_trainers.runner.results import body_label, temporary_path, write_all_atomic
+from factorq_trainers.runner.results import (
+    FigureError,
+    body_label,
+    temporary_path,
+    write_all_atomic,
+)
 
 RESULTS_FILE = "results.json"
 FIGURE_FILE = "figure3.png"

@@ -34,8 +34,8 @@ PACKAGES = ("factorq-torch", "torch", "torchrl", "tensordict", "gymnasium", "num
 
 
 class FigureError(RuntimeError):
-    """Drawing a figure failed (matplotlib's error, in one line): ``reports.FigureError``, here so
-    that the runner's frame, below the reports, can tell it from a bug."""
+    """Drawing a figure failed (matplotlib's error, in one line); here, below the reports, so that
+    the runner's frame can tell it from a bug."""
 
 
 def dumps(results: dict[str, Any]) -> str:
