@@ -17,8 +17,8 @@ from __future__ import annotations
 import argparse
 import time
 
-from factorq_trainers.experiments.dependencies_config import SETTINGS, DependenciesConfig
-from factorq_trainers.experiments.dependencies_methods import run_learned_fast, run_learned_modular
+from factorq_trainers.commands.dependencies.config import SETTINGS, DependenciesConfig
+from factorq_trainers.commands.dependencies.methods import run_learned_fast, run_learned_modular
 
 
 def timed(run, config: DependenciesConfig, setting: str) -> tuple[float, int]:

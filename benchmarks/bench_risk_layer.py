@@ -52,8 +52,8 @@ from torchrl.objectives import DQNLoss, SoftUpdate
 import factorq_torch.risk
 import factorq_torch.structure
 import factorq_torch.tables
-from factorq_trainers.experiments.risk_config import RiskConfig
-from factorq_trainers.experiments.risk_methods import features, make_env
+from factorq_trainers.commands.risk.config import RiskConfig
+from factorq_trainers.commands.risk.methods import features, make_env
 
 logging.getLogger("torchrl").setLevel(logging.WARNING)
 warnings.filterwarnings("ignore")

@@ -36,7 +36,7 @@ def _spread(values: list[float]) -> str:
 
 
 def stall(masters: list[int], seeds: int, noises: list[float]) -> None:
-    from factorq_trainers.experiments import dependencies
+    from factorq_trainers.commands.dependencies import command as dependencies
 
     rows: dict[tuple[float, str], dict[str, list[float]]] = {}
     for noise in noises:
@@ -85,7 +85,7 @@ def _cliff_falls(exploration: str | None, master: int, seeds: int, steps: int) -
     from factorq_torch.base.rng import STREAM_POLICY, derive_keys
     from factorq_torch.collectors import OnlineCollector
     from factorq_torch.tables import LocalRewardTable, TaskQTable
-    from factorq_trainers.experiments.experiment import online_agent
+    from factorq_trainers.methods.experiment import online_agent
 
     moves = ((-1, 0), (0, 1), (1, 0), (0, -1))  # up, right, down, left
 
@@ -140,7 +140,7 @@ def _lake_falls(exploration: str | None, master: int, seeds: int, steps: int) ->
     from factorq_torch.base.rng import STREAM_POLICY, derive_keys
     from factorq_torch.collectors import OnlineCollector
     from factorq_torch.tables import LocalRewardTable, TaskQTable
-    from factorq_trainers.experiments.experiment import online_agent
+    from factorq_trainers.methods.experiment import online_agent
 
     lake = gymnasium.make("FrozenLake-v1", map_name="8x8", is_slippery=False)
     desc = [row.decode() if isinstance(row, bytes) else row for row in lake.unwrapped.desc.tolist()]
@@ -204,7 +204,7 @@ def _grid(exploration: str | None, master: int, seeds: int, runs: int, regime: s
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
     from factorq_trainers.compiled import fast
-    from factorq_trainers.experiments.experiment import check_world_options
+    from factorq_trainers.methods.experiment import check_world_options
 
     world = check_world_options(10, 10, 10_000, 0, (regime,))
     periods = torch.full((seeds,), REGIME_PERIODS[regime], dtype=torch.int64)

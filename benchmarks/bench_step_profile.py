@@ -154,8 +154,9 @@ def compare_restarts(collector: OnlineCollector, blocks: int, steps: int) -> Non
 
 
 def batched_steps() -> None:
+    from factorq_trainers.commands.paper import command as paper
+    from factorq_trainers.commands.paper import drivers as paper_drivers
     from factorq_trainers.compiled import fast
-    from factorq_trainers.experiments import paper, paper_drivers
 
     if not fast.is_available():
         print("\nbatched steps: the fast path is unavailable here")

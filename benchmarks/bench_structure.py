@@ -35,7 +35,7 @@ from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
 from factorq_torch.functional import LIKELIHOODS, candidate_sets
 from factorq_trainers.compiled import fast
-from factorq_trainers.experiments.experiment import check_world_options, experiment_keys
+from factorq_trainers.methods.experiment import check_world_options, experiment_keys
 
 
 def timed(

@@ -31,9 +31,9 @@ import argparse
 import dataclasses
 import statistics
 
+from factorq_trainers.commands.dependencies.command import run
+from factorq_trainers.commands.dependencies.config import DependenciesConfig
 from factorq_trainers.compiled import batch_options
-from factorq_trainers.experiments.dependencies import run
-from factorq_trainers.experiments.dependencies_config import DependenciesConfig
 
 #: The mixture's constants a variant may change (not config fields: see the module docstring).
 MIXTURE_FIELDS = ("noisy_odds", "noisy_a", "noisy_b")

@@ -106,7 +106,7 @@ RUNS = {
             lambda k: ["minigrid", "--methods", "factor-q-learned,dqn", "--seed", str(k)],
             "minigrid.json",
         ),
-        # A method's numbers do not depend on the others (trainers/experiments/compare.py).
+        # A method's numbers do not depend on the others (trainers/commands/compare/command.py).
         Run(
             "compare",
             lambda k: ["compare", "--methods", "dqn,factor-dqn", "--seed", str(k)],

@@ -75,7 +75,7 @@ import torch
 
 from factorq_envs.body import RING, TRANSLATE
 from factorq_envs.grid_functions import sense, static_layout
-from factorq_trainers.experiments.experiment import check_world_options
+from factorq_trainers.methods.experiment import check_world_options
 
 RING_BITS = RING.num_sensors
 
@@ -206,8 +206,8 @@ def learner_streams(
     firings ``factorq dependencies --sensors ring --distractors D --sensor-noise P --seed S``
     gave the learner: each actuator's first ``n`` firings, put back into the world's sensor
     order; printed beside the learner's own measure of the same run."""
-    from factorq_trainers.experiments import dependencies_methods as methods
-    from factorq_trainers.experiments.dependencies_config import DependenciesConfig
+    from factorq_trainers.commands.dependencies import methods
+    from factorq_trainers.commands.dependencies.config import DependenciesConfig
 
     config = DependenciesConfig(
         seed=seed, seeds=seeds, sensors="ring", distractors=distractors, sensor_noise=p,

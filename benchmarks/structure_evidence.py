@@ -44,8 +44,8 @@ from factorq_torch.functional import (
     competitor_mask,
     mixture_log_marginal,
 )
-from factorq_trainers.experiments import dependencies_methods as methods
-from factorq_trainers.experiments.dependencies_config import DependenciesConfig
+from factorq_trainers.commands.dependencies import methods
+from factorq_trainers.commands.dependencies.config import DependenciesConfig
 
 #: The latent-sensor priors tried: (a_e, b_e, a_q, b_q, a_r, b_r).
 LATENT_PRIORS = (

@@ -36,7 +36,7 @@ gates (``structure``).
 
 These are architectural priors, stated here; ``bias``, ``activation`` and ``shared`` are
 arguments so that the difference can be measured
-(``factorq_trainers.experiments.compare.FactorDQNConfig``).
+(``factorq_trainers.commands.compare.command.FactorDQNConfig``).
 """
 
 from __future__ import annotations

@@ -73,7 +73,9 @@ def digest(exact: dict[str, Any]) -> str:
 def compute() -> dict[str, Any]:
     import os
 
-    from factorq_trainers.experiments import compare, dependencies, minigrid
+    from factorq_trainers.commands.compare import command as compare
+    from factorq_trainers.commands.dependencies import command as dependencies
+    from factorq_trainers.commands.minigrid import command as minigrid
 
     stored: dict[str, Any] = {}
     with_out = {"out": os.devnull}

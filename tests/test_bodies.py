@@ -297,8 +297,8 @@ def test_task_table_indexes_cell_heading_and_the_pattern_of_all_sensors():
     ids=str,
 )
 def test_the_paper_experiment_runs_other_bodies_on_the_modular_path(options):
-    from factorq_trainers.experiments import paper
-    from factorq_trainers.experiments.paper_config import PaperConfig
+    from factorq_trainers.commands.paper import command as paper
+    from factorq_trainers.commands.paper.config import PaperConfig
 
     # Episodes cut at 60 steps: the heading body wanders for up to 200 at first, and its equality
     # with the kernel on random bodies is test_fast_bodies.py's; this one runs the whole command.
@@ -336,8 +336,8 @@ def test_factored_grid_implements_the_world_protocol_with_the_world_functions():
 def test_factorq_with_the_oracle_dependency_ignores_diagonals_distractors_and_order():
     # The tables only read each actuator's parent sensor: on ring + distractors, permuted, Factor-Q
     # makes exactly the paper body's decisions (same world and policy streams), bit for bit.
-    from factorq_trainers.experiments import paper
-    from factorq_trainers.experiments.paper_config import PaperConfig
+    from factorq_trainers.commands.paper import command as paper
+    from factorq_trainers.commands.paper.config import PaperConfig
     from factorq_trainers.runner.results import dumps as dumps_results
 
     small = {
@@ -409,9 +409,9 @@ def test_factorq_paper_command_runs_another_body_and_records_it(tmp_path, capsys
 
 
 def test_factorq_compare_runs_every_method_on_another_body(tmp_path):
-    from factorq_trainers.experiments import compare
-    from factorq_trainers.experiments.compare_config import CompareConfig
-    from factorq_trainers.experiments.dqn import METHODS
+    from factorq_trainers.commands.compare import command as compare
+    from factorq_trainers.commands.compare.config import CompareConfig
+    from factorq_trainers.methods.dqn import METHODS
 
     config = CompareConfig(
         seeds=1, steps=300, size=4, obstacles=1, out=str(tmp_path / "compare"),

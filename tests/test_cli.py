@@ -14,8 +14,8 @@ import pytest
 from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers import cli
+from factorq_trainers.commands.paper import command as paper
 from factorq_trainers.compiled import fast
-from factorq_trainers.experiments import paper
 from factorq_trainers.runner import options
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")

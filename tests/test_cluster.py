@@ -15,9 +15,9 @@ import pytest
 from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers import cli
+from factorq_trainers.commands.paper import command as paper
 from factorq_trainers.compiled import fast
 from factorq_trainers.distributed import sweep_run, sweep_spec
-from factorq_trainers.experiments import paper
 from factorq_trainers.runner import cluster, frame
 from factorq_trainers.runner import results as result_files
 

@@ -14,8 +14,10 @@ import os
 import command_figures
 import pytest
 
+from factorq_trainers.commands.compare import command as compare
+from factorq_trainers.commands.dependencies import command as dependencies
+from factorq_trainers.commands.minigrid import command as minigrid
 from factorq_trainers.compiled import fast
-from factorq_trainers.experiments import compare, dependencies, minigrid
 
 STORED = json.loads(command_figures.DATA.read_text())
 DEVNULL = {"out": os.devnull}

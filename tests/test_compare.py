@@ -10,9 +10,10 @@ import pytest
 import torch
 
 from factorq_trainers import cli
-from factorq_trainers.experiments import compare, compare_config
-from factorq_trainers.experiments.dqn import METHODS, DQNConfig
-from factorq_trainers.experiments.experiment import ExperimentConfig
+from factorq_trainers.commands.compare import command as compare
+from factorq_trainers.commands.compare import config as compare_config
+from factorq_trainers.methods.dqn import METHODS, DQNConfig
+from factorq_trainers.methods.experiment import ExperimentConfig
 from factorq_trainers.runner import frame, options
 
 #: outcomes that depend on float rounding: `make test` reruns these under other CPU kernels

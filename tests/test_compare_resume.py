@@ -22,7 +22,7 @@ from test_kept_units import _reseal  # edit a kept file and seal it again, as an
 from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers import cli
-from factorq_trainers.experiments import compare
+from factorq_trainers.commands.compare import command as compare
 from factorq_trainers.runner import kept
 
 #: A comparison on the command line that runs in seconds: factor-q, then DQN (the one cut).

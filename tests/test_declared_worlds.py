@@ -121,7 +121,7 @@ def test_a_users_own_world_runs_through_factorq_gym(user_world, tmp_path, capsys
 def test_a_users_own_world_resumes_to_the_same_numbers(user_world, tmp_path, monkeypatch, capsys):
     """Interrupted after its first unit, the run resumes from the name kept in its config (the
     world resolved again) and equals an uninterrupted one."""
-    from factorq_trainers.experiments import gym
+    from factorq_trainers.commands.gym import command as gym
 
     args = ["gym", "--world", f"{user_world}:CLIFF", "--seeds", "1", "--steps", "40"]
     args += ["--eval-episodes", "1", "--methods", "dqn,factor-q-oracle", "--curve-points", "4"]
@@ -180,7 +180,7 @@ def test_only_a_slow_world_with_enough_steps_goes_to_processes(
 ):
     """The decision from the measured step (fixed here: a busy machine slows any measurement),
     the budget and the cores (2 here, at most one per unit)."""
-    from factorq_trainers.experiments import gym
+    from factorq_trainers.commands.gym import command as gym
     from factorq_trainers.runner import cluster
 
     monkeypatch.setattr(cluster, "_cores", lambda: 2)

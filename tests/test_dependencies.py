@@ -15,9 +15,11 @@ from factorq_envs.permutation import PermuteSensors, permuted_dependency
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import derive_keys
 from factorq_trainers import cli
+from factorq_trainers.commands.dependencies import command as dependencies
+from factorq_trainers.commands.dependencies import config as dependencies_config
+from factorq_trainers.commands.dependencies import methods as dependencies_methods
+from factorq_trainers.commands.dependencies import report as dependencies_report
 from factorq_trainers.compiled import fast
-from factorq_trainers.experiments import dependencies, dependencies_config, dependencies_methods
-from factorq_trainers.reports import dependencies as dependencies_report
 from factorq_trainers.runner import frame
 
 TINY = dict(seeds=2, size=4, obstacles=2, runs=2, episodes=1, change_run=1, max_steps=200)

@@ -8,7 +8,7 @@ import torch
 from tensordict import TensorDict
 
 from factorq_torch.base.rng import STREAM_WORLD
-from factorq_trainers.experiments import dqn, experiment
+from factorq_trainers.methods import dqn, experiment
 
 #: outcomes that depend on float rounding: `make test` reruns these under other CPU kernels
 pytestmark = pytest.mark.float_sensitive

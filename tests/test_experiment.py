@@ -10,7 +10,7 @@ from torchrl.envs import TransformedEnv
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
 from factorq_torch.objectives import FactorQLoss, TabularQLoss
-from factorq_trainers.experiments import experiment
+from factorq_trainers.methods import experiment
 
 
 def test_keys_are_numbered_3i_plus_w_and_per_variant_v_times_that_plus_v():

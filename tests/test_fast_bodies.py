@@ -8,9 +8,9 @@ import random
 
 import pytest
 
+from factorq_trainers.commands.paper import command as paper
+from factorq_trainers.commands.paper.config import PaperConfig
 from factorq_trainers.compiled import fast
-from factorq_trainers.experiments import paper
-from factorq_trainers.experiments.paper_config import PaperConfig
 from factorq_trainers.runner.results import dumps as dumps_results
 
 pytestmark = pytest.mark.skipif(
@@ -143,7 +143,7 @@ def _risk_metrics(world, agent, backend: str, seeds: int = 3, runs: int = 2, epi
 
     from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, derive_keys
     from factorq_torch.collectors import OnlineCollector
-    from factorq_trainers.experiments import experiment
+    from factorq_trainers.methods import experiment
 
     periods = torch.tensor([0, 1, 10][:seeds])
     world_keys = derive_keys(5, STREAM_WORLD, seeds)
@@ -178,7 +178,7 @@ def test_kernel_equals_the_modular_path_with_the_risk_gate_and_risk_aware_explor
     import torch
 
     from factorq_torch.base.config import AgentConfig
-    from factorq_trainers.experiments.experiment import check_world_options
+    from factorq_trainers.methods.experiment import check_world_options
 
     world = check_world_options(
         4, 3, 60, 0, ("static", "dynamic"), {"body": body, "sensor_noise": noise}
@@ -197,7 +197,7 @@ def test_the_risk_options_change_what_the_kernel_does():
     import torch
 
     from factorq_torch.base.config import AgentConfig
-    from factorq_trainers.experiments.experiment import check_world_options
+    from factorq_trainers.methods.experiment import check_world_options
 
     world = check_world_options(4, 3, 60, 0, ("static",), {"body": "heading", "sensor_noise": 0.1})
     paper_agent, _ = _risk_metrics(world, AgentConfig(epsilon=0.3), "fast")
@@ -211,7 +211,7 @@ def test_risk_aware_exploration_is_refused_for_q_learning_naming_both():
 
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import derive_keys
-    from factorq_trainers.experiments.experiment import check_world_options
+    from factorq_trainers.methods.experiment import check_world_options
 
     world = check_world_options(4, 0, 60, 0, ("static",))
     keys = derive_keys(0, 0, 1)

@@ -12,9 +12,9 @@ import pytest
 import torch
 
 from factorq_torch.functional import beta_bernoulli_log_marginal, lgamma_tables
+from factorq_trainers.commands.dependencies.config import SETTINGS, DependenciesConfig
+from factorq_trainers.commands.dependencies.methods import run_learned_fast, run_learned_modular
 from factorq_trainers.compiled import fast
-from factorq_trainers.experiments.dependencies_config import SETTINGS, DependenciesConfig
-from factorq_trainers.experiments.dependencies_methods import run_learned_fast, run_learned_modular
 
 pytestmark = pytest.mark.skipif(
     not fast.is_available(), reason=f"fast path unavailable: {fast.unavailable_reason()}"

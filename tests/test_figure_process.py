@@ -12,10 +12,11 @@ from test_report import synthetic_results
 from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers import cli
+from factorq_trainers.commands.paper import command as paper
+from factorq_trainers.commands.paper import figure as paper_figure
+from factorq_trainers.commands.paper import figure_process, report
+from factorq_trainers.commands.paper.figure_process import FigureProcess, FigureProcessError
 from factorq_trainers.compiled import fast
-from factorq_trainers.experiments import paper
-from factorq_trainers.reports import figure_process, paper_figure, report
-from factorq_trainers.reports.figure_process import FigureProcess, FigureProcessError
 from factorq_trainers.runner import frame
 from factorq_trainers.runner.results import temporary_path
 
@@ -192,9 +193,9 @@ def test_paper_loads_neither_the_other_commands_nor_matplotlib_in_the_main_proce
         "assert 'torch' not in sys.modules, 'importing the cli imported torch'\n"
         f"assert cli.main(['paper', '--seeds', '0', '--out', {str(tmp_path)!r}]) == 2\n"
         "loaded = [name for name in ('matplotlib', 'torchrl', 'tensordict',\n"
-        "          'factorq_trainers.experiments.dependencies',\n"
-        "          'factorq_trainers.experiments.minigrid',\n"
-        "          'factorq_trainers.experiments.compare') if name in sys.modules]\n"
+        "          'factorq_trainers.commands.dependencies.command',\n"
+        "          'factorq_trainers.commands.minigrid.command',\n"
+        "          'factorq_trainers.commands.compare.command') if name in sys.modules]\n"
         "assert not loaded, loaded\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=patience(120))

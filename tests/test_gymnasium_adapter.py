@@ -306,12 +306,12 @@ def test_other_bad_input_names_the_problem():
 
 
 def test_the_experiment_command_at_a_tiny_budget(tmp_path):
-    """``trainers/experiments/gym.py`` follows the command protocol: units per (method, seed),
+    """``trainers/commands/gym/command.py`` follows the command protocol: units per (method, seed),
     deterministic ``run_unit``, a summary, the report and the figure (MiniGrid 8x8: fast)."""
     pytest.importorskip("minigrid")
-    from factorq_trainers.experiments import gym as experiment
-    from factorq_trainers.experiments.gym_config import DEFAULT_METHODS
-    from factorq_trainers.reports import gym as report_module
+    from factorq_trainers.commands.gym import command as experiment
+    from factorq_trainers.commands.gym import report as report_module
+    from factorq_trainers.commands.gym.config import DEFAULT_METHODS
 
     config = experiment.GymConfig(
         world="minigrid-8x8", seeds=1, steps=40, eval_episodes=1, curve_points=4
@@ -341,7 +341,7 @@ def test_the_experiment_summary_keeps_its_intervals_inside_the_possible_range():
     """``factorq gym``'s summary over 3 seeds: Wilson's interval for the greedy crash rate (hand
     computed: p = 1/15, n = 3, z = 1.96), the BCa bootstrap for the other measures and the
     curves' bands, each inside [min, max] of the seeds (a t interval went below 0 for these)."""
-    from factorq_trainers.experiments import gym as experiment
+    from factorq_trainers.commands.gym import command as experiment
 
     config = experiment.GymConfig(world="minigrid-8x8", seeds=3, methods=("dqn",), steps=30)
     per_seed = [
@@ -592,7 +592,7 @@ def test_a_float_action_is_refused_naming_the_env():
 def test_the_gym_command_takes_risk_aware_exploration_for_neural_factor_q():
     # issue 39: neural Factor-Q explores among the actuators not called risky; DQN is untouched
     pytest.importorskip("minigrid")
-    from factorq_trainers.experiments import gym as experiment
+    from factorq_trainers.commands.gym import command as experiment
 
     options = dict(world="minigrid-8x8", seeds=1, steps=40, eval_episodes=1, curve_points=4)
     unit = {"id": "factor-q-oracle-seed0", "method": "factor-q-oracle", "seed_index": 0}

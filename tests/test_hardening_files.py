@@ -213,7 +213,7 @@ def test_a_kept_configuration_result_reads_back_as_it_was_written(tmp_path):
 def test_an_edited_kept_configuration_result_is_refused_naming_the_file(
     tmp_path, change, sign, message
 ):
-    from factorq_trainers.reports import compare_report
+    from factorq_trainers.commands.compare import report as compare_report
 
     kept, path = _kept_result(tmp_path)
     _rewrite(path, change, sign)

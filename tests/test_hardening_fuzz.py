@@ -168,7 +168,7 @@ def _paper_unit_store(directory: str):
     check ``--resume`` gives its kept units."""
     import functools
 
-    from factorq_trainers.experiments import paper
+    from factorq_trainers.commands.paper import command as paper
     from factorq_trainers.runner import frame, kept
 
     config = paper.PaperConfig(
@@ -187,7 +187,7 @@ def test_a_kept_paper_unit_of_any_content_is_reused_and_summarised_or_refused_in
 ):
     """A unit file kept sealed and tied to its run (so the checks reach its values), or any bytes:
     ``--resume`` reuses it only if the paper can summarise it, else refuses it in one line."""
-    from factorq_trainers.experiments import paper
+    from factorq_trainers.commands.paper import command as paper
     from factorq_trainers.runner import frame, kept
 
     with tempfile.TemporaryDirectory() as directory:
@@ -207,7 +207,7 @@ def test_a_kept_paper_unit_of_any_content_is_reused_and_summarised_or_refused_in
 
 def test_a_valid_kept_paper_unit_is_reused():
     """The fuzzing above is not all refused at the door: a unit as ``run_unit`` gives it is."""
-    from factorq_trainers.experiments import paper
+    from factorq_trainers.commands.paper import command as paper
 
     with tempfile.TemporaryDirectory() as directory:
         _, unit, store, check = _paper_unit_store(directory)

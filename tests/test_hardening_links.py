@@ -33,8 +33,8 @@ def test_a_link_where_factorq_writes_a_folder_is_refused_before_any_work(tmp_pat
 
 
 def test_the_folders_claim_guards_are_the_ones_the_commands_write():
+    from factorq_trainers.commands.compare import report as compare_report
     from factorq_trainers.distributed import sweep_spec
-    from factorq_trainers.reports import compare_report
     from factorq_trainers.runner import kept
 
     written = {

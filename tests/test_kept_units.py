@@ -237,7 +237,7 @@ def test_a_kept_unit_of_a_real_command_is_checked_against_its_schema(tmp_path, c
     """``factorq dependencies --resume`` with a kept unit holding ``{}`` (the red team's
     KeyError: 'skipped' after the other settings ran): refused before any setting runs."""
     from factorq_trainers.cli import main
-    from factorq_trainers.experiments import dependencies
+    from factorq_trainers.commands.dependencies import command as dependencies
 
     config = dependencies.DependenciesConfig(settings=("cross", "heading"), out=str(tmp_path / "d"))
     units = dependencies.units(config)
@@ -310,9 +310,9 @@ def test_factorq_report_refuses_impossible_values_and_another_commands_file(
 def test_a_sweeps_kept_result_of_another_configuration_is_refused(tmp_path):
     """A configuration's file copied to another's place (its name is that configuration's
     digest) and resealed: its tie names the configuration it was computed for."""
+    from factorq_trainers.commands.dependencies import command as dependencies
     from factorq_trainers.distributed import sweep_run
     from factorq_trainers.distributed.sweep_spec import config_digest
-    from factorq_trainers.experiments import dependencies
 
     first = dependencies.DependenciesConfig(seeds=2)
     second = dependencies.DependenciesConfig(seeds=3)

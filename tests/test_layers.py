@@ -215,8 +215,8 @@ def test_a_lazy_import_is_an_edge(tmp_path):
 
 
 def test_no_two_trainers_folders_import_each_other():
-    """``runner`` holds what every command shares, a command's own pieces sit in
-    ``experiments``; no chain of imports (lazy ones included) leads from a folder back to itself
+    """``runner`` holds what every command shares, a command's own pieces sit in its folder of
+    ``commands``; no chain of imports (lazy ones included) leads from a folder back to itself
     through another."""
     circles = folder_circles(GRAPH)
     assert not circles, f"trainers folders that import each other: {circles}"
@@ -224,14 +224,14 @@ def test_no_two_trainers_folders_import_each_other():
 
 #: The order of the trainers folders docs/architecture.md states: each imports only later ones
 #: (and ``compiled``, the layer below the trainers).
-FOLDER_ORDER = ("cli", "distributed", "experiments", "reports", "runner", "analysis")
+FOLDER_ORDER = ("cli", "distributed", "commands", "methods", "reports", "runner", "analysis")
 
 
 def test_the_folder_order_the_architecture_states_holds():
     text = " ".join((ROOT / "docs" / "architecture.md").read_text().split())
     stated = (
-        "`cli` -> `distributed` (`factorq sweep`) -> `experiments` -> `reports` -> `runner` -> "
-        "`analysis`"
+        "`cli` -> `distributed` (`factorq sweep`) -> `commands` -> `methods` -> `reports` -> "
+        "`runner` -> `analysis`"
     )
     assert stated in text
     backwards = sorted(
@@ -243,3 +243,33 @@ def test_the_folder_order_the_architecture_states_holds():
         and FOLDER_ORDER.index(b) < FOLDER_ORDER.index(a)
     )
     assert not backwards, f"imports against the stated order of the folders: {backwards}"
+
+
+def command_of(module: str) -> str | None:
+    """The command folder (``trainers/commands/<name>/``) a module sits in, None outside one."""
+    parts = module.split(".")
+    return parts[2] if parts[:2] == ["factorq_trainers", "commands"] and len(parts) > 3 else None
+
+
+def test_command_of_names_the_folder():
+    assert command_of("factorq_trainers.commands.paper.report") == "paper"
+    assert command_of("factorq_trainers.commands") is None
+    assert command_of("factorq_trainers.methods.dqn") is None
+
+
+def test_no_command_imports_another_commands_folder():
+    """What two commands share lives in ``methods/`` or ``runner/``, not in one of them."""
+    crossing = sorted(
+        f"{name} -> {target}"
+        for name, targets in GRAPH.items()
+        for target in targets
+        if command_of(name) and command_of(target) and command_of(name) != command_of(target)
+    )
+    assert not crossing, f"commands importing another command's modules: {crossing}"
+
+
+def test_every_command_folder_is_a_registered_command():
+    from factorq_trainers.runner import registry
+
+    folders = {p.parent.name for p in (ROOT / "trainers" / "commands").glob("*/__init__.py")}
+    assert folders == set(registry.commands())

@@ -242,7 +242,7 @@ def test_cli_runs_a_tiny_budget(tmp_path, capsys):
 
 
 def default_methods():
-    from factorq_trainers.experiments.minigrid_config import DEFAULT_METHODS
+    from factorq_trainers.commands.minigrid.config import DEFAULT_METHODS
 
     return DEFAULT_METHODS
 
@@ -268,7 +268,7 @@ def test_gymnasium_and_minigrid_tools_accept_the_adapter():
 def test_the_minigrid_command_takes_risk_aware_exploration_for_tabular_factor_q():
     # issue 39: Factor-Q's exploration is the option's, Q-learning's stays uniform (not refused)
     pytest.importorskip("minigrid")
-    from factorq_trainers.experiments import minigrid as command
+    from factorq_trainers.commands.minigrid import command
 
     config = command.MiniGridConfig(
         seeds=1,

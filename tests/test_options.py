@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import pytest
 
-from factorq_trainers.experiments.compare_config import CompareConfig
-from factorq_trainers.experiments.paper_config import PaperConfig
+from factorq_trainers.commands.compare.config import CompareConfig
+from factorq_trainers.commands.paper.config import PaperConfig
 from factorq_trainers.runner import options
 from factorq_trainers.runner.options import option
 

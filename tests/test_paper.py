@@ -12,10 +12,11 @@ import torch
 
 from factorq_envs.regimes import REGIMES
 from factorq_torch.base.config import ALGORITHMS
+from factorq_trainers.commands.paper import command as paper
+from factorq_trainers.commands.paper import drivers as paper_drivers
+from factorq_trainers.commands.paper.config import PaperConfig
+from factorq_trainers.commands.paper.schema import check_results
 from factorq_trainers.compiled import fast, loader
-from factorq_trainers.experiments import paper, paper_drivers
-from factorq_trainers.experiments.paper_config import PaperConfig
-from factorq_trainers.reports.paper_schema import check_results
 from factorq_trainers.runner import frame, options
 from factorq_trainers.runner.results import SCHEMA_VERSION
 from factorq_trainers.runner.results import dumps as dumps_results

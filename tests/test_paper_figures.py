@@ -21,9 +21,9 @@ from pathlib import Path
 
 import pytest
 
+from factorq_trainers.commands.paper import command as paper
+from factorq_trainers.commands.paper.config import PaperConfig
 from factorq_trainers.compiled import fast
-from factorq_trainers.experiments import paper
-from factorq_trainers.experiments.paper_config import PaperConfig
 from factorq_trainers.runner.results import dumps as dumps_results
 
 FIGURES = json.loads((Path(__file__).parent / "data" / "paper_figures.json").read_text())

@@ -19,9 +19,9 @@ import torch
 from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers import cli
+from factorq_trainers.commands.paper import command as paper
+from factorq_trainers.commands.paper.command import PaperConfig
 from factorq_trainers.compiled import fast
-from factorq_trainers.experiments import paper
-from factorq_trainers.experiments.paper import PaperConfig
 from factorq_trainers.runner import kept
 from factorq_trainers.runner.results import dumps as dumps_results
 

@@ -9,9 +9,9 @@ import struct
 import numpy as np
 import pytest
 
-from factorq_trainers.experiments import paper
-from factorq_trainers.experiments.paper_config import PaperConfig
-from factorq_trainers.reports import report
+from factorq_trainers.commands.paper import command as paper
+from factorq_trainers.commands.paper import report
+from factorq_trainers.commands.paper.config import PaperConfig
 from factorq_trainers.runner import frame
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -183,8 +183,9 @@ def test_factorq_report_redraws_a_sweep_output_folder(tmp_path, capsys):
 def test_reports_say_too_little_data_instead_of_a_ratio_of_zeros():
     """At a tiny budget the counts are 0: a ratio with a zero side (0.00x, or unbounded) says
     nothing, so the targets say "too little data" with both counts (issue 38)."""
-    from factorq_trainers.reports import gym, minigrid
-    from factorq_trainers.reports import risk as risk_report
+    from factorq_trainers.commands.gym import report as gym
+    from factorq_trainers.commands.minigrid import report as minigrid
+    from factorq_trainers.commands.risk import report as risk_report
 
     def gym_methods(**crashes):
         return {
@@ -206,7 +207,7 @@ def test_reports_say_too_little_data_instead_of_a_ratio_of_zeros():
     (line,) = minigrid._targets({"methods": {}}, per_method)
     assert "too little data to compare training collisions" in line and "x below" not in line
 
-    from factorq_trainers.experiments import risk as experiment
+    from factorq_trainers.commands.risk import command as experiment
 
     config = experiment.RiskConfig(worlds=("grid",), methods=("dqn", "dqn+risk-oracle"), seeds=1)
     unit = {"world": "grid", "seed": 0, "greedy_collisions": 0, "final_return": -10.0}

@@ -12,8 +12,8 @@ import re
 import pytest
 
 from factorq_trainers import cli
-from factorq_trainers.experiments.compare_config import CompareConfig
-from factorq_trainers.experiments.paper_config import PaperConfig
+from factorq_trainers.commands.compare.config import CompareConfig
+from factorq_trainers.commands.paper.config import PaperConfig
 from factorq_trainers.runner import resources
 
 NEEDS = r"needs about [\d.]+ [KMGTP]iB of memory \(.+\) but [\d.]+ [KMGTP]?i?B is available"
@@ -82,7 +82,7 @@ def test_a_run_that_does_not_fit_is_refused_before_any_work(
 def test_a_large_run_that_fits_prints_its_estimate_first(tmp_path, monkeypatch):
     # The estimate of a tiny run is some kB: a limit of 3x makes it "large" (over a quarter).
     config = PaperConfig(seeds=1, runs=1, episodes=2, size=4, obstacles=1)
-    from factorq_trainers.experiments import paper
+    from factorq_trainers.commands.paper import command as paper
 
     estimate = paper.estimate(config)
     monkeypatch.setenv(resources.LIMIT_VARIABLE, str(3 * estimate.bytes))
@@ -95,21 +95,22 @@ def test_a_large_run_that_fits_prints_its_estimate_first(tmp_path, monkeypatch):
 
 def test_the_library_entry_points_check_too(tmp_path, monkeypatch):
     monkeypatch.setenv(resources.LIMIT_VARIABLE, "1000")
-    from factorq_trainers.experiments import compare, paper
+    from factorq_trainers.commands.compare import command as compare
+    from factorq_trainers.commands.paper import command as paper
 
     with pytest.raises(resources.ResourceError, match=r"this experiment needs about .* 1000 B is"):
         paper.run(PaperConfig(seeds=1, runs=1, episodes=1, size=4, obstacles=1, out=str(tmp_path)))
     with pytest.raises(resources.ResourceError, match=r"this experiment needs about"):
         compare.run(CompareConfig(seeds=1, steps=1, size=4, obstacles=1, out=str(tmp_path)))
-    from factorq_trainers.experiments import dependencies
+    from factorq_trainers.commands.dependencies import command as dependencies
 
     with pytest.raises(resources.ResourceError, match=r"this experiment needs about"):
         dependencies.run(dependencies.DependenciesConfig(seeds=1, settings=("cross",)))
 
 
 def test_the_dependencies_estimate_grows_with_the_candidate_sets():
-    from factorq_trainers.experiments import dependencies
-    from factorq_trainers.experiments.dependencies_config import DependenciesConfig
+    from factorq_trainers.commands.dependencies import command as dependencies
+    from factorq_trainers.commands.dependencies.config import DependenciesConfig
 
     cross = dependencies.estimate(DependenciesConfig(seeds=10, settings=("cross",)))
     ring = dependencies.estimate(DependenciesConfig(seeds=10, settings=("ring-24",)))
@@ -122,7 +123,7 @@ def test_the_paper_estimate_is_close_to_what_the_default_run_allocates():
     # Measured peak RSS over the interpreter's baseline (`factorq paper --seeds 1 --runs 1
     # --episodes 1`): 90 MiB for the default config (100 seeds: two units) and 292 MiB for
     # --seeds 1000 (twenty units); the estimate must stay within 25% of both.
-    from factorq_trainers.experiments import paper
+    from factorq_trainers.commands.paper import command as paper
 
     assert 68 < paper.estimate(PaperConfig()).bytes / 2**20 < 112
     assert 219 < paper.estimate(PaperConfig(seeds=1000)).bytes / 2**20 < 365
@@ -168,7 +169,7 @@ def test_a_compare_sweep_too_large_for_its_workers_is_refused_before_the_cluster
     tmp_path, monkeypatch
 ):
     config = CompareConfig(seeds=2000, steps=20000)
-    from factorq_trainers.experiments import compare
+    from factorq_trainers.commands.compare import command as compare
 
     one = compare.estimate(config).bytes
     monkeypatch.setenv(resources.LIMIT_VARIABLE, str(int(one * 1.5)))  # one fits, two do not

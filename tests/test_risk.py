@@ -339,8 +339,8 @@ def test_explain_names_sensors_of_a_provider_that_does_not_say_how_many():
 @pytest.mark.slow
 @pytest.mark.float_sensitive  # a learned outcome of a network: tried under other CPU kernels
 def test_dqn_with_local_risk_collides_far_less_in_training(one_thread):
-    from factorq_trainers.experiments.risk import run_unit
-    from factorq_trainers.experiments.risk_config import RiskConfig
+    from factorq_trainers.commands.risk.command import run_unit
+    from factorq_trainers.commands.risk.config import RiskConfig
 
     config = RiskConfig(
         steps=250, grid_size=4, grid_obstacles=2, learning_starts=50, eval_episodes=0
@@ -373,12 +373,12 @@ def test_risky_faces_mark_the_side_of_each_penalised_actuator():
     assert changed.sum() > 0 and (marked[changed] == (245, 150, 20)).all()
 
 
-# --- the side-by-side command module (trainers/experiments/risk.py) ---------------------------
+# --- the side-by-side command module (trainers/commands/risk/command.py) ---------------
 
 
 def test_risk_experiment_units_summary_and_report(tmp_path):
-    from factorq_trainers.experiments import risk as experiment
-    from factorq_trainers.reports import risk as risk_report
+    from factorq_trainers.commands.risk import command as experiment
+    from factorq_trainers.commands.risk import report as risk_report
 
     config = experiment.RiskConfig(
         worlds=("grid",), methods=("dqn", "dqn+risk-oracle", "sb3-dqn"), seeds=2
@@ -438,7 +438,7 @@ def test_risk_experiment_units_summary_and_report(tmp_path):
     ],
 )
 def test_risk_experiment_config_names_the_bad_field(field, value):
-    from factorq_trainers.experiments.risk_config import RiskConfig
+    from factorq_trainers.commands.risk.config import RiskConfig
 
     with pytest.raises(ValueError, match=field):
         RiskConfig(**{field: value})
@@ -541,8 +541,8 @@ def test_factorq_risk_runs_through_the_runner_and_writes_its_files(tmp_path, cap
 def test_highway_world_reads_kinematics_and_sensors_and_masks_by_its_penalty():
     pytest.importorskip("highway_env")
     from factorq_envs import highway
-    from factorq_trainers.experiments import risk_methods
-    from factorq_trainers.experiments.risk_config import RiskConfig
+    from factorq_trainers.commands.risk import methods as risk_methods
+    from factorq_trainers.commands.risk.config import RiskConfig
 
     env = risk_methods.make_env(RiskConfig(worlds=("highway",)), "highway", 0)
     assert env.reward_key == "reward"  # the conventional reward, what the recipe reads

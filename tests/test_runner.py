@@ -144,7 +144,7 @@ def test_a_declaration_without_unit_ids_is_its_authors_bug():
 def test_reports_import_no_torch():
     """``factorq report`` imports the reports package and each command's report module: none may
     load torch (a command whose module imports torch puts its ``markdown`` and ``figure`` in
-    ``trainers/reports/<name>.py`` and names it in ``REPORT``)."""
+    the ``report.py`` of its folder, ``trainers/commands/<name>/``)."""
     code = (
         "import sys, pkgutil, importlib\nimport factorq_trainers.reports as reports\n"
         "from factorq_trainers.runner import registry\n"
@@ -153,7 +153,7 @@ def test_reports_import_no_torch():
         "for name in names:\n"
         "    importlib.import_module(name)\n"
         "    assert 'torch' not in sys.modules, f'{name} imports torch: move markdown and figure "
-        "to trainers/reports/ and name that module in REPORT'\n"
+        "to the report.py of its folder'\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
 

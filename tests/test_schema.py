@@ -9,8 +9,8 @@ import random
 import pytest
 from test_report import synthetic_results
 
-from factorq_trainers.reports import report
-from factorq_trainers.reports.paper_schema import (
+from factorq_trainers.commands.paper import report
+from factorq_trainers.commands.paper.schema import (
     ResultsFileError,
     check_results,
     escape_markdown,

@@ -16,10 +16,10 @@ import pytest
 from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers import cli
+from factorq_trainers.commands.paper import command as paper
 from factorq_trainers.compiled import fast
 from factorq_trainers.distributed import sweep_run, sweep_spec
 from factorq_trainers.distributed.sweep_spec import SweepError, SweepSpec
-from factorq_trainers.experiments import paper
 from factorq_trainers.runner import cluster
 from factorq_trainers.runner import results as result_files
 
@@ -280,7 +280,7 @@ def _without_wall_s(value):
 
 
 def test_every_compare_config_field_but_nested_and_the_sweeps_own_is_sweepable():
-    from factorq_trainers.experiments import compare
+    from factorq_trainers.commands.compare import command as compare
 
     skipped = {*sweep_spec.reserved_fields("compare"), "agent", "dqn", "factor_dqn"}
     names = [f.name for f in fields(compare.CompareConfig) if f.name not in skipped]
@@ -289,7 +289,7 @@ def test_every_compare_config_field_but_nested_and_the_sweeps_own_is_sweepable()
 
 
 def test_a_compare_sweep_cell_equals_factorq_compare_and_resumes(tmp_path, capsys):
-    from factorq_trainers.experiments import compare
+    from factorq_trainers.commands.compare import command as compare
 
     spec_file = tmp_path / "compare.toml"
     spec_file.write_text(COMPARE_TOML)
@@ -351,7 +351,7 @@ change_run = 1
 
 
 def test_every_dependencies_config_field_but_seeds_and_out_is_sweepable():
-    from factorq_trainers.experiments import dependencies
+    from factorq_trainers.commands.dependencies import command as dependencies
 
     names = [f.name for f in fields(dependencies.DependenciesConfig)]
     assert list(sweep_spec.sweepable_fields("dependencies")) == [
@@ -360,7 +360,7 @@ def test_every_dependencies_config_field_but_seeds_and_out_is_sweepable():
 
 
 def test_a_dependencies_sweep_cell_equals_factorq_dependencies_and_resumes(tmp_path):
-    from factorq_trainers.experiments import dependencies
+    from factorq_trainers.commands.dependencies import command as dependencies
 
     spec_file = tmp_path / "dependencies.toml"
     spec_file.write_text(DEPENDENCIES_TOML)

@@ -6,7 +6,8 @@ import pytest
 from matplotlib.figure import Figure
 from test_report import synthetic_results  # pytest puts tests/ on sys.path
 
-from factorq_trainers.reports import compare_report, report
+from factorq_trainers.commands.compare import report as compare_report
+from factorq_trainers.commands.paper import report
 from factorq_trainers.runner.results import body_label
 
 

@@ -10,8 +10,8 @@ import os
 import pytest
 
 from factorq_trainers import cli
+from factorq_trainers.commands.transfer import command as transfer
 from factorq_trainers.compiled import fast
-from factorq_trainers.experiments import transfer
 
 SMALL = dict(
     size=6, obstacles=4, source_size=5, source_obstacles=3, seeds=4, episodes=8, early=3,

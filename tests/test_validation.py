@@ -40,12 +40,12 @@ from factorq_torch.tables import LocalRewardTable, TaskQTable
 from factorq_trainers import cli
 from factorq_trainers.analysis.claims import compute_claims
 from factorq_trainers.analysis.stats import t_critical
+from factorq_trainers.commands.paper import command as paper
+from factorq_trainers.commands.paper import report
+from factorq_trainers.commands.paper.config import PaperConfig
 from factorq_trainers.compiled import fast
-from factorq_trainers.experiments import paper
-from factorq_trainers.experiments.dqn import DQNConfig
-from factorq_trainers.experiments.experiment import ExperimentConfig
-from factorq_trainers.experiments.paper_config import PaperConfig
-from factorq_trainers.reports import report
+from factorq_trainers.methods.dqn import DQNConfig
+from factorq_trainers.methods.experiment import ExperimentConfig
 from factorq_trainers.runner import frame, kept
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")

@@ -321,7 +321,7 @@ def test_the_fast_path_refuses_a_foreign_world_and_takes_the_grid():
 
 def test_tabular_factorq_learns_the_corridor_through_the_online_collector(one_thread):
     from factorq_torch.collectors import OnlineCollector
-    from factorq_trainers.experiments import experiment
+    from factorq_trainers.methods import experiment
 
     world = Corridor(CorridorConfig(length=12))
     count = 6
@@ -345,8 +345,8 @@ def test_tabular_factorq_learns_the_corridor_through_the_online_collector(one_th
 
 
 def test_paper_run_falls_back_to_the_modular_path_for_a_foreign_world(tmp_path, capsys):
+    from factorq_trainers.commands.paper import command as paper
     from factorq_trainers.compiled import fast
-    from factorq_trainers.experiments import paper
 
     config = paper.PaperConfig(seeds=2, runs=1, episodes=4, out=str(tmp_path))
     world = Corridor(CorridorConfig(length=8))

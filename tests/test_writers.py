@@ -17,8 +17,8 @@ import pytest
 from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers import cli
+from factorq_trainers.commands.compare import report as compare_report
 from factorq_trainers.compiled import fast
-from factorq_trainers.reports import compare_report
 from factorq_trainers.runner import kept
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")

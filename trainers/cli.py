@@ -7,7 +7,7 @@ and ``factorq sweep``.
 
 A command imports only what it runs (torch included, inside ``main``): ``factorq paper`` starts
 without torchrl, and a command that declares ``FIGURE_PROCESS`` (``paper``) starts its figure
-process (``factorq_trainers.reports.figure_process``) before torch loads, so that matplotlib
+process (``factorq_trainers.commands.paper.figure_process``) before torch loads, so that matplotlib
 loads on the core that importing torch leaves idle.
 """
 
@@ -34,7 +34,7 @@ from factorq_trainers.runner.frame import (
 )
 
 if TYPE_CHECKING:
-    from factorq_trainers.reports.figure_process import FigureProcess
+    from factorq_trainers.commands.paper.figure_process import FigureProcess
 
 __all__ = ["EXIT_FAILURE", "EXIT_INTERRUPTED", "EXIT_USAGE", "build_parser", "main"]
 REPORT_HELP = "redraw the figure and Markdown of any command's results directory"
@@ -127,9 +127,8 @@ def main(argv: list[str] | None = None) -> int:
     drawn_aside = command in experiments and experiments[command].figure_process
     if drawn_aside and not {"-h", "--help"} & set(argv):
         # First, before torch loads: the helper loads matplotlib on the other core meanwhile.
-        from factorq_trainers.reports.figure_process import FigureProcess
-
-        figure_process = FigureProcess.start()
+        package = experiments[command].module.rpartition(".")[0]
+        figure_process = importlib.import_module(f"{package}.figure_process").FigureProcess.start()
     try:
         code = _main(argv, command, command_line, figure_process)
     finally:

@@ -1,6 +1,6 @@
 """The one-line text of a local-risk episode summary, without torch (reports draw it without it).
 
-``factorq_torch.risk.RiskSummary.line`` and ``factorq_trainers.reports.risk`` both use it.
+``factorq_torch.risk.RiskSummary.line`` and ``factorq_trainers.commands.risk.report`` both use it.
 """
 
 from __future__ import annotations

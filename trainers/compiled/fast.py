@@ -154,7 +154,7 @@ class ExperimentBatch:
             static_grid[pad_of_cell.long()] = static_layout(world).to(torch.uint8)
         # The body as data (factorq_envs.body): the paper's body runs the specialised loop.
         # ``dependency`` (bool [A, K]) replaces the world's true one in Factor-Q's local tables,
-        # e.g. the full joint table over all sensors (factorq_trainers.experiments.dependencies);
+        # e.g. the full joint table over all sensors (``factorq dependencies``' joint method);
         # only in the generic loop.
         generic = not world.is_paper_body or dependency is not None or structure is not None
         generic = generic or sensor_orders is not None

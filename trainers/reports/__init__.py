@@ -2,12 +2,11 @@
 command's files with these modules, without importing torch (``tests/test_runner.py`` checks it in
 a fresh interpreter).
 
-A command's report module (its ``REPORT``, else its own module) provides ``markdown(results) ->
-str`` and/or ``figure(results, path)``; ``regenerate`` finds which command wrote ``DIR`` by the
-results file's name (each command's ``FILES["json"]``, read by the registry without importing
-the command) and rewrites the other files from it, all at once; a ``factorq sweep`` output
-folder (its ``sweep.json``) gets its ``sweep.md`` and figures redrawn.
-"""
+A command's report module (the ``report.py`` of its folder, else its ``command.py``) provides
+``markdown(results) -> str`` and/or ``figure(results, path)``; ``regenerate`` finds which command
+wrote ``DIR`` by the results file's name (each command's ``FILES["json"]``, read by the registry
+without importing the command) and rewrites the other files from it, all at once; a ``factorq
+sweep`` output folder (its ``sweep.json``) gets its ``sweep.md`` and figures redrawn."""
 
 from __future__ import annotations
 

@@ -34,6 +34,7 @@ import argparse
 import dataclasses
 import functools
 import importlib
+import importlib.util
 import json
 import re
 import sys
@@ -327,9 +328,12 @@ def write_outputs(
 
 
 def report_module(module: ModuleType) -> ModuleType:
-    """Where ``module``'s ``markdown`` and ``figure`` live: its ``REPORT`` module, else itself."""
-    name = getattr(module, "REPORT", None)
-    return importlib.import_module(name) if name else module
+    """Where ``module``'s ``markdown`` and ``figure`` live: the ``report.py`` beside it (a
+    command's folder, ``trainers/commands/<name>/``), else ``module`` itself."""
+    package = module.__name__.rpartition(".")[0]
+    if package and importlib.util.find_spec(f"{package}.report") is not None:
+        return importlib.import_module(f"{package}.report")
+    return module
 
 
 def execute(

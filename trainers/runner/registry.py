@@ -1,5 +1,7 @@
-"""The commands of ``factorq``: every module of ``factorq_trainers.experiments`` that assigns
-``NAME = "..."`` is one, so adding a command is adding one file.
+"""The commands of ``factorq``: every folder ``trainers/commands/<name>/`` whose ``command.py``
+assigns ``NAME = "<name>"`` is one, so adding a command is adding one folder: its ``command.py``
+(the unit hooks of ``runner.frame``), and beside it what only it needs (its ``config.py``, its
+``report.py``: the layout and the registry show the same thing).
 
 The registry reads ``NAME`` and ``HELP`` from each module's source with ``ast`` (no import): the
 ``factorq`` parser lists every command without importing torch, and imports only the module of
@@ -15,7 +17,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any, NamedTuple
 
-PACKAGE = "factorq_trainers.experiments"
+PACKAGE = "factorq_trainers.commands"
 #: The commands that are not experiments: ``report`` redraws files, ``sweep`` runs grids of
 #: another command's configurations.
 BUILT_IN = ("report", "sweep")
@@ -23,9 +25,10 @@ BUILT_IN = ("report", "sweep")
 
 class Entry(NamedTuple):
     """A registered command: its name, its module's dotted name, its one-line help, its files
-    (``FILES``, else ``NAME.json/.md/.png``), the module of its report (``REPORT``, else the
-    command's own) and whether its figure is drawn by a helper process started before torch
-    loads (``FIGURE_PROCESS = True``; its report then provides ``send_figure``)."""
+    (``FILES``, else ``NAME.json/.md/.png``), the module of its report (its folder's
+    ``report.py``, else the command's own) and whether its figure is drawn by a helper process
+    started before torch loads (``FIGURE_PROCESS = True``: its folder's ``figure_process.py``
+    provides ``FigureProcess``, its report ``send_figure``)."""
 
     name: str
     module: str
@@ -58,22 +61,23 @@ def default_files(name: str) -> dict[str, str]:
 @functools.cache
 def commands() -> dict[str, Entry]:
     """Every registered command by name, in file-name order."""
-    folder = Path(__file__).resolve().parent.parent / "experiments"
+    folder = Path(__file__).resolve().parent.parent / "commands"
     found: dict[str, Entry] = {}
-    for path in sorted(folder.glob("*.py")):
+    for path in sorted(folder.glob("*/command.py")):
         tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
-        name = _constant(tree, "NAME")
-        if name is None:
-            continue  # a piece experiments share (experiment, dqn), not a command
-        if name in found or name in BUILT_IN:
-            raise RuntimeError(f"{path.name}: command {name!r} is declared twice")
+        name, folder_name = _constant(tree, "NAME"), path.parent.name
+        if name != folder_name:
+            raise RuntimeError(f"{path}: NAME is {name!r}, not its folder's name {folder_name!r}")
+        if name in BUILT_IN:
+            raise RuntimeError(f"{path}: {name!r} is a built-in command")
         docstring = (ast.get_docstring(tree) or name).strip().splitlines()[0]
         help_text = _constant(tree, "HELP") or docstring
-        module = f"{PACKAGE}.{path.stem}"
+        package = f"{PACKAGE}.{name}"
         files = {**default_files(name), **(_constant(tree, "FILES", dict) or {})}
-        report = _constant(tree, "REPORT") or module
+        has_report = (path.parent / "report.py").is_file()
+        report = f"{package}.report" if has_report else f"{package}.command"
         figure_process = _constant(tree, "FIGURE_PROCESS", bool) is True
-        found[name] = Entry(name, module, help_text, files, report, figure_process)
+        found[name] = Entry(name, f"{package}.command", help_text, files, report, figure_process)
     return found
 
 

@@ -1,0 +1,1 @@
+"""``factorq compare``: its command (``command.py``) and what only it needs."""

@@ -1,0 +1,238 @@
+"""The files of ``factorq compare``: ``comparison.json``, ``comparison.png``, ``comparison.md``.
+
+Everything here reads the results dict of ``command.run`` beside it and computes nothing new; the
+runner's frame writes the three files (``markdown``, ``figure``), and ``compare.finish`` the logs
+(``staging_logs``, ``replace_logs``)."""
+
+from __future__ import annotations
+
+import functools
+import os
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from factorq_trainers.analysis import stats
+from factorq_trainers.runner import outdir
+from factorq_trainers.runner.results import body_label, interval_or_none
+
+#: A method reached the threshold when an episode took at most this many times the shortest path.
+THRESHOLD_FACTOR = 1.5
+METHOD_LABELS = {
+    "factor-q": "Factor-Q (tabular)",
+    "q-learning": "Q-learning (tabular)",
+    "dqn": "DQN",
+    "factor-dqn": "Factor-DQN (neural Factor-Q)",
+}
+JSON_FILE = "comparison.json"
+FIGURE_FILE = "comparison.png"
+REPORT_FILE = "comparison.md"
+OUTPUT_FILES = (JSON_FILE, FIGURE_FILE, REPORT_FILE)
+LOGS_DIRECTORY = "logs"
+COLOURS = {
+    "factor-q": "#0072B2",
+    "q-learning": "#D55E00",
+    "dqn": "#009E73",
+    "factor-dqn": "#CC79A7",
+}
+
+
+def write_figure(results: dict[str, Any], path: str | os.PathLike) -> None:
+    """Steps and collisions per episode against env steps, mean and 95% band, one column a world."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    worlds = list(results["thresholds"])
+    grid = np.asarray(results["curves"]["env_steps"])
+    figure = Figure(figsize=(4.2 * len(worlds), 7.0), layout="constrained")
+    FigureCanvasAgg(figure)
+    axes = figure.subplots(2, len(worlds), squeeze=False, sharex=True)
+    rows = (("steps", "steps per episode"), ("collisions", "collisions per episode"))
+    for column, world in enumerate(worlds):
+        for row, (name, label) in enumerate(rows):
+            axis = axes[row][column]
+            for method in results["results"]:
+                curve = results["curves"][method][world][name]
+                mean = np.array([np.nan if v is None else v for v in curve["mean"]])
+                low = np.array([np.nan if v is None else v for v in curve["low"]])
+                high = np.array([np.nan if v is None else v for v in curve["high"]])
+                colour = COLOURS[method]
+                floor = 1.0 if name == "steps" else 0.0  # a path takes >= 1 step
+                axis.plot(grid, mean, color=colour, label=METHOD_LABELS[method], linewidth=1.4)
+                axis.fill_between(grid, np.maximum(low, floor), high, color=colour, alpha=0.2)
+            if name == "steps":
+                axis.axhline(
+                    results["thresholds"][world]["threshold"],
+                    color="grey",
+                    linestyle=":",
+                    linewidth=1.0,
+                    label=f"{THRESHOLD_FACTOR}x shortest path",
+                )
+                axis.set_title(f"{world} world")
+                axis.set_yscale("log")
+            else:  # symlog: linear near 0, where the Factor-Q curves end up
+                axis.set_yscale("symlog", linthresh=1.0)
+                axis.set_ylim(bottom=0.0)
+            axis.set_xlim(0, grid[-1])
+            axis.set_ylabel(label)
+            if row == len(rows) - 1:
+                axis.set_xlabel("env steps per experiment")
+    axes[0][0].legend(fontsize="small")
+    body = body_label(results)
+    figure.suptitle(
+        ("" if body is None else f"{body}\n")
+        + f"per-episode means over each 1/{grid.size} of the budget; mean over "
+        f"{results['config']['seeds']} seeds with 95% bands",
+        fontsize="medium",
+    )
+    figure.savefig(path, format="png", dpi=110)
+
+
+def _number(value: float | None, digits: int = 0) -> str:
+    if value is None:
+        return "never"
+    return f"{value:,.{digits}f}"
+
+
+def _seconds(value: float | None) -> str:
+    return "-" if value is None else f"{value:.0f}"
+
+
+def report_markdown(results: dict[str, Any]) -> str:
+    """``comparison.md``: one row per method and world."""
+    config = results["config"]
+    body = body_label(results)
+    lines = [
+        "# factorq compare" if body is None else f"# factorq compare: {body}",
+        "",
+        f"{config['seeds']} seeds x {config['steps']:,} env steps per experiment, "
+        f"{config['size']}x{config['size']} grid, {config['obstacles']} obstacles, "
+        f"master seed {config['seed']}. Means over seeds (95% interval in brackets).",
+        "",
+        "- **steps to threshold**: env steps until the first episode whose path is within "
+        f"{THRESHOLD_FACTOR}x the shortest path (static: BFS in the layout; moving worlds: the "
+        "Manhattan distance); `never` unless every seed reached it (reached: seeds that did).",
+        "- **collisions**, **greedy collisions** (on non-exploratory actions): totals over the "
+        "budget; **avoidable**: the greedy collisions where some direction was free (not boxed in "
+        "by walls and obstacles on all four sides). **final path**: mean path length of the "
+        "episodes ending in the last 20% of the budget.",
+        "- **wall s**: the method's batch (all worlds and seeds at once).",
+        "",
+        "| method | world | steps to threshold | reached | collisions | greedy collisions "
+        "| avoidable | final path | wall s |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for method, worlds in results["results"].items():
+        for world, cell in worlds.items():
+            low, high = cell["collisions_ci95"]
+            g_low, g_high = cell["greedy_collisions_ci95"]
+            collisions = _number(cell["collisions"], 1)
+            greedy = _number(cell["greedy_collisions"], 1)
+            if low is not None:
+                collisions += f" [{max(low, 0):,.0f}, {high:,.0f}]"
+                greedy += f" [{max(g_low, 0):,.0f}, {g_high:,.0f}]"
+            lines.append(
+                f"| {METHOD_LABELS[method]} | {world} | {_number(cell['steps_to_threshold'])} "
+                f"| {cell['seeds_reached']}/{config['seeds']} | {collisions} | {greedy} "
+                f"| {_number(cell['avoidable_greedy_collisions'], 1)} "
+                f"| {_number(cell['final_path_length'], 1)} | {_seconds(cell['wall_s'])} |"
+            )
+    thresholds = ", ".join(
+        f"{world} {entry['shortest_path']} -> {entry['threshold']:g}"
+        for world, entry in results["thresholds"].items()
+    )
+    lines += ["", f"Shortest path -> threshold: {thresholds}.", ""]
+    return "\n".join(lines)
+
+
+def staging_logs(out: str | os.PathLike) -> Path:
+    """A fresh directory in ``out`` for this run's logs until ``replace_logs`` renames it to
+    ``out/logs`` (named like the temporaries ``factorq_trainers.runner.outdir`` cleans up after a
+    kill)."""
+    staging = Path(out) / outdir.temporary_name(LOGS_DIRECTORY)
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    return staging
+
+
+def replace_logs(staging: str | os.PathLike, out: str | os.PathLike) -> Path:
+    """Rename ``staging`` (``staging_logs``) to ``out/logs``, an earlier run's logs moved aside
+    and deleted first, so the logs of two runs never mix; ``out/logs``."""
+    target = Path(out) / LOGS_DIRECTORY
+    if target.exists():
+        old = Path(out) / outdir.temporary_name(f"{LOGS_DIRECTORY}.old")
+        os.replace(target, old)
+        shutil.rmtree(old, ignore_errors=True)
+    os.replace(staging, target)
+    return target
+
+
+#: The runner's names (``factorq report``).
+markdown, figure = report_markdown, write_figure
+
+
+#: What ``factorq sweep --command compare`` reports per method and world.
+SWEEP_MEASURES = ("steps_to_threshold", "collisions", "greedy_collisions")
+
+
+def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per method and world of a ``comparison.json`` dict: its measures as means with 95%
+    intervals across seeds (``steps_to_threshold`` only where every seed reached it)."""
+    cells = {}
+    for method, worlds in results["results"].items():
+        for world, entry in worlds.items():
+            reached = entry["steps_to_threshold_per_seed"]
+            steps = {"mean": entry["steps_to_threshold"], "ci95": None}
+            if entry["steps_to_threshold"] is not None:
+                seed = results["config"].get("seed", 0)  # compare's bootstrap, its seed
+                bounded = functools.partial(stats.bootstrap_mean_ci, seed=seed)
+                steps["ci95"] = interval_or_none(stats.scalar_ci(reached, bounded)[1:])
+            cells[f"{world}/{method}"] = {
+                "world": world,
+                "algorithm": method,
+                "steps_to_threshold": steps,
+                **{
+                    measure: {
+                        "mean": entry[measure],
+                        "ci95": interval_or_none(entry[f"{measure}_ci95"]),
+                    }
+                    for measure in (
+                        "collisions",
+                        "greedy_collisions",
+                        "avoidable_greedy_collisions",
+                    )
+                },
+                "seeds_reached": entry["seeds_reached"],
+                "per_seed": {"steps_to_threshold": reached},
+            }
+    return cells
+
+
+def results_problem(results: dict[str, Any]) -> str | None:
+    """What is wrong with a ``comparison.json`` dict beyond its values' kinds (``factorq report``
+    and a sweep's kept configurations check it): each method and regime holds one steps to the
+    threshold per seed, and ``seeds_reached`` counts those reached; None when nothing is."""
+    if not isinstance(results.get("results"), dict):
+        return None
+    config = results.get("config")
+    seeds = config.get("seeds") if isinstance(config, dict) else None
+    for method, regimes in results["results"].items():
+        for regime, entry in regimes.items() if isinstance(regimes, dict) else ():
+            if not isinstance(entry, dict) or "steps_to_threshold_per_seed" not in entry:
+                continue
+            per_seed = entry["steps_to_threshold_per_seed"]
+            if not isinstance(per_seed, list) or (seeds is not None and len(per_seed) != seeds):
+                count = len(per_seed) if isinstance(per_seed, list) else "no"
+                return (
+                    f"results/{method}/{regime} holds {count} seeds' steps to the threshold, "
+                    f"not {seeds}"
+                )
+            reached = sum(step is not None for step in per_seed)
+            if entry.get("seeds_reached") != reached:
+                return (
+                    f"results/{method}/{regime}/seeds_reached is {entry.get('seeds_reached')!r}, "
+                    f"but {reached} seeds reached the threshold"
+                )
+    return None

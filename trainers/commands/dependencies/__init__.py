@@ -1,0 +1,1 @@
+"""``factorq dependencies``: its command (``command.py``) and what only it needs."""

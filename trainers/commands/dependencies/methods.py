@@ -1,0 +1,519 @@
+"""``factorq dependencies``' methods, one setting at a time: the learned structure (compiled or
+modular), the compiled oracle, joint table and Q-learning, the gated network and DQN, each on
+the same worlds and the learner's sensor orders (see ``command.py`` beside it).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+
+from factorq_envs.grid_world import WorldConfig
+from factorq_envs.regimes import REGIME_PERIODS
+from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
+from factorq_trainers.commands.dependencies.config import (
+    CURVE_EVERY,
+    GATED_L1,
+    GATED_LEARNING_RATE,
+    KEYED_METHODS,
+    STREAM_ORDER,
+    DependenciesConfig,
+)
+from factorq_trainers.methods.experiment import experiment_keys
+
+
+def sensor_orders(
+    seed: int, setting_stream: int, count: int, num_sensors: int, redraw: int
+) -> torch.Tensor:
+    """``[count, K]``: experiment ``i``'s sensor order (``redraw`` 0: the first, 1: after the
+    change), drawn from its own generator seeded by ``(seed, setting_stream, i, redraw)``
+    (``setting_stream``: ``DependenciesConfig.setting_stream``, from the setting's content)."""
+    orders = []
+    for index in range(count):
+        generator = torch.Generator().manual_seed(
+            hash((seed, STREAM_ORDER, setting_stream, index, redraw)) & (2**63 - 1)
+        )
+        orders.append(torch.randperm(num_sensors, generator=generator))
+    return torch.stack(orders)
+
+
+def _keys(config: DependenciesConfig, method: str) -> tuple[torch.Tensor, torch.Tensor]:
+    labels = [(config.world, index) for index in range(config.seeds)]
+    world_keys = experiment_keys(config.seed, STREAM_WORLD, labels)
+    policy_keys = experiment_keys(config.seed, STREAM_POLICY, labels, KEYED_METHODS, method)
+    return world_keys, policy_keys
+
+
+def _learner_options(config: DependenciesConfig) -> dict[str, Any]:
+    return {
+        "max_parents": config.max_parents,
+        "bayes_factor": config.bayes_factor,
+        "window": config.window,
+        "prior_a": config.prior_a,
+        "prior_b": config.prior_b,
+        "prior": config.candidate_prior,
+        "prediction": config.prediction,
+        "reopen": config.reopen,
+        "reopen_factor": config.reopen_factor,
+        "noisy_reopen_factor": config.noisy_reopen_factor,
+        "likelihood": config.likelihood,
+        "pairs": config.pairs,
+    }
+
+
+def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
+    """The learned structure with its structure metrics: on the compiled path where it runs
+    (``fast.StructureOptions``), else on the modular torchrl path (``run_learned_modular``);
+    both give the same numbers bit for bit (``tests/test_fast_structure.py``)."""
+    from factorq_trainers.compiled import fast
+
+    world = config.world_of(setting)
+    if (
+        config.path == "modular"
+        or config.prediction == "posterior"
+        or not fast.is_available()
+        or fast.unsupported_reason(world) is not None
+    ):
+        return run_learned_modular(config, setting)
+    return run_learned_fast(config, setting)
+
+
+def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]:
+    """``run_learned`` on the compiled path."""
+    from factorq_trainers.compiled import fast
+
+    world = config.world_of(setting)
+    count, num_sensors = config.seeds, world.num_sensors
+    world_keys, policy_keys = _keys(config, "learned")
+    periods = torch.full((count,), REGIME_PERIODS[config.world], dtype=torch.int64)
+    orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
+    change = setting == "change"
+    orders_after = (
+        sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 1)
+        if change
+        else None
+    )
+    options = fast.StructureOptions(
+        orders=orders,
+        orders_after=orders_after,
+        change_run=config.change_run if change else 0,
+        curve_every=CURVE_EVERY,
+        **_learner_options(config),
+    )
+    batch = fast.ExperimentBatch(
+        "factor-q",
+        periods,
+        world,
+        config.agent_of("learned"),
+        config.runs,
+        config.episodes,
+        world_keys,
+        policy_keys,
+        threads=config.threads,
+        structure=options,
+    )
+    while not batch.done:
+        batch.advance(1 << 62)
+    state = batch.learner_state()
+    sets = batch._candidate_sets
+    members = torch.zeros(len(sets), num_sensors, dtype=torch.bool)
+    for index, parents in enumerate(sets):
+        members[index, list(parents)] = True
+    committed = state["committed"]
+    structure = members[committed.clamp(min=0)] & (committed >= 0).unsqueeze(-1)
+    truth = _permuted(world, orders if orders_after is None else orders_after)
+    steps = batch.metrics()["steps"].sum(dim=(1, 2))
+    return _structure_result(
+        config,
+        setting,
+        batch.metrics(),
+        right_since=state["right_since"],
+        samples_at_change=state["samples_at_change"],
+        wrong_commitments=state["wrong_commitments"],
+        structure=structure,
+        truth=truth,
+        reopened=state["reopened"],
+        samples=state["samples"],
+        curve=_fill_curve(state["curve"], steps),
+        state=state,
+    )
+
+
+def _permuted(world: WorldConfig, orders: torch.Tensor) -> torch.Tensor:
+    from factorq_envs.permutation import permuted_dependency
+
+    return permuted_dependency(world.dependency, orders)
+
+
+def _fill_curve(curve: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
+    """``[S, points]`` bool: an experiment that has finished holds its last point; the points
+    stop at the longest experiment's end."""
+    curve = curve[:, : int(steps.max()) // CURVE_EVERY + 1]
+    points = torch.arange(curve.shape[1]) * CURVE_EVERY
+    last = (steps // CURVE_EVERY).clamp(max=curve.shape[1] - 1)  # [S]
+    final = curve.gather(1, last.unsqueeze(1))  # [S, 1]
+    return torch.where(points <= steps.unsqueeze(1), curve, final).bool()
+
+
+def _structure_result(
+    config: DependenciesConfig,
+    setting: str,
+    metrics: dict[str, torch.Tensor],
+    *,
+    right_since: torch.Tensor,
+    samples_at_change: torch.Tensor,
+    wrong_commitments: torch.Tensor,
+    structure: torch.Tensor,
+    truth: torch.Tensor,
+    reopened: torch.Tensor,
+    samples: torch.Tensor,
+    curve: torch.Tensor,
+    state: dict[str, Any] | None,
+) -> dict[str, Any]:
+    right = (structure == truth).all(dim=-1)  # [S, A]
+    final_right = right.all(dim=-1)
+    since = right_since - (samples_at_change if setting == "change" else 0)
+    since = since.clamp(min=0).to(torch.float64)
+    until_right = torch.where(final_right, since.max(dim=-1).values, math.inf)
+    hamming = (structure != truth).sum(dim=(1, 2))
+    points = curve.shape[1]
+    fraction = curve.float().mean(dim=0)
+    return {
+        "metrics": metrics,
+        "samples_until_right": until_right.tolist(),
+        "wrong_commitments": wrong_commitments.tolist(),
+        "hamming_at_end": hamming.tolist(),
+        "reopened": reopened.sum(dim=-1).tolist(),
+        "samples_per_actuator": samples.tolist(),
+        "curve": {
+            "env_steps": [CURVE_EVERY * point for point in range(points)],
+            "fraction_right": fraction.tolist(),
+        },
+        "_curve": curve,
+        "_state": state,
+    }
+
+
+def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, Any]:
+    """``run_learned`` on the modular torchrl path: ``StructureLearner`` through
+    ``FactorQPolicy``, ``FactorQLoss`` and ``OnlineCollector``."""
+    from tensordict.nn import TensorDictSequential
+    from torchrl.envs import Compose, TransformedEnv
+
+    from factorq_envs.permutation import PermuteSensors, permuted_dependency
+    from factorq_envs.transforms import SplitLocalReward
+    from factorq_torch.collectors import OnlineCollector
+    from factorq_torch.objectives import FactorQLoss
+    from factorq_torch.policy import FactorQPolicy
+    from factorq_torch.structure import StructureLearner
+    from factorq_torch.tables import TaskQTable
+    from factorq_trainers.methods.experiment import make_env
+
+    world, agent = config.world_of(setting), config.agent_of("learned")
+    count, num_sensors = config.seeds, world.num_sensors
+    world_keys, policy_keys = _keys(config, "learned")
+    periods = [REGIME_PERIODS[config.world]] * count
+    orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
+    permute = PermuteSensors(orders)
+    env = TransformedEnv(make_env(world, periods, world_keys), Compose(SplitLocalReward(), permute))
+    task = TaskQTable(
+        count, world.num_cells, num_headings=world.num_headings, num_actions=world.num_actuators
+    )
+    learner = StructureLearner(
+        count, num_actions=world.num_actuators, num_sensors=num_sensors, **_learner_options(config)
+    )
+    policy = FactorQPolicy(
+        count,
+        keys=policy_keys,
+        epsilon=agent.epsilon,
+        exploration=agent.exploration,
+        risk_threshold=agent.risk_threshold,
+        risk_gate=agent.risk_gate,
+    )
+    loss = FactorQLoss(
+        task,
+        learner,
+        gamma=agent.gamma,
+        alpha=agent.alpha,
+        risk_threshold=agent.risk_threshold,
+        risk_gate=agent.risk_gate,
+    )
+    collector = OnlineCollector(
+        env,
+        TensorDictSequential(task, learner, policy),
+        loss,
+        runs=config.runs,
+        episodes=config.episodes,
+    )
+    truth = permuted_dependency(world.dependency, orders)  # [S, A, K]
+    actuators = world.num_actuators
+    right_since = torch.full((count, actuators), -1)  # samples when it last became right
+    samples_at_change = torch.zeros(count, actuators, dtype=torch.int64)
+    changed = torch.zeros(count, dtype=torch.bool)
+    wrong_commitments = torch.zeros(count, dtype=torch.int64)
+    previous = learner.committed.clone()
+    steps = torch.zeros(count, dtype=torch.int64)
+    max_steps = config.runs * config.episodes * world.max_steps
+    curve = torch.zeros(count, max_steps // CURVE_EVERY + 1, dtype=torch.uint8)
+    rows = torch.arange(count)
+    for td in collector:
+        active = td.get(("collector", "mask"))
+        steps += active.to(torch.int64)
+        if setting == "change":
+            due = (collector.run_index >= config.change_run) & ~changed
+            if bool(due.any()):
+                new_orders = sensor_orders(
+                    config.seed, config.setting_stream(setting), count, num_sensors, 1
+                )
+                permute.set_permutations(new_orders, due)
+                truth[due] = permuted_dependency(world.dependency, new_orders)[due]
+                samples_at_change[due] = learner.samples[due]
+                changed |= due
+        right = (learner.structure() == truth).all(dim=-1)  # [S, A]
+        right_since = torch.where(
+            right, torch.where(right_since < 0, learner.samples, right_since), -1
+        )
+        committed = learner.committed
+        new_commit = (committed >= 0) & (committed != previous)
+        wrong_commitments += (new_commit & ~right).sum(dim=-1)
+        previous = committed.clone()
+        point = active & (steps % CURVE_EVERY == 0)
+        curve[rows[point], steps[point] // CURVE_EVERY] = right.all(dim=-1)[point].to(torch.uint8)
+    metrics = {name: collector.metrics.get(name) for name in collector.metrics.keys()}
+    state = {
+        "committed": learner.committed.clone(),
+        "samples": learner.samples.clone(),
+        "block_samples": learner.block_samples.clone(),
+        "reopened": learner.reopened.clone(),
+        "map_cache": learner.map_cache.clone(),
+        "plausible": learner.plausible_cache.to(torch.uint8),
+        "active": learner.active.to(torch.uint8),
+        "history_length": learner.history_length.clone(),
+        "right_since": right_since,
+        "samples_at_change": samples_at_change,
+        "wrong_commitments": wrong_commitments,
+        "noise_seen": learner.noise_seen.to(torch.int64),
+    }
+    for prefix in ("", "block_"):
+        for name in ("count", "successes", "reward_sum", "log_marginal"):
+            state[prefix + name] = getattr(learner, prefix + name).clone()
+    return _structure_result(
+        config,
+        setting,
+        metrics,
+        right_since=right_since,
+        samples_at_change=samples_at_change,
+        wrong_commitments=wrong_commitments,
+        structure=learner.structure(),
+        truth=truth,
+        reopened=learner.reopened,
+        samples=learner.samples,
+        curve=_fill_curve(curve, steps),
+        state=state,
+    )
+
+
+def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[str, Any]:
+    """The oracle, the joint table or Q-learning on the compiled path (a method that does not
+    fit or cannot run the setting never gets here: ``skipped_reason``)."""
+    from factorq_trainers.compiled import fast
+
+    world = config.world_of(setting)
+    world_keys, policy_keys = _keys(config, method)
+    periods = torch.full((config.seeds,), REGIME_PERIODS[config.world], dtype=torch.int64)
+    dependency, algorithm = None, "factor-q"
+    if method == "joint":
+        dependency = torch.ones(world.num_actuators, world.num_sensors, dtype=torch.bool)
+    if method == "q-learning":
+        algorithm = "q-learning"
+    orders = None
+    if method in ("joint", "q-learning"):  # the sensors in the learner's orders, changed alike
+        count, num_sensors = config.seeds, world.num_sensors
+        change = setting == "change"
+        orders = fast.SensorOrders(
+            sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0),
+            sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 1)
+            if change
+            else None,
+            config.change_run if change else 0,
+        )
+    metrics = fast.run_experiments(
+        algorithm,
+        periods,
+        world,
+        config.agent_of(method),
+        config.runs,
+        config.episodes,
+        world_keys,
+        policy_keys,
+        threads=config.threads,
+        dependency=dependency,
+        sensor_orders=orders,
+    )
+    return {"metrics": metrics}
+
+
+def run_gated(config: DependenciesConfig, setting: str) -> dict[str, Any]:
+    """Factor-Q with ``GatedLocalRewardNetwork`` (one network per experiment and actuator over
+    all sensors, sigmoid gates under an L1 penalty, Adam) through ``FactorQPolicy``,
+    ``FactorQLoss`` and ``OnlineCollector``, the sensors in the learner's orders (the change
+    setting: redrawn at the same run). Its structure is read at the end (``structure()``: a
+    sensor is a parent when flipping it moves the predicted local reward by a quarter of a
+    collision), against the truth of that moment."""
+    from tensordict.nn import TensorDictSequential
+    from torchrl.envs import Compose, TransformedEnv
+
+    from factorq_envs.permutation import PermuteSensors, permuted_dependency
+    from factorq_envs.transforms import SplitLocalReward
+    from factorq_torch.collectors import OnlineCollector
+    from factorq_torch.neural import GatedLocalRewardNetwork
+    from factorq_torch.objectives import FactorQLoss
+    from factorq_torch.policy import FactorQPolicy
+    from factorq_torch.tables import TaskQTable
+    from factorq_trainers.methods.experiment import make_env
+
+    world, agent = config.world_of(setting), config.agent_of("gated")
+    count, num_sensors = config.seeds, world.num_sensors
+    world_keys, policy_keys = _keys(config, "learned")  # common random numbers (KEYED_METHODS)
+    orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
+    permute = PermuteSensors(orders)
+    periods = [REGIME_PERIODS[config.world]] * count
+    env = TransformedEnv(make_env(world, periods, world_keys), Compose(SplitLocalReward(), permute))
+    task = TaskQTable(
+        count, world.num_cells, num_headings=world.num_headings, num_actions=world.num_actuators
+    )
+    local = GatedLocalRewardNetwork(
+        count,
+        num_actions=world.num_actuators,
+        num_sensors=num_sensors,
+        l1=GATED_L1,
+        seed=config.seed,
+    )
+    optimizer = torch.optim.Adam(local.parameters(), lr=GATED_LEARNING_RATE)
+    collector = OnlineCollector(
+        env,
+        TensorDictSequential(
+            task,
+            local,
+            FactorQPolicy(
+                count,
+                keys=policy_keys,
+                epsilon=agent.epsilon,
+                exploration=agent.exploration,
+                risk_threshold=agent.risk_threshold,
+                risk_gate=agent.risk_gate,
+            ),
+        ),
+        FactorQLoss(
+            task,
+            local,
+            gamma=agent.gamma,
+            alpha=agent.alpha,
+            risk_threshold=agent.risk_threshold,
+            risk_gate=agent.risk_gate,
+        ),
+        runs=config.runs,
+        episodes=config.episodes,
+        optimizer=optimizer,
+    )
+    truth = permuted_dependency(world.dependency, orders)
+    changed = torch.zeros(count, dtype=torch.bool)
+    for _ in collector:
+        if setting == "change":
+            due = (collector.run_index >= config.change_run) & ~changed
+            if bool(due.any()):
+                new_orders = sensor_orders(
+                    config.seed, config.setting_stream(setting), count, num_sensors, 1
+                )
+                permute.set_permutations(new_orders, due)
+                truth[due] = permuted_dependency(world.dependency, new_orders)[due]
+                changed |= due
+    structure = local.structure()  # [S, A, K]
+    metrics = {name: collector.metrics.get(name) for name in collector.metrics.keys()}
+    return {
+        "metrics": metrics,
+        "right_at_end": (structure == truth).all(dim=-1).all(dim=-1).tolist(),
+        "hamming_at_end": (structure != truth).sum(dim=(1, 2)).tolist(),
+    }
+
+
+def _budget(config: DependenciesConfig, setting: str, runs: dict[str, dict[str, Any]]) -> int:
+    """DQN's step budget: the oracle's mean env steps per experiment (else the learned
+    structure's, else every episode at its longest)."""
+    for method in ("oracle", "learned"):
+        if method in runs:
+            steps = runs[method]["metrics"]["steps"].sum(dim=(1, 2)).double().mean()
+            return max(1, round(float(steps)))
+    return config.runs * config.episodes * config.world_of(setting).max_steps
+
+
+def run_dqn(config: DependenciesConfig, setting: str, budget: int) -> dict[str, Any]:
+    """DQN (``methods.dqn``, its default hyperparameters) on the setting's worlds for
+    ``budget`` env steps per experiment (episodes as many as fit; DQN has no runs). It sees every
+    sensor (``TaskQNetwork(with_proximity=True)``); the order does not matter to a network trained
+    from scratch, so it runs without ``PermuteSensors``. Measured cost: 100 experiments of 1,400
+    steps took 300 s on 2 loaded cores (docs/decisions.md), hence opt-in."""
+    from factorq_trainers.methods import dqn
+    from factorq_trainers.methods.experiment import ExperimentConfig
+
+    options = config.setting_options(setting)
+    experiments = ExperimentConfig(
+        seed=config.seed,
+        seeds=config.seeds,
+        regimes=(config.world,),
+        steps=budget,
+        size=config.size,
+        obstacles=config.obstacles,
+        max_steps=config.max_steps,
+        layout_seed=config.layout_seed,
+        body=options["body"],
+        sensors=options["sensors"],
+        distractors=options.get("num_distractors", 0),
+        sensor_noise=options.get("sensor_noise", 0.0),
+    )
+    traces = dqn.run(dqn.DQNConfig(), experiments)["traces"]
+    episodes = min(len(trace["steps"]) for trace in traces)
+    return {
+        "totals": {
+            "collisions": np.array([trace["total_collisions"] for trace in traces], float),
+            "greedy": np.array([trace["total_greedy_collisions"] for trace in traces], float),
+        },
+        "budget": budget,
+        "episodes": [len(trace["steps"]) for trace in traces],
+        "collisions_per_episode": [
+            float(np.mean([trace["collisions"][index] for trace in traces]))
+            for index in range(episodes)
+        ],
+    }
+
+
+def skipped_reason(config: DependenciesConfig, setting: str, method: str) -> str | None:
+    """Why ``method`` does not run in ``setting`` (``None``: it runs)."""
+    from factorq_torch.base.validation import MAX_PARENTS, MAX_TABLE_ENTRIES
+    from factorq_trainers.compiled import fast
+
+    world = config.world_of(setting)
+    if method in ("learned", "gated"):
+        return None
+    if method == "dqn":
+        if setting == "change":
+            return (
+                "DQN's env (factorq_trainers.methods.dqn) cannot change the sensor order "
+                "mid-experiment"
+            )
+        return None
+    if not fast.is_available():
+        return f"the compiled path is unavailable ({fast.unavailable_reason()})"
+    if method == "joint" and world.num_sensors > MAX_PARENTS:
+        return (
+            f"a joint table over {world.num_sensors} sensors needs 2**{world.num_sensors} "
+            f"entries per actuator, past the cap of 2**{MAX_PARENTS}"
+        )
+    if method == "q-learning":
+        entries = (world.num_cells * world.num_headings << world.num_sensors) * world.num_actuators
+        if entries > MAX_TABLE_ENTRIES:
+            return f"its table needs {entries} values per experiment, past 2**24"
+    return None

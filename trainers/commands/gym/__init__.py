@@ -1,0 +1,1 @@
+"""``factorq gym``: its command (``command.py``) and what only it needs."""

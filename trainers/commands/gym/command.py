@@ -1,0 +1,271 @@
+"""Factor-Q on a declared Gymnasium world against DQN: ``factorq gym``, a command module of the
+runner (``factorq_trainers.runner.frame``: ``NAME``, ``CONFIG``, ``units``, ``run_unit``,
+``summarise``; its Markdown and figure are its ``report.py``'s).
+
+Every method trains one experiment per unit (``(method, seed)``) for the same env-step budget on
+the same worlds (common random numbers: seed ``i`` meets the same env seed under every method):
+
+- ``dqn``: ``factorq_trainers.methods.dqn``'s torchrl DQN (``DQNLoss``, target network, replay,
+  annealed epsilon) on the world's own observation (highway: ``Kinematics``), with the
+  hyperparameters highway-env's documentation uses for SB3's DQN (``HIGHWAY_DQN``);
+- ``factor-q-oracle``: neural Factor-Q: the task values from a network on the same observation
+  (trained online by ``FactorQLoss`` with Adam), the local values from ``LocalRewardTable`` on
+  the declared oracle dependency and the binary sensors (eq. 5);
+- ``factor-q-learned``: the same with ``StructureLearner(prediction="committed")`` told only
+  ``A`` and ``K``: it must find the dependency itself (its structure at the end is reported
+  against the oracle);
+- ``sb3-dqn`` (optional extra ``sb3``; skipped in the defaults): Stable-Baselines3's DQN with
+  the same documented hyperparameters, on the same observation.
+
+**Measures** per unit: crashes during training (per 1,000 env steps), the greedy policy's crash
+rate and return over ``eval_episodes`` episodes after training (fresh env seeds, exploration
+off), training env steps until the mean return of the last ``window`` finished episodes first
+reaches ``threshold``, env steps per second of training, and curves (cumulative crashes, mean
+return of the last ``window`` episodes) at ``curve_points`` points. The return is the
+conventional reward summed (highway's own reward).
+
+**Intervals** over seeds (``factorq_trainers.analysis.stats``): Wilson's for the greedy crash
+rate (a proportion), the BCa bootstrap of the mean for the other measures and the curves' bands
+(bounded or positive: its bounds stay between the seeds). The report and figure are
+``factorq_trainers.commands.gym.report``.
+
+This module is the command: its units, their results summarised. ``GymConfig`` is in
+``config.py`` beside it, the declared worlds are ``factorq_envs.worlds``' registry, the methods
+(settings, envs, networks, ``Recorder``) in ``methods.py``; their public names import from here
+too.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from factorq_trainers.analysis.stats import (
+    bootstrap_mean_ci,
+    finite_or_none,
+    interval,
+    scalar_ci,
+    wilson_ci,
+)
+from factorq_trainers.commands.gym.config import (
+    GymConfig,
+)
+from factorq_trainers.commands.gym.methods import (
+    RUNNERS,
+)
+from factorq_trainers.runner.kept import COUNT, FLAG, NON_NEGATIVE, NUMBER, TEXT
+
+NAME = "gym"
+WORK_UNIT = "step"
+HELP = (
+    "Factor-Q (oracle and learned dependencies) against DQN on a declared Gymnasium world "
+    "(highway-fast-v0, MiniGrid): crashes and return for the same env-step budget."
+)
+
+CONFIG = GymConfig
+
+#: A unit's result (``run_unit``), what a kept one must hold (``runner.kept``'s schema).
+UNIT_RESULT = {
+    "crashes": COUNT,
+    "crashes_per_1000": NON_NEGATIVE,
+    "episodes": COUNT,
+    "steps_to_threshold": (None, COUNT),
+    "curve_steps": [COUNT],
+    "curve_crashes": [COUNT],
+    "curve_return": [NUMBER],
+    "greedy_crash_rate": NON_NEGATIVE,
+    "greedy_return": NUMBER,
+    "wall_s": NON_NEGATIVE,
+    "steps_per_s": NON_NEGATIVE,
+    "oracle?": [[COUNT]],
+    "actuator_names?": [TEXT],
+    "sensor_names?": [TEXT],
+    "structure?": [[COUNT]],
+    "agrees_with_oracle?": [FLAG],
+}
+
+
+def prepare(config: GymConfig) -> None:
+    """The world's extra (and SB3 when asked for) installed, else one ModuleNotFoundError.
+
+    Args:
+        config: the experiment.
+    """
+    from factorq_envs.gymnasium_adapter import require_extra
+
+    for module, extra in config.spec.requires:
+        require_extra(module, f"factorq-torch[{extra}]")
+    if "sb3-dqn" in config.methods:
+        require_extra("stable_baselines3", "factorq-torch[sb3]")
+
+
+def processes(config: GymConfig, units: list[dict[str, Any]]) -> tuple[int, str]:
+    """How many processes the units take by default (``runner.cluster.default_workers``): one
+    per core where the world's env steps slowly (highway-env), else 1 (in-process); and why.
+
+    Args:
+        config: the experiment.
+        units: ``units(config)``.
+    """
+    from factorq_trainers.runner.cluster import default_workers
+
+    step_s = config.spec.step_seconds()
+    why = f"{config.spec.label} takes {1e3 * step_s:.1f} ms an env step"
+    return default_workers(step_s, config.steps, len(units)), why
+
+
+def units(config: GymConfig) -> list[dict[str, Any]]:
+    """One unit per method and seed: ``{"id", "method", "seed_index"}``.
+
+    Args:
+        config: the experiment.
+    """
+    return [
+        {"id": f"{method}-seed{index}", "method": method, "seed_index": index}
+        for method in config.methods
+        for index in range(config.seeds)
+    ]
+
+
+def work(config: GymConfig, unit: dict[str, Any]) -> int:
+    """A unit's training env steps (what ``run_unit`` reports to ``progress``).
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+    """
+    return config.steps
+
+
+def run_unit(
+    config: GymConfig, unit: dict[str, Any], progress: Callable[[int], None] | None = None
+) -> dict[str, Any]:
+    """Train and evaluate one unit (one method, one seed): ``Recorder.result()`` with the greedy
+    measures, ``wall_s`` and ``steps_per_s`` (and the structures, for Factor-Q).
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+        progress: called with env steps done, every 100.
+    """
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny networks: more threads only wait on each other
+    try:
+        return RUNNERS[unit["method"]](config, unit, progress or (lambda steps: None))
+    finally:
+        torch.set_num_threads(threads)
+
+
+# --------------------------------------------------------------------------------------------
+# Results (no torch below)
+
+MEASURES = (
+    "crashes_per_1000",
+    "greedy_crash_rate",
+    "greedy_return",
+    "steps_to_threshold",
+    "steps_per_s",
+)
+
+
+#: The measures that are proportions (per seed in [0, 1]): Wilson's interval.
+PROPORTIONS = ("greedy_crash_rate",)
+CURVES = ("curve_crashes", "curve_return")
+
+
+def _stat(values: list[float | None], seed: int, proportion: bool = False) -> dict[str, Any]:
+    """Mean over the seeds that have a value, its 95% interval (Wilson's for a proportion, the
+    BCa bootstrap's otherwise: neither leaves the possible range) and how many seeds have one."""
+    present = [v for v in values if v is not None]
+    if not present:
+        return {"mean": None, "ci95": None, "n": 0}
+    method = wilson_ci if proportion else functools.partial(bootstrap_mean_ci, seed=seed)
+    mean, low, high = scalar_ci(present, method)
+    return {"mean": mean, "ci95": interval(low, high), "n": len(present)}
+
+
+def _band(rows: list[list[float | None]], seed: int) -> dict[str, list[float | None]]:
+    """A curve's mean over seeds at each point and its 95% BCa bootstrap band, over the seeds
+    with a value there (``None``: no seed has one; no band from a single seed). One bootstrap
+    per set of seeds present (the return is missing before a seed's first episode)."""
+    points = max(len(row) for row in rows)
+    values = np.full((len(rows), points), np.nan)
+    for index, row in enumerate(rows):
+        values[index, : len(row)] = [np.nan if value is None else value for value in row]
+    mean, low, high = (np.full(points, np.nan) for _ in range(3))
+    present = ~np.isnan(values)  # [seeds, points]
+    for pattern in {tuple(column) for column in present.T.tolist()}:
+        seeds = np.array(pattern, dtype=bool)
+        if not seeds.any():
+            continue
+        columns = (present.T == seeds).all(axis=1)
+        centre, band_low, band_high = bootstrap_mean_ci(values[seeds][:, columns], seed)
+        mean[columns] = centre
+        if band_low is not None and band_high is not None:
+            low[columns], high[columns] = band_low, band_high
+    return {
+        name: [finite_or_none(value) for value in array]
+        for name, array in (("mean", mean), ("low", low), ("high", high))
+    }
+
+
+def summarise(config: GymConfig, unit_results: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per method: each measure's mean and 95% interval over seeds (Wilson for the greedy crash
+    rate, else the BCa bootstrap), the curves of every seed and their mean and band over seeds,
+    and (learned dependencies) how many seeds' learner agrees with the oracle per actuator.
+
+    Args:
+        config: the experiment.
+        unit_results: ``run_unit``'s results, in ``units(config)`` order.
+    """
+    by_method: dict[str, list[dict[str, Any]]] = {}
+    for unit, result in zip(units(config), unit_results, strict=True):
+        by_method.setdefault(unit["method"], []).append(result)
+    methods = {}
+    for method, results in by_method.items():
+        entry: dict[str, Any] = {
+            name: _stat([r[name] for r in results], config.seed, name in PROPORTIONS)
+            for name in MEASURES
+        }
+        entry["curves"] = {name: [r[name] for r in results] for name in ("curve_steps", *CURVES)}
+        entry["bands"] = {name: _band(entry["curves"][name], config.seed) for name in CURVES}
+        entry["reached"] = sum(r["steps_to_threshold"] is not None for r in results)
+        entry["wall_s"] = sum(r["wall_s"] for r in results)
+        if "structure" in results[0]:
+            entry["structures"] = [r["structure"] for r in results]
+        if "agrees_with_oracle" in results[0]:
+            entry["agrees_with_oracle"] = [
+                sum(r["agrees_with_oracle"][a] for r in results)
+                for a in range(len(results[0]["agrees_with_oracle"]))
+            ]
+        methods[method] = entry
+    out: dict[str, Any] = {
+        "methods": methods,
+        "world": config.spec.label,
+        "threshold": config.return_threshold,
+    }
+    declared = next((r for r in unit_results if "oracle" in r), None)
+    if declared is not None:
+        out["sensors"] = declared["sensor_names"]
+        out["actuators"] = declared["actuator_names"]
+        out["oracle"] = declared["oracle"]
+    return out
+
+
+def run(config: GymConfig, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
+    """Every unit here, summarised into the runner's envelope (no files).
+
+    Args:
+        config: the experiment.
+        progress: called with env steps done.
+    """
+    import sys
+
+    from factorq_trainers.runner import frame
+
+    return frame.run_in_process(sys.modules[__name__], config, progress)

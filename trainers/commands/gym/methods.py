@@ -1,0 +1,428 @@
+"""``factorq gym``'s methods, each training and evaluating one unit (one method, one seed):
+torchrl's DQN, neural Factor-Q (oracle or learned dependencies) and SB3's DQN, with the
+settings they share (``HIGHWAY_DQN``), the unit's seeds and envs, the observation networks and
+the ``Recorder`` of a training run. The command is ``factorq_trainers.commands.gym.command``
+(``RUNNERS``: method -> its function).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any, TypedDict
+
+from factorq_trainers.commands.gym.config import METHODS, GymConfig
+
+if TYPE_CHECKING:
+    import torch
+
+    from factorq_envs.declared_env import DeclaredEnv
+
+
+class DQNSettings(TypedDict):
+    """``HIGHWAY_DQN``'s entries: ``DQNConfig``'s names (``methods.dqn``)."""
+
+    hidden: tuple[int, ...]
+    lr: float
+    buffer_size: int
+    learning_starts: int
+    batch_size: int
+    gamma: float
+    train_every: int
+    target_update_interval: int
+    exploration_fraction: float
+
+
+#: highway-env's documented SB3 DQN (its README and scripts/sb3_highway_dqn.py): MlpPolicy
+#: [256, 256], learning rate 5e-4, buffer 15,000, learning starts 200, batch 32, gamma 0.8,
+#: a gradient step every env step, target update every 50, exploration over 70% of the budget.
+HIGHWAY_DQN = DQNSettings(
+    hidden=(256, 256),
+    lr=5e-4,
+    buffer_size=15_000,
+    learning_starts=200,
+    batch_size=32,
+    gamma=0.8,
+    train_every=1,
+    target_update_interval=50,
+    exploration_fraction=0.7,
+)
+FACTOR_Q_EPSILON = 0.05  # Factor-DQN's (docs/decisions.md): constant, no annealing
+FACTOR_Q_LR = 1e-3
+
+
+# --------------------------------------------------------------------------------------------
+# Seeds and envs
+
+
+def _env_seed(config: GymConfig, index: int, evaluation: bool = False) -> int:
+    """The env seed of experiment ``index`` (the same for every method)."""
+    from factorq_torch.base.rng import STREAM_WORLD, derive_keys
+
+    offset = index + (config.seeds if evaluation else 0)
+    return int(derive_keys(config.seed, STREAM_WORLD, 1, offset)[0]) & 0x7FFFFFFF
+
+
+def _keys(config: GymConfig, unit: dict[str, Any], stream: int) -> torch.Tensor:
+    from factorq_torch.base.rng import derive_keys
+
+    slot = METHODS.index(unit["method"]) * config.seeds + unit["seed_index"]
+    return derive_keys(config.seed, stream, 1, slot)
+
+
+def _torchrl_env(config: GymConfig, seed: int) -> DeclaredEnv:
+    from factorq_envs.declared_env import declared_torchrl_env
+
+    return declared_torchrl_env(config.spec.make, [seed], exclude=list(config.spec.exclude))
+
+
+# --------------------------------------------------------------------------------------------
+# The networks and agents
+
+
+def observation_network(
+    count: int,
+    key: str,
+    shape: Sequence[int],
+    actions: int,
+    hidden: Sequence[int],
+    keys: torch.Tensor,
+    zero_output: bool,
+) -> Any:  # a tensordict module (tensordict: untyped)
+    """``S`` MLPs on an observation entry: ``key`` ``[..., S, *shape]`` -> ``action_value``
+    ``[..., S, A]`` (the entry flattened, as float32; MiniGrid's image divided by 10: its
+    indices are below 11).
+
+    Args:
+        count: ``S``, the MLPs (one per experiment).
+        key: the observation entry they read.
+        shape: the entry's shape per experiment.
+        actions: ``A``, the outputs.
+        hidden: the hidden layers' widths.
+        keys: ``[S]`` seeds of their initial weights (``BatchedMLP``).
+        zero_output: start with a zero output layer (every value 0).
+    """
+    import torch
+    from tensordict.nn import TensorDictModuleBase
+
+    from factorq_torch.neural import BatchedMLP
+
+    size = math.prod(shape)
+    scale = 0.1 if key == "image" else 1.0
+
+    class ObservationQNetwork(TensorDictModuleBase):
+        def __init__(self) -> None:
+            super().__init__()
+            self.in_keys, self.out_keys = [key], ["action_value"]
+            self.mlp = BatchedMLP(
+                (count,), size, actions, hidden=hidden, keys=keys, zero_output=zero_output
+            )
+
+        def forward(self, tensordict: Any) -> Any:
+            value = tensordict.get(key)
+            x = value.reshape(*value.shape[: value.dim() - len(shape)], size)
+            tensordict.set("action_value", self.mlp(x.to(torch.float32) * scale))
+            return tensordict
+
+    return ObservationQNetwork()
+
+
+class Recorder:
+    """Crashes, returns and curves of one training experiment.
+
+    Args:
+        config: the experiment (its ``steps``, ``window``, threshold and ``curve_points``).
+    """
+
+    def __init__(self, config: GymConfig) -> None:
+        self.config = config
+        self.step = 0
+        self.crashes = 0
+        self.episode_return = 0.0
+        self.returns: list[float] = []
+        self.reached: int | None = None
+        self.every = max(1, config.steps // config.curve_points)
+        self.curve_steps: list[int] = []
+        self.curve_crashes: list[int] = []
+        self.curve_return: list[float | None] = []
+
+    def update(self, crashed: bool, reward: float, done: bool) -> None:
+        """Count one env step.
+
+        Args:
+            crashed: the step collided.
+            reward: its conventional reward.
+            done: it ended the episode.
+        """
+        self.step += 1
+        self.crashes += int(crashed)
+        self.episode_return += reward
+        if done:
+            self.returns.append(self.episode_return)
+            self.episode_return = 0.0
+            recent = self.returns[-self.config.window :]
+            enough = len(recent) == self.config.window
+            if self.reached is None and enough and _mean(recent) >= self.config.return_threshold:
+                self.reached = self.step
+        if self.step % self.every == 0 or self.step == self.config.steps:
+            self.curve_steps.append(self.step)
+            self.curve_crashes.append(self.crashes)
+            recent = self.returns[-self.config.window :]
+            self.curve_return.append(_mean(recent) if recent else None)
+
+    def result(self) -> dict[str, Any]:
+        """The unit's training measures and curves (JSON)."""
+        return {
+            "crashes": self.crashes,
+            "crashes_per_1000": 1000.0 * self.crashes / max(1, self.step),
+            "episodes": len(self.returns),
+            "steps_to_threshold": self.reached,
+            "curve_steps": self.curve_steps,
+            "curve_crashes": self.curve_crashes,
+            "curve_return": self.curve_return,
+        }
+
+
+def _mean(values: Sequence[float]) -> float:
+    return float(sum(values) / len(values))
+
+
+def _transition(td: Any) -> tuple[bool, float, bool]:
+    """(crashed, conventional reward, done) of a ``[1]`` transition (split or not)."""
+    nxt = td.get("next")
+    reward = float(nxt.get("reward").sum())
+    local = nxt.get("local_reward", None)
+    if local is not None:  # the reward was split: put the collision back
+        reward += float(local.sum())
+    return bool(nxt.get("bump").any()), reward, bool(nxt.get("done").any())
+
+
+def _tick(progress: Callable[[int], None], step: int, total: int) -> None:
+    if step % 100 == 0 or step == total:
+        progress(100 if step % 100 == 0 else step % 100)
+
+
+def _env_and_task_network(
+    config: GymConfig, unit: dict[str, Any], *, zero_output: bool
+) -> tuple[DeclaredEnv, Any]:
+    """The unit's env (its own env seed) and a task Q-network on the world's observation, with
+    highway-env's documented hidden layers: what every torchrl method of a unit starts from."""
+    from factorq_torch.base.rng import STREAM_TASK_NETWORK
+
+    env = _torchrl_env(config, _env_seed(config, unit["seed_index"]))
+    key = config.spec.observation
+    network = observation_network(
+        1,
+        key,
+        tuple(env.observation_spec[key].shape[1:]),
+        env.num_actions,
+        HIGHWAY_DQN["hidden"],
+        _keys(config, unit, STREAM_TASK_NETWORK),
+        zero_output=zero_output,
+    )
+    return env, network
+
+
+def _run_dqn(
+    config: GymConfig, unit: dict[str, Any], progress: Callable[[int], None]
+) -> dict[str, Any]:
+    import torch
+
+    from factorq_torch.base.rng import STREAM_POLICY
+    from factorq_trainers.methods.dqn import DQNConfig, _gradient_step, dqn_agent
+
+    settings = DQNConfig(**HIGHWAY_DQN)
+    env, q_network = _env_and_task_network(config, unit, zero_output=False)
+    torch.manual_seed(int(_keys(config, unit, STREAM_POLICY)[0]) & 0x7FFFFFFF)
+    agent = dqn_agent(q_network, env.num_actions, settings, config.steps)
+    key = config.spec.observation
+    stored = [key, ("next", key), "action", ("next", "reward"), ("next", "done")]
+    stored.append(("next", "terminated"))
+    recorder = Recorder(config)
+    started = time.perf_counter()
+    td = env.reset()
+    for step in range(1, config.steps + 1):
+        with torch.no_grad():
+            td = env.step(agent.policy(td))
+        recorder.update(*_transition(td))
+        agent.buffer.extend(td.select(*stored).unsqueeze(0))
+        if step >= settings.learning_starts and step % settings.train_every == 0:
+            _gradient_step(agent, settings.batch_size)
+        td = env.step_mdp(td)
+        if bool(td.get("done").any()):
+            td.set("_reset", td.get("done"))
+            td = env.reset(td)
+        _tick(progress, step, config.steps)
+    wall = time.perf_counter() - started
+    env.close()
+    result = recorder.result()
+    result.update(_evaluate(config, unit, agent.value_network), wall_s=wall)
+    result["steps_per_s"] = config.steps / wall
+    return result
+
+
+def _run_factor_q(
+    config: GymConfig, unit: dict[str, Any], progress: Callable[[int], None]
+) -> dict[str, Any]:
+    import torch
+
+    from factorq_torch.base.config import AgentConfig
+    from factorq_torch.base.rng import STREAM_POLICY
+    from factorq_torch.collectors import OnlineCollector
+    from factorq_torch.structure import StructureLearner
+    from factorq_torch.tables import LocalRewardTable
+    from factorq_trainers.methods.experiment import online_agent
+
+    base, task = _env_and_task_network(config, unit, zero_output=True)
+    oracle = base.dependency
+    if unit["method"] == "factor-q-oracle":
+        if oracle is None:
+            raise ValueError(
+                f"factor-q-oracle needs a world that declares its oracle: {config.world}"
+            )
+        local = LocalRewardTable(1, dependency=oracle)
+    else:  # an open actuator predicts no local reward (docs/decisions.md, MiniGrid)
+        local = StructureLearner(
+            1, num_actions=base.num_actions, num_sensors=base.num_sensors, prediction="committed"
+        )
+    # "risky": a collision more likely than not, half the declared penalty (highway: 2/3)
+    threshold = 0.5 * float(base.declaration.penalty)
+    agent = AgentConfig(
+        gamma=HIGHWAY_DQN["gamma"], exploration=config.exploration, risk_threshold=threshold
+    )
+    env, policy, loss = online_agent(
+        base, task, local, agent, _keys(config, unit, STREAM_POLICY), epsilon=FACTOR_Q_EPSILON
+    )
+    optimizer = torch.optim.Adam(task.parameters(), lr=FACTOR_Q_LR)
+    collector = OnlineCollector(
+        env, policy, loss, runs=1, episodes=config.steps, optimizer=optimizer
+    )
+    recorder = Recorder(config)
+    started = time.perf_counter()
+    for step, td in enumerate(collector, start=1):
+        recorder.update(*_transition(td))
+        _tick(progress, step, config.steps)
+        if step >= config.steps:
+            break
+    wall = time.perf_counter() - started
+    collector.shutdown()
+    result = recorder.result()
+    result.update(_evaluate(config, unit, policy), wall_s=wall)
+    result["steps_per_s"] = config.steps / wall
+    declaration = base.declaration
+    if oracle is not None:  # the declared names and oracle, for a summary without torch
+        result["oracle"] = oracle.to(torch.int64).tolist()
+        result["actuator_names"] = list(base.config.actuator_names)
+        result["sensor_names"] = list(declaration.sensor_names) or [
+            f"s{k}" for k in range(base.num_sensors)
+        ]
+    if isinstance(local, StructureLearner):
+        learned = local.structure()[0]  # [A, K]
+        result["structure"] = learned.to(torch.int64).tolist()
+        if oracle is not None:  # a world without one: the structure alone
+            result["agrees_with_oracle"] = (learned == oracle).all(dim=-1).tolist()
+    return result
+
+
+def _evaluate(config: GymConfig, unit: dict[str, Any], policy: Any) -> dict[str, Any]:
+    """The greedy policy (exploration off) for ``eval_episodes`` episodes on fresh env seeds."""
+    import torch
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    crashes, returns = 0, []
+    for episode in range(config.eval_episodes):
+        seed = _env_seed(config, unit["seed_index"] * config.eval_episodes + episode, True)
+        env = _torchrl_env(config, seed)
+        td, total, crashed = env.reset(), 0.0, False
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            while True:
+                td = env.step(policy(td))
+                hit, reward, done = _transition(td)
+                total += reward
+                crashed |= hit
+                if done:
+                    break
+                td = env.step_mdp(td)
+        env.close()
+        crashes += int(crashed)
+        returns.append(total)
+    return {"greedy_crash_rate": crashes / config.eval_episodes, "greedy_return": _mean(returns)}
+
+
+def _run_sb3(
+    config: GymConfig, unit: dict[str, Any], progress: Callable[[int], None]
+) -> dict[str, Any]:
+    """SB3's DQN with the documented hyperparameters on the world's own observation; crashes
+    and returns read from the adapter's ``info`` by a recording wrapper."""
+    import gymnasium
+    import torch
+    from stable_baselines3 import DQN
+
+    recorder = Recorder(config)
+
+    class Record(gymnasium.Wrapper):
+        def step(self, action: Any) -> Any:
+            out = self.env.step(action)
+            observation, reward, terminated, truncated, info = out
+            recorder.update(bool(info["collided"]), float(reward), terminated or truncated)
+            _tick(progress, recorder.step, config.steps)
+            return out
+
+    def make(seed: int) -> gymnasium.Env:
+        env = config.spec.make(seed)
+        return gymnasium.wrappers.FilterObservation(env, [config.spec.observation])
+
+    torch.manual_seed(_env_seed(config, unit["seed_index"]))
+    env = Record(gymnasium.wrappers.FlattenObservation(make(_env_seed(config, unit["seed_index"]))))
+    settings = HIGHWAY_DQN
+    model = DQN(
+        "MlpPolicy",
+        env,
+        policy_kwargs={"net_arch": list(settings["hidden"])},
+        learning_rate=settings["lr"],
+        buffer_size=settings["buffer_size"],
+        learning_starts=settings["learning_starts"],
+        batch_size=settings["batch_size"],
+        gamma=settings["gamma"],
+        train_freq=settings["train_every"],
+        gradient_steps=1,
+        target_update_interval=settings["target_update_interval"],
+        exploration_fraction=settings["exploration_fraction"],
+        seed=_env_seed(config, unit["seed_index"]),
+        device="cpu",
+    )
+    started = time.perf_counter()
+    model.learn(total_timesteps=config.steps)
+    wall = time.perf_counter() - started
+    crashes, returns = 0, []
+    for episode in range(config.eval_episodes):
+        seed = _env_seed(config, unit["seed_index"] * config.eval_episodes + episode, True)
+        evaluation = gymnasium.wrappers.FlattenObservation(make(seed))
+        observation, _ = evaluation.reset()
+        total, crashed, done = 0.0, False, False
+        while not done:
+            action, _ = model.predict(observation, deterministic=True)
+            observation, reward, terminated, truncated, info = evaluation.step(int(action))
+            total += float(reward)
+            crashed |= bool(info["collided"])
+            done = terminated or truncated
+        crashes += int(crashed)
+        returns.append(total)
+    result = recorder.result()
+    result.update(
+        greedy_crash_rate=crashes / config.eval_episodes,
+        greedy_return=_mean(returns),
+        wall_s=wall,
+        steps_per_s=config.steps / wall,
+    )
+    return result
+
+
+#: Each method's function: ``(config, unit, progress) -> the unit's result``.
+RUNNERS: dict[str, Callable[[GymConfig, dict[str, Any], Callable[[int], None]], dict[str, Any]]] = {
+    "dqn": _run_dqn,
+    "factor-q-oracle": _run_factor_q,
+    "factor-q-learned": _run_factor_q,
+    "sb3-dqn": _run_sb3,
+}

@@ -1,0 +1,1 @@
+"""``factorq minigrid``: its command (``command.py``) and what only it needs."""

@@ -1,0 +1,266 @@
+"""Factor-Q on MiniGrid Dynamic-Obstacles against Q-learning and DQN: ``factorq minigrid``.
+
+On each size of ``MiniGrid-Dynamic-Obstacles-{5x5,6x6,8x8,16x16}-v0``
+(``factorq_envs.minigrid_adapter``: MiniGrid's real env, read through the adapter), every method
+trains ``seeds`` independent experiments for the same env-step budget, all seeds of a method in
+one batch:
+
+- ``factor-q-learned``: Factor-Q with ``StructureLearner`` as its local value provider, told only
+  ``A = 3`` actuators and ``K`` sensors (no pairing): it must find that only forward has a local
+  reward and that the front sensor decides it;
+- ``factor-q-oracle``: Factor-Q with ``LocalRewardTable`` on the true pairing (forward <- front);
+- ``q-learning``: tabular Q-learning on (cell, heading, all sensors);
+- ``dqn``: ``methods.dqn``'s torchrl DQN (DQNLoss, target network, replay, annealed
+  epsilon) on the same information (``TaskQNetwork``: one-hot (cell, heading) and the sensor bits);
+- ``dqn-image``: the same DQN on MiniGrid's own 7x7x3 ``image`` observation (the standard track).
+
+The tabular agents run on the modular torchrl path (``OnlineCollector``, learning after every
+step): the compiled kernel (``trainers/compiled/fast.py``) cannot step MiniGrid.
+
+**Budget.** ``steps * size / 5`` env steps per seed at each size (rounded), the same for every
+method. **Measures**, per seed: collisions during training (all, and on greedy actions); over the
+episodes that end in the last ``final_fraction`` of the budget: success rate (the goal reached),
+MiniGrid return (its own reward summed: goal reward, -1 per collision) and steps to goal (length
+of the successful episodes); env steps until the success rate over the last ``window`` finished
+episodes first reaches 90%; for ``factor-q-learned``, the env step at which the learner first
+committed to "forward <- front" (and nothing else for forward). Wall time per method and size
+(all seeds together). Means with 95% intervals across seeds that stay in the possible range:
+Wilson's for the success rate, the BCa bootstrap for the rest (``factorq_trainers.analysis.stats``).
+
+This module is the command: its units, the statistics over seeds, the summary. ``MiniGridConfig``
+and the names it checks against are in ``config.py`` beside it, the methods (keys, ``Recorder``,
+the tabular agents, DQN) in ``methods.py``; their public names import from here too.
+"""
+
+from __future__ import annotations
+
+import functools
+import sys
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from factorq_trainers.analysis.stats import DESCRIPTION as DESCRIPTION_OF_STATISTICS
+from factorq_trainers.analysis.stats import bootstrap_mean_ci, interval, scalar_ci, wilson_ci
+from factorq_trainers.commands.minigrid.config import (
+    METHOD_LABELS,
+    MiniGridConfig,
+)
+from factorq_trainers.commands.minigrid.methods import (
+    RUNNERS,
+)
+from factorq_trainers.commands.minigrid.report import FOUND_TARGET_STEPS
+from factorq_trainers.runner import resources
+from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, NUMBER
+
+NAME = "minigrid"
+HELP = (
+    "Factor-Q against Q-learning and DQN on MiniGrid Dynamic-Obstacles (needs the minigrid extra)"
+)
+EXTRA = "factorq-torch[minigrid]"
+DESCRIPTION = (
+    "Train Factor-Q (learned dependencies and oracle pairing), Q-learning and DQN (same "
+    "information, and MiniGrid's image) on MiniGrid-Dynamic-Obstacles-{5x5,6x6,8x8,16x16}-v0 with "
+    "equal env-step budgets; write minigrid.json, minigrid.png and minigrid.md to --out. Needs "
+    f"pip install '{EXTRA}'."
+)
+HINT = "use fewer --seeds or --steps, or smaller --sizes"
+WORK_UNIT = "step"
+NOTICE = (
+    "factorq minigrid: the tabular agents run on the modular torchrl path (the compiled kernel "
+    "cannot step MiniGrid)"
+)
+
+
+CONFIG = MiniGridConfig
+
+_STAT = {"mean": NUMBER, "ci95": (None, [NUMBER]), "n": COUNT}
+#: A unit's result (``run_unit``), what a kept one must hold (``runner.kept``'s schema).
+UNIT_RESULT = {
+    "seeds": {
+        "success_rate": [FRACTION],
+        "return": [NUMBER],
+        "steps_to_goal": [NON_NEGATIVE],
+        "episodes": [COUNT],
+        "steps_to_90": [(None, COUNT)],
+        "collisions": [COUNT],
+        "greedy_collisions": [COUNT],
+        "wall_s": NON_NEGATIVE,
+        "found_forward_front?": [(None, COUNT)],
+        "structure_at_end?": [[[COUNT]]],
+    },
+    "summary": {
+        "success_rate": _STAT,
+        "return": _STAT,
+        "steps_to_goal": _STAT,
+        "collisions": _STAT,
+        "greedy_collisions": _STAT,
+        "steps_to_90": _STAT,
+        "episodes": _STAT,
+        "found_forward_front?": _STAT,
+        "found_within_target?": FRACTION,
+        "found_at_all?": FRACTION,
+        "wall_s": NON_NEGATIVE,
+        "env_steps_per_seed": COUNT,
+    },
+}
+
+
+# --------------------------------------------------------------------------------------------
+# The experiment
+
+
+def _stat(values: list[float | None], seed: int, proportion: bool = False) -> dict[str, Any]:
+    """Mean and 95% interval of the seeds that have a value (Wilson's for a proportion, the
+    bootstrap's otherwise: both stay inside the possible range, stats), and how many have one."""
+    present = [v for v in values if v is not None]
+    if not present:
+        return {"mean": None, "ci95": None, "n": 0}
+    method = wilson_ci if proportion else functools.partial(bootstrap_mean_ci, seed=seed)
+    mean, low, high = scalar_ci(present, method)
+    return {"mean": mean, "ci95": interval(low, high), "n": len(present)}
+
+
+MEASURES = (
+    "success_rate",
+    "return",
+    "steps_to_goal",
+    "collisions",
+    "greedy_collisions",
+    "steps_to_90",
+    "episodes",
+)
+
+
+def summarise_method(result: dict[str, Any], budget: int, seed: int = 0) -> dict[str, Any]:
+    """Each measure's mean over seeds and 95% interval (Wilson for the success rate, the BCa
+    bootstrap otherwise), and how often the learner found forward <- front.
+
+    Args:
+        result: a method's per-seed measures (``Recorder.summary`` and ``wall_s``).
+        budget: the env steps each seed ran.
+        seed: the master seed (the bootstrap's resamples).
+    """
+    summary: dict[str, Any] = {
+        name: _stat(result[name], seed, name == "success_rate") for name in MEASURES
+    }
+    found = result.get("found_forward_front")
+    if found is not None:
+        within = [f is not None and f <= FOUND_TARGET_STEPS for f in found]
+        summary["found_forward_front"] = _stat(found, seed)
+        summary["found_within_target"] = float(np.mean(within))
+        summary["found_at_all"] = float(np.mean([f is not None for f in found]))
+    summary["wall_s"] = result["wall_s"]
+    summary["env_steps_per_seed"] = budget
+    return summary
+
+
+def estimate(config: MiniGridConfig) -> resources.Estimate:
+    """Peak memory: each method's per-episode records hold a slot per env step of the budget
+    (an episode lasts at least one), and Q-learning's table is ``[S, cells * headings * 2**K,
+    A]`` at the largest size, for the body of ``config``'s sensor layout.
+
+    Args:
+        config: the experiment.
+    """
+    from factorq_envs.body import HEADING
+    from factorq_envs.minigrid_adapter import sensor_names
+
+    sensors, headings = len(sensor_names(config.layout)), HEADING.num_headings
+    budget = max(config.budget(int(size)) for size in config.sizes)
+    cells = max(int(size) ** 2 for size in config.sizes)
+    records = 3 * config.seeds * budget * resources.METRIC_BYTES
+    tables = config.seeds * cells * headings * (1 << sensors) * len(HEADING.actuators) * 4
+    parts = {"episode records": records, "tables": tables}
+    return resources.Estimate(parts, budget * config.seeds * len(config.methods), exact_steps=True)
+
+
+def units(config: MiniGridConfig) -> list[dict[str, Any]]:
+    """One unit per size and method (a method's seeds run as one batch).
+
+    Args:
+        config: the experiment.
+    """
+    return [
+        {"id": f"{size}/{method}", "size": int(size), "method": method}
+        for size in config.sizes
+        for method in config.methods
+    ]
+
+
+def work(config: MiniGridConfig, unit: dict[str, Any]) -> int:
+    """A unit's env steps per seed (what ``run_unit`` reports to ``progress``).
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+    """
+    return config.budget(unit["size"])
+
+
+def prepare(config: MiniGridConfig) -> None:
+    """``factorq_envs.minigrid_adapter.require_minigrid`` (a ModuleNotFoundError naming the extra).
+
+    Args:
+        config: the experiment.
+    """
+    from factorq_envs.minigrid_adapter import require_minigrid
+
+    require_minigrid()
+
+
+def run_unit(
+    config: MiniGridConfig, unit: dict[str, Any], progress: Callable[[int], None] | None = None
+) -> dict[str, Any]:
+    """One method at one size, all seeds; ``progress(env_steps)`` after each 100 steps.
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+        progress: called with env steps done.
+    """
+    import torch
+
+    size, method = unit["size"], unit["method"]
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny tensors: more threads only wait on each other
+    try:
+        raw = RUNNERS[method](config, size, method, progress or (lambda steps: None))
+    finally:
+        torch.set_num_threads(threads)
+    return {"seeds": raw, "summary": summarise_method(raw, config.budget(size), config.seed)}
+
+
+def summarise(config: MiniGridConfig, outcomes: list[dict[str, Any]]) -> dict[str, Any]:
+    """``minigrid.json``'s entries from the units (in ``units`` order).
+
+    Args:
+        config: the experiment.
+        outcomes: ``run_unit``'s results.
+    """
+    from factorq_envs.minigrid_adapter import sensor_names
+
+    results: dict[str, Any] = {}
+    for unit, outcome in zip(units(config), outcomes, strict=True):
+        results.setdefault(str(unit["size"]), {})[unit["method"]] = outcome
+    return {
+        "sensors": list(sensor_names(config.layout)),
+        "budgets": {size: config.budget(int(size)) for size in config.sizes},
+        "results": results,
+        "statistics": DESCRIPTION_OF_STATISTICS,
+        "notice": NOTICE,
+        "methods": dict(METHOD_LABELS),
+    }
+
+
+def run(config: MiniGridConfig, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
+    """Every method on every size, here; the results (what ``minigrid.json`` holds).
+
+    Args:
+        config: the experiment.
+        progress: called with env steps done.
+    """
+    from factorq_trainers.runner import frame
+
+    return frame.run_in_process(sys.modules[__name__], config, progress)

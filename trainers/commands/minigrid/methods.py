@@ -1,0 +1,350 @@
+"""``factorq minigrid``'s methods, each running all seeds of one method at one size: the keys
+(common random numbers: every method meets the same worlds at a size), the ``Recorder`` of
+collisions and episodes, the tabular agents through ``OnlineCollector`` and torchrl's DQN
+(``RUNNERS``: method -> its function). The command is
+``factorq_trainers.commands.minigrid.command``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from factorq_trainers.commands.minigrid.config import (
+    METHODS,
+    SIZE_NAMES,
+    SUCCESS_THRESHOLD,
+    MiniGridConfig,
+)
+
+if TYPE_CHECKING:
+    import torch
+
+    from factorq_envs.declared_env import DeclaredEnv
+
+
+# --------------------------------------------------------------------------------------------
+# Keys: common random numbers (every method meets the same worlds at a size)
+
+
+def world_seeds(config: MiniGridConfig, size: int) -> list[int]:
+    """MiniGrid's reset seed of each experiment at ``size`` (the same for every method).
+
+    Args:
+        config: the experiment.
+        size: the grid's side.
+    """
+    from factorq_torch.base.rng import STREAM_WORLD, derive_keys
+
+    offset = SIZE_NAMES.index(str(size)) * config.seeds
+    keys = derive_keys(config.seed, STREAM_WORLD, config.seeds, offset)
+    return [int(key) & 0x7FFFFFFF for key in keys.tolist()]
+
+
+def method_keys(config: MiniGridConfig, size: int, method: str, stream: int) -> torch.Tensor:
+    """Keys ``[S]`` of ``stream`` for ``method``'s experiments at ``size``.
+
+    Args:
+        config: the experiment.
+        size: the grid's side.
+        method: one of ``METHODS``.
+        stream: a stream of ``factorq_torch.base.rng``.
+    """
+    from factorq_torch.base.rng import derive_keys
+
+    slot = SIZE_NAMES.index(str(size)) * len(METHODS) + METHODS.index(method)
+    return derive_keys(config.seed, stream, config.seeds, slot * config.seeds)
+
+
+# --------------------------------------------------------------------------------------------
+# Recording
+
+
+class Recorder:
+    """Per-step collisions and per-episode outcomes of ``S`` experiments stepped in lockstep.
+
+    Args:
+        count: ``S``, the experiments.
+    """
+
+    def __init__(self, count: int) -> None:
+        self.count = count
+        self.step = 0
+        self.collisions = np.zeros(count, dtype=np.int64)
+        self.greedy_collisions = np.zeros(count, dtype=np.int64)
+        self.returns = np.zeros(count)
+        self.lengths = np.zeros(count, dtype=np.int64)
+        # per experiment: (end step, success, return, length) of every finished episode
+        self.episodes: list[list[tuple[int, bool, float, int]]] = [[] for _ in range(count)]
+
+    def update(self, td: Any, conventional_reward: torch.Tensor) -> None:
+        """Record one step.
+
+        Args:
+            td: the step's tensordict: ``exploratory`` and ``("next", bump | done)``.
+            conventional_reward: ``[S]``, MiniGrid's own reward of the step.
+        """
+        self.step += 1
+        nxt = td.get("next")
+        bump = nxt.get("bump").any(dim=-1).numpy()
+        exploratory = td.get("exploratory").reshape(-1).numpy()
+        reward = conventional_reward.reshape(-1).numpy().astype(np.float64)
+        done = nxt.get("done").reshape(-1).numpy()
+        self.collisions += bump
+        self.greedy_collisions += bump & ~exploratory
+        self.returns += reward
+        self.lengths += 1
+        for i in np.flatnonzero(done):
+            success = bool(reward[i] > 0)
+            self.episodes[i].append(
+                (self.step, success, float(self.returns[i]), int(self.lengths[i]))
+            )
+            self.returns[i], self.lengths[i] = 0.0, 0
+
+    def summary(self, budget: int, window: int, final_fraction: float) -> dict[str, list[Any]]:
+        """Per-seed measures (module docstring); ``None`` where there is nothing to measure.
+
+        Args:
+            budget: the env steps each seed ran.
+            window: finished episodes in the success rate behind ``steps_to_90``.
+            final_fraction: the share of the budget, at its end, of the final measures.
+        """
+        start = budget - final_fraction * budget
+        out: dict[str, list[Any]] = {
+            "success_rate": [],
+            "return": [],
+            "steps_to_goal": [],
+            "episodes": [],
+            "steps_to_90": [],
+        }
+        for episodes in self.episodes:
+            final = [e for e in episodes if e[0] > start]
+            out["episodes"].append(len(episodes))
+            out["success_rate"].append(float(np.mean([e[1] for e in final])) if final else None)
+            out["return"].append(float(np.mean([e[2] for e in final])) if final else None)
+            lengths = [e[3] for e in final if e[1]]
+            out["steps_to_goal"].append(float(np.mean(lengths)) if lengths else None)
+            reached = None
+            for k in range(window, len(episodes) + 1):
+                recent = episodes[k - window : k]
+                if np.mean([e[1] for e in recent]) >= SUCCESS_THRESHOLD:
+                    reached = recent[-1][0]
+                    break
+            out["steps_to_90"].append(reached)
+        out["collisions"] = self.collisions.tolist()
+        out["greedy_collisions"] = self.greedy_collisions.tolist()
+        return out
+
+
+# --------------------------------------------------------------------------------------------
+# The methods
+
+
+def _env(config: MiniGridConfig, size: int, *, with_image: bool = False) -> DeclaredEnv:
+    from factorq_envs.minigrid_torchrl import MiniGridEnv
+
+    return MiniGridEnv(
+        size,
+        config.semantics,
+        layout=config.layout,
+        with_image=with_image,
+        seeds=world_seeds(config, size),
+    )
+
+
+def run_tabular(
+    config: MiniGridConfig, size: int, method: str, tick: Callable[[int], None]
+) -> dict[str, Any]:
+    """Factor-Q (learned or oracle) or Q-learning through ``OnlineCollector``.
+
+    Args:
+        config: the experiment.
+        size: the grid's side.
+        method: a tabular one of ``METHODS``.
+        tick: called with env steps done, every 100.
+    """
+    import torch
+
+    from factorq_envs.body import HEADING
+    from factorq_envs.minigrid_adapter import FORWARD
+    from factorq_torch.base.config import AgentConfig
+    from factorq_torch.base.rng import STREAM_POLICY
+    from factorq_torch.collectors import OnlineCollector
+    from factorq_torch.structure import StructureLearner
+    from factorq_torch.tables import LocalRewardTable, TaskQTable
+    from factorq_trainers.methods.experiment import online_agent
+
+    count, budget = config.seeds, config.budget(size)
+    base = _env(config, size)
+    agent = AgentConfig()
+    cells, sensors, actions = base.num_cells, base.num_sensors, base.num_actions
+    learner = None
+    if method == "q-learning":
+        task = TaskQTable(
+            count,
+            cells,
+            with_sensors=True,
+            num_sensors=sensors,
+            num_headings=HEADING.num_headings,
+            num_actions=actions,
+        )
+        local = None
+    else:
+        task = TaskQTable(count, cells, num_headings=HEADING.num_headings, num_actions=actions)
+        if method == "factor-q-oracle":
+            local = LocalRewardTable(count, dependency=base.dependency)
+        elif method == "factor-q-posterior":
+            local = learner = StructureLearner(
+                count, num_actions=actions, num_sensors=sensors, prediction="posterior"
+            )
+        else:  # an open actuator predicts no local reward (docs/decisions.md, MiniGrid)
+            local = learner = StructureLearner(
+                count, num_actions=actions, num_sensors=sensors, prediction="committed"
+            )
+    if local is not None:  # Factor-Q: its exploration (Q-learning's is uniform)
+        agent = AgentConfig(exploration=config.exploration)
+    keys = method_keys(config, size, method, STREAM_POLICY)
+    env, policy, loss = online_agent(base, task, local, agent, keys)
+    # one run of as many episodes as the budget could hold: the loop below stops at the budget
+    collector = OnlineCollector(env, policy, loss, runs=1, episodes=budget)
+    recorder = Recorder(count)
+    assert base.dependency is not None  # MiniGrid's declaration states its oracle
+    truth = base.dependency[FORWARD]  # [K]
+    found: list[int | None] = [None] * count
+    started = time.perf_counter()
+    for step, td in enumerate(collector, start=1):
+        nxt = td.get("next")
+        reward = nxt.get("reward").squeeze(-1)
+        if local is not None:  # the reward was split: put the collisions back
+            reward = reward + nxt.get("local_reward").sum(dim=-1)
+        recorder.update(td, reward)
+        if learner is not None:
+            right = (learner.structure()[:, FORWARD] == truth).all(dim=-1).tolist()
+            for i, ok in enumerate(right):
+                if ok and found[i] is None:
+                    found[i] = step
+        if step % 100 == 0 or step == budget:
+            tick(min(100, step - 100 * ((step - 1) // 100)))
+        if step >= budget:
+            break
+    wall = time.perf_counter() - started
+    collector.shutdown()
+    result: dict[str, Any] = recorder.summary(budget, config.window, config.final_fraction)
+    result["wall_s"] = wall
+    if learner is not None:
+        result["found_forward_front"] = found
+        result["structure_at_end"] = learner.structure().to(torch.int64).tolist()
+    return result
+
+
+def _image_network(count: int, hidden: tuple[int, ...], keys: torch.Tensor, actions: int) -> Any:
+    """``S`` MLPs on MiniGrid's image: ``image`` ``[..., S, 7, 7, 3]`` uint8 -> ``action_value``
+    ``[..., S, A]``; the input is the image flattened and divided by 10 (object, colour and
+    state indices are below 11)."""
+    import torch
+    from tensordict.nn import TensorDictModuleBase
+
+    from factorq_torch.neural import BatchedMLP
+
+    class _ImageQNetwork(TensorDictModuleBase):
+        def __init__(self) -> None:
+            super().__init__()
+            self.in_keys, self.out_keys = ["image"], ["action_value"]
+            self.mlp = BatchedMLP((count,), 7 * 7 * 3, actions, hidden=hidden, keys=keys)
+
+        def forward(self, tensordict: Any) -> Any:
+            image = tensordict.get("image")
+            x = image.reshape(*image.shape[:-3], -1).to(torch.float32) / 10.0
+            tensordict.set("action_value", self.mlp(x))
+            return tensordict
+
+    return _ImageQNetwork()
+
+
+def run_dqn(
+    config: MiniGridConfig, size: int, method: str, tick: Callable[[int], None]
+) -> dict[str, Any]:
+    """``factorq_trainers.methods.dqn``'s DQN (its defaults) on the cell/heading/sensors or on
+    the image.
+
+    Args:
+        config: the experiment.
+        size: the grid's side.
+        method: ``"dqn"`` or ``"dqn-image"``.
+        tick: called with env steps done, every 100.
+    """
+    import torch
+
+    from factorq_envs.body import HEADING
+    from factorq_torch.base.rng import STREAM_POLICY, STREAM_TASK_NETWORK
+    from factorq_torch.neural import TaskQNetwork
+    from factorq_trainers.methods.dqn import DQNConfig, _gradient_step, dqn_agent
+
+    dqn = DQNConfig()
+    count, budget = config.seeds, config.budget(size)
+    image = method == "dqn-image"
+    env = _env(config, size, with_image=image)
+    actions = env.num_actions
+    init_keys = method_keys(config, size, method, STREAM_TASK_NETWORK)
+    if image:
+        q_network = _image_network(count, dqn.hidden, init_keys, actions)
+        stored = ["image", ("next", "image")]
+    else:
+        q_network = TaskQNetwork(
+            count,
+            env.num_cells,
+            with_proximity=True,
+            num_sensors=env.num_sensors,
+            num_headings=HEADING.num_headings,
+            num_actions=actions,
+            hidden=dqn.hidden,
+            keys=init_keys,
+            zero_output=False,
+        )
+        stored = [
+            "cell",
+            "heading",
+            "sensors",
+            ("next", "cell"),
+            ("next", "heading"),
+            ("next", "sensors"),
+        ]
+    stored += ["action", ("next", "reward"), ("next", "done"), ("next", "terminated")]
+    torch.manual_seed(int(method_keys(config, size, method, STREAM_POLICY)[0]) & 0x7FFFFFFF)
+    agent = dqn_agent(q_network, actions, dqn, budget)
+    policy, buffer = agent.policy, agent.buffer
+    recorder = Recorder(count)
+    started = time.perf_counter()
+    td = env.reset()
+    for step in range(1, budget + 1):
+        with torch.no_grad():
+            td = env.step(policy(td))
+        recorder.update(td, td.get(("next", "reward")).squeeze(-1))
+        buffer.extend(td.select(*stored).unsqueeze(0))
+        if step >= dqn.learning_starts and step % dqn.train_every == 0:
+            _gradient_step(agent, dqn.batch_size)
+        td = env.step_mdp(td)
+        done = td.get("done")
+        if bool(done.any()):
+            td.set("_reset", done)
+            td = env.reset(td)
+        if step % 100 == 0 or step == budget:
+            tick(min(100, step - 100 * ((step - 1) // 100)))
+    wall = time.perf_counter() - started
+    env.close()
+    result: dict[str, Any] = recorder.summary(budget, config.window, config.final_fraction)
+    result["wall_s"] = wall
+    return result
+
+
+RUNNERS = {
+    "factor-q-learned": run_tabular,
+    "factor-q-posterior": run_tabular,
+    "factor-q-oracle": run_tabular,
+    "q-learning": run_tabular,
+    "dqn": run_dqn,
+    "dqn-image": run_dqn,
+}

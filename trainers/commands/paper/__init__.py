@@ -1,0 +1,1 @@
+"""``factorq paper``: its command (``command.py``) and what only it needs."""

@@ -1,0 +1,1 @@
+"""``factorq risk``: its command (``command.py``) and what only it needs."""

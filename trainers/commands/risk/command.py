@@ -1,0 +1,328 @@
+"""``risk``: torchrl's DQN alone against DQN + local risk, side by side.
+
+A command module of the runner (``factorq_trainers.runner.frame``): the runner owns options, the
+output folder, resume and progress; this module declares the units (one per world, method and
+seed), what one unit runs and how the units are summarised. The config and the names it checks
+against are in ``config.py`` beside it, the methods (the torchrl recipe, SB3,
+``quiet_torchrl``) in ``methods.py``, the Markdown, figure and sweep cells in ``report.py`` (drawn
+without torch): import each name from its own module.
+
+Every unit trains torchrl's DQN recipe (``QValueActor``, ``EGreedyModule``, ``DQNLoss``,
+``SoftUpdate``, ``Collector``, a ``ReplayBuffer``) on one world, with the same budget, network and
+seed for every method; the methods differ only by the two lines of ``factorq_torch.risk``:
+
+- ``dqn``: the recipe alone;
+- ``dqn+risk-oracle``: plus ``LocalRisk`` over a ``LocalRewardTable`` given the env's true
+  dependency, trained by ``LocalRiskLoss`` on every collected transition;
+- ``dqn+risk-learned``: the same over a ``StructureLearner`` (told only the number of actuators
+  and sensors);
+- ``sb3-dqn`` / ``sb3-dqn+risk-oracle``: Stable-Baselines3's DQN on the gymnasium grid, alone and
+  with ``factorq_torch.integrations.sb3`` (the ``sb3`` extra).
+
+Every method reads the conventional reward (``SplitLocalReward(keep_reward=True)``: collisions
+included), so DQN alone can learn to avoid collisions itself; the layer only adds
+``local_reward``. Worlds: ``grid``, the dynamic FactoredGrid world (obstacles move every step);
+``minigrid``, MiniGrid Dynamic-Obstacles (``size`` 8 by default; the ``minigrid`` extra);
+``highway`` (asked for by name: its steps cost about a hundred times the grid's),
+highway-env's ``highway-fast-v0`` as ``factorq_envs.highway`` declares it, through the
+Gymnasium adapter (the ``highway`` extra): the Q-network reads its ``Kinematics`` observation
+and the six time-to-collision sensors, the oracle is the declared ``highway.ORACLE``, a
+collision is a crash (penalty 2/3, so the layer's exploration mask drops an actuator whose
+crash is more likely than not: ``mask_threshold`` is half the penalty on every world), and a
+"success" is an episode that ran to highway's time limit without a crash.
+
+Per unit: collisions during training, greedy collisions and success over ``eval_episodes`` greedy
+episodes after training, the mean conventional return of the last 20% of training episodes, and
+``steps_to_threshold``, the env steps until the success rate of the last 10 training episodes
+first reaches ``success_threshold`` (None if never). The ``dqn+risk-*`` units also log what the
+layer did in every training episode (``factorq_torch.risk.RiskSummary``: steps it penalised,
+greedy choices it overrode, how often and how much each actuator was penalised), kept in the
+results under ``risk_log`` and summarised in the report.
+
+torchrl's INFO messages (its ``torchrl`` logger prints one per replay buffer it allocates) are
+silenced while a unit runs, and its level restored after: the command's output is the report, and
+anyone using torchrl keeps its defaults.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from typing import Any
+
+from factorq_trainers.analysis.stats import count_ratio
+from factorq_trainers.commands.risk.config import (
+    OWN_WORLDS,
+    Progress,
+    RiskConfig,
+)
+from factorq_trainers.commands.risk.methods import (
+    quiet_torchrl,
+    run_sb3,
+    run_torchrl,
+)
+from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, NUMBER, TEXT
+
+NAME = "risk"
+HELP = "torchrl's DQN (and SB3's) alone against DQN + local risk, side by side"
+WORK_UNIT = "step"
+CONFIG = RiskConfig
+
+#: A unit's result (``run_unit``), what a kept one must hold (``runner.kept``'s schema).
+UNIT_RESULT = {
+    "world": TEXT,
+    "method": TEXT,
+    "seed": COUNT,
+    "train_collisions": COUNT,
+    "episodes": COUNT,
+    "final_return": NUMBER,
+    "steps_to_threshold": (None, COUNT),
+    "greedy_collisions": COUNT,
+    "greedy_success": FRACTION,
+    "wall_s": NON_NEGATIVE,
+    "risk_log?": [
+        {
+            "steps": COUNT,
+            "risky_steps": COUNT,
+            "overrides": COUNT,
+            "penalised": {"*": COUNT},
+            "mean_penalty": {"*": NUMBER},
+        }
+    ],
+    "structure?": {
+        "actuators": [TEXT],
+        "parents": [(None, [TEXT])],
+        "oracle": (None, [[TEXT]]),
+    },
+}
+
+
+def prepare(config: RiskConfig) -> None:
+    """The extras the asked-for worlds and methods need, else one ModuleNotFoundError naming
+    the extra, before any work.
+
+    Args:
+        config: the experiment.
+    """
+    from factorq_envs.gymnasium_adapter import require_extra
+    from factorq_envs.worlds import resolve_world
+
+    for world in config.worlds:
+        if world not in OWN_WORLDS:
+            for module, extra in resolve_world(world).requires:
+                require_extra(module, f"factorq-torch[{extra}]")
+    if "minigrid" in config.worlds:
+        require_extra("minigrid", "factorq-torch[minigrid]")
+    sb3 = any(method.startswith("sb3") for method in config.methods)
+    if sb3 and set(config.worlds) & set(config.sb3_worlds):
+        require_extra("stable_baselines3", "factorq-torch[sb3]")
+
+
+def processes(config: RiskConfig, units: list[dict[str, Any]]) -> tuple[int, str]:
+    """How many processes the units take by default (``runner.cluster.default_workers``): one
+    per core where a declared world's env steps slowly (highway-env), else 1 (in-process); and
+    why. The grid and MiniGrid step in microseconds: measured only for the declared worlds.
+
+    Args:
+        config: the experiment.
+        units: ``units(config)``.
+    """
+    from factorq_envs.worlds import resolve_world
+    from factorq_trainers.runner.cluster import default_workers
+
+    slowest, why = 0.0, ""
+    for world in config.worlds:
+        if world not in OWN_WORLDS:
+            declared = resolve_world(world)
+            step_s = declared.step_seconds()
+            if step_s > slowest:
+                slowest, why = step_s, f"{declared.label} takes {1e3 * step_s:.1f} ms an env step"
+    return default_workers(slowest, config.steps, len(units)), why
+
+
+def units(config: RiskConfig) -> list[dict[str, Any]]:
+    """One unit per (world, method, seed); sb3 methods only on ``sb3_worlds``.
+
+    Args:
+        config: the experiment.
+    """
+    found = []
+    for world in config.worlds:
+        for method in config.methods:
+            if method.startswith("sb3") and world not in config.sb3_worlds:
+                continue
+            for index in range(config.seeds):
+                seed = config.seed + index
+                found.append(
+                    {
+                        "id": f"{world}/{method}/{seed}",
+                        "world": world,
+                        "method": method,
+                        "seed": seed,
+                    }
+                )
+    return found
+
+
+def work(config: RiskConfig, unit: dict[str, Any]) -> int:
+    """The unit's share of the progress bar: its training env steps (what ``run_unit`` reports).
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+    """
+    return config.steps
+
+
+def run_unit(
+    config: RiskConfig, unit: dict[str, Any], progress: Progress | None = None
+) -> dict[str, Any]:
+    """Train and evaluate one (world, method, seed), without torchrl's INFO lines
+    (``quiet_torchrl``).
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+        progress: called with env steps done.
+    """
+    with quiet_torchrl():
+        if unit["method"].startswith("sb3"):
+            result = run_sb3(config, unit, progress)
+        else:
+            result = run_torchrl(config, unit, progress)
+    return {**{key: unit[key] for key in ("world", "method", "seed")}, **result}
+
+
+# --------------------------------------------------------------------------------------------
+# Summary, report, figure (no torch)
+
+METRICS = (
+    "train_collisions",
+    "greedy_collisions",
+    "final_return",
+    "greedy_success",
+    "steps_to_threshold",
+    "wall_s",
+)
+
+
+def _mean(values: list[float | None]) -> float | None:
+    found = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
+    return statistics.fmean(found) if found else None
+
+
+def _difference(first: float | None, second: float | None) -> float | None:
+    """``first - second``; ``None`` where a side has no finished episode to give a return."""
+    return None if first is None or second is None else first - second
+
+
+def summarise(config: RiskConfig, unit_results: list[dict[str, Any]]) -> dict[str, Any]:
+    """Means over seeds per (world, method), the ratios the issue's targets name, the learned
+    structures (``structures``, by unit id: what ``dqn+risk-learned`` committed to, beside the
+    env's dependency) and the layer's logs (``risk_logs``).
+
+    Args:
+        config: the experiment.
+        unit_results: ``run_unit``'s results.
+    """
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for result in unit_results:
+        groups.setdefault((result["world"], result["method"]), []).append(result)
+    rows = []
+    for (world, method), found in sorted(groups.items()):
+        row: dict[str, Any] = {"world": world, "method": method, "seeds": len(found)}
+        for metric in METRICS:
+            row[metric] = _mean([r[metric] for r in found])
+        row["reached"] = sum(r["steps_to_threshold"] is not None for r in found)
+        rows.append(row)
+    by = {(row["world"], row["method"]): row for row in rows}
+    ratios = []
+    for world in config.worlds:
+        for base, with_risk in (
+            ("dqn", "dqn+risk-oracle"),
+            ("dqn", "dqn+risk-learned"),
+            ("sb3-dqn", "sb3-dqn+risk-oracle"),
+        ):
+            if (world, base) in by and (world, with_risk) in by:
+                alone, risk = by[world, base], by[world, with_risk]
+                ratios.append(
+                    {
+                        "world": world,
+                        "pair": f"{base} / {with_risk}",
+                        "collision_ratio": count_ratio(
+                            alone["train_collisions"], risk["train_collisions"]
+                        ),
+                        "return_gain": _difference(risk["final_return"], alone["final_return"]),
+                    }
+                )
+        if (world, "dqn+risk-learned") in by and (world, "dqn+risk-oracle") in by:
+            learned, oracle = by[world, "dqn+risk-learned"], by[world, "dqn+risk-oracle"]
+            ratios.append(
+                {
+                    "world": world,
+                    "pair": "learned / oracle collisions",
+                    "collision_ratio": count_ratio(
+                        learned["train_collisions"], oracle["train_collisions"]
+                    ),
+                    "return_gain": _difference(learned["final_return"], oracle["final_return"]),
+                }
+            )
+    structures = {
+        f"{r['world']}/{r['method']}/{r['seed']}": r["structure"]
+        for r in unit_results
+        if "structure" in r
+    }
+    return {"rows": rows, "ratios": ratios, "structures": structures, **risk_logs(unit_results)}
+
+
+def risk_logs(unit_results: list[dict[str, Any]]) -> dict[str, Any]:
+    """The layer's per-episode ``RiskSummary`` of every ``dqn+risk-*`` unit (``risk_log``, by
+    unit id) and their totals per (world, method) over seeds (``risk_rows``): training episodes,
+    steps, the share of steps it penalised an actuator, greedy choices it overrode per episode,
+    and per actuator how often it was penalised and by how much on average."""
+    log: dict[str, list[dict]] = {}
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for result in unit_results:
+        episodes = result.get("risk_log")
+        if episodes is None:  # a method without the layer (or a unit kept before the log)
+            continue
+        log[f"{result['world']}/{result['method']}/{result['seed']}"] = episodes
+        groups.setdefault((result["world"], result["method"]), []).extend(episodes)
+    rows = []
+    for (world, method), episodes in sorted(groups.items()):
+        steps = sum(episode["steps"] for episode in episodes)
+        counts: dict[str, int] = {}
+        totals: dict[str, float] = {}
+        for episode in episodes:
+            for name, count in episode["penalised"].items():
+                counts[name] = counts.get(name, 0) + count
+                totals[name] = totals.get(name, 0.0) + count * episode["mean_penalty"][name]
+        rows.append(
+            {
+                "world": world,
+                "method": method,
+                "episodes": len(episodes),
+                "steps": steps,
+                "penalised_share": sum(e["risky_steps"] for e in episodes) / max(steps, 1),
+                "overrides_per_episode": sum(e["overrides"] for e in episodes)
+                / max(len(episodes), 1),
+                "penalised": counts,
+                "mean_penalty": {
+                    name: (totals[name] / counts[name] if counts[name] else 0.0) for name in counts
+                },
+            }
+        )
+    return {"risk_rows": rows, "risk_log": log}
+
+
+def run(config: RiskConfig) -> dict[str, Any]:
+    """All units here, summarised into the runner's envelope (no files).
+
+    Args:
+        config: the experiment.
+    """
+    import sys
+
+    from factorq_trainers.runner import frame
+
+    return frame.run_in_process(sys.modules[__name__], config)

@@ -1,0 +1,134 @@
+"""``factorq risk``'s configuration: ``RiskConfig`` (one budget and DQN recipe for every
+method), the worlds and methods it runs. The command is ``factorq_trainers.commands.risk.command``;
+the methods are ``factorq_trainers.commands.risk.methods``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from factorq_trainers.runner.options import option
+
+Progress = Callable[[int], None]
+#: The worlds that are the project's own torchrl envs (sized by grid_size, minigrid_size); any
+#: other name is a declared world of ``factorq_envs.worlds``' registry (highway, an installed
+#: one, or package.module:NAME).
+OWN_WORLDS = ("grid", "minigrid")
+METHODS = ("dqn", "dqn+risk-oracle", "dqn+risk-learned", "sb3-dqn", "sb3-dqn+risk-oracle")
+TORCHRL_METHODS = METHODS[:3]
+#: The worlds the sb3-* methods can run on (``risk_methods.run_sb3``: the gymnasium grid).
+SB3_WORLDS = ("grid",)
+
+
+def _names(
+    value: Any, field: str, allowed: tuple[str, ...], paths: bool = False
+) -> tuple[str, ...]:
+    """``value`` (comma-separated text or a tuple) as names of ``allowed`` (with ``paths``, a
+    ``package.module:NAME`` too)."""
+    if isinstance(value, str):
+        value = tuple(part.strip() for part in value.split(",") if part.strip())
+    value = tuple(value)
+    unknown = [name for name in value if name not in allowed and not (paths and ":" in name)]
+    choices = ", ".join(allowed)
+    choices += ", or a declared world of your own as package.module:NAME" if paths else ""
+    if not value:
+        raise ValueError(f"{field} is empty: choose one or more of {choices}")
+    if unknown:
+        raise ValueError(f"{field}={','.join(unknown)} is unknown: choose one or more of {choices}")
+    return value
+
+
+def _worlds(value: Any) -> tuple[str, ...]:
+    """``worlds``: the own worlds and declared ones (``factorq_envs.worlds``), each declared
+    world resolved now (one line naming the field and the world)."""
+    from factorq_envs.worlds import WorldError, names, resolve_world
+
+    declared = tuple(name for name in names() if name not in OWN_WORLDS)
+    worlds = _names(value, "worlds", (*OWN_WORLDS, *declared), paths=True)
+    for name in worlds:
+        if name not in OWN_WORLDS:
+            try:
+                resolve_world(name)
+            except WorldError as error:
+                raise WorldError(f"worlds: {error}") from None
+    return worlds
+
+
+@dataclass(frozen=True)
+class RiskConfig:
+    """One budget for every method (``factorq_trainers.commands.risk.command``'s docstring).
+
+    Args:
+        worlds, methods, sb3_worlds: what runs (``OWN_WORLDS`` and the declared
+            worlds of ``factorq_envs.worlds``, ``METHODS``; comma-separated text or a tuple).
+        seeds, seed: seeds per (world, method), from ``seed`` on.
+        steps: training env steps per unit.
+        grid_size, grid_obstacles, minigrid_size: the worlds (``highway`` is
+            ``factorq_envs.highway``'s ``highway-fast-v0`` as declared there).
+        hidden, lr, gamma, buffer_size, batch_size: the DQN recipe, the same for every method.
+        learning_starts, train_every, tau: when it learns and how fast its target follows.
+        eps_start, eps_end, exploration_fraction: its exploration schedule.
+        eval_episodes: greedy episodes after training.
+        success_threshold: the success rate of 10 episodes that counts as learned.
+        out: the output directory.
+    """
+
+    worlds: tuple[str, ...] = option(
+        ("grid", "minigrid"),
+        "Worlds: grid, minigrid, and declared worlds: highway (highway-fast-v0: ask for it), one "
+        "an installed package adds (entry point group factorq.worlds), or your own as "
+        "package.module:NAME (a factorq_envs.worlds.DeclaredWorld).",
+    )
+    methods: tuple[str, ...] = option(TORCHRL_METHODS, f"Methods, of {', '.join(METHODS)}.")
+    sb3_worlds: tuple[str, ...] = option(SB3_WORLDS, "Worlds the sb3-* methods run on: grid.")
+    seeds: int = option(3, "Seeds per (world, method).")
+    seed: int = option(0, "First seed.")
+    steps: int = option(3000, "Env steps of training per unit.")
+    grid_size: int = option(6, "Side of the dynamic grid.")
+    grid_obstacles: int = option(6, "Obstacles of the dynamic grid (they move every step).")
+    minigrid_size: int = option(8, "Side of MiniGrid Dynamic-Obstacles.")
+    hidden: int = option(64, "Width of the two hidden layers of the Q-network.")
+    lr: float = option(1e-3, "Adam learning rate.")
+    gamma: float = option(0.9, "Discount.")
+    buffer_size: int = option(10_000, "Replay buffer capacity (transitions).")
+    batch_size: int = option(64, "Minibatch size.")
+    learning_starts: int = option(200, "Env steps before the first gradient step.")
+    train_every: int = option(2, "Env steps per gradient step.")
+    tau: float = option(0.02, "SoftUpdate's rate (target <- (1 - tau) target + tau net).")
+    eps_start: float = option(1.0, "Initial epsilon.")
+    eps_end: float = option(0.05, "Final epsilon.")
+    exploration_fraction: float = option(0.3, "Fraction of the steps epsilon anneals over.")
+    eval_episodes: int = option(10, "Greedy episodes after training.")
+    success_threshold: float = option(0.8, "Success rate of 10 episodes that counts as learned.")
+    out: str = option("results/risk", "Directory for the json, figure and report.")
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "worlds", _worlds(self.worlds))
+        object.__setattr__(self, "methods", _names(self.methods, "methods", METHODS))
+        object.__setattr__(self, "sb3_worlds", _names(self.sb3_worlds, "sb3_worlds", SB3_WORLDS))
+        for name in ("seeds", "steps", "hidden", "buffer_size", "batch_size", "train_every"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name}={value!r} must be an integer >= 1")
+        for name in ("seed", "learning_starts", "eval_episodes"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"{name}={value!r} must be an integer >= 0")
+        if self.grid_size < 3 or self.minigrid_size < 5:
+            raise ValueError("grid_size must be >= 3 and minigrid_size >= 5")
+        for name, low, high in (
+            ("lr", 0.0, 1.0),
+            ("gamma", 0.0, 1.0),
+            ("tau", 0.0, 1.0),
+            ("eps_start", 0.0, 1.0),
+            ("eps_end", 0.0, 1.0),
+            ("exploration_fraction", 0.0, 1.0),
+            ("success_threshold", 0.0, 1.0),
+        ):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or not low <= value <= high:
+                raise ValueError(f"{name}={value!r} must be a number in [{low}, {high}]")
+        if self.eps_end > self.eps_start:
+            raise ValueError(f"eps_end={self.eps_end} must be <= eps_start={self.eps_start}")

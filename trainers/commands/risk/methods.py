@@ -1,0 +1,469 @@
+"""``factorq risk``'s methods, each training and evaluating one unit (one world, method and
+seed): torchrl's DQN recipe alone or with ``factorq_torch.risk``'s layer (``run_torchrl``: the
+env, its features, the local reward provider, the greedy evaluation) and Stable-Baselines3's DQN
+alone or with ``factorq_torch.integrations.sb3`` (``run_sb3``); ``quiet_torchrl`` silences
+torchrl's INFO lines while a unit runs. The command is ``factorq_trainers.commands.risk.command``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import statistics
+import time
+import warnings
+from collections.abc import Iterator
+from typing import TYPE_CHECKING, Any
+
+from factorq_envs.worlds import resolve_world
+from factorq_trainers.commands.risk.config import (
+    OWN_WORLDS,
+    Progress,
+    RiskConfig,
+)
+
+if TYPE_CHECKING:
+    import torch
+
+    from factorq_torch.structure import StructureLearner
+    from factorq_torch.tables import LocalRewardTable
+
+
+# --------------------------------------------------------------------------------------------
+# One unit: the torchrl recipe
+
+
+def make_env(config: RiskConfig, world: str, seed: int) -> Any:  # a TransformedEnv (untyped)
+    """The world as a torchrl env of batch ``[1]`` with ``local_reward`` beside the reward.
+
+    Args:
+        config: the experiment.
+        world: ``"grid"``, ``"minigrid"`` or a declared world's name
+            (``factorq_envs.worlds``: ``highway``, an installed one, ``package.module:NAME``),
+            through the Gymnasium adapter.
+        seed: the world's seed.
+    """
+    from torchrl.envs import TransformedEnv
+
+    from factorq_envs import FactoredGridEnv, SplitLocalReward
+
+    base: Any
+    if world == "grid":
+        base = FactoredGridEnv(
+            size=config.grid_size,
+            num_obstacles=config.grid_obstacles,
+            obstacle_period=1,
+            batch_size=(1,),
+            seed=seed,
+        )
+    elif world == "minigrid":
+        from factorq_envs.minigrid_torchrl import MiniGridEnv
+
+        base = MiniGridEnv(config.minigrid_size, seeds=[seed])
+    else:
+        from factorq_envs.declared_env import declared_torchrl_env
+
+        declared = resolve_world(world)
+        base = declared_torchrl_env(declared.make, [seed], exclude=list(declared.exclude))
+    return TransformedEnv(base, SplitLocalReward(keep_reward=True))
+
+
+def _survival(world: str) -> bool:
+    """Whether ``world``'s success is running to the time limit without a collision (highway)
+    rather than ending without one (``DeclaredWorld.survival``)."""
+    return world not in OWN_WORLDS and resolve_world(world).survival
+
+
+def _penalty(env: Any) -> float:
+    """The world's collision penalty: the declared one (highway: 2/3), else 1."""
+    declaration = getattr(env.base_env, "declaration", None)
+    return 1.0 if declaration is None else float(declaration.penalty)
+
+
+def features(env: Any) -> tuple[Any, int]:
+    """``features`` ``[*B, N H + K]``: the (cell, heading) one-hot and the sensor bits, the
+    information Q-learning's state holds, as a TensorDict module, and its width. A declared world
+    without a task state (no ``cell``: highway) has its own observation (``observation``, left as
+    it is; highway's ``Kinematics`` ``[*B, 5, 5]``) flattened instead of the one-hot, so DQN alone
+    sees what the layer sees. ``features`` never collides with an env's own entry (a non-Dict
+    env's observation is ``observation``).
+
+    Args:
+        env: a ``make_env`` env.
+    """
+    import torch
+    from tensordict.nn import TensorDictModule
+
+    spec = env.observation_spec
+    if "cell" not in spec.keys():
+        own = spec["observation"].shape[len(env.batch_size) :]
+
+        class Observation(torch.nn.Module):
+            def forward(self, observation: torch.Tensor, sensors: torch.Tensor) -> torch.Tensor:
+                flat = observation.flatten(observation.dim() - len(own)).to(torch.float32)
+                return torch.cat([flat, sensors.to(torch.float32)], dim=-1)
+
+        width = own.numel() + spec["sensors"].shape[-1]
+        module = TensorDictModule(
+            Observation(), in_keys=["observation", "sensors"], out_keys=["features"]
+        )
+        return module, width
+    cells = int(spec["cell"].space.n)
+    headings = int(spec["heading"].space.n) if "heading" in spec.keys() else 1
+
+    class Features(torch.nn.Module):
+        def forward(
+            self, cell: torch.Tensor, sensors: torch.Tensor, heading: torch.Tensor | None = None
+        ) -> torch.Tensor:
+            position = cell if heading is None else cell * headings + heading
+            one_hot = torch.nn.functional.one_hot(position, cells * headings).to(torch.float32)
+            return torch.cat([one_hot, sensors.to(torch.float32)], dim=-1)
+
+    in_keys = ["cell", "sensors"] + (["heading"] if headings > 1 else [])
+    width = cells * headings + spec["sensors"].shape[-1]
+    return TensorDictModule(Features(), in_keys=in_keys, out_keys=["features"]), width
+
+
+def provider(method: str, env: Any) -> LocalRewardTable | StructureLearner | None:
+    """The local value provider of a ``dqn+risk-*`` method (None for plain DQN).
+
+    Args:
+        method: one of ``METHODS``.
+        env: a ``make_env`` env (its base env's dependency).
+    """
+    from factorq_torch.structure import StructureLearner
+    from factorq_torch.tables import LocalRewardTable
+
+    dependency = env.base_env.dependency
+    if method.endswith("risk-oracle"):
+        return LocalRewardTable(1, dependency=dependency)
+    if method.endswith("risk-learned"):
+        actions, sensors = dependency.shape
+        return StructureLearner(1, num_actions=actions, num_sensors=sensors)
+    return None
+
+
+class _Tally:
+    """Training episodes of one world: collisions, returns, successes, steps to threshold."""
+
+    def __init__(self, threshold: float) -> None:
+        self.threshold, self.steps, self.collisions = threshold, 0, 0
+        self.returns: list[float] = []
+        self.successes: list[bool] = []
+        self.current = 0.0
+        self.steps_to_threshold: int | None = None
+
+    def step(self, reward: float, collided: bool, done: bool, success: bool) -> None:
+        self.steps += 1
+        self.collisions += int(collided)
+        self.current += reward
+        if done:
+            self.returns.append(self.current)
+            self.successes.append(success)
+            self.current = 0.0
+            recent = self.successes[-10:]
+            if (
+                self.steps_to_threshold is None
+                and len(recent) == 10
+                and sum(recent) / 10 >= self.threshold
+            ):
+                self.steps_to_threshold = self.steps
+
+
+def _step_flags(
+    td: Any, survive: bool = False
+) -> tuple[list[float], list[bool], list[bool], list[bool]]:
+    """Per world of one collected step: reward, collided, done, success (the goal reached;
+    ``survive``, as on highway: the episode ran to its time limit without a crash)."""
+    reward = td["next", "reward"].reshape(-1).tolist()
+    collided = (td["next", "collision"] < 0).any(-1).reshape(-1)
+    done = td["next", "done"].reshape(-1)
+    ended = td["next", "truncated" if survive else "terminated"].reshape(-1)
+    success = ended & ~collided
+    return reward, collided.tolist(), done.tolist(), success.tolist()
+
+
+def run_torchrl(
+    config: RiskConfig, unit: dict[str, Any], progress: Progress | None = None
+) -> dict[str, Any]:
+    """torchrl's DQN recipe, plus the two lines of the local-risk layer for ``dqn+risk-*``.
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+        progress: called with the env steps of each collected batch.
+    """
+    import torch
+    from tensordict.nn import TensorDictSequential
+    from torchrl.data import LazyTensorStorage, ReplayBuffer
+    from torchrl.modules import MLP, EGreedyModule, QValueActor
+    from torchrl.objectives import DQNLoss, SoftUpdate
+
+    from factorq_torch.risk import RISK_MASK, LocalRisk, LocalRiskLoss, RiskSummary, with_local_risk
+    from factorq_torch.structure import StructureLearner
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", category=DeprecationWarning)
+        from torchrl.collectors import Collector
+
+    torch.manual_seed(unit["seed"])
+    env = make_env(config, unit["world"], unit["seed"])
+    spec = env.action_spec_unbatched
+    encoder, width = features(env)
+    network = MLP(in_features=width, out_features=int(spec.space.n), num_cells=[config.hidden] * 2)
+    actor = QValueActor(
+        TensorDictSequential(encoder, _module(network, encoder.out_keys[0])),
+        in_keys=list(encoder.in_keys),
+        spec=spec,
+    )
+    local = provider(unit["method"], env)
+    survive = _survival(unit["world"])
+    # "risky" in local-reward units: a collision more likely than not, whatever its penalty
+    options: dict[str, Any] = {"mask_threshold": 0.5 * _penalty(env)}
+    if unit["world"] not in OWN_WORLDS:  # a declared world: sensor names from its declaration
+        names = env.base_env.declaration.sensor_names
+        options.update(active="on", **({"sensor_names": names} if names else {}))
+    acting = actor if local is None else with_local_risk(actor, local, env=env, **options)  # 1
+    local_loss = None if local is None else LocalRiskLoss(local)  # line 2
+    summary: RiskSummary | None = None  # what the layer did, per training episode (the logs)
+    if local is not None:
+        layer = next(module for module in acting.modules() if isinstance(module, LocalRisk))
+        summary = RiskSummary(layer.actuator_names)
+    risk_log: list[dict[str, Any]] = []
+    annealing = max(1, round(config.exploration_fraction * config.steps))
+    mask = None if local is None else RISK_MASK  # explore among the actions not called risky
+    egreedy = EGreedyModule(
+        spec,
+        eps_init=config.eps_start,
+        eps_end=config.eps_end,
+        annealing_num_steps=annealing,
+        action_mask_key=mask,
+    )
+    policy = TensorDictSequential(acting, egreedy)
+    loss = DQNLoss(actor, action_space=spec, delay_value=True, loss_function="l2")
+    loss.make_value_estimator(gamma=config.gamma)
+    target = SoftUpdate(loss, tau=config.tau)
+    optimizer = torch.optim.Adam(loss.parameters(), lr=config.lr)
+    buffer = ReplayBuffer(
+        storage=LazyTensorStorage(config.buffer_size), batch_size=config.batch_size
+    )
+    collector = Collector(
+        env,
+        policy,
+        frames_per_batch=config.train_every,
+        total_frames=config.steps,
+        auto_register_policy_transforms=False,  # no recurrent state
+    )
+    tally = _Tally(config.success_threshold)
+    started = time.perf_counter()
+    for data in collector:  # [1, T]
+        data = data.reshape(-1)
+        for t in range(data.shape[0]):
+            step = data[t : t + 1]
+            if summary is not None:
+                summary.update(step)
+            for flags in zip(*_step_flags(step, survive), strict=True):
+                tally.step(*flags)
+                if summary is not None and flags[2]:  # the episode is done
+                    risk_log.append(summary.episode())
+        egreedy.step(data.shape[0])
+        if local_loss is not None:
+            local_loss(data)  # eq. 5 on every transition once (the running means)
+        buffer.extend(data)
+        if tally.steps >= config.learning_starts:
+            sample = buffer.sample()
+            value = loss(sample)["loss"]
+            optimizer.zero_grad()
+            value.backward()
+            optimizer.step()
+            target.step()
+        if progress is not None:
+            progress(data.shape[0])
+    collector.shutdown()
+    wall = time.perf_counter() - started
+    greedy = evaluate(config, unit, acting)
+    result = _result(tally, greedy, wall)
+    if summary is not None:
+        result["risk_log"] = risk_log
+    if isinstance(local, StructureLearner):  # what it found, beside the env's declared oracle
+        result["structure"] = _structure(local, layer, env)
+    return result
+
+
+def _structure(learner: StructureLearner, layer: Any, env: Any) -> dict[str, Any]:
+    """The learner's committed parents per actuator (sensor names; ``None`` while open) and the
+    env's dependency in the same form (``None`` where it declares none)."""
+    sensors, actuators = layer.sensor_names, layer.actuator_names
+
+    def parents(rows: Any) -> list[list[str]]:
+        return [[sensors[k] for k, on in enumerate(row) if on] for row in rows.tolist()]
+
+    committed = learner.is_committed()[0].tolist()
+    found = parents(learner.structure()[0])
+    dependency = getattr(env, "dependency", None)
+    return {
+        "actuators": list(actuators),
+        "parents": [names if done else None for names, done in zip(found, committed, strict=True)],
+        "oracle": None if dependency is None else parents(dependency),
+    }
+
+
+def _module(network: torch.nn.Module, key: str) -> Any:
+    from tensordict.nn import TensorDictModule
+
+    return TensorDictModule(network, in_keys=[key], out_keys=["action_value"])
+
+
+def evaluate(config: RiskConfig, unit: dict[str, Any], acting: Any) -> dict[str, int]:
+    """Greedy episodes after training (torchrl's ``DETERMINISTIC`` exploration) on fresh worlds
+    of the same kind: collisions and successes.
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)``.
+        acting: the greedy policy (a tensordict module).
+    """
+    import torch
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    env = make_env(config, unit["world"], 10_000 + unit["seed"])
+    collisions = successes = 0
+    survive = _survival(unit["world"])
+    if unit["world"] not in OWN_WORLDS:
+        limit = resolve_world(unit["world"]).max_steps  # the env's own time limit ends sooner
+    else:
+        limit = 4 * (config.grid_size if unit["world"] == "grid" else config.minigrid_size) ** 2
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        for _ in range(config.eval_episodes):
+            rollout = env.rollout(limit, acting, break_when_any_done=True)
+            collided = (rollout["next", "collision"] < 0).any(-1)
+            collisions += int(collided.sum())
+            if survive:  # survived: ran to the time limit, no crash
+                successes += int(not bool(collided.any()))
+            else:
+                successes += int((rollout["next", "terminated"].squeeze(-1) & ~collided).any())
+    return {"collisions": collisions, "successes": successes, "episodes": config.eval_episodes}
+
+
+def _result(tally: _Tally, greedy: dict[str, int], wall: float) -> dict[str, Any]:
+    tail = tally.returns[-max(1, len(tally.returns) // 5) :] if tally.returns else [math.nan]
+    return {
+        "train_collisions": tally.collisions,
+        "episodes": len(tally.returns),
+        "final_return": statistics.fmean(tail),
+        "steps_to_threshold": tally.steps_to_threshold,
+        "greedy_collisions": greedy["collisions"],
+        "greedy_success": greedy["successes"] / max(1, greedy["episodes"]),
+        "wall_s": wall,
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# One unit: Stable-Baselines3
+
+
+def run_sb3(
+    config: RiskConfig, unit: dict[str, Any], progress: Progress | None = None
+) -> dict[str, Any]:
+    """SB3's DQN on the gymnasium grid (``FactoredGrid-v0``), alone or as ``LocalRiskDQN`` with
+    the oracle table (the ``sb3`` extra); the same budget and hyperparameters as the torchrl
+    units.
+
+    Args:
+        config: the experiment.
+        unit: one of ``units(config)`` (its world must be ``"grid"``).
+        progress: called with the env steps of each callback.
+    """
+    import gymnasium
+    from stable_baselines3 import DQN
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    import factorq_envs  # noqa: F401  (registers FactoredGrid-v0)
+    from factorq_envs.gymnasium_env import FactoredGridGym
+    from factorq_torch.integrations.sb3 import LocalRiskDQN
+    from factorq_torch.tables import LocalRewardTable
+
+    if unit["world"] != "grid":
+        raise ValueError("the sb3 methods run on the grid world only (sb3_worlds)")
+    tally = _Tally(config.success_threshold)
+
+    class Tally(BaseCallback):
+        def _on_step(self) -> bool:
+            for reward, done, info in zip(
+                self.locals["rewards"], self.locals["dones"], self.locals["infos"], strict=True
+            ):
+                collided = bool((info["local_reward"] < 0).any())
+                success = bool(done) and not info.get("TimeLimit.truncated", False)
+                tally.step(float(reward), collided, bool(done), success and not collided)
+            if progress is not None:
+                progress(len(self.locals["infos"]))
+            return True
+
+    def grid_env(seed: int) -> gymnasium.Env:
+        env = gymnasium.make(
+            "FactoredGrid-v0",
+            size=config.grid_size,
+            num_obstacles=config.grid_obstacles,
+            obstacle_period=1,
+        )
+        env.reset(seed=seed)
+        return env
+
+    env = grid_env(unit["seed"])
+    settings: dict[str, Any] = dict(
+        learning_rate=config.lr,
+        buffer_size=config.buffer_size,
+        learning_starts=config.learning_starts,
+        batch_size=config.batch_size,
+        tau=config.tau,
+        gamma=config.gamma,
+        train_freq=config.train_every,
+        target_update_interval=1,  # with tau: SoftUpdate every gradient step, as torchrl's
+        exploration_fraction=config.exploration_fraction,
+        exploration_initial_eps=config.eps_start,
+        exploration_final_eps=config.eps_end,
+        policy_kwargs={"net_arch": [config.hidden, config.hidden]},
+        seed=unit["seed"],
+        verbose=0,
+    )
+    if unit["method"] == "sb3-dqn":
+        model = DQN("MultiInputPolicy", env, **settings)
+    else:
+        grid = env.unwrapped
+        assert isinstance(grid, FactoredGridGym)  # what FactoredGrid-v0 makes; for mypy
+        provider = LocalRewardTable(1, dependency=grid.config.dependency)
+        model = LocalRiskDQN("MultiInputPolicy", env, provider=provider, **settings)
+    started = time.perf_counter()
+    model.learn(config.steps, callback=Tally())
+    wall = time.perf_counter() - started
+    evaluation = grid_env(10_000 + unit["seed"])
+    collisions = successes = 0
+    for _ in range(config.eval_episodes):
+        obs, _ = evaluation.reset()
+        for _ in range(4 * config.grid_size**2):
+            action, _ = model.predict(obs, deterministic=True)
+            obs, _, terminated, truncated, info = evaluation.step(int(action))
+            collided = bool((info["local_reward"] < 0).any())
+            collisions += int(collided)
+            if terminated or truncated:
+                successes += int(terminated and not collided)
+                break
+    greedy = {"collisions": collisions, "successes": successes, "episodes": config.eval_episodes}
+    return _result(tally, greedy, wall)
+
+
+@contextlib.contextmanager
+def quiet_torchrl() -> Iterator[None]:
+    """torchrl's logger at WARNING while the block runs (it prints an INFO line per replay buffer
+    it allocates, to stdout by default), its own level restored after."""
+    import torchrl  # noqa: F401  (its import sets the logger's level: before ours, not after)
+
+    logger = logging.getLogger("torchrl")
+    level = logger.level
+    if logger.getEffectiveLevel() < logging.WARNING:
+        logger.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)

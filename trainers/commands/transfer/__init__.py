@@ -1,0 +1,1 @@
+"""``factorq transfer``: its command (``command.py``) and what only it needs."""

@@ -1,0 +1,428 @@
+"""``factorq transfer``: a body model learned once, carried into a new task (the paper's section 9).
+
+The paper's conclusion: the local model "relates to the agent and is independent of any particular
+task", so "for a given embodiment, this would only have to be done once". Here it is done once and
+carried: per seed, tabular Factor-Q with the oracle pairing learns its local tables (the *body
+model*, ``rho`` and ``kappa`` of eq. 5) in a *source* task, and a fresh task table learns a
+*target* task (another grid size, layout and obstacle regime) with that body model, against
+
+- ``factor-q``: Factor-Q learning the target from scratch (the paper's agent),
+- ``factor-q-body``: the same agent, starting from the source's body model (still learning it),
+- ``q-learning``: the paper's baseline, for the absolute scale,
+
+on the same worlds and policy streams (common random numbers). Measured per seed: collisions in
+the first ``early`` episodes of the target (what the body model saves), and the steps per episode
+and collisions over the last ``early`` (the final task performance, which it must not cost).
+
+``--body-model PATH`` replaces the source task by a body model saved with
+``factorq_torch.artifacts.save_agent`` (a ``LocalRewardTable`` of 1 or ``seeds`` experiments;
+``train_body_model`` makes one): it is loaded for the target's body, and a model of another body
+is refused naming both.
+
+Runs on the compiled fast path where it can (``fast.ExperimentBatch``, the body model written into
+its state), else on the modular torchrl path (``OnlineCollector``): the same numbers bit for bit.
+One unit per (method, regime). Writes ``transfer.json``, ``transfer.md`` and ``transfer.png``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from factorq_envs.grid_world import WorldConfig
+from factorq_envs.regimes import REGIME_PERIODS, REGIMES
+from factorq_torch.base.config import EXPLORATIONS, AgentConfig
+from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, substream_key
+from factorq_torch.base.validation import INT32_MAX, check_int, check_names, check_threads
+from factorq_trainers.analysis.stats import bootstrap_mean_ci, count_ratio, scalar_ci
+from factorq_trainers.methods.experiment import (
+    MAX_SEED,
+    WorldOptions,
+    body_options,
+    check_world_options,
+    experiment_keys,
+)
+from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, TEXT
+from factorq_trainers.runner.options import option
+
+NAME = "transfer"
+HELP = "a body model learned once and carried into a new task, against learning from scratch"
+DESCRIPTION = (
+    "Learn Factor-Q's local tables (the body model) in a source task, then learn a target task "
+    "with them against Factor-Q and Q-learning from scratch; write transfer.json, transfer.png "
+    "and transfer.md to --out."
+)
+METHODS = ("factor-q", "factor-q-body", "q-learning", "learned", "learned-body")
+#: What runs unless ``--methods`` says otherwise (the learned structure runs on the torchrl path
+#: only, minutes where the rest takes seconds: opt-in).
+DEFAULT_METHODS = METHODS[:3]
+#: The fresh method each carried one is measured against.
+PAIRS = {"factor-q-body": "factor-q", "learned-body": "learned"}
+#: The issue's target: the body model's collisions in the first ``early`` episodes of the target
+#: at most a fifth of a fresh Factor-Q's.
+TARGET_RATIO = 5.0
+#: Substream of the source task's keys (the target's are the streams themselves).
+SOURCE_SUBSTREAM = 1
+
+_PER_SEED = {
+    "early_collisions": [COUNT],
+    "late_collisions": [COUNT],
+    "late_steps": [NON_NEGATIVE],
+    "late_truncated": [FRACTION],
+    "collisions_per_episode": [NON_NEGATIVE],
+}
+#: A unit's result (``run_unit``), what a kept one must hold (``runner.kept``'s schema).
+UNIT_RESULT = {**_PER_SEED, "path": TEXT, "body_from": TEXT}
+
+
+@dataclass(frozen=True)
+class TransferConfig(WorldOptions):
+    """The target task is the world options (``size``, ``obstacles``, ``layout_seed``, the body)
+    in each of ``regimes``; the source task shares the body and ``max_steps``."""
+
+    size: int = option(14, "Side of the target grid, in cells.")
+    obstacles: int = option(20, "Obstacles of the target grid.")
+    layout_seed: int = option(1, "Seed of the target's static layout.")
+    regimes: tuple[str, ...] = option(
+        REGIMES, "Obstacle regimes of the target: static, semi-dynamic, dynamic (comma-separated)."
+    )
+    episodes: int = option(100, "Episodes of the target task per seed (one run).")
+    early: int = option(20, "The first (and last) episodes the collisions are counted over.")
+    source_size: int = option(10, "Side of the source grid (the paper's).")
+    source_obstacles: int = option(10, "Obstacles of the source grid.")
+    source_layout_seed: int = option(0, "Seed of the source's static layout.")
+    source_regime: str = option("static", "Obstacle regime of the source task.", choices=REGIMES)
+    source_episodes: int = option(200, "Episodes of the source task per seed (one run).")
+    body_model: str | None = option(
+        None,
+        "A body model saved with factorq_torch.artifacts.save_agent (a LocalRewardTable of 1 or "
+        "--seeds experiments) to carry instead of learning one in the source task.",
+    )
+    exploration: str = option(
+        "risk-aware",
+        "Factor-Q's exploratory actions: risk-aware (among the actuators its local model does not "
+        "call risky) or uniform (the paper's: exploration then walks into known risks, which no "
+        "body model can save). Q-learning explores uniformly.",
+        choices=EXPLORATIONS,
+    )
+    methods: tuple[str, ...] = option(
+        DEFAULT_METHODS,
+        "Methods: " + ", ".join(METHODS) + " (learned, learned-body: the structure learner, told "
+        "nothing of the pairing, on the torchrl path only: slow, opt-in).",
+    )
+    seed: int = option(0, "Master seed: worlds and policies derive from it.")
+    seeds: int = option(20, "Independent experiments per (method, regime).")
+    path: str = option(
+        "fast",
+        "Where it runs: fast (the compiled kernel, where available) or modular (torchrl).",
+        choices=("fast", "modular"),
+    )
+    threads: int = option(1, "Threads of the compiled path.")
+    out: str = option("results/transfer", "Directory for the json, figure and report.")
+
+    def __post_init__(self) -> None:
+        check_int("seed", self.seed, 0, MAX_SEED)
+        check_int("seeds", self.seeds, 1, 100_000)
+        object.__setattr__(self, "regimes", check_names("regimes", self.regimes, REGIMES))
+        object.__setattr__(self, "methods", check_names("methods", self.methods, METHODS))
+        check_int("episodes", self.episodes, 1, INT32_MAX)
+        check_int("early", self.early, 1, self.episodes, f" (episodes={self.episodes})")
+        check_int("source_episodes", self.source_episodes, 1, INT32_MAX)
+        check_threads("threads", self.threads)
+        AgentConfig(exploration=self.exploration)  # named if unknown
+        for world in ("target_world", "source_world"):
+            getattr(self, world)  # both checked now, naming the options
+
+    @property
+    def target_world(self) -> WorldConfig:
+        return check_world_options(
+            self.size,
+            self.obstacles,
+            self.max_steps,
+            self.layout_seed,
+            self.regimes,
+            body_options(self),
+        )
+
+    @property
+    def source_world(self) -> WorldConfig:
+        try:
+            return check_world_options(
+                self.source_size,
+                self.source_obstacles,
+                self.max_steps,
+                self.source_layout_seed,
+                (self.source_regime,),
+                body_options(self),
+            )
+        except (ValueError, TypeError) as error:
+            message = str(error)
+            for name in ("size", "obstacles", "layout_seed"):
+                message = message.replace(f"{name}=", f"source_{name}=", 1)
+            raise type(error)(message) from None
+
+    def agent(self, method: str) -> AgentConfig:
+        """The paper's agent; Factor-Q with ``exploration``."""
+        return AgentConfig(exploration="uniform" if method == "q-learning" else self.exploration)
+
+
+CONFIG = TransferConfig
+
+
+# --------------------------------------------------------------------------------------------
+# Running one batch of experiments
+
+
+def _keys(config: TransferConfig, regime: str, source: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """World and policy keys ``[seeds]``: the same for every method (common random numbers);
+    the source task's on their own substream."""
+    labels = [(regime, index) for index in range(config.seeds)]
+    keys = [
+        experiment_keys(config.seed, stream, labels) for stream in (STREAM_WORLD, STREAM_POLICY)
+    ]
+    if source:
+        keys = [substream_key(key, SOURCE_SUBSTREAM) for key in keys]
+    return keys[0], keys[1]
+
+
+def _uses_fast(config: TransferConfig, world: WorldConfig) -> bool:
+    from factorq_trainers.compiled import fast
+
+    return config.path == "fast" and fast.is_available() and fast.unsupported_reason(world) is None
+
+
+def run_batch(
+    config: TransferConfig,
+    algorithm: str,
+    world: WorldConfig,
+    regime: str,
+    episodes: int,
+    *,
+    source: bool = False,
+    body: dict[str, torch.Tensor] | None = None,
+    progress: Callable[[int], None] | None = None,
+    learned: bool = False,
+) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor] | None, str]:
+    """``seeds`` experiments of ``algorithm`` for one run of ``episodes`` in ``world`` with
+    ``regime``'s obstacle period, Factor-Q's local model starting from ``body`` when given: the
+    oracle's tables (``rho``, ``kappa`` ``[seeds, A, 2**parents]``) or, with ``learned``, a
+    ``StructureLearner``'s whole state (its evidence; on the torchrl path only). Returns the
+    per-episode metrics ``[seeds, 1, episodes]``, Factor-Q's local model at the end (else None)
+    and the path it ran on."""
+    world_keys, policy_keys = _keys(config, regime, source)
+    periods = torch.full((config.seeds,), REGIME_PERIODS[regime], dtype=torch.int64)
+    agent = config.agent(algorithm)
+    if not learned and _uses_fast(config, world):
+        from factorq_trainers.compiled import fast
+
+        batch = fast.ExperimentBatch(
+            algorithm, periods, world, agent, 1, episodes, world_keys, policy_keys,
+            threads=config.threads,
+        )  # fmt: skip
+        if body is not None:
+            state = batch.state_dict()
+            state["rho"], state["kappa"] = body["rho"].clone(), body["kappa"].clone()
+            batch.load_state_dict(state)
+        metrics = batch.run(progress)
+        tables = batch.tables() if algorithm == "factor-q" else None
+        local = None if tables is None else {name: tables[name] for name in ("rho", "kappa")}
+        return metrics, local, "fast"
+    from factorq_torch.collectors import OnlineCollector
+    from factorq_trainers.methods.experiment import make_env, online_agent, tabular_values
+
+    task, table = tabular_values(algorithm, config.seeds, world)
+    if learned:
+        from factorq_torch.structure import StructureLearner
+
+        table = StructureLearner(
+            config.seeds, num_actions=world.num_actuators, num_sensors=world.num_sensors
+        )
+        if body is not None:
+            table.load_state_dict(body)
+    elif table is not None and body is not None:
+        table.load_state_dict({**table.state_dict(), **body})
+    env, policy, loss = online_agent(
+        make_env(world, periods, world_keys), task, table, agent, policy_keys
+    )
+    on_episodes = None if progress is None else (lambda done, _experiments: progress(done))
+    collector = OnlineCollector(env, policy, loss, runs=1, episodes=episodes, progress=on_episodes)
+    result = collector.run()
+    metrics = {name: result.get(name).clone() for name in result.keys()}
+    if table is None:
+        return metrics, None, "modular"
+    kept = table.state_dict() if learned else {"rho": table.rho, "kappa": table.kappa}
+    return metrics, {name: value.clone() for name, value in kept.items()}, "modular"
+
+
+def train_body_model(config: TransferConfig, learned: bool = False) -> Any:
+    """The body model of every seed, learned by Factor-Q in the source task: a
+    ``LocalRewardTable`` ``[seeds]`` on the oracle pairing, or with ``learned`` a
+    ``StructureLearner`` told nothing of it (``save_agent`` writes either)."""
+    from factorq_torch.structure import StructureLearner
+    from factorq_torch.tables import LocalRewardTable
+
+    world = config.source_world
+    _, local, _ = run_batch(
+        config, "factor-q", world, config.source_regime, config.source_episodes, source=True,
+        learned=learned,
+    )  # fmt: skip
+    assert local is not None
+    if learned:
+        learner = StructureLearner(
+            config.seeds, num_actions=world.num_actuators, num_sensors=world.num_sensors
+        )
+        learner.load_state_dict(local)
+        return learner
+    table = LocalRewardTable(config.seeds, dependency=world.dependency)
+    table.load_state_dict({**table.state_dict(), **local})
+    return table
+
+
+def load_body_model(config: TransferConfig) -> dict[str, torch.Tensor]:
+    """``--body-model``'s tables for every seed, checked against the target's body (one
+    ``AgentFileError`` line naming the file and both bodies otherwise)."""
+    from factorq_torch.artifacts import AgentFileError, load_agent
+    from factorq_torch.tables import LocalRewardTable
+    from factorq_trainers.methods.experiment import make_env
+
+    world = config.target_world
+    probe = make_env(world, [0], torch.zeros(1, dtype=torch.int64))
+    module = load_agent(str(config.body_model), env=probe)
+    if not isinstance(module, LocalRewardTable):
+        raise AgentFileError(
+            f"body model {config.body_model} is a {type(module).__name__}: factorq transfer "
+            f"carries a LocalRewardTable"
+        )
+    if not torch.equal(module.dependency.cpu(), world.dependency.cpu()):
+        raise AgentFileError(
+            f"body model {config.body_model} pairs actuators and sensors as "
+            f"{module.dependency.int().tolist()}; the target body's dependency is "
+            f"{world.dependency.int().tolist()}"
+        )
+    held = module.rho.shape[0]
+    if held not in (1, config.seeds):
+        raise AgentFileError(
+            f"body model {config.body_model} holds {held} experiments: give one, or seeds={held}"
+        )
+    return {
+        name: getattr(module, name).detach().expand(config.seeds, -1, -1).clone()
+        for name in ("rho", "kappa")
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# The command protocol
+
+
+def prepare(config: TransferConfig) -> None:
+    """A ``--body-model`` is read and checked before any work."""
+    if config.body_model is not None:
+        load_body_model(config)
+
+
+def units(config: TransferConfig) -> list[dict[str, Any]]:
+    """One unit per (method, regime)."""
+    return [
+        {"id": f"{method}-{regime}", "method": method, "regime": regime}
+        for method in config.methods
+        for regime in config.regimes
+    ]
+
+
+def work(config: TransferConfig, unit: dict[str, Any]) -> int:
+    """The progress bar's share of a unit: its episodes (the source's included)."""
+    method = unit["method"]
+    carried_file = method == "factor-q-body" and config.body_model is not None
+    source = config.source_episodes if method in PAIRS and not carried_file else 0
+    return config.seeds * (config.episodes + source)
+
+
+def run_unit(
+    config: TransferConfig, unit: dict[str, Any], progress: Callable[[int], None] | None = None
+) -> dict[str, Any]:
+    """The unit's method in its regime: per-seed measures and the per-episode collision curve."""
+    method, regime = unit["method"], unit["regime"]
+    learned = method.startswith("learned")
+    body, body_from = None, "none"
+    if method == "factor-q-body" and config.body_model is not None:
+        body, body_from = load_body_model(config), "file"
+    elif method in PAIRS:
+        model = train_body_model(config, learned=learned)
+        body = {name: value.detach() for name, value in model.state_dict().items()}
+        if not learned:
+            body = {name: body[name] for name in ("rho", "kappa")}
+        body_from = "source task"
+        if progress is not None:
+            progress(config.seeds * config.source_episodes)
+    algorithm = "q-learning" if method == "q-learning" else "factor-q"
+    metrics, _, path = run_batch(
+        config, algorithm, config.target_world, regime, config.episodes, body=body,
+        progress=progress, learned=learned,
+    )  # fmt: skip
+    collisions = metrics["collisions"][:, 0].to(torch.int64)  # [seeds, episodes]
+    steps = metrics["steps"][:, 0].to(torch.int64)
+    early = config.early
+    late = slice(config.episodes - early, config.episodes)
+    return {
+        "early_collisions": collisions[:, :early].sum(dim=1).tolist(),
+        "late_collisions": collisions[:, late].sum(dim=1).tolist(),
+        "late_steps": steps[:, late].double().mean(dim=1).tolist(),
+        "late_truncated": (steps[:, late] >= config.max_steps).double().mean(dim=1).tolist(),
+        "collisions_per_episode": collisions.double().mean(dim=0).tolist(),
+        "path": path,
+        "body_from": body_from,
+    }
+
+
+def _stat(values: list[float], seed: int) -> dict[str, Any]:
+    mean, low, high = scalar_ci(values, lambda samples: bootstrap_mean_ci(samples, seed))
+    data = np.asarray(values, dtype=np.float64)
+    return {
+        "mean": mean,
+        "ci95": None if low is None else [low, high],
+        "median": float(np.median(data)),
+        "range": [float(data.min()), float(data.max())],
+    }
+
+
+def summarise(config: TransferConfig, unit_results: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per regime: each method's measures over the seeds, and the body model against a fresh
+    Factor-Q (the ratio of mean early collisions, the final steps side by side)."""
+    results: dict[str, dict[str, Any]] = {regime: {} for regime in config.regimes}
+    paths, body_from = set(), "none"
+    for unit, outcome in zip(units(config), unit_results, strict=True):
+        paths.add(outcome["path"])
+        if outcome["body_from"] != "none":
+            body_from = outcome["body_from"]
+        results[unit["regime"]][unit["method"]] = {
+            **{
+                name: _stat(outcome[name], config.seed)
+                for name in ("early_collisions", "late_collisions", "late_steps", "late_truncated")
+            },
+            "collisions_per_episode": outcome["collisions_per_episode"],
+        }
+    against: dict[str, Any] = {}
+    for (carried, fresh_method), regime in (
+        (pair, regime) for pair in PAIRS.items() for regime in config.regimes
+    ):
+        methods = results[regime]
+        if fresh_method in methods and carried in methods:
+            fresh, body = methods[fresh_method], methods[carried]
+            early = fresh["early_collisions"]["mean"], body["early_collisions"]["mean"]
+            against.setdefault(carried, {})[regime] = {
+                "early_collisions_ratio": count_ratio(*early),
+                "target_met": bool(early[0] > 0 and early[0] >= TARGET_RATIO * early[1]),
+                "late_steps_fresh": fresh["late_steps"]["mean"],
+                "late_steps_body": body["late_steps"]["mean"],
+            }
+    return {
+        "results": results,
+        "body_against_fresh": against,
+        "path": "/".join(sorted(paths)),
+        "body_from": body_from,
+        "target_ratio": TARGET_RATIO,
+    }

@@ -1,0 +1,375 @@
+"""DQN baseline on the FactoredGrid worlds, built from torchrl's own pieces.
+
+    config -> keys -> env (conventional reward) -> Q-network -> QValueModule -> EGreedyModule
+           -> DQNLoss + HardUpdate + Adam -> torchrl Collector -> ReplayBuffer -> per-episode traces
+
+**Observation.** ``TaskQNetwork(with_proximity=True)`` reads the env's ``cell`` and ``proximity``
+and feeds the network the cell as a one-hot vector ``[N]`` concatenated with the 4 proximity bits
+as 0/1 floats, ``[N + 4]`` (the information Q-learning's tabular state holds). The replay buffer
+stores the raw ``cell``/``proximity`` entries; the features are recomputed inside the network.
+
+**Independent seeds in one batch.** ``S`` seeds x ``W`` worlds are ``E = W S`` experiments in one
+``FactoredGridEnv`` of ``batch_size=(E,)`` with one obstacle period per experiment. Each experiment
+has its own network: ``TaskQNetwork`` stacks ``E`` independent MLPs (weights ``[E, in, out]``), the
+loss is summed over experiments (so each network's gradient is its own experiment's), Adam keeps
+per-parameter moments, and the target network is a copy of all of them. torchrl's ``Collector``
+steps the batched env; the replay buffer (``ReplayBuffer`` + ``LazyTensorStorage``) stores one
+``[E]`` row per env step, so a minibatch ``[B, E]`` holds ``B`` transitions of every experiment.
+What the experiments do share: the minibatch's time indices and the position in torch's global
+random stream (``EGreedyModule`` and the sampler draw from it), which is why a DQN experiment's
+numbers depend on the batch it ran in (the network initialisation, the world and the env's
+obstacles do not; see ``batch_keys``).
+
+**Exploration.** torchrl's ``EGreedyModule``, epsilon annealed linearly from ``eps_start`` to
+``eps_end`` over ``exploration_fraction`` of the step budget. ``EGreedyModule`` does not record
+which actions it drew (DESIGN section 6), and greedy collisions need that flag;
+``ExploratoryEGreedy`` wraps it: it hands ``EGreedyModule`` the greedy action shifted out of range
+(``a + A``), so whatever comes back inside ``[0, A)`` is exactly what the epsilon branch drew, then
+restores the greedy action elsewhere and writes ``exploratory``. The wrapper also steps the
+annealing itself, once per call that explores (no schedule to step by hand, DESIGN section 5).
+
+**Defaults** follow CleanRL's ``dqn.py`` and torchrl's DQN example, scaled to this world; their
+sources and the measurements behind the scaling are in ``docs/decisions.md`` (Baselines).
+
+Per episode of every experiment (``factorq_trainers.methods.experiment.EpisodeRecorder``): path
+length, collisions, greedy collisions (collisions on non-exploratory actions), task return (step +
+goal rewards, as the tabular trainers record it), env steps so far, epsilon and loss.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
+from torchrl.data import Categorical, LazyTensorStorage, ReplayBuffer
+from torchrl.envs.utils import ExplorationType, exploration_type
+from torchrl.modules import EGreedyModule, QValueModule
+from torchrl.objectives import DQNLoss, HardUpdate
+
+from factorq_envs.grid_world import NUM_ACTIONS
+from factorq_envs.torchrl_env import FactoredGridEnv
+from factorq_torch.base.rng import STREAM_TASK_NETWORK, STREAM_WORLD
+from factorq_torch.base.validation import INT32_MAX, check_float, check_hidden, check_int
+from factorq_torch.neural import TaskQNetwork
+from factorq_trainers.methods.experiment import (
+    EpisodeRecorder,
+    ExperimentConfig,
+    experiment_keys,
+    make_env,
+)
+from factorq_trainers.runner.options import option
+
+with warnings.catch_warnings():
+    # torchrl 0.14.1 warns about its own deprecated weight updaters when the package is imported.
+    warnings.filterwarnings("ignore", "Creating .*WeightUpdater", DeprecationWarning)
+    from torchrl.collectors import Collector
+
+#: The widest hidden layer a config accepts (a layer's weights are [E, width, width] float32).
+#: Methods of ``factorq_trainers.commands.compare.command``; a method's index is part of its
+#: experiments' keys.
+METHODS = ("factor-q", "q-learning", "dqn", "factor-dqn")
+# --------------------------------------------------------------------------------------------
+# Validation
+
+
+def batch_keys(
+    experiments: ExperimentConfig, stream: int, method: str | None = None
+) -> torch.Tensor:
+    """Keys ``[E]`` of ``stream`` for the experiments of ``factorq compare``'s batch: number
+    ``3 i + w`` (as ``factorq paper``'s worlds), or with a ``method`` number
+    ``4 (3 i + w) + m`` (``m`` its index in ``METHODS``); see
+    ``factorq_trainers.methods.experiment.experiment_keys``."""
+    return experiment_keys(experiments.seed, stream, experiments.labels, METHODS, method)
+
+
+# --------------------------------------------------------------------------------------------
+# DQN
+
+
+def batch_env(
+    experiments: ExperimentConfig, device: torch.device | str | None = None
+) -> FactoredGridEnv:
+    """The batch's worlds: ``E`` experiments, one obstacle period and world key each."""
+    world_keys = batch_keys(experiments, STREAM_WORLD)
+    return make_env(
+        experiments.world, experiments.periods, world_keys, device=device, seed=experiments.seed
+    )
+
+
+@dataclass(frozen=True)
+class DQNConfig:
+    """DQN's hyperparameters (sources in the module docstring)."""
+
+    gamma: float = option(
+        0.9, "Discount of future reward, in [0, 1) (the SPEC's, shared by every method)."
+    )
+    hidden: tuple[int, ...] = option(
+        (64, 64), "Hidden layer widths of each experiment's Q-network."
+    )
+    lr: float = option(1e-3, "Adam learning rate.")
+    buffer_size: int = option(
+        10_000, "Replay buffer capacity, in env steps (each holds one transition per experiment)."
+    )
+    batch_size: int = option(128, "Transitions per experiment in a minibatch.")
+    learning_starts: int = option(500, "Env steps before the first gradient step.")
+    train_every: int = option(4, "Env steps per gradient step.")
+    target_update_interval: int = option(
+        50, "Gradient steps between hard copies of the network into the target network."
+    )
+    eps_start: float = option(1.0, "Initial exploration probability of EGreedyModule.")
+    eps_end: float = option(0.05, "Final exploration probability.")
+    exploration_fraction: float = option(
+        0.5, "Fraction of the step budget over which epsilon anneals linearly to eps_end."
+    )
+
+    def __post_init__(self) -> None:
+        check_float("gamma", self.gamma, 0.0, 1.0, high_open=True)
+        object.__setattr__(self, "hidden", check_hidden("hidden", self.hidden))
+        check_float("lr", self.lr, 0.0, 1.0, low_open=True)
+        check_int("buffer_size", self.buffer_size, 1, INT32_MAX)
+        check_int("batch_size", self.batch_size, 1, INT32_MAX)
+        check_int("learning_starts", self.learning_starts, 0, INT32_MAX)
+        check_int("train_every", self.train_every, 1, INT32_MAX)
+        check_int("target_update_interval", self.target_update_interval, 1, INT32_MAX)
+        check_float("eps_start", self.eps_start, 0.0, 1.0)
+        check_float("eps_end", self.eps_end, 0.0, 1.0)
+        if self.eps_end > self.eps_start:
+            raise ValueError(
+                f"eps_end={self.eps_end} is out of range: must be <= eps_start={self.eps_start} "
+                f"(epsilon only decreases)"
+            )
+        check_float("exploration_fraction", self.exploration_fraction, 0.0, 1.0, low_open=True)
+
+
+class ExploratoryEGreedy(TensorDictModuleBase):
+    """torchrl's ``EGreedyModule`` that also writes which actions it drew (``exploratory``).
+
+    ``EGreedyModule`` replaces ``action`` by a random one with probability ``eps`` and keeps no
+    record of it. Here it is handed ``action + A`` (out of the action range): an entry that comes
+    back in ``[0, A)`` was drawn by the epsilon branch -- even when it equals the greedy action,
+    the project's definition of exploratory (docs/decisions.md) -- and every other entry gets its
+    greedy action back. After each call that explored (exploration type ``RANDOM``), epsilon
+    anneals by one step: one call is one env step of every experiment.
+
+    Keys: reads ``action`` ``[E]`` int64 (the greedy one, from ``QValueModule``), writes
+    ``action`` and ``exploratory`` ``[E]`` bool.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> explore = ExploratoryEGreedy(eps_init=1.0, eps_end=0.0, annealing_num_steps=2)
+        >>> td = explore(TensorDict(action=torch.tensor([3, 3]), batch_size=[2]))
+        >>> td["exploratory"], float(explore.eps)
+        (tensor([True, True]), 0.5)
+    """
+
+    def __init__(
+        self,
+        eps_init: float = 1.0,
+        eps_end: float = 0.05,
+        annealing_num_steps: int = 1000,
+        num_actions: int = NUM_ACTIONS,
+    ) -> None:
+        super().__init__()
+        self.num_actions = num_actions
+        self.in_keys = ["action"]
+        self.out_keys = ["action", "exploratory"]
+        self.egreedy = EGreedyModule(
+            Categorical(num_actions, dtype=torch.int64),
+            eps_init=float(eps_init),
+            eps_end=float(eps_end),
+            annealing_num_steps=annealing_num_steps,
+        )
+
+    @property
+    def eps(self) -> torch.Tensor:
+        """The current exploration probability (a scalar tensor)."""
+        return self.egreedy.eps
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        greedy = tensordict.get("action")  # [E]
+        tensordict.set("action", greedy + self.num_actions)
+        self.egreedy(tensordict)
+        chosen = tensordict.get("action")
+        exploratory = chosen < self.num_actions  # [E]: drawn by the epsilon branch
+        tensordict.set("action", torch.where(exploratory, chosen, greedy))
+        tensordict.set("exploratory", exploratory)
+        if exploration_type() in (ExplorationType.RANDOM, None):
+            self.egreedy.step()
+        return tensordict
+
+
+#: Entries a DQN minibatch needs (the rest of a collected transition is not stored).
+_STORED = (
+    "cell",
+    "proximity",
+    "sensors",
+    "heading",
+    "action",
+    ("next", "cell"),
+    ("next", "proximity"),
+    ("next", "sensors"),
+    ("next", "heading"),
+    ("next", "reward"),
+    ("next", "done"),
+    ("next", "terminated"),
+)
+
+
+@dataclass
+class DQNAgent:
+    """The torchrl modules of a DQN batch (``build_dqn``)."""
+
+    q_network: TaskQNetwork
+    value_network: TensorDictSequential
+    exploration: ExploratoryEGreedy
+    policy: TensorDictSequential
+    loss: DQNLoss
+    target_updater: HardUpdate
+    optimizer: torch.optim.Optimizer
+    buffer: ReplayBuffer
+
+
+def build_dqn(
+    config: DQNConfig, experiments: ExperimentConfig, device: torch.device | str | None = None
+) -> DQNAgent:
+    """Q-network, exploration, DQNLoss with a target network, Adam and a replay buffer."""
+    device = torch.device("cpu" if device is None else device)
+    count = experiments.num_experiments
+    world = experiments.world
+    q_network = TaskQNetwork(
+        count,
+        experiments.size**2,
+        with_proximity=True,
+        num_sensors=world.num_sensors,
+        num_headings=world.num_headings,
+        num_actions=world.num_actuators,
+        hidden=config.hidden,
+        keys=batch_keys(experiments, STREAM_TASK_NETWORK, "dqn"),
+        zero_output=False,  # PyTorch's default initialisation, as the DQN examples
+        device=device,
+    )
+    return dqn_agent(q_network, world.num_actuators, config, experiments.steps, device)
+
+
+def dqn_agent(
+    q_network: TensorDictModuleBase,
+    actions: int,
+    config: DQNConfig,
+    steps: int,
+    device: torch.device | str | None = None,
+) -> DQNAgent:
+    """The DQN agent around ``q_network`` (``actions`` actions, ``steps`` env steps of budget for
+    the exploration schedule): greedy value module, exploration, DQNLoss with a target network,
+    Adam and a replay buffer on ``device``."""
+    device = torch.device("cpu" if device is None else device)
+    # QValueModule's spec is per sample (one action), not per batch.
+    value_network = TensorDictSequential(q_network, QValueModule(spec=Categorical(actions)))
+    annealing = max(1, round(config.exploration_fraction * steps))
+    exploration = ExploratoryEGreedy(config.eps_start, config.eps_end, annealing, actions)
+    policy = TensorDictSequential(value_network, exploration)
+    # Summed over the [B, E] minibatch and divided by B below: each experiment's network gets the
+    # gradient of its own mean squared TD error, as in a single-seed DQN.
+    loss = DQNLoss(
+        value_network,
+        loss_function="l2",
+        delay_value=True,
+        action_space="categorical",
+        reduction="sum",
+    )
+    loss.make_value_estimator(gamma=config.gamma)  # TD(0), bootstraps on "terminated" only
+    target_updater = HardUpdate(loss, value_network_update_interval=config.target_update_interval)
+    optimizer = torch.optim.Adam(loss.parameters(), lr=config.lr)
+    buffer = ReplayBuffer(
+        storage=LazyTensorStorage(config.buffer_size, device=device),
+        batch_size=config.batch_size,
+    )
+    return DQNAgent(
+        q_network, value_network, exploration, policy, loss, target_updater, optimizer, buffer
+    )
+
+
+ProgressCallback = Callable[[int, int], None]
+
+
+def run(
+    config: DQNConfig,
+    experiments: ExperimentConfig,
+    *,
+    logger: Any = None,
+    progress: ProgressCallback | None = None,
+    device: torch.device | str | None = None,
+) -> dict[str, Any]:
+    """Train DQN on every experiment of ``experiments`` for its step budget.
+
+    Returns ``{"config", "experiments", "traces", "wall_s", "env_steps"}``: ``traces`` holds one
+    ``EpisodeRecorder`` trace per experiment (world-major, seed-minor). ``progress(done, total)``
+    is called with env steps per experiment after every collector batch.
+    """
+    started = time.perf_counter()
+    device = torch.device("cpu" if device is None else device)
+    torch.manual_seed(experiments.seed)  # EGreedyModule and the sampler draw from it
+    env = batch_env(experiments, device)
+    agent = build_dqn(config, experiments, device)
+    count, steps = experiments.num_experiments, experiments.steps
+    frames_per_step = count  # one env step of the batch is E frames
+    collector = Collector(
+        env,
+        agent.policy,
+        frames_per_batch=frames_per_step * config.train_every,
+        total_frames=frames_per_step * steps,
+        device=device,
+        auto_register_policy_transforms=False,  # the policy keeps no recurrent state
+    )
+    recorder = EpisodeRecorder(experiments.labels, logger)
+    loss_per_experiment = torch.full((count,), math.nan)
+    done_steps, gradient_steps = 0, 0
+    for data in collector:  # [E, T]
+        data = data.select(
+            *_STORED, "exploratory", ("next", "bump"), ("next", "collision"), strict=False
+        )
+        for t in range(data.shape[1]):
+            if done_steps >= steps:
+                break
+            done_steps += 1
+            recorder.update(data[:, t], agent.exploration.eps, loss_per_experiment)
+        # One row [E] per env step: a minibatch [B, E] holds B transitions of every experiment.
+        agent.buffer.extend(data.select(*_STORED, strict=False).transpose(0, 1).contiguous())
+        due = done_steps // config.train_every - gradient_steps
+        if done_steps >= config.learning_starts and len(agent.buffer) > 0:
+            for _ in range(due):
+                loss_per_experiment = _gradient_step(agent, config.batch_size)
+                gradient_steps += 1
+        else:
+            gradient_steps += due
+        if progress is not None:
+            progress(done_steps, steps)
+        if done_steps >= steps:
+            break
+    collector.shutdown()
+    wall = time.perf_counter() - started
+    return {
+        "config": asdict(config),
+        "experiments": asdict(experiments),
+        "traces": recorder.traces(),
+        "wall_s": wall,
+        "env_steps": done_steps * count,
+    }
+
+
+def _gradient_step(agent: DQNAgent, batch_size: int) -> torch.Tensor:
+    """One Adam step on a minibatch ``[B, E]``; returns each experiment's ``0.5 * mean td^2``."""
+    sample = agent.buffer.sample()  # [B, E]
+    loss = agent.loss(sample)["loss"] / batch_size
+    agent.optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    agent.optimizer.step()
+    agent.target_updater.step()
+    squared = sample.get("td_error").detach()  # [B, E, 1]: DQNLoss writes (Q - target)^2
+    return 0.5 * squared.reshape(squared.shape[0], -1).mean(dim=0)  # [E]
