@@ -104,7 +104,7 @@ def load_baseline(root: str) -> tuple:
 def make_provider(method: str, env, tables, structure):
     """``experiments.risk.provider`` with the given modules' classes."""
     dependency = env.base_env.dependency
-    if method.endswith("risk-oracle"):
+    if method.endswith("+risk"):
         return tables.LocalRewardTable(1, dependency=dependency)
     actions, sensors = dependency.shape
     return structure.StructureLearner(1, num_actions=actions, num_sensors=sensors)
@@ -168,7 +168,7 @@ def main() -> None:
         with torch.no_grad():
             actor(step.clone())
 
-    for method in ("dqn+risk-oracle", "dqn+risk-learned"):
+    for method in ("dqn+risk", "dqn+risk-learned"):
         functions = {"update": update, "plain": plain}
         calls = {"update": max(1, args.calls // 4), "plain": args.calls}
         kinds = {}

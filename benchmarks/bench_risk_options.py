@@ -49,13 +49,15 @@ def stall(masters: list[int], seeds: int, noises: list[float]) -> None:
                     seeds=seeds,
                     seed=master,
                     risk_gate=gate,
-                    methods=("learned", "oracle") if gate == "on" else dependencies.METHODS[:4],
+                    methods=("factor-q-learned", "factor-q")
+                    if gate == "on"
+                    else dependencies.METHODS[:4],
                     threads=1,
                     out="unused",
                 )
                 summary = dependencies.run_unit(config, {"id": "custom", "setting": "custom"})
                 for method, entry in summary["summary"]["methods"].items():
-                    if method == "joint":
+                    if method == "factor-q-joint":
                         continue
                     name = method if method == "q-learning" else f"{method}, gate {gate}"
                     row = rows.setdefault((noise, name), {"steps": [], "truncated": []})

@@ -78,7 +78,7 @@ def main() -> None:
             config = DependenciesConfig(
                 seed=seed,
                 seeds=args.seeds,
-                methods=("learned", "oracle"),
+                methods=("factor-q-learned", "factor-q"),
                 out="unused",
                 **chosen,
                 **fields,

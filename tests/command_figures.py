@@ -26,7 +26,7 @@ MINIGRID = {
     "seeds": 2,
     "sizes": ["5"],
     "steps": 60,
-    "methods": ["factor-q-learned", "factor-q-oracle", "q-learning"],
+    "methods": ["factor-q-learned", "factor-q", "q-learning"],
 }
 
 

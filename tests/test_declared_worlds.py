@@ -108,13 +108,13 @@ def test_a_users_own_world_runs_through_factorq_gym(user_world, tmp_path, capsys
     name = f"{user_world}:CLIFF"
     out = tmp_path / "out"
     args = ["gym", "--world", name, "--seeds", "1", "--steps", "40", "--eval-episodes", "1"]
-    args += ["--methods", "dqn,factor-q-oracle", "--curve-points", "4", "--out", str(out)]
+    args += ["--methods", "dqn,factor-dqn", "--curve-points", "4", "--out", str(out)]
     assert cli.main(args) == 0
     summary = json.loads((out / "gym.json").read_text())
     assert summary["config"]["world"] == name  # kept as given: --resume resolves it again
     assert summary["world"] == "CliffWalking-v1"
     assert summary["actuators"] == ["up", "right", "down", "left"]
-    assert set(summary["methods"]) == {"dqn", "factor-q-oracle"}
+    assert set(summary["methods"]) == {"dqn", "factor-dqn"}
     assert "# Factor-Q on CliffWalking-v1" in (out / "gym.md").read_text()
 
 
@@ -124,13 +124,13 @@ def test_a_users_own_world_resumes_to_the_same_numbers(user_world, tmp_path, mon
     from factorq_trainers.commands.gym import command as gym
 
     args = ["gym", "--world", f"{user_world}:CLIFF", "--seeds", "1", "--steps", "40"]
-    args += ["--eval-episodes", "1", "--methods", "dqn,factor-q-oracle", "--curve-points", "4"]
+    args += ["--eval-episodes", "1", "--methods", "dqn,factor-dqn", "--curve-points", "4"]
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     assert cli.main([*args, "--out", str(whole)]) == 0
     run_unit = gym.run_unit
 
     def interrupted(config, unit, *rest, **keywords):
-        if unit["method"] == "factor-q-oracle":
+        if unit["method"] == "factor-dqn":
             raise KeyboardInterrupt
         return run_unit(config, unit, *rest, **keywords)
 
@@ -143,7 +143,7 @@ def test_a_users_own_world_resumes_to_the_same_numbers(user_world, tmp_path, mon
     resumed = json.loads((cut / "gym.json").read_text())
     expected = json.loads((whole / "gym.json").read_text())
     assert resumed["timing"]["units_resumed"] == 1
-    for method in ("dqn", "factor-q-oracle"):
+    for method in ("dqn", "factor-dqn"):
         for key in ("crashes_per_1000", "greedy_return", "curves"):
             assert resumed["methods"][method][key] == expected["methods"][method][key]
 

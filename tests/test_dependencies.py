@@ -71,12 +71,15 @@ def test_a_tiny_experiment_writes_its_three_files(tmp_path):
     }
     saved = json.loads(paths["json"].read_text())
     cross = saved["settings"]["cross"]
-    assert set(cross["methods"]) == {"learned", "oracle", "joint", "q-learning"}
+    assert set(cross["methods"]) == {"factor-q-learned", "factor-q", "factor-q-joint", "q-learning"}
     assert "samples_until_right_median" in cross["structure"]
     assert "collisions" in cross["against_oracle"]
-    assert "joint" in saved["skipped"]["ring-24"] and "q-learning" in saved["skipped"]["ring-24"]
+    assert (
+        "factor-q-joint" in saved["skipped"]["ring-24"]
+        and "q-learning" in saved["skipped"]["ring-24"]
+    )
     assert "change" not in saved["skipped"]  # the joint table runs through the change too
-    assert "joint" in saved["settings"]["change"]["methods"]
+    assert "factor-q-joint" in saved["settings"]["change"]["methods"]
     assert "| cross |" in paths["report"].read_text()
 
 
@@ -142,7 +145,7 @@ def test_cli_refuses_a_prior_the_compiled_path_cannot_take(capsys):
 
 def test_the_priors_reach_the_learner(tmp_path):
     """A sharper prior is a different learner: the same worlds give other structure metrics."""
-    common = dict(TINY, settings=("cross",), methods=("learned",), out=str(tmp_path))
+    common = dict(TINY, settings=("cross",), methods=("factor-q-learned",), out=str(tmp_path))
     plain = dependencies.run_learned(dependencies.DependenciesConfig(**common), "cross")
     sharp = dependencies.run_learned(
         dependencies.DependenciesConfig(**common, prior_a=1 / 16, prior_b=1 / 16), "cross"
@@ -162,13 +165,13 @@ def test_dqn_is_opt_in_and_runs_on_the_oracles_budget(tmp_path):
     config = dependencies.DependenciesConfig(
         **{**TINY, "max_steps": 30},
         settings=("cross", "change"),
-        methods=("oracle", "dqn"),
+        methods=("factor-q", "dqn"),
         out=str(tmp_path),
     )
     assert "dqn" not in dependencies.DependenciesConfig().methods
     results = dependencies.run(config)
     entry = results["settings"]["cross"]["methods"]["dqn"]
-    oracle = results["settings"]["cross"]["methods"]["oracle"]
+    oracle = results["settings"]["cross"]["methods"]["factor-q"]
     assert entry["step_budget"] == round(oracle["steps_per_run"] * TINY["runs"])
     assert entry["collisions_per_experiment"] >= 0
     assert "dqn" in results["skipped"]["change"]
@@ -189,7 +192,7 @@ def test_the_noisy_settings_have_many_sensors_and_the_likelihood_reaches_the_lea
         world = config.world_of(name)
         assert (world.num_sensors, world.sensor_noise) == (20, noise)
     assert dependencies.DependenciesConfig().likelihood == "mixture"
-    common = dict(TINY, settings=("noise-10",), methods=("learned",), out=str(tmp_path))
+    common = dict(TINY, settings=("noise-10",), methods=("factor-q-learned",), out=str(tmp_path))
     states = {
         likelihood: dependencies.run_learned(
             dependencies.DependenciesConfig(**common, likelihood=likelihood), "noise-10"
@@ -206,10 +209,10 @@ def test_the_gated_network_is_opt_in_and_reports_its_structure(tmp_path, one_thr
     config = dependencies.DependenciesConfig(
         **{**TINY, "max_steps": 30, "runs": 1},
         settings=("cross",),
-        methods=("oracle", "gated"),
+        methods=("factor-q", "factor-q-gated"),
         out=str(tmp_path),
     )
-    assert "gated" not in dependencies.DependenciesConfig().methods
+    assert "factor-q-gated" not in dependencies.DependenciesConfig().methods
     results = dependencies.run(config)
     gated = results["settings"]["cross"]["gated_structure"]
     assert 0.0 <= gated["fraction_right_at_end"] <= 1.0
@@ -258,18 +261,18 @@ def test_the_summary_shows_the_absolute_task_measures_beside_the_ratios():
         "greedy_collisions": torch.zeros(2, 1, 2, dtype=torch.int64),
     }
     summary = dependencies.summarise_setting(
-        config, "cross", {"oracle": {"metrics": metrics}, "q-learning": {"metrics": metrics}}
+        config, "cross", {"factor-q": {"metrics": metrics}, "q-learning": {"metrics": metrics}}
     )
-    oracle = summary["methods"]["oracle"]
+    oracle = summary["methods"]["factor-q"]
     assert oracle["steps_per_episode"] == (1000 + 10 + 20 + 30) / 4  # 265
     assert oracle["fraction_truncated"] == 0.25
     absolute = dependencies._absolute(summary["methods"], "q-learning")
-    assert absolute["steps_per_episode"] == {"q-learning": 265.0, "oracle": 265.0}
+    assert absolute["steps_per_episode"] == {"q-learning": 265.0, "factor-q": 265.0}
     text = dependencies_report.markdown(
         {
             "config": dataclasses.asdict(config),
             "settings": {"cross": summary},
-            "methods": {"oracle": "oracle", "q-learning": "Q-learning"},  # the labels
+            "methods": {"factor-q": "factor-q", "q-learning": "Q-learning"},  # the labels
             "timing": {"wall_s": 1.0},
         }
     )

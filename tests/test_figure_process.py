@@ -72,7 +72,7 @@ def test_a_prepared_frame_draws_the_same_bytes(results, tmp_path):
 def test_the_helper_does_not_import_torch():
     code = (
         "import sys\n"
-        "from factorq_trainers.reports import figure_process, paper_figure\n"
+        "from factorq_trainers.commands.paper import figure as paper_figure\n"
         "paper_figure.preload()\n"
         "paper_figure.warm_up()\n"
         "assert 'torch' not in sys.modules, 'the figure process imported torch'\n"

@@ -319,7 +319,7 @@ def test_the_experiment_command_at_a_tiny_budget(tmp_path):
     units = experiment.units(config)
     assert [u["id"] for u in units] == [f"{m}-seed0" for m in DEFAULT_METHODS]
     results = [experiment.run_unit(config, unit) for unit in units]
-    again = experiment.run_unit(config, units[1])  # factor-q-oracle, seed 0
+    again = experiment.run_unit(config, units[1])  # factor-dqn, seed 0
     assert again["curve_crashes"] == results[1]["curve_crashes"]
     assert again["greedy_return"] == results[1]["greedy_return"]
     for result in results:
@@ -595,7 +595,7 @@ def test_the_gym_command_takes_risk_aware_exploration_for_neural_factor_q():
     from factorq_trainers.commands.gym import command as experiment
 
     options = dict(world="minigrid-8x8", seeds=1, steps=40, eval_episodes=1, curve_points=4)
-    unit = {"id": "factor-q-oracle-seed0", "method": "factor-q-oracle", "seed_index": 0}
+    unit = {"id": "factor-dqn-seed0", "method": "factor-dqn", "seed_index": 0}
     careful = experiment.run_unit(experiment.GymConfig(**options, exploration="risk-aware"), unit)
     assert careful["curve_steps"] == [10, 20, 30, 40]
     with pytest.raises(ValueError, match="exploration='careful' is unknown"):

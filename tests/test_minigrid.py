@@ -274,11 +274,11 @@ def test_the_minigrid_command_takes_risk_aware_exploration_for_tabular_factor_q(
         seeds=1,
         sizes=("5",),
         steps=60,
-        methods=("factor-q-oracle", "q-learning"),
+        methods=("factor-q", "q-learning"),
         exploration="risk-aware",
         out="unused",
     )
     results = command.run(config)["results"]["5"]
-    assert set(results) == {"factor-q-oracle", "q-learning"}
+    assert set(results) == {"factor-q", "q-learning"}
     with pytest.raises(ValueError, match="exploration='careful' is unknown"):
         command.MiniGridConfig(exploration="careful", out="unused")

@@ -193,33 +193,33 @@ def test_reports_say_too_little_data_instead_of_a_ratio_of_zeros():
             for method, value in crashes.items()
         }
 
-    lines = gym.targets({"methods": gym_methods(dqn=0.0, **{"factor-q-oracle": 2.0})})
+    lines = gym.targets({"methods": gym_methods(dqn=0.0, **{"factor-dqn": 2.0})})
     assert lines[0].startswith("- Oracle Factor-Q: too little data to compare training crashes")
     lines = gym.targets(
-        {"methods": gym_methods(dqn=0.0, **{"factor-q-oracle": 0.0, "factor-q-learned": 0.0})}
+        {"methods": gym_methods(dqn=0.0, **{"factor-dqn": 0.0, "factor-dqn-learned": 0.0})}
     )
     assert all("too little data" in line and "0.00x" not in line for line in lines), lines
-    lines = gym.targets({"methods": gym_methods(dqn=30.0, **{"factor-q-oracle": 3.0})})
+    lines = gym.targets({"methods": gym_methods(dqn=30.0, **{"factor-dqn": 3.0})})
     assert "10.00x fewer training crashes" in lines[0] and "(target >= 5x: met)" in lines[0]
 
     summary = {"collisions": {"mean": 0.0}, "success_rate": {"mean": 0.0}}
-    per_method = {"dqn": {"summary": summary}, "factor-q-oracle": {"summary": summary}}
+    per_method = {"dqn": {"summary": summary}, "factor-dqn": {"summary": summary}}
     (line,) = minigrid._targets({"methods": {}}, per_method)
     assert "too little data to compare training collisions" in line and "x below" not in line
 
     from factorq_trainers.commands.risk import command as experiment
 
-    config = experiment.RiskConfig(worlds=("grid",), methods=("dqn", "dqn+risk-oracle"), seeds=1)
+    config = experiment.RiskConfig(worlds=("grid",), methods=("dqn", "dqn+risk"), seeds=1)
     unit = {"world": "grid", "seed": 0, "greedy_collisions": 0, "final_return": -10.0}
     unit |= {"greedy_success": 1.0, "steps_to_threshold": None, "wall_s": 1.0}
     results = experiment.summarise(
         config,
         [
             {**unit, "method": "dqn", "train_collisions": 0},
-            {**unit, "method": "dqn+risk-oracle", "train_collisions": 0},
+            {**unit, "method": "dqn+risk", "train_collisions": 0},
         ],
     )
     (ratio,) = results["ratios"]
     assert ratio["collision_ratio"] is None  # 0 / 0: no ratio (it was 0 / 1e-9 = 0.0)
     results["config"] = dataclasses.asdict(config)  # the runner's envelope adds it
-    assert "| grid | dqn / dqn+risk-oracle | too little data |" in risk_report.markdown(results)
+    assert "| grid | dqn / dqn+risk | too little data |" in risk_report.markdown(results)

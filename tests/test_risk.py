@@ -348,14 +348,14 @@ def test_dqn_with_local_risk_collides_far_less_in_training(one_thread):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         totals = {}
-        for method in ("dqn", "dqn+risk-oracle"):
+        for method in ("dqn", "dqn+risk"):
             totals[method] = sum(
                 run_unit(config, {"world": "grid", "method": method, "seed": seed})[
                     "train_collisions"
                 ]
                 for seed in (0, 1)
             )
-    assert totals["dqn"] >= 4 * max(1, totals["dqn+risk-oracle"]), totals
+    assert totals["dqn"] >= 4 * max(1, totals["dqn+risk"]), totals
 
 
 def test_risky_faces_mark_the_side_of_each_penalised_actuator():
@@ -381,14 +381,14 @@ def test_risk_experiment_units_summary_and_report(tmp_path):
     from factorq_trainers.commands.risk import report as risk_report
 
     config = experiment.RiskConfig(
-        worlds=("grid",), methods=("dqn", "dqn+risk-oracle", "sb3-dqn"), seeds=2
+        worlds=("grid",), methods=("dqn", "dqn+risk", "sb3-dqn"), seeds=2
     )
     found = experiment.units(config)
     assert [unit["id"] for unit in found] == [
         "grid/dqn/0",
         "grid/dqn/1",
-        "grid/dqn+risk-oracle/0",
-        "grid/dqn+risk-oracle/1",
+        "grid/dqn+risk/0",
+        "grid/dqn+risk/1",
         "grid/sb3-dqn/0",
         "grid/sb3-dqn/1",
     ]
@@ -413,8 +413,8 @@ def test_risk_experiment_units_summary_and_report(tmp_path):
         [
             result("dqn", 0, 200, -11.0),
             result("dqn", 1, 100, -12.0),
-            result("dqn+risk-oracle", 0, 10, -10.0),
-            result("dqn+risk-oracle", 1, 5, -11.0),
+            result("dqn+risk", 0, 10, -10.0),
+            result("dqn+risk", 1, 5, -11.0),
         ],
     )
     results["config"] = dataclasses.asdict(config)  # the runner's envelope adds it
@@ -506,7 +506,7 @@ def test_factorq_risk_runs_through_the_runner_and_writes_its_files(tmp_path, cap
     torchrl_logger.addHandler(records)
     torchrl_logger.setLevel(logging.INFO)  # torchrl's default (quiet_torchrl quiets it)
     out = tmp_path / "risk"
-    args = ["risk", "--worlds", "grid", "--methods", "dqn,dqn+risk-oracle", "--seeds", "1"]
+    args = ["risk", "--worlds", "grid", "--methods", "dqn,dqn+risk", "--seeds", "1"]
     args += ["--steps", "60", "--learning-starts", "20", "--eval-episodes", "1", "--out", str(out)]
     args += ["--grid-size", "3", "--grid-obstacles", "1"]  # episodes that end within 60 steps
     try:
@@ -521,18 +521,18 @@ def test_factorq_risk_runs_through_the_runner_and_writes_its_files(tmp_path, cap
     assert after == logging.INFO
     assert {path.name for path in out.iterdir()} >= {"risk.json", "risk.md", "risk.png"}
     report = (out / "risk.md").read_text()
-    assert "dqn+risk-oracle" in report
+    assert "dqn+risk" in report
     # the layer's per-episode RiskSummary in the results, summed in the report
     results = json.loads((out / "risk.json").read_text())
     (episodes,) = results["risk_log"].values()  # the layered unit only
     assert episodes and sum(e["steps"] for e in episodes) <= 60
     assert set(episodes[0]["penalised"]) == {"north", "east", "south", "west"}
     (row,) = results["risk_rows"]
-    assert row["method"] == "dqn+risk-oracle" and row["episodes"] == len(episodes)
+    assert row["method"] == "dqn+risk" and row["episodes"] == len(episodes)
     assert row["steps"] == sum(e["steps"] for e in episodes)
     assert "What the layer did" in report
     assert risk_text.summary_line(episodes[-1]) == RiskSummary.line(episodes[-1])
-    assert f"- grid dqn+risk-oracle: {RiskSummary.line(episodes[-1])}" in report
+    assert f"- grid dqn+risk: {RiskSummary.line(episodes[-1])}" in report
 
 
 # --- highway-env through the Gymnasium adapter (the highway extra) ----------------------------
@@ -571,12 +571,12 @@ def test_factorq_risk_runs_on_highway_through_the_runner(tmp_path, capsys):
     assert cli.main(args) == 0, capsys.readouterr().err
     results = json.loads((out / "risk.json").read_text())
     rows = {row["method"]: row for row in results["rows"]}
-    assert set(rows) == {"dqn", "dqn+risk-oracle", "dqn+risk-learned"}
+    assert set(rows) == {"dqn", "dqn+risk", "dqn+risk-learned"}
     for row in rows.values():
         assert row["world"] == "highway" and 0 <= row["greedy_success"] <= 1
         assert row["greedy_collisions"] in (0.0, 1.0)  # one greedy episode: a crash ends it
         assert row["greedy_success"] == 1.0 - row["greedy_collisions"]
-    episodes = results["risk_log"]["highway/dqn+risk-oracle/0"]
+    episodes = results["risk_log"]["highway/dqn+risk/0"]
     assert set(episodes[0]["penalised"]) == set(
         ("LANE_LEFT", "IDLE", "LANE_RIGHT", "FASTER", "SLOWER")
     )

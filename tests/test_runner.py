@@ -168,12 +168,12 @@ def test_report_redraws_dependencies_without_torch(tmp_path):
             "max_steps": 1000,
         },
         "timing": {"wall_s": 1.0},
-        "settings": {"cross": {"methods": {"oracle": {
+        "settings": {"cross": {"methods": {"factor-q": {
             "collisions_per_experiment": 1.0, "greedy_collisions_per_experiment": 0.0,
             "steps_per_run": 9.0, "collisions_per_episode": [1.0],
         }}}},
         "skipped": {},
-        "methods": {"oracle": "oracle pairing"},
+        "methods": {"factor-q": "oracle pairing"},
     }  # fmt: skip
     (tmp_path / "dependencies.json").write_text(json.dumps(results))
     code = (

@@ -341,7 +341,7 @@ command = "dependencies"
 seeds = 2
 [base]
 settings = ["cross", "change"]
-methods = ["learned", "oracle"]
+methods = ["factor-q-learned", "factor-q"]
 runs = 2
 size = 4
 obstacles = 2
@@ -380,11 +380,14 @@ def test_a_dependencies_sweep_cell_equals_factorq_dependencies_and_resumes(tmp_p
     assert stored.pop("kept_for") == tie  # a file of another configuration is refused
     assert stored["config"].pop("out") == str(out) and expected["config"].pop("out")
     assert _without_wall_s(stored) == _without_wall_s(expected)
-    cell = row["cells"]["change/learned"]
+    cell = row["cells"]["change/factor-q-learned"]
     learned = expected["settings"]["change"]
-    assert cell["collisions"]["mean"] == learned["methods"]["learned"]["collisions_per_experiment"]
+    assert (
+        cell["collisions"]["mean"]
+        == learned["methods"]["factor-q-learned"]["collisions_per_experiment"]
+    )
     assert cell["collisions_vs_oracle"]["mean"] == learned["against_oracle"]["collisions"]["ratio"]
-    assert row["cells"]["change/oracle"]["fraction_right_within_target"]["mean"] is None
+    assert row["cells"]["change/factor-q"]["fraction_right_within_target"]["mean"] is None
     assert "| prior_a | world | algorithm | collisions |" in (out / "sweep.md").read_text()
     # resumption: a lost configuration file is the only work of the next run
     (out / row["results_file"]).unlink()
@@ -400,7 +403,7 @@ def test_a_dependencies_sweep_cell_equals_factorq_dependencies_and_resumes(tmp_p
     kept = out / row["results_file"]
     good = json.loads(kept.read_text())
     edited = json.loads(kept.read_text())
-    edited["settings"]["change"]["methods"]["learned"]["collisions_per_experiment"] *= 100
+    edited["settings"]["change"]["methods"]["factor-q-learned"]["collisions_per_experiment"] *= 100
     for bad in ('{"settings": {"change": {}}}', "garbage{", json.dumps(edited)):
         kept.write_text(bad)
         refused = CountingExecutor()

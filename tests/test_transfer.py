@@ -132,7 +132,9 @@ def test_the_learned_structure_is_carried_whole_and_saves_as_an_artifact(tmp_pat
 
     options = {**SMALL, "regimes": ("static",), "episodes": 2, "early": 1, "size": 5}
     options.update(obstacles=2, source_size=4, source_obstacles=1, source_episodes=2, seeds=2)
-    config = transfer.TransferConfig(**options, methods=("learned", "learned-body"))
+    config = transfer.TransferConfig(
+        **options, methods=("factor-q-learned", "factor-q-learned-body")
+    )
     assert transfer.work(config, transfer.units(config)[1]) == 2 * (2 + 2)
     learner = transfer.train_body_model(config, learned=True)
     assert bool((learner.samples > 0).all())  # every actuator fired in the source task

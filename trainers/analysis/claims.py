@@ -22,6 +22,7 @@ from factorq_trainers.analysis.stats import (
     format_number,
     quantiles,
 )
+from factorq_trainers.analysis.vocabulary import among, label
 
 #: The measures of a cell, per run (totals over the episodes of a run, mean over the runs).
 MEASURES = ("total_steps", "collisions", "greedy_collisions")
@@ -30,7 +31,7 @@ MEASURE_LABELS = {
     "collisions": "collisions",
     "greedy_collisions": "greedy collisions",
 }
-ALGORITHM_LABELS = {"q-learning": "Q-learning", "factor-q": "Factor-Q"}
+ALGORITHM_LABELS = {name: label(name) for name in among("q-learning", "factor-q")}
 
 CLAIM_STATEMENTS = {
     "C1": "Factor-Q beats Q-learning on every measure, in every world",

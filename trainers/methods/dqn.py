@@ -58,6 +58,7 @@ from factorq_envs.torchrl_env import FactoredGridEnv
 from factorq_torch.base.rng import STREAM_TASK_NETWORK, STREAM_WORLD
 from factorq_torch.base.validation import INT32_MAX, check_float, check_hidden, check_int
 from factorq_torch.neural import TaskQNetwork
+from factorq_trainers.analysis.vocabulary import among
 from factorq_trainers.methods.experiment import (
     EpisodeRecorder,
     ExperimentConfig,
@@ -74,7 +75,7 @@ with warnings.catch_warnings():
 #: The widest hidden layer a config accepts (a layer's weights are [E, width, width] float32).
 #: Methods of ``factorq_trainers.commands.compare.command``; a method's index is part of its
 #: experiments' keys.
-METHODS = ("factor-q", "q-learning", "dqn", "factor-dqn")
+METHODS = among("factor-q", "q-learning", "dqn", "factor-dqn")
 # --------------------------------------------------------------------------------------------
 # Validation
 

@@ -16,7 +16,7 @@ its largest parts and the limit when the run would not fit; it returns a line to
 that fits but is large (at least ``LARGE_BYTES`` or a quarter of what is available), with the
 number of env steps it will take, the cheap part of a time estimate.
 
->>> from factorq_trainers.experiments import paper
+>>> from factorq_trainers.commands.paper import command as paper
 >>> estimate = paper.estimate(paper.PaperConfig())
 >>> 30 * 2**20 < estimate.bytes < 120 * 2**20  # the default run: some 59 MiB
 True

@@ -15,17 +15,12 @@ from typing import Any
 import numpy as np
 
 from factorq_trainers.analysis import stats
+from factorq_trainers.analysis.vocabulary import label
 from factorq_trainers.runner import outdir
 from factorq_trainers.runner.results import body_label, interval_or_none
 
 #: A method reached the threshold when an episode took at most this many times the shortest path.
 THRESHOLD_FACTOR = 1.5
-METHOD_LABELS = {
-    "factor-q": "Factor-Q (tabular)",
-    "q-learning": "Q-learning (tabular)",
-    "dqn": "DQN",
-    "factor-dqn": "Factor-DQN (neural Factor-Q)",
-}
 JSON_FILE = "comparison.json"
 FIGURE_FILE = "comparison.png"
 REPORT_FILE = "comparison.md"
@@ -51,7 +46,7 @@ def write_figure(results: dict[str, Any], path: str | os.PathLike) -> None:
     axes = figure.subplots(2, len(worlds), squeeze=False, sharex=True)
     rows = (("steps", "steps per episode"), ("collisions", "collisions per episode"))
     for column, world in enumerate(worlds):
-        for row, (name, label) in enumerate(rows):
+        for row, (name, measure) in enumerate(rows):
             axis = axes[row][column]
             for method in results["results"]:
                 curve = results["curves"][method][world][name]
@@ -60,7 +55,7 @@ def write_figure(results: dict[str, Any], path: str | os.PathLike) -> None:
                 high = np.array([np.nan if v is None else v for v in curve["high"]])
                 colour = COLOURS[method]
                 floor = 1.0 if name == "steps" else 0.0  # a path takes >= 1 step
-                axis.plot(grid, mean, color=colour, label=METHOD_LABELS[method], linewidth=1.4)
+                axis.plot(grid, mean, color=colour, label=label(method), linewidth=1.4)
                 axis.fill_between(grid, np.maximum(low, floor), high, color=colour, alpha=0.2)
             if name == "steps":
                 axis.axhline(
@@ -76,7 +71,7 @@ def write_figure(results: dict[str, Any], path: str | os.PathLike) -> None:
                 axis.set_yscale("symlog", linthresh=1.0)
                 axis.set_ylim(bottom=0.0)
             axis.set_xlim(0, grid[-1])
-            axis.set_ylabel(label)
+            axis.set_ylabel(measure)
             if row == len(rows) - 1:
                 axis.set_xlabel("env steps per experiment")
     axes[0][0].legend(fontsize="small")
@@ -134,7 +129,7 @@ def report_markdown(results: dict[str, Any]) -> str:
                 collisions += f" [{max(low, 0):,.0f}, {high:,.0f}]"
                 greedy += f" [{max(g_low, 0):,.0f}, {g_high:,.0f}]"
             lines.append(
-                f"| {METHOD_LABELS[method]} | {world} | {_number(cell['steps_to_threshold'])} "
+                f"| {label(method)} | {world} | {_number(cell['steps_to_threshold'])} "
                 f"| {cell['seeds_reached']}/{config['seeds']} | {collisions} | {greedy} "
                 f"| {_number(cell['avoidable_greedy_collisions'], 1)} "
                 f"| {_number(cell['final_path_length'], 1)} | {_seconds(cell['wall_s'])} |"

@@ -4,31 +4,31 @@ Per *setting* (a body, a sensor layout, noise, a change), ``seeds`` experiments 
 ``episodes`` episodes (task tables reset per run, local knowledge kept, SPEC section 4) for four
 methods on the same worlds (common random numbers: the same world keys):
 
-- ``learned``: ``factorq_torch.structure.StructureLearner`` as the local value provider, told
-  nothing of the body, on the compiled path (``fast.StructureOptions``) or, with ``--path
+- ``factor-q-learned``: ``factorq_torch.structure.StructureLearner`` as the local value provider,
+  told nothing of the body, on the compiled path (``fast.StructureOptions``) or, with ``--path
   modular`` (or ``--prediction posterior``), through ``FactorQPolicy``, ``FactorQLoss`` and
   ``OnlineCollector`` (the modular torchrl path): the same numbers bit for bit. Every experiment
   receives its sensors in its own random order (``factorq_envs.permutation.PermuteSensors``),
   redrawn at run ``change_run`` in the ``change`` setting;
-- ``oracle``: ``LocalRewardTable`` with the true dependency (the paper), on the compiled path;
-- ``joint``: Factor-Q with one local table per actuator over the pattern of *all* sensors (the
-  paper's footnote 2), compiled, where ``2**K`` entries fit (``base.validation.MAX_PARENTS``);
+- ``factor-q``: ``LocalRewardTable`` with the true dependency (the paper), on the compiled path;
+- ``factor-q-joint``: Factor-Q with one local table per actuator over the pattern of *all* sensors
+  (the paper's footnote 2), compiled, where ``2**K`` entries fit (``base.validation.MAX_PARENTS``);
 - ``q-learning``: compiled, where its table fits (``base.validation.MAX_TABLE_ENTRIES``);
-- ``dqn`` (opt-in, ``--methods``): ``factorq_trainers.methods.dqn`` on the oracle's step
-  budget (``run_dqn``);
-- ``gated`` (opt-in, ``--methods``): Factor-Q with ``factorq_torch.neural.
-  GatedLocalRewardNetwork`` as the local value provider on the modular path, in the learner's
-  sensor orders, its structure read out (``structure()``) at the end (``run_gated``).
+- ``dqn`` (opt-in, ``--methods``): ``factorq_trainers.methods.dqn`` on the oracle's step budget
+  (``run_dqn``);
+- ``factor-q-gated`` (opt-in, ``--methods``): Factor-Q with
+  ``factorq_torch.neural.GatedLocalRewardNetwork`` as the local value provider on the modular path,
+  in the learner's sensor orders, its structure read out (``structure()``) at the end (``run_gated``).
 
 The joint table and Q-learning receive the sensors in the learner's orders, changed at the same
 moment (``fast.SensorOrders``); the oracle is told the true pairing at every moment, which is
 the same as running it in the world's own order.
 
-Structure metrics (``learned`` only), per experiment: the local samples (firings) per actuator
-until it holds the right parents and keeps them to the end (the experiment's value: the largest
-over its actuators; in the ``change`` setting counted from the change), wrong commitments
-(commitments to a parent set other than the truth of that moment), the structural Hamming
-distance at the end (parents missing or extra, an open actuator counting as "no parents").
+Structure metrics (``factor-q-learned`` only), per experiment: the local samples (firings) per
+actuator until it holds the right parents and keeps them to the end (the experiment's value: the
+largest over its actuators; in the ``change`` setting counted from the change), wrong commitments
+(commitments to a parent set other than the truth of that moment), the structural Hamming distance
+at the end (parents missing or extra, an open actuator counting as "no parents").
 
 Writes ``dependencies.json``, ``dependencies.png`` and ``dependencies.md`` to ``out``.
 """
@@ -44,8 +44,8 @@ import torch
 
 from factorq_torch.base.validation import MAX_PARENTS
 from factorq_trainers.analysis.stats import bootstrap_indices, interval, quantiles, wilson_ci
+from factorq_trainers.analysis.vocabulary import label
 from factorq_trainers.commands.dependencies.config import (
-    METHOD_LABELS,
     METHODS,
     SAMPLES_TARGET,
     SAMPLES_TARGET_CHANGE,
@@ -143,7 +143,7 @@ def _percentile(values: np.ndarray, q: float) -> float | None:
 def summarise_setting(
     config: DependenciesConfig, setting: str, runs: dict[str, dict[str, Any]]
 ) -> dict[str, Any]:
-    """Per method its totals; for ``learned`` the structure metrics and the ratios to the
+    """Per method its totals; for ``factor-q-learned`` the structure metrics and the ratios to the
     oracle."""
     summary: dict[str, Any] = {"methods": {}}
     totals = {}
@@ -179,21 +179,21 @@ def summarise_setting(
             .mean(dim=0)
             .tolist(),
         }
-    gated = runs.get("gated")
+    gated = runs.get("factor-q-gated")
     if gated is not None:
         summary["gated_structure"] = {
             "fraction_right_at_end": float(np.mean(gated["right_at_end"])),
             "hamming_at_end_mean": float(np.mean(gated["hamming_at_end"])),
         }
-        if "oracle" in totals:
-            mine, oracle = totals["gated"], totals["oracle"]
+        if "factor-q" in totals:
+            mine, oracle = totals["factor-q-gated"], totals["factor-q"]
             summary["gated_against_oracle"] = {
                 "collisions": _ratio(mine["collisions"], oracle["collisions"], config.seed),
                 "greedy_collisions": _ratio(mine["greedy"], oracle["greedy"], config.seed),
                 "learning_speed": _ratio(oracle["steps"], mine["steps"], config.seed),
-                "absolute": _absolute(summary["methods"], "gated"),
+                "absolute": _absolute(summary["methods"], "factor-q-gated"),
             }
-    learned = runs.get("learned")
+    learned = runs.get("factor-q-learned")
     if learned is None:
         return summary
     until = np.asarray(learned["samples_until_right"], dtype=np.float64)
@@ -210,15 +210,15 @@ def summarise_setting(
         "reopened_per_experiment": float(np.mean(learned["reopened"])),
         "curve": learned["curve"],
     }
-    if "oracle" in totals:
-        mine, oracle = totals["learned"], totals["oracle"]
+    if "factor-q" in totals:
+        mine, oracle = totals["factor-q-learned"], totals["factor-q"]
         summary["against_oracle"] = {
             "collisions": _ratio(mine["collisions"], oracle["collisions"], config.seed),
             "greedy_collisions": _ratio(mine["greedy"], oracle["greedy"], config.seed),
             # learning speed = 1 / steps per run: learned speed / oracle speed
             "learning_speed": _ratio(oracle["steps"], mine["steps"], config.seed),
         }
-        summary["against_oracle"]["absolute"] = _absolute(summary["methods"], "learned")
+        summary["against_oracle"]["absolute"] = _absolute(summary["methods"], "factor-q-learned")
     return summary
 
 
@@ -226,7 +226,7 @@ def _absolute(methods: dict[str, Any], method: str) -> dict[str, Any]:
     """The task measures beside a ratio to the oracle (issue 39: a failure both share shows):
     steps per episode and the fraction of episodes truncated, of ``method`` and the oracle."""
     return {
-        name: {side: methods[side][name] for side in (method, "oracle")}
+        name: {side: methods[side][name] for side in (method, "factor-q")}
         for name in ("steps_per_episode", "fraction_truncated")
     }
 
@@ -254,11 +254,11 @@ def run_unit(
         if reason is not None:
             skipped[method] = reason
             continue
-        if method == "learned":
+        if method == "factor-q-learned":
             runs[method] = run_learned(config, setting)
         elif method == "dqn":
             runs[method] = run_dqn(config, setting, _budget(config, setting, runs))
-        elif method == "gated":
+        elif method == "factor-q-gated":
             runs[method] = run_gated(config, setting)
         else:
             runs[method] = run_compiled(config, setting, method)
@@ -267,7 +267,11 @@ def run_unit(
 
 def summarise(config: DependenciesConfig, outcomes: list[dict[str, Any]]) -> dict[str, Any]:
     """``dependencies.json``'s entries from the settings' units (in ``units`` order)."""
-    results: dict[str, Any] = {"settings": {}, "skipped": {}, "methods": dict(METHOD_LABELS)}
+    results: dict[str, Any] = {
+        "settings": {},
+        "skipped": {},
+        "methods": {method: label(method) for method in METHODS},
+    }
     for setting, outcome in zip(config.settings, outcomes, strict=True):
         if outcome["skipped"]:
             results["skipped"][setting] = outcome["skipped"]

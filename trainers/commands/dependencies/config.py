@@ -20,6 +20,7 @@ from factorq_torch.base.validation import (
     check_names,
     check_threads,
 )
+from factorq_trainers.analysis.vocabulary import among
 from factorq_trainers.methods.experiment import MAX_SEED, check_world_options
 from factorq_trainers.runner.options import option
 
@@ -59,21 +60,15 @@ SETTING_DEFAULTS = {
     "num_distractors": 0,
     "sensor_noise": 0.0,
 }
-METHODS = ("learned", "oracle", "joint", "q-learning", "dqn", "gated")
+METHODS = among(
+    "factor-q-learned", "factor-q", "factor-q-joint", "q-learning", "dqn", "factor-q-gated"
+)
 #: The methods with a policy stream of their own: their number fixes every method's keys
 #: (``experiment_keys``), so a new method must not join them; the gated network takes the
 #: learned structure's stream (the two learners under common random numbers).
-KEYED_METHODS = ("learned", "oracle", "joint", "q-learning", "dqn")
+KEYED_METHODS = ("factor-q-learned", "factor-q", "factor-q-joint", "q-learning", "dqn")
 #: The methods run by default: DQN is opt-in (``--methods``), see ``run_dqn``.
-DEFAULT_METHODS = ("learned", "oracle", "joint", "q-learning")
-METHOD_LABELS = {
-    "learned": "learned structure",
-    "oracle": "oracle pairing",
-    "joint": "full joint table",
-    "q-learning": "Q-learning",
-    "dqn": "DQN",
-    "gated": "gated network",
-}
+DEFAULT_METHODS = ("factor-q-learned", "factor-q", "factor-q-joint", "q-learning")
 #: The gated network's training (``run_gated``): Adam's learning rate and the gates' L1 weight
 #: (docs/decisions.md, "The neural variant": the paper's body read right after 2,000 steps).
 GATED_LEARNING_RATE, GATED_L1 = 5e-2, 1e-3

@@ -87,7 +87,7 @@ def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]
 
     world = config.world_of(setting)
     count, num_sensors = config.seeds, world.num_sensors
-    world_keys, policy_keys = _keys(config, "learned")
+    world_keys, policy_keys = _keys(config, "factor-q-learned")
     periods = torch.full((count,), REGIME_PERIODS[config.world], dtype=torch.int64)
     orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
     change = setting == "change"
@@ -107,7 +107,7 @@ def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]
         "factor-q",
         periods,
         world,
-        config.agent_of("learned"),
+        config.agent_of("factor-q-learned"),
         config.runs,
         config.episodes,
         world_keys,
@@ -212,9 +212,9 @@ def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, A
     from factorq_torch.tables import TaskQTable
     from factorq_trainers.methods.experiment import make_env
 
-    world, agent = config.world_of(setting), config.agent_of("learned")
+    world, agent = config.world_of(setting), config.agent_of("factor-q-learned")
     count, num_sensors = config.seeds, world.num_sensors
-    world_keys, policy_keys = _keys(config, "learned")
+    world_keys, policy_keys = _keys(config, "factor-q-learned")
     periods = [REGIME_PERIODS[config.world]] * count
     orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
     permute = PermuteSensors(orders)
@@ -325,12 +325,15 @@ def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[
     world_keys, policy_keys = _keys(config, method)
     periods = torch.full((config.seeds,), REGIME_PERIODS[config.world], dtype=torch.int64)
     dependency, algorithm = None, "factor-q"
-    if method == "joint":
+    if method == "factor-q-joint":
         dependency = torch.ones(world.num_actuators, world.num_sensors, dtype=torch.bool)
     if method == "q-learning":
         algorithm = "q-learning"
     orders = None
-    if method in ("joint", "q-learning"):  # the sensors in the learner's orders, changed alike
+    if method in (
+        "factor-q-joint",
+        "q-learning",
+    ):  # the sensors in the learner's orders, changed alike
         count, num_sensors = config.seeds, world.num_sensors
         change = setting == "change"
         orders = fast.SensorOrders(
@@ -375,9 +378,11 @@ def run_gated(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     from factorq_torch.tables import TaskQTable
     from factorq_trainers.methods.experiment import make_env
 
-    world, agent = config.world_of(setting), config.agent_of("gated")
+    world, agent = config.world_of(setting), config.agent_of("factor-q-gated")
     count, num_sensors = config.seeds, world.num_sensors
-    world_keys, policy_keys = _keys(config, "learned")  # common random numbers (KEYED_METHODS)
+    world_keys, policy_keys = _keys(
+        config, "factor-q-learned"
+    )  # common random numbers (KEYED_METHODS)
     orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
     permute = PermuteSensors(orders)
     periods = [REGIME_PERIODS[config.world]] * count
@@ -443,7 +448,7 @@ def run_gated(config: DependenciesConfig, setting: str) -> dict[str, Any]:
 def _budget(config: DependenciesConfig, setting: str, runs: dict[str, dict[str, Any]]) -> int:
     """DQN's step budget: the oracle's mean env steps per experiment (else the learned
     structure's, else every episode at its longest)."""
-    for method in ("oracle", "learned"):
+    for method in ("factor-q", "factor-q-learned"):
         if method in runs:
             steps = runs[method]["metrics"]["steps"].sum(dim=(1, 2)).double().mean()
             return max(1, round(float(steps)))
@@ -496,7 +501,7 @@ def skipped_reason(config: DependenciesConfig, setting: str, method: str) -> str
     from factorq_trainers.compiled import fast
 
     world = config.world_of(setting)
-    if method in ("learned", "gated"):
+    if method in ("factor-q-learned", "factor-q-gated"):
         return None
     if method == "dqn":
         if setting == "change":
@@ -507,7 +512,7 @@ def skipped_reason(config: DependenciesConfig, setting: str, method: str) -> str
         return None
     if not fast.is_available():
         return f"the compiled path is unavailable ({fast.unavailable_reason()})"
-    if method == "joint" and world.num_sensors > MAX_PARENTS:
+    if method == "factor-q-joint" and world.num_sensors > MAX_PARENTS:
         return (
             f"a joint table over {world.num_sensors} sensors needs 2**{world.num_sensors} "
             f"entries per actuator, past the cap of 2**{MAX_PARENTS}"

@@ -46,7 +46,7 @@ def _against_cells(against: dict[str, Any]) -> str:
     (mine, steps), (_, oracle_steps) = absolute["steps_per_episode"].items()
     truncated = absolute["fraction_truncated"]
     cells.append(f"{format_number(steps)} / {format_number(oracle_steps)}")
-    cells.append(f"{100 * truncated[mine]:.0f}% / {100 * truncated['oracle']:.0f}%")
+    cells.append(f"{100 * truncated[mine]:.0f}% / {100 * truncated['factor-q']:.0f}%")
     return " | ".join(cells)
 
 
@@ -219,7 +219,7 @@ def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
         structure = summary.get("structure")
         ratio = summary.get("against_oracle", {}).get("collisions")
         for method, entry in summary["methods"].items():
-            learned = method == "learned"
+            learned = method == "factor-q-learned"
             cells[f"{setting}/{method}"] = {
                 "world": setting,
                 "algorithm": method,

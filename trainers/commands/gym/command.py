@@ -8,10 +8,10 @@ the same worlds (common random numbers: seed ``i`` meets the same env seed under
 - ``dqn``: ``factorq_trainers.methods.dqn``'s torchrl DQN (``DQNLoss``, target network, replay,
   annealed epsilon) on the world's own observation (highway: ``Kinematics``), with the
   hyperparameters highway-env's documentation uses for SB3's DQN (``HIGHWAY_DQN``);
-- ``factor-q-oracle``: neural Factor-Q: the task values from a network on the same observation
+- ``factor-dqn``: neural Factor-Q: the task values from a network on the same observation
   (trained online by ``FactorQLoss`` with Adam), the local values from ``LocalRewardTable`` on
   the declared oracle dependency and the binary sensors (eq. 5);
-- ``factor-q-learned``: the same with ``StructureLearner(prediction="committed")`` told only
+- ``factor-dqn-learned``: the same with ``StructureLearner(prediction="committed")`` told only
   ``A`` and ``K``: it must find the dependency itself (its structure at the end is reported
   against the oracle);
 - ``sb3-dqn`` (optional extra ``sb3``; skipped in the defaults): Stable-Baselines3's DQN with

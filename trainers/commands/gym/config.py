@@ -12,13 +12,14 @@ from typing import TYPE_CHECKING
 
 from factorq_torch.base.config import EXPLORATIONS, check_exploration
 from factorq_torch.base.validation import check_float, check_int, check_names
+from factorq_trainers.analysis.vocabulary import among
 from factorq_trainers.runner.options import option
 
 if TYPE_CHECKING:
     from factorq_envs.worlds import DeclaredWorld
 
-METHODS = ("dqn", "factor-q-oracle", "factor-q-learned", "sb3-dqn")
-DEFAULT_METHODS = ("dqn", "factor-q-oracle", "factor-q-learned")
+METHODS = among("dqn", "factor-dqn", "factor-dqn-learned", "sb3-dqn")
+DEFAULT_METHODS = ("dqn", "factor-dqn", "factor-dqn-learned")
 
 
 @dataclass(frozen=True)

@@ -276,11 +276,9 @@ def _run_factor_q(
 
     base, task = _env_and_task_network(config, unit, zero_output=True)
     oracle = base.dependency
-    if unit["method"] == "factor-q-oracle":
+    if unit["method"] == "factor-dqn":
         if oracle is None:
-            raise ValueError(
-                f"factor-q-oracle needs a world that declares its oracle: {config.world}"
-            )
+            raise ValueError(f"factor-dqn needs a world that declares its oracle: {config.world}")
         local = LocalRewardTable(1, dependency=oracle)
     else:  # an open actuator predicts no local reward (docs/decisions.md, MiniGrid)
         local = StructureLearner(
@@ -422,7 +420,7 @@ def _run_sb3(
 #: Each method's function: ``(config, unit, progress) -> the unit's result``.
 RUNNERS: dict[str, Callable[[GymConfig, dict[str, Any], Callable[[int], None]], dict[str, Any]]] = {
     "dqn": _run_dqn,
-    "factor-q-oracle": _run_factor_q,
-    "factor-q-learned": _run_factor_q,
+    "factor-dqn": _run_factor_q,
+    "factor-dqn-learned": _run_factor_q,
     "sb3-dqn": _run_sb3,
 }

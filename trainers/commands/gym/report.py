@@ -8,13 +8,8 @@ from pathlib import Path
 from typing import Any
 
 from factorq_trainers.analysis.stats import TOO_LITTLE_DATA, count_ratio
+from factorq_trainers.analysis.vocabulary import label
 
-METHOD_LABELS = {
-    "dqn": "DQN (torchrl)",
-    "factor-q-oracle": "neural Factor-Q, oracle dependency",
-    "factor-q-learned": "neural Factor-Q, learned dependencies",
-    "sb3-dqn": "SB3 DQN",
-}
 #: What ``factorq sweep --command gym`` reports per configuration (``sweep_cells``).
 SWEEP_MEASURES = ("crashes_per_1000", "greedy_crash_rate", "greedy_return", "steps_to_threshold")
 #: How the report names its intervals (``experiments.gym.summarise`` computes them).
@@ -52,22 +47,22 @@ def targets(results: dict[str, Any]) -> list[str]:
     def crashes(method: str) -> float | None:
         return methods[method]["crashes_per_1000"]["mean"] if method in methods else None
 
-    oracle, learned = crashes("factor-q-oracle"), crashes("factor-q-learned")
+    oracle, learned = crashes("factor-dqn"), crashes("factor-dqn-learned")
     for baseline in ("dqn", "sb3-dqn"):
         theirs = crashes(baseline)
         if oracle is None or theirs is None:
             continue
         ratio = count_ratio(theirs, oracle)
-        mine = methods["factor-q-oracle"]["greedy_return"]["mean"]
+        mine = methods["factor-dqn"]["greedy_return"]["mean"]
         other = methods[baseline]["greedy_return"]["mean"]
         if ratio is None:
             compared = (
-                f"{TOO_LITTLE_DATA} to compare training crashes with {METHOD_LABELS[baseline]} "
+                f"{TOO_LITTLE_DATA} to compare training crashes with {label(baseline)} "
                 f"({oracle:.2f} against {theirs:.2f} per 1000 steps)"
             )
         else:
             compared = (
-                f"{ratio:.2f}x fewer training crashes than {METHOD_LABELS[baseline]} "
+                f"{ratio:.2f}x fewer training crashes than {label(baseline)} "
                 f"(target >= 5x: {'met' if ratio >= 5 else 'not met'})"
             )
         lines.append(
@@ -122,13 +117,13 @@ def markdown(results: dict[str, Any]) -> str:
     ]
     for method, entry in results["methods"].items():
         lines.append(
-            f"| {METHOD_LABELS[method]} | {_cell(entry['crashes_per_1000'], 1)} | "
+            f"| {label(method)} | {_cell(entry['crashes_per_1000'], 1)} | "
             f"{_cell(entry['greedy_crash_rate'])} | {_cell(entry['greedy_return'])} | "
             f"{_cell(entry['steps_to_threshold'], 0)} ({entry['reached']}/{seeds}) | "
             f"{_cell(entry['steps_per_s'], 1)} | {entry['wall_s']:.0f} |"
         )
     lines += ["", *targets(results)]
-    learned = results["methods"].get("factor-q-learned")
+    learned = results["methods"].get("factor-dqn-learned")
     if learned is not None and "oracle" in results:
         agree = ", ".join(
             f"{name} {count}/{seeds}"
@@ -166,7 +161,7 @@ def figure(results: dict[str, Any], path: Path) -> None:
             steps = entry["curves"]["curve_steps"][0]
             band = entry["bands"][name]
             means = _floats(band["mean"])
-            axis.plot(steps, means, label=METHOD_LABELS[method])
+            axis.plot(steps, means, label=label(method))
             low, high = _floats(band["low"], means), _floats(band["high"], means)
             axis.fill_between(steps, low, high, alpha=0.2)
         axis.set_xlabel("env steps")

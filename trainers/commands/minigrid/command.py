@@ -8,7 +8,7 @@ one batch:
 - ``factor-q-learned``: Factor-Q with ``StructureLearner`` as its local value provider, told only
   ``A = 3`` actuators and ``K`` sensors (no pairing): it must find that only forward has a local
   reward and that the front sensor decides it;
-- ``factor-q-oracle``: Factor-Q with ``LocalRewardTable`` on the true pairing (forward <- front);
+- ``factor-q``: Factor-Q with ``LocalRewardTable`` on the true pairing (forward <- front);
 - ``q-learning``: tabular Q-learning on (cell, heading, all sensors);
 - ``dqn``: ``methods.dqn``'s torchrl DQN (DQNLoss, target network, replay, annealed
   epsilon) on the same information (``TaskQNetwork``: one-hot (cell, heading) and the sensor bits);
@@ -43,10 +43,8 @@ import numpy as np
 
 from factorq_trainers.analysis.stats import DESCRIPTION as DESCRIPTION_OF_STATISTICS
 from factorq_trainers.analysis.stats import bootstrap_mean_ci, interval, scalar_ci, wilson_ci
-from factorq_trainers.commands.minigrid.config import (
-    METHOD_LABELS,
-    MiniGridConfig,
-)
+from factorq_trainers.analysis.vocabulary import label
+from factorq_trainers.commands.minigrid.config import METHODS, MiniGridConfig
 from factorq_trainers.commands.minigrid.methods import (
     RUNNERS,
 )
@@ -250,7 +248,7 @@ def summarise(config: MiniGridConfig, outcomes: list[dict[str, Any]]) -> dict[st
         "results": results,
         "statistics": DESCRIPTION_OF_STATISTICS,
         "notice": NOTICE,
-        "methods": dict(METHOD_LABELS),
+        "methods": {method: label(method) for method in METHODS},
     }
 
 

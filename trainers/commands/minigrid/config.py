@@ -10,26 +10,19 @@ from dataclasses import dataclass
 
 from factorq_torch.base.config import EXPLORATIONS, check_exploration
 from factorq_torch.base.validation import check_int
+from factorq_trainers.analysis.vocabulary import among
 from factorq_trainers.runner.options import option
 
-METHODS = (
+METHODS = among(
     "factor-q-learned",
     "factor-q-posterior",
-    "factor-q-oracle",
+    "factor-q",
     "q-learning",
     "dqn",
     "dqn-image",
 )
 #: factor-q-posterior (StructureLearner's own open prediction) is an ablation, run on request.
 DEFAULT_METHODS = tuple(m for m in METHODS if m != "factor-q-posterior")
-METHOD_LABELS = {
-    "factor-q-learned": "Factor-Q, learned dependencies",
-    "factor-q-posterior": "Factor-Q, learned, posterior prediction",
-    "factor-q-oracle": "Factor-Q, oracle pairing",
-    "q-learning": "Q-learning (cell, heading, sensors)",
-    "dqn": "DQN (cell, heading, sensors)",
-    "dqn-image": "DQN (MiniGrid image)",
-}
 SIZE_NAMES = ("5", "6", "8", "16")
 SEMANTICS_NAMES = ("minigrid", "nodeath")
 LAYOUT_NAMES = ("front3", "ahead6")

@@ -194,7 +194,7 @@ def run_tabular(
         local = None
     else:
         task = TaskQTable(count, cells, num_headings=HEADING.num_headings, num_actions=actions)
-        if method == "factor-q-oracle":
+        if method == "factor-q":
             local = LocalRewardTable(count, dependency=base.dependency)
         elif method == "factor-q-posterior":
             local = learner = StructureLearner(
@@ -343,7 +343,7 @@ def run_dqn(
 RUNNERS = {
     "factor-q-learned": run_tabular,
     "factor-q-posterior": run_tabular,
-    "factor-q-oracle": run_tabular,
+    "factor-q": run_tabular,
     "q-learning": run_tabular,
     "dqn": run_dqn,
     "dqn-image": run_dqn,

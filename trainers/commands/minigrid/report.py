@@ -78,7 +78,7 @@ def _targets(results: dict[str, Any], per_method: dict[str, Any]) -> list[str]:
     """The issue's targets at one size, where the methods they compare ran."""
     out = []
     dqn = per_method.get("dqn", {}).get("summary")
-    for method in ("factor-q-learned", "factor-q-oracle"):
+    for method in ("factor-q-learned", "factor-q"):
         mine = per_method.get(method, {}).get("summary")
         if mine is None or dqn is None:
             continue

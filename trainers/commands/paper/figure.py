@@ -13,6 +13,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from factorq_trainers.analysis.vocabulary import among, label
 from factorq_trainers.runner.results import body_label
 
 COLOURS = {"q-learning": "#D55E00", "factor-q": "#0072B2"}  # colour-blind safe (Okabe-Ito)
@@ -210,7 +211,7 @@ def drawn_part(results: dict[str, Any]) -> dict[str, Any]:
 #: them against ``PaperConfig``): the figure the helper process prepares before it is sent one.
 DEFAULT_CONFIG = {"seeds": 100, "runs": 10, "episodes": 200, "size": 10, "obstacles": 10}
 DEFAULT_CELLS = (tuple(WORLD_TITLES), ("q-learning", "factor-q"))
-DEFAULT_LABELS = {"q-learning": "Q-learning", "factor-q": "Factor-Q"}
+DEFAULT_LABELS = {name: label(name) for name in among("q-learning", "factor-q")}
 
 
 def default_spec() -> tuple:

@@ -12,11 +12,11 @@ Every unit trains torchrl's DQN recipe (``QValueActor``, ``EGreedyModule``, ``DQ
 seed for every method; the methods differ only by the two lines of ``factorq_torch.risk``:
 
 - ``dqn``: the recipe alone;
-- ``dqn+risk-oracle``: plus ``LocalRisk`` over a ``LocalRewardTable`` given the env's true
+- ``dqn+risk``: plus ``LocalRisk`` over a ``LocalRewardTable`` given the env's true
   dependency, trained by ``LocalRiskLoss`` on every collected transition;
 - ``dqn+risk-learned``: the same over a ``StructureLearner`` (told only the number of actuators
   and sensors);
-- ``sb3-dqn`` / ``sb3-dqn+risk-oracle``: Stable-Baselines3's DQN on the gymnasium grid, alone and
+- ``sb3-dqn`` / ``sb3-dqn+risk``: Stable-Baselines3's DQN on the gymnasium grid, alone and
   with ``factorq_torch.integrations.sb3`` (the ``sb3`` extra).
 
 Every method reads the conventional reward (``SplitLocalReward(keep_reward=True)``: collisions
@@ -239,9 +239,9 @@ def summarise(config: RiskConfig, unit_results: list[dict[str, Any]]) -> dict[st
     ratios = []
     for world in config.worlds:
         for base, with_risk in (
-            ("dqn", "dqn+risk-oracle"),
+            ("dqn", "dqn+risk"),
             ("dqn", "dqn+risk-learned"),
-            ("sb3-dqn", "sb3-dqn+risk-oracle"),
+            ("sb3-dqn", "sb3-dqn+risk"),
         ):
             if (world, base) in by and (world, with_risk) in by:
                 alone, risk = by[world, base], by[world, with_risk]
@@ -255,8 +255,8 @@ def summarise(config: RiskConfig, unit_results: list[dict[str, Any]]) -> dict[st
                         "return_gain": _difference(risk["final_return"], alone["final_return"]),
                     }
                 )
-        if (world, "dqn+risk-learned") in by and (world, "dqn+risk-oracle") in by:
-            learned, oracle = by[world, "dqn+risk-learned"], by[world, "dqn+risk-oracle"]
+        if (world, "dqn+risk-learned") in by and (world, "dqn+risk") in by:
+            learned, oracle = by[world, "dqn+risk-learned"], by[world, "dqn+risk"]
             ratios.append(
                 {
                     "world": world,

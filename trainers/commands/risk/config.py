@@ -9,6 +9,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from factorq_trainers.analysis.vocabulary import among
 from factorq_trainers.runner.options import option
 
 Progress = Callable[[int], None]
@@ -16,7 +17,7 @@ Progress = Callable[[int], None]
 #: other name is a declared world of ``factorq_envs.worlds``' registry (highway, an installed
 #: one, or package.module:NAME).
 OWN_WORLDS = ("grid", "minigrid")
-METHODS = ("dqn", "dqn+risk-oracle", "dqn+risk-learned", "sb3-dqn", "sb3-dqn+risk-oracle")
+METHODS = among("dqn", "dqn+risk", "dqn+risk-learned", "sb3-dqn", "sb3-dqn+risk")
 TORCHRL_METHODS = METHODS[:3]
 #: The worlds the sb3-* methods can run on (``risk_methods.run_sb3``: the gymnasium grid).
 SB3_WORLDS = ("grid",)

@@ -136,7 +136,7 @@ def provider(method: str, env: Any) -> LocalRewardTable | StructureLearner | Non
     from factorq_torch.tables import LocalRewardTable
 
     dependency = env.base_env.dependency
-    if method.endswith("risk-oracle"):
+    if method.endswith("+risk"):
         return LocalRewardTable(1, dependency=dependency)
     if method.endswith("risk-learned"):
         actions, sensors = dependency.shape

@@ -39,6 +39,7 @@ from factorq_torch.base.config import EXPLORATIONS, AgentConfig
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, substream_key
 from factorq_torch.base.validation import INT32_MAX, check_int, check_names, check_threads
 from factorq_trainers.analysis.stats import bootstrap_mean_ci, count_ratio, scalar_ci
+from factorq_trainers.analysis.vocabulary import among
 from factorq_trainers.methods.experiment import (
     MAX_SEED,
     WorldOptions,
@@ -56,12 +57,14 @@ DESCRIPTION = (
     "with them against Factor-Q and Q-learning from scratch; write transfer.json, transfer.png "
     "and transfer.md to --out."
 )
-METHODS = ("factor-q", "factor-q-body", "q-learning", "learned", "learned-body")
+METHODS = among(
+    "factor-q", "factor-q-body", "q-learning", "factor-q-learned", "factor-q-learned-body"
+)
 #: What runs unless ``--methods`` says otherwise (the learned structure runs on the torchrl path
 #: only, minutes where the rest takes seconds: opt-in).
 DEFAULT_METHODS = METHODS[:3]
 #: The fresh method each carried one is measured against.
-PAIRS = {"factor-q-body": "factor-q", "learned-body": "learned"}
+PAIRS = {"factor-q-body": "factor-q", "factor-q-learned-body": "factor-q-learned"}
 #: The issue's target: the body model's collisions in the first ``early`` episodes of the target
 #: at most a fifth of a fresh Factor-Q's.
 TARGET_RATIO = 5.0
@@ -111,7 +114,9 @@ class TransferConfig(WorldOptions):
     )
     methods: tuple[str, ...] = option(
         DEFAULT_METHODS,
-        "Methods: " + ", ".join(METHODS) + " (learned, learned-body: the structure learner, told "
+        "Methods: "
+        + ", ".join(METHODS)
+        + " (factor-q-learned, factor-q-learned-body: the structure learner, told "
         "nothing of the pairing, on the torchrl path only: slow, opt-in).",
     )
     seed: int = option(0, "Master seed: worlds and policies derive from it.")
@@ -346,7 +351,7 @@ def run_unit(
 ) -> dict[str, Any]:
     """The unit's method in its regime: per-seed measures and the per-episode collision curve."""
     method, regime = unit["method"], unit["regime"]
-    learned = method.startswith("learned")
+    learned = method.startswith("factor-q-learned")
     body, body_from = None, "none"
     if method == "factor-q-body" and config.body_model is not None:
         body, body_from = load_body_model(config), "file"

@@ -6,16 +6,10 @@ from pathlib import Path
 from typing import Any
 
 from factorq_trainers.analysis.stats import TOO_LITTLE_DATA
+from factorq_trainers.analysis.vocabulary import label
 
-METHOD_LABELS = {
-    "factor-q": "Factor-Q from scratch",
-    "factor-q-body": "Factor-Q with the body model",
-    "q-learning": "Q-learning from scratch",
-    "learned": "learned structure from scratch",
-    "learned-body": "learned structure, carried",
-}
 #: The fresh method each carried one is measured against (``transfer.PAIRS``).
-FRESH = {"factor-q-body": "factor-q", "learned-body": "learned"}
+FRESH = {"factor-q-body": "factor-q", "factor-q-learned-body": "factor-q-learned"}
 
 
 def _cell(stat: dict[str, Any], digits: int = 1) -> str:
@@ -59,7 +53,7 @@ def markdown(results: dict[str, Any]) -> str:
         ]
         for method, entry in methods.items():
             lines.append(
-                f"| {METHOD_LABELS[method]} | {_cell(entry['early_collisions'])} | "
+                f"| {label(method)} | {_cell(entry['early_collisions'])} | "
                 f"{_cell(entry['late_collisions'])} | {_cell(entry['late_steps'])} | "
                 f"{_cell(entry['late_truncated'], 2)} |"
             )
@@ -79,7 +73,7 @@ def markdown(results: dict[str, Any]) -> str:
             verdict = "met" if against["target_met"] else "not met"
             lines += [
                 "",
-                f"- {METHOD_LABELS[carried]}: {said} collisions in the first {early} episodes "
+                f"- {label(carried)}: {said} collisions in the first {early} episodes "
                 f"({body:.2f} against {fresh:.2f} per seed from scratch; target "
                 f"{results['target_ratio']:.0f}x: {verdict}); steps per episode over the last "
                 f"{early}: {against['late_steps_body']:.1f} against "
@@ -109,7 +103,7 @@ def figure(results: dict[str, Any], path: Path) -> None:
         for method, entry in results["results"][regime].items():
             curve = entry["collisions_per_episode"][:shown]
             axis.plot(range(1, len(curve) + 1), [value + 0.01 for value in curve],
-                      label=METHOD_LABELS[method])  # fmt: skip
+                      label=label(method))  # fmt: skip
         axis.set_yscale("log")
         axis.set_xlabel("target episode")
         axis.set_title(f"target: {regime}")
