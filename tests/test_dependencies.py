@@ -272,9 +272,9 @@ def test_the_summary_shows_the_absolute_task_measures_beside_the_ratios():
         {
             "config": dataclasses.asdict(config),
             "settings": {"cross": summary},
-            "methods": {"factor-q": "factor-q", "q-learning": "Q-learning"},  # the labels
+            "methods": {"factor-q": "Factor-Q", "q-learning": "Q-learning"},  # the labels
             "timing": {"wall_s": 1.0},
         }
     )
-    assert "| cross | oracle | 0 | 0 | 530 | 265 | 25% |" in text
+    assert "| cross | Factor-Q | 0 | 0 | 530 | 265 | 25% |" in text
     assert "uniform exploration" in text

@@ -203,7 +203,7 @@ def test_reports_say_too_little_data_instead_of_a_ratio_of_zeros():
     assert "10.00x fewer training crashes" in lines[0] and "(target >= 5x: met)" in lines[0]
 
     summary = {"collisions": {"mean": 0.0}, "success_rate": {"mean": 0.0}}
-    per_method = {"dqn": {"summary": summary}, "factor-dqn": {"summary": summary}}
+    per_method = {"dqn": {"summary": summary}, "factor-q": {"summary": summary}}
     (line,) = minigrid._targets({"methods": {}}, per_method)
     assert "too little data to compare training collisions" in line and "x below" not in line
 

@@ -45,8 +45,8 @@ def test_the_command_writes_its_report_and_the_body_model_saves_the_learning_col
         "early_collisions"]["mean"]  # fmt: skip
     assert results["body_against_fresh"]["factor-q-body"]["static"]["target_met"] is True
     report = (out / "transfer.md").read_text()
-    assert "## Target: dynamic" in report and "| Factor-Q with the body model |" in report
-    assert "- Factor-Q with the body model: no collisions in the first 3 episodes" in report
+    assert "## Target: dynamic" in report and "| Factor-Q, carried body model |" in report
+    assert "- Factor-Q, carried body model: no collisions in the first 3 episodes" in report
     assert (out / "transfer.png").stat().st_size > 0
     capsys.readouterr()
 

@@ -17,8 +17,9 @@ methods on the same worlds (common random numbers: the same world keys):
 - ``dqn`` (opt-in, ``--methods``): ``factorq_trainers.methods.dqn`` on the oracle's step budget
   (``run_dqn``);
 - ``factor-q-gated`` (opt-in, ``--methods``): Factor-Q with
-  ``factorq_torch.neural.GatedLocalRewardNetwork`` as the local value provider on the modular path,
-  in the learner's sensor orders, its structure read out (``structure()``) at the end (``run_gated``).
+  ``factorq_torch.neural.GatedLocalRewardNetwork`` as the local value provider on the modular
+  path, in the learner's sensor orders, its structure read out (``structure()``) at the end
+  (``run_gated``).
 
 The joint table and Q-learning receive the sensors in the learner's orders, changed at the same
 moment (``fast.SensorOrders``); the oracle is told the true pairing at every moment, which is
