@@ -1,7 +1,8 @@
 """factorq_envs (the folder ``envs/``): the FactoredGrid world of the paper, for torchrl and
 gymnasium.
 
-Importing the package registers the gymnasium id ``"FactoredGrid-v0"``. The torchrl classes and
+Importing the package registers the gymnasium ids ``"FactoredGrid-v0"`` and ``"PayingGrid-v0"``
+(``factorq_envs.paying_grid``: items that pay a positive local reward). The torchrl classes and
 the grid world load on first use, so code that needs only the obstacle regimes
 (``factorq_envs.regimes``, torch-free: the reports) or the pure world functions
 (``factorq_envs.grid_world``, the fast path) pays for nothing else.
@@ -33,3 +34,5 @@ if "FactoredGrid-v0" not in gymnasium.registry:
     gymnasium.register(
         id="FactoredGrid-v0", entry_point="factorq_envs.gymnasium_env:FactoredGridGym"
     )
+if "PayingGrid-v0" not in gymnasium.registry:  # the grid that pays (factorq_envs.paying_grid)
+    gymnasium.register(id="PayingGrid-v0", entry_point="factorq_envs.paying_grid:paying_gym")

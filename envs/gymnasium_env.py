@@ -134,13 +134,16 @@ class FactoredGridGym(gymnasium.Env):
         # IndexSpace and FlagSpace: torchrl's GymEnv reads a categorical cell and bool flags
         # (factorq_envs.gym_spaces), Gymnasium and SB3 a Discrete and a MultiBinary
         register_if_torchrl_loaded()
+        # the collision entry's bounds: the world's local_reward_range (a world that pays),
+        # else the grid's -1 / 0
+        low, high = getattr(config, "local_reward_range", (-1.0, 0.0))
         entries = {
             "cell": IndexSpace(config.num_cells),
             "sensors": FlagSpace(config.num_sensors),
             "bump": FlagSpace(config.num_actuators),
             # the collision vector (as FactoredGridEnv's), so that torchrl's GymEnv composes with
             # SplitLocalReward; info["local_reward"] keeps it for gymnasium users
-            "collision": spaces.Box(-1.0, 0.0, (config.num_actuators,), np.float32),
+            "collision": spaces.Box(float(low), float(high), (config.num_actuators,), np.float32),
         }
         if config.num_headings > 1:
             entries["heading"] = IndexSpace(config.num_headings)

@@ -14,7 +14,9 @@ What the wrappers read, besides the methods below:
 
 - ``config``: ``num_cells`` (the ``cell`` observation is in ``[0, num_cells)``), ``num_sensors``
   (``K``), ``num_actuators`` (``A``), ``num_headings`` (1: no ``heading`` in the observation),
-  ``goal_cell``, ``max_steps`` and ``actuator_names`` (error messages);
+  ``goal_cell``, ``max_steps`` and ``actuator_names`` (error messages); optionally
+  ``local_reward_range`` ``(low, high)``, the bounds of the ``collision`` entry (default
+  ``(-1.0, 0.0)``: collisions only; ``factorq_envs.paying_grid`` pays up to ``+item_reward``);
 - the state (a ``NamedTuple`` of tensors, leading dimension ``S``): ``cell`` ``[S]`` int64,
   ``bump`` ``[S, A]`` bool, ``episode_step`` ``[S]`` int64, and ``heading`` ``[S]`` int64 when
   ``num_headings > 1``;

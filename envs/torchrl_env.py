@@ -352,6 +352,9 @@ class FactoredGridEnv(EnvBase):
     def _make_specs(self) -> None:
         batch, device, config = self.batch_size, self.device, self.config
         actuators = (*batch, config.num_actuators)
+        # the collision entry's bounds: the world's local_reward_range (a world that pays),
+        # else the grid's -1 / 0
+        low, high = getattr(config, "local_reward_range", (-1.0, 0.0))
         entries = {
             keys.CELL: Categorical(config.num_cells, shape=batch, dtype=torch.int64, device=device),
             keys.SENSORS: Binary(
@@ -364,7 +367,7 @@ class FactoredGridEnv(EnvBase):
                 n=config.num_actuators, shape=actuators, dtype=torch.bool, device=device
             ),
             keys.COLLISION: Bounded(
-                low=-1.0, high=0.0, shape=actuators, dtype=torch.float32, device=device
+                low=low, high=high, shape=actuators, dtype=torch.float32, device=device
             ),
         }
         if config.num_headings > 1:

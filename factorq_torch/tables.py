@@ -226,6 +226,34 @@ def _check_loaded(owner: str, state_dict: dict, prefix: str, floats: tuple, coun
 #: What a bad loaded table means.
 _LOADED = "the state was saved from a diverged run or edited; nothing was loaded"
 
+#: The signs a ``LocalRewardTable`` may be declared to hold: ``"either"`` (the default: any local
+#: reward), ``"negative"`` (costs only, ``<= 0``: the paper's collisions) or ``"positive"`` (pays
+#: only, ``>= 0``).
+SIGNS = ("either", "negative", "positive")
+
+
+def check_sign(owner: str, sign: str, values: torch.Tensor, what: str) -> None:
+    """Refuse ``values`` holding a local reward of the sign a table declared ``sign`` does not
+    take: one ValueError naming the declared sign and what was seen (both signs, when both
+    are there). ``"either"`` takes anything."""
+    if sign == "either" or values.numel() == 0 or values.device.type == "meta":
+        return
+    positive, negative = values[values > 0], values[values < 0]
+    wrong = positive if sign == "negative" else negative
+    if wrong.numel() == 0:
+        return
+    seen = []
+    if positive.numel():
+        seen.append(f"a positive local reward ({float(positive.max()):+g})")
+    if negative.numel():
+        seen.append(f"a negative local reward ({float(negative.min()):+g})")
+    takes = "<= 0, costs only" if sign == "negative" else ">= 0, pays only"
+    raise ValueError(
+        f"{owner}: the table was declared sign={sign!r} (local rewards {takes}), but "
+        f"{what} holds {' and '.join(seen)}: declare sign='either' for a body whose local "
+        f"rewards take both signs"
+    )
+
 
 class TaskQTable(TensorDictModuleBase):
     """Task values ``Q(s, .)`` of ``S`` experiments, one row of ``A`` actions per state.
@@ -427,6 +455,10 @@ class LocalRewardTable(TensorDictModuleBase):
         num_actions: ``A`` when ``dependency`` is not given.
         sensors_key: where the sensors are read (``keys.SENSORS``).
         device: where the tables live.
+        sign: the local rewards it takes (``SIGNS``): ``"either"`` (default, any sign: a body
+            that pays and costs), ``"negative"`` (``<= 0``) or ``"positive"`` (``>= 0``); a
+            reward of the other sign, fed to ``update_running_mean`` or held by a loaded
+            ``rho``, is refused naming both (``check_sign``).
 
     Keys: reads ``sensors`` ``[S, K]`` bool, writes ``local_value`` ``[S, A]`` float32 with
     ``local_value[s, a] = rho[s, a, o_D(a)]`` (``functional.project_local``).
@@ -448,10 +480,14 @@ class LocalRewardTable(TensorDictModuleBase):
         num_actions: int = NUM_ACTIONS,
         sensors_key: str = keys.SENSORS,
         device: torch.device | str | None = None,
+        sign: str = "either",
     ) -> None:
         super().__init__()
         self.num_experiments = check_int("num_experiments", num_experiments, 1)
         device = check_device("device", device)
+        if not isinstance(sign, str) or sign not in SIGNS:
+            raise ValueError(f"sign={sign!r} is unknown: choose one of {', '.join(SIGNS)}")
+        self.sign = sign
         if dependency is None:
             dependency = torch.eye(check_int("num_actions", num_actions, 1), dtype=torch.bool)
         dependency = check_dependency(dependency)
@@ -498,6 +534,10 @@ class LocalRewardTable(TensorDictModuleBase):
     @torch.no_grad()
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
         _check_loaded(type(self).__name__, state_dict, prefix, ("rho",), ("kappa",))
+        rho = state_dict.get(prefix + "rho")
+        if isinstance(rho, torch.Tensor):
+            owner = f"{type(self).__name__}.load_state_dict"
+            check_sign(owner, self.sign, rho, f"the loaded {prefix + 'rho'!r}")
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def update_running_mean(
@@ -527,6 +567,8 @@ class LocalRewardTable(TensorDictModuleBase):
                 over a ``[S]`` batch, 0 when ``S = 1``; see ``experiment_index``).
         """
         owner = "LocalRewardTable.update_running_mean"
+        if self.sign != "either" and isinstance(local_reward, torch.Tensor):
+            check_sign(owner, self.sign, local_reward, "local_reward")
         batch = tuple(readings.shape[:-1])
         if readings.dim() < 1 or readings.shape[-1] != self.num_sensors:
             raise ValueError(
