@@ -272,3 +272,53 @@ def test_in_the_papers_grid_arbitration_changes_no_number():
     (m_off, q_off, rho_off), (m_on, q_on, rho_on) = run(False), run(True)
     assert (m_off == m_on).all() and torch.equal(q_off, q_on) and torch.equal(rho_off, rho_on)
     assert int(m_off["collisions"].sum()) > 0  # there were collisions to change
+
+
+def trained_tables(world: StrikeWorld) -> tuple:
+    """Tables as a trained agent holds them: ``Q(s, a) = 100 gamma^d`` with ``d`` the distance
+    from where ``a`` leads to the goal through the open door (a blocked move stays), and every
+    actuator's local value -1 where its sensor reads blocked."""
+    config = world.config
+    size, goal, door = config.size, config.goal_cell, config.door_cell
+    walls = config.layout.clone()
+    walls[door] = False
+    distance, frontier = {goal: 0}, [goal]
+    while frontier:  # breadth-first from the goal
+        cell = frontier.pop(0)
+        row, col = divmod(cell, size)
+        for r, c in ((row - 1, col), (row, col - 1), (row + 1, col), (row, col + 1)):
+            if 0 <= r < size and 0 <= c < size and not walls[r * size + c]:
+                if r * size + c not in distance:
+                    distance[r * size + c] = distance[cell] + 1
+                    frontier.append(r * size + c)
+    task, local = TaskQTable(1, num_cells=size * size), LocalRewardTable(1)
+    with torch.no_grad():
+        for cell, d in distance.items():
+            row, col = divmod(cell, size)
+            for action, (r, c) in enumerate(
+                ((row - 1, col), (row, col - 1), (row + 1, col), (row, col + 1))
+            ):
+                target = r * size + c if 0 <= r < size and 0 <= c < size else None
+                steps = distance.get(target, d + 1)  # a wall or the L: the agent stays
+                task.table[0, cell, action] = 100.0 * 0.9**steps
+        local.rho[0, :, 1], local.kappa[0, :, 1] = -1.0, 1
+    return task, local
+
+
+@pytest.mark.parametrize(("arbitration", "steps"), [(False, None), (True, 9)])
+def test_with_trained_tables_only_arbitration_goes_through_the_door(arbitration, steps):
+    world = StrikeWorld(StrikeConfig(size=5))
+    task, local = trained_tables(world)
+    policy = TensorDictSequential(
+        task, local, FactorQPolicy(1, epsilon=0.0, arbitration=arbitration)
+    )
+    env = FactoredGridEnv(world=world, batch_size=(1,))
+    td, reached = env.reset(), None
+    for step in range(1, 51):
+        td = env.step(policy(td))
+        if td["next", "terminated"].all():
+            reached = step
+            break
+        td = env.step_mdp(td)
+    # 5 moves to the door, the strike, 3 moves to the goal; without arbitration never
+    assert reached == steps
