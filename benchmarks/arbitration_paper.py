@@ -7,7 +7,7 @@ modular path with ``FactorQPolicy(arbitration=True)`` and ``FactorQLoss(arbitrat
 path's Factor-Q (arbitration off), and computes the claims C1-C5 from the arbitrated Factor-Q
 against the same seeds' Q-learning (``factorq_trainers.analysis.claims``).
 
-    .venv/bin/python benchmarks/arbitration_paper.py --seeds 3
+    .venv/bin/python benchmarks/arbitration_paper.py --seeds 100   # the whole paper, ~4 min
 
 Prints whether every metric is equal, and each claim's value and verdict. Not a package on
 purpose (the torchrl wheel installs a top-level ``benchmarks``).
