@@ -262,6 +262,66 @@ def combined_values(q: torch.Tensor, rho: torch.Tensor, g: torch.Tensor) -> torc
     return (q + g.unsqueeze(-1) * rho).clamp(scalar(-largest, q), scalar(largest, q))
 
 
+def arbitrated_normaliser(
+    q: torch.Tensor, rho: torch.Tensor, g: torch.Tensor, gamma: float, local_span: float = 1.0
+) -> torch.Tensor:
+    """Arbitration (the paper's section 9): eq. 3's ``G``, or ``1`` where the task takes priority.
+
+    ``[..., A], [..., A], [...] -> [...]``. The task takes priority in a state where one action
+    ``a*`` beats every other under the conventional reward (task + local, summed: the reward
+    structure's own exchange rate) *whatever local rewards follow*::
+
+        (Q + rho)[a*] - max_{b != a*} (Q + rho)[b] > gamma * local_span / (1 - gamma)
+
+    and eq. 2 would not choose it (``C(s)[a*]`` not above every other ``C(s)[b]``). There
+    ``G = 1``: eq. 2 becomes ``C = Q + rho``, whose argmax is ``a*``, and eq. 4 bootstraps on
+    its value. Everywhere else eq. 3's ``G`` stands, unchanged to the bit.
+
+    Derivation. Under the conventional reward ``r_task + sum(r_L)`` the value of taking ``a`` and
+    then following the policy is ``Q(s, a) + rho_a + gamma L(s')``: ``Q`` the task values (what
+    Factor-Q's task table estimates), ``rho_a`` the expected local reward of this step (eq. 5),
+    ``L(s')`` the discounted local return afterwards. With every step's local reward in an
+    interval of width ``local_span`` (the paper: one collision, ``[-1, 0]``, width 1), any two
+    actions' ``gamma L`` differ by at most ``gamma * local_span / (1 - gamma)`` (9 at the paper's
+    ``gamma = 0.9``). So when ``a*``'s ``Q + rho`` beats every other's by more than that, its
+    lower bound beats every other action's upper bound: ``a*`` is the better action for the task
+    and the body together however the local future turns out, and taking it is a policy
+    improvement step on the conventional reward. The rule reads only ``gamma`` and the local
+    reward's span: nothing is tuned per world.
+
+    In the paper's worlds it never fires: task values lie in ``[-1 / (1 - gamma), 0]`` there
+    (rewards -1 per step, 0 on the goal step: ``[-10, 0]``, up to eq. 3's floor ``g_min``), and
+    eq. 2 refuses ``a*`` only when ``a*`` carries a worse local value than some ``b``: against a
+    certain collision (``rho = -1`` against 0) the margin needs a task advantage above
+    ``9 + 1 = 10``. A task whose rewards are large against the local penalty (a goal worth 100
+    collisions, ``factorq_envs.strike``) gets the margin, and the body strikes when the task
+    needs it. docs/decisions.md, "Arbitration: when the task takes priority".
+
+    Args:
+        q: task values ``Q(s, .)``, ``[..., A]``.
+        rho: local values ``rho(o)``, ``[..., A]`` (as eq. 2 sees them).
+        g: eq. 3's ``G``, ``[...]``.
+        gamma: the discount, in ``[0, 1)``.
+        local_span: the width of one step's local reward interval (>= 0; 1 for a -1 collision).
+
+    >>> q = torch.tensor([[70.0, 55.0, 55.0, 40.0], [-1.0, -2.0, -2.0, -3.0]])
+    >>> rho = torch.tensor([[-1.0, 0.0, 0.0, 0.0], [-1.0, 0.0, 0.0, 0.0]])
+    >>> arbitrated_normaliser(q, rho, torch.tensor([16.5, 0.6]), gamma=0.9)  # 14 > 9; 0 < 9
+    tensor([1.0000, 0.6000])
+    """
+    if q.shape[-1] < 2:  # nothing to choose between
+        return g
+    margin = gamma * local_span / (1.0 - gamma)
+    best = (q + rho).topk(2, dim=-1)  # [..., 2]
+    dominant = best.indices[..., :1]  # [..., 1], a*
+    priority = best.values[..., 0] - best.values[..., 1] > scalar(margin, q)
+    combined = combined_values(q, rho, g)  # eq. 2 as it stands
+    chosen = combined.gather(-1, dominant).squeeze(-1)
+    others = combined.scatter(-1, dominant, scalar(-math.inf, combined).expand(dominant.shape))
+    refused = chosen <= others.amax(dim=-1)  # eq. 2 does not choose a* outright
+    return torch.where(priority & refused, scalar(1.0, g), g)
+
+
 def risk_mask(rho: torch.Tensor, threshold: float = 0.5) -> torch.Tensor:
     """The actuators a local-risk layer does not call risky, ``[..., A]`` bool: ``rho_a >=
     -threshold`` (local reward units), every actuator of a state where none is left (never an

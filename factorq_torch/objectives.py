@@ -59,6 +59,7 @@ from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.indices import row_starts
 from factorq_torch.base.validation import check_finite, check_indices, check_same_device
 from factorq_torch.functional import (
+    arbitrated_normaliser,
     combined_values,
     factorq_target,
     normaliser,
@@ -444,6 +445,8 @@ class FactorQLoss(_TransitionLoss):
         reduction: ``"sum"`` (exact tabular update) or ``"mean"`` over experiments.
         risk_threshold, risk_gate: eq. 4's ``C(s')`` from ``functional.significant_local(rho,
             risk_threshold)`` where ``risk_gate`` (the policy's values; default: the paper).
+        arbitration, local_span: eq. 4's ``C(s')`` with ``G = 1`` where the task takes priority
+            (``functional.arbitrated_normaliser``; the policy's values; default: the paper).
 
     Keys (``set_keys``): ``action_value``, ``local_value``, ``action``, ``sensors`` (all
     sensors before acting, ``[S, K]``), ``reward`` (task reward), ``local_reward`` and
@@ -481,11 +484,21 @@ class FactorQLoss(_TransitionLoss):
         reduction: str = "sum",
         risk_threshold: float = 0.5,
         risk_gate: bool = False,
+        arbitration: bool = False,
+        local_span: float = 1.0,
     ) -> None:
         super().__init__(gamma=gamma, alpha=alpha, reduction=reduction)
-        AgentConfig(eta=eta, g_min=g_min, risk_threshold=risk_threshold, risk_gate=risk_gate)
+        AgentConfig(
+            eta=eta,
+            g_min=g_min,
+            risk_threshold=risk_threshold,
+            risk_gate=risk_gate,
+            arbitration=arbitration,
+            local_span=local_span,
+        )
         self.eta, self.g_min = float(eta), float(g_min)
         self.risk_threshold, self.risk_gate = float(risk_threshold), risk_gate
+        self.arbitration, self.local_span = arbitration, float(local_span)
         _check_provider("task_value_network", task_value_network)
         self.task_value_network = task_value_network
         _check_provider("local_value_network", local_value_network)
@@ -537,6 +550,8 @@ class FactorQLoss(_TransitionLoss):
         if self.risk_gate:  # the policy's local values (significant_local)
             rho_next = significant_local(rho_next, self.risk_threshold)  # [*B, A]
         g_next = normaliser(q_next, rho_next, eta=self.eta, g_min=self.g_min)  # [*B], eq. 3
+        if self.arbitration:  # the policy's G: 1 where the task takes priority
+            g_next = arbitrated_normaliser(q_next, rho_next, g_next, self.gamma, self.local_span)
         c_next = combined_values(q_next, rho_next, g_next)  # [*B, A], eq. 2
         target = factorq_target(reward, c_next, terminated, self.gamma)  # [*B], eq. 4
         loss_task, td_error = self._task_loss(q, action, target, mask, weight)
@@ -594,6 +609,8 @@ class FactorQLoss(_TransitionLoss):
         if self.risk_gate:  # the policy's local values (significant_local)
             rho_next = significant_local(rho_next, self.risk_threshold)  # [S, A]
         g_next = normaliser(q_next, rho_next, eta=self.eta, g_min=self.g_min)  # [S], eq. 3
+        if self.arbitration:  # the policy's G: 1 where the task takes priority
+            g_next = arbitrated_normaliser(q_next, rho_next, g_next, self.gamma, self.local_span)
         c_next = combined_values(q_next, rho_next, g_next)  # [S, A], eq. 2
         target = factorq_target(reward, c_next, terminated, self.gamma)  # [S], eq. 4
         self._write_task_update(tensordict, action, target, mask)

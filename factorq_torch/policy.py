@@ -41,6 +41,7 @@ from factorq_torch.base.indices import row_starts
 from factorq_torch.base.rng import POLICY_DRAWS_PER_STEP, STREAM_POLICY, derive_keys, random_bits
 from factorq_torch.base.validation import check_device, check_finite, check_seed
 from factorq_torch.functional import (
+    arbitrated_normaliser,
     combined_values,
     epsilon_greedy_from_bits,
     normaliser,
@@ -227,7 +228,9 @@ class FactorQPolicy(EpsilonGreedyPolicy):
     ``functional.significant_local(rho, risk_threshold)``) and ``exploration`` (``"risk-aware"``:
     exploratory actions uniform among ``functional.risk_mask(rho, risk_threshold)``, the
     actuators the local model does not call risky; docs/decisions.md, "Exploration that respects
-    known risk"). Their defaults are the paper's.
+    known risk"), and ``arbitration`` with ``gamma`` and ``local_span`` (``G = 1`` where the task
+    takes priority, ``functional.arbitrated_normaliser``; docs/decisions.md, "Arbitration: when
+    the task takes priority"). Their defaults are the paper's.
 
     Keys: reads ``action_value`` ``[S, A]`` and ``local_value`` ``[S, A]``, writes
     ``combined_value`` ``[S, A]``, ``action`` ``[S]`` and ``exploratory`` ``[S]``.
@@ -259,6 +262,9 @@ class FactorQPolicy(EpsilonGreedyPolicy):
         risk_threshold: float = 0.5,
         risk_gate: bool = False,
         exploration: str = "uniform",
+        arbitration: bool = False,
+        gamma: float = 0.9,
+        local_span: float = 1.0,
     ) -> None:
         super().__init__(
             num_experiments,
@@ -275,9 +281,13 @@ class FactorQPolicy(EpsilonGreedyPolicy):
             risk_threshold=risk_threshold,
             risk_gate=risk_gate,
             exploration=exploration,
+            arbitration=arbitration,
+            gamma=gamma,
+            local_span=local_span,
         )
         self.eta, self.g_min = float(eta), float(g_min)
         self.risk_threshold, self.risk_gate = float(risk_threshold), risk_gate
+        self.arbitration, self.gamma, self.local_span = arbitration, float(gamma), float(local_span)
         self.in_keys = ["action_value", "local_value"]
         self.out_keys = ["combined_value", "action", "exploratory"]
 
@@ -295,6 +305,8 @@ class FactorQPolicy(EpsilonGreedyPolicy):
         if self.risk_gate:
             rho = significant_local(rho, self.risk_threshold)  # [S, A]
         g = normaliser(q, rho, eta=self.eta, g_min=self.g_min)  # [S], eq. 3
+        if self.arbitration:  # G = 1 where the task takes priority
+            g = arbitrated_normaliser(q, rho, g, self.gamma, self.local_span)
         combined = combined_values(q, rho, g)  # [S, A], eq. 2
         tensordict.set("combined_value", combined)
         return combined, allowed

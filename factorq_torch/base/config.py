@@ -34,6 +34,10 @@ class AgentConfig:
             (``functional.significant_local``); False: the paper, every value counts.
         exploration: ``"uniform"`` (the paper) or ``"risk-aware"`` (``EXPLORATIONS``); Factor-Q
             only.
+        arbitration: the task takes priority where its advantage outweighs any local future
+            (``functional.arbitrated_normaliser``); False: the paper, eq. 3 always. Factor-Q only.
+        local_span: the width of one step's local reward interval, read by ``arbitration`` (1:
+            a collision of -1), >= 0.
     """
 
     epsilon: float = 0.01
@@ -53,6 +57,10 @@ class AgentConfig:
     """Eqs. 2-3 see only significant local values (|rho_a| > risk_threshold), the rest as 0."""
     exploration: str = "uniform"
     """Exploratory actions: uniform (the paper) or risk-aware (among the actuators not risky)."""
+    arbitration: bool = False
+    """The task takes priority where its advantage outweighs any local future (section 9)."""
+    local_span: float = 1.0
+    """Width of one step's local reward interval (1: a collision of -1), read by arbitration."""
 
     def __post_init__(self) -> None:
         check_float("epsilon", self.epsilon, 0.0, 1.0)
@@ -64,6 +72,9 @@ class AgentConfig:
         if not isinstance(self.risk_gate, bool):
             raise TypeError(f"risk_gate must be a bool, got {self.risk_gate!r}")
         check_exploration(self.exploration)
+        if not isinstance(self.arbitration, bool):
+            raise TypeError(f"arbitration must be a bool, got {self.arbitration!r}")
+        check_float("local_span", self.local_span, 0.0, 1e6)
 
 
 def check_exploration(exploration: str) -> str:
