@@ -43,9 +43,11 @@ from factorq_envs.vector_grid import (
 )
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 from factorq_torch.functional import qlearning_state
-from factorq_torch.vector import VectorFactorQ
+from factorq_torch.vector import NeuralVectorFactorQ, VectorFactorQ
 
 METHODS = ("vector-factor-q", "flat-factor-q", "flat-q-learning")
+#: Run on demand (``--methods``): the task values from a network (``NeuralVectorFactorQ``).
+NEURAL = "neural-vector-factor-q"
 WORLDS = {"static": 0, "dynamic": 1}
 #: Ten episodes averaging at most this many steps count as learned (4x the static layout's
 #: shortest path of 10 steps; the empty grid's is 9).
@@ -68,12 +70,14 @@ def make_agent(method: str, seeds: int, config: VectorGridConfig, seed: int) -> 
     joint = NVEC[0] * NVEC[1]
     if method == "vector-factor-q":
         return VectorFactorQ(seeds, config.num_cells, NVEC, drive_dependency(), seed=seed)
+    if method == NEURAL:
+        return NeuralVectorFactorQ(seeds, config.num_cells, NVEC, drive_dependency(), seed=seed)
     if method == "flat-factor-q":
         return VectorFactorQ(seeds, config.num_cells, (joint,), joint_dependency(), seed=seed)
     if method == "flat-q-learning":
         states = config.num_cells * 2**config.num_sensors
         return VectorFactorQ(seeds, states, (joint,), None, seed=seed, local=False)
-    raise ValueError(f"method={method!r} is unknown: choose one of {', '.join(METHODS)}")
+    raise ValueError(f"method={method!r} is unknown: choose one of {', '.join((*METHODS, NEURAL))}")
 
 
 def run(
@@ -104,7 +108,7 @@ def run(
     collisions = torch.zeros(seeds)
     greedy = torch.zeros(seeds)
     rows = torch.arange(seeds)
-    flat = method != "vector-factor-q"
+    flat = method not in ("vector-factor-q", NEURAL)
     while bool((episode < episodes).any()):
         sensors = vector_sensors(state, config)
         task_state = qlearning_state(state.cell, sensors) if not agent.local else state.cell
@@ -172,17 +176,28 @@ def summary(out: dict[str, torch.Tensor]) -> dict[str, float]:
     }
 
 
-def figure(curves: dict[tuple[str, str], torch.Tensor], path: str, episodes: int) -> None:
+def figure(
+    curves: dict[tuple[str, str], torch.Tensor],
+    path: str,
+    episodes: int,
+    worlds: dict[str, int],
+    methods: tuple[str, ...],
+) -> None:
     """Steps per episode and cumulative collisions, per world, for each method."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, len(WORLDS), figsize=(8, 5.2), sharex=True)
-    colours = {"vector-factor-q": "C0", "flat-factor-q": "C2", "flat-q-learning": "C3"}
-    for column, world in enumerate(WORLDS):
-        for method in METHODS:
+    fig, axes = plt.subplots(2, len(worlds), figsize=(8, 5.2), sharex=True, squeeze=False)
+    colours = {
+        "vector-factor-q": "C0",
+        "flat-factor-q": "C2",
+        "flat-q-learning": "C3",
+        NEURAL: "C1",
+    }
+    for column, world in enumerate(worlds):
+        for method in methods:
             steps, collisions = curves[(world, method)]
             x = range(1, episodes + 1)
             axes[0, column].plot(x, steps, color=colours[method], label=method, lw=1)
@@ -205,13 +220,21 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seeds", type=int, default=20, help="experiments per master seed")
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--out", default="action_vectors.png", help="the figure")
+    parser.add_argument(
+        "--methods",
+        default=",".join(METHODS),
+        help=f"comma-separated, the first is the reference of the ratios ({NEURAL} on demand)",
+    )
+    parser.add_argument("--worlds", default=",".join(WORLDS), help="comma-separated")
     args = parser.parse_args(argv)
+    methods = tuple(args.methods.split(","))
+    worlds = {name: WORLDS[name] for name in args.worlds.split(",")}
     torch.set_num_threads(1)
     results: dict[tuple[str, str], list[dict[str, float]]] = {}
     curves: dict[tuple[str, str], list[torch.Tensor]] = {}
-    for world, period in WORLDS.items():
+    for world, period in worlds.items():
         config = VectorGridConfig(obstacle_period=period)
-        for method in METHODS:
+        for method in methods:
             for master in range(args.master_seeds):
                 start = time.perf_counter()
                 out = run(
@@ -233,10 +256,10 @@ def main(argv: list[str] | None = None) -> None:
                     flush=True,
                 )
     print()
-    print("ratio to vector-factor-q: median [range] over the master seeds")
-    for world in WORLDS:
-        base = results[(world, "vector-factor-q")]
-        for method in METHODS[1:]:
+    print(f"ratio to {methods[0]}: median [range] over the master seeds")
+    for world in worlds:
+        base = results[(world, methods[0])]
+        for method in methods[1:]:
             parts = []
             for name in base[0]:
                 ratios = [
@@ -246,11 +269,11 @@ def main(argv: list[str] | None = None) -> None:
                 parts.append(
                     f"{name} {statistics.median(ratios):.2f}x [{min(ratios):.2f}-{max(ratios):.2f}]"
                 )
-            print(f"{world:8} {method:16} / vector: " + "; ".join(parts))
+            print(f"{world:8} {method:16} / {methods[0]}: " + "; ".join(parts))
     mean_curves = {
         key: torch.stack(value).mean(0) for key, value in curves.items()
     }  # [2, E] per (world, method)
-    figure(mean_curves, args.out, args.episodes)
+    figure(mean_curves, args.out, args.episodes, worlds, methods)
     print(f"figure: {args.out}")
 
 

@@ -44,7 +44,7 @@ from collections.abc import Sequence
 
 import torch
 
-from factorq_torch.base.rng import STREAM_POLICY, derive_keys, random_bits
+from factorq_torch.base.rng import STREAM_POLICY, STREAM_TASK_NETWORK, derive_keys, random_bits
 from factorq_torch.base.validation import check_float, check_int
 from factorq_torch.functional import (
     check_dependency,
@@ -60,6 +60,7 @@ from factorq_torch.functional import (
     vector_combined_values,
     vector_normalisers,
 )
+from factorq_torch.neural import BatchedMLP
 
 
 class VectorFactorQ:
@@ -128,12 +129,22 @@ class VectorFactorQ:
 
     # -- values and action ------------------------------------------------------------------
 
+    def task_values(self, cell: torch.Tensor) -> torch.Tensor:
+        """``Q(s, .)`` ``[S, M]`` over the joint action at ``cell`` ``[S]`` (the task table)."""
+        return self.q[self._rows, cell]
+
+    def update_task(self, cell: torch.Tensor, joint: torch.Tensor, target: torch.Tensor) -> None:
+        """Eq. 4's (eq. 1's) step ``Q(s, a) <- Q(s, a) + alpha (target - Q(s, a))`` at
+        ``(cell, joint)`` ``[S]`` each."""
+        q_sa = self.q[self._rows, cell, joint]
+        self.q[self._rows, cell, joint] = q_update(q_sa, target, self.alpha)
+
     def values(
         self, cell: torch.Tensor, sensors: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, torch.Tensor]:
         """``(Q(s) [S, M], rho(o) [S, sum(nvec)], G [S, J], C(s) [S, M])`` at ``cell [S]``
         under ``sensors [S, K]`` (``rho`` and ``G`` None, ``C = Q`` with ``local=False``)."""
-        q = self.q[self._rows, cell]  # [S, M]
+        q = self.task_values(cell)  # [S, M]
         if not self.local:
             return q, None, None, q
         rho = project_local(self.rho, sensors, self.dependency)  # [S, sum(nvec)]
@@ -143,7 +154,8 @@ class VectorFactorQ:
     def act(self, cell: torch.Tensor, sensors: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Epsilon-greedy on ``C(s)`` over the joint action, ties broken at random:
         ``(action [S, J] int64 value indices, exploratory [S] bool)``."""
-        _, _, _, combined = self.values(cell, sensors)
+        with torch.no_grad():
+            _, _, _, combined = self.values(cell, sensors)
         counter = 3 * self._draws
         self._draws += 1
         bits = [random_bits(self._keys, counter + i) for i in range(3)]
@@ -177,13 +189,13 @@ class VectorFactorQ:
                 ``terminated``).
         """
         joint = joint_action_index(action, self.nvec)  # [S]
-        _, _, _, c_next = self.values(next_cell, next_sensors)
+        with torch.no_grad():
+            _, _, _, c_next = self.values(next_cell, next_sensors)
         if self.local:
             target = factorq_target(reward, c_next, terminated, self.gamma)
         else:
             target = q_learning_target(reward, c_next, terminated, self.gamma)
-        q_sa = self.q[self._rows, cell, joint]
-        self.q[self._rows, cell, joint] = q_update(q_sa, target, self.alpha)
+        self.update_task(cell, joint, target)
         if not self.local or local_reward is None:
             return
         if local_reward.shape[-1] != len(self.nvec):
@@ -231,3 +243,66 @@ class VectorFactorQ:
                 )
         for name, table in tables.items():
             table.copy_(state[name])  # type: ignore[arg-type]
+
+
+class NeuralVectorFactorQ(VectorFactorQ):
+    """Neural Factor-Q on an action vector: the task values ``Q(s, .)`` over the joint action
+    come from one network per experiment (``factorq_torch.neural.BatchedMLP``, the one-hot cell
+    in, ``M`` joint values out, the output layer starting at 0 as the tables do), trained by one
+    SGD step of learning rate ``learning_rate`` on ``0.5 (Q(s, a) - target)**2`` per transition
+    with eq. 4's target; the local tables, eqs. 2-3 per actuator and eq. 5 per actuator are
+    ``VectorFactorQ``'s.
+
+    Args:
+        num_experiments, num_cells, nvec, dependency: as ``VectorFactorQ``.
+        hidden: the hidden widths of the task network.
+        learning_rate: the SGD step (the task learning rate of the tables' ``alpha``).
+        seed: the policy's streams and the networks' initial weights.
+        **kwargs: ``gamma``, ``epsilon``, ``eta``, ``g_min`` as ``VectorFactorQ``.
+
+    >>> from factorq_envs.vector_grid import drive_dependency
+    >>> agent = NeuralVectorFactorQ(2, num_cells=9, nvec=(3, 3), dependency=drive_dependency())
+    >>> agent.task_values(torch.tensor([0, 4])).shape  # every value starts at 0
+    torch.Size([2, 9])
+    """
+
+    def __init__(
+        self,
+        num_experiments: int,
+        num_cells: int,
+        nvec: Sequence[int],
+        dependency: torch.Tensor,
+        *,
+        hidden: Sequence[int] = (64,),
+        learning_rate: float = 0.1,
+        seed: int = 0,
+        **kwargs: float,
+    ) -> None:
+        super().__init__(num_experiments, 1, nvec, dependency, seed=seed, **kwargs)
+        self.num_cells = check_int("num_cells", num_cells, 1)
+        self.q = torch.zeros(0)  # no table: the network holds the task values
+        keys = derive_keys(seed, STREAM_TASK_NETWORK, num_experiments)
+        self.network = BatchedMLP(
+            (num_experiments,), num_cells, self.num_joint, hidden=hidden, keys=keys,
+            zero_output=True,
+        )  # fmt: skip
+        rate = check_float("learning_rate", learning_rate, 0.0, float("inf"), low_open=True)
+        self.optimizer = torch.optim.SGD(self.network.parameters(), lr=rate)
+
+    def task_values(self, cell: torch.Tensor) -> torch.Tensor:
+        """``Q(s, .)`` ``[S, M]`` from each experiment's network at its ``cell``."""
+        inputs = torch.nn.functional.one_hot(cell, self.num_cells).to(torch.float32)  # [S, N]
+        return self.network(inputs)
+
+    def update_task(self, cell: torch.Tensor, joint: torch.Tensor, target: torch.Tensor) -> None:
+        """One SGD step on ``0.5 (Q(s, a) - target)**2`` summed over the experiments (each
+        network sees only its own transition)."""
+        q_sa = self.task_values(cell).gather(1, joint.unsqueeze(1)).squeeze(1)  # [S]
+        loss = 0.5 * (q_sa - target.detach()).pow(2).sum()
+        self.optimizer.zero_grad()
+        loss.backward()
+        self.optimizer.step()
+
+    def state_dict(self) -> dict[str, object]:
+        """Not offered: save ``network.state_dict()`` and the local tables instead."""
+        raise NotImplementedError("NeuralVectorFactorQ: save network.state_dict() and rho, kappa")

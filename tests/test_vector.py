@@ -297,3 +297,28 @@ def test_vector_factorq_collides_less_than_flat_q_learning(one_thread):
     vector = run("vector-factor-q", seeds=6, episodes=15, config=config)
     flat = run("flat-q-learning", seeds=6, episodes=15, config=config)
     assert (vector["collisions"].sum(1) * 3 < flat["collisions"].sum(1)).all()
+
+
+def test_neural_vector_factorq_moves_only_its_own_experiments_value_toward_the_target():
+    from factorq_torch.vector import NeuralVectorFactorQ
+
+    neural = NeuralVectorFactorQ(2, num_cells=9, nvec=(3, 3), dependency=drive_dependency())
+    table = VectorFactorQ(2, num_cells=9, nvec=(3, 3), dependency=drive_dependency())
+    cells = torch.tensor([0, 4])
+    assert neural.task_values(cells).abs().max().item() == 0.0  # the output layer starts at 0
+    sensors = torch.tensor([[True, True, False, False], [False] * 4])
+    step = (
+        cells, sensors, torch.tensor([[0, 2], [2, 2]]), torch.tensor([-1.0, -1.0]),
+        torch.tensor([[-1.0, 0.0], [0.0, 0.0]]), torch.tensor([3, 8]), sensors,
+        torch.tensor([False, True]),
+    )  # fmt: skip
+    for agent in (neural, table):
+        agent.update(*step)
+    assert neural.rho.equal(table.rho) and neural.kappa.equal(table.kappa)  # eq. 5 unchanged
+    after = neural.task_values(cells).detach()
+    # both targets are -1 (C(s') = 0, or terminated): each Q(s, a) moved down from 0
+    assert after[0, 2].item() < 0 and after[1, 8].item() < 0
+    # the output layer started at 0, so the first step moves only the chosen action's output
+    # column (the hidden layers' gradients pass through zero output weights)
+    assert after[0].nonzero().flatten().tolist() == [2]
+    assert after[1].nonzero().flatten().tolist() == [8]
