@@ -1,4 +1,5 @@
-"""Factor-Q on any Gymnasium env with a ``Discrete`` action space: the adapter, declared as data.
+"""Factor-Q on any Gymnasium env with a ``Discrete`` action space (or an action vector): the
+adapter, declared as data.
 
 A user's env is stepped as it is; a ``Declaration`` says what Factor-Q reads from it:
 
@@ -69,12 +70,12 @@ one of another length in one error naming both lengths, as construction refuses
 ``factorq_torch.vector`` the agent that acts on it.
 
 Bad input is refused where it enters, in one message naming the env and the field: a
-non-``Discrete`` action space, a declared function that returns the wrong shape, dtype or type
-(a collision that is not a bool, a cell or charged actuator that is not an int, NaN or inf
-features, rewards or task rewards) or reads a missing ``info`` key (one probing reset and step
-at construction, ``probe=True``, then every step), an env whose ``reset``/``step`` returns
-something else than Gymnasium's tuples, an env id that is not registered, an extra that is not
-installed (``require_extra``).
+non-``Discrete`` action space (other than an action vector), a declared function that returns the
+wrong shape, dtype or type (a collision that is not a bool, a cell or charged actuator that is not
+an int, NaN or inf features, rewards or task rewards) or reads a missing ``info`` key (one probing
+reset and step at construction, ``probe=True``, then every step), an env whose ``reset``/``step``
+returns something else than Gymnasium's tuples, an env id that is not registered, an extra that is
+not installed (``require_extra``).
 
 Example (a third-party env would be declared the same way; ``docs/tutorials/own-env.md``
 declares one):
@@ -301,7 +302,8 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
     (module docstring).
 
     Args:
-        env: any Gymnasium env with a ``Discrete`` action space.
+        env: any Gymnasium env with a ``Discrete`` action space, or a one-dimensional
+            ``MultiDiscrete`` / ``MultiBinary`` one (an action vector, module docstring).
         declaration: a ``Declaration``.
         seed: the seed of the first reset that is given none (so a batch of adapters built with
             one seed each replays, as ``MiniGridEnv`` did); ``None``: the env's own behaviour.
@@ -336,6 +338,7 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
         if self.nvec is not None:
             self._init_vector(env)
             return
+        assert isinstance(env.action_space, spaces.Discrete)  # (an action vector returned above)
         count = int(env.action_space.n)
         actions = declaration.actions or tuple(range(count))
         bad = [a for a in actions if not 0 <= a < count]

@@ -50,6 +50,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
+from factorq_envs.grid_config import WorldConfig
 from factorq_envs.grid_functions import (
     START_CELL,
     proximity,
@@ -237,7 +238,11 @@ def initial_vector_state(
 def vector_layout(config: VectorGridConfig) -> torch.Tensor:
     """The static layout ``[N]`` bool: the grid's own (``static_layout``), so a layout seed
     draws the same obstacles as the paper's world of that size."""
-    return static_layout(config)
+    return static_layout(
+        WorldConfig(
+            size=config.size, num_obstacles=config.num_obstacles, layout_seed=config.layout_seed
+        )
+    )
 
 
 def reset_vector_worlds(
@@ -389,7 +394,7 @@ class VectorGridGym(gymnasium.Env):
                 "collision": spaces.Box(-1.0, 0.0, (len(DRIVES),), np.float32),
             }
         )
-        self.action_space = spaces.MultiDiscrete(NVEC)
+        self.action_space = spaces.MultiDiscrete(list(NVEC))
         self._layout = vector_layout(self.config) if obstacle_period == 0 else None
         self._key = derive_keys(0, STREAM_WORLD, 1)
         self._state = initial_vector_state(1, self.config)

@@ -1129,6 +1129,10 @@ def joint_action_index(action: torch.Tensor, nvec: Sequence[int]) -> torch.Tenso
 def joint_action_vector(index: torch.Tensor, nvec: Sequence[int]) -> torch.Tensor:
     """The inverse of ``joint_action_index``: ``[...]`` -> ``[..., J]`` int64.
 
+    Args:
+        index: ``[...]`` joint action indices in ``[0, prod(nvec))``.
+        nvec: the values of each actuator.
+
     >>> joint_action_vector(torch.tensor([0, 5, 7]), (3, 3)).tolist()
     [[0, 0], [1, 2], [2, 1]]
     """
@@ -1169,7 +1173,12 @@ def actuator_mean_values(q: torch.Tensor, nvec: Sequence[int]) -> tuple[torch.Te
 
 def split_actuator_values(rho: torch.Tensor, nvec: Sequence[int]) -> tuple[torch.Tensor, ...]:
     """``[..., sum(nvec)]`` per-actuator-value entries (actuator 0's values first) -> ``J``
-    tensors ``[..., V_j]``."""
+    tensors ``[..., V_j]``.
+
+    Args:
+        rho: ``[..., sum(nvec)]`` one entry per actuator value.
+        nvec: the values of each actuator.
+    """
     nvec = _check_nvec(nvec)
     if rho.shape[-1] != sum(nvec):
         raise ValueError(

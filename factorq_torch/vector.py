@@ -41,6 +41,7 @@ Example (two experiments, a 3x3 grid, the two-drive body's dependency):
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 
@@ -221,10 +222,10 @@ class VectorFactorQ:
             state.update(rho=self.rho.clone(), kappa=self.kappa.clone())
         return state
 
-    def load_state_dict(self, state: dict[str, object]) -> None:
+    def load_state_dict(self, state: dict[str, Any]) -> None:
         """Load tables saved by ``state_dict``; tables of another action vector (another length
         or other values) are refused in one error naming both sides, before anything loads."""
-        saved = [int(v) for v in state["nvec"]]  # type: ignore[union-attr]
+        saved = [int(v) for v in state["nvec"]]
         if saved != list(self.nvec):
             raise ValueError(
                 f"the tables were saved for an action vector of length {len(saved)} "
@@ -242,7 +243,7 @@ class VectorFactorQ:
                     f"agent's is {tuple(table.shape)}: nothing was loaded"
                 )
         for name, table in tables.items():
-            table.copy_(state[name])  # type: ignore[arg-type]
+            table.copy_(state[name])
 
 
 class NeuralVectorFactorQ(VectorFactorQ):
@@ -276,7 +277,7 @@ class NeuralVectorFactorQ(VectorFactorQ):
         hidden: Sequence[int] = (64,),
         learning_rate: float = 0.1,
         seed: int = 0,
-        **kwargs: float,
+        **kwargs: Any,
     ) -> None:
         super().__init__(num_experiments, 1, nvec, dependency, seed=seed, **kwargs)
         self.num_cells = check_int("num_cells", num_cells, 1)
