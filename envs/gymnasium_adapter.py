@@ -66,8 +66,9 @@ array ``[J]``, or an ``info`` key holding one): each actuator's local reward is 
 adapter's action space is the env's own; ``step`` takes a vector of ``J`` integers and refuses
 one of another length in one error naming both lengths, as construction refuses
 ``actuator_names`` or ``dependency`` rows of another count. The default task reward adds back
-``penalty`` for each actuator that collided. ``factorq_envs.vector_grid`` is such a body and
-``factorq_torch.vector`` the agent that acts on it.
+``penalty`` for each actuator that collided. ``declared_torchrl_env`` gives ``S`` of them an
+int64 ``action`` ``[S, J]`` (torchrl's reading of the space). ``factorq_envs.vector_grid`` is
+such a body and ``factorq_torch.vector`` the agent that acts on it.
 
 Bad input is refused where it enters, in one message naming the env and the field: a
 non-``Discrete`` action space (other than an action vector), a declared function that returns the

@@ -1205,7 +1205,7 @@ def vector_normalisers(
     actuator ``j``'s other ``V_j - 1`` local values. So ``G_j`` scales the spread of actuator
     ``j``'s local reward to the task spread that changing actuator ``j`` costs, each actuator in
     its own units; the floor is eq. 3's (``normaliser``). With one actuator it is the paper's
-    ``G``. ``docs/decisions.md`` ("Simultaneous actuators") derives it and the variants it beat.
+    ``G``. ``docs/decisions.md`` ("Simultaneous actuators") derives it, with the variants measured.
 
     Shapes: ``q [..., M]``, ``rho [..., sum(nvec)]`` -> ``[..., J]``.
 

@@ -322,3 +322,20 @@ def test_neural_vector_factorq_moves_only_its_own_experiments_value_toward_the_t
     # column (the hidden layers' gradients pass through zero output weights)
     assert after[0].nonzero().flatten().tolist() == [2]
     assert after[1].nonzero().flatten().tolist() == [8]
+
+
+def test_the_declared_torchrl_env_steps_an_action_vector():
+    from torchrl.envs.utils import check_env_specs
+
+    from factorq_envs.declared_env import declared_torchrl_env
+
+    env = declared_torchrl_env(
+        lambda seed: FactorQEnv(TwoWheels(), _declaration(), seed=seed), [0, 1]
+    )
+    check_env_specs(env)
+    assert tuple(env.action_spec.shape) == (2, 2)  # one vector of 2 actuators per env
+    td = env.reset()
+    td["action"] = torch.tensor([[0, 2], [0, 0]])  # env 0: left stalls; env 1: both stall
+    out = env.step(td)["next"]
+    assert out["collision"].tolist() == [[-1.0, 0.0], [-1.0, -1.0]]
+    assert out["reward"].flatten().tolist() == [-2.0, -3.0]
