@@ -1,4 +1,5 @@
-"""Factor-Q on any Gymnasium env with a ``Discrete`` action space: the adapter, declared as data.
+"""Factor-Q on any Gymnasium env with a ``Discrete`` action space (or an action vector): the
+adapter, declared as data.
 
 A user's env is stepped as it is; a ``Declaration`` says what Factor-Q reads from it:
 
@@ -56,13 +57,26 @@ Every env of the project states its sizes the same way: ``env.config`` holds the
 ``factorq_envs.protocol.CONFIG_FIELDS`` (``FactoredGridEnv``'s ``WorldConfig``, the adapter's
 ``EnvSizes``), so an agent is built from ``env.config`` whatever the env.
 
+**Action vectors** (simultaneous actuators, issue 40): an env whose action space is
+``MultiDiscrete(nvec)`` or ``MultiBinary(n)`` (one dimension) has one actuator per entry of the
+action vector, all firing together (``nvec``: the values of each; ``MultiBinary(n)`` is ``n``
+actuators of two values). Its ``collision(step)`` returns one bool per actuator (a numpy bool
+array ``[J]``, or an ``info`` key holding one): each actuator's local reward is kept separate,
+``-penalty`` at every actuator that collided (``charge`` and ``actions`` do not apply). The
+adapter's action space is the env's own; ``step`` takes a vector of ``J`` integers and refuses
+one of another length in one error naming both lengths, as construction refuses
+``actuator_names`` or ``dependency`` rows of another count. The default task reward adds back
+``penalty`` for each actuator that collided. ``declared_torchrl_env`` gives ``S`` of them an
+int64 ``action`` ``[S, J]`` (torchrl's reading of the space). ``factorq_envs.vector_grid`` is
+such a body and ``factorq_torch.vector`` the agent that acts on it.
+
 Bad input is refused where it enters, in one message naming the env and the field: a
-non-``Discrete`` action space, a declared function that returns the wrong shape, dtype or type
-(a collision that is not a bool, a cell or charged actuator that is not an int, NaN or inf
-features, rewards or task rewards) or reads a missing ``info`` key (one probing reset and step
-at construction, ``probe=True``, then every step), an env whose ``reset``/``step`` returns
-something else than Gymnasium's tuples, an env id that is not registered, an extra that is not
-installed (``require_extra``).
+non-``Discrete`` action space (other than an action vector), a declared function that returns the
+wrong shape, dtype or type (a collision that is not a bool, a cell or charged actuator that is not
+an int, NaN or inf features, rewards or task rewards) or reads a missing ``info`` key (one probing
+reset and step at construction, ``probe=True``, then every step), an env whose ``reset``/``step``
+returns something else than Gymnasium's tuples, an env id that is not registered, an extra that is
+not installed (``require_extra``).
 
 Example (a third-party env would be declared the same way; ``docs/tutorials/own-env.md``
 declares one):
@@ -289,7 +303,8 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
     (module docstring).
 
     Args:
-        env: any Gymnasium env with a ``Discrete`` action space.
+        env: any Gymnasium env with a ``Discrete`` action space, or a one-dimensional
+            ``MultiDiscrete`` / ``MultiBinary`` one (an action vector, module docstring).
         declaration: a ``Declaration``.
         seed: the seed of the first reset that is given none (so a batch of adapters built with
             one seed each replays, as ``MiniGridEnv`` did); ``None``: the env's own behaviour.
@@ -309,14 +324,22 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
         gymnasium.Wrapper.__init__(self, env)
         if not isinstance(declaration, Declaration):
             raise TypeError(f"declaration must be a Declaration, got {type(declaration).__name__}")
-        if not isinstance(env.action_space, spaces.Discrete):
+        #: the values of each actuator of an action vector (``None``: a Discrete env)
+        self.nvec = _action_vector(env.action_space, _name(env))
+        if self.nvec is None and not isinstance(env.action_space, spaces.Discrete):
             raise TypeError(
-                f"FactorQEnv needs a Discrete action space (one actuator per action), "
+                f"FactorQEnv needs a Discrete action space (one actuator per action), or a "
+                f"one-dimensional MultiDiscrete / MultiBinary one (an action vector), "
                 f"{_name(env)} has {env.action_space}"
             )
         self.declaration = declaration
+        self._probe_on_init = probe
         self._label = _name(env)
         self._pending_seed = None if seed is None else check_int("seed", seed, 0)
+        if self.nvec is not None:
+            self._init_vector(env)
+            return
+        assert isinstance(env.action_space, spaces.Discrete)  # (an action vector returned above)
         count = int(env.action_space.n)
         actions = declaration.actions or tuple(range(count))
         bad = [a for a in actions if not 0 <= a < count]
@@ -348,6 +371,138 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
         self.action_space = spaces.Discrete(num_actuators)
         if probe:
             self._probe()
+
+    def _init_vector(self, env: gymnasium.Env) -> None:
+        """The rest of ``__init__`` for an action vector (module docstring)."""
+        declaration, nvec, label = self.declaration, self.nvec, self._label
+        assert nvec is not None
+        length = len(nvec)
+        for name in ("actions", "charge"):
+            if getattr(declaration, name):
+                raise ValueError(
+                    f"{label}: Declaration.{name} does not apply to an action vector "
+                    f"({env.action_space}): its actuators are the vector's {length} entries and "
+                    f"collision(step) says which of them collided"
+                )
+        names = declaration.actuator_names or tuple(str(j) for j in range(length))
+        if len(names) != length:
+            raise ValueError(
+                f"{label}: Declaration.actuator_names has {len(names)} names but the action "
+                f"vector has length {length} ({env.action_space})"
+            )
+        if declaration.dependency is not None and len(declaration.dependency) != length:
+            raise ValueError(
+                f"{label}: Declaration.dependency has {len(declaration.dependency)} rows but the "
+                f"action vector has length {length} ({env.action_space}): one row per actuator"
+            )
+        self._actions = ()
+        self.config = EnvSizes(
+            num_cells=declaration.num_cells,
+            num_sensors=declaration.num_sensors,
+            num_actuators=length,
+            num_headings=declaration.num_headings,
+            max_steps=getattr(env.spec, "max_episode_steps", None) if env.spec else None,
+            actuator_names=names,
+        )
+        self.observation_space = spaces.Dict(self._spaces(env.observation_space))
+        self.action_space = env.action_space
+        if self._probe_on_init:
+            self._probe()
+
+    def _action_vector(self, action: Any) -> np.ndarray:
+        """``action`` as an int64 vector of the env's length with each entry in range, else one
+        error naming both lengths (or the entry out of range)."""
+        nvec = self.nvec
+        assert nvec is not None
+        array = np.asarray(action)
+        if array.dtype.kind not in "iub" or array.ndim != 1:
+            raise TypeError(
+                f"{self._label}: the action must be a vector of {len(nvec)} integers (one per "
+                f"actuator), got {action!r}"
+            )
+        if array.shape[0] != len(nvec):
+            raise ValueError(
+                f"{self._label}: the action vector has length {array.shape[0]} but the env's "
+                f"action space {self.env.action_space} has length {len(nvec)}"
+            )
+        values = array.astype(np.int64)
+        bad = [
+            j for j, (a, n) in enumerate(zip(values.tolist(), nvec, strict=True)) if not 0 <= a < n
+        ]
+        if bad:
+            raise ValueError(
+                f"{self._label}: action {values.tolist()} is out of range at actuators {bad}: "
+                f"entry j must be in [0, nvec[j]) with nvec={list(nvec)}"
+            )
+        return values
+
+    def _collided_vector(self, step: Transition) -> np.ndarray:
+        """The declared collision of an action vector: bool ``[J]``, one per actuator."""
+        collision, length = self.declaration.collision, len(self.nvec or ())
+        if isinstance(collision, str):
+            if collision not in step.info:
+                raise KeyError(
+                    f"{self._label}: Declaration.collision read the key {collision!r}, which the "
+                    f"env does not provide (its info has {sorted(step.info)})"
+                )
+            value, what = step.info[collision], f"collision (info[{collision!r}])"
+        else:
+            value, what = self._call("collision", collision, step), "collision"
+        array = np.asarray(value)
+        if array.dtype != np.bool_ or array.shape != (length,):
+            raise ValueError(
+                f"{self._label}: Declaration.{what} must return [{length}] bool (one per "
+                f"actuator of the action vector), got {value!r}"
+            )
+        return array
+
+    def _step_vector(self, action: Any) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
+        """``step`` for an action vector: every actuator fires; each one's collision is kept."""
+        declaration = self.declaration
+        vector = self._action_vector(action)
+        returned = self.env.step(vector)
+        if not (isinstance(returned, tuple) and len(returned) == 5):
+            raise TypeError(
+                f"{self._label}: step() returned {_shape_of(returned)}: a Gymnasium env's step "
+                f"returns (observation, reward, terminated, truncated, info)"
+            )
+        observation, reward, terminated, truncated, info = returned
+        reward = _finite(self._label, "the env's reward", reward)
+        for name, flag in (("terminated", terminated), ("truncated", truncated)):
+            if not _is_bool(flag):
+                raise TypeError(
+                    f"{self._label}: step() returned {name}={flag!r} "
+                    f"({type(flag).__name__}): must be a bool"
+                )
+        info = self._info("step", info)
+        step = Transition(
+            observation, reward, bool(terminated), bool(truncated), info, self.env,
+            tuple(vector.tolist()),  # type: ignore[arg-type]
+        )  # fmt: skip
+        collided = self._collided_vector(step)
+        penalty = declaration.penalty * int(collided.sum())
+        if declaration.task_reward is None:
+            task = reward + penalty
+            if collided.any() and task > 1e-9 * max(1.0, penalty):
+                raise ValueError(
+                    f"{self._label}: a collision with the env's reward {reward!r}: the default "
+                    f"task reward (the env's reward + penalty {penalty!r} = {task!r}) would pay "
+                    f"for it. Declare task_reward=lambda step: step.reward, or the penalty the "
+                    f"env's reward holds"
+                )
+            conventional = reward
+        else:
+            task = _finite(
+                self._label,
+                "Declaration.task_reward's result",
+                self._call("task_reward", declaration.task_reward, step),
+            )
+            conventional = task - penalty
+        info = dict(info, collided=bool(collided.any()), task_reward=np.float32(task))
+        out = self._observe(step, None)
+        out[keys.BUMP] = collided.astype(np.int8)
+        out[keys.COLLISION] = np.where(collided, -declaration.penalty, 0.0).astype(np.float32)
+        return out, conventional, step.terminated, step.truncated, info
 
     # ---------------------------------------------------------------------------------------
     # Spaces
@@ -535,6 +690,8 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
         return self._observe(step, None), info
 
     def step(self, action: Any) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
+        if self.nvec is not None:
+            return self._step_vector(action)
         if isinstance(action, np.ndarray) and action.shape == ():
             action = action.item()
         count = self.config.num_actuators
@@ -616,7 +773,7 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
             raise ValueError(
                 f"{self._label}: the adapter's observation is not in its space: {observation}"
             )
-        self.step(0)
+        self.step(0 if self.nvec is None else np.zeros(len(self.nvec), dtype=np.int64))
         self._pending_seed = pending
 
 
@@ -629,3 +786,24 @@ def _shape_of(value: object) -> str:
 def _name(env: gymnasium.Env) -> str:
     spec = getattr(env, "spec", None)
     return spec.id if spec is not None else type(env.unwrapped).__name__
+
+
+def _action_vector(space: spaces.Space, label: str) -> tuple[int, ...] | None:
+    """The values of each actuator of a one-dimensional ``MultiDiscrete`` / ``MultiBinary``
+    action space (``MultiBinary(n)``: ``n`` actuators of two values), ``None`` for any other
+    space; a multi-dimensional one is refused, naming it."""
+    if isinstance(space, spaces.MultiBinary):
+        shape = tuple(np.atleast_1d(space.n).tolist())
+        if len(shape) != 1:
+            raise TypeError(
+                f"FactorQEnv needs a one-dimensional action vector, {label} has {space}"
+            )
+        return (2,) * shape[0]
+    if isinstance(space, spaces.MultiDiscrete):
+        if space.nvec.ndim != 1 or (space.start != 0).any():
+            raise TypeError(
+                f"FactorQEnv needs a one-dimensional action vector starting at 0, {label} has "
+                f"{space}"
+            )
+        return tuple(int(n) for n in space.nvec)
+    return None

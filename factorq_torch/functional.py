@@ -1144,3 +1144,187 @@ def rebuild_pair_counts(
             sums.append(total)
         results.extend(sums)
     return tuple(results)
+
+
+# --------------------------------------------------------------------------------------------
+# Action vectors (simultaneous actuators, issue 40): a body whose action is a vector of ``J``
+# independent actuators, actuator ``j`` taking ``V_j`` values (``nvec``), ``M = prod(nvec)``
+# joint actions. The task Q is over the joint action; the local tables are per actuator value;
+# eqs. 2-3 are applied per actuator and the terms added (docs/decisions.md, "Simultaneous
+# actuators: eqs. 2-3 per actuator"). With one actuator every function is the paper's.
+
+
+def _check_nvec(nvec: Sequence[int]) -> tuple[int, ...]:
+    values = tuple(check_int(f"nvec[{j}]", v, 2) for j, v in enumerate(nvec))
+    if not values:
+        raise ValueError("nvec must name at least one actuator")
+    return values
+
+
+def joint_action_index(action: torch.Tensor, nvec: Sequence[int]) -> torch.Tensor:
+    """The joint action's index, mixed radix with actuator 0 the most significant digit:
+    ``m = ((a_0 V_1 + a_1) V_2 + a_2) ...`` (row-major over ``nvec``).
+
+    Shapes: ``[..., J]`` int64 -> ``[...]`` int64 in ``[0, prod(nvec))``.
+
+    Args:
+        action: ``[..., J]`` value indices, ``a_j`` in ``[0, nvec[j])``.
+        nvec: the values of each actuator (its last dimension must be ``len(nvec)``).
+
+    >>> joint_action_index(torch.tensor([[0, 0], [1, 2], [2, 1]]), (3, 3))
+    tensor([0, 5, 7])
+    """
+    nvec = _check_nvec(nvec)
+    if action.shape[-1] != len(nvec):
+        raise ValueError(
+            f"the action vector has length {action.shape[-1]} but nvec={list(nvec)} names "
+            f"{len(nvec)} actuators"
+        )
+    index = torch.zeros(action.shape[:-1], dtype=torch.int64, device=action.device)
+    for j, values in enumerate(nvec):
+        index = index * values + action[..., j].to(torch.int64)
+    return index
+
+
+def joint_action_vector(index: torch.Tensor, nvec: Sequence[int]) -> torch.Tensor:
+    """The inverse of ``joint_action_index``: ``[...]`` -> ``[..., J]`` int64.
+
+    Args:
+        index: ``[...]`` joint action indices in ``[0, prod(nvec))``.
+        nvec: the values of each actuator.
+
+    >>> joint_action_vector(torch.tensor([0, 5, 7]), (3, 3)).tolist()
+    [[0, 0], [1, 2], [2, 1]]
+    """
+    nvec = _check_nvec(nvec)
+    digits = []
+    rest = index.to(torch.int64)
+    for values in reversed(nvec):
+        digits.append(rest % values)
+        rest = rest // values
+    return torch.stack(digits[::-1], dim=-1)
+
+
+def actuator_mean_values(q: torch.Tensor, nvec: Sequence[int]) -> tuple[torch.Tensor, ...]:
+    """Each actuator's mean task values: ``Qbar_j(s, v) = mean_{a : a_j = v} Q(s, a)``, the
+    task value of actuator ``j``'s value ``v`` averaged over the other actuators' values.
+
+    Shapes: ``q [..., M]`` (``M = prod(nvec)``, joint actions in ``joint_action_index`` order)
+    -> ``J`` tensors ``[..., V_j]``. With one actuator, ``Qbar_0 = Q``.
+
+    Args:
+        q: ``[..., M]`` task values over the joint action.
+        nvec: the values of each actuator.
+
+    >>> q = torch.tensor([0.0, 1.0, 0.0, 3.0, 0.0, 0.0, 0.0, 0.0, 2.0])  # [a_0, a_1]: 3 x 3
+    >>> [[round(x, 3) for x in m.tolist()] for m in actuator_mean_values(q, (3, 3))]
+    [[0.333, 1.0, 0.667], [1.0, 0.333, 0.667]]
+    """
+    nvec = _check_nvec(nvec)
+    lead = q.shape[:-1]
+    grid = q.reshape(*lead, *nvec)  # [..., V_0, ..., V_{J-1}]
+    first = len(lead)
+    means = []
+    for j in range(len(nvec)):
+        others = tuple(first + i for i in range(len(nvec)) if i != j)
+        means.append(grid.mean(dim=others) if others else grid)
+    return tuple(means)
+
+
+def split_actuator_values(rho: torch.Tensor, nvec: Sequence[int]) -> tuple[torch.Tensor, ...]:
+    """``[..., sum(nvec)]`` per-actuator-value entries (actuator 0's values first) -> ``J``
+    tensors ``[..., V_j]``.
+
+    Args:
+        rho: ``[..., sum(nvec)]`` one entry per actuator value.
+        nvec: the values of each actuator.
+    """
+    nvec = _check_nvec(nvec)
+    if rho.shape[-1] != sum(nvec):
+        raise ValueError(
+            f"the local values have {rho.shape[-1]} entries but nvec={list(nvec)} has "
+            f"{sum(nvec)} actuator values"
+        )
+    return tuple(rho.split(list(nvec), dim=-1))
+
+
+def vector_normalisers(
+    q: torch.Tensor,
+    rho: torch.Tensor,
+    nvec: Sequence[int],
+    eta: float = 0.1,
+    g_min: float = 0.01,
+) -> torch.Tensor:
+    """Eq. 3 per actuator: ``G_j = (Q(s, a_hat) - Q_bar_j) / (P_bar_j - rho_j[a_check_j])
+    * (1 + eta)``.
+
+    ``a_hat = argmax_a Q(s, a)`` over the joint action (the first maximum in
+    ``joint_action_index`` order); ``Q_bar_j`` the mean task value of the joint actions that set
+    actuator ``j`` otherwise than ``a_hat`` does (the mean over ``v != a_hat_j`` of
+    ``actuator_mean_values``); ``a_check_j = argmin_v rho_j[v]`` and ``P_bar_j`` the mean of
+    actuator ``j``'s other ``V_j - 1`` local values. So ``G_j`` scales the spread of actuator
+    ``j``'s local reward to the task spread that changing actuator ``j`` costs, each actuator in
+    its own units; the floor is eq. 3's (``normaliser``). With one actuator it is the paper's
+    ``G``. ``docs/decisions.md`` ("Simultaneous actuators") derives it, with the variants measured.
+
+    Shapes: ``q [..., M]``, ``rho [..., sum(nvec)]`` -> ``[..., J]``.
+
+    Args:
+        q: ``[..., M]`` task values over the joint action.
+        rho: ``[..., sum(nvec)]`` projected local rewards, actuator 0's values first.
+        nvec: the values of each actuator.
+        eta, g_min: as ``normaliser``.
+
+    >>> q = torch.tensor([0.0, 1.0, 0.0, 3.0, 0.0, 0.0, 0.0, 0.0, 2.0])  # a_hat = (1, 0)
+    >>> rho = torch.tensor([-1.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # actuator 0's value 0 collides
+    >>> vector_normalisers(q, rho, (3, 3))  # G_0 = (3 - 0.5) / 1 * 1.1; G_1: no spread, g_min
+    tensor([2.7500, 0.0100])
+    """
+    q_max, a_hat = q.max(dim=-1)  # [...]
+    hat = joint_action_vector(a_hat, nvec)  # [..., J]
+    means = actuator_mean_values(q, nvec)
+    locals_ = split_actuator_values(rho, nvec)
+    floor = scalar(g_min, q)
+    normalisers = []
+    for j, (mean, local) in enumerate(zip(means, locals_, strict=True)):
+        x = q_max - _mean_of_others(mean, hat[..., j])  # Q(s, a_hat) - Q_bar_j
+        rho_min, a_check = local.min(dim=-1)
+        y = _mean_of_others(local, a_check) - rho_min  # P_bar_j - rho_j[a_check_j]
+        spread = y > scalar(0.0, y)
+        g = x / torch.where(spread, y, scalar(1.0, y)) * scalar(1 + eta, x)
+        g = torch.where(spread & (g >= floor), g, floor)
+        normalisers.append(g.clamp_max(scalar(torch.finfo(g.dtype).max, g)))
+    return torch.stack(normalisers, dim=-1)
+
+
+def vector_combined_values(
+    q: torch.Tensor, rho: torch.Tensor, g: torch.Tensor, nvec: Sequence[int]
+) -> torch.Tensor:
+    """Eq. 2 on an action vector: ``C(s, a) = Q(s, a) + sum_j G_j rho_j(o, a_j)``.
+
+    Each actuator's local reward enters once, scaled by its own ``G_j``, for every joint action
+    that sets it to that value: the local rewards stay separate (one per actuator) and add, as
+    the actuators' collisions do. With one actuator it is ``combined_values``.
+
+    Shapes: ``q [..., M]``, ``rho [..., sum(nvec)]``, ``g [..., J]`` -> ``[..., M]``.
+
+    Args:
+        q: ``[..., M]`` task values over the joint action.
+        rho: ``[..., sum(nvec)]`` projected local rewards, actuator 0's values first.
+        g: ``[..., J]`` the per-actuator normalisers (``vector_normalisers``).
+        nvec: the values of each actuator.
+
+    >>> q = torch.zeros(4)  # two actuators of two values: joint actions 00, 01, 10, 11
+    >>> rho = torch.tensor([-1.0, 0.0, 0.0, -1.0])  # 0 collides at value 0, 1 at value 1
+    >>> vector_combined_values(q, rho, torch.tensor([2.0, 3.0]), (2, 2))
+    tensor([-2., -5.,  0., -3.])
+    """
+    nvec = _check_nvec(nvec)
+    lead = q.shape[:-1]
+    total = q.reshape(*lead, *nvec)
+    for j, local in enumerate(split_actuator_values(rho, nvec)):
+        term = g[..., j].unsqueeze(-1) * local  # [..., V_j]
+        shape = [*lead] + [values if i == j else 1 for i, values in enumerate(nvec)]
+        total = total + term.reshape(shape)
+    largest = torch.finfo(q.dtype).max
+    return total.reshape(*lead, -1).clamp(scalar(-largest, q), scalar(largest, q))
