@@ -226,3 +226,29 @@ def test_risk_aware_exploration_is_refused_for_q_learning_naming_both():
             keys,
             keys,
         )
+
+
+def test_arbitration_is_refused_on_the_compiled_path_and_reaches_the_modular_agent():
+    """The kernel mirrors eqs. 2-3 as the paper writes them: an agent asking for arbitration is
+    refused in one line there, never silently run without it; the modular agent gets it."""
+    import torch
+
+    from factorq_torch.base.config import AgentConfig
+    from factorq_torch.base.rng import derive_keys
+    from factorq_trainers.methods.experiment import (
+        check_world_options,
+        make_env,
+        online_agent,
+        tabular_values,
+    )
+
+    world = check_world_options(4, 0, 60, 0, ("static",))
+    keys = derive_keys(0, 0, 1)
+    agent = AgentConfig(arbitration=True)
+    with pytest.raises(ValueError, match="arbitration is not on the compiled path"):
+        fast.ExperimentBatch("factor-q", torch.tensor([0]), world, agent, 1, 1, keys, keys)
+    task, local = tabular_values("factor-q", 1, world)
+    env = make_env(world, torch.tensor([0]), keys)
+    _, policy, loss = online_agent(env, task, local, agent, keys)
+    assert policy[-1].arbitration and loss.arbitration
+    assert policy[-1].gamma == loss.gamma == agent.gamma

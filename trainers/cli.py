@@ -123,11 +123,11 @@ def main(argv: list[str] | None = None) -> int:
         return sweep.main(argv[1:])
     command = argv[0] if argv and argv[0] in commands() else None
     figure_process = None
-    experiments = registry.commands()  # (``report`` is built in: no entry, no figure process)
-    drawn_aside = command in experiments and experiments[command].figure_process
-    if drawn_aside and not {"-h", "--help"} & set(argv):
+    # (``report`` is built in: no entry, no figure process)
+    entry = registry.commands().get(command) if command is not None else None
+    if entry is not None and entry.figure_process and not {"-h", "--help"} & set(argv):
         # First, before torch loads: the helper loads matplotlib on the other core meanwhile.
-        package = experiments[command].module.rpartition(".")[0]
+        package = entry.module.rpartition(".")[0]
         figure_process = importlib.import_module(f"{package}.figure_process").FigureProcess.start()
     try:
         code = _main(argv, command, command_line, figure_process)

@@ -161,6 +161,11 @@ class ExperimentBatch:
         # the risk options (AgentConfig) live in the generic loop only; the paper's defaults
         # keep the specialised one
         risky = agent.risk_gate or agent.exploration != "uniform"
+        if agent.arbitration:  # the kernel mirrors eqs. 2-3 as the paper writes them
+            raise ValueError(
+                "agent.arbitration is not on the compiled path: run it on the modular torchrl "
+                "path (FactorQPolicy / FactorQLoss, or a command's --path modular)"
+            )
         if agent.exploration != "uniform" and algorithm != "factor-q":
             raise ValueError(
                 f"agent.exploration={agent.exploration!r} needs a local model to say which "

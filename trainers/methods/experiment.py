@@ -270,6 +270,9 @@ def online_agent(
         exploration=agent.exploration,
         risk_threshold=agent.risk_threshold,
         risk_gate=agent.risk_gate,
+        arbitration=agent.arbitration,
+        gamma=agent.gamma,
+        local_span=agent.local_span,
     )
     loss = FactorQLoss(
         task,
@@ -280,6 +283,8 @@ def online_agent(
         g_min=agent.g_min,
         risk_threshold=agent.risk_threshold,
         risk_gate=agent.risk_gate,
+        arbitration=agent.arbitration,
+        local_span=agent.local_span,
     )
     env = TransformedEnv(env, SplitLocalReward())
     return env, TensorDictSequential(task, local, chooser), loss
