@@ -26,9 +26,10 @@ from factorq_envs.transforms import SplitLocalReward
 from factorq_torch.collectors import OnlineCollector
 from factorq_torch.objectives import FactorQLoss
 from factorq_torch.policy import FactorQPolicy
-from factorq_trainers.experiments import experiment, paper
-from factorq_trainers.experiments.paper_config import PaperConfig
-from factorq_trainers.experiments.paper_drivers import experiment_keys, run_fast
+from factorq_trainers.commands.paper import command as paper
+from factorq_trainers.commands.paper.config import PaperConfig
+from factorq_trainers.commands.paper.drivers import experiment_keys, run_fast
+from factorq_trainers.methods import experiment
 
 
 def arbitrated(config: PaperConfig) -> dict:

@@ -33,8 +33,8 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(ROOT))
 
+from factorq_trainers.commands.paper import command as paper  # noqa: E402
 from factorq_trainers.distributed import sweep_run, sweep_spec  # noqa: E402
-from factorq_trainers.experiments import paper  # noqa: E402
 from factorq_trainers.runner import cluster  # noqa: E402
 
 

@@ -1,7 +1,7 @@
 """The ``factorq`` command, built from the registry of commands
-(``factorq_trainers.runner.registry``): one subcommand per module of
-``factorq_trainers.experiments`` that declares ``NAME``, its options the fields of its
-``CONFIG`` (``factorq_trainers.runner.options``), run by the runner's frame
+(``factorq_trainers.runner.registry``): one subcommand per folder
+``factorq_trainers.commands.<name>`` whose ``command.py`` declares ``NAME``, its options the
+fields of its ``CONFIG`` (``factorq_trainers.runner.options``), run by the runner's frame
 (``factorq_trainers.runner.frame``); plus ``factorq report DIR`` (redraw any command's files)
 and ``factorq sweep``.
 
