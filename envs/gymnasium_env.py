@@ -9,6 +9,7 @@ from the same counter streams: ``reset(seed=s)`` gives the trajectories of
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import Any
 
@@ -29,9 +30,11 @@ class FactoredGridGym(gymnasium.Env):
     gymnasium.
 
     Args:
-        world: an ``factorq_envs.protocol.World`` (e.g. ``factorq_envs.corridor.Corridor(...)``)
-            whose rules, spaces and body the env uses; ``None`` builds a ``FactoredGrid`` from the
-            arguments below (size ... actuator_noise), which must then be left out. The spaces are
+        world: a ``WorldConfig`` (the grid's whole config: the same env as its fields given as
+            the keywords below), or an ``factorq_envs.protocol.World`` (e.g.
+            ``factorq_envs.corridor.Corridor(...)``) whose rules, spaces and body the env uses;
+            ``None`` builds a ``FactoredGrid`` from the arguments below (size ... actuator_noise).
+            With a world, those arguments are left out (refused, named). The spaces are
             read from its config (``cell``: ``Discrete(num_cells)``, ``sensors``:
             ``MultiBinary(num_sensors)``, ``heading`` when ``num_headings > 1``, ``bump``:
             ``MultiBinary(num_actuators)``, the world's extra observations; action
@@ -86,31 +89,36 @@ class FactoredGridGym(gymnasium.Env):
         sensor_permutation: Sequence[int] | int | None = None,
         sensor_noise: float = 0.0,
         actuator_noise: float = 0.0,
-        world: Any = None,  # a factorq_envs.protocol.World,
+        world: Any = None,  # a WorldConfig (the grid, whole) or a factorq_envs.protocol.World
     ) -> None:
         if world is not None:
             from factorq_envs.torchrl_env import (
                 check_no_grid_arguments,  # the one list of grid arguments
             )
 
-            check_world(world)
             check_no_grid_arguments(locals(), world)  # the grid arguments, read by name
+        if isinstance(world, WorldConfig):  # the grid's config, passed whole
+            check_int("obstacle_period", obstacle_period, 0, hint=" (0 static, k > 0 moving)")
+            config = dataclasses.replace(world, obstacle_period=obstacle_period)
+        elif world is not None:
+            check_world(world)
             check_int("obstacle_period", obstacle_period, 0, hint=" (0 static, k > 0 moving)")
             self._setup(world, obstacle_period, render_mode)
             return
-        config = WorldConfig(
-            size=size,
-            num_obstacles=num_obstacles,
-            obstacle_period=obstacle_period,
-            max_steps=max_steps,
-            layout_seed=layout_seed,
-            body=body,
-            sensors=sensors,
-            num_distractors=num_distractors,
-            sensor_permutation=sensor_permutation,
-            sensor_noise=sensor_noise,
-            actuator_noise=actuator_noise,
-        )
+        else:
+            config = WorldConfig(
+                size=size,
+                num_obstacles=num_obstacles,
+                obstacle_period=obstacle_period,
+                max_steps=max_steps,
+                layout_seed=layout_seed,
+                body=body,
+                sensors=sensors,
+                num_distractors=num_distractors,
+                sensor_permutation=sensor_permutation,
+                sensor_noise=sensor_noise,
+                actuator_noise=actuator_noise,
+            )
         if obstacle_period == 0:
             static_obstacles = static_layout(config)
         else:

@@ -8,6 +8,7 @@ worlds in tensors and moves it in and out of TensorDicts.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -150,10 +151,11 @@ class FactoredGridEnv(EnvBase):
     FactoredGrid by default, or any ``factorq_envs.protocol.World`` given as ``world``.
 
     Keyword Args:
-        world: an ``factorq_envs.protocol.World`` (e.g. ``factorq_envs.corridor.Corridor(...)``, or
-            a ``FactoredGrid``) whose rules, specs and body the env uses; ``None`` builds a
-            ``FactoredGrid`` from the arguments below (size ... actuator_noise), which must then
-            be left out.
+        world: a ``WorldConfig`` (the grid's whole config: the same env as its fields given as
+            the keywords below), or an ``factorq_envs.protocol.World`` (e.g.
+            ``factorq_envs.corridor.Corridor(...)``, or a ``FactoredGrid``) whose rules, specs and
+            body the env uses; ``None`` builds a ``FactoredGrid`` from the arguments below (size
+            ... actuator_noise). With a world, those arguments are left out (refused, named).
         size: side of the square grid (>= 2).
         num_obstacles: single-cell obstacles, in ``[0, size**2 - 3]`` (at most ``(size - 1)**2``
             when a world is static, so that a path can exist).
@@ -251,7 +253,7 @@ class FactoredGridEnv(EnvBase):
         sensor_permutation: Sequence[int] | int | None = None,
         sensor_noise: float = 0.0,
         actuator_noise: float = 0.0,
-        world: Any = None,  # a factorq_envs.protocol.World,
+        world: Any = None,  # a WorldConfig (the grid, whole) or a factorq_envs.protocol.World
     ) -> None:
         batch_size = _check_batch_size(batch_size)
         device = check_device("device", device)
@@ -261,27 +263,31 @@ class FactoredGridEnv(EnvBase):
             raise ValueError(f"experiment_offset={experiment_offset} is out of range: must be >= 0")
         num_worlds = math.prod(batch_size)
         periods, shared_period = _check_periods(obstacle_period, num_worlds)
-        if world is not None:
+        if isinstance(world, WorldConfig):  # the grid's config, passed whole
+            check_no_grid_arguments(locals(), world)
+            config = dataclasses.replace(world, obstacle_period=shared_period)
+        elif world is not None:
             check_world(world)
             check_no_grid_arguments(locals(), world)  # the grid arguments, read by name
             super().__init__(device=device, batch_size=batch_size, allow_done_after_reset=True)
             self._setup(world, num_worlds, experiment_offset, periods, seed, world_keys)
             return
-        # WorldConfig validates size, num_obstacles, max_steps and layout_seed with messages
-        # that name the argument, its value and the allowed range.
-        config = WorldConfig(
-            size=size,
-            num_obstacles=num_obstacles,
-            obstacle_period=shared_period,
-            max_steps=max_steps,
-            layout_seed=layout_seed,
-            body=body,
-            sensors=sensors,
-            num_distractors=num_distractors,
-            sensor_permutation=sensor_permutation,
-            sensor_noise=sensor_noise,
-            actuator_noise=actuator_noise,
-        )
+        else:
+            # WorldConfig validates size, num_obstacles, max_steps and layout_seed with messages
+            # that name the argument, its value and the allowed range.
+            config = WorldConfig(
+                size=size,
+                num_obstacles=num_obstacles,
+                obstacle_period=shared_period,
+                max_steps=max_steps,
+                layout_seed=layout_seed,
+                body=body,
+                sensors=sensors,
+                num_distractors=num_distractors,
+                sensor_permutation=sensor_permutation,
+                sensor_noise=sensor_noise,
+                actuator_noise=actuator_noise,
+            )
         super().__init__(device=device, batch_size=batch_size, allow_done_after_reset=True)
         # Only static worlds need the layout: drawing it for a moving-only batch would waste
         # time and could refuse obstacle counts that moving worlds allow.

@@ -440,3 +440,42 @@ def test_reset_mask_restarts_only_those_worlds_and_refuses_a_bad_mask():
     for bad in (torch.tensor([1, 0, 0]), torch.tensor([True, False])):
         with pytest.raises(ValueError, match="reset_mask"):
             env.reset(reset_mask=bad)
+
+
+@pytest.mark.parametrize("period", [0, 2])
+def test_a_world_config_passed_whole_is_the_same_env_as_its_keywords(period):
+    """``FactoredGridEnv(world=WorldConfig(...))`` and ``FactoredGridGym(world=...)``: the grid's
+    config passed whole, the same worlds as the keywords it holds; a keyword beside it is
+    refused, naming it."""
+    import gymnasium
+
+    from factorq_envs.grid_world import WorldConfig
+    from factorq_envs.gymnasium_env import FactoredGridGym
+
+    options = dict(size=5, num_obstacles=4, max_steps=30, body="heading", sensors="ring")
+    options.update(num_distractors=2, sensor_noise=0.1, actuator_noise=0.05, layout_seed=3)
+    config = WorldConfig(**options)
+    whole = FactoredGridEnv(world=config, obstacle_period=period, batch_size=(3,), seed=7)
+    unpacked = FactoredGridEnv(**options, obstacle_period=period, batch_size=(3,), seed=7)
+    rollouts = []
+    for env in (whole, unpacked):
+        with torch.random.fork_rng():  # the random actions of rollout, the global state kept
+            torch.manual_seed(0)
+            rollouts.append(env.rollout(40, break_when_any_done=False))
+    assert (rollouts[0] == rollouts[1]).all()
+    assert rollouts[0]["next", "collision"].any()  # the worlds did something to compare
+    assert whole.config == unpacked.config
+    with pytest.raises(ValueError, match="size=6"):
+        FactoredGridEnv(world=config, size=6)
+    gym_whole = FactoredGridGym(world=config, obstacle_period=period)
+    gym_unpacked = FactoredGridGym(**options, obstacle_period=period)
+    for env in (gym_whole, gym_unpacked):
+        env.action_space.seed(1)
+    a, _ = gym_whole.reset(seed=2)
+    b, _ = gym_unpacked.reset(seed=2)
+    for _ in range(30):
+        action = gym_whole.action_space.sample()
+        a, *rest_a = gym_whole.step(action)
+        b, *rest_b = gym_unpacked.step(action)
+        assert all((a[k] == b[k]).all() for k in a) and rest_a[:3] == rest_b[:3]
+    assert isinstance(gym_whole, gymnasium.Env)

@@ -165,40 +165,21 @@ def make_env(
 ) -> FactoredGridEnv:
     """The batch's worlds: one ``FactoredGridEnv`` experiment per entry of ``periods``, each
     drawing its obstacles from its own ``world_keys`` entry (``experiment_keys``). ``world``: a
-    ``WorldConfig`` (the paper's grid) or any ``factorq_envs.protocol.World``
-    (``FactoredGridEnv(world= ...)``)."""
+    ``WorldConfig`` (the paper's grid) or any ``factorq_envs.protocol.World``, passed whole
+    (``FactoredGridEnv(world=...)``)."""
     from factorq_envs.torchrl_env import (
         FactoredGridEnv,  # torchrl: only for the paths that step the env
     )
 
-    if not isinstance(world, WorldConfig):
-        return FactoredGridEnv(
-            world=world,
-            obstacle_period=periods,
-            batch_size=(len(periods),),
-            seed=seed,
-            device=device,
-            world_keys=world_keys,
-        )
-    env = FactoredGridEnv(
-        size=world.size,
-        num_obstacles=world.num_obstacles,
+    return FactoredGridEnv(
+        world=world,  # passed whole: a WorldConfig or a World
         obstacle_period=periods,
-        max_steps=world.max_steps,
-        layout_seed=world.layout_seed,
         batch_size=(len(periods),),
         seed=seed,
         device=device,
-        body=world.body,
-        sensors=world.sensors,
-        num_distractors=world.num_distractors,
-        sensor_permutation=world.sensor_permutation,
-        sensor_noise=world.sensor_noise,
-        actuator_noise=world.actuator_noise,
         # not a contiguous range of the world stream (key 3 i + w): given outright
         world_keys=world_keys,
     )
-    return env
 
 
 def tabular_values(
