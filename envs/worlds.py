@@ -6,7 +6,8 @@ observation entry the networks read, the return that counts as learned, and the 
 The same name reaches it from every command that takes a declared env (``factorq gym --world``,
 ``factorq risk --worlds``):
 
-- a **built-in** name (``BUILT_IN``: ``highway``, ``minigrid-8x8``);
+- a **built-in** name (``BUILT_IN``: ``highway``, ``minigrid-5x5``, ``minigrid-6x6``,
+  ``minigrid-8x8``, ``minigrid-16x16``);
 - an **installed** one: a package adds worlds through the ``factorq.worlds`` entry point group,
   each entry point naming a ``DeclaredWorld`` (``[project.entry-points."factorq.worlds"]
   lake = "my_package.worlds:LAKE"``);
@@ -130,11 +131,21 @@ def make_highway(seed: int) -> FactorQEnv:
     return make(seed)
 
 
-def make_minigrid_8x8(seed: int) -> FactorQEnv:
-    """MiniGrid Dynamic-Obstacles 8x8 with the "nodeath" semantics."""
-    from factorq_envs.minigrid_adapter import make_minigrid
+def make_minigrid_of(size: int) -> Callable[[int], FactorQEnv]:
+    """``seed -> `` MiniGrid Dynamic-Obstacles ``size`` x ``size`` with the "nodeath" semantics
+    (the adapter imported when a world is made: listing the worlds imports neither MiniGrid nor
+    torch)."""
 
-    return make_minigrid(8, "nodeath", seed=seed)
+    def make(seed: int) -> FactorQEnv:
+        from factorq_envs.minigrid_adapter import make_minigrid
+
+        return make_minigrid(size, "nodeath", seed=seed)
+
+    return make
+
+
+#: The MiniGrid Dynamic-Obstacles sizes ``factorq minigrid --sizes`` runs, declared as worlds.
+MINIGRID_SIZES = (5, 6, 8, 16)
 
 
 #: The worlds that ship, by name.
@@ -146,14 +157,17 @@ BUILT_IN = {
         requires=(("highway_env", "highway"),),
         survival=True,
     ),
-    "minigrid-8x8": DeclaredWorld(
-        make_minigrid_8x8,
-        "MiniGrid-Dynamic-Obstacles-8x8-v0 (nodeath)",
-        observation="image",
-        threshold=0.5,
-        requires=(("minigrid", "minigrid"),),
-        exclude=("mission", "direction"),
-    ),
+    **{
+        f"minigrid-{size}x{size}": DeclaredWorld(
+            make_minigrid_of(size),
+            f"MiniGrid-Dynamic-Obstacles-{size}x{size}-v0 (nodeath)",
+            observation="image",
+            threshold=0.5,
+            requires=(("minigrid", "minigrid"),),
+            exclude=("mission", "direction"),
+        )
+        for size in MINIGRID_SIZES
+    },
 }
 
 

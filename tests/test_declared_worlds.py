@@ -98,7 +98,7 @@ def user_world(tmp_path, monkeypatch):
 
 
 def test_built_in_names_resolve_to_their_declared_worlds():
-    assert worlds.names()[:2] == ["highway", "minigrid-8x8"]
+    assert worlds.names()[:5] == ["highway", *(f"minigrid-{n}x{n}" for n in (5, 6, 8, 16))]
     assert resolve_world("highway") is BUILT_IN["highway"]
     assert resolve_world("highway").survival and not resolve_world("minigrid-8x8").survival
     assert resolve_world("minigrid-8x8").observation == "image"
@@ -211,7 +211,11 @@ def test_a_users_own_world_runs_beside_the_grid_in_factorq_risk(user_world, tmp_
         ("cliff_user_world:NOWHERE", "module 'cliff_user_world' has no 'NOWHERE'"),
         ("cliff_user_world:NOT_A_WORLD", "names a 'int' object, not a factorq_envs.worlds"),
         ("cliff_user_world:CLIFF:x", "is not package.module:NAME"),
-        ("atari", "is unknown: choose one of highway, minigrid-8x8"),
+        (
+            "atari",
+            "is unknown: choose one of highway, minigrid-5x5, minigrid-6x6, minigrid-8x8, "
+            "minigrid-16x16",
+        ),
     ],
 )
 def test_a_bad_world_is_one_line_naming_it_before_any_work(
@@ -245,12 +249,16 @@ def test_an_installed_package_adds_worlds_through_the_entry_point_group(tmp_path
     _install(site, "pkg_cliff_world", entry_points)
     monkeypatch.syspath_prepend(str(site))
     try:
-        assert worlds.names() == ["highway", "minigrid-8x8", "cliff", "lost"]
+        assert worlds.names()[5:] == ["cliff", "lost"]
         assert resolve_world("cliff").label == "CliffWalking-v1"
         assert resolve_world("highway") is BUILT_IN["highway"]
         with pytest.raises(WorldError, match="entry point 'pkg_cliff_world:GONE' of factorq"):
             resolve_world("lost")
-        with pytest.raises(WorldError, match="choose one of highway, minigrid-8x8, cliff, lost"):
+        with pytest.raises(
+            WorldError,
+            match="choose one of highway, minigrid-5x5, minigrid-6x6, minigrid-8x8, "
+            "minigrid-16x16, cliff, lost",
+        ):
             resolve_world("atari")
     finally:
         import sys

@@ -332,7 +332,9 @@ def test_the_experiment_command_at_a_tiny_budget(tmp_path):
     report_module.figure(summary, tmp_path / "gym.png")
     assert (tmp_path / "gym.png").stat().st_size > 0
     with pytest.raises(
-        ValueError, match="world 'atari' is unknown: choose one of highway, minigrid-8x8"
+        ValueError,
+        match="world 'atari' is unknown: choose one of highway, minigrid-5x5, minigrid-6x6, "
+        "minigrid-8x8, minigrid-16x16",
     ):
         experiment.GymConfig(world="atari")
 

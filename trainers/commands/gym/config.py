@@ -31,8 +31,8 @@ class GymConfig:
 
     world: str = option(
         "highway",
-        "The declared world: highway, minigrid-8x8, a world an installed package adds (entry "
-        "point group factorq.worlds), or your own as package.module:NAME (a "
+        "The declared world: highway, minigrid-5x5 (6x6, 8x8, 16x16), a world an installed "
+        "package adds (entry point group factorq.worlds), or your own as package.module:NAME (a "
         "factorq_envs.worlds.DeclaredWorld).",
     )
     seed: int = option(0, "Master seed: env seeds, policies and networks derive from it.")
