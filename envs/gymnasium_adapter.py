@@ -460,45 +460,11 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
         """``step`` for an action vector: every actuator fires; each one's collision is kept."""
         declaration = self.declaration
         vector = self._action_vector(action)
-        returned = self.env.step(vector)
-        if not (isinstance(returned, tuple) and len(returned) == 5):
-            raise TypeError(
-                f"{self._label}: step() returned {_shape_of(returned)}: a Gymnasium env's step "
-                f"returns (observation, reward, terminated, truncated, info)"
-            )
-        observation, reward, terminated, truncated, info = returned
-        reward = _finite(self._label, "the env's reward", reward)
-        for name, flag in (("terminated", terminated), ("truncated", truncated)):
-            if not _is_bool(flag):
-                raise TypeError(
-                    f"{self._label}: step() returned {name}={flag!r} "
-                    f"({type(flag).__name__}): must be a bool"
-                )
-        info = self._info("step", info)
-        step = Transition(
-            observation, reward, bool(terminated), bool(truncated), info, self.env,
-            tuple(vector.tolist()),  # type: ignore[arg-type]
-        )  # fmt: skip
+        step = self._checked_step(vector, tuple(vector.tolist()))
         collided = self._collided_vector(step)
         penalty = declaration.penalty * int(collided.sum())
-        if declaration.task_reward is None:
-            task = reward + penalty
-            if collided.any() and task > 1e-9 * max(1.0, penalty):
-                raise ValueError(
-                    f"{self._label}: a collision with the env's reward {reward!r}: the default "
-                    f"task reward (the env's reward + penalty {penalty!r} = {task!r}) would pay "
-                    f"for it. Declare task_reward=lambda step: step.reward, or the penalty the "
-                    f"env's reward holds"
-                )
-            conventional = reward
-        else:
-            task = _finite(
-                self._label,
-                "Declaration.task_reward's result",
-                self._call("task_reward", declaration.task_reward, step),
-            )
-            conventional = task - penalty
-        info = dict(info, collided=bool(collided.any()), task_reward=np.float32(task))
+        task, conventional = self._task_reward(step, bool(collided.any()), penalty)
+        info = dict(step.info, collided=bool(collided.any()), task_reward=np.float32(task))
         out = self._observe(step, None)
         out[keys.BUMP] = collided.astype(np.int8)
         out[keys.COLLISION] = np.where(collided, -declaration.penalty, 0.0).astype(np.float32)
@@ -707,7 +673,25 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
                 f"({names})"
             )
         declaration = self.declaration
-        returned = self.env.step(self._actions[actuator])
+        step = self._checked_step(self._actions[actuator], actuator)
+        collided = self._collided(step)
+        charged = None
+        if collided:
+            charged = actuator
+            if declaration.charge is not None:
+                charged = self._index(
+                    "charge", self._call("charge", declaration.charge, step), count
+                )
+        penalty = declaration.penalty if collided else 0.0
+        task, conventional = self._task_reward(step, collided, penalty)
+        info = dict(step.info, collided=collided, task_reward=np.float32(task))
+        out = self._observe(step, charged)
+        return out, conventional, step.terminated, step.truncated, info
+
+    def _checked_step(self, env_action: Any, action: Any) -> Transition:
+        """The env's ``step(env_action)`` as a ``Transition`` of ``action`` (the chosen actuator
+        or the action vector), its 5-tuple, finite reward, bool flags and info checked."""
+        returned = self.env.step(env_action)
         if not (isinstance(returned, tuple) and len(returned) == 5):
             raise TypeError(
                 f"{self._label}: step() returned {_shape_of(returned)}: a Gymnasium env's step "
@@ -722,18 +706,16 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
                     f"({type(flag).__name__}): must be a bool"
                 )
         info = self._info("step", info)
-        step = Transition(
-            observation, reward, bool(terminated), bool(truncated), info, self.env, actuator
+        return Transition(
+            observation, reward, bool(terminated), bool(truncated), info, self.env, action
         )
-        collided = self._collided(step)
-        charged = None
-        if collided:
-            charged = actuator
-            if declaration.charge is not None:
-                charged = self._index(
-                    "charge", self._call("charge", declaration.charge, step), count
-                )
-        penalty = declaration.penalty if collided else 0.0
+
+    def _task_reward(self, step: Transition, collided: bool, penalty: float) -> tuple[float, float]:
+        """``(task reward, conventional reward)`` of ``step``: the declared task reward, or the
+        env's reward plus the ``penalty`` of its collisions, refused where that would pay for a
+        collision (the env's reward holds no penalty; module docstring)."""
+        declaration = self.declaration
+        reward = step.reward
         if declaration.task_reward is None:
             task = reward + penalty
             if collided and task > 1e-9 * max(1.0, penalty):  # rounding is no reward
@@ -744,17 +726,13 @@ class FactorQEnv(gymnasium.Wrapper, RecordConstructorArgs):
                     f"task_reward=lambda step: step.reward (the env's reward is the task's, the "
                     f"collision is the penalty beside it), or the penalty the env's reward holds"
                 )
-            conventional = reward  # the env's own, exactly
-        else:
-            task = _finite(
-                self._label,
-                "Declaration.task_reward's result",
-                self._call("task_reward", declaration.task_reward, step),
-            )
-            conventional = task - penalty
-        info = dict(info, collided=collided, task_reward=np.float32(task))
-        out = self._observe(step, charged)
-        return out, conventional, step.terminated, step.truncated, info
+            return task, reward  # the conventional reward: the env's own, exactly
+        task = _finite(
+            self._label,
+            "Declaration.task_reward's result",
+            self._call("task_reward", declaration.task_reward, step),
+        )
+        return task, task - penalty
 
     def _info(self, where: str, info: object) -> dict[str, Any]:
         if not isinstance(info, Mapping):
