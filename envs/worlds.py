@@ -7,7 +7,8 @@ The same name reaches it from every command that takes a declared env (``factorq
 ``factorq risk --worlds``):
 
 - a **built-in** name (``BUILT_IN``: ``highway``, ``minigrid-5x5``, ``minigrid-6x6``,
-  ``minigrid-8x8``, ``minigrid-16x16``);
+  ``minigrid-8x8``, ``minigrid-16x16``, and the project's own ``grid-10x10``,
+  ``grid-10x10-dynamic`` and ``corridor`` through ``factorq_envs.project_worlds``);
 - an **installed** one: a package adds worlds through the ``factorq.worlds`` entry point group,
   each entry point naming a ``DeclaredWorld`` (``[project.entry-points."factorq.worlds"]
   lake = "my_package.worlds:LAKE"``);
@@ -144,6 +145,21 @@ def make_minigrid_of(size: int) -> Callable[[int], FactorQEnv]:
     return make
 
 
+def make_project_world(kind: str, period: int = 0) -> Callable[[int], FactorQEnv]:
+    """``seed ->`` one of the project's own worlds as a declared world: ``kind`` ``"grid"`` (the
+    paper's grid and body, ``WorldConfig()``) or ``"corridor"`` (``CorridorConfig()``), with
+    obstacle period ``period``, seen through the adapter like any Gymnasium env
+    (``factorq_envs.project_worlds``): the same worlds the other commands step, reachable by
+    name from every command that takes a declared world."""
+
+    def make(seed: int) -> FactorQEnv:
+        from factorq_envs.project_worlds import declared_project_world
+
+        return declared_project_world(kind, period, seed)
+
+    return make
+
+
 #: The MiniGrid Dynamic-Obstacles sizes ``factorq minigrid --sizes`` runs, declared as worlds.
 MINIGRID_SIZES = (5, 6, 8, 16)
 
@@ -168,6 +184,13 @@ BUILT_IN = {
         )
         for size in MINIGRID_SIZES
     },
+    "grid-10x10": DeclaredWorld(
+        make_project_world("grid"), "the paper's grid (10x10, static)", threshold=-36.0
+    ),
+    "grid-10x10-dynamic": DeclaredWorld(
+        make_project_world("grid", 1), "the paper's grid (10x10, dynamic)", threshold=-36.0
+    ),
+    "corridor": DeclaredWorld(make_project_world("corridor"), "the corridor", threshold=-22.0),
 }
 
 

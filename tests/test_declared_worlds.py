@@ -249,7 +249,7 @@ def test_an_installed_package_adds_worlds_through_the_entry_point_group(tmp_path
     _install(site, "pkg_cliff_world", entry_points)
     monkeypatch.syspath_prepend(str(site))
     try:
-        assert worlds.names()[5:] == ["cliff", "lost"]
+        assert worlds.names()[8:] == ["cliff", "lost"]
         assert resolve_world("cliff").label == "CliffWalking-v1"
         assert resolve_world("highway") is BUILT_IN["highway"]
         with pytest.raises(WorldError, match="entry point 'pkg_cliff_world:GONE' of factorq"):
@@ -257,7 +257,7 @@ def test_an_installed_package_adds_worlds_through_the_entry_point_group(tmp_path
         with pytest.raises(
             WorldError,
             match="choose one of highway, minigrid-5x5, minigrid-6x6, minigrid-8x8, "
-            "minigrid-16x16, cliff, lost",
+            "minigrid-16x16, grid-10x10, grid-10x10-dynamic, corridor, cliff, lost",
         ):
             resolve_world("atari")
     finally:
@@ -288,3 +288,43 @@ def _make(seed):
 def test_a_declared_world_checks_its_fields(fields, error, message):
     with pytest.raises(error, match=message):
         DeclaredWorld(**{"make": _make, "label": "x", **fields})
+
+
+@pytest.mark.parametrize("name", ["grid-10x10", "grid-10x10-dynamic", "corridor"])
+def test_the_projects_own_worlds_are_declared_worlds_stepping_the_same_world(name):
+    """``grid-10x10``, ``grid-10x10-dynamic`` and ``corridor`` in the registry: Gymnasium's
+    checker accepts them, their oracle is the world's true dependency, and under the same
+    actions they step the same world as ``FactoredGridGym`` itself (cells, sensors, collisions,
+    task reward)."""
+    import numpy as np
+    from gymnasium.utils.env_checker import check_env
+
+    from factorq_envs.corridor import Corridor
+    from factorq_envs.grid_world import WorldConfig
+    from factorq_envs.gymnasium_env import FactoredGridGym
+
+    declared = resolve_world(name)
+    check_env(declared.make(5), skip_render_check=True)
+    env = declared.make(5)
+    world = Corridor() if name == "corridor" else WorldConfig()
+    native = FactoredGridGym(world=world, obstacle_period=1 if name == "grid-10x10-dynamic" else 0)
+    assert env.dependency is not None
+    assert bool((env.dependency == native.config.dependency).all())
+    observation, _ = env.reset(seed=11)
+    mine, _ = native.reset(seed=11)
+    generator = np.random.default_rng(0)
+    collisions = 0
+    for _ in range(300):
+        action = int(generator.integers(native.action_space.n))
+        observation, reward, terminated, truncated, info = env.step(action)
+        mine, native_reward, native_terminated, native_truncated, native_info = native.step(action)
+        assert observation["cell"] == mine["cell"]
+        assert (observation["sensors"] == mine["sensors"]).all()
+        assert (observation["collision"] == mine["collision"]).all()
+        assert info["task_reward"] == native_info["task_reward"] and reward == native_reward
+        assert (terminated, truncated) == (native_terminated, native_truncated)
+        collisions += int(info["collided"])
+        if terminated or truncated:
+            observation, _ = env.reset()
+            mine, _ = native.reset()
+    assert collisions > 0  # the comparison saw collisions
