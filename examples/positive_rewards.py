@@ -5,9 +5,9 @@ items on the floor that pay ``+1`` to the actuator that moves onto one (a collis
 -1). Three agents learn online, one experiment per master seed, all seeds side by side in one
 batch:
 
-- ``factor-q (oracle)``: local tables told the dependency (actuator ``a`` reads its proximity
+- ``factor-q``: local tables told the dependency (actuator ``a`` reads its proximity
   sensor and its item sensor);
-- ``factor-q (learned)``: the structure learner, one channel per sign
+- ``factor-q-learned``: the structure learner, one channel per sign
   (``SignedStructureLearner``), told nothing but the numbers of actuators and sensors;
 - ``q-learning``: a Q-table over cell x the pattern of all eight sensors, on the conventional
   reward (task + local rewards).
@@ -41,7 +41,7 @@ from factorq_torch.policy import EpsilonGreedyPolicy, FactorQPolicy
 from factorq_torch.signed_structure import SignedStructureLearner
 from factorq_torch.tables import LocalRewardTable, TaskQTable
 
-METHODS = ("factor-q (oracle)", "factor-q (learned)", "q-learning")
+METHODS = ("factor-q", "factor-q-learned", "q-learning")
 
 
 def seed_keys(seeds: list[int], stream: int) -> torch.Tensor:
@@ -72,7 +72,7 @@ def agent(method: str, world: PayingGrid, seeds: list[int], period: int) -> tupl
         chooser = EpsilonGreedyPolicy(count, keys=keys, epsilon=settings.epsilon)
         loss = TabularQLoss(task, gamma=settings.gamma, alpha=settings.alpha)
         return env, TensorDictSequential(task, chooser), loss, None
-    if method == "factor-q (oracle)":
+    if method == "factor-q":
         local = LocalRewardTable(count, dependency=world.dependency)
     else:
         local = SignedStructureLearner(
@@ -197,14 +197,14 @@ def main() -> None:
     if not args.no_reference:  # the task alone: the grid with no items (what collecting costs)
         plain = PayingGrid(PayingConfig(num_items=0))
         results["factor-q, no items"] = run(
-            "factor-q (oracle)", plain, seeds, args.episodes, args.period
+            "factor-q", plain, seeds, args.episodes, args.period
         )
     print(
         f"# paying grid 10x10, 10 obstacles (period {args.period}), {args.items} items of +1; "
         f"{args.seeds} master seeds, {args.episodes} episodes: median [min, max] over seeds"
     )
     print("\n".join(table(results, args.first, args.last)))
-    structure = results["factor-q (learned)"]["structure"]
+    structure = results["factor-q-learned"]["structure"]
     right = (structure == world.dependency).all(dim=-1)  # [S, A]
     print(
         f"learned structure: {int(right.sum())} of {right.numel()} actuators exactly "
