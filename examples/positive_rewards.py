@@ -196,9 +196,7 @@ def main() -> None:
         print(f"# {method}: {time.perf_counter() - start:.1f} s")
     if not args.no_reference:  # the task alone: the grid with no items (what collecting costs)
         plain = PayingGrid(PayingConfig(num_items=0))
-        results["factor-q, no items"] = run(
-            "factor-q", plain, seeds, args.episodes, args.period
-        )
+        results["factor-q, no items"] = run("factor-q", plain, seeds, args.episodes, args.period)
     print(
         f"# paying grid 10x10, 10 obstacles (period {args.period}), {args.items} items of +1; "
         f"{args.seeds} master seeds, {args.episodes} episodes: median [min, max] over seeds"
