@@ -86,7 +86,7 @@ def bench_functions(batch: int, period: int, seconds: float) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[1, 64, 1024, 4096])
-    parser.add_argument("--worlds", nargs="+", choices=sorted(REGIME_PERIODS), default=["dynamic"])
+    parser.add_argument("--regimes", nargs="+", choices=sorted(REGIME_PERIODS), default=["dynamic"])
     parser.add_argument("--seconds", type=float, default=1.0, help="time per measurement")
     args = parser.parse_args()
 
@@ -95,7 +95,7 @@ def main() -> None:
     header = f"{'world':<13}{'path':<11}{'S':>6}{'threads':>9}{'batched steps/s':>17}"
     print(header + f"{'world-steps/s':>15}")
     print("-" * (len(header) + 15))
-    for world in args.worlds:
+    for world in args.regimes:
         for path, bench in (("env.step", bench_env_step), ("functions", bench_functions)):
             for batch in args.sizes:
                 for threads in sorted({1, default_threads}):

@@ -225,10 +225,12 @@ def main(argv: list[str] | None = None) -> None:
         default=",".join(METHODS),
         help=f"comma-separated, the first is the reference of the ratios ({NEURAL} on demand)",
     )
-    parser.add_argument("--worlds", default=",".join(WORLDS), help="comma-separated")
+    parser.add_argument(
+        "--regimes", default=",".join(WORLDS), help="obstacle regimes, comma-separated"
+    )
     args = parser.parse_args(argv)
     methods = tuple(args.methods.split(","))
-    worlds = {name: WORLDS[name] for name in args.worlds.split(",")}
+    worlds = {name: WORLDS[name] for name in args.regimes.split(",")}
     torch.set_num_threads(1)
     results: dict[tuple[str, str], list[dict[str, float]]] = {}
     curves: dict[tuple[str, str], list[torch.Tensor]] = {}

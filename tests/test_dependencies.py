@@ -278,3 +278,20 @@ def test_the_summary_shows_the_absolute_task_measures_beside_the_ratios():
     )
     assert "| cross | Factor-Q | 0 | 0 | 530 | 265 | 25% |" in text
     assert "uniform exploration" in text
+
+
+def test_every_setting_runs_in_each_regime_with_the_numbers_of_a_run_of_that_regime(tmp_path):
+    """``--regimes static,dynamic``: one entry per setting x regime, keyed ``setting/regime``;
+    each equals the entry of a run of that regime alone (its worlds are keyed by the regime)."""
+    common = dict(TINY, settings=("cross",), methods=("factor-q", "q-learning"))
+    config = dependencies.DependenciesConfig
+    both = dependencies.run(config(**common, regimes=("static", "dynamic"), out=str(tmp_path)))
+    assert list(both["settings"]) == ["cross/static", "cross/dynamic"]
+    for regime in ("static", "dynamic"):
+        alone = dependencies.run(config(**common, regimes=(regime,), out=str(tmp_path / regime)))
+        assert list(alone["settings"]) == ["cross"]
+        assert alone["settings"]["cross"] == both["settings"][f"cross/{regime}"]
+    static, dynamic = (both["settings"][f"cross/{r}"]["methods"] for r in ("static", "dynamic"))
+    assert static != dynamic  # the regime reaches the worlds
+    with pytest.raises(ValueError, match="regimes"):
+        config(**common, regimes=("windy",))

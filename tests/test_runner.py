@@ -163,7 +163,7 @@ def test_report_redraws_dependencies_without_torch(tmp_path):
         "schema_version": 1,
         "command": "dependencies",
         "config": {
-            "seeds": 2, "runs": 1, "episodes": 1, "world": "static", "size": 6, "obstacles": 4,
+            "seeds": 2, "runs": 1, "episodes": 1, "regimes": ["static"], "size": 6, "obstacles": 4,
             "bayes_factor": 300.0, "prior_a": 0.25, "prior_b": 0.25, "candidate_prior": "sparse",
             "max_steps": 1000,
         },

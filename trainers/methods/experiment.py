@@ -275,35 +275,46 @@ def online_agent(
 # Step-budget experiments (factorq compare, DQN)
 
 
+#: The paper's world and body (SPEC section 1): the one place a world option's default is declared
+#: (``WorldConfig``'s own); a command whose world differs names its own ``WorldConfig``.
+PAPER_WORLD = WorldConfig()
+
+
 @dataclass(frozen=True)
 class WorldOptions:
-    """The world and body options every command's config shares (declared once: the paper's
-    grid and body by default). A config inherits them and checks them with
-    ``check_world_options`` and ``body_options``."""
+    """The world and body options every grid command's config shares, their defaults
+    ``PAPER_WORLD``'s. A config inherits them and checks them with ``check_world_options`` and
+    ``body_options``."""
 
-    size: int = option(10, "Side of the square grid, in cells.")
-    obstacles: int = option(10, "Number of single-cell obstacles.")
-    max_steps: int = option(10_000, "Actions after which an episode is truncated.")
-    layout_seed: int = option(0, "Seed of the static world's obstacle layout.")
+    size: int = option(PAPER_WORLD.size, "Side of the square grid, in cells.")
+    obstacles: int = option(PAPER_WORLD.num_obstacles, "Number of single-cell obstacles.")
+    max_steps: int = option(PAPER_WORLD.max_steps, "Actions after which an episode is truncated.")
+    layout_seed: int = option(
+        PAPER_WORLD.layout_seed, "Seed of the static world's obstacle layout."
+    )
     body: str = option(
-        "translate",
+        PAPER_WORLD.body,
         "Agent body: translate (the paper: moves N/W/S/E) or heading (forward, turn left/right).",
     )
     sensors: str = option(
-        "cross", "Sensor layout: cross (the paper: 4 neighbours) or ring (8 neighbours)."
+        PAPER_WORLD.sensors,
+        "Sensor layout: cross (the paper: 4 neighbours) or ring (8 neighbours).",
     )
     distractors: int = option(
-        0, "Extra sensor bits that carry no information (fresh fair coins at every observation)."
+        PAPER_WORLD.num_distractors,
+        "Extra sensor bits that carry no information (fresh fair coins at every observation).",
     )
     sensor_permutation: int | None = option(
         None,
         "Seed of a random order in which the agent receives its sensors (default: layout order).",
     )
     sensor_noise: float = option(
-        0.0, "Probability that each sensor bit is flipped at each observation, in [0, 1]."
+        PAPER_WORLD.sensor_noise,
+        "Probability that each sensor bit is flipped at each observation, in [0, 1].",
     )
     actuator_noise: float = option(
-        0.0, "Probability that another actuator fires than the chosen one, in [0, 1]."
+        PAPER_WORLD.actuator_noise,
+        "Probability that another actuator fires than the chosen one, in [0, 1].",
     )
 
 

@@ -36,6 +36,7 @@ Writes ``dependencies.json``, ``dependencies.png`` and ``dependencies.md`` to ``
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from typing import Any
@@ -236,9 +237,20 @@ def _absolute(methods: dict[str, Any], method: str) -> dict[str, Any]:
 # The experiment
 
 
+def setting_key(config: DependenciesConfig, setting: str, regime: str) -> str:
+    """The key of ``setting`` run in ``regime`` (a unit's id, a ``dependencies.json`` entry): the
+    setting's name when one regime runs, ``setting/regime`` when several do."""
+    return setting if len(config.regimes) == 1 else f"{setting}/{regime}"
+
+
 def units(config: DependenciesConfig) -> list[dict[str, Any]]:
-    """One unit per setting (its methods share worlds, and DQN's budget is the oracle's)."""
-    return [{"id": setting, "setting": setting} for setting in config.settings]
+    """One unit per setting x regime (its methods share worlds, and DQN's budget is the
+    oracle's)."""
+    return [
+        {"id": setting_key(config, setting, regime), "setting": setting, "regime": regime}
+        for setting in config.settings
+        for regime in config.regimes
+    ]
 
 
 def run_unit(
@@ -246,8 +258,10 @@ def run_unit(
     unit: dict[str, Any],
     progress: Callable[[int], None] | None = None,
 ) -> dict[str, Any]:
-    """Every method of ``config`` in the unit's setting: its summary and the methods skipped."""
+    """Every method of ``config`` in the unit's setting and regime: its summary and the methods
+    skipped."""
     setting = unit["setting"]
+    config = dataclasses.replace(config, regimes=(unit["regime"],))
     runs: dict[str, dict[str, Any]] = {}
     skipped = {}
     for method in (method for method in METHODS if method in config.methods):
@@ -267,24 +281,26 @@ def run_unit(
 
 
 def summarise(config: DependenciesConfig, outcomes: list[dict[str, Any]]) -> dict[str, Any]:
-    """``dependencies.json``'s entries from the settings' units (in ``units`` order)."""
+    """``dependencies.json``'s entries from the units (in ``units`` order), keyed by
+    ``setting_key``."""
     results: dict[str, Any] = {
         "settings": {},
         "skipped": {},
         "methods": {method: label(method) for method in METHODS},
     }
-    for setting, outcome in zip(config.settings, outcomes, strict=True):
+    for unit, outcome in zip(units(config), outcomes, strict=True):
         if outcome["skipped"]:
-            results["skipped"][setting] = outcome["skipped"]
-        results["settings"][setting] = outcome["summary"]
+            results["skipped"][unit["id"]] = outcome["skipped"]
+        results["settings"][unit["id"]] = outcome["summary"]
     return results
 
 
 def estimate(config: DependenciesConfig) -> resources.Estimate:
     """Peak memory of ``factorq dependencies`` with ``config`` (a ``DependenciesConfig``): the
-    settings run one after another, so the largest one's learner counts (8 float64 arrays
-    ``[S, A, C, 2**max_parents]``, ``C`` the candidate parent sets, and their copy), task tables,
-    local tables (the joint table's ``2**K`` entries where they fit) and metrics. Measured: 3.0
+    units (settings x regimes) run one after another, so the largest one's learner counts (8
+    float64 arrays ``[S, A, C, 2**max_parents]``, ``C`` the candidate parent sets, and their
+    copy), task tables, local tables (the joint table's ``2**K`` entries where they fit) and
+    metrics. Measured: 3.0
     GiB estimated for 3,000 seeds against a peak RSS 3.2 GiB above the interpreter's."""
     largest, steps = 0, 0
     episodes = config.seeds * config.runs * config.episodes
@@ -300,7 +316,7 @@ def estimate(config: DependenciesConfig) -> resources.Estimate:
         largest = max(
             largest, config.seeds * per_experiment + 3 * episodes * resources.METRIC_BYTES
         )
-        steps += episodes * len(config.methods) * 2 * (config.size - 1)
+        steps += episodes * len(config.methods) * len(config.regimes) * 2 * (config.size - 1)
     return resources.Estimate({"learners, tables and metrics": largest}, steps, exact_steps=False)
 
 

@@ -21,7 +21,7 @@ from factorq_torch.base.validation import (
     check_threads,
 )
 from factorq_trainers.analysis.vocabulary import among
-from factorq_trainers.methods.experiment import MAX_SEED, check_world_options
+from factorq_trainers.methods.experiment import MAX_SEED, PAPER_WORLD, check_world_options
 from factorq_trainers.runner.options import option
 
 #: The fields that leave the numbers alone (the compiled and modular paths agree bit for bit);
@@ -55,11 +55,13 @@ CUSTOM = "custom"
 #: A setting's content: its body options with the defaults filled in, and whether the sensor
 #: order is redrawn mid-experiment (the ``change`` preset).
 SETTING_DEFAULTS = {
-    "body": "translate",
-    "sensors": "cross",
-    "num_distractors": 0,
-    "sensor_noise": 0.0,
+    name: getattr(PAPER_WORLD, name)
+    for name in ("body", "sensors", "num_distractors", "sensor_noise")
 }
+#: The structure experiment's grid: smaller than the paper's (6x6, 4 obstacles, 1,000 steps),
+#: so that 100 experiments of every setting run in seconds and an actuator fires its first 100
+#: times within a few runs (docs/decisions.md, "Learned dependencies").
+STRUCTURE_WORLD = WorldConfig(size=6, num_obstacles=4, max_steps=1_000)
 METHODS = among(
     "factor-q-learned", "factor-q", "factor-q-joint", "q-learning", "dqn", "factor-q-gated"
 )
@@ -106,13 +108,21 @@ class DependenciesConfig:
     sensor_noise: float | None = option(
         None, "Probability that each sensor bit of the custom setting flips at each observation."
     )
-    world: str = option("static", "World: static, semi-dynamic or dynamic.", choices=REGIMES)
+    regimes: tuple[str, ...] = option(
+        ("static",),
+        "Obstacle regimes: " + ", ".join(REGIMES) + " (comma-separated); every setting runs in "
+        "each.",
+    )
     runs: int = option(10, "Runs per experiment (task tables reset at each).")
     episodes: int = option(1, "Episodes per run.")
-    size: int = option(6, "Side of the square grid, in cells.")
-    obstacles: int = option(4, "Number of single-cell obstacles.")
-    max_steps: int = option(1_000, "Actions after which an episode is truncated.")
-    layout_seed: int = option(0, "Seed of the static world's obstacle layout.")
+    size: int = option(STRUCTURE_WORLD.size, "Side of the square grid, in cells.")
+    obstacles: int = option(STRUCTURE_WORLD.num_obstacles, "Number of single-cell obstacles.")
+    max_steps: int = option(
+        STRUCTURE_WORLD.max_steps, "Actions after which an episode is truncated."
+    )
+    layout_seed: int = option(
+        STRUCTURE_WORLD.layout_seed, "Seed of the static world's obstacle layout."
+    )
     bayes_factor: float = option(300.0, "Posterior odds at which a parent set is committed to.")
     max_parents: int = option(2, "Largest candidate parent set (0, 1 or 2: pairs).")
     window: int = option(100, "Firings per actuator in the block the reopening test reads.")
@@ -217,6 +227,7 @@ class DependenciesConfig:
                 f"settings: {CUSTOM!r} needs body, sensors, distractors or sensor_noise"
             )
         object.__setattr__(self, "settings", settings)
+        object.__setattr__(self, "regimes", check_names("regimes", self.regimes, REGIMES))
         object.__setattr__(self, "methods", check_names("methods", self.methods, METHODS))
         check_int("runs", self.runs, 1, INT32_MAX)
         check_int("episodes", self.episodes, 1, INT32_MAX)
@@ -303,10 +314,17 @@ class DependenciesConfig:
         text = json.dumps(content, sort_keys=True)
         return int.from_bytes(hashlib.sha256(text.encode()).digest()[:8], "little") >> 1
 
+    @property
+    def regime(self) -> str:
+        """The obstacle regime of a unit's config (``command.units`` gives each its own)."""
+        if len(self.regimes) != 1:
+            raise ValueError(f"regimes: a unit runs one regime, not {', '.join(self.regimes)}")
+        return self.regimes[0]
+
     def world_of(self, setting: str) -> WorldConfig:
         options = self.setting_options(setting)
         renamed = {"num_distractors": "distractors"}
         body = {renamed.get(name, name): value for name, value in options.items()}
         return check_world_options(
-            self.size, self.obstacles, self.max_steps, self.layout_seed, (self.world,), body
+            self.size, self.obstacles, self.max_steps, self.layout_seed, self.regimes, body
         )

@@ -41,7 +41,7 @@ def sensor_orders(
 
 
 def _keys(config: DependenciesConfig, method: str) -> tuple[torch.Tensor, torch.Tensor]:
-    labels = [(config.world, index) for index in range(config.seeds)]
+    labels = [(config.regime, index) for index in range(config.seeds)]
     world_keys = experiment_keys(config.seed, STREAM_WORLD, labels)
     policy_keys = experiment_keys(config.seed, STREAM_POLICY, labels, KEYED_METHODS, method)
     return world_keys, policy_keys
@@ -88,7 +88,7 @@ def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]
     world = config.world_of(setting)
     count, num_sensors = config.seeds, world.num_sensors
     world_keys, policy_keys = _keys(config, "factor-q-learned")
-    periods = torch.full((count,), REGIME_PERIODS[config.world], dtype=torch.int64)
+    periods = torch.full((count,), REGIME_PERIODS[config.regime], dtype=torch.int64)
     orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
     change = setting == "change"
     orders_after = (
@@ -215,7 +215,7 @@ def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, A
     world, agent = config.world_of(setting), config.agent_of("factor-q-learned")
     count, num_sensors = config.seeds, world.num_sensors
     world_keys, policy_keys = _keys(config, "factor-q-learned")
-    periods = [REGIME_PERIODS[config.world]] * count
+    periods = [REGIME_PERIODS[config.regime]] * count
     orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
     permute = PermuteSensors(orders)
     env = TransformedEnv(make_env(world, periods, world_keys), Compose(SplitLocalReward(), permute))
@@ -323,7 +323,7 @@ def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[
 
     world = config.world_of(setting)
     world_keys, policy_keys = _keys(config, method)
-    periods = torch.full((config.seeds,), REGIME_PERIODS[config.world], dtype=torch.int64)
+    periods = torch.full((config.seeds,), REGIME_PERIODS[config.regime], dtype=torch.int64)
     dependency, algorithm = None, "factor-q"
     if method == "factor-q-joint":
         dependency = torch.ones(world.num_actuators, world.num_sensors, dtype=torch.bool)
@@ -385,7 +385,7 @@ def run_gated(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     )  # common random numbers (KEYED_METHODS)
     orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
     permute = PermuteSensors(orders)
-    periods = [REGIME_PERIODS[config.world]] * count
+    periods = [REGIME_PERIODS[config.regime]] * count
     env = TransformedEnv(make_env(world, periods, world_keys), Compose(SplitLocalReward(), permute))
     task = TaskQTable(
         count, world.num_cells, num_headings=world.num_headings, num_actions=world.num_actuators
@@ -468,7 +468,7 @@ def run_dqn(config: DependenciesConfig, setting: str, budget: int) -> dict[str, 
     experiments = ExperimentConfig(
         seed=config.seed,
         seeds=config.seeds,
-        regimes=(config.world,),
+        regimes=(config.regime,),
         steps=budget,
         size=config.size,
         obstacles=config.obstacles,

@@ -64,6 +64,11 @@ def _ratio_text(entry: dict[str, Any] | None) -> str:
     return text
 
 
+def _regimes(config: dict[str, Any]) -> str:
+    regimes = config["regimes"]
+    return f"{', '.join(regimes)} regime" + ("s" if len(regimes) > 1 else "")
+
+
 def markdown(results: dict[str, Any]) -> str:
     """The table of the issue's metrics, one row per setting, and the baselines' totals."""
     config = results["config"]
@@ -71,7 +76,7 @@ def markdown(results: dict[str, Any]) -> str:
         "# Learned sensor-actuator dependencies",
         "",
         f"{config['seeds']} experiments per setting, {config['runs']} runs x {config['episodes']} "
-        f"episodes each, {config['world']} world {config['size']}x{config['size']} with "
+        f"episodes each, {_regimes(config)}, grid {config['size']}x{config['size']} with "
         f"{config['obstacles']} obstacles, Bayes factor {format_number(config['bayes_factor'])}, "
         f"Beta({format_number(config['prior_a'])}, {format_number(config['prior_b'])}) prior, "
         f"candidate prior {config['candidate_prior']}, "

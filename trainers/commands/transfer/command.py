@@ -42,6 +42,7 @@ from factorq_trainers.analysis.stats import bootstrap_mean_ci, count_ratio, scal
 from factorq_trainers.analysis.vocabulary import among
 from factorq_trainers.methods.experiment import (
     MAX_SEED,
+    PAPER_WORLD,
     WorldOptions,
     body_options,
     check_world_options,
@@ -82,22 +83,26 @@ _PER_SEED = {
 UNIT_RESULT = {**_PER_SEED, "path": TEXT, "body_from": TEXT}
 
 
+#: The default target: a larger, more crowded grid than the paper's, with another layout.
+TARGET_WORLD = WorldConfig(size=14, num_obstacles=20, layout_seed=1)
+
+
 @dataclass(frozen=True)
 class TransferConfig(WorldOptions):
     """The target task is the world options (``size``, ``obstacles``, ``layout_seed``, the body)
     in each of ``regimes``; the source task shares the body and ``max_steps``."""
 
-    size: int = option(14, "Side of the target grid, in cells.")
-    obstacles: int = option(20, "Obstacles of the target grid.")
-    layout_seed: int = option(1, "Seed of the target's static layout.")
+    size: int = option(TARGET_WORLD.size, "Side of the target grid, in cells.")
+    obstacles: int = option(TARGET_WORLD.num_obstacles, "Obstacles of the target grid.")
+    layout_seed: int = option(TARGET_WORLD.layout_seed, "Seed of the target's static layout.")
     regimes: tuple[str, ...] = option(
         REGIMES, "Obstacle regimes of the target: static, semi-dynamic, dynamic (comma-separated)."
     )
     episodes: int = option(100, "Episodes of the target task per seed (one run).")
     early: int = option(20, "The first (and last) episodes the collisions are counted over.")
-    source_size: int = option(10, "Side of the source grid (the paper's).")
-    source_obstacles: int = option(10, "Obstacles of the source grid.")
-    source_layout_seed: int = option(0, "Seed of the source's static layout.")
+    source_size: int = option(PAPER_WORLD.size, "Side of the source grid (the paper's).")
+    source_obstacles: int = option(PAPER_WORLD.num_obstacles, "Obstacles of the source grid.")
+    source_layout_seed: int = option(PAPER_WORLD.layout_seed, "Seed of the source's static layout.")
     source_regime: str = option("static", "Obstacle regime of the source task.", choices=REGIMES)
     source_episodes: int = option(200, "Episodes of the source task per seed (one run).")
     body_model: str | None = option(
