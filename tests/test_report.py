@@ -9,6 +9,7 @@ import struct
 import numpy as np
 import pytest
 
+from factorq_trainers import reports
 from factorq_trainers.commands.paper import command as paper
 from factorq_trainers.commands.paper import report
 from factorq_trainers.commands.paper.config import PaperConfig
@@ -95,7 +96,7 @@ def test_figure3_draws_a_single_world_and_a_single_seed(tmp_path):
 
 
 def test_report_has_the_claims_table_with_a_verdict_per_claim(results):
-    text = report.report_markdown(results)
+    text = report.markdown(results)
     assert "| claim | statement | measured [95% CI] | threshold | result |" in text
     for name, claim in results["claims"].items():
         row = next(line for line in text.splitlines() if line.startswith(f"| {name} |"))
@@ -104,7 +105,7 @@ def test_report_has_the_claims_table_with_a_verdict_per_claim(results):
 
 
 def test_report_has_cells_config_software_and_wall_time(results):
-    text = report.report_markdown(results)
+    text = report.markdown(results)
     assert "| static | Q-learning |" in text and "| dynamic | Factor-Q |" in text
     assert "| `--seeds` | `6` |" in text and "| `--g-min` | `0.01` |" in text
     assert "| torch |" in text and "| matplotlib |" in text and "| platform |" in text
@@ -115,7 +116,7 @@ def test_report_has_cells_config_software_and_wall_time(results):
 
 
 def test_report_marks_claims_that_were_not_evaluated(tmp_path):
-    text = report.report_markdown(synthetic_results(regimes=("static",)))
+    text = report.markdown(synthetic_results(regimes=("static",)))
     c1 = next(line for line in text.splitlines() if line.startswith("| C1 |"))
     assert "not evaluated" in c1 and c1.endswith("| n/a |")
     c2 = next(line for line in text.splitlines() if line.startswith("| C2 |"))
@@ -128,7 +129,7 @@ def test_regenerate_rebuilds_figure_and_report_from_results_json_alone(results, 
     original = paths["report"].read_text()
     paths["figure"].unlink()
     paths["report"].unlink()
-    regenerated = report.regenerate(tmp_path)
+    regenerated = reports.regenerate(tmp_path)
     assert regenerated["report"].read_text() == original
     png_size(regenerated["figure"].read_bytes())
     # results.json is strict JSON (no NaN/Infinity) and round-trips the claims exactly
@@ -141,14 +142,14 @@ def _reject(constant):
 
 
 def test_regenerate_without_results_json_says_what_is_missing(tmp_path):
-    with pytest.raises(FileNotFoundError, match="results.json does not exist"):
-        report.regenerate(tmp_path)
+    with pytest.raises(FileNotFoundError, match="holds no results file .*results.json"):
+        reports.regenerate(tmp_path)
     (tmp_path / "results.json").write_text("{not json")
     with pytest.raises(ValueError, match="not valid JSON"):
-        report.regenerate(tmp_path)
-    (tmp_path / "results.json").write_text('{"config": {}}')
-    with pytest.raises(ValueError, match="cells, claims missing"):
-        report.regenerate(tmp_path)
+        reports.regenerate(tmp_path)
+    (tmp_path / "results.json").write_text('{"config": {}, "schema_version": 1}')
+    with pytest.raises(ValueError, match="results.json: cells, claims missing in the file"):
+        reports.regenerate(tmp_path)
 
 
 def test_factorq_report_redraws_a_sweep_output_folder(tmp_path, capsys):

@@ -14,9 +14,9 @@ from factorq_trainers.commands.paper.schema import (
     ResultsFileError,
     check_results,
     escape_markdown,
-    load_results_file,
     markdown_code,
 )
+from factorq_trainers.reports import regenerate
 from factorq_trainers.runner.reading import MAX_DEPTH
 from factorq_trainers.runner.results import SCHEMA_VERSION
 
@@ -71,7 +71,7 @@ def test_every_mutated_field_is_refused_cleanly_or_still_renders(results):
                 assert "\n" not in str(error)
                 refused += 1
                 continue
-            report.report_markdown(mutated)  # must not raise: the check let it through
+            report.markdown(mutated)  # must not raise: the check let it through
             rendered += 1
     assert refused > 1000 and rendered > 0
 
@@ -95,11 +95,15 @@ def test_a_sample_of_accepted_mutations_draws_the_figure(results, tmp_path):
     [
         ("5", "it holds no JSON object"),
         ("[]", "it holds no JSON object"),
-        ('{"config": {}}', "cells, claims missing"),
-        ('{"config": {}, "cells": {}, "claims": {}}', "schema_version missing: written before"),
+        ('{"config": {}, "schema_version": 1}', "cells, claims missing"),
+        ('{"config": {}, "cells": {}, "claims": {}}', "has no schema_version"),
         (
             '{"schema_version": 1, "config": {}, "cells": {}, "claims": {}}',
             "seeds, runs, .* missing in config",
+        ),
+        (
+            '{"schema_version": 1, "config": {}, "cells": {"x": {"collisions": -1}}, "claims": {}}',
+            "cells/x/collisions holds -1, negative",
         ),
         ("{", "is not valid JSON"),
         ("[" * (MAX_DEPTH + 1) + "]" * (MAX_DEPTH + 1), f"nests deeper than {MAX_DEPTH} levels"),
@@ -110,8 +114,9 @@ def test_malformed_files_get_one_line_naming_the_file(tmp_path, content, message
     path = tmp_path / "results.json"
     path.write_text(content)
     with pytest.raises(ValueError, match=message) as error:
-        load_results_file(path)
-    assert str(error.value).startswith(f"{path}") and "\n" not in str(error.value)
+        regenerate(tmp_path)
+    assert str(path) in str(error.value) and "\n" not in str(error.value)
+    assert sorted(child.name for child in tmp_path.iterdir()) == ["results.json"]  # nothing drawn
 
 
 @pytest.mark.parametrize(

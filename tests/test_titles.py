@@ -52,7 +52,7 @@ def test_paper_figure_and_report_name_a_non_default_body(titles, tmp_path):
     default = synthetic_results(seeds=2, episodes=6)
     report.figure3(default, tmp_path / "a.png")
     assert titles[-1].splitlines()[0] == "Q-learning vs Factor-Q, 10\u00d710 grid with 10 obstacles"
-    heading = report.report_markdown(default).splitlines()[0]
+    heading = report.markdown(default).splitlines()[0]
     assert heading == "# Factor-Q vs Q-learning: the paper's experiment"
 
     ring = synthetic_results(seeds=2, episodes=6, sensors="ring", distractors=4)
@@ -60,7 +60,7 @@ def test_paper_figure_and_report_name_a_non_default_body(titles, tmp_path):
     assert titles[-1].splitlines()[0] == (
         "Q-learning vs Factor-Q, 10\u00d710 grid with 10 obstacles, ring sensors, 4 distractors"
     )
-    assert report.report_markdown(ring).splitlines()[0] == (
+    assert report.markdown(ring).splitlines()[0] == (
         "# Factor-Q vs Q-learning: the paper's experiment (ring sensors, 4 distractors)"
     )
 

@@ -37,11 +37,10 @@ from factorq_torch.collectors import OnlineCollector
 from factorq_torch.objectives import FactorQLoss, TabularQLoss
 from factorq_torch.policy import EpsilonGreedyPolicy, FactorQPolicy
 from factorq_torch.tables import LocalRewardTable, TaskQTable
-from factorq_trainers import cli
+from factorq_trainers import cli, reports
 from factorq_trainers.analysis.claims import compute_claims
 from factorq_trainers.analysis.stats import t_critical
 from factorq_trainers.commands.paper import command as paper
-from factorq_trainers.commands.paper import report
 from factorq_trainers.commands.paper.config import PaperConfig
 from factorq_trainers.compiled import fast
 from factorq_trainers.methods.dqn import DQNConfig
@@ -428,7 +427,7 @@ TRIED = [
     ("ExperimentConfig(steps=2**31)", lambda _: ExperimentConfig(steps=2**31), ValueError, rf"steps=2147483648 {RANGE} in \[1, 2147483647\]"),
     ("config_from_dict(unknown field)", lambda _: frame.config_from_dict(PaperConfig, {"seedz": 1}), TypeError, r"unexpected keyword argument 'seedz'"),
     ("resumed_config(other config)", lambda tmp: resumed_config(tmp, seeds=5), ValueError, r"resume='.*run' holds a run of a different config: seeds=5 given, 3 kept"),
-    ("report.regenerate(missing dir)", lambda tmp: report.regenerate(tmp / "none"), FileNotFoundError, r"none/results.json does not exist"),
+    ("reports.regenerate(missing dir)", lambda tmp: reports.regenerate(tmp / "none"), FileNotFoundError, r"none holds no results file of a factorq command"),
     ("t_critical(0)", lambda _: t_critical(0), ValueError, r"df=0 must be >= 1"),
     ("compute_claims(seed counts differ)", lambda _: compute_claims({"a": {"per_seed": {"total_steps": [1]}}, "b": {"per_seed": {"total_steps": [1, 2]}}}), ValueError, r"cells have different numbers of seeds: \[1, 2\]"),
     # envs

@@ -70,8 +70,6 @@ def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
             raise
         return sweep.regenerate(results_dir)  # factorq sweep's --out
     report = importlib.import_module(entry.report)
-    if hasattr(report, "regenerate"):  # a report with its own reading (paper: the schema)
-        return report.regenerate(results_dir)
     data = results.read_json(path, ("config",), f"run `factorq {entry.name}`")
     check_results(path, entry.name, data)
     directory = Path(results_dir)

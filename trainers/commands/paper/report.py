@@ -1,8 +1,8 @@
 """The paper's output files: ``results.json``, Figure 3 and the claims report.
 
 The runner writes all three from the results dict of ``factorq paper`` (``markdown``,
-``figure``); ``factorq report`` (``regenerate``) redraws the figure and the report from
-``results.json`` alone, checked against the paper's schema.
+``figure``); ``factorq report`` redraws the figure and the report from ``results.json`` alone,
+checked against the paper's schema first (``results_problem``).
 Everything here reads the results and computes nothing new: the numbers in the report are the
 numbers in the file.
 """
@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -20,12 +19,16 @@ from factorq_trainers.analysis.claims import ALGORITHM_LABELS, MEASURE_LABELS, M
 from factorq_trainers.analysis.stats import format_number
 from factorq_trainers.commands.paper import figure as paper_figure
 from factorq_trainers.commands.paper.figure_process import FigureProcess, FigureProcessError
-from factorq_trainers.commands.paper.schema import escape_markdown, load_results_file, markdown_code
+from factorq_trainers.commands.paper.schema import (
+    ResultsFileError,
+    check_results,
+    escape_markdown,
+    markdown_code,
+)
 from factorq_trainers.runner.results import (
     FigureError,
     body_label,
     temporary_path,
-    write_all_atomic,
 )
 
 RESULTS_FILE = "results.json"
@@ -82,7 +85,7 @@ def verdict(claim: dict[str, Any]) -> str:
     return {True: "pass", False: "FAIL", None: "n/a"}[claim["pass"]]
 
 
-def report_markdown(results: dict[str, Any]) -> str:
+def markdown(results: dict[str, Any]) -> str:
     """The report: claims, per-cell measures, the configuration, software and wall time."""
     config, claims = results["config"], results["claims"]
     worlds, algorithms = _ordered_cells(results)
@@ -183,8 +186,6 @@ def report_markdown(results: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-#: The report's Markdown (the runner's ``markdown`` protocol).
-markdown = report_markdown
 #: What ``factorq sweep`` reports per configuration: the paper's measures per run.
 SWEEP_MEASURES = MEASURES
 
@@ -203,12 +204,15 @@ def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
     }
 
 
-def load_results(results_dir: str | os.PathLike) -> dict[str, Any]:
-    """The results in ``results_dir/results.json``, checked against the schema (one-line errors)."""
-    path = Path(results_dir) / RESULTS_FILE
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} does not exist: run `factorq paper --out {results_dir}`")
-    return load_results_file(path)
+def results_problem(results: dict[str, Any]) -> str | None:
+    """What is wrong with a ``results.json`` dict against the paper's schema (``schema.
+    check_results``: every field the report reads), or None: ``factorq report`` refuses the file
+    with it before drawing (``reports.check_results``)."""
+    try:
+        check_results(results)
+    except ResultsFileError as error:
+        return str(error)
+    return None
 
 
 def send_figure(
@@ -240,15 +244,3 @@ def figure(
         raise FigureError(
             f"drawing {FIGURE_FILE} failed: {type(error).__name__}: {error}"
         ) from error
-
-
-def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
-    """Rewrite ``figure3.png`` and ``report.md`` in ``results_dir`` from its ``results.json``
-    (checked against the paper's schema first)."""
-    results, out = load_results(results_dir), Path(results_dir)
-    writers: dict[str, tuple[Path, Callable[[Path], Any]]] = {
-        "figure": (out / FIGURE_FILE, lambda path: figure(results, path)),
-        "report": (out / REPORT_FILE, lambda path: path.write_text(report_markdown(results))),
-    }
-    write_all_atomic(dict(writers.values()))
-    return {name: path for name, (path, _) in writers.items()}

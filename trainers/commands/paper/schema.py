@@ -1,10 +1,11 @@
 """The results file's schema: versioned, and checked field by field before anything reads it.
 
 A ``results.json`` handed to ``factorq report`` is untrusted input: it may be hand-edited,
-truncated, of another version or of another shape altogether. ``load_results_file`` reads it with
-size and nesting limits and ``check_results`` checks every field the report reads (type, range,
-lengths that must agree) so that drawing the figure and writing the Markdown cannot fail on it;
-any problem is one ``ResultsFileError`` naming the file, the field's path and what was expected.
+truncated, of another version or of another shape altogether. ``factorq report`` reads it with
+size and nesting limits (``runner.results.read_json``) and ``check_results`` checks every field the
+report reads (type, range, lengths that must agree) so that drawing the figure and writing the
+Markdown cannot fail on it; any problem is one line naming the file (``reports.check_results``),
+the field's path and what was expected.
 
 Versions: ``SCHEMA_VERSION`` is written into every results file and checked here: a file without
 the field or of a newer version is refused.
@@ -13,16 +14,14 @@ the field or of a newer version is refused.
 from __future__ import annotations
 
 import math
-import os
 import re
-from pathlib import Path
 from typing import Any
 
 from factorq_envs.regimes import REGIMES
 from factorq_torch.base.config import ALGORITHMS as ALGORITHM_NAMES
 from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_trainers.analysis.claims import CLAIM_STATEMENTS, MEASURES
-from factorq_trainers.runner.results import SCHEMA_VERSION, read_json
+from factorq_trainers.runner.results import SCHEMA_VERSION
 
 #: The per-episode curves a results file holds per cell (task return is reported per run).
 CURVE_NAMES = EPISODE_METRICS[:3]
@@ -219,17 +218,6 @@ def check_results(results: Any) -> dict[str, Any]:
         _integer(timing["env_steps"], "timing.env_steps", 0)
         _text(timing["backend"], "timing.backend")
     return results
-
-
-def load_results_file(path: str | os.PathLike) -> dict[str, Any]:
-    """Read (``results.read_json``: size, depth, JSON, version) and check a results file; every
-    problem is one ValueError naming ``path``."""
-    path = Path(path)
-    results = read_json(path, ("config", "cells", "claims"), "run `factorq paper`")
-    try:
-        return check_results(results)
-    except ResultsFileError as error:
-        raise ResultsFileError(f"{path}: {error}") from None
 
 
 _MARKDOWN_SPECIAL = str.maketrans({char: "\\" + char for char in "\\`*_|"})
