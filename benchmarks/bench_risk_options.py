@@ -55,7 +55,7 @@ def stall(masters: list[int], seeds: int, noises: list[float]) -> None:
                     threads=1,
                     out="unused",
                 )
-                summary = dependencies.run_unit(config, {"id": "custom", "setting": "custom"})
+                summary = dependencies.run_unit(config, dependencies.units(config)[0])
                 for method, entry in summary["summary"]["methods"].items():
                     if method == "factor-q-joint":
                         continue
