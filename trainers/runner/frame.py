@@ -223,6 +223,15 @@ def describe(module: ModuleType, config: Any) -> None:
         print(module.describe(config), file=sys.stderr, flush=True)
 
 
+def progress_bar(**options: Any) -> Any:
+    """A tqdm bar on stderr (``options``: tqdm's), redrawn at most every 0.5 s on a terminal and
+    every 30 s into a log file."""
+    from tqdm.auto import tqdm
+
+    interval = 0.5 if sys.stderr.isatty() else 30.0
+    return tqdm(file=sys.stderr, dynamic_ncols=True, mininterval=interval, **options)
+
+
 def run_unit_task(module_name: str, config: Any, unit: dict[str, Any]) -> Any:
     """One unit on a worker (picklable: the module travels by name)."""
     module = importlib.import_module(module_name)
@@ -360,7 +369,8 @@ def execute(
         units = checked_units(module, config)
         from factorq_trainers.runner import cluster
 
-        executor = cluster.executor_from_args(args)
+        where = cluster.where_from_args(args)  # --cluster off: in-process, whatever the default
+        executor = None if where.in_process else cluster.open_executor(where)
         chosen = any(hasattr(args, name) for name in ("cluster", "scheduler"))
         if executor is None and not chosen and hasattr(module, "processes"):
             executor = _default_processes(parser, module, config, units, told)
@@ -437,8 +447,6 @@ def _run(
     figure_process: Any = None,
     told: list[str] | None = None,
 ) -> int:
-    from tqdm.auto import tqdm
-
     started = time.perf_counter()
     if store is None:
         store = kept_files.UnitStore(config.out)
@@ -460,13 +468,10 @@ def _run(
         print(line, file=sys.stderr, flush=True)
     describe(module, config)
     pending = [unit for unit in units if unit["id"] not in done]
-    bar = tqdm(
+    bar = progress_bar(
         total=sum(work(module, config, unit) for unit in pending),
         desc=f"factorq {module.NAME}",
         unit="unit" if not hasattr(module, "work") else getattr(module, "WORK_UNIT", "step"),
-        file=sys.stderr,
-        dynamic_ncols=True,
-        mininterval=0.5 if sys.stderr.isatty() else 30.0,
     )
     where = "in-process"
     try:
