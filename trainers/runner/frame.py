@@ -216,13 +216,6 @@ def run_in_process(
     return envelope(module, config, summary, wall_s=time.perf_counter() - started, units=len(units))
 
 
-def describe(module: ModuleType, config: Any) -> None:
-    """Print the command's ``describe(config)`` (what runs, e.g. paper's backend) on stderr, once
-    the run is accepted (``execute``): a refusal before it stays one line."""
-    if hasattr(module, "describe"):
-        print(module.describe(config), file=sys.stderr, flush=True)
-
-
 def progress_bar(**options: Any) -> Any:
     """A tqdm bar on stderr (``options``: tqdm's), redrawn at most every 0.5 s on a terminal and
     every 30 s into a log file."""
@@ -466,7 +459,8 @@ def _run(
         print(f"resuming {config.out}: {len(done)} of {len(units)} units done", file=sys.stderr)
     for line in told or ():  # the run is accepted: the notices held until now
         print(line, file=sys.stderr, flush=True)
-    describe(module, config)
+    if hasattr(module, "describe"):  # what runs (paper's backend, ...), now the run is accepted
+        print(module.describe(config), file=sys.stderr, flush=True)
     pending = [unit for unit in units if unit["id"] not in done]
     bar = progress_bar(
         total=sum(work(module, config, unit) for unit in pending),
