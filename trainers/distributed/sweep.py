@@ -46,9 +46,9 @@ from factorq_trainers.runner.frame import (
 HELP = "run a grid of a command's configurations, in-process or on a Dask cluster"
 
 
-def build_parser(prog: str = "factorq sweep") -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
     parser = Parser(
-        prog=prog,
+        prog="factorq sweep",
         description="Run a grid of `factorq paper` configurations (or, with --command, of "
         "another command's), each with --seeds seeds; write sweep.json, sweep.md and a figure "
         "per axis to --out. Finished configurations are kept in OUT/configs/ and not rerun (a "

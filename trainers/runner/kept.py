@@ -60,14 +60,12 @@ def config_digest(config: dict[str, Any]) -> str:
     return json_digest(json.loads(result_files.dumps(config)))
 
 
-def tie(command: str, config: Any, unit: dict[str, Any] | None = None) -> dict[str, Any]:
+def tie(command: str, config: Any) -> dict[str, Any]:
     """What a file kept by ``command`` for ``config`` (a JSON dict, or a digest of it already
-    made: a sweep's ``config_digest``; and ``unit``) carries."""
+    made: a sweep's ``config_digest``) carries; a unit's file adds its ``"unit"``
+    (``UnitStore``)."""
     digest = config if isinstance(config, str) else config_digest(config)
-    kept_for: dict[str, Any] = {"command": command, "config_sha256": digest}
-    if unit is not None:
-        kept_for["unit"] = json.loads(result_files.dumps(unit))
-    return kept_for
+    return {"command": command, "config_sha256": digest}
 
 
 def dumps_sealed(

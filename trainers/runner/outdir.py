@@ -38,11 +38,11 @@ LOCK_FILE = ".factorq.lock"
 #: The suffix of every temporary factorq writes (``temporary_name``): a name no user writes, so
 #: ``remove_temporaries`` deletes only ours (a user's ``.backup.2024.tmp`` is left alone).
 TEMPORARY_SUFFIX = ".factorq-tmp"
-#: What ``write_all_atomic`` and the checkpoint writer leave behind when killed mid-write.
+#: What ``write_all_atomic`` (and compare's staging logs) leave behind when killed mid-write.
 _TEMPORARY = re.compile(r"^\..+\.\d+" + re.escape(TEMPORARY_SUFFIX) + "$")
-#: The folders factorq writes into directly under an output directory (the checkpoints, a
-#: sweep's configuration results, a runner command's kept units, compare's logs):
-#: a link at one of these names is refused by ``claim`` before any work, as a file's is.
+#: The folders factorq writes into directly under an output directory (a sweep's configuration
+#: results, a runner command's kept units, compare's logs): a link at one of these names is
+#: refused by ``claim`` before any work, as a file's is.
 OWN_DIRECTORIES = ("configs", "units", "logs")
 
 
