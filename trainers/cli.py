@@ -97,16 +97,6 @@ def _report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     return 0
 
 
-def _handle(args: argparse.Namespace, figure_process: FigureProcess | None) -> int:
-    """Run the parsed command in the runner's frame (``report`` redraws files instead)."""
-    parser = args.command_parser
-    if args.module is None:
-        return _report(parser, args)
-    from factorq_trainers.runner import frame
-
-    return frame.execute(args.module, parser, args, figure_process)
-
-
 def main(argv: list[str] | None = None) -> int:
     """Run ``factorq`` with ``argv`` (default: the command line); return the exit status.
 
@@ -175,8 +165,12 @@ def _main(
     if args.command is None:
         parser.print_help(sys.stderr)
         return EXIT_USAGE
-    try:
-        return _handle(args, figure_process)
+    try:  # the parsed command in the runner's frame (``report`` redraws files instead)
+        if args.module is None:
+            return _report(args.command_parser, args)
+        from factorq_trainers.runner import frame
+
+        return frame.execute(args.module, args.command_parser, args, figure_process)
     except KeyboardInterrupt:  # outside the run itself (validation, imports): nothing written
         print(f"{args.command_parser.prog}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -153,13 +153,12 @@ def _headline(claim: str, measures: dict[str, Any]) -> tuple[Any, Any]:
 
 
 _CLAIM_MEASURES = {"C1": _c1, "C2": _c2, "C3": _c3, "C4": _c4, "C5": _c5}
-_CLAIM_CELLS = {
-    "C1": [(world, algorithm) for world in REGIMES for algorithm in ALGORITHMS],
-    "C2": [("static", algorithm) for algorithm in ALGORITHMS],
-    "C3": [("static", algorithm) for algorithm in ALGORITHMS],
-    "C4": [(world, algorithm) for world in REGIMES for algorithm in ALGORITHMS],
-    "C5": [(world, algorithm) for world in REGIMES for algorithm in ALGORITHMS],
-}
+_EVERY_CELL = [f"{world}/{algorithm}" for world in REGIMES for algorithm in ALGORITHMS]
+_STATIC_CELLS = [f"static/{algorithm}" for algorithm in ALGORITHMS]
+#: The cells each claim needs.
+_CLAIM_CELLS = dict(
+    C1=_EVERY_CELL, C2=_STATIC_CELLS, C3=_STATIC_CELLS, C4=_EVERY_CELL, C5=_EVERY_CELL
+)
 
 
 def compute_claims(cells: dict[str, Any], seed: int = 0) -> dict[str, Any]:
@@ -179,16 +178,11 @@ def compute_claims(cells: dict[str, Any], seed: int = 0) -> dict[str, Any]:
     claims = {}
     for claim, measure_fn in _CLAIM_MEASURES.items():
         entry: dict[str, Any] = {
-            "statement": CLAIM_STATEMENTS[claim],
-            "threshold": CLAIM_THRESHOLDS[claim],
-            "value": None,
-            "ci95": None,
-            "pass": None,
-            "detail": "",
-            "measures": [],
-        }
+            "statement": CLAIM_STATEMENTS[claim], "threshold": CLAIM_THRESHOLDS[claim],
+            "value": None, "ci95": None, "pass": None, "detail": "", "measures": [],
+        }  # fmt: skip
         claims[claim] = entry
-        missing = [f"{w}/{a}" for w, a in _CLAIM_CELLS[claim] if f"{w}/{a}" not in cells]
+        missing = [cell for cell in _CLAIM_CELLS[claim] if cell not in cells]
         if missing:
             entry["detail"] = f"not evaluated: needs {', '.join(missing)}, which were not run"
             continue

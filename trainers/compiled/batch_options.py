@@ -155,38 +155,21 @@ def structure_setup(
         raise ValueError(f"structure.bayes_factor={options.bayes_factor!r} must be > 1")
     for name in ("reopen_factor", "noisy_reopen_factor"):
         if getattr(options, name) is not None:
-            check_float(
-                f"structure.{name}",
-                getattr(options, name),
-                1.0,
-                math.inf,
-                low_open=True,
-                high_open=True,
-            )
+            check_float(f"structure.{name}", getattr(options, name), 1.0, math.inf,
+                        low_open=True, high_open=True)  # fmt: skip
     for name in ("prior_a", "prior_b"):
         value = getattr(options, name)
-        if (
-            not isinstance(value, (int, float))
-            or not (0 < value < 2**20)
-            or (value * 1024 != int(value * 1024))
-        ):
+        if not (isinstance(value, (int, float)) and 0 < value < 2**20 and value * 1024 % 1 == 0):
             raise ValueError(
                 f"structure.{name}={value!r}: the fast path needs a multiple of 1/1024 in "
                 f"(0, 2**20)"
             )
     check_int("structure.window", options.window, 1)
-    if options.likelihood not in LIKELIHOODS:
-        raise ValueError(
-            f"structure.likelihood={options.likelihood!r} is unknown: choose one of {LIKELIHOODS}"
-        )
-    if options.pairs not in PAIR_MODES:
-        raise ValueError(
-            f"structure.pairs={options.pairs!r} is unknown: choose one of {PAIR_MODES}"
-        )
-    if options.reopen not in REOPENINGS:
-        raise ValueError(
-            f"structure.reopen={options.reopen!r} is unknown: choose one of {REOPENINGS}"
-        )
+    for name, known in (("likelihood", LIKELIHOODS), ("pairs", PAIR_MODES), ("reopen", REOPENINGS)):
+        if getattr(options, name) not in known:
+            raise ValueError(
+                f"structure.{name}={getattr(options, name)!r} is unknown: choose one of {known}"
+            )
     check_int("structure.change_run", options.change_run, 0, runs - 1)
     check_int("structure.curve_every", options.curve_every, 1)
     num_sensors, actuators = world.num_sensors, world.num_actuators

@@ -63,6 +63,11 @@ from factorq_trainers.compiled.loader import (  # noqa: F401 - the availability 
     unsupported_reason,
 )
 
+#: The kernel's int64 counters of each experiment, in fq_batch's order (``bump`` after the sixth).
+_COUNTERS = tuple(
+    "cell episode_step scatters policy_counter run episode heading ticks episode_collisions "
+    "episode_greedy_collisions".split()
+)
 _pool_lock = threading.Lock()
 _executor: ThreadPoolExecutor | None = None
 _executor_workers = 0
@@ -226,21 +231,12 @@ class ExperimentBatch:
             "kappa": kappa,
             "grid": grid,  # [S, P]
             "obstacle_pads": obstacle_pads,  # [S, K]
-            "cell": zeros(count),
-            "episode_step": zeros(count),
-            "scatters": zeros(count),
-            "policy_counter": zeros(count),
-            "run": zeros(count),
-            "episode": zeros(count),
+            **{name: zeros(count) for name in _COUNTERS[:6]},  # [S] each
             "bump": zeros(count, num_actuators, dtype=torch.uint8),
-            "heading": zeros(count),
-            "ticks": zeros(count),
-            "episode_collisions": zeros(count),
-            "episode_greedy_collisions": zeros(count),
+            **{name: zeros(count) for name in _COUNTERS[6:]},
             "episode_task_return": zeros(count, dtype=torch.float32),
-            "steps": zeros(*experiment_shape),
-            "collisions": zeros(*experiment_shape),
-            "greedy_collisions": zeros(*experiment_shape),
+            # the per-episode metrics [S, runs, episodes]: int64 counts, the float32 return
+            **{name: zeros(*experiment_shape) for name in EPISODE_METRICS[:3]},
             "task_return": zeros(*experiment_shape, dtype=torch.float32),
         }
         if structure is not None and sensor_orders is not None:

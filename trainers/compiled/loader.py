@@ -42,174 +42,67 @@ _SOURCE = Path(__file__).with_name("_kernel.c")
 _FLAGS = ("-O3", "-std=c99", "-ffp-contract=off", "-fno-fast-math", "-fPIC", "-shared")
 _ABI_VERSION = 10
 #: The fields ``fq_check_experiment`` refuses, by code (1-based), and ``fq_advance``'s encoding.
-_STATE_FIELDS = (
-    "cell",
-    "run",
-    "episode",
-    "episode_step",
-    "scatters",
-    "policy_counter",
-    "periods",
-    "obstacle_pads",
-    "heading",
-    "ticks",
-    "kappa",
-    "episode_collisions",
-    "committed",
-    "samples",
-    "counts",
-    "change_tick",
-    "history",
+_STATE_FIELDS = tuple(
+    "cell run episode episode_step scatters policy_counter periods obstacle_pads heading ticks "
+    "kappa episode_collisions committed samples counts change_tick history".split()
 )
 _CHECK_CODES = 64
 
 #: The structure learner's pointers in fq_batch, in order (read-only ones first).
-_LEARNER_POINTERS = (
-    "candidate_sensors",
-    "log_prior",
-    "competitors",
-    "lgamma_table",
-    "noisy_lgamma_table",
-    "orders",
-    "orders_after",
-    "truth",
-    "initial_active",
-    "all_candidates",
-    "counts",
-    "committed",
-    "samples",
-    "block_samples",
-    "reopened",
-    "map_cache",
-    "plausible",
-    "right_since",
-    "samples_at_change",
-    "wrong_commitments",
-    "noise_seen",
-    "change_tick",
-    "curve",
-    "active",
-    "history_readings",
-    "history_action",
-    "history_reward",
-    "history_length",
-    "history_start",
-    "block_start",
-    "active_list",
-    "active_count",
+_LEARNER_POINTERS = tuple(
+    "candidate_sensors log_prior competitors lgamma_table noisy_lgamma_table orders orders_after "
+    "truth initial_active all_candidates counts committed samples block_samples reopened "
+    "map_cache plausible right_since samples_at_change wrong_commitments noise_seen change_tick "
+    "curve active history_readings history_action history_reward history_length history_start "
+    "block_start active_list active_count".split()
 )
 #: The kernel's codes of ``StructureOptions.prediction`` (``"posterior"`` is modular only).
 _PREDICTION_CODES = {"map": 0, "committed": 1, "optimistic": 2}
+
+
+def _typed(kind: type, names: str | tuple[str, ...]) -> list[tuple[str, type]]:
+    """``(name, kind)`` for each of ``names`` (space-separated, or a tuple), in order."""
+    return [(name, kind) for name in (names.split() if isinstance(names, str) else names)]
 
 
 class _Batch(ctypes.Structure):
     """The kernel's ``fq_batch`` (same field order and types; its size is checked on load)."""
 
     _fields_ = (
-        [
-            (name, ctypes.c_int64)
-            for name in (
-                "algorithm",
-                "num_experiments",
-                "size",
-                "num_obstacles",
-                "max_steps",
-                "runs",
-                "episodes",
-                "explore_threshold",
-            )
-        ]
-        + [
-            (name, ctypes.c_void_p)
-            for name in (
-                "periods",
-                "world_keys",
-                "policy_keys",
-                "static_grid",
-                "pad_of_cell",
-                "q",
-                "rho",
-                "kappa",
-                "grid",
-                "obstacle_pads",
-                "cell",
-                "episode_step",
-                "scatters",
-                "policy_counter",
-                "run",
-                "episode",
-                "bump",
-                "episode_collisions",
-                "episode_greedy_collisions",
-                "episode_task_return",
-                "steps",
-                "collisions",
-                "greedy_collisions",
-                "task_return",
-            )
-        ]
-        + [(name, ctypes.c_float) for name in ("gamma", "alpha", "eta_factor", "g_min")]
-        + [
-            (name, ctypes.c_int64)
-            for name in (
-                "generic",
-                "num_actuators",
-                "num_sensors",
-                "num_layout",
-                "num_headings",
-                "table_width",
-                "sensor_noise_threshold",
-                "actuator_noise_threshold",
-            )
-        ]
-        + [
-            (name, ctypes.c_void_p)
-            for name in (
-                "moves",
-                "turns",
-                "offsets",
-                "permutation",
-                "parent_weights",
-                "heading",
-                "ticks",
-            )
-        ]
-        + [(f"{name}_stride", ctypes.c_int64) for name in ("q", "rho", "kappa", "grid", "obstacle")]
-        + [
-            (name, ctypes.c_int64)
-            for name in (
-                "learner",
-                "num_candidates",
-                "learner_patterns",
-                "prediction",
-                "window",
-                "change_run",
-                "curve_every",
-                "curve_length",
-                "lgamma_length",
-                "learner_stride",
-                "reopen_body",
-                "likelihood_flip",
-                "mixture",
-                "prune_pairs",
-                "history_capacity",
-            )
-        ]
-        + [
-            (name, ctypes.c_double)
-            for name in (
-                "log_bayes_factor",
-                "log_reopen_factor",
-                "log_noisy_reopen_factor",
-                "log_beta_prior",
-                "log_noisy_beta_prior",
-                "log_mixture_total",
-                "log_noisy_weight",
-            )
-        ]
-        + [(name, ctypes.c_void_p) for name in _LEARNER_POINTERS]
-        + [(name, ctypes.c_int64) for name in ("risk_gate", "risk_explore")]
-        + [("risk_threshold", ctypes.c_float)]
+        _typed(
+            ctypes.c_int64,
+            "algorithm num_experiments size num_obstacles max_steps runs episodes "
+            "explore_threshold",
+        )
+        + _typed(
+            ctypes.c_void_p,
+            "periods world_keys policy_keys static_grid pad_of_cell q rho kappa grid "
+            "obstacle_pads cell episode_step scatters policy_counter run episode bump "
+            "episode_collisions episode_greedy_collisions episode_task_return steps collisions "
+            "greedy_collisions task_return",
+        )
+        + _typed(ctypes.c_float, "gamma alpha eta_factor g_min")
+        + _typed(
+            ctypes.c_int64,
+            "generic num_actuators num_sensors num_layout num_headings table_width "
+            "sensor_noise_threshold actuator_noise_threshold",
+        )
+        + _typed(ctypes.c_void_p, "moves turns offsets permutation parent_weights heading ticks")
+        + _typed(ctypes.c_int64, "q_stride rho_stride kappa_stride grid_stride obstacle_stride")
+        + _typed(
+            ctypes.c_int64,
+            "learner num_candidates learner_patterns prediction window change_run curve_every "
+            "curve_length lgamma_length learner_stride reopen_body likelihood_flip mixture "
+            "prune_pairs history_capacity",
+        )
+        + _typed(
+            ctypes.c_double,
+            "log_bayes_factor log_reopen_factor log_noisy_reopen_factor log_beta_prior "
+            "log_noisy_beta_prior log_mixture_total log_noisy_weight",
+        )
+        + _typed(ctypes.c_void_p, _LEARNER_POINTERS)
+        + _typed(ctypes.c_int64, "risk_gate risk_explore")
+        + _typed(ctypes.c_float, "risk_threshold")
     )
 
 
@@ -411,16 +304,9 @@ def kernel_scatter(
     pads = torch.empty(max(num_obstacles, 1), dtype=torch.int32)
     blocked = torch.empty(num_cells, dtype=torch.uint8)
     library.fq_scatter(
-        size,
-        num_obstacles,
-        key,
-        scatter_index,
-        agent,
-        pad_of_cell.data_ptr(),
-        grid.data_ptr(),
-        pads.data_ptr(),
-        blocked.data_ptr(),
-    )
+        size, num_obstacles, key, scatter_index, agent,
+        pad_of_cell.data_ptr(), grid.data_ptr(), pads.data_ptr(), blocked.data_ptr(),
+    )  # fmt: skip
     return blocked.bool()
 
 

@@ -35,14 +35,20 @@ from factorq_trainers.distributed.sweep_spec import (
 )
 from factorq_trainers.reports import sweep as sweep_report
 from factorq_trainers.runner import cluster, outdir, resources
-from factorq_trainers.runner.frame import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_USAGE, Parser
+from factorq_trainers.runner.frame import (
+    EXIT_FAILURE,
+    EXIT_INTERRUPTED,
+    EXIT_USAGE,
+    Parser,
+    progress_bar,
+)
 
 HELP = "run a grid of a command's configurations, in-process or on a Dask cluster"
 
 
-def build_parser(prog: str = "factorq sweep") -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
     parser = Parser(
-        prog=prog,
+        prog="factorq sweep",
         description="Run a grid of `factorq paper` configurations (or, with --command, of "
         "another command's), each with --seeds seeds; write sweep.json, sweep.md and a figure "
         "per axis to --out. Finished configurations are kept in OUT/configs/ and not rerun (a "
@@ -181,7 +187,7 @@ def _run_sweep_command(
         f"{len(configs)} configurations x {spec.seeds} seeds = {work}, {executor.description}",
         file=sys.stderr,
     )
-    bar = Bar(unit="configuration")
+    bar = Bar()
     try:
         sweep = run_sweep(spec, executor, bar, force)
         bar.close()
@@ -203,25 +209,16 @@ def _run_sweep_command(
 
 
 class Bar:
-    """A tqdm bar of tasks done (configurations, methods), with the time left."""
+    """A tqdm bar of configurations done, with the time left: made at the first count, which
+    says the total and how many were done before (kept in ``OUT/configs/``)."""
 
-    def __init__(self, description: str = "factorq sweep", unit: str = "configuration") -> None:
-        self.bar: Any = None  # a tqdm bar once the first count arrives (tqdm: untyped)
-        self.description = description
-        self.unit = unit
+    def __init__(self) -> None:
+        self.bar: Any = None
 
     def __call__(self, done: int, total: int) -> None:
-        from tqdm import tqdm
-
         if self.bar is None:
-            self.bar = tqdm(
-                total=total,
-                initial=done,
-                desc=self.description,
-                unit=self.unit,
-                dynamic_ncols=True,
-                mininterval=0.5 if sys.stderr.isatty() else 30.0,
-                file=sys.stderr,
+            self.bar = progress_bar(
+                total=total, initial=done, desc="factorq sweep", unit="configuration"
             )
         self.bar.update(done - self.bar.n)
 

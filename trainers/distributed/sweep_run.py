@@ -37,10 +37,6 @@ from factorq_trainers.runner import cluster, kept
 from factorq_trainers.runner import results as result_files
 
 
-def _write_text(path: Path, text: str) -> None:
-    path.write_text(text)
-
-
 def config_result_path(directory: str | os.PathLike, config: Any) -> Path:
     """``directory/<digest>.json``: where a configuration's results are kept."""
     return Path(directory) / f"{config_digest(config)}.json"
@@ -77,17 +73,15 @@ def _pending_configs(
 
 def _gathered(
     spec: SweepSpec,
-    command: str,
-    measures: Sequence[str],
     pending: list,
     started: float,
     executor: cluster.InProcess | cluster.DaskExecutor,
-    config_dict: Callable[[Any], dict[str, Any]],
-    cells: Callable[[dict[str, Any]], dict[str, dict[str, Any]]],
 ) -> dict[str, Any]:
     """``sweep.json``'s dict of a sweep: one row per configuration read back from
-    ``OUT/configs/``, its cells taken by ``cells``; ``pending``: the configurations run now."""
+    ``OUT/configs/``, its cells taken by the command's ``sweep_cells``; ``pending``: the
+    configurations run now."""
     computed = time.perf_counter() - started
+    command, reports = spec.command, _reports_of(spec.command)
     directory = Path(spec.out) / CONFIGS_DIRECTORY
     configs = spec.configurations()
     rows = []
@@ -95,7 +89,7 @@ def _gathered(
         path = config_result_path(directory, config)
         results = _read_config_result(path, command, config)  # digest, tie, values checked
         try:  # a kept file is the user's: it may have been edited or cut short
-            cells_of = cells(results)
+            cells_of = reports.sweep_cells(results)
         except (ValueError, KeyError, TypeError, AttributeError, IndexError) as error:
             raise ValueError(
                 f"configuration file {path} is not a factorq {command} result ({error!r}): "
@@ -105,7 +99,7 @@ def _gathered(
             {
                 "values": point,
                 "digest": config_digest(config),
-                "config": config_dict(config),
+                "config": _json(dataclasses.asdict(config)),
                 "results_file": f"{CONFIGS_DIRECTORY}/{path.name}",
                 "cells": cells_of,
                 "claims": {  # the paper's claims, where the command has them
@@ -116,7 +110,7 @@ def _gathered(
         )
     return {
         "command": command,
-        "measures": list(measures),
+        "measures": list(reports.SWEEP_MEASURES),
         "axes": spec.axes,
         "base": {name: _json(value) for name, value in spec.base},
         "seeds": spec.seeds,
@@ -138,16 +132,20 @@ def _units_task(command: str, config: Any) -> dict[str, Any]:
     return frame.run_in_process(registry.load(command), config)
 
 
-def run_units_sweep(
+def run_sweep(
     spec: SweepSpec,
     executor: cluster.InProcess | cluster.DaskExecutor,
     progress: Callable[[int, int], None] | None = None,
     force: bool = False,
 ) -> dict[str, Any]:
-    """``run_sweep`` of a spec of a command of the runner (``dependencies``, ``minigrid``, ...):
-    every configuration not already in ``OUT/configs/`` run whole
-    (``frame.run_in_process``, one task each) and kept there as its results dict, then gathered
-    into ``sweep.json``'s dict with the cells of the command's ``sweep_cells``."""
+    """Run every configuration of ``spec`` not already kept in ``OUT/configs/`` (each whole,
+    ``frame.run_in_process``, one task each) and keep it there as its results dict, then gather
+    ``sweep.json``'s dict with the cells of the command's ``sweep_cells``.
+
+    ``progress(done, total)`` counts configurations (those found on disk are done from the
+    start). A kept configuration result that fails its checks (``kept``) is refused before any
+    work, or with ``force`` recomputed.
+    """
     started = time.perf_counter()
     directory = Path(spec.out) / CONFIGS_DIRECTORY
     configs = spec.configurations()
@@ -162,35 +160,9 @@ def run_units_sweep(
         directory.mkdir(parents=True, exist_ok=True)
         result_files.write_atomic(
             config_result_path(directory, pending[index]),
-            functools.partial(_write_text, text=text),
+            functools.partial(Path.write_text, data=text),
         )
         done += 1
         if progress is not None:
             progress(done, len(configs))
-    reports = _reports_of(spec.command)
-    return _gathered(
-        spec,
-        spec.command,
-        reports.SWEEP_MEASURES,
-        pending,
-        started,
-        executor,
-        lambda config: _json(dataclasses.asdict(config)),
-        reports.sweep_cells,
-    )
-
-
-def run_sweep(
-    spec: SweepSpec,
-    executor: cluster.InProcess | cluster.DaskExecutor,
-    progress: Callable[[int, int], None] | None = None,
-    force: bool = False,
-) -> dict[str, Any]:
-    """Run every configuration of ``spec`` not already kept in ``OUT/configs/``, then gather
-    ``sweep.json``'s dict.
-
-    ``progress(done, total)`` counts configurations (those found on disk are done from the
-    start). A kept configuration result that fails its checks (``kept``) is refused before any
-    work, or with ``force`` recomputed.
-    """
-    return run_units_sweep(spec, executor, progress, force)
+    return _gathered(spec, pending, started, executor)

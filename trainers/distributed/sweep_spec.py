@@ -157,33 +157,25 @@ class SweepSpec:
             raise SweepError(f"out={self.out!r} is an existing file: give a directory")
         known = sweepable_fields(self.command)
         reserved, nested = reserved_fields(self.command), nested_fields(self.command)
-        for where, names in (
-            ("base", [name for name, _ in self.base]),
-            ("grid", [name for name, _ in self.grid]),
-            ("configs", [name for entry in self.configs for name, _ in entry]),
-        ):
-            for name in names:
-                if name in nested:
-                    raise SweepError(
-                        f"field {name!r} in {where} is a nested config of {self.command}'s "
-                        f"({', '.join(nested)}): not sweepable; sweepable: {', '.join(known)}"
-                    )
-                if name not in known:
-                    hint = " (the sweep sets it: a top-level key)" if name in reserved else ""
-                    raise SweepError(
-                        f"unknown field {name!r} in {where}{hint}; sweepable: {', '.join(known)}"
-                    )
-        for name, values in self.grid:
-            if not isinstance(values, tuple) or not values:
+        entries = [("base", name, (value,)) for name, value in self.base]
+        entries += [("grid", name, values) for name, values in self.grid]
+        entries += [("configs", name, (value,)) for entry in self.configs for name, value in entry]
+        for where, name, values in entries:
+            if name in nested:
+                raise SweepError(
+                    f"field {name!r} in {where} is a nested config of {self.command}'s "
+                    f"({', '.join(nested)}): not sweepable; sweepable: {', '.join(known)}"
+                )
+            if name not in known:
+                hint = " (the sweep sets it: a top-level key)" if name in reserved else ""
+                raise SweepError(
+                    f"unknown field {name!r} in {where}{hint}; sweepable: {', '.join(known)}"
+                )
+            if where == "grid" and (not isinstance(values, tuple) or not values):
                 raise SweepError(f"grid axis {name!r} needs a non-empty list of values")
             if len(set(map(repr, values))) != len(values):
                 raise SweepError(f"grid axis {name!r} repeats a value: {list(values)}")
-        for where, pairs in (
-            ("base", self.base),
-            ("grid", [(name, value) for name, values in self.grid for value in values]),
-            ("configs", [pair for entry in self.configs for pair in entry]),
-        ):
-            for name, value in pairs:
+            for value in values:
                 try:  # a value, or a list of values (a table would reach no field's check)
                     hash(value)
                 except TypeError:

@@ -82,10 +82,6 @@ def _measures(sweep: dict[str, Any]) -> list[str]:
     return list(sweep.get("measures", claims.MEASURES))
 
 
-def figure_path(out: Path, axis: str) -> Path:
-    return out / f"sweep-{axis}.png"
-
-
 def write_axis_figure(sweep: dict[str, Any], axis: str, path: Path) -> None:
     """Means with 95% intervals of the three measures against ``axis``, one line per world and
     algorithm; the other axes held at their first value (named in the title)."""
@@ -145,7 +141,7 @@ def _drawn(sweep: dict[str, Any], out: Path) -> dict[Path, Callable[[Path], obje
         out / REPORT_FILE: lambda path: path.write_text(report_markdown(sweep)),
     }
     for axis in sweep["axes"]:
-        writers[figure_path(out, axis)] = functools.partial(write_axis_figure, sweep, axis)
+        writers[out / f"sweep-{axis}.png"] = functools.partial(write_axis_figure, sweep, axis)
     return writers
 
 

@@ -406,14 +406,12 @@ def open_executor(where: Where) -> InProcess | DaskExecutor:
         unreachable = (
             f"scheduler {where.scheduler} is unreachable within {where.connect_timeout_s:g} s"
         )
+        not_address = f"--scheduler={where.scheduler!r} is not a Dask scheduler address like "
         try:  # before a Client: one that fails in its constructor prints a traceback when
             # collected (its close times out), after the error
             distributed.comm.resolve_address(where.scheduler)
         except (ValueError, TypeError, KeyError) as error:
-            raise ClusterError(
-                f"--scheduler={where.scheduler!r} is not a Dask scheduler address like "
-                f"tcp://host:8786 ({error})"
-            ) from None
+            raise ClusterError(f"{not_address}tcp://host:8786 ({error})") from None
         except OSError as error:  # a host name that does not resolve
             raise ClusterError(f"{unreachable} ({error})") from None
         probe_scheduler(where.scheduler, where.connect_timeout_s)
@@ -425,10 +423,7 @@ def open_executor(where: Where) -> InProcess | DaskExecutor:
             raise ClusterError(f"{unreachable} ({error})") from None
         except (ValueError, TypeError) as error:  # an address resolve_address let through
             _forget_half_made_client(error, distributed.Client)
-            raise ClusterError(
-                f"--scheduler={where.scheduler!r} is not a Dask scheduler address like "
-                f"tcp://host:8786 ({error})"
-            ) from None
+            raise ClusterError(f"{not_address}tcp://host:8786 ({error})") from None
         return DaskExecutor(client, worker_timeout_s=where.worker_timeout_s)
     left_as_found = _Traces()
     cluster = distributed.LocalCluster(
@@ -449,40 +444,28 @@ def open_executor(where: Where) -> InProcess | DaskExecutor:
 
 
 def add_options(parser: argparse.ArgumentParser) -> None:
-    """``--cluster``, ``--scheduler``, ``--connect-timeout`` (``factorq sweep``, every command)."""
-    parser.add_argument(
-        "--cluster",
-        metavar="local[:N]|off",
-        help="Run the shards on a Dask LocalCluster of N worker processes started here (plain "
-        "'local': one per core). Needs the 'distributed' extra. 'off': in-process, one after "
-        "another. (default: in-process, except where a command's env steps slowly enough "
-        "for processes to pay: then one per core)",
-        default=argparse.SUPPRESS,
-    )
-    parser.add_argument(
-        "--scheduler",
-        metavar="ADDRESS",
-        help="Run the shards on the running Dask cluster whose scheduler is at ADDRESS "
-        "(tcp://host:8786). Needs the 'distributed' extra.",
-        default=argparse.SUPPRESS,
-    )
-    parser.add_argument(
-        "--connect-timeout",
-        metavar="SECONDS",
-        type=options.finite_float,
-        help=f"Give up on --scheduler after this long (at most {MAX_CONNECT_TIMEOUT_S:g}). "
-        f"(default: {DEFAULT_CONNECT_TIMEOUT_S:g})",
-        default=argparse.SUPPRESS,
-    )
-    parser.add_argument(
-        "--worker-timeout",
-        metavar="SECONDS",
-        type=options.finite_float,
-        help="Give up when the cluster has had no worker for this long while work is left "
-        f"(finished work is kept; at most {MAX_CONNECT_TIMEOUT_S:g}). "
-        f"(default: {DEFAULT_WORKER_TIMEOUT_S:g})",
-        default=argparse.SUPPRESS,
-    )
+    """``--cluster``, ``--scheduler``, ``--connect-timeout``, ``--worker-timeout`` (``factorq
+    sweep``, every command)."""
+    for name, metavar, kind, help_text in (
+        ("--cluster", "local[:N]|off", str,
+         "Run the shards on a Dask LocalCluster of N worker processes started here (plain "
+         "'local': one per core). Needs the 'distributed' extra. 'off': in-process, one after "
+         "another. (default: in-process, except where a command's env steps slowly enough "
+         "for processes to pay: then one per core)"),
+        ("--scheduler", "ADDRESS", str,
+         "Run the shards on the running Dask cluster whose scheduler is at ADDRESS "
+         "(tcp://host:8786). Needs the 'distributed' extra."),
+        ("--connect-timeout", "SECONDS", options.finite_float,
+         f"Give up on --scheduler after this long (at most {MAX_CONNECT_TIMEOUT_S:g}). "
+         f"(default: {DEFAULT_CONNECT_TIMEOUT_S:g})"),
+        ("--worker-timeout", "SECONDS", options.finite_float,
+         "Give up when the cluster has had no worker for this long while work is left "
+         f"(finished work is kept; at most {MAX_CONNECT_TIMEOUT_S:g}). "
+         f"(default: {DEFAULT_WORKER_TIMEOUT_S:g})"),
+    ):  # fmt: skip
+        parser.add_argument(
+            name, metavar=metavar, type=kind, help=help_text, default=argparse.SUPPRESS
+        )
 
 
 def where_from_args(args: argparse.Namespace) -> Where:
@@ -498,16 +481,6 @@ def where_from_args(args: argparse.Namespace) -> Where:
         connect_timeout_s=getattr(args, "connect_timeout", DEFAULT_CONNECT_TIMEOUT_S),
         worker_timeout_s=getattr(args, "worker_timeout", DEFAULT_WORKER_TIMEOUT_S),
     )
-
-
-def executor_from_args(
-    args: argparse.Namespace,
-) -> InProcess | DaskExecutor | None:
-    """The executor of ``add_options``' options: ``None`` (in-process) unless they name a cluster
-    or a scheduler (``--cluster off``: in-process whatever the command would choose,
-    ``default_workers``)."""
-    where = where_from_args(args)
-    return None if where.in_process else open_executor(where)
 
 
 def _cores() -> int:

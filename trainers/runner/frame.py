@@ -216,11 +216,13 @@ def run_in_process(
     return envelope(module, config, summary, wall_s=time.perf_counter() - started, units=len(units))
 
 
-def describe(module: ModuleType, config: Any) -> None:
-    """Print the command's ``describe(config)`` (what runs, e.g. paper's backend) on stderr, once
-    the run is accepted (``execute``): a refusal before it stays one line."""
-    if hasattr(module, "describe"):
-        print(module.describe(config), file=sys.stderr, flush=True)
+def progress_bar(**options: Any) -> Any:
+    """A tqdm bar on stderr (``options``: tqdm's), redrawn at most every 0.5 s on a terminal and
+    every 30 s into a log file."""
+    from tqdm.auto import tqdm
+
+    interval = 0.5 if sys.stderr.isatty() else 30.0
+    return tqdm(file=sys.stderr, dynamic_ncols=True, mininterval=interval, **options)
 
 
 def run_unit_task(module_name: str, config: Any, unit: dict[str, Any]) -> Any:
@@ -360,7 +362,8 @@ def execute(
         units = checked_units(module, config)
         from factorq_trainers.runner import cluster
 
-        executor = cluster.executor_from_args(args)
+        where = cluster.where_from_args(args)  # --cluster off: in-process, whatever the default
+        executor = None if where.in_process else cluster.open_executor(where)
         chosen = any(hasattr(args, name) for name in ("cluster", "scheduler"))
         if executor is None and not chosen and hasattr(module, "processes"):
             executor = _default_processes(parser, module, config, units, told)
@@ -437,8 +440,6 @@ def _run(
     figure_process: Any = None,
     told: list[str] | None = None,
 ) -> int:
-    from tqdm.auto import tqdm
-
     started = time.perf_counter()
     if store is None:
         store = kept_files.UnitStore(config.out)
@@ -458,15 +459,13 @@ def _run(
         print(f"resuming {config.out}: {len(done)} of {len(units)} units done", file=sys.stderr)
     for line in told or ():  # the run is accepted: the notices held until now
         print(line, file=sys.stderr, flush=True)
-    describe(module, config)
+    if hasattr(module, "describe"):  # what runs (paper's backend, ...), now the run is accepted
+        print(module.describe(config), file=sys.stderr, flush=True)
     pending = [unit for unit in units if unit["id"] not in done]
-    bar = tqdm(
+    bar = progress_bar(
         total=sum(work(module, config, unit) for unit in pending),
         desc=f"factorq {module.NAME}",
         unit="unit" if not hasattr(module, "work") else getattr(module, "WORK_UNIT", "step"),
-        file=sys.stderr,
-        dynamic_ncols=True,
-        mininterval=0.5 if sys.stderr.isatty() else 30.0,
     )
     where = "in-process"
     try:

@@ -9,7 +9,7 @@ from elsewhere. Reusing one unchecked would put its numbers in a report silently
 - carries what it was kept for (``TIE_KEY``: the command, the digest of the configuration, the
   unit), checked against the run that reads it: a file of another configuration, command or unit
   is refused, resealed or not;
-- has its values checked against the command's declared schema (``check_schema``: keys as
+- has its values checked against the command's declared schema (``check_result``: keys as
   declared, numbers finite, counts whole and >= 0, fractions in [0, 1]) or, for a whole results
   dict, by the names of its measures (``check_values``), because a digest proves integrity, not
   origin: anyone can edit a file and seal it again.
@@ -17,9 +17,8 @@ from elsewhere. Reusing one unchecked would put its numbers in a report silently
 A file that fails is refused in one line naming it and saying that ``--force`` recomputes it
 (``reusable``).
 
-- ``check_digest``: the shared digest check (shards' ``metrics_digest`` and ``json_digest``);
 - ``dumps_sealed`` / ``read_sealed``: a JSON dict with its digest and its tie;
-- ``check_schema``: a unit result against its command's declared ``UNIT_RESULT``;
+- ``check_result``: a unit result against its command's declared ``UNIT_RESULT``;
 - ``check_values``: the value checks of a kept JSON results dict;
 - ``reusable``: whether a kept file is to be reused, recomputed (``force``) or refused;
 - ``UnitStore``: the finished units of one run (``OUT/units/``).
@@ -47,16 +46,6 @@ DIGEST_KEY = "content_sha256"
 TIE_KEY = "kept_for"
 
 
-def check_digest(path: Path, what: str, stored: str, actual: str, remedy: str = REMEDY) -> None:
-    """A ValueError naming ``path`` (a ``what``: "shard file", ...) and ``remedy`` unless
-    ``stored`` (the digest written with it; empty when it has none) equals ``actual`` (that of
-    its content)."""
-    if not stored:
-        raise ValueError(f"{what} {path} has no digest: {remedy}")
-    if stored != actual:
-        raise ValueError(f"{what} {path} does not match its digest (edited or damaged): {remedy}")
-
-
 def json_digest(results: dict[str, Any]) -> str:
     """SHA-256 of ``results`` (``DIGEST_KEY`` left out) as canonical JSON: sorted keys, numbers
     as Python writes them (floats round-trip exactly, so the digest survives a read and write)."""
@@ -71,14 +60,12 @@ def config_digest(config: dict[str, Any]) -> str:
     return json_digest(json.loads(result_files.dumps(config)))
 
 
-def tie(command: str, config: Any, unit: dict[str, Any] | None = None) -> dict[str, Any]:
+def tie(command: str, config: Any) -> dict[str, Any]:
     """What a file kept by ``command`` for ``config`` (a JSON dict, or a digest of it already
-    made: a sweep's ``config_digest``; and ``unit``) carries."""
+    made: a sweep's ``config_digest``) carries; a unit's file adds its ``"unit"``
+    (``UnitStore``)."""
     digest = config if isinstance(config, str) else config_digest(config)
-    kept_for: dict[str, Any] = {"command": command, "config_sha256": digest}
-    if unit is not None:
-        kept_for["unit"] = json.loads(result_files.dumps(unit))
-    return kept_for
+    return {"command": command, "config_sha256": digest}
 
 
 def dumps_sealed(
@@ -186,20 +173,21 @@ def check_values(
             raise ValueError(
                 f"{what} {path}: {where} holds {_short(value)}, not a number: {remedy}"
             )
-        problem = None
-        if not _finite(value):
-            problem = "not a finite number"
-        elif _NON_NEGATIVE.fullmatch(measure) and value < 0:
-            problem = "negative"
-        elif _FRACTION.fullmatch(measure) and value > 1:
-            problem = "not a fraction in [0, 1]"
-        elif _WHOLE.fullmatch(measure) and value != math.floor(value):
-            problem = "not a whole count"
+        problem = _leaf_problem(value, _kind_of(measure))
         if problem is not None:
             raise ValueError(f"{what} {path}: {where} holds {value!r}, {problem}: {remedy}")
     problem = None if check is None else check(results)  # the command's own (its report's)
     if problem is not None:
         raise ValueError(f"{what} {path}: {problem}: {remedy}")
+
+
+def _kind_of(measure: str) -> str:
+    """The schema kind of a number named ``measure`` (``check_values``: by its name alone)."""
+    if _FRACTION.fullmatch(measure):
+        return FRACTION
+    if _WHOLE.fullmatch(measure):
+        return COUNT
+    return NON_NEGATIVE if _NON_NEGATIVE.fullmatch(measure) else NUMBER
 
 
 def read_sealed(
@@ -218,8 +206,10 @@ def read_sealed(
     except (ValueError, OSError) as error:
         raise ValueError(f"{what} {path} is unreadable ({error}): {remedy}") from None
     stored = results.pop(DIGEST_KEY, "")
-    actual = json_digest(results)
-    check_digest(path, what, stored if isinstance(stored, str) else "", actual, remedy)
+    if not stored or not isinstance(stored, str):
+        raise ValueError(f"{what} {path} has no digest: {remedy}")
+    if stored != json_digest(results):
+        raise ValueError(f"{what} {path} does not match its digest (edited or damaged): {remedy}")
     stored_tie = results.pop(TIE_KEY, None)
     if callable(kept_for):
         kept_for = kept_for(results)
@@ -232,7 +222,7 @@ def read_sealed(
 
 def reusable(path: Path, check: Callable[[Path], Any], force: bool) -> bool:
     """Whether the kept file at ``path`` is to be reused: False when there is none, True when
-    ``check(path)`` (a ``read_sealed`` or ``shards.load``) accepts it; when it refuses it, False
+    ``check(path)`` (a ``read_sealed``) accepts it; when it refuses it, False
     with ``force`` (the caller recomputes and replaces it), else its ValueError."""
     if not path.exists() and not path.is_symlink():
         return False

@@ -38,11 +38,11 @@ LOCK_FILE = ".factorq.lock"
 #: The suffix of every temporary factorq writes (``temporary_name``): a name no user writes, so
 #: ``remove_temporaries`` deletes only ours (a user's ``.backup.2024.tmp`` is left alone).
 TEMPORARY_SUFFIX = ".factorq-tmp"
-#: What ``write_all_atomic`` and the checkpoint writer leave behind when killed mid-write.
+#: What ``write_all_atomic`` (and compare's staging logs) leave behind when killed mid-write.
 _TEMPORARY = re.compile(r"^\..+\.\d+" + re.escape(TEMPORARY_SUFFIX) + "$")
-#: The folders factorq writes into directly under an output directory (the checkpoints, a
-#: sweep's configuration results, a runner command's kept units, compare's logs):
-#: a link at one of these names is refused by ``claim`` before any work, as a file's is.
+#: The folders factorq writes into directly under an output directory (a sweep's configuration
+#: results, a runner command's kept units, compare's logs): a link at one of these names is
+#: refused by ``claim`` before any work, as a file's is.
 OWN_DIRECTORIES = ("configs", "units", "logs")
 
 
@@ -91,7 +91,7 @@ def create_new(path: str | os.PathLike) -> int:
         return os.open(path, flags, 0o644)
 
 
-def _open_lock(lock_path: Path, what: str) -> int:
+def _open_lock(lock_path: Path) -> int:
     """The lock file's descriptor (read-write), created new where missing; a link there is
     refused (following it would truncate its target), and so is anything but a regular
     file."""
@@ -105,22 +105,22 @@ def _open_lock(lock_path: Path, what: str) -> int:
         descriptor = os.open(lock_path, os.O_RDWR | _OWN)
     except OSError as error:  # a directory, a link swapped in meanwhile (ELOOP), no access
         raise OutputDirError(
-            f"{what}='{lock_path.parent}' cannot be locked: {lock_path.name} "
+            f"out='{lock_path.parent}' cannot be locked: {lock_path.name} "
             f"{error.strerror or type(error).__name__}"
         ) from None
     if not stat.S_ISREG(os.fstat(descriptor).st_mode):
         os.close(descriptor)
         raise OutputDirError(
-            f"{what}='{lock_path.parent}' cannot be locked: {lock_path.name} is not a regular "
+            f"out='{lock_path.parent}' cannot be locked: {lock_path.name} is not a regular "
             f"file: remove it"
         )
     return descriptor
 
 
-def _prepare(path: Path, what: str) -> None:
+def _prepare(path: Path) -> None:
     """Create ``path`` and prove it writable, or raise an OutputDirError naming why."""
     if path.exists() and not path.is_dir():
-        raise OutputDirError(f"{what}='{path}' is not a directory")
+        raise OutputDirError(f"out='{path}' is not a directory")
     created = not path.exists()
     probe = path / temporary_name("factorq-probe")
     try:
@@ -136,7 +136,7 @@ def _prepare(path: Path, what: str) -> None:
         if created:
             with contextlib.suppress(OSError):
                 path.rmdir()
-        raise OutputDirError(f"{what}='{path}' is not writable: {reason}") from None
+        raise OutputDirError(f"out='{path}' is not writable: {reason}") from None
 
 
 def _holder(lock_path: Path) -> str:
@@ -172,7 +172,6 @@ def claim(
     outputs: Iterable[str] = (),
     force: bool = False,
     resume: bool = False,
-    what: str = "out",
 ) -> Iterator[Path]:
     """Hold ``out`` as its only writer for the duration of the ``with`` block.
 
@@ -182,7 +181,6 @@ def claim(
             ``force`` or ``resume``.
         force: replace the results of an earlier run.
         resume: the run continues the one that wrote ``out`` (its files are its own).
-        what: the option's name in messages (``out`` -> ``--out`` on the command line).
 
     Raises:
         OutputDirError: ``out`` is not a writable directory, another run holds it, or it holds
@@ -190,21 +188,19 @@ def claim(
     """
     path = Path(out)
     created = not path.exists()
-    _prepare(path, what)
+    _prepare(path)
     lock_path = path / LOCK_FILE
-    descriptor = _open_lock(lock_path, what)
+    descriptor = _open_lock(lock_path)
     try:
         try:
             fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as error:
             if error.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                raise OutputDirError(
-                    f"{what}='{path}' cannot be locked: {error.strerror}"
-                ) from None
+                raise OutputDirError(f"out='{path}' cannot be locked: {error.strerror}") from None
             action = "resume it" if resume else "write to it"
             raise OutputDirError(
-                f"{what}='{path}' is in use by {_holder(lock_path)}: wait for it to finish, or "
-                f"choose another --{what.replace('_', '-')} (refusing to {action} at the same time)"
+                f"out='{path}' is in use by {_holder(lock_path)}: wait for it to finish, or "
+                f"choose another --out (refusing to {action} at the same time)"
             ) from None
         try:
             os.ftruncate(descriptor, 0)
@@ -215,7 +211,7 @@ def claim(
                     lock_path.unlink()
                     path.rmdir()
             raise OutputDirError(
-                f"{what}='{path}' is not writable: {error.strerror or type(error).__name__}"
+                f"out='{path}' is not writable: {error.strerror or type(error).__name__}"
             ) from None
         outputs = tuple(outputs)
         names = (*outputs, *OWN_DIRECTORIES)
@@ -226,14 +222,14 @@ def claim(
             target = path / name
             if name not in OWN_DIRECTORIES and target.exists() and not target.is_file():
                 raise OutputDirError(
-                    f"{what}='{path}' holds {name}, which is not a regular file, where factorq "
+                    f"out='{path}' holds {name}, which is not a regular file, where factorq "
                     f"writes its {name}: remove or rename it (--force replaces files only)"
                 )
         existing = [name for name in outputs if (path / name).exists()]
         if existing and not (force or resume):
             raise OutputDirError(
-                f"{what}='{path}' already holds {', '.join(existing)} from an earlier run: pass "
-                f"--force to replace them, or choose another --{what.replace('_', '-')}"
+                f"out='{path}' already holds {', '.join(existing)} from an earlier run: pass "
+                f"--force to replace them, or choose another --out"
             )
         remove_temporaries(path)
         try:

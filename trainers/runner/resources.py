@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 #: A run needing at least this much memory prints its estimate before it starts.
 LARGE_BYTES = 2**30
@@ -139,8 +139,3 @@ def check(estimate: Estimate, what: str, hint: str) -> str | None:
         of = "" if available is None else f" of the {human_bytes(available)} available"
         return f"this {what} needs {describe(estimate)}{of}, and {steps}"
     return None
-
-
-def info(estimate: Estimate) -> dict[str, Any]:
-    """The estimate as JSON-ready numbers (for logs and tests)."""
-    return {"bytes": estimate.bytes, "parts": dict(estimate.parts), "env_steps": estimate.env_steps}

@@ -83,15 +83,11 @@ def temporary_path(path: Path) -> Path:
     return path.with_name(outdir.temporary_name(path.name))
 
 
-def write_all_atomic(
-    writers: dict[Path, Callable[[Path], object]], before_rename: Callable[[], None] | None = None
-) -> None:
+def write_all_atomic(writers: dict[Path, Callable[[Path], object]]) -> None:
     """Write every file to a temporary next to it, then rename them all into place, in order.
 
     The slow part (drawing, serialising) happens before any rename, so an interruption leaves
     either all the old files or, but for a few renames' time, all the new ones.
-    ``before_rename`` runs once every temporary is complete, just before the renames (e.g. to
-    swap in a directory written beside them).
     """
     links = [path for path in writers if path.is_symlink()]
     if links:  # the rename would replace the link, not write through it, but it is not ours
@@ -105,8 +101,6 @@ def write_all_atomic(
                 write(temporaries[path])
             except OSError as error:  # a full disk, a quota, a file size limit
                 raise WriteError(path, error) from None
-        if before_rename is not None:
-            before_rename()
         for path, temporary in temporaries.items():
             os.replace(temporary, path)
     finally:
@@ -119,12 +113,13 @@ class WriteError(OSError):
     line naming it; what was at its place before is kept (every file is written to a temporary
     first). An ``OSError``, as the commands expect of a failed write (their exit 1)."""
 
-    def __init__(self, path: Path, error: BaseException, kept: str = "what was there is kept"):
+    def __init__(self, path: Path, error: BaseException):
         reason = error.strerror if isinstance(error, OSError) and error.strerror else str(error)
         reason = " ".join(str(reason).split())[:200]
         super().__init__(
             getattr(error, "errno", None),
-            f"cannot write {path}: {reason} (a full disk, a quota or a file size limit?); {kept}",
+            f"cannot write {path}: {reason} (a full disk, a quota or a file size limit?); what "
+            f"was there is kept",
         )
         self.path = path
 
