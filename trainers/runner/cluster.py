@@ -1,4 +1,4 @@
-"""Where shards run: here, one after another (the default, no Dask needed), or on a Dask cluster.
+"""Where units run: here, one after another (the default, no Dask needed), or on a Dask cluster.
 
 An *executor* runs one function over a list of items and yields ``(index, result)`` pairs as
 they finish, in any order; whoever consumes them (``factorq_trainers.distributed.sweep``) writes
@@ -448,12 +448,12 @@ def add_options(parser: argparse.ArgumentParser) -> None:
     sweep``, every command)."""
     for name, metavar, kind, help_text in (
         ("--cluster", "local[:N]|off", str,
-         "Run the shards on a Dask LocalCluster of N worker processes started here (plain "
+         "Run the units on a Dask LocalCluster of N worker processes started here (plain "
          "'local': one per core). Needs the 'distributed' extra. 'off': in-process, one after "
          "another. (default: in-process, except where a command's env steps slowly enough "
          "for processes to pay: then one per core)"),
         ("--scheduler", "ADDRESS", str,
-         "Run the shards on the running Dask cluster whose scheduler is at ADDRESS "
+         "Run the units on the running Dask cluster whose scheduler is at ADDRESS "
          "(tcp://host:8786). Needs the 'distributed' extra."),
         ("--connect-timeout", "SECONDS", options.finite_float,
          f"Give up on --scheduler after this long (at most {MAX_CONNECT_TIMEOUT_S:g}). "
