@@ -264,6 +264,20 @@ def test_schema_kinds_by_hand():
     assert kept.schema_problem(-0.5, kept.NON_NEGATIVE) == "result holds -0.5, negative"
     assert kept.schema_problem(True, kept.NUMBER) == "result holds True, not a number"
     assert kept.schema_problem(None, kept.FRACTION) is None  # non-finite numbers are written null
+    assert kept.schema_problem(None, kept.FINITE) == "result holds None, not a number"
+    assert kept.schema_problem(-2.5, kept.FINITE) is None
+    assert kept.schema_problem(0, kept.POSITIVE) == "result holds 0, not a count >= 1"
+    assert kept.schema_problem(1.5, kept.POSITIVE) == "result holds 1.5, not a whole count"
+    names = frozenset(("static", "dynamic"))
+    assert kept.schema_problem("static", names) is None
+    assert kept.schema_problem(["x"], names) == "result holds ['x'], not one of dynamic, static"
+    assert kept.schema_problem([1, 2], [kept.NUMBER, 2]) is None
+    assert kept.schema_problem([1], [kept.NUMBER, 2]) == "result holds 1 items, not 2"
+    declared = {"n": kept.COUNT, "*": kept.TEXT}  # declared keys, any others of the "*" schema
+    assert kept.schema_problem({"n": 1, "label": "a"}, declared) is None
+    assert kept.schema_problem({"n": -1}, declared) == "result/n holds -1, negative"
+    assert kept.schema_problem({"n": 1, "x": 2}, declared) == "result/x holds 2, not a text"
+    assert kept.schema_problem({"x": "a"}, declared) == "result lacks 'n'"
 
 
 # --- factorq report: the results file's values and command checked before drawing -------------

@@ -238,19 +238,23 @@ def reusable(path: Path, check: Callable[[Path], Any], force: bool) -> bool:
 # --------------------------------------------------------------------------------------------
 # A unit result against its command's declared schema
 #
-# A schema is data: a leaf kind (``NUMBER``, ``NON_NEGATIVE``, ``FRACTION``, ``COUNT``, ``TEXT``,
-# ``FLAG``); ``{"key": schema, "key?": schema}`` a dict with exactly these keys (``?``: may be
-# absent); ``{"*": schema}`` a dict of any text keys; ``[schema]`` a list; ``(None, schema)``
-# null or ``schema``. Numbers of the three float kinds may be null (a non-finite number is
-# written as null); counts, texts and flags only where ``(None, ...)`` says so.
+# A schema is data: a leaf kind (``NUMBER``, ``NON_NEGATIVE``, ``FRACTION``, ``FINITE``,
+# ``COUNT``, ``POSITIVE``, ``TEXT``, ``FLAG``) or a frozenset of the texts allowed; ``{"key":
+# schema, "key?": schema}`` a dict with exactly these keys (``?``: may be absent), and with
+# ``"*": schema`` beside them any other text keys; ``{"*": schema}`` a dict of any text keys;
+# ``[schema]`` a list, ``[schema, n]`` one of exactly ``n`` items; ``(None, schema)`` null or
+# ``schema`` (a tuple: any of its options). Numbers of the three float kinds may be null (a
+# non-finite number is written as null); the others only where ``(None, ...)`` says so.
 
 NUMBER = "number"  # finite
 NON_NEGATIVE = "non-negative number"
 FRACTION = "fraction"  # in [0, 1]
+FINITE = "finite number"  # never null
 COUNT = "count"  # whole and >= 0
+POSITIVE = "positive count"  # whole and >= 1
 TEXT = "text"
 FLAG = "flag"  # true or false
-_NUMBER_KINDS = (NUMBER, NON_NEGATIVE, FRACTION, COUNT)
+_NUMBER_KINDS = (NUMBER, NON_NEGATIVE, FRACTION, FINITE, COUNT, POSITIVE)
 
 
 def schema_problem(value: Any, schema: Any, where: str = "result") -> str | None:
@@ -264,18 +268,15 @@ def schema_problem(value: Any, schema: Any, where: str = "result") -> str | None
     if isinstance(schema, dict):
         if not isinstance(value, dict):
             return f"{where} holds {_short(value)}, not a mapping"
-        if "*" in schema:
-            for key, item in value.items():
-                problem = schema_problem(item, schema["*"], f"{where}/{key}")
-                if problem is not None:
-                    return problem
-            return None
-        declared = {key.rstrip("?"): key for key in schema}
-        unknown = [key for key in value if key not in declared]
-        if unknown:
-            return (
-                f"{where} holds {_short(unknown[0])}, not one of its keys ({', '.join(declared)})"
-            )
+        declared = {key.rstrip("?"): key for key in schema if key != "*"}
+        for key, item in value.items():
+            if key in declared:
+                continue
+            if "*" not in schema:
+                return f"{where} holds {_short(key)}, not one of its keys ({', '.join(declared)})"
+            problem = schema_problem(item, schema["*"], f"{where}/{key}")
+            if problem is not None:
+                return problem
         for name, key in declared.items():
             if name not in value:
                 if key.endswith("?"):
@@ -288,6 +289,8 @@ def schema_problem(value: Any, schema: Any, where: str = "result") -> str | None
     if isinstance(schema, list):
         if not isinstance(value, list):
             return f"{where} holds {_short(value)}, not a list"
+        if len(schema) == 2 and len(value) != schema[1]:
+            return f"{where} holds {len(value)} items, not {schema[1]}"
         if isinstance(schema[0], str) and _plain_numbers(value, schema[0]):
             return None  # the common case, checked at C speed; the loop below says what is wrong
         for index, item in enumerate(value):
@@ -295,6 +298,10 @@ def schema_problem(value: Any, schema: Any, where: str = "result") -> str | None
             if problem is not None:
                 return problem
         return None
+    if isinstance(schema, frozenset):
+        if isinstance(value, str) and value in schema:
+            return None
+        return f"{where} holds {_short(value)}, not one of {', '.join(sorted(schema))}"
     problem = _leaf_problem(value, schema)
     return None if problem is None else f"{where} holds {_short(value)}, {problem}"
 
@@ -314,12 +321,12 @@ def _plain_numbers(values: list[Any], kind: str) -> bool:
     kinds = set(map(type, values))
     if kind == COUNT:
         return kinds <= {int} and (not values or min(values) >= 0)
-    if kind not in (NUMBER, NON_NEGATIVE, FRACTION) or not kinds <= {int, float}:
+    if kind not in (NUMBER, NON_NEGATIVE, FRACTION, FINITE) or not kinds <= {int, float}:
         return False
     if not all(map(math.isfinite, values)):
         return False
     low, high = (min(values), max(values)) if values else (0, 0)
-    return (kind == NUMBER or low >= 0) and (kind != FRACTION or high <= 1)
+    return (kind in (NUMBER, FINITE) or low >= 0) and (kind != FRACTION or high <= 1)
 
 
 def _leaf_problem(value: Any, kind: str) -> str | None:
@@ -329,18 +336,20 @@ def _leaf_problem(value: Any, kind: str) -> str | None:
         return None if isinstance(value, bool) else "not true or false"
     if kind not in _NUMBER_KINDS:
         raise RuntimeError(f"a declared schema names the kind {kind!r}: not one of kept's")
-    if value is None and kind != COUNT:
+    if value is None and kind in (NUMBER, NON_NEGATIVE, FRACTION):
         return None  # a missing number (a non-finite one is written as null)
     if isinstance(value, bool) or not isinstance(value, int | float):
         return "not a number"
     if not _finite(value):
         return "not a finite number"
-    if kind != NUMBER and value < 0:
+    if kind not in (NUMBER, FINITE) and value < 0:
         return "negative"
     if kind == FRACTION and value > 1:
         return "not a fraction in [0, 1]"
-    if kind == COUNT and value != math.floor(value):
+    if kind in (COUNT, POSITIVE) and value != math.floor(value):
         return "not a whole count"
+    if kind == POSITIVE and value < 1:
+        return "not a count >= 1"
     return None
 
 
