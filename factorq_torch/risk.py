@@ -58,6 +58,7 @@ import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.objectives import LossModule
+from torchrl.objectives import common as _torchrl_loss_common
 
 from factorq_torch.base import keys as names
 from factorq_torch.base.config import AgentConfig
@@ -577,6 +578,12 @@ class LocalRiskLoss(LossModule):
 
     def __init__(self, provider: TensorDictModuleBase) -> None:
         super().__init__()
+        # torchrl's pre-hook warns of target networks without an updater: this loss has none,
+        # and without hooks the module call takes torch's fast path (a few us of every step)
+        check = getattr(_torchrl_loss_common, "_updater_check_forward_prehook", None)
+        for handle, hook in list(self._forward_pre_hooks.items()):
+            if hook is check:
+                del self._forward_pre_hooks[handle]
         self.risk = LocalRisk(provider)  # the provider's values for any batch (and its checks)
         self.provider = provider
         # the online step of a table or learner goes straight to its update_running_mean (its own
