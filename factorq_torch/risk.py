@@ -269,7 +269,8 @@ class LocalRisk(TensorDictModuleBase):
         ``[S]`` step) is read row by row.
         """
         batch = tuple(tensordict.batch_size)
-        provider, count = self.provider, self.num_experiments
+        # (the submodule by its dict: nn.Module's attribute lookup is a microsecond a step)
+        provider, count = self._modules["provider"], self.num_experiments
         leading = count != 1 and len(batch) > 1 and batch[0] == count and batch[-1] != count
         if count != 1 and not leading and (not batch or batch[-1] != count):
             raise ValueError(
@@ -604,7 +605,9 @@ class LocalRiskLoss(LossModule):
         return [keys.sensors, keys.action, ("next", keys.local_reward)]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        keys, actions = self.tensor_keys, self.risk.num_actions
+        # (submodules by their dict: LossModule's attribute lookup is a microsecond each)
+        modules = self._modules
+        keys, actions = self.tensor_keys, modules["risk"].num_actions
         batch = tuple(tensordict.batch_size)
         action = tensordict.get(keys.action, None)
         local_reward = tensordict.get(("next", keys.local_reward), None)
@@ -626,7 +629,7 @@ class LocalRiskLoss(LossModule):
                 f"{list(local_reward.shape)}, expected {[*batch, actions]} (one local reward per "
                 f"actuator of the provider)"
             )
-        update = getattr(self.provider, "update_running_mean", None)
+        update = getattr(modules["provider"], "update_running_mean", None)
         if update is not None:
             if self.training:
                 sensors = tensordict.get(keys.sensors)

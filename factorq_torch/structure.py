@@ -898,7 +898,12 @@ class StructureLearner(TensorDictModuleBase):
         arrays["samples"][fired] += 1
         block_samples[fired] += 1
         log_posterior = self._read_log_posterior(arrays, "", fired, log_prior)
-        if self._decide_read(arrays, [fired], [log_posterior], log_prior) is not None:
+        held = int(arrays["committed"][fired])
+        if held >= 0:  # committed: _decide_read's change-point test of this one actuator
+            reopened = self._change_read(arrays, fired, held, log_prior)
+        else:
+            reopened = self._decide_read(arrays, [fired], [log_posterior], log_prior)
+        if reopened is not None:
             # a reopening: the tensor code forgets, closes the blocks and refreshes
             increment_version(written)
             rows = row_starts(1, 1, self.committed.device)  # arange(1), cached
@@ -1126,6 +1131,13 @@ class StructureLearner(TensorDictModuleBase):
             ].tolist()
         )
         # each candidate's patterns in turn, summed left to right (reduce: ((m_0 + m_1) + ...))
+        if width == 4:  # (two parents at most: the default, written out)
+            return [
+                prior + (((m_0 + m_1) + m_2) + m_3)
+                for prior, m_0, m_1, m_2, m_3 in zip(
+                    log_prior, values, values, values, values, strict=True
+                )
+            ]
         patterns = zip(*(values,) * width, strict=True)
         return [
             prior + reduce(operator.add, row)
