@@ -1231,7 +1231,8 @@ class StructureLearner(TensorDictModuleBase):
         width = self.count.shape[-1]
         cell = (flat * self.num_candidates + held) * width
         end = cell + width
-        count, successes = arrays["count"][cell:end].tolist(), arrays["successes"][cell:end].tolist()
+        count = arrays["count"][cell:end].tolist()
+        successes = arrays["successes"][cell:end].tolist()
         block_count = arrays["block_count"][cell:end].tolist()
         block_successes = arrays["block_successes"][cell:end].tolist()
         earlier = self._read_log_marginal(
