@@ -872,26 +872,21 @@ class StructureLearner(TensorDictModuleBase):
         reward = float(rewards[fired])  # exact: float32 -> float64
         success = min(max(-reward, 0.0), 1.0)  # clamp(-r, 0, 1)
         patterns, where_index = self._firing_entries(reading, fired)
-        count = arrays["count"][where_index].tolist()
-        block_count = arrays["block_count"][where_index].tolist()
-        new_count = [value + 1.0 for value in count]
-        new_block_count = [value + 1.0 for value in block_count]
-        new_successes = [value + success for value in arrays["successes"][where_index].tolist()]
-        new_block_successes = [
-            value + success for value in arrays["block_successes"][where_index].tolist()
-        ]
+        # the entries' new counts as numpy arrays (the same double additions, elementwise)
+        count = arrays["count"][where_index] + 1.0
+        block_count = arrays["block_count"][where_index] + 1.0
+        successes = arrays["successes"][where_index] + success
+        block_successes = arrays["block_successes"][where_index] + success
+        reward_sum = arrays["reward_sum"][where_index] + reward
         marginal = self._read_log_marginal(
-            new_count + new_block_count, new_successes + new_block_successes
+            count.tolist() + block_count.tolist(), successes.tolist() + block_successes.tolist()
         )
-        arrays["count"][where_index] = new_count
-        arrays["block_count"][where_index] = new_block_count
-        arrays["successes"][where_index] = new_successes
-        arrays["block_successes"][where_index] = new_block_successes
-        new_reward_sum = [value + reward for value in arrays["reward_sum"][where_index].tolist()]
-        arrays["reward_sum"][where_index] = new_reward_sum
-        arrays["block_reward_sum"][where_index] = [
-            value + reward for value in arrays["block_reward_sum"][where_index].tolist()
-        ]
+        arrays["count"][where_index] = count
+        arrays["block_count"][where_index] = block_count
+        arrays["successes"][where_index] = successes
+        arrays["block_successes"][where_index] = block_successes
+        arrays["reward_sum"][where_index] = reward_sum
+        arrays["block_reward_sum"][where_index] = arrays["block_reward_sum"][where_index] + reward
         arrays["log_marginal"][where_index] = marginal[:candidates]
         arrays["block_log_marginal"][where_index] = marginal[candidates:]
         block_samples = arrays["block_samples"]
@@ -921,22 +916,19 @@ class StructureLearner(TensorDictModuleBase):
             block_samples[fired] = 0
             arrays["block_start"][fired] = arrays["history_length"][0]
         # _refresh_cache of the fired actuator with its log posterior (module docstring)
-        means = [
-            t / max(n, 1.0) if n > 0.0 else 0.0
-            for n, t in zip(new_count, new_reward_sum, strict=True)
-        ]
-        arrays["mean"][where_index] = means
-        weights = posterior_weights(torch.tensor([log_posterior], dtype=torch.float64)).tolist()
+        mean = np.where(count > 0.0, reward_sum / np.maximum(count, 1.0), 0.0)
+        arrays["mean"][where_index] = mean
+        weights = posterior_weights(torch.tensor([log_posterior], dtype=torch.float64))
         span = slice(fired * candidates, (fired + 1) * candidates)
-        arrays["weights_cache"][span] = weights[0]
+        arrays["weights_cache"][span] = weights.numpy()[0]
         best = max(log_posterior)
         arrays["map_cache"][fired] = log_posterior.index(best)  # the first maximum (argmax)
         plausible = [value >= best - threshold for value in log_posterior]
         arrays["plausible_cache"][span] = plausible
         if lists is not None:  # local_values' copy: the same numbers, written above
             entries = lists[0][0][fired]
-            for candidate, pattern in enumerate(patterns):
-                entries[candidate][pattern] = means[candidate]
+            for candidate, (pattern, value) in enumerate(zip(patterns, mean.tolist(), strict=True)):
+                entries[candidate][pattern] = value
             lists[1][0][fired] = plausible
             lists[2][0][fired] = int(arrays["committed"][fired])
         increment_version(written)  # in place, as by index_copy_: seen by autograd
