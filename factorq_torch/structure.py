@@ -878,8 +878,9 @@ class StructureLearner(TensorDictModuleBase):
         successes = arrays["successes"][where_index] + success
         block_successes = arrays["block_successes"][where_index] + success
         reward_sum = arrays["reward_sum"][where_index] + reward
+        counts = count.tolist()
         marginal = self._read_log_marginal(
-            count.tolist() + block_count.tolist(), successes.tolist() + block_successes.tolist()
+            counts + block_count.tolist(), successes.tolist() + block_successes.tolist()
         )
         arrays["count"][where_index] = count
         arrays["block_count"][where_index] = block_count
@@ -916,8 +917,11 @@ class StructureLearner(TensorDictModuleBase):
             block_samples[fired] = 0
             arrays["block_start"][fired] = arrays["history_length"][0]
         # _refresh_cache of the fired actuator with its log posterior (module docstring)
-        mean = np.where(count > 0.0, reward_sum / np.maximum(count, 1.0), 0.0)
-        arrays["mean"][where_index] = mean
+        means = [
+            t / max(n, 1.0) if n > 0.0 else 0.0
+            for n, t in zip(counts, reward_sum.tolist(), strict=True)
+        ]
+        arrays["mean"][where_index] = means
         weights = posterior_weights(torch.tensor([log_posterior], dtype=torch.float64))
         span = slice(fired * candidates, (fired + 1) * candidates)
         arrays["weights_cache"][span] = weights.numpy()[0]
@@ -927,8 +931,8 @@ class StructureLearner(TensorDictModuleBase):
         arrays["plausible_cache"][span] = plausible
         if lists is not None:  # local_values' copy: the same numbers, written above
             entries = lists[0][0][fired]
-            for candidate, (pattern, value) in enumerate(zip(patterns, mean.tolist(), strict=True)):
-                entries[candidate][pattern] = value
+            for candidate, pattern in enumerate(patterns):
+                entries[candidate][pattern] = means[candidate]
             lists[1][0][fired] = plausible
             lists[2][0][fired] = int(arrays["committed"][fired])
         increment_version(written)  # in place, as by index_copy_: seen by autograd
