@@ -58,6 +58,7 @@ import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.objectives import LossModule
+from torchrl.objectives import common as _torchrl_loss_common
 
 from factorq_torch.base import keys as names
 from factorq_torch.base.config import AgentConfig
@@ -268,7 +269,8 @@ class LocalRisk(TensorDictModuleBase):
         ``[S]`` step) is read row by row.
         """
         batch = tuple(tensordict.batch_size)
-        provider, count = self.provider, self.num_experiments
+        # (the submodule by its dict: nn.Module's attribute lookup is a microsecond a step)
+        provider, count = self._modules["provider"], self.num_experiments
         leading = count != 1 and len(batch) > 1 and batch[0] == count and batch[-1] != count
         if count != 1 and not leading and (not batch or batch[-1] != count):
             raise ValueError(
@@ -577,6 +579,12 @@ class LocalRiskLoss(LossModule):
 
     def __init__(self, provider: TensorDictModuleBase) -> None:
         super().__init__()
+        # torchrl's pre-hook warns of target networks without an updater: this loss has none,
+        # and without hooks the module call takes torch's fast path (a few us of every step)
+        check = getattr(_torchrl_loss_common, "_updater_check_forward_prehook", None)
+        for handle, hook in list(self._forward_pre_hooks.items()):
+            if hook is check:
+                del self._forward_pre_hooks[handle]
         self.risk = LocalRisk(provider)  # the provider's values for any batch (and its checks)
         self.provider = provider
         # the online step of a table or learner goes straight to its update_running_mean (its own
@@ -597,7 +605,9 @@ class LocalRiskLoss(LossModule):
         return [keys.sensors, keys.action, ("next", keys.local_reward)]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        keys, actions = self.tensor_keys, self.risk.num_actions
+        # (submodules by their dict: LossModule's attribute lookup is a microsecond each)
+        modules = self._modules
+        keys, actions = self.tensor_keys, modules["risk"].num_actions
         batch = tuple(tensordict.batch_size)
         action = tensordict.get(keys.action, None)
         local_reward = tensordict.get(("next", keys.local_reward), None)
@@ -619,7 +629,7 @@ class LocalRiskLoss(LossModule):
                 f"{list(local_reward.shape)}, expected {[*batch, actions]} (one local reward per "
                 f"actuator of the provider)"
             )
-        update = getattr(self.provider, "update_running_mean", None)
+        update = getattr(modules["provider"], "update_running_mean", None)
         if update is not None:
             if self.training:
                 sensors = tensordict.get(keys.sensors)

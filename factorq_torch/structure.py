@@ -513,14 +513,20 @@ class StructureLearner(TensorDictModuleBase):
         batch = self.num_experiments
         if mask is not None:
             mask = check_mask(mask, batch, "StructureLearner.update_running_mean")
-        shapes = {"readings": (readings, (batch, self.num_sensors)), "action": (action, (batch,))}
-        shapes["local_reward"] = (local_reward, (batch, self.num_actions))
-        for name, (value, shape) in shapes.items():
-            if value.shape != shape:
-                raise ValueError(
-                    f"StructureLearner.update_running_mean: {name} has shape "
-                    f"{list(value.shape)}, expected {list(shape)}"
-                )
+        shapes = self.__dict__.get("_update_shapes")
+        if shapes is None:  # (fixed at construction)
+            shapes = (batch, self.num_sensors), (batch,), (batch, self.num_actions)
+            self.__dict__["_update_shapes"] = shapes
+        given = (readings.shape, action.shape, local_reward.shape)
+        if given != shapes:
+            for name, value, shape in zip(
+                ("readings", "action", "local_reward"), given, shapes, strict=True
+            ):
+                if value != shape:
+                    raise ValueError(
+                        f"StructureLearner.update_running_mean: {name} has shape "
+                        f"{list(value)}, expected {list(shape)}"
+                    )
         if mask is None and self._update_read(readings, action, local_reward):
             return  # (numbers through numpy: no autograd to turn off)
         with torch.no_grad():
@@ -743,6 +749,9 @@ class StructureLearner(TensorDictModuleBase):
             return False
         arrays, written = views
         lists = self._read_lists()  # local_values' Python copy, patched below if it is current
+        if len(fired_actions) == 1:  # one experiment (one agent's step)
+            reading = readings.tolist()[0]
+            return self._update_one(arrays, written, lists, fired_actions[0], rewards[0], reading)
         candidates, width = self.num_candidates, self.count.shape[-1]
         block_size = candidates * width  # one actuator's [C, P]
         log_prior = arrays["log_prior"].tolist()  # [C]
@@ -845,6 +854,110 @@ class StructureLearner(TensorDictModuleBase):
             self._read_lists_current(lists)
         return True
 
+    def _update_one(
+        self,
+        arrays: dict,
+        written: list[torch.Tensor],
+        lists: list | None,
+        fired: int,
+        rewards: list[float],
+        reading: list[bool],
+    ) -> bool:
+        """``_update_read`` of one experiment's firing (``S = 1``): the same entries, the same
+        numbers and the same writes, without the lists over experiments (a reopening goes to the
+        tensor code as there)."""
+        candidates = self.num_candidates
+        threshold = self.log_bayes_factor
+        log_prior = arrays["log_prior"].tolist()  # [C]
+        reward = float(rewards[fired])  # exact: float32 -> float64
+        success = min(max(-reward, 0.0), 1.0)  # clamp(-r, 0, 1)
+        patterns, where_index = self._firing_entries(reading, fired)
+        # the entries' new counts as numpy arrays (the same double additions, elementwise)
+        count = arrays["count"][where_index] + 1.0
+        block_count = arrays["block_count"][where_index] + 1.0
+        successes = arrays["successes"][where_index] + success
+        block_successes = arrays["block_successes"][where_index] + success
+        reward_sum = arrays["reward_sum"][where_index] + reward
+        counts = count.tolist()
+        marginal = self._read_log_marginal(
+            counts + block_count.tolist(), successes.tolist() + block_successes.tolist()
+        )
+        arrays["count"][where_index] = count
+        arrays["block_count"][where_index] = block_count
+        arrays["successes"][where_index] = successes
+        arrays["block_successes"][where_index] = block_successes
+        arrays["reward_sum"][where_index] = reward_sum
+        arrays["block_reward_sum"][where_index] = arrays["block_reward_sum"][where_index] + reward
+        arrays["log_marginal"][where_index] = marginal[:candidates]
+        arrays["block_log_marginal"][where_index] = marginal[candidates:]
+        block_samples = arrays["block_samples"]
+        arrays["samples"][fired] += 1
+        block_samples[fired] += 1
+        log_posterior = self._read_log_posterior(arrays, "", fired, log_prior)
+        held = int(arrays["committed"][fired])
+        if held >= 0:  # committed: _decide_read's change-point test of this one actuator
+            reopened = self._change_read(arrays, fired, held, log_prior)
+        else:
+            reopened = self._decide_read(arrays, [fired], [log_posterior], log_prior)
+        if reopened is not None:
+            # a reopening: the tensor code forgets, closes the blocks and refreshes
+            increment_version(written)
+            rows = row_starts(1, 1, self.committed.device)  # arange(1), cached
+            fired_tensor = torch.tensor([fired], dtype=torch.int64)
+            with torch.no_grad():
+                self._forget(rows, fired_tensor, torch.tensor([True]))
+                self._close_blocks(rows, fired_tensor, fired_tensor, None)
+                self._refresh_cache(rows, fired_tensor, fired_tensor, None)
+            return True
+        if block_samples[fired] >= self.window:  # _close_blocks
+            block_size = candidates * self.count.shape[-1]
+            span = slice(fired * block_size, (fired + 1) * block_size)
+            for name in ("count", "successes", "reward_sum", "log_marginal"):
+                arrays["block_" + name][span] = 0.0
+            block_samples[fired] = 0
+            arrays["block_start"][fired] = arrays["history_length"][0]
+        # _refresh_cache of the fired actuator with its log posterior (module docstring)
+        means = [
+            t / max(n, 1.0) if n > 0.0 else 0.0
+            for n, t in zip(counts, reward_sum.tolist(), strict=True)
+        ]
+        arrays["mean"][where_index] = means
+        weights = posterior_weights(torch.tensor([log_posterior], dtype=torch.float64))
+        span = slice(fired * candidates, (fired + 1) * candidates)
+        arrays["weights_cache"][span] = weights.numpy()[0]
+        best = max(log_posterior)
+        arrays["map_cache"][fired] = log_posterior.index(best)  # the first maximum (argmax)
+        plausible = [value >= best - threshold for value in log_posterior]
+        arrays["plausible_cache"][span] = plausible
+        if lists is not None:  # local_values' copy: the same numbers, written above
+            entries = lists[0][0][fired]
+            for candidate, pattern in enumerate(patterns):
+                entries[candidate][pattern] = means[candidate]
+            lists[1][0][fired] = plausible
+            lists[2][0][fired] = int(arrays["committed"][fired])
+        increment_version(written)  # in place, as by index_copy_: seen by autograd
+        if lists is not None:
+            self._read_lists_current(lists)
+        return True
+
+    def _firing_entries(self, reading: list[bool], fired: int) -> tuple[list[int], np.ndarray]:
+        """``(patterns, where)`` of actuator ``fired`` (experiment 0) under one reading: each
+        candidate's pattern (``_reading_entries``) and its flat entry in ``[S A C P]`` as a numpy
+        index, cached by (reading, actuator) (a few thousand at most)."""
+        key = (*reading, fired)
+        memo = self.__dict__.setdefault("_firings", {})
+        found = memo.get(key)
+        if found is None:
+            patterns, offsets = self._reading_entries(reading)
+            start = fired * self.num_candidates * self.count.shape[-1]
+            where = np.array([start + offset for offset in offsets], dtype=np.intp)
+            where.flags.writeable = False
+            found = (patterns, where)
+            if len(memo) >= _MEMO_SIZE:
+                memo.clear()
+            memo[key] = found
+        return found
+
     def _read_log_marginal(self, count: list[float], successes: list[float]) -> list[float]:
         """``_pattern_log_marginal`` of Python numbers (``_read_log_marginal_of``), remembered by
         ``(n, s)`` where the ``lgamma`` tables gave them (integral counts). Each entry's value is a
@@ -855,6 +968,23 @@ class StructureLearner(TensorDictModuleBase):
         marginal = list(map(memo.get, keys))
         if None not in marginal:
             return marginal
+        tabled = self.__dict__.get("_tabled")
+        if tabled is not None:  # the few entries not remembered, one by one from the tables
+            for index, value in enumerate(marginal):
+                if value is None:
+                    key = keys[index]
+                    value = memo.get(key)  # (a key twice in one call: computed once)
+                    if value is None:
+                        value = self._tabled_log_marginal(tabled, *key)
+                        if value is None:  # not from the tables: all of them as below
+                            break
+                        if len(memo) >= _MEMO_SIZE:
+                            memo.clear()
+                        memo[key] = value
+                    marginal[index] = value
+            else:
+                return marginal
+            marginal = list(map(memo.get, keys))
         missing = list(
             dict.fromkeys(key for key, value in zip(keys, marginal, strict=True) if value is None)
         )
@@ -870,6 +1000,24 @@ class StructureLearner(TensorDictModuleBase):
             found[key] if value is None else value
             for key, value in zip(keys, marginal, strict=True)
         ]
+
+    @staticmethod
+    def _tabled_log_marginal(tabled: tuple, n: float, s: float) -> float | None:
+        """``_read_log_marginal_of`` of one entry ``(n, s)`` where the ``lgamma`` tables built by
+        ``_read_lgamma`` hold it (integral ``0 <= s <= n`` below their size; else None): the same
+        table values and the same double operations in the same order, without building lists
+        for one entry (most firings leave a few entries not remembered: the counts grow)."""
+        size, levels, mixture = tabled
+        if not (0.0 <= s <= n < size and n.is_integer() and s.is_integer()):
+            return None
+        values = [
+            first[int(s)] + second[int(n - s)] - third[int(n)] - log_beta_prior
+            for first, second, third, log_beta_prior, _ in levels
+        ]
+        if not mixture:  # "pattern"
+            return values[0]
+        clean, noisy = values[0] + levels[0][4], values[1] + levels[1][4]
+        return (clean if clean > noisy else noisy) if n > 0 else 0.0
 
     def _read_log_marginal_of(
         self, count: list[float], successes: list[float]
@@ -948,6 +1096,13 @@ class StructureLearner(TensorDictModuleBase):
                 for base in bases:
                     tables[base] = torch.lgamma(base + steps).tolist()
                 tables["size"] = size
+                # (for _tabled_log_marginal: the counts the tables take, each level's tables)
+                tabled_levels = [
+                    (tables[level[0]], tables[level[1]], tables[level[2]], level[3], level[4])
+                    for level in levels
+                ]
+                limit = min(size, _LGAMMA_TABLE_COUNTS)
+                self.__dict__["_tabled"] = (float(limit), tabled_levels, len(levels) == 2)
             out: list[float] = []
             for level_a, level_b, level_ab, _, _ in levels:
                 first, second, third = tables[level_a], tables[level_b], tables[level_ab]
@@ -972,6 +1127,13 @@ class StructureLearner(TensorDictModuleBase):
             ].tolist()
         )
         # each candidate's patterns in turn, summed left to right (reduce: ((m_0 + m_1) + ...))
+        if width == 4:  # (two parents at most: the default, written out)
+            return [
+                prior + (((m_0 + m_1) + m_2) + m_3)
+                for prior, m_0, m_1, m_2, m_3 in zip(
+                    log_prior, values, values, values, values, strict=True
+                )
+            ]
         patterns = zip(*(values,) * width, strict=True)
         return [
             prior + reduce(operator.add, row)
@@ -1015,6 +1177,8 @@ class StructureLearner(TensorDictModuleBase):
         if not any(held >= 0 for held in committed):
             arrays["committed"][fired_rows] = new
             return None
+        if len(committed) == 1:  # one committed actuator (one agent's step): the test below
+            return self._change_read(arrays, fired_rows[0], committed[0], log_prior)
         # the change-point test (every row, as the tensor path computes it, shape [R, P])
         cells = [(flat * candidates + max(held, 0)) * width for flat, held in
                  zip(fired_rows, committed, strict=True)]  # fmt: skip
@@ -1051,6 +1215,41 @@ class StructureLearner(TensorDictModuleBase):
         arrays["committed"][fired_rows] = [-1 if gone else held for gone, held in
                                            zip(reopen, new, strict=True)]  # fmt: skip
         return reopen if any(reopen) else None
+
+    def _change_read(
+        self, arrays: dict, flat: int, held: int, log_prior: list[float]
+    ) -> list[bool] | None:
+        """``_decide_read``'s change-point test of one committed actuator (flat index ``flat``,
+        committed to ``held``): the same numbers in the same order as its loop over rows (the
+        differences ``m - e`` summed left to right, ``log_prior + (0.0 + total)`` against the
+        block's best log posterior); writes ``committed`` -1 and returns ``[True]`` where it
+        reopens, else None (nothing written: the actuator stays committed to ``held``)."""
+        width = self.count.shape[-1]
+        cell = (flat * self.num_candidates + held) * width
+        end = cell + width
+        count = arrays["count"][cell:end].tolist()
+        successes = arrays["successes"][cell:end].tolist()
+        block_count = arrays["block_count"][cell:end].tolist()
+        block_successes = arrays["block_successes"][cell:end].tolist()
+        earlier = self._read_log_marginal(
+            [n - b for n, b in zip(count, block_count, strict=True)],
+            [s - b for s, b in zip(successes, block_successes, strict=True)],
+        )
+        marginal = arrays["log_marginal"][cell:end].tolist()
+        total = marginal[0] - earlier[0]
+        for m, e in zip(marginal[1:], earlier[1:], strict=True):
+            total = total + (m - e)
+        lead = log_prior[held] + (0.0 + total)  # log_posterior_of(0.0, ...)
+        rival = max(self._read_log_posterior(arrays, "block_", flat, log_prior))
+        threshold = (
+            self.log_noisy_reopen_factor
+            if arrays["noise_seen"][flat // self.num_actions]
+            else self.log_reopen_factor
+        )
+        if rival - lead >= threshold:
+            arrays["committed"][flat] = -1
+            return [True]
+        return None
 
     def _refresh_cache(
         self,

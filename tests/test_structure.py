@@ -734,3 +734,52 @@ def test_the_online_update_read_as_numbers_is_the_tensor_update_bit_for_bit(
     assert taken == 500
     assert int(read.reopened.sum()) > 0 and bool(read.is_committed().any())
     assert bool(read.noise_seen.any())
+
+
+def test_the_read_update_of_one_experiment_is_the_tensor_update_bit_for_bit_past_the_tables(
+    monkeypatch,
+):
+    """The read update of one experiment (``_update_one``: one agent's step) with its log
+    marginals not remembered computed one by one from the ``lgamma`` tables
+    (``_tabled_log_marginal``) and its change-point test of one committed actuator
+    (``_change_read``): every buffer equal, bit for bit, to the tensor path's over a stream whose
+    counts outgrow the first tables (rebuilt larger), with commitments, noisy readings, closed
+    blocks and a reopening."""
+    generator = torch.Generator().manual_seed(7)
+    options = dict(num_actions=2, num_sensors=4, window=40)
+    read, tensor = StructureLearner(1, **options), StructureLearner(1, **options)
+    everyone = torch.ones(1, dtype=torch.bool)
+    calls = {"_update_one": 0, "_tabled_log_marginal": 0, "_change_read": 0}
+    for name in calls:
+        function = getattr(StructureLearner, name)  # (a static method: its function)
+
+        def counted(*args, name=name, function=function):
+            calls[name] += 1
+            return function(*args)
+
+        wrapper = staticmethod(counted) if name == "_tabled_log_marginal" else counted
+        monkeypatch.setattr(StructureLearner, name, wrapper)  # (undone after the test)
+    for step in range(800):
+        readings = torch.rand(1, 4, generator=generator) < 0.5
+        action = torch.randint(0, 2, (1,), generator=generator)
+        parents = readings if step < 600 else readings.roll(1, dims=1)  # the body changes
+        flips = torch.rand(1, 4, generator=generator) < 0.03  # sensors read wrong
+        fired = torch.nn.functional.one_hot(action, 2).float()
+        reward = -(parents[:, :2] ^ flips[:, :2]).float() * fired  # two actuators, four sensors
+        read.update_running_mean(readings, action, reward)
+        tensor.update_running_mean(readings, action, reward, mask=everyone)
+        if step % 50 and step < 795:
+            continue
+        for (name, got), value in zip(read.named_buffers(), tensor.buffers(), strict=True):
+            assert got.dtype == value.dtype and torch.equal(got, value), (step, name)
+            if value.is_floating_point():
+                width = {torch.float64: torch.int64, torch.float32: torch.int32}[value.dtype]
+                assert torch.equal(got.view(width), value.view(width)), (step, name)
+        assert torch.equal(
+            read.local_values(readings).view(torch.int32),
+            tensor._local_values_tensor(readings).view(torch.int32),
+        )
+    assert calls["_update_one"] == 800 and calls["_change_read"] > 100
+    assert calls["_tabled_log_marginal"] > 100
+    assert read.__dict__["_lgamma_tables"]["size"] > 256  # the tables were rebuilt larger
+    assert int(read.reopened.sum()) > 0 and bool(read.noise_seen.any())
