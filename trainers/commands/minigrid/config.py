@@ -43,7 +43,6 @@ class MiniGridConfig:
         exploration: tabular Factor-Q's (``AgentConfig.exploration``).
         window: finished episodes in the success rate behind "steps to 90%".
         final_fraction: the share of the budget, at its end, of the final measures.
-        out: the output directory.
     """
 
     seed: int = option(0, "Master seed: worlds, policies and networks derive from it.")
@@ -98,9 +97,5 @@ class MiniGridConfig:
         check_float("final_fraction", self.final_fraction, 0.0, 1.0, low_open=True)
 
     def budget(self, size: int) -> int:
-        """Env steps per seed at ``size``.
-
-        Args:
-            size: the grid's side.
-        """
+        """Env steps per seed at ``size``."""
         return max(1, round(self.steps * size / 5))
