@@ -410,8 +410,7 @@ def estimate(config: CompareConfig) -> resources.Estimate:
         if sum(parts.values()) > sum(largest.values()):
             largest = parts
     largest["episode records"] = records * len(config.methods)
-    points = len(config.methods) * len(experiments.regimes) * 100 * 6 * 56  # the curves
-    largest["curves"] = points
+    largest["curves"] = len(config.methods) * len(experiments.regimes) * 100 * 6 * 56
     return resources.Estimate(
         largest, len(config.methods) * count * experiments.steps, exact_steps=True
     )

@@ -106,13 +106,8 @@ class Recorder:
             final_fraction: the share of the budget, at its end, of the final measures.
         """
         start = budget - final_fraction * budget
-        out: dict[str, list[Any]] = {
-            "success_rate": [],
-            "return": [],
-            "steps_to_goal": [],
-            "episodes": [],
-            "steps_to_90": [],
-        }
+        names = ("success_rate", "return", "steps_to_goal", "episodes", "steps_to_90")
+        out: dict[str, list[Any]] = {name: [] for name in names}
         for episodes in self.episodes:
             final = [e for e in episodes if e[0] > start]
             out["episodes"].append(len(episodes))
@@ -158,44 +153,25 @@ def run_tabular(
     """
     import torch
 
-    from factorq_envs.body import HEADING
     from factorq_envs.minigrid_adapter import FORWARD
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import STREAM_POLICY
     from factorq_torch.collectors import OnlineCollector
     from factorq_torch.structure import StructureLearner
-    from factorq_torch.tables import LocalRewardTable, TaskQTable
-    from factorq_trainers.methods.experiment import online_agent
+    from factorq_trainers.methods.experiment import online_agent, tabular_values
 
     count, budget = config.seeds, config.budget(size)
     base = _env(config, size)
-    agent = AgentConfig()
-    cells, sensors, actions = base.num_cells, base.num_sensors, base.num_actions
+    algorithm = "q-learning" if method == "q-learning" else "factor-q"
+    task, local = tabular_values(algorithm, count, base)  # the oracle's table for factor-q
     learner = None
-    if method == "q-learning":
-        task = TaskQTable(
-            count,
-            cells,
-            with_sensors=True,
-            num_sensors=sensors,
-            num_headings=HEADING.num_headings,
-            num_actions=actions,
+    if method.startswith("factor-q-"):  # learned: an open actuator predicts no local reward
+        # (docs/decisions.md, MiniGrid), unless asked for the learner's own posterior
+        prediction = "posterior" if method == "factor-q-posterior" else "committed"
+        local = learner = StructureLearner(
+            count, num_actions=base.num_actions, num_sensors=base.num_sensors, prediction=prediction
         )
-        local = None
-    else:
-        task = TaskQTable(count, cells, num_headings=HEADING.num_headings, num_actions=actions)
-        if method == "factor-q":
-            local = LocalRewardTable(count, dependency=base.dependency)
-        elif method == "factor-q-posterior":
-            local = learner = StructureLearner(
-                count, num_actions=actions, num_sensors=sensors, prediction="posterior"
-            )
-        else:  # an open actuator predicts no local reward (docs/decisions.md, MiniGrid)
-            local = learner = StructureLearner(
-                count, num_actions=actions, num_sensors=sensors, prediction="committed"
-            )
-    if local is not None:  # Factor-Q: its exploration (Q-learning's is uniform)
-        agent = AgentConfig(exploration=config.exploration)
+    agent = AgentConfig(exploration="uniform" if local is None else config.exploration)
     keys = method_keys(config, size, method, STREAM_POLICY)
     env, policy, loss = online_agent(base, task, local, agent, keys)
     # one run of as many episodes as the budget could hold: the loop below stops at the budget
