@@ -243,32 +243,13 @@ def online_agent(
         )
         loss = TabularQLoss(task, gamma=agent.gamma, alpha=agent.alpha)
         return env, TensorDictSequential(task, chooser), loss
+    names = ("gamma", "eta", "g_min", "risk_threshold", "risk_gate", "arbitration", "local_span")
+    shared = {name: getattr(agent, name) for name in names}  # eqs. 2-4's: policy and loss alike
     chooser = FactorQPolicy(
-        count,
-        keys=policy_keys,
-        epsilon=epsilon,
-        eta=agent.eta,
-        g_min=agent.g_min,
-        device=device,
-        exploration=agent.exploration,
-        risk_threshold=agent.risk_threshold,
-        risk_gate=agent.risk_gate,
-        arbitration=agent.arbitration,
-        gamma=agent.gamma,
-        local_span=agent.local_span,
-    )
-    loss = FactorQLoss(
-        task,
-        local,
-        gamma=agent.gamma,
-        alpha=agent.alpha,
-        eta=agent.eta,
-        g_min=agent.g_min,
-        risk_threshold=agent.risk_threshold,
-        risk_gate=agent.risk_gate,
-        arbitration=agent.arbitration,
-        local_span=agent.local_span,
-    )
+        count, keys=policy_keys, epsilon=epsilon, device=device, exploration=agent.exploration,
+        **shared,
+    )  # fmt: skip
+    loss = FactorQLoss(task, local, alpha=agent.alpha, **shared)
     env = TransformedEnv(env, SplitLocalReward())
     return env, TensorDictSequential(task, local, chooser), loss
 
@@ -285,8 +266,7 @@ PAPER_WORLD = WorldConfig()
 @dataclass(frozen=True)
 class WorldOptions:
     """The world and body options every grid command's config shares, their defaults
-    ``PAPER_WORLD``'s. A config inherits them and checks them with ``check_world_options`` and
-    ``body_options``."""
+    ``PAPER_WORLD``'s. A config inherits them and checks them with ``checked_world``."""
 
     size: int = option(PAPER_WORLD.size, "Side of the square grid, in cells.")
     obstacles: int = option(PAPER_WORLD.num_obstacles, "Number of single-cell obstacles.")
@@ -319,6 +299,13 @@ class WorldOptions:
         "Probability that another actuator fires than the chosen one, in [0, 1].",
     )
 
+    def checked_world(self, regimes: Sequence[str] = ()) -> WorldConfig:
+        """These options' world, checked (``check_world_options``; its static layout's path too
+        when ``"static"`` is among ``regimes``)."""
+        return check_world_options(
+            self.size, self.obstacles, self.max_steps, self.layout_seed, regimes, body_options(self)
+        )
+
 
 @dataclass(frozen=True)
 class ExperimentConfig(WorldOptions):
@@ -338,21 +325,12 @@ class ExperimentConfig(WorldOptions):
         check_int("seeds", self.seeds, 1, INT32_MAX)
         object.__setattr__(self, "regimes", check_names("regimes", self.regimes, REGIMES))
         check_int("steps", self.steps, 1, INT32_MAX)
-        check_world_options(
-            self.size,
-            self.obstacles,
-            self.max_steps,
-            self.layout_seed,
-            self.regimes,
-            body_options(self),
-        )
+        self.checked_world(self.regimes)
 
     @property
     def world(self) -> WorldConfig:
         """The world of every experiment; the obstacle period is set per experiment."""
-        return check_world_options(
-            self.size, self.obstacles, self.max_steps, self.layout_seed, (), body_options(self)
-        )
+        return self.checked_world()
 
     @property
     def num_experiments(self) -> int:

@@ -134,22 +134,13 @@ def processes(config: RiskConfig, units: list[dict[str, Any]]) -> tuple[int, str
 
 def units(config: RiskConfig) -> list[dict[str, Any]]:
     """One unit per (world, method, seed); sb3 methods only on ``sb3_worlds``."""
-    found = []
-    for world in config.worlds:
-        for method in config.methods:
-            if method.startswith("sb3") and world not in config.sb3_worlds:
-                continue
-            for index in range(config.seeds):
-                seed = config.seed + index
-                found.append(
-                    {
-                        "id": f"{world}/{method}/{seed}",
-                        "world": world,
-                        "method": method,
-                        "seed": seed,
-                    }
-                )
-    return found
+    return [
+        {"id": f"{world}/{method}/{seed}", "world": world, "method": method, "seed": seed}
+        for world in config.worlds
+        for method in config.methods
+        if not (method.startswith("sb3") and world not in config.sb3_worlds)
+        for seed in range(config.seed, config.seed + config.seeds)
+    ]
 
 
 def work(config: RiskConfig, unit: dict[str, Any]) -> int:

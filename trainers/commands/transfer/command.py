@@ -149,14 +149,7 @@ class TransferConfig(WorldOptions):
 
     @property
     def target_world(self) -> WorldConfig:
-        return check_world_options(
-            self.size,
-            self.obstacles,
-            self.max_steps,
-            self.layout_seed,
-            self.regimes,
-            body_options(self),
-        )
+        return self.checked_world(self.regimes)
 
     @property
     def source_world(self) -> WorldConfig:
