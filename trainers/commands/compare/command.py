@@ -469,19 +469,15 @@ def finish(config: CompareConfig, outcomes: list[Any], out: Path) -> dict[str, P
 # Running
 
 
-def make_logger(
-    config: CompareConfig, method: str, log_dir: str | os.PathLike | None = None
-) -> Any:
-    """torchrl's CSVLogger or TensorboardLogger for ``method`` under ``log_dir`` (default
-    ``out/logs/``)."""
-    log_dir = str(Path(config.out) / "logs" if log_dir is None else log_dir)
+def make_logger(config: CompareConfig, method: str, log_dir: str | os.PathLike) -> Any:
+    """torchrl's CSVLogger or TensorboardLogger for ``method`` under ``log_dir``."""
     if config.logger == "tensorboard":
         from torchrl.record.loggers.tensorboard import TensorboardLogger
 
-        return TensorboardLogger(exp_name=method, log_dir=log_dir)
+        return TensorboardLogger(exp_name=method, log_dir=str(log_dir))
     from torchrl.record.loggers.csv import CSVLogger
 
-    return CSVLogger(exp_name=method, log_dir=log_dir)
+    return CSVLogger(exp_name=method, log_dir=str(log_dir))
 
 
 def run_method(

@@ -60,21 +60,8 @@ def _worlds(value: Any) -> tuple[str, ...]:
 
 @dataclass(frozen=True)
 class RiskConfig:
-    """One budget for every method (``factorq_trainers.commands.risk.command``'s docstring).
-
-    Args:
-        worlds, methods, sb3_worlds: what runs (``OWN_WORLDS`` and the declared
-            worlds of ``factorq_envs.worlds``, ``METHODS``; comma-separated text or a tuple).
-        seeds, seed: seeds per (world, method), from ``seed`` on.
-        steps: training env steps per unit.
-        grid_size, grid_obstacles, minigrid_size: the worlds (``highway`` is
-            ``factorq_envs.highway``'s ``highway-fast-v0`` as declared there).
-        hidden, lr, gamma, buffer_size, batch_size: the DQN recipe, the same for every method.
-        learning_starts, train_every, tau: when it learns and how fast its target follows.
-        eps_start, eps_end, exploration_fraction: its exploration schedule.
-        eval_episodes: greedy episodes after training.
-        success_threshold: the success rate of 10 episodes that counts as learned.
-    """
+    """One budget and DQN recipe for every method (``factorq_trainers.commands.risk.command``'s
+    docstring); each option's help says what it sets."""
 
     worlds: tuple[str, ...] = option(
         ("grid", "minigrid"),
