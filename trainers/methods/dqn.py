@@ -202,20 +202,8 @@ class ExploratoryEGreedy(TensorDictModuleBase):
 
 
 #: Entries a DQN minibatch needs (the rest of a collected transition is not stored).
-_STORED = (
-    "cell",
-    "proximity",
-    "sensors",
-    "heading",
-    "action",
-    ("next", "cell"),
-    ("next", "proximity"),
-    ("next", "sensors"),
-    ("next", "heading"),
-    ("next", "reward"),
-    ("next", "done"),
-    ("next", "terminated"),
-)
+_STATE = ("cell", "proximity", "sensors", "heading")
+_STORED = (*_STATE, "action", *(("next", key) for key in (*_STATE, "reward", "done", "terminated")))
 
 
 @dataclass

@@ -247,14 +247,8 @@ def run_dqn(
             keys=init_keys,
             zero_output=False,
         )
-        stored = [
-            "cell",
-            "heading",
-            "sensors",
-            ("next", "cell"),
-            ("next", "heading"),
-            ("next", "sensors"),
-        ]
+        state = ("cell", "heading", "sensors")
+        stored = [*state, *(("next", key) for key in state)]
     stored += ["action", ("next", "reward"), ("next", "done"), ("next", "terminated")]
     torch.manual_seed(int(method_keys(config, size, method, STREAM_POLICY)[0]) & 0x7FFFFFFF)
     agent = dqn_agent(q_network, actions, dqn, budget)
