@@ -41,7 +41,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -57,7 +57,7 @@ from factorq_envs.grid_world import NUM_ACTIONS
 from factorq_envs.torchrl_env import FactoredGridEnv
 from factorq_torch.base.rng import STREAM_TASK_NETWORK, STREAM_WORLD
 from factorq_torch.base.validation import INT32_MAX, check_float, check_hidden, check_int
-from factorq_torch.neural import TaskQNetwork
+from factorq_torch.neural import BatchedMLP, TaskQNetwork
 from factorq_trainers.analysis.vocabulary import among
 from factorq_trainers.methods.experiment import (
     EpisodeRecorder,
@@ -72,12 +72,9 @@ with warnings.catch_warnings():
     warnings.filterwarnings("ignore", "Creating .*WeightUpdater", DeprecationWarning)
     from torchrl.collectors import Collector
 
-#: The widest hidden layer a config accepts (a layer's weights are [E, width, width] float32).
 #: Methods of ``factorq_trainers.commands.compare.command``; a method's index is part of its
 #: experiments' keys.
 METHODS = among("factor-q", "q-learning", "dqn", "factor-dqn")
-# --------------------------------------------------------------------------------------------
-# Validation
 
 
 def batch_keys(
@@ -134,11 +131,9 @@ class DQNConfig:
         check_float("gamma", self.gamma, 0.0, 1.0, high_open=True)
         object.__setattr__(self, "hidden", check_hidden("hidden", self.hidden))
         check_float("lr", self.lr, 0.0, 1.0, low_open=True)
-        check_int("buffer_size", self.buffer_size, 1, INT32_MAX)
-        check_int("batch_size", self.batch_size, 1, INT32_MAX)
+        for name in ("buffer_size", "batch_size", "train_every", "target_update_interval"):
+            check_int(name, getattr(self, name), 1, INT32_MAX)
         check_int("learning_starts", self.learning_starts, 0, INT32_MAX)
-        check_int("train_every", self.train_every, 1, INT32_MAX)
-        check_int("target_update_interval", self.target_update_interval, 1, INT32_MAX)
         check_float("eps_start", self.eps_start, 0.0, 1.0)
         check_float("eps_end", self.eps_end, 0.0, 1.0)
         if self.eps_end > self.eps_start:
@@ -207,20 +202,8 @@ class ExploratoryEGreedy(TensorDictModuleBase):
 
 
 #: Entries a DQN minibatch needs (the rest of a collected transition is not stored).
-_STORED = (
-    "cell",
-    "proximity",
-    "sensors",
-    "heading",
-    "action",
-    ("next", "cell"),
-    ("next", "proximity"),
-    ("next", "sensors"),
-    ("next", "heading"),
-    ("next", "reward"),
-    ("next", "done"),
-    ("next", "terminated"),
-)
+_STATE = ("cell", "proximity", "sensors", "heading")
+_STORED = (*_STATE, "action", *(("next", key) for key in (*_STATE, "reward", "done", "terminated")))
 
 
 @dataclass
@@ -303,7 +286,6 @@ def run(
     config: DQNConfig,
     experiments: ExperimentConfig,
     *,
-    logger: Any = None,
     progress: ProgressCallback | None = None,
     device: torch.device | str | None = None,
 ) -> dict[str, Any]:
@@ -318,17 +300,16 @@ def run(
     torch.manual_seed(experiments.seed)  # EGreedyModule and the sampler draw from it
     env = batch_env(experiments, device)
     agent = build_dqn(config, experiments, device)
-    count, steps = experiments.num_experiments, experiments.steps
-    frames_per_step = count  # one env step of the batch is E frames
+    count, steps = experiments.num_experiments, experiments.steps  # an env step: E frames
     collector = Collector(
         env,
         agent.policy,
-        frames_per_batch=frames_per_step * config.train_every,
-        total_frames=frames_per_step * steps,
+        frames_per_batch=count * config.train_every,
+        total_frames=count * steps,
         device=device,
         auto_register_policy_transforms=False,  # the policy keeps no recurrent state
     )
-    recorder = EpisodeRecorder(experiments.labels, logger)
+    recorder = EpisodeRecorder(experiments.labels)
     loss_per_experiment = torch.full((count,), math.nan)
     done_steps, gradient_steps = 0, 0
     for data in collector:  # [E, T]
@@ -354,14 +335,82 @@ def run(
         if done_steps >= steps:
             break
     collector.shutdown()
-    wall = time.perf_counter() - started
     return {
         "config": asdict(config),
         "experiments": asdict(experiments),
         "traces": recorder.traces(),
-        "wall_s": wall,
+        "wall_s": time.perf_counter() - started,
         "env_steps": done_steps * count,
     }
+
+
+def train_stepwise(
+    env: Any,
+    agent: DQNAgent,
+    config: DQNConfig,
+    steps: int,
+    stored: list[Any],
+    record: Callable[[TensorDictBase, int], None],
+) -> None:
+    """``steps`` env steps of ``agent`` in ``env`` stepped by hand (a declared env, one
+    transition ``[S]`` a step, rather than torchrl's ``Collector``): each transition goes to
+    ``record(td, step)``, its ``stored`` entries to the replay buffer, and from
+    ``learning_starts`` on every ``train_every`` steps one gradient step follows."""
+    td = env.reset()
+    for step in range(1, steps + 1):
+        with torch.no_grad():
+            td = env.step(agent.policy(td))
+        record(td, step)
+        agent.buffer.extend(td.select(*stored).unsqueeze(0))
+        if step >= config.learning_starts and step % config.train_every == 0:
+            _gradient_step(agent, config.batch_size)
+        td = env.step_mdp(td)
+        done = td.get("done")
+        if bool(done.any()):
+            td.set("_reset", done)
+            td = env.reset(td)
+
+
+def observation_network(
+    count: int,
+    key: str,
+    shape: Sequence[int],
+    actions: int,
+    hidden: Sequence[int],
+    keys: torch.Tensor,
+    zero_output: bool = False,
+) -> TensorDictModuleBase:
+    """``S`` MLPs on an observation entry: ``key`` ``[..., S, *shape]`` -> ``action_value``
+    ``[..., S, A]`` (the entry flattened, as float32; MiniGrid's ``image`` divided by 10: its
+    object, colour and state indices are below 11).
+
+    Args:
+        count: ``S``, the MLPs (one per experiment).
+        key: the observation entry they read.
+        shape: the entry's shape per experiment.
+        actions: ``A``, the outputs.
+        hidden: the hidden layers' widths.
+        keys: ``[S]`` seeds of their initial weights (``BatchedMLP``).
+        zero_output: start with a zero output layer (every value 0).
+    """
+    size = math.prod(shape)
+    divisor = 10.0 if key == "image" else 1.0
+
+    class ObservationQNetwork(TensorDictModuleBase):
+        def __init__(self) -> None:
+            super().__init__()
+            self.in_keys, self.out_keys = [key], ["action_value"]
+            self.mlp = BatchedMLP(
+                (count,), size, actions, hidden=hidden, keys=keys, zero_output=zero_output
+            )
+
+        def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+            value = tensordict.get(key)
+            x = value.reshape(*value.shape[: value.dim() - len(shape)], size)
+            tensordict.set("action_value", self.mlp(x.to(torch.float32) / divisor))
+            return tensordict
+
+    return ObservationQNetwork()
 
 
 def _gradient_step(agent: DQNAgent, batch_size: int) -> torch.Tensor:

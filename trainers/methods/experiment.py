@@ -57,6 +57,8 @@ EPISODE_FIELDS = (
     "epsilon",
     "loss",
 )
+#: The per-episode fields that are floats (the others are whole counts).
+FLOAT_FIELDS = ("task_return", "epsilon", "loss")
 
 
 def experiment_keys(
@@ -241,32 +243,13 @@ def online_agent(
         )
         loss = TabularQLoss(task, gamma=agent.gamma, alpha=agent.alpha)
         return env, TensorDictSequential(task, chooser), loss
+    names = ("gamma", "eta", "g_min", "risk_threshold", "risk_gate", "arbitration", "local_span")
+    shared = {name: getattr(agent, name) for name in names}  # eqs. 2-4's: policy and loss alike
     chooser = FactorQPolicy(
-        count,
-        keys=policy_keys,
-        epsilon=epsilon,
-        eta=agent.eta,
-        g_min=agent.g_min,
-        device=device,
-        exploration=agent.exploration,
-        risk_threshold=agent.risk_threshold,
-        risk_gate=agent.risk_gate,
-        arbitration=agent.arbitration,
-        gamma=agent.gamma,
-        local_span=agent.local_span,
-    )
-    loss = FactorQLoss(
-        task,
-        local,
-        gamma=agent.gamma,
-        alpha=agent.alpha,
-        eta=agent.eta,
-        g_min=agent.g_min,
-        risk_threshold=agent.risk_threshold,
-        risk_gate=agent.risk_gate,
-        arbitration=agent.arbitration,
-        local_span=agent.local_span,
-    )
+        count, keys=policy_keys, epsilon=epsilon, device=device, exploration=agent.exploration,
+        **shared,
+    )  # fmt: skip
+    loss = FactorQLoss(task, local, alpha=agent.alpha, **shared)
     env = TransformedEnv(env, SplitLocalReward())
     return env, TensorDictSequential(task, local, chooser), loss
 
@@ -283,8 +266,7 @@ PAPER_WORLD = WorldConfig()
 @dataclass(frozen=True)
 class WorldOptions:
     """The world and body options every grid command's config shares, their defaults
-    ``PAPER_WORLD``'s. A config inherits them and checks them with ``check_world_options`` and
-    ``body_options``."""
+    ``PAPER_WORLD``'s. A config inherits them and checks them with ``checked_world``."""
 
     size: int = option(PAPER_WORLD.size, "Side of the square grid, in cells.")
     obstacles: int = option(PAPER_WORLD.num_obstacles, "Number of single-cell obstacles.")
@@ -317,6 +299,13 @@ class WorldOptions:
         "Probability that another actuator fires than the chosen one, in [0, 1].",
     )
 
+    def checked_world(self, regimes: Sequence[str] = ()) -> WorldConfig:
+        """These options' world, checked (``check_world_options``; its static layout's path too
+        when ``"static"`` is among ``regimes``)."""
+        return check_world_options(
+            self.size, self.obstacles, self.max_steps, self.layout_seed, regimes, body_options(self)
+        )
+
 
 @dataclass(frozen=True)
 class ExperimentConfig(WorldOptions):
@@ -336,21 +325,12 @@ class ExperimentConfig(WorldOptions):
         check_int("seeds", self.seeds, 1, INT32_MAX)
         object.__setattr__(self, "regimes", check_names("regimes", self.regimes, REGIMES))
         check_int("steps", self.steps, 1, INT32_MAX)
-        check_world_options(
-            self.size,
-            self.obstacles,
-            self.max_steps,
-            self.layout_seed,
-            self.regimes,
-            body_options(self),
-        )
+        self.checked_world(self.regimes)
 
     @property
     def world(self) -> WorldConfig:
         """The world of every experiment; the obstacle period is set per experiment."""
-        return check_world_options(
-            self.size, self.obstacles, self.max_steps, self.layout_seed, (), body_options(self)
-        )
+        return self.checked_world()
 
     @property
     def num_experiments(self) -> int:
@@ -375,8 +355,7 @@ class EpisodeRecorder:
     "local_reward")`` exists (the reward was split), else the conventional reward minus the sum of
     ``("next", "collision")``. ``epsilon`` and ``loss`` are per-experiment values of this step
     (``loss`` NaN where there was none); an episode records the epsilon at its end and the mean
-    finite loss over its steps. ``logger`` (a torchrl ``Logger``) receives every finished
-    episode's records under ``"{world}/seed_{i}/{name}"`` at step = that experiment's env steps.
+    finite loss over its steps (``log_traces`` sends the records to a torchrl ``Logger``).
 
     ``totals`` counts collisions and greedy collisions over every step, including an episode left
     unfinished by the budget, and the *boxed-in* greedy collisions among them: those where all
@@ -384,17 +363,15 @@ class EpisodeRecorder:
     moving worlds a scatter can box the agent in; no policy avoids those).
     """
 
-    def __init__(self, labels: Sequence[tuple[str, int]], logger: Any = None) -> None:
+    def __init__(self, labels: Sequence[tuple[str, int]]) -> None:
         self.labels = list(labels)
         count = len(self.labels)
-        self.logger = logger
         self.env_steps = np.zeros(count, dtype=np.int64)
         self._sums = {name: np.zeros(count) for name in ("steps", "collisions", "greedy", "task")}
         self._loss_sum, self._loss_count = np.zeros(count), np.zeros(count)
         self.episodes: list[dict[str, list[float]]] = [
             {name: [] for name in EPISODE_FIELDS} for _ in range(count)
         ]
-        self.finished_episodes = 0  # summed over the experiments
         self.totals = {
             "collisions": np.zeros(count, dtype=np.int64),
             "greedy_collisions": np.zeros(count, dtype=np.int64),
@@ -431,7 +408,6 @@ class EpisodeRecorder:
             self._loss_count += finite
         if not done.any():
             return
-        self.finished_episodes += int(done.sum())
         epsilon = np.broadcast_to(
             epsilon.detach().cpu().numpy() if isinstance(epsilon, torch.Tensor) else epsilon,
             done.shape,
@@ -449,13 +425,8 @@ class EpisodeRecorder:
             }
             for name, value in record.items():
                 self.episodes[row][name].append(value)
-            if self.logger is not None:
-                self._log(row, record)
             for values in (*sums.values(), self._loss_sum, self._loss_count):
                 values[row] = 0
-
-    def _log(self, row: int, record: dict[str, float]) -> None:
-        _log_record(self.logger, *self.labels[row], record)
 
     def traces(self) -> list[dict[str, Any]]:
         """One dict per experiment: the per-episode arrays, totals and label."""
@@ -463,14 +434,10 @@ class EpisodeRecorder:
         for row, (world, index) in enumerate(self.labels):
             trace: dict[str, Any] = {"world": world, "seed_index": index}
             for name in EPISODE_FIELDS:
-                dtype = np.float64 if name in ("task_return", "epsilon", "loss") else np.int64
+                dtype = np.float64 if name in FLOAT_FIELDS else np.int64
                 trace[name] = np.asarray(self.episodes[row][name], dtype=dtype)
-            trace["total_collisions"] = int(self.totals["collisions"][row])
-            trace["total_greedy_collisions"] = int(self.totals["greedy_collisions"][row])
-            trace["total_boxed_in_greedy_collisions"] = int(
-                self.totals["boxed_in_greedy_collisions"][row]
-            )
-            trace["total_env_steps"] = int(self.env_steps[row])
+            for name, totals in (*self.totals.items(), ("env_steps", self.env_steps)):
+                trace[f"total_{name}"] = int(totals[row])
             out.append(trace)
         return out
 
@@ -479,17 +446,14 @@ class EpisodeRecorder:
 LOG_NAMES = {"steps": "path_length", "task_return": "return"}
 
 
-def _log_record(logger: Any, world: str, index: int, record: dict[str, float]) -> None:
-    step = record["env_steps"]
-    for name, value in record.items():
-        if name != "env_steps" and math.isfinite(value):
-            logger.log_scalar(f"{world}/seed_{index}/{LOG_NAMES.get(name, name)}", value, step)
-
-
 def log_traces(logger: Any, traces: list[dict[str, Any]]) -> None:
-    """Send ``EpisodeRecorder.traces()`` to ``logger`` as its live ``logger`` would have:
-    every finished episode's records under ``"{world}/seed_{i}/{name}"`` at step = env steps."""
+    """Send ``EpisodeRecorder.traces()`` to ``logger`` (a torchrl ``Logger``): every finished
+    episode's finite records under ``"{world}/seed_{i}/{name}"`` at step = its env steps."""
     for trace in traces:
         for episode in range(len(trace["steps"])):
-            record = {name: trace[name][episode].item() for name in EPISODE_FIELDS}
-            _log_record(logger, trace["world"], trace["seed_index"], record)
+            step = trace["env_steps"][episode].item()
+            for name in EPISODE_FIELDS:
+                value = trace[name][episode].item()
+                if name != "env_steps" and math.isfinite(value):
+                    tag = f"{trace['world']}/seed_{trace['seed_index']}/{LOG_NAMES.get(name, name)}"
+                    logger.log_scalar(tag, value, step)

@@ -70,9 +70,11 @@ from factorq_trainers.methods import dqn, experiment
 from factorq_trainers.methods.dqn import batch_keys
 from factorq_trainers.methods.experiment import (
     EPISODE_FIELDS,
+    FLOAT_FIELDS,
     EpisodeRecorder,
     ExperimentConfig,
 )
+from factorq_trainers.methods.units import torch_threads
 from factorq_trainers.runner import resources
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, NUMBER, TEXT
 
@@ -86,8 +88,6 @@ FILES = {"json": "comparison.json", "report": "comparison.md", "figure": "compar
 HINT = "use fewer --seeds or --steps, or a smaller --size"
 WORK_UNIT = "step"
 CURVE_POINTS = 100
-#: The per-episode fields that are floats (the others are whole counts).
-FLOAT_FIELDS = ("task_return", "epsilon", "loss")
 #: A unit's result (``run_unit``), what a kept one must hold (``runner.kept``'s schema): one
 #: trace per experiment, its per-episode fields as lists.
 UNIT_RESULT = {
@@ -169,7 +169,6 @@ def value_providers(
 def run_online(
     method: str,
     config: CompareConfig,
-    logger: Any = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
     """Tabular Factor-Q, tabular Q-learning or Factor-DQN for the step budget (OnlineCollector).
@@ -198,7 +197,7 @@ def run_online(
     collector = OnlineCollector(env, policy, loss, runs=1, episodes=episodes, optimizer=optimizer)
     captured: dict[str, torch.Tensor] = {}
     hook = loss.register_forward_hook(lambda module, inputs, output: captured.update(output))
-    recorder = EpisodeRecorder(experiments.labels, logger)
+    recorder = EpisodeRecorder(experiments.labels)
     report_every = max(1, steps // 100)
     for step in range(1, steps + 1):
         td = collector.step()
@@ -253,11 +252,8 @@ def _curve(traces: list[dict[str, Any]], name: str, grid: np.ndarray, seed: int)
         mean[complete], band_low, band_high = bootstrap_mean_ci(values[:, complete], seed)
         if band_low is not None:
             low[complete], high[complete] = band_low, band_high
-    return {"mean": _json_list(mean), "low": _json_list(low), "high": _json_list(high)}
-
-
-def _json_list(values: np.ndarray) -> list[float | None]:
-    return [finite_or_none(value) for value in values]
+    bands = (("mean", mean), ("low", low), ("high", high))
+    return {name: [finite_or_none(value) for value in values] for name, values in bands}
 
 
 def comparison(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
@@ -330,13 +326,7 @@ def _arrays(trace: dict[str, Any]) -> dict[str, Any]:
 
 def check_unit(config: CompareConfig, unit: dict[str, Any], result: dict[str, Any]) -> str | None:
     """Why a kept ``result`` (``UNIT_RESULT``'s shape) cannot be ``unit``'s, or None: one trace
-    per experiment of the run, in its order, each with per-episode fields of one length.
-
-    Args:
-        config: the comparison.
-        unit: one of ``units(config)``.
-        result: a kept result.
-    """
+    per experiment of the run, in its order, each with per-episode fields of one length."""
     experiments = config.experiments
     labels = [(trace["world"], trace["seed_index"]) for trace in result["traces"]]
     if labels != [tuple(label) for label in experiments.labels]:
@@ -355,12 +345,7 @@ def check_unit(config: CompareConfig, unit: dict[str, Any], result: dict[str, An
 
 def summarise(config: CompareConfig, outcomes: Sequence[Any]) -> dict[str, Any]:
     """``comparison.json``'s entries (the frame's envelope goes around them) from the units'
-    results, in ``units`` order.
-
-    Args:
-        config: the comparison.
-        outcomes: ``run_unit``'s results.
-    """
+    results, in ``units`` order."""
     runs = {unit["method"]: outcome for unit, outcome in zip(units(config), outcomes, strict=True)}
     return comparison(config, runs)
 
@@ -371,21 +356,12 @@ def summarise(config: CompareConfig, outcomes: Sequence[Any]) -> dict[str, Any]:
 
 def units(config: CompareConfig) -> list[dict[str, Any]]:
     """One unit per method: its worlds x seeds are one batch (DQN's seeds and worlds share
-    torch's stream and every minibatch, so a smaller unit would change its numbers).
-
-    Args:
-        config: the comparison.
-    """
+    torch's stream and every minibatch, so a smaller unit would change its numbers)."""
     return [{"id": method, "method": method} for method in config.methods]
 
 
 def work(config: CompareConfig, unit: dict[str, Any]) -> int:
-    """A unit's env steps per experiment (what ``run_unit`` reports to ``progress``).
-
-    Args:
-        config: the comparison.
-        unit: one of ``units(config)``.
-    """
+    """A unit's env steps per experiment (what ``run_unit`` reports to ``progress``)."""
     return config.steps
 
 
@@ -434,8 +410,7 @@ def estimate(config: CompareConfig) -> resources.Estimate:
         if sum(parts.values()) > sum(largest.values()):
             largest = parts
     largest["episode records"] = records * len(config.methods)
-    points = len(config.methods) * len(experiments.regimes) * 100 * 6 * 56  # the curves
-    largest["curves"] = points
+    largest["curves"] = len(config.methods) * len(experiments.regimes) * 100 * 6 * 56
     return resources.Estimate(
         largest, len(config.methods) * count * experiments.steps, exact_steps=True
     )
@@ -454,8 +429,6 @@ def run_unit(
     ``{"method", "traces", "wall_s"}``, the traces' arrays as lists.
 
     Args:
-        config: the comparison.
-        unit: one of ``units(config)``.
         progress: called with the env steps per experiment done since its last call.
     """
     report = None
@@ -467,12 +440,8 @@ def run_unit(
             progress(now - done)
             done = now
 
-    threads = torch.get_num_threads()
-    torch.set_num_threads(config.threads)
-    try:
+    with torch_threads(config.threads):
         run = run_method(config, unit["method"], report)
-    finally:
-        torch.set_num_threads(threads)
     traces = [
         {
             key: value.tolist() if isinstance(value, np.ndarray) else value
@@ -486,13 +455,7 @@ def run_unit(
 def finish(config: CompareConfig, outcomes: list[Any], out: Path) -> dict[str, Path]:
     """The per-episode logs (``write_logs``), written once the run is over from the units'
     traces to a staging folder renamed to ``out/logs`` (an earlier run's logs replaced, never
-    appended to): one run's logs, the same after a resume.
-
-    Args:
-        config: the comparison.
-        outcomes: the units' results, in ``units`` order.
-        out: the output directory.
-    """
+    appended to): one run's logs, the same after a resume."""
     runs = {unit["method"]: outcome for unit, outcome in zip(units(config), outcomes, strict=True)}
     staging = compare_report.staging_logs(out)
     try:
@@ -506,19 +469,15 @@ def finish(config: CompareConfig, outcomes: list[Any], out: Path) -> dict[str, P
 # Running
 
 
-def make_logger(
-    config: CompareConfig, method: str, log_dir: str | os.PathLike | None = None
-) -> Any:
-    """torchrl's CSVLogger or TensorboardLogger for ``method`` under ``log_dir`` (default
-    ``out/logs/``)."""
-    log_dir = str(Path(config.out) / "logs" if log_dir is None else log_dir)
+def make_logger(config: CompareConfig, method: str, log_dir: str | os.PathLike) -> Any:
+    """torchrl's CSVLogger or TensorboardLogger for ``method`` under ``log_dir``."""
     if config.logger == "tensorboard":
         from torchrl.record.loggers.tensorboard import TensorboardLogger
 
-        return TensorboardLogger(exp_name=method, log_dir=log_dir)
+        return TensorboardLogger(exp_name=method, log_dir=str(log_dir))
     from torchrl.record.loggers.csv import CSVLogger
 
-    return CSVLogger(exp_name=method, log_dir=log_dir)
+    return CSVLogger(exp_name=method, log_dir=str(log_dir))
 
 
 def run_method(
@@ -544,12 +503,7 @@ def write_logs(
 
 def run(config: CompareConfig, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
     """Every selected method on every selected world, here; the ``comparison.json`` dict (no
-    files written; ``progress``: env steps per experiment done since its last call).
-
-    Args:
-        config: the comparison.
-        progress: called with env steps done.
-    """
+    files written; ``progress``: env steps per experiment done since its last call)."""
     from factorq_trainers.runner import frame
 
     return frame.run_in_process(sys.modules[__name__], config, progress)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 from factorq_envs.regimes import REGIMES
 from factorq_torch.base.config import AgentConfig
@@ -133,14 +133,4 @@ class CompareConfig(experiment.WorldOptions):
 
     @property
     def experiments(self) -> ExperimentConfig:
-        return ExperimentConfig(
-            seed=self.seed,
-            seeds=self.seeds,
-            regimes=self.regimes,
-            steps=self.steps,
-            size=self.size,
-            obstacles=self.obstacles,
-            max_steps=self.max_steps,
-            layout_seed=self.layout_seed,
-            **experiment.body_options(self),
-        )
+        return ExperimentConfig(**{f.name: getattr(self, f.name) for f in fields(ExperimentConfig)})

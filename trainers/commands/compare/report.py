@@ -21,10 +21,6 @@ from factorq_trainers.runner.results import body_label, interval_or_none
 
 #: A method reached the threshold when an episode took at most this many times the shortest path.
 THRESHOLD_FACTOR = 1.5
-JSON_FILE = "comparison.json"
-FIGURE_FILE = "comparison.png"
-REPORT_FILE = "comparison.md"
-OUTPUT_FILES = (JSON_FILE, FIGURE_FILE, REPORT_FILE)
 LOGS_DIRECTORY = "logs"
 COLOURS = {
     "factor-q": "#0072B2",

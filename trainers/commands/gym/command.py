@@ -31,31 +31,20 @@ rate (a proportion), the BCa bootstrap of the mean for the other measures and th
 
 This module is the command: its units, their results summarised. ``GymConfig`` is in
 ``config.py`` beside it, the declared worlds are ``factorq_envs.worlds``' registry, the methods
-(settings, envs, networks, ``Recorder``) in ``methods.py``; their public names import from here
-too.
+(settings, envs, ``Recorder``) in ``methods.py``.
 """
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-from factorq_trainers.analysis.stats import (
-    bootstrap_mean_ci,
-    finite_or_none,
-    interval,
-    scalar_ci,
-    wilson_ci,
-)
-from factorq_trainers.commands.gym.config import (
-    GymConfig,
-)
-from factorq_trainers.commands.gym.methods import (
-    RUNNERS,
-)
+from factorq_trainers.analysis.stats import bootstrap_mean_ci, finite_or_none
+from factorq_trainers.commands.gym.config import GymConfig
+from factorq_trainers.commands.gym.methods import RUNNERS
+from factorq_trainers.methods.units import seed_stat, torch_threads
 from factorq_trainers.runner.kept import COUNT, FLAG, NON_NEGATIVE, NUMBER, TEXT
 
 NAME = "gym"
@@ -89,11 +78,7 @@ UNIT_RESULT = {
 
 
 def prepare(config: GymConfig) -> None:
-    """The world's extra (and SB3 when asked for) installed, else one ModuleNotFoundError.
-
-    Args:
-        config: the experiment.
-    """
+    """The world's extra (and SB3 when asked for) installed, else one ModuleNotFoundError."""
     from factorq_envs.gymnasium_adapter import require_extra
 
     for module, extra in config.spec.requires:
@@ -104,12 +89,7 @@ def prepare(config: GymConfig) -> None:
 
 def processes(config: GymConfig, units: list[dict[str, Any]]) -> tuple[int, str]:
     """How many processes the units take by default (``runner.cluster.default_workers``): one
-    per core where the world's env steps slowly (highway-env), else 1 (in-process); and why.
-
-    Args:
-        config: the experiment.
-        units: ``units(config)``.
-    """
+    per core where the world's env steps slowly (highway-env), else 1 (in-process); and why."""
     from factorq_trainers.runner.cluster import default_workers
 
     step_s = config.spec.step_seconds()
@@ -118,11 +98,7 @@ def processes(config: GymConfig, units: list[dict[str, Any]]) -> tuple[int, str]
 
 
 def units(config: GymConfig) -> list[dict[str, Any]]:
-    """One unit per method and seed: ``{"id", "method", "seed_index"}``.
-
-    Args:
-        config: the experiment.
-    """
+    """One unit per method and seed: ``{"id", "method", "seed_index"}``."""
     return [
         {"id": f"{method}-seed{index}", "method": method, "seed_index": index}
         for method in config.methods
@@ -131,12 +107,7 @@ def units(config: GymConfig) -> list[dict[str, Any]]:
 
 
 def work(config: GymConfig, unit: dict[str, Any]) -> int:
-    """A unit's training env steps (what ``run_unit`` reports to ``progress``).
-
-    Args:
-        config: the experiment.
-        unit: one of ``units(config)``.
-    """
+    """A unit's training env steps (what ``run_unit`` reports to ``progress``)."""
     return config.steps
 
 
@@ -144,21 +115,9 @@ def run_unit(
     config: GymConfig, unit: dict[str, Any], progress: Callable[[int], None] | None = None
 ) -> dict[str, Any]:
     """Train and evaluate one unit (one method, one seed): ``Recorder.result()`` with the greedy
-    measures, ``wall_s`` and ``steps_per_s`` (and the structures, for Factor-Q).
-
-    Args:
-        config: the experiment.
-        unit: one of ``units(config)``.
-        progress: called with env steps done, every 100.
-    """
-    import torch
-
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # tiny networks: more threads only wait on each other
-    try:
+    measures, ``wall_s`` and ``steps_per_s`` (and the structures, for Factor-Q)."""
+    with torch_threads(1):
         return RUNNERS[unit["method"]](config, unit, progress or (lambda steps: None))
-    finally:
-        torch.set_num_threads(threads)
 
 
 # --------------------------------------------------------------------------------------------
@@ -176,17 +135,6 @@ MEASURES = (
 #: The measures that are proportions (per seed in [0, 1]): Wilson's interval.
 PROPORTIONS = ("greedy_crash_rate",)
 CURVES = ("curve_crashes", "curve_return")
-
-
-def _stat(values: list[float | None], seed: int, proportion: bool = False) -> dict[str, Any]:
-    """Mean over the seeds that have a value, its 95% interval (Wilson's for a proportion, the
-    BCa bootstrap's otherwise: neither leaves the possible range) and how many seeds have one."""
-    present = [v for v in values if v is not None]
-    if not present:
-        return {"mean": None, "ci95": None, "n": 0}
-    method = wilson_ci if proportion else functools.partial(bootstrap_mean_ci, seed=seed)
-    mean, low, high = scalar_ci(present, method)
-    return {"mean": mean, "ci95": interval(low, high), "n": len(present)}
 
 
 def _band(rows: list[list[float | None]], seed: int) -> dict[str, list[float | None]]:
@@ -217,19 +165,14 @@ def _band(rows: list[list[float | None]], seed: int) -> dict[str, list[float | N
 def summarise(config: GymConfig, unit_results: list[dict[str, Any]]) -> dict[str, Any]:
     """Per method: each measure's mean and 95% interval over seeds (Wilson for the greedy crash
     rate, else the BCa bootstrap), the curves of every seed and their mean and band over seeds,
-    and (learned dependencies) how many seeds' learner agrees with the oracle per actuator.
-
-    Args:
-        config: the experiment.
-        unit_results: ``run_unit``'s results, in ``units(config)`` order.
-    """
+    and (learned dependencies) how many seeds' learner agrees with the oracle per actuator."""
     by_method: dict[str, list[dict[str, Any]]] = {}
     for unit, result in zip(units(config), unit_results, strict=True):
         by_method.setdefault(unit["method"], []).append(result)
     methods = {}
     for method, results in by_method.items():
         entry: dict[str, Any] = {
-            name: _stat([r[name] for r in results], config.seed, name in PROPORTIONS)
+            name: seed_stat([r[name] for r in results], config.seed, name in PROPORTIONS)
             for name in MEASURES
         }
         entry["curves"] = {name: [r[name] for r in results] for name in ("curve_steps", *CURVES)}
@@ -258,12 +201,7 @@ def summarise(config: GymConfig, unit_results: list[dict[str, Any]]) -> dict[str
 
 
 def run(config: GymConfig, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
-    """Every unit here, summarised into the runner's envelope (no files).
-
-    Args:
-        config: the experiment.
-        progress: called with env steps done.
-    """
+    """Every unit here, summarised into the runner's envelope (no files)."""
     import sys
 
     from factorq_trainers.runner import frame

@@ -7,12 +7,12 @@ the ``Recorder`` of a training run. The command is ``factorq_trainers.commands.g
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any, TypedDict
+from typing import TYPE_CHECKING, Any
 
 from factorq_trainers.commands.gym.config import METHODS, GymConfig
+from factorq_trainers.methods.units import tick
 
 if TYPE_CHECKING:
     import torch
@@ -20,24 +20,11 @@ if TYPE_CHECKING:
     from factorq_envs.declared_env import DeclaredEnv
 
 
-class DQNSettings(TypedDict):
-    """``HIGHWAY_DQN``'s entries: ``DQNConfig``'s names (``methods.dqn``)."""
-
-    hidden: tuple[int, ...]
-    lr: float
-    buffer_size: int
-    learning_starts: int
-    batch_size: int
-    gamma: float
-    train_every: int
-    target_update_interval: int
-    exploration_fraction: float
-
-
 #: highway-env's documented SB3 DQN (its README and scripts/sb3_highway_dqn.py): MlpPolicy
 #: [256, 256], learning rate 5e-4, buffer 15,000, learning starts 200, batch 32, gamma 0.8,
 #: a gradient step every env step, target update every 50, exploration over 70% of the budget.
-HIGHWAY_DQN = DQNSettings(
+#: ``DQNConfig``'s names (``methods.dqn``).
+HIGHWAY_DQN: dict[str, Any] = dict(
     hidden=(256, 256),
     lr=5e-4,
     buffer_size=15_000,
@@ -78,54 +65,7 @@ def _torchrl_env(config: GymConfig, seed: int) -> DeclaredEnv:
 
 
 # --------------------------------------------------------------------------------------------
-# The networks and agents
-
-
-def observation_network(
-    count: int,
-    key: str,
-    shape: Sequence[int],
-    actions: int,
-    hidden: Sequence[int],
-    keys: torch.Tensor,
-    zero_output: bool,
-) -> Any:  # a tensordict module (tensordict: untyped)
-    """``S`` MLPs on an observation entry: ``key`` ``[..., S, *shape]`` -> ``action_value``
-    ``[..., S, A]`` (the entry flattened, as float32; MiniGrid's image divided by 10: its
-    indices are below 11).
-
-    Args:
-        count: ``S``, the MLPs (one per experiment).
-        key: the observation entry they read.
-        shape: the entry's shape per experiment.
-        actions: ``A``, the outputs.
-        hidden: the hidden layers' widths.
-        keys: ``[S]`` seeds of their initial weights (``BatchedMLP``).
-        zero_output: start with a zero output layer (every value 0).
-    """
-    import torch
-    from tensordict.nn import TensorDictModuleBase
-
-    from factorq_torch.neural import BatchedMLP
-
-    size = math.prod(shape)
-    scale = 0.1 if key == "image" else 1.0
-
-    class ObservationQNetwork(TensorDictModuleBase):
-        def __init__(self) -> None:
-            super().__init__()
-            self.in_keys, self.out_keys = [key], ["action_value"]
-            self.mlp = BatchedMLP(
-                (count,), size, actions, hidden=hidden, keys=keys, zero_output=zero_output
-            )
-
-        def forward(self, tensordict: Any) -> Any:
-            value = tensordict.get(key)
-            x = value.reshape(*value.shape[: value.dim() - len(shape)], size)
-            tensordict.set("action_value", self.mlp(x.to(torch.float32) * scale))
-            return tensordict
-
-    return ObservationQNetwork()
+# The training record and the methods
 
 
 class Recorder:
@@ -188,6 +128,13 @@ def _mean(values: Sequence[float]) -> float:
     return float(sum(values) / len(values))
 
 
+def _measures(
+    config: GymConfig, recorder: Recorder, greedy: dict[str, Any], wall: float
+) -> dict[str, Any]:
+    """A unit's result: its training record, the greedy measures and the env steps per second."""
+    return {**recorder.result(), **greedy, "wall_s": wall, "steps_per_s": config.steps / wall}
+
+
 def _transition(td: Any) -> tuple[bool, float, bool]:
     """(crashed, conventional reward, done) of a ``[1]`` transition (split or not)."""
     nxt = td.get("next")
@@ -198,17 +145,13 @@ def _transition(td: Any) -> tuple[bool, float, bool]:
     return bool(nxt.get("bump").any()), reward, bool(nxt.get("done").any())
 
 
-def _tick(progress: Callable[[int], None], step: int, total: int) -> None:
-    if step % 100 == 0 or step == total:
-        progress(100 if step % 100 == 0 else step % 100)
-
-
 def _env_and_task_network(
     config: GymConfig, unit: dict[str, Any], *, zero_output: bool
 ) -> tuple[DeclaredEnv, Any]:
     """The unit's env (its own env seed) and a task Q-network on the world's observation, with
     highway-env's documented hidden layers: what every torchrl method of a unit starts from."""
     from factorq_torch.base.rng import STREAM_TASK_NETWORK
+    from factorq_trainers.methods.dqn import observation_network
 
     env = _torchrl_env(config, _env_seed(config, unit["seed_index"]))
     key = config.spec.observation
@@ -230,7 +173,7 @@ def _run_dqn(
     import torch
 
     from factorq_torch.base.rng import STREAM_POLICY
-    from factorq_trainers.methods.dqn import DQNConfig, _gradient_step, dqn_agent
+    from factorq_trainers.methods.dqn import DQNConfig, dqn_agent, train_stepwise
 
     settings = DQNConfig(**HIGHWAY_DQN)
     env, q_network = _env_and_task_network(config, unit, zero_output=False)
@@ -240,26 +183,16 @@ def _run_dqn(
     stored = [key, ("next", key), "action", ("next", "reward"), ("next", "done")]
     stored.append(("next", "terminated"))
     recorder = Recorder(config)
-    started = time.perf_counter()
-    td = env.reset()
-    for step in range(1, config.steps + 1):
-        with torch.no_grad():
-            td = env.step(agent.policy(td))
+
+    def record(td: Any, step: int) -> None:
         recorder.update(*_transition(td))
-        agent.buffer.extend(td.select(*stored).unsqueeze(0))
-        if step >= settings.learning_starts and step % settings.train_every == 0:
-            _gradient_step(agent, settings.batch_size)
-        td = env.step_mdp(td)
-        if bool(td.get("done").any()):
-            td.set("_reset", td.get("done"))
-            td = env.reset(td)
-        _tick(progress, step, config.steps)
+        tick(progress, step, config.steps)
+
+    started = time.perf_counter()
+    train_stepwise(env, agent, settings, config.steps, stored, record)
     wall = time.perf_counter() - started
     env.close()
-    result = recorder.result()
-    result.update(_evaluate(config, unit, agent.value_network), wall_s=wall)
-    result["steps_per_s"] = config.steps / wall
-    return result
+    return _measures(config, recorder, _evaluate(config, unit, agent.value_network), wall)
 
 
 def _run_factor_q(
@@ -300,19 +233,16 @@ def _run_factor_q(
     started = time.perf_counter()
     for step, td in enumerate(collector, start=1):
         recorder.update(*_transition(td))
-        _tick(progress, step, config.steps)
+        tick(progress, step, config.steps)
         if step >= config.steps:
             break
     wall = time.perf_counter() - started
     collector.shutdown()
-    result = recorder.result()
-    result.update(_evaluate(config, unit, policy), wall_s=wall)
-    result["steps_per_s"] = config.steps / wall
-    declaration = base.declaration
+    result = _measures(config, recorder, _evaluate(config, unit, policy), wall)
     if oracle is not None:  # the declared names and oracle, for a summary without torch
         result["oracle"] = oracle.to(torch.int64).tolist()
         result["actuator_names"] = list(base.config.actuator_names)
-        result["sensor_names"] = list(declaration.sensor_names) or [
+        result["sensor_names"] = list(base.declaration.sensor_names) or [
             f"s{k}" for k in range(base.num_sensors)
         ]
     if isinstance(local, StructureLearner):
@@ -364,7 +294,7 @@ def _run_sb3(
             out = self.env.step(action)
             observation, reward, terminated, truncated, info = out
             recorder.update(bool(info["collided"]), float(reward), terminated or truncated)
-            _tick(progress, recorder.step, config.steps)
+            tick(progress, recorder.step, config.steps)
             return out
 
     def make(seed: int) -> gymnasium.Env:
@@ -407,14 +337,8 @@ def _run_sb3(
             done = terminated or truncated
         crashes += int(crashed)
         returns.append(total)
-    result = recorder.result()
-    result.update(
-        greedy_crash_rate=crashes / config.eval_episodes,
-        greedy_return=_mean(returns),
-        wall_s=wall,
-        steps_per_s=config.steps / wall,
-    )
-    return result
+    greedy = {"greedy_crash_rate": crashes / config.eval_episodes, "greedy_return": _mean(returns)}
+    return _measures(config, recorder, greedy, wall)
 
 
 #: Each method's function: ``(config, unit, progress) -> the unit's result``.

@@ -17,11 +17,7 @@ INTERVALS = "greedy crash rate: Wilson; the others and the bands: BCa bootstrap"
 
 
 def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """Per method of a ``gym.json`` dict: the ``SWEEP_MEASURES`` (means and 95% intervals).
-
-    Args:
-        results: the dict of ``gym.json``.
-    """
+    """Per method of a ``gym.json`` dict: the ``SWEEP_MEASURES`` (means and 95% intervals)."""
     return {
         f"{results['world']}/{method}": {
             "world": results["world"],
@@ -36,11 +32,7 @@ def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
 
 
 def targets(results: dict[str, Any]) -> list[str]:
-    """The issue's targets, where the methods they compare ran.
-
-    Args:
-        results: the dict of ``gym.json``.
-    """
+    """The issue's targets, where the methods they compare ran."""
     methods = results["methods"]
     lines = []
 
@@ -94,11 +86,7 @@ def _cell(stat: dict[str, Any], digits: int = 2) -> str:
 
 
 def markdown(results: dict[str, Any]) -> str:
-    """``gym.md``: one row per method, the targets, and the learned structures.
-
-    Args:
-        results: the dict of ``gym.json``.
-    """
+    """``gym.md``: one row per method, the targets, and the learned structures."""
     config = results["config"]
     seeds = config["seeds"]
     lines = [
@@ -143,12 +131,7 @@ def _floats(values: list[float | None], default: list[float] | None = None) -> l
 
 def figure(results: dict[str, Any], path: Path) -> None:
     """Crashes (cumulative) and return (last ``window`` episodes) against env steps, the mean
-    over seeds with its 95% BCa bootstrap band (``summarise``'s ``bands``).
-
-    Args:
-        results: the dict of ``gym.json``.
-        path: the PNG to write.
-    """
+    over seeds with its 95% BCa bootstrap band (``summarise``'s ``bands``)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 

@@ -29,12 +29,11 @@ Wilson's for the success rate, the BCa bootstrap for the rest (``factorq_trainer
 
 This module is the command: its units, the statistics over seeds, the summary. ``MiniGridConfig``
 and the names it checks against are in ``config.py`` beside it, the methods (keys, ``Recorder``,
-the tabular agents, DQN) in ``methods.py``; their public names import from here too.
+the tabular agents, DQN) in ``methods.py``.
 """
 
 from __future__ import annotations
 
-import functools
 import sys
 from collections.abc import Callable
 from typing import Any
@@ -42,13 +41,11 @@ from typing import Any
 import numpy as np
 
 from factorq_trainers.analysis.stats import DESCRIPTION as DESCRIPTION_OF_STATISTICS
-from factorq_trainers.analysis.stats import bootstrap_mean_ci, interval, scalar_ci, wilson_ci
 from factorq_trainers.analysis.vocabulary import label
 from factorq_trainers.commands.minigrid.config import METHODS, MiniGridConfig
-from factorq_trainers.commands.minigrid.methods import (
-    RUNNERS,
-)
+from factorq_trainers.commands.minigrid.methods import RUNNERS
 from factorq_trainers.commands.minigrid.report import FOUND_TARGET_STEPS
+from factorq_trainers.methods.units import seed_stat, torch_threads
 from factorq_trainers.runner import resources
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, NUMBER
 
@@ -109,17 +106,6 @@ UNIT_RESULT = {
 # The experiment
 
 
-def _stat(values: list[float | None], seed: int, proportion: bool = False) -> dict[str, Any]:
-    """Mean and 95% interval of the seeds that have a value (Wilson's for a proportion, the
-    bootstrap's otherwise: both stay inside the possible range, stats), and how many have one."""
-    present = [v for v in values if v is not None]
-    if not present:
-        return {"mean": None, "ci95": None, "n": 0}
-    method = wilson_ci if proportion else functools.partial(bootstrap_mean_ci, seed=seed)
-    mean, low, high = scalar_ci(present, method)
-    return {"mean": mean, "ci95": interval(low, high), "n": len(present)}
-
-
 MEASURES = (
     "success_rate",
     "return",
@@ -141,12 +127,12 @@ def summarise_method(result: dict[str, Any], budget: int, seed: int = 0) -> dict
         seed: the master seed (the bootstrap's resamples).
     """
     summary: dict[str, Any] = {
-        name: _stat(result[name], seed, name == "success_rate") for name in MEASURES
+        name: seed_stat(result[name], seed, name == "success_rate") for name in MEASURES
     }
     found = result.get("found_forward_front")
     if found is not None:
         within = [f is not None and f <= FOUND_TARGET_STEPS for f in found]
-        summary["found_forward_front"] = _stat(found, seed)
+        summary["found_forward_front"] = seed_stat(found, seed)
         summary["found_within_target"] = float(np.mean(within))
         summary["found_at_all"] = float(np.mean([f is not None for f in found]))
     summary["wall_s"] = result["wall_s"]
@@ -157,11 +143,7 @@ def summarise_method(result: dict[str, Any], budget: int, seed: int = 0) -> dict
 def estimate(config: MiniGridConfig) -> resources.Estimate:
     """Peak memory: each method's per-episode records hold a slot per env step of the budget
     (an episode lasts at least one), and Q-learning's table is ``[S, cells * headings * 2**K,
-    A]`` at the largest size, for the body of ``config``'s sensor layout.
-
-    Args:
-        config: the experiment.
-    """
+    A]`` at the largest size, for the body of ``config``'s sensor layout."""
     from factorq_envs.body import HEADING
     from factorq_envs.minigrid_adapter import sensor_names
 
@@ -175,11 +157,7 @@ def estimate(config: MiniGridConfig) -> resources.Estimate:
 
 
 def units(config: MiniGridConfig) -> list[dict[str, Any]]:
-    """One unit per size and method (a method's seeds run as one batch).
-
-    Args:
-        config: the experiment.
-    """
+    """One unit per size and method (a method's seeds run as one batch)."""
     return [
         {"id": f"{size}/{method}", "size": int(size), "method": method}
         for size in config.sizes
@@ -188,21 +166,12 @@ def units(config: MiniGridConfig) -> list[dict[str, Any]]:
 
 
 def work(config: MiniGridConfig, unit: dict[str, Any]) -> int:
-    """A unit's env steps per seed (what ``run_unit`` reports to ``progress``).
-
-    Args:
-        config: the experiment.
-        unit: one of ``units(config)``.
-    """
+    """A unit's env steps per seed (what ``run_unit`` reports to ``progress``)."""
     return config.budget(unit["size"])
 
 
 def prepare(config: MiniGridConfig) -> None:
-    """``factorq_envs.minigrid_adapter.require_minigrid`` (a ModuleNotFoundError naming the extra).
-
-    Args:
-        config: the experiment.
-    """
+    """The minigrid extra installed, else ``require_minigrid``'s ModuleNotFoundError."""
     from factorq_envs.minigrid_adapter import require_minigrid
 
     require_minigrid()
@@ -211,32 +180,15 @@ def prepare(config: MiniGridConfig) -> None:
 def run_unit(
     config: MiniGridConfig, unit: dict[str, Any], progress: Callable[[int], None] | None = None
 ) -> dict[str, Any]:
-    """One method at one size, all seeds; ``progress(env_steps)`` after each 100 steps.
-
-    Args:
-        config: the experiment.
-        unit: one of ``units(config)``.
-        progress: called with env steps done.
-    """
-    import torch
-
+    """One method at one size, all seeds; ``progress(env_steps)`` after each 100 steps."""
     size, method = unit["size"], unit["method"]
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # tiny tensors: more threads only wait on each other
-    try:
+    with torch_threads(1):
         raw = RUNNERS[method](config, size, method, progress or (lambda steps: None))
-    finally:
-        torch.set_num_threads(threads)
     return {"seeds": raw, "summary": summarise_method(raw, config.budget(size), config.seed)}
 
 
 def summarise(config: MiniGridConfig, outcomes: list[dict[str, Any]]) -> dict[str, Any]:
-    """``minigrid.json``'s entries from the units (in ``units`` order).
-
-    Args:
-        config: the experiment.
-        outcomes: ``run_unit``'s results.
-    """
+    """``minigrid.json``'s entries from the units (in ``units`` order)."""
     from factorq_envs.minigrid_adapter import sensor_names
 
     results: dict[str, Any] = {}
@@ -253,12 +205,7 @@ def summarise(config: MiniGridConfig, outcomes: list[dict[str, Any]]) -> dict[st
 
 
 def run(config: MiniGridConfig, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
-    """Every method on every size, here; the results (what ``minigrid.json`` holds).
-
-    Args:
-        config: the experiment.
-        progress: called with env steps done.
-    """
+    """Every method on every size, here; the results (what ``minigrid.json`` holds)."""
     from factorq_trainers.runner import frame
 
     return frame.run_in_process(sys.modules[__name__], config, progress)

@@ -31,20 +31,8 @@ SUCCESS_THRESHOLD = 0.9
 
 @dataclass(frozen=True)
 class MiniGridConfig:
-    """The MiniGrid experiment; the defaults run in a few minutes on 2 cores
-    (``docs/tutorials/minigrid.md``).
-
-    Args:
-        seed, seeds: the master seed and the experiments per size and method.
-        sizes, methods: what runs (``SIZE_NAMES``, ``METHODS``).
-        steps: env steps per seed at 5x5 (size ``n`` gets ``steps * n / 5``).
-        semantics, layout: the collision semantics and the sensors
-            (``factorq_envs.minigrid_adapter``).
-        exploration: tabular Factor-Q's (``AgentConfig.exploration``).
-        window: finished episodes in the success rate behind "steps to 90%".
-        final_fraction: the share of the budget, at its end, of the final measures.
-        out: the output directory.
-    """
+    """The MiniGrid experiment (each option's help says what it sets); the defaults run in a
+    few minutes on 2 cores (``docs/tutorials/minigrid.md``)."""
 
     seed: int = option(0, "Master seed: worlds, policies and networks derive from it.")
     seeds: int = option(10, "Independent experiments per size and method.")
@@ -98,9 +86,5 @@ class MiniGridConfig:
         check_float("final_fraction", self.final_fraction, 0.0, 1.0, low_open=True)
 
     def budget(self, size: int) -> int:
-        """Env steps per seed at ``size``.
-
-        Args:
-            size: the grid's side.
-        """
+        """Env steps per seed at ``size``."""
         return max(1, round(self.steps * size / 5))

@@ -19,6 +19,7 @@ from factorq_trainers.commands.minigrid.config import (
     SUCCESS_THRESHOLD,
     MiniGridConfig,
 )
+from factorq_trainers.methods import units
 
 if TYPE_CHECKING:
     import torch
@@ -31,12 +32,7 @@ if TYPE_CHECKING:
 
 
 def world_seeds(config: MiniGridConfig, size: int) -> list[int]:
-    """MiniGrid's reset seed of each experiment at ``size`` (the same for every method).
-
-    Args:
-        config: the experiment.
-        size: the grid's side.
-    """
+    """MiniGrid's reset seed of each experiment at ``size`` (the same for every method)."""
     from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 
     offset = SIZE_NAMES.index(str(size)) * config.seeds
@@ -48,9 +44,6 @@ def method_keys(config: MiniGridConfig, size: int, method: str, stream: int) -> 
     """Keys ``[S]`` of ``stream`` for ``method``'s experiments at ``size``.
 
     Args:
-        config: the experiment.
-        size: the grid's side.
-        method: one of ``METHODS``.
         stream: a stream of ``factorq_torch.base.rng``.
     """
     from factorq_torch.base.rng import derive_keys
@@ -113,13 +106,8 @@ class Recorder:
             final_fraction: the share of the budget, at its end, of the final measures.
         """
         start = budget - final_fraction * budget
-        out: dict[str, list[Any]] = {
-            "success_rate": [],
-            "return": [],
-            "steps_to_goal": [],
-            "episodes": [],
-            "steps_to_90": [],
-        }
+        names = ("success_rate", "return", "steps_to_goal", "episodes", "steps_to_90")
+        out: dict[str, list[Any]] = {name: [] for name in names}
         for episodes in self.episodes:
             final = [e for e in episodes if e[0] > start]
             out["episodes"].append(len(episodes))
@@ -161,51 +149,29 @@ def run_tabular(
     """Factor-Q (learned or oracle) or Q-learning through ``OnlineCollector``.
 
     Args:
-        config: the experiment.
-        size: the grid's side.
         method: a tabular one of ``METHODS``.
-        tick: called with env steps done, every 100.
     """
     import torch
 
-    from factorq_envs.body import HEADING
     from factorq_envs.minigrid_adapter import FORWARD
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import STREAM_POLICY
     from factorq_torch.collectors import OnlineCollector
     from factorq_torch.structure import StructureLearner
-    from factorq_torch.tables import LocalRewardTable, TaskQTable
-    from factorq_trainers.methods.experiment import online_agent
+    from factorq_trainers.methods.experiment import online_agent, tabular_values
 
     count, budget = config.seeds, config.budget(size)
     base = _env(config, size)
-    agent = AgentConfig()
-    cells, sensors, actions = base.num_cells, base.num_sensors, base.num_actions
+    algorithm = "q-learning" if method == "q-learning" else "factor-q"
+    task, local = tabular_values(algorithm, count, base)  # the oracle's table for factor-q
     learner = None
-    if method == "q-learning":
-        task = TaskQTable(
-            count,
-            cells,
-            with_sensors=True,
-            num_sensors=sensors,
-            num_headings=HEADING.num_headings,
-            num_actions=actions,
+    if method.startswith("factor-q-"):  # learned: an open actuator predicts no local reward
+        # (docs/decisions.md, MiniGrid), unless asked for the learner's own posterior
+        prediction = "posterior" if method == "factor-q-posterior" else "committed"
+        local = learner = StructureLearner(
+            count, num_actions=base.num_actions, num_sensors=base.num_sensors, prediction=prediction
         )
-        local = None
-    else:
-        task = TaskQTable(count, cells, num_headings=HEADING.num_headings, num_actions=actions)
-        if method == "factor-q":
-            local = LocalRewardTable(count, dependency=base.dependency)
-        elif method == "factor-q-posterior":
-            local = learner = StructureLearner(
-                count, num_actions=actions, num_sensors=sensors, prediction="posterior"
-            )
-        else:  # an open actuator predicts no local reward (docs/decisions.md, MiniGrid)
-            local = learner = StructureLearner(
-                count, num_actions=actions, num_sensors=sensors, prediction="committed"
-            )
-    if local is not None:  # Factor-Q: its exploration (Q-learning's is uniform)
-        agent = AgentConfig(exploration=config.exploration)
+    agent = AgentConfig(exploration="uniform" if local is None else config.exploration)
     keys = method_keys(config, size, method, STREAM_POLICY)
     env, policy, loss = online_agent(base, task, local, agent, keys)
     # one run of as many episodes as the budget could hold: the loop below stops at the budget
@@ -226,8 +192,7 @@ def run_tabular(
             for i, ok in enumerate(right):
                 if ok and found[i] is None:
                     found[i] = step
-        if step % 100 == 0 or step == budget:
-            tick(min(100, step - 100 * ((step - 1) // 100)))
+        units.tick(tick, step, budget)
         if step >= budget:
             break
     wall = time.perf_counter() - started
@@ -240,30 +205,6 @@ def run_tabular(
     return result
 
 
-def _image_network(count: int, hidden: tuple[int, ...], keys: torch.Tensor, actions: int) -> Any:
-    """``S`` MLPs on MiniGrid's image: ``image`` ``[..., S, 7, 7, 3]`` uint8 -> ``action_value``
-    ``[..., S, A]``; the input is the image flattened and divided by 10 (object, colour and
-    state indices are below 11)."""
-    import torch
-    from tensordict.nn import TensorDictModuleBase
-
-    from factorq_torch.neural import BatchedMLP
-
-    class _ImageQNetwork(TensorDictModuleBase):
-        def __init__(self) -> None:
-            super().__init__()
-            self.in_keys, self.out_keys = ["image"], ["action_value"]
-            self.mlp = BatchedMLP((count,), 7 * 7 * 3, actions, hidden=hidden, keys=keys)
-
-        def forward(self, tensordict: Any) -> Any:
-            image = tensordict.get("image")
-            x = image.reshape(*image.shape[:-3], -1).to(torch.float32) / 10.0
-            tensordict.set("action_value", self.mlp(x))
-            return tensordict
-
-    return _ImageQNetwork()
-
-
 def run_dqn(
     config: MiniGridConfig, size: int, method: str, tick: Callable[[int], None]
 ) -> dict[str, Any]:
@@ -271,17 +212,19 @@ def run_dqn(
     the image.
 
     Args:
-        config: the experiment.
-        size: the grid's side.
         method: ``"dqn"`` or ``"dqn-image"``.
-        tick: called with env steps done, every 100.
     """
     import torch
 
     from factorq_envs.body import HEADING
     from factorq_torch.base.rng import STREAM_POLICY, STREAM_TASK_NETWORK
     from factorq_torch.neural import TaskQNetwork
-    from factorq_trainers.methods.dqn import DQNConfig, _gradient_step, dqn_agent
+    from factorq_trainers.methods.dqn import (
+        DQNConfig,
+        dqn_agent,
+        observation_network,
+        train_stepwise,
+    )
 
     dqn = DQNConfig()
     count, budget = config.seeds, config.budget(size)
@@ -290,7 +233,7 @@ def run_dqn(
     actions = env.num_actions
     init_keys = method_keys(config, size, method, STREAM_TASK_NETWORK)
     if image:
-        q_network = _image_network(count, dqn.hidden, init_keys, actions)
+        q_network = observation_network(count, "image", (7, 7, 3), actions, dqn.hidden, init_keys)
         stored = ["image", ("next", "image")]
     else:
         q_network = TaskQNetwork(
@@ -304,35 +247,19 @@ def run_dqn(
             keys=init_keys,
             zero_output=False,
         )
-        stored = [
-            "cell",
-            "heading",
-            "sensors",
-            ("next", "cell"),
-            ("next", "heading"),
-            ("next", "sensors"),
-        ]
+        state = ("cell", "heading", "sensors")
+        stored = [*state, *(("next", key) for key in state)]
     stored += ["action", ("next", "reward"), ("next", "done"), ("next", "terminated")]
     torch.manual_seed(int(method_keys(config, size, method, STREAM_POLICY)[0]) & 0x7FFFFFFF)
     agent = dqn_agent(q_network, actions, dqn, budget)
-    policy, buffer = agent.policy, agent.buffer
     recorder = Recorder(count)
-    started = time.perf_counter()
-    td = env.reset()
-    for step in range(1, budget + 1):
-        with torch.no_grad():
-            td = env.step(policy(td))
+
+    def record(td: Any, step: int) -> None:
         recorder.update(td, td.get(("next", "reward")).squeeze(-1))
-        buffer.extend(td.select(*stored).unsqueeze(0))
-        if step >= dqn.learning_starts and step % dqn.train_every == 0:
-            _gradient_step(agent, dqn.batch_size)
-        td = env.step_mdp(td)
-        done = td.get("done")
-        if bool(done.any()):
-            td.set("_reset", done)
-            td = env.reset(td)
-        if step % 100 == 0 or step == budget:
-            tick(min(100, step - 100 * ((step - 1) // 100)))
+        units.tick(tick, step, budget)
+
+    started = time.perf_counter()
+    train_stepwise(env, agent, dqn, budget, stored, record)
     wall = time.perf_counter() - started
     env.close()
     result: dict[str, Any] = recorder.summary(budget, config.window, config.final_fraction)

@@ -46,6 +46,7 @@ anyone using torchrl keeps its defaults.
 
 from __future__ import annotations
 
+import itertools
 import math
 import statistics
 from typing import Any
@@ -99,11 +100,7 @@ UNIT_RESULT = {
 
 def prepare(config: RiskConfig) -> None:
     """The extras the asked-for worlds and methods need, else one ModuleNotFoundError naming
-    the extra, before any work.
-
-    Args:
-        config: the experiment.
-    """
+    the extra, before any work."""
     from factorq_envs.gymnasium_adapter import require_extra
     from factorq_envs.worlds import resolve_world
 
@@ -121,12 +118,7 @@ def prepare(config: RiskConfig) -> None:
 def processes(config: RiskConfig, units: list[dict[str, Any]]) -> tuple[int, str]:
     """How many processes the units take by default (``runner.cluster.default_workers``): one
     per core where a declared world's env steps slowly (highway-env), else 1 (in-process); and
-    why. The grid and MiniGrid step in microseconds: measured only for the declared worlds.
-
-    Args:
-        config: the experiment.
-        units: ``units(config)``.
-    """
+    why. The grid and MiniGrid step in microseconds: measured only for the declared worlds."""
     from factorq_envs.worlds import resolve_world
     from factorq_trainers.runner.cluster import default_workers
 
@@ -141,36 +133,18 @@ def processes(config: RiskConfig, units: list[dict[str, Any]]) -> tuple[int, str
 
 
 def units(config: RiskConfig) -> list[dict[str, Any]]:
-    """One unit per (world, method, seed); sb3 methods only on ``sb3_worlds``.
-
-    Args:
-        config: the experiment.
-    """
-    found = []
-    for world in config.worlds:
-        for method in config.methods:
-            if method.startswith("sb3") and world not in config.sb3_worlds:
-                continue
-            for index in range(config.seeds):
-                seed = config.seed + index
-                found.append(
-                    {
-                        "id": f"{world}/{method}/{seed}",
-                        "world": world,
-                        "method": method,
-                        "seed": seed,
-                    }
-                )
-    return found
+    """One unit per (world, method, seed); sb3 methods only on ``sb3_worlds``."""
+    return [
+        {"id": f"{world}/{method}/{seed}", "world": world, "method": method, "seed": seed}
+        for world in config.worlds
+        for method in config.methods
+        if not (method.startswith("sb3") and world not in config.sb3_worlds)
+        for seed in range(config.seed, config.seed + config.seeds)
+    ]
 
 
 def work(config: RiskConfig, unit: dict[str, Any]) -> int:
-    """The unit's share of the progress bar: its training env steps (what ``run_unit`` reports).
-
-    Args:
-        config: the experiment.
-        unit: one of ``units(config)``.
-    """
+    """The unit's share of the progress bar: its training env steps (what ``run_unit`` reports)."""
     return config.steps
 
 
@@ -178,13 +152,7 @@ def run_unit(
     config: RiskConfig, unit: dict[str, Any], progress: Progress | None = None
 ) -> dict[str, Any]:
     """Train and evaluate one (world, method, seed), without torchrl's INFO lines
-    (``quiet_torchrl``).
-
-    Args:
-        config: the experiment.
-        unit: one of ``units(config)``.
-        progress: called with env steps done.
-    """
+    (``quiet_torchrl``)."""
     with quiet_torchrl():
         if unit["method"].startswith("sb3"):
             result = run_sb3(config, unit, progress)
@@ -206,25 +174,25 @@ METRICS = (
 )
 
 
+#: The ratios ``summarise`` reports per world: (first, second, its name, whose return gains):
+#: the collisions of ``first`` over ``second``'s.
+RATIOS = (
+    ("dqn", "dqn+risk", "dqn / dqn+risk", "second"),
+    ("dqn", "dqn+risk-learned", "dqn / dqn+risk-learned", "second"),
+    ("sb3-dqn", "sb3-dqn+risk", "sb3-dqn / sb3-dqn+risk", "second"),
+    ("dqn+risk-learned", "dqn+risk", "learned / oracle collisions", "first"),
+)
+
+
 def _mean(values: list[float | None]) -> float | None:
     found = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
     return statistics.fmean(found) if found else None
 
 
-def _difference(first: float | None, second: float | None) -> float | None:
-    """``first - second``; ``None`` where a side has no finished episode to give a return."""
-    return None if first is None or second is None else first - second
-
-
 def summarise(config: RiskConfig, unit_results: list[dict[str, Any]]) -> dict[str, Any]:
     """Means over seeds per (world, method), the ratios the issue's targets name, the learned
     structures (``structures``, by unit id: what ``dqn+risk-learned`` committed to, beside the
-    env's dependency) and the layer's logs (``risk_logs``).
-
-    Args:
-        config: the experiment.
-        unit_results: ``run_unit``'s results.
-    """
+    env's dependency) and the layer's logs (``risk_logs``)."""
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for result in unit_results:
         groups.setdefault((result["world"], result["method"]), []).append(result)
@@ -237,34 +205,19 @@ def summarise(config: RiskConfig, unit_results: list[dict[str, Any]]) -> dict[st
         rows.append(row)
     by = {(row["world"], row["method"]): row for row in rows}
     ratios = []
-    for world in config.worlds:
-        for base, with_risk in (
-            ("dqn", "dqn+risk"),
-            ("dqn", "dqn+risk-learned"),
-            ("sb3-dqn", "sb3-dqn+risk"),
-        ):
-            if (world, base) in by and (world, with_risk) in by:
-                alone, risk = by[world, base], by[world, with_risk]
-                ratios.append(
-                    {
-                        "world": world,
-                        "pair": f"{base} / {with_risk}",
-                        "collision_ratio": count_ratio(
-                            alone["train_collisions"], risk["train_collisions"]
-                        ),
-                        "return_gain": _difference(risk["final_return"], alone["final_return"]),
-                    }
-                )
-        if (world, "dqn+risk-learned") in by and (world, "dqn+risk") in by:
-            learned, oracle = by[world, "dqn+risk-learned"], by[world, "dqn+risk"]
+    for world, (first, second, pair, gain) in itertools.product(config.worlds, RATIOS):
+        if (world, first) in by and (world, second) in by:
+            one, other = by[world, first], by[world, second]
+            gains, base = (other, one) if gain == "second" else (one, other)
+            gained = (gains["final_return"], base["final_return"])  # None: no finished episode
             ratios.append(
                 {
                     "world": world,
-                    "pair": "learned / oracle collisions",
+                    "pair": pair,
                     "collision_ratio": count_ratio(
-                        learned["train_collisions"], oracle["train_collisions"]
+                        one["train_collisions"], other["train_collisions"]
                     ),
-                    "return_gain": _difference(learned["final_return"], oracle["final_return"]),
+                    "return_gain": None if None in gained else gained[0] - gained[1],
                 }
             )
     structures = {
@@ -316,11 +269,7 @@ def risk_logs(unit_results: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def run(config: RiskConfig) -> dict[str, Any]:
-    """All units here, summarised into the runner's envelope (no files).
-
-    Args:
-        config: the experiment.
-    """
+    """All units here, summarised into the runner's envelope (no files)."""
     import sys
 
     from factorq_trainers.runner import frame

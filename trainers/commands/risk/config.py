@@ -9,6 +9,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from factorq_torch.base.validation import check_float, check_int
 from factorq_trainers.analysis.vocabulary import among
 from factorq_trainers.runner.options import option
 
@@ -59,22 +60,8 @@ def _worlds(value: Any) -> tuple[str, ...]:
 
 @dataclass(frozen=True)
 class RiskConfig:
-    """One budget for every method (``factorq_trainers.commands.risk.command``'s docstring).
-
-    Args:
-        worlds, methods, sb3_worlds: what runs (``OWN_WORLDS`` and the declared
-            worlds of ``factorq_envs.worlds``, ``METHODS``; comma-separated text or a tuple).
-        seeds, seed: seeds per (world, method), from ``seed`` on.
-        steps: training env steps per unit.
-        grid_size, grid_obstacles, minigrid_size: the worlds (``highway`` is
-            ``factorq_envs.highway``'s ``highway-fast-v0`` as declared there).
-        hidden, lr, gamma, buffer_size, batch_size: the DQN recipe, the same for every method.
-        learning_starts, train_every, tau: when it learns and how fast its target follows.
-        eps_start, eps_end, exploration_fraction: its exploration schedule.
-        eval_episodes: greedy episodes after training.
-        success_threshold: the success rate of 10 episodes that counts as learned.
-        out: the output directory.
-    """
+    """One budget and DQN recipe for every method (``factorq_trainers.commands.risk.command``'s
+    docstring); each option's help says what it sets."""
 
     worlds: tuple[str, ...] = option(
         ("grid", "minigrid"),
@@ -110,26 +97,13 @@ class RiskConfig:
         object.__setattr__(self, "methods", _names(self.methods, "methods", METHODS))
         object.__setattr__(self, "sb3_worlds", _names(self.sb3_worlds, "sb3_worlds", SB3_WORLDS))
         for name in ("seeds", "steps", "hidden", "buffer_size", "batch_size", "train_every"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name}={value!r} must be an integer >= 1")
+            check_int(name, getattr(self, name), 1)
         for name in ("seed", "learning_starts", "eval_episodes"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise ValueError(f"{name}={value!r} must be an integer >= 0")
-        if self.grid_size < 3 or self.minigrid_size < 5:
-            raise ValueError("grid_size must be >= 3 and minigrid_size >= 5")
-        for name, low, high in (
-            ("lr", 0.0, 1.0),
-            ("gamma", 0.0, 1.0),
-            ("tau", 0.0, 1.0),
-            ("eps_start", 0.0, 1.0),
-            ("eps_end", 0.0, 1.0),
-            ("exploration_fraction", 0.0, 1.0),
-            ("success_threshold", 0.0, 1.0),
-        ):
-            value = getattr(self, name)
-            if not isinstance(value, (int, float)) or not low <= value <= high:
-                raise ValueError(f"{name}={value!r} must be a number in [{low}, {high}]")
+            check_int(name, getattr(self, name), 0)
+        check_int("grid_size", self.grid_size, 3)
+        check_int("minigrid_size", self.minigrid_size, 5)
+        for name in ("lr", "gamma", "tau", "eps_start", "eps_end", "exploration_fraction"):
+            check_float(name, getattr(self, name), 0.0, 1.0)
+        check_float("success_threshold", self.success_threshold, 0.0, 1.0)
         if self.eps_end > self.eps_start:
             raise ValueError(f"eps_end={self.eps_end} must be <= eps_start={self.eps_start}")

@@ -38,7 +38,6 @@ def make_env(config: RiskConfig, world: str, seed: int) -> Any:  # a Transformed
     """The world as a torchrl env of batch ``[1]`` with ``local_reward`` beside the reward.
 
     Args:
-        config: the experiment.
         world: ``"grid"``, ``"minigrid"`` or a declared world's name
             (``factorq_envs.worlds``: ``highway``, an installed one, ``package.module:NAME``),
             through the Gymnasium adapter.
@@ -129,7 +128,6 @@ def provider(method: str, env: Any) -> LocalRewardTable | StructureLearner | Non
     """The local value provider of a ``dqn+risk-*`` method (None for plain DQN).
 
     Args:
-        method: one of ``METHODS``.
         env: a ``make_env`` env (its base env's dependency).
     """
     from factorq_torch.structure import StructureLearner
@@ -190,12 +188,10 @@ def run_torchrl(
     """torchrl's DQN recipe, plus the two lines of the local-risk layer for ``dqn+risk-*``.
 
     Args:
-        config: the experiment.
-        unit: one of ``units(config)``.
         progress: called with the env steps of each collected batch.
     """
     import torch
-    from tensordict.nn import TensorDictSequential
+    from tensordict.nn import TensorDictModule, TensorDictSequential
     from torchrl.data import LazyTensorStorage, ReplayBuffer
     from torchrl.modules import MLP, EGreedyModule, QValueActor
     from torchrl.objectives import DQNLoss, SoftUpdate
@@ -213,7 +209,7 @@ def run_torchrl(
     encoder, width = features(env)
     network = MLP(in_features=width, out_features=int(spec.space.n), num_cells=[config.hidden] * 2)
     actor = QValueActor(
-        TensorDictSequential(encoder, _module(network, encoder.out_keys[0])),
+        TensorDictSequential(encoder, TensorDictModule(network, ["features"], ["action_value"])),
         in_keys=list(encoder.in_keys),
         spec=spec,
     )
@@ -309,19 +305,11 @@ def _structure(learner: StructureLearner, layer: Any, env: Any) -> dict[str, Any
     }
 
 
-def _module(network: torch.nn.Module, key: str) -> Any:
-    from tensordict.nn import TensorDictModule
-
-    return TensorDictModule(network, in_keys=[key], out_keys=["action_value"])
-
-
 def evaluate(config: RiskConfig, unit: dict[str, Any], acting: Any) -> dict[str, int]:
     """Greedy episodes after training (torchrl's ``DETERMINISTIC`` exploration) on fresh worlds
     of the same kind: collisions and successes.
 
     Args:
-        config: the experiment.
-        unit: one of ``units(config)``.
         acting: the greedy policy (a tensordict module).
     """
     import torch
@@ -371,7 +359,6 @@ def run_sb3(
     units.
 
     Args:
-        config: the experiment.
         unit: one of ``units(config)`` (its world must be ``"grid"``).
         progress: called with the env steps of each callback.
     """

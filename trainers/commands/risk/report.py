@@ -15,11 +15,7 @@ SWEEP_MEASURES = ("train_collisions", "greedy_collisions", "final_return", "gree
 
 
 def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """Per world and method of a ``risk.json`` dict: the ``SWEEP_MEASURES``' means.
-
-    Args:
-        results: the dict of ``risk.json``.
-    """
+    """Per world and method of a ``risk.json`` dict: the ``SWEEP_MEASURES``' means."""
     return {
         f"{row['world']}/{row['method']}": {
             "world": row["world"],
@@ -37,11 +33,7 @@ def _cell(value: float | None, digits: int = 1) -> str:
 
 
 def markdown(results: dict[str, Any]) -> str:
-    """The table of means and the ratios.
-
-    Args:
-        results: the dict of ``risk.json``.
-    """
+    """The table of means and the ratios."""
     config = results["config"]
     lines = [
         f"DQN alone vs DQN + local risk: {config['steps']:,} env steps per unit, "
@@ -144,12 +136,7 @@ def _risk_markdown(results: dict[str, Any]) -> list[str]:
 
 
 def figure(results: dict[str, Any], path: Path) -> None:
-    """Training collisions and final return per method, one panel pair per world.
-
-    Args:
-        results: the dict of ``risk.json``.
-        path: the PNG to write.
-    """
+    """Training collisions and final return per method, one panel pair per world."""
     import matplotlib
 
     matplotlib.use("Agg")

@@ -40,6 +40,7 @@ from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD, substream_key
 from factorq_torch.base.validation import INT32_MAX, check_int, check_names, check_threads
 from factorq_trainers.analysis.stats import bootstrap_mean_ci, count_ratio, scalar_ci
 from factorq_trainers.analysis.vocabulary import among
+from factorq_trainers.commands.transfer.report import PAIRS
 from factorq_trainers.methods.experiment import (
     MAX_SEED,
     PAPER_WORLD,
@@ -64,23 +65,22 @@ METHODS = among(
 #: What runs unless ``--methods`` says otherwise (the learned structure runs on the torchrl path
 #: only, minutes where the rest takes seconds: opt-in).
 DEFAULT_METHODS = METHODS[:3]
-#: The fresh method each carried one is measured against.
-PAIRS = {"factor-q-body": "factor-q", "factor-q-learned-body": "factor-q-learned"}
 #: The issue's target: the body model's collisions in the first ``early`` episodes of the target
 #: at most a fifth of a fresh Factor-Q's.
 TARGET_RATIO = 5.0
 #: Substream of the source task's keys (the target's are the streams themselves).
 SOURCE_SUBSTREAM = 1
 
-_PER_SEED = {
+#: A unit's result (``run_unit``), what a kept one must hold (``runner.kept``'s schema).
+UNIT_RESULT = {
     "early_collisions": [COUNT],
     "late_collisions": [COUNT],
     "late_steps": [NON_NEGATIVE],
     "late_truncated": [FRACTION],
     "collisions_per_episode": [NON_NEGATIVE],
+    "path": TEXT,
+    "body_from": TEXT,
 }
-#: A unit's result (``run_unit``), what a kept one must hold (``runner.kept``'s schema).
-UNIT_RESULT = {**_PER_SEED, "path": TEXT, "body_from": TEXT}
 
 
 #: The default target: a larger, more crowded grid than the paper's, with another layout.
@@ -149,14 +149,7 @@ class TransferConfig(WorldOptions):
 
     @property
     def target_world(self) -> WorldConfig:
-        return check_world_options(
-            self.size,
-            self.obstacles,
-            self.max_steps,
-            self.layout_seed,
-            self.regimes,
-            body_options(self),
-        )
+        return self.checked_world(self.regimes)
 
     @property
     def source_world(self) -> WorldConfig:
@@ -199,12 +192,6 @@ def _keys(config: TransferConfig, regime: str, source: bool) -> tuple[torch.Tens
     return keys[0], keys[1]
 
 
-def _uses_fast(config: TransferConfig, world: WorldConfig) -> bool:
-    from factorq_trainers.compiled import fast
-
-    return config.path == "fast" and fast.is_available() and fast.unsupported_reason(world) is None
-
-
 def run_batch(
     config: TransferConfig,
     algorithm: str,
@@ -226,9 +213,10 @@ def run_batch(
     world_keys, policy_keys = _keys(config, regime, source)
     periods = torch.full((config.seeds,), REGIME_PERIODS[regime], dtype=torch.int64)
     agent = config.agent(algorithm)
-    if not learned and _uses_fast(config, world):
-        from factorq_trainers.compiled import fast
+    from factorq_trainers.compiled import fast
 
+    fast_path = config.path == "fast" and fast.is_available()
+    if fast_path and not learned and fast.unsupported_reason(world) is None:
         batch = fast.ExperimentBatch(
             algorithm, periods, world, agent, 1, episodes, world_keys, policy_keys,
             threads=config.threads,

@@ -8,8 +8,8 @@ from typing import Any
 from factorq_trainers.analysis.stats import TOO_LITTLE_DATA
 from factorq_trainers.analysis.vocabulary import label
 
-#: The fresh method each carried one is measured against (``transfer.PAIRS``).
-FRESH = {"factor-q-body": "factor-q", "factor-q-learned-body": "factor-q-learned"}
+#: The fresh method each carried one is measured against.
+PAIRS = {"factor-q-body": "factor-q", "factor-q-learned-body": "factor-q-learned"}
 
 
 def _cell(stat: dict[str, Any], digits: int = 1) -> str:
@@ -61,7 +61,7 @@ def markdown(results: dict[str, Any]) -> str:
             against = per_regime.get(regime)
             if against is None:
                 continue
-            fresh = methods[FRESH[carried]]["early_collisions"]["mean"]
+            fresh = methods[PAIRS[carried]]["early_collisions"]["mean"]
             body = methods[carried]["early_collisions"]["mean"]
             ratio = against["early_collisions_ratio"]
             if ratio is not None:
@@ -85,12 +85,7 @@ def markdown(results: dict[str, Any]) -> str:
 
 def figure(results: dict[str, Any], path: Path) -> None:
     """Collisions per episode (mean over seeds) in the first episodes of the target, one panel
-    per regime, each method a line (log scale: Q-learning's are hundreds of times more).
-
-    Args:
-        results: the dict of ``transfer.json``.
-        path: the PNG to write.
-    """
+    per regime, each method a line (log scale: Q-learning's are hundreds of times more)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
