@@ -21,9 +21,7 @@ from factorq_torch.base.validation import (
 from factorq_trainers.methods import experiment
 from factorq_trainers.methods.experiment import (
     MAX_SEED,
-    body_options,
     check_qlearning_table,
-    check_world_options,
 )
 from factorq_trainers.runner.options import option
 
@@ -88,14 +86,7 @@ class PaperConfig(experiment.WorldOptions):
         check_int("runs", self.runs, 1, INT32_MAX)
         check_int("episodes", self.episodes, 1, INT32_MAX)
         object.__setattr__(self, "regimes", check_names("regimes", self.regimes, REGIMES))
-        world = check_world_options(
-            self.size,
-            self.obstacles,
-            self.max_steps,
-            self.layout_seed,
-            self.regimes,
-            body_options(self),
-        )
+        world = self.checked_world(self.regimes)
         object.__setattr__(self, "methods", check_names("methods", self.methods, ALGORITHMS))
         _ = self.agent  # AgentConfig validates epsilon, gamma, alpha, eta and g_min
         if "q-learning" in self.methods:  # its state holds the pattern of all sensors
@@ -130,9 +121,7 @@ class PaperConfig(experiment.WorldOptions):
     @property
     def world(self) -> WorldConfig:
         """The world of every experiment; the obstacle period is set per experiment."""
-        return check_world_options(
-            self.size, self.obstacles, self.max_steps, self.layout_seed, (), body_options(self)
-        )
+        return self.checked_world()
 
     @property
     def cells(self) -> list[tuple[str, str]]:
