@@ -13,6 +13,7 @@ import torch
 
 from factorq_envs.grid_world import WorldConfig
 from factorq_envs.regimes import REGIME_PERIODS
+from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
 from factorq_trainers.commands.dependencies.config import (
     CURVE_EVERY,
@@ -197,57 +198,45 @@ def _structure_result(
     }
 
 
-def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, Any]:
-    """``run_learned`` on the modular torchrl path: ``StructureLearner`` through
-    ``FactorQPolicy``, ``FactorQLoss`` and ``OnlineCollector``."""
-    from tensordict.nn import TensorDictSequential
-    from torchrl.envs import Compose, TransformedEnv
-
-    from factorq_envs.permutation import PermuteSensors, permuted_dependency
-    from factorq_envs.transforms import SplitLocalReward
-    from factorq_torch.collectors import OnlineCollector
-    from factorq_torch.objectives import FactorQLoss
-    from factorq_torch.policy import FactorQPolicy
-    from factorq_torch.structure import StructureLearner
+def _permuted_agent(
+    config: DependenciesConfig, setting: str, local: Any, agent: AgentConfig
+) -> tuple[Any, Any, Any, Any, torch.Tensor]:
+    """``(env, policy, loss, permute, orders)`` of Factor-Q on the modular path around the
+    provider ``local``, the sensors in the learner's orders (``permute`` redraws them: the
+    change setting); the policy stream is the learned structure's (the gated network's too:
+    common random numbers, ``KEYED_METHODS``)."""
+    from factorq_envs.permutation import PermuteSensors
     from factorq_torch.tables import TaskQTable
-    from factorq_trainers.methods.experiment import make_env
+    from factorq_trainers.methods.experiment import make_env, online_agent
 
-    world, agent = config.world_of(setting), config.agent_of("factor-q-learned")
-    count, num_sensors = config.seeds, world.num_sensors
+    world, count = config.world_of(setting), config.seeds
     world_keys, policy_keys = _keys(config, "factor-q-learned")
-    periods = [REGIME_PERIODS[config.regime]] * count
-    orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
+    orders = sensor_orders(config.seed, config.setting_stream(setting), count, world.num_sensors, 0)
     permute = PermuteSensors(orders)
-    env = TransformedEnv(make_env(world, periods, world_keys), Compose(SplitLocalReward(), permute))
+    periods = [REGIME_PERIODS[config.regime]] * count
     task = TaskQTable(
         count, world.num_cells, num_headings=world.num_headings, num_actions=world.num_actuators
     )
+    base = make_env(world, periods, world_keys)
+    env, policy, loss = online_agent(base, task, local, agent, policy_keys)
+    env.append_transform(permute)  # after the split reward, as the compiled path reads them
+    return env, policy, loss, permute, orders
+
+
+def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, Any]:
+    """``run_learned`` on the modular torchrl path: ``StructureLearner`` through
+    ``FactorQPolicy``, ``FactorQLoss`` and ``OnlineCollector``."""
+    from factorq_envs.permutation import permuted_dependency
+    from factorq_torch.collectors import OnlineCollector
+    from factorq_torch.structure import StructureLearner
+
+    world, agent = config.world_of(setting), config.agent_of("factor-q-learned")
+    count, num_sensors = config.seeds, world.num_sensors
     learner = StructureLearner(
         count, num_actions=world.num_actuators, num_sensors=num_sensors, **_learner_options(config)
     )
-    policy = FactorQPolicy(
-        count,
-        keys=policy_keys,
-        epsilon=agent.epsilon,
-        exploration=agent.exploration,
-        risk_threshold=agent.risk_threshold,
-        risk_gate=agent.risk_gate,
-    )
-    loss = FactorQLoss(
-        task,
-        learner,
-        gamma=agent.gamma,
-        alpha=agent.alpha,
-        risk_threshold=agent.risk_threshold,
-        risk_gate=agent.risk_gate,
-    )
-    collector = OnlineCollector(
-        env,
-        TensorDictSequential(task, learner, policy),
-        loss,
-        runs=config.runs,
-        episodes=config.episodes,
-    )
+    env, policy, loss, permute, orders = _permuted_agent(config, setting, learner, agent)
+    collector = OnlineCollector(env, policy, loss, runs=config.runs, episodes=config.episodes)
     truth = permuted_dependency(world.dependency, orders)  # [S, A, K]
     actuators = world.num_actuators
     right_since = torch.full((count, actuators), -1)  # samples when it last became right
@@ -366,30 +355,12 @@ def run_gated(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     setting: redrawn at the same run). Its structure is read at the end (``structure()``: a
     sensor is a parent when flipping it moves the predicted local reward by a quarter of a
     collision), against the truth of that moment."""
-    from tensordict.nn import TensorDictSequential
-    from torchrl.envs import Compose, TransformedEnv
-
-    from factorq_envs.permutation import PermuteSensors, permuted_dependency
-    from factorq_envs.transforms import SplitLocalReward
+    from factorq_envs.permutation import permuted_dependency
     from factorq_torch.collectors import OnlineCollector
     from factorq_torch.neural import GatedLocalRewardNetwork
-    from factorq_torch.objectives import FactorQLoss
-    from factorq_torch.policy import FactorQPolicy
-    from factorq_torch.tables import TaskQTable
-    from factorq_trainers.methods.experiment import make_env
 
     world, agent = config.world_of(setting), config.agent_of("factor-q-gated")
     count, num_sensors = config.seeds, world.num_sensors
-    world_keys, policy_keys = _keys(
-        config, "factor-q-learned"
-    )  # common random numbers (KEYED_METHODS)
-    orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
-    permute = PermuteSensors(orders)
-    periods = [REGIME_PERIODS[config.regime]] * count
-    env = TransformedEnv(make_env(world, periods, world_keys), Compose(SplitLocalReward(), permute))
-    task = TaskQTable(
-        count, world.num_cells, num_headings=world.num_headings, num_actions=world.num_actuators
-    )
     local = GatedLocalRewardNetwork(
         count,
         num_actions=world.num_actuators,
@@ -397,32 +368,10 @@ def run_gated(config: DependenciesConfig, setting: str) -> dict[str, Any]:
         l1=GATED_L1,
         seed=config.seed,
     )
+    env, policy, loss, permute, orders = _permuted_agent(config, setting, local, agent)
     optimizer = torch.optim.Adam(local.parameters(), lr=GATED_LEARNING_RATE)
     collector = OnlineCollector(
-        env,
-        TensorDictSequential(
-            task,
-            local,
-            FactorQPolicy(
-                count,
-                keys=policy_keys,
-                epsilon=agent.epsilon,
-                exploration=agent.exploration,
-                risk_threshold=agent.risk_threshold,
-                risk_gate=agent.risk_gate,
-            ),
-        ),
-        FactorQLoss(
-            task,
-            local,
-            gamma=agent.gamma,
-            alpha=agent.alpha,
-            risk_threshold=agent.risk_threshold,
-            risk_gate=agent.risk_gate,
-        ),
-        runs=config.runs,
-        episodes=config.episodes,
-        optimizer=optimizer,
+        env, policy, loss, runs=config.runs, episodes=config.episodes, optimizer=optimizer
     )
     truth = permuted_dependency(world.dependency, orders)
     changed = torch.zeros(count, dtype=torch.bool)
