@@ -1205,16 +1205,21 @@ class StructureLearner(TensorDictModuleBase):
             for value in differences[1:]:
                 total = total + value
             lead = log_prior[held] + (0.0 + total)  # log_posterior_of(0.0, ...)
-            rival = max(self._read_log_posterior(arrays, "block_", flat, log_prior))
-            threshold = (
-                self.log_noisy_reopen_factor
-                if arrays["noise_seen"][flat // self.num_actions]
-                else self.log_reopen_factor
-            )
-            reopen.append(rival - lead >= threshold)
+            reopen.append(self._reopens_read(arrays, flat, lead, log_prior))
         arrays["committed"][fired_rows] = [-1 if gone else held for gone, held in
                                            zip(reopen, new, strict=True)]  # fmt: skip
         return reopen if any(reopen) else None
+
+    def _reopens_read(self, arrays: dict, flat: int, lead: float, log_prior: list[float]) -> bool:
+        """Whether the block's best log posterior beats the committed set's ``lead`` by the
+        reopening factor (the noisy one once the body's sensors read wrong)."""
+        rival = max(self._read_log_posterior(arrays, "block_", flat, log_prior))
+        threshold = (
+            self.log_noisy_reopen_factor
+            if arrays["noise_seen"][flat // self.num_actions]
+            else self.log_reopen_factor
+        )
+        return rival - lead >= threshold
 
     def _change_read(
         self, arrays: dict, flat: int, held: int, log_prior: list[float]
@@ -1240,13 +1245,7 @@ class StructureLearner(TensorDictModuleBase):
         for m, e in zip(marginal[1:], earlier[1:], strict=True):
             total = total + (m - e)
         lead = log_prior[held] + (0.0 + total)  # log_posterior_of(0.0, ...)
-        rival = max(self._read_log_posterior(arrays, "block_", flat, log_prior))
-        threshold = (
-            self.log_noisy_reopen_factor
-            if arrays["noise_seen"][flat // self.num_actions]
-            else self.log_reopen_factor
-        )
-        if rival - lead >= threshold:
+        if self._reopens_read(arrays, flat, lead, log_prior):
             arrays["committed"][flat] = -1
             return [True]
         return None

@@ -9,10 +9,14 @@ worker only oversubscribes them (measured: a third of the suite's CPU time spent
 Tests of several threads ask for them explicitly (the kernel's ``threads``).
 """
 
+import importlib.util
 import os
+from pathlib import Path
 
 import pytest
 import torch
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def pytest_configure(config):
@@ -33,3 +37,18 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="session")
+def script():
+    """``script("benchmarks/x.py")``: a file of the repository that is not in a package (a
+    benchmark, an example, a docs helper) imported as a module, definitions run."""
+
+    def load(relative: str):
+        path = ROOT / relative
+        spec = importlib.util.spec_from_file_location(f"{path.stem}_under_test", path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import sys
 from pathlib import Path
 
@@ -13,12 +12,8 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture(scope="module")
-def compare():
-    spec = importlib.util.spec_from_file_location(
-        "compare_commits_under_test", ROOT / "benchmarks" / "compare_commits.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+def compare(script):
+    module = script("benchmarks/compare_commits.py")
     assert "torch" not in vars(module)  # the parent imports no torch: the workers do
     return module
 

@@ -3,26 +3,17 @@ its likelihood (nothing timed here; the comparison itself is in docs/decisions.m
 
 from __future__ import annotations
 
-import importlib.util
 import math
-from pathlib import Path
 
 import pytest
 import torch
 
 from factorq_torch.functional import candidate_sets, mixture_log_marginal
 
-ROOT = Path(__file__).resolve().parent.parent
-
 
 @pytest.fixture(scope="module")
-def evidence():
-    spec = importlib.util.spec_from_file_location(
-        "structure_evidence_under_test", ROOT / "benchmarks" / "structure_evidence.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def evidence(script):
+    return script("benchmarks/structure_evidence.py")
 
 
 def test_one_firing_cannot_tell_a_sensor_from_no_sensor(evidence):
