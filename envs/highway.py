@@ -40,6 +40,7 @@ learner say whether it agrees.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from types import ModuleType
 from typing import Any
 
@@ -67,7 +68,7 @@ SENSOR_NAMES = tuple(f"{lane}<{h}s" for lane in LANES for h in (NEAR_S, FAR_S))
 PENALTY = 1.0 / 1.5
 
 
-def _oracle() -> tuple[tuple[bool, ...], ...]:
+def _oracle(paired: bool = False) -> tuple[tuple[bool, ...], ...]:
     near, far = NEAR_S, FAR_S
     parents = {
         "LANE_LEFT": (f"left<{near}s", f"left<{far}s"),
@@ -76,11 +77,21 @@ def _oracle() -> tuple[tuple[bool, ...], ...]:
         "FASTER": (f"front<{near}s", f"front<{far}s"),
         "SLOWER": (f"front<{near}s",),
     }
+    if paired:  # what the data support (docs/decisions.md, "highway-env's sensors ...")
+        parents.update(
+            LANE_LEFT=(f"left<{near}s", f"front<{near}s"),
+            IDLE=(f"front<{near}s",),
+            LANE_RIGHT=(f"right<{near}s", f"front<{near}s"),
+            FASTER=(f"front<{near}s",),
+        )
     return tuple(tuple(name in parents[a] for name in SENSOR_NAMES) for a in ACTUATOR_NAMES)
 
 
 #: What we believe decides each action's crash, ``[5, 6]`` (module docstring).
 ORACLE = _oracle()
+#: What the data support: a lane change's crash decided by its target lane and the vehicle
+#: ahead together, IDLE and FASTER by the vehicle ahead within 1 s (the ``highway-pairs`` world).
+PAIRED_ORACLE = _oracle(paired=True)
 
 
 def require_highway() -> ModuleType:
@@ -120,9 +131,13 @@ DECLARATION = Declaration(
 )
 
 
-def make_highway(seed: int | None = None, env_id: str = ENV_ID, **config: Any) -> FactorQEnv:
+def make_highway(
+    seed: int | None = None, env_id: str = ENV_ID, paired: bool = False, **config: Any
+) -> FactorQEnv:
     """The adapter around highway-env's ``env_id`` (default ``highway-fast-v0``; ``config``
-    entries update highway's own config); ``seed``: its first reset's seed."""
+    entries update highway's own config); ``seed``: its first reset's seed; ``paired``: declare
+    ``PAIRED_ORACLE`` instead of ``ORACLE``."""
     require_highway()
     env = make_registered(env_id, config=config or None, disable_env_checker=True)
-    return FactorQEnv(env, DECLARATION, seed=seed)
+    declaration = replace(DECLARATION, dependency=PAIRED_ORACLE) if paired else DECLARATION
+    return FactorQEnv(env, declaration, seed=seed)

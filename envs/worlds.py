@@ -7,8 +7,9 @@ The same name reaches it from every command that takes a declared env (``factorq
 ``factorq risk --worlds``):
 
 - a **built-in** name (``BUILT_IN``: ``highway``, ``minigrid-5x5``, ``minigrid-6x6``,
-  ``minigrid-8x8``, ``minigrid-16x16``, and the project's own ``grid-10x10``,
-  ``grid-10x10-dynamic`` and ``corridor`` through ``factorq_envs.project_worlds``);
+  ``minigrid-8x8``, ``minigrid-16x16``, the project's own ``grid-10x10``,
+  ``grid-10x10-dynamic`` and ``corridor`` through ``factorq_envs.project_worlds``, and
+  ``highway-pairs``, highway declaring ``factorq_envs.highway.PAIRED_ORACLE``);
 - an **installed** one: a package adds worlds through the ``factorq.worlds`` entry point group,
   each entry point naming a ``DeclaredWorld`` (``[project.entry-points."factorq.worlds"]
   lake = "my_package.worlds:LAKE"``);
@@ -132,6 +133,13 @@ def make_highway(seed: int) -> FactorQEnv:
     return make(seed)
 
 
+def make_highway_paired(seed: int) -> FactorQEnv:
+    """``make_highway`` declaring ``factorq_envs.highway.PAIRED_ORACLE``."""
+    from factorq_envs.highway import make_highway as make
+
+    return make(seed, paired=True)
+
+
 def make_minigrid_of(size: int) -> Callable[[int], FactorQEnv]:
     """``seed -> `` MiniGrid Dynamic-Obstacles ``size`` x ``size`` with the "nodeath" semantics
     (the adapter imported when a world is made: listing the worlds imports neither MiniGrid nor
@@ -191,6 +199,13 @@ BUILT_IN = {
         make_project_world("grid", 1), "the paper's grid (10x10, dynamic)", threshold=-36.0
     ),
     "corridor": DeclaredWorld(make_project_world("corridor"), "the corridor", threshold=-22.0),
+    "highway-pairs": DeclaredWorld(
+        make_highway_paired,
+        "highway-fast-v0 (paired oracle)",
+        threshold=20.0,
+        requires=(("highway_env", "highway"),),
+        survival=True,
+    ),
 }
 
 

@@ -249,7 +249,7 @@ def test_an_installed_package_adds_worlds_through_the_entry_point_group(tmp_path
     _install(site, "pkg_cliff_world", entry_points)
     monkeypatch.syspath_prepend(str(site))
     try:
-        assert worlds.names()[8:] == ["cliff", "lost"]
+        assert worlds.names()[len(BUILT_IN) :] == ["cliff", "lost"]
         assert resolve_world("cliff").label == "CliffWalking-v1"
         assert resolve_world("highway") is BUILT_IN["highway"]
         with pytest.raises(WorldError, match="entry point 'pkg_cliff_world:GONE' of factorq"):
@@ -257,7 +257,7 @@ def test_an_installed_package_adds_worlds_through_the_entry_point_group(tmp_path
         with pytest.raises(
             WorldError,
             match="choose one of highway, minigrid-5x5, minigrid-6x6, minigrid-8x8, "
-            "minigrid-16x16, grid-10x10, grid-10x10-dynamic, corridor, cliff, lost",
+            "minigrid-16x16, grid-10x10, grid-10x10-dynamic, corridor, highway-pairs, cliff, lost",
         ):
             resolve_world("atari")
     finally:

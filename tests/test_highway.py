@@ -104,3 +104,22 @@ def test_gymnasium_and_torchrl_checkers_accept_it():
         td["observation"].shape == (2, 5, 5) and td[keys.SENSORS].dtype.is_floating_point is False
     )
     assert torchrl_env.dependency.shape == (5, 6)
+
+
+def test_the_paired_oracle_is_what_the_data_support():
+    """``highway-pairs`` declares a lane change's crash by its target lane and the vehicle ahead
+    within 1 s, IDLE and FASTER by the vehicle ahead within 1 s; SLOWER as the written oracle."""
+    paired = dict(zip(highway.ACTUATOR_NAMES, np.array(highway.PAIRED_ORACLE), strict=True))
+    names = np.array(highway.SENSOR_NAMES)
+    assert list(names[paired["LANE_LEFT"]]) == ["left<1s", "front<1s"]
+    assert list(names[paired["LANE_RIGHT"]]) == ["front<1s", "right<1s"]
+    for action in ("IDLE", "FASTER", "SLOWER"):
+        assert list(names[paired[action]]) == ["front<1s"]
+    pytest.importorskip("highway_env")
+    from factorq_envs.worlds import resolve_world
+
+    env = resolve_world("highway-pairs").make(0)
+    try:
+        assert env.declaration.dependency == highway.PAIRED_ORACLE
+    finally:
+        env.close()
