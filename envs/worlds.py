@@ -168,19 +168,21 @@ def make_project_world(kind: str, period: int = 0) -> Callable[[int], FactorQEnv
     return make
 
 
+def _highway_world(make: Callable[[int], FactorQEnv], label: str) -> DeclaredWorld:
+    """highway-fast-v0 declared by ``make``: a success survives to the time limit, a training
+    return of 20 counts as learned."""
+    return DeclaredWorld(
+        make, label, threshold=20.0, requires=(("highway_env", "highway"),), survival=True
+    )
+
+
 #: The MiniGrid Dynamic-Obstacles sizes ``factorq minigrid --sizes`` runs, declared as worlds.
 MINIGRID_SIZES = (5, 6, 8, 16)
 
 
 #: The worlds that ship, by name.
 BUILT_IN = {
-    "highway": DeclaredWorld(
-        make_highway,
-        "highway-fast-v0",
-        threshold=20.0,
-        requires=(("highway_env", "highway"),),
-        survival=True,
-    ),
+    "highway": _highway_world(make_highway, "highway-fast-v0"),
     **{
         f"minigrid-{size}x{size}": DeclaredWorld(
             make_minigrid_of(size),
@@ -199,13 +201,7 @@ BUILT_IN = {
         make_project_world("grid", 1), "the paper's grid (10x10, dynamic)", threshold=-36.0
     ),
     "corridor": DeclaredWorld(make_project_world("corridor"), "the corridor", threshold=-22.0),
-    "highway-pairs": DeclaredWorld(
-        make_highway_paired,
-        "highway-fast-v0 (paired oracle)",
-        threshold=20.0,
-        requires=(("highway_env", "highway"),),
-        survival=True,
-    ),
+    "highway-pairs": _highway_world(make_highway_paired, "highway-fast-v0 (paired oracle)"),
 }
 
 
