@@ -1,12 +1,14 @@
 """What several commands' units share around their methods, torch loaded only when a unit runs:
 ``torch_threads`` (a unit's torch threads, restored after), ``tick`` (progress every 100 env
-steps) and ``seed_stat`` (a measure's mean over seeds with its 95% interval)."""
+steps), ``seed_stat`` (a measure's mean over seeds with its 95% interval) and ``Tally`` (one
+experiment's training record: ``gym``, ``risk``, ``minigrid``)."""
 
 from __future__ import annotations
 
 import contextlib
 import functools
-from collections.abc import Callable, Iterator
+import sys
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 from factorq_trainers.analysis.stats import bootstrap_mean_ci, interval, scalar_ci, wilson_ci
@@ -41,3 +43,118 @@ def seed_stat(values: list[float | None], seed: int, proportion: bool = False) -
     method = wilson_ci if proportion else functools.partial(bootstrap_mean_ci, seed=seed)
     mean, low, high = scalar_ci(present, method)
     return {"mean": mean, "ci95": interval(low, high), "n": len(present)}
+
+
+class Tally:
+    """One experiment's training, fed one env step at a time: its collisions (all, and on greedy
+    actions), its finished episodes (``episodes``: end step, return, success, length each),
+    ``reached``: the env step at which the mean score of the last ``window`` episodes first
+    reached ``threshold`` (their successes, or with ``by_return`` their returns; None before),
+    and with ``curve_every`` the curves of ``factorq gym``: at every ``curve_every``-th step and
+    at step ``steps``, the step, the collisions so far and the mean return of the last ``window``
+    episodes (None before the first)."""
+
+    def __init__(
+        self,
+        window: int,
+        threshold: float,
+        *,
+        by_return: bool = False,
+        curve_every: int = 0,
+        steps: int = 0,
+    ) -> None:
+        self.window, self.threshold, self.by_return = window, threshold, by_return
+        self.curve_every, self.steps = curve_every, steps
+        self.step = self.collisions = self.greedy_collisions = self.length = 0
+        self.episode_return = 0.0
+        self.episodes: list[tuple[int, float, bool, int]] = []
+        self.returns: list[float] = []
+        self.reached: int | None = None
+        names = ("curve_steps", "curve_crashes", "curve_return")
+        self.curves: dict[str, list[Any]] = {name: [] for name in names}
+
+    def update(
+        self, reward: float, collided: bool, done: bool, success: bool = False, greedy: bool = True
+    ) -> None:
+        """Count one env step: its conventional reward, whether it collided, ended the episode,
+        reached the goal (or survived), and whether its action was greedy (not exploratory)."""
+        self.step += 1
+        self.length += 1
+        self.collisions += int(collided)
+        self.greedy_collisions += int(collided and greedy)
+        self.episode_return += reward
+        window = self.window
+        if done:
+            self.episodes.append((self.step, self.episode_return, success, self.length))
+            self.returns.append(self.episode_return)
+            self.episode_return, self.length = 0.0, 0
+            recent = [episode[1 if self.by_return else 2] for episode in self.episodes[-window:]]
+            if self.reached is None and len(recent) == window and _mean(recent) >= self.threshold:
+                self.reached = self.step
+        if self.curve_every and (self.step % self.curve_every == 0 or self.step == self.steps):
+            self.curves["curve_steps"].append(self.step)
+            self.curves["curve_crashes"].append(self.collisions)
+            recent = self.returns[-window:]
+            self.curves["curve_return"].append(_mean(recent) if recent else None)
+
+
+def _mean(values: list[Any]) -> float:
+    return float(sum(values) / len(values))
+
+
+def greedy_rollouts(policy: Any, envs: Iterable[Any], limit: int | None = None) -> list[Any]:
+    """One episode of ``policy`` in each torchrl env of ``envs``, greedy (exploration
+    ``DETERMINISTIC``, no gradients), at most ``limit`` steps (None: until it ends): the
+    rollouts ``[*B, T]``."""
+    import torch
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    steps = sys.maxsize if limit is None else limit
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        return [env.rollout(steps, policy, break_when_any_done=True) for env in envs]
+
+
+#: Stable-Baselines3 ``DQN``'s argument for each of ``methods.dqn.DQNConfig``'s names.
+SB3_DQN_NAMES = {
+    "lr": "learning_rate",
+    "train_every": "train_freq",
+    "eps_start": "exploration_initial_eps",
+    "eps_end": "exploration_final_eps",
+    **{name: name for name in ("buffer_size", "learning_starts", "batch_size", "gamma", "tau")},
+    **{name: name for name in ("target_update_interval", "exploration_fraction")},
+}
+
+
+def sb3_dqn(
+    settings: dict[str, Any], env: Any, policy: str, model: Any = None, **extra: Any
+) -> Any:
+    """SB3's ``DQN`` (or ``model``, a subclass) on ``env`` with ``settings`` in ``DQNConfig``'s
+    names (``hidden``: the widths of ``policy``'s hidden layers) and SB3's own ``extra``."""
+    from stable_baselines3 import DQN
+
+    arguments = {SB3_DQN_NAMES[name]: value for name, value in settings.items() if name != "hidden"}
+    net = {"net_arch": list(settings["hidden"])}
+    return (model or DQN)(policy, env, policy_kwargs=net, **arguments, **extra)
+
+
+def sb3_greedy(
+    model: Any, envs: Iterable[Any], collided: Callable[[dict], bool], limit: int | None = None
+) -> list[tuple[float, int, bool]]:
+    """One greedy episode (``predict(deterministic=True)``) of SB3 ``model`` in each gymnasium
+    env of ``envs`` (reset first), at most ``limit`` steps (None: until it ends): its return,
+    its collisions (``collided(info)`` of each step) and whether it terminated on a step without
+    one (the goal reached)."""
+    episodes = []
+    for env in envs:
+        observation, _ = env.reset()
+        total, collisions, success = 0.0, 0, False
+        for _ in range(sys.maxsize if limit is None else limit):
+            action, _ = model.predict(observation, deterministic=True)
+            observation, reward, terminated, truncated, info = env.step(int(action))
+            hit = collided(info)
+            total, collisions = total + float(reward), collisions + int(hit)
+            if terminated or truncated:
+                success = bool(terminated) and not hit
+                break
+        episodes.append((total, collisions, success))
+    return episodes

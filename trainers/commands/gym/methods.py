@@ -1,18 +1,16 @@
 """``factorq gym``'s methods, each training and evaluating one unit (one method, one seed):
 torchrl's DQN, neural Factor-Q (oracle or learned dependencies) and SB3's DQN, with the
-settings they share (``HIGHWAY_DQN``), the unit's seeds and envs, the observation networks and
-the ``Recorder`` of a training run. The command is ``factorq_trainers.commands.gym.command``
-(``RUNNERS``: method -> its function).
-"""
+settings they share (``HIGHWAY_DQN``) and the unit's seeds and envs (``RUNNERS``: method -> its
+function)."""
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
 from factorq_trainers.commands.gym.config import METHODS, GymConfig
-from factorq_trainers.methods.units import tick
+from factorq_trainers.methods.units import Tally, greedy_rollouts, sb3_dqn, sb3_greedy, tick
 
 if TYPE_CHECKING:
     import torch
@@ -68,81 +66,44 @@ def _torchrl_env(config: GymConfig, seed: int) -> DeclaredEnv:
 # The training record and the methods
 
 
-class Recorder:
-    """Crashes, returns and curves of one training experiment.
-
-    Args:
-        config: the experiment (its ``steps``, ``window``, threshold and ``curve_points``).
-    """
-
-    def __init__(self, config: GymConfig) -> None:
-        self.config = config
-        self.step = 0
-        self.crashes = 0
-        self.episode_return = 0.0
-        self.returns: list[float] = []
-        self.reached: int | None = None
-        self.every = max(1, config.steps // config.curve_points)
-        self.curve_steps: list[int] = []
-        self.curve_crashes: list[int] = []
-        self.curve_return: list[float | None] = []
-
-    def update(self, crashed: bool, reward: float, done: bool) -> None:
-        """Count one env step.
-
-        Args:
-            crashed: the step collided.
-            reward: its conventional reward.
-            done: it ended the episode.
-        """
-        self.step += 1
-        self.crashes += int(crashed)
-        self.episode_return += reward
-        if done:
-            self.returns.append(self.episode_return)
-            self.episode_return = 0.0
-            recent = self.returns[-self.config.window :]
-            enough = len(recent) == self.config.window
-            if self.reached is None and enough and _mean(recent) >= self.config.return_threshold:
-                self.reached = self.step
-        if self.step % self.every == 0 or self.step == self.config.steps:
-            self.curve_steps.append(self.step)
-            self.curve_crashes.append(self.crashes)
-            recent = self.returns[-self.config.window :]
-            self.curve_return.append(_mean(recent) if recent else None)
-
-    def result(self) -> dict[str, Any]:
-        """The unit's training measures and curves (JSON)."""
-        return {
-            "crashes": self.crashes,
-            "crashes_per_1000": 1000.0 * self.crashes / max(1, self.step),
-            "episodes": len(self.returns),
-            "steps_to_threshold": self.reached,
-            "curve_steps": self.curve_steps,
-            "curve_crashes": self.curve_crashes,
-            "curve_return": self.curve_return,
-        }
-
-
-def _mean(values: Sequence[float]) -> float:
-    return float(sum(values) / len(values))
+def _tally(config: GymConfig) -> Tally:
+    """A unit's training record: steps to threshold and curves on the mean return."""
+    every = max(1, config.steps // config.curve_points)
+    return Tally(
+        config.window,
+        config.return_threshold,
+        by_return=True,
+        curve_every=every,
+        steps=config.steps,
+    )
 
 
 def _measures(
-    config: GymConfig, recorder: Recorder, greedy: dict[str, Any], wall: float
+    config: GymConfig, tally: Tally, greedy: list[tuple[float, bool]], wall: float
 ) -> dict[str, Any]:
-    """A unit's result: its training record, the greedy measures and the env steps per second."""
-    return {**recorder.result(), **greedy, "wall_s": wall, "steps_per_s": config.steps / wall}
+    """A unit's result: its training record, the greedy measures (``greedy``: return and
+    crashed of each episode) and the env steps per second."""
+    return {
+        "crashes": tally.collisions,
+        "crashes_per_1000": 1000.0 * tally.collisions / max(1, tally.step),
+        "episodes": len(tally.returns),
+        "steps_to_threshold": tally.reached,
+        **tally.curves,
+        "greedy_crash_rate": sum(crashed for _, crashed in greedy) / config.eval_episodes,
+        "greedy_return": float(sum(total for total, _ in greedy) / len(greedy)),
+        "wall_s": wall,
+        "steps_per_s": config.steps / wall,
+    }
 
 
-def _transition(td: Any) -> tuple[bool, float, bool]:
-    """(crashed, conventional reward, done) of a ``[1]`` transition (split or not)."""
+def _transition(td: Any) -> tuple[float, bool, bool]:
+    """(conventional reward, crashed, done) of a ``[1]`` transition (split or not)."""
     nxt = td.get("next")
     reward = float(nxt.get("reward").sum())
     local = nxt.get("local_reward", None)
     if local is not None:  # the reward was split: put the collision back
         reward += float(local.sum())
-    return bool(nxt.get("bump").any()), reward, bool(nxt.get("done").any())
+    return reward, bool(nxt.get("bump").any()), bool(nxt.get("done").any())
 
 
 def _env_and_task_network(
@@ -182,17 +143,17 @@ def _run_dqn(
     key = config.spec.observation
     stored = [key, ("next", key), "action", ("next", "reward"), ("next", "done")]
     stored.append(("next", "terminated"))
-    recorder = Recorder(config)
+    tally = _tally(config)
 
     def record(td: Any, step: int) -> None:
-        recorder.update(*_transition(td))
+        tally.update(*_transition(td))
         tick(progress, step, config.steps)
 
     started = time.perf_counter()
     train_stepwise(env, agent, settings, config.steps, stored, record)
     wall = time.perf_counter() - started
     env.close()
-    return _measures(config, recorder, _evaluate(config, unit, agent.value_network), wall)
+    return _measures(config, tally, _evaluate(config, unit, agent.value_network), wall)
 
 
 def _run_factor_q(
@@ -229,16 +190,16 @@ def _run_factor_q(
     collector = OnlineCollector(
         env, policy, loss, runs=1, episodes=config.steps, optimizer=optimizer
     )
-    recorder = Recorder(config)
+    tally = _tally(config)
     started = time.perf_counter()
     for step, td in enumerate(collector, start=1):
-        recorder.update(*_transition(td))
+        tally.update(*_transition(td))
         tick(progress, step, config.steps)
         if step >= config.steps:
             break
     wall = time.perf_counter() - started
     collector.shutdown()
-    result = _measures(config, recorder, _evaluate(config, unit, policy), wall)
+    result = _measures(config, tally, _evaluate(config, unit, policy), wall)
     if oracle is not None:  # the declared names and oracle, for a summary without torch
         result["oracle"] = oracle.to(torch.int64).tolist()
         result["actuator_names"] = list(base.config.actuator_names)
@@ -253,29 +214,26 @@ def _run_factor_q(
     return result
 
 
-def _evaluate(config: GymConfig, unit: dict[str, Any], policy: Any) -> dict[str, Any]:
-    """The greedy policy (exploration off) for ``eval_episodes`` episodes on fresh env seeds."""
-    import torch
-    from torchrl.envs.utils import ExplorationType, set_exploration_type
+def _eval_seeds(config: GymConfig, unit: dict[str, Any]) -> list[int]:
+    """The env seeds of the unit's greedy episodes (fresh ones, the same for every method)."""
+    first = unit["seed_index"] * config.eval_episodes
+    return [_env_seed(config, first + episode, True) for episode in range(config.eval_episodes)]
 
-    crashes, returns = 0, []
-    for episode in range(config.eval_episodes):
-        seed = _env_seed(config, unit["seed_index"] * config.eval_episodes + episode, True)
-        env = _torchrl_env(config, seed)
-        td, total, crashed = env.reset(), 0.0, False
-        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            while True:
-                td = env.step(policy(td))
-                hit, reward, done = _transition(td)
-                total += reward
-                crashed |= hit
-                if done:
-                    break
-                td = env.step_mdp(td)
-        env.close()
-        crashes += int(crashed)
-        returns.append(total)
-    return {"greedy_crash_rate": crashes / config.eval_episodes, "greedy_return": _mean(returns)}
+
+def _evaluate(config: GymConfig, unit: dict[str, Any], policy: Any) -> list[tuple[float, bool]]:
+    """The greedy policy's episodes (exploration off) on fresh env seeds: return, crashed."""
+
+    def envs() -> Iterator[DeclaredEnv]:
+        for seed in _eval_seeds(config, unit):
+            env = _torchrl_env(config, seed)
+            yield env
+            env.close()
+
+    episodes = []
+    for rollout in greedy_rollouts(policy, envs()):
+        rewards = rollout.get(("next", "reward")).reshape(-1).tolist()
+        episodes.append((sum(rewards, 0.0), bool(rollout.get(("next", "bump")).any())))
+    return episodes
 
 
 def _run_sb3(
@@ -285,60 +243,31 @@ def _run_sb3(
     and returns read from the adapter's ``info`` by a recording wrapper."""
     import gymnasium
     import torch
-    from stable_baselines3 import DQN
 
-    recorder = Recorder(config)
+    tally = _tally(config)
 
     class Record(gymnasium.Wrapper):
         def step(self, action: Any) -> Any:
             out = self.env.step(action)
             observation, reward, terminated, truncated, info = out
-            recorder.update(bool(info["collided"]), float(reward), terminated or truncated)
-            tick(progress, recorder.step, config.steps)
+            tally.update(float(reward), bool(info["collided"]), terminated or truncated)
+            tick(progress, tally.step, config.steps)
             return out
 
     def make(seed: int) -> gymnasium.Env:
         env = config.spec.make(seed)
-        return gymnasium.wrappers.FilterObservation(env, [config.spec.observation])
+        observation = gymnasium.wrappers.FilterObservation(env, [config.spec.observation])
+        return gymnasium.wrappers.FlattenObservation(observation)
 
-    torch.manual_seed(_env_seed(config, unit["seed_index"]))
-    env = Record(gymnasium.wrappers.FlattenObservation(make(_env_seed(config, unit["seed_index"]))))
-    settings = HIGHWAY_DQN
-    model = DQN(
-        "MlpPolicy",
-        env,
-        policy_kwargs={"net_arch": list(settings["hidden"])},
-        learning_rate=settings["lr"],
-        buffer_size=settings["buffer_size"],
-        learning_starts=settings["learning_starts"],
-        batch_size=settings["batch_size"],
-        gamma=settings["gamma"],
-        train_freq=settings["train_every"],
-        gradient_steps=1,
-        target_update_interval=settings["target_update_interval"],
-        exploration_fraction=settings["exploration_fraction"],
-        seed=_env_seed(config, unit["seed_index"]),
-        device="cpu",
-    )
+    seed = _env_seed(config, unit["seed_index"])
+    torch.manual_seed(seed)
+    model = sb3_dqn(HIGHWAY_DQN, Record(make(seed)), "MlpPolicy", seed=seed, device="cpu")
     started = time.perf_counter()
     model.learn(total_timesteps=config.steps)
     wall = time.perf_counter() - started
-    crashes, returns = 0, []
-    for episode in range(config.eval_episodes):
-        seed = _env_seed(config, unit["seed_index"] * config.eval_episodes + episode, True)
-        evaluation = gymnasium.wrappers.FlattenObservation(make(seed))
-        observation, _ = evaluation.reset()
-        total, crashed, done = 0.0, False, False
-        while not done:
-            action, _ = model.predict(observation, deterministic=True)
-            observation, reward, terminated, truncated, info = evaluation.step(int(action))
-            total += float(reward)
-            crashed |= bool(info["collided"])
-            done = terminated or truncated
-        crashes += int(crashed)
-        returns.append(total)
-    greedy = {"greedy_crash_rate": crashes / config.eval_episodes, "greedy_return": _mean(returns)}
-    return _measures(config, recorder, greedy, wall)
+    envs = (make(seed) for seed in _eval_seeds(config, unit))
+    greedy = sb3_greedy(model, envs, lambda info: bool(info["collided"]))
+    return _measures(config, tally, [(total, hits > 0) for total, hits, _ in greedy], wall)
 
 
 #: Each method's function: ``(config, unit, progress) -> the unit's result``.

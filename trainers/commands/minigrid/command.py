@@ -28,7 +28,7 @@ committed to "forward <- front" (and nothing else for forward). Wall time per me
 Wilson's for the success rate, the BCa bootstrap for the rest (``factorq_trainers.analysis.stats``).
 
 This module is the command: its units, the statistics over seeds, the summary. ``MiniGridConfig``
-and the names it checks against are in ``config.py`` beside it, the methods (keys, ``Recorder``,
+and the names it checks against are in ``config.py`` beside it, the methods (keys, the tallies,
 the tabular agents, DQN) in ``methods.py``.
 """
 
@@ -122,7 +122,7 @@ def summarise_method(result: dict[str, Any], budget: int, seed: int = 0) -> dict
     bootstrap otherwise), and how often the learner found forward <- front.
 
     Args:
-        result: a method's per-seed measures (``Recorder.summary`` and ``wall_s``).
+        result: a method's per-seed measures (``methods.summary`` and ``wall_s``).
         budget: the env steps each seed ran.
         seed: the master seed (the bootstrap's resamples).
     """

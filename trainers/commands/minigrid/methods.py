@@ -1,6 +1,6 @@
 """``factorq minigrid``'s methods, each running all seeds of one method at one size: the keys
-(common random numbers: every method meets the same worlds at a size), the ``Recorder`` of
-collisions and episodes, the tabular agents through ``OnlineCollector`` and torchrl's DQN
+(common random numbers: every method meets the same worlds at a size), the ``Tally`` of each
+seed, the tabular agents through ``OnlineCollector`` and torchrl's DQN
 (``RUNNERS``: method -> its function). The command is
 ``factorq_trainers.commands.minigrid.command``.
 """
@@ -20,6 +20,7 @@ from factorq_trainers.commands.minigrid.config import (
     MiniGridConfig,
 )
 from factorq_trainers.methods import units
+from factorq_trainers.methods.units import Tally
 
 if TYPE_CHECKING:
     import torch
@@ -56,75 +57,39 @@ def method_keys(config: MiniGridConfig, size: int, method: str, stream: int) -> 
 # Recording
 
 
-class Recorder:
-    """Per-step collisions and per-episode outcomes of ``S`` experiments stepped in lockstep.
+def record(tallies: list[Tally], td: Any, reward: torch.Tensor) -> None:
+    """One step of the ``S`` experiments into their tallies: ``td``'s ``exploratory`` and
+    ``("next", bump | done)``, ``reward`` ``[S]`` MiniGrid's own (a success: a positive one
+    that ends the episode)."""
+    nxt = td.get("next")
+    bumps = nxt.get("bump").any(dim=-1).reshape(-1).tolist()
+    exploratory = td.get("exploratory").reshape(-1).tolist()
+    done = nxt.get("done").reshape(-1).tolist()
+    for i, r in enumerate(reward.reshape(-1).tolist()):
+        tallies[i].update(r, bumps[i], done[i], r > 0, not exploratory[i])
+
+
+def summary(tallies: list[Tally], budget: int, final_fraction: float) -> dict[str, list[Any]]:
+    """Per-seed measures (the command's docstring); ``None`` where there is nothing to measure.
 
     Args:
-        count: ``S``, the experiments.
+        budget: the env steps each seed ran.
+        final_fraction: the share of the budget, at its end, of the final measures.
     """
-
-    def __init__(self, count: int) -> None:
-        self.count = count
-        self.step = 0
-        self.collisions = np.zeros(count, dtype=np.int64)
-        self.greedy_collisions = np.zeros(count, dtype=np.int64)
-        self.returns = np.zeros(count)
-        self.lengths = np.zeros(count, dtype=np.int64)
-        # per experiment: (end step, success, return, length) of every finished episode
-        self.episodes: list[list[tuple[int, bool, float, int]]] = [[] for _ in range(count)]
-
-    def update(self, td: Any, conventional_reward: torch.Tensor) -> None:
-        """Record one step.
-
-        Args:
-            td: the step's tensordict: ``exploratory`` and ``("next", bump | done)``.
-            conventional_reward: ``[S]``, MiniGrid's own reward of the step.
-        """
-        self.step += 1
-        nxt = td.get("next")
-        bump = nxt.get("bump").any(dim=-1).numpy()
-        exploratory = td.get("exploratory").reshape(-1).numpy()
-        reward = conventional_reward.reshape(-1).numpy().astype(np.float64)
-        done = nxt.get("done").reshape(-1).numpy()
-        self.collisions += bump
-        self.greedy_collisions += bump & ~exploratory
-        self.returns += reward
-        self.lengths += 1
-        for i in np.flatnonzero(done):
-            success = bool(reward[i] > 0)
-            self.episodes[i].append(
-                (self.step, success, float(self.returns[i]), int(self.lengths[i]))
-            )
-            self.returns[i], self.lengths[i] = 0.0, 0
-
-    def summary(self, budget: int, window: int, final_fraction: float) -> dict[str, list[Any]]:
-        """Per-seed measures (module docstring); ``None`` where there is nothing to measure.
-
-        Args:
-            budget: the env steps each seed ran.
-            window: finished episodes in the success rate behind ``steps_to_90``.
-            final_fraction: the share of the budget, at its end, of the final measures.
-        """
-        start = budget - final_fraction * budget
-        names = ("success_rate", "return", "steps_to_goal", "episodes", "steps_to_90")
-        out: dict[str, list[Any]] = {name: [] for name in names}
-        for episodes in self.episodes:
-            final = [e for e in episodes if e[0] > start]
-            out["episodes"].append(len(episodes))
-            out["success_rate"].append(float(np.mean([e[1] for e in final])) if final else None)
-            out["return"].append(float(np.mean([e[2] for e in final])) if final else None)
-            lengths = [e[3] for e in final if e[1]]
-            out["steps_to_goal"].append(float(np.mean(lengths)) if lengths else None)
-            reached = None
-            for k in range(window, len(episodes) + 1):
-                recent = episodes[k - window : k]
-                if np.mean([e[1] for e in recent]) >= SUCCESS_THRESHOLD:
-                    reached = recent[-1][0]
-                    break
-            out["steps_to_90"].append(reached)
-        out["collisions"] = self.collisions.tolist()
-        out["greedy_collisions"] = self.greedy_collisions.tolist()
-        return out
+    start = budget - final_fraction * budget
+    names = ("success_rate", "return", "steps_to_goal", "episodes", "steps_to_90")
+    out: dict[str, list[Any]] = {name: [] for name in names}
+    for tally in tallies:
+        final = [e for e in tally.episodes if e[0] > start]  # (end step, return, success, length)
+        out["episodes"].append(len(tally.episodes))
+        out["success_rate"].append(float(np.mean([e[2] for e in final])) if final else None)
+        out["return"].append(float(np.mean([e[1] for e in final])) if final else None)
+        lengths = [e[3] for e in final if e[2]]
+        out["steps_to_goal"].append(float(np.mean(lengths)) if lengths else None)
+        out["steps_to_90"].append(tally.reached)
+    out["collisions"] = [tally.collisions for tally in tallies]
+    out["greedy_collisions"] = [tally.greedy_collisions for tally in tallies]
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -176,7 +141,7 @@ def run_tabular(
     env, policy, loss = online_agent(base, task, local, agent, keys)
     # one run of as many episodes as the budget could hold: the loop below stops at the budget
     collector = OnlineCollector(env, policy, loss, runs=1, episodes=budget)
-    recorder = Recorder(count)
+    tallies = [Tally(config.window, SUCCESS_THRESHOLD) for _ in range(count)]
     assert base.dependency is not None  # MiniGrid's declaration states its oracle
     truth = base.dependency[FORWARD]  # [K]
     found: list[int | None] = [None] * count
@@ -186,7 +151,7 @@ def run_tabular(
         reward = nxt.get("reward").squeeze(-1)
         if local is not None:  # the reward was split: put the collisions back
             reward = reward + nxt.get("local_reward").sum(dim=-1)
-        recorder.update(td, reward)
+        record(tallies, td, reward)
         if learner is not None:
             right = (learner.structure()[:, FORWARD] == truth).all(dim=-1).tolist()
             for i, ok in enumerate(right):
@@ -197,7 +162,7 @@ def run_tabular(
             break
     wall = time.perf_counter() - started
     collector.shutdown()
-    result: dict[str, Any] = recorder.summary(budget, config.window, config.final_fraction)
+    result: dict[str, Any] = summary(tallies, budget, config.final_fraction)
     result["wall_s"] = wall
     if learner is not None:
         result["found_forward_front"] = found
@@ -252,17 +217,17 @@ def run_dqn(
     stored += ["action", ("next", "reward"), ("next", "done"), ("next", "terminated")]
     torch.manual_seed(int(method_keys(config, size, method, STREAM_POLICY)[0]) & 0x7FFFFFFF)
     agent = dqn_agent(q_network, actions, dqn, budget)
-    recorder = Recorder(count)
+    tallies = [Tally(config.window, SUCCESS_THRESHOLD) for _ in range(count)]
 
-    def record(td: Any, step: int) -> None:
-        recorder.update(td, td.get(("next", "reward")).squeeze(-1))
+    def on_step(td: Any, step: int) -> None:
+        record(tallies, td, td.get(("next", "reward")))
         units.tick(tick, step, budget)
 
     started = time.perf_counter()
-    train_stepwise(env, agent, dqn, budget, stored, record)
+    train_stepwise(env, agent, dqn, budget, stored, on_step)
     wall = time.perf_counter() - started
     env.close()
-    result: dict[str, Any] = recorder.summary(budget, config.window, config.final_fraction)
+    result: dict[str, Any] = summary(tallies, budget, config.final_fraction)
     result["wall_s"] = wall
     return result
 

@@ -17,10 +17,13 @@ from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
 from factorq_envs.worlds import resolve_world
-from factorq_trainers.commands.risk.config import (
-    OWN_WORLDS,
-    Progress,
-    RiskConfig,
+from factorq_trainers.commands.risk.config import OWN_WORLDS, Progress, RiskConfig
+from factorq_trainers.methods.units import (
+    SB3_DQN_NAMES,
+    Tally,
+    greedy_rollouts,
+    sb3_dqn,
+    sb3_greedy,
 )
 
 if TYPE_CHECKING:
@@ -142,36 +145,7 @@ def provider(method: str, env: Any) -> LocalRewardTable | StructureLearner | Non
     return None
 
 
-class _Tally:
-    """Training episodes of one world: collisions, returns, successes, steps to threshold."""
-
-    def __init__(self, threshold: float) -> None:
-        self.threshold, self.steps, self.collisions = threshold, 0, 0
-        self.returns: list[float] = []
-        self.successes: list[bool] = []
-        self.current = 0.0
-        self.steps_to_threshold: int | None = None
-
-    def step(self, reward: float, collided: bool, done: bool, success: bool) -> None:
-        self.steps += 1
-        self.collisions += int(collided)
-        self.current += reward
-        if done:
-            self.returns.append(self.current)
-            self.successes.append(success)
-            self.current = 0.0
-            recent = self.successes[-10:]
-            if (
-                self.steps_to_threshold is None
-                and len(recent) == 10
-                and sum(recent) / 10 >= self.threshold
-            ):
-                self.steps_to_threshold = self.steps
-
-
-def _step_flags(
-    td: Any, survive: bool = False
-) -> tuple[list[float], list[bool], list[bool], list[bool]]:
+def _step_flags(td: Any, survive: bool) -> Iterator[tuple[float, bool, bool, bool]]:
     """Per world of one collected step: reward, collided, done, success (the goal reached;
     ``survive``, as on highway: the episode ran to its time limit without a crash)."""
     reward = td["next", "reward"].reshape(-1).tolist()
@@ -179,7 +153,7 @@ def _step_flags(
     done = td["next", "done"].reshape(-1)
     ended = td["next", "truncated" if survive else "terminated"].reshape(-1)
     success = ended & ~collided
-    return reward, collided.tolist(), done.tolist(), success.tolist()
+    return zip(reward, collided.tolist(), done.tolist(), success.tolist(), strict=True)
 
 
 def run_torchrl(
@@ -251,7 +225,7 @@ def run_torchrl(
         total_frames=config.steps,
         auto_register_policy_transforms=False,  # no recurrent state
     )
-    tally = _Tally(config.success_threshold)
+    tally = Tally(10, config.success_threshold)
     started = time.perf_counter()
     for data in collector:  # [1, T]
         data = data.reshape(-1)
@@ -259,15 +233,15 @@ def run_torchrl(
             step = data[t : t + 1]
             if summary is not None:
                 summary.update(step)
-            for flags in zip(*_step_flags(step, survive), strict=True):
-                tally.step(*flags)
+            for flags in _step_flags(step, survive):
+                tally.update(*flags)
                 if summary is not None and flags[2]:  # the episode is done
                     risk_log.append(summary.episode())
         egreedy.step(data.shape[0])
         if local_loss is not None:
             local_loss(data)  # eq. 5 on every transition once (the running means)
         buffer.extend(data)
-        if tally.steps >= config.learning_starts:
+        if tally.step >= config.learning_starts:
             sample = buffer.sample()
             value = loss(sample)["loss"]
             optimizer.zero_grad()
@@ -312,9 +286,6 @@ def evaluate(config: RiskConfig, unit: dict[str, Any], acting: Any) -> dict[str,
     Args:
         acting: the greedy policy (a tensordict module).
     """
-    import torch
-    from torchrl.envs.utils import ExplorationType, set_exploration_type
-
     env = make_env(config, unit["world"], 10_000 + unit["seed"])
     collisions = successes = 0
     survive = _survival(unit["world"])
@@ -322,25 +293,23 @@ def evaluate(config: RiskConfig, unit: dict[str, Any], acting: Any) -> dict[str,
         limit = resolve_world(unit["world"]).max_steps  # the env's own time limit ends sooner
     else:
         limit = 4 * (config.grid_size if unit["world"] == "grid" else config.minigrid_size) ** 2
-    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
-        for _ in range(config.eval_episodes):
-            rollout = env.rollout(limit, acting, break_when_any_done=True)
-            collided = (rollout["next", "collision"] < 0).any(-1)
-            collisions += int(collided.sum())
-            if survive:  # survived: ran to the time limit, no crash
-                successes += int(not bool(collided.any()))
-            else:
-                successes += int((rollout["next", "terminated"].squeeze(-1) & ~collided).any())
+    for rollout in greedy_rollouts(acting, [env] * config.eval_episodes, limit):
+        collided = (rollout["next", "collision"] < 0).any(-1)
+        collisions += int(collided.sum())
+        if survive:  # survived: ran to the time limit, no crash
+            successes += int(not bool(collided.any()))
+        else:
+            successes += int((rollout["next", "terminated"].squeeze(-1) & ~collided).any())
     return {"collisions": collisions, "successes": successes, "episodes": config.eval_episodes}
 
 
-def _result(tally: _Tally, greedy: dict[str, int], wall: float) -> dict[str, Any]:
+def _result(tally: Tally, greedy: dict[str, int], wall: float) -> dict[str, Any]:
     tail = tally.returns[-max(1, len(tally.returns) // 5) :] if tally.returns else [math.nan]
     return {
         "train_collisions": tally.collisions,
         "episodes": len(tally.returns),
         "final_return": statistics.fmean(tail),
-        "steps_to_threshold": tally.steps_to_threshold,
+        "steps_to_threshold": tally.reached,
         "greedy_collisions": greedy["collisions"],
         "greedy_success": greedy["successes"] / max(1, greedy["episodes"]),
         "wall_s": wall,
@@ -363,7 +332,6 @@ def run_sb3(
         progress: called with the env steps of each callback.
     """
     import gymnasium
-    from stable_baselines3 import DQN
     from stable_baselines3.common.callbacks import BaseCallback
 
     import factorq_envs  # noqa: F401  (registers FactoredGrid-v0)
@@ -373,71 +341,54 @@ def run_sb3(
 
     if unit["world"] != "grid":
         raise ValueError("the sb3 methods run on the grid world only (sb3_worlds)")
-    tally = _Tally(config.success_threshold)
+    tally = Tally(10, config.success_threshold)
 
-    class Tally(BaseCallback):
+    def collided(info: dict) -> bool:
+        return bool((info["local_reward"] < 0).any())
+
+    class Record(BaseCallback):
         def _on_step(self) -> bool:
             for reward, done, info in zip(
                 self.locals["rewards"], self.locals["dones"], self.locals["infos"], strict=True
             ):
-                collided = bool((info["local_reward"] < 0).any())
                 success = bool(done) and not info.get("TimeLimit.truncated", False)
-                tally.step(float(reward), collided, bool(done), success and not collided)
+                hit = collided(info)
+                tally.update(float(reward), hit, bool(done), success and not hit)
             if progress is not None:
                 progress(len(self.locals["infos"]))
             return True
 
     def grid_env(seed: int) -> gymnasium.Env:
+        size, obstacles = config.grid_size, config.grid_obstacles
         env = gymnasium.make(
-            "FactoredGrid-v0",
-            size=config.grid_size,
-            num_obstacles=config.grid_obstacles,
-            obstacle_period=1,
+            "FactoredGrid-v0", size=size, num_obstacles=obstacles, obstacle_period=1
         )
         env.reset(seed=seed)
         return env
 
     env = grid_env(unit["seed"])
-    settings: dict[str, Any] = dict(
-        learning_rate=config.lr,
-        buffer_size=config.buffer_size,
-        learning_starts=config.learning_starts,
-        batch_size=config.batch_size,
-        tau=config.tau,
-        gamma=config.gamma,
-        train_freq=config.train_every,
-        target_update_interval=1,  # with tau: SoftUpdate every gradient step, as torchrl's
-        exploration_fraction=config.exploration_fraction,
-        exploration_initial_eps=config.eps_start,
-        exploration_final_eps=config.eps_end,
-        policy_kwargs={"net_arch": [config.hidden, config.hidden]},
-        seed=unit["seed"],
-        verbose=0,
-    )
-    if unit["method"] == "sb3-dqn":
-        model = DQN("MultiInputPolicy", env, **settings)
-    else:
+    # the torchrl recipe's settings; target update every gradient step (with tau: SoftUpdate's)
+    settings = {
+        name: getattr(config, name) for name in SB3_DQN_NAMES if name != "target_update_interval"
+    }
+    settings.update(hidden=(config.hidden,) * 2, target_update_interval=1)
+    extra: dict[str, Any] = {"seed": unit["seed"]}
+    if unit["method"] == "sb3-dqn+risk":
         grid = env.unwrapped
         assert isinstance(grid, FactoredGridGym)  # what FactoredGrid-v0 makes; for mypy
-        provider = LocalRewardTable(1, dependency=grid.config.dependency)
-        model = LocalRiskDQN("MultiInputPolicy", env, provider=provider, **settings)
+        extra.update(
+            model=LocalRiskDQN, provider=LocalRewardTable(1, dependency=grid.config.dependency)
+        )
+    model = sb3_dqn(settings, env, "MultiInputPolicy", **extra)
     started = time.perf_counter()
-    model.learn(config.steps, callback=Tally())
+    model.learn(config.steps, callback=Record())
     wall = time.perf_counter() - started
     evaluation = grid_env(10_000 + unit["seed"])
-    collisions = successes = 0
-    for _ in range(config.eval_episodes):
-        obs, _ = evaluation.reset()
-        for _ in range(4 * config.grid_size**2):
-            action, _ = model.predict(obs, deterministic=True)
-            obs, _, terminated, truncated, info = evaluation.step(int(action))
-            collided = bool((info["local_reward"] < 0).any())
-            collisions += int(collided)
-            if terminated or truncated:
-                successes += int(terminated and not collided)
-                break
-    greedy = {"collisions": collisions, "successes": successes, "episodes": config.eval_episodes}
-    return _result(tally, greedy, wall)
+    episodes = [evaluation] * config.eval_episodes
+    greedy = sb3_greedy(model, episodes, collided, 4 * config.grid_size**2)
+    collisions, successes = sum(e[1] for e in greedy), sum(e[2] for e in greedy)
+    result = {"collisions": collisions, "successes": successes, "episodes": config.eval_episodes}
+    return _result(tally, result, wall)
 
 
 @contextlib.contextmanager
