@@ -1,39 +1,16 @@
-"""DQN baseline on the FactoredGrid worlds, built from torchrl's own pieces.
+"""DQN baseline on the FactoredGrid worlds, built from torchrl's own pieces:
 
     config -> keys -> env (conventional reward) -> Q-network -> QValueModule -> EGreedyModule
            -> DQNLoss + HardUpdate + Adam -> torchrl Collector -> ReplayBuffer -> per-episode traces
 
-**Observation.** ``TaskQNetwork(with_proximity=True)`` reads the env's ``cell`` and ``proximity``
-and feeds the network the cell as a one-hot vector ``[N]`` concatenated with the 4 proximity bits
-as 0/1 floats, ``[N + 4]`` (the information Q-learning's tabular state holds). The replay buffer
-stores the raw ``cell``/``proximity`` entries; the features are recomputed inside the network.
-
-**Independent seeds in one batch.** ``S`` seeds x ``W`` worlds are ``E = W S`` experiments in one
-``FactoredGridEnv`` of ``batch_size=(E,)`` with one obstacle period per experiment. Each experiment
-has its own network: ``TaskQNetwork`` stacks ``E`` independent MLPs (weights ``[E, in, out]``), the
-loss is summed over experiments (so each network's gradient is its own experiment's), Adam keeps
-per-parameter moments, and the target network is a copy of all of them. torchrl's ``Collector``
-steps the batched env; the replay buffer (``ReplayBuffer`` + ``LazyTensorStorage``) stores one
-``[E]`` row per env step, so a minibatch ``[B, E]`` holds ``B`` transitions of every experiment.
-What the experiments do share: the minibatch's time indices and the position in torch's global
-random stream (``EGreedyModule`` and the sampler draw from it), which is why a DQN experiment's
-numbers depend on the batch it ran in (the network initialisation, the world and the env's
-obstacles do not; see ``batch_keys``).
-
-**Exploration.** torchrl's ``EGreedyModule``, epsilon annealed linearly from ``eps_start`` to
-``eps_end`` over ``exploration_fraction`` of the step budget. ``EGreedyModule`` does not record
-which actions it drew (DESIGN section 6), and greedy collisions need that flag;
-``ExploratoryEGreedy`` wraps it: it hands ``EGreedyModule`` the greedy action shifted out of range
-(``a + A``), so whatever comes back inside ``[0, A)`` is exactly what the epsilon branch drew, then
-restores the greedy action elsewhere and writes ``exploratory``. The wrapper also steps the
-annealing itself, once per call that explores (no schedule to step by hand, DESIGN section 5).
-
-**Defaults** follow CleanRL's ``dqn.py`` and torchrl's DQN example, scaled to this world; their
-sources and the measurements behind the scaling are in ``docs/decisions.md`` (Baselines).
-
-Per episode of every experiment (``factorq_trainers.methods.experiment.EpisodeRecorder``): path
-length, collisions, greedy collisions (collisions on non-exploratory actions), task return (step +
-goal rewards, as the tabular trainers record it), env steps so far, epsilon and loss.
+``TaskQNetwork(with_proximity=True)`` reads the cell one-hot ``[N]`` and the 4 proximity bits
+(what Q-learning's table holds); the replay buffer stores the raw entries. ``S`` seeds x ``W``
+worlds are ``E = W S`` experiments in one batched env, each with its own network, Adam moments
+and target network, sharing the minibatch's time indices and torch's global random stream (so a
+DQN experiment's numbers depend on its batch). The defaults, their sources and the exploratory
+flag under ``EGreedyModule``: ``docs/decisions.md`` ("Neural Factor-Q (Factor-DQN) and the
+baselines of ``factorq compare``"). Per episode of every experiment: ``EpisodeRecorder``'s
+records.
 """
 
 from __future__ import annotations

@@ -1,19 +1,9 @@
-"""What every experiment is built from: keys, the env, the online agents, episode records.
-
-``factorq_trainers.commands.paper.command``, ``factorq_trainers.commands.compare.command`` and
-``factorq_trainers.methods.dqn`` assemble
-their experiments from these pieces rather than each its own copy:
-
-- ``experiment_keys``: the random stream key of each experiment of a batch, numbered so that an
-  experiment draws the same numbers whatever else is selected;
-- ``check_world_options``: the world options of a trainer's config, checked once;
-- ``make_env``: the batched ``FactoredGridEnv`` of a batch, one obstacle period and world key
-  per experiment, around the paper's grid (a ``WorldConfig``) or any
-  ``factorq_envs.protocol.World``;
-- ``tabular_values`` and ``online_agent``: the tables, and the policy and loss around any value
-  providers (tables or networks) for Q-learning or Factor-Q;
-- ``ExperimentConfig`` and ``EpisodeRecorder``: the step-budget experiments of ``factorq
-  compare`` and their per-episode records.
+"""What every experiment is built from (``paper``, ``compare``, ``transfer``, ``dependencies``
+and ``methods.dqn`` assemble theirs from these pieces): ``experiment_keys`` (each experiment's
+random stream key, the same whatever else is selected), ``check_world_options``, ``make_env``
+(the batched ``FactoredGridEnv``), ``tabular_values`` and ``online_agent`` (Q-learning or
+Factor-Q around tables or networks), ``ExperimentConfig`` and ``EpisodeRecorder`` (the
+step-budget experiments of ``factorq compare`` and their per-episode records).
 """
 
 from __future__ import annotations

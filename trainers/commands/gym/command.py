@@ -1,37 +1,18 @@
 """Factor-Q on a declared Gymnasium world against DQN: ``factorq gym``, a command module of the
-runner (``factorq_trainers.runner.frame``: ``NAME``, ``CONFIG``, ``units``, ``run_unit``,
-``summarise``; its Markdown and figure are its ``report.py``'s).
+runner (``factorq_trainers.runner.frame``); ``GymConfig`` in ``config.py``, the methods in
+``methods.py``, the Markdown and figure in ``report.py``. The experiment and a run on highway:
+``docs/tutorials/highway.md``.
 
-Every method trains one experiment per unit (``(method, seed)``) for the same env-step budget on
-the same worlds (common random numbers: seed ``i`` meets the same env seed under every method):
-
-- ``dqn``: ``factorq_trainers.methods.dqn``'s torchrl DQN (``DQNLoss``, target network, replay,
-  annealed epsilon) on the world's own observation (highway: ``Kinematics``), with the
-  hyperparameters highway-env's documentation uses for SB3's DQN (``HIGHWAY_DQN``);
-- ``factor-dqn``: neural Factor-Q: the task values from a network on the same observation
-  (trained online by ``FactorQLoss`` with Adam), the local values from ``LocalRewardTable`` on
-  the declared oracle dependency and the binary sensors (eq. 5);
-- ``factor-dqn-learned``: the same with ``StructureLearner(prediction="committed")`` told only
-  ``A`` and ``K``: it must find the dependency itself (its structure at the end is reported
-  against the oracle);
-- ``sb3-dqn`` (optional extra ``sb3``; skipped in the defaults): Stable-Baselines3's DQN with
-  the same documented hyperparameters, on the same observation.
-
-**Measures** per unit: crashes during training (per 1,000 env steps), the greedy policy's crash
-rate and return over ``eval_episodes`` episodes after training (fresh env seeds, exploration
-off), training env steps until the mean return of the last ``window`` finished episodes first
-reaches ``threshold``, env steps per second of training, and curves (cumulative crashes, mean
-return of the last ``window`` episodes) at ``curve_points`` points. The return is the
-conventional reward summed (highway's own reward).
-
-**Intervals** over seeds (``factorq_trainers.analysis.stats``): Wilson's for the greedy crash
-rate (a proportion), the BCa bootstrap of the mean for the other measures and the curves' bands
-(bounded or positive: its bounds stay between the seeds). The report and figure are
-``factorq_trainers.commands.gym.report``.
-
-This module is the command: its units, their results summarised. ``GymConfig`` is in
-``config.py`` beside it, the declared worlds are ``factorq_envs.worlds``' registry, the methods
-(settings, envs, ``Recorder``) in ``methods.py``.
+One unit per ``(method, seed)``, every method on the same env-step budget and env seeds (common
+random numbers): ``dqn`` (``factorq_trainers.methods.dqn``'s torchrl DQN with highway-env's
+documented SB3 settings, ``HIGHWAY_DQN``), ``factor-dqn`` (neural Factor-Q: a task network on the
+same observation trained online by ``FactorQLoss``, ``LocalRewardTable`` on the declared oracle
+and the binary sensors, eq. 5), ``factor-dqn-learned`` (``StructureLearner(prediction=
+"committed")`` told only ``A`` and ``K``) and ``sb3-dqn`` (Stable-Baselines3's DQN, the ``sb3``
+extra). Measures: training crashes per 1,000 env steps, the greedy crash rate and return after
+training (fresh env seeds), env steps until the mean return of the last ``window`` episodes
+reaches ``threshold``, env steps per second, and curves; intervals over seeds: Wilson's for the
+greedy crash rate, the BCa bootstrap of the mean otherwise.
 """
 
 from __future__ import annotations

@@ -1,35 +1,15 @@
-"""Factor-Q on MiniGrid Dynamic-Obstacles against Q-learning and DQN: ``factorq minigrid``.
+"""Factor-Q on MiniGrid Dynamic-Obstacles against Q-learning and DQN: ``factorq minigrid``, a
+command module of the runner; ``MiniGridConfig`` and its names in ``config.py``, the methods in
+``methods.py``, the Markdown and figure in ``report.py``. The methods, the measures and the
+defaults' run: ``docs/tutorials/minigrid.md``.
 
-On each size of ``MiniGrid-Dynamic-Obstacles-{5x5,6x6,8x8,16x16}-v0``
-(``factorq_envs.minigrid_adapter``: MiniGrid's real env, read through the adapter), every method
-trains ``seeds`` independent experiments for the same env-step budget, all seeds of a method in
-one batch:
-
-- ``factor-q-learned``: Factor-Q with ``StructureLearner`` as its local value provider, told only
-  ``A = 3`` actuators and ``K`` sensors (no pairing): it must find that only forward has a local
-  reward and that the front sensor decides it;
-- ``factor-q``: Factor-Q with ``LocalRewardTable`` on the true pairing (forward <- front);
-- ``q-learning``: tabular Q-learning on (cell, heading, all sensors);
-- ``dqn``: ``methods.dqn``'s torchrl DQN (DQNLoss, target network, replay, annealed
-  epsilon) on the same information (``TaskQNetwork``: one-hot (cell, heading) and the sensor bits);
-- ``dqn-image``: the same DQN on MiniGrid's own 7x7x3 ``image`` observation (the standard track).
-
-The tabular agents run on the modular torchrl path (``OnlineCollector``, learning after every
-step): the compiled kernel (``trainers/compiled/fast.py``) cannot step MiniGrid.
-
-**Budget.** ``steps * size / 5`` env steps per seed at each size (rounded), the same for every
-method. **Measures**, per seed: collisions during training (all, and on greedy actions); over the
-episodes that end in the last ``final_fraction`` of the budget: success rate (the goal reached),
-MiniGrid return (its own reward summed: goal reward, -1 per collision) and steps to goal (length
-of the successful episodes); env steps until the success rate over the last ``window`` finished
-episodes first reaches 90%; for ``factor-q-learned``, the env step at which the learner first
-committed to "forward <- front" (and nothing else for forward). Wall time per method and size
-(all seeds together). Means with 95% intervals across seeds that stay in the possible range:
-Wilson's for the success rate, the BCa bootstrap for the rest (``factorq_trainers.analysis.stats``).
-
-This module is the command: its units, the statistics over seeds, the summary. ``MiniGridConfig``
-and the names it checks against are in ``config.py`` beside it, the methods (keys, the tallies,
-the tabular agents, DQN) in ``methods.py``.
+One unit per size and method, all ``seeds`` of a method in one batch, every method on the same
+env-step budget (``steps * size / 5``) and worlds: ``factor-q-learned`` (``StructureLearner``,
+told only ``A = 3`` and ``K``), ``factor-q-posterior`` (its own open prediction, an ablation),
+``factor-q`` (``LocalRewardTable`` on forward <- front), ``q-learning`` (cell, heading, all
+sensors), ``dqn`` (``methods.dqn`` on the same information) and ``dqn-image`` (MiniGrid's 7x7x3
+``image``). The tabular agents run on the modular torchrl path: the compiled kernel cannot step
+MiniGrid.
 """
 
 from __future__ import annotations

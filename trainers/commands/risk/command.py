@@ -1,47 +1,18 @@
-"""``risk``: torchrl's DQN alone against DQN + local risk, side by side.
+"""``risk``: torchrl's DQN alone against DQN + local risk, side by side: a command module of the
+runner (``factorq_trainers.runner.frame``); ``RiskConfig`` and the names it checks against in
+``config.py``, the methods in ``methods.py``, the Markdown, figure and sweep cells in
+``report.py`` (without torch). The experiment, its measures and runs: the tutorial
+``docs/tutorials/dqn-local-risk.md``.
 
-A command module of the runner (``factorq_trainers.runner.frame``): the runner owns options, the
-output folder, resume and progress; this module declares the units (one per world, method and
-seed), what one unit runs and how the units are summarised. The config and the names it checks
-against are in ``config.py`` beside it, the methods (the torchrl recipe, SB3,
-``quiet_torchrl``) in ``methods.py``, the Markdown, figure and sweep cells in ``report.py`` (drawn
-without torch): import each name from its own module.
-
-Every unit trains torchrl's DQN recipe (``QValueActor``, ``EGreedyModule``, ``DQNLoss``,
-``SoftUpdate``, ``Collector``, a ``ReplayBuffer``) on one world, with the same budget, network and
-seed for every method; the methods differ only by the two lines of ``factorq_torch.risk``:
-
-- ``dqn``: the recipe alone;
-- ``dqn+risk``: plus ``LocalRisk`` over a ``LocalRewardTable`` given the env's true
-  dependency, trained by ``LocalRiskLoss`` on every collected transition;
-- ``dqn+risk-learned``: the same over a ``StructureLearner`` (told only the number of actuators
-  and sensors);
-- ``sb3-dqn`` / ``sb3-dqn+risk``: Stable-Baselines3's DQN on the gymnasium grid, alone and
-  with ``factorq_torch.integrations.sb3`` (the ``sb3`` extra).
-
-Every method reads the conventional reward (``SplitLocalReward(keep_reward=True)``: collisions
-included), so DQN alone can learn to avoid collisions itself; the layer only adds
-``local_reward``. Worlds: ``grid``, the dynamic FactoredGrid world (obstacles move every step);
-``minigrid``, MiniGrid Dynamic-Obstacles (``size`` 8 by default; the ``minigrid`` extra);
-``highway`` (asked for by name: its steps cost about a hundred times the grid's),
-highway-env's ``highway-fast-v0`` as ``factorq_envs.highway`` declares it, through the
-Gymnasium adapter (the ``highway`` extra): the Q-network reads its ``Kinematics`` observation
-and the six time-to-collision sensors, the oracle is the declared ``highway.ORACLE``, a
-collision is a crash (penalty 2/3, so the layer's exploration mask drops an actuator whose
-crash is more likely than not: ``mask_threshold`` is half the penalty on every world), and a
-"success" is an episode that ran to highway's time limit without a crash.
-
-Per unit: collisions during training, greedy collisions and success over ``eval_episodes`` greedy
-episodes after training, the mean conventional return of the last 20% of training episodes, and
-``steps_to_threshold``, the env steps until the success rate of the last 10 training episodes
-first reaches ``success_threshold`` (None if never). The ``dqn+risk-*`` units also log what the
-layer did in every training episode (``factorq_torch.risk.RiskSummary``: steps it penalised,
-greedy choices it overrode, how often and how much each actuator was penalised), kept in the
-results under ``risk_log`` and summarised in the report.
-
-torchrl's INFO messages (its ``torchrl`` logger prints one per replay buffer it allocates) are
-silenced while a unit runs, and its level restored after: the command's output is the report, and
-anyone using torchrl keeps its defaults.
+One unit per (world, method, seed), each training torchrl's DQN recipe with the same budget,
+network and seed; the methods differ only by the two lines of ``factorq_torch.risk``: ``dqn``
+alone, ``dqn+risk`` (``LocalRisk`` over a ``LocalRewardTable`` on the env's true dependency,
+trained by ``LocalRiskLoss``), ``dqn+risk-learned`` (over a ``StructureLearner``), and
+``sb3-dqn`` / ``sb3-dqn+risk`` (Stable-Baselines3's DQN on the gymnasium grid, alone and with
+``factorq_torch.integrations.sb3``). Every method reads the conventional reward
+(``SplitLocalReward(keep_reward=True)``). On every world ``mask_threshold`` is half the collision
+penalty (highway: 2/3), and on highway a success is an episode run to its time limit without a
+crash.
 """
 
 from __future__ import annotations

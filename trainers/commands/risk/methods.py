@@ -304,6 +304,9 @@ def evaluate(config: RiskConfig, unit: dict[str, Any], acting: Any) -> dict[str,
 
 
 def _result(tally: Tally, greedy: dict[str, int], wall: float) -> dict[str, Any]:
+    """A unit's result; ``final_return``: the mean return of the last 20% of training episodes,
+    ``steps_to_threshold``: the env step at which the success rate of the last 10 first reached
+    ``success_threshold``."""
     tail = tally.returns[-max(1, len(tally.returns) // 5) :] if tally.returns else [math.nan]
     return {
         "train_collisions": tally.collisions,
