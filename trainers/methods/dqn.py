@@ -323,16 +323,24 @@ def run(
 
 def train_stepwise(
     env: Any,
-    agent: DQNAgent,
+    q_network: TensorDictModuleBase,
     config: DQNConfig,
     steps: int,
-    stored: list[Any],
+    observed: Sequence[str],
     record: Callable[[TensorDictBase, int], None],
-) -> None:
-    """``steps`` env steps of ``agent`` in ``env`` stepped by hand (a declared env, one
-    transition ``[S]`` a step, rather than torchrl's ``Collector``): each transition goes to
-    ``record(td, step)``, its ``stored`` entries to the replay buffer, and from
-    ``learning_starts`` on every ``train_every`` steps one gradient step follows."""
+    seed: int,
+) -> tuple[DQNAgent, float]:
+    """``steps`` env steps of the DQN agent around ``q_network`` (``dqn_agent``, made once
+    torch's global stream is seeded with ``seed``) in ``env`` stepped by hand (a declared env,
+    one transition ``[S]`` a step, rather than torchrl's ``Collector``): each transition goes to
+    ``record(td, step)``, its ``observed`` entries (now and next), action, reward and flags to
+    the replay buffer, and from ``learning_starts`` on every ``train_every`` steps one gradient
+    step follows. Returns the agent and the seconds its training took."""
+    torch.manual_seed(seed)
+    agent = dqn_agent(q_network, env.num_actions, config, steps)
+    nexts = (*observed, "reward", "done", "terminated")
+    stored = [*observed, "action", *(("next", key) for key in nexts)]
+    started = time.perf_counter()
     td = env.reset()
     for step in range(1, steps + 1):
         with torch.no_grad():
@@ -346,6 +354,7 @@ def train_stepwise(
         if bool(done.any()):
             td.set("_reset", done)
             td = env.reset(td)
+    return agent, time.perf_counter() - started
 
 
 def observation_network(

@@ -131,27 +131,21 @@ def _env_and_task_network(
 def _run_dqn(
     config: GymConfig, unit: dict[str, Any], progress: Callable[[int], None]
 ) -> dict[str, Any]:
-    import torch
 
     from factorq_torch.base.rng import STREAM_POLICY
-    from factorq_trainers.methods.dqn import DQNConfig, dqn_agent, train_stepwise
+    from factorq_trainers.methods.dqn import DQNConfig, train_stepwise
 
     settings = DQNConfig(**HIGHWAY_DQN)
     env, q_network = _env_and_task_network(config, unit, zero_output=False)
-    torch.manual_seed(int(_keys(config, unit, STREAM_POLICY)[0]) & 0x7FFFFFFF)
-    agent = dqn_agent(q_network, env.num_actions, settings, config.steps)
-    key = config.spec.observation
-    stored = [key, ("next", key), "action", ("next", "reward"), ("next", "done")]
-    stored.append(("next", "terminated"))
     tally = _tally(config)
 
     def record(td: Any, step: int) -> None:
         tally.update(*_transition(td))
         tick(progress, step, config.steps)
 
-    started = time.perf_counter()
-    train_stepwise(env, agent, settings, config.steps, stored, record)
-    wall = time.perf_counter() - started
+    seed = int(_keys(config, unit, STREAM_POLICY)[0]) & 0x7FFFFFFF
+    observed = [config.spec.observation]
+    agent, wall = train_stepwise(env, q_network, settings, config.steps, observed, record, seed)
     env.close()
     return _measures(config, tally, _evaluate(config, unit, agent.value_network), wall)
 

@@ -179,14 +179,12 @@ def run_dqn(
     Args:
         method: ``"dqn"`` or ``"dqn-image"``.
     """
-    import torch
 
     from factorq_envs.body import HEADING
     from factorq_torch.base.rng import STREAM_POLICY, STREAM_TASK_NETWORK
     from factorq_torch.neural import TaskQNetwork
     from factorq_trainers.methods.dqn import (
         DQNConfig,
-        dqn_agent,
         observation_network,
         train_stepwise,
     )
@@ -199,7 +197,7 @@ def run_dqn(
     init_keys = method_keys(config, size, method, STREAM_TASK_NETWORK)
     if image:
         q_network = observation_network(count, "image", (7, 7, 3), actions, dqn.hidden, init_keys)
-        stored = ["image", ("next", "image")]
+        observed = ["image"]
     else:
         q_network = TaskQNetwork(
             count,
@@ -212,20 +210,15 @@ def run_dqn(
             keys=init_keys,
             zero_output=False,
         )
-        state = ("cell", "heading", "sensors")
-        stored = [*state, *(("next", key) for key in state)]
-    stored += ["action", ("next", "reward"), ("next", "done"), ("next", "terminated")]
-    torch.manual_seed(int(method_keys(config, size, method, STREAM_POLICY)[0]) & 0x7FFFFFFF)
-    agent = dqn_agent(q_network, actions, dqn, budget)
+        observed = ["cell", "heading", "sensors"]
     tallies = [Tally(config.window, SUCCESS_THRESHOLD) for _ in range(count)]
 
     def on_step(td: Any, step: int) -> None:
         record(tallies, td, td.get(("next", "reward")))
         units.tick(tick, step, budget)
 
-    started = time.perf_counter()
-    train_stepwise(env, agent, dqn, budget, stored, on_step)
-    wall = time.perf_counter() - started
+    seed = int(method_keys(config, size, method, STREAM_POLICY)[0]) & 0x7FFFFFFF
+    _, wall = train_stepwise(env, q_network, dqn, budget, observed, on_step, seed)
     env.close()
     result: dict[str, Any] = summary(tallies, budget, config.final_fraction)
     result["wall_s"] = wall

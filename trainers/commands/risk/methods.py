@@ -13,7 +13,7 @@ import math
 import statistics
 import time
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
 from factorq_envs.worlds import resolve_world
@@ -98,32 +98,29 @@ def features(env: Any) -> tuple[Any, int]:
     from tensordict.nn import TensorDictModule
 
     spec = env.observation_spec
+    encode: Callable[..., torch.Tensor]
     if "cell" not in spec.keys():
         own = spec["observation"].shape[len(env.batch_size) :]
+        first, rest, width = "observation", [], own.numel()
 
-        class Observation(torch.nn.Module):
-            def forward(self, observation: torch.Tensor, sensors: torch.Tensor) -> torch.Tensor:
-                flat = observation.flatten(observation.dim() - len(own)).to(torch.float32)
-                return torch.cat([flat, sensors.to(torch.float32)], dim=-1)
+        def encode(observation: torch.Tensor) -> torch.Tensor:
+            return observation.flatten(observation.dim() - len(own))
 
-        width = own.numel() + spec["sensors"].shape[-1]
-        module = TensorDictModule(
-            Observation(), in_keys=["observation", "sensors"], out_keys=["features"]
-        )
-        return module, width
-    cells = int(spec["cell"].space.n)
-    headings = int(spec["heading"].space.n) if "heading" in spec.keys() else 1
+    else:
+        cells = int(spec["cell"].space.n)
+        headings = int(spec["heading"].space.n) if "heading" in spec.keys() else 1
+        first, rest, width = "cell", ["heading"] if headings > 1 else [], cells * headings
+
+        def encode(cell: torch.Tensor, heading: torch.Tensor | None = None) -> torch.Tensor:
+            position = cell if heading is None else cell * headings + heading
+            return torch.nn.functional.one_hot(position, cells * headings)
 
     class Features(torch.nn.Module):
-        def forward(
-            self, cell: torch.Tensor, sensors: torch.Tensor, heading: torch.Tensor | None = None
-        ) -> torch.Tensor:
-            position = cell if heading is None else cell * headings + heading
-            one_hot = torch.nn.functional.one_hot(position, cells * headings).to(torch.float32)
-            return torch.cat([one_hot, sensors.to(torch.float32)], dim=-1)
+        def forward(self, own: torch.Tensor, sensors: torch.Tensor, *rest: torch.Tensor) -> Any:
+            return torch.cat([encode(own, *rest).to(torch.float32), sensors.float()], dim=-1)
 
-    in_keys = ["cell", "sensors"] + (["heading"] if headings > 1 else [])
-    width = cells * headings + spec["sensors"].shape[-1]
+    in_keys = [first, "sensors", *rest]
+    width += spec["sensors"].shape[-1]
     return TensorDictModule(Features(), in_keys=in_keys, out_keys=["features"]), width
 
 
