@@ -158,3 +158,31 @@ def sb3_greedy(
                 break
         episodes.append((total, collisions, success))
     return episodes
+
+
+def stat_cell(stat: dict[str, Any], digits: int = 2, seeds: int | None = None) -> str:
+    """A report's cell of a ``seed_stat``: the mean with its interval, and with ``seeds`` the
+    seeds that had a value where not all did (``(n/seeds)``); ``-`` for none."""
+    if stat["mean"] is None:
+        return "-"
+    text = f"{stat['mean']:.{digits}f}"
+    if stat["ci95"] is not None and stat["ci95"][0] is not None:
+        text += f" [{stat['ci95'][0]:.{digits}f}, {stat['ci95'][1]:.{digits}f}]"
+    if seeds is not None and stat["n"] < seeds:
+        text += f" ({stat['n']}/{seeds})"
+    return text
+
+
+def sweep_cell(
+    world: str, algorithm: str, stats: dict[str, Any], measures: tuple[str, ...]
+) -> dict[str, Any]:
+    """A ``factorq sweep`` cell: ``world``, ``algorithm`` and the mean and 95% interval of each
+    of ``measures`` in ``stats`` (``seed_stat``'s, or a bare mean: no interval)."""
+    cells: dict[str, Any] = {"world": world, "algorithm": algorithm}
+    for name in measures:
+        stat = stats[name]
+        bare = not isinstance(stat, dict)
+        cells[name] = (
+            {"mean": stat, "ci95": None} if bare else {k: stat[k] for k in ("mean", "ci95")}
+        )
+    return cells

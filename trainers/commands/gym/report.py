@@ -9,6 +9,8 @@ from typing import Any
 
 from factorq_trainers.analysis.stats import TOO_LITTLE_DATA, count_ratio
 from factorq_trainers.analysis.vocabulary import label
+from factorq_trainers.methods.units import stat_cell as _cell
+from factorq_trainers.methods.units import sweep_cell
 
 #: What ``factorq sweep --command gym`` reports per configuration (``sweep_cells``).
 SWEEP_MEASURES = ("crashes_per_1000", "greedy_crash_rate", "greedy_return", "steps_to_threshold")
@@ -18,15 +20,9 @@ INTERVALS = "greedy crash rate: Wilson; the others and the bands: BCa bootstrap"
 
 def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """Per method of a ``gym.json`` dict: the ``SWEEP_MEASURES`` (means and 95% intervals)."""
+    world = results["world"]
     return {
-        f"{results['world']}/{method}": {
-            "world": results["world"],
-            "algorithm": method,
-            **{
-                measure: {"mean": entry[measure]["mean"], "ci95": entry[measure]["ci95"]}
-                for measure in SWEEP_MEASURES
-            },
-        }
+        f"{world}/{method}": sweep_cell(world, method, entry, SWEEP_MEASURES)
         for method, entry in results["methods"].items()
     }
 
@@ -74,15 +70,6 @@ def targets(results: dict[str, Any]) -> list[str]:
                 f"1.5x: {'met' if ratio <= 1.5 else 'not met'})."
             )
     return lines
-
-
-def _cell(stat: dict[str, Any], digits: int = 2) -> str:
-    if stat["mean"] is None:
-        return "-"
-    text = f"{stat['mean']:.{digits}f}"
-    if stat["ci95"] is not None and stat["ci95"][0] is not None:
-        text += f" [{stat['ci95'][0]:.{digits}f}, {stat['ci95'][1]:.{digits}f}]"
-    return text
 
 
 def markdown(results: dict[str, Any]) -> str:

@@ -7,21 +7,11 @@ from pathlib import Path
 from typing import Any
 
 from factorq_trainers.analysis.stats import TOO_LITTLE_DATA, count_ratio, format_number
+from factorq_trainers.methods.units import stat_cell as _cell
+from factorq_trainers.methods.units import sweep_cell
 
 #: The issue's target: the learner finds forward <- front within this many env steps.
 FOUND_TARGET_STEPS = 2_000
-
-
-def _cell(stat: dict[str, Any], digits: int = 2, seeds: int | None = None) -> str:
-    if stat["mean"] is None:
-        return "-"
-    text = f"{stat['mean']:.{digits}f}"
-    if stat["ci95"] is not None and stat["ci95"][0] is not None:
-        low, high = stat["ci95"]
-        text += f" [{low:.{digits}f}, {high:.{digits}f}]"
-    if seeds is not None and stat["n"] < seeds:
-        text += f" ({stat['n']}/{seeds})"
-    return text
 
 
 def markdown(results: dict[str, Any]) -> str:
@@ -151,16 +141,10 @@ SWEEP_MEASURES = ("success_rate", "collisions", "greedy_collisions", "steps_to_9
 def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """Per size and method of a ``minigrid.json`` dict: the ``SWEEP_MEASURES`` (means and 95%
     intervals across seeds)."""
-    cells = {}
-    for size, per_method in results["results"].items():
-        for method, entry in per_method.items():
-            summary = entry["summary"]
-            cells[f"{size}x{size}/{method}"] = {
-                "world": f"{size}x{size}",
-                "algorithm": method,
-                **{
-                    measure: {"mean": summary[measure]["mean"], "ci95": summary[measure]["ci95"]}
-                    for measure in SWEEP_MEASURES
-                },
-            }
-    return cells
+    return {
+        f"{size}x{size}/{method}": sweep_cell(
+            f"{size}x{size}", method, entry["summary"], SWEEP_MEASURES
+        )
+        for size, per_method in results["results"].items()
+        for method, entry in per_method.items()
+    }

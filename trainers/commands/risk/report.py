@@ -8,6 +8,7 @@ from typing import Any
 
 from factorq_torch.base.risk_text import summary_line
 from factorq_trainers.analysis.stats import TOO_LITTLE_DATA
+from factorq_trainers.methods.units import sweep_cell
 
 #: What ``factorq sweep --command risk`` reports per configuration (``sweep_cells``): means
 #: over seeds (the summary keeps no interval).
@@ -17,11 +18,9 @@ SWEEP_MEASURES = ("train_collisions", "greedy_collisions", "final_return", "gree
 def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """Per world and method of a ``risk.json`` dict: the ``SWEEP_MEASURES``' means."""
     return {
-        f"{row['world']}/{row['method']}": {
-            "world": row["world"],
-            "algorithm": row["method"],
-            **{measure: {"mean": row[measure], "ci95": None} for measure in SWEEP_MEASURES},
-        }
+        f"{row['world']}/{row['method']}": sweep_cell(
+            row["world"], row["method"], row, SWEEP_MEASURES
+        )
         for row in results["rows"]
     }
 
