@@ -80,7 +80,7 @@ def batch_env(
 
 @dataclass(frozen=True)
 class DQNConfig:
-    """DQN's hyperparameters (sources in the module docstring)."""
+    """DQN's hyperparameters (their sources: the module docstring)."""
 
     gamma: float = option(
         0.9, "Discount of future reward, in [0, 1) (the SPEC's, shared by every method)."
@@ -185,9 +185,9 @@ _STORED = (*_STATE, "action", *(("next", key) for key in (*_STATE, "reward", "do
 
 @dataclass
 class DQNAgent:
-    """The torchrl modules of a DQN batch (``build_dqn``)."""
+    """The torchrl modules of a DQN batch (``dqn_agent``)."""
 
-    q_network: TaskQNetwork
+    q_network: TensorDictModuleBase
     value_network: TensorDictSequential
     exploration: ExploratoryEGreedy
     policy: TensorDictSequential
@@ -195,28 +195,6 @@ class DQNAgent:
     target_updater: HardUpdate
     optimizer: torch.optim.Optimizer
     buffer: ReplayBuffer
-
-
-def build_dqn(
-    config: DQNConfig, experiments: ExperimentConfig, device: torch.device | str | None = None
-) -> DQNAgent:
-    """Q-network, exploration, DQNLoss with a target network, Adam and a replay buffer."""
-    device = torch.device("cpu" if device is None else device)
-    count = experiments.num_experiments
-    world = experiments.world
-    q_network = TaskQNetwork(
-        count,
-        experiments.size**2,
-        with_proximity=True,
-        num_sensors=world.num_sensors,
-        num_headings=world.num_headings,
-        num_actions=world.num_actuators,
-        hidden=config.hidden,
-        keys=batch_keys(experiments, STREAM_TASK_NETWORK, "dqn"),
-        zero_output=False,  # PyTorch's default initialisation, as the DQN examples
-        device=device,
-    )
-    return dqn_agent(q_network, world.num_actuators, config, experiments.steps, device)
 
 
 def dqn_agent(
@@ -276,8 +254,21 @@ def run(
     device = torch.device("cpu" if device is None else device)
     torch.manual_seed(experiments.seed)  # EGreedyModule and the sampler draw from it
     env = batch_env(experiments, device)
-    agent = build_dqn(config, experiments, device)
     count, steps = experiments.num_experiments, experiments.steps  # an env step: E frames
+    world = experiments.world
+    q_network = TaskQNetwork(
+        count,
+        experiments.size**2,
+        with_proximity=True,
+        num_sensors=world.num_sensors,
+        num_headings=world.num_headings,
+        num_actions=world.num_actuators,
+        hidden=config.hidden,
+        keys=batch_keys(experiments, STREAM_TASK_NETWORK, "dqn"),
+        zero_output=False,  # PyTorch's default initialisation, as the DQN examples
+        device=device,
+    )
+    agent = dqn_agent(q_network, world.num_actuators, config, steps, device)
     collector = Collector(
         env,
         agent.policy,

@@ -75,12 +75,10 @@ class MiniGridConfig:
         object.__setattr__(self, "sizes", check_names("sizes", self.sizes, SIZE_NAMES))
         object.__setattr__(self, "methods", check_names("methods", self.methods, METHODS))
         check_int("steps", self.steps, 10, 10**8)
-        if self.semantics not in SEMANTICS_NAMES:
-            raise ValueError(
-                f"semantics={self.semantics!r}: choose one of {', '.join(SEMANTICS_NAMES)}"
-            )
-        if self.layout not in LAYOUT_NAMES:
-            raise ValueError(f"layout={self.layout!r}: choose one of {', '.join(LAYOUT_NAMES)}")
+        for name, allowed in (("semantics", SEMANTICS_NAMES), ("layout", LAYOUT_NAMES)):
+            if getattr(self, name) not in allowed:
+                value = getattr(self, name)
+                raise ValueError(f"{name}={value!r}: choose one of {', '.join(allowed)}")
         check_exploration(self.exploration)
         check_int("window", self.window, 1, 10_000)
         check_float("final_fraction", self.final_fraction, 0.0, 1.0, low_open=True)
