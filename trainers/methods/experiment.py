@@ -159,9 +159,7 @@ def make_env(
     drawing its obstacles from its own ``world_keys`` entry (``experiment_keys``). ``world``: a
     ``WorldConfig`` (the paper's grid) or any ``factorq_envs.protocol.World``, passed whole
     (``FactoredGridEnv(world=...)``)."""
-    from factorq_envs.torchrl_env import (
-        FactoredGridEnv,  # torchrl: only for the paths that step the env
-    )
+    from factorq_envs.torchrl_env import FactoredGridEnv  # torchrl: only on stepping paths
 
     return FactoredGridEnv(
         world=world,  # passed whole: a WorldConfig or a World

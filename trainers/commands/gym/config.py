@@ -24,10 +24,8 @@ DEFAULT_METHODS = ("dqn", "factor-dqn", "factor-dqn-learned")
 
 @dataclass(frozen=True)
 class GymConfig:
-    """The experiment. The defaults (3 seeds x 1,000 steps x 3 methods: at most 10,350 env
-    steps with the greedy episodes) took about 75 s of CPU time per unit on highway (about 11 min
-    of CPU in all, about 6 min of wall time on 2 idle cores as two processes; with ``sb3-dqn`` 938 s
-    of CPU for the 12 units: ``docs/tutorials/highway.md``)."""
+    """The experiment; the defaults' cost on highway (about 6 min of wall time on 2 idle cores):
+    ``docs/tutorials/highway.md``."""
 
     world: str = option(
         "highway",

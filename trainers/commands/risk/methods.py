@@ -12,7 +12,6 @@ import logging
 import math
 import statistics
 import time
-import warnings
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
@@ -169,10 +168,7 @@ def run_torchrl(
 
     from factorq_torch.risk import RISK_MASK, LocalRisk, LocalRiskLoss, RiskSummary, with_local_risk
     from factorq_torch.structure import StructureLearner
-
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", category=DeprecationWarning)
-        from torchrl.collectors import Collector
+    from factorq_trainers.methods.dqn import Collector  # imported without torchrl's warnings
 
     torch.manual_seed(unit["seed"])
     env = make_env(config, unit["world"], unit["seed"])
