@@ -127,20 +127,8 @@ def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]
     structure = members[committed.clamp(min=0)] & (committed >= 0).unsqueeze(-1)
     truth = _permuted(world, orders if orders_after is None else orders_after)
     steps = batch.metrics()["steps"].sum(dim=(1, 2))
-    return _structure_result(
-        config,
-        setting,
-        batch.metrics(),
-        right_since=state["right_since"],
-        samples_at_change=state["samples_at_change"],
-        wrong_commitments=state["wrong_commitments"],
-        structure=structure,
-        truth=truth,
-        reopened=state["reopened"],
-        samples=state["samples"],
-        curve=_fill_curve(state["curve"], steps),
-        state=state,
-    )
+    curve = _fill_curve(state["curve"], steps)
+    return _structure_result(setting, batch.metrics(), structure, truth, curve, state)
 
 
 def _permuted(world: WorldConfig, orders: torch.Tensor) -> torch.Tensor:
@@ -160,20 +148,20 @@ def _fill_curve(curve: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
 
 
 def _structure_result(
-    config: DependenciesConfig,
     setting: str,
     metrics: dict[str, torch.Tensor],
-    *,
-    right_since: torch.Tensor,
-    samples_at_change: torch.Tensor,
-    wrong_commitments: torch.Tensor,
     structure: torch.Tensor,
     truth: torch.Tensor,
-    reopened: torch.Tensor,
-    samples: torch.Tensor,
     curve: torch.Tensor,
-    state: dict[str, Any] | None,
+    state: dict[str, Any],
 ) -> dict[str, Any]:
+    """The learner's structure metrics from its ``structure`` and the ``truth`` at the end
+    ``[S, A, K]``, its ``curve`` and its ``state`` (``right_since``, ``samples_at_change``,
+    ``wrong_commitments``, ``reopened``, ``samples``: both paths keep them)."""
+    right_since, samples_at_change = state["right_since"], state["samples_at_change"]
+    wrong_commitments, reopened, samples = (
+        state[name] for name in ("wrong_commitments", "reopened", "samples")
+    )
     right = (structure == truth).all(dim=-1)  # [S, A]
     final_right = right.all(dim=-1)
     since = right_since - (samples_at_change if setting == "change" else 0)
@@ -295,20 +283,8 @@ def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, A
     for prefix in ("", "block_"):
         for name in ("count", "successes", "reward_sum", "log_marginal"):
             state[prefix + name] = getattr(learner, prefix + name).clone()
-    return _structure_result(
-        config,
-        setting,
-        metrics,
-        right_since=right_since,
-        samples_at_change=samples_at_change,
-        wrong_commitments=wrong_commitments,
-        structure=learner.structure(),
-        truth=truth,
-        reopened=learner.reopened,
-        samples=learner.samples,
-        curve=_fill_curve(curve, steps),
-        state=state,
-    )
+    curve = _fill_curve(curve, steps)
+    return _structure_result(setting, metrics, learner.structure(), truth, curve, state)
 
 
 def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[str, Any]:

@@ -31,9 +31,7 @@ from factorq_trainers.runner.results import (
     temporary_path,
 )
 
-RESULTS_FILE = "results.json"
 FIGURE_FILE = "figure3.png"
-REPORT_FILE = "report.md"
 
 
 def _ordered_cells(results: dict[str, Any]) -> tuple[list[str], list[str]]:
@@ -45,12 +43,7 @@ def _ordered_cells(results: dict[str, Any]) -> tuple[list[str], list[str]]:
 
 
 def figure3(results: dict[str, Any], path: str | os.PathLike) -> None:
-    """Draw the paper's Figure 3 from ``results`` and save it as a PNG at ``path``.
-
-    Columns are worlds; the top row shows steps per episode, the bottom row collisions per
-    episode (solid: all, dashed: greedy) on a log scale, each the mean over seeds and runs with
-    its 95% confidence band across seeds (``factorq_trainers.commands.paper.figure.draw``).
-    """
+    """The paper's Figure 3 of ``results`` as a PNG at ``path`` (``paper.figure.draw``)."""
     paper_figure.draw(results, path, *figure_arguments(results))
 
 

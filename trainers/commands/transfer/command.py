@@ -14,18 +14,14 @@ on the same worlds and policy streams (common random numbers). Measured per seed
 the first ``early`` episodes of the target (what the body model saves), and the steps per episode
 and collisions over the last ``early`` (the final task performance, which it must not cost).
 
-``--body-model PATH`` replaces the source task by a body model saved with
-``factorq_torch.artifacts.save_agent`` (a ``LocalRewardTable`` of 1 or ``seeds`` experiments;
-``train_body_model`` makes one): it is loaded for the target's body, and a model of another body
-is refused naming both.
-
-Runs on the compiled fast path where it can (``fast.ExperimentBatch``, the body model written into
-its state), else on the modular torchrl path (``OnlineCollector``): the same numbers bit for bit.
-One unit per (method, regime). Writes ``transfer.json``, ``transfer.md`` and ``transfer.png``.
+``--body-model PATH`` carries a body model saved with ``factorq_torch.artifacts.save_agent``
+instead (``load_body_model``; ``train_body_model`` makes one). Runs on the compiled fast path where
+it can, else on the modular torchrl path: the same numbers bit for bit (``run_batch``).
 """
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -348,11 +344,11 @@ def run_unit(
     body, body_from = None, "none"
     if method == "factor-q-body" and config.body_model is not None:
         body, body_from = load_body_model(config), "file"
-    elif method in PAIRS:
-        model = train_body_model(config, learned=learned)
-        body = {name: value.detach() for name, value in model.state_dict().items()}
-        if not learned:
-            body = {name: body[name] for name in ("rho", "kappa")}
+    elif method in PAIRS:  # the body model of train_body_model, as the tensors it loads
+        _, body, _ = run_batch(
+            config, "factor-q", config.source_world, config.source_regime, config.source_episodes,
+            source=True, learned=learned,
+        )  # fmt: skip
         body_from = "source task"
         if progress is not None:
             progress(config.seeds * config.source_episodes)
@@ -404,9 +400,7 @@ def summarise(config: TransferConfig, unit_results: list[dict[str, Any]]) -> dic
             "collisions_per_episode": outcome["collisions_per_episode"],
         }
     against: dict[str, Any] = {}
-    for (carried, fresh_method), regime in (
-        (pair, regime) for pair in PAIRS.items() for regime in config.regimes
-    ):
+    for (carried, fresh_method), regime in itertools.product(PAIRS.items(), config.regimes):
         methods = results[regime]
         if fresh_method in methods and carried in methods:
             fresh, body = methods[fresh_method], methods[carried]
