@@ -452,7 +452,7 @@ def finish(config: CompareConfig, outcomes: list[Any], out: Path) -> dict[str, P
     if config.logger == "tensorboard":
         from torchrl.record.loggers.tensorboard import TensorboardLogger as Logger
     else:
-        from torchrl.record.loggers.csv import CSVLogger as Logger  # type: ignore[assignment]
+        from torchrl.record.loggers.csv import CSVLogger as Logger
     staging = compare_report.staging_logs(out)
     try:
         for unit, outcome in zip(units(config), outcomes, strict=True):
