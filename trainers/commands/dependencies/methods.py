@@ -64,21 +64,17 @@ def _periods(config: DependenciesConfig) -> torch.Tensor:
     return torch.full((config.seeds,), REGIME_PERIODS[config.regime], dtype=torch.int64)
 
 
+#: The options ``StructureLearner`` and ``fast.StructureOptions`` take as the config names them.
+LEARNER_OPTIONS = tuple(
+    "max_parents bayes_factor window prior_a prior_b prediction reopen reopen_factor "
+    "noisy_reopen_factor likelihood pairs".split()
+)
+
+
 def _learner_options(config: DependenciesConfig) -> dict[str, Any]:
-    return {
-        "max_parents": config.max_parents,
-        "bayes_factor": config.bayes_factor,
-        "window": config.window,
-        "prior_a": config.prior_a,
-        "prior_b": config.prior_b,
-        "prior": config.candidate_prior,
-        "prediction": config.prediction,
-        "reopen": config.reopen,
-        "reopen_factor": config.reopen_factor,
-        "noisy_reopen_factor": config.noisy_reopen_factor,
-        "likelihood": config.likelihood,
-        "pairs": config.pairs,
-    }
+    """The learner's options (``candidate_prior`` is its ``prior``)."""
+    options = {name: getattr(config, name) for name in LEARNER_OPTIONS}
+    return {**options, "prior": config.candidate_prior}
 
 
 def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
@@ -356,19 +352,15 @@ def run_dqn(config: DependenciesConfig, setting: str, budget: int) -> dict[str, 
     from factorq_trainers.methods.experiment import ExperimentConfig
 
     options = config.setting_options(setting)
+    shared = ("seed", "seeds", "size", "obstacles", "max_steps", "layout_seed")
     experiments = ExperimentConfig(
-        seed=config.seed,
-        seeds=config.seeds,
+        **{name: getattr(config, name) for name in shared},
         regimes=(config.regime,),
         steps=budget,
-        size=config.size,
-        obstacles=config.obstacles,
-        max_steps=config.max_steps,
-        layout_seed=config.layout_seed,
         body=options["body"],
         sensors=options["sensors"],
-        distractors=options.get("num_distractors", 0),
-        sensor_noise=options.get("sensor_noise", 0.0),
+        distractors=options["num_distractors"],
+        sensor_noise=options["sensor_noise"],
     )
     traces = dqn.run(dqn.DQNConfig(), experiments)["traces"]
     episodes = min(len(trace["steps"]) for trace in traces)

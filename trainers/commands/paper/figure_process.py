@@ -124,12 +124,10 @@ class FigureProcess:
             raise
         if code == 0 and self._send_error is None and Path(path).is_file():
             return
-        if code == 0:
-            why = (
-                f"it could not be sent the curves ({self._send_error})"
-                if self._send_error
-                else (f"it exited without writing {Path(path).name}")
-            )
+        if code == 0 and self._send_error:
+            why = f"it could not be sent the curves ({self._send_error})"
+        elif code == 0:
+            why = f"it exited without writing {Path(path).name}"
         else:
             why = f"exit {code}" if code > 0 else f"killed by signal {-code}"
             last = self._last_error_line()
