@@ -284,12 +284,10 @@ def summarise(config: DependenciesConfig, outcomes: list[dict[str, Any]]) -> dic
 
 
 def estimate(config: DependenciesConfig) -> resources.Estimate:
-    """Peak memory of ``factorq dependencies`` with ``config`` (a ``DependenciesConfig``): the
-    units (settings x regimes) run one after another, so the largest one's learner counts (8
-    float64 arrays ``[S, A, C, 2**max_parents]``, ``C`` the candidate parent sets, and their
-    copy), task tables, local tables (the joint table's ``2**K`` entries where they fit) and
-    metrics. Measured: 3.0
-    GiB estimated for 3,000 seeds against a peak RSS 3.2 GiB above the interpreter's."""
+    """Peak memory of ``factorq dependencies`` with ``config``: the largest unit's (they run one
+    after another) learner (8 float64 arrays ``[S, A, C, 2**max_parents]``, ``C`` the candidate
+    parent sets, and their copy), task and local tables (the joint table's ``2**K`` entries where
+    they fit) and metrics. Measured: 3.0 GiB estimated for 3,000 seeds, peak RSS 3.2 GiB."""
     largest, steps = 0, 0
     episodes = config.seeds * config.runs * config.episodes
     for setting in config.settings:

@@ -259,12 +259,7 @@ def train_body_model(config: TransferConfig, learned: bool = False) -> Any:
     from factorq_torch.structure import StructureLearner
     from factorq_torch.tables import LocalRewardTable
 
-    world = config.source_world
-    _, local, _ = run_batch(
-        config, "factor-q", world, config.source_regime, config.source_episodes, source=True,
-        learned=learned,
-    )  # fmt: skip
-    assert local is not None
+    world, local = config.source_world, _source_body(config, learned)
     if learned:
         learner = StructureLearner(
             config.seeds, num_actions=world.num_actuators, num_sensors=world.num_sensors
@@ -274,6 +269,16 @@ def train_body_model(config: TransferConfig, learned: bool = False) -> Any:
     table = LocalRewardTable(config.seeds, dependency=world.dependency)
     table.load_state_dict({**table.state_dict(), **local})
     return table
+
+
+def _source_body(config: TransferConfig, learned: bool) -> dict[str, torch.Tensor]:
+    """Factor-Q's local model (``run_batch``'s) at the end of the source task."""
+    _, local, _ = run_batch(
+        config, "factor-q", config.source_world, config.source_regime, config.source_episodes,
+        source=True, learned=learned,
+    )  # fmt: skip
+    assert local is not None
+    return local
 
 
 def load_body_model(config: TransferConfig) -> dict[str, torch.Tensor]:
@@ -344,12 +349,8 @@ def run_unit(
     body, body_from = None, "none"
     if method == "factor-q-body" and config.body_model is not None:
         body, body_from = load_body_model(config), "file"
-    elif method in PAIRS:  # the body model of train_body_model, as the tensors it loads
-        _, body, _ = run_batch(
-            config, "factor-q", config.source_world, config.source_regime, config.source_episodes,
-            source=True, learned=learned,
-        )  # fmt: skip
-        body_from = "source task"
+    elif method in PAIRS:
+        body, body_from = _source_body(config, learned), "source task"
         if progress is not None:
             progress(config.seeds * config.source_episodes)
     algorithm = "q-learning" if method == "q-learning" else "factor-q"
