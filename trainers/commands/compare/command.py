@@ -262,14 +262,10 @@ def comparison(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[s
             hit = [value for value in reached if value is not None]
             bounded = functools.partial(bootstrap_mean_ci, seed=experiments.seed)  # counts: >= 0
             collisions = scalar_ci([t["total_collisions"] for t in traces], bounded)
-            greedy = scalar_ci([t["total_greedy_collisions"] for t in traces], bounded)
-            avoidable = scalar_ci(
-                [
-                    t["total_greedy_collisions"] - t["total_boxed_in_greedy_collisions"]
-                    for t in traces
-                ],
-                bounded,
-            )
+            greedy_counts = [t["total_greedy_collisions"] for t in traces]
+            boxed_in = [t["total_boxed_in_greedy_collisions"] for t in traces]
+            greedy = scalar_ci(greedy_counts, bounded)
+            avoidable = scalar_ci(np.subtract(greedy_counts, boxed_in), bounded)
             tail = [t["steps"][t["env_steps"] > 0.8 * experiments.steps] for t in traces]
             tail = [float(values.mean()) for values in tail if values.size]
             wall_s = run["wall_s"]

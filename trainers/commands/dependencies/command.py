@@ -158,17 +158,14 @@ def summarise_setting(
         totals[method] = {"collisions": collisions, "greedy": greedy, "steps": per_run}
         # truncated: not at the goal after max_steps (a goal step's task return is -steps + 1)
         truncated = (metrics["task_return"].to(torch.float64) == -steps).double()
+        per_episode = metrics["collisions"].double().flatten(1).mean(dim=0).tolist()
         summary["methods"][method] = {
             "collisions_per_experiment": float(collisions.mean()),
             "greedy_collisions_per_experiment": float(greedy.mean()),
             "steps_per_run": float(per_run.mean()),
             "steps_per_episode": float(steps.mean()),
             "fraction_truncated": float(truncated.mean()),
-            "collisions_per_episode": metrics["collisions"]
-            .double()
-            .flatten(1)
-            .mean(dim=0)
-            .tolist(),
+            "collisions_per_episode": per_episode,
         }
     gated = runs.get("factor-q-gated")
     if gated is not None:
