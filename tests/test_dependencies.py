@@ -260,14 +260,17 @@ def test_the_summary_shows_the_absolute_task_measures_beside_the_ratios():
         "collisions": torch.zeros(2, 1, 2, dtype=torch.int64),
         "greedy_collisions": torch.zeros(2, 1, 2, dtype=torch.int64),
     }
-    summary = dependencies.summarise_setting(
-        config, "cross", {"factor-q": {"metrics": metrics}, "q-learning": {"metrics": metrics}}
-    )
+    gated = {"metrics": metrics, "right_at_end": [True, True], "hamming_at_end": [0, 0]}
+    runs = {"factor-q": {"metrics": metrics}, "q-learning": {"metrics": metrics}}
+    summary = dependencies.summarise_setting(config, "cross", {**runs, "factor-q-gated": gated})
     oracle = summary["methods"]["factor-q"]
     assert oracle["steps_per_episode"] == (1000 + 10 + 20 + 30) / 4  # 265
     assert oracle["fraction_truncated"] == 0.25
-    absolute = dependencies._absolute(summary["methods"], "q-learning")
-    assert absolute["steps_per_episode"] == {"q-learning": 265.0, "factor-q": 265.0}
+    absolute = summary["gated_against_oracle"]["absolute"]
+    assert absolute["steps_per_episode"] == {"factor-q-gated": 265.0, "factor-q": 265.0}
+    assert absolute["fraction_truncated"] == {"factor-q-gated": 0.25, "factor-q": 0.25}
+    del summary["methods"]["factor-q-gated"], summary["gated_structure"]
+    del summary["gated_against_oracle"]
     text = dependencies_report.markdown(
         {
             "config": dataclasses.asdict(config),

@@ -11,11 +11,9 @@ a replay buffer, comparable with the online methods. Tabular methods and Factor-
 project's ``OnlineCollector`` (one run, stepped ``steps`` times), DQN in torchrl's ``Collector``
 (``factorq_trainers.methods.dqn``).
 
-**The swap.** Factor-Q and Factor-DQN run the very same code (``run_online``, with the agent of
-``factorq_trainers.methods.experiment.online_agent``): env with ``SplitLocalReward``,
-``FactorQPolicy`` (eqs. 2-3), ``FactorQLoss`` (eq. 4, and eq. 5 or its regression),
-``OnlineCollector``. Only ``value_providers`` differs: tables and SGD(lr 1), or networks
-(``factorq_torch.neural``) and Adam.
+**The swap.** Factor-Q and Factor-DQN run the very same code (``run_online``: env with
+``SplitLocalReward``, ``FactorQPolicy`` (eqs. 2-3), ``FactorQLoss`` (eq. 4, and eq. 5 or its
+regression), ``OnlineCollector``); only their ``value_providers`` differ.
 
 **Threshold.** ``steps_to_threshold`` is the env steps at the end of the first episode whose path
 length is within 1.5x the shortest path: the BFS distance from start to goal in the static layout;
@@ -23,29 +21,18 @@ in the moving worlds, where the shortest path changes with every scatter, the ob
 Manhattan distance ``2 (size - 1)``. Per method and world it is the mean over seeds when every
 seed reached it, ``null`` otherwise (``seeds_reached`` says how many did).
 
-**Units.** The command runs on the runner's frame (``factorq_trainers.runner.frame``): one unit
-per method, its worlds x seeds one batch (DQN's experiments share torch's stream and every
-minibatch, so a smaller unit would change its numbers). A unit's result is the method's traces
-(JSON lists) and wall time, kept in ``out/units/`` as it finishes: ``--resume`` reruns only the
-methods without a kept unit, ``--cluster`` runs one method per task, and the numbers are those of
-an uninterrupted run in one process.
-
-**Wall time.** Each method runs all selected worlds and seeds as one batch, so ``wall_s`` is that
-batch's time, the same for each of its worlds.
-
-**Logging.** torchrl's ``CSVLogger`` (default) or ``TensorboardLogger`` (``logger="tensorboard"``)
-under ``out/logs/<method>/``, written from the traces once the run is over (``finish``): per
-experiment and finished episode, ``return`` (task return),
-``path_length``, ``collisions``, ``greedy_collisions``, ``epsilon`` and ``loss`` (0.5 x squared TD
-error: of each step's update for the online methods, of the latest minibatch for DQN; averaged
-over the episode's steps), at step = that experiment's env steps.
+**Units.** One per method, its worlds x seeds one batch (``units``), kept in ``out/units/``
+(``--resume``, ``--cluster``: the numbers of an uninterrupted run); ``wall_s`` is the batch's time,
+the same for each of its worlds. **Logs** (``finish``): torchrl's ``CSVLogger`` or
+``TensorboardLogger`` under ``out/logs/<method>/``, per experiment and finished episode
+(``methods.experiment.log_traces``), ``loss`` being 0.5 x squared TD error (of each step's update
+for the online methods, of the latest minibatch for DQN) averaged over the episode's steps.
 """
 
 from __future__ import annotations
 
 import functools
 import math
-import os
 import shutil
 import sys
 import time
@@ -275,14 +262,10 @@ def comparison(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[s
             hit = [value for value in reached if value is not None]
             bounded = functools.partial(bootstrap_mean_ci, seed=experiments.seed)  # counts: >= 0
             collisions = scalar_ci([t["total_collisions"] for t in traces], bounded)
-            greedy = scalar_ci([t["total_greedy_collisions"] for t in traces], bounded)
-            avoidable = scalar_ci(
-                [
-                    t["total_greedy_collisions"] - t["total_boxed_in_greedy_collisions"]
-                    for t in traces
-                ],
-                bounded,
-            )
+            greedy_counts = [t["total_greedy_collisions"] for t in traces]
+            boxed_in = [t["total_boxed_in_greedy_collisions"] for t in traces]
+            greedy = scalar_ci(greedy_counts, bounded)
+            avoidable = scalar_ci(np.subtract(greedy_counts, boxed_in), bounded)
             tail = [t["steps"][t["env_steps"] > 0.8 * experiments.steps] for t in traces]
             tail = [float(values.mean()) for values in tail if values.size]
             wall_s = run["wall_s"]
@@ -426,7 +409,9 @@ def run_unit(
     config: CompareConfig, unit: dict[str, Any], progress: Callable[[int], None] | None = None
 ) -> dict[str, Any]:
     """One method's batch (all selected worlds and seeds) with ``config.threads`` torch threads:
-    ``{"method", "traces", "wall_s"}``, the traces' arrays as lists.
+    ``{"method", "traces", "wall_s"}``, the traces' arrays as lists. A method's numbers do not
+    depend on the others (DQN seeds torch's global stream first): methods may run in any order,
+    in any process.
 
     Args:
         progress: called with the env steps per experiment done since its last call.
@@ -440,8 +425,12 @@ def run_unit(
             progress(now - done)
             done = now
 
+    method = unit["method"]
     with torch_threads(config.threads):
-        run = run_method(config, unit["method"], report)
+        if method == "dqn":
+            run = dqn.run(config.dqn, config.experiments, progress=report)
+        else:
+            run = run_online(method, config, progress=report)
     traces = [
         {
             key: value.tolist() if isinstance(value, np.ndarray) else value
@@ -449,56 +438,25 @@ def run_unit(
         }
         for t in run["traces"]
     ]
-    return {"method": unit["method"], "traces": traces, "wall_s": run["wall_s"]}
+    return {"method": method, "traces": traces, "wall_s": run["wall_s"]}
 
 
 def finish(config: CompareConfig, outcomes: list[Any], out: Path) -> dict[str, Path]:
-    """The per-episode logs (``write_logs``), written once the run is over from the units'
-    traces to a staging folder renamed to ``out/logs`` (an earlier run's logs replaced, never
-    appended to): one run's logs, the same after a resume."""
-    runs = {unit["method"]: outcome for unit, outcome in zip(units(config), outcomes, strict=True)}
+    """Every method's per-episode logs (``config.logger``'s), written once the run is over from
+    the units' traces to a staging folder renamed to ``out/logs`` (an earlier run's logs replaced,
+    never appended to): one run's logs, the same after a resume."""
+    if config.logger == "tensorboard":
+        from torchrl.record.loggers.tensorboard import TensorboardLogger as Logger
+    else:
+        from torchrl.record.loggers.csv import CSVLogger as Logger
     staging = compare_report.staging_logs(out)
     try:
-        write_logs(config, runs, staging)
+        for unit, outcome in zip(units(config), outcomes, strict=True):
+            logger = Logger(exp_name=unit["method"], log_dir=str(staging))
+            experiment.log_traces(logger, [_arrays(trace) for trace in outcome["traces"]])
         return {"logs": compare_report.replace_logs(staging, out)}
     finally:
         shutil.rmtree(staging, ignore_errors=True)  # renamed away unless writing failed
-
-
-# --------------------------------------------------------------------------------------------
-# Running
-
-
-def make_logger(config: CompareConfig, method: str, log_dir: str | os.PathLike) -> Any:
-    """torchrl's CSVLogger or TensorboardLogger for ``method`` under ``log_dir``."""
-    if config.logger == "tensorboard":
-        from torchrl.record.loggers.tensorboard import TensorboardLogger
-
-        return TensorboardLogger(exp_name=method, log_dir=str(log_dir))
-    from torchrl.record.loggers.csv import CSVLogger
-
-    return CSVLogger(exp_name=method, log_dir=str(log_dir))
-
-
-def run_method(
-    config: CompareConfig, method: str, progress: Callable[[int, int], None] | None = None
-) -> dict[str, Any]:
-    """One method's batch (all selected worlds and seeds): ``{"traces", "wall_s"}``. A method's
-    numbers do not depend on the others (DQN seeds torch's global stream first), so methods may
-    run in any order, in any process (``factorq compare --cluster``)."""
-    if method == "dqn":
-        return dqn.run(config.dqn, config.experiments, progress=progress)
-    return run_online(method, config, progress=progress)
-
-
-def write_logs(
-    config: CompareConfig, runs: dict[str, dict[str, Any]], log_dir: str | os.PathLike
-) -> None:
-    """Every method's per-episode records, from its traces, as ``config.logger`` logs under
-    ``log_dir``."""
-    for method, run in runs.items():
-        traces = [_arrays(trace) for trace in run["traces"]]
-        experiment.log_traces(make_logger(config, method, log_dir), traces)
 
 
 def run(config: CompareConfig, progress: Callable[[int], None] | None = None) -> dict[str, Any]:

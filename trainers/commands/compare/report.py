@@ -46,9 +46,8 @@ def write_figure(results: dict[str, Any], path: str | os.PathLike) -> None:
             axis = axes[row][column]
             for method in results["results"]:
                 curve = results["curves"][method][world][name]
-                mean = np.array([np.nan if v is None else v for v in curve["mean"]])
-                low = np.array([np.nan if v is None else v for v in curve["low"]])
-                high = np.array([np.nan if v is None else v for v in curve["high"]])
+                # null (no value) as NaN
+                mean, low, high = (np.array(curve[k], dtype=float) for k in ("mean", "low", "high"))
                 colour = COLOURS[method]
                 floor = 1.0 if name == "steps" else 0.0  # a path takes >= 1 step
                 axis.plot(grid, mean, color=colour, label=label(method), linewidth=1.4)

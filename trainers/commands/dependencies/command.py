@@ -1,29 +1,18 @@
 """``factorq dependencies``: Factor-Q that learns its own sensor-actuator pairing.
 
 Per *setting* (a body, a sensor layout, noise, a change), ``seeds`` experiments of ``runs`` x
-``episodes`` episodes (task tables reset per run, local knowledge kept, SPEC section 4) for four
-methods on the same worlds (common random numbers: the same world keys):
-
-- ``factor-q-learned``: ``factorq_torch.structure.StructureLearner`` as the local value provider,
-  told nothing of the body, on the compiled path (``fast.StructureOptions``) or, with ``--path
-  modular`` (or ``--prediction posterior``), through ``FactorQPolicy``, ``FactorQLoss`` and
-  ``OnlineCollector`` (the modular torchrl path): the same numbers bit for bit. Every experiment
-  receives its sensors in its own random order (``factorq_envs.permutation.PermuteSensors``),
-  redrawn at run ``change_run`` in the ``change`` setting;
-- ``factor-q``: ``LocalRewardTable`` with the true dependency (the paper), on the compiled path;
-- ``factor-q-joint``: Factor-Q with one local table per actuator over the pattern of *all* sensors
-  (the paper's footnote 2), compiled, where ``2**K`` entries fit (``base.validation.MAX_PARENTS``);
-- ``q-learning``: compiled, where its table fits (``base.validation.MAX_TABLE_ENTRIES``);
-- ``dqn`` (opt-in, ``--methods``): ``factorq_trainers.methods.dqn`` on the oracle's step budget
-  (``run_dqn``);
-- ``factor-q-gated`` (opt-in, ``--methods``): Factor-Q with
-  ``factorq_torch.neural.GatedLocalRewardNetwork`` as the local value provider on the modular
-  path, in the learner's sensor orders, its structure read out (``structure()``) at the end
-  (``run_gated``).
-
-The joint table and Q-learning receive the sensors in the learner's orders, changed at the same
-moment (``fast.SensorOrders``); the oracle is told the true pairing at every moment, which is
-the same as running it in the world's own order.
+``episodes`` episodes (task tables reset per run, local knowledge kept, SPEC section 4) per method,
+on the same worlds (common random numbers), each run by ``methods.py`` beside it:
+``factor-q-learned`` (``StructureLearner``, told nothing of the body: ``run_learned``, compiled or
+modular, the same numbers bit for bit), the oracle ``factor-q`` (the paper's ``LocalRewardTable``
+with the true dependency), ``factor-q-joint`` (one local table per actuator over the pattern of
+*all* sensors, the paper's footnote 2) and ``q-learning`` (``run_compiled``, where their tables
+fit: ``skipped_reason``), and opt-in ``dqn`` (on the oracle's step budget: ``run_dqn``) and
+``factor-q-gated`` (``GatedLocalRewardNetwork``: ``run_gated``). Every experiment receives its
+sensors in its own random order (``factorq_envs.permutation.PermuteSensors``), redrawn at run
+``change_run`` in the ``change`` setting; the joint table, Q-learning and the gated network see
+them in the learner's orders, changed at the same moment, while the oracle is told the true
+pairing at every moment (the same as running it in the world's own order).
 
 Structure metrics (``factor-q-learned`` only), per experiment: the local samples (firings) per
 actuator until it holds the right parents and keeps them to the end (the experiment's value: the
@@ -169,17 +158,14 @@ def summarise_setting(
         totals[method] = {"collisions": collisions, "greedy": greedy, "steps": per_run}
         # truncated: not at the goal after max_steps (a goal step's task return is -steps + 1)
         truncated = (metrics["task_return"].to(torch.float64) == -steps).double()
+        per_episode = metrics["collisions"].double().flatten(1).mean(dim=0).tolist()
         summary["methods"][method] = {
             "collisions_per_experiment": float(collisions.mean()),
             "greedy_collisions_per_experiment": float(greedy.mean()),
             "steps_per_run": float(per_run.mean()),
             "steps_per_episode": float(steps.mean()),
             "fraction_truncated": float(truncated.mean()),
-            "collisions_per_episode": metrics["collisions"]
-            .double()
-            .flatten(1)
-            .mean(dim=0)
-            .tolist(),
+            "collisions_per_episode": per_episode,
         }
     gated = runs.get("factor-q-gated")
     if gated is not None:
@@ -188,13 +174,9 @@ def summarise_setting(
             "hamming_at_end_mean": float(np.mean(gated["hamming_at_end"])),
         }
         if "factor-q" in totals:
-            mine, oracle = totals["factor-q-gated"], totals["factor-q"]
-            summary["gated_against_oracle"] = {
-                "collisions": _ratio(mine["collisions"], oracle["collisions"], config.seed),
-                "greedy_collisions": _ratio(mine["greedy"], oracle["greedy"], config.seed),
-                "learning_speed": _ratio(oracle["steps"], mine["steps"], config.seed),
-                "absolute": _absolute(summary["methods"], "factor-q-gated"),
-            }
+            summary["gated_against_oracle"] = _against_oracle(
+                summary["methods"], totals, "factor-q-gated", config.seed
+            )
     learned = runs.get("factor-q-learned")
     if learned is None:
         return summary
@@ -213,23 +195,26 @@ def summarise_setting(
         "curve": learned["curve"],
     }
     if "factor-q" in totals:
-        mine, oracle = totals["factor-q-learned"], totals["factor-q"]
-        summary["against_oracle"] = {
-            "collisions": _ratio(mine["collisions"], oracle["collisions"], config.seed),
-            "greedy_collisions": _ratio(mine["greedy"], oracle["greedy"], config.seed),
-            # learning speed = 1 / steps per run: learned speed / oracle speed
-            "learning_speed": _ratio(oracle["steps"], mine["steps"], config.seed),
-        }
-        summary["against_oracle"]["absolute"] = _absolute(summary["methods"], "factor-q-learned")
+        summary["against_oracle"] = _against_oracle(
+            summary["methods"], totals, "factor-q-learned", config.seed
+        )
     return summary
 
 
-def _absolute(methods: dict[str, Any], method: str) -> dict[str, Any]:
-    """The task measures beside a ratio to the oracle (issue 39: a failure both share shows):
-    steps per episode and the fraction of episodes truncated, of ``method`` and the oracle."""
+def _against_oracle(
+    methods: dict[str, Any], totals: dict[str, Any], method: str, seed: int
+) -> dict[str, Any]:
+    """``method`` against the oracle: ratios, and both sides' task measures (issue 39)."""
+    mine, oracle = totals[method], totals["factor-q"]
     return {
-        name: {side: methods[side][name] for side in (method, "factor-q")}
-        for name in ("steps_per_episode", "fraction_truncated")
+        "collisions": _ratio(mine["collisions"], oracle["collisions"], seed),
+        "greedy_collisions": _ratio(mine["greedy"], oracle["greedy"], seed),
+        # learning speed = 1 / steps per run: its speed / the oracle's
+        "learning_speed": _ratio(oracle["steps"], mine["steps"], seed),
+        "absolute": {  # steps per episode and episodes truncated: a failure both share shows
+            name: {side: methods[side][name] for side in (method, "factor-q")}
+            for name in ("steps_per_episode", "fraction_truncated")
+        },
     }
 
 
@@ -296,12 +281,10 @@ def summarise(config: DependenciesConfig, outcomes: list[dict[str, Any]]) -> dic
 
 
 def estimate(config: DependenciesConfig) -> resources.Estimate:
-    """Peak memory of ``factorq dependencies`` with ``config`` (a ``DependenciesConfig``): the
-    units (settings x regimes) run one after another, so the largest one's learner counts (8
-    float64 arrays ``[S, A, C, 2**max_parents]``, ``C`` the candidate parent sets, and their
-    copy), task tables, local tables (the joint table's ``2**K`` entries where they fit) and
-    metrics. Measured: 3.0
-    GiB estimated for 3,000 seeds against a peak RSS 3.2 GiB above the interpreter's."""
+    """Peak memory of ``factorq dependencies`` with ``config``: the largest unit's (they run one
+    after another) learner (8 float64 arrays ``[S, A, C, 2**max_parents]``, ``C`` the candidate
+    parent sets, and their copy), task and local tables (the joint table's ``2**K`` entries where
+    they fit) and metrics. Measured: 3.0 GiB estimated for 3,000 seeds, peak RSS 3.2 GiB."""
     largest, steps = 0, 0
     episodes = config.seeds * config.runs * config.episodes
     for setting in config.settings:

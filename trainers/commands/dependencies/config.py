@@ -4,6 +4,7 @@ presets, the custom setting the body options declare, and the checks of every op
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -234,20 +235,11 @@ class DependenciesConfig:
         check_int("max_parents", self.max_parents, 0)
         check_int("window", self.window, 1, INT32_MAX)
         check_threads("threads", self.threads)
-        if self.risk_gate not in ("off", "on"):
-            raise ValueError(f"risk_gate={self.risk_gate!r} is unknown: choose one of off, on")
-        AgentConfig(exploration=self.exploration)  # named if unknown
-        for name, choices in (
-            ("prediction", ("optimistic", "map", "posterior", "committed")),
-            ("path", ("fast", "modular")),
-            ("reopen", ("body", "actuator")),
-            ("candidate_prior", ("size", "sparse", "uniform")),
-            ("likelihood", ("flip", "pattern", "mixture")),
-            ("pairs", ("all", "pruned")),
-        ):
-            if getattr(self, name) not in choices:
+        for field in dataclasses.fields(self):  # the options with choices (``option``'s)
+            choices, value = field.metadata.get("choices"), getattr(self, field.name)
+            if choices is not None and value not in choices:
                 raise ValueError(
-                    f"{name}={getattr(self, name)!r} is unknown: choose one of {', '.join(choices)}"
+                    f"{field.name}={value!r} is unknown: choose one of {', '.join(choices)}"
                 )
         if not isinstance(self.bayes_factor, (int, float)) or not self.bayes_factor > 1:
             raise ValueError(

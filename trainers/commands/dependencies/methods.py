@@ -6,6 +6,7 @@ the same worlds and the learner's sensor orders (see ``command.py`` beside it).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -13,7 +14,6 @@ import torch
 
 from factorq_envs.grid_world import WorldConfig
 from factorq_envs.regimes import REGIME_PERIODS
-from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
 from factorq_trainers.commands.dependencies.config import (
     CURVE_EVERY,
@@ -41,6 +41,18 @@ def sensor_orders(
     return torch.stack(orders)
 
 
+def _orders(config: DependenciesConfig, setting: str, redraw: int) -> torch.Tensor:
+    """``sensor_orders`` of ``setting``'s experiments (``redraw`` 1: after the change)."""
+    num_sensors = config.world_of(setting).num_sensors
+    return sensor_orders(config.seed, config.setting_stream(setting), config.seeds, num_sensors,
+                         redraw)  # fmt: skip
+
+
+def _orders_after(config: DependenciesConfig, setting: str) -> torch.Tensor | None:
+    """The orders after the change in the ``change`` setting, else None."""
+    return _orders(config, setting, 1) if setting == "change" else None
+
+
 def _keys(config: DependenciesConfig, method: str) -> tuple[torch.Tensor, torch.Tensor]:
     labels = [(config.regime, index) for index in range(config.seeds)]
     world_keys = experiment_keys(config.seed, STREAM_WORLD, labels)
@@ -48,21 +60,21 @@ def _keys(config: DependenciesConfig, method: str) -> tuple[torch.Tensor, torch.
     return world_keys, policy_keys
 
 
+def _periods(config: DependenciesConfig) -> torch.Tensor:
+    return torch.full((config.seeds,), REGIME_PERIODS[config.regime], dtype=torch.int64)
+
+
+#: The options ``StructureLearner`` and ``fast.StructureOptions`` take as the config names them.
+LEARNER_OPTIONS = tuple(
+    "max_parents bayes_factor window prior_a prior_b prediction reopen reopen_factor "
+    "noisy_reopen_factor likelihood pairs".split()
+)
+
+
 def _learner_options(config: DependenciesConfig) -> dict[str, Any]:
-    return {
-        "max_parents": config.max_parents,
-        "bayes_factor": config.bayes_factor,
-        "window": config.window,
-        "prior_a": config.prior_a,
-        "prior_b": config.prior_b,
-        "prior": config.candidate_prior,
-        "prediction": config.prediction,
-        "reopen": config.reopen,
-        "reopen_factor": config.reopen_factor,
-        "noisy_reopen_factor": config.noisy_reopen_factor,
-        "likelihood": config.likelihood,
-        "pairs": config.pairs,
-    }
+    """The learner's options (``candidate_prior`` is its ``prior``)."""
+    options = {name: getattr(config, name) for name in LEARNER_OPTIONS}
+    return {**options, "prior": config.candidate_prior}
 
 
 def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
@@ -87,60 +99,32 @@ def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]
     from factorq_trainers.compiled import fast
 
     world = config.world_of(setting)
-    count, num_sensors = config.seeds, world.num_sensors
     world_keys, policy_keys = _keys(config, "factor-q-learned")
-    periods = torch.full((count,), REGIME_PERIODS[config.regime], dtype=torch.int64)
-    orders = sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0)
-    change = setting == "change"
-    orders_after = (
-        sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 1)
-        if change
-        else None
-    )
+    orders, orders_after = _orders(config, setting, 0), _orders_after(config, setting)
     options = fast.StructureOptions(
         orders=orders,
         orders_after=orders_after,
-        change_run=config.change_run if change else 0,
+        change_run=0 if orders_after is None else config.change_run,
         curve_every=CURVE_EVERY,
         **_learner_options(config),
     )
     batch = fast.ExperimentBatch(
-        "factor-q",
-        periods,
-        world,
-        config.agent_of("factor-q-learned"),
-        config.runs,
-        config.episodes,
-        world_keys,
-        policy_keys,
-        threads=config.threads,
-        structure=options,
-    )
+        "factor-q", _periods(config), world, config.agent_of("factor-q-learned"), config.runs,
+        config.episodes, world_keys, policy_keys, threads=config.threads, structure=options,
+    )  # fmt: skip
     while not batch.done:
         batch.advance(1 << 62)
     state = batch.learner_state()
     sets = batch._candidate_sets
-    members = torch.zeros(len(sets), num_sensors, dtype=torch.bool)
+    members = torch.zeros(len(sets), world.num_sensors, dtype=torch.bool)
     for index, parents in enumerate(sets):
         members[index, list(parents)] = True
     committed = state["committed"]
     structure = members[committed.clamp(min=0)] & (committed >= 0).unsqueeze(-1)
     truth = _permuted(world, orders if orders_after is None else orders_after)
     steps = batch.metrics()["steps"].sum(dim=(1, 2))
-    return _structure_result(
-        config,
-        setting,
-        batch.metrics(),
-        right_since=state["right_since"],
-        samples_at_change=state["samples_at_change"],
-        wrong_commitments=state["wrong_commitments"],
-        structure=structure,
-        truth=truth,
-        reopened=state["reopened"],
-        samples=state["samples"],
-        curve=_fill_curve(state["curve"], steps),
-        state=state,
-    )
+    curve = _fill_curve(state["curve"], steps)
+    return _structure_result(setting, batch.metrics(), structure, truth, curve, state)
 
 
 def _permuted(world: WorldConfig, orders: torch.Tensor) -> torch.Tensor:
@@ -160,20 +144,20 @@ def _fill_curve(curve: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
 
 
 def _structure_result(
-    config: DependenciesConfig,
     setting: str,
     metrics: dict[str, torch.Tensor],
-    *,
-    right_since: torch.Tensor,
-    samples_at_change: torch.Tensor,
-    wrong_commitments: torch.Tensor,
     structure: torch.Tensor,
     truth: torch.Tensor,
-    reopened: torch.Tensor,
-    samples: torch.Tensor,
     curve: torch.Tensor,
-    state: dict[str, Any] | None,
+    state: dict[str, Any],
 ) -> dict[str, Any]:
+    """The learner's structure metrics from its ``structure`` and the ``truth`` at the end
+    ``[S, A, K]``, its ``curve`` and its ``state`` (``right_since``, ``samples_at_change``,
+    ``wrong_commitments``, ``reopened``, ``samples``: both paths keep them)."""
+    right_since, samples_at_change = state["right_since"], state["samples_at_change"]
+    wrong_commitments, reopened, samples = (
+        state[name] for name in ("wrong_commitments", "reopened", "samples")
+    )
     right = (structure == truth).all(dim=-1)  # [S, A]
     final_right = right.all(dim=-1)
     since = right_since - (samples_at_change if setting == "change" else 0)
@@ -198,50 +182,64 @@ def _structure_result(
     }
 
 
-def _permuted_agent(
-    config: DependenciesConfig, setting: str, local: Any, agent: AgentConfig
-) -> tuple[Any, Any, Any, Any, torch.Tensor]:
-    """``(env, policy, loss, permute, orders)`` of Factor-Q on the modular path around the
-    provider ``local``, the sensors in the learner's orders (``permute`` redraws them: the
-    change setting); the policy stream is the learned structure's (the gated network's too:
+def _permuted_collector(
+    config: DependenciesConfig, setting: str, local: Any, optimizer: Any = None
+) -> tuple[Any, torch.Tensor, Callable[[], torch.Tensor]]:
+    """``(collector, truth, redraw)``: Factor-Q's ``OnlineCollector`` on the modular path around
+    the provider ``local``, the sensors in the learner's orders, the true dependency in them
+    ``[S, A, K]``, and ``redraw()``, called after each step, which redraws the orders (and the
+    truth, in place) of the experiments that reached run ``change_run`` in the change setting and
+    returns them ``[S]``. The policy stream is the learned structure's (the gated network's too:
     common random numbers, ``KEYED_METHODS``)."""
-    from factorq_envs.permutation import PermuteSensors
+    from factorq_envs.permutation import PermuteSensors, permuted_dependency
+    from factorq_torch.collectors import OnlineCollector
     from factorq_torch.tables import TaskQTable
     from factorq_trainers.methods.experiment import make_env, online_agent
 
     world, count = config.world_of(setting), config.seeds
     world_keys, policy_keys = _keys(config, "factor-q-learned")
-    orders = sensor_orders(config.seed, config.setting_stream(setting), count, world.num_sensors, 0)
+    orders = _orders(config, setting, 0)
     permute = PermuteSensors(orders)
-    periods = [REGIME_PERIODS[config.regime]] * count
     task = TaskQTable(
         count, world.num_cells, num_headings=world.num_headings, num_actions=world.num_actuators
     )
-    base = make_env(world, periods, world_keys)
+    base = make_env(world, _periods(config), world_keys)
+    agent = config.agent_of("factor-q-learned")  # the gated network's too
     env, policy, loss = online_agent(base, task, local, agent, policy_keys)
     env.append_transform(permute)  # after the split reward, as the compiled path reads them
-    return env, policy, loss, permute, orders
+    collector = OnlineCollector(
+        env, policy, loss, runs=config.runs, episodes=config.episodes, optimizer=optimizer
+    )
+    truth = permuted_dependency(world.dependency, orders)
+    changed = torch.zeros(count, dtype=torch.bool)
+
+    def redraw() -> torch.Tensor:
+        due = (collector.run_index >= config.change_run) & ~changed
+        if setting != "change" or not bool(due.any()):
+            return torch.zeros_like(changed)
+        new_orders = _orders(config, setting, 1)
+        permute.set_permutations(new_orders, due)
+        truth[due] = permuted_dependency(world.dependency, new_orders)[due]
+        changed[due] = True
+        return due
+
+    return collector, truth, redraw
 
 
 def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     """``run_learned`` on the modular torchrl path: ``StructureLearner`` through
     ``FactorQPolicy``, ``FactorQLoss`` and ``OnlineCollector``."""
-    from factorq_envs.permutation import permuted_dependency
-    from factorq_torch.collectors import OnlineCollector
     from factorq_torch.structure import StructureLearner
 
-    world, agent = config.world_of(setting), config.agent_of("factor-q-learned")
-    count, num_sensors = config.seeds, world.num_sensors
+    world, count = config.world_of(setting), config.seeds
     learner = StructureLearner(
-        count, num_actions=world.num_actuators, num_sensors=num_sensors, **_learner_options(config)
-    )
-    env, policy, loss, permute, orders = _permuted_agent(config, setting, learner, agent)
-    collector = OnlineCollector(env, policy, loss, runs=config.runs, episodes=config.episodes)
-    truth = permuted_dependency(world.dependency, orders)  # [S, A, K]
+        count, num_actions=world.num_actuators, num_sensors=world.num_sensors,
+        **_learner_options(config),
+    )  # fmt: skip
+    collector, truth, redraw = _permuted_collector(config, setting, learner)
     actuators = world.num_actuators
     right_since = torch.full((count, actuators), -1)  # samples when it last became right
     samples_at_change = torch.zeros(count, actuators, dtype=torch.int64)
-    changed = torch.zeros(count, dtype=torch.bool)
     wrong_commitments = torch.zeros(count, dtype=torch.int64)
     previous = learner.committed.clone()
     steps = torch.zeros(count, dtype=torch.int64)
@@ -251,16 +249,8 @@ def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, A
     for td in collector:
         active = td.get(("collector", "mask"))
         steps += active.to(torch.int64)
-        if setting == "change":
-            due = (collector.run_index >= config.change_run) & ~changed
-            if bool(due.any()):
-                new_orders = sensor_orders(
-                    config.seed, config.setting_stream(setting), count, num_sensors, 1
-                )
-                permute.set_permutations(new_orders, due)
-                truth[due] = permuted_dependency(world.dependency, new_orders)[due]
-                samples_at_change[due] = learner.samples[due]
-                changed |= due
+        due = redraw()
+        samples_at_change[due] = learner.samples[due]
         right = (learner.structure() == truth).all(dim=-1)  # [S, A]
         right_since = torch.where(
             right, torch.where(right_since < 0, learner.samples, right_since), -1
@@ -289,20 +279,8 @@ def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, A
     for prefix in ("", "block_"):
         for name in ("count", "successes", "reward_sum", "log_marginal"):
             state[prefix + name] = getattr(learner, prefix + name).clone()
-    return _structure_result(
-        config,
-        setting,
-        metrics,
-        right_since=right_since,
-        samples_at_change=samples_at_change,
-        wrong_commitments=wrong_commitments,
-        structure=learner.structure(),
-        truth=truth,
-        reopened=learner.reopened,
-        samples=learner.samples,
-        curve=_fill_curve(curve, steps),
-        state=state,
-    )
+    curve = _fill_curve(curve, steps)
+    return _structure_result(setting, metrics, learner.structure(), truth, curve, state)
 
 
 def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[str, Any]:
@@ -312,39 +290,18 @@ def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[
 
     world = config.world_of(setting)
     world_keys, policy_keys = _keys(config, method)
-    periods = torch.full((config.seeds,), REGIME_PERIODS[config.regime], dtype=torch.int64)
-    dependency, algorithm = None, "factor-q"
+    dependency, orders = None, None
     if method == "factor-q-joint":
         dependency = torch.ones(world.num_actuators, world.num_sensors, dtype=torch.bool)
-    if method == "q-learning":
-        algorithm = "q-learning"
-    orders = None
-    if method in (
-        "factor-q-joint",
-        "q-learning",
-    ):  # the sensors in the learner's orders, changed alike
-        count, num_sensors = config.seeds, world.num_sensors
-        change = setting == "change"
-        orders = fast.SensorOrders(
-            sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 0),
-            sensor_orders(config.seed, config.setting_stream(setting), count, num_sensors, 1)
-            if change
-            else None,
-            config.change_run if change else 0,
-        )
+    if method in ("factor-q-joint", "q-learning"):  # the learner's sensor orders, changed alike
+        after = _orders_after(config, setting)
+        change_run = 0 if after is None else config.change_run
+        orders = fast.SensorOrders(_orders(config, setting, 0), after, change_run)
     metrics = fast.run_experiments(
-        algorithm,
-        periods,
-        world,
-        config.agent_of(method),
-        config.runs,
-        config.episodes,
-        world_keys,
-        policy_keys,
-        threads=config.threads,
-        dependency=dependency,
-        sensor_orders=orders,
-    )
+        "q-learning" if method == "q-learning" else "factor-q", _periods(config), world,
+        config.agent_of(method), config.runs, config.episodes, world_keys, policy_keys,
+        threads=config.threads, dependency=dependency, sensor_orders=orders,
+    )  # fmt: skip
     return {"metrics": metrics}
 
 
@@ -355,36 +312,17 @@ def run_gated(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     setting: redrawn at the same run). Its structure is read at the end (``structure()``: a
     sensor is a parent when flipping it moves the predicted local reward by a quarter of a
     collision), against the truth of that moment."""
-    from factorq_envs.permutation import permuted_dependency
-    from factorq_torch.collectors import OnlineCollector
     from factorq_torch.neural import GatedLocalRewardNetwork
 
-    world, agent = config.world_of(setting), config.agent_of("factor-q-gated")
-    count, num_sensors = config.seeds, world.num_sensors
+    world = config.world_of(setting)
     local = GatedLocalRewardNetwork(
-        count,
-        num_actions=world.num_actuators,
-        num_sensors=num_sensors,
-        l1=GATED_L1,
+        config.seeds, num_actions=world.num_actuators, num_sensors=world.num_sensors, l1=GATED_L1,
         seed=config.seed,
-    )
-    env, policy, loss, permute, orders = _permuted_agent(config, setting, local, agent)
+    )  # fmt: skip
     optimizer = torch.optim.Adam(local.parameters(), lr=GATED_LEARNING_RATE)
-    collector = OnlineCollector(
-        env, policy, loss, runs=config.runs, episodes=config.episodes, optimizer=optimizer
-    )
-    truth = permuted_dependency(world.dependency, orders)
-    changed = torch.zeros(count, dtype=torch.bool)
+    collector, truth, redraw = _permuted_collector(config, setting, local, optimizer)
     for _ in collector:
-        if setting == "change":
-            due = (collector.run_index >= config.change_run) & ~changed
-            if bool(due.any()):
-                new_orders = sensor_orders(
-                    config.seed, config.setting_stream(setting), count, num_sensors, 1
-                )
-                permute.set_permutations(new_orders, due)
-                truth[due] = permuted_dependency(world.dependency, new_orders)[due]
-                changed |= due
+        redraw()
     structure = local.structure()  # [S, A, K]
     metrics = {name: collector.metrics.get(name) for name in collector.metrics.keys()}
     return {
@@ -414,19 +352,15 @@ def run_dqn(config: DependenciesConfig, setting: str, budget: int) -> dict[str, 
     from factorq_trainers.methods.experiment import ExperimentConfig
 
     options = config.setting_options(setting)
+    shared = ("seed", "seeds", "size", "obstacles", "max_steps", "layout_seed")
     experiments = ExperimentConfig(
-        seed=config.seed,
-        seeds=config.seeds,
+        **{name: getattr(config, name) for name in shared},
         regimes=(config.regime,),
         steps=budget,
-        size=config.size,
-        obstacles=config.obstacles,
-        max_steps=config.max_steps,
-        layout_seed=config.layout_seed,
         body=options["body"],
         sensors=options["sensors"],
-        distractors=options.get("num_distractors", 0),
-        sensor_noise=options.get("sensor_noise", 0.0),
+        distractors=options["num_distractors"],
+        sensor_noise=options["sensor_noise"],
     )
     traces = dqn.run(dqn.DQNConfig(), experiments)["traces"]
     episodes = min(len(trace["steps"]) for trace in traces)

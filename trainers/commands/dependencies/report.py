@@ -9,23 +9,8 @@ from factorq_trainers.analysis.stats import format_number
 from factorq_trainers.runner.results import interval_or_none
 
 
-def _wall_s(results: dict[str, Any]) -> float:
-    """The run's wall time."""
-    return results["timing"]["wall_s"]
-
-
-def _methods(results: dict[str, Any]) -> list[str]:
-    """Every method the run knew, in its order."""
-    return list(results["methods"])
-
-
 def _label(results: dict[str, Any], method: str) -> str:
     return str(results["methods"].get(method, method))
-
-
-def _index(results: dict[str, Any], method: str) -> int:
-    methods = _methods(results)
-    return methods.index(method) if method in methods else len(methods)
 
 
 def _percent_interval(bounds: list[float | None] | None) -> str:
@@ -93,7 +78,8 @@ def markdown(results: dict[str, Any]) -> str:
             else ""
         )
         + "; "
-        f"wall time {_wall_s(results):.1f} s. Factor-Q (learned, oracle, joint, gated): eqs. 2-3 "
+        f"wall time {results['timing']['wall_s']:.1f} s. Factor-Q (learned, oracle, joint, gated): "
+        "eqs. 2-3 "
         + (
             "under the risk gate (local values within 0.5 of 0 count as 0)"
             if config.get("risk_gate", "off") == "on"
@@ -172,7 +158,7 @@ def figure(results: dict[str, Any], path: Path) -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    settings = list(results["settings"])
+    settings, methods = list(results["settings"]), list(results["methods"])
     figure = Figure(figsize=(3.2 * max(len(settings), 1), 6.0), layout="constrained")
     FigureCanvasAgg(figure)
     axes = figure.subplots(2, max(len(settings), 1), squeeze=False)
@@ -190,7 +176,8 @@ def figure(results: dict[str, Any], path: Path) -> None:
             top.set_ylabel("fraction with the right structure")
         for method, entry in summary["methods"].items():
             values = entry["collisions_per_episode"]
-            color = f"C{_index(results, method)}"  # one colour per method in every panel
+            # one colour per method in every panel
+            color = f"C{methods.index(method) if method in methods else len(methods)}"
             bottom.plot(
                 range(1, len(values) + 1), values, label=_label(results, method), color=color
             )

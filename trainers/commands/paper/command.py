@@ -99,11 +99,7 @@ UNIT_RESULT = {
 
 def units(config: PaperConfig) -> list[dict[str, Any]]:
     """One unit per algorithm and shard of ``shard_seeds`` seeds (every selected world in its
-    batch: the modular path steps a batch at about the cost of one experiment).
-
-    Args:
-        config: the experiment.
-    """
+    batch: the modular path steps a batch at about the cost of one experiment)."""
     stop = config.first_seed + config.seeds
     return [
         {
@@ -118,23 +114,14 @@ def units(config: PaperConfig) -> list[dict[str, Any]]:
 
 
 def work(config: PaperConfig, unit: dict[str, Any]) -> int:
-    """A unit's episodes (what ``run_unit`` reports to ``progress``).
-
-    Args:
-        config: the experiment.
-        unit: one of ``units(config)``.
-    """
+    """A unit's episodes (what ``run_unit`` reports to ``progress``)."""
     return unit["seeds"] * len(config.regimes) * config.runs * config.episodes
 
 
 def estimate(config: PaperConfig) -> resources.Estimate:
     """Peak memory of ``factorq paper`` with ``config``: one unit's batch (the larger
     algorithm's tables, the kernel's or the env's state, the metrics and their reduction) and
-    every unit's result gathered for the summary (per-seed, per-episode counts and curves).
-
-    Args:
-        config: the experiment.
-    """
+    every unit's result gathered for the summary (per-seed, per-episode counts and curves)."""
     world = config.world
     count = len(config.regimes) * min(config.shard_seeds, config.seeds)  # experiments of a unit
     positions, actions = world.num_cells * world.num_headings, world.num_actuators
@@ -165,21 +152,13 @@ def estimate(config: PaperConfig) -> resources.Estimate:
 
 
 def prepare(config: PaperConfig) -> None:
-    """Choose the backend: a ValueError where the one asked for cannot run.
-
-    Args:
-        config: the experiment.
-    """
+    """Choose the backend: a ValueError where the one asked for cannot run."""
     resolve_backend(config)
 
 
 def describe(config: PaperConfig) -> str:
     """What runs (printed once the run is accepted), after why not on the fast path where
-    ``auto`` fell back.
-
-    Args:
-        config: the experiment.
-    """
+    ``auto`` fell back."""
     backend = resolve_backend(config)
     notice = fallback_notice(config, backend, _modular_workers(config, len(config.methods)))
     told = (
@@ -200,38 +179,10 @@ def _modular_workers(config: PaperConfig, count: int) -> int:
 def processes(config: PaperConfig, units_: list[dict[str, Any]]) -> tuple[int, str]:
     """Processes for the units: on the modular path one per unit up to ``threads`` (default the
     cores torch sees; a batch of tiny tensors runs on one core), on the fast path one (the kernel
-    uses every thread itself).
-
-    Args:
-        config: the experiment.
-        units_: ``units(config)``.
-    """
+    uses every thread itself); ``units_``: ``units(config)``."""
     if resolve_backend(config) == "fast":
         return 1, "the compiled path uses every thread itself"
     return _modular_workers(config, len(units_)), "the modular path steps one batch per core"
-
-
-def _metrics(
-    config: PaperConfig, unit: dict[str, Any], progress: Callable[[int], None], world: Any
-) -> tuple[str, dict[str, np.ndarray]]:
-    """The backend and raw metrics ``[W * seeds, runs, episodes]`` of ``unit``'s experiments."""
-    shard = replace(
-        config,
-        first_seed=unit["first_seed"],
-        seeds=unit["seeds"],
-        methods=(unit["algorithm"],),
-    )
-    backend = "modular" if world is not None else resolve_backend(shard)
-    keys = experiment_keys(shard, unit["algorithm"])
-
-    def report(episodes: int, experiments: int) -> None:
-        progress(episodes)
-
-    if backend == "fast":
-        batch = run_fast(shard, unit["algorithm"], keys, report)
-    else:
-        batch = run_modular(shard, unit["algorithm"], keys, report, world)
-    return backend, {name: values.cpu().numpy() for name, values in batch.items()}
 
 
 def run_unit(
@@ -243,13 +194,25 @@ def run_unit(
     """One algorithm's experiments of one seed shard, every selected regime (``reduced``).
 
     Args:
-        config: the experiment.
-        unit: one of ``units(config)``.
         progress: called with the episodes done since its last call.
         world: another world than the grid (``run``'s), on the modular path.
     """
-    backend, metrics = _metrics(config, unit, progress or (lambda episodes: None), world)
-    return reduced(config, unit, backend, metrics)
+    algorithm = unit["algorithm"]
+    shard = replace(
+        config, first_seed=unit["first_seed"], seeds=unit["seeds"], methods=(algorithm,)
+    )
+    backend = "modular" if world is not None else resolve_backend(shard)
+    keys = experiment_keys(shard, algorithm)
+
+    def report(episodes: int, experiments: int) -> None:
+        if progress is not None:
+            progress(episodes)
+
+    if backend == "fast":
+        batch = run_fast(shard, algorithm, keys, report)
+    else:
+        batch = run_modular(shard, algorithm, keys, report, world)
+    return reduced(config, unit, backend, {name: v.cpu().numpy() for name, v in batch.items()})
 
 
 def reduced(
@@ -258,14 +221,8 @@ def reduced(
     """``unit``'s result from its raw metrics ``[W * seeds, runs, episodes]`` (regime-major):
     per regime, each seed's counts as whole sums over the runs (exact in float64, short in JSON;
     ``summarise`` divides them by ``runs``, which is what numpy's mean over the runs does), its
-    task return per run averaged over the runs, and its per-episode counts summed over the runs.
-
-    Args:
-        config: the experiment.
-        unit: one of ``units(config)``.
-        backend: the path that ran it.
-        metrics: its experiments' metrics.
-    """
+    task return per run averaged over the runs, and its per-episode counts summed over the runs;
+    ``backend``: the path that ran it."""
     seeds = unit["seeds"]
     worlds = []
     for position, name in enumerate(config.regimes):
@@ -297,13 +254,7 @@ def reduced(
 
 def check_unit(config: PaperConfig, unit: dict[str, Any], result: dict[str, Any]) -> str | None:
     """Why a kept ``result`` (``UNIT_RESULT``'s shape) cannot be ``unit``'s, or None: its worlds
-    are the config's, each seed's numbers are there, each curve has ``episodes`` points.
-
-    Args:
-        config: the experiment.
-        unit: one of ``units(config)``.
-        result: a kept result.
-    """
+    are the config's, each seed's numbers are there, each curve has ``episodes`` points."""
     worlds = [entry["world"] for entry in result["worlds"]]
     if worlds != list(config.regimes):
         return f"it holds the worlds {worlds}, not {list(config.regimes)}"
@@ -329,12 +280,7 @@ def check_unit(config: PaperConfig, unit: dict[str, Any], result: dict[str, Any]
 
 def summarise(config: PaperConfig, outcomes: list[dict[str, Any]]) -> dict[str, Any]:
     """``results.json``'s entries from the units (in ``units`` order): per cell, the seeds'
-    means with 95% intervals and the per-episode curves, then the claims.
-
-    Args:
-        config: the experiment.
-        outcomes: ``run_unit``'s results.
-    """
+    means with 95% intervals and the per-episode curves, then the claims."""
     totals: dict[tuple[str, str], dict[str, list]] = {}
     episodes: dict[tuple[str, str], dict[str, list]] = {}
     for outcome in outcomes:  # in seed order within each algorithm
@@ -408,13 +354,7 @@ def run(
     ``factorq_envs.corridor.Corridor``): the experiments of regime ``w`` run in it with ``w``'s
     obstacle period, on the modular path (``auto`` falls back to it with a one-line notice,
     ``backend="fast"`` is refused); the config's grid options are unused and ``results["world"]``
-    names the world.
-
-    Args:
-        config: the experiment.
-        progress: called with the episodes done since its last call.
-        world: another world than the grid.
-    """
+    names the world. ``progress``: called with the episodes done since its last call."""
     from factorq_trainers.runner import frame
 
     module = sys.modules[__name__]
@@ -452,14 +392,10 @@ def _check_foreign_world(world: Any, config: PaperConfig) -> None:
 
 
 def world_description(world: Any) -> dict[str, Any]:
-    """``{"name", "config"}`` of a world other than the config's grid (``results["world"]``)."""
+    """``{"name", "config"}`` of a world other than the config's grid (``results["world"]``):
+    its config's fields that are JSON scalars."""
     config = world.config
     fields_ = asdict(config) if is_dataclass(config) and not isinstance(config, type) else {}
-    return {
-        "name": type(world).__name__,
-        "config": {key: value for key, value in fields_.items() if _json_scalar(value)},
-    }
-
-
-def _json_scalar(value: Any) -> bool:
-    return value is None or isinstance(value, bool | int | float | str)
+    scalars = {key: value for key, value in fields_.items()
+               if value is None or isinstance(value, bool | int | float | str)}  # fmt: skip
+    return {"name": type(world).__name__, "config": scalars}

@@ -21,14 +21,10 @@ Report = Callable[[int, int], None]
 
 
 def resolve_backend(config: PaperConfig, world: Any = None) -> str:
-    """The backend ``run`` will use: ``"fast"`` or ``"modular"``.
-
-    This is the one place where the backend is chosen. ``auto`` takes the compiled fast path when
-    it is available on this machine, the device is the cpu and the kernel can run the world
-    (``fast.unsupported_reason``: a body past its limits, or ``world``, an
-    ``factorq_envs.protocol.World`` other than the paper's grid), the modular torchrl path
-    otherwise.
-    """
+    """The backend ``run`` will use, ``"fast"`` or ``"modular"`` (the one place it is chosen):
+    ``auto`` takes the compiled path where it is available, the device is the cpu and the kernel
+    can run the world (``fast.unsupported_reason``: a body past its limits, or ``world``, another
+    ``factorq_envs.protocol.World`` than the grid), else the modular torchrl path."""
     from factorq_trainers.compiled import fast
 
     on_cpu = torch.device(config.device).type == "cpu"
@@ -101,12 +97,9 @@ class BatchKeys(NamedTuple):
 
 
 def experiment_keys(config: PaperConfig, algorithm: str) -> BatchKeys:
-    """Obstacle periods, world keys and policy keys ``[W * S]`` of one algorithm's experiments.
-
-    Experiments are ordered world-major (``config.regimes``), seed-minor. The key of seed index
-    ``i`` (row ``i - config.first_seed``) in world ``w`` (index in ``REGIMES``) does not depend on
-    what else is selected, so seeds ``[a, b)`` run alone draw what they draw in a larger run.
-    """
+    """Obstacle periods, world keys and policy keys ``[W * S]`` of one algorithm's experiments,
+    world-major (``config.regimes``), seed-minor: the keys of ``paper.command``'s docstring, the
+    same whatever else is selected."""
     seeds = range(config.first_seed, config.first_seed + config.seeds)
     labels = [(world, index) for world in config.regimes for index in seeds]
     periods = torch.tensor([REGIME_PERIODS[world] for world, _ in labels])  # [W * S]

@@ -229,12 +229,8 @@ def prepare(spec: tuple) -> Frame:
 
 
 def warm_up() -> None:
-    """Draw a made-up figure of the default run's shape into memory, then drop it.
-
-    The first figure of a process loads fonts, Pillow's PNG encoder and matplotlib's lazily built
-    tables, about a third of its time; the helper process does this while the main process is
-    still loading torch, so that the real figure after the experiment takes the rest only.
-    """
+    """Draw a made-up figure of the default run's shape into memory, then drop it: what loads
+    lazily (a third of a first figure's time) is then loaded (``figure_process``)."""
     decay = np.exp(-np.arange(DEFAULT_CONFIG["episodes"]) / 20.0)
     cells = {}
     worlds, algorithms = DEFAULT_CELLS

@@ -1,22 +1,18 @@
 """Figure 3 drawn by a helper process beside the experiment (so that ``factorq paper`` ends in 3 s).
 
-``factorq paper`` starts it first, before the main process loads torch: while that keeps one
-core busy, the helper loads matplotlib on the other, draws a made-up figure into memory (fonts,
-Pillow's encoder, matplotlib's lazily built tables) and prepares the frame of the default run's
-figure (``paper_figure.prepare``), then waits, idle, for its one message.
-Once the experiment is over, the main process sends it what the figure reads (the config and the
-curves) and the name of ``figure3.png``'s temporary; the helper draws there while the main process
-writes ``results.json``'s and ``report.md``'s, then exits. The main process renames the three
+``factorq paper`` starts it before the main process loads torch: meanwhile the helper loads
+matplotlib on the other core, draws a made-up figure into memory (fonts, Pillow's encoder,
+matplotlib's lazily built tables), prepares the frame of the default run's figure
+(``paper_figure.prepare``) and waits for its one message: what the figure reads and the name of
+``figure3.png``'s temporary, sent once the experiment is over. It draws there while the main
+process writes ``results.json`` and ``report.md``, then exits; the main process renames the three
 into place only after the helper exited 0 (``factorq_trainers.runner.results.write_all_atomic``).
 
-One writer per output, nothing half-written: the helper writes the one temporary it was given and
-nothing else; the main process owns every rename, and ends the helper (and waits for it) before it
-removes the temporaries, falls back to drawing in-process, or returns. If the helper cannot start
-or fails, ``finish`` raises ``FigureProcessError`` and ``report`` draws the figure in the main
-process instead (a one-line notice says why). The helper is in its own session, so a
-Ctrl-C at the terminal reaches the main process only, which ends it.
-
-Run as ``python -m factorq_trainers.commands.paper.figure_process`` (``main``). Nothing here
+One writer per output: the helper writes its one temporary; the main process owns every rename,
+and ends the helper (and waits for it) before it removes the temporaries, falls back to drawing
+in-process (where the helper could not start or failed: ``FigureProcessError``, a one-line notice)
+or returns. The helper is in its own session: a Ctrl-C reaches the main process only, which ends
+it. Run as ``python -m factorq_trainers.commands.paper.figure_process`` (``main``); nothing here
 imports torch.
 """
 
@@ -128,12 +124,10 @@ class FigureProcess:
             raise
         if code == 0 and self._send_error is None and Path(path).is_file():
             return
-        if code == 0:
-            why = (
-                f"it could not be sent the curves ({self._send_error})"
-                if self._send_error
-                else (f"it exited without writing {Path(path).name}")
-            )
+        if code == 0 and self._send_error:
+            why = f"it could not be sent the curves ({self._send_error})"
+        elif code == 0:
+            why = f"it exited without writing {Path(path).name}"
         else:
             why = f"exit {code}" if code > 0 else f"killed by signal {-code}"
             last = self._last_error_line()

@@ -31,33 +31,20 @@ from factorq_trainers.runner.results import (
     temporary_path,
 )
 
-RESULTS_FILE = "results.json"
 FIGURE_FILE = "figure3.png"
-REPORT_FILE = "report.md"
-
-
-def _ordered_cells(results: dict[str, Any]) -> tuple[list[str], list[str]]:
-    """The worlds and algorithms present in ``results``, in canonical order."""
-    config = results["config"]
-    worlds = [world for world in REGIMES if world in config["regimes"]]
-    algorithms = [name for name in ALGORITHM_LABELS if name in config["methods"]]
-    return worlds, algorithms
 
 
 def figure3(results: dict[str, Any], path: str | os.PathLike) -> None:
-    """Draw the paper's Figure 3 from ``results`` and save it as a PNG at ``path``.
-
-    Columns are worlds; the top row shows steps per episode, the bottom row collisions per
-    episode (solid: all, dashed: greedy) on a log scale, each the mean over seeds and runs with
-    its 95% confidence band across seeds (``factorq_trainers.commands.paper.figure.draw``).
-    """
+    """The paper's Figure 3 of ``results`` as a PNG at ``path`` (``paper.figure.draw``)."""
     paper_figure.draw(results, path, *figure_arguments(results))
 
 
 def figure_arguments(results: dict[str, Any]) -> tuple[list[str], list[str], dict[str, str]]:
     """``paper_figure.draw``'s arguments after the path: the worlds and algorithms present, in
     canonical order, and the algorithms' names for people."""
-    worlds, algorithms = _ordered_cells(results)
+    config = results["config"]
+    worlds = [world for world in REGIMES if world in config["regimes"]]
+    algorithms = [name for name in ALGORITHM_LABELS if name in config["methods"]]
     return worlds, algorithms, dict(ALGORITHM_LABELS)
 
 
@@ -88,7 +75,7 @@ def verdict(claim: dict[str, Any]) -> str:
 def markdown(results: dict[str, Any]) -> str:
     """The report: claims, per-cell measures, the configuration, software and wall time."""
     config, claims = results["config"], results["claims"]
-    worlds, algorithms = _ordered_cells(results)
+    worlds, algorithms, _ = figure_arguments(results)
     passed = sum(claim["pass"] is True for claim in claims.values())
     evaluated = sum(claim["pass"] is not None for claim in claims.values())
     body = body_label(results)

@@ -1,14 +1,10 @@
 """The results file's schema: versioned, and checked field by field before anything reads it.
 
-A ``results.json`` handed to ``factorq report`` is untrusted input: it may be hand-edited,
-truncated, of another version or of another shape altogether. ``factorq report`` reads it with
-size and nesting limits (``runner.results.read_json``) and ``check_results`` checks every field the
-report reads (type, range, lengths that must agree) so that drawing the figure and writing the
-Markdown cannot fail on it; any problem is one line naming the file (``reports.check_results``),
-the field's path and what was expected.
-
-Versions: ``SCHEMA_VERSION`` is written into every results file and checked here: a file without
-the field or of a newer version is refused.
+A ``results.json`` handed to ``factorq report`` is untrusted (hand-edited, truncated, of another
+version or shape): read with size and nesting limits (``runner.results.read_json``), then
+``check_results`` checks every field the report reads (type, range, lengths that must agree), so
+that the figure and the Markdown cannot fail on it; a problem is one line naming the file, the
+field's path and what was expected. A file without ``SCHEMA_VERSION`` or of a newer one is refused.
 """
 
 from __future__ import annotations

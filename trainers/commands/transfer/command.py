@@ -14,18 +14,14 @@ on the same worlds and policy streams (common random numbers). Measured per seed
 the first ``early`` episodes of the target (what the body model saves), and the steps per episode
 and collisions over the last ``early`` (the final task performance, which it must not cost).
 
-``--body-model PATH`` replaces the source task by a body model saved with
-``factorq_torch.artifacts.save_agent`` (a ``LocalRewardTable`` of 1 or ``seeds`` experiments;
-``train_body_model`` makes one): it is loaded for the target's body, and a model of another body
-is refused naming both.
-
-Runs on the compiled fast path where it can (``fast.ExperimentBatch``, the body model written into
-its state), else on the modular torchrl path (``OnlineCollector``): the same numbers bit for bit.
-One unit per (method, regime). Writes ``transfer.json``, ``transfer.md`` and ``transfer.png``.
+``--body-model PATH`` carries a body model saved with ``factorq_torch.artifacts.save_agent``
+instead (``load_body_model``; ``train_body_model`` makes one). Runs on the compiled fast path where
+it can, else on the modular torchrl path: the same numbers bit for bit (``run_batch``).
 """
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -263,12 +259,7 @@ def train_body_model(config: TransferConfig, learned: bool = False) -> Any:
     from factorq_torch.structure import StructureLearner
     from factorq_torch.tables import LocalRewardTable
 
-    world = config.source_world
-    _, local, _ = run_batch(
-        config, "factor-q", world, config.source_regime, config.source_episodes, source=True,
-        learned=learned,
-    )  # fmt: skip
-    assert local is not None
+    world, local = config.source_world, _source_body(config, learned)
     if learned:
         learner = StructureLearner(
             config.seeds, num_actions=world.num_actuators, num_sensors=world.num_sensors
@@ -278,6 +269,16 @@ def train_body_model(config: TransferConfig, learned: bool = False) -> Any:
     table = LocalRewardTable(config.seeds, dependency=world.dependency)
     table.load_state_dict({**table.state_dict(), **local})
     return table
+
+
+def _source_body(config: TransferConfig, learned: bool) -> dict[str, torch.Tensor]:
+    """Factor-Q's local model (``run_batch``'s) at the end of the source task."""
+    _, local, _ = run_batch(
+        config, "factor-q", config.source_world, config.source_regime, config.source_episodes,
+        source=True, learned=learned,
+    )  # fmt: skip
+    assert local is not None
+    return local
 
 
 def load_body_model(config: TransferConfig) -> dict[str, torch.Tensor]:
@@ -349,11 +350,7 @@ def run_unit(
     if method == "factor-q-body" and config.body_model is not None:
         body, body_from = load_body_model(config), "file"
     elif method in PAIRS:
-        model = train_body_model(config, learned=learned)
-        body = {name: value.detach() for name, value in model.state_dict().items()}
-        if not learned:
-            body = {name: body[name] for name in ("rho", "kappa")}
-        body_from = "source task"
+        body, body_from = _source_body(config, learned), "source task"
         if progress is not None:
             progress(config.seeds * config.source_episodes)
     algorithm = "q-learning" if method == "q-learning" else "factor-q"
@@ -404,9 +401,7 @@ def summarise(config: TransferConfig, unit_results: list[dict[str, Any]]) -> dic
             "collisions_per_episode": outcome["collisions_per_episode"],
         }
     against: dict[str, Any] = {}
-    for (carried, fresh_method), regime in (
-        (pair, regime) for pair in PAIRS.items() for regime in config.regimes
-    ):
+    for (carried, fresh_method), regime in itertools.product(PAIRS.items(), config.regimes):
         methods = results[regime]
         if fresh_method in methods and carried in methods:
             fresh, body = methods[fresh_method], methods[carried]
