@@ -18,7 +18,6 @@ in-process, on any number of workers, and after any number of interruptions.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import os
 import time
@@ -29,12 +28,12 @@ from typing import Any
 from factorq_trainers.distributed.sweep_spec import (
     CONFIGS_DIRECTORY,
     SweepSpec,
-    _json,
     _reports_of,
     config_digest,
 )
 from factorq_trainers.runner import cluster, kept
 from factorq_trainers.runner import results as result_files
+from factorq_trainers.runner.frame import plain
 
 
 def config_result_path(directory: str | os.PathLike, config: Any) -> Path:
@@ -99,7 +98,7 @@ def _gathered(
             {
                 "values": point,
                 "digest": config_digest(config),
-                "config": _json(dataclasses.asdict(config)),
+                "config": plain(config),
                 "results_file": f"{CONFIGS_DIRECTORY}/{path.name}",
                 "cells": cells_of,
                 "claims": {  # the paper's claims, where the command has them
@@ -112,9 +111,9 @@ def _gathered(
         "command": command,
         "measures": list(reports.SWEEP_MEASURES),
         "axes": spec.axes,
-        "base": {name: _json(value) for name, value in spec.base},
+        "base": plain(dict(spec.base)),
         "seeds": spec.seeds,
-        "configurations": [_json(row) for row in rows],
+        "configurations": plain(rows),
         "timing": {
             "wall_s": round(time.perf_counter() - started, 3),
             "compute_s": round(computed, 3),
