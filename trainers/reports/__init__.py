@@ -59,7 +59,7 @@ def check_results(path: Path, command: str, data: dict[str, Any]) -> None:
 
 def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
     """Rewrite the Markdown and the figure in ``results_dir`` from its results file."""
-    from factorq_trainers.runner import results
+    from factorq_trainers.runner import frame, results
 
     try:
         entry, path = find(results_dir)
@@ -72,23 +72,14 @@ def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
     report = importlib.import_module(entry.report)
     data = results.read_json(path, ("config",), f"run `factorq {entry.name}`")
     check_results(path, entry.name, data)
-    directory = Path(results_dir)
-    writers = {}
-    if hasattr(report, "markdown"):
-        writers["report"] = (
-            directory / entry.files["report"],
-            lambda target: target.write_text(report.markdown(data)),
-        )
-    if hasattr(report, "figure"):
 
-        def figure(target: Path) -> None:
-            try:
-                report.figure(data, target)
-            except Exception as error:  # matplotlib's, from deep inside: one line, no file
-                raise FigureError(
-                    f"drawing {entry.files['figure']} failed: {type(error).__name__}: {error}"
-                ) from error
+    def figure(target: Path) -> None:
+        try:
+            report.figure(data, target)
+        except Exception as error:  # matplotlib's, from deep inside: one line, no file
+            raise FigureError(
+                f"drawing {entry.files['figure']} failed: {type(error).__name__}: {error}"
+            ) from error
 
-        writers["figure"] = (directory / entry.files["figure"], figure)
-    results.write_all_atomic(dict(writers.values()))
-    return {name: target for name, (target, _) in writers.items()}
+    draw = figure if hasattr(report, "figure") else None
+    return frame.write_report(report, data, Path(results_dir), entry.files, draw)
