@@ -1,19 +1,12 @@
-"""Running a sweep (``factorq sweep``) and gathering it: every configuration of a registered
-command run whole (``frame.run_in_process``: its units, one task per configuration), on an
-executor, each kept on disk as it finishes; then
-``sweep.json``'s dict.
+"""Running a sweep (``factorq sweep``): every configuration run whole (``frame.run_in_process``)
+as one task on an executor, its results dict kept in ``OUT/configs/<digest>.json`` (sealed and
+tied by ``kept``) as it finishes, then ``sweep.json``'s dict gathered from those files, each
+configuration's cells taken by its command's ``sweep_cells``.
 
-    spec -> configurations -> executor (in-process or Dask) -> one sealed JSON file per
-         configuration (OUT/configs/<digest>.json), written as it finishes
-         -> per configuration: its cells (the command's ``sweep_cells``) and claims
-         -> sweep.json's dict
-
-**Resumption.** A configuration whose kept file exists (and passes its checks: digest, tie to
-the command and the configuration's digest, values) is not run again, so a killed sweep
-continues where it stopped, and a sweep that adds axis values runs only the new configurations.
-
-**Identical results.** A configuration's numbers depend on it alone, so every summary is the same
-in-process, on any number of workers, and after any number of interruptions.
+A configuration whose kept file passes its checks is not run again, so a killed sweep continues
+where it stopped, and a sweep that adds axis values runs only the new configurations. A
+configuration's numbers depend on it alone: a sweep's are the same in-process, on any number of
+workers and after any number of interruptions.
 """
 
 from __future__ import annotations
@@ -76,9 +69,8 @@ def _gathered(
     started: float,
     executor: cluster.InProcess | cluster.DaskExecutor,
 ) -> dict[str, Any]:
-    """``sweep.json``'s dict of a sweep: one row per configuration read back from
-    ``OUT/configs/``, its cells taken by the command's ``sweep_cells``; ``pending``: the
-    configurations run now."""
+    """``sweep.json``'s dict: one row per configuration read back from ``OUT/configs/``;
+    ``pending``: the configurations run now."""
     computed = time.perf_counter() - started
     command, reports = spec.command, _reports_of(spec.command)
     directory = Path(spec.out) / CONFIGS_DIRECTORY
@@ -137,14 +129,10 @@ def run_sweep(
     progress: Callable[[int, int], None] | None = None,
     force: bool = False,
 ) -> dict[str, Any]:
-    """Run every configuration of ``spec`` not already kept in ``OUT/configs/`` (each whole,
-    ``frame.run_in_process``, one task each) and keep it there as its results dict, then gather
-    ``sweep.json``'s dict with the cells of the command's ``sweep_cells``.
-
-    ``progress(done, total)`` counts configurations (those found on disk are done from the
-    start). A kept configuration result that fails its checks (``kept``) is refused before any
-    work, or with ``force`` recomputed.
-    """
+    """Run and keep every configuration of ``spec`` not already kept, then gather ``sweep.json``'s
+    dict. ``progress(done, total)`` counts configurations (those found on disk are done from the
+    start). A kept file that fails its checks is refused before any work, or with ``force``
+    recomputed."""
     started = time.perf_counter()
     directory = Path(spec.out) / CONFIGS_DIRECTORY
     configs = spec.configurations()

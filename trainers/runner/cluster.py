@@ -1,24 +1,12 @@
-"""Where units run: here, one after another (the default, no Dask needed), or on a Dask cluster.
-
-An *executor* runs one function over a list of items and yields ``(index, result)`` pairs as
-they finish, in any order; whoever consumes them (``factorq_trainers.distributed.sweep``) writes
-each result down at once. Two executors:
-
-- ``InProcess``: a plain loop in this process.
-- ``DaskExecutor``: ``distributed.Client.submit`` per item on a ``LocalCluster`` started here
-  (``--cluster local[:N]``) or on a running scheduler (``--scheduler tcp://host:port``). A worker
-  that dies mid-item (kill -9, a lost node) loses only that item: the scheduler resubmits it to
-  another worker (up to ``distributed.scheduler.allowed-failures`` times), and since an item's
-  result depends on the item alone, the rerun gives the same numbers.
-
-Worker processes run one intra-op torch thread each (``torch.set_num_threads(1)``: the tensors are
-tiny and threads would fight over the cores the other workers use; a worker thread in this process
-leaves the process's settings alone) and build the fast path's kernel in a
-node-local cache (``FACTORQ_CACHE_DIR``, unless the worker's environment already sets it), so
-workers on a shared home directory do not compile into one NFS folder.
-
-Dask is the optional extra ``factorq-torch[distributed]``; asking for a cluster without it is a
-``ClusterError`` naming the extra.
+"""Where units run: an *executor* runs one function over a list of items and yields ``(index,
+result)`` pairs as they finish, in any order, and its caller writes each result down at once.
+``InProcess`` is a plain loop here (the default, no Dask needed); ``DaskExecutor`` submits each
+item to a ``LocalCluster`` started here (``--cluster local[:N]``) or a running scheduler
+(``--scheduler tcp://host:port``), whose scheduler reruns the item of a worker that died (an
+item's result depends on the item alone, so the numbers are the same). Dask is the optional extra
+``factorq-torch[distributed]`` (without it: a ``ClusterError`` naming it). The choices (one torch
+thread per worker process, a node-local kernel cache, fresh task keys, a cluster that loses its
+workers as an error): docs/decisions.md, "Sweeps and clusters".
 """
 
 from __future__ import annotations
@@ -65,17 +53,13 @@ class ClusterError(ValueError):
 
 @dataclass(frozen=True)
 class Where:
-    """Where to run: in-process (both None), a local cluster of ``workers`` (0: one per core),
-    or the scheduler at ``scheduler``."""
+    """Where to run: in-process (both None), a local cluster of ``local_workers`` (0: one per
+    core), or the scheduler at ``scheduler``; the timeouts in seconds."""
 
-    local_workers: int | None = None
-    """Workers of a LocalCluster started here (``--cluster local[:N]``)."""
-    scheduler: str | None = None
-    """Address of a running Dask scheduler (``--scheduler tcp://host:port``)."""
-    connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S
-    """Seconds to wait for the scheduler before giving up."""
-    worker_timeout_s: float = DEFAULT_WORKER_TIMEOUT_S
-    """Seconds work may wait with no worker in the cluster before the run gives up."""
+    local_workers: int | None = None  # --cluster local[:N]
+    scheduler: str | None = None  # --scheduler tcp://host:port
+    connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S  # --connect-timeout
+    worker_timeout_s: float = DEFAULT_WORKER_TIMEOUT_S  # --worker-timeout
 
     def __post_init__(self) -> None:
         if self.local_workers is not None and self.scheduler is not None:
@@ -311,15 +295,12 @@ MAX_HANDSHAKE_BYTES = 64 * 1024
 
 def probe_scheduler(address: str, timeout_s: float) -> None:
     """Prove that a Dask scheduler answers at the ``tcp://`` ``address`` within ``timeout_s``,
-    before a Client trusts it: a ``ClusterError`` in one line otherwise.
-
-    A Dask peer sends its handshake as soon as the connection is accepted; this reads it on a
-    plain socket under one deadline, bounded in size, and decodes it with Dask's own
-    ``unpack_frames`` and ``loads``. Dask's own handshake has no timeout (``distributed.comm.
-    core.connect``): an HTTP server, which waits for a request, held a Client for good, and
-    another peer's bytes read as a frame length made it allocate 3 EiB. A refused connection is
-    tried again with backoff for at most ``REFUSED_RETRY_S`` (a scheduler still starting), not the
-    whole timeout. Other schemes (``tls://``, ``inproc://``) are left to the Client."""
+    before a Client trusts it: a ``ClusterError`` in one line otherwise. A Dask peer sends its
+    handshake as soon as the connection is accepted; this reads it on a plain socket under one
+    deadline, bounded in size, and decodes it with Dask's own ``unpack_frames`` and ``loads``
+    (Dask's own handshake has no timeout, and allocates what another peer's first 8 bytes
+    announce). A refused connection is retried with backoff for at most ``REFUSED_RETRY_S``.
+    Other schemes (``tls://``, ``inproc://``) are left to the Client."""
     import socket
     import struct
 
@@ -470,13 +451,10 @@ def add_options(parser: argparse.ArgumentParser) -> None:
 
 def where_from_args(args: argparse.Namespace) -> Where:
     """Where to run, from ``add_options``' options (a ``ClusterError`` when invalid)."""
-    workers = None
-    if getattr(args, "cluster", OFF) != OFF:
-        workers = parse_cluster(args.cluster)
-    elif hasattr(args, "cluster") and hasattr(args, "scheduler"):
+    if hasattr(args, "cluster") and hasattr(args, "scheduler"):
         raise ClusterError("give --cluster or --scheduler, not both")
     return Where(
-        local_workers=workers,
+        local_workers=None if getattr(args, "cluster", OFF) == OFF else parse_cluster(args.cluster),
         scheduler=getattr(args, "scheduler", None),
         connect_timeout_s=getattr(args, "connect_timeout", DEFAULT_CONNECT_TIMEOUT_S),
         worker_timeout_s=getattr(args, "worker_timeout", DEFAULT_WORKER_TIMEOUT_S),

@@ -1,31 +1,17 @@
 """Kept work: results a rerun reuses instead of recomputing (a run's finished units in
-``OUT/units/``, a sweep's configuration results in ``OUT/configs/``), sealed, tied to the run
-they belong to and checked before they are reused. One module writes and reads them all.
-
-A kept file is the user's as much as ours: it may have been edited, cut short, resealed or copied
-from elsewhere. Reusing one unchecked would put its numbers in a report silently, so each
-
-- carries a SHA-256 of its content (``DIGEST_KEY``), checked on reuse: an edit is refused;
-- carries what it was kept for (``TIE_KEY``: the command, the digest of the configuration, the
-  unit), checked against the run that reads it: a file of another configuration, command or unit
-  is refused, resealed or not;
-- has its values checked against the command's declared schema (``check_result``: keys as
-  declared, numbers finite, counts whole and >= 0, fractions in [0, 1]) or, for a whole results
-  dict, by the names of its measures (``check_values``), because a digest proves integrity, not
-  origin: anyone can edit a file and seal it again.
-
-A file that fails is refused in one line naming it and saying that ``--force`` recomputes it
-(``reusable``).
-
-- ``dumps_sealed`` / ``read_sealed``: a JSON dict with its digest and its tie;
-- ``check_result``: a unit result against its command's declared ``UNIT_RESULT``;
-- ``check_values``: the value checks of a kept JSON results dict;
-- ``reusable``: whether a kept file is to be reused, recomputed (``force``) or refused;
-- ``UnitStore``: the finished units of one run (``OUT/units/``).
+``OUT/units/``, a sweep's configuration results in ``OUT/configs/``), written and read by this
+module alone. A kept file may have been edited, cut short, resealed or copied from elsewhere, so
+each carries a SHA-256 of its content (``DIGEST_KEY``) and what it was kept for (``TIE_KEY``: the
+command, the configuration's digest, the unit), both checked on reuse, and has its values
+checked (``check_result`` against the command's ``UNIT_RESULT``, or ``check_values`` by the names
+of a results dict's measures): a digest proves integrity, not origin. A file that fails is refused
+in one line naming it (``reusable``: or, with ``--force``, recomputed). Why and what each check
+catches: docs/decisions.md, "Finished units are kept, tied to their run and checked".
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
@@ -442,27 +428,23 @@ class UnitStore:
         ``force`` left to recompute. ``saved_run`` first: it says which run the units are of."""
         found = {}
         remedy = "pass --force (with --resume) to recompute it"
-        for unit in units:
-            path = unit_path(self.directory, unit["id"])
-            if not path.exists() and not path.is_symlink():
-                continue
-            try:
-                expected = {**self.kept_for, "unit": json.loads(result_files.dumps(unit))}
-                record = read_sealed(path, UNIT_FILE, remedy, values=False, kept_for=expected)
-                if set(record) != {"result"}:
-                    raise ValueError(
-                        f"{UNIT_FILE} {path} holds {_short(sorted(record))}, not a unit's "
-                        f"result: {remedy}"
-                    )
-                check_result(path, UNIT_FILE, unit, record["result"], schema, remedy)
-                problem = None if check is None else check(unit, record["result"])
-                if problem is not None:
-                    raise ValueError(f"{UNIT_FILE} {path}: {problem}: {remedy}")
-            except ValueError:
-                if force:
-                    continue
-                raise
+
+        def read(unit: dict[str, Any], path: Path) -> None:
+            expected = {**self.kept_for, "unit": json.loads(result_files.dumps(unit))}
+            record = read_sealed(path, UNIT_FILE, remedy, values=False, kept_for=expected)
+            if set(record) != {"result"}:
+                raise ValueError(
+                    f"{UNIT_FILE} {path} holds {_short(sorted(record))}, not a unit's result: "
+                    f"{remedy}"
+                )
+            check_result(path, UNIT_FILE, unit, record["result"], schema, remedy)
+            problem = None if check is None else check(unit, record["result"])
+            if problem is not None:
+                raise ValueError(f"{UNIT_FILE} {path}: {problem}: {remedy}")
             found[unit["id"]] = record["result"]
+
+        for unit in units:
+            reusable(unit_path(self.directory, unit["id"]), functools.partial(read, unit), force)
         return found
 
     def keep(self, unit: dict[str, Any], result: Any) -> None:

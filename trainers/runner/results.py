@@ -1,15 +1,10 @@
-"""Result files: JSON written for people and programs, all or nothing, with a schema version.
+"""Result files: JSON written for people and programs (``dumps``: indented, number lists on one
+line, non-finite numbers as null), all or nothing (``write_all_atomic``), read back with a clear
+error (``read_json``), with what computed them (``software_versions``).
 
-Every trainer's output goes through here: ``dumps`` (indented JSON, number lists on one line,
-non-finite numbers as ``null``), ``write_all_atomic`` (a reader never sees a partial file),
-``read_json`` (a clear error for a missing, malformed or too new file) and
-``software_versions`` (what computed the numbers).
-
-**Versions.** Every results file carries ``"schema_version"`` (``SCHEMA_VERSION``, the layout of
-``results.json`` and ``comparison.json`` as the tutorials document it: ``docs/tutorials/paper.md``,
-``docs/tutorials/dqn-local-risk.md``); ``factorq report`` refuses a results file without it. A
-change that breaks readers raises ``SCHEMA_VERSION``; ``read_json`` refuses a file newer than it
-understands instead of misreading it (other JSON it reads, such as kept units, has no version).
+Every results file carries ``"schema_version"`` (``SCHEMA_VERSION``, the layout the tutorials
+document); a change that breaks readers raises it, and ``read_json`` refuses a newer file
+instead of misreading it (other JSON it reads, such as kept units, has no version).
 """
 
 from __future__ import annotations
@@ -70,10 +65,7 @@ def _dumps(value: Any, level: int) -> str:
 
 
 def write_atomic(path: str | os.PathLike, write: Callable[[Path], object]) -> None:
-    """Call ``write(temporary)`` next to ``path``, then rename it to ``path`` (all or nothing).
-
-    A reader never sees a partial file; an interrupted write leaves the old file (if any) intact.
-    """
+    """``write_all_atomic`` of one file: a reader never sees it partial."""
     write_all_atomic({Path(path): write})
 
 
