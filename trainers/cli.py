@@ -88,12 +88,8 @@ def _report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Run ``factorq`` with ``argv`` (default: the command line); return the exit status.
-
-    Without ``argv`` (the ``factorq`` command, ``python -m factorq_trainers.cli``) the process is
-    the command's own: modules load with the garbage collector paused, are then frozen out of its
-    work (``gc.freeze``), and a command ends the process as soon as its output is flushed and the
-    atexit handlers ran, without the interpreter's teardown of torch (``_exit``).
-    """
+    Without ``argv`` the process is the command's own: modules load with the garbage collector
+    paused, then ``gc.freeze``, and a command ends with ``_exit``."""
     command_line = argv is None
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["sweep"]:

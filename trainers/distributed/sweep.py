@@ -183,8 +183,9 @@ def _run_sweep_command(
 
     def progress(done: int, total: int) -> None:
         if not bar:
-            bar.append(progress_bar(total=total, initial=done, desc="factorq sweep",
-                                    unit="configuration"))  # fmt: skip
+            bar.append(
+                progress_bar(total=total, initial=done, desc="factorq sweep", unit="configuration")
+            )
         bar[0].update(done - bar[0].n)
 
     try:

@@ -1,12 +1,8 @@
-"""Figures and Markdown drawn from results dicts alone: ``factorq report DIR`` redraws any
-command's files with these modules, without importing torch (``tests/test_runner.py`` checks it in
-a fresh interpreter).
-
-A command's report module (the ``report.py`` of its folder, else its ``command.py``) provides
-``markdown(results) -> str`` and/or ``figure(results, path)``; ``regenerate`` finds which command
-wrote ``DIR`` by the results file's name (each command's ``FILES["json"]``, read by the registry
-without importing the command) and rewrites the other files from it, all at once; a ``factorq
-sweep`` output folder (its ``sweep.json``) gets its ``sweep.md`` and figures redrawn."""
+"""``factorq report DIR``, without importing torch: ``regenerate`` finds which command wrote
+``DIR`` by its results file's name (the registry's ``files["json"]``), checks the file, and
+redraws the Markdown and the figure with the command's report module (its folder's ``report.py``,
+else its ``command.py``: ``markdown(results)``, ``figure(results, path)``), all at once; a
+``factorq sweep`` folder gets its ``sweep.md`` and figures redrawn from ``sweep.json``."""
 
 from __future__ import annotations
 

@@ -108,7 +108,6 @@ def parse_cluster(text: str) -> int:
 class InProcess:
     """Runs every item here, in order: the default, which needs no Dask."""
 
-    workers = 1
     description = "in-process"
 
     def map(
@@ -121,46 +120,20 @@ class InProcess:
         pass
 
 
-class _WorkerWatch:
-    """Raises a ``ClusterError`` once ``executor``'s cluster has had no worker for its
-    ``worker_timeout_s`` (looked at every ``WORKER_POLL_S``) while ``total`` tasks wait."""
-
-    def __init__(self, executor: DaskExecutor, total: int) -> None:
-        self.executor = executor
-        self.total = total
-        self.looked = self.seen = time.monotonic()
-
-    def check(self, left: int) -> None:
-        now = time.monotonic()
-        if now - self.looked < WORKER_POLL_S:
-            return
-        self.looked = now
-        if self.executor.workers:
-            self.seen = now
-        elif now - self.seen >= self.executor.worker_timeout_s:
-            raise ClusterError(
-                f"the Dask cluster at {self.executor.client.scheduler.address} has had no worker "
-                f"for {self.executor.worker_timeout_s:g} s, with {left} of {self.total} tasks "
-                f"left: start workers and run the command again (finished work is kept), or "
-                f"wait longer with --worker-timeout SECONDS"
-            )
-
-
-def _node_local_cache() -> str:
-    user = os.environ.get("USER") or str(os.getuid())
-    return str(Path(tempfile.gettempdir()) / f"factorq_torch-{user}")
-
-
 #: Tells this process from another: a worker in a process of its own imports this module anew.
 _PROCESS_TOKEN = uuid.uuid4().hex
 
 
 def _worker_setup() -> None:
-    """Per worker process: one intra-op thread, a node-local kernel cache."""
+    """Per worker process: one intra-op thread (the tensors are tiny, the other workers use the
+    other cores), a node-local kernel cache (not one NFS folder for every worker)."""
     import torch
 
     torch.set_num_threads(1)
-    os.environ.setdefault("FACTORQ_CACHE_DIR", _node_local_cache())
+    user = os.environ.get("USER") or str(os.getuid())
+    os.environ.setdefault(
+        "FACTORQ_CACHE_DIR", str(Path(tempfile.gettempdir()) / f"factorq_torch-{user}")
+    )
 
 
 def _on_worker(function: Callable[[Any], Any], item: Any, submitter: str) -> Any:
@@ -222,13 +195,32 @@ class DaskExecutor:
             ): index
             for index, (item, name) in enumerate(zip(items, names, strict=True))
         }
-        watch = _WorkerWatch(self, len(futures))
+        looked = seen = time.monotonic()
+
+        def watch(left: int) -> None:
+            """A ``ClusterError`` once the cluster has had no worker for ``worker_timeout_s``
+            (looked at every ``WORKER_POLL_S``) while ``left`` tasks wait."""
+            nonlocal looked, seen
+            now = time.monotonic()
+            if now - looked < WORKER_POLL_S:
+                return
+            looked = now
+            if self.workers:
+                seen = now
+            elif now - seen >= self.worker_timeout_s:
+                raise ClusterError(
+                    f"the Dask cluster at {self.client.scheduler.address} has had no worker for "
+                    f"{self.worker_timeout_s:g} s, with {left} of {len(futures)} tasks left: "
+                    f"start workers and run the command again (finished work is kept), or wait "
+                    f"longer with --worker-timeout SECONDS"
+                )
+
         try:
             completed = self._as_completed(futures, loop=self.client.loop)
             while not completed.is_empty():
                 if not completed.has_ready():
                     time.sleep(0.02)
-                    watch.check(completed.count())
+                    watch(completed.count())
                     continue
                 for future in completed.next_batch(block=False):
                     while True:  # its result may have been lost with its worker meanwhile
@@ -236,7 +228,7 @@ class DaskExecutor:
                             result = future.result(timeout=WORKER_POLL_S)
                             break
                         except TimeoutError:
-                            watch.check(completed.count() + 1)
+                            watch(completed.count() + 1)
                     yield futures[future], result
         finally:
             for future in futures:

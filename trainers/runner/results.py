@@ -170,15 +170,16 @@ def software_versions() -> dict[str, str]:
     return versions
 
 
-#: The paper's body as a results file's config spells it (an option a config lacks reads as
-#: the paper's: the label names only what differs).
+#: The paper's body as a results file's config spells it, and how a title names another value
+#: (an option a config lacks reads as the paper's: the label names only what differs; a number
+#: differs where it is not zero).
 PAPER_BODY = {
-    "body": "translate",
-    "sensors": "cross",
-    "distractors": 0,
-    "sensor_permutation": None,
-    "sensor_noise": 0.0,
-    "actuator_noise": 0.0,
+    "body": ("translate", "{} body"),
+    "sensors": ("cross", "{} sensors"),
+    "distractors": (0, "{} distractors"),
+    "sensor_permutation": (None, "permuted sensors (seed {})"),
+    "sensor_noise": (0.0, "sensor noise {}"),
+    "actuator_noise": (0.0, "actuator noise {}"),
 }
 
 
@@ -204,18 +205,9 @@ def body_label(results: dict[str, Any]) -> str | None:
     config = results.get("config")
     if not isinstance(config, dict):
         config = {}
-    body = {name: config.get(name, default) for name, default in PAPER_BODY.items()}
     parts = []
-    if body["body"] != PAPER_BODY["body"]:
-        parts.append(f"{_shown(body['body'])} body")
-    if body["sensors"] != PAPER_BODY["sensors"]:
-        parts.append(f"{_shown(body['sensors'])} sensors")
-    if body["distractors"]:
-        parts.append(f"{_shown(body['distractors'])} distractors")
-    if body["sensor_permutation"] is not None:
-        parts.append(f"permuted sensors (seed {_shown(body['sensor_permutation'])})")
-    if body["sensor_noise"]:
-        parts.append(f"sensor noise {_shown(body['sensor_noise'])}")
-    if body["actuator_noise"]:
-        parts.append(f"actuator noise {_shown(body['actuator_noise'])}")
+    for name, (default, label) in PAPER_BODY.items():
+        value = config.get(name, default)
+        if bool(value) if isinstance(default, int | float) else value != default:
+            parts.append(label.format(_shown(value)))
     return ", ".join(parts) or None
