@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from factorq_torch.base.validation import INT32_MAX, check_int
-from factorq_trainers.runner import reading, registry
+from factorq_trainers.runner import kept, reading, registry
 from factorq_trainers.runner.frame import plain
 
 DEFAULT_SEEDS = 100
@@ -169,10 +169,9 @@ class SweepSpec:
                 try:  # a value, or a list of values (a table would reach no field's check)
                     hash(value)
                 except TypeError:
-                    shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
                     raise SweepError(
-                        f"field {name!r} in {where} holds {shown}: a table is not a value "
-                        f"(give a value or a list of values)"
+                        f"field {name!r} in {where} holds {kept.short(value)}: a table is not a "
+                        f"value (give a value or a list of values)"
                     ) from None
         count = len(self.configs) * math.prod(len(values) for _, values in self.grid)
         if count > MAX_CONFIGURATIONS:  # from the axes' lengths: nothing expanded yet

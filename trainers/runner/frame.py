@@ -243,16 +243,6 @@ def add_frame_options(parser: argparse.ArgumentParser) -> None:
 RESUMABLE_CHANGES = ("out", "threads")
 
 
-def _config(
-    module: ModuleType, args: argparse.Namespace, store: kept_files.UnitStore | None
-) -> Any:
-    given = options.given_options(args, module.CONFIG)
-    if store is None:
-        return module.CONFIG(**given)
-    saved = store.saved_run(module.NAME)["config"]
-    return resumed_config(saved, given, args.resume, module.CONFIG)
-
-
 def resumed_config(
     saved: dict[str, Any], given: dict[str, Any], directory: str, config_type: type
 ) -> Any:
@@ -279,7 +269,7 @@ def resumed_config(
         ) from None
     merged = config_from_dict(config_type, {**plain(kept_config), **given, "out": out})
     differing = [
-        f"{name}={_show(value)} given, {_show(saved.get(name))} kept"
+        f"{name}={kept_files.short(value, 40)} given, {kept_files.short(saved.get(name), 40)} kept"
         for name, value in plain(merged).items()
         if name not in RESUMABLE_CHANGES and saved.get(name) != value
     ]
@@ -289,11 +279,6 @@ def resumed_config(
             f"(leave these options out to resume it, or start a new run with another --out)"
         )
     return merged
-
-
-def _show(value: Any) -> str:
-    shown = repr(value)
-    return shown if len(shown) <= 40 else shown[:37] + "..."
 
 
 def write_outputs(
@@ -354,7 +339,12 @@ def execute(
     store = kept_files.UnitStore(args.resume) if hasattr(args, "resume") else None
     told: list[str] = []  # notices, printed once the run is accepted: a refusal stays one line
     try:
-        config = _config(module, args, store)
+        given = options.given_options(args, module.CONFIG)
+        if store is None:
+            config = module.CONFIG(**given)
+        else:
+            saved = store.saved_run(module.NAME)["config"]
+            config = resumed_config(saved, given, args.resume, module.CONFIG)
         units, large = prepared(module, config)
         told.append(large or "")
         from factorq_trainers.runner import cluster

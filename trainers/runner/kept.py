@@ -78,29 +78,30 @@ def check_tie(
         raise ValueError(f"{what} {path} does not say what run it was kept for: {remedy}")
     if stored.get("command") != expected["command"]:
         raise ValueError(
-            f"{what} {path} was kept by command {_short(stored.get('command'))}, not "
+            f"{what} {path} was kept by command {short(stored.get('command'))}, not "
             f"`factorq {expected['command']}`: {remedy}"
         )
     if stored.get("config_sha256") != expected["config_sha256"]:
         raise ValueError(
             f"{what} {path} was kept for another configuration (digest "
-            f"{_short(stored.get('config_sha256'))}, this run's {expected['config_sha256']!r}): "
+            f"{short(stored.get('config_sha256'))}, this run's {expected['config_sha256']!r}): "
             f"{remedy}"
         )
     if "unit" in expected and stored.get("unit") != expected["unit"]:
         unit = stored.get("unit")
         named = unit.get("id") if isinstance(unit, dict) else unit
         raise ValueError(
-            f"{what} {path} was kept for unit {_short(named)} ({_short(unit)}), not "
+            f"{what} {path} was kept for unit {short(named)} ({short(unit)}), not "
             f"{expected['unit'].get('id')!r}: {remedy}"
         )
     if set(stored) != set(expected):
-        raise ValueError(f"{what} {path} says it was kept for {_short(stored)}: {remedy}")
+        raise ValueError(f"{what} {path} says it was kept for {short(stored)}: {remedy}")
 
 
-def _short(value: Any) -> str:
+def short(value: Any, width: int = 60) -> str:
+    """``repr(value)``, cut to ``width`` characters (a kept file's value, shown in a message)."""
     shown = repr(value)
-    return shown if len(shown) <= 60 else shown[:57] + "..."
+    return shown if len(shown) <= width else shown[: width - 3] + "..."
 
 
 #: Leaf keys (or the key of their list) whose numbers are counts or sizes: never negative.
@@ -156,9 +157,7 @@ def check_values(
         ):
             continue  # a label, a verdict (a claim's threshold is its statement's words)
         if not isinstance(value, int | float) or isinstance(value, bool):
-            raise ValueError(
-                f"{what} {path}: {where} holds {_short(value)}, not a number: {remedy}"
-            )
+            raise ValueError(f"{what} {path}: {where} holds {short(value)}, not a number: {remedy}")
         problem = _leaf_problem(value, _kind_of(measure))
         if problem is not None:
             raise ValueError(f"{what} {path}: {where} holds {value!r}, {problem}: {remedy}")
@@ -253,13 +252,13 @@ def schema_problem(value: Any, schema: Any, where: str = "result") -> str | None
         return problems[-1]
     if isinstance(schema, dict):
         if not isinstance(value, dict):
-            return f"{where} holds {_short(value)}, not a mapping"
+            return f"{where} holds {short(value)}, not a mapping"
         declared = {key.rstrip("?"): key for key in schema if key != "*"}
         for key, item in value.items():
             if key in declared:
                 continue
             if "*" not in schema:
-                return f"{where} holds {_short(key)}, not one of its keys ({', '.join(declared)})"
+                return f"{where} holds {short(key)}, not one of its keys ({', '.join(declared)})"
             problem = schema_problem(item, schema["*"], f"{where}/{key}")
             if problem is not None:
                 return problem
@@ -274,7 +273,7 @@ def schema_problem(value: Any, schema: Any, where: str = "result") -> str | None
         return None
     if isinstance(schema, list):
         if not isinstance(value, list):
-            return f"{where} holds {_short(value)}, not a list"
+            return f"{where} holds {short(value)}, not a list"
         if len(schema) == 2 and len(value) != schema[1]:
             return f"{where} holds {len(value)} items, not {schema[1]}"
         if isinstance(schema[0], str) and _plain_numbers(value, schema[0]):
@@ -287,9 +286,9 @@ def schema_problem(value: Any, schema: Any, where: str = "result") -> str | None
     if isinstance(schema, frozenset):
         if isinstance(value, str) and value in schema:
             return None
-        return f"{where} holds {_short(value)}, not one of {', '.join(sorted(schema))}"
+        return f"{where} holds {short(value)}, not one of {', '.join(sorted(schema))}"
     problem = _leaf_problem(value, schema)
-    return None if problem is None else f"{where} holds {_short(value)}, {problem}"
+    return None if problem is None else f"{where} holds {short(value)}, {problem}"
 
 
 def _finite(value: int | float) -> bool:
@@ -351,7 +350,7 @@ def check_result(
     for key, label in unit.items():
         if key != "id" and key in result and result[key] != label:
             raise ValueError(
-                f"{what} {path}: its result's {key} is {_short(result[key])}, but it is kept for "
+                f"{what} {path}: its result's {key} is {short(result[key])}, but it is kept for "
                 f"unit {unit['id']!r}, whose {key} is {label!r}: {remedy}"
             )
 
@@ -407,7 +406,7 @@ class UnitStore:
         if record.get("format") != UNITS_FORMAT or record.get("command") != command:
             raise ValueError(
                 f"run file {path} is not an interrupted `factorq {command}` run (command "
-                f"{_short(record.get('command'))}): {remedy}"
+                f"{short(record.get('command'))}): {remedy}"
             )
         config = record.get("config")
         if not isinstance(config, dict):
@@ -434,7 +433,7 @@ class UnitStore:
             record = read_sealed(path, UNIT_FILE, remedy, values=False, kept_for=expected)
             if set(record) != {"result"}:
                 raise ValueError(
-                    f"{UNIT_FILE} {path} holds {_short(sorted(record))}, not a unit's result: "
+                    f"{UNIT_FILE} {path} holds {short(sorted(record))}, not a unit's result: "
                     f"{remedy}"
                 )
             check_result(path, UNIT_FILE, unit, record["result"], schema, remedy)
