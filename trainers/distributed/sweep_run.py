@@ -138,18 +138,14 @@ def run_sweep(
     configs = spec.configurations()
     pending = _pending_configs(directory, configs, force, spec.command)
     done = len(configs) - len(pending)
-    if progress is not None:
-        progress(done, len(configs))
+    progress = progress or (lambda done, total: None)
+    progress(done, len(configs))
     names = [f"{spec.command}-{config_digest(config)}" for config in pending]
     task = functools.partial(_units_task, spec.command)
     for index, results in executor.map(task, pending, names):
-        text = kept.dumps_sealed(results, kept.tie(spec.command, config_digest(pending[index])))
         directory.mkdir(parents=True, exist_ok=True)
-        result_files.write_atomic(
-            config_result_path(directory, pending[index]),
-            functools.partial(Path.write_text, data=text),
-        )
+        kept_for = kept.tie(spec.command, config_digest(pending[index]))
+        kept.write_sealed(config_result_path(directory, pending[index]), results, kept_for)
         done += 1
-        if progress is not None:
-            progress(done, len(configs))
+        progress(done, len(configs))
     return _gathered(spec, pending, started, executor)

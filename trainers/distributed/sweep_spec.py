@@ -122,21 +122,17 @@ def _plain(value: Any) -> Any:
 
 @dataclass(frozen=True)
 class SweepSpec:
-    """A sweep: ``base`` values, ``grid`` axes (crossed with the ``configs`` list), ``seeds``
-    per configuration, results in ``out``."""
+    """A sweep of ``command``'s configs: the fields every configuration shares (``base``, (name,
+    value) pairs), the swept axes (``grid``, (name, values) pairs: their cartesian product)
+    crossed with explicit configurations (``configs``), ``seeds`` of every configuration, and
+    ``out``, the directory of sweep.json, sweep.md, the figures and configs/."""
 
     base: tuple[tuple[str, Any], ...] = ()
-    """Fields every configuration shares, as (name, value) pairs."""
     grid: tuple[tuple[str, tuple[Any, ...]], ...] = ()
-    """Swept axes, as (name, values) pairs: configurations are their cartesian product."""
     configs: tuple[tuple[tuple[str, Any], ...], ...] = ((),)
-    """Explicit configurations (each crossed with the grid)."""
     seeds: int = DEFAULT_SEEDS
-    """Seeds (independent experiments per world and algorithm) of every configuration."""
     out: str = DEFAULT_OUT
-    """Directory for sweep.json, sweep.md, the figures and configs/."""
     command: str = "paper"
-    """Whose configs are swept: ``paper``, ``compare``, ``dependencies``, ..."""
 
     def __post_init__(self) -> None:
         check_command(self.command, "sweep")

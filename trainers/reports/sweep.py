@@ -135,7 +135,9 @@ def write_axis_figure(sweep: dict[str, Any], axis: str, path: Path) -> None:
     figure.savefig(path, dpi=100, format="png")
 
 
-def write_outputs(sweep: dict[str, Any], out: str | Path, json: bool = True) -> dict[str, Path]:
+def write_outputs(
+    sweep: dict[str, Any], out: str | os.PathLike[Any], json: bool = True
+) -> dict[str, Path]:
     """``sweep.json`` (unless not ``json``), ``sweep.md`` and ``sweep-<axis>.png`` per axis, all
     written atomically."""
     out = Path(out)

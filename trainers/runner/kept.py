@@ -69,6 +69,12 @@ def dumps_sealed(
     return result_files.dumps(parsed_)
 
 
+def write_sealed(path: Path, results: dict[str, Any], kept_for: Any, parsed: bool = False) -> None:
+    """``dumps_sealed``'s text written atomically at ``path``."""
+    text = dumps_sealed(results, kept_for, parsed)
+    result_files.write_atomic(path, lambda target: target.write_text(text))
+
+
 def check_tie(
     path: Path, what: str, stored: Any, expected: dict[str, Any], remedy: str = REMEDY
 ) -> None:
@@ -386,8 +392,7 @@ class UnitStore:
         self.directory.mkdir(parents=True)
         record = {"format": UNITS_FORMAT, "command": command, "config": config}
         record["units"] = list(unit_ids)
-        text = dumps_sealed(record, tie(command, config))
-        result_files.write_atomic(self.directory / RUN_FILE, lambda path: path.write_text(text))
+        write_sealed(self.directory / RUN_FILE, record, tie(command, config))
         self.kept_for = tie(command, config)
 
     def saved_run(self, command: str) -> dict[str, Any]:
@@ -450,10 +455,8 @@ class UnitStore:
         """Keep ``unit``'s ``result`` (as JSON gives it back: ``frame.unit_result``'s) after
         ``start`` or ``saved_run``."""
         unit = json.loads(result_files.dumps(unit))
-        text = dumps_sealed({"result": result}, {**self.kept_for, "unit": unit}, parsed=True)
-        result_files.write_atomic(
-            unit_path(self.directory, unit["id"]), lambda path: path.write_text(text)
-        )
+        kept_for = {**self.kept_for, "unit": unit}
+        write_sealed(unit_path(self.directory, unit["id"]), {"result": result}, kept_for, True)
 
     def remove(self) -> None:
         shutil.rmtree(self.directory, ignore_errors=True)
