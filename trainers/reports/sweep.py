@@ -38,14 +38,13 @@ def report_markdown(sweep: dict[str, Any]) -> str:
     axes = sweep["axes"]
     measures = _measures(sweep)
     is_paper = sweep.get("command", "paper") == "paper"
-    unit = "one task per configuration"
     per = "Per run" if is_paper else "Per experiment"
     claims_column = ["claims passed"] if is_paper else []
     lines = [
         f"# factorq sweep ({sweep.get('command', 'paper')})",
         "",
         f"{len(sweep['configurations'])} configurations x {sweep['seeds']} seeds "
-        f"({unit}); base: "
+        "(one task per configuration); base: "
         + (", ".join(f"{k}={_shown(v)}" for k, v in sweep["base"].items()) or "defaults")
         + f"; computed {sweep['timing']['where']}. {per}: means over seeds [95% interval].",
         "",
