@@ -32,7 +32,7 @@ from factorq_trainers.distributed.sweep_spec import (
     sweepable_fields,
 )
 from factorq_trainers.reports import sweep as sweep_report
-from factorq_trainers.runner import cluster, outdir, resources
+from factorq_trainers.runner import cluster, outdir, registry, resources
 from factorq_trainers.runner.frame import (
     EXIT_FAILURE,
     EXIT_INTERRUPTED,
@@ -138,8 +138,6 @@ def main(argv: list[str] | None = None) -> int:
         spec = spec_from_args(args)
         where = cluster.where_from_args(args)
         workers = 1 if where.local_workers is None else where.local_workers or os.cpu_count() or 1
-        from factorq_trainers.runner import registry
-
         module = registry.load(spec.command)  # its own estimate, if any
         estimate = resources.tasks_estimate(
             [

@@ -24,9 +24,8 @@ from factorq_trainers.distributed.sweep_spec import (
     _reports_of,
     config_digest,
 )
-from factorq_trainers.runner import cluster, kept
+from factorq_trainers.runner import cluster, frame, kept, registry
 from factorq_trainers.runner import results as result_files
-from factorq_trainers.runner.frame import plain
 
 
 def config_result_path(directory: str | os.PathLike, config: Any) -> Path:
@@ -90,7 +89,7 @@ def _gathered(
             {
                 "values": point,
                 "digest": config_digest(config),
-                "config": plain(config),
+                "config": frame.plain(config),
                 "results_file": f"{CONFIGS_DIRECTORY}/{path.name}",
                 "cells": cells_of,
                 "claims": {  # the paper's claims, where the command has them
@@ -103,9 +102,9 @@ def _gathered(
         "command": command,
         "measures": list(reports.SWEEP_MEASURES),
         "axes": spec.axes,
-        "base": plain(dict(spec.base)),
+        "base": frame.plain(dict(spec.base)),
         "seeds": spec.seeds,
-        "configurations": plain(rows),
+        "configurations": frame.plain(rows),
         "timing": {
             "wall_s": round(time.perf_counter() - started, 3),
             "compute_s": round(computed, 3),
@@ -118,8 +117,6 @@ def _gathered(
 
 
 def _units_task(command: str, config: Any) -> dict[str, Any]:
-    from factorq_trainers.runner import frame, registry
-
     return frame.run_in_process(registry.load(command), config)
 
 

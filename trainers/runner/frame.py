@@ -32,8 +32,8 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+from factorq_trainers.runner import cluster, options, outdir, registry, resources, results
 from factorq_trainers.runner import kept as kept_files
-from factorq_trainers.runner import options, outdir, registry, resources, results
 
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
@@ -232,8 +232,6 @@ def run_unit_task(module_name: str, config: Any, unit: dict[str, Any]) -> Any:
 def add_frame_options(parser: argparse.ArgumentParser) -> None:
     """``--force``, ``--resume DIR`` and the cluster options (``--cluster``, ``--scheduler``,
     ``--connect-timeout``)."""
-    from factorq_trainers.runner import cluster
-
     parser.add_argument("--force", action="store_true", default=argparse.SUPPRESS, help=FORCE_HELP)
     parser.add_argument("--resume", metavar="DIR", default=argparse.SUPPRESS, help=RESUME_HELP)
     cluster.add_options(parser)
@@ -347,8 +345,6 @@ def execute(
             config = resumed_config(saved, given, args.resume, module.CONFIG)
         units, large = prepared(module, config)
         told.append(large or "")
-        from factorq_trainers.runner import cluster
-
         where = cluster.where_from_args(args)  # --cluster off: in-process, whatever the default
         executor = None if where.in_process else cluster.open_executor(where)
         chosen = any(hasattr(args, name) for name in ("cluster", "scheduler"))
@@ -401,8 +397,6 @@ def _default_processes(
     """A local cluster of the workers the command asks for its ``units`` (``processes(config,
     units) -> (workers, why)``: where its env steps slowly), with a notice saying why added to
     ``told``; None (in-process) where it asks for one, or where Dask is not installed."""
-    from factorq_trainers.runner import cluster
-
     workers, why = module.processes(config, units)
     if workers < 2:
         return None
