@@ -11,14 +11,12 @@ import os
 from pathlib import Path
 from typing import Any
 
-from factorq_trainers.runner.results import FigureError
+from factorq_trainers.runner import frame, kept, registry, results
 
 
 def find(results_dir: str | os.PathLike) -> tuple[Any, Path]:
     """The registry entry of the command whose results file is in ``results_dir``, and the
     file (a FileNotFoundError naming the files looked for when none is there)."""
-    from factorq_trainers.runner import registry
-
     directory = Path(results_dir)
     entries = registry.commands().values()
     for entry in entries:
@@ -39,8 +37,6 @@ def check_results(path: Path, command: str, data: dict[str, Any]) -> None:
     are impossible (``runner.kept.check_values``: numbers finite, counts whole and >= 0,
     fractions in [0, 1], and the command's report's own ``results_problem``), before anything
     is drawn from it."""
-    from factorq_trainers.runner import kept, registry
-
     remedy = f"run `factorq {command}` again to rewrite it"
     if "schema_version" not in data:
         raise ValueError(f"results file {path} has no schema_version: {remedy}")
@@ -55,8 +51,6 @@ def check_results(path: Path, command: str, data: dict[str, Any]) -> None:
 
 def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
     """Rewrite the Markdown and the figure in ``results_dir`` from its results file."""
-    from factorq_trainers.runner import frame, results
-
     try:
         entry, path = find(results_dir)
     except FileNotFoundError:
@@ -73,7 +67,7 @@ def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
         try:
             report.figure(data, target)
         except Exception as error:  # matplotlib's, from deep inside: one line, no file
-            raise FigureError(
+            raise results.FigureError(
                 f"drawing {entry.files['figure']} failed: {type(error).__name__}: {error}"
             ) from error
 
