@@ -138,16 +138,11 @@ def main(argv: list[str] | None = None) -> int:
         spec = spec_from_args(args)
         where = cluster.where_from_args(args)
         workers = 1 if where.local_workers is None else where.local_workers or os.cpu_count() or 1
-        module = registry.load(spec.command)  # its own estimate, if any
-        estimate = resources.tasks_estimate(
-            [
-                module.estimate(config)
-                if hasattr(module, "estimate")
-                else resources.Estimate({}, 0, exact_steps=False)
-                for config in spec.configurations()
-            ],
-            workers,
-        )  # a worker runs one configuration at a time
+        module = registry.load(spec.command)
+        none = resources.Estimate({}, 0, exact_steps=False)  # a command without an estimate
+        estimate_of = getattr(module, "estimate", lambda config: none)
+        configs = spec.configurations()  # a worker runs one configuration at a time:
+        estimate = resources.tasks_estimate([estimate_of(c) for c in configs], workers)
         hint = getattr(module, "HINT", "use fewer --seeds or smaller configurations")
         hint += ", or fewer --cluster workers" if workers > 1 else ""
         large = resources.check(estimate, "sweep", hint)
