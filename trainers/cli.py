@@ -1,15 +1,8 @@
-"""The ``factorq`` command, built from the registry of commands
-(``factorq_trainers.runner.registry``): one subcommand per folder
-``factorq_trainers.commands.<name>`` whose ``command.py`` declares ``NAME``, its options the
-fields of its ``CONFIG`` (``factorq_trainers.runner.options``), run by the runner's frame
-(``factorq_trainers.runner.frame``); plus ``factorq report DIR`` (redraw any command's files)
-and ``factorq sweep``.
-
-A command imports only what it runs (torch included, inside ``main``): ``factorq paper`` starts
-without torchrl, and a command that declares ``FIGURE_PROCESS`` (``paper``) starts its figure
-process (``factorq_trainers.commands.paper.figure_process``) before torch loads, so that matplotlib
-loads on the core that importing torch leaves idle.
-"""
+"""The ``factorq`` command: one subcommand per registered command (``runner.registry``), its
+options the fields of its ``CONFIG``, run by ``runner.frame``; plus ``factorq report DIR`` and
+``factorq sweep``. A command imports only what it runs (``factorq paper`` starts without
+torchrl); one that declares ``FIGURE_PROCESS`` starts its figure process before torch loads
+(docs/decisions.md, "``factorq paper`` end to end")."""
 
 from __future__ import annotations
 
@@ -23,7 +16,7 @@ import threading
 import typing
 from typing import TYPE_CHECKING
 
-from factorq_trainers.runner import registry
+from factorq_trainers.runner import frame, options, registry
 from factorq_trainers.runner.frame import (
     EXIT_FAILURE,
     EXIT_INTERRUPTED,
@@ -37,8 +30,6 @@ if TYPE_CHECKING:
     from factorq_trainers.commands.paper.figure_process import FigureProcess
 
 __all__ = ["EXIT_FAILURE", "EXIT_INTERRUPTED", "EXIT_USAGE", "build_parser", "main"]
-REPORT_HELP = "redraw the figure and Markdown of any command's results directory"
-SWEEP_HELP = "run a grid of a command's configurations, in-process or on a Dask cluster"
 
 
 def build_parser(
@@ -47,8 +38,6 @@ def build_parser(
     """The ``factorq`` parser. ``command``: the command being run; only its module is imported
     (its options added), every other command is listed by name and help alone.
     ``compare_options=False`` leaves the options of ``compare`` out (they need torchrl)."""
-    from factorq_trainers.runner import frame, options
-
     parser = Parser(
         prog="factorq",
         description="Factor-Q for torchrl: reproduce the paper's experiment and its report.",
@@ -68,20 +57,20 @@ def build_parser(
         sub.set_defaults(module=module, command_parser=sub)
     report_parser = commands.add_parser(
         "report",
-        help=REPORT_HELP,
+        help="redraw the figure and Markdown of any command's results directory",
         description="Regenerate the figure and the Markdown report of the results in "
         "RESULTS_DIR (results.json of factorq paper, comparison.json, dependencies.json, ... of "
         "the other commands) from the results file alone.",
     )
     report_parser.add_argument("results_dir", metavar="RESULTS_DIR", help="a command's --out")
     report_parser.set_defaults(module=None, command_parser=report_parser)
-    commands.add_parser("sweep", help=SWEEP_HELP, add_help=False)  # main hands it to sweep
+    sweep_help = "run a grid of a command's configurations, in-process or on a Dask cluster"
+    commands.add_parser("sweep", help=sweep_help, add_help=False)  # main hands it to sweep
     return parser
 
 
 def _report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     from factorq_trainers import reports
-    from factorq_trainers.runner import results
 
     try:
         paths = reports.regenerate(args.results_dir)
@@ -89,7 +78,7 @@ def _report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         message = f"missing field {problem}" if isinstance(problem, KeyError) else str(problem)
         error(parser, message)
         return EXIT_USAGE
-    except results.FigureError as problem:
+    except frame.results.FigureError as problem:
         failure(parser, problem)
         return EXIT_FAILURE
     for path in paths.values():
@@ -99,12 +88,8 @@ def _report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Run ``factorq`` with ``argv`` (default: the command line); return the exit status.
-
-    Without ``argv`` (the ``factorq`` command, ``python -m factorq_trainers.cli``) the process is
-    the command's own: modules load with the garbage collector paused, are then frozen out of its
-    work (``gc.freeze``), and a command ends the process as soon as its output is flushed and the
-    atexit handlers ran, without the interpreter's teardown of torch (``_exit``).
-    """
+    Without ``argv`` the process is the command's own: modules load with the garbage collector
+    paused, then ``gc.freeze``, and a command ends with ``_exit``."""
     command_line = argv is None
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["sweep"]:
@@ -145,8 +130,10 @@ def _main(
         gc.disable()
     try:
         parser = build_parser(compare_options=command == "compare", command=command)
-        if command in registry.commands():  # (not ``report``: built in)
-            _load_command(command)
+        if command in registry.commands():  # what it runs besides its module (not ``report``)
+            import tqdm  # noqa: F401
+
+            importlib.import_module(registry.commands()[command].report)
     except KeyboardInterrupt:  # while torch loads: nothing started, nothing written
         print(f"factorq{' ' + command if command else ''}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -168,22 +155,10 @@ def _main(
     try:  # the parsed command in the runner's frame (``report`` redraws files instead)
         if args.module is None:
             return _report(args.command_parser, args)
-        from factorq_trainers.runner import frame
-
         return frame.execute(args.module, args.command_parser, args, figure_process)
     except KeyboardInterrupt:  # outside the run itself (validation, imports): nothing written
         print(f"{args.command_parser.prog}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
-
-
-def _load_command(command: str) -> None:
-    """Import what ``command`` runs besides its module (``main`` does it with the garbage
-    collector paused): the progress bar, the frame and the command's report module."""
-    import tqdm  # noqa: F401
-
-    from factorq_trainers.runner import frame  # noqa: F401
-
-    importlib.import_module(registry.commands()[command].report)
 
 
 def _exit(code: int) -> typing.NoReturn:

@@ -3,13 +3,10 @@ each with its seeds, run in-process or on a Dask cluster, one task per configura
 in ``OUT/configs/<digest>.json`` as it finishes, gathered into ``sweep.json``, ``sweep.md`` and
 one figure per swept axis.
 
-This module is the command line (parser, options over the sweep file, the memory estimate, the
-claim of ``--out``, the progress bar, the files); the parts (import their names from them):
-
-- ``sweep_spec``: the sweep file and its checks, ``SweepSpec`` (its file format is there);
-- ``sweep_run``: running configurations on an executor, kept on disk as each finishes
-  (resumption), and gathering ``sweep.json``'s dict;
-- ``factorq_trainers.reports.sweep``: ``sweep.md`` and the figures.
+This module is the command line (options over the sweep file, the memory estimate, the claim of
+``--out``, the progress bar); ``sweep_spec`` reads and checks the sweep file (its format is
+there), ``sweep_run`` runs and keeps the configurations, ``factorq_trainers.reports.sweep``
+draws ``sweep.md`` and the figures.
 """
 
 from __future__ import annotations
@@ -28,13 +25,14 @@ from factorq_trainers.distributed.sweep_spec import (
     SweepError,
     SweepSpec,
     check_command,
+    checked_document,
     parse_value,
     read_spec_file,
     spec_from_mapping,
     sweepable_fields,
 )
 from factorq_trainers.reports import sweep as sweep_report
-from factorq_trainers.runner import cluster, outdir, resources
+from factorq_trainers.runner import cluster, outdir, registry, resources
 from factorq_trainers.runner.frame import (
     EXIT_FAILURE,
     EXIT_INTERRUPTED,
@@ -42,8 +40,6 @@ from factorq_trainers.runner.frame import (
     Parser,
     progress_bar,
 )
-
-HELP = "run a grid of a command's configurations, in-process or on a Dask cluster"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -105,18 +101,14 @@ def _pairs(options: list[str], option: str) -> list[tuple[str, str]]:
 
 def spec_from_args(args: argparse.Namespace) -> SweepSpec:
     """The sweep of the file (if any) with the options applied over it."""
-    data = read_spec_file(args.spec) if args.spec else {}
     source = args.spec or "options"
-    if not isinstance(data, dict):
-        raise SweepError(f"{source}: expected a table of keys, got {type(data).__name__}")
-    data = dict(data)
+    data = dict(checked_document(read_spec_file(args.spec) if args.spec else {}, source))
     if hasattr(args, "command"):
         data["command"] = args.command
     command = check_command(data.get("command", "paper"), source)
-    base = dict(data.get("base", {}) if isinstance(data.get("base", {}), dict) else {})
+    base, grid = dict(data.get("base", {})), dict(data.get("grid", {}))
     for name, text in _pairs(args.set, "--set"):
         base[name] = parse_value(name, text, command)
-    grid = dict(data.get("grid", {}) if isinstance(data.get("grid", {}), dict) else {})
     for name, text in _pairs(args.grid, "--grid"):
         annotation = sweepable_fields(command).get(name)
         if typing.get_origin(annotation) is tuple:  # one name per value: regimes=static,dynamic
@@ -146,18 +138,11 @@ def main(argv: list[str] | None = None) -> int:
         spec = spec_from_args(args)
         where = cluster.where_from_args(args)
         workers = 1 if where.local_workers is None else where.local_workers or os.cpu_count() or 1
-        from factorq_trainers.runner import registry
-
-        module = registry.load(spec.command)  # its own estimate, if any
-        estimate = resources.tasks_estimate(
-            [
-                module.estimate(config)
-                if hasattr(module, "estimate")
-                else resources.Estimate({}, 0, exact_steps=False)
-                for config in spec.configurations()
-            ],
-            workers,
-        )  # a worker runs one configuration at a time
+        module = registry.load(spec.command)
+        none = resources.Estimate({}, 0, exact_steps=False)  # a command without an estimate
+        estimate_of = getattr(module, "estimate", lambda config: none)
+        configs = spec.configurations()  # a worker runs one configuration at a time:
+        estimate = resources.tasks_estimate([estimate_of(c) for c in configs], workers)
         hint = getattr(module, "HINT", "use fewer --seeds or smaller configurations")
         hint += ", or fewer --cluster workers" if workers > 1 else ""
         large = resources.check(estimate, "sweep", hint)
@@ -187,17 +172,26 @@ def _run_sweep_command(
         f"{len(configs)} configurations x {spec.seeds} seeds = {work}, {executor.description}",
         file=sys.stderr,
     )
-    bar = Bar()
+    bar: list[Any] = []  # made at the first count, which says how many were done before
+
+    def progress(done: int, total: int) -> None:
+        if not bar:
+            bar.append(
+                progress_bar(total=total, initial=done, desc="factorq sweep", unit="configuration")
+            )
+        bar[0].update(done - bar[0].n)
+
     try:
-        sweep = run_sweep(spec, executor, bar, force)
-        bar.close()
+        try:
+            sweep = run_sweep(spec, executor, progress, force)
+        finally:
+            for made in bar:
+                made.close()
         paths = sweep_report.write_outputs(sweep, spec.out)
     except KeyboardInterrupt:
-        bar.close()
         print(f"{parser.prog}: interrupted (run it again to resume)", file=sys.stderr)
         return EXIT_INTERRUPTED
     except (OSError, ValueError) as error:  # a full disk; a kept result file gone bad
-        bar.close()
         print(f"{parser.prog}: error: {error}", file=sys.stderr)
         return EXIT_FAILURE
     finally:
@@ -206,22 +200,3 @@ def _run_sweep_command(
     for path in paths.values():
         print(f"  {path}")
     return 0
-
-
-class Bar:
-    """A tqdm bar of configurations done, with the time left: made at the first count, which
-    says the total and how many were done before (kept in ``OUT/configs/``)."""
-
-    def __init__(self) -> None:
-        self.bar: Any = None
-
-    def __call__(self, done: int, total: int) -> None:
-        if self.bar is None:
-            self.bar = progress_bar(
-                total=total, initial=done, desc="factorq sweep", unit="configuration"
-            )
-        self.bar.update(done - self.bar.n)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()

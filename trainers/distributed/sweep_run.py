@@ -1,24 +1,16 @@
-"""Running a sweep (``factorq sweep``) and gathering it: every configuration of a registered
-command run whole (``frame.run_in_process``: its units, one task per configuration), on an
-executor, each kept on disk as it finishes; then
-``sweep.json``'s dict.
+"""Running a sweep (``factorq sweep``): every configuration run whole (``frame.run_in_process``)
+as one task on an executor, its results dict kept in ``OUT/configs/<digest>.json`` (sealed and
+tied by ``kept``) as it finishes, then ``sweep.json``'s dict gathered from those files, each
+configuration's cells taken by its command's ``sweep_cells``.
 
-    spec -> configurations -> executor (in-process or Dask) -> one sealed JSON file per
-         configuration (OUT/configs/<digest>.json), written as it finishes
-         -> per configuration: its cells (the command's ``sweep_cells``) and claims
-         -> sweep.json's dict
-
-**Resumption.** A configuration whose kept file exists (and passes its checks: digest, tie to
-the command and the configuration's digest, values) is not run again, so a killed sweep
-continues where it stopped, and a sweep that adds axis values runs only the new configurations.
-
-**Identical results.** A configuration's numbers depend on it alone, so every summary is the same
-in-process, on any number of workers, and after any number of interruptions.
+A configuration whose kept file passes its checks is not run again, so a killed sweep continues
+where it stopped, and a sweep that adds axis values runs only the new configurations. A
+configuration's numbers depend on it alone: a sweep's are the same in-process, on any number of
+workers and after any number of interruptions.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import os
 import time
@@ -29,11 +21,10 @@ from typing import Any
 from factorq_trainers.distributed.sweep_spec import (
     CONFIGS_DIRECTORY,
     SweepSpec,
-    _json,
     _reports_of,
     config_digest,
 )
-from factorq_trainers.runner import cluster, kept
+from factorq_trainers.runner import cluster, frame, kept, registry
 from factorq_trainers.runner import results as result_files
 
 
@@ -77,9 +68,8 @@ def _gathered(
     started: float,
     executor: cluster.InProcess | cluster.DaskExecutor,
 ) -> dict[str, Any]:
-    """``sweep.json``'s dict of a sweep: one row per configuration read back from
-    ``OUT/configs/``, its cells taken by the command's ``sweep_cells``; ``pending``: the
-    configurations run now."""
+    """``sweep.json``'s dict: one row per configuration read back from ``OUT/configs/``;
+    ``pending``: the configurations run now."""
     computed = time.perf_counter() - started
     command, reports = spec.command, _reports_of(spec.command)
     directory = Path(spec.out) / CONFIGS_DIRECTORY
@@ -99,7 +89,7 @@ def _gathered(
             {
                 "values": point,
                 "digest": config_digest(config),
-                "config": _json(dataclasses.asdict(config)),
+                "config": frame.plain(config),
                 "results_file": f"{CONFIGS_DIRECTORY}/{path.name}",
                 "cells": cells_of,
                 "claims": {  # the paper's claims, where the command has them
@@ -112,9 +102,9 @@ def _gathered(
         "command": command,
         "measures": list(reports.SWEEP_MEASURES),
         "axes": spec.axes,
-        "base": {name: _json(value) for name, value in spec.base},
+        "base": frame.plain(dict(spec.base)),
         "seeds": spec.seeds,
-        "configurations": [_json(row) for row in rows],
+        "configurations": frame.plain(rows),
         "timing": {
             "wall_s": round(time.perf_counter() - started, 3),
             "compute_s": round(computed, 3),
@@ -127,8 +117,6 @@ def _gathered(
 
 
 def _units_task(command: str, config: Any) -> dict[str, Any]:
-    from factorq_trainers.runner import frame, registry
-
     return frame.run_in_process(registry.load(command), config)
 
 
@@ -138,31 +126,23 @@ def run_sweep(
     progress: Callable[[int, int], None] | None = None,
     force: bool = False,
 ) -> dict[str, Any]:
-    """Run every configuration of ``spec`` not already kept in ``OUT/configs/`` (each whole,
-    ``frame.run_in_process``, one task each) and keep it there as its results dict, then gather
-    ``sweep.json``'s dict with the cells of the command's ``sweep_cells``.
-
-    ``progress(done, total)`` counts configurations (those found on disk are done from the
-    start). A kept configuration result that fails its checks (``kept``) is refused before any
-    work, or with ``force`` recomputed.
-    """
+    """Run and keep every configuration of ``spec`` not already kept, then gather ``sweep.json``'s
+    dict. ``progress(done, total)`` counts configurations (those found on disk are done from the
+    start). A kept file that fails its checks is refused before any work, or with ``force``
+    recomputed."""
     started = time.perf_counter()
     directory = Path(spec.out) / CONFIGS_DIRECTORY
     configs = spec.configurations()
     pending = _pending_configs(directory, configs, force, spec.command)
     done = len(configs) - len(pending)
-    if progress is not None:
-        progress(done, len(configs))
+    progress = progress or (lambda done, total: None)
+    progress(done, len(configs))
     names = [f"{spec.command}-{config_digest(config)}" for config in pending]
     task = functools.partial(_units_task, spec.command)
     for index, results in executor.map(task, pending, names):
-        text = kept.dumps_sealed(results, kept.tie(spec.command, config_digest(pending[index])))
         directory.mkdir(parents=True, exist_ok=True)
-        result_files.write_atomic(
-            config_result_path(directory, pending[index]),
-            functools.partial(Path.write_text, data=text),
-        )
+        kept_for = kept.tie(spec.command, config_digest(pending[index]))
+        kept.write_sealed(config_result_path(directory, pending[index]), results, kept_for)
         done += 1
-        if progress is not None:
-            progress(done, len(configs))
+        progress(done, len(configs))
     return _gathered(spec, pending, started, executor)

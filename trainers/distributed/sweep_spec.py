@@ -16,11 +16,10 @@ A sweep file (every key optional but the axes; options given on the command line
     [[configs]]              # ... crossed with this list (each entry one configuration)
     size = 8
 
-Any field of ``PaperConfig`` is an axis or a base value, but for ``seeds`` and ``out``, which
-the sweep sets: the fields are read from the dataclass, so new ones are sweepable without edits
-here. Unknown fields and invalid values are refused before anything is written.
-With ``command = "compare"`` (or any other registered command) the fields are those of that
-command's config.
+Any field of the command's config (``PaperConfig`` by default; ``command = "compare"``, or any
+other registered command, for that command's) is an axis or a base value, but for ``seeds`` and
+``out``, which the sweep sets: the fields are read from the dataclass, so new ones are sweepable
+without edits here. Unknown fields and invalid values are refused before anything is written.
 """
 
 from __future__ import annotations
@@ -28,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import hashlib
+import importlib
 import itertools
 import json
 import math
@@ -39,14 +39,12 @@ from pathlib import Path
 from typing import Any
 
 from factorq_torch.base.validation import INT32_MAX, check_int
-from factorq_trainers.runner import reading
+from factorq_trainers.runner import kept, reading, registry
+from factorq_trainers.runner.frame import plain
 
 DEFAULT_SEEDS = 100
 DEFAULT_OUT = "results/sweep"
 SPEC_KEYS = ("command", "seeds", "out", "base", "grid", "configs")
-#: The fields of a command's config that the sweep sets itself, unless the module of its config
-#: declares more (``SWEEP_RESERVED``: compare's ``logger``).
-UNITS_RESERVED = ("seeds", "out")
 #: Where a sweep keeps each finished configuration's results dict.
 CONFIGS_DIRECTORY = "configs"
 
@@ -57,8 +55,6 @@ class SweepError(ValueError):
 
 def commands() -> tuple[str, ...]:
     """Every command a sweep can run: each registered command."""
-    from factorq_trainers.runner import registry
-
     return tuple(registry.commands())
 
 
@@ -77,25 +73,19 @@ def check_command(command: Any, source: str = "sweep file") -> str:
 
 def _reports_of(command: str) -> Any:
     """The report module of ``command`` (its ``sweep_cells`` and ``SWEEP_MEASURES``)."""
-    import importlib
-
-    from factorq_trainers.runner import registry
-
     return importlib.import_module(registry.commands()[command].report)
 
 
 def config_class(command: str = "paper") -> type:
     """The config dataclass of ``command`` (``PaperConfig``, ``CompareConfig``, ...)."""
-    from factorq_trainers.runner import registry
-
     return registry.load(command).CONFIG
 
 
 def reserved_fields(command: str = "paper") -> tuple[str, ...]:
     """The fields of ``command``'s config that the sweep sets itself: ``seeds`` and ``out``, or
-    what the module of its config declares in ``SWEEP_RESERVED``."""
+    what the module of its config declares in ``SWEEP_RESERVED`` (compare adds its ``logger``)."""
     module = sys.modules[config_class(command).__module__]
-    return tuple(getattr(module, "SWEEP_RESERVED", UNITS_RESERVED))
+    return tuple(getattr(module, "SWEEP_RESERVED", ("seeds", "out")))
 
 
 def nested_fields(command: str = "paper") -> list[str]:
@@ -106,7 +96,7 @@ def nested_fields(command: str = "paper") -> list[str]:
 
 def sweepable_fields(command: str = "paper") -> dict[str, Any]:
     """Field name -> type annotation of every field of ``command``'s config a sweep may set
-    (``PaperConfig`` or ``CompareConfig``; nested configs and the sweep's own fields left out)."""
+    (nested configs and the sweep's own fields left out)."""
     kind = config_class(command)
     hints = typing.get_type_hints(kind)
     skipped = {*reserved_fields(command), *nested_fields(command)}
@@ -119,7 +109,7 @@ def config_digest(config: Any) -> str:
     ``compare`` also leaves out its ``logger``, ``paper`` its backend, device and
     ``shard_seeds``: the numbers are the same bit for bit)."""
     module = sys.modules[type(config).__module__]
-    values = _json(dataclasses.asdict(config))
+    values = plain(config)
     ignored = getattr(module, "DIGEST_IGNORED", ("out", "threads"))
     relevant = {key: value for key, value in values.items() if key not in ignored}
     return hashlib.sha256(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:16]
@@ -132,21 +122,17 @@ def _plain(value: Any) -> Any:
 
 @dataclass(frozen=True)
 class SweepSpec:
-    """A sweep: ``base`` values, ``grid`` axes (crossed with the ``configs`` list), ``seeds``
-    per configuration, results in ``out``."""
+    """A sweep of ``command``'s configs: the fields every configuration shares (``base``, (name,
+    value) pairs), the swept axes (``grid``, (name, values) pairs: their cartesian product)
+    crossed with explicit configurations (``configs``), ``seeds`` of every configuration, and
+    ``out``, the directory of sweep.json, sweep.md, the figures and configs/."""
 
     base: tuple[tuple[str, Any], ...] = ()
-    """Fields every configuration shares, as (name, value) pairs."""
     grid: tuple[tuple[str, tuple[Any, ...]], ...] = ()
-    """Swept axes, as (name, values) pairs: configurations are their cartesian product."""
     configs: tuple[tuple[tuple[str, Any], ...], ...] = ((),)
-    """Explicit configurations (each crossed with the grid)."""
     seeds: int = DEFAULT_SEEDS
-    """Seeds (independent experiments per world and algorithm) of every configuration."""
     out: str = DEFAULT_OUT
-    """Directory for sweep.json, sweep.md, the figures and configs/."""
     command: str = "paper"
-    """Whose configs are swept: ``paper``, ``compare``, ``dependencies``, ..."""
 
     def __post_init__(self) -> None:
         check_command(self.command, "sweep")
@@ -179,10 +165,9 @@ class SweepSpec:
                 try:  # a value, or a list of values (a table would reach no field's check)
                     hash(value)
                 except TypeError:
-                    shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
                     raise SweepError(
-                        f"field {name!r} in {where} holds {shown}: a table is not a value "
-                        f"(give a value or a list of values)"
+                        f"field {name!r} in {where} holds {kept.short(value)}: a table is not a "
+                        f"value (give a value or a list of values)"
                     ) from None
         count = len(self.configs) * math.prod(len(values) for _, values in self.grid)
         if count > MAX_CONFIGURATIONS:  # from the axes' lengths: nothing expanded yet
@@ -230,8 +215,8 @@ class SweepSpec:
 
     @functools.cache  # noqa: B019 - the spec is frozen and small
     def configurations(self) -> list[Any]:
-        """The validated config of every point (a ``SweepError`` names the point and the value):
-        ``PaperConfig``s, or ``CompareConfig``s for ``command="compare"``."""
+        """The validated config of every point (a ``SweepError`` names the point and the
+        value)."""
         kind = config_class(self.command)
         configs = []
         for index, point in enumerate(self.points()):
@@ -244,8 +229,9 @@ class SweepSpec:
         return configs
 
 
-def spec_from_mapping(data: dict[str, Any], source: str = "sweep file") -> SweepSpec:
-    """A ``SweepSpec`` from a parsed TOML (or YAML) document."""
+def checked_document(data: Any, source: str = "sweep file") -> dict[str, Any]:
+    """``data``, a parsed sweep file, once its keys and tables are checked (its command is not:
+    an option may replace it)."""
     if not isinstance(data, dict):
         raise SweepError(f"{source}: expected a table of keys, got {type(data).__name__}")
     unknown = sorted(set(data) - set(SPEC_KEYS))
@@ -254,17 +240,23 @@ def spec_from_mapping(data: dict[str, Any], source: str = "sweep file") -> Sweep
             f"{source}: unknown key(s) {', '.join(map(repr, unknown))}; known: "
             f"{', '.join(SPEC_KEYS)}"
         )
-    command = check_command(data.get("command", "paper"), source)
     for key in ("base", "grid"):
         if not isinstance(data.get(key, {}), dict):
             raise SweepError(f"{source}: [{key}] must be a table")
     configs = data.get("configs", [{}])
     if (
         not isinstance(configs, list)
-        or not all(isinstance(c, dict) for c in configs)
         or not configs
+        or not all(isinstance(c, dict) for c in configs)
     ):
         raise SweepError(f"{source}: configs must be a non-empty array of tables ([[configs]])")
+    return data
+
+
+def spec_from_mapping(data: Any, source: str = "sweep file") -> SweepSpec:
+    """A ``SweepSpec`` from a parsed TOML (or YAML) document."""
+    data = checked_document(data, source)
+    command = check_command(data.get("command", "paper"), source)
     grid = []
     for name, values in data.get("grid", {}).items():
         if not isinstance(values, list):
@@ -275,7 +267,10 @@ def spec_from_mapping(data: dict[str, Any], source: str = "sweep file") -> Sweep
         return SweepSpec(
             base=tuple((k, _plain(v)) for k, v in data.get("base", {}).items()),
             grid=tuple(grid),
-            configs=tuple(tuple((k, _plain(v)) for k, v in entry.items()) for entry in configs),
+            configs=tuple(
+                tuple((k, _plain(v)) for k, v in entry.items())
+                for entry in data.get("configs", [{}])
+            ),
             command=command,
             **extra,
         )
@@ -333,11 +328,3 @@ def parse_value(name: str, text: str, command: str = "paper") -> Any:
         except ValueError:
             raise SweepError(f"{name}={text!r} is not {annotation.__name__}") from None
     return text
-
-
-def _json(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {key: _json(item) for key, item in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json(item) for item in value]
-    return value

@@ -1,12 +1,8 @@
-"""Figures and Markdown drawn from results dicts alone: ``factorq report DIR`` redraws any
-command's files with these modules, without importing torch (``tests/test_runner.py`` checks it in
-a fresh interpreter).
-
-A command's report module (the ``report.py`` of its folder, else its ``command.py``) provides
-``markdown(results) -> str`` and/or ``figure(results, path)``; ``regenerate`` finds which command
-wrote ``DIR`` by the results file's name (each command's ``FILES["json"]``, read by the registry
-without importing the command) and rewrites the other files from it, all at once; a ``factorq
-sweep`` output folder (its ``sweep.json``) gets its ``sweep.md`` and figures redrawn."""
+"""``factorq report DIR``, without importing torch: ``regenerate`` finds which command wrote
+``DIR`` by its results file's name (the registry's ``files["json"]``), checks the file, and
+redraws the Markdown and the figure with the command's report module (its folder's ``report.py``,
+else its ``command.py``: ``markdown(results)``, ``figure(results, path)``), all at once; a
+``factorq sweep`` folder gets its ``sweep.md`` and figures redrawn from ``sweep.json``."""
 
 from __future__ import annotations
 
@@ -15,14 +11,12 @@ import os
 from pathlib import Path
 from typing import Any
 
-from factorq_trainers.runner.results import FigureError
+from factorq_trainers.runner import frame, kept, registry, results
 
 
 def find(results_dir: str | os.PathLike) -> tuple[Any, Path]:
     """The registry entry of the command whose results file is in ``results_dir``, and the
     file (a FileNotFoundError naming the files looked for when none is there)."""
-    from factorq_trainers.runner import registry
-
     directory = Path(results_dir)
     entries = registry.commands().values()
     for entry in entries:
@@ -43,8 +37,6 @@ def check_results(path: Path, command: str, data: dict[str, Any]) -> None:
     are impossible (``runner.kept.check_values``: numbers finite, counts whole and >= 0,
     fractions in [0, 1], and the command's report's own ``results_problem``), before anything
     is drawn from it."""
-    from factorq_trainers.runner import kept, registry
-
     remedy = f"run `factorq {command}` again to rewrite it"
     if "schema_version" not in data:
         raise ValueError(f"results file {path} has no schema_version: {remedy}")
@@ -59,8 +51,6 @@ def check_results(path: Path, command: str, data: dict[str, Any]) -> None:
 
 def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
     """Rewrite the Markdown and the figure in ``results_dir`` from its results file."""
-    from factorq_trainers.runner import results
-
     try:
         entry, path = find(results_dir)
     except FileNotFoundError:
@@ -72,23 +62,14 @@ def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
     report = importlib.import_module(entry.report)
     data = results.read_json(path, ("config",), f"run `factorq {entry.name}`")
     check_results(path, entry.name, data)
-    directory = Path(results_dir)
-    writers = {}
-    if hasattr(report, "markdown"):
-        writers["report"] = (
-            directory / entry.files["report"],
-            lambda target: target.write_text(report.markdown(data)),
-        )
-    if hasattr(report, "figure"):
 
-        def figure(target: Path) -> None:
-            try:
-                report.figure(data, target)
-            except Exception as error:  # matplotlib's, from deep inside: one line, no file
-                raise FigureError(
-                    f"drawing {entry.files['figure']} failed: {type(error).__name__}: {error}"
-                ) from error
+    def figure(target: Path) -> None:
+        try:
+            report.figure(data, target)
+        except Exception as error:  # matplotlib's, from deep inside: one line, no file
+            raise results.FigureError(
+                f"drawing {entry.files['figure']} failed: {type(error).__name__}: {error}"
+            ) from error
 
-        writers["figure"] = (directory / entry.files["figure"], figure)
-    results.write_all_atomic(dict(writers.values()))
-    return {name: target for name, (target, _) in writers.items()}
+    draw = figure if hasattr(report, "figure") else None
+    return frame.write_report(report, data, Path(results_dir), entry.files, draw)

@@ -38,14 +38,13 @@ def report_markdown(sweep: dict[str, Any]) -> str:
     axes = sweep["axes"]
     measures = _measures(sweep)
     is_paper = sweep.get("command", "paper") == "paper"
-    unit = "one task per configuration"
     per = "Per run" if is_paper else "Per experiment"
     claims_column = ["claims passed"] if is_paper else []
     lines = [
         f"# factorq sweep ({sweep.get('command', 'paper')})",
         "",
         f"{len(sweep['configurations'])} configurations x {sweep['seeds']} seeds "
-        f"({unit}); base: "
+        "(one task per configuration); base: "
         + (", ".join(f"{k}={_shown(v)}" for k, v in sweep["base"].items()) or "defaults")
         + f"; computed {sweep['timing']['where']}. {per}: means over seeds [95% interval].",
         "",
@@ -135,24 +134,19 @@ def write_axis_figure(sweep: dict[str, Any], axis: str, path: Path) -> None:
     figure.savefig(path, dpi=100, format="png")
 
 
-def _drawn(sweep: dict[str, Any], out: Path) -> dict[Path, Callable[[Path], object]]:
-    """The writers of ``sweep.md`` and of a figure per axis."""
-    writers: dict[Path, Callable[[Path], object]] = {
-        out / REPORT_FILE: lambda path: path.write_text(report_markdown(sweep)),
-    }
-    for axis in sweep["axes"]:
-        writers[out / f"sweep-{axis}.png"] = functools.partial(write_axis_figure, sweep, axis)
-    return writers
-
-
-def write_outputs(sweep: dict[str, Any], out: str | Path) -> dict[str, Path]:
-    """``sweep.json``, ``sweep.md`` and ``sweep-<axis>.png`` per axis, all written atomically."""
+def write_outputs(
+    sweep: dict[str, Any], out: str | os.PathLike[Any], json: bool = True
+) -> dict[str, Path]:
+    """``sweep.json`` (unless not ``json``), ``sweep.md`` and ``sweep-<axis>.png`` per axis, all
+    written atomically."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    writers: dict[Path, Callable[[Path], object]] = {
-        out / JSON_FILE: lambda path: path.write_text(result_files.dumps(sweep)),
-        **_drawn(sweep, out),
-    }
+    writers: dict[Path, Callable[[Path], object]] = {}
+    if json:
+        writers[out / JSON_FILE] = lambda path: path.write_text(result_files.dumps(sweep))
+    writers[out / REPORT_FILE] = lambda path: path.write_text(report_markdown(sweep))
+    for axis in sweep["axes"]:
+        writers[out / f"sweep-{axis}.png"] = functools.partial(write_axis_figure, sweep, axis)
     result_files.write_all_atomic(writers)
     return {path.name: path for path in writers}
 
@@ -164,8 +158,5 @@ REQUIRED = ("axes", "configurations", "seeds", "base", "timing")
 def regenerate(out: str | os.PathLike[Any]) -> dict[str, Path]:
     """``factorq report`` on a sweep's ``--out``: ``sweep.md`` and the figures redrawn from
     ``sweep.json`` alone (the JSON itself is left as it is)."""
-    out = Path(out)
-    sweep = result_files.read_json(out / JSON_FILE, REQUIRED, "run `factorq sweep`")
-    writers = _drawn(sweep, out)
-    result_files.write_all_atomic(writers)
-    return {path.name: path for path in writers}
+    sweep = result_files.read_json(Path(out) / JSON_FILE, REQUIRED, "run `factorq sweep`")
+    return write_outputs(sweep, out, json=False)

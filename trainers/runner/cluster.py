@@ -1,24 +1,12 @@
-"""Where units run: here, one after another (the default, no Dask needed), or on a Dask cluster.
-
-An *executor* runs one function over a list of items and yields ``(index, result)`` pairs as
-they finish, in any order; whoever consumes them (``factorq_trainers.distributed.sweep``) writes
-each result down at once. Two executors:
-
-- ``InProcess``: a plain loop in this process.
-- ``DaskExecutor``: ``distributed.Client.submit`` per item on a ``LocalCluster`` started here
-  (``--cluster local[:N]``) or on a running scheduler (``--scheduler tcp://host:port``). A worker
-  that dies mid-item (kill -9, a lost node) loses only that item: the scheduler resubmits it to
-  another worker (up to ``distributed.scheduler.allowed-failures`` times), and since an item's
-  result depends on the item alone, the rerun gives the same numbers.
-
-Worker processes run one intra-op torch thread each (``torch.set_num_threads(1)``: the tensors are
-tiny and threads would fight over the cores the other workers use; a worker thread in this process
-leaves the process's settings alone) and build the fast path's kernel in a
-node-local cache (``FACTORQ_CACHE_DIR``, unless the worker's environment already sets it), so
-workers on a shared home directory do not compile into one NFS folder.
-
-Dask is the optional extra ``factorq-torch[distributed]``; asking for a cluster without it is a
-``ClusterError`` naming the extra.
+"""Where units run: an *executor* runs one function over a list of items and yields ``(index,
+result)`` pairs as they finish, in any order, and its caller writes each result down at once.
+``InProcess`` is a plain loop here (the default, no Dask needed); ``DaskExecutor`` submits each
+item to a ``LocalCluster`` started here (``--cluster local[:N]``) or a running scheduler
+(``--scheduler tcp://host:port``), whose scheduler reruns the item of a worker that died (an
+item's result depends on the item alone, so the numbers are the same). Dask is the optional extra
+``factorq-torch[distributed]`` (without it: a ``ClusterError`` naming it). The choices (one torch
+thread per worker process, a node-local kernel cache, fresh task keys, a cluster that loses its
+workers as an error): docs/decisions.md, "Sweeps and clusters".
 """
 
 from __future__ import annotations
@@ -65,17 +53,13 @@ class ClusterError(ValueError):
 
 @dataclass(frozen=True)
 class Where:
-    """Where to run: in-process (both None), a local cluster of ``workers`` (0: one per core),
-    or the scheduler at ``scheduler``."""
+    """Where to run: in-process (both None), a local cluster of ``local_workers`` (0: one per
+    core), or the scheduler at ``scheduler``; the timeouts in seconds."""
 
-    local_workers: int | None = None
-    """Workers of a LocalCluster started here (``--cluster local[:N]``)."""
-    scheduler: str | None = None
-    """Address of a running Dask scheduler (``--scheduler tcp://host:port``)."""
-    connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S
-    """Seconds to wait for the scheduler before giving up."""
-    worker_timeout_s: float = DEFAULT_WORKER_TIMEOUT_S
-    """Seconds work may wait with no worker in the cluster before the run gives up."""
+    local_workers: int | None = None  # --cluster local[:N]
+    scheduler: str | None = None  # --scheduler tcp://host:port
+    connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S  # --connect-timeout
+    worker_timeout_s: float = DEFAULT_WORKER_TIMEOUT_S  # --worker-timeout
 
     def __post_init__(self) -> None:
         if self.local_workers is not None and self.scheduler is not None:
@@ -124,7 +108,6 @@ def parse_cluster(text: str) -> int:
 class InProcess:
     """Runs every item here, in order: the default, which needs no Dask."""
 
-    workers = 1
     description = "in-process"
 
     def map(
@@ -137,46 +120,20 @@ class InProcess:
         pass
 
 
-class _WorkerWatch:
-    """Raises a ``ClusterError`` once ``executor``'s cluster has had no worker for its
-    ``worker_timeout_s`` (looked at every ``WORKER_POLL_S``) while ``total`` tasks wait."""
-
-    def __init__(self, executor: DaskExecutor, total: int) -> None:
-        self.executor = executor
-        self.total = total
-        self.looked = self.seen = time.monotonic()
-
-    def check(self, left: int) -> None:
-        now = time.monotonic()
-        if now - self.looked < WORKER_POLL_S:
-            return
-        self.looked = now
-        if self.executor.workers:
-            self.seen = now
-        elif now - self.seen >= self.executor.worker_timeout_s:
-            raise ClusterError(
-                f"the Dask cluster at {self.executor.client.scheduler.address} has had no worker "
-                f"for {self.executor.worker_timeout_s:g} s, with {left} of {self.total} tasks "
-                f"left: start workers and run the command again (finished work is kept), or "
-                f"wait longer with --worker-timeout SECONDS"
-            )
-
-
-def _node_local_cache() -> str:
-    user = os.environ.get("USER") or str(os.getuid())
-    return str(Path(tempfile.gettempdir()) / f"factorq_torch-{user}")
-
-
 #: Tells this process from another: a worker in a process of its own imports this module anew.
 _PROCESS_TOKEN = uuid.uuid4().hex
 
 
 def _worker_setup() -> None:
-    """Per worker process: one intra-op thread, a node-local kernel cache."""
+    """Per worker process: one intra-op thread (the tensors are tiny, the other workers use the
+    other cores), a node-local kernel cache (not one NFS folder for every worker)."""
     import torch
 
     torch.set_num_threads(1)
-    os.environ.setdefault("FACTORQ_CACHE_DIR", _node_local_cache())
+    user = os.environ.get("USER") or str(os.getuid())
+    os.environ.setdefault(
+        "FACTORQ_CACHE_DIR", str(Path(tempfile.gettempdir()) / f"factorq_torch-{user}")
+    )
 
 
 def _on_worker(function: Callable[[Any], Any], item: Any, submitter: str) -> Any:
@@ -238,13 +195,32 @@ class DaskExecutor:
             ): index
             for index, (item, name) in enumerate(zip(items, names, strict=True))
         }
-        watch = _WorkerWatch(self, len(futures))
+        looked = seen = time.monotonic()
+
+        def watch(left: int) -> None:
+            """A ``ClusterError`` once the cluster has had no worker for ``worker_timeout_s``
+            (looked at every ``WORKER_POLL_S``) while ``left`` tasks wait."""
+            nonlocal looked, seen
+            now = time.monotonic()
+            if now - looked < WORKER_POLL_S:
+                return
+            looked = now
+            if self.workers:
+                seen = now
+            elif now - seen >= self.worker_timeout_s:
+                raise ClusterError(
+                    f"the Dask cluster at {self.client.scheduler.address} has had no worker for "
+                    f"{self.worker_timeout_s:g} s, with {left} of {len(futures)} tasks left: "
+                    f"start workers and run the command again (finished work is kept), or wait "
+                    f"longer with --worker-timeout SECONDS"
+                )
+
         try:
             completed = self._as_completed(futures, loop=self.client.loop)
             while not completed.is_empty():
                 if not completed.has_ready():
                     time.sleep(0.02)
-                    watch.check(completed.count())
+                    watch(completed.count())
                     continue
                 for future in completed.next_batch(block=False):
                     while True:  # its result may have been lost with its worker meanwhile
@@ -252,7 +228,7 @@ class DaskExecutor:
                             result = future.result(timeout=WORKER_POLL_S)
                             break
                         except TimeoutError:
-                            watch.check(completed.count() + 1)
+                            watch(completed.count() + 1)
                     yield futures[future], result
         finally:
             for future in futures:
@@ -311,15 +287,12 @@ MAX_HANDSHAKE_BYTES = 64 * 1024
 
 def probe_scheduler(address: str, timeout_s: float) -> None:
     """Prove that a Dask scheduler answers at the ``tcp://`` ``address`` within ``timeout_s``,
-    before a Client trusts it: a ``ClusterError`` in one line otherwise.
-
-    A Dask peer sends its handshake as soon as the connection is accepted; this reads it on a
-    plain socket under one deadline, bounded in size, and decodes it with Dask's own
-    ``unpack_frames`` and ``loads``. Dask's own handshake has no timeout (``distributed.comm.
-    core.connect``): an HTTP server, which waits for a request, held a Client for good, and
-    another peer's bytes read as a frame length made it allocate 3 EiB. A refused connection is
-    tried again with backoff for at most ``REFUSED_RETRY_S`` (a scheduler still starting), not the
-    whole timeout. Other schemes (``tls://``, ``inproc://``) are left to the Client."""
+    before a Client trusts it: a ``ClusterError`` in one line otherwise. A Dask peer sends its
+    handshake as soon as the connection is accepted; this reads it on a plain socket under one
+    deadline, bounded in size, and decodes it with Dask's own ``unpack_frames`` and ``loads``
+    (Dask's own handshake has no timeout, and allocates what another peer's first 8 bytes
+    announce). A refused connection is retried with backoff for at most ``REFUSED_RETRY_S``.
+    Other schemes (``tls://``, ``inproc://``) are left to the Client."""
     import socket
     import struct
 
@@ -470,13 +443,10 @@ def add_options(parser: argparse.ArgumentParser) -> None:
 
 def where_from_args(args: argparse.Namespace) -> Where:
     """Where to run, from ``add_options``' options (a ``ClusterError`` when invalid)."""
-    workers = None
-    if getattr(args, "cluster", OFF) != OFF:
-        workers = parse_cluster(args.cluster)
-    elif hasattr(args, "cluster") and hasattr(args, "scheduler"):
+    if hasattr(args, "cluster") and hasattr(args, "scheduler"):
         raise ClusterError("give --cluster or --scheduler, not both")
     return Where(
-        local_workers=workers,
+        local_workers=None if getattr(args, "cluster", OFF) == OFF else parse_cluster(args.cluster),
         scheduler=getattr(args, "scheduler", None),
         connect_timeout_s=getattr(args, "connect_timeout", DEFAULT_CONNECT_TIMEOUT_S),
         worker_timeout_s=getattr(args, "worker_timeout", DEFAULT_WORKER_TIMEOUT_S),

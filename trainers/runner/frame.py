@@ -1,27 +1,14 @@
-"""The frame every command declared by units runs in (``factorq_trainers.runner.registry``).
+"""The frame every command declared by units runs in: ``execute`` parses, validates, estimates
+the memory, claims ``--out``, resumes, runs the pending units under one progress bar (in-process
+or on Dask), summarises and writes the files, once for every command. The protocol a command
+module declares (``CONFIG``, ``units``, ``run_unit``, ``summarise`` and the optional hooks) and
+the order of the steps are written out in docs/architecture.md ("Adding a command",
+``runner/frame.py``); ``finish(config, outcomes, out)`` runs once the three files are written and
+before the kept units go (a kill during it resumes to it again).
 
-A command module declares what differs (``CONFIG``, ``units``, ``run_unit``, ``summarise``,
-optionally ``markdown``, ``figure``, ``estimate``, ``prepare``, ``describe``, ``work``,
-``processes``, ``FILES``, ``finish``; the protocol is written out in docs/architecture.md,
-"Adding a command"); ``execute`` does the rest, once for every command:
-
-    options -> config -> prepare -> memory estimate -> claim --out -> resume -> describe -> the
-    pending units
-    (in-process, or on Dask with --cluster/--scheduler) under one progress bar, each result kept
-    in OUT/units/ as it finishes -> summarise -> the results envelope -> json, Markdown and figure
-    written all at once -> finish -> OUT/units/ removed -> the Markdown and the paths printed
-
-``finish(config, outcomes, out)`` (optional): outputs beyond the three files, written from the
-units' results (in ``units`` order) once those are written and before the kept units go (a kill
-during it resumes to it again); it returns their paths by name (printed with the others).
-``factorq compare`` writes its per-episode logs there.
-
-**Resume** is per unit: ``OUT/units/run.json`` holds the command and its config, and one file per
-finished unit its result (JSON, written atomically), so ``--resume OUT`` after a kill reruns only
-the units without a file, with the saved config. A unit's result goes through JSON whether it was
-computed now or read back, so a resumed run writes the same files as an uninterrupted one. The
-files are ``kept.UnitStore``'s: sealed, tied to the command, the config and the unit, and every
-kept result checked against the command's ``UNIT_RESULT`` schema before any unit runs.
+**Resume** is per unit (``kept.UnitStore``, ``OUT/units/``): ``--resume OUT`` reruns only the units
+without a kept file, with the saved config. A unit's result goes through JSON whether it was
+computed now or read back, so a resumed run writes the same files as an uninterrupted one.
 
 **The envelope** of every results file: ``schema_version``, ``command``, ``config``,
 ``software``, ``timing`` (``wall_s``, ``where``, ``units``, ``units_resumed``) and the command's
@@ -45,8 +32,8 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+from factorq_trainers.runner import cluster, options, outdir, registry, resources, results
 from factorq_trainers.runner import kept as kept_files
-from factorq_trainers.runner import options, outdir, registry, resources, results
 
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
@@ -134,6 +121,17 @@ def config_from_dict(config_type: type, data: dict[str, Any]) -> Any:
     return config_type(**values)
 
 
+def prepared(module: ModuleType, config: Any) -> tuple[list[dict[str, Any]], str | None]:
+    """``module.prepare(config)``, the memory estimate checked before any allocation, and then
+    the ``checked_units``; with the line to print for a large run (``resources.check``)."""
+    if hasattr(module, "prepare"):
+        module.prepare(config)
+    large = None
+    if hasattr(module, "estimate"):
+        large = resources.check(module.estimate(config), "experiment", getattr(module, "HINT", ""))
+    return checked_units(module, config), large
+
+
 def checked_units(module: ModuleType, config: Any) -> list[dict[str, Any]]:
     """``module.units(config)``, each with a unique string ``id`` (a RuntimeError otherwise: the
     declaration's bug, not the user's, as is a command without a ``UNIT_RESULT`` schema)."""
@@ -204,11 +202,7 @@ def run_in_process(
     ``run(config)``, for tests and notebooks). ``run_unit(unit, progress)``: what runs a unit
     instead of ``module.run_unit(config, unit, progress)`` (``paper.run``'s other world)."""
     started = time.perf_counter()
-    if hasattr(module, "prepare"):
-        module.prepare(config)
-    if hasattr(module, "estimate"):  # before any allocation
-        resources.check(module.estimate(config), "experiment", getattr(module, "HINT", ""))
-    units = checked_units(module, config)
+    units, _ = prepared(module, config)
     if run_unit is None:
         run_unit = functools.partial(module.run_unit, config)
     outcomes = [unit_result(module, config, unit, run_unit(unit, progress)) for unit in units]
@@ -238,8 +232,6 @@ def run_unit_task(module_name: str, config: Any, unit: dict[str, Any]) -> Any:
 def add_frame_options(parser: argparse.ArgumentParser) -> None:
     """``--force``, ``--resume DIR`` and the cluster options (``--cluster``, ``--scheduler``,
     ``--connect-timeout``)."""
-    from factorq_trainers.runner import cluster
-
     parser.add_argument("--force", action="store_true", default=argparse.SUPPRESS, help=FORCE_HELP)
     parser.add_argument("--resume", metavar="DIR", default=argparse.SUPPRESS, help=RESUME_HELP)
     cluster.add_options(parser)
@@ -247,16 +239,6 @@ def add_frame_options(parser: argparse.ArgumentParser) -> None:
 
 #: Config fields a resumed run may change: they do not change the numbers.
 RESUMABLE_CHANGES = ("out", "threads")
-
-
-def _config(
-    module: ModuleType, args: argparse.Namespace, store: kept_files.UnitStore | None
-) -> Any:
-    given = options.given_options(args, module.CONFIG)
-    if store is None:
-        return module.CONFIG(**given)
-    saved = store.saved_run(module.NAME)["config"]
-    return resumed_config(saved, given, args.resume, module.CONFIG)
 
 
 def resumed_config(
@@ -285,7 +267,7 @@ def resumed_config(
         ) from None
     merged = config_from_dict(config_type, {**plain(kept_config), **given, "out": out})
     differing = [
-        f"{name}={_show(value)} given, {_show(saved.get(name))} kept"
+        f"{name}={kept_files.short(value, 40)} given, {kept_files.short(saved.get(name), 40)} kept"
         for name, value in plain(merged).items()
         if name not in RESUMABLE_CHANGES and saved.get(name) != value
     ]
@@ -295,11 +277,6 @@ def resumed_config(
             f"(leave these options out to resume it, or start a new run with another --out)"
         )
     return merged
-
-
-def _show(value: Any) -> str:
-    shown = repr(value)
-    return shown if len(shown) <= 40 else shown[:37] + "..."
 
 
 def write_outputs(
@@ -315,14 +292,24 @@ def write_outputs(
         out.mkdir(parents=True, exist_ok=True)
         report.send_figure(figure_process, results_dict, out)  # drawn while the rest is written
         draw = functools.partial(draw, figure_process=figure_process)
-    writers: dict[str, tuple[Path, Callable[[Path], Any]]] = {
-        "json": (out / names["json"], lambda p: p.write_text(results.dumps(results_dict)))
-    }
+    json_file = (out / names["json"], lambda p: p.write_text(results.dumps(results_dict)))
+    return write_report(report, results_dict, out, names, draw, {"json": json_file})
+
+
+def write_report(
+    report: ModuleType,
+    data: dict[str, Any],
+    out: Path,
+    names: dict[str, str],
+    draw: Callable[[Path], Any] | None,
+    writers: dict[str, tuple[Path, Callable[[Path], Any]]] | None = None,
+) -> dict[str, Path]:
+    """``report``'s Markdown of ``data`` (where it has ``markdown``) and the figure ``draw``
+    draws, with the other ``writers`` (name -> (path, writer)), written at once; ``names``: the
+    command's file names. Returns the paths by name."""
+    writers = dict(writers or {})
     if hasattr(report, "markdown"):
-        writers["report"] = (
-            out / names["report"],
-            lambda p: p.write_text(report.markdown(results_dict)),
-        )
+        writers["report"] = (out / names["report"], lambda p: p.write_text(report.markdown(data)))
     if draw is not None:
         writers["figure"] = (out / names["figure"], draw)
     results.write_all_atomic(dict(writers.values()))
@@ -350,18 +337,14 @@ def execute(
     store = kept_files.UnitStore(args.resume) if hasattr(args, "resume") else None
     told: list[str] = []  # notices, printed once the run is accepted: a refusal stays one line
     try:
-        config = _config(module, args, store)
-        if hasattr(module, "prepare"):
-            module.prepare(config)
-        if hasattr(module, "estimate"):
-            large = resources.check(
-                module.estimate(config), "experiment", getattr(module, "HINT", "")
-            )
-            if large:
-                told.append(large)
-        units = checked_units(module, config)
-        from factorq_trainers.runner import cluster
-
+        given = options.given_options(args, module.CONFIG)
+        if store is None:
+            config = module.CONFIG(**given)
+        else:
+            saved = store.saved_run(module.NAME)["config"]
+            config = resumed_config(saved, given, args.resume, module.CONFIG)
+        units, large = prepared(module, config)
+        told.append(large or "")
         where = cluster.where_from_args(args)  # --cluster off: in-process, whatever the default
         executor = None if where.in_process else cluster.open_executor(where)
         chosen = any(hasattr(args, name) for name in ("cluster", "scheduler"))
@@ -414,8 +397,6 @@ def _default_processes(
     """A local cluster of the workers the command asks for its ``units`` (``processes(config,
     units) -> (workers, why)``: where its env steps slowly), with a notice saying why added to
     ``told``; None (in-process) where it asks for one, or where Dask is not installed."""
-    from factorq_trainers.runner import cluster
-
     workers, why = module.processes(config, units)
     if workers < 2:
         return None
@@ -467,26 +448,23 @@ def _run(
         desc=f"factorq {module.NAME}",
         unit="unit" if not hasattr(module, "work") else getattr(module, "WORK_UNIT", "step"),
     )
-    where = "in-process"
+    where, before = "in-process", bar.n
+    if executor is None:  # here, one after another, each unit reporting its progress as it goes
+        finished: Any = (
+            (index, unit_result(module, config, unit, module.run_unit(config, unit, bar.update)))
+            for index, unit in enumerate(pending)
+        )
+    else:
+        where = executor.description
+        task = functools.partial(run_unit_task, module.__name__, config)
+        finished = executor.map(task, pending, [f"{module.NAME}-{u['id']}" for u in pending])
     try:
-        if executor is None:
-            for unit in pending:
-                before = bar.n
-                result = unit_result(
-                    module, config, unit, module.run_unit(config, unit, bar.update)
-                )
-                # the unit's whole share, whatever it reported
-                bar.update(max(0, before + work(module, config, unit) - bar.n))
-                store.keep(unit, result)
-                done[unit["id"]] = result
-        else:
-            where = executor.description
-            task = functools.partial(run_unit_task, module.__name__, config)
-            names = [f"{module.NAME}-{unit['id']}" for unit in pending]
-            for index, result in executor.map(task, pending, names):
-                store.keep(pending[index], result)
-                done[pending[index]["id"]] = result
-                bar.update(work(module, config, pending[index]))
+        for index, result in finished:
+            store.keep(pending[index], result)
+            done[pending[index]["id"]] = result
+            # the unit's whole share, whatever it reported
+            bar.update(max(0, before + work(module, config, pending[index]) - bar.n))
+            before = bar.n
     finally:
         bar.close()
     outcomes = [done[unit["id"]] for unit in units]

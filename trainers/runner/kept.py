@@ -1,31 +1,17 @@
 """Kept work: results a rerun reuses instead of recomputing (a run's finished units in
-``OUT/units/``, a sweep's configuration results in ``OUT/configs/``), sealed, tied to the run
-they belong to and checked before they are reused. One module writes and reads them all.
-
-A kept file is the user's as much as ours: it may have been edited, cut short, resealed or copied
-from elsewhere. Reusing one unchecked would put its numbers in a report silently, so each
-
-- carries a SHA-256 of its content (``DIGEST_KEY``), checked on reuse: an edit is refused;
-- carries what it was kept for (``TIE_KEY``: the command, the digest of the configuration, the
-  unit), checked against the run that reads it: a file of another configuration, command or unit
-  is refused, resealed or not;
-- has its values checked against the command's declared schema (``check_result``: keys as
-  declared, numbers finite, counts whole and >= 0, fractions in [0, 1]) or, for a whole results
-  dict, by the names of its measures (``check_values``), because a digest proves integrity, not
-  origin: anyone can edit a file and seal it again.
-
-A file that fails is refused in one line naming it and saying that ``--force`` recomputes it
-(``reusable``).
-
-- ``dumps_sealed`` / ``read_sealed``: a JSON dict with its digest and its tie;
-- ``check_result``: a unit result against its command's declared ``UNIT_RESULT``;
-- ``check_values``: the value checks of a kept JSON results dict;
-- ``reusable``: whether a kept file is to be reused, recomputed (``force``) or refused;
-- ``UnitStore``: the finished units of one run (``OUT/units/``).
+``OUT/units/``, a sweep's configuration results in ``OUT/configs/``), written and read by this
+module alone. A kept file may have been edited, cut short, resealed or copied from elsewhere, so
+each carries a SHA-256 of its content (``DIGEST_KEY``) and what it was kept for (``TIE_KEY``: the
+command, the configuration's digest, the unit), both checked on reuse, and has its values
+checked (``check_result`` against the command's ``UNIT_RESULT``, or ``check_values`` by the names
+of a results dict's measures): a digest proves integrity, not origin. A file that fails is refused
+in one line naming it (``reusable``: or, with ``--force``, recomputed). Why and what each check
+catches: docs/decisions.md, "Finished units are kept, tied to their run and checked".
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
@@ -83,6 +69,12 @@ def dumps_sealed(
     return result_files.dumps(parsed_)
 
 
+def write_sealed(path: Path, results: dict[str, Any], kept_for: Any, parsed: bool = False) -> None:
+    """``dumps_sealed``'s text written atomically at ``path``."""
+    text = dumps_sealed(results, kept_for, parsed)
+    result_files.write_atomic(path, lambda target: target.write_text(text))
+
+
 def check_tie(
     path: Path, what: str, stored: Any, expected: dict[str, Any], remedy: str = REMEDY
 ) -> None:
@@ -92,29 +84,30 @@ def check_tie(
         raise ValueError(f"{what} {path} does not say what run it was kept for: {remedy}")
     if stored.get("command") != expected["command"]:
         raise ValueError(
-            f"{what} {path} was kept by command {_short(stored.get('command'))}, not "
+            f"{what} {path} was kept by command {short(stored.get('command'))}, not "
             f"`factorq {expected['command']}`: {remedy}"
         )
     if stored.get("config_sha256") != expected["config_sha256"]:
         raise ValueError(
             f"{what} {path} was kept for another configuration (digest "
-            f"{_short(stored.get('config_sha256'))}, this run's {expected['config_sha256']!r}): "
+            f"{short(stored.get('config_sha256'))}, this run's {expected['config_sha256']!r}): "
             f"{remedy}"
         )
     if "unit" in expected and stored.get("unit") != expected["unit"]:
         unit = stored.get("unit")
         named = unit.get("id") if isinstance(unit, dict) else unit
         raise ValueError(
-            f"{what} {path} was kept for unit {_short(named)} ({_short(unit)}), not "
+            f"{what} {path} was kept for unit {short(named)} ({short(unit)}), not "
             f"{expected['unit'].get('id')!r}: {remedy}"
         )
     if set(stored) != set(expected):
-        raise ValueError(f"{what} {path} says it was kept for {_short(stored)}: {remedy}")
+        raise ValueError(f"{what} {path} says it was kept for {short(stored)}: {remedy}")
 
 
-def _short(value: Any) -> str:
+def short(value: Any, width: int = 60) -> str:
+    """``repr(value)``, cut to ``width`` characters (a kept file's value, shown in a message)."""
     shown = repr(value)
-    return shown if len(shown) <= 60 else shown[:57] + "..."
+    return shown if len(shown) <= width else shown[: width - 3] + "..."
 
 
 #: Leaf keys (or the key of their list) whose numbers are counts or sizes: never negative.
@@ -170,9 +163,7 @@ def check_values(
         ):
             continue  # a label, a verdict (a claim's threshold is its statement's words)
         if not isinstance(value, int | float) or isinstance(value, bool):
-            raise ValueError(
-                f"{what} {path}: {where} holds {_short(value)}, not a number: {remedy}"
-            )
+            raise ValueError(f"{what} {path}: {where} holds {short(value)}, not a number: {remedy}")
         problem = _leaf_problem(value, _kind_of(measure))
         if problem is not None:
             raise ValueError(f"{what} {path}: {where} holds {value!r}, {problem}: {remedy}")
@@ -267,13 +258,13 @@ def schema_problem(value: Any, schema: Any, where: str = "result") -> str | None
         return problems[-1]
     if isinstance(schema, dict):
         if not isinstance(value, dict):
-            return f"{where} holds {_short(value)}, not a mapping"
+            return f"{where} holds {short(value)}, not a mapping"
         declared = {key.rstrip("?"): key for key in schema if key != "*"}
         for key, item in value.items():
             if key in declared:
                 continue
             if "*" not in schema:
-                return f"{where} holds {_short(key)}, not one of its keys ({', '.join(declared)})"
+                return f"{where} holds {short(key)}, not one of its keys ({', '.join(declared)})"
             problem = schema_problem(item, schema["*"], f"{where}/{key}")
             if problem is not None:
                 return problem
@@ -288,7 +279,7 @@ def schema_problem(value: Any, schema: Any, where: str = "result") -> str | None
         return None
     if isinstance(schema, list):
         if not isinstance(value, list):
-            return f"{where} holds {_short(value)}, not a list"
+            return f"{where} holds {short(value)}, not a list"
         if len(schema) == 2 and len(value) != schema[1]:
             return f"{where} holds {len(value)} items, not {schema[1]}"
         if isinstance(schema[0], str) and _plain_numbers(value, schema[0]):
@@ -301,9 +292,9 @@ def schema_problem(value: Any, schema: Any, where: str = "result") -> str | None
     if isinstance(schema, frozenset):
         if isinstance(value, str) and value in schema:
             return None
-        return f"{where} holds {_short(value)}, not one of {', '.join(sorted(schema))}"
+        return f"{where} holds {short(value)}, not one of {', '.join(sorted(schema))}"
     problem = _leaf_problem(value, schema)
-    return None if problem is None else f"{where} holds {_short(value)}, {problem}"
+    return None if problem is None else f"{where} holds {short(value)}, {problem}"
 
 
 def _finite(value: int | float) -> bool:
@@ -365,7 +356,7 @@ def check_result(
     for key, label in unit.items():
         if key != "id" and key in result and result[key] != label:
             raise ValueError(
-                f"{what} {path}: its result's {key} is {_short(result[key])}, but it is kept for "
+                f"{what} {path}: its result's {key} is {short(result[key])}, but it is kept for "
                 f"unit {unit['id']!r}, whose {key} is {label!r}: {remedy}"
             )
 
@@ -401,8 +392,7 @@ class UnitStore:
         self.directory.mkdir(parents=True)
         record = {"format": UNITS_FORMAT, "command": command, "config": config}
         record["units"] = list(unit_ids)
-        text = dumps_sealed(record, tie(command, config))
-        result_files.write_atomic(self.directory / RUN_FILE, lambda path: path.write_text(text))
+        write_sealed(self.directory / RUN_FILE, record, tie(command, config))
         self.kept_for = tie(command, config)
 
     def saved_run(self, command: str) -> dict[str, Any]:
@@ -421,7 +411,7 @@ class UnitStore:
         if record.get("format") != UNITS_FORMAT or record.get("command") != command:
             raise ValueError(
                 f"run file {path} is not an interrupted `factorq {command}` run (command "
-                f"{_short(record.get('command'))}): {remedy}"
+                f"{short(record.get('command'))}): {remedy}"
             )
         config = record.get("config")
         if not isinstance(config, dict):
@@ -442,37 +432,31 @@ class UnitStore:
         ``force`` left to recompute. ``saved_run`` first: it says which run the units are of."""
         found = {}
         remedy = "pass --force (with --resume) to recompute it"
-        for unit in units:
-            path = unit_path(self.directory, unit["id"])
-            if not path.exists() and not path.is_symlink():
-                continue
-            try:
-                expected = {**self.kept_for, "unit": json.loads(result_files.dumps(unit))}
-                record = read_sealed(path, UNIT_FILE, remedy, values=False, kept_for=expected)
-                if set(record) != {"result"}:
-                    raise ValueError(
-                        f"{UNIT_FILE} {path} holds {_short(sorted(record))}, not a unit's "
-                        f"result: {remedy}"
-                    )
-                check_result(path, UNIT_FILE, unit, record["result"], schema, remedy)
-                problem = None if check is None else check(unit, record["result"])
-                if problem is not None:
-                    raise ValueError(f"{UNIT_FILE} {path}: {problem}: {remedy}")
-            except ValueError:
-                if force:
-                    continue
-                raise
+
+        def read(unit: dict[str, Any], path: Path) -> None:
+            expected = {**self.kept_for, "unit": json.loads(result_files.dumps(unit))}
+            record = read_sealed(path, UNIT_FILE, remedy, values=False, kept_for=expected)
+            if set(record) != {"result"}:
+                raise ValueError(
+                    f"{UNIT_FILE} {path} holds {short(sorted(record))}, not a unit's result: "
+                    f"{remedy}"
+                )
+            check_result(path, UNIT_FILE, unit, record["result"], schema, remedy)
+            problem = None if check is None else check(unit, record["result"])
+            if problem is not None:
+                raise ValueError(f"{UNIT_FILE} {path}: {problem}: {remedy}")
             found[unit["id"]] = record["result"]
+
+        for unit in units:
+            reusable(unit_path(self.directory, unit["id"]), functools.partial(read, unit), force)
         return found
 
     def keep(self, unit: dict[str, Any], result: Any) -> None:
         """Keep ``unit``'s ``result`` (as JSON gives it back: ``frame.unit_result``'s) after
         ``start`` or ``saved_run``."""
         unit = json.loads(result_files.dumps(unit))
-        text = dumps_sealed({"result": result}, {**self.kept_for, "unit": unit}, parsed=True)
-        result_files.write_atomic(
-            unit_path(self.directory, unit["id"]), lambda path: path.write_text(text)
-        )
+        kept_for = {**self.kept_for, "unit": unit}
+        write_sealed(unit_path(self.directory, unit["id"]), {"result": result}, kept_for, True)
 
     def remove(self) -> None:
         shutil.rmtree(self.directory, ignore_errors=True)

@@ -1,23 +1,12 @@
-"""One writer per output directory, checked before any work starts.
-
-``claim(out, outputs=...)`` is what every command that writes a results directory enters first:
-
-- ``out`` is created if missing and proven writable (a probe file is written and removed), so an
-  unwritable ``--out`` (under a file, on a read-only or pseudo file system) is refused in a
-  second, not after the whole experiment has run;
-- an exclusive, non-blocking ``flock`` on ``out/.factorq.lock`` makes the run the only writer:
-  a second run, or a ``--resume`` of a run that is still alive, is refused with the pid of the
-  holder. The kernel drops the lock when its process dies (even by SIGKILL), so a crashed run
-  never leaves a stale lock behind. ``flock`` is local to one machine: on a network file system
-  shared by several machines it may not exclude writers on other machines;
-- results of an earlier run are not overwritten unless ``force`` (or ``resume``, which continues
-  the run that owns them) is given;
-- temporaries left by writers that were killed mid-write (``.NAME.PID.factorq-tmp``) are
-  removed: no one else can be writing them while we hold the lock;
-- no file of ours is ever opened through a link: the lock, the probe and every
-  temporary are created with ``O_NOFOLLOW`` (``O_EXCL`` where new, ``create_new``), and a
-  symbolic link where the lock or an output belongs is refused in one line (``LinkRefused``),
-  leaving the link's target untouched.
+"""One writer per output directory, checked before any work starts: ``claim(out, outputs=...)``,
+entered first by every command that writes a results directory, creates ``out`` and proves it
+writable (a probe byte), takes an exclusive non-blocking ``flock`` on ``out/.factorq.lock``
+(dropped by the kernel when its process dies; local to one machine), refuses the results of an
+earlier run unless ``force`` or ``resume``, and removes the temporaries of killed writers
+(``.NAME.PID.factorq-tmp``). No file of ours is opened through a link: the lock, the probe and
+every temporary are created ``O_NOFOLLOW`` (``O_EXCL`` where new: ``create_new``), and a link
+where the lock or an output belongs is refused (``LinkRefused``). Why: docs/decisions.md, "One
+writer per ``--out``" and "Hardening: one reader, no writes through links, peers proven".
 """
 
 from __future__ import annotations

@@ -1,23 +1,16 @@
-"""The one way factorq reads a file: results, sweep files, kept units and configurations.
+"""The one way factorq reads a file (results, sweep files, kept units and configurations). Every
+file is untrusted, so each read refuses before any parsing:
 
-Every file factorq reads is untrusted (another user, a damaged disk, an attacker who can write
-to ``--out``), so every read goes through here, and each function refuses before any parsing:
-
-- **links**: the file is opened ``O_NOFOLLOW``; a symbolic link at its name is refused, naming
-  where it points (pass that path instead);
-- **anything but a regular file**: the file is opened ``O_NONBLOCK`` (a FIFO with no writer
-  opens at once instead of waiting forever) and ``fstat``-ed on the descriptor that is then
-  read, so a FIFO, a device (``/dev/zero``, ``/dev/urandom``), a socket or a directory is
-  refused, and nothing can be swapped in between the check and the read;
-- **size**: bounded before reading (``fstat``) and while reading (at most ``max_bytes + 1`` bytes
-  are read, so a file that grows is refused too);
-- **depth**: JSON's and TOML's nesting is counted on the text before a recursive parser sees it
-  (TOML's dotted keys too: ``a.a.a...`` nests one level per dot, and ``tomllib``'s time grows with
-  the square of that depth), YAML's while it is composed; the parsed value is then walked without
-  recursion (``deeper_than``).
+- a link (opened ``O_NOFOLLOW``; the message names its target, to pass instead);
+- anything but a regular file (opened ``O_NONBLOCK``, so a FIFO with no writer does not block,
+  and ``fstat``-ed on the descriptor that is then read: nothing can be swapped in between);
+- more than ``max_bytes`` (``fstat`` before reading, and at most ``max_bytes + 1`` bytes read);
+- nesting deeper than ``MAX_DEPTH``: JSON's and TOML's counted on the text before a recursive
+  parser sees it (TOML's dotted keys too), YAML's while it is composed, the parsed value walked
+  without recursion (``deeper_than``).
 
 Errors are ``ReadError`` (a ``ValueError``) in one line naming the file; ``FileMissing`` where
-nothing is there. Callers re-raise them as their own error types, message unchanged.
+nothing is there.
 """
 
 from __future__ import annotations

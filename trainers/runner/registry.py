@@ -1,11 +1,7 @@
 """The commands of ``factorq``: every folder ``trainers/commands/<name>/`` whose ``command.py``
-assigns ``NAME = "<name>"`` is one, so adding a command is adding one folder: its ``command.py``
-(the unit hooks of ``runner.frame``), and beside it what only it needs (its ``config.py``, its
-``report.py``: the layout and the registry show the same thing).
-
-The registry reads ``NAME`` and ``HELP`` from each module's source with ``ast`` (no import): the
-``factorq`` parser lists every command without importing torch, and imports only the module of
-the command being run (``load``). ``HELP`` defaults to the first line of the module's docstring.
+assigns ``NAME = "<name>"`` is one. ``NAME``, ``HELP`` (default: the first line of the module's
+docstring), ``FILES`` and ``FIGURE_PROCESS`` are read from the source with ``ast``, so listing
+the commands imports none of them (nor torch); ``load`` imports the one being run.
 """
 
 from __future__ import annotations

@@ -1,20 +1,12 @@
 """What a run will need, estimated from its config before any work, against what the machine has.
 
-Each command's ``estimate(config)`` (``paper.estimate``, ``compare.estimate``, ...) adds up the
-big allocations a run makes, from its config alone (no tensor is allocated): the tables
-``[E, states, 4]`` float32, the kernel's or the env's per-experiment state, the metrics
-``[E, runs, episodes]``, the per-episode curves of the results, DQN's replay buffer, networks
-(weights, gradients, Adam's moments, the target copy) and minibatch activations, per-episode
-records; this module holds what they share (``Estimate``, the byte sizes, the check). It is an
-estimate: the constant overhead of Python, torch and torchrl
-(already loaded when it is made) is left out, and small per-run tensors are rounded up.
-
-``check(estimate)`` compares it with the memory available (``available_memory``: the least of
-``MemAvailable`` in ``/proc/meminfo``, the cgroup's limit minus its usage, and
-``FACTORQ_MEMORY_LIMIT`` in bytes when set) and raises a ``ResourceError`` naming the estimate,
-its largest parts and the limit when the run would not fit; it returns a line to print for a run
-that fits but is large (at least ``LARGE_BYTES`` or a quarter of what is available), with the
-number of env steps it will take, the cheap part of a time estimate.
+Each command's ``estimate(config)`` adds up the big allocations its run makes from the config
+alone (no tensor is allocated; the constant overhead of Python and torch is left out, small
+tensors rounded up); this module holds what they share: ``Estimate``, the byte sizes, and
+``check``, which refuses a run that would not fit in ``available_memory`` (the least of
+``MemAvailable``, the cgroup's limit minus its usage and ``FACTORQ_MEMORY_LIMIT``) with a
+``ResourceError`` naming the estimate, its largest parts and the limit, and returns a line to
+print for a large run that fits.
 
 >>> from factorq_trainers.commands.paper import command as paper
 >>> estimate = paper.estimate(paper.PaperConfig())

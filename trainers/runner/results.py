@@ -1,15 +1,10 @@
-"""Result files: JSON written for people and programs, all or nothing, with a schema version.
+"""Result files: JSON written for people and programs (``dumps``: indented, number lists on one
+line, non-finite numbers as null), all or nothing (``write_all_atomic``), read back with a clear
+error (``read_json``), with what computed them (``software_versions``).
 
-Every trainer's output goes through here: ``dumps`` (indented JSON, number lists on one line,
-non-finite numbers as ``null``), ``write_all_atomic`` (a reader never sees a partial file),
-``read_json`` (a clear error for a missing, malformed or too new file) and
-``software_versions`` (what computed the numbers).
-
-**Versions.** Every results file carries ``"schema_version"`` (``SCHEMA_VERSION``, the layout of
-``results.json`` and ``comparison.json`` as the tutorials document it: ``docs/tutorials/paper.md``,
-``docs/tutorials/dqn-local-risk.md``); ``factorq report`` refuses a results file without it. A
-change that breaks readers raises ``SCHEMA_VERSION``; ``read_json`` refuses a file newer than it
-understands instead of misreading it (other JSON it reads, such as kept units, has no version).
+Every results file carries ``"schema_version"`` (``SCHEMA_VERSION``, the layout the tutorials
+document); a change that breaks readers raises it, and ``read_json`` refuses a newer file
+instead of misreading it (other JSON it reads, such as kept units, has no version).
 """
 
 from __future__ import annotations
@@ -70,10 +65,7 @@ def _dumps(value: Any, level: int) -> str:
 
 
 def write_atomic(path: str | os.PathLike, write: Callable[[Path], object]) -> None:
-    """Call ``write(temporary)`` next to ``path``, then rename it to ``path`` (all or nothing).
-
-    A reader never sees a partial file; an interrupted write leaves the old file (if any) intact.
-    """
+    """``write_all_atomic`` of one file: a reader never sees it partial."""
     write_all_atomic({Path(path): write})
 
 
@@ -178,15 +170,16 @@ def software_versions() -> dict[str, str]:
     return versions
 
 
-#: The paper's body as a results file's config spells it (an option a config lacks reads as
-#: the paper's: the label names only what differs).
+#: The paper's body as a results file's config spells it, and how a title names another value
+#: (an option a config lacks reads as the paper's: the label names only what differs; a number
+#: differs where it is not zero).
 PAPER_BODY = {
-    "body": "translate",
-    "sensors": "cross",
-    "distractors": 0,
-    "sensor_permutation": None,
-    "sensor_noise": 0.0,
-    "actuator_noise": 0.0,
+    "body": ("translate", "{} body"),
+    "sensors": ("cross", "{} sensors"),
+    "distractors": (0, "{} distractors"),
+    "sensor_permutation": (None, "permuted sensors (seed {})"),
+    "sensor_noise": (0.0, "sensor noise {}"),
+    "actuator_noise": (0.0, "actuator noise {}"),
 }
 
 
@@ -212,18 +205,9 @@ def body_label(results: dict[str, Any]) -> str | None:
     config = results.get("config")
     if not isinstance(config, dict):
         config = {}
-    body = {name: config.get(name, default) for name, default in PAPER_BODY.items()}
     parts = []
-    if body["body"] != PAPER_BODY["body"]:
-        parts.append(f"{_shown(body['body'])} body")
-    if body["sensors"] != PAPER_BODY["sensors"]:
-        parts.append(f"{_shown(body['sensors'])} sensors")
-    if body["distractors"]:
-        parts.append(f"{_shown(body['distractors'])} distractors")
-    if body["sensor_permutation"] is not None:
-        parts.append(f"permuted sensors (seed {_shown(body['sensor_permutation'])})")
-    if body["sensor_noise"]:
-        parts.append(f"sensor noise {_shown(body['sensor_noise'])}")
-    if body["actuator_noise"]:
-        parts.append(f"actuator noise {_shown(body['actuator_noise'])}")
+    for name, (default, label) in PAPER_BODY.items():
+        value = config.get(name, default)
+        if bool(value) if isinstance(default, int | float) else value != default:
+            parts.append(label.format(_shown(value)))
     return ", ".join(parts) or None
