@@ -1,15 +1,10 @@
 """The fused fast path: whole experiments (SPEC section 4) advanced by a small compiled C kernel.
 
-The kernel (``_kernel.c``, plain C99) performs exactly the operations of ``factorq_envs.grid_world``
-and ``factorq_torch.functional`` in the same float32 order, with the same counter-based random
-streams (``factorq_torch.base.rng``), so its metrics and tables equal the modular torch path and the
-slow reference (``tests/reference.py``) bit for bit. It runs one experiment at a time for many steps
-(its tables stay in the L1/L2 cache) and leaves Python only once per ``advance`` call.
-
-Building, the ABI and loading are ``factorq_trainers.compiled.loader``'s; the batch's options
-and their checks are ``factorq_trainers.compiled.batch_options``'s. Where the kernel cannot be
-built, ``is_available()`` is False and ``unavailable_reason()`` says why (the loader's, named here
-too, as callers of the fast path ask them); callers fall back to the modular torchrl path.
+The kernel (``_kernel.c``) mirrors ``factorq_envs.grid_world`` and ``factorq_torch.functional``
+bit for bit (docs/decisions.md, "The compiled mirror"), one experiment at a time for many steps,
+leaving Python once per ``advance`` call. Building and loading are ``loader``'s, the options and
+their checks ``batch_options``'s; where the kernel cannot be built ``is_available()`` is False,
+``unavailable_reason()`` says why, and callers fall back to the modular torchrl path.
 
 >>> from factorq_envs.grid_world import WorldConfig
 >>> from factorq_torch.base.config import AgentConfig
@@ -47,8 +42,7 @@ from factorq_trainers.compiled.batch_options import (
     _check_threads,
     _check_vector,
     _padded_zeros,
-    sensor_orders_setup,
-    structure_setup,
+    learner_setup,
 )
 from factorq_trainers.compiled.loader import (  # noqa: F401 - the availability check callers use
     _ALGORITHM_CODES,
@@ -57,17 +51,28 @@ from factorq_trainers.compiled.loader import (  # noqa: F401 - the availability 
     _STATE_FIELDS,
     RANDOM_WALK,
     _Batch,
+    _pad_of_cell,
     _require,
     is_available,
     unavailable_reason,
     unsupported_reason,
 )
 
-#: The kernel's int64 counters of each experiment, in fq_batch's order (``bump`` after the sixth).
+#: The kernel's int64 counters of each experiment.
 _COUNTERS = tuple(
     "cell episode_step scatters policy_counter run episode heading ticks episode_collisions "
     "episode_greedy_collisions".split()
 )
+#: fq_batch's fields that are the world's (``WorldConfig``) and the agent's (``AgentConfig``).
+_WORLD_FIELDS = (
+    "size",
+    "num_obstacles",
+    "max_steps",
+    "num_actuators",
+    "num_sensors",
+    "num_headings",
+)
+_AGENT_FIELDS = ("gamma", "alpha", "g_min", "risk_threshold")
 _pool_lock = threading.Lock()
 _executor: ThreadPoolExecutor | None = None
 _executor_workers = 0
@@ -149,23 +154,6 @@ class ExperimentBatch:
         world_keys = _check_vector("world_keys", world_keys, count)
         policy_keys = _check_vector("policy_keys", policy_keys, count)
 
-        size, num_cells = world.size, world.num_cells
-        width = size + 2
-        cells = torch.arange(num_cells)
-        pad_of_cell = ((cells // size + 1) * width + cells % size + 1).to(torch.int32)  # [N]
-        static_grid = torch.ones(width * width, dtype=torch.uint8)  # [P], the wall ring is 1
-        static_grid[pad_of_cell.long()] = 0
-        if bool((periods == 0).any()) and world.num_obstacles:
-            static_grid[pad_of_cell.long()] = static_layout(world).to(torch.uint8)
-        # The body as data (factorq_envs.body): the paper's body runs the specialised loop.
-        # ``dependency`` (bool [A, K]) replaces the world's true one in Factor-Q's local tables,
-        # e.g. the full joint table over all sensors (``factorq dependencies``' joint method);
-        # only in the generic loop.
-        generic = not world.is_paper_body or dependency is not None or structure is not None
-        generic = generic or sensor_orders is not None
-        # the risk options (AgentConfig) live in the generic loop only; the paper's defaults
-        # keep the specialised one
-        risky = agent.risk_gate or agent.exploration != "uniform"
         if agent.arbitration:  # the kernel mirrors eqs. 2-3 as the paper writes them
             raise ValueError(
                 "agent.arbitration is not on the compiled path: run it on the modular torchrl "
@@ -177,14 +165,22 @@ class ExperimentBatch:
                 f"actuators are risky, and algorithm={algorithm!r} has none: use 'factor-q' or "
                 f"exploration='uniform'"
             )
-        generic = generic or risky
+        width = world.size + 2
+        pad_of_cell = _pad_of_cell(world.size)  # [N]
+        static_grid = torch.ones(width * width, dtype=torch.uint8)  # [P], the wall ring is 1
+        static_grid[pad_of_cell.long()] = 0
+        if bool((periods == 0).any()) and world.num_obstacles:
+            static_grid[pad_of_cell.long()] = static_layout(world).to(torch.uint8)
+        # The paper's body with the paper's options runs the specialised loop; any other body
+        # (factorq_envs.body), option or the risk options (AgentConfig) the generic one.
+        generic = not world.is_paper_body or agent.risk_gate or agent.exploration != "uniform"
+        generic = generic or any(x is not None for x in (dependency, structure, sensor_orders))
         num_actuators, num_sensors = world.num_actuators, world.num_sensors
-        positions = num_cells * world.num_headings
-        num_states = positions << num_sensors if algorithm == "q-learning" else positions
+        num_states = world.num_cells * world.num_headings
         if algorithm == "q-learning":
-            check_table_size(
-                "ExperimentBatch", f"a Q-table of {num_states} states", num_states * num_actuators
-            )
+            num_states <<= num_sensors
+            table = num_states * num_actuators
+            check_table_size("ExperimentBatch", f"a Q-table of {num_states} states", table)
         if algorithm == RANDOM_WALK:
             num_states = 0
         if dependency is None:
@@ -200,7 +196,7 @@ class ExperimentBatch:
         check_int("parents of an actuator (dependency)", parents, 0, MAX_PARENTS)
         table_width = 1 << parents
         offsets = world._tables["offsets"]  # [4, L, 2]
-        body_tensors = {
+        self._body = {  # read-only; kept alive for the kernel's pointers
             "moves": world._tables["moves"].to(torch.int64).contiguous(),
             "turns": world._tables["turns"].to(torch.int64).contiguous(),
             "offsets": (offsets[..., 0] * width + offsets[..., 1]).contiguous(),  # [4, L]
@@ -231,53 +227,32 @@ class ExperimentBatch:
             "kappa": kappa,
             "grid": grid,  # [S, P]
             "obstacle_pads": obstacle_pads,  # [S, K]
-            **{name: zeros(count) for name in _COUNTERS[:6]},  # [S] each
+            **{name: zeros(count) for name in _COUNTERS},  # [S] each
             "bump": zeros(count, num_actuators, dtype=torch.uint8),
-            **{name: zeros(count) for name in _COUNTERS[6:]},
             "episode_task_return": zeros(count, dtype=torch.float32),
             # the per-episode metrics [S, runs, episodes]: int64 counts, the float32 return
             **{name: zeros(*experiment_shape) for name in EPISODE_METRICS[:3]},
             "task_return": zeros(*experiment_shape, dtype=torch.float32),
         }
-        if structure is not None and sensor_orders is not None:
-            raise ValueError("sensor_orders: give the orders in structure (StructureOptions)")
         self.structure = structure
-        learner_fields, self._learner_tables, state, self._candidate_sets = structure_setup(
-            structure, algorithm, world, count, self.runs, self.episodes
+        learner_fields, self._learner_tables, state, self._candidate_sets = learner_setup(
+            structure, sensor_orders, algorithm, world, count, self.runs, self.episodes
         )
         self._tensors.update(state)
-        if sensor_orders is not None:
-            fields, tables, state = sensor_orders_setup(sensor_orders, world, count, self.runs)
-            learner_fields.update(fields)
-            self._learner_tables.update(tables)
-            self._tensors.update(state)
-        self._body = body_tensors  # read-only; kept alive for the kernel's pointers
         pointers = {
             name: tensor.data_ptr()
-            for name, tensor in (
-                *self._tensors.items(),
-                *body_tensors.items(),
-                *self._learner_tables.items(),
-            )
+            for tensors in (self._tensors, self._body, self._learner_tables)
+            for name, tensor in tensors.items()
         }
         self._batch = _Batch(
             algorithm=_ALGORITHM_CODES[algorithm],
             num_experiments=count,
-            size=size,
-            num_obstacles=world.num_obstacles,
-            max_steps=world.max_steps,
             runs=self.runs,
             episodes=self.episodes,
             explore_threshold=probability_threshold(agent.epsilon),
-            gamma=agent.gamma,
-            alpha=agent.alpha,
             eta_factor=1 + agent.eta,
-            g_min=agent.g_min,
             generic=int(generic),
-            num_actuators=num_actuators,
-            num_sensors=num_sensors,
             num_layout=world.layout.num_sensors,
-            num_headings=world.num_headings,
             table_width=table_width,
             sensor_noise_threshold=probability_threshold(world.sensor_noise),
             actuator_noise_threshold=probability_threshold(world.actuator_noise),
@@ -288,7 +263,8 @@ class ExperimentBatch:
             obstacle_stride=obstacle_stride,
             risk_gate=int(agent.risk_gate),
             risk_explore=int(agent.exploration == "risk-aware"),
-            risk_threshold=agent.risk_threshold,
+            **{name: getattr(world, name) for name in _WORLD_FIELDS},
+            **{name: getattr(agent, name) for name in _AGENT_FIELDS},
             **learner_fields,
             **pointers,
         )

@@ -262,6 +262,12 @@ def _require() -> ctypes.CDLL:
     return library
 
 
+def _pad_of_cell(size: int) -> torch.Tensor:
+    """``[size * size]`` int32: each cell's index in the grid padded by a wall ring (``[P]``)."""
+    cells = torch.arange(size * size)
+    return ((cells // size + 1) * (size + 2) + cells % size + 1).to(torch.int32)
+
+
 def kernel_combined_values(
     q: torch.Tensor, rho: torch.Tensor, eta: float, g_min: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -298,8 +304,7 @@ def kernel_scatter(
     check_int("scatter_index", scatter_index, 0, INT64_MAX)
     check_int("agent", agent, 0, size * size - 1)
     num_cells, width = size * size, size + 2
-    cells = torch.arange(num_cells)
-    pad_of_cell = ((cells // size + 1) * width + cells % size + 1).to(torch.int32)
+    pad_of_cell = _pad_of_cell(size)
     grid = torch.empty(width * width, dtype=torch.uint8)
     pads = torch.empty(max(num_obstacles, 1), dtype=torch.int32)
     blocked = torch.empty(num_cells, dtype=torch.uint8)
