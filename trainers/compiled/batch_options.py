@@ -247,11 +247,12 @@ def learner_setup(
         active_list=per_candidate(active_list.clamp(max=num_candidates - 1), torch.int16),
         active_count=full(per_actuator, int(initial.sum())),
     )
-    a, b = float(structure.prior_a), float(structure.prior_b)
-    noisy_a, noisy_b = NOISY_PRIOR
-    reopen_factor = float(
-        structure.bayes_factor if structure.reopen_factor is None else structure.reopen_factor
-    )
+    reopen = structure.bayes_factor if structure.reopen_factor is None else structure.reopen_factor
+    noisy = reopen if structure.noisy_reopen_factor is None else structure.noisy_reopen_factor
+
+    def log_beta(a: float, b: float) -> float:  # as functional's log marginals (Python's lgamma)
+        return math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b)
+
     fields.update(
         learner=1,
         num_candidates=num_candidates,
@@ -268,18 +269,10 @@ def learner_setup(
         prune_pairs=int(pruned),
         history_capacity=capacity,
         log_bayes_factor=log_bayes_factor,
-        log_reopen_factor=math.log(reopen_factor),
-        log_noisy_reopen_factor=math.log(
-            reopen_factor
-            if structure.noisy_reopen_factor is None
-            else structure.noisy_reopen_factor
-        ),
-        # as functional.beta_bernoulli_log_marginal computes it (Python's lgamma)
-        log_beta_prior=math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b),
-        # as functional.mixture_log_marginal computes them
-        log_noisy_beta_prior=math.lgamma(noisy_a)
-        + math.lgamma(noisy_b)
-        - math.lgamma(noisy_a + noisy_b),
+        log_reopen_factor=math.log(reopen),
+        log_noisy_reopen_factor=math.log(noisy),
+        log_beta_prior=log_beta(float(structure.prior_a), float(structure.prior_b)),
+        log_noisy_beta_prior=log_beta(*NOISY_PRIOR),
         log_mixture_total=math.log1p(NOISY_ODDS),
         log_noisy_weight=math.log(NOISY_ODDS) - math.log1p(NOISY_ODDS),
     )

@@ -47,7 +47,6 @@ from factorq_trainers.compiled.batch_options import (
 from factorq_trainers.compiled.loader import (  # noqa: F401 - the availability check callers use
     _ALGORITHM_CODES,
     _CHECK_CODES,
-    _LEARNER_POINTERS,
     _STATE_FIELDS,
     RANDOM_WALK,
     _Batch,
@@ -59,20 +58,13 @@ from factorq_trainers.compiled.loader import (  # noqa: F401 - the availability 
 )
 
 #: The kernel's int64 counters of each experiment.
-_COUNTERS = tuple(
+_COUNTERS = (
     "cell episode_step scatters policy_counter run episode heading ticks episode_collisions "
-    "episode_greedy_collisions".split()
-)
+    "episode_greedy_collisions"
+).split()
 #: fq_batch's fields that are the world's (``WorldConfig``) and the agent's (``AgentConfig``).
-_WORLD_FIELDS = (
-    "size",
-    "num_obstacles",
-    "max_steps",
-    "num_actuators",
-    "num_sensors",
-    "num_headings",
-)
-_AGENT_FIELDS = ("gamma", "alpha", "g_min", "risk_threshold")
+_WORLD_FIELDS = "size num_obstacles max_steps num_actuators num_sensors num_headings".split()
+_AGENT_FIELDS = "gamma alpha g_min risk_threshold".split()
 _pool_lock = threading.Lock()
 _executor: ThreadPoolExecutor | None = None
 _executor_workers = 0
@@ -110,7 +102,9 @@ class ExperimentBatch:
     period ``periods[i]``, drawing from ``world_keys[i]`` and ``policy_keys[i]`` (from
     ``rng.derive_keys``); it gives the same numbers alone or in any batch, whatever the thread
     count and however ``advance`` is chunked. ``algorithm`` is ``"q-learning"``, ``"factor-q"`` or
-    ``RANDOM_WALK`` (env only, for benchmarks). Not safe to advance from two threads at once.
+    ``RANDOM_WALK`` (env only, for benchmarks). ``dependency`` (bool ``[A, K]``) replaces the
+    world's in Factor-Q's local tables (e.g. the full joint table); ``structure`` and
+    ``sensor_orders``: ``batch_options``'. Not safe to advance from two threads at once.
     """
 
     def __init__(
@@ -144,9 +138,7 @@ class ExperimentBatch:
                 f"periods must be >= 0 (0 static, k > 0 moving), got {periods.min().item()}"
             )
         count = periods.numel()
-        self.algorithm = algorithm
-        self.world = world
-        self.agent = agent
+        self.algorithm, self.world, self.agent = algorithm, world, agent
         self.runs = check_int("runs", runs, 1)
         self.episodes = check_int("episodes", episodes, 1)
         self.threads = _check_threads(threads)
@@ -168,9 +160,8 @@ class ExperimentBatch:
         width = world.size + 2
         pad_of_cell = _pad_of_cell(world.size)  # [N]
         static_grid = torch.ones(width * width, dtype=torch.uint8)  # [P], the wall ring is 1
-        static_grid[pad_of_cell.long()] = 0
-        if bool((periods == 0).any()) and world.num_obstacles:
-            static_grid[pad_of_cell.long()] = static_layout(world).to(torch.uint8)
+        static = bool((periods == 0).any()) and world.num_obstacles
+        static_grid[pad_of_cell.long()] = static_layout(world).to(torch.uint8) if static else 0
         # The paper's body with the paper's options runs the specialised loop; any other body
         # (factorq_envs.body), option or the risk options (AgentConfig) the generic one.
         generic = not world.is_paper_body or agent.risk_gate or agent.exploration != "uniform"
@@ -203,17 +194,22 @@ class ExperimentBatch:
             "permutation": world._tables["permutation"].to(torch.int64).contiguous(),
             "parent_weights": parent_weights(dependency).contiguous(),  # [A, K]
         }
-        experiment_shape = (count, self.runs, self.episodes)
+        metric = (count, self.runs, self.episodes)
 
-        def zeros(*shape: int, dtype: torch.dtype = torch.int64) -> torch.Tensor:
-            return torch.zeros(shape, dtype=dtype)
-
-        # Written in the kernel's inner loop: one cache-line-aligned block per experiment.
-        q, q_stride = _padded_zeros(count, (num_states, num_actuators), torch.float32)
-        rho, rho_stride = _padded_zeros(count, (num_actuators, table_width), torch.float32)
-        kappa, kappa_stride = _padded_zeros(count, (num_actuators, table_width), torch.int64)
-        grid, grid_stride = _padded_zeros(count, (width * width,), torch.uint8)
-        obstacle_pads, obstacle_stride = _padded_zeros(count, (world.num_obstacles,), torch.int32)
+        # Written in the kernel's inner loop: one cache-line-aligned block per experiment, whose
+        # stride is fq_batch's q_stride ... obstacle_stride.
+        blocks = {
+            "q": ((num_states, num_actuators), torch.float32),  # [S, states, actuator]
+            "rho": ((num_actuators, table_width), torch.float32),  # [S, actuator, parents' pattern]
+            "kappa": ((num_actuators, table_width), torch.int64),
+            "grid": ((width * width,), torch.uint8),  # [S, P]
+            "obstacle_pads": ((world.num_obstacles,), torch.int32),  # [S, K]
+        }
+        padded, strides = {}, {}
+        for name, (shape, dtype) in blocks.items():
+            padded[name], strides[f"{name.split('_')[0]}_stride"] = _padded_zeros(
+                count, shape, dtype
+            )
 
         # Every tensor the kernel reads or writes, by its fq_batch field name.
         self._tensors: dict[str, torch.Tensor] = {
@@ -222,23 +218,20 @@ class ExperimentBatch:
             "policy_keys": policy_keys,  # [S]
             "static_grid": static_grid,  # [P]
             "pad_of_cell": pad_of_cell,  # [N]
-            "q": q,  # [S, states, actuator]
-            "rho": rho,  # [S, actuator, pattern of its parents]
-            "kappa": kappa,
-            "grid": grid,  # [S, P]
-            "obstacle_pads": obstacle_pads,  # [S, K]
-            **{name: zeros(count) for name in _COUNTERS},  # [S] each
-            "bump": zeros(count, num_actuators, dtype=torch.uint8),
-            "episode_task_return": zeros(count, dtype=torch.float32),
+            **padded,
+            **{name: torch.zeros(count, dtype=torch.int64) for name in _COUNTERS},  # [S] each
+            "bump": torch.zeros(count, num_actuators, dtype=torch.uint8),
+            "episode_task_return": torch.zeros(count, dtype=torch.float32),
             # the per-episode metrics [S, runs, episodes]: int64 counts, the float32 return
-            **{name: zeros(*experiment_shape) for name in EPISODE_METRICS[:3]},
-            "task_return": zeros(*experiment_shape, dtype=torch.float32),
+            **{name: torch.zeros(metric, dtype=torch.int64) for name in EPISODE_METRICS[:3]},
+            "task_return": torch.zeros(metric, dtype=torch.float32),
         }
         self.structure = structure
         learner_fields, self._learner_tables, state, self._candidate_sets = learner_setup(
             structure, sensor_orders, algorithm, world, count, self.runs, self.episodes
         )
         self._tensors.update(state)
+        self._learner_state = tuple(state)
         pointers = {
             name: tensor.data_ptr()
             for tensors in (self._tensors, self._body, self._learner_tables)
@@ -256,11 +249,7 @@ class ExperimentBatch:
             table_width=table_width,
             sensor_noise_threshold=probability_threshold(world.sensor_noise),
             actuator_noise_threshold=probability_threshold(world.actuator_noise),
-            q_stride=q_stride,
-            rho_stride=rho_stride,
-            kappa_stride=kappa_stride,
-            grid_stride=grid_stride,
-            obstacle_stride=obstacle_stride,
+            **strides,
             risk_gate=int(agent.risk_gate),
             risk_explore=int(agent.exploration == "risk-aware"),
             **{name: getattr(world, name) for name in _WORLD_FIELDS},
@@ -279,9 +268,9 @@ class ExperimentBatch:
         if self.structure is None:
             raise RuntimeError("this batch runs no structure learner")
         names = ("count", "successes", "reward_sum", "log_marginal")
-        # the learner's own state: the pointers after its counts (committed ... curve)
-        own = _LEARNER_POINTERS[_LEARNER_POINTERS.index("counts") + 1 :]
-        state = {name: self._tensors[name].clone() for name in own}
+        state = {
+            name: self._tensors[name].clone() for name in self._learner_state if name != "counts"
+        }
         # the kernel's layout [S, A, C, 8, P]: one candidate's eight arrays side by side
         shape = (self.num_experiments, self.world.num_actuators, self._batch.num_candidates, 8)
         counts = self._tensors["counts"].reshape(*shape, self._batch.learner_patterns)
@@ -410,8 +399,7 @@ class ExperimentBatch:
             if not torch.equal(state[name], expected[name]):
                 raise ValueError(f"state[{name!r}] belongs to a different batch")
         obstacles = state["obstacles"]  # [S, N]
-        counts = obstacles.sum(dim=1)
-        if bool((counts != self.world.num_obstacles).any()):
+        if bool((obstacles.sum(dim=1) != self.world.num_obstacles).any()):
             raise ValueError(
                 f"state['obstacles'] must hold num_obstacles={self.world.num_obstacles} per world"
             )
@@ -419,14 +407,13 @@ class ExperimentBatch:
             raise ValueError(f"state['cell'] must be in [0, {self.world.num_cells})")
         # In place: the kernel holds these tensors' data pointers.
         for name, tensor in self._tensors.items():
-            if name in state and name not in ("bump",):
-                tensor.copy_(state[name])
+            if name in state:
+                tensor.copy_(state[name])  # bump: bool to uint8
         pads = self._tensors["pad_of_cell"].long()
         grid = self._tensors["grid"]
         grid[:, pads] = obstacles.to(torch.uint8)
         cells = obstacles.nonzero()[:, 1].view(self.num_experiments, self.world.num_obstacles)
         self._tensors["obstacle_pads"].copy_(pads[cells])
-        self._tensors["bump"].copy_(state["bump"])
 
 
 def run_experiments(
