@@ -23,7 +23,7 @@ their checks ``batch_options``'s; where the kernel cannot be built ``is_availabl
 from __future__ import annotations
 
 import ctypes
-import threading
+import functools
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor, wait
 from typing import Any
@@ -65,22 +65,13 @@ _COUNTERS = (
 #: fq_batch's fields that are the world's (``WorldConfig``) and the agent's (``AgentConfig``).
 _WORLD_FIELDS = "size num_obstacles max_steps num_actuators num_sensors num_headings".split()
 _AGENT_FIELDS = "gamma alpha g_min risk_threshold".split()
-_pool_lock = threading.Lock()
-_executor: ThreadPoolExecutor | None = None
-_executor_workers = 0
 
 
+@functools.cache
 def _pool(workers: int) -> ThreadPoolExecutor:
-    """A process-wide pool of at least ``workers`` helper threads (kept between calls: starting
-    threads on every ``advance`` costs more than short chunks of work)."""
-    global _executor, _executor_workers
-    with _pool_lock:
-        if _executor is None or _executor_workers < workers:
-            if _executor is not None:
-                _executor.shutdown(wait=False)
-            _executor = ThreadPoolExecutor(workers, thread_name_prefix="factorq-fast")
-            _executor_workers = workers
-        return _executor
+    """A process-wide pool of ``workers`` helper threads (kept between calls: starting threads on
+    every ``advance`` costs more than short chunks of work)."""
+    return ThreadPoolExecutor(workers, thread_name_prefix="factorq-fast")
 
 
 def _wait_uninterrupted(futures: list) -> None:
@@ -392,7 +383,7 @@ class ExperimentBatch:
                     f"state[{name!r}] has shape {tuple(value.shape)} and dtype {value.dtype}, "
                     f"expected {tuple(reference.shape)} and {reference.dtype}"
                 )
-        for name, value in state.items():  # tables, metrics: no NaN or infinity into the kernel
+            # tables, metrics: no NaN or infinity into the kernel
             if value.is_floating_point() and not bool(torch.isfinite(value).all()):
                 raise ValueError(f"state[{name!r}] holds NaN or infinite values")
         for name in ("periods", "world_keys", "policy_keys"):
