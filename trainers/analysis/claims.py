@@ -1,13 +1,12 @@
-"""The paper's claims as checks (SPEC section 5): C1-C5 from the per-seed means of each cell.
-
-``compute_claims`` reads only the ``per_seed`` lists of the cells of ``results.json`` (per seed,
-the measure per run); each claim's statistic gets a percentile bootstrap interval over seeds
-(``factorq_trainers.analysis.stats``), paired across cells because the cells of one seed index
-share their world's random numbers.
+"""The paper's claims as checks (SPEC section 5): C1-C5 from the per-seed means of each cell
+(the ``per_seed`` lists of ``results.json``), each claim's statistic with a percentile bootstrap
+interval over seeds, paired across cells because the cells of one seed index share their world's
+random numbers (``stats``).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from typing import Any
@@ -26,11 +25,7 @@ from factorq_trainers.analysis.vocabulary import among, label
 
 #: The measures of a cell, per run (totals over the episodes of a run, mean over the runs).
 MEASURES = ("total_steps", "collisions", "greedy_collisions")
-MEASURE_LABELS = {
-    "total_steps": "total steps",
-    "collisions": "collisions",
-    "greedy_collisions": "greedy collisions",
-}
+MEASURE_LABELS = {measure: measure.replace("_", " ") for measure in MEASURES}
 ALGORITHM_LABELS = {name: label(name) for name in among("q-learning", "factor-q")}
 
 CLAIM_STATEMENTS = {
@@ -52,28 +47,16 @@ CLAIM_THRESHOLDS = {
 MOVING = ("semi-dynamic", "dynamic")
 
 
-class _Means:
-    """Means per (world, algorithm, measure): point estimates, or bootstrap resamples ``[B]``.
+def _means_of(cells: dict[str, Any], indices: np.ndarray | None) -> Callable[..., Any]:
+    """Means per (world, algorithm, measure): point estimates, or bootstrap resamples ``[B]``
+    (``indices``), each computed once (the claims share them) and never modified by its users."""
 
-    Each is computed once (the claims share them; a resampled mean is ``B x S`` numbers) and
-    never modified by its users."""
+    @functools.cache
+    def means(world: str, algorithm: str, measure: str) -> Any:
+        values = np.asarray(cells[f"{world}/{algorithm}"]["per_seed"][measure], np.float64)
+        return values.mean() if indices is None else values[indices].mean(axis=1)  # [B]
 
-    def __init__(self, cells: dict[str, Any], indices: np.ndarray | None) -> None:
-        self.cells = cells
-        self.indices = indices
-        self._known: dict[tuple[str, str, str], Any] = {}
-
-    def __call__(self, world: str, algorithm: str, measure: str) -> Any:
-        key = (world, algorithm, measure)
-        if key not in self._known:
-            self._known[key] = self._mean(*key)
-        return self._known[key]
-
-    def _mean(self, world: str, algorithm: str, measure: str) -> Any:
-        values = np.asarray(self.cells[f"{world}/{algorithm}"]["per_seed"][measure], np.float64)
-        if self.indices is None:
-            return values.mean()
-        return values[self.indices].mean(axis=1)  # [B]
+    return means
 
 
 def _ratio(numerator: Any, denominator: Any) -> Any:
@@ -81,54 +64,38 @@ def _ratio(numerator: Any, denominator: Any) -> Any:
         return np.divide(numerator, denominator)
 
 
-def _c1(means: _Means) -> dict[str, Any]:
+#: The claims that compare Q-learning / Factor-Q on one measure: their worlds and their bar.
+_AGAINST_FACTOR_Q = {
+    "C2": (("static",), "total_steps", lambda ratio: (ratio >= 0.8) & (ratio <= 1.25)),
+    "C3": (("static",), "collisions", lambda ratio: ratio > 10),
+    "C5": (REGIMES, "greedy_collisions", lambda ratio: ratio > 100),
+}
+
+
+def _measures(claim: str, means: Callable[..., Any]) -> dict[str, Any]:
+    """The comparisons a claim is made of: ``{name: (ratio, pass or None)}``."""
     measures = {}
-    for world in REGIMES:
-        for measure in MEASURES:
-            factor_q = means(world, "factor-q", measure)
-            q_learning = means(world, "q-learning", measure)
-            measures[f"{world} {MEASURE_LABELS[measure]}, Factor-Q / Q-learning"] = (
-                _ratio(factor_q, q_learning),
-                factor_q <= q_learning,
-            )
-    return measures
-
-
-def _c2(means: _Means) -> dict[str, Any]:
-    ratio = _ratio(
-        means("static", "q-learning", "total_steps"), means("static", "factor-q", "total_steps")
-    )
-    return {"static total steps, Q-learning / Factor-Q": (ratio, (ratio >= 0.8) & (ratio <= 1.25))}
-
-
-def _c3(means: _Means) -> dict[str, Any]:
-    ratio = _ratio(
-        means("static", "q-learning", "collisions"), means("static", "factor-q", "collisions")
-    )
-    return {"static collisions, Q-learning / Factor-Q": (ratio, ratio > 10)}
-
-
-def _c4(means: _Means) -> dict[str, Any]:
-    measures = {}
-    for algorithm in ALGORITHMS:
-        static = means("static", algorithm, "total_steps")
-        for world in MOVING:
-            # speed = 1 / mean total steps, so moving/static speed = static steps / moving steps
-            ratio = _ratio(static, means(world, algorithm, "total_steps"))
-            label = f"{ALGORITHM_LABELS[algorithm]} speed, {world} / static"
-            passed = ratio >= 0.85 if algorithm == "factor-q" else None
-            measures[label] = (ratio, passed)
-    return measures
-
-
-def _c5(means: _Means) -> dict[str, Any]:
-    measures = {}
-    for world in REGIMES:
-        ratio = _ratio(
-            means(world, "q-learning", "greedy_collisions"),
-            means(world, "factor-q", "greedy_collisions"),
-        )
-        measures[f"{world} greedy collisions, Q-learning / Factor-Q"] = (ratio, ratio > 100)
+    if claim == "C1":
+        for world in REGIMES:
+            for measure in MEASURES:
+                factor_q = means(world, "factor-q", measure)
+                q_learning = means(world, "q-learning", measure)
+                name = f"{world} {MEASURE_LABELS[measure]}, Factor-Q / Q-learning"
+                measures[name] = (_ratio(factor_q, q_learning), factor_q <= q_learning)
+    elif claim == "C4":
+        for algorithm in ALGORITHMS:
+            static = means("static", algorithm, "total_steps")
+            for world in MOVING:
+                # speed = 1 / mean total steps, so moving/static speed = static steps / moving steps
+                ratio = _ratio(static, means(world, algorithm, "total_steps"))
+                label = f"{ALGORITHM_LABELS[algorithm]} speed, {world} / static"
+                measures[label] = (ratio, ratio >= 0.85 if algorithm == "factor-q" else None)
+    else:
+        worlds, measure, bar = _AGAINST_FACTOR_Q[claim]
+        for world in worlds:
+            ratio = _ratio(means(world, "q-learning", measure), means(world, "factor-q", measure))
+            name = f"{world} {MEASURE_LABELS[measure]}, Q-learning / Factor-Q"
+            measures[name] = (ratio, bar(ratio))
     return measures
 
 
@@ -138,21 +105,17 @@ def _worst(measures: dict[str, Any], pick: Callable, keys: list[str] | None = No
 
 
 def _headline(claim: str, measures: dict[str, Any]) -> tuple[Any, Any]:
-    """The claim's headline statistic (from its measures) and whether it passes."""
-    if claim == "C1":
-        return _worst(measures, np.max), np.all(np.stack([m[1] for m in measures.values()]), 0)
-    if claim in ("C2", "C3"):
-        (value, passed), *_ = measures.values()
-        return value, passed
+    """The claim's headline statistic (from its measures) and whether it passes: C4's worst
+    speed ratio of each algorithm, else the largest ratio (C1) or the smallest, and all pass."""
     if claim == "C4":
         factor_q = _worst(measures, np.min, [key for key in measures if "Factor-Q" in key])
         q_learning = _worst(measures, np.min, [key for key in measures if "Q-learning" in key])
         passed = (factor_q >= 0.85) & (q_learning >= 0.45) & (q_learning <= 0.70)
         return {"factor-q": factor_q, "q-learning": q_learning}, passed
-    return _worst(measures, np.min), np.all(np.stack([m[1] for m in measures.values()]), 0)
+    passed = np.all(np.stack([measure[1] for measure in measures.values()]), 0)
+    return _worst(measures, np.max if claim == "C1" else np.min), passed
 
 
-_CLAIM_MEASURES = {"C1": _c1, "C2": _c2, "C3": _c3, "C4": _c4, "C5": _c5}
 _EVERY_CELL = [f"{world}/{algorithm}" for world in REGIMES for algorithm in ALGORITHMS]
 _STATIC_CELLS = [f"static/{algorithm}" for algorithm in ALGORITHMS]
 #: The cells each claim needs.
@@ -173,10 +136,10 @@ def compute_claims(cells: dict[str, Any], seed: int = 0) -> dict[str, Any]:
         raise ValueError(f"cells have different numbers of seeds: {sorted(seeds)}")
     count = seeds.pop() if seeds else 0
     indices = bootstrap_indices(seed, count) if count >= 2 else None
-    point_means = _Means(cells, None)
-    boot_means = None if indices is None else _Means(cells, indices)
+    point_means = _means_of(cells, None)
+    boot_means = None if indices is None else _means_of(cells, indices)
     claims = {}
-    for claim, measure_fn in _CLAIM_MEASURES.items():
+    for claim in CLAIM_STATEMENTS:
         entry: dict[str, Any] = {
             "statement": CLAIM_STATEMENTS[claim], "threshold": CLAIM_THRESHOLDS[claim],
             "value": None, "ci95": None, "pass": None, "detail": "", "measures": [],
@@ -186,11 +149,11 @@ def compute_claims(cells: dict[str, Any], seed: int = 0) -> dict[str, Any]:
         if missing:
             entry["detail"] = f"not evaluated: needs {', '.join(missing)}, which were not run"
             continue
-        point = measure_fn(point_means)
+        point = _measures(claim, point_means)
         value, passed = _headline(claim, point)
         boot_value = boot = None
         if boot_means is not None:
-            boot = measure_fn(boot_means)
+            boot = _measures(claim, boot_means)
             boot_value, _ = _headline(claim, boot)
         for name, (measure_value, measure_pass) in point.items():
             entry["measures"].append(
@@ -203,8 +166,7 @@ def compute_claims(cells: dict[str, Any], seed: int = 0) -> dict[str, Any]:
             )
         if isinstance(value, dict):
             entry["value"] = {key: finite_or_none(item) for key, item in value.items()}
-            if boot_value is not None:
-                entry["ci95"] = {key: quantiles(item) for key, item in boot_value.items()}
+            entry["ci95"] = boot_value and {key: quantiles(v) for key, v in boot_value.items()}
         else:
             entry["value"] = finite_or_none(value)
             entry["ci95"] = None if boot_value is None else quantiles(boot_value)
@@ -217,11 +179,8 @@ def _detail(claim: str, entry: dict[str, Any], value: Any) -> str:
     """One sentence: what was compared, the outcome, and why."""
     measures = {measure["name"]: measure for measure in entry["measures"]}
     undefined = [name for name, measure in measures.items() if measure["value"] is None]
-    note = (
-        f"; undefined (0 in a denominator, reported as null): {', '.join(undefined)}"
-        if undefined
-        else ""
-    )
+    note = f"; undefined (0 in a denominator, reported as null): {', '.join(undefined)}"
+    note = note if undefined else ""
     if claim == "C1":
         failing = [name for name, measure in measures.items() if not measure["pass"]]
         if failing:
@@ -233,13 +192,10 @@ def _detail(claim: str, entry: dict[str, Any], value: Any) -> str:
         )
     if claim == "C2":
         inside = "inside" if entry["pass"] else "outside"
-        ratio = format_number(value)
-        return f"static total steps, Q-learning / Factor-Q = {ratio}, {inside} [0.8, 1.25]{note}"
+        return f"{next(iter(measures))} = {format_number(value)}, {inside} [0.8, 1.25]{note}"
     if claim == "C3":
-        return (
-            f"static collisions, Q-learning / Factor-Q = {format_number(value)} "
-            f"({'>' if entry['pass'] else 'not >'} 10){note}"
-        )
+        outcome = ">" if entry["pass"] else "not >"
+        return f"{next(iter(measures))} = {format_number(value)} ({outcome} 10){note}"
     if claim == "C4":
         factor_q, q_learning = value["factor-q"], value["q-learning"]
         return (

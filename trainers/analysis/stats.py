@@ -1,31 +1,18 @@
-"""Confidence intervals across seeds: every seed is one independent experiment.
-
-Which interval a measure gets depends on what values it can take (docs/decisions.md, "Which
-interval each report uses"):
-
-- An unbounded mean, or one far from its bounds over many seeds (the paper's cells and curves):
-  Student's t interval, ``mean +- t(0.975, S - 1) * sd / sqrt(S)`` (``mean_ci``; the quantile
-  from ``scipy.stats.t``).
-- A proportion (a success rate, a fraction of experiments; per-seed values in [0, 1]): Wilson's
-  score interval with the seed as the trial (``wilson_ci``). It never leaves [0, 1]; for per-seed
-  rates between 0 and 1 it is conservative, as ``p (1 - p)`` bounds the variance of any [0, 1]
-  quantity with mean ``p``.
-- Any other bounded mean over few seeds (steps to a goal, collisions, returns): the BCa bootstrap
-  of the mean (``bootstrap_mean_ci``, ``scipy.stats.bootstrap``). Its bounds are means of
-  resampled seeds, so they lie between the smallest and the largest seed: inside whatever range
-  the quantity has.
-- A statistic of several means (a claim's ratio, its minimum or maximum over worlds): percentile
-  bootstrap over seeds, paired across cells (``bootstrap_indices``, ``quantiles``),
-  ``BOOTSTRAP_RESAMPLES`` resamples of the seed indices drawn from a generator seeded by the
-  caller, so the intervals are as reproducible as the rest.
-
-With a single seed there is no interval (``None``), except Wilson's, which is defined for one trial.
+"""Confidence intervals across seeds, every seed one independent experiment; which interval a
+measure gets follows from the values it can take (docs/decisions.md, "Which interval each report
+uses"): Student's t for unbounded means (``mean_ci``), Wilson's score interval with the seed as the
+trial for proportions (``wilson_ci``), the BCa bootstrap for other bounded means
+(``bootstrap_mean_ci``), and for a statistic of several means (a claim's ratio, minimum or
+maximum) a percentile bootstrap over seeds, paired across cells (``bootstrap_indices``,
+``quantiles``). Resamples come from ``PCG64([seed, 0xB007])``, the caller's seed. With one seed
+there is no interval (``None``), except Wilson's.
 """
 
 from __future__ import annotations
 
 import functools
 import math
+from statistics import NormalDist
 from typing import Any
 
 import numpy as np
@@ -48,14 +35,8 @@ Interval = tuple[np.ndarray, np.ndarray | None, np.ndarray | None]
 
 @functools.lru_cache(maxsize=256)
 def t_critical(df: int, confidence: float = CONFIDENCE) -> float:
-    """The two-sided Student's t critical value: ``P(|T| <= t) = confidence`` with ``df`` dof.
-
-    Args:
-        df: degrees of freedom (the number of seeds less one), at least 1.
-        confidence: the interval's coverage, in (0, 1).
-
-    ``scipy.stats.t.ppf``: within 1e-16 of the exact quantile at ``df = 99`` (the hand-written
-    series and bisection it replaced were within 3e-15, docs/decisions.md).
+    """The two-sided Student's t critical value (``scipy.stats.t.ppf``):
+    ``P(|T| <= t) = confidence`` with ``df >= 1`` degrees of freedom (the seeds less one).
 
     >>> round(t_critical(1), 3), round(t_critical(9), 3), round(t_critical(99), 3)
     (12.706, 2.262, 1.984)
@@ -70,11 +51,8 @@ def t_critical(df: int, confidence: float = CONFIDENCE) -> float:
 
 
 def mean_ci(samples: Any) -> Interval:
-    """Mean over axis 0 and its Student-t 95% interval (``None`` with fewer than 2 samples).
-
-    Args:
-        samples: ``[seeds, ...]`` values, one row per seed.
-    """
+    """Mean over axis 0 of ``[seeds, ...]`` and its Student-t 95% interval (``None`` with fewer
+    than 2 seeds)."""
     samples = np.asarray(samples, dtype=np.float64)
     mean = samples.mean(axis=0)
     count = samples.shape[0]
@@ -85,14 +63,9 @@ def mean_ci(samples: Any) -> Interval:
 
 
 def wilson_ci(samples: Any) -> Interval:
-    """Mean over axis 0 of per-seed proportions and Wilson's 95% score interval with ``n`` seeds.
-
-    Args:
-        samples: ``[seeds, ...]`` values in [0, 1] (a seed's success rate, or 0/1 per seed).
-
-    Wilson's interval for ``p = mean`` with ``n`` trials, ``z`` the normal quantile: centre
-    ``(p + z^2 / 2n) / (1 + z^2 / n)``, half-width
-    ``z / (1 + z^2 / n) * sqrt(p (1 - p) / n + z^2 / 4n^2)``; inside [0, 1] for every ``p``.
+    """Mean over axis 0 of per-seed proportions ``[seeds, ...]`` in [0, 1] and Wilson's 95% score
+    interval with ``n`` seeds (``z`` the normal quantile): centre ``(p + z^2/2n) / (1 + z^2/n)``,
+    half-width ``z / (1 + z^2 / n) * sqrt(p (1 - p) / n + z^2 / 4n^2)``; inside [0, 1].
 
     >>> mean, low, high = wilson_ci([1, 1, 1, 0])  # 3 of 4: scipy's binomtest gives the same
     >>> round(float(low), 4), round(float(high), 4)
@@ -105,7 +78,7 @@ def wilson_ci(samples: Any) -> Interval:
     count = samples.shape[0]
     if count < 1:
         return mean, None, None
-    z = _normal_quantile(CONFIDENCE)
+    z = NormalDist().inv_cdf(0.5 + CONFIDENCE / 2)
     scale = 1 + z * z / count
     centre = (mean + z * z / (2 * count)) / scale
     half = z / scale * np.sqrt(mean * (1 - mean) / count + z * z / (4 * count * count))
@@ -113,15 +86,10 @@ def wilson_ci(samples: Any) -> Interval:
 
 
 def bootstrap_mean_ci(samples: Any, seed: int) -> Interval:
-    """Mean over axis 0 and its BCa bootstrap 95% interval over the seeds (``scipy.stats``).
-
-    Args:
-        samples: ``[seeds, ...]`` values, one row per seed.
-        seed: the run's master seed (the resamples are drawn from ``PCG64([seed, 0xB007])``).
-
-    The bounds are means of resampled seeds, so they never leave ``[min, max]`` of the seeds:
-    a bounded quantity keeps its bounds. Where every seed has the same value the interval is that
-    value (BCa is undefined there). ``None`` with fewer than 2 seeds.
+    """Mean over axis 0 of ``[seeds, ...]`` and its BCa bootstrap 95% interval over the seeds
+    (``scipy.stats.bootstrap``; resamples from the run's master ``seed``). The bounds stay in
+    ``[min, max]`` of the seeds; where every seed has the same value the interval is that value
+    (BCa is undefined there). ``None`` with fewer than 2 seeds.
 
     >>> mean, low, high = bootstrap_mean_ci([30.0, 10.0, 2.0], seed=0)  # steps: never below 0
     >>> 2.0 <= float(low) < float(mean) < float(high) <= 30.0
@@ -136,7 +104,6 @@ def bootstrap_mean_ci(samples: Any, seed: int) -> Interval:
     if samples.shape[0] < 2:
         return mean, None, None
     constant = (samples == samples[:1]).all(axis=0)
-    generator = np.random.Generator(np.random.PCG64([seed, 0xB007]))
     with warnings.catch_warnings():  # BCa warns on (and returns NaN for) constant columns
         warnings.simplefilter("ignore")
         result = bootstrap(
@@ -146,30 +113,18 @@ def bootstrap_mean_ci(samples: Any, seed: int) -> Interval:
             n_resamples=BOOTSTRAP_RESAMPLES,
             confidence_level=CONFIDENCE,
             method="BCa",
-            rng=generator,
+            rng=_generator(seed),
         )
     low = np.where(constant, mean, result.confidence_interval.low)
     high = np.where(constant, mean, result.confidence_interval.high)
     # floating-point sums of a resample may differ from the seeds' extremes in the last bit
-    low = np.clip(low, samples.min(axis=0), samples.max(axis=0))
-    high = np.clip(high, samples.min(axis=0), samples.max(axis=0))
-    return mean, low, high
-
-
-def _normal_quantile(confidence: float) -> float:
-    from statistics import NormalDist
-
-    return NormalDist().inv_cdf(0.5 + confidence / 2)
+    smallest, largest = samples.min(axis=0), samples.max(axis=0)
+    return mean, np.clip(low, smallest, largest), np.clip(high, smallest, largest)
 
 
 def scalar_ci(samples: Any, method: Any = mean_ci) -> tuple[float, float | None, float | None]:
-    """``method`` (``mean_ci`` unless given) of per-seed scalars, as plain floats (for JSON).
-
-    Args:
-        samples: one value per seed.
-        method: ``mean_ci``, ``wilson_ci`` or ``bootstrap_mean_ci`` with its seed bound
-            (``functools.partial``).
-    """
+    """``method`` (``mean_ci``, ``wilson_ci`` or a ``functools.partial`` of
+    ``bootstrap_mean_ci``) of one value per seed, as plain floats (for JSON)."""
     mean, low, high = method(samples)
     return float(mean), None if low is None else float(low), None if high is None else float(high)
 
@@ -179,10 +134,13 @@ def interval(low: Any, high: Any) -> list[float | None] | None:
     return None if low is None else [finite_or_none(low), finite_or_none(high)]
 
 
+def _generator(seed: int) -> np.random.Generator:
+    return np.random.Generator(np.random.PCG64([seed, 0xB007]))
+
+
 def bootstrap_indices(seed: int, count: int) -> np.ndarray:
     """``[BOOTSTRAP_RESAMPLES, count]`` resampled seed indices, reproducible from ``seed``."""
-    generator = np.random.Generator(np.random.PCG64([seed, 0xB007]))
-    return generator.integers(0, count, size=(BOOTSTRAP_RESAMPLES, count))
+    return _generator(seed).integers(0, count, size=(BOOTSTRAP_RESAMPLES, count))
 
 
 def quantiles(values: np.ndarray) -> list[float | None]:
@@ -200,19 +158,14 @@ def finite_or_none(value: Any) -> float | None:
 
 def format_number(value: float | None) -> str:
     """A number for people: 3 significant digits, thousands unseparated, ``inf``/``n/a``."""
-    if value is None:
-        return "n/a"
-    value = float(value)
-    if math.isinf(value):
-        return "inf" if value > 0 else "-inf"
+    value = math.nan if value is None else float(value)
     if math.isnan(value):
         return "n/a"
+    if math.isinf(value):
+        return "inf" if value > 0 else "-inf"
     if value == 0:
         return "0"
-    magnitude = math.floor(math.log10(abs(value)))
-    if magnitude >= 3:
-        return f"{value:.0f}"
-    return f"{value:.{max(2 - magnitude, 0)}f}"
+    return f"{value:.{max(2 - math.floor(math.log10(abs(value))), 0)}f}"
 
 
 #: What a report says where a ratio of counts would say nothing (``count_ratio``).
@@ -224,9 +177,8 @@ def count_ratio(numerator: float | None, denominator: float | None) -> float | N
     is 0 or missing: a ratio with a zero side is 0 or unbounded, which says nothing about how
     far apart they are (a report then says ``TOO_LITTLE_DATA`` and gives both counts).
 
-    Example:
-        >>> count_ratio(150.0, 7.5), count_ratio(0.0, 3.0), count_ratio(0.0, 0.0)
-        (20.0, None, None)
+    >>> count_ratio(150.0, 7.5), count_ratio(0.0, 3.0), count_ratio(0.0, 0.0)
+    (20.0, None, None)
     """
     if numerator is None or denominator is None or numerator <= 0 or denominator <= 0:
         return None

@@ -1,7 +1,7 @@
 """The one method vocabulary of every command and report.
 
-A method's name means the same agent wherever it appears: in any command's ``--methods``, in
-results files, kept units and reports; and it is drawn with the same label. The grammar:
+A method's name means the same agent, drawn with the same label, in every command's
+``--methods``, results file, kept unit and report. The grammar:
 
 - ``q-learning``, ``dqn``, ``sb3-dqn``: the baselines (a tabular Q, torchrl's DQN, SB3's DQN);
 - ``factor-q``: tabular Factor-Q on the dependencies the world declares (the paper's agent: the
@@ -13,8 +13,7 @@ results files, kept units and reports; and it is drawn with the same label. The 
 - ``+risk``: a DQN with the local-risk layer (``factorq_torch.risk.LocalRisk``), on the declared
   dependencies unless ``-learned``.
 
-Each command runs a subset (its config's ``METHODS``, built with ``among``), so a name no command
-knows, or a command's name missing here, is an error at import.
+Each command's ``METHODS`` is built with ``among`` (docs/decisions.md, "One method vocabulary").
 """
 
 from __future__ import annotations

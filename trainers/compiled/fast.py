@@ -1,15 +1,10 @@
 """The fused fast path: whole experiments (SPEC section 4) advanced by a small compiled C kernel.
 
-The kernel (``_kernel.c``, plain C99) performs exactly the operations of ``factorq_envs.grid_world``
-and ``factorq_torch.functional`` in the same float32 order, with the same counter-based random
-streams (``factorq_torch.base.rng``), so its metrics and tables equal the modular torch path and the
-slow reference (``tests/reference.py``) bit for bit. It runs one experiment at a time for many steps
-(its tables stay in the L1/L2 cache) and leaves Python only once per ``advance`` call.
-
-Building, the ABI and loading are ``factorq_trainers.compiled.loader``'s; the batch's options
-and their checks are ``factorq_trainers.compiled.batch_options``'s. Where the kernel cannot be
-built, ``is_available()`` is False and ``unavailable_reason()`` says why (the loader's, named here
-too, as callers of the fast path ask them); callers fall back to the modular torchrl path.
+The kernel (``_kernel.c``) mirrors ``factorq_envs.grid_world`` and ``factorq_torch.functional``
+bit for bit (docs/decisions.md, "The compiled mirror"), one experiment at a time for many steps,
+leaving Python once per ``advance`` call. Building and loading are ``loader``'s, the options and
+their checks ``batch_options``'s; where the kernel cannot be built ``is_available()`` is False,
+``unavailable_reason()`` says why, and callers fall back to the modular torchrl path.
 
 >>> from factorq_envs.grid_world import WorldConfig
 >>> from factorq_torch.base.config import AgentConfig
@@ -28,7 +23,7 @@ too, as callers of the fast path ask them); callers fall back to the modular tor
 from __future__ import annotations
 
 import ctypes
-import threading
+import functools
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor, wait
 from typing import Any
@@ -47,43 +42,36 @@ from factorq_trainers.compiled.batch_options import (
     _check_threads,
     _check_vector,
     _padded_zeros,
-    sensor_orders_setup,
-    structure_setup,
+    learner_setup,
 )
 from factorq_trainers.compiled.loader import (  # noqa: F401 - the availability check callers use
     _ALGORITHM_CODES,
     _CHECK_CODES,
-    _LEARNER_POINTERS,
     _STATE_FIELDS,
     RANDOM_WALK,
     _Batch,
+    _pad_of_cell,
     _require,
     is_available,
     unavailable_reason,
     unsupported_reason,
 )
 
-#: The kernel's int64 counters of each experiment, in fq_batch's order (``bump`` after the sixth).
-_COUNTERS = tuple(
+#: The kernel's int64 counters of each experiment.
+_COUNTERS = (
     "cell episode_step scatters policy_counter run episode heading ticks episode_collisions "
-    "episode_greedy_collisions".split()
-)
-_pool_lock = threading.Lock()
-_executor: ThreadPoolExecutor | None = None
-_executor_workers = 0
+    "episode_greedy_collisions"
+).split()
+#: fq_batch's fields that are the world's (``WorldConfig``) and the agent's (``AgentConfig``).
+_WORLD_FIELDS = "size num_obstacles max_steps num_actuators num_sensors num_headings".split()
+_AGENT_FIELDS = "gamma alpha g_min risk_threshold".split()
 
 
+@functools.cache
 def _pool(workers: int) -> ThreadPoolExecutor:
-    """A process-wide pool of at least ``workers`` helper threads (kept between calls: starting
-    threads on every ``advance`` costs more than short chunks of work)."""
-    global _executor, _executor_workers
-    with _pool_lock:
-        if _executor is None or _executor_workers < workers:
-            if _executor is not None:
-                _executor.shutdown(wait=False)
-            _executor = ThreadPoolExecutor(workers, thread_name_prefix="factorq-fast")
-            _executor_workers = workers
-        return _executor
+    """A process-wide pool of ``workers`` helper threads (kept between calls: starting threads on
+    every ``advance`` costs more than short chunks of work)."""
+    return ThreadPoolExecutor(workers, thread_name_prefix="factorq-fast")
 
 
 def _wait_uninterrupted(futures: list) -> None:
@@ -105,7 +93,9 @@ class ExperimentBatch:
     period ``periods[i]``, drawing from ``world_keys[i]`` and ``policy_keys[i]`` (from
     ``rng.derive_keys``); it gives the same numbers alone or in any batch, whatever the thread
     count and however ``advance`` is chunked. ``algorithm`` is ``"q-learning"``, ``"factor-q"`` or
-    ``RANDOM_WALK`` (env only, for benchmarks). Not safe to advance from two threads at once.
+    ``RANDOM_WALK`` (env only, for benchmarks). ``dependency`` (bool ``[A, K]``) replaces the
+    world's in Factor-Q's local tables (e.g. the full joint table); ``structure`` and
+    ``sensor_orders``: ``batch_options``'. Not safe to advance from two threads at once.
     """
 
     def __init__(
@@ -139,9 +129,7 @@ class ExperimentBatch:
                 f"periods must be >= 0 (0 static, k > 0 moving), got {periods.min().item()}"
             )
         count = periods.numel()
-        self.algorithm = algorithm
-        self.world = world
-        self.agent = agent
+        self.algorithm, self.world, self.agent = algorithm, world, agent
         self.runs = check_int("runs", runs, 1)
         self.episodes = check_int("episodes", episodes, 1)
         self.threads = _check_threads(threads)
@@ -149,23 +137,6 @@ class ExperimentBatch:
         world_keys = _check_vector("world_keys", world_keys, count)
         policy_keys = _check_vector("policy_keys", policy_keys, count)
 
-        size, num_cells = world.size, world.num_cells
-        width = size + 2
-        cells = torch.arange(num_cells)
-        pad_of_cell = ((cells // size + 1) * width + cells % size + 1).to(torch.int32)  # [N]
-        static_grid = torch.ones(width * width, dtype=torch.uint8)  # [P], the wall ring is 1
-        static_grid[pad_of_cell.long()] = 0
-        if bool((periods == 0).any()) and world.num_obstacles:
-            static_grid[pad_of_cell.long()] = static_layout(world).to(torch.uint8)
-        # The body as data (factorq_envs.body): the paper's body runs the specialised loop.
-        # ``dependency`` (bool [A, K]) replaces the world's true one in Factor-Q's local tables,
-        # e.g. the full joint table over all sensors (``factorq dependencies``' joint method);
-        # only in the generic loop.
-        generic = not world.is_paper_body or dependency is not None or structure is not None
-        generic = generic or sensor_orders is not None
-        # the risk options (AgentConfig) live in the generic loop only; the paper's defaults
-        # keep the specialised one
-        risky = agent.risk_gate or agent.exploration != "uniform"
         if agent.arbitration:  # the kernel mirrors eqs. 2-3 as the paper writes them
             raise ValueError(
                 "agent.arbitration is not on the compiled path: run it on the modular torchrl "
@@ -177,14 +148,21 @@ class ExperimentBatch:
                 f"actuators are risky, and algorithm={algorithm!r} has none: use 'factor-q' or "
                 f"exploration='uniform'"
             )
-        generic = generic or risky
+        width = world.size + 2
+        pad_of_cell = _pad_of_cell(world.size)  # [N]
+        static_grid = torch.ones(width * width, dtype=torch.uint8)  # [P], the wall ring is 1
+        static = bool((periods == 0).any()) and world.num_obstacles
+        static_grid[pad_of_cell.long()] = static_layout(world).to(torch.uint8) if static else 0
+        # The paper's body with the paper's options runs the specialised loop; any other body
+        # (factorq_envs.body), option or the risk options (AgentConfig) the generic one.
+        generic = not world.is_paper_body or agent.risk_gate or agent.exploration != "uniform"
+        generic = generic or any(x is not None for x in (dependency, structure, sensor_orders))
         num_actuators, num_sensors = world.num_actuators, world.num_sensors
-        positions = num_cells * world.num_headings
-        num_states = positions << num_sensors if algorithm == "q-learning" else positions
+        num_states = world.num_cells * world.num_headings
         if algorithm == "q-learning":
-            check_table_size(
-                "ExperimentBatch", f"a Q-table of {num_states} states", num_states * num_actuators
-            )
+            num_states <<= num_sensors
+            table = num_states * num_actuators
+            check_table_size("ExperimentBatch", f"a Q-table of {num_states} states", table)
         if algorithm == RANDOM_WALK:
             num_states = 0
         if dependency is None:
@@ -200,24 +178,29 @@ class ExperimentBatch:
         check_int("parents of an actuator (dependency)", parents, 0, MAX_PARENTS)
         table_width = 1 << parents
         offsets = world._tables["offsets"]  # [4, L, 2]
-        body_tensors = {
+        self._body = {  # read-only; kept alive for the kernel's pointers
             "moves": world._tables["moves"].to(torch.int64).contiguous(),
             "turns": world._tables["turns"].to(torch.int64).contiguous(),
             "offsets": (offsets[..., 0] * width + offsets[..., 1]).contiguous(),  # [4, L]
             "permutation": world._tables["permutation"].to(torch.int64).contiguous(),
             "parent_weights": parent_weights(dependency).contiguous(),  # [A, K]
         }
-        experiment_shape = (count, self.runs, self.episodes)
+        metric = (count, self.runs, self.episodes)
 
-        def zeros(*shape: int, dtype: torch.dtype = torch.int64) -> torch.Tensor:
-            return torch.zeros(shape, dtype=dtype)
-
-        # Written in the kernel's inner loop: one cache-line-aligned block per experiment.
-        q, q_stride = _padded_zeros(count, (num_states, num_actuators), torch.float32)
-        rho, rho_stride = _padded_zeros(count, (num_actuators, table_width), torch.float32)
-        kappa, kappa_stride = _padded_zeros(count, (num_actuators, table_width), torch.int64)
-        grid, grid_stride = _padded_zeros(count, (width * width,), torch.uint8)
-        obstacle_pads, obstacle_stride = _padded_zeros(count, (world.num_obstacles,), torch.int32)
+        # Written in the kernel's inner loop: one cache-line-aligned block per experiment, whose
+        # stride is fq_batch's q_stride ... obstacle_stride.
+        blocks = {
+            "q": ((num_states, num_actuators), torch.float32),  # [S, states, actuator]
+            "rho": ((num_actuators, table_width), torch.float32),  # [S, actuator, parents' pattern]
+            "kappa": ((num_actuators, table_width), torch.int64),
+            "grid": ((width * width,), torch.uint8),  # [S, P]
+            "obstacle_pads": ((world.num_obstacles,), torch.int32),  # [S, K]
+        }
+        padded, strides = {}, {}
+        for name, (shape, dtype) in blocks.items():
+            padded[name], strides[f"{name.split('_')[0]}_stride"] = _padded_zeros(
+                count, shape, dtype
+            )
 
         # Every tensor the kernel reads or writes, by its fq_batch field name.
         self._tensors: dict[str, torch.Tensor] = {
@@ -226,69 +209,42 @@ class ExperimentBatch:
             "policy_keys": policy_keys,  # [S]
             "static_grid": static_grid,  # [P]
             "pad_of_cell": pad_of_cell,  # [N]
-            "q": q,  # [S, states, actuator]
-            "rho": rho,  # [S, actuator, pattern of its parents]
-            "kappa": kappa,
-            "grid": grid,  # [S, P]
-            "obstacle_pads": obstacle_pads,  # [S, K]
-            **{name: zeros(count) for name in _COUNTERS[:6]},  # [S] each
-            "bump": zeros(count, num_actuators, dtype=torch.uint8),
-            **{name: zeros(count) for name in _COUNTERS[6:]},
-            "episode_task_return": zeros(count, dtype=torch.float32),
+            **padded,
+            **{name: torch.zeros(count, dtype=torch.int64) for name in _COUNTERS},  # [S] each
+            "bump": torch.zeros(count, num_actuators, dtype=torch.uint8),
+            "episode_task_return": torch.zeros(count, dtype=torch.float32),
             # the per-episode metrics [S, runs, episodes]: int64 counts, the float32 return
-            **{name: zeros(*experiment_shape) for name in EPISODE_METRICS[:3]},
-            "task_return": zeros(*experiment_shape, dtype=torch.float32),
+            **{name: torch.zeros(metric, dtype=torch.int64) for name in EPISODE_METRICS[:3]},
+            "task_return": torch.zeros(metric, dtype=torch.float32),
         }
-        if structure is not None and sensor_orders is not None:
-            raise ValueError("sensor_orders: give the orders in structure (StructureOptions)")
         self.structure = structure
-        learner_fields, self._learner_tables, state, self._candidate_sets = structure_setup(
-            structure, algorithm, world, count, self.runs, self.episodes
+        learner_fields, self._learner_tables, state, self._candidate_sets = learner_setup(
+            structure, sensor_orders, algorithm, world, count, self.runs, self.episodes
         )
         self._tensors.update(state)
-        if sensor_orders is not None:
-            fields, tables, state = sensor_orders_setup(sensor_orders, world, count, self.runs)
-            learner_fields.update(fields)
-            self._learner_tables.update(tables)
-            self._tensors.update(state)
-        self._body = body_tensors  # read-only; kept alive for the kernel's pointers
+        self._learner_state = tuple(state)
         pointers = {
             name: tensor.data_ptr()
-            for name, tensor in (
-                *self._tensors.items(),
-                *body_tensors.items(),
-                *self._learner_tables.items(),
-            )
+            for tensors in (self._tensors, self._body, self._learner_tables)
+            for name, tensor in tensors.items()
         }
         self._batch = _Batch(
             algorithm=_ALGORITHM_CODES[algorithm],
             num_experiments=count,
-            size=size,
-            num_obstacles=world.num_obstacles,
-            max_steps=world.max_steps,
             runs=self.runs,
             episodes=self.episodes,
             explore_threshold=probability_threshold(agent.epsilon),
-            gamma=agent.gamma,
-            alpha=agent.alpha,
             eta_factor=1 + agent.eta,
-            g_min=agent.g_min,
             generic=int(generic),
-            num_actuators=num_actuators,
-            num_sensors=num_sensors,
             num_layout=world.layout.num_sensors,
-            num_headings=world.num_headings,
             table_width=table_width,
             sensor_noise_threshold=probability_threshold(world.sensor_noise),
             actuator_noise_threshold=probability_threshold(world.actuator_noise),
-            q_stride=q_stride,
-            rho_stride=rho_stride,
-            kappa_stride=kappa_stride,
-            grid_stride=grid_stride,
-            obstacle_stride=obstacle_stride,
+            **strides,
             risk_gate=int(agent.risk_gate),
             risk_explore=int(agent.exploration == "risk-aware"),
-            risk_threshold=agent.risk_threshold,
+            **{name: getattr(world, name) for name in _WORLD_FIELDS},
+            **{name: getattr(agent, name) for name in _AGENT_FIELDS},
             **learner_fields,
             **pointers,
         )
@@ -303,9 +259,9 @@ class ExperimentBatch:
         if self.structure is None:
             raise RuntimeError("this batch runs no structure learner")
         names = ("count", "successes", "reward_sum", "log_marginal")
-        # the learner's own state: the pointers after its counts (committed ... curve)
-        own = _LEARNER_POINTERS[_LEARNER_POINTERS.index("counts") + 1 :]
-        state = {name: self._tensors[name].clone() for name in own}
+        state = {
+            name: self._tensors[name].clone() for name in self._learner_state if name != "counts"
+        }
         # the kernel's layout [S, A, C, 8, P]: one candidate's eight arrays side by side
         shape = (self.num_experiments, self.world.num_actuators, self._batch.num_candidates, 8)
         counts = self._tensors["counts"].reshape(*shape, self._batch.learner_patterns)
@@ -427,15 +383,14 @@ class ExperimentBatch:
                     f"state[{name!r}] has shape {tuple(value.shape)} and dtype {value.dtype}, "
                     f"expected {tuple(reference.shape)} and {reference.dtype}"
                 )
-        for name, value in state.items():  # tables, metrics: no NaN or infinity into the kernel
+            # tables, metrics: no NaN or infinity into the kernel
             if value.is_floating_point() and not bool(torch.isfinite(value).all()):
                 raise ValueError(f"state[{name!r}] holds NaN or infinite values")
         for name in ("periods", "world_keys", "policy_keys"):
             if not torch.equal(state[name], expected[name]):
                 raise ValueError(f"state[{name!r}] belongs to a different batch")
         obstacles = state["obstacles"]  # [S, N]
-        counts = obstacles.sum(dim=1)
-        if bool((counts != self.world.num_obstacles).any()):
+        if bool((obstacles.sum(dim=1) != self.world.num_obstacles).any()):
             raise ValueError(
                 f"state['obstacles'] must hold num_obstacles={self.world.num_obstacles} per world"
             )
@@ -443,14 +398,13 @@ class ExperimentBatch:
             raise ValueError(f"state['cell'] must be in [0, {self.world.num_cells})")
         # In place: the kernel holds these tensors' data pointers.
         for name, tensor in self._tensors.items():
-            if name in state and name not in ("bump",):
-                tensor.copy_(state[name])
+            if name in state:
+                tensor.copy_(state[name])  # bump: bool to uint8
         pads = self._tensors["pad_of_cell"].long()
         grid = self._tensors["grid"]
         grid[:, pads] = obstacles.to(torch.uint8)
         cells = obstacles.nonzero()[:, 1].view(self.num_experiments, self.world.num_obstacles)
         self._tensors["obstacle_pads"].copy_(pads[cells])
-        self._tensors["bump"].copy_(state["bump"])
 
 
 def run_experiments(

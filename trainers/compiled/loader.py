@@ -1,12 +1,7 @@
-"""Building, checking and loading the compiled kernel (``_kernel.c``) of the fast path
-(``factorq_trainers.compiled.fast``): the compiler, the cache, the ABI (``fq_batch``'s layout and
-the kernel's codes), and the kernel's small entry points for differential tests.
-
-The kernel is compiled on first use with the system C compiler (``cc``, ``gcc`` or ``clang``;
-``FACTORQ_CC`` overrides) and cached under ``$FACTORQ_CACHE_DIR``, else
-``$XDG_CACHE_HOME/factorq_torch``, else ``~/.cache/factorq_torch``. Where no compiler works,
-``is_available()`` is False and ``unavailable_reason()`` says why; callers fall back to the
-modular torchrl path.
+"""Building, checking and loading the fast path's kernel (``_kernel.c``): the compiler, the cache
+(``cache_dir``), the ABI (``fq_batch``'s layout and the kernel's codes), and the kernel's small
+entry points for differential tests. Where no compiler works, ``is_available()`` is False and
+``unavailable_reason()`` says why.
 """
 
 from __future__ import annotations
@@ -34,11 +29,8 @@ RANDOM_WALK = "random-walk"
 
 _ALGORITHM_CODES = {RANDOM_WALK: 0, "q-learning": 1, "factor-q": 2}
 _SOURCE = Path(__file__).with_name("_kernel.c")
-#: No FMA contraction and no fast-math: every float operation must round exactly as torch's
-#: separate ops do. No -march: the compiler's default target (on x86-64 SSE2, no POPCNT, BMI2 or
-#: AVX), so one build runs on every CPU of the architecture and a shared cache stays valid.
-#: -march=native was measured no faster twice (issue 17: 0.96x; issue 30 on a Zen 3: 0.98-1.00x,
-#: docs/decisions.md), so there is no per-machine build.
+#: No FMA contraction, no fast-math (every float op rounds as torch's do) and no -march: one build
+#: for every CPU of the architecture, measured no slower (docs/decisions.md, "Portable flags").
 _FLAGS = ("-O3", "-std=c99", "-ffp-contract=off", "-fno-fast-math", "-fPIC", "-shared")
 _ABI_VERSION = 10
 #: The fields ``fq_check_experiment`` refuses, by code (1-based), and ``fq_advance``'s encoding.
@@ -48,62 +40,44 @@ _STATE_FIELDS = tuple(
 )
 _CHECK_CODES = 64
 
-#: The structure learner's pointers in fq_batch, in order (read-only ones first).
-_LEARNER_POINTERS = tuple(
-    "candidate_sensors log_prior competitors lgamma_table noisy_lgamma_table orders orders_after "
-    "truth initial_active all_candidates counts committed samples block_samples reopened "
-    "map_cache plausible right_since samples_at_change wrong_commitments noise_seen change_tick "
-    "curve active history_readings history_action history_reward history_length history_start "
-    "block_start active_list active_count".split()
-)
 #: The kernel's codes of ``StructureOptions.prediction`` (``"posterior"`` is modular only).
 _PREDICTION_CODES = {"map": 0, "committed": 1, "optimistic": 2}
-
-
-def _typed(kind: type, names: str | tuple[str, ...]) -> list[tuple[str, type]]:
-    """``(name, kind)`` for each of ``names`` (space-separated, or a tuple), in order."""
-    return [(name, kind) for name in (names.split() if isinstance(names, str) else names)]
+#: ``fq_batch``, as _kernel.c declares it: lines of a type and its fields, in order.
+_LAYOUT = """
+int64 algorithm num_experiments size num_obstacles max_steps runs episodes explore_threshold
+void* periods world_keys policy_keys static_grid pad_of_cell q rho kappa grid obstacle_pads cell
+void* episode_step scatters policy_counter run episode bump episode_collisions
+void* episode_greedy_collisions episode_task_return steps collisions greedy_collisions task_return
+float gamma alpha eta_factor g_min
+int64 generic num_actuators num_sensors num_layout num_headings table_width
+int64 sensor_noise_threshold actuator_noise_threshold
+void* moves turns offsets permutation parent_weights heading ticks
+int64 q_stride rho_stride kappa_stride grid_stride obstacle_stride
+int64 learner num_candidates learner_patterns prediction window change_run curve_every
+int64 curve_length lgamma_length learner_stride reopen_body likelihood_flip mixture prune_pairs
+int64 history_capacity
+double log_bayes_factor log_reopen_factor log_noisy_reopen_factor log_beta_prior
+double log_noisy_beta_prior log_mixture_total log_noisy_weight
+void* candidate_sensors log_prior competitors lgamma_table noisy_lgamma_table orders orders_after
+void* truth initial_active all_candidates counts committed samples block_samples reopened
+void* map_cache plausible right_since samples_at_change wrong_commitments noise_seen change_tick
+void* curve active history_readings history_action history_reward history_length history_start
+void* block_start active_list active_count
+int64 risk_gate risk_explore
+float risk_threshold
+"""
+_CTYPES: dict[str, type] = {"int64": ctypes.c_int64, "void*": ctypes.c_void_p}
+_CTYPES.update(float=ctypes.c_float, double=ctypes.c_double)
 
 
 class _Batch(ctypes.Structure):
     """The kernel's ``fq_batch`` (same field order and types; its size is checked on load)."""
 
-    _fields_ = (
-        _typed(
-            ctypes.c_int64,
-            "algorithm num_experiments size num_obstacles max_steps runs episodes "
-            "explore_threshold",
-        )
-        + _typed(
-            ctypes.c_void_p,
-            "periods world_keys policy_keys static_grid pad_of_cell q rho kappa grid "
-            "obstacle_pads cell episode_step scatters policy_counter run episode bump "
-            "episode_collisions episode_greedy_collisions episode_task_return steps collisions "
-            "greedy_collisions task_return",
-        )
-        + _typed(ctypes.c_float, "gamma alpha eta_factor g_min")
-        + _typed(
-            ctypes.c_int64,
-            "generic num_actuators num_sensors num_layout num_headings table_width "
-            "sensor_noise_threshold actuator_noise_threshold",
-        )
-        + _typed(ctypes.c_void_p, "moves turns offsets permutation parent_weights heading ticks")
-        + _typed(ctypes.c_int64, "q_stride rho_stride kappa_stride grid_stride obstacle_stride")
-        + _typed(
-            ctypes.c_int64,
-            "learner num_candidates learner_patterns prediction window change_run curve_every "
-            "curve_length lgamma_length learner_stride reopen_body likelihood_flip mixture "
-            "prune_pairs history_capacity",
-        )
-        + _typed(
-            ctypes.c_double,
-            "log_bayes_factor log_reopen_factor log_noisy_reopen_factor log_beta_prior "
-            "log_noisy_beta_prior log_mixture_total log_noisy_weight",
-        )
-        + _typed(ctypes.c_void_p, _LEARNER_POINTERS)
-        + _typed(ctypes.c_int64, "risk_gate risk_explore")
-        + _typed(ctypes.c_float, "risk_threshold")
-    )
+    _fields_ = [
+        (name, _CTYPES[kind])
+        for kind, *names in map(str.split, _LAYOUT.strip().splitlines())
+        for name in names
+    ]
 
 
 class _Unavailable(Exception):
@@ -210,18 +184,17 @@ def _declare(library: ctypes.CDLL, path: Path) -> None:
     library.fq_batch_size.restype = int64
     if library.fq_abi_version() != _ABI_VERSION or library.fq_batch_size() != ctypes.sizeof(_Batch):
         raise _Unavailable(f"the compiled kernel {path} does not match loader.py (stale build?)")
-    batch = ctypes.POINTER(_Batch)
-    library.fq_start.argtypes = [batch]
-    library.fq_start.restype = None
-    library.fq_advance.argtypes = [batch, int64, ctypes.POINTER(int64)]
-    library.fq_advance.restype = int64
-    library.fq_check_experiment.argtypes = [batch, int64]
-    library.fq_check_experiment.restype = int64
-    library.fq_combined_values.argtypes = [pointer, pointer, int64, ctypes.c_float]
-    library.fq_combined_values.argtypes += [ctypes.c_float, pointer, pointer]
-    library.fq_combined_values.restype = None
-    library.fq_scatter.argtypes = [int64] * 5 + [pointer] * 4
-    library.fq_scatter.restype = None
+    batch, float32 = ctypes.POINTER(_Batch), ctypes.c_float
+    signatures = {  # name: (result, arguments)
+        "fq_start": (None, [batch]),
+        "fq_advance": (int64, [batch, int64, ctypes.POINTER(int64)]),
+        "fq_check_experiment": (int64, [batch, int64]),
+        "fq_combined_values": (None, [pointer, pointer, int64, float32, float32, pointer, pointer]),
+        "fq_scatter": (None, [int64] * 5 + [pointer] * 4),
+    }
+    for name, (result, arguments) in signatures.items():
+        function = getattr(library, name)
+        function.restype, function.argtypes = result, arguments
 
 
 def _load() -> ctypes.CDLL | None:
@@ -262,23 +235,25 @@ def _require() -> ctypes.CDLL:
     return library
 
 
+def _pad_of_cell(size: int) -> torch.Tensor:
+    """``[size * size]`` int32: each cell's index in the grid padded by a wall ring (``[P]``)."""
+    cells = torch.arange(size * size)
+    return ((cells // size + 1) * (size + 2) + cells % size + 1).to(torch.int32)
+
+
 def kernel_combined_values(
     q: torch.Tensor, rho: torch.Tensor, eta: float, g_min: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The kernel's eq. 2-3 on rows of ``q``, ``rho`` ``[n, 4]`` float32: ``(G [n], C [n, 4])``.
-
-    For differential tests against ``functional.normaliser`` and ``functional.combined_values``.
-    """
+    """The kernel's eq. 2-3 on rows of ``q``, ``rho`` ``[n, 4]`` float32: ``(G [n], C [n, 4])``,
+    for differential tests against ``functional.normaliser`` and ``functional.combined_values``."""
     library = _require()
     q = q.detach().to(torch.float32).contiguous().view(-1, NUM_ACTIONS)
     rho = rho.detach().to(torch.float32).contiguous().view(-1, NUM_ACTIONS)
     if q.shape != rho.shape:
         raise ValueError(f"q {tuple(q.shape)} and rho {tuple(rho.shape)} must have one shape")
-    g = torch.empty(q.shape[0], dtype=torch.float32)
-    out = torch.empty_like(q)
-    eta_factor, rows = 1 + eta, q.shape[0]
+    g, out, rows = torch.empty(q.shape[0], dtype=torch.float32), torch.empty_like(q), q.shape[0]
     library.fq_combined_values(
-        q.data_ptr(), rho.data_ptr(), rows, eta_factor, g_min, g.data_ptr(), out.data_ptr()
+        q.data_ptr(), rho.data_ptr(), rows, 1 + eta, g_min, g.data_ptr(), out.data_ptr()
     )
     return g, out
 
@@ -286,10 +261,8 @@ def kernel_combined_values(
 def kernel_scatter(
     size: int, num_obstacles: int, key: int, scatter_index: int, agent: int
 ) -> torch.Tensor:
-    """The kernel's obstacle scatter for one world: ``[size * size]`` bool.
-
-    For differential tests against ``factorq_envs.grid_world.scatter_obstacles``.
-    """
+    """The kernel's obstacle scatter for one world, ``[size * size]`` bool, for differential
+    tests against ``factorq_envs.grid_world.scatter_obstacles``."""
     library = _require()
     WorldConfig(size=size, num_obstacles=num_obstacles)  # validates the pair
     # ctypes wraps ints into int64 silently (a key of 2**64 would be key 0): keys are int64 bit
@@ -298,8 +271,7 @@ def kernel_scatter(
     check_int("scatter_index", scatter_index, 0, INT64_MAX)
     check_int("agent", agent, 0, size * size - 1)
     num_cells, width = size * size, size + 2
-    cells = torch.arange(num_cells)
-    pad_of_cell = ((cells // size + 1) * width + cells % size + 1).to(torch.int32)
+    pad_of_cell = _pad_of_cell(size)
     grid = torch.empty(width * width, dtype=torch.uint8)
     pads = torch.empty(max(num_obstacles, 1), dtype=torch.int32)
     blocked = torch.empty(num_cells, dtype=torch.uint8)
@@ -316,13 +288,9 @@ MAX_KERNEL_ACTUATORS = 32
 
 
 def unsupported_reason(world: object) -> str | None:
-    """Why the kernel cannot run ``world``, or None when it can (every body and layout of
-    ``factorq_envs.body`` up to ``MAX_KERNEL_SENSORS`` sensors and ``MAX_KERNEL_ACTUATORS``
-    actuators).
-
-    ``world`` is a ``WorldConfig`` or an ``factorq_envs.protocol.World``: the kernel mirrors only
-    ``factorq_envs.grid_world``'s ``FactoredGrid``, so any other world (a foreign one, or a subclass
-    that may change its rules) is refused here and runs on the modular path."""
+    """Why the kernel cannot run ``world`` (a ``WorldConfig`` or a ``factorq_envs.protocol.World``),
+    or None when it can: every body and layout of ``factorq_envs.grid_world.FactoredGrid`` (not a
+    subclass: it may change the rules) up to ``MAX_KERNEL_SENSORS`` and ``MAX_KERNEL_ACTUATORS``."""
     if type(world) is FactoredGrid:
         world = world.config
     if not isinstance(world, WorldConfig):
