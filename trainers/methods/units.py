@@ -68,7 +68,6 @@ class Tally:
         self.step = self.collisions = self.greedy_collisions = self.length = 0
         self.episode_return = 0.0
         self.episodes: list[tuple[int, float, bool, int]] = []
-        self.returns: list[float] = []
         self.reached: int | None = None
         names = ("curve_steps", "curve_crashes", "curve_return")
         self.curves: dict[str, list[Any]] = {name: [] for name in names}
@@ -86,7 +85,6 @@ class Tally:
         window = self.window
         if done:
             self.episodes.append((self.step, self.episode_return, success, self.length))
-            self.returns.append(self.episode_return)
             self.episode_return, self.length = 0.0, 0
             recent = [episode[1 if self.by_return else 2] for episode in self.episodes[-window:]]
             if self.reached is None and len(recent) == window and _mean(recent) >= self.threshold:
@@ -94,8 +92,13 @@ class Tally:
         if self.curve_every and (self.step % self.curve_every == 0 or self.step == self.steps):
             self.curves["curve_steps"].append(self.step)
             self.curves["curve_crashes"].append(self.collisions)
-            recent = self.returns[-window:]
+            recent = [episode[1] for episode in self.episodes[-window:]]
             self.curves["curve_return"].append(_mean(recent) if recent else None)
+
+    @property
+    def returns(self) -> list[float]:
+        """The finished episodes' returns, in order."""
+        return [episode[1] for episode in self.episodes]
 
 
 def _mean(values: list[Any]) -> float:
