@@ -1,7 +1,8 @@
 """What several commands' units share around their methods, torch loaded only when a unit runs:
 ``torch_threads`` (a unit's torch threads, restored after), ``tick`` (progress every 100 env
-steps), ``seed_stat`` (a measure's mean over seeds with its 95% interval) and ``Tally`` (one
-experiment's training record: ``gym``, ``risk``, ``minigrid``)."""
+steps), ``seed_stat`` (a measure's mean over seeds with its 95% interval), ``Tally`` (one
+experiment's training record: ``gym``, ``risk``, ``minigrid``), and for the commands on declared
+worlds their extras (``require_extras``) and processes (``world_processes``)."""
 
 from __future__ import annotations
 
@@ -26,6 +27,32 @@ def torch_threads(count: int) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(threads)
+
+
+def require_extras(worlds: Iterable[Any], sb3: bool = False) -> None:
+    """The extras the declared ``worlds`` (``factorq_envs.worlds.DeclaredWorld``) need, and with
+    ``sb3`` Stable-Baselines3's, installed; else one ModuleNotFoundError naming the extra."""
+    from factorq_envs.gymnasium_adapter import require_extra
+
+    for world in worlds:
+        for module, extra in world.requires:
+            require_extra(module, f"factorq-torch[{extra}]")
+    if sb3:
+        require_extra("stable_baselines3", "factorq-torch[sb3]")
+
+
+def world_processes(worlds: Iterable[Any], steps: int, units: int) -> tuple[int, str]:
+    """How many processes ``units`` units of ``steps`` env steps take by default
+    (``runner.cluster.default_workers``): one per core where the slowest of the declared
+    ``worlds`` steps slowly (highway-env), else 1 (in-process); and why."""
+    from factorq_trainers.runner.cluster import default_workers
+
+    slowest, why = 0.0, ""
+    for world in worlds:
+        step_s = world.step_seconds()
+        if step_s > slowest:
+            slowest, why = step_s, f"{world.label} takes {1e3 * step_s:.1f} ms an env step"
+    return default_workers(slowest, steps, units), why
 
 
 def tick(progress: Callable[[int], None], step: int, total: int) -> None:

@@ -25,7 +25,12 @@ import numpy as np
 from factorq_trainers.analysis.stats import bootstrap_mean_ci, finite_or_none
 from factorq_trainers.commands.gym.config import GymConfig
 from factorq_trainers.commands.gym.methods import RUNNERS
-from factorq_trainers.methods.units import seed_stat, torch_threads
+from factorq_trainers.methods.units import (
+    require_extras,
+    seed_stat,
+    torch_threads,
+    world_processes,
+)
 from factorq_trainers.runner.kept import COUNT, FLAG, NON_NEGATIVE, NUMBER, TEXT
 
 NAME = "gym"
@@ -60,22 +65,13 @@ UNIT_RESULT = {
 
 def prepare(config: GymConfig) -> None:
     """The world's extra (and SB3 when asked for) installed, else one ModuleNotFoundError."""
-    from factorq_envs.gymnasium_adapter import require_extra
-
-    for module, extra in config.spec.requires:
-        require_extra(module, f"factorq-torch[{extra}]")
-    if "sb3-dqn" in config.methods:
-        require_extra("stable_baselines3", "factorq-torch[sb3]")
+    require_extras([config.spec], sb3="sb3-dqn" in config.methods)
 
 
 def processes(config: GymConfig, units: list[dict[str, Any]]) -> tuple[int, str]:
-    """How many processes the units take by default (``runner.cluster.default_workers``): one
-    per core where the world's env steps slowly (highway-env), else 1 (in-process); and why."""
-    from factorq_trainers.runner.cluster import default_workers
-
-    step_s = config.spec.step_seconds()
-    why = f"{config.spec.label} takes {1e3 * step_s:.1f} ms an env step"
-    return default_workers(step_s, config.steps, len(units)), why
+    """How many processes the units take by default: one per core where the world's env steps
+    slowly (highway-env), else 1 (in-process); and why (``methods.units.world_processes``)."""
+    return world_processes([config.spec], config.steps, len(units))
 
 
 def units(config: GymConfig) -> list[dict[str, Any]]:

@@ -33,6 +33,7 @@ from factorq_trainers.commands.risk.methods import (
     run_sb3,
     run_torchrl,
 )
+from factorq_trainers.methods.units import require_extras, world_processes
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, NUMBER, TEXT
 
 NAME = "risk"
@@ -73,34 +74,25 @@ def prepare(config: RiskConfig) -> None:
     """The extras the asked-for worlds and methods need, else one ModuleNotFoundError naming
     the extra, before any work."""
     from factorq_envs.gymnasium_adapter import require_extra
-    from factorq_envs.worlds import resolve_world
 
-    for world in config.worlds:
-        if world not in OWN_WORLDS:
-            for module, extra in resolve_world(world).requires:
-                require_extra(module, f"factorq-torch[{extra}]")
     if "minigrid" in config.worlds:
         require_extra("minigrid", "factorq-torch[minigrid]")
     sb3 = any(method.startswith("sb3") for method in config.methods)
-    if sb3 and set(config.worlds) & set(config.sb3_worlds):
-        require_extra("stable_baselines3", "factorq-torch[sb3]")
+    require_extras(_declared(config), sb3=sb3 and bool(set(config.worlds) & set(config.sb3_worlds)))
 
 
 def processes(config: RiskConfig, units: list[dict[str, Any]]) -> tuple[int, str]:
-    """How many processes the units take by default (``runner.cluster.default_workers``): one
-    per core where a declared world's env steps slowly (highway-env), else 1 (in-process); and
-    why. The grid and MiniGrid step in microseconds: measured only for the declared worlds."""
-    from factorq_envs.worlds import resolve_world
-    from factorq_trainers.runner.cluster import default_workers
+    """How many processes the units take by default: one per core where a declared world's env
+    steps slowly (highway-env), else 1 (in-process); and why (``methods.units.world_processes``;
+    the grid and MiniGrid step in microseconds: not measured)."""
+    return world_processes(_declared(config), config.steps, len(units))
 
-    slowest, why = 0.0, ""
-    for world in config.worlds:
-        if world not in OWN_WORLDS:
-            declared = resolve_world(world)
-            step_s = declared.step_seconds()
-            if step_s > slowest:
-                slowest, why = step_s, f"{declared.label} takes {1e3 * step_s:.1f} ms an env step"
-    return default_workers(slowest, config.steps, len(units)), why
+
+def _declared(config: RiskConfig) -> list[Any]:
+    """The declared worlds among ``config.worlds`` (``factorq_envs.worlds``)."""
+    from factorq_envs.worlds import resolve_world
+
+    return [resolve_world(world) for world in config.worlds if world not in OWN_WORLDS]
 
 
 def units(config: RiskConfig) -> list[dict[str, Any]]:

@@ -9,7 +9,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from factorq_torch.base.validation import check_float, check_int
+from factorq_torch.base.validation import check_float, check_int, check_names
 from factorq_trainers.analysis.vocabulary import among
 from factorq_trainers.runner.options import option
 
@@ -24,31 +24,17 @@ TORCHRL_METHODS = METHODS[:3]
 SB3_WORLDS = ("grid",)
 
 
-def _names(
-    value: Any, field: str, allowed: tuple[str, ...], paths: bool = False
-) -> tuple[str, ...]:
-    """``value`` (comma-separated text or a tuple) as names of ``allowed`` (with ``paths``, a
-    ``package.module:NAME`` too)."""
-    if isinstance(value, str):
-        value = tuple(part.strip() for part in value.split(",") if part.strip())
-    value = tuple(value)
-    unknown = [name for name in value if name not in allowed and not (paths and ":" in name)]
-    choices = ", ".join(allowed)
-    choices += ", or a declared world of your own as package.module:NAME" if paths else ""
-    if not value:
-        raise ValueError(f"{field} is empty: choose one or more of {choices}")
-    if unknown:
-        raise ValueError(f"{field}={','.join(unknown)} is unknown: choose one or more of {choices}")
-    return value
-
-
 def _worlds(value: Any) -> tuple[str, ...]:
     """``worlds``: the own worlds and declared ones (``factorq_envs.worlds``), each declared
     world resolved now (one line naming the field and the world)."""
-    from factorq_envs.worlds import WorldError, names, resolve_world
+    from factorq_envs.worlds import WorldError, resolve_world
 
-    declared = tuple(name for name in names() if name not in OWN_WORLDS)
-    worlds = _names(value, "worlds", (*OWN_WORLDS, *declared), paths=True)
+    names = [name.strip() for name in value.split(",")] if isinstance(value, str) else value
+    worlds = tuple(name for name in names if name != "")
+    if not worlds:
+        raise ValueError(
+            f"worlds is empty: choose one or more of {', '.join(OWN_WORLDS)}, or a declared world"
+        )
     for name in worlds:
         if name not in OWN_WORLDS:
             try:
@@ -94,8 +80,10 @@ class RiskConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "worlds", _worlds(self.worlds))
-        object.__setattr__(self, "methods", _names(self.methods, "methods", METHODS))
-        object.__setattr__(self, "sb3_worlds", _names(self.sb3_worlds, "sb3_worlds", SB3_WORLDS))
+        object.__setattr__(self, "methods", check_names("methods", self.methods, METHODS))
+        object.__setattr__(
+            self, "sb3_worlds", check_names("sb3_worlds", self.sb3_worlds, SB3_WORLDS)
+        )
         for name in ("seeds", "steps", "hidden", "buffer_size", "batch_size", "train_every"):
             check_int(name, getattr(self, name), 1)
         for name in ("seed", "learning_starts", "eval_episodes"):
