@@ -524,11 +524,13 @@ CLAIMS = [
 # Running and the table
 
 
-def run_once(run: Run, master: int, out: Path) -> dict[str, Any]:
-    """``run``'s JSON for master seed ``master``: read from its folder, or made there first."""
+def run_once(run: Run, master: int, out: Path, extra: tuple[str, ...] = ()) -> dict[str, Any]:
+    """``run``'s JSON for master seed ``master``: read from its folder, or made there first
+    (with ``extra`` arguments, e.g. ``--cluster off``: they change where units run, not what
+    they compute)."""
     folder = out / run.name / f"seed{master}"
     path = folder / run.json
-    argv = [*run.argv(master), "--out", str(folder)]
+    argv = [*run.argv(master), *extra, "--out", str(folder)]
     if path.exists():
         print(f"{run.name} master seed {master}: kept ({path})", flush=True)
     else:
@@ -601,6 +603,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--all", action="store_true", help="the expensive (highway) claims too")
     parser.add_argument("--out", type=Path, default=None, help="folder of the runs (default: temp)")
     parser.add_argument("--list", action="store_true", help="list the claims and stop")
+    parser.add_argument(
+        "--cluster", help="passed to every run (off: each run in one process, units one by one)"
+    )
     args = parser.parse_args(argv)
     if args.list:
         for claim in CLAIMS:
@@ -620,7 +625,8 @@ def main(argv: list[str] | None = None) -> None:
     print(f"runs in {out}", flush=True)
     masters = range(args.master_seeds)
     needed = list(dict.fromkeys(r for claim in chosen for r in claim.runs))
-    results = {(r, k): run_once(RUNS[r], k, out) for r in needed for k in masters}
+    extra = ("--cluster", args.cluster) if args.cluster else ()
+    results = {(r, k): run_once(RUNS[r], k, out, extra) for r in needed for k in masters}
     print()
     print(f"Over {args.master_seeds} master seeds (median [min, max]; measures: medians):")
     print()
