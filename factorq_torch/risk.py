@@ -76,6 +76,8 @@ from factorq_torch.functional import (
 from factorq_torch.structure import StructureLearner
 from factorq_torch.tables import LocalRewardTable
 
+#: The batch size of a loss's output (a scalar loss).
+_NO_BATCH = torch.Size([])
 #: Where the layer keeps the task values it read (``action_value`` then holds ``C(s)``).
 TASK_VALUE = "task_value"
 #: Where it writes eq. 3's ``G`` ``[*B]`` (explanations and monitoring).
@@ -642,7 +644,8 @@ class LocalRiskLoss(LossModule):
                         with set_recurrent_mode(True):
                             self._running_mean(update, sensors, action, local_reward)
             zero = torch.zeros((), device=local_reward.device)
-            return TensorDict({"loss_local": zero}, batch_size=[])
+            # (one 0-d entry of this device in a []-batch: nothing for the constructor to check)
+            return TensorDict._new_unsafe({"loss_local": zero}, batch_size=_NO_BATCH)
         # a network's values: under torchrl's loss contexts, as its other losses run theirs
         with set_exploration_type(self.deterministic_sampling_mode), set_recurrent_mode(True):
             rho = self.risk.local_values(tensordict)  # [*B, A], with a gradient
