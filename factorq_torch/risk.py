@@ -57,6 +57,8 @@ from typing import Any, overload
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
+from torchrl.envs.utils import set_exploration_type
+from torchrl.modules.tensordict_module.rnn import set_recurrent_mode
 from torchrl.objectives import LossModule
 from torchrl.objectives import common as _torchrl_loss_common
 
@@ -74,6 +76,8 @@ from factorq_torch.functional import (
 from factorq_torch.structure import StructureLearner
 from factorq_torch.tables import LocalRewardTable
 
+#: The batch size of a loss's output (a scalar loss).
+_NO_BATCH = torch.Size([])
 #: Where the layer keeps the task values it read (``action_value`` then holds ``C(s)``).
 TASK_VALUE = "task_value"
 #: Where it writes eq. 3's ``G`` ``[*B]`` (explanations and monitoring).
@@ -635,12 +639,17 @@ class LocalRiskLoss(LossModule):
                 sensors = tensordict.get(keys.sensors)
                 if batch == (self._online,):  # the online step of a table or learner
                     update(sensors, action, local_reward)
-                else:
-                    self._running_mean(update, sensors, action, local_reward)
+                else:  # (any provider's update, under torchrl's loss contexts)
+                    with set_exploration_type(self.deterministic_sampling_mode):
+                        with set_recurrent_mode(True):
+                            self._running_mean(update, sensors, action, local_reward)
             zero = torch.zeros((), device=local_reward.device)
-            return TensorDict({"loss_local": zero}, batch_size=[])
+            # (one 0-d entry of this device in a []-batch: nothing for the constructor to check)
+            return TensorDict._new_unsafe({"loss_local": zero}, batch_size=_NO_BATCH)
+        # a network's values: under torchrl's loss contexts, as its other losses run theirs
+        with set_exploration_type(self.deterministic_sampling_mode), set_recurrent_mode(True):
+            rho = self.risk.local_values(tensordict)  # [*B, A], with a gradient
         out = TensorDict(batch_size=[])
-        rho = self.risk.local_values(tensordict)  # [*B, A], with a gradient
         fired = action.unsqueeze(-1)
         error = rho.gather(-1, fired).squeeze(-1) - local_reward.gather(-1, fired).squeeze(-1)
         loss = 0.5 * error.pow(2).mean()
@@ -684,6 +693,13 @@ class LocalRiskLoss(LossModule):
             return
         experiment = torch.arange(count, device=action.device).expand(rows.shape[0], count)
         update(rows, actions, rewards, experiment=experiment)
+
+
+# torchrl's loss metaclass wraps every loss's forward in two context managers (the exploration
+# type and the recurrent mode, ~20 us a call, the dearest part of a table's online step); a
+# table's or learner's update runs no module, so LocalRiskLoss enters them itself, around the
+# network it reads (a subclass is wrapped again by the metaclass, as any loss is)
+LocalRiskLoss.forward = LocalRiskLoss.forward.__wrapped__  # type: ignore[attr-defined,method-assign]
 
 
 @dataclass

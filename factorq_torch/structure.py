@@ -829,7 +829,8 @@ class StructureLearner(TensorDictModuleBase):
             for n, t in zip(new["count"][0], new["reward_sum"][0], strict=True)
         ]
         arrays["mean"][where_index] = means
-        weights = posterior_weights(torch.tensor(log_posteriors, dtype=torch.float64)).tolist()
+        stacked = torch.from_numpy(np.array(log_posteriors, dtype=np.float64))  # [R, C]
+        weights = posterior_weights(stacked).tolist()
         threshold = self.log_bayes_factor
         committed = arrays["committed"]
         for index, (flat, log_posterior, weight) in enumerate(
@@ -922,7 +923,8 @@ class StructureLearner(TensorDictModuleBase):
             for n, t in zip(counts, reward_sum.tolist(), strict=True)
         ]
         arrays["mean"][where_index] = means
-        weights = posterior_weights(torch.tensor([log_posterior], dtype=torch.float64))
+        # (the same [1, C] float64 tensor as torch.tensor's, built through numpy: a third of it)
+        weights = posterior_weights(torch.from_numpy(np.array([log_posterior], dtype=np.float64)))
         span = slice(fired * candidates, (fired + 1) * candidates)
         arrays["weights_cache"][span] = weights.numpy()[0]
         best = max(log_posterior)

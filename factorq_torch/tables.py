@@ -528,8 +528,48 @@ class LocalRewardTable(TensorDictModuleBase):
     def local_values(self, readings: torch.Tensor) -> torch.Tensor:
         """``rho(o)`` ``[S, A]`` of the online step's readings ``[S, K]`` (bool, checked by the
         caller): what ``forward`` writes for a ``[S]`` batch, without the tensordict
-        (``project_local``; ``StructureLearner.local_values`` is its counterpart)."""
-        return project_local(self.rho, readings, self.dependency)
+        (``project_local``; ``StructureLearner.local_values`` is its counterpart). A few
+        experiments on the CPU are read by ``_local_values_read``, the same entries."""
+        rho = self.rho
+        if (
+            readings.is_cpu
+            and rho.is_cpu
+            and rho.dtype in (torch.float32, torch.float64)
+            and not rho.requires_grad
+            and readings.shape == (self.num_experiments, self.num_sensors)
+            and self.num_experiments * self.num_actions <= ROW_KERNEL_VALUES
+        ):
+            return self._local_values_read(rho, readings)
+        return project_local(rho, readings, self.dependency)
+
+    def _local_values_read(self, rho: torch.Tensor, readings: torch.Tensor) -> torch.Tensor:
+        """``project_local(rho, readings, dependency)`` of a few experiments on the CPU, read
+        through numpy: ``rho[s, a, o_D(a)]`` at flat indices computed once per reading
+        (``local_pattern_of``, the mirror of ``local_patterns``; a copy of the same entries,
+        so the same numbers: tests/test_tables.py compares the two) and per dependency (its
+        tensor and version), where project_local's dozen tensor ops cost more than the read
+        (the layer reads it at every step of one agent)."""
+        dependency = self.dependency
+        state = (dependency, dependency._version, rho.shape)
+        memo: tuple[tuple, dict[bytes, np.ndarray]] | None = self.__dict__.get("_read_index")
+        if memo is None or memo[0][0] is not dependency or memo[0][1:] != state[1:]:
+            memo = self.__dict__["_read_index"] = (state, {})
+        key = readings.numpy().tobytes()
+        index = memo[1].get(key)
+        if index is None:
+            actions, width = self.num_actions, rho.shape[-1]
+            index = np.array(
+                [
+                    (row * actions + a) * width + local_pattern_of(reading, dependency, a)
+                    for row, reading in enumerate(readings.tolist())
+                    for a in range(actions)
+                ],
+                dtype=np.intp,
+            )
+            if len(memo[1]) >= 1 << 16:  # (at most 2**K readings per experiment)
+                memo[1].clear()
+            memo[1][key] = index
+        return torch.from_numpy(rho.numpy().reshape(-1)[index].reshape(readings.shape[0], -1))
 
     @torch.no_grad()
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]

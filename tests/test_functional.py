@@ -143,6 +143,9 @@ def test_the_fused_rows_leave_what_they_do_not_mirror_to_the_tensor_ops():
     for bad in (math.nan, math.inf):  # finiteness is checked (and reported) by the caller
         assert local_risk_rows(torch.tensor([[bad, 0.0]]), torch.zeros(1, 2)) is None
         assert local_risk_rows(torch.zeros(1, 2), torch.tensor([[0.0, bad]])) is None
+    infinities = torch.tensor([[math.inf, -math.inf]])  # (checked on their sum: NaN)
+    assert local_risk_rows(infinities, torch.zeros(1, 2)) is None
+    assert local_risk_rows(torch.zeros(1, 2), infinities) is None
     grad = torch.ones(1, 4, requires_grad=True)  # read without its graph
     assert torch.equal(local_risk_rows(grad, rho)[0], grad.detach() + 0.01 * rho)
 

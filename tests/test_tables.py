@@ -138,6 +138,36 @@ def test_the_online_update_through_numpy_is_the_batched_update_bit_for_bit():
     assert torch.equal(fast.kappa, batched.kappa)  # nothing written
 
 
+def test_the_online_read_through_numpy_is_project_local_bit_for_bit():
+    """``LocalRewardTable.local_values`` of a few CPU experiments reads ``rho`` through numpy at
+    indices remembered by reading (``_local_values_read``): the entries ``project_local``
+    gathers, through updates, a dependency changed in place and another ``rho`` dtype."""
+    from factorq_torch.functional import project_local
+
+    generator = torch.Generator().manual_seed(42)
+    dependency = torch.tensor(  # pairs, a single parent and none: patterns of 0-2 bits
+        [[True, False, True, False], [False, True, False, False], [False] * 4, [True] * 4]
+    )
+    for experiments in (1, 3):
+        local = LocalRewardTable(experiments, dependency=dependency)
+        for step in range(200):
+            readings = torch.rand(experiments, 4, generator=generator) < 0.5
+            if step == 100:  # a new dependency in place: the remembered indices are dropped
+                local.dependency[3, 1:] = False
+            if step == 150:
+                local.rho = local.rho.double()
+            fast = local.local_values(readings)
+            expected = project_local(local.rho, readings, local.dependency)
+            assert fast.dtype == expected.dtype and fast.shape == (experiments, 4)
+            assert torch.equal(fast.view(torch.int8), expected.view(torch.int8))
+            action = torch.randint(0, 4, (experiments,), generator=generator)
+            reward = -torch.rand(experiments, 4, generator=generator, dtype=torch.float64)
+            local.update_running_mean(readings, action, reward.to(local.rho.dtype))
+        assert local.__dict__["_read_index"][1]  # (the read path ran)
+        local.rho.requires_grad_(True)  # anything else: project_local itself
+        assert local.local_values(readings).requires_grad
+
+
 def test_local_update_leaves_masked_experiments_alone():
     local = LocalRewardTable(2)
     proximity = torch.ones(2, 4, dtype=torch.bool)
