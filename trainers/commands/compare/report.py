@@ -17,7 +17,7 @@ import numpy as np
 from factorq_trainers.analysis import stats
 from factorq_trainers.analysis.vocabulary import label
 from factorq_trainers.runner import outdir
-from factorq_trainers.runner.results import body_label, interval_or_none
+from factorq_trainers.runner.results import body_label, interval_or_none, new_figure
 
 #: A method reached the threshold when an episode took at most this many times the shortest path.
 THRESHOLD_FACTOR = 1.5
@@ -32,13 +32,9 @@ COLOURS = {
 
 def write_figure(results: dict[str, Any], path: str | os.PathLike) -> None:
     """Steps and collisions per episode against env steps, mean and 95% band, one column a world."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     worlds = list(results["thresholds"])
     grid = np.asarray(results["curves"]["env_steps"])
-    figure = Figure(figsize=(4.2 * len(worlds), 7.0), layout="constrained")
-    FigureCanvasAgg(figure)
+    figure = new_figure(figsize=(4.2 * len(worlds), 7.0), layout="constrained")
     axes = figure.subplots(2, len(worlds), squeeze=False, sharex=True)
     rows = (("steps", "steps per episode"), ("collisions", "collisions per episode"))
     for column, world in enumerate(worlds):
