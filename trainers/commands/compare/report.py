@@ -82,10 +82,6 @@ def _number(value: float | None, digits: int = 0) -> str:
     return f"{value:,.{digits}f}"
 
 
-def _seconds(value: float | None) -> str:
-    return "-" if value is None else f"{value:.0f}"
-
-
 def report_markdown(results: dict[str, Any]) -> str:
     """``comparison.md``: one row per method and world."""
     config = results["config"]
@@ -114,6 +110,7 @@ def report_markdown(results: dict[str, Any]) -> str:
         for world, cell in worlds.items():
             low, high = cell["collisions_ci95"]
             g_low, g_high = cell["greedy_collisions_ci95"]
+            seconds = "-" if cell["wall_s"] is None else f"{cell['wall_s']:.0f}"
             collisions = _number(cell["collisions"], 1)
             greedy = _number(cell["greedy_collisions"], 1)
             if low is not None:
@@ -123,7 +120,7 @@ def report_markdown(results: dict[str, Any]) -> str:
                 f"| {label(method)} | {world} | {_number(cell['steps_to_threshold'])} "
                 f"| {cell['seeds_reached']}/{config['seeds']} | {collisions} | {greedy} "
                 f"| {_number(cell['avoidable_greedy_collisions'], 1)} "
-                f"| {_number(cell['final_path_length'], 1)} | {_seconds(cell['wall_s'])} |"
+                f"| {_number(cell['final_path_length'], 1)} | {seconds} |"
             )
     thresholds = ", ".join(
         f"{world} {entry['shortest_path']} -> {entry['threshold']:g}"

@@ -25,7 +25,8 @@ def _against_cells(against: dict[str, Any]) -> str:
     """The learned / oracle cells of a row: the three ratios (collisions, greedy, learning
     speed), then the absolute task measures of both (steps per episode, episodes truncated)."""
     names = ("collisions", "greedy_collisions", "learning_speed")
-    cells = [_ratio_text(against.get(name)) for name in names]
+    entries = [against.get(name) for name in names]
+    cells = ["n/a" if e is None else with_ci(e["ratio"], e.get("ci")) for e in entries]
     absolute = against.get("absolute")  # none where the oracle did not run
     if absolute is None:
         return " | ".join([*cells, "n/a", "n/a"])
@@ -38,10 +39,6 @@ def _against_cells(against: dict[str, Any]) -> str:
 
 def _percent(value: float | None) -> str:
     return "n/a" if value is None else f"{100 * value:.0f}%"
-
-
-def _ratio_text(entry: dict[str, Any] | None) -> str:
-    return "n/a" if entry is None else with_ci(entry["ratio"], entry.get("ci"))
 
 
 def _regimes(config: dict[str, Any]) -> str:
