@@ -111,7 +111,7 @@ class CompareConfig(experiment.WorldOptions):
                 "`pip install tensorboard` (the extra: `pip install -e '.[tensorboard]'`), "
                 "or use logger='csv'"
             )
-        object.__setattr__(self, "out", checked_out(self.out))
+        object.__setattr__(self, "out", checked_out(self.out, files=True))  # claim() refuses one
         check_threads("threads", self.threads)
         for name, kind in (
             ("agent", AgentConfig),
