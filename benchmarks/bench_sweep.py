@@ -34,7 +34,7 @@ if str(ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(ROOT))
 
 from factorq_trainers.commands.paper import command as paper  # noqa: E402
-from factorq_trainers.distributed import sweep_run, sweep_spec  # noqa: E402
+from factorq_trainers.distributed import sweep, sweep_spec  # noqa: E402
 from factorq_trainers.runner import cluster  # noqa: E402
 
 
@@ -53,7 +53,7 @@ def _numbers(result: dict) -> list:
 
 def _timed_sweep(spec: sweep_spec.SweepSpec, executor) -> tuple[float, dict]:
     started = time.perf_counter()
-    result = sweep_run.run_sweep(spec, executor)
+    result = sweep.run_sweep(spec, executor)
     return time.perf_counter() - started, result
 
 

@@ -17,7 +17,7 @@ from timing import patience  # tests/timing.py: bounds that stretch with the loa
 from factorq_trainers import cli
 from factorq_trainers.commands.paper import command as paper
 from factorq_trainers.compiled import fast
-from factorq_trainers.distributed import sweep_run, sweep_spec
+from factorq_trainers.distributed import sweep, sweep_spec
 from factorq_trainers.runner import cluster, frame
 from factorq_trainers.runner import results as result_files
 
@@ -91,8 +91,8 @@ def test_a_sweep_on_the_cluster_equals_the_sweep_in_process(executor, tmp_path):
         seeds=3,
         out=str(tmp_path / "cluster"),
     )
-    on_cluster = sweep_run.run_sweep(spec, executor)
-    in_process = sweep_run.run_sweep(replace(spec, out=str(tmp_path / "here")), cluster.InProcess())
+    on_cluster = sweep.run_sweep(spec, executor)
+    in_process = sweep.run_sweep(replace(spec, out=str(tmp_path / "here")), cluster.InProcess())
     strip = [
         {**row, "config": {**row["config"], "out": None}} for row in on_cluster["configurations"]
     ]

@@ -266,7 +266,7 @@ def _negative(results):
 def test_a_paper_sweep_refuses_an_edited_kept_configuration_before_any_work_and_force_recomputes_it(
     tmp_path, change, sign, message
 ):
-    from factorq_trainers.distributed import sweep_run, sweep_spec
+    from factorq_trainers.distributed import sweep, sweep_spec
     from factorq_trainers.runner import cluster
 
     class Counting(cluster.InProcess):
@@ -283,16 +283,16 @@ def test_a_paper_sweep_refuses_an_edited_kept_configuration_before_any_work_and_
         seeds=2,
         out=str(tmp_path / "sweep"),
     )
-    first = sweep_run.run_sweep(spec, cluster.InProcess())
+    first = sweep.run_sweep(spec, cluster.InProcess())
     path = tmp_path / "sweep" / first["configurations"][1]["results_file"]
     _rewrite(path, change, sign)
     refused = Counting()
     with pytest.raises(ValueError, match=message) as error:
-        sweep_run.run_sweep(spec, refused)
+        sweep.run_sweep(spec, refused)
     assert str(path) in one_line(error) and "pass --force to recompute it" in str(error.value)
     assert refused.items == []  # refused before any work
     forced = Counting()
-    again = sweep_run.run_sweep(spec, forced, force=True)
+    again = sweep.run_sweep(spec, forced, force=True)
     assert forced.items == [spec.configurations()[1]]
     assert again["configurations"] == first["configurations"]
     assert again["timing"]["configurations_run_now"] == 1

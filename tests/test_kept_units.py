@@ -325,22 +325,22 @@ def test_a_sweeps_kept_result_of_another_configuration_is_refused(tmp_path):
     """A configuration's file copied to another's place (its name is that configuration's
     digest) and resealed: its tie names the configuration it was computed for."""
     from factorq_trainers.commands.dependencies import command as dependencies
-    from factorq_trainers.distributed import sweep_run
+    from factorq_trainers.distributed import sweep
     from factorq_trainers.distributed.sweep_spec import config_digest
 
     first = dependencies.DependenciesConfig(seeds=2)
     second = dependencies.DependenciesConfig(seeds=3)
     results = {"schema_version": 1, "command": "dependencies", "config": {"seeds": 2}}
-    path = sweep_run.config_result_path(tmp_path, second)
+    path = sweep.config_result_path(tmp_path, second)
     path.write_text(kept.dumps_sealed(results, kept.tie("dependencies", config_digest(first))))
     with pytest.raises(ValueError, match="was kept for another configuration") as error:
-        sweep_run._pending_configs(tmp_path, [second], False, "dependencies")
+        sweep._pending_configs(tmp_path, [second], False, "dependencies")
     assert str(path) in str(error.value) and "--force" in str(error.value)
-    assert sweep_run._pending_configs(tmp_path, [second], True, "dependencies") == [second]
+    assert sweep._pending_configs(tmp_path, [second], True, "dependencies") == [second]
     path.write_text(kept.dumps_sealed(results, kept.tie("dependencies", config_digest(second))))
-    assert sweep_run._pending_configs(tmp_path, [second], False, "dependencies") == []
+    assert sweep._pending_configs(tmp_path, [second], False, "dependencies") == []
     with pytest.raises(ValueError, match="kept by command 'dependencies', not `factorq risk`"):
-        sweep_run._pending_configs(tmp_path, [second], False, "risk")
+        sweep._pending_configs(tmp_path, [second], False, "risk")
 
 
 def test_factorq_report_refuses_a_results_file_written_before_versioning(tmp_path, capsys):

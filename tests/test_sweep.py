@@ -18,7 +18,7 @@ from timing import patience  # tests/timing.py: bounds that stretch with the loa
 from factorq_trainers import cli
 from factorq_trainers.commands.paper import command as paper
 from factorq_trainers.compiled import fast
-from factorq_trainers.distributed import sweep_run, sweep_spec
+from factorq_trainers.distributed import sweep, sweep_spec
 from factorq_trainers.distributed.sweep_spec import SweepError, SweepSpec
 from factorq_trainers.runner import cluster
 from factorq_trainers.runner import results as result_files
@@ -187,7 +187,7 @@ def test_a_sweep_writes_its_table_and_a_figure_per_axis(tmp_path, capsys):
 @needs_fast
 def test_a_sweep_cell_equals_the_paper_run_of_its_configuration(tmp_path):
     spec = _spec(tmp_path)
-    result = sweep_run.run_sweep(spec, cluster.InProcess())
+    result = sweep.run_sweep(spec, cluster.InProcess())
     config = spec.configurations()[1]
     expected = paper.run(replace(config, out=str(tmp_path / "paper")))
     cell = result["configurations"][1]["cells"]["dynamic/factor-q"]
@@ -201,12 +201,12 @@ def test_a_killed_sweep_resumes_running_only_the_missing_configurations_with_the
 ):
     spec = _spec(tmp_path)
     first = CountingExecutor()
-    complete = sweep_run.run_sweep(spec, first)
+    complete = sweep.run_sweep(spec, first)
     assert first.items == spec.configurations()  # one task per configuration
     lost = tmp_path / "sweep" / complete["configurations"][1]["results_file"]
     lost.unlink()  # as if the sweep had been killed before this configuration finished
     again = CountingExecutor()
-    resumed = sweep_run.run_sweep(spec, again)
+    resumed = sweep.run_sweep(spec, again)
     assert again.items == [first.items[1]]
     assert resumed["configurations"] == complete["configurations"]
     assert resumed["timing"]["configurations_run_now"] == 1
@@ -253,7 +253,7 @@ def test_a_sweep_killed_with_sigkill_resumes_from_its_kept_configurations_with_t
     resumed = json.loads((out / "sweep.json").read_text())
     assert resumed["timing"]["configurations_run_now"] == 3 - len(finished)
     spec = sweep_spec.SweepSpec(grid=(("eta", (0.05, 0.1, 0.2)),), seeds=40, out=str(out))
-    fresh = sweep_run.run_sweep(replace(spec, out=str(tmp_path / "fresh")), cluster.InProcess())
+    fresh = sweep.run_sweep(replace(spec, out=str(tmp_path / "fresh")), cluster.InProcess())
     for row in (*resumed["configurations"], *fresh["configurations"]):
         row["config"].pop("out")
     assert resumed["configurations"] == json.loads(result_files.dumps(fresh))["configurations"]
@@ -320,7 +320,7 @@ def test_a_compare_sweep_cell_equals_factorq_compare_and_resumes(tmp_path, capsy
     # resumption: a lost configuration file is the only work of the next run
     (out / row["results_file"]).unlink()
     again = CountingExecutor()
-    resumed = sweep_run.run_sweep(replace(spec, out=str(out)), again)
+    resumed = sweep.run_sweep(replace(spec, out=str(out)), again)
     assert [item.seed for item in again.items] == [1]  # one task: the lost configuration
     assert resumed["timing"]["configurations_run_now"] == 1
     assert _without_wall_s(json.loads(result_files.dumps(resumed))["configurations"]) == (
@@ -332,7 +332,7 @@ def test_a_compare_sweep_cell_equals_factorq_compare_and_resumes(tmp_path, capsy
     (out / row["results_file"]).write_text(json.dumps(edited))
     refused = CountingExecutor()
     with pytest.raises(ValueError, match="does not match its digest .* pass --force to recompute"):
-        sweep_run.run_sweep(replace(spec, out=str(out)), refused)
+        sweep.run_sweep(replace(spec, out=str(out)), refused)
     assert refused.items == []
 
 
@@ -392,7 +392,7 @@ def test_a_dependencies_sweep_cell_equals_factorq_dependencies_and_resumes(tmp_p
     # resumption: a lost configuration file is the only work of the next run
     (out / row["results_file"]).unlink()
     again = CountingExecutor()
-    resumed = sweep_run.run_sweep(replace(spec, out=str(out)), again)
+    resumed = sweep.run_sweep(replace(spec, out=str(out)), again)
     assert again.items == [replace(config, out=str(out))]
     assert resumed["timing"]["configurations_run_now"] == 1
     assert _without_wall_s(json.loads(result_files.dumps(resumed))["configurations"]) == (
@@ -408,7 +408,7 @@ def test_a_dependencies_sweep_cell_equals_factorq_dependencies_and_resumes(tmp_p
         kept.write_text(bad)
         refused = CountingExecutor()
         with pytest.raises(ValueError, match="configuration file .* pass --force to recompute"):
-            sweep_run.run_sweep(replace(spec, out=str(out)), refused)
+            sweep.run_sweep(replace(spec, out=str(out)), refused)
         assert refused.items == []
     (out / "sweep.json").unlink()
     (out / "sweep.md").unlink()  # (an --out with them is refused without --force)

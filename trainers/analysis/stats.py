@@ -168,6 +168,12 @@ def format_number(value: float | None) -> str:
     return f"{value:.{max(2 - math.floor(math.log10(abs(value))), 0)}f}"
 
 
+def with_ci(value: float | None, ci: Any) -> str:
+    """``format_number(value)``, then its 95% interval ``[low, high]`` where it has one."""
+    text = format_number(value)
+    return f"{text} [{format_number(ci[0])}, {format_number(ci[1])}]" if ci else text
+
+
 #: What a report says where a ratio of counts would say nothing (``count_ratio``).
 TOO_LITTLE_DATA = "too little data"
 

@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from factorq_torch.base.validation import INT32_MAX, check_int
-from factorq_trainers.runner import kept, reading, registry
+from factorq_trainers.runner import kept, outdir, reading, registry
 from factorq_trainers.runner.frame import plain
 
 DEFAULT_SEEDS = 100
@@ -137,10 +137,7 @@ class SweepSpec:
     def __post_init__(self) -> None:
         check_command(self.command, "sweep")
         check_int("seeds", self.seeds, 1, INT32_MAX)
-        if not isinstance(self.out, str) or not self.out:
-            raise SweepError(f"out={self.out!r} must be a directory path")
-        if Path(self.out).exists() and not Path(self.out).is_dir():
-            raise SweepError(f"out={self.out!r} is an existing file: give a directory")
+        object.__setattr__(self, "out", outdir.checked_out(self.out, SweepError))
         known = sweepable_fields(self.command)
         reserved, nested = reserved_fields(self.command), nested_fields(self.command)
         entries = [("base", name, (value,)) for name, value in self.base]

@@ -59,14 +59,7 @@ def report_markdown(sweep: dict[str, Any]) -> str:
         passed = f"{sum(c['pass'] for c in evaluated)}/{len(evaluated)}" if evaluated else "n/a"
         passed_column = [passed] if is_paper else []
         for cell in row["cells"].values():
-            numbers = []
-            for measure in measures:
-                entry = cell[measure]
-                text = stats.format_number(entry["mean"])
-                if entry["ci95"] is not None:
-                    low, high = (stats.format_number(v) for v in entry["ci95"])
-                    text += f" [{low}, {high}]"
-                numbers.append(text)
+            numbers = [stats.with_ci(cell[m]["mean"], cell[m]["ci95"]) for m in measures]
             values = [_shown(row["values"].get(axis, "")) for axis in axes]
             lines.append(
                 "| "
@@ -84,9 +77,6 @@ def _measures(sweep: dict[str, Any]) -> list[str]:
 def write_axis_figure(sweep: dict[str, Any], axis: str, path: Path) -> None:
     """Means with 95% intervals of the three measures against ``axis``, one line per world and
     algorithm; the other axes held at their first value (named in the title)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     others = {
         name: sweep["configurations"][0]["values"].get(name)
         for name in sweep["axes"]
@@ -102,8 +92,7 @@ def write_axis_figure(sweep: dict[str, Any], axis: str, path: Path) -> None:
     numeric = all(isinstance(row["values"][axis], int | float) for row in rows)
     x = np.array([row["values"][axis] for row in rows], float) if numeric else np.arange(len(rows))
     measures = _measures(sweep)
-    figure = Figure(figsize=(13, 4), layout="constrained")
-    FigureCanvasAgg(figure)
+    figure = result_files.new_figure(figsize=(13, 4), layout="constrained")
     panels = figure.subplots(1, len(measures))
     cells = list(dict.fromkeys(cell for row in rows for cell in row["cells"]))  # e.g. worlds axis
     for panel, measure in zip(panels, measures, strict=True):

@@ -66,6 +66,18 @@ def option(default: Any, doc: str, *, choices: tuple[str, ...] | None = None) ->
     return dataclasses.field(default=default, metadata=metadata)
 
 
+def check_choices(config: Any) -> None:
+    """Refuse (a ValueError naming it) a field of dataclass ``config`` declared with ``choices``
+    whose value is not one of them: what argparse checks of an option, checked of a config made
+    in code too."""
+    for field in dataclasses.fields(config):
+        choices, value = field.metadata.get("choices"), getattr(config, field.name)
+        if choices is not None and value not in choices:
+            raise ValueError(
+                f"{field.name}={value!r} is unknown: choose one of {', '.join(choices)}"
+            )
+
+
 def field_docs(cls: type) -> dict[str, str]:
     """The doc of every field of dataclass ``cls`` that has one."""
     return {f.name: f.metadata["doc"] for f in dataclasses.fields(cls) if "doc" in f.metadata}

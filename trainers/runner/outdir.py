@@ -45,6 +45,17 @@ class OutputDirError(ValueError):
     """An output directory that cannot be used, with the reason and what to do instead."""
 
 
+def checked_out(out: object, error: type[ValueError] = ValueError, files: bool = False) -> str:
+    """A config's ``out`` option as a path string, checked when the config is made: ``error``
+    (a ValueError) where it is no path or (unless ``files``: compare's ``run`` writes nothing,
+    ``/dev/null`` will do) names an existing file."""
+    if not isinstance(out, str | os.PathLike) or not str(out):
+        raise error(f"out={out!r} must be a directory path")
+    if not files and Path(out).exists() and not Path(out).is_dir():
+        raise error(f"out={out!r} is an existing file: give a directory")
+    return str(out)
+
+
 class LinkRefused(OutputDirError):
     """A symbolic link where factorq writes a file of its own (a lock, a temporary, an output)."""
 

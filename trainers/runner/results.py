@@ -33,6 +33,17 @@ class FigureError(RuntimeError):
     the runner's frame can tell it from a bug."""
 
 
+def new_figure(**options: Any) -> Any:
+    """A matplotlib ``Figure(**options)`` on an Agg canvas, as every report draws: no pyplot, so
+    no global state and no display (matplotlib is imported here, when a figure is drawn)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    figure = Figure(**options)
+    FigureCanvasAgg(figure)
+    return figure
+
+
 def dumps(results: dict[str, Any]) -> str:
     """``results`` as JSON: indented, lists of numbers on one line, non-finite numbers as null."""
     return _dumps(results, 0) + "\n"

@@ -4,7 +4,6 @@ options and their checks."""
 from __future__ import annotations
 
 import importlib.util
-import os
 from dataclasses import dataclass, fields
 
 from factorq_envs.regimes import REGIMES
@@ -14,7 +13,8 @@ from factorq_torch.neural import ACTIVATIONS
 from factorq_trainers.methods import experiment
 from factorq_trainers.methods.dqn import METHODS, DQNConfig
 from factorq_trainers.methods.experiment import ExperimentConfig
-from factorq_trainers.runner.options import option
+from factorq_trainers.runner.options import check_choices, option
+from factorq_trainers.runner.outdir import checked_out
 
 LOGGERS = ("csv", "tensorboard")
 #: Fields that leave the numbers alone: a sweep's digest of a configuration leaves them out.
@@ -32,7 +32,9 @@ class FactorDQNConfig:
     hidden: tuple[int, ...] = option(
         (64,), "Hidden layer widths of each experiment's task Q-network (input: the cell one-hot)."
     )
-    activation: str = option("relu", "Hidden activation of the task Q-network: tanh or relu.")
+    activation: str = option(
+        "relu", "Hidden activation of the task Q-network: tanh or relu.", choices=ACTIVATIONS
+    )
     local_hidden: tuple[int, ...] = option(
         (8,), "Hidden layer widths of each actuator's local reward network (input: its sensor bit)."
     )
@@ -42,7 +44,9 @@ class FactorDQNConfig:
     )
     lr: float = option(1e-3, "Adam learning rate of the task Q-network.")
     local_lr: float = option(1e-2, "Adam learning rate of the local reward networks.")
-    local_activation: str = option("tanh", "Hidden activation of the local networks: tanh or relu.")
+    local_activation: str = option(
+        "tanh", "Hidden activation of the local networks: tanh or relu.", choices=ACTIVATIONS
+    )
     local_shared: bool = option(
         True,
         "One local network per experiment shared by its four actuators (else one per actuator).",
@@ -57,12 +61,7 @@ class FactorDQNConfig:
         for name in ("local_bias", "local_shared"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"{name} must be a bool, got {getattr(self, name)!r}")
-        for name in ("activation", "local_activation"):
-            if getattr(self, name) not in ACTIVATIONS:
-                raise ValueError(
-                    f"{name}={getattr(self, name)!r} is unknown: choose one of "
-                    f"{', '.join(ACTIVATIONS)}"
-                )
+        check_choices(self)  # activation, local_activation
         check_float("lr", self.lr, 0.0, 1.0, low_open=True)
         check_float("local_lr", self.local_lr, 0.0, 1.0, low_open=True)
         check_float("epsilon", self.epsilon, 0.0, 1.0)
@@ -105,19 +104,14 @@ class CompareConfig(experiment.WorldOptions):
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "methods", check_names("methods", self.methods, METHODS))
-        if self.logger not in LOGGERS:
-            raise ValueError(
-                f"logger={self.logger!r} is unknown: choose one of {', '.join(LOGGERS)}"
-            )
+        check_choices(self)  # logger
         if self.logger == "tensorboard" and importlib.util.find_spec("tensorboard") is None:
             raise ValueError(
                 "logger='tensorboard' needs the tensorboard package, which is not installed: "
                 "`pip install tensorboard` (the extra: `pip install -e '.[tensorboard]'`), "
                 "or use logger='csv'"
             )
-        if not isinstance(self.out, str | os.PathLike) or not str(self.out):
-            raise ValueError(f"out={self.out!r} must be a directory path")
-        object.__setattr__(self, "out", str(self.out))
+        object.__setattr__(self, "out", checked_out(self.out, files=True))  # claim() refuses one
         check_threads("threads", self.threads)
         for name, kind in (
             ("agent", AgentConfig),

@@ -17,7 +17,7 @@ import numpy as np
 from factorq_trainers.analysis import stats
 from factorq_trainers.analysis.vocabulary import label
 from factorq_trainers.runner import outdir
-from factorq_trainers.runner.results import body_label, interval_or_none
+from factorq_trainers.runner.results import body_label, interval_or_none, new_figure
 
 #: A method reached the threshold when an episode took at most this many times the shortest path.
 THRESHOLD_FACTOR = 1.5
@@ -32,13 +32,9 @@ COLOURS = {
 
 def write_figure(results: dict[str, Any], path: str | os.PathLike) -> None:
     """Steps and collisions per episode against env steps, mean and 95% band, one column a world."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     worlds = list(results["thresholds"])
     grid = np.asarray(results["curves"]["env_steps"])
-    figure = Figure(figsize=(4.2 * len(worlds), 7.0), layout="constrained")
-    FigureCanvasAgg(figure)
+    figure = new_figure(figsize=(4.2 * len(worlds), 7.0), layout="constrained")
     axes = figure.subplots(2, len(worlds), squeeze=False, sharex=True)
     rows = (("steps", "steps per episode"), ("collisions", "collisions per episode"))
     for column, world in enumerate(worlds):
@@ -86,10 +82,6 @@ def _number(value: float | None, digits: int = 0) -> str:
     return f"{value:,.{digits}f}"
 
 
-def _seconds(value: float | None) -> str:
-    return "-" if value is None else f"{value:.0f}"
-
-
 def report_markdown(results: dict[str, Any]) -> str:
     """``comparison.md``: one row per method and world."""
     config = results["config"]
@@ -118,6 +110,7 @@ def report_markdown(results: dict[str, Any]) -> str:
         for world, cell in worlds.items():
             low, high = cell["collisions_ci95"]
             g_low, g_high = cell["greedy_collisions_ci95"]
+            seconds = "-" if cell["wall_s"] is None else f"{cell['wall_s']:.0f}"
             collisions = _number(cell["collisions"], 1)
             greedy = _number(cell["greedy_collisions"], 1)
             if low is not None:
@@ -127,7 +120,7 @@ def report_markdown(results: dict[str, Any]) -> str:
                 f"| {label(method)} | {world} | {_number(cell['steps_to_threshold'])} "
                 f"| {cell['seeds_reached']}/{config['seeds']} | {collisions} | {greedy} "
                 f"| {_number(cell['avoidable_greedy_collisions'], 1)} "
-                f"| {_number(cell['final_path_length'], 1)} | {_seconds(cell['wall_s'])} |"
+                f"| {_number(cell['final_path_length'], 1)} | {seconds} |"
             )
     thresholds = ", ".join(
         f"{world} {entry['shortest_path']} -> {entry['threshold']:g}"

@@ -4,7 +4,6 @@ presets, the custom setting the body options declare, and the checks of every op
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import math
@@ -23,7 +22,7 @@ from factorq_torch.base.validation import (
 )
 from factorq_trainers.analysis.vocabulary import among
 from factorq_trainers.methods.experiment import MAX_SEED, PAPER_WORLD, check_world_options
-from factorq_trainers.runner.options import option
+from factorq_trainers.runner.options import check_choices, option
 
 #: The fields that leave the numbers alone (the compiled and modular paths agree bit for bit);
 #: read by ``factorq sweep`` from the config's module.
@@ -235,12 +234,7 @@ class DependenciesConfig:
         check_int("max_parents", self.max_parents, 0)
         check_int("window", self.window, 1, INT32_MAX)
         check_threads("threads", self.threads)
-        for field in dataclasses.fields(self):  # the options with choices (``option``'s)
-            choices, value = field.metadata.get("choices"), getattr(self, field.name)
-            if choices is not None and value not in choices:
-                raise ValueError(
-                    f"{field.name}={value!r} is unknown: choose one of {', '.join(choices)}"
-                )
+        check_choices(self)
         if not isinstance(self.bayes_factor, (int, float)) or not self.bayes_factor > 1:
             raise ValueError(
                 f"bayes_factor={self.bayes_factor!r} must be > 1 (a commitment needs evidence "

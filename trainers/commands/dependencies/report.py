@@ -5,8 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from factorq_trainers.analysis.stats import format_number
-from factorq_trainers.runner.results import interval_or_none
+from factorq_trainers.analysis.stats import format_number, with_ci
+from factorq_trainers.methods.units import sweep_cell
+from factorq_trainers.runner.results import interval_or_none, new_figure
 
 
 def _label(results: dict[str, Any], method: str) -> str:
@@ -24,7 +25,8 @@ def _against_cells(against: dict[str, Any]) -> str:
     """The learned / oracle cells of a row: the three ratios (collisions, greedy, learning
     speed), then the absolute task measures of both (steps per episode, episodes truncated)."""
     names = ("collisions", "greedy_collisions", "learning_speed")
-    cells = [_ratio_text(against.get(name)) for name in names]
+    entries = [against.get(name) for name in names]
+    cells = ["n/a" if e is None else with_ci(e["ratio"], e.get("ci")) for e in entries]
     absolute = against.get("absolute")  # none where the oracle did not run
     if absolute is None:
         return " | ".join([*cells, "n/a", "n/a"])
@@ -37,16 +39,6 @@ def _against_cells(against: dict[str, Any]) -> str:
 
 def _percent(value: float | None) -> str:
     return "n/a" if value is None else f"{100 * value:.0f}%"
-
-
-def _ratio_text(entry: dict[str, Any] | None) -> str:
-    if entry is None:
-        return "n/a"
-    text = format_number(entry["ratio"])
-    if entry.get("ci"):
-        low, high = entry["ci"]
-        text += f" [{format_number(low)}, {format_number(high)}]"
-    return text
 
 
 def _regimes(config: dict[str, Any]) -> str:
@@ -155,12 +147,8 @@ def markdown(results: dict[str, Any]) -> str:
 def figure(results: dict[str, Any], path: Path) -> None:
     """Top: fraction of experiments holding the right structure against env steps, per setting;
     bottom: collisions per episode per method."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     settings, methods = list(results["settings"]), list(results["methods"])
-    figure = Figure(figsize=(3.2 * max(len(settings), 1), 6.0), layout="constrained")
-    FigureCanvasAgg(figure)
+    figure = new_figure(figsize=(3.2 * max(len(settings), 1), 6.0), layout="constrained")
     axes = figure.subplots(2, max(len(settings), 1), squeeze=False)
     for column, setting in enumerate(settings):
         summary = results["settings"][setting]
@@ -212,20 +200,12 @@ def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
         ratio = summary.get("against_oracle", {}).get("collisions")
         for method, entry in summary["methods"].items():
             learned = method == "factor-q-learned"
-            cells[f"{setting}/{method}"] = {
-                "world": setting,
-                "algorithm": method,
-                "collisions": {"mean": entry["collisions_per_experiment"], "ci95": None},
-                "greedy_collisions": {
-                    "mean": entry["greedy_collisions_per_experiment"],
-                    "ci95": None,
-                },
-                "fraction_right_within_target": {
-                    "mean": structure["fraction_right_within_target"]
-                    if learned and structure
-                    else None,
-                    "ci95": None,
-                },
+            measures = {  # bare means: no interval
+                "collisions": entry["collisions_per_experiment"],
+                "greedy_collisions": entry["greedy_collisions_per_experiment"],
+                "fraction_right_within_target": structure["fraction_right_within_target"]
+                if learned and structure
+                else None,
                 "collisions_vs_oracle": {
                     "mean": ratio["ratio"] if learned and ratio else None,
                     "ci95": interval_or_none(ratio["ci"])
@@ -233,4 +213,5 @@ def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
                     else None,
                 },
             }
+            cells[f"{setting}/{method}"] = sweep_cell(setting, method, measures, SWEEP_MEASURES)
     return cells

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from factorq_torch.base.config import EXPLORATIONS, check_exploration
+from factorq_torch.base.config import EXPLORATIONS
 from factorq_torch.base.validation import check_int
 from factorq_trainers.analysis.vocabulary import among
-from factorq_trainers.runner.options import option
+from factorq_trainers.runner.options import check_choices, option
 
 METHODS = among(
     "factor-q-learned",
@@ -75,11 +75,7 @@ class MiniGridConfig:
         object.__setattr__(self, "sizes", check_names("sizes", self.sizes, SIZE_NAMES))
         object.__setattr__(self, "methods", check_names("methods", self.methods, METHODS))
         check_int("steps", self.steps, 10, 10**8)
-        for name, allowed in (("semantics", SEMANTICS_NAMES), ("layout", LAYOUT_NAMES)):
-            if getattr(self, name) not in allowed:
-                value = getattr(self, name)
-                raise ValueError(f"{name}={value!r}: choose one of {', '.join(allowed)}")
-        check_exploration(self.exploration)
+        check_choices(self)  # semantics, layout, exploration
         check_int("window", self.window, 1, 10_000)
         check_float("final_fraction", self.final_fraction, 0.0, 1.0, low_open=True)
 

@@ -9,6 +9,7 @@ from typing import Any
 from factorq_trainers.analysis.stats import TOO_LITTLE_DATA, count_ratio, format_number
 from factorq_trainers.methods.units import stat_cell as _cell
 from factorq_trainers.methods.units import sweep_cell
+from factorq_trainers.runner.results import new_figure
 
 #: The issue's target: the learner finds forward <- front within this many env steps.
 FOUND_TARGET_STEPS = 2_000
@@ -93,16 +94,12 @@ def _targets(results: dict[str, Any], per_method: dict[str, Any]) -> list[str]:
 
 
 def figure(results: dict[str, Any], path: Path) -> None:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     panels = (
         ("success_rate", "success rate (end of training)", False),
         ("collisions", "collisions during training", True),
         ("steps_to_90", "env steps to 90% success", False),
     )
-    figure = Figure(figsize=(13, 4))
-    FigureCanvasAgg(figure)
+    figure = new_figure(figsize=(13, 4))
     sizes = list(results["results"])
     methods = list(results["config"]["methods"])
     for column, (measure, title, log) in enumerate(panels):

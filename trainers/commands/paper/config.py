@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 
@@ -23,7 +21,8 @@ from factorq_trainers.methods.experiment import (
     MAX_SEED,
     check_qlearning_table,
 )
-from factorq_trainers.runner.options import option
+from factorq_trainers.runner.options import check_choices, option
+from factorq_trainers.runner.outdir import checked_out
 
 #: Fields that leave the numbers alone (tested: backends, devices, threads and shards give
 #: identical results): a sweep's digest of a configuration leaves them out.
@@ -93,10 +92,7 @@ class PaperConfig(experiment.WorldOptions):
             check_qlearning_table(world)
         if self.threads is not None:
             check_threads("threads", self.threads)
-        if self.backend not in BACKENDS:
-            raise ValueError(
-                f"backend={self.backend!r} is unknown: choose one of {', '.join(BACKENDS)}"
-            )
+        check_choices(self)  # backend
         try:
             kind = torch.device(self.device).type
         except (RuntimeError, TypeError):
@@ -105,11 +101,7 @@ class PaperConfig(experiment.WorldOptions):
             raise ValueError(f"device={self.device!r} is not supported by backend 'fast' (cpu)")
         # The device must exist here: refused now, not once the run began.
         check_device("device", self.device, allow_meta=False, optional=False)
-        if not isinstance(self.out, str | os.PathLike) or not str(self.out):
-            raise ValueError(f"out={self.out!r} must be a directory path")
-        object.__setattr__(self, "out", str(self.out))
-        if Path(self.out).exists() and not Path(self.out).is_dir():
-            raise ValueError(f"out={self.out!r} is an existing file: give a directory")
+        object.__setattr__(self, "out", checked_out(self.out))
 
     @property
     def agent(self) -> AgentConfig:

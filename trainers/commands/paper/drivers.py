@@ -15,6 +15,7 @@ from factorq_torch.base.config import ALGORITHMS
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
 from factorq_trainers.commands.paper.config import PaperConfig
 from factorq_trainers.methods import experiment
+from factorq_trainers.methods.units import torch_threads
 
 #: ``report(episodes, experiments)``: episodes and experiments completed since its last call.
 Report = Callable[[int, int], None]
@@ -161,11 +162,7 @@ def run_modular(
     )
     # The per-step tensors are small: intra-op threads only add synchronisation (2 threads were
     # measured 2x slower than 1 here), so the modular path uses one unless --threads says more.
-    previous_threads = torch.get_num_threads()
-    torch.set_num_threads(config.threads or 1)
-    try:
+    with torch_threads(config.threads or 1):
         while not collector.done:
             collector.step()
-    finally:
-        torch.set_num_threads(previous_threads)
     return dict(collector.metrics.items())

@@ -14,7 +14,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from factorq_trainers.analysis.vocabulary import among, label
-from factorq_trainers.runner.results import body_label
+from factorq_trainers.runner.results import body_label, new_figure
 
 COLOURS = {"q-learning": "#D55E00", "factor-q": "#0072B2"}  # colour-blind safe (Okabe-Ito)
 # Greedy collisions: a darker shade of the algorithm's colour, dashed, drawn over all collisions
@@ -72,16 +72,13 @@ def frame_spec(
 def frame(spec: tuple) -> Frame:
     """The figure of ``spec`` (``frame_spec``) without its curves: axes, scales, titles, labels,
     legend. ``draw`` adds the curves and saves it."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     worlds, legend, seeds, runs, episodes, title = spec
     plain = FuncFormatter(lambda value, _: f"{value:g}")  # 0.01, 1, 300 rather than 10^-2, 3x10^2
     width, height = max(4.4 * len(worlds) + 0.6, 6.0), 7.4
-    figure = Figure(figsize=(width, height), dpi=150)
-    FigureCanvasAgg(figure)
+    figure = new_figure(figsize=(width, height), dpi=150)
     # Fixed margins (inches) rather than a constrained layout, which draws every tick twice
     # (half of the figure's time): room for the y labels, the title above, the legend below.
     axes = figure.subplots(

@@ -16,7 +16,7 @@ from typing import Any
 
 from factorq_envs.regimes import REGIME_PERIODS, REGIMES
 from factorq_trainers.analysis.claims import ALGORITHM_LABELS, MEASURE_LABELS, MEASURES
-from factorq_trainers.analysis.stats import format_number
+from factorq_trainers.analysis.stats import with_ci
 from factorq_trainers.commands.paper import figure as paper_figure
 from factorq_trainers.commands.paper.figure_process import FigureProcess, FigureProcessError
 from factorq_trainers.commands.paper.schema import (
@@ -48,12 +48,6 @@ def figure_arguments(results: dict[str, Any]) -> tuple[list[str], list[str], dic
     return worlds, algorithms, dict(ALGORITHM_LABELS)
 
 
-def _with_ci(value: Any, ci: Any) -> str:
-    if ci is None:
-        return format_number(value)
-    return f"{format_number(value)} [{format_number(ci[0])}, {format_number(ci[1])}]"
-
-
 def claim_value(claim: dict[str, Any]) -> str:
     """The claim's measured value with its 95% CI, for people (``not evaluated`` if missing)."""
     value, ci = claim["value"], claim["ci95"]
@@ -61,10 +55,10 @@ def claim_value(claim: dict[str, Any]) -> str:
         return "not evaluated"
     if isinstance(value, dict):
         return "; ".join(
-            f"{ALGORITHM_LABELS[key]} {_with_ci(item, None if ci is None else ci[key])}"
+            f"{ALGORITHM_LABELS[key]} {with_ci(item, None if ci is None else ci[key])}"
             for key, item in value.items()
         )
-    return _with_ci(value, ci)
+    return with_ci(value, ci)
 
 
 def verdict(claim: dict[str, Any]) -> str:
@@ -106,7 +100,7 @@ def markdown(results: dict[str, Any]) -> str:
             mark = {True: "", False: " (fails)", None: ""}[measure["pass"]]
             lines.append(
                 f"  - {escape_markdown(measure['name'])}: "
-                f"{_with_ci(measure['value'], measure['ci95'])}{mark}"
+                f"{with_ci(measure['value'], measure['ci95'])}{mark}"
             )
     lines += [
         "",
@@ -121,7 +115,7 @@ def markdown(results: dict[str, Any]) -> str:
         for algorithm in algorithms:
             summary = results["cells"][f"{world}/{algorithm}"]["summary"]
             values = [
-                _with_ci(summary[measure]["mean"], summary[measure]["ci95"])
+                with_ci(summary[measure]["mean"], summary[measure]["ci95"])
                 for measure in (*MEASURES, "task_return")
             ]
             lines.append(

@@ -176,18 +176,6 @@ CONFIG = TransferConfig
 # Running one batch of experiments
 
 
-def _keys(config: TransferConfig, regime: str, source: bool) -> tuple[torch.Tensor, torch.Tensor]:
-    """World and policy keys ``[seeds]``: the same for every method (common random numbers);
-    the source task's on their own substream."""
-    labels = [(regime, index) for index in range(config.seeds)]
-    keys = [
-        experiment_keys(config.seed, stream, labels) for stream in (STREAM_WORLD, STREAM_POLICY)
-    ]
-    if source:
-        keys = [substream_key(key, SOURCE_SUBSTREAM) for key in keys]
-    return keys[0], keys[1]
-
-
 def run_batch(
     config: TransferConfig,
     algorithm: str,
@@ -206,7 +194,13 @@ def run_batch(
     ``StructureLearner``'s whole state (its evidence; on the torchrl path only). Returns the
     per-episode metrics ``[seeds, 1, episodes]``, Factor-Q's local model at the end (else None)
     and the path it ran on."""
-    world_keys, policy_keys = _keys(config, regime, source)
+    # World and policy keys [seeds]: the same for every method (common random numbers); the
+    # source task's on their own substream.
+    labels = [(regime, index) for index in range(config.seeds)]
+    keys = [experiment_keys(config.seed, s, labels) for s in (STREAM_WORLD, STREAM_POLICY)]
+    if source:
+        keys = [substream_key(key, SOURCE_SUBSTREAM) for key in keys]
+    world_keys, policy_keys = keys
     periods = torch.full((config.seeds,), REGIME_PERIODS[regime], dtype=torch.int64)
     agent = config.agent(algorithm)
     from factorq_trainers.compiled import fast

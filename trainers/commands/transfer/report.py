@@ -7,18 +7,16 @@ from typing import Any
 
 from factorq_trainers.analysis.stats import TOO_LITTLE_DATA
 from factorq_trainers.analysis.vocabulary import label
+from factorq_trainers.methods.units import stat_cell, sweep_cell
+from factorq_trainers.runner.results import new_figure
 
 #: The fresh method each carried one is measured against.
 PAIRS = {"factor-q-body": "factor-q", "factor-q-learned-body": "factor-q-learned"}
 
 
 def _cell(stat: dict[str, Any], digits: int = 1) -> str:
-    text = f"{stat['mean']:.{digits}f}"
-    if stat["ci95"] is not None and stat["ci95"][0] is not None:
-        low, high = stat["ci95"]
-        text += f" [{low:.{digits}f}, {high:.{digits}f}]"
     low, high = stat["range"]
-    return text + f" ({low:.{digits}f}-{high:.{digits}f})"
+    return stat_cell(stat, digits) + f" ({low:.{digits}f}-{high:.{digits}f})"
 
 
 def markdown(results: dict[str, Any]) -> str:
@@ -86,12 +84,8 @@ def markdown(results: dict[str, Any]) -> str:
 def figure(results: dict[str, Any], path: Path) -> None:
     """Collisions per episode (mean over seeds) in the first episodes of the target, one panel
     per regime, each method a line (log scale: Q-learning's are hundreds of times more)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     regimes = list(results["results"])
-    figure = Figure(figsize=(4 * len(regimes), 3.6))
-    FigureCanvasAgg(figure)
+    figure = new_figure(figsize=(4 * len(regimes), 3.6))
     shown = max(2 * results["config"]["early"], 1)
     for column, regime in enumerate(regimes):
         axis = figure.add_subplot(1, len(regimes), column + 1)
@@ -118,14 +112,7 @@ def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """Per target regime and method of a ``transfer.json`` dict: the ``SWEEP_MEASURES`` (means
     and 95% intervals across seeds)."""
     return {
-        f"{regime}/{method}": {
-            "world": regime,
-            "algorithm": method,
-            **{
-                measure: {"mean": entry[measure]["mean"], "ci95": entry[measure]["ci95"]}
-                for measure in SWEEP_MEASURES
-            },
-        }
+        f"{regime}/{method}": sweep_cell(regime, method, entry, SWEEP_MEASURES)
         for regime, methods in results["results"].items()
         for method, entry in methods.items()
     }
