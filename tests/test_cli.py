@@ -170,8 +170,8 @@ def test_ctrl_c_stops_a_real_run_cleanly_with_exit_130(tmp_path):
 @pytest.mark.parametrize(
     "argv, words",
     [
-        ("risk --worlds mars", "--worlds=mars is unknown: choose one or more of grid, minigrid, "),
-        ("risk --methods foo,dqn", "--methods=foo is unknown: choose one or more of dqn, "),
+        ("risk --worlds mars", "--worlds: 'mars' is unknown: choose from grid, minigrid, "),
+        ("risk --methods foo,dqn", "--methods: 'foo' is unknown: choose from dqn, "),
     ],
 )
 def test_a_bad_choice_names_the_choices_as_words(argv, words, capsys, tmp_path):

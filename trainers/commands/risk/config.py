@@ -27,15 +27,17 @@ SB3_WORLDS = ("grid",)
 def _worlds(value: Any) -> tuple[str, ...]:
     """``worlds``: the own worlds and declared ones (``factorq_envs.worlds``), each declared
     world resolved now (one line naming the field and the world)."""
-    from factorq_envs.worlds import WorldError, resolve_world
+    from factorq_envs.worlds import WorldError, names, resolve_world
 
-    names = [name.strip() for name in value.split(",")] if isinstance(value, str) else value
-    worlds = tuple(name for name in names if name != "")
+    given = [name.strip() for name in value.split(",")] if isinstance(value, str) else value
+    worlds = tuple(name for name in given if name != "")
+    declared = tuple(name for name in names() if name not in OWN_WORLDS)
+    choices = f"{', '.join((*OWN_WORLDS, *declared))}, or your own as package.module:NAME"
     if not worlds:
-        raise ValueError(
-            f"worlds is empty: choose one or more of {', '.join(OWN_WORLDS)}, or a declared world"
-        )
+        raise ValueError(f"worlds is empty: choose one or more of {choices}")
     for name in worlds:
+        if name not in OWN_WORLDS and ":" not in name and name not in declared:
+            raise ValueError(f"worlds: {name!r} is unknown: choose from {choices}")
         if name not in OWN_WORLDS:
             try:
                 resolve_world(name)
