@@ -306,14 +306,25 @@ def write_report(
 ) -> dict[str, Path]:
     """``report``'s Markdown of ``data`` (where it has ``markdown``) and the figure ``draw``
     draws, with the other ``writers`` (name -> (path, writer)), written at once; ``names``: the
-    command's file names. Returns the paths by name."""
+    command's file names. Returns the paths by name. A figure that fails to draw (matplotlib's
+    error, from deep inside) is one ``FigureError`` line naming it, and no file is written."""
     writers = dict(writers or {})
     if hasattr(report, "markdown"):
         writers["report"] = (out / names["report"], lambda p: p.write_text(report.markdown(data)))
     if draw is not None:
-        writers["figure"] = (out / names["figure"], draw)
+        figure = functools.partial(_drawn, draw, names["figure"])
+        writers["figure"] = (out / names["figure"], figure)
     results.write_all_atomic(dict(writers.values()))
     return {name: path for name, (path, _) in writers.items()}
+
+
+def _drawn(draw: Callable[[Path], Any], name: str, path: Path) -> None:
+    try:
+        draw(path)
+    except Exception as error:  # matplotlib's, from deep inside: one line
+        raise results.FigureError(
+            f"drawing {name} failed: {type(error).__name__}: {error}"
+        ) from error
 
 
 def report_module(module: ModuleType) -> ModuleType:

@@ -112,8 +112,7 @@ def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]
         "factor-q", _periods(config), world, config.agent_of("factor-q-learned"), config.runs,
         config.episodes, world_keys, policy_keys, threads=config.threads, structure=options,
     )  # fmt: skip
-    while not batch.done:
-        batch.advance(1 << 62)
+    metrics = batch.run()
     state = batch.learner_state()
     sets = batch._candidate_sets
     members = torch.zeros(len(sets), world.num_sensors, dtype=torch.bool)
@@ -122,9 +121,8 @@ def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]
     committed = state["committed"]
     structure = members[committed.clamp(min=0)] & (committed >= 0).unsqueeze(-1)
     truth = _permuted(world, orders if orders_after is None else orders_after)
-    steps = batch.metrics()["steps"].sum(dim=(1, 2))
-    curve = _fill_curve(state["curve"], steps)
-    return _structure_result(setting, batch.metrics(), structure, truth, curve, state)
+    curve = _fill_curve(state["curve"], metrics["steps"].sum(dim=(1, 2)))
+    return _structure_result(setting, metrics, structure, truth, curve, state)
 
 
 def _permuted(world: WorldConfig, orders: torch.Tensor) -> torch.Tensor:

@@ -6,12 +6,9 @@ from pathlib import Path
 from typing import Any
 
 from factorq_trainers.analysis.stats import format_number, with_ci
+from factorq_trainers.analysis.vocabulary import recorded_label
 from factorq_trainers.methods.units import sweep_cell
 from factorq_trainers.runner.results import interval_or_none, new_figure
-
-
-def _label(results: dict[str, Any], method: str) -> str:
-    return str(results["methods"].get(method, method))
 
 
 def _percent_interval(bounds: list[float | None] | None) -> str:
@@ -123,7 +120,7 @@ def markdown(results: dict[str, Any]) -> str:
     for setting, summary in results["settings"].items():
         for method, entry in summary["methods"].items():
             lines.append(
-                f"| {setting} | {_label(results, method)} | "
+                f"| {setting} | {recorded_label(results, method)} | "
                 f"{format_number(entry['collisions_per_experiment'])} | "
                 f"{format_number(entry['greedy_collisions_per_experiment'])} | "
                 f"{format_number(entry['steps_per_run'])} | "
@@ -140,7 +137,7 @@ def markdown(results: dict[str, Any]) -> str:
             )
     for setting, skipped in results.get("skipped", {}).items():
         for method, reason in skipped.items():
-            lines.append(f"\nNot run: {_label(results, method)} in {setting}: {reason}.")
+            lines.append(f"\nNot run: {recorded_label(results, method)} in {setting}: {reason}.")
     return "\n".join(lines) + "\n"
 
 
@@ -167,7 +164,10 @@ def figure(results: dict[str, Any], path: Path) -> None:
             # one colour per method in every panel
             color = f"C{methods.index(method) if method in methods else len(methods)}"
             bottom.plot(
-                range(1, len(values) + 1), values, label=_label(results, method), color=color
+                range(1, len(values) + 1),
+                values,
+                label=recorded_label(results, method),
+                color=color,
             )
         bottom.set_yscale("symlog", linthresh=1.0)
         bottom.set_xlabel("episode")

@@ -11,6 +11,7 @@ from factorq_trainers.analysis.stats import TOO_LITTLE_DATA, count_ratio
 from factorq_trainers.analysis.vocabulary import label
 from factorq_trainers.methods.units import stat_cell as _cell
 from factorq_trainers.methods.units import sweep_cell
+from factorq_trainers.runner.results import new_figure
 
 #: What ``factorq sweep --command gym`` reports per configuration (``sweep_cells``).
 SWEEP_MEASURES = ("crashes_per_1000", "greedy_crash_rate", "greedy_return", "steps_to_threshold")
@@ -119,11 +120,7 @@ def _floats(values: list[float | None], default: list[float] | None = None) -> l
 def figure(results: dict[str, Any], path: Path) -> None:
     """Crashes (cumulative) and return (last ``window`` episodes) against env steps, the mean
     over seeds with its 95% BCa bootstrap band (``summarise``'s ``bands``)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    figure = Figure(figsize=(11, 4))
-    FigureCanvasAgg(figure)
+    figure = new_figure(figsize=(11, 4))
     panels = (("curve_crashes", "crashes during training"), ("curve_return", "training return"))
     for column, (name, title) in enumerate(panels):
         axis = figure.add_subplot(1, 2, column + 1)

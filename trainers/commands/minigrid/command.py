@@ -50,6 +50,16 @@ NOTICE = (
 
 CONFIG = MiniGridConfig
 
+#: The per-seed measures ``summarise_method`` summarises (means over seeds, 95% intervals).
+MEASURES = (
+    "success_rate",
+    "return",
+    "steps_to_goal",
+    "collisions",
+    "greedy_collisions",
+    "steps_to_90",
+    "episodes",
+)
 _STAT = {"mean": NUMBER, "ci95": (None, [NUMBER]), "n": COUNT}
 #: A unit's result (``run_unit``), what a kept one must hold (``runner.kept``'s schema).
 UNIT_RESULT = {
@@ -66,13 +76,7 @@ UNIT_RESULT = {
         "structure_at_end?": [[[COUNT]]],
     },
     "summary": {
-        "success_rate": _STAT,
-        "return": _STAT,
-        "steps_to_goal": _STAT,
-        "collisions": _STAT,
-        "greedy_collisions": _STAT,
-        "steps_to_90": _STAT,
-        "episodes": _STAT,
+        **dict.fromkeys(MEASURES, _STAT),
         "found_forward_front?": _STAT,
         "found_within_target?": FRACTION,
         "found_at_all?": FRACTION,
@@ -84,17 +88,6 @@ UNIT_RESULT = {
 
 # --------------------------------------------------------------------------------------------
 # The experiment
-
-
-MEASURES = (
-    "success_rate",
-    "return",
-    "steps_to_goal",
-    "collisions",
-    "greedy_collisions",
-    "steps_to_90",
-    "episodes",
-)
 
 
 def summarise_method(result: dict[str, Any], budget: int, seed: int = 0) -> dict[str, Any]:

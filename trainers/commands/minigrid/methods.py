@@ -69,12 +69,16 @@ def record(tallies: list[Tally], td: Any, reward: torch.Tensor) -> None:
         tallies[i].update(r, bumps[i], done[i], r > 0, not exploratory[i])
 
 
-def summary(tallies: list[Tally], budget: int, final_fraction: float) -> dict[str, list[Any]]:
-    """Per-seed measures (the command's docstring); ``None`` where there is nothing to measure.
+def summary(
+    tallies: list[Tally], budget: int, final_fraction: float, wall_s: float
+) -> dict[str, Any]:
+    """Per-seed measures (the command's docstring; ``None`` where there is nothing to measure)
+    and the wall time of the seeds together.
 
     Args:
         budget: the env steps each seed ran.
         final_fraction: the share of the budget, at its end, of the final measures.
+        wall_s: the seconds the method took for all seeds.
     """
     start = budget - final_fraction * budget
     names = ("success_rate", "return", "steps_to_goal", "episodes", "steps_to_90")
@@ -89,7 +93,7 @@ def summary(tallies: list[Tally], budget: int, final_fraction: float) -> dict[st
         out["steps_to_90"].append(tally.reached)
     out["collisions"] = [tally.collisions for tally in tallies]
     out["greedy_collisions"] = [tally.greedy_collisions for tally in tallies]
-    return out
+    return {**out, "wall_s": wall_s}
 
 
 # --------------------------------------------------------------------------------------------
@@ -162,8 +166,7 @@ def run_tabular(
             break
     wall = time.perf_counter() - started
     collector.shutdown()
-    result: dict[str, Any] = summary(tallies, budget, config.final_fraction)
-    result["wall_s"] = wall
+    result = summary(tallies, budget, config.final_fraction, wall)
     if learner is not None:
         result["found_forward_front"] = found
         result["structure_at_end"] = learner.structure().to(torch.int64).tolist()
@@ -220,9 +223,7 @@ def run_dqn(
     seed = int(method_keys(config, size, method, STREAM_POLICY)[0]) & 0x7FFFFFFF
     _, wall = train_stepwise(env, q_network, dqn, budget, observed, on_step, seed)
     env.close()
-    result: dict[str, Any] = summary(tallies, budget, config.final_fraction)
-    result["wall_s"] = wall
-    return result
+    return summary(tallies, budget, config.final_fraction, wall)
 
 
 RUNNERS = {

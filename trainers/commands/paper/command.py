@@ -81,11 +81,7 @@ UNIT_RESULT = {
     "worlds": [
         {
             "world": TEXT,
-            "run_sums": {
-                "total_steps": [COUNT],
-                "collisions": [COUNT],
-                "greedy_collisions": [COUNT],
-            },
+            "run_sums": {name: [COUNT] for name in RUN_SUMS},
             "task_return": [NUMBER],
             "curve_sums": {name: [[COUNT]] for name in CURVE_NAMES},
         }

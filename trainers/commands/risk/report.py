@@ -9,6 +9,7 @@ from typing import Any
 from factorq_torch.base.risk_text import summary_line
 from factorq_trainers.analysis.stats import TOO_LITTLE_DATA
 from factorq_trainers.methods.units import sweep_cell
+from factorq_trainers.runner.results import new_figure
 
 #: What ``factorq sweep --command risk`` reports per configuration (``sweep_cells``): means
 #: over seeds (the summary keeps no interval).
@@ -136,13 +137,9 @@ def _risk_markdown(results: dict[str, Any]) -> list[str]:
 
 def figure(results: dict[str, Any], path: Path) -> None:
     """Training collisions and final return per method, one panel pair per world."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     worlds = sorted({row["world"] for row in results["rows"]})
-    fig, axes = plt.subplots(2, len(worlds), figsize=(4.5 * len(worlds), 6), squeeze=False)
+    figure = new_figure(figsize=(4.5 * len(worlds), 6))
+    axes = figure.subplots(2, len(worlds), squeeze=False)
     for column, world in enumerate(worlds):
         rows = [row for row in results["rows"] if row["world"] == world]
         labels = [row["method"] for row in rows]
@@ -155,9 +152,8 @@ def figure(results: dict[str, Any], path: Path) -> None:
             axis.set_title(f"{world}: {title}", fontsize=9)
             if metric == "train_collisions":
                 axis.set_yscale("log")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100, format="png")  # the runner writes a temporary name first
-    plt.close(fig)
+    figure.tight_layout()
+    figure.savefig(path, dpi=100, format="png")  # the runner writes a temporary name first
 
 
 def _times(ratio: float | None) -> str:
