@@ -25,12 +25,7 @@ import numpy as np
 from factorq_trainers.analysis.stats import bootstrap_mean_ci, finite_or_none
 from factorq_trainers.commands.gym.config import GymConfig
 from factorq_trainers.commands.gym.methods import RUNNERS
-from factorq_trainers.methods.units import (
-    require_extras,
-    seed_stat,
-    torch_threads,
-    world_processes,
-)
+from factorq_trainers.methods.units import require_extras, seed_stat, torch_threads, world_processes
 from factorq_trainers.runner.kept import COUNT, FLAG, NON_NEGATIVE, NUMBER, TEXT
 
 NAME = "gym"

@@ -186,11 +186,7 @@ def run_dqn(
     from factorq_envs.body import HEADING
     from factorq_torch.base.rng import STREAM_POLICY, STREAM_TASK_NETWORK
     from factorq_torch.neural import TaskQNetwork
-    from factorq_trainers.methods.dqn import (
-        DQNConfig,
-        observation_network,
-        train_stepwise,
-    )
+    from factorq_trainers.methods.dqn import DQNConfig, observation_network, train_stepwise
 
     dqn = DQNConfig()
     count, budget = config.seeds, config.budget(size)

@@ -23,16 +23,8 @@ import statistics
 from typing import Any
 
 from factorq_trainers.analysis.stats import count_ratio
-from factorq_trainers.commands.risk.config import (
-    OWN_WORLDS,
-    Progress,
-    RiskConfig,
-)
-from factorq_trainers.commands.risk.methods import (
-    quiet_torchrl,
-    run_sb3,
-    run_torchrl,
-)
+from factorq_trainers.commands.risk.config import OWN_WORLDS, Progress, RiskConfig
+from factorq_trainers.commands.risk.methods import quiet_torchrl, run_sb3, run_torchrl
 from factorq_trainers.methods.units import require_extras, world_processes
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, NUMBER, TEXT
 
