@@ -62,7 +62,7 @@ from factorq_trainers.methods.experiment import (
     ExperimentConfig,
 )
 from factorq_trainers.methods.units import torch_threads
-from factorq_trainers.runner import resources
+from factorq_trainers.runner import frame, resources
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, NUMBER, TEXT
 
 NAME = "compare"
@@ -462,6 +462,4 @@ def finish(config: CompareConfig, outcomes: list[Any], out: Path) -> dict[str, P
 def run(config: CompareConfig, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
     """Every selected method on every selected world, here; the ``comparison.json`` dict (no
     files written; ``progress``: env steps per experiment done since its last call)."""
-    from factorq_trainers.runner import frame
-
     return frame.run_in_process(sys.modules[__name__], config, progress)

@@ -12,7 +12,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from factorq_envs.grid_world import WorldConfig
 from factorq_envs.regimes import REGIME_PERIODS
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
 from factorq_trainers.commands.dependencies.config import (
@@ -96,6 +95,7 @@ def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
 
 def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     """``run_learned`` on the compiled path."""
+    from factorq_envs.permutation import permuted_dependency
     from factorq_trainers.compiled import fast
 
     world = config.world_of(setting)
@@ -120,15 +120,9 @@ def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]
         members[index, list(parents)] = True
     committed = state["committed"]
     structure = members[committed.clamp(min=0)] & (committed >= 0).unsqueeze(-1)
-    truth = _permuted(world, orders if orders_after is None else orders_after)
+    truth = permuted_dependency(world.dependency, orders if orders_after is None else orders_after)
     curve = _fill_curve(state["curve"], metrics["steps"].sum(dim=(1, 2)))
     return _structure_result(setting, metrics, structure, truth, curve, state)
-
-
-def _permuted(world: WorldConfig, orders: torch.Tensor) -> torch.Tensor:
-    from factorq_envs.permutation import permuted_dependency
-
-    return permuted_dependency(world.dependency, orders)
 
 
 def _fill_curve(curve: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:

@@ -17,6 +17,7 @@ greedy crash rate, the BCa bootstrap of the mean otherwise.
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -26,6 +27,7 @@ from factorq_trainers.analysis.stats import bootstrap_mean_ci, finite_or_none
 from factorq_trainers.commands.gym.config import GymConfig
 from factorq_trainers.commands.gym.methods import RUNNERS
 from factorq_trainers.methods.units import require_extras, seed_stat, torch_threads, world_processes
+from factorq_trainers.runner import frame
 from factorq_trainers.runner.kept import COUNT, FLAG, NON_NEGATIVE, NUMBER, TEXT
 
 NAME = "gym"
@@ -174,8 +176,4 @@ def summarise(config: GymConfig, unit_results: list[dict[str, Any]]) -> dict[str
 
 def run(config: GymConfig, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
     """Every unit here, summarised into the runner's envelope (no files)."""
-    import sys
-
-    from factorq_trainers.runner import frame
-
     return frame.run_in_process(sys.modules[__name__], config, progress)

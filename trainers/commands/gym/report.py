@@ -3,9 +3,10 @@ alone (no torch; the experiment is ``factorq_trainers.commands.gym.command``).""
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from factorq_trainers.analysis.stats import TOO_LITTLE_DATA, count_ratio
 from factorq_trainers.analysis.vocabulary import label
@@ -109,14 +110,6 @@ def markdown(results: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _floats(values: list[float | None], default: list[float] | None = None) -> list[float]:
-    """JSON's ``None`` as NaN (a gap in the line), or as ``default``'s value (a band's bound)."""
-    return [
-        (math.nan if default is None else default[i]) if value is None else float(value)
-        for i, value in enumerate(values)
-    ]
-
-
 def figure(results: dict[str, Any], path: Path) -> None:
     """Crashes (cumulative) and return (last ``window`` episodes) against env steps, the mean
     over seeds with its 95% BCa bootstrap band (``summarise``'s ``bands``)."""
@@ -127,9 +120,10 @@ def figure(results: dict[str, Any], path: Path) -> None:
         for method, entry in results["methods"].items():
             steps = entry["curves"]["curve_steps"][0]
             band = entry["bands"][name]
-            means = _floats(band["mean"])
+            # JSON's null as NaN: a gap in the line; a band's bound, the mean (no band there)
+            means, low, high = (np.array(band[k], dtype=float) for k in ("mean", "low", "high"))
             axis.plot(steps, means, label=label(method))
-            low, high = _floats(band["low"], means), _floats(band["high"], means)
+            low, high = (np.where(np.isnan(bound), means, bound) for bound in (low, high))
             axis.fill_between(steps, low, high, alpha=0.2)
         axis.set_xlabel("env steps")
         axis.set_title(title)

@@ -26,7 +26,7 @@ from factorq_trainers.commands.minigrid.config import METHODS, MiniGridConfig
 from factorq_trainers.commands.minigrid.methods import RUNNERS
 from factorq_trainers.commands.minigrid.report import FOUND_TARGET_STEPS
 from factorq_trainers.methods.units import seed_stat, torch_threads
-from factorq_trainers.runner import resources
+from factorq_trainers.runner import frame, resources
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, NUMBER
 
 NAME = "minigrid"
@@ -179,6 +179,4 @@ def summarise(config: MiniGridConfig, outcomes: list[dict[str, Any]]) -> dict[st
 
 def run(config: MiniGridConfig, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
     """Every method on every size, here; the results (what ``minigrid.json`` holds)."""
-    from factorq_trainers.runner import frame
-
     return frame.run_in_process(sys.modules[__name__], config, progress)

@@ -43,7 +43,7 @@ from factorq_trainers.commands.paper.drivers import (
     threads_used,
 )
 from factorq_trainers.commands.paper.schema import CURVE_NAMES
-from factorq_trainers.runner import resources
+from factorq_trainers.runner import frame, resources
 from factorq_trainers.runner.kept import COUNT, NUMBER, TEXT
 
 NAME = "paper"
@@ -351,8 +351,6 @@ def run(
     obstacle period, on the modular path (``auto`` falls back to it with a one-line notice,
     ``backend="fast"`` is refused); the config's grid options are unused and ``results["world"]``
     names the world. ``progress``: called with the episodes done since its last call."""
-    from factorq_trainers.runner import frame
-
     module = sys.modules[__name__]
     if world is not None:
         _check_foreign_world(world, config)

@@ -57,10 +57,11 @@ def markdown(results: dict[str, Any]) -> str:
             "| --- | --- | ---: | ---: |",
         ]
         for ratio in results["ratios"]:
+            times, gain = ratio["collision_ratio"], ratio["return_gain"]  # None: a side had none
             lines.append(
-                f"| {ratio['world']} | {ratio['pair']} | {_times(ratio['collision_ratio'])} | "
-                + ("-" if ratio["return_gain"] is None else f"{ratio['return_gain']:+.2f}")
-                + " |"
+                f"| {ratio['world']} | {ratio['pair']} | "
+                + (TOO_LITTLE_DATA if times is None else f"{times:.1f}x")  # (``count_ratio``)
+                + f" | {'-' if gain is None else f'{gain:+.2f}'} |"
             )
     lines += _risk_markdown(results)
     lines += _structure_markdown(results)
@@ -154,8 +155,3 @@ def figure(results: dict[str, Any], path: Path) -> None:
                 axis.set_yscale("log")
     figure.tight_layout()
     figure.savefig(path, dpi=100, format="png")  # the runner writes a temporary name first
-
-
-def _times(ratio: float | None) -> str:
-    """A collision ratio, or ``too little data`` where a side had none (``count_ratio``)."""
-    return TOO_LITTLE_DATA if ratio is None else f"{ratio:.1f}x"
