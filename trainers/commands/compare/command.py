@@ -49,7 +49,7 @@ from factorq_envs.grid_world import static_layout
 from factorq_torch.base.rng import STREAM_LOCAL_NETWORK, STREAM_POLICY, STREAM_TASK_NETWORK
 from factorq_torch.collectors import OnlineCollector
 from factorq_torch.neural import LocalRewardNetwork, TaskQNetwork
-from factorq_trainers.analysis.stats import bootstrap_mean_ci, finite_or_none, scalar_ci
+from factorq_trainers.analysis.stats import bootstrap_mean_ci, scalar_ci, seed_bands
 from factorq_trainers.commands.compare import report as compare_report
 from factorq_trainers.commands.compare.config import CompareConfig
 from factorq_trainers.commands.compare.report import THRESHOLD_FACTOR
@@ -232,15 +232,7 @@ def _curve(traces: list[dict[str, Any]], name: str, grid: np.ndarray, seed: int)
         for k in range(grid.size):
             last = totals[k] / counts[k] if counts[k] else last
             values[row, k] = last
-    mean = np.full(grid.size, np.nan)
-    low, high = mean.copy(), mean.copy()
-    complete = ~np.isnan(values).any(axis=0)
-    if complete.any():
-        mean[complete], band_low, band_high = bootstrap_mean_ci(values[:, complete], seed)
-        if band_low is not None:
-            low[complete], high[complete] = band_low, band_high
-    bands = (("mean", mean), ("low", low), ("high", high))
-    return {name: [finite_or_none(value) for value in values] for name, values in bands}
+    return seed_bands(values, seed, every_seed=True)
 
 
 def comparison(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
