@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import shutil
 import sys
 import time
@@ -50,9 +51,8 @@ from factorq_torch.base.rng import STREAM_LOCAL_NETWORK, STREAM_POLICY, STREAM_T
 from factorq_torch.collectors import OnlineCollector
 from factorq_torch.neural import LocalRewardNetwork, TaskQNetwork
 from factorq_trainers.analysis.stats import bootstrap_mean_ci, scalar_ci, seed_bands
-from factorq_trainers.commands.compare import report as compare_report
 from factorq_trainers.commands.compare.config import CompareConfig
-from factorq_trainers.commands.compare.report import THRESHOLD_FACTOR
+from factorq_trainers.commands.compare.report import LOGS_DIRECTORY, THRESHOLD_FACTOR
 from factorq_trainers.methods import dqn, experiment
 from factorq_trainers.methods.dqn import batch_keys
 from factorq_trainers.methods.experiment import (
@@ -62,7 +62,7 @@ from factorq_trainers.methods.experiment import (
     ExperimentConfig,
 )
 from factorq_trainers.methods.units import torch_threads
-from factorq_trainers.runner import frame, resources
+from factorq_trainers.runner import frame, outdir, resources
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, NUMBER, TEXT
 
 NAME = "compare"
@@ -441,12 +441,21 @@ def finish(config: CompareConfig, outcomes: list[Any], out: Path) -> dict[str, P
         from torchrl.record.loggers.tensorboard import TensorboardLogger as Logger
     else:
         from torchrl.record.loggers.csv import CSVLogger as Logger
-    staging = compare_report.staging_logs(out)
+    # a fresh folder, named like the temporaries ``runner.outdir`` cleans up after a kill
+    staging = out / outdir.temporary_name(LOGS_DIRECTORY)
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
     try:
         for unit, outcome in zip(units(config), outcomes, strict=True):
             logger = Logger(exp_name=unit["method"], log_dir=str(staging))
             experiment.log_traces(logger, [_arrays(trace) for trace in outcome["traces"]])
-        return {"logs": compare_report.replace_logs(staging, out)}
+        target = out / LOGS_DIRECTORY
+        if target.exists():  # moved aside and deleted first: the logs of two runs never mix
+            old = out / outdir.temporary_name(f"{LOGS_DIRECTORY}.old")
+            os.replace(target, old)
+            shutil.rmtree(old, ignore_errors=True)
+        os.replace(staging, target)
+        return {"logs": target}
     finally:
         shutil.rmtree(staging, ignore_errors=True)  # renamed away unless writing failed
 

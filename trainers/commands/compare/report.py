@@ -2,14 +2,12 @@
 
 Everything here reads the results dict of ``command.run`` beside it and computes nothing new; the
 runner's frame writes the three files (``markdown``, ``figure``), and ``compare.finish`` the logs
-(``staging_logs``, ``replace_logs``)."""
+(in ``LOGS_DIRECTORY``)."""
 
 from __future__ import annotations
 
 import functools
 import os
-import shutil
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -17,7 +15,6 @@ import numpy as np
 from factorq_trainers.analysis import stats
 from factorq_trainers.analysis.vocabulary import label
 from factorq_trainers.methods.units import sweep_cell
-from factorq_trainers.runner import outdir
 from factorq_trainers.runner.results import body_label, interval_or_none, new_figure
 
 #: A method reached the threshold when an episode took at most this many times the shortest path.
@@ -129,28 +126,6 @@ def markdown(results: dict[str, Any]) -> str:
     )
     lines += ["", f"Shortest path -> threshold: {thresholds}.", ""]
     return "\n".join(lines)
-
-
-def staging_logs(out: str | os.PathLike) -> Path:
-    """A fresh directory in ``out`` for this run's logs until ``replace_logs`` renames it to
-    ``out/logs`` (named like the temporaries ``factorq_trainers.runner.outdir`` cleans up after a
-    kill)."""
-    staging = Path(out) / outdir.temporary_name(LOGS_DIRECTORY)
-    shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir(parents=True)
-    return staging
-
-
-def replace_logs(staging: str | os.PathLike, out: str | os.PathLike) -> Path:
-    """Rename ``staging`` (``staging_logs``) to ``out/logs``, an earlier run's logs moved aside
-    and deleted first, so the logs of two runs never mix; ``out/logs``."""
-    target = Path(out) / LOGS_DIRECTORY
-    if target.exists():
-        old = Path(out) / outdir.temporary_name(f"{LOGS_DIRECTORY}.old")
-        os.replace(target, old)
-        shutil.rmtree(old, ignore_errors=True)
-    os.replace(staging, target)
-    return target
 
 
 #: What ``factorq sweep --command compare`` reports per method and world.

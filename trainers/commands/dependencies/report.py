@@ -38,19 +38,15 @@ def _percent(value: float | None) -> str:
     return "n/a" if value is None else f"{100 * value:.0f}%"
 
 
-def _regimes(config: dict[str, Any]) -> str:
-    regimes = config["regimes"]
-    return f"{', '.join(regimes)} regime" + ("s" if len(regimes) > 1 else "")
-
-
 def markdown(results: dict[str, Any]) -> str:
     """The table of the issue's metrics, one row per setting, and the baselines' totals."""
-    config = results["config"]
+    config, regimes = results["config"], results["config"]["regimes"]
     lines = [
         "# Learned sensor-actuator dependencies",
         "",
         f"{config['seeds']} experiments per setting, {config['runs']} runs x {config['episodes']} "
-        f"episodes each, {_regimes(config)}, grid {config['size']}x{config['size']} with "
+        f"episodes each, {', '.join(regimes)} regime{'s' * (len(regimes) > 1)}, "
+        f"grid {config['size']}x{config['size']} with "
         f"{config['obstacles']} obstacles, Bayes factor {format_number(config['bayes_factor'])}, "
         f"Beta({format_number(config['prior_a'])}, {format_number(config['prior_b'])}) prior, "
         f"candidate prior {config['candidate_prior']}, "
