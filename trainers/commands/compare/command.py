@@ -401,7 +401,8 @@ def run_unit(
     config: CompareConfig, unit: dict[str, Any], progress: Callable[[int], None] | None = None
 ) -> dict[str, Any]:
     """One method's batch (all selected worlds and seeds) with ``config.threads`` torch threads:
-    ``{"method", "traces", "wall_s"}``, the traces' arrays as lists. A method's numbers do not
+    ``{"method", "traces", "wall_s"}`` (the traces' arrays are lists once the frame's JSON has
+    them, as every unit's result is kept and read back). A method's numbers do not
     depend on the others (DQN seeds torch's global stream first): methods may run in any order,
     in any process.
 
@@ -423,14 +424,7 @@ def run_unit(
             run = dqn.run(config.dqn, config.experiments, progress=report)
         else:
             run = run_online(method, config, progress=report)
-    traces = [
-        {
-            key: value.tolist() if isinstance(value, np.ndarray) else value
-            for key, value in t.items()
-        }
-        for t in run["traces"]
-    ]
-    return {"method": method, "traces": traces, "wall_s": run["wall_s"]}
+    return {"method": method, "traces": run["traces"], "wall_s": run["wall_s"]}
 
 
 def finish(config: CompareConfig, outcomes: list[Any], out: Path) -> dict[str, Path]:

@@ -254,23 +254,19 @@ def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, A
         point = active & (steps % CURVE_EVERY == 0)
         curve[rows[point], steps[point] // CURVE_EVERY] = right.all(dim=-1)[point].to(torch.uint8)
     metrics = {name: collector.metrics.get(name) for name in collector.metrics.keys()}
-    state = {
-        "committed": learner.committed.clone(),
-        "samples": learner.samples.clone(),
-        "block_samples": learner.block_samples.clone(),
-        "reopened": learner.reopened.clone(),
-        "map_cache": learner.map_cache.clone(),
-        "plausible": learner.plausible_cache.to(torch.uint8),
-        "active": learner.active.to(torch.uint8),
-        "history_length": learner.history_length.clone(),
-        "right_since": right_since,
-        "samples_at_change": samples_at_change,
-        "wrong_commitments": wrong_commitments,
-        "noise_seen": learner.noise_seen.to(torch.int64),
-    }
-    for prefix in ("", "block_"):
-        for name in ("count", "successes", "reward_sum", "log_marginal"):
-            state[prefix + name] = getattr(learner, prefix + name).clone()
+    # the learner's state as the compiled path keeps it (``fast.ExperimentBatch.learner_state``)
+    counts = ("count", "successes", "reward_sum", "log_marginal")
+    cloned = ("committed", "samples", "block_samples", "reopened", "map_cache", "history_length")
+    state = {name: getattr(learner, name).clone() for name in (*cloned, *counts)}
+    state.update({f"block_{name}": getattr(learner, f"block_{name}").clone() for name in counts})
+    state.update(
+        plausible=learner.plausible_cache.to(torch.uint8),
+        active=learner.active.to(torch.uint8),
+        right_since=right_since,
+        samples_at_change=samples_at_change,
+        wrong_commitments=wrong_commitments,
+        noise_seen=learner.noise_seen.to(torch.int64),
+    )
     curve = _fill_curve(curve, steps)
     return _structure_result(setting, metrics, learner.structure(), truth, curve, state)
 

@@ -129,10 +129,8 @@ def summarise(config: GymConfig, unit_results: list[dict[str, Any]]) -> dict[str
         if "structure" in results[0]:
             entry["structures"] = [r["structure"] for r in results]
         if "agrees_with_oracle" in results[0]:
-            entry["agrees_with_oracle"] = [
-                sum(r["agrees_with_oracle"][a] for r in results)
-                for a in range(len(results[0]["agrees_with_oracle"]))
-            ]
+            per_actuator = zip(*(r["agrees_with_oracle"] for r in results), strict=True)
+            entry["agrees_with_oracle"] = [sum(seeds) for seeds in per_actuator]
         methods[method] = entry
     out: dict[str, Any] = {
         "methods": methods,
