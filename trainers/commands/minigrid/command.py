@@ -108,9 +108,7 @@ def summarise_method(result: dict[str, Any], budget: int, seed: int = 0) -> dict
         summary["found_forward_front"] = seed_stat(found, seed)
         summary["found_within_target"] = float(np.mean(within))
         summary["found_at_all"] = float(np.mean([f is not None for f in found]))
-    summary["wall_s"] = result["wall_s"]
-    summary["env_steps_per_seed"] = budget
-    return summary
+    return {**summary, "wall_s": result["wall_s"], "env_steps_per_seed": budget}
 
 
 def estimate(config: MiniGridConfig) -> resources.Estimate:

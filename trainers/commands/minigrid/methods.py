@@ -57,15 +57,19 @@ def method_keys(config: MiniGridConfig, size: int, method: str, stream: int) -> 
 # Recording
 
 
-def record(tallies: list[Tally], td: Any, reward: torch.Tensor) -> None:
+def record(tallies: list[Tally], td: Any) -> None:
     """One step of the ``S`` experiments into their tallies: ``td``'s ``exploratory`` and
-    ``("next", bump | done)``, ``reward`` ``[S]`` MiniGrid's own (a success: a positive one
-    that ends the episode)."""
+    ``("next", reward | bump | done)``, the reward MiniGrid's own (a split one with its
+    collisions put back; a success: a positive one that ends the episode)."""
     nxt = td.get("next")
+    reward = nxt.get("reward").reshape(-1)
+    local = nxt.get("local_reward", None)
+    if local is not None:  # the reward was split: put the collisions back
+        reward = reward + local.sum(dim=-1).reshape(-1)
     bumps = nxt.get("bump").any(dim=-1).reshape(-1).tolist()
     exploratory = td.get("exploratory").reshape(-1).tolist()
     done = nxt.get("done").reshape(-1).tolist()
-    for i, r in enumerate(reward.reshape(-1).tolist()):
+    for i, r in enumerate(reward.tolist()):
         tallies[i].update(r, bumps[i], done[i], r > 0, not exploratory[i])
 
 
@@ -151,11 +155,7 @@ def run_tabular(
     found: list[int | None] = [None] * count
     started = time.perf_counter()
     for step, td in enumerate(collector, start=1):
-        nxt = td.get("next")
-        reward = nxt.get("reward").squeeze(-1)
-        if local is not None:  # the reward was split: put the collisions back
-            reward = reward + nxt.get("local_reward").sum(dim=-1)
-        record(tallies, td, reward)
+        record(tallies, td)
         if learner is not None:
             right = (learner.structure()[:, FORWARD] == truth).all(dim=-1).tolist()
             for i, ok in enumerate(right):
@@ -213,7 +213,7 @@ def run_dqn(
     tallies = [Tally(config.window, SUCCESS_THRESHOLD) for _ in range(count)]
 
     def on_step(td: Any, step: int) -> None:
-        record(tallies, td, td.get(("next", "reward")))
+        record(tallies, td)
         units.tick(tick, step, budget)
 
     seed = int(method_keys(config, size, method, STREAM_POLICY)[0]) & 0x7FFFFFFF
