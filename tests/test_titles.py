@@ -95,13 +95,13 @@ def compare_results(**body) -> dict:
 
 def test_compare_figure_and_markdown_name_a_non_default_body(titles, tmp_path):
     default = compare_results()
-    assert compare_report.report_markdown(default).splitlines()[0] == "# factorq compare"
-    compare_report.write_figure(default, tmp_path / "a.png")
+    assert compare_report.markdown(default).splitlines()[0] == "# factorq compare"
+    compare_report.figure(default, tmp_path / "a.png")
     assert titles[-1].startswith("per-episode means")
 
     heading = compare_results(body="heading", sensor_noise=0.1)
-    assert compare_report.report_markdown(heading).splitlines()[0] == (
+    assert compare_report.markdown(heading).splitlines()[0] == (
         "# factorq compare: heading body, sensor noise 0.1"
     )
-    compare_report.write_figure(heading, tmp_path / "b.png")
+    compare_report.figure(heading, tmp_path / "b.png")
     assert titles[-1].splitlines()[0] == "heading body, sensor noise 0.1"

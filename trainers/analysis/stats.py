@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 from statistics import NormalDist
 from typing import Any
 
@@ -120,6 +121,32 @@ def bootstrap_mean_ci(samples: Any, seed: int) -> Interval:
     # floating-point sums of a resample may differ from the seeds' extremes in the last bit
     smallest, largest = samples.min(axis=0), samples.max(axis=0)
     return mean, np.clip(low, smallest, largest), np.clip(high, smallest, largest)
+
+
+def seed_bands(
+    rows: Sequence[Sequence[float | None]] | np.ndarray, seed: int, every_seed: bool = False
+) -> dict[str, list[float | None]]:
+    """A curve's mean over seeds at each point and its 95% BCa bootstrap band (``rows``: one
+    curve per seed, ``None`` or NaN where a seed has no value, none past a shorter row's end), as
+    JSON lists (``None``: no value; no band from a single seed). One bootstrap per set of seeds
+    present, over those seeds (the return of ``factorq gym`` is missing before a seed's first
+    episode), or with ``every_seed`` only where every seed has a value (``factorq compare``)."""
+    points = max(len(row) for row in rows)
+    values = np.full((len(rows), points), np.nan)
+    for index, row in enumerate(rows):
+        values[index, : len(row)] = [np.nan if value is None else value for value in row]
+    mean, low, high = (np.full(points, np.nan) for _ in range(3))
+    present = ~np.isnan(values)  # [seeds, points]
+    for pattern in {tuple(column) for column in present.T.tolist()}:
+        seeds = np.array(pattern, dtype=bool)
+        if not seeds.any() or (every_seed and not seeds.all()):
+            continue
+        columns = (present.T == seeds).all(axis=1)
+        mean[columns], band_low, band_high = bootstrap_mean_ci(values[seeds][:, columns], seed)
+        if band_low is not None and band_high is not None:
+            low[columns], high[columns] = band_low, band_high
+    bands = (("mean", mean), ("low", low), ("high", high))
+    return {name: [finite_or_none(value) for value in array] for name, array in bands}
 
 
 def scalar_ci(samples: Any, method: Any = mean_ci) -> tuple[float, float | None, float | None]:

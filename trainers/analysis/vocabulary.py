@@ -18,6 +18,8 @@ Each command's ``METHODS`` is built with ``among`` (docs/decisions.md, "One meth
 
 from __future__ import annotations
 
+from typing import Any
+
 #: Every method, by name: its label in reports and figures.
 METHODS: dict[str, str] = {
     "q-learning": "Q-learning",
@@ -51,3 +53,10 @@ def label(name: str) -> str:
     """The label of method ``name`` (its name itself where it is not in the vocabulary: a report
     drawn from an edited file still draws)."""
     return METHODS.get(name, name)
+
+
+def recorded_label(results: dict[str, Any], name: str) -> str:
+    """The label a results file recorded for method ``name`` (its ``"methods"``, name -> label,
+    as the run wrote them: ``minigrid``, ``dependencies``), else ``name`` itself."""
+    recorded = results.get("methods")
+    return str(recorded.get(name, name)) if isinstance(recorded, dict) else name

@@ -6,6 +6,7 @@ else its ``command.py``: ``markdown(results)``, ``figure(results, path)``), all 
 
 from __future__ import annotations
 
+import functools
 import importlib
 import os
 from pathlib import Path
@@ -62,14 +63,5 @@ def regenerate(results_dir: str | os.PathLike) -> dict[str, Path]:
     report = importlib.import_module(entry.report)
     data = results.read_json(path, ("config",), f"run `factorq {entry.name}`")
     check_results(path, entry.name, data)
-
-    def figure(target: Path) -> None:
-        try:
-            report.figure(data, target)
-        except Exception as error:  # matplotlib's, from deep inside: one line, no file
-            raise results.FigureError(
-                f"drawing {entry.files['figure']} failed: {type(error).__name__}: {error}"
-            ) from error
-
-    draw = figure if hasattr(report, "figure") else None
+    draw = functools.partial(report.figure, data) if hasattr(report, "figure") else None
     return frame.write_report(report, data, Path(results_dir), entry.files, draw)

@@ -36,7 +36,7 @@ def _label(measure: str) -> str:
 def report_markdown(sweep: dict[str, Any]) -> str:
     """``sweep.md``: one row per configuration and cell, means with 95% intervals."""
     axes = sweep["axes"]
-    measures = _measures(sweep)
+    measures = list(sweep.get("measures", claims.MEASURES))  # the paper's, unless named
     is_paper = sweep.get("command", "paper") == "paper"
     per = "Per run" if is_paper else "Per experiment"
     claims_column = ["claims passed"] if is_paper else []
@@ -54,8 +54,7 @@ def report_markdown(sweep: dict[str, Any]) -> str:
                           + ["---:"] * (len(measures) + len(claims_column))) + " |",
     ]  # fmt: skip
     for row in sweep["configurations"]:
-        claims = row["claims"].values()
-        evaluated = [claim for claim in claims if claim["pass"] is not None]
+        evaluated = [claim for claim in row["claims"].values() if claim["pass"] is not None]
         passed = f"{sum(c['pass'] for c in evaluated)}/{len(evaluated)}" if evaluated else "n/a"
         passed_column = [passed] if is_paper else []
         for cell in row["cells"].values():
@@ -68,10 +67,6 @@ def report_markdown(sweep: dict[str, Any]) -> str:
             )
     lines.append("")
     return "\n".join(lines)
-
-
-def _measures(sweep: dict[str, Any]) -> list[str]:
-    return list(sweep.get("measures", claims.MEASURES))
 
 
 def write_axis_figure(sweep: dict[str, Any], axis: str, path: Path) -> None:
@@ -91,7 +86,7 @@ def write_axis_figure(sweep: dict[str, Any], axis: str, path: Path) -> None:
     labels = [_shown(row["values"][axis]) for row in rows]
     numeric = all(isinstance(row["values"][axis], int | float) for row in rows)
     x = np.array([row["values"][axis] for row in rows], float) if numeric else np.arange(len(rows))
-    measures = _measures(sweep)
+    measures = list(sweep.get("measures", claims.MEASURES))
     figure = result_files.new_figure(figsize=(13, 4), layout="constrained")
     panels = figure.subplots(1, len(measures))
     cells = list(dict.fromkeys(cell for row in rows for cell in row["cells"]))  # e.g. worlds axis

@@ -306,14 +306,25 @@ def write_report(
 ) -> dict[str, Path]:
     """``report``'s Markdown of ``data`` (where it has ``markdown``) and the figure ``draw``
     draws, with the other ``writers`` (name -> (path, writer)), written at once; ``names``: the
-    command's file names. Returns the paths by name."""
+    command's file names. Returns the paths by name. A figure that fails to draw (matplotlib's
+    error, from deep inside) is one ``FigureError`` line naming it, and no file is written."""
     writers = dict(writers or {})
     if hasattr(report, "markdown"):
         writers["report"] = (out / names["report"], lambda p: p.write_text(report.markdown(data)))
     if draw is not None:
-        writers["figure"] = (out / names["figure"], draw)
+        figure = functools.partial(_drawn, draw, names["figure"])
+        writers["figure"] = (out / names["figure"], figure)
     results.write_all_atomic(dict(writers.values()))
     return {name: path for name, (path, _) in writers.items()}
+
+
+def _drawn(draw: Callable[[Path], Any], name: str, path: Path) -> None:
+    try:
+        draw(path)
+    except Exception as error:  # matplotlib's, from deep inside: one line
+        raise results.FigureError(
+            f"drawing {name} failed: {type(error).__name__}: {error}"
+        ) from error
 
 
 def report_module(module: ModuleType) -> ModuleType:
@@ -354,23 +365,10 @@ def execute(
         error(parser, as_option(str(problem), module.CONFIG, ("resume",)))
         return EXIT_USAGE
     told += [getattr(module, "NOTICE", None) or ""]
+    force, outputs = hasattr(args, "force"), tuple(files(module).values())
     try:
-        with outdir.claim(
-            config.out,
-            outputs=tuple(files(module).values()),
-            force=hasattr(args, "force"),
-            resume=store is not None,
-        ):
-            return _run(
-                module,
-                config,
-                units,
-                store,
-                executor,
-                hasattr(args, "force"),
-                figure_process,
-                [line for line in told if line],
-            )
+        with outdir.claim(config.out, outputs=outputs, force=force, resume=store is not None):
+            return _run(module, config, units, store, executor, force, figure_process, told)
     except (outdir.OutputDirError, ValueError) as problem:
         error(parser, as_option(str(problem), module.CONFIG, ("resume",)))
         return EXIT_USAGE
@@ -438,7 +436,7 @@ def _run(
         )
         done = store.finished(units, module.UNIT_RESULT, force, check)
         print(f"resuming {config.out}: {len(done)} of {len(units)} units done", file=sys.stderr)
-    for line in told or ():  # the run is accepted: the notices held until now
+    for line in filter(None, told or ()):  # the run is accepted: the notices held until now
         print(line, file=sys.stderr, flush=True)
     if hasattr(module, "describe"):  # what runs (paper's backend, ...), now the run is accepted
         print(module.describe(config), file=sys.stderr, flush=True)
@@ -469,14 +467,9 @@ def _run(
         bar.close()
     outcomes = [done[unit["id"]] for unit in units]
     summary = module.summarise(config, outcomes)
+    wall_s, resumed = time.perf_counter() - started, len(units) - len(pending)
     results_dict = envelope(
-        module,
-        config,
-        summary,
-        wall_s=time.perf_counter() - started,
-        where=where,
-        units=len(units),
-        resumed=len(units) - len(pending),
+        module, config, summary, wall_s=wall_s, where=where, units=len(units), resumed=resumed
     )
     paths = write_outputs(module, results_dict, Path(config.out), figure_process)
     if hasattr(module, "finish"):

@@ -45,11 +45,14 @@ def new_figure(**options: Any) -> Any:
 
 
 def dumps(results: dict[str, Any]) -> str:
-    """``results`` as JSON: indented, lists of numbers on one line, non-finite numbers as null."""
+    """``results`` as JSON: indented, lists of numbers on one line (numpy arrays as lists),
+    non-finite numbers as null."""
     return _dumps(results, 0) + "\n"
 
 
 def _dumps(value: Any, level: int) -> str:
+    if isinstance(value, np.ndarray):
+        return _dumps(value.tolist(), level)
     if isinstance(value, float | np.floating):
         return json.dumps(finite_or_none(value))
     if isinstance(value, dict):

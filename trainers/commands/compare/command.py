@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import shutil
 import sys
 import time
@@ -49,10 +50,9 @@ from factorq_envs.grid_world import static_layout
 from factorq_torch.base.rng import STREAM_LOCAL_NETWORK, STREAM_POLICY, STREAM_TASK_NETWORK
 from factorq_torch.collectors import OnlineCollector
 from factorq_torch.neural import LocalRewardNetwork, TaskQNetwork
-from factorq_trainers.analysis.stats import bootstrap_mean_ci, finite_or_none, scalar_ci
-from factorq_trainers.commands.compare import report as compare_report
+from factorq_trainers.analysis.stats import bootstrap_mean_ci, scalar_ci, seed_bands
 from factorq_trainers.commands.compare.config import CompareConfig
-from factorq_trainers.commands.compare.report import THRESHOLD_FACTOR
+from factorq_trainers.commands.compare.report import LOGS_DIRECTORY, THRESHOLD_FACTOR
 from factorq_trainers.methods import dqn, experiment
 from factorq_trainers.methods.dqn import batch_keys
 from factorq_trainers.methods.experiment import (
@@ -62,7 +62,7 @@ from factorq_trainers.methods.experiment import (
     ExperimentConfig,
 )
 from factorq_trainers.methods.units import torch_threads
-from factorq_trainers.runner import resources
+from factorq_trainers.runner import frame, outdir, resources
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, NUMBER, TEXT
 
 NAME = "compare"
@@ -232,15 +232,7 @@ def _curve(traces: list[dict[str, Any]], name: str, grid: np.ndarray, seed: int)
         for k in range(grid.size):
             last = totals[k] / counts[k] if counts[k] else last
             values[row, k] = last
-    mean = np.full(grid.size, np.nan)
-    low, high = mean.copy(), mean.copy()
-    complete = ~np.isnan(values).any(axis=0)
-    if complete.any():
-        mean[complete], band_low, band_high = bootstrap_mean_ci(values[:, complete], seed)
-        if band_low is not None:
-            low[complete], high[complete] = band_low, band_high
-    bands = (("mean", mean), ("low", low), ("high", high))
-    return {name: [finite_or_none(value) for value in values] for name, values in bands}
+    return seed_bands(values, seed, every_seed=True)
 
 
 def comparison(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
@@ -409,7 +401,8 @@ def run_unit(
     config: CompareConfig, unit: dict[str, Any], progress: Callable[[int], None] | None = None
 ) -> dict[str, Any]:
     """One method's batch (all selected worlds and seeds) with ``config.threads`` torch threads:
-    ``{"method", "traces", "wall_s"}``, the traces' arrays as lists. A method's numbers do not
+    ``{"method", "traces", "wall_s"}`` (the traces' arrays are lists once the frame's JSON has
+    them, as every unit's result is kept and read back). A method's numbers do not
     depend on the others (DQN seeds torch's global stream first): methods may run in any order,
     in any process.
 
@@ -431,14 +424,7 @@ def run_unit(
             run = dqn.run(config.dqn, config.experiments, progress=report)
         else:
             run = run_online(method, config, progress=report)
-    traces = [
-        {
-            key: value.tolist() if isinstance(value, np.ndarray) else value
-            for key, value in t.items()
-        }
-        for t in run["traces"]
-    ]
-    return {"method": method, "traces": traces, "wall_s": run["wall_s"]}
+    return {"method": method, "traces": run["traces"], "wall_s": run["wall_s"]}
 
 
 def finish(config: CompareConfig, outcomes: list[Any], out: Path) -> dict[str, Path]:
@@ -449,12 +435,21 @@ def finish(config: CompareConfig, outcomes: list[Any], out: Path) -> dict[str, P
         from torchrl.record.loggers.tensorboard import TensorboardLogger as Logger
     else:
         from torchrl.record.loggers.csv import CSVLogger as Logger
-    staging = compare_report.staging_logs(out)
+    # a fresh folder, named like the temporaries ``runner.outdir`` cleans up after a kill
+    staging = out / outdir.temporary_name(LOGS_DIRECTORY)
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
     try:
         for unit, outcome in zip(units(config), outcomes, strict=True):
             logger = Logger(exp_name=unit["method"], log_dir=str(staging))
             experiment.log_traces(logger, [_arrays(trace) for trace in outcome["traces"]])
-        return {"logs": compare_report.replace_logs(staging, out)}
+        target = out / LOGS_DIRECTORY
+        if target.exists():  # moved aside and deleted first: the logs of two runs never mix
+            old = out / outdir.temporary_name(f"{LOGS_DIRECTORY}.old")
+            os.replace(target, old)
+            shutil.rmtree(old, ignore_errors=True)
+        os.replace(staging, target)
+        return {"logs": target}
     finally:
         shutil.rmtree(staging, ignore_errors=True)  # renamed away unless writing failed
 
@@ -462,6 +457,4 @@ def finish(config: CompareConfig, outcomes: list[Any], out: Path) -> dict[str, P
 def run(config: CompareConfig, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
     """Every selected method on every selected world, here; the ``comparison.json`` dict (no
     files written; ``progress``: env steps per experiment done since its last call)."""
-    from factorq_trainers.runner import frame
-
     return frame.run_in_process(sys.modules[__name__], config, progress)

@@ -2,21 +2,19 @@
 
 Everything here reads the results dict of ``command.run`` beside it and computes nothing new; the
 runner's frame writes the three files (``markdown``, ``figure``), and ``compare.finish`` the logs
-(``staging_logs``, ``replace_logs``)."""
+(in ``LOGS_DIRECTORY``)."""
 
 from __future__ import annotations
 
 import functools
 import os
-import shutil
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from factorq_trainers.analysis import stats
 from factorq_trainers.analysis.vocabulary import label
-from factorq_trainers.runner import outdir
+from factorq_trainers.methods.units import sweep_cell
 from factorq_trainers.runner.results import body_label, interval_or_none, new_figure
 
 #: A method reached the threshold when an episode took at most this many times the shortest path.
@@ -30,7 +28,7 @@ COLOURS = {
 }
 
 
-def write_figure(results: dict[str, Any], path: str | os.PathLike) -> None:
+def figure(results: dict[str, Any], path: str | os.PathLike) -> None:
     """Steps and collisions per episode against env steps, mean and 95% band, one column a world."""
     worlds = list(results["thresholds"])
     grid = np.asarray(results["curves"]["env_steps"])
@@ -82,7 +80,7 @@ def _number(value: float | None, digits: int = 0) -> str:
     return f"{value:,.{digits}f}"
 
 
-def report_markdown(results: dict[str, Any]) -> str:
+def markdown(results: dict[str, Any]) -> str:
     """``comparison.md``: one row per method and world."""
     config = results["config"]
     body = body_label(results)
@@ -130,32 +128,6 @@ def report_markdown(results: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def staging_logs(out: str | os.PathLike) -> Path:
-    """A fresh directory in ``out`` for this run's logs until ``replace_logs`` renames it to
-    ``out/logs`` (named like the temporaries ``factorq_trainers.runner.outdir`` cleans up after a
-    kill)."""
-    staging = Path(out) / outdir.temporary_name(LOGS_DIRECTORY)
-    shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir(parents=True)
-    return staging
-
-
-def replace_logs(staging: str | os.PathLike, out: str | os.PathLike) -> Path:
-    """Rename ``staging`` (``staging_logs``) to ``out/logs``, an earlier run's logs moved aside
-    and deleted first, so the logs of two runs never mix; ``out/logs``."""
-    target = Path(out) / LOGS_DIRECTORY
-    if target.exists():
-        old = Path(out) / outdir.temporary_name(f"{LOGS_DIRECTORY}.old")
-        os.replace(target, old)
-        shutil.rmtree(old, ignore_errors=True)
-    os.replace(staging, target)
-    return target
-
-
-#: The runner's names (``factorq report``).
-markdown, figure = report_markdown, write_figure
-
-
 #: What ``factorq sweep --command compare`` reports per method and world.
 SWEEP_MEASURES = ("steps_to_threshold", "collisions", "greedy_collisions")
 
@@ -163,6 +135,7 @@ SWEEP_MEASURES = ("steps_to_threshold", "collisions", "greedy_collisions")
 def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """Per method and world of a ``comparison.json`` dict: its measures as means with 95%
     intervals across seeds (``steps_to_threshold`` only where every seed reached it)."""
+    counted = ("collisions", "greedy_collisions", "avoidable_greedy_collisions")
     cells = {}
     for method, worlds in results["results"].items():
         for world, entry in worlds.items():
@@ -172,21 +145,15 @@ def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
                 seed = results["config"].get("seed", 0)  # compare's bootstrap, its seed
                 bounded = functools.partial(stats.bootstrap_mean_ci, seed=seed)
                 steps["ci95"] = interval_or_none(stats.scalar_ci(reached, bounded)[1:])
-            cells[f"{world}/{method}"] = {
-                "world": world,
-                "algorithm": method,
+            measures = {
                 "steps_to_threshold": steps,
                 **{
-                    measure: {
-                        "mean": entry[measure],
-                        "ci95": interval_or_none(entry[f"{measure}_ci95"]),
-                    }
-                    for measure in (
-                        "collisions",
-                        "greedy_collisions",
-                        "avoidable_greedy_collisions",
-                    )
+                    name: {"mean": entry[name], "ci95": interval_or_none(entry[f"{name}_ci95"])}
+                    for name in counted
                 },
+            }
+            cells[f"{world}/{method}"] = {
+                **sweep_cell(world, method, measures, ("steps_to_threshold", *counted)),
                 "seeds_reached": entry["seeds_reached"],
                 "per_seed": {"steps_to_threshold": reached},
             }

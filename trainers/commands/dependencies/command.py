@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -50,7 +51,7 @@ from factorq_trainers.commands.dependencies.methods import (
     run_learned,
     skipped_reason,
 )
-from factorq_trainers.runner import resources
+from factorq_trainers.runner import frame, resources
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, TEXT
 
 NAME = "dependencies"
@@ -305,8 +306,4 @@ def estimate(config: DependenciesConfig) -> resources.Estimate:
 
 def run(config: DependenciesConfig) -> dict[str, Any]:
     """Every setting x method, here; the results (what ``dependencies.json`` holds)."""
-    import sys
-
-    from factorq_trainers.runner import frame
-
     return frame.run_in_process(sys.modules[__name__], config)

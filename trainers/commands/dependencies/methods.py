@@ -12,7 +12,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from factorq_envs.grid_world import WorldConfig
 from factorq_envs.regimes import REGIME_PERIODS
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
 from factorq_trainers.commands.dependencies.config import (
@@ -96,6 +95,7 @@ def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
 
 def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     """``run_learned`` on the compiled path."""
+    from factorq_envs.permutation import permuted_dependency
     from factorq_trainers.compiled import fast
 
     world = config.world_of(setting)
@@ -112,8 +112,7 @@ def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]
         "factor-q", _periods(config), world, config.agent_of("factor-q-learned"), config.runs,
         config.episodes, world_keys, policy_keys, threads=config.threads, structure=options,
     )  # fmt: skip
-    while not batch.done:
-        batch.advance(1 << 62)
+    metrics = batch.run()
     state = batch.learner_state()
     sets = batch._candidate_sets
     members = torch.zeros(len(sets), world.num_sensors, dtype=torch.bool)
@@ -121,16 +120,9 @@ def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]
         members[index, list(parents)] = True
     committed = state["committed"]
     structure = members[committed.clamp(min=0)] & (committed >= 0).unsqueeze(-1)
-    truth = _permuted(world, orders if orders_after is None else orders_after)
-    steps = batch.metrics()["steps"].sum(dim=(1, 2))
-    curve = _fill_curve(state["curve"], steps)
-    return _structure_result(setting, batch.metrics(), structure, truth, curve, state)
-
-
-def _permuted(world: WorldConfig, orders: torch.Tensor) -> torch.Tensor:
-    from factorq_envs.permutation import permuted_dependency
-
-    return permuted_dependency(world.dependency, orders)
+    truth = permuted_dependency(world.dependency, orders if orders_after is None else orders_after)
+    curve = _fill_curve(state["curve"], metrics["steps"].sum(dim=(1, 2)))
+    return _structure_result(setting, metrics, structure, truth, curve, state)
 
 
 def _fill_curve(curve: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
@@ -262,23 +254,19 @@ def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, A
         point = active & (steps % CURVE_EVERY == 0)
         curve[rows[point], steps[point] // CURVE_EVERY] = right.all(dim=-1)[point].to(torch.uint8)
     metrics = {name: collector.metrics.get(name) for name in collector.metrics.keys()}
-    state = {
-        "committed": learner.committed.clone(),
-        "samples": learner.samples.clone(),
-        "block_samples": learner.block_samples.clone(),
-        "reopened": learner.reopened.clone(),
-        "map_cache": learner.map_cache.clone(),
-        "plausible": learner.plausible_cache.to(torch.uint8),
-        "active": learner.active.to(torch.uint8),
-        "history_length": learner.history_length.clone(),
-        "right_since": right_since,
-        "samples_at_change": samples_at_change,
-        "wrong_commitments": wrong_commitments,
-        "noise_seen": learner.noise_seen.to(torch.int64),
-    }
-    for prefix in ("", "block_"):
-        for name in ("count", "successes", "reward_sum", "log_marginal"):
-            state[prefix + name] = getattr(learner, prefix + name).clone()
+    # the learner's state as the compiled path keeps it (``fast.ExperimentBatch.learner_state``)
+    counts = ("count", "successes", "reward_sum", "log_marginal")
+    cloned = ("committed", "samples", "block_samples", "reopened", "map_cache", "history_length")
+    state = {name: getattr(learner, name).clone() for name in (*cloned, *counts)}
+    state.update({f"block_{name}": getattr(learner, f"block_{name}").clone() for name in counts})
+    state.update(
+        plausible=learner.plausible_cache.to(torch.uint8),
+        active=learner.active.to(torch.uint8),
+        right_since=right_since,
+        samples_at_change=samples_at_change,
+        wrong_commitments=wrong_commitments,
+        noise_seen=learner.noise_seen.to(torch.int64),
+    )
     curve = _fill_curve(curve, steps)
     return _structure_result(setting, metrics, learner.structure(), truth, curve, state)
 

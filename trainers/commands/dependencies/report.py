@@ -6,12 +6,9 @@ from pathlib import Path
 from typing import Any
 
 from factorq_trainers.analysis.stats import format_number, with_ci
+from factorq_trainers.analysis.vocabulary import recorded_label
 from factorq_trainers.methods.units import sweep_cell
 from factorq_trainers.runner.results import interval_or_none, new_figure
-
-
-def _label(results: dict[str, Any], method: str) -> str:
-    return str(results["methods"].get(method, method))
 
 
 def _percent_interval(bounds: list[float | None] | None) -> str:
@@ -41,19 +38,15 @@ def _percent(value: float | None) -> str:
     return "n/a" if value is None else f"{100 * value:.0f}%"
 
 
-def _regimes(config: dict[str, Any]) -> str:
-    regimes = config["regimes"]
-    return f"{', '.join(regimes)} regime" + ("s" if len(regimes) > 1 else "")
-
-
 def markdown(results: dict[str, Any]) -> str:
     """The table of the issue's metrics, one row per setting, and the baselines' totals."""
-    config = results["config"]
+    config, regimes = results["config"], results["config"]["regimes"]
     lines = [
         "# Learned sensor-actuator dependencies",
         "",
         f"{config['seeds']} experiments per setting, {config['runs']} runs x {config['episodes']} "
-        f"episodes each, {_regimes(config)}, grid {config['size']}x{config['size']} with "
+        f"episodes each, {', '.join(regimes)} regime{'s' * (len(regimes) > 1)}, "
+        f"grid {config['size']}x{config['size']} with "
         f"{config['obstacles']} obstacles, Bayes factor {format_number(config['bayes_factor'])}, "
         f"Beta({format_number(config['prior_a'])}, {format_number(config['prior_b'])}) prior, "
         f"candidate prior {config['candidate_prior']}, "
@@ -123,7 +116,7 @@ def markdown(results: dict[str, Any]) -> str:
     for setting, summary in results["settings"].items():
         for method, entry in summary["methods"].items():
             lines.append(
-                f"| {setting} | {_label(results, method)} | "
+                f"| {setting} | {recorded_label(results, method)} | "
                 f"{format_number(entry['collisions_per_experiment'])} | "
                 f"{format_number(entry['greedy_collisions_per_experiment'])} | "
                 f"{format_number(entry['steps_per_run'])} | "
@@ -140,7 +133,7 @@ def markdown(results: dict[str, Any]) -> str:
             )
     for setting, skipped in results.get("skipped", {}).items():
         for method, reason in skipped.items():
-            lines.append(f"\nNot run: {_label(results, method)} in {setting}: {reason}.")
+            lines.append(f"\nNot run: {recorded_label(results, method)} in {setting}: {reason}.")
     return "\n".join(lines) + "\n"
 
 
@@ -167,7 +160,10 @@ def figure(results: dict[str, Any], path: Path) -> None:
             # one colour per method in every panel
             color = f"C{methods.index(method) if method in methods else len(methods)}"
             bottom.plot(
-                range(1, len(values) + 1), values, label=_label(results, method), color=color
+                range(1, len(values) + 1),
+                values,
+                label=recorded_label(results, method),
+                color=color,
             )
         bottom.set_yscale("symlog", linthresh=1.0)
         bottom.set_xlabel("episode")

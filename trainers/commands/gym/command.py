@@ -17,20 +17,15 @@ greedy crash rate, the BCa bootstrap of the mean otherwise.
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
-
-from factorq_trainers.analysis.stats import bootstrap_mean_ci, finite_or_none
+from factorq_trainers.analysis.stats import seed_bands
 from factorq_trainers.commands.gym.config import GymConfig
 from factorq_trainers.commands.gym.methods import RUNNERS
-from factorq_trainers.methods.units import (
-    require_extras,
-    seed_stat,
-    torch_threads,
-    world_processes,
-)
+from factorq_trainers.methods.units import require_extras, seed_stat, torch_threads, world_processes
+from factorq_trainers.runner import frame
 from factorq_trainers.runner.kept import COUNT, FLAG, NON_NEGATIVE, NUMBER, TEXT
 
 NAME = "gym"
@@ -114,31 +109,6 @@ PROPORTIONS = ("greedy_crash_rate",)
 CURVES = ("curve_crashes", "curve_return")
 
 
-def _band(rows: list[list[float | None]], seed: int) -> dict[str, list[float | None]]:
-    """A curve's mean over seeds at each point and its 95% BCa bootstrap band, over the seeds
-    with a value there (``None``: no seed has one; no band from a single seed). One bootstrap
-    per set of seeds present (the return is missing before a seed's first episode)."""
-    points = max(len(row) for row in rows)
-    values = np.full((len(rows), points), np.nan)
-    for index, row in enumerate(rows):
-        values[index, : len(row)] = [np.nan if value is None else value for value in row]
-    mean, low, high = (np.full(points, np.nan) for _ in range(3))
-    present = ~np.isnan(values)  # [seeds, points]
-    for pattern in {tuple(column) for column in present.T.tolist()}:
-        seeds = np.array(pattern, dtype=bool)
-        if not seeds.any():
-            continue
-        columns = (present.T == seeds).all(axis=1)
-        centre, band_low, band_high = bootstrap_mean_ci(values[seeds][:, columns], seed)
-        mean[columns] = centre
-        if band_low is not None and band_high is not None:
-            low[columns], high[columns] = band_low, band_high
-    return {
-        name: [finite_or_none(value) for value in array]
-        for name, array in (("mean", mean), ("low", low), ("high", high))
-    }
-
-
 def summarise(config: GymConfig, unit_results: list[dict[str, Any]]) -> dict[str, Any]:
     """Per method: each measure's mean and 95% interval over seeds (Wilson for the greedy crash
     rate, else the BCa bootstrap), the curves of every seed and their mean and band over seeds,
@@ -153,16 +123,14 @@ def summarise(config: GymConfig, unit_results: list[dict[str, Any]]) -> dict[str
             for name in MEASURES
         }
         entry["curves"] = {name: [r[name] for r in results] for name in ("curve_steps", *CURVES)}
-        entry["bands"] = {name: _band(entry["curves"][name], config.seed) for name in CURVES}
+        entry["bands"] = {name: seed_bands(entry["curves"][name], config.seed) for name in CURVES}
         entry["reached"] = sum(r["steps_to_threshold"] is not None for r in results)
         entry["wall_s"] = sum(r["wall_s"] for r in results)
         if "structure" in results[0]:
             entry["structures"] = [r["structure"] for r in results]
         if "agrees_with_oracle" in results[0]:
-            entry["agrees_with_oracle"] = [
-                sum(r["agrees_with_oracle"][a] for r in results)
-                for a in range(len(results[0]["agrees_with_oracle"]))
-            ]
+            per_actuator = zip(*(r["agrees_with_oracle"] for r in results), strict=True)
+            entry["agrees_with_oracle"] = [sum(seeds) for seeds in per_actuator]
         methods[method] = entry
     out: dict[str, Any] = {
         "methods": methods,
@@ -179,8 +147,4 @@ def summarise(config: GymConfig, unit_results: list[dict[str, Any]]) -> dict[str
 
 def run(config: GymConfig, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
     """Every unit here, summarised into the runner's envelope (no files)."""
-    import sys
-
-    from factorq_trainers.runner import frame
-
     return frame.run_in_process(sys.modules[__name__], config, progress)

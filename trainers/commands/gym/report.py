@@ -3,14 +3,16 @@ alone (no torch; the experiment is ``factorq_trainers.commands.gym.command``).""
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from factorq_trainers.analysis.stats import TOO_LITTLE_DATA, count_ratio
 from factorq_trainers.analysis.vocabulary import label
 from factorq_trainers.methods.units import stat_cell as _cell
 from factorq_trainers.methods.units import sweep_cell
+from factorq_trainers.runner.results import new_figure
 
 #: What ``factorq sweep --command gym`` reports per configuration (``sweep_cells``).
 SWEEP_MEASURES = ("crashes_per_1000", "greedy_crash_rate", "greedy_return", "steps_to_threshold")
@@ -108,31 +110,20 @@ def markdown(results: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _floats(values: list[float | None], default: list[float] | None = None) -> list[float]:
-    """JSON's ``None`` as NaN (a gap in the line), or as ``default``'s value (a band's bound)."""
-    return [
-        (math.nan if default is None else default[i]) if value is None else float(value)
-        for i, value in enumerate(values)
-    ]
-
-
 def figure(results: dict[str, Any], path: Path) -> None:
     """Crashes (cumulative) and return (last ``window`` episodes) against env steps, the mean
     over seeds with its 95% BCa bootstrap band (``summarise``'s ``bands``)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    figure = Figure(figsize=(11, 4))
-    FigureCanvasAgg(figure)
+    figure = new_figure(figsize=(11, 4))
     panels = (("curve_crashes", "crashes during training"), ("curve_return", "training return"))
     for column, (name, title) in enumerate(panels):
         axis = figure.add_subplot(1, 2, column + 1)
         for method, entry in results["methods"].items():
             steps = entry["curves"]["curve_steps"][0]
             band = entry["bands"][name]
-            means = _floats(band["mean"])
+            # JSON's null as NaN: a gap in the line; a band's bound, the mean (no band there)
+            means, low, high = (np.array(band[k], dtype=float) for k in ("mean", "low", "high"))
             axis.plot(steps, means, label=label(method))
-            low, high = _floats(band["low"], means), _floats(band["high"], means)
+            low, high = (np.where(np.isnan(bound), means, bound) for bound in (low, high))
             axis.fill_between(steps, low, high, alpha=0.2)
         axis.set_xlabel("env steps")
         axis.set_title(title)

@@ -26,7 +26,7 @@ from factorq_trainers.commands.minigrid.config import METHODS, MiniGridConfig
 from factorq_trainers.commands.minigrid.methods import RUNNERS
 from factorq_trainers.commands.minigrid.report import FOUND_TARGET_STEPS
 from factorq_trainers.methods.units import seed_stat, torch_threads
-from factorq_trainers.runner import resources
+from factorq_trainers.runner import frame, resources
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, NUMBER
 
 NAME = "minigrid"
@@ -50,6 +50,16 @@ NOTICE = (
 
 CONFIG = MiniGridConfig
 
+#: The per-seed measures ``summarise_method`` summarises (means over seeds, 95% intervals).
+MEASURES = (
+    "success_rate",
+    "return",
+    "steps_to_goal",
+    "collisions",
+    "greedy_collisions",
+    "steps_to_90",
+    "episodes",
+)
 _STAT = {"mean": NUMBER, "ci95": (None, [NUMBER]), "n": COUNT}
 #: A unit's result (``run_unit``), what a kept one must hold (``runner.kept``'s schema).
 UNIT_RESULT = {
@@ -66,13 +76,7 @@ UNIT_RESULT = {
         "structure_at_end?": [[[COUNT]]],
     },
     "summary": {
-        "success_rate": _STAT,
-        "return": _STAT,
-        "steps_to_goal": _STAT,
-        "collisions": _STAT,
-        "greedy_collisions": _STAT,
-        "steps_to_90": _STAT,
-        "episodes": _STAT,
+        **dict.fromkeys(MEASURES, _STAT),
         "found_forward_front?": _STAT,
         "found_within_target?": FRACTION,
         "found_at_all?": FRACTION,
@@ -84,17 +88,6 @@ UNIT_RESULT = {
 
 # --------------------------------------------------------------------------------------------
 # The experiment
-
-
-MEASURES = (
-    "success_rate",
-    "return",
-    "steps_to_goal",
-    "collisions",
-    "greedy_collisions",
-    "steps_to_90",
-    "episodes",
-)
 
 
 def summarise_method(result: dict[str, Any], budget: int, seed: int = 0) -> dict[str, Any]:
@@ -115,9 +108,7 @@ def summarise_method(result: dict[str, Any], budget: int, seed: int = 0) -> dict
         summary["found_forward_front"] = seed_stat(found, seed)
         summary["found_within_target"] = float(np.mean(within))
         summary["found_at_all"] = float(np.mean([f is not None for f in found]))
-    summary["wall_s"] = result["wall_s"]
-    summary["env_steps_per_seed"] = budget
-    return summary
+    return {**summary, "wall_s": result["wall_s"], "env_steps_per_seed": budget}
 
 
 def estimate(config: MiniGridConfig) -> resources.Estimate:
@@ -186,6 +177,4 @@ def summarise(config: MiniGridConfig, outcomes: list[dict[str, Any]]) -> dict[st
 
 def run(config: MiniGridConfig, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
     """Every method on every size, here; the results (what ``minigrid.json`` holds)."""
-    from factorq_trainers.runner import frame
-
     return frame.run_in_process(sys.modules[__name__], config, progress)

@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from factorq_torch.base.config import EXPLORATIONS
-from factorq_torch.base.validation import check_int
+from factorq_torch.base.validation import check_float, check_int, check_names
 from factorq_trainers.analysis.vocabulary import among
 from factorq_trainers.runner.options import check_choices, option
 
@@ -68,8 +68,6 @@ class MiniGridConfig:
     out: str = option("results/minigrid", "Directory for the json, figure and report.")
 
     def __post_init__(self) -> None:
-        from factorq_torch.base.validation import check_float, check_names
-
         check_int("seed", self.seed, 0, 2**31 - 1)
         check_int("seeds", self.seeds, 1, 10_000)
         object.__setattr__(self, "sizes", check_names("sizes", self.sizes, SIZE_NAMES))

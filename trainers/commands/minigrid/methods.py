@@ -57,24 +57,32 @@ def method_keys(config: MiniGridConfig, size: int, method: str, stream: int) -> 
 # Recording
 
 
-def record(tallies: list[Tally], td: Any, reward: torch.Tensor) -> None:
+def record(tallies: list[Tally], td: Any) -> None:
     """One step of the ``S`` experiments into their tallies: ``td``'s ``exploratory`` and
-    ``("next", bump | done)``, ``reward`` ``[S]`` MiniGrid's own (a success: a positive one
-    that ends the episode)."""
+    ``("next", reward | bump | done)``, the reward MiniGrid's own (a split one with its
+    collisions put back; a success: a positive one that ends the episode)."""
     nxt = td.get("next")
+    reward = nxt.get("reward").reshape(-1)
+    local = nxt.get("local_reward", None)
+    if local is not None:  # the reward was split: put the collisions back
+        reward = reward + local.sum(dim=-1).reshape(-1)
     bumps = nxt.get("bump").any(dim=-1).reshape(-1).tolist()
     exploratory = td.get("exploratory").reshape(-1).tolist()
     done = nxt.get("done").reshape(-1).tolist()
-    for i, r in enumerate(reward.reshape(-1).tolist()):
+    for i, r in enumerate(reward.tolist()):
         tallies[i].update(r, bumps[i], done[i], r > 0, not exploratory[i])
 
 
-def summary(tallies: list[Tally], budget: int, final_fraction: float) -> dict[str, list[Any]]:
-    """Per-seed measures (the command's docstring); ``None`` where there is nothing to measure.
+def summary(
+    tallies: list[Tally], budget: int, final_fraction: float, wall_s: float
+) -> dict[str, Any]:
+    """Per-seed measures (the command's docstring; ``None`` where there is nothing to measure)
+    and the wall time of the seeds together.
 
     Args:
         budget: the env steps each seed ran.
         final_fraction: the share of the budget, at its end, of the final measures.
+        wall_s: the seconds the method took for all seeds.
     """
     start = budget - final_fraction * budget
     names = ("success_rate", "return", "steps_to_goal", "episodes", "steps_to_90")
@@ -89,7 +97,7 @@ def summary(tallies: list[Tally], budget: int, final_fraction: float) -> dict[st
         out["steps_to_90"].append(tally.reached)
     out["collisions"] = [tally.collisions for tally in tallies]
     out["greedy_collisions"] = [tally.greedy_collisions for tally in tallies]
-    return out
+    return {**out, "wall_s": wall_s}
 
 
 # --------------------------------------------------------------------------------------------
@@ -147,11 +155,7 @@ def run_tabular(
     found: list[int | None] = [None] * count
     started = time.perf_counter()
     for step, td in enumerate(collector, start=1):
-        nxt = td.get("next")
-        reward = nxt.get("reward").squeeze(-1)
-        if local is not None:  # the reward was split: put the collisions back
-            reward = reward + nxt.get("local_reward").sum(dim=-1)
-        record(tallies, td, reward)
+        record(tallies, td)
         if learner is not None:
             right = (learner.structure()[:, FORWARD] == truth).all(dim=-1).tolist()
             for i, ok in enumerate(right):
@@ -162,8 +166,7 @@ def run_tabular(
             break
     wall = time.perf_counter() - started
     collector.shutdown()
-    result: dict[str, Any] = summary(tallies, budget, config.final_fraction)
-    result["wall_s"] = wall
+    result = summary(tallies, budget, config.final_fraction, wall)
     if learner is not None:
         result["found_forward_front"] = found
         result["structure_at_end"] = learner.structure().to(torch.int64).tolist()
@@ -183,11 +186,7 @@ def run_dqn(
     from factorq_envs.body import HEADING
     from factorq_torch.base.rng import STREAM_POLICY, STREAM_TASK_NETWORK
     from factorq_torch.neural import TaskQNetwork
-    from factorq_trainers.methods.dqn import (
-        DQNConfig,
-        observation_network,
-        train_stepwise,
-    )
+    from factorq_trainers.methods.dqn import DQNConfig, observation_network, train_stepwise
 
     dqn = DQNConfig()
     count, budget = config.seeds, config.budget(size)
@@ -214,15 +213,13 @@ def run_dqn(
     tallies = [Tally(config.window, SUCCESS_THRESHOLD) for _ in range(count)]
 
     def on_step(td: Any, step: int) -> None:
-        record(tallies, td, td.get(("next", "reward")))
+        record(tallies, td)
         units.tick(tick, step, budget)
 
     seed = int(method_keys(config, size, method, STREAM_POLICY)[0]) & 0x7FFFFFFF
     _, wall = train_stepwise(env, q_network, dqn, budget, observed, on_step, seed)
     env.close()
-    result: dict[str, Any] = summary(tallies, budget, config.final_fraction)
-    result["wall_s"] = wall
-    return result
+    return summary(tallies, budget, config.final_fraction, wall)
 
 
 RUNNERS = {

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from factorq_trainers.analysis.stats import TOO_LITTLE_DATA, count_ratio, format_number
+from factorq_trainers.analysis.vocabulary import recorded_label
 from factorq_trainers.methods.units import stat_cell as _cell
 from factorq_trainers.methods.units import sweep_cell
 from factorq_trainers.runner.results import new_figure
@@ -49,7 +50,7 @@ def markdown(results: dict[str, Any]) -> str:
                     f"{s['found_within_target']:.0%} within {FOUND_TARGET_STEPS:,}"
                 )
             lines.append(
-                f"| {_label(results, method)} | {_cell(s['success_rate'], 2, seeds)} | "
+                f"| {recorded_label(results, method)} | {_cell(s['success_rate'], 2, seeds)} | "
                 f"{_cell(s['return'], 2, seeds)} | {_cell(s['steps_to_goal'], 1, seeds)} | "
                 f"{_cell(s['collisions'], 1)} | {_cell(s['greedy_collisions'], 1)} | "
                 f"{_cell(s['steps_to_90'], 0, seeds)} | {format_number(s['wall_s'])} | {found} |"
@@ -58,11 +59,6 @@ def markdown(results: dict[str, Any]) -> str:
     wall_s = results["timing"]["wall_s"]
     lines.append(f"Total wall time {wall_s:.0f} s.")
     return "\n".join(lines) + "\n"
-
-
-def _label(results: dict[str, Any], method: str) -> str:
-    declared = results.get("methods")
-    return str(declared.get(method, method)) if isinstance(declared, dict) else method
 
 
 def _targets(results: dict[str, Any], per_method: dict[str, Any]) -> list[str]:
@@ -87,7 +83,7 @@ def _targets(results: dict[str, Any], per_method: dict[str, Any]) -> list[str]:
                 f"{'met' if ratio >= 10 else 'not met'})"
             )
         out.append(
-            f"- {_label(results, method)}: {compared}; success rate "
+            f"- {recorded_label(results, method)}: {compared}; success rate "
             f"{'no worse than' if success_ok else 'below'} DQN's."
         )
     return out
@@ -114,7 +110,9 @@ def figure(results: dict[str, Any], path: Path) -> None:
                 ys.append(stat["mean"])
                 ci = stat["ci95"]
                 errs.append(0.0 if ci is None or ci[1] is None else ci[1] - stat["mean"])
-            axis.errorbar(xs, ys, yerr=errs, marker="o", capsize=3, label=_label(results, method))
+            axis.errorbar(
+                xs, ys, yerr=errs, marker="o", capsize=3, label=recorded_label(results, method)
+            )
         axis.set_xticks(range(len(sizes)), [f"{s}x{s}" for s in sizes])
         axis.set_title(title)
         if log:

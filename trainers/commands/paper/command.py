@@ -40,10 +40,11 @@ from factorq_trainers.commands.paper.drivers import (
     resolve_backend,
     run_fast,
     run_modular,
+    threads_for,
     threads_used,
 )
 from factorq_trainers.commands.paper.schema import CURVE_NAMES
-from factorq_trainers.runner import resources
+from factorq_trainers.runner import frame, resources
 from factorq_trainers.runner.kept import COUNT, NUMBER, TEXT
 
 NAME = "paper"
@@ -81,11 +82,7 @@ UNIT_RESULT = {
     "worlds": [
         {
             "world": TEXT,
-            "run_sums": {
-                "total_steps": [COUNT],
-                "collisions": [COUNT],
-                "greedy_collisions": [COUNT],
-            },
+            "run_sums": {name: [COUNT] for name in RUN_SUMS},
             "task_return": [NUMBER],
             "curve_sums": {name: [[COUNT]] for name in CURVE_NAMES},
         }
@@ -160,7 +157,7 @@ def describe(config: PaperConfig) -> str:
     """What runs (printed once the run is accepted), after why not on the fast path where
     ``auto`` fell back."""
     backend = resolve_backend(config)
-    notice = fallback_notice(config, backend, _modular_workers(config, len(config.methods)))
+    notice = fallback_notice(config, backend, threads_for(config, len(config.methods)))
     told = (
         f"{len(config.cells) * config.seeds} experiments ({config.seeds} seeds x "
         f"{len(config.regimes)} worlds x {len(config.methods)} algorithms), "
@@ -169,20 +166,13 @@ def describe(config: PaperConfig) -> str:
     return told if notice is None else f"{notice}\n{told}"
 
 
-def _modular_workers(config: PaperConfig, count: int) -> int:
-    import torch
-
-    allowed = config.threads if config.threads is not None else torch.get_num_threads()
-    return max(1, min(allowed, count))
-
-
 def processes(config: PaperConfig, units_: list[dict[str, Any]]) -> tuple[int, str]:
     """Processes for the units: on the modular path one per unit up to ``threads`` (default the
     cores torch sees; a batch of tiny tensors runs on one core), on the fast path one (the kernel
     uses every thread itself); ``units_``: ``units(config)``."""
     if resolve_backend(config) == "fast":
         return 1, "the compiled path uses every thread itself"
-    return _modular_workers(config, len(units_)), "the modular path steps one batch per core"
+    return threads_for(config, len(units_)), "the modular path steps one batch per core"
 
 
 def run_unit(
@@ -230,18 +220,15 @@ def reduced(
             key: values[position * seeds : (position + 1) * seeds]
             for key, values in metrics.items()
         }
+        returns = cell["task_return"].astype(np.float64).sum(axis=2).mean(axis=1)  # [seeds]
+        run_sums = {total: cell[key].sum(axis=(1, 2)).tolist() for total, key in RUN_SUMS.items()}
+        curve_sums = {key: cell[key].sum(axis=1).tolist() for key in CURVE_NAMES}
         worlds.append(
             {
                 "world": name,
-                "run_sums": {
-                    total: cell[key].sum(axis=(1, 2)).tolist() for total, key in RUN_SUMS.items()
-                },
-                "task_return": cell["task_return"]
-                .astype(np.float64)
-                .sum(axis=2)
-                .mean(axis=1)
-                .tolist(),
-                "curve_sums": {key: cell[key].sum(axis=1).tolist() for key in CURVE_NAMES},
+                "run_sums": run_sums,
+                "task_return": returns.tolist(),
+                "curve_sums": curve_sums,
             }
         )
     return {
@@ -355,8 +342,6 @@ def run(
     obstacle period, on the modular path (``auto`` falls back to it with a one-line notice,
     ``backend="fast"`` is refused); the config's grid options are unused and ``results["world"]``
     names the world. ``progress``: called with the episodes done since its last call."""
-    from factorq_trainers.runner import frame
-
     module = sys.modules[__name__]
     if world is not None:
         _check_foreign_world(world, config)

@@ -17,10 +17,7 @@ from factorq_torch.base.validation import (
     check_threads,
 )
 from factorq_trainers.methods import experiment
-from factorq_trainers.methods.experiment import (
-    MAX_SEED,
-    check_qlearning_table,
-)
+from factorq_trainers.methods.experiment import MAX_SEED, check_qlearning_table
 from factorq_trainers.runner.options import check_choices, option
 from factorq_trainers.runner.outdir import checked_out
 

@@ -80,12 +80,18 @@ def fallback_notice(
     )
 
 
+def threads_for(config: PaperConfig, count: int) -> int:
+    """``--threads`` (default: the cores torch sees) for ``count`` things that run at once (the
+    fast path's experiments, the modular path's processes): at most ``count``, at least 1."""
+    threads = config.threads if config.threads is not None else torch.get_num_threads()
+    return max(1, min(threads, count))
+
+
 def threads_used(config: PaperConfig, backend: str) -> int:
     """CPU threads one unit runs on: the fast path's workers (at most one per experiment), or
     the modular path's torch intra-op threads (1 unless --threads says more)."""
     if backend == "fast":
-        threads = config.threads if config.threads is not None else torch.get_num_threads()
-        return max(1, min(threads, len(config.regimes) * config.seeds))
+        return threads_for(config, len(config.regimes) * config.seeds)
     return config.threads or 1
 
 

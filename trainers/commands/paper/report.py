@@ -25,11 +25,7 @@ from factorq_trainers.commands.paper.schema import (
     escape_markdown,
     markdown_code,
 )
-from factorq_trainers.runner.results import (
-    FigureError,
-    body_label,
-    temporary_path,
-)
+from factorq_trainers.runner.results import body_label, temporary_path
 
 FIGURE_FILE = "figure3.png"
 
@@ -219,9 +215,4 @@ def figure(
             return
         except FigureProcessError as error:
             print(f"factorq: {error}; drawing {FIGURE_FILE} here instead", file=sys.stderr)
-    try:
-        figure3(results, path)
-    except Exception as error:  # matplotlib's, from deep inside: one line, no file written
-        raise FigureError(
-            f"drawing {FIGURE_FILE} failed: {type(error).__name__}: {error}"
-        ) from error
+    figure3(results, path)

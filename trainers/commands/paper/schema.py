@@ -16,15 +16,7 @@ from factorq_envs.regimes import REGIMES
 from factorq_torch.base.config import ALGORITHMS as ALGORITHM_NAMES
 from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_trainers.analysis.claims import CLAIM_STATEMENTS, MEASURES
-from factorq_trainers.runner.kept import (
-    COUNT,
-    FINITE,
-    FLAG,
-    NUMBER,
-    POSITIVE,
-    TEXT,
-    schema_problem,
-)
+from factorq_trainers.runner.kept import COUNT, FINITE, FLAG, NUMBER, POSITIVE, TEXT, schema_problem
 from factorq_trainers.runner.results import SCHEMA_VERSION
 
 #: The per-episode curves a results file holds per cell (task return is reported per run).

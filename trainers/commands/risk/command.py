@@ -20,20 +20,14 @@ from __future__ import annotations
 import itertools
 import math
 import statistics
+import sys
 from typing import Any
 
 from factorq_trainers.analysis.stats import count_ratio
-from factorq_trainers.commands.risk.config import (
-    OWN_WORLDS,
-    Progress,
-    RiskConfig,
-)
-from factorq_trainers.commands.risk.methods import (
-    quiet_torchrl,
-    run_sb3,
-    run_torchrl,
-)
+from factorq_trainers.commands.risk.config import OWN_WORLDS, Progress, RiskConfig
+from factorq_trainers.commands.risk.methods import quiet_torchrl, run_sb3, run_torchrl
 from factorq_trainers.methods.units import require_extras, world_processes
+from factorq_trainers.runner import frame
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, NUMBER, TEXT
 
 NAME = "risk"
@@ -233,8 +227,4 @@ def risk_logs(unit_results: list[dict[str, Any]]) -> dict[str, Any]:
 
 def run(config: RiskConfig) -> dict[str, Any]:
     """All units here, summarised into the runner's envelope (no files)."""
-    import sys
-
-    from factorq_trainers.runner import frame
-
     return frame.run_in_process(sys.modules[__name__], config)

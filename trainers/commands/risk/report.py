@@ -9,6 +9,7 @@ from typing import Any
 from factorq_torch.base.risk_text import summary_line
 from factorq_trainers.analysis.stats import TOO_LITTLE_DATA
 from factorq_trainers.methods.units import sweep_cell
+from factorq_trainers.runner.results import new_figure
 
 #: What ``factorq sweep --command risk`` reports per configuration (``sweep_cells``): means
 #: over seeds (the summary keeps no interval).
@@ -56,10 +57,11 @@ def markdown(results: dict[str, Any]) -> str:
             "| --- | --- | ---: | ---: |",
         ]
         for ratio in results["ratios"]:
+            times, gain = ratio["collision_ratio"], ratio["return_gain"]  # None: a side had none
             lines.append(
-                f"| {ratio['world']} | {ratio['pair']} | {_times(ratio['collision_ratio'])} | "
-                + ("-" if ratio["return_gain"] is None else f"{ratio['return_gain']:+.2f}")
-                + " |"
+                f"| {ratio['world']} | {ratio['pair']} | "
+                + (TOO_LITTLE_DATA if times is None else f"{times:.1f}x")  # (``count_ratio``)
+                + f" | {'-' if gain is None else f'{gain:+.2f}'} |"
             )
     lines += _risk_markdown(results)
     lines += _structure_markdown(results)
@@ -136,13 +138,9 @@ def _risk_markdown(results: dict[str, Any]) -> list[str]:
 
 def figure(results: dict[str, Any], path: Path) -> None:
     """Training collisions and final return per method, one panel pair per world."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     worlds = sorted({row["world"] for row in results["rows"]})
-    fig, axes = plt.subplots(2, len(worlds), figsize=(4.5 * len(worlds), 6), squeeze=False)
+    figure = new_figure(figsize=(4.5 * len(worlds), 6))
+    axes = figure.subplots(2, len(worlds), squeeze=False)
     for column, world in enumerate(worlds):
         rows = [row for row in results["rows"] if row["world"] == world]
         labels = [row["method"] for row in rows]
@@ -155,11 +153,5 @@ def figure(results: dict[str, Any], path: Path) -> None:
             axis.set_title(f"{world}: {title}", fontsize=9)
             if metric == "train_collisions":
                 axis.set_yscale("log")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100, format="png")  # the runner writes a temporary name first
-    plt.close(fig)
-
-
-def _times(ratio: float | None) -> str:
-    """A collision ratio, or ``too little data`` where a side had none (``count_ratio``)."""
-    return TOO_LITTLE_DATA if ratio is None else f"{ratio:.1f}x"
+    figure.tight_layout()
+    figure.savefig(path, dpi=100, format="png")  # the runner writes a temporary name first

@@ -46,7 +46,7 @@ from factorq_trainers.methods.experiment import (
     experiment_keys,
 )
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, TEXT
-from factorq_trainers.runner.options import option
+from factorq_trainers.runner.options import check_choices, option
 
 NAME = "transfer"
 HELP = "a body model learned once and carried into a new task, against learning from scratch"
@@ -139,7 +139,7 @@ class TransferConfig(WorldOptions):
         check_int("early", self.early, 1, self.episodes, f" (episodes={self.episodes})")
         check_int("source_episodes", self.source_episodes, 1, INT32_MAX)
         check_threads("threads", self.threads)
-        AgentConfig(exploration=self.exploration)  # named if unknown
+        check_choices(self)  # source_regime, exploration, path: as argparse does
         for world in ("target_world", "source_world"):
             getattr(self, world)  # both checked now, naming the options
 
