@@ -444,12 +444,12 @@ def local_risk_rows(
     if constants is None:  # the arguments rounded to float32 (a few, reused)
         if len(_ROW_CONSTANTS) > 64:
             _ROW_CONSTANTS.clear()
-        f32 = np.float32
+        single = np.float32
         constants = _ROW_CONSTANTS[key] = (
             float(actions - 1),
-            float(f32(1 + eta)),
-            float(f32(g_min)),
-            -float(f32(mask_threshold)),
+            float(single(1 + eta)),
+            float(single(g_min)),
+            -float(single(mask_threshold)),
             range(1, actions),
         )
     others, factor, floor, limit, columns = constants

@@ -669,7 +669,7 @@ class StructureLearner(TensorDictModuleBase):
         weights = self._buffers["weights_cache"].view(-1, candidates)
         weight_rows = [weights[flat : flat + 1] for flat in range(weights.shape[0])]
         posterior = torch.zeros(1, candidates, dtype=torch.float64)
-        softmax = (weight_rows, posterior, memoryview(posterior.numpy()).cast("B").cast("d"))
+        softmax = (weight_rows, posterior, posterior.numpy().data.cast("B").cast("d"))
         pointers = tuple(map(torch.Tensor.data_ptr, tensors))
         # (log_prior, competitors: only read)
         views = (arrays, list(tensors[:-2]), memory, softmax)
