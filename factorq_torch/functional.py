@@ -432,11 +432,11 @@ def local_risk_rows(
         or q.numel() == 0
     ):
         return None
-    actions = q.shape[-1]
+    actions, rows = q.shape[-1], q.dim() == 2  # ([B, A], one agent's step: no reshape)
     # the values as Python floats (float32 -> double, exact); a sum of at most 64 float32 values
     # is finite in double unless one is inf or NaN
-    q_lists = (q.detach() if q.requires_grad else q).numpy().reshape(-1, actions).tolist()
-    rho_lists = (rho.detach() if rho.requires_grad else rho).numpy().reshape(-1, actions).tolist()
+    q_lists = (q if rows else q.reshape(-1, actions)).tolist()
+    rho_lists = (rho if rows else rho.reshape(-1, actions)).tolist()
     if not math.isfinite(sum(map(sum, q_lists)) + sum(map(sum, rho_lists))):
         return None
     key = (actions, eta, g_min, mask_threshold)
@@ -492,11 +492,13 @@ def local_risk_rows(
         allowed = [rho_a >= limit for rho_a in rho_row]  # (float32 -threshold, exact)
         allowed_rows.append(allowed if any(allowed) else [True] * actions)
     # the outputs as numpy arrays of the float32 values (exact), then wrapped
-    return (
-        torch.from_numpy(np.array(combined_rows, dtype=np.float32).reshape(q.shape)),
-        torch.from_numpy(np.array(g_rows, dtype=np.float32).reshape(q.shape[:-1])),
-        torch.from_numpy(np.array(allowed_rows, dtype=np.bool_).reshape(q.shape)),
-    )
+    combined = np.array(combined_rows, dtype=np.float32)
+    g_array = np.array(g_rows, dtype=np.float32)
+    allowed_array = np.array(allowed_rows, dtype=np.bool_)
+    if not rows:  # (the batch's shape)
+        combined, allowed_array = combined.reshape(q.shape), allowed_array.reshape(q.shape)
+        g_array = g_array.reshape(q.shape[:-1])
+    return torch.from_numpy(combined), torch.from_numpy(g_array), torch.from_numpy(allowed_array)
 
 
 def q_learning_target(

@@ -150,7 +150,7 @@ from factorq_torch.tables import _check_entry, check_batch, check_firing, check_
 #: The read update (``StructureLearner._update_read``) looks ``lgamma`` up in tables for counts
 #: below this (a few MiB of tables at most); larger counts go through ``torch.lgamma``.
 _LGAMMA_TABLE_COUNTS = 8192
-#: The read path's memos (by reading, by count) are cleared when they reach this many entries.
+#: The read path's memo by reading is cleared when it reaches this many entries.
 _MEMO_SIZE = 1 << 16
 
 
@@ -445,8 +445,7 @@ class StructureLearner(TensorDictModuleBase):
         """``[S, A]`` float32: each actuator's predicted local reward under ``readings``."""
         if (
             self.prediction in ("optimistic", "committed")
-            and readings.device.type == "cpu"
-            and self.mean.device.type == "cpu"
+            and readings.device.type == "cpu"  # (and the caches: else the tensor ops, below)
             and readings.shape[0] * self.num_actions <= ROW_KERNEL_VALUES
         ):
             return self._local_values_read(readings)
@@ -505,7 +504,8 @@ class StructureLearner(TensorDictModuleBase):
                 values.append(value)
             rows.append(values)
         # (float64 -> float32 rounded to nearest, as .to(torch.float32) does)
-        return torch.from_numpy(np.array(rows, dtype=np.float32).reshape(len(rows), actions))
+        out = np.array(rows, dtype=np.float32)
+        return torch.from_numpy(out if rows else out.reshape(0, actions))
 
     def update_running_mean(
         self,
@@ -931,65 +931,48 @@ class StructureLearner(TensorDictModuleBase):
         return True
 
     def _read_log_marginal(self, count: list[float], successes: list[float]) -> list[float]:
-        """``_pattern_log_marginal`` of Python numbers (``_read_log_marginal_of``), remembered by
-        ``(n, s)`` where the ``lgamma`` tables gave them (integral counts). Each entry's value is a
-        function of its own ``n`` and ``s`` (the tables hold ``torch.lgamma`` of the same
-        arguments), so the entries not remembered are computed alone, each once."""
-        memo = self.__dict__.setdefault("_marginals", {})
-        keys = list(zip(count, successes, strict=True))
-        marginal = list(map(memo.get, keys))
-        if None not in marginal:
-            return marginal
+        """``_pattern_log_marginal`` of Python numbers (``_read_log_marginal_of``): entry by entry
+        from the ``lgamma`` tables where they hold every entry (integral counts below their size,
+        ``_tabled_log_marginals``), else all of them by ``_read_log_marginal_of`` (which builds
+        or grows the tables). Each entry's value is a function of its own ``n`` and ``s`` (the
+        tables hold ``torch.lgamma`` of the same arguments): the same values either way."""
         tabled = self.__dict__.get("_tabled")
-        if tabled is not None:  # the few entries not remembered, one by one from the tables
-            for index, value in enumerate(marginal):
-                if value is None:
-                    key = keys[index]
-                    value = memo.get(key)  # (a key twice in one call: computed once)
-                    if value is None:
-                        value = self._tabled_log_marginal(tabled, *key)
-                        if value is None:  # not from the tables: all of them as below
-                            break
-                        if len(memo) >= _MEMO_SIZE:
-                            memo.clear()
-                        memo[key] = value
-                    marginal[index] = value
-            else:
+        if tabled is not None:
+            marginal = self._tabled_log_marginals(tabled, count, successes)
+            if marginal is not None:
                 return marginal
-            marginal = list(map(memo.get, keys))
-        missing = list(
-            dict.fromkeys(key for key, value in zip(keys, marginal, strict=True) if value is None)
-        )
-        computed, tabled = self._read_log_marginal_of(
-            [key[0] for key in missing], [key[1] for key in missing]
-        )
-        found = dict(zip(missing, computed, strict=True))
-        if tabled:  # from the tables: remember them
-            if len(memo) + len(found) > _MEMO_SIZE:
-                memo.clear()
-            memo.update(found)
-        return [
-            found[key] if value is None else value
-            for key, value in zip(keys, marginal, strict=True)
-        ]
+        return self._read_log_marginal_of(count, successes)[0]
 
     @staticmethod
-    def _tabled_log_marginal(tabled: tuple, n: float, s: float) -> float | None:
-        """``_read_log_marginal_of`` of one entry ``(n, s)`` where the ``lgamma`` tables built by
-        ``_read_lgamma`` hold it (integral ``0 <= s <= n`` below their size; else None): the same
-        table values and the same double operations in the same order, without building lists
-        for one entry (most firings leave a few entries not remembered: the counts grow)."""
+    def _tabled_log_marginals(
+        tabled: tuple, count: list[float], successes: list[float]
+    ) -> list[float] | None:
+        """``_read_log_marginal_of`` of the entries ``(n, s)`` where the ``lgamma`` tables built
+        by ``_read_lgamma`` hold every one (integral ``0 <= s <= n`` below their size; else
+        None): the same table values and the same double operations in the same order, one
+        entry at a time (a firing's entries are new ``(n, s)`` mostly: the counts grow)."""
         size, levels, mixture = tabled
-        if not (0.0 <= s <= n < size and n.is_integer() and s.is_integer()):
-            return None
-        values = [
-            first[int(s)] + second[int(n - s)] - third[int(n)] - log_beta_prior
-            for first, second, third, log_beta_prior, _ in levels
-        ]
-        if not mixture:  # "pattern"
-            return values[0]
-        clean, noisy = values[0] + levels[0][4], values[1] + levels[1][4]
-        return (clean if clean > noisy else noisy) if n > 0 else 0.0
+        first, second, third, log_beta_prior, mass = levels[0]
+        if mixture:
+            noisy_first, noisy_second, noisy_third, noisy_log_beta_prior, noisy_mass = levels[1]
+        marginal = []
+        for n, s in zip(count, successes, strict=True):
+            if not (0.0 <= s <= n < size and n.is_integer() and s.is_integer()):
+                return None
+            hits, misses, total = int(s), int(n - s), int(n)
+            value = first[hits] + second[misses] - third[total] - log_beta_prior
+            if mixture:  # the clean level's and the noisy level's, the more probable
+                clean = value + mass
+                noisy = (
+                    noisy_first[hits]
+                    + noisy_second[misses]
+                    - noisy_third[total]
+                    - noisy_log_beta_prior
+                    + noisy_mass
+                )
+                value = (clean if clean > noisy else noisy) if n > 0 else 0.0
+            marginal.append(value)
+        return marginal
 
     def _read_log_marginal_of(
         self, count: list[float], successes: list[float]
@@ -1068,7 +1051,7 @@ class StructureLearner(TensorDictModuleBase):
                 for base in bases:
                     tables[base] = torch.lgamma(base + steps).tolist()
                 tables["size"] = size
-                # (for _tabled_log_marginal: the counts the tables take, each level's tables)
+                # (for _tabled_log_marginals: the counts the tables take, each level's tables)
                 tabled_levels = [
                     (tables[level[0]], tables[level[1]], tables[level[2]], level[3], level[4])
                     for level in levels

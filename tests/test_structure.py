@@ -739,8 +739,8 @@ def test_the_read_update_of_one_experiment_is_the_tensor_update_bit_for_bit_past
     monkeypatch,
 ):
     """The read update of one experiment (``_update_one``: one agent's step) with its log
-    marginals not remembered computed one by one from the ``lgamma`` tables
-    (``_tabled_log_marginal``) and its change-point test of one committed actuator
+    marginals computed entry by entry from the ``lgamma`` tables (``_tabled_log_marginals``)
+    and its change-point test of one committed actuator
     (``_change_read``): every buffer equal, bit for bit, to the tensor path's over a stream whose
     counts outgrow the first tables (rebuilt larger), with commitments, noisy readings, closed
     blocks and a reopening."""
@@ -748,7 +748,7 @@ def test_the_read_update_of_one_experiment_is_the_tensor_update_bit_for_bit_past
     options = dict(num_actions=2, num_sensors=4, window=40)
     read, tensor = StructureLearner(1, **options), StructureLearner(1, **options)
     everyone = torch.ones(1, dtype=torch.bool)
-    calls = {"_update_one": 0, "_tabled_log_marginal": 0, "_change_read": 0}
+    calls = {"_update_one": 0, "_tabled_log_marginals": 0, "_change_read": 0}
     for name in calls:
         function = getattr(StructureLearner, name)  # (a static method: its function)
 
@@ -756,7 +756,7 @@ def test_the_read_update_of_one_experiment_is_the_tensor_update_bit_for_bit_past
             calls[name] += 1
             return function(*args)
 
-        wrapper = staticmethod(counted) if name == "_tabled_log_marginal" else counted
+        wrapper = staticmethod(counted) if name == "_tabled_log_marginals" else counted
         monkeypatch.setattr(StructureLearner, name, wrapper)  # (undone after the test)
     for step in range(800):
         readings = torch.rand(1, 4, generator=generator) < 0.5
@@ -779,6 +779,6 @@ def test_the_read_update_of_one_experiment_is_the_tensor_update_bit_for_bit_past
             tensor._local_values_tensor(readings).view(torch.int32),
         )
     assert calls["_update_one"] == 800 and calls["_change_read"] > 100
-    assert calls["_tabled_log_marginal"] > 100
+    assert calls["_tabled_log_marginals"] > 1000
     assert read.__dict__["_lgamma_tables"]["size"] > 256  # the tables were rebuilt larger
     assert int(read.reopened.sum()) > 0 and bool(read.noise_seen.any())
