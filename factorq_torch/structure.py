@@ -445,7 +445,7 @@ class StructureLearner(TensorDictModuleBase):
         """``[S, A]`` float32: each actuator's predicted local reward under ``readings``."""
         if (
             self.prediction in ("optimistic", "committed")
-            and readings.device.type == "cpu"  # (and the caches: else the tensor ops, below)
+            and readings.is_cpu  # (and the caches: else the tensor ops, below)
             and readings.shape[0] * self.num_actions <= ROW_KERNEL_VALUES
         ):
             return self._local_values_read(readings)
