@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from array import array
 from collections.abc import Sequence
 
 import numpy as np
@@ -382,8 +383,10 @@ def safe_exploration_from_bits(allowed: torch.Tensor, action_bits: torch.Tensor)
 #: row); the two take about as long at 64 values (16 rows of 4 actions), the tensor ops win past it.
 ROW_KERNEL_VALUES = 32
 
-_FLOAT32_MAX = np.float32(np.finfo(np.float32).max)
-#: ``local_risk_rows``' float32 constants by ``(actions, eta, g_min, mask_threshold)``.
+#: The largest float32, as a Python float (exact).
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+#: ``local_risk_rows``' float32 constants (as Python floats) by ``(actions, eta, g_min,
+#: mask_threshold)``.
 _ROW_CONSTANTS: dict[tuple, tuple] = {}
 
 
@@ -400,15 +403,18 @@ def local_risk_rows(
     ``ROW_KERNEL_VALUES`` values, ``q`` and ``rho`` of one shape, or a value that is not finite:
     the caller then uses those three functions, which are the definition).
 
-    A fused op for the step of one agent: computed row by row on float32 numpy scalars, the same
-    operations in the same order as ``normaliser``'s one pass over ``[Q, -rho]`` (per half the
-    first maximum, the left sum of the others with ``+0.0`` in the maximum's place, divided by
-    ``A - 1``), then ``G`` with its floor and cap, eq. 2 with its caps and the mask (the maxima,
-    the mask and the finiteness check read the inputs as Python floats: exact copies, which
-    compare as the float32 values do, at a fraction of a numpy scalar's cost). numpy's
-    float32 scalar arithmetic rounds every operation as torch's float32 ops do (IEEE 754, no
-    fused multiply-add); tests/test_functional.py compares the two bit for bit. About a tenth of
-    the time of the ~40 tensor ops on a ``[1, A]`` row.
+    A fused op for the step of one agent: computed row by row, the same operations in the same
+    order as ``normaliser``'s one pass over ``[Q, -rho]`` (per half the first maximum, the left
+    sum of the others with ``+0.0`` in the maximum's place, divided by ``A - 1``), then ``G`` with
+    its floor and cap, eq. 2 with its caps and the mask. Each float32 operation is computed on
+    Python floats (the float32 values, exact in double) and rounded to float32 (``(float)`` in
+    C, through a one-element ``array('f')``): for ``+``, ``-``, ``*`` and ``/`` of two float32
+    numbers, double's correctly rounded result rounded again to float32 is the correctly
+    rounded float32 result (53 >= 2 * 24 + 2 bits: the double rounding is innocuous, overflow
+    to inf included), which is what torch's float32 ops give (IEEE 754, no fused multiply-add);
+    the maxima, the mask and the finiteness check compare the same values.
+    tests/test_functional.py compares the two bit for bit. About a twentieth of the time of the
+    ~40 tensor ops on a ``[1, A]`` row (no numpy scalar, no tensor op but the outputs').
 
     Args:
         q: ``[..., A]`` task values ``Q(s)``.
@@ -426,74 +432,73 @@ def local_risk_rows(
         or q.numel() == 0
     ):
         return None
-    actions = q.shape[-1]
-    q_rows = (q.detach() if q.requires_grad else q).numpy().reshape(-1, actions)
-    rho_rows = (rho.detach() if rho.requires_grad else rho).numpy().reshape(-1, actions)
-    # the values as Python floats (exact), for the finiteness check and the comparisons: a sum
-    # of at most 64 float32 values is finite in float64 unless one is inf or NaN
-    q_lists, rho_lists = q_rows.tolist(), rho_rows.tolist()
+    actions, rows = q.shape[-1], q.dim() == 2  # ([B, A], one agent's step: no reshape)
+    # the values as Python floats (float32 -> double, exact); a sum of at most 64 float32 values
+    # is finite in double unless one is inf or NaN
+    q_lists = (q if rows else q.reshape(-1, actions)).tolist()
+    rho_lists = (rho if rows else rho.reshape(-1, actions)).tolist()
     if not math.isfinite(sum(map(sum, q_lists)) + sum(map(sum, rho_lists))):
         return None
     key = (actions, eta, g_min, mask_threshold)
     constants = _ROW_CONSTANTS.get(key)
-    if constants is None:  # float32 scalars of the arguments (a few, reused)
+    if constants is None:  # the arguments rounded to float32 (a few, reused)
         if len(_ROW_CONSTANTS) > 64:
             _ROW_CONSTANTS.clear()
-        f32 = np.float32
+        single = np.float32
         constants = _ROW_CONSTANTS[key] = (
-            f32(0.0),
-            f32(actions - 1),
-            f32(1 + eta),
-            f32(g_min),
-            -float(f32(mask_threshold)),
-            _FLOAT32_MAX,
-            -_FLOAT32_MAX,
+            float(actions - 1),
+            float(single(1 + eta)),
+            float(single(g_min)),
+            -float(single(mask_threshold)),
             range(1, actions),
         )
-    zero, others, factor, floor, limit, largest, lowest, columns = constants
-    # the outputs written as numpy arrays, then wrapped (a third of the time of torch.empty's)
-    combined_rows = np.empty(q_rows.shape, dtype=np.float32)
-    g_rows = np.empty(q_rows.shape[:1], dtype=np.float32)
-    allowed_rows = np.empty(q_rows.shape, dtype=np.bool_)
-    with np.errstate(all="ignore"):  # overflow to inf and 0 / 0 are handled as torch does
-        for row, q_list in enumerate(q_lists):
-            rho_list = rho_lists[row]
-            # each half's first maximum, compared as Python floats (float32 -> float64 is exact,
-            # so they compare as the float32 values do): Q's, then -rho's (rho's first minimum)
-            q_best = rho_best = 0
-            for a in columns:
-                if q_list[a] > q_list[q_best]:
-                    q_best = a
-                if rho_list[a] < rho_list[rho_best]:
-                    rho_best = a
-            q_row, rho_row = list(q_rows[row]), list(rho_rows[row])  # float32 scalars
+    others, factor, floor, limit, columns = constants
+    largest, lowest = _FLOAT32_MAX, -_FLOAT32_MAX
+    cell = array("f", (0.0,))  # rounds a double to float32 as (float) in C does
+
+    def f32(value: float) -> float:
+        cell[0] = value
+        return cell[0]
+
+    combined_rows, g_rows, allowed_rows = [], [], []
+    for q_row, rho_row in zip(q_lists, rho_lists, strict=True):
+        # each half's first maximum: Q's, then -rho's (rho's first minimum)
+        q_best = rho_best = 0
+        for a in columns:
+            if q_row[a] > q_row[q_best]:
+                q_best = a
+            if rho_row[a] < rho_row[rho_best]:
+                rho_best = a
+        g = floor
+        if others:  # (one action: 0 / 0 spreads, NaN, and G = g_min)
             spreads = []
             for half, best in ((q_row, q_best), ([-v for v in rho_row], rho_best)):
-                total = zero if best == 0 else half[0]  # Q - Q_bar, then P_bar - rho_min
+                total = 0.0 if best == 0 else half[0]  # Q - Q_bar, then P_bar - rho_min
                 for a in columns:
-                    total = total + (zero if a == best else half[a])
-                spreads.append(half[best] - total / others)
+                    total = f32(total + (0.0 if a == best else half[a]))
+                spreads.append(f32(half[best] - f32(total / others)))
             x, y = spreads
-            if y > zero:
-                g = x / y * factor
+            if y > 0.0:
+                g = f32(f32(x / y) * factor)  # (inf / inf: NaN, below the floor's test)
                 g = g if g >= floor else floor  # (False for NaN too)
                 g = largest if g > largest else g
-            else:
-                g = floor
-            g_rows[row] = g
-            values = []
-            for q_a, rho_a in zip(q_row, rho_row, strict=True):  # min(max(q + g rho, -M), M)
-                value = q_a + g * rho_a
-                value = lowest if lowest > value else value  # max(value, -M), NaN kept
-                values.append(largest if largest < value else value)  # min(value, M)
-            combined_rows[row] = values
-            allowed = [rho_a >= limit for rho_a in rho_list]  # (float32 -threshold, exact)
-            allowed_rows[row] = allowed if any(allowed) else True
-    return (
-        torch.from_numpy(combined_rows.reshape(q.shape)),
-        torch.from_numpy(g_rows.reshape(q.shape[:-1])),
-        torch.from_numpy(allowed_rows.reshape(q.shape)),
-    )
+        g_rows.append(g)
+        values = []
+        for q_a, rho_a in zip(q_row, rho_row, strict=True):  # min(max(q + g rho, -M), M)
+            value = f32(q_a + f32(g * rho_a))
+            value = lowest if lowest > value else value  # max(value, -M), NaN kept
+            values.append(largest if largest < value else value)  # min(value, M)
+        combined_rows.append(values)
+        allowed = [rho_a >= limit for rho_a in rho_row]  # (float32 -threshold, exact)
+        allowed_rows.append(allowed if any(allowed) else [True] * actions)
+    # the outputs as numpy arrays of the float32 values (exact), then wrapped
+    combined = np.array(combined_rows, dtype=np.float32)
+    g_array = np.array(g_rows, dtype=np.float32)
+    allowed_array = np.array(allowed_rows, dtype=np.bool_)
+    if not rows:  # (the batch's shape)
+        combined, allowed_array = combined.reshape(q.shape), allowed_array.reshape(q.shape)
+        g_array = g_array.reshape(q.shape[:-1])
+    return torch.from_numpy(combined), torch.from_numpy(g_array), torch.from_numpy(allowed_array)
 
 
 def q_learning_target(
@@ -847,13 +852,16 @@ def competitor_mask(sets: list[tuple]) -> torch.Tensor:
     return mask
 
 
-def posterior_weights(log_posterior: torch.Tensor) -> torch.Tensor:
+def posterior_weights(log_posterior: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
     """``softmax`` over the last dimension (candidates): ``p(c | D)``, float64.
 
     Args:
         log_posterior: ``[..., C]`` log posterior of the candidates (up to a constant).
+        out: where to write them (its shape), or None for a new tensor.
     """
-    return torch.softmax(log_posterior, dim=-1)
+    if out is None:
+        return torch.softmax(log_posterior, dim=-1)
+    return torch.softmax(log_posterior, dim=-1, out=out)
 
 
 def log_posterior_of(log_prior: torch.Tensor | float, log_marginal: torch.Tensor) -> torch.Tensor:

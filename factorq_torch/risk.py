@@ -284,12 +284,20 @@ class LocalRisk(TensorDictModuleBase):
             )
         if batch == (count,):  # the online step (every provider reads it as is)
             if self._reads_sensors:  # a table or learner: its values, without a tensordict
-                readings = tensordict.get(self._sensors_key, None)
+                key = self._sensors_key
+                if type(tensordict) is TensorDict and type(key) is str:
+                    # (a plain TensorDict holds its entries in a dict, as get() returns them)
+                    entries = tensordict._tensordict
+                    readings = entries.get(key)
+                    numbered = names.EXPERIMENT in entries
+                else:
+                    readings = tensordict.get(key, None)
+                    numbered = tensordict.get(names.EXPERIMENT, None) is not None
                 if (
                     readings is not None
                     and readings.shape == self._readings_shape
                     and readings.dtype == torch.bool
-                    and tensordict.get(names.EXPERIMENT, None) is None
+                    and not numbered
                     and not (provider._forward_hooks or provider._forward_pre_hooks)
                 ):
                     return provider.local_values(readings)
@@ -613,8 +621,21 @@ class LocalRiskLoss(LossModule):
         modules = self._modules
         keys, actions = self.tensor_keys, modules["risk"].num_actions
         batch = tuple(tensordict.batch_size)
-        action = tensordict.get(keys.action, None)
-        local_reward = tensordict.get(("next", keys.local_reward), None)
+        action = local_reward = sensors = None
+        if (
+            type(tensordict) is TensorDict
+            and type(keys.action) is str
+            and type(keys.sensors) is str
+            and type(keys.local_reward) is str
+        ):  # a plain TensorDict holds its entries in a dict, as get() returns them
+            entries = tensordict._tensordict
+            action, sensors = entries.get(keys.action), entries.get(keys.sensors)
+            following = entries.get("next")
+            if type(following) is TensorDict:
+                local_reward = following._tensordict.get(keys.local_reward)
+        if action is None or local_reward is None:  # (anything else: get(), its errors)
+            action = tensordict.get(keys.action, None)
+            local_reward = tensordict.get(("next", keys.local_reward), None)
         if action is None or local_reward is None:
             raise KeyError(
                 f"LocalRiskLoss needs {keys.action!r} and ('next', {keys.local_reward!r}) (wrap "
@@ -636,7 +657,8 @@ class LocalRiskLoss(LossModule):
         update = getattr(modules["provider"], "update_running_mean", None)
         if update is not None:
             if self.training:
-                sensors = tensordict.get(keys.sensors)
+                if sensors is None:
+                    sensors = tensordict.get(keys.sensors)
                 if batch == (self._online,):  # the online step of a table or learner
                     update(sensors, action, local_reward)
                 else:  # (any provider's update, under torchrl's loss contexts)

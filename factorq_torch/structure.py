@@ -150,7 +150,7 @@ from factorq_torch.tables import _check_entry, check_batch, check_firing, check_
 #: The read update (``StructureLearner._update_read``) looks ``lgamma`` up in tables for counts
 #: below this (a few MiB of tables at most); larger counts go through ``torch.lgamma``.
 _LGAMMA_TABLE_COUNTS = 8192
-#: The read path's memos (by reading, by count) are cleared when they reach this many entries.
+#: The read path's memo by reading is cleared when it reaches this many entries.
 _MEMO_SIZE = 1 << 16
 
 
@@ -285,6 +285,7 @@ class StructureLearner(TensorDictModuleBase):
         num_candidates = len(self.sets)
         self.num_candidates = num_candidates
         patterns = 1 << min(max_parents, num_sensors)
+        self._pattern_count = patterns  # P, the last dimension of the counts (read paths)
         # Weights [C, K]: 2**r where sensor k is the r-th member of candidate c (parent_weights).
         weights = torch.zeros(num_candidates, num_sensors, dtype=torch.int64)
         members = torch.zeros(num_candidates, num_sensors, dtype=torch.bool)
@@ -444,8 +445,7 @@ class StructureLearner(TensorDictModuleBase):
         """``[S, A]`` float32: each actuator's predicted local reward under ``readings``."""
         if (
             self.prediction in ("optimistic", "committed")
-            and readings.device.type == "cpu"
-            and self.mean.device.type == "cpu"
+            and readings.is_cpu  # (and the caches: else the tensor ops, below)
             and readings.shape[0] * self.num_actions <= ROW_KERNEL_VALUES
         ):
             return self._local_values_read(readings)
@@ -475,30 +475,37 @@ class StructureLearner(TensorDictModuleBase):
         arithmetic; a dozen tensor ops otherwise): each candidate's pattern (its sensors' bits,
         ``patterns``), the committed candidate's running mean, else the largest among the
         plausible candidates (``-inf`` if none, as ``max`` over ``where`` gives), rounded to
-        float32 as ``.to(torch.float32)`` does."""
+        float32 as ``.to(torch.float32)`` does. The entries are read through memoryviews of the
+        buffers (``_numpy_views``): what they hold now, whoever wrote it."""
+        memory = self._read_memory()
+        if memory is None:  # (a buffer of another dtype or layout: the tensor ops)
+            return self._local_values_tensor(readings)
+        means, plausibles = memory["mean"], memory["plausible_cache"]
+        committed = memory["committed"]
         optimistic = self.prediction == "optimistic"
-        lists = self._read_lists()
-        if lists is None:  # the buffers changed since the copy was taken (or patched): again
-            lists = [self.mean.tolist(), self.plausible_cache.tolist(), self.committed.tolist()]
-            self._read_lists_current(lists)
-        means, plausibles, committed = lists  # [S][A][C][P], [S][A][C], [S][A]
-        out = np.empty((readings.shape[0], self.num_actions), dtype=np.float32)
+        actions, candidates = self.num_actions, self.num_candidates
+        block = candidates * self._pattern_count  # one actuator's [C, P]
+        rows = []
         for row, reading in enumerate(readings.tolist()):
-            patterns = self._reading_entries(reading)[0]
-            plausible = plausibles[row]
-            for actuator, held in enumerate(committed[row]):
-                mean = means[row][actuator]
+            offsets = self._reading_entries(reading)[1]  # c * P + pattern
+            values = []
+            for flat in range(row * actions, (row + 1) * actions):
+                held, start = committed[flat], flat * block
                 if held >= 0:
-                    value = mean[held][patterns[held]]
+                    value = means[start + offsets[held]]
                 elif optimistic:
                     value = -math.inf
-                    for candidate, allowed in enumerate(plausible[actuator]):
-                        if allowed and mean[candidate][patterns[candidate]] > value:
-                            value = mean[candidate][patterns[candidate]]
+                    first = flat * candidates
+                    for candidate, offset in enumerate(offsets):
+                        if plausibles[first + candidate] and means[start + offset] > value:
+                            value = means[start + offset]
                 else:
                     value = 0.0
-                out[row, actuator] = value  # float64 -> float32, rounded to nearest
-        return torch.from_numpy(out)
+                values.append(value)
+            rows.append(values)
+        # (float64 -> float32 rounded to nearest, as .to(torch.float32) does)
+        out = np.array(rows, dtype=np.float32)
+        return torch.from_numpy(out if rows else out.reshape(0, actions))
 
     def update_running_mean(
         self,
@@ -628,10 +635,11 @@ class StructureLearner(TensorDictModuleBase):
         "competitors",
     )
 
-    def _numpy_views(self) -> tuple[dict, list[torch.Tensor]] | None:
-        """``({name: flat numpy view}, the tensors written)`` of ``_READ_BUFFERS`` (None if one is
-        not a contiguous CPU tensor), cached while the buffers are the same tensors on the same
-        memory (a module moved, copied or given new buffers builds them again)."""
+    def _numpy_views(self) -> tuple[dict, list[torch.Tensor], dict, tuple] | None:
+        """``({name: flat numpy view}, the tensors written, {name: memoryview of that view}, the
+        posterior weights' rows and input)`` of ``_READ_BUFFERS`` (None if one is not a
+        contiguous CPU tensor), cached while the buffers are the same tensors on the same memory
+        (a module moved, copied or given new buffers builds them again)."""
         tensors = tuple(map(self._buffers.__getitem__, self._READ_BUFFERS))
         cached = self.__dict__.get("_views")
         if (
@@ -652,45 +660,43 @@ class StructureLearner(TensorDictModuleBase):
             name: tensor.view(-1).numpy()
             for name, tensor in zip(self._READ_BUFFERS, tensors, strict=True)
         }
+        # the same memory as memoryviews: an entry read is a Python number, a write stores one
+        # (float64 'd', int64 'l', bool '?'), without a numpy call
+        memory = {name: memoryview(array) for name, array in arrays.items()}
+        # _update_one's posterior weights: each actuator's [1, C] row of weights_cache (softmax
+        # writes it), and the [1, C] tensor it reads (written through its memoryview)
+        candidates = self.num_candidates
+        weights = self._buffers["weights_cache"].view(-1, candidates)
+        weight_rows = [weights[flat : flat + 1] for flat in range(weights.shape[0])]
+        posterior = torch.zeros(1, candidates, dtype=torch.float64)
+        softmax = (weight_rows, posterior, posterior.numpy().data.cast("B").cast("d"))
         pointers = tuple(map(torch.Tensor.data_ptr, tensors))
-        views = (arrays, list(tensors[:-2]))  # (log_prior and competitors are only read)
-        self.__dict__["_views"] = (tensors, pointers, views)
+        # (log_prior, competitors: only read)
+        views = (arrays, list(tensors[:-2]), memory, softmax)
+        taken = [  # (for _read_memory)
+            (name, tensor, pointer)
+            for name, tensor, pointer in zip(self._READ_BUFFERS, tensors, pointers, strict=True)
+            if name in self._VALUE_BUFFERS
+        ]
+        self.__dict__["_views"] = (tensors, pointers, views, taken)
         return views
 
-    #: The buffers ``_local_values_read`` reads, kept as Python lists between calls.
-    _LIST_BUFFERS = ("mean", "plausible_cache", "committed")
+    #: The buffers ``_local_values_read`` reads (through ``_numpy_views``' memoryviews).
+    _VALUE_BUFFERS = ("mean", "plausible_cache", "committed")
 
-    def _list_state(self) -> tuple | None:
-        """What the Python copy of ``_LIST_BUFFERS`` was taken from: the tensors, their memory
-        and their version counters (which every in-place write advances, ``_update_read``'s
-        numpy writes by ``increment_version``); None where a buffer has no version counter."""
-        tensors = tuple(map(self._buffers.__getitem__, self._LIST_BUFFERS))
-        try:
-            versions = tuple(tensor._version for tensor in tensors)
-        except (RuntimeError, AttributeError):  # an inference tensor: no version counter
-            return None
-        return tensors, (*map(torch.Tensor.data_ptr, tensors), *versions)
-
-    def _read_lists(self) -> list | None:
-        """``[mean, plausible_cache, committed]`` as nested lists if the copy is current (the
-        buffers unchanged since it was taken or patched), else None."""
-        cached = self.__dict__.get("_lists")
-        if cached is None:
-            return None
-        state = self._list_state()
-        if (
-            state is None
-            or not all(map(operator.is_, cached[0][0], state[0]))  # the same tensors
-            or cached[0][1] != state[1]  # on the same memory, not written since
-        ):
-            return None
-        return cached[1]
-
-    def _read_lists_current(self, lists: list) -> None:
-        """Record ``lists`` as the copy of the buffers as they are now."""
-        state = self._list_state()
-        if state is not None:
-            self.__dict__["_lists"] = (state, lists)
+    def _read_memory(self) -> dict | None:
+        """``_numpy_views``' memoryviews for ``_local_values_read``, checked on the three buffers
+        it reads only (the same tensors on the same memory; else all of them, again)."""
+        cached = self.__dict__.get("_views")
+        if cached is not None:
+            buffers, taken = self._buffers, cached[3]
+            if all(
+                buffers[name] is tensor and tensor.data_ptr() == pointer
+                for name, tensor, pointer in taken
+            ):
+                return cached[2][2]
+        views = self._numpy_views()
+        return None if views is None else views[2]
 
     def _reading_entries(self, reading: list[bool]) -> tuple[list[int], list[int]]:
         """``(patterns, offsets)`` of one reading ``[K]``: each candidate's pattern (its sensors'
@@ -747,12 +753,11 @@ class StructureLearner(TensorDictModuleBase):
         views = self._numpy_views()  # (None off the CPU)
         if views is None:
             return False
-        arrays, written = views
-        lists = self._read_lists()  # local_values' Python copy, patched below if it is current
+        arrays, written = views[:2]
         if len(fired_actions) == 1:  # one experiment (one agent's step)
             reading = readings.tolist()[0]
-            return self._update_one(arrays, written, lists, fired_actions[0], rewards[0], reading)
-        candidates, width = self.num_candidates, self.count.shape[-1]
+            return self._update_one(views, fired_actions[0], rewards[0], reading)
+        candidates, width = self.num_candidates, self._pattern_count
         block_size = candidates * width  # one actuator's [C, P]
         log_prior = arrays["log_prior"].tolist()  # [C]
         # one firing per experiment: the entry of every candidate (its sensors' pattern)
@@ -760,8 +765,7 @@ class StructureLearner(TensorDictModuleBase):
         wheres: list[int] = []
         rewards_fired: list[float] = []
         successes_fired: list[float] = []
-        readings_rows = readings.tolist()
-        for row, (fired, reading) in enumerate(zip(fired_actions, readings_rows, strict=True)):
+        for row, (fired, reading) in enumerate(zip(fired_actions, readings.tolist(), strict=True)):
             reward = float(rewards[row][fired])  # exact: float32 -> float64
             rewards_fired.append(reward)
             successes_fired.append(min(max(-reward, 0.0), 1.0))  # clamp(-r, 0, 1)
@@ -832,72 +836,64 @@ class StructureLearner(TensorDictModuleBase):
         stacked = torch.from_numpy(np.array(log_posteriors, dtype=np.float64))  # [R, C]
         weights = posterior_weights(stacked).tolist()
         threshold = self.log_bayes_factor
-        committed = arrays["committed"]
-        for index, (flat, log_posterior, weight) in enumerate(
-            zip(fired_rows, log_posteriors, weights, strict=True)
-        ):
+        for flat, log_posterior, weight in zip(fired_rows, log_posteriors, weights, strict=True):
             span = slice(flat * candidates, (flat + 1) * candidates)
             arrays["weights_cache"][span] = weight
             best = max(log_posterior)
             arrays["map_cache"][flat] = log_posterior.index(best)  # the first maximum (argmax)
             plausible = [value >= best - threshold for value in log_posterior]
             arrays["plausible_cache"][span] = plausible
-            if lists is not None:  # local_values' copy: the same numbers, written above
-                row, actuator = divmod(flat, num_actions)
-                entries = lists[0][row][actuator]
-                patterns = self._reading_entries(readings_rows[index])[0]
-                for candidate, pattern in enumerate(patterns):
-                    entries[candidate][pattern] = means[index * candidates + candidate]
-                lists[1][row][actuator] = plausible
-                lists[2][row][actuator] = int(committed[flat])
         increment_version(written)  # in place, as by index_copy_: seen by autograd
-        if lists is not None:
-            self._read_lists_current(lists)
         return True
 
     def _update_one(
         self,
-        arrays: dict,
-        written: list[torch.Tensor],
-        lists: list | None,
+        views: tuple[dict, list[torch.Tensor], dict, tuple],
         fired: int,
         rewards: list[float],
         reading: list[bool],
     ) -> bool:
         """``_update_read`` of one experiment's firing (``S = 1``): the same entries, the same
         numbers and the same writes, without the lists over experiments (a reopening goes to the
-        tensor code as there)."""
-        candidates = self.num_candidates
-        threshold = self.log_bayes_factor
-        log_prior = arrays["log_prior"].tolist()  # [C]
+        tensor code as there). Every entry is read and written through the buffers' memoryviews
+        (``_numpy_views``) as a Python number: the same double operations, entry by entry, and
+        no numpy call but the posterior weights' (one agent's step reaches it at every env step,
+        where each numpy or torch call costs microseconds of dispatch)."""
+        arrays, written, memory, (weight_rows, posterior, posterior_input) = views
+        candidates, width = self.num_candidates, self._pattern_count
         reward = float(rewards[fired])  # exact: float32 -> float64
         success = min(max(-reward, 0.0), 1.0)  # clamp(-r, 0, 1)
-        patterns, where_index = self._firing_entries(reading, fired)
-        # the entries' new counts as numpy arrays (the same double additions, elementwise)
-        count = arrays["count"][where_index] + 1.0
-        block_count = arrays["block_count"][where_index] + 1.0
-        successes = arrays["successes"][where_index] + success
-        block_successes = arrays["block_successes"][where_index] + success
-        reward_sum = arrays["reward_sum"][where_index] + reward
-        counts = count.tolist()
-        marginal = self._read_log_marginal(
-            counts + block_count.tolist(), successes.tolist() + block_successes.tolist()
-        )
-        arrays["count"][where_index] = count
-        arrays["block_count"][where_index] = block_count
-        arrays["successes"][where_index] = successes
-        arrays["block_successes"][where_index] = block_successes
-        arrays["reward_sum"][where_index] = reward_sum
-        arrays["block_reward_sum"][where_index] = arrays["block_reward_sum"][where_index] + reward
-        arrays["log_marginal"][where_index] = marginal[:candidates]
-        arrays["block_log_marginal"][where_index] = marginal[candidates:]
-        block_samples = arrays["block_samples"]
-        arrays["samples"][fired] += 1
+        start = fired * candidates * width  # the actuator's [C, P] in [S A C P]
+        where = [start + offset for offset in self._reading_entries(reading)[1]]
+        count, block_count = memory["count"], memory["block_count"]
+        successes, block_successes = memory["successes"], memory["block_successes"]
+        reward_sum, block_reward_sum = memory["reward_sum"], memory["block_reward_sum"]
+        counts, block_counts, sums, block_sums = [], [], [], []  # the entries' new counts
+        for entry in where:
+            counts.append(count[entry] + 1.0)
+            block_counts.append(block_count[entry] + 1.0)
+            sums.append(successes[entry] + success)
+            block_sums.append(block_successes[entry] + success)
+        marginal = self._read_log_marginal(counts + block_counts, sums + block_sums)
+        log_marginal, block_log_marginal = memory["log_marginal"], memory["block_log_marginal"]
+        mean, totals = memory["mean"], []
+        for index, entry in enumerate(where):
+            count[entry], block_count[entry] = counts[index], block_counts[index]
+            successes[entry], block_successes[entry] = sums[index], block_sums[index]
+            total = reward_sum[entry] + reward
+            reward_sum[entry] = total
+            totals.append(total)
+            block_reward_sum[entry] = block_reward_sum[entry] + reward
+            log_marginal[entry] = marginal[index]
+            block_log_marginal[entry] = marginal[candidates + index]
+        block_samples = memory["block_samples"]
+        memory["samples"][fired] += 1
         block_samples[fired] += 1
-        log_posterior = self._read_log_posterior(arrays, "", fired, log_prior)
-        held = int(arrays["committed"][fired])
+        log_prior = memory["log_prior"].tolist()  # [C]
+        log_posterior = self._read_log_posterior(memory, "", fired, log_prior)
+        held = memory["committed"][fired]
         if held >= 0:  # committed: _decide_read's change-point test of this one actuator
-            reopened = self._change_read(arrays, fired, held, log_prior)
+            reopened = self._change_read(memory, fired, held, log_prior)
         else:
             reopened = self._decide_read(arrays, [fired], [log_posterior], log_prior)
         if reopened is not None:
@@ -911,115 +907,72 @@ class StructureLearner(TensorDictModuleBase):
                 self._refresh_cache(rows, fired_tensor, fired_tensor, None)
             return True
         if block_samples[fired] >= self.window:  # _close_blocks
-            block_size = candidates * self.count.shape[-1]
-            span = slice(fired * block_size, (fired + 1) * block_size)
+            span = slice(start, start + candidates * width)
             for name in ("count", "successes", "reward_sum", "log_marginal"):
                 arrays["block_" + name][span] = 0.0
             block_samples[fired] = 0
             arrays["block_start"][fired] = arrays["history_length"][0]
         # _refresh_cache of the fired actuator with its log posterior (module docstring)
-        means = [
-            t / max(n, 1.0) if n > 0.0 else 0.0
-            for n, t in zip(counts, reward_sum.tolist(), strict=True)
-        ]
-        arrays["mean"][where_index] = means
-        # (the same [1, C] float64 tensor as torch.tensor's, built through numpy: a third of it)
-        weights = posterior_weights(torch.from_numpy(np.array([log_posterior], dtype=np.float64)))
-        span = slice(fired * candidates, (fired + 1) * candidates)
-        arrays["weights_cache"][span] = weights.numpy()[0]
+        for n, total, entry in zip(counts, totals, where, strict=True):
+            mean[entry] = total / max(n, 1.0) if n > 0.0 else 0.0
+        # posterior_weights (softmax) of the same [1, C] float64 tensor as torch.tensor's, written
+        # into the actuator's row of weights_cache (out=: the same kernel)
+        for candidate, value in enumerate(log_posterior):
+            posterior_input[candidate] = value
+        posterior_weights(posterior, out=weight_rows[fired])
+        first = fired * candidates
         best = max(log_posterior)
-        arrays["map_cache"][fired] = log_posterior.index(best)  # the first maximum (argmax)
-        plausible = [value >= best - threshold for value in log_posterior]
-        arrays["plausible_cache"][span] = plausible
-        if lists is not None:  # local_values' copy: the same numbers, written above
-            entries = lists[0][0][fired]
-            for candidate, pattern in enumerate(patterns):
-                entries[candidate][pattern] = means[candidate]
-            lists[1][0][fired] = plausible
-            lists[2][0][fired] = int(arrays["committed"][fired])
+        memory["map_cache"][fired] = log_posterior.index(best)  # the first maximum (argmax)
+        threshold = best - self.log_bayes_factor
+        plausible = memory["plausible_cache"]
+        for candidate, value in enumerate(log_posterior, first):
+            plausible[candidate] = value >= threshold
         increment_version(written)  # in place, as by index_copy_: seen by autograd
-        if lists is not None:
-            self._read_lists_current(lists)
         return True
 
-    def _firing_entries(self, reading: list[bool], fired: int) -> tuple[list[int], np.ndarray]:
-        """``(patterns, where)`` of actuator ``fired`` (experiment 0) under one reading: each
-        candidate's pattern (``_reading_entries``) and its flat entry in ``[S A C P]`` as a numpy
-        index, cached by (reading, actuator) (a few thousand at most)."""
-        key = (*reading, fired)
-        memo = self.__dict__.setdefault("_firings", {})
-        found = memo.get(key)
-        if found is None:
-            patterns, offsets = self._reading_entries(reading)
-            start = fired * self.num_candidates * self.count.shape[-1]
-            where = np.array([start + offset for offset in offsets], dtype=np.intp)
-            where.flags.writeable = False
-            found = (patterns, where)
-            if len(memo) >= _MEMO_SIZE:
-                memo.clear()
-            memo[key] = found
-        return found
-
     def _read_log_marginal(self, count: list[float], successes: list[float]) -> list[float]:
-        """``_pattern_log_marginal`` of Python numbers (``_read_log_marginal_of``), remembered by
-        ``(n, s)`` where the ``lgamma`` tables gave them (integral counts). Each entry's value is a
-        function of its own ``n`` and ``s`` (the tables hold ``torch.lgamma`` of the same
-        arguments), so the entries not remembered are computed alone, each once."""
-        memo = self.__dict__.setdefault("_marginals", {})
-        keys = list(zip(count, successes, strict=True))
-        marginal = list(map(memo.get, keys))
-        if None not in marginal:
-            return marginal
+        """``_pattern_log_marginal`` of Python numbers (``_read_log_marginal_of``): entry by entry
+        from the ``lgamma`` tables where they hold every entry (integral counts below their size,
+        ``_tabled_log_marginals``), else all of them by ``_read_log_marginal_of`` (which builds
+        or grows the tables). Each entry's value is a function of its own ``n`` and ``s`` (the
+        tables hold ``torch.lgamma`` of the same arguments): the same values either way."""
         tabled = self.__dict__.get("_tabled")
-        if tabled is not None:  # the few entries not remembered, one by one from the tables
-            for index, value in enumerate(marginal):
-                if value is None:
-                    key = keys[index]
-                    value = memo.get(key)  # (a key twice in one call: computed once)
-                    if value is None:
-                        value = self._tabled_log_marginal(tabled, *key)
-                        if value is None:  # not from the tables: all of them as below
-                            break
-                        if len(memo) >= _MEMO_SIZE:
-                            memo.clear()
-                        memo[key] = value
-                    marginal[index] = value
-            else:
+        if tabled is not None:
+            marginal = self._tabled_log_marginals(tabled, count, successes)
+            if marginal is not None:
                 return marginal
-            marginal = list(map(memo.get, keys))
-        missing = list(
-            dict.fromkeys(key for key, value in zip(keys, marginal, strict=True) if value is None)
-        )
-        computed, tabled = self._read_log_marginal_of(
-            [key[0] for key in missing], [key[1] for key in missing]
-        )
-        found = dict(zip(missing, computed, strict=True))
-        if tabled:  # from the tables: remember them
-            if len(memo) + len(found) > _MEMO_SIZE:
-                memo.clear()
-            memo.update(found)
-        return [
-            found[key] if value is None else value
-            for key, value in zip(keys, marginal, strict=True)
-        ]
+        return self._read_log_marginal_of(count, successes)[0]
 
     @staticmethod
-    def _tabled_log_marginal(tabled: tuple, n: float, s: float) -> float | None:
-        """``_read_log_marginal_of`` of one entry ``(n, s)`` where the ``lgamma`` tables built by
-        ``_read_lgamma`` hold it (integral ``0 <= s <= n`` below their size; else None): the same
-        table values and the same double operations in the same order, without building lists
-        for one entry (most firings leave a few entries not remembered: the counts grow)."""
+    def _tabled_log_marginals(
+        tabled: tuple, count: list[float], successes: list[float]
+    ) -> list[float] | None:
+        """``_read_log_marginal_of`` of the entries ``(n, s)`` where the ``lgamma`` tables built
+        by ``_read_lgamma`` hold every one (integral ``0 <= s <= n`` below their size; else
+        None): the same table values and the same double operations in the same order, one
+        entry at a time (a firing's entries are new ``(n, s)`` mostly: the counts grow)."""
         size, levels, mixture = tabled
-        if not (0.0 <= s <= n < size and n.is_integer() and s.is_integer()):
-            return None
-        values = [
-            first[int(s)] + second[int(n - s)] - third[int(n)] - log_beta_prior
-            for first, second, third, log_beta_prior, _ in levels
-        ]
-        if not mixture:  # "pattern"
-            return values[0]
-        clean, noisy = values[0] + levels[0][4], values[1] + levels[1][4]
-        return (clean if clean > noisy else noisy) if n > 0 else 0.0
+        first, second, third, log_beta_prior, mass = levels[0]
+        if mixture:
+            noisy_first, noisy_second, noisy_third, noisy_log_beta_prior, noisy_mass = levels[1]
+        marginal = []
+        for n, s in zip(count, successes, strict=True):
+            if not (0.0 <= s <= n < size and n.is_integer() and s.is_integer()):
+                return None
+            hits, misses, total = int(s), int(n - s), int(n)
+            value = first[hits] + second[misses] - third[total] - log_beta_prior
+            if mixture:  # the clean level's and the noisy level's, the more probable
+                clean = value + mass
+                noisy = (
+                    noisy_first[hits]
+                    + noisy_second[misses]
+                    - noisy_third[total]
+                    - noisy_log_beta_prior
+                    + noisy_mass
+                )
+                value = (clean if clean > noisy else noisy) if n > 0 else 0.0
+            marginal.append(value)
+        return marginal
 
     def _read_log_marginal_of(
         self, count: list[float], successes: list[float]
@@ -1098,7 +1051,7 @@ class StructureLearner(TensorDictModuleBase):
                 for base in bases:
                     tables[base] = torch.lgamma(base + steps).tolist()
                 tables["size"] = size
-                # (for _tabled_log_marginal: the counts the tables take, each level's tables)
+                # (for _tabled_log_marginals: the counts the tables take, each level's tables)
                 tabled_levels = [
                     (tables[level[0]], tables[level[1]], tables[level[2]], level[3], level[4])
                     for level in levels
@@ -1122,7 +1075,7 @@ class StructureLearner(TensorDictModuleBase):
     ) -> list[float]:
         """``log_posterior_of`` of the actuator at flat index ``flat`` (``row * A + action``) from
         the numpy views (``_update_read``): ``log_prior + (((m_0 + m_1) + m_2) + m_3)``."""
-        width = self.count.shape[-1]
+        width = self._pattern_count
         values = iter(
             arrays[prefix + "log_marginal"][
                 flat * self.num_candidates * width : (flat + 1) * self.num_candidates * width
@@ -1152,7 +1105,7 @@ class StructureLearner(TensorDictModuleBase):
         """``_decide`` on the numpy views (``_update_read``): commit open actuators, test the
         committed ones for a change; writes ``committed`` and ``noise_seen``. Returns the
         reopening flags ``[R]`` where some actuator reopened (the caller forgets), else None."""
-        candidates, width = self.num_candidates, self.count.shape[-1]
+        candidates, width = self.num_candidates, self._pattern_count
         committed = arrays["committed"][fired_rows].tolist()
         new = list(committed)
         if not all(held >= 0 for held in committed):
@@ -1231,7 +1184,7 @@ class StructureLearner(TensorDictModuleBase):
         differences ``m - e`` summed left to right, ``log_prior + (0.0 + total)`` against the
         block's best log posterior); writes ``committed`` -1 and returns ``[True]`` where it
         reopens, else None (nothing written: the actuator stays committed to ``held``)."""
-        width = self.count.shape[-1]
+        width = self._pattern_count
         cell = (flat * self.num_candidates + held) * width
         end = cell + width
         count = arrays["count"][cell:end].tolist()
