@@ -87,10 +87,22 @@ def _cut(out: Path, monkeypatch, *extra: str) -> Path:
     return out
 
 
+@pytest.fixture(scope="module")
+def kept_cut(tmp_path_factory) -> Path:
+    """One run of ``ARGS`` interrupted when DQN starts (factor-q kept): tests that edit or resume
+    it take a copy (``_copy``)."""
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        return _cut(tmp_path_factory.mktemp("compare") / "cut", monkeypatch)
+
+
+def _copy(kept_cut: Path, tmp_path: Path) -> Path:
+    return Path(shutil.copytree(kept_cut, tmp_path / "cut"))
+
+
 def test_an_interrupted_comparison_resumes_to_the_numbers_and_logs_of_a_whole_run(
-    whole, tmp_path, monkeypatch
+    whole, kept_cut, tmp_path
 ):
-    cut = _cut(tmp_path / "cut", monkeypatch)
+    cut = _copy(kept_cut, tmp_path)
     code, err = _cli_quiet("compare", "--resume", str(cut))
     assert code == 0, err
     assert "resuming" in err and "1 of 2 units done" in err
@@ -101,10 +113,12 @@ def test_an_interrupted_comparison_resumes_to_the_numbers_and_logs_of_a_whole_ru
 
 def test_sigkill_during_dqn_then_resume_equals_an_uninterrupted_run(whole, tmp_path):
     cut = tmp_path / "cut"
-    argv = [sys.executable, "-m", "factorq_trainers.cli", "compare", *ARGS]
-    # DQN's budget is the last thing the child does: long enough to be killed during it
+    # DQN's budget is the last thing the child does: long enough to be killed during it (seconds
+    # of work against a poll of 10 ms), in one regime (a unit is a method's batch of regimes)
+    longer = [{"300": "2000", "static,dynamic": "static"}.get(arg, arg) for arg in ARGS]
+    argv = [sys.executable, "-m", "factorq_trainers.cli", "compare", *longer]
     child = subprocess.Popen(
-        [*argv, "--steps", "3000", "--out", str(cut)],
+        [*argv, "--out", str(cut)],
         cwd=Path(__file__).parents[1],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
@@ -125,7 +139,7 @@ def test_sigkill_during_dqn_then_resume_equals_an_uninterrupted_run(whole, tmp_p
     assert code == 0, err
     assert "1 of 2 units done" in err
     reference = tmp_path / "whole"
-    code, err = _cli_quiet("compare", *ARGS, "--steps", "3000", "--out", str(reference))
+    code, err = _cli_quiet("compare", *longer, "--out", str(reference))
     assert code == 0, err
     assert _files(cut) == _files(reference)
 
@@ -142,8 +156,8 @@ def _refused(out: Path, path: Path, *words: str) -> None:
     assert not (out / "comparison.json").exists()
 
 
-def test_a_kept_unit_of_another_config_is_refused(tmp_path, monkeypatch):
-    mine = _cut(tmp_path / "mine", monkeypatch)
+def test_a_kept_unit_of_another_config_is_refused(kept_cut, tmp_path, monkeypatch):
+    mine = _copy(kept_cut, tmp_path)
     other = _cut(tmp_path / "other", monkeypatch, "--seed", "1")
     path = kept.unit_path(mine / "units", "factor-q")
     shutil.copyfile(kept.unit_path(other / "units", "factor-q"), path)
@@ -162,20 +176,27 @@ def test_a_kept_unit_of_another_config_is_refused(tmp_path, monkeypatch):
     ids=["negative-collisions", "nan-collisions", "negative-path", "epsilon-2", "no-env-steps"],
 )
 def test_a_kept_unit_edited_and_sealed_again_with_impossible_values_is_refused(
-    edit, words, tmp_path, monkeypatch
+    edit, words, kept_cut, tmp_path
 ):
-    out = _cut(tmp_path / "cut", monkeypatch)
+    out = _copy(kept_cut, tmp_path)
     path = kept.unit_path(out / "units", "factor-q")
     _reseal(path, lambda record: edit(record["result"]["traces"][0]))
     _refused(out, path, *words)
-    # --force (with --resume) recomputes it: the numbers of a whole run
+
+
+def test_force_recomputes_a_refused_unit_to_the_numbers_of_a_whole_run(whole, kept_cut, tmp_path):
+    out = _copy(kept_cut, tmp_path)
+    path = kept.unit_path(out / "units", "factor-q")
+    _reseal(path, lambda record: record["result"]["traces"][0].update(total_collisions=-999))
+    _refused(out, path, "total_collisions holds -999")
     code, err = _cli_quiet("compare", "--resume", str(out), "--force")
     assert code == 0, err
+    assert _files(out) == _files(whole)
 
 
-def test_a_comparison_resumes_on_a_local_cluster(whole, tmp_path, monkeypatch):
+def test_a_comparison_resumes_on_a_local_cluster(whole, kept_cut, tmp_path):
     pytest.importorskip("distributed")
-    cut = _cut(tmp_path / "cut", monkeypatch)
+    cut = _copy(kept_cut, tmp_path)
     code, err = _cli_quiet("compare", "--resume", str(cut), "--cluster", "local:2")
     assert code == 0, err
     timing = json.loads((cut / "comparison.json").read_text())["timing"]
@@ -192,11 +213,11 @@ def test_a_comparison_resumes_on_a_local_cluster(whole, tmp_path, monkeypatch):
     ids=["a-trace-removed", "an-episode-cut"],
 )
 def test_a_kept_unit_whose_traces_do_not_fit_the_run_is_refused_in_one_line(
-    edit, words, tmp_path, monkeypatch
+    edit, words, kept_cut, tmp_path
 ):
     """What the schema cannot say (how many traces, episodes of equal length): the command's
     ``check_unit`` refuses it in one line naming the file, before any unit runs."""
-    out = _cut(tmp_path / "cut", monkeypatch)
+    out = _copy(kept_cut, tmp_path)
     path = kept.unit_path(out / "units", "factor-q")
     _reseal(path, lambda record: edit(record["result"]["traces"]))
     code, err = _cli_quiet("compare", "--resume", str(out))
