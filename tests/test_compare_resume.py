@@ -138,6 +138,7 @@ def test_sigkill_during_dqn_then_resume_equals_an_uninterrupted_run(whole, tmp_p
     code, err = _cli_quiet("compare", "--resume", str(cut))
     assert code == 0, err
     assert "1 of 2 units done" in err
+    assert not (cut / "units").exists()  # removed once the outputs are written
     reference = tmp_path / "whole"
     code, err = _cli_quiet("compare", *longer, "--out", str(reference))
     assert code == 0, err

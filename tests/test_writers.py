@@ -19,7 +19,6 @@ from timing import patience  # tests/timing.py: bounds that stretch with the loa
 from factorq_trainers import cli
 from factorq_trainers.commands.compare import report as compare_report
 from factorq_trainers.compiled import fast
-from factorq_trainers.runner import kept
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 # Some seconds of work on one thread, in 32 units (each kept in OUT/units/ as it finishes).
@@ -116,56 +115,6 @@ def test_compare_replaces_its_files_and_logs_as_a_set(tmp_path, monkeypatch):
     assert all(len(lines) == len(set(lines)) for lines in rows)  # nothing appended twice
     assert not [path for path in out.iterdir() if path.name.endswith("tmp")]
     assert Path(out / "logs").is_dir()
-
-
-COMPARED = ["--methods", "factor-q,q-learning,dqn", "--seeds", "2", "--steps", "400"]
-COMPARED += ["--size", "5", "--obstacles", "2", "--regimes", "static,dynamic", "--out", "run"]
-
-
-def without_wall_time(text: str) -> dict:
-    results = json.loads(text)
-    results.pop("timing")
-    for worlds in results["results"].values():
-        for cell in worlds.values():
-            cell.pop("wall_s")
-    return results
-
-
-def test_a_comparison_killed_and_resumed_writes_the_same_results(tmp_path, monkeypatch):
-    reference_dir, killed_dir = tmp_path / "reference", tmp_path / "killed"
-    reference_dir.mkdir()
-    killed_dir.mkdir()
-    process = subprocess.Popen(
-        [sys.executable, "-m", "factorq_trainers.cli", "compare", *COMPARED],
-        cwd=killed_dir,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-    )
-    saved = kept.unit_path(killed_dir / "run" / "units", "factor-q")  # the first method's
-    try:
-        deadline = time.monotonic() + patience(300)
-        while not saved.exists():
-            assert process.poll() is None and time.monotonic() < deadline, "no unit kept"
-            time.sleep(0.01)
-        process.send_signal(signal.SIGKILL)
-        process.wait(timeout=patience(60))
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
-    assert not (killed_dir / "run" / "comparison.json").exists()
-    monkeypatch.chdir(killed_dir)
-    code, err = factorq("compare", "--resume", "run")
-    assert code == 0, err
-    assert not (killed_dir / "run" / "units").exists()
-    monkeypatch.chdir(reference_dir)
-    assert factorq("compare", *COMPARED)[0] == 0
-    resumed = (killed_dir / "run" / "comparison.json").read_text()
-    reference = (reference_dir / "run" / "comparison.json").read_text()
-    assert without_wall_time(resumed) == without_wall_time(reference)
-    for path in sorted((reference_dir / "run" / "logs").rglob("*.csv")):
-        twin = killed_dir / "run" / path.relative_to(reference_dir / "run")
-        assert twin.read_text() == path.read_text(), path  # the logs, row for row
 
 
 @needs_fast
