@@ -294,6 +294,11 @@ class WorldOptions:
             self.size, self.obstacles, self.max_steps, self.layout_seed, regimes, body_options(self)
         )
 
+    @property
+    def world(self) -> WorldConfig:
+        """The world of every experiment; the obstacle period is set per experiment."""
+        return self.checked_world()
+
 
 @dataclass(frozen=True)
 class ExperimentConfig(WorldOptions):
@@ -314,11 +319,6 @@ class ExperimentConfig(WorldOptions):
         object.__setattr__(self, "regimes", check_names("regimes", self.regimes, REGIMES))
         check_int("steps", self.steps, 1, INT32_MAX)
         self.checked_world(self.regimes)
-
-    @property
-    def world(self) -> WorldConfig:
-        """The world of every experiment; the obstacle period is set per experiment."""
-        return self.checked_world()
 
     @property
     def num_experiments(self) -> int:

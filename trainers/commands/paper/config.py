@@ -6,7 +6,6 @@ from dataclasses import dataclass
 
 import torch
 
-from factorq_envs.grid_world import WorldConfig
 from factorq_envs.regimes import REGIMES
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
 from factorq_torch.base.validation import (
@@ -106,11 +105,6 @@ class PaperConfig(experiment.WorldOptions):
         return AgentConfig(
             epsilon=self.epsilon, gamma=self.gamma, alpha=self.alpha, eta=self.eta, g_min=self.g_min
         )
-
-    @property
-    def world(self) -> WorldConfig:
-        """The world of every experiment; the obstacle period is set per experiment."""
-        return self.checked_world()
 
     @property
     def cells(self) -> list[tuple[str, str]]:

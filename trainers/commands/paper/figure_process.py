@@ -77,11 +77,6 @@ class FigureProcess:
             return None
         return cls(process, errors)
 
-    @property
-    def sent(self) -> bool:
-        """Whether ``send`` was called."""
-        return self._sender is not None
-
     def send(
         self,
         results: dict[str, Any],

@@ -19,11 +19,10 @@ from factorq_trainers.analysis.claims import ALGORITHM_LABELS, MEASURE_LABELS, M
 from factorq_trainers.analysis.stats import with_ci
 from factorq_trainers.commands.paper import figure as paper_figure
 from factorq_trainers.commands.paper.figure_process import FigureProcess, FigureProcessError
-from factorq_trainers.commands.paper.schema import (
-    ResultsFileError,
-    check_results,
+from factorq_trainers.commands.paper.schema import (  # noqa: F401 - results_problem: report's
     escape_markdown,
     markdown_code,
+    results_problem,
 )
 from factorq_trainers.runner.results import body_label, temporary_path
 
@@ -179,17 +178,6 @@ def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
         }
         for name, cell in results["cells"].items()
     }
-
-
-def results_problem(results: dict[str, Any]) -> str | None:
-    """What is wrong with a ``results.json`` dict against the paper's schema (``schema.
-    check_results``: every field the report reads), or None: ``factorq report`` refuses the file
-    with it before drawing (``reports.check_results``)."""
-    try:
-        check_results(results)
-    except ResultsFileError as error:
-        return str(error)
-    return None
 
 
 def send_figure(
