@@ -189,40 +189,25 @@ def build_parser() -> argparse.ArgumentParser:
         "killed sweep resumes).",
     )
     parser.add_argument("spec", nargs="?", metavar="SPEC", help="a .toml (or .yaml) sweep file")
-    parser.add_argument(
-        "--command",
-        metavar="NAME",
-        default=argparse.SUPPRESS,
-        help="Whose configs to sweep: paper, compare or any other command (dependencies, "
-        "minigrid, ...), each configuration one task. "
-        "(default: the file's command, else paper)",
-    )
-    parser.add_argument(
-        "--grid",
-        action="append",
-        metavar="FIELD=V1,V2",
-        default=[],
-        help="A swept axis: a field of the --command's config and its values (repeatable; "
-        "crossed).",
-    )
-    parser.add_argument(
-        "--set",
-        action="append",
-        metavar="FIELD=VALUE",
-        default=[],
-        help="A base value shared by every configuration (repeatable).",
-    )
+    parser.add_argument("--command", metavar="NAME", default=argparse.SUPPRESS,
+                        help="Whose configs to sweep: paper, compare or any other command "
+                        "(dependencies, minigrid, ...), each configuration one task. "
+                        "(default: the file's command, else paper)")  # fmt: skip
+    parser.add_argument("--grid", action="append", metavar="FIELD=V1,V2", default=[],
+                        help="A swept axis: a field of the --command's config and its values "
+                        "(repeatable; crossed).")  # fmt: skip
+    parser.add_argument("--set", action="append", metavar="FIELD=VALUE", default=[],
+                        help="A base value shared by every configuration "
+                        "(repeatable).")  # fmt: skip
     parser.add_argument("--seeds", type=int, metavar="N", default=argparse.SUPPRESS,
                         help=f"Seeds per configuration. (default: {DEFAULT_SEEDS})")  # fmt: skip
     parser.add_argument("--out", metavar="DIR", default=argparse.SUPPRESS,
                         help=f"Output directory. (default: {DEFAULT_OUT})")  # fmt: skip
-    parser.add_argument(
-        "--force",
-        action="store_true",
-        help="Replace the sweep.json and sweep.md of an earlier sweep in --out, and recompute "
-        "any finished configuration whose kept file fails its checks (edited, damaged); "
-        "good ones are reused either way. Without it, an --out holding them is refused.",
-    )
+    parser.add_argument("--force", action="store_true",
+                        help="Replace the sweep.json and sweep.md of an earlier sweep in --out, "
+                        "and recompute any finished configuration whose kept file fails its "
+                        "checks (edited, damaged); good ones are reused either way. Without it, "
+                        "an --out holding them is refused.")  # fmt: skip
     cluster.add_options(parser)
     return parser
 

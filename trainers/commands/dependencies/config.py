@@ -37,19 +37,13 @@ SETTINGS: dict[str, dict[str, Any]] = {
     "noise-10": {"body": "translate", "sensors": "cross", "sensor_noise": 0.10},
     "change": {"body": "translate", "sensors": "cross"},
     # noise with many sensors (8 ring sensors and 12 distractors: 20)
-    "ring-12-noise-5": {
-        "body": "translate",
-        "sensors": "ring",
-        "num_distractors": 12,
-        "sensor_noise": 0.05,
+    **{
+        f"ring-12-noise-{percent}": {
+            "body": "translate", "sensors": "ring", "num_distractors": 12, "sensor_noise": noise
+        }
+        for percent, noise in ((5, 0.05), (10, 0.10))
     },
-    "ring-12-noise-10": {
-        "body": "translate",
-        "sensors": "ring",
-        "num_distractors": 12,
-        "sensor_noise": 0.10,
-    },
-}
+}  # fmt: skip
 #: The setting that ``--body``, ``--sensors``, ``--distractors`` and ``--sensor-noise`` declare.
 CUSTOM = "custom"
 #: A setting's content: its body options with the defaults filled in, and whether the sensor
@@ -307,10 +301,13 @@ class DependenciesConfig:
             raise ValueError(f"regimes: a unit runs one regime, not {', '.join(self.regimes)}")
         return self.regimes[0]
 
-    def world_of(self, setting: str) -> WorldConfig:
+    def body_of(self, setting: str) -> dict[str, Any]:
+        """``setting_options`` as a config names them (``distractors``: ``WorldOptions``')."""
         options = self.setting_options(setting)
-        renamed = {"num_distractors": "distractors"}
-        body = {renamed.get(name, name): value for name, value in options.items()}
+        return {"distractors" if k == "num_distractors" else k: v for k, v in options.items()}
+
+    def world_of(self, setting: str) -> WorldConfig:
+        body = self.body_of(setting)
         return check_world_options(
             self.size, self.obstacles, self.max_steps, self.layout_seed, self.regimes, body
         )
