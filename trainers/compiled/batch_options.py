@@ -115,9 +115,7 @@ def _check_orders(name: str, orders: Any, count: int, num_sensors: int) -> torch
 
 
 def _check_threads(threads: object) -> int:
-    if threads is None:
-        return torch.get_num_threads()
-    return check_int("threads", threads, 1)
+    return torch.get_num_threads() if threads is None else check_int("threads", threads, 1)
 
 
 def learner_setup(

@@ -151,8 +151,7 @@ class ExploratoryEGreedy(TensorDictModuleBase):
     ) -> None:
         super().__init__()
         self.num_actions = num_actions
-        self.in_keys = ["action"]
-        self.out_keys = ["action", "exploratory"]
+        self.in_keys, self.out_keys = ["action"], ["action", "exploratory"]
         self.egreedy = EGreedyModule(
             Categorical(num_actions, dtype=torch.int64),
             eps_init=float(eps_init),

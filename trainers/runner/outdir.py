@@ -214,8 +214,7 @@ def claim(
                 f"out='{path}' is not writable: {error.strerror or type(error).__name__}"
             ) from None
         outputs = tuple(outputs)
-        names = (*outputs, *OWN_DIRECTORIES)
-        links = [name for name in names if (path / name).is_symlink()]
+        links = [name for name in (*outputs, *OWN_DIRECTORIES) if (path / name).is_symlink()]
         if links:  # renaming over a link would not follow it, but it is not ours to remove
             raise LinkRefused(path / links[0])
         for name in outputs:  # --force replaces files, never a directory in a file's place

@@ -153,8 +153,7 @@ def toml_depth(text: str) -> int:
         token = match.group()
         if token[0] == "#" or token[:3] in ('"""', "'''"):
             continue
-        parts = len(re.findall(_TOML_KEY_PART, token))
-        longest = max(longest, parts)
+        longest = max(longest, len(re.findall(_TOML_KEY_PART, token)))
     return nesting_depth(text, TOML_TOKENS) + longest
 
 

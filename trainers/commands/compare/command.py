@@ -187,8 +187,7 @@ def run_online(
     recorder = EpisodeRecorder(experiments.labels)
     report_every = max(1, steps // 100)
     for step in range(1, steps + 1):
-        td = collector.step()
-        recorder.update(td, epsilon, 0.5 * captured["td_error"].pow(2))
+        recorder.update(collector.step(), epsilon, 0.5 * captured["td_error"].pow(2))
         if progress is not None and (step % report_every == 0 or step == steps):
             progress(step, steps)
     hook.remove()

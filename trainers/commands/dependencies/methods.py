@@ -55,8 +55,7 @@ def _orders_after(config: DependenciesConfig, setting: str) -> torch.Tensor | No
 def _keys(config: DependenciesConfig, method: str) -> tuple[torch.Tensor, torch.Tensor]:
     labels = [(config.regime, index) for index in range(config.seeds)]
     world_keys = experiment_keys(config.seed, STREAM_WORLD, labels)
-    policy_keys = experiment_keys(config.seed, STREAM_POLICY, labels, KEYED_METHODS, method)
-    return world_keys, policy_keys
+    return world_keys, experiment_keys(config.seed, STREAM_POLICY, labels, KEYED_METHODS, method)
 
 
 def _periods(config: DependenciesConfig) -> torch.Tensor:

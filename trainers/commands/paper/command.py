@@ -294,21 +294,16 @@ def summarise(config: PaperConfig, outcomes: list[dict[str, Any]]) -> dict[str, 
         for name in TOTALS:
             mean, low, high = mean_ci(cell[name])
             summary[name] = {"mean": float(mean), "ci95": interval(low, high)}
-        curves, lows, highs = {}, {}, {}
-        for name in CURVE_NAMES:
-            mean, low, high = mean_ci(curve_rows[name])
-            curves[name] = mean.tolist()
-            lows[name] = None if low is None else low.tolist()
-            highs[name] = None if high is None else high.tolist()
+        ci = {name: mean_ci(curve_rows[name]) for name in CURVE_NAMES}  # (mean, low, high) each
         cells[f"{world}/{algorithm}"] = {
             "world": world,
             "algorithm": algorithm,
             "obstacle_period": REGIME_PERIODS[world],
             "per_seed": {name: cell[name].tolist() for name in TOTALS},
             "summary": summary,
-            "curves": curves,
-            "curves_ci_low": lows,
-            "curves_ci_high": highs,
+            "curves": {name: mean.tolist() for name, (mean, _, _) in ci.items()},
+            "curves_ci_low": {k: None if v[1] is None else v[1].tolist() for k, v in ci.items()},
+            "curves_ci_high": {k: None if v[2] is None else v[2].tolist() for k, v in ci.items()},
         }
     backends = sorted({outcome["backend"] for outcome in outcomes})
     backend = backends[0] if len(backends) == 1 else "+".join(backends)

@@ -235,8 +235,7 @@ def run_torchrl(
             local_loss(data)  # eq. 5 on every transition once (the running means)
         buffer.extend(data)
         if tally.step >= config.learning_starts:
-            sample = buffer.sample()
-            value = loss(sample)["loss"]
+            value = loss(buffer.sample())["loss"]
             optimizer.zero_grad()
             value.backward()
             optimizer.step()
@@ -245,8 +244,7 @@ def run_torchrl(
             progress(data.shape[0])
     collector.shutdown()
     wall = time.perf_counter() - started
-    greedy = evaluate(config, unit, acting)
-    result = _result(tally, greedy, wall)
+    result = _result(tally, evaluate(config, unit, acting), wall)
     if summary is not None:
         result["risk_log"] = risk_log
     if isinstance(local, StructureLearner):  # what it found, beside the env's declared oracle
@@ -379,9 +377,8 @@ def run_sb3(
     started = time.perf_counter()
     model.learn(config.steps, callback=Record())
     wall = time.perf_counter() - started
-    evaluation = grid_env(10_000 + unit["seed"])
-    episodes = [evaluation] * config.eval_episodes
-    greedy = sb3_greedy(model, episodes, collided, 4 * config.grid_size**2)
+    evaluation = [grid_env(10_000 + unit["seed"])] * config.eval_episodes
+    greedy = sb3_greedy(model, evaluation, collided, 4 * config.grid_size**2)
     collisions, successes = sum(e[1] for e in greedy), sum(e[2] for e in greedy)
     result = {"collisions": collisions, "successes": successes, "episodes": config.eval_episodes}
     return _result(tally, result, wall)

@@ -223,16 +223,8 @@ def run_batch(
     from factorq_trainers.methods.experiment import make_env, online_agent, tabular_values
 
     task, table = tabular_values(algorithm, config.seeds, world)
-    if learned:
-        from factorq_torch.structure import StructureLearner
-
-        table = StructureLearner(
-            config.seeds, num_actions=world.num_actuators, num_sensors=world.num_sensors
-        )
-        if body is not None:
-            table.load_state_dict(body)
-    elif table is not None and body is not None:
-        table.load_state_dict({**table.state_dict(), **body})
+    if table is not None:  # Factor-Q: the oracle's table or the learner, from ``body`` if given
+        table = _local_model(config, world, learned, body)
     env, policy, loss = online_agent(
         make_env(world, periods, world_keys), task, table, agent, policy_keys
     )
@@ -246,23 +238,29 @@ def run_batch(
     return metrics, {name: value.clone() for name, value in kept.items()}, "modular"
 
 
-def train_body_model(config: TransferConfig, learned: bool = False) -> Any:
-    """The body model of every seed, learned by Factor-Q in the source task: a
-    ``LocalRewardTable`` ``[seeds]`` on the oracle pairing, or with ``learned`` a
-    ``StructureLearner`` told nothing of it (``save_agent`` writes either)."""
+def _local_model(
+    config: TransferConfig, world: WorldConfig, learned: bool, state: dict | None = None
+) -> Any:
+    """Factor-Q's local model of every seed in ``world``'s body, loaded with ``state`` (a
+    ``run_batch`` local model) when given: a ``LocalRewardTable`` ``[seeds]`` on the oracle
+    pairing, or with ``learned`` a ``StructureLearner`` told nothing of it."""
     from factorq_torch.structure import StructureLearner
     from factorq_torch.tables import LocalRewardTable
 
-    world, local = config.source_world, _source_body(config, learned)
     if learned:
-        learner = StructureLearner(
-            config.seeds, num_actions=world.num_actuators, num_sensors=world.num_sensors
-        )
-        learner.load_state_dict(local)
-        return learner
-    table = LocalRewardTable(config.seeds, dependency=world.dependency)
-    table.load_state_dict({**table.state_dict(), **local})
-    return table
+        actuators, sensors = world.num_actuators, world.num_sensors
+        local = StructureLearner(config.seeds, num_actions=actuators, num_sensors=sensors)
+    else:
+        local = LocalRewardTable(config.seeds, dependency=world.dependency)
+    if state is not None:  # the learner's whole state, or the table's rho and kappa
+        local.load_state_dict({**local.state_dict(), **state})
+    return local
+
+
+def train_body_model(config: TransferConfig, learned: bool = False) -> Any:
+    """The body model of every seed, learned by Factor-Q in the source task: the oracle's table or,
+    with ``learned``, a ``StructureLearner`` (``_local_model``; ``save_agent`` writes either)."""
+    return _local_model(config, config.source_world, learned, _source_body(config, learned))
 
 
 def _source_body(config: TransferConfig, learned: bool) -> dict[str, torch.Tensor]:
