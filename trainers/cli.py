@@ -17,14 +17,7 @@ import typing
 from typing import TYPE_CHECKING
 
 from factorq_trainers.runner import frame, options, registry
-from factorq_trainers.runner.frame import (
-    EXIT_FAILURE,
-    EXIT_INTERRUPTED,
-    EXIT_USAGE,
-    Parser,
-    error,
-    failure,
-)
+from factorq_trainers.runner.frame import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_USAGE, Parser
 
 if TYPE_CHECKING:
     from factorq_trainers.commands.paper.figure_process import FigureProcess
@@ -76,10 +69,10 @@ def _report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         paths = reports.regenerate(args.results_dir)
     except (FileNotFoundError, ValueError, KeyError) as problem:
         message = f"missing field {problem}" if isinstance(problem, KeyError) else str(problem)
-        error(parser, message)
+        frame.error(parser, message)
         return EXIT_USAGE
     except frame.results.FigureError as problem:
-        failure(parser, problem)
+        frame.failure(parser, problem)
         return EXIT_FAILURE
     for path in paths.values():
         print(path)

@@ -12,14 +12,9 @@ from typing import Any
 
 from factorq_envs.grid_world import WorldConfig
 from factorq_envs.regimes import REGIMES
+from factorq_torch.base import validation
 from factorq_torch.base.config import EXPLORATIONS, AgentConfig
-from factorq_torch.base.validation import (
-    INT32_MAX,
-    check_float,
-    check_int,
-    check_names,
-    check_threads,
-)
+from factorq_torch.base.validation import INT32_MAX, check_float, check_int, check_names
 from factorq_trainers.analysis.vocabulary import among
 from factorq_trainers.methods.experiment import MAX_SEED, PAPER_WORLD, check_world_options
 from factorq_trainers.runner.options import check_choices, option
@@ -227,7 +222,7 @@ class DependenciesConfig:
         check_int("episodes", self.episodes, 1, INT32_MAX)
         check_int("max_parents", self.max_parents, 0)
         check_int("window", self.window, 1, INT32_MAX)
-        check_threads("threads", self.threads)
+        validation.check_threads("threads", self.threads)
         check_choices(self)
         if not isinstance(self.bayes_factor, (int, float)) or not self.bayes_factor > 1:
             raise ValueError(

@@ -19,11 +19,8 @@ from factorq_trainers.analysis.claims import ALGORITHM_LABELS, MEASURE_LABELS, M
 from factorq_trainers.analysis.stats import with_ci
 from factorq_trainers.commands.paper import figure as paper_figure
 from factorq_trainers.commands.paper.figure_process import FigureProcess, FigureProcessError
-from factorq_trainers.commands.paper.schema import (  # noqa: F401 - results_problem: report's
-    escape_markdown,
-    markdown_code,
-    results_problem,
-)
+from factorq_trainers.commands.paper.schema import escape_markdown, markdown_code
+from factorq_trainers.commands.paper.schema import results_problem as results_problem
 from factorq_trainers.runner.results import body_label, temporary_path
 
 FIGURE_FILE = "figure3.png"

@@ -37,14 +37,8 @@ from factorq_torch.base.validation import INT32_MAX, check_int, check_names, che
 from factorq_trainers.analysis.stats import bootstrap_mean_ci, count_ratio, scalar_ci
 from factorq_trainers.analysis.vocabulary import among
 from factorq_trainers.commands.transfer.report import PAIRS
-from factorq_trainers.methods.experiment import (
-    MAX_SEED,
-    PAPER_WORLD,
-    WorldOptions,
-    body_options,
-    check_world_options,
-    experiment_keys,
-)
+from factorq_trainers.methods import experiment
+from factorq_trainers.methods.experiment import MAX_SEED, PAPER_WORLD, experiment_keys
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, TEXT
 from factorq_trainers.runner.options import check_choices, option
 
@@ -84,7 +78,7 @@ TARGET_WORLD = WorldConfig(size=14, num_obstacles=20, layout_seed=1)
 
 
 @dataclass(frozen=True)
-class TransferConfig(WorldOptions):
+class TransferConfig(experiment.WorldOptions):
     """The target task is the world options (``size``, ``obstacles``, ``layout_seed``, the body)
     in each of ``regimes``; the source task shares the body and ``max_steps``."""
 
@@ -150,13 +144,13 @@ class TransferConfig(WorldOptions):
     @property
     def source_world(self) -> WorldConfig:
         try:
-            return check_world_options(
+            return experiment.check_world_options(
                 self.source_size,
                 self.source_obstacles,
                 self.max_steps,
                 self.source_layout_seed,
                 (self.source_regime,),
-                body_options(self),
+                experiment.body_options(self),
             )
         except (ValueError, TypeError) as error:
             message = str(error)
@@ -220,13 +214,12 @@ def run_batch(
         local = None if tables is None else {name: tables[name] for name in ("rho", "kappa")}
         return metrics, local, "fast"
     from factorq_torch.collectors import OnlineCollector
-    from factorq_trainers.methods.experiment import make_env, online_agent, tabular_values
 
-    task, table = tabular_values(algorithm, config.seeds, world)
+    task, table = experiment.tabular_values(algorithm, config.seeds, world)
     if table is not None:  # Factor-Q: the oracle's table or the learner, from ``body`` if given
         table = _local_model(config, world, learned, body)
-    env, policy, loss = online_agent(
-        make_env(world, periods, world_keys), task, table, agent, policy_keys
+    env, policy, loss = experiment.online_agent(
+        experiment.make_env(world, periods, world_keys), task, table, agent, policy_keys
     )
     on_episodes = None if progress is None else (lambda done, _experiments: progress(done))
     collector = OnlineCollector(env, policy, loss, runs=1, episodes=episodes, progress=on_episodes)
@@ -278,10 +271,9 @@ def load_body_model(config: TransferConfig) -> dict[str, torch.Tensor]:
     ``AgentFileError`` line naming the file and both bodies otherwise)."""
     from factorq_torch.artifacts import AgentFileError, load_agent
     from factorq_torch.tables import LocalRewardTable
-    from factorq_trainers.methods.experiment import make_env
 
     world = config.target_world
-    probe = make_env(world, [0], torch.zeros(1, dtype=torch.int64))
+    probe = experiment.make_env(world, [0], torch.zeros(1, dtype=torch.int64))
     module = load_agent(str(config.body_model), env=probe)
     if not isinstance(module, LocalRewardTable):
         raise AgentFileError(
