@@ -22,6 +22,7 @@ their checks ``batch_options``'s; where the kernel cannot be built ``is_availabl
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import functools
 from collections.abc import Callable
@@ -64,10 +65,8 @@ def _wait_uninterrupted(futures: list) -> None:
     must not skip the wait either); the futures' own errors are left to their callers."""
     pending = list(futures)
     while pending:
-        try:
+        with contextlib.suppress(KeyboardInterrupt):
             wait(pending)
-        except KeyboardInterrupt:
-            pass
         pending = [future for future in pending if not future.done()]
 
 

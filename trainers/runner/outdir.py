@@ -95,10 +95,8 @@ def _open_lock(lock_path: Path) -> int:
     """The lock file's descriptor (read-write), created new where missing; a link there is
     refused (following it would truncate its target), and so is anything but a regular
     file."""
-    try:
+    with contextlib.suppress(FileExistsError):
         return os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_EXCL | _OWN, 0o644)
-    except FileExistsError:
-        pass
     if lock_path.is_symlink():
         raise LinkRefused(lock_path)
     try:
