@@ -284,10 +284,8 @@ def summarise(config: PaperConfig, outcomes: list[dict[str, Any]]) -> dict[str, 
             name: np.asarray(rows, dtype=np.float64) / runs
             for name, rows in episodes[world, algorithm].items()
         }
-        summary = {}
-        for name in TOTALS:
-            mean, low, high = mean_ci(cell[name])
-            summary[name] = {"mean": float(mean), "ci95": interval(low, high)}
+        totals_ci = {name: mean_ci(cell[name]) for name in TOTALS}  # (mean, low, high) each
+        summary = {k: {"mean": float(v[0]), "ci95": interval(*v[1:])} for k, v in totals_ci.items()}
         ci = {name: mean_ci(curve_rows[name]) for name in CURVE_NAMES}  # (mean, low, high) each
         cells[f"{world}/{algorithm}"] = {
             "world": world,
