@@ -16,7 +16,6 @@ from timing import patience  # tests/timing.py: bounds that stretch with the loa
 from factorq_trainers import cli
 from factorq_trainers.commands.paper import command as paper
 from factorq_trainers.compiled import fast
-from factorq_trainers.runner import options
 
 needs_fast = pytest.mark.skipif(not fast.is_available(), reason="fast backend unavailable")
 TINY = ["--seeds", "2", "--runs", "1", "--episodes", "2", "--size", "5", "--obstacles", "3"]
@@ -50,10 +49,9 @@ def test_help_lists_both_commands(capsys):
 def test_paper_help_has_every_config_field_with_its_doc(capsys):
     assert cli.main(["paper", "--help"]) == 0
     out = " ".join(capsys.readouterr().out.split())  # undo argparse's line wrapping
-    docs = options.field_docs(paper.PaperConfig)
     for field in fields(paper.PaperConfig):
         assert "--" + field.name.replace("_", "-") in out
-        assert " ".join(docs[field.name].split()[:4]) in out
+        assert " ".join(field.metadata["doc"].split()[:4]) in out
 
 
 @pytest.mark.parametrize(

@@ -146,8 +146,8 @@ def test_cli_refuses_a_prior_the_compiled_path_cannot_take(capsys):
 def test_the_priors_reach_the_learner(tmp_path):
     """A sharper prior is a different learner: the same worlds give other structure metrics."""
     common = dict(TINY, settings=("cross",), methods=("factor-q-learned",), out=str(tmp_path))
-    plain = dependencies.run_learned(dependencies.DependenciesConfig(**common), "cross")
-    sharp = dependencies.run_learned(
+    plain = dependencies_methods.run_learned(dependencies.DependenciesConfig(**common), "cross")
+    sharp = dependencies_methods.run_learned(
         dependencies.DependenciesConfig(**common, prior_a=1 / 16, prior_b=1 / 16), "cross"
     )
     assert not torch.equal(plain["_state"]["log_marginal"], sharp["_state"]["log_marginal"])
@@ -194,7 +194,7 @@ def test_the_noisy_settings_have_many_sensors_and_the_likelihood_reaches_the_lea
     assert dependencies.DependenciesConfig().likelihood == "mixture"
     common = dict(TINY, settings=("noise-10",), methods=("factor-q-learned",), out=str(tmp_path))
     states = {
-        likelihood: dependencies.run_learned(
+        likelihood: dependencies_methods.run_learned(
             dependencies.DependenciesConfig(**common, likelihood=likelihood), "noise-10"
         )["_state"]
         for likelihood in ("mixture", "pattern")

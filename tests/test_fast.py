@@ -9,6 +9,7 @@ import os
 import stat
 import threading
 
+import kernel_probes  # tests/kernel_probes.py: pytest puts tests/ on sys.path
 import pytest
 import torch
 from reference import run_experiment  # tests/reference.py: pytest puts tests/ on sys.path
@@ -153,7 +154,7 @@ def test_kernel_equations_equal_functional_on_random_rows_with_ties_and_zeros():
     counts = torch.randint(1, 4, (rows, 4), generator=generator).float()
     rho = -torch.randint(0, 3, (rows, 4), generator=generator).float() / counts
     for eta, g_min in ((0.1, 0.01), (0.5, 0.05), (0.0, 1e-3)):
-        g, combined = loader.kernel_combined_values(q, rho, eta, g_min)
+        g, combined = kernel_probes.kernel_combined_values(q, rho, eta, g_min)
         expected_g = functional.normaliser(q, rho, eta, g_min)
         assert torch.equal(_bits(g), _bits(expected_g))
         expected = functional.combined_values(q, rho, expected_g)
@@ -170,7 +171,7 @@ def test_kernel_equations_equal_functional_on_infinities_nans_and_the_float_rang
     q = values[torch.randint(0, len(values), (20_000, 4), generator=generator)]
     rho = values[torch.randint(0, len(values), (20_000, 4), generator=generator)]
     for eta, g_min in ((0.1, 0.01), (1e30, 0.01)):
-        g, combined = loader.kernel_combined_values(q, rho, eta, g_min)
+        g, combined = kernel_probes.kernel_combined_values(q, rho, eta, g_min)
         expected_g = functional.normaliser(q, rho, eta, g_min)
         assert torch.equal(_bits(g), _bits(expected_g))
         expected = functional.combined_values(q, rho, expected_g)
@@ -183,7 +184,7 @@ def test_kernel_scatter_equals_world_scatter_for_any_size(size, num_obstacles):
     last = size * size - 1
     for scatter_index in range(6 if num_obstacles < 50 else 2):
         for agent in (0, last, 1, last // 2, last - 1):
-            got = loader.kernel_scatter(size, num_obstacles, int(key), scatter_index, agent)
+            got = kernel_probes.kernel_scatter(size, num_obstacles, int(key), scatter_index, agent)
             expected = scatter_obstacles(
                 key, torch.tensor([scatter_index]), torch.tensor([agent]), size, num_obstacles
             )[0]

@@ -159,16 +159,18 @@ def test_load_state_dict_of_a_batch_refuses_nan_tables():
     ("argument", "value"), [("key", 2**64), ("key", 2**63), ("scatter_index", -1), ("agent", 16)]
 )
 def test_kernel_scatter_refuses_values_ctypes_would_wrap(argument, value):
-    from factorq_trainers.compiled import fast, loader
+    import kernel_probes  # tests/kernel_probes.py
+
+    from factorq_trainers.compiled import fast
 
     if not fast.is_available():
         pytest.skip(f"no compiled kernel: {fast.unavailable_reason()}")
     arguments = {"size": 4, "num_obstacles": 2, "key": 7, "scatter_index": 0, "agent": 5}
     arguments[argument] = value
     with pytest.raises(ValueError, match=rf"{argument}={value} is out of range"):
-        loader.kernel_scatter(**arguments)
+        kernel_probes.kernel_scatter(**arguments)
     wrapped = dict(arguments, **{argument: {"key": 0, "scatter_index": 0, "agent": 5}[argument]})
-    assert loader.kernel_scatter(**wrapped).sum() == 2
+    assert kernel_probes.kernel_scatter(**wrapped).sum() == 2
 
 
 def test_report_refuses_a_results_file_with_impossible_fractions(tmp_path):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import kernel_probes  # tests/kernel_probes.py: pytest puts tests/ on sys.path
 import numpy as np
 import pytest
 import torch
@@ -19,7 +20,7 @@ from factorq_envs.grid_world import (
 )
 from factorq_torch.base.rng import STREAM_WORLD, derive_keys
 from factorq_torch.functional import combined_values, normaliser, running_mean_update
-from factorq_trainers.compiled import fast, loader
+from factorq_trainers.compiled import fast
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 finite32 = st.floats(
@@ -131,6 +132,6 @@ def test_random_worlds_and_actions_keep_every_invariant_of_the_world(
 def test_compiled_kernel_equals_the_equations_bit_for_bit_on_any_finite_input(q, rho):
     q_t, rho_t = torch.tensor([q]), torch.tensor([rho])
     g = normaliser(q_t, rho_t, eta=0.1, g_min=0.01)
-    kernel_g, kernel_c = loader.kernel_combined_values(q_t, rho_t, 0.1, 0.01)
+    kernel_g, kernel_c = kernel_probes.kernel_combined_values(q_t, rho_t, 0.1, 0.01)
     assert torch.equal(kernel_g, g)
     assert torch.equal(kernel_c, combined_values(q_t, rho_t, g))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import atexit
+import contextlib
 import gc
 import importlib
 import os
@@ -17,14 +18,7 @@ import typing
 from typing import TYPE_CHECKING
 
 from factorq_trainers.runner import frame, options, registry
-from factorq_trainers.runner.frame import (
-    EXIT_FAILURE,
-    EXIT_INTERRUPTED,
-    EXIT_USAGE,
-    Parser,
-    error,
-    failure,
-)
+from factorq_trainers.runner.frame import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_USAGE, Parser
 
 if TYPE_CHECKING:
     from factorq_trainers.commands.paper.figure_process import FigureProcess
@@ -76,10 +70,10 @@ def _report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         paths = reports.regenerate(args.results_dir)
     except (FileNotFoundError, ValueError, KeyError) as problem:
         message = f"missing field {problem}" if isinstance(problem, KeyError) else str(problem)
-        error(parser, message)
+        frame.error(parser, message)
         return EXIT_USAGE
     except frame.results.FigureError as problem:
-        failure(parser, problem)
+        frame.failure(parser, problem)
         return EXIT_FAILURE
     for path in paths.values():
         print(path)
@@ -179,10 +173,8 @@ def _exit(code: int) -> typing.NoReturn:
         atexit._run_exitfuncs()
     finally:
         for stream in (sys.stdout, sys.stderr):
-            try:
+            with contextlib.suppress(OSError, ValueError):
                 stream.flush()
-            except (OSError, ValueError):
-                pass
         os._exit(code)
 
 

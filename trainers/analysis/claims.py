@@ -15,12 +15,8 @@ import numpy as np
 
 from factorq_envs.regimes import REGIMES
 from factorq_torch.base.config import ALGORITHMS
-from factorq_trainers.analysis.stats import (
-    bootstrap_indices,
-    finite_or_none,
-    format_number,
-    quantiles,
-)
+from factorq_trainers.analysis import stats
+from factorq_trainers.analysis.stats import finite_or_none, format_number
 from factorq_trainers.analysis.vocabulary import among, label
 
 #: The measures of a cell, per run (totals over the episodes of a run, mean over the runs).
@@ -135,7 +131,7 @@ def compute_claims(cells: dict[str, Any], seed: int = 0) -> dict[str, Any]:
     if len(seeds) > 1:
         raise ValueError(f"cells have different numbers of seeds: {sorted(seeds)}")
     count = seeds.pop() if seeds else 0
-    indices = bootstrap_indices(seed, count) if count >= 2 else None
+    indices = stats.bootstrap_indices(seed, count) if count >= 2 else None
     point_means = _means_of(cells, None)
     boot_means = None if indices is None else _means_of(cells, indices)
     claims = {}
@@ -160,16 +156,16 @@ def compute_claims(cells: dict[str, Any], seed: int = 0) -> dict[str, Any]:
                 {
                     "name": name,
                     "value": finite_or_none(measure_value),
-                    "ci95": None if boot is None else quantiles(boot[name][0]),
+                    "ci95": None if boot is None else stats.quantiles(boot[name][0]),
                     "pass": None if measure_pass is None else bool(measure_pass),
                 }
             )
         if isinstance(value, dict):
             entry["value"] = {key: finite_or_none(item) for key, item in value.items()}
-            entry["ci95"] = boot_value and {key: quantiles(v) for key, v in boot_value.items()}
+            entry["ci95"] = boot_value and {k: stats.quantiles(v) for k, v in boot_value.items()}
         else:
             entry["value"] = finite_or_none(value)
-            entry["ci95"] = None if boot_value is None else quantiles(boot_value)
+            entry["ci95"] = None if boot_value is None else stats.quantiles(boot_value)
         entry["pass"] = bool(passed)
         entry["detail"] = _detail(claim, entry, value)
     return claims

@@ -190,9 +190,7 @@ def format_number(value: float | None) -> str:
         return "n/a"
     if math.isinf(value):
         return "inf" if value > 0 else "-inf"
-    if value == 0:
-        return "0"
-    return f"{value:.{max(2 - math.floor(math.log10(abs(value))), 0)}f}"
+    return "0" if value == 0 else f"{value:.{max(2 - math.floor(math.log10(abs(value))), 0)}f}"
 
 
 def with_ci(value: float | None, ci: Any) -> str:

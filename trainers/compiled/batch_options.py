@@ -11,20 +11,9 @@ from typing import Any
 import torch
 
 from factorq_envs.grid_world import WorldConfig
+from factorq_torch import functional
 from factorq_torch.base.validation import MAX_TABLE_ENTRIES, check_float, check_int
-from factorq_torch.functional import (
-    LIKELIHOODS,
-    NOISY_ODDS,
-    NOISY_PRIOR,
-    PAIR_MODES,
-    PREDICTIONS,
-    REOPENINGS,
-    candidate_log_prior,
-    candidate_sets,
-    competitor_mask,
-    initial_activity,
-    lgamma_tables,
-)
+from factorq_torch.functional import LIKELIHOODS, NOISY_ODDS, NOISY_PRIOR, PAIR_MODES, REOPENINGS
 from factorq_trainers.compiled.loader import _PREDICTION_CODES
 
 
@@ -115,9 +104,7 @@ def _check_orders(name: str, orders: Any, count: int, num_sensors: int) -> torch
 
 
 def _check_threads(threads: object) -> int:
-    if threads is None:
-        return torch.get_num_threads()
-    return check_int("threads", threads, 1)
+    return torch.get_num_threads() if threads is None else check_int("threads", threads, 1)
 
 
 def learner_setup(
@@ -158,7 +145,7 @@ def learner_setup(
     if structure.prediction not in _PREDICTION_CODES:
         raise ValueError(
             f"structure.prediction={structure.prediction!r}: the fast path runs "
-            f"{tuple(_PREDICTION_CODES)} ({PREDICTIONS} on the modular path)"
+            f"{tuple(_PREDICTION_CODES)} ({functional.PREDICTIONS} on the modular path)"
         )
     for name in ("bayes_factor", "reopen_factor", "noisy_reopen_factor"):
         if name == "bayes_factor" or getattr(structure, name) is not None:
@@ -178,7 +165,7 @@ def learner_setup(
                 f"structure.{name}={getattr(structure, name)!r} is unknown: choose one of {known}"
             )
     check_int("structure.curve_every", structure.curve_every, 1)
-    sets = candidate_sets(num_sensors, structure.max_parents)
+    sets = functional.candidate_sets(num_sensors, structure.max_parents)
     index_of = {frozenset(parents): index for index, parents in enumerate(sets)}
     truth = torch.full((count, 2, actuators), -2, dtype=torch.int64)
     dependency = world.dependency  # [A, K] in the world's order
@@ -192,12 +179,14 @@ def learner_setup(
     candidate_sensors = torch.full((num_candidates, 2), -1, dtype=torch.int64)
     for index, candidate in enumerate(sets):
         candidate_sensors[index, : len(candidate)] = torch.tensor(candidate, dtype=torch.int64)
-    log_prior = candidate_log_prior(sets, structure.prior)
+    log_prior = functional.candidate_log_prior(sets, structure.prior)
     steps = runs * episodes * world.max_steps
     length = steps + 2  # n + 1 of every count stays inside
     log_bayes_factor = math.log(float(structure.bayes_factor))
     pruned = structure.pairs == "pruned" and structure.max_parents >= 2 and num_sensors >= 2
-    initial = initial_activity(sets) if pruned else torch.ones(num_candidates, dtype=torch.bool)
+    initial = (
+        functional.initial_activity(sets) if pruned else torch.ones(len(sets), dtype=torch.bool)
+    )
     capacity = steps if pruned else 1  # every firing of an experiment (one per step)
     if capacity > MAX_TABLE_ENTRIES:
         raise ValueError(
@@ -209,9 +198,11 @@ def learner_setup(
     tables.update(
         candidate_sensors=candidate_sensors,
         log_prior=log_prior.contiguous(),
-        competitors=competitor_mask(sets).to(torch.uint8).contiguous(),
-        lgamma_table=lgamma_tables(structure.prior_a, structure.prior_b, length).contiguous(),
-        noisy_lgamma_table=lgamma_tables(*NOISY_PRIOR, length).contiguous(),
+        competitors=functional.competitor_mask(sets).to(torch.uint8).contiguous(),
+        lgamma_table=functional.lgamma_tables(
+            structure.prior_a, structure.prior_b, length
+        ).contiguous(),
+        noisy_lgamma_table=functional.lgamma_tables(*NOISY_PRIOR, length).contiguous(),
         truth=truth,
         initial_active=initial.to(torch.uint8).contiguous(),
         all_candidates=torch.arange(num_candidates, dtype=torch.int16),

@@ -22,6 +22,7 @@ their checks ``batch_options``'s; where the kernel cannot be built ``is_availabl
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import functools
 from collections.abc import Callable
@@ -36,26 +37,11 @@ from factorq_torch.base.keys import EPISODE_METRICS
 from factorq_torch.base.rng import probability_threshold
 from factorq_torch.base.validation import INT64_MAX, MAX_PARENTS, check_int, check_table_size
 from factorq_torch.functional import check_dependency, parent_weights
-from factorq_trainers.compiled.batch_options import (
-    SensorOrders,
-    StructureOptions,
-    _check_threads,
-    _check_vector,
-    _padded_zeros,
-    learner_setup,
-)
-from factorq_trainers.compiled.loader import (  # noqa: F401 - the availability check callers use
-    _ALGORITHM_CODES,
-    _CHECK_CODES,
-    _STATE_FIELDS,
-    RANDOM_WALK,
-    _Batch,
-    _pad_of_cell,
-    _require,
-    is_available,
-    unavailable_reason,
-    unsupported_reason,
-)
+from factorq_trainers.compiled import batch_options, loader
+from factorq_trainers.compiled.batch_options import SensorOrders, StructureOptions, learner_setup
+from factorq_trainers.compiled.loader import RANDOM_WALK, unsupported_reason
+from factorq_trainers.compiled.loader import is_available as is_available  # callers check here
+from factorq_trainers.compiled.loader import unavailable_reason as unavailable_reason
 
 #: The kernel's int64 counters of each experiment.
 _COUNTERS = (
@@ -79,10 +65,8 @@ def _wait_uninterrupted(futures: list) -> None:
     must not skip the wait either); the futures' own errors are left to their callers."""
     pending = list(futures)
     while pending:
-        try:
+        with contextlib.suppress(KeyboardInterrupt):
             wait(pending)
-        except KeyboardInterrupt:
-            pass
         pending = [future for future in pending if not future.done()]
 
 
@@ -113,7 +97,7 @@ class ExperimentBatch:
         structure: StructureOptions | None = None,
         sensor_orders: SensorOrders | None = None,
     ) -> None:
-        if algorithm not in _ALGORITHM_CODES:
+        if algorithm not in loader._ALGORITHM_CODES:
             choices = ", ".join((*ALGORITHMS, RANDOM_WALK))
             raise ValueError(f"algorithm={algorithm!r} is unknown: choose one of {choices}")
         if not isinstance(world, WorldConfig):
@@ -123,7 +107,7 @@ class ExperimentBatch:
         unsupported = unsupported_reason(world)
         if unsupported is not None:
             raise ValueError(f"world: the fast path cannot run this world: {unsupported}")
-        periods = _check_vector("periods", periods, None)
+        periods = batch_options._check_vector("periods", periods, None)
         if bool((periods < 0).any()):
             raise ValueError(
                 f"periods must be >= 0 (0 static, k > 0 moving), got {periods.min().item()}"
@@ -132,10 +116,10 @@ class ExperimentBatch:
         self.algorithm, self.world, self.agent = algorithm, world, agent
         self.runs = check_int("runs", runs, 1)
         self.episodes = check_int("episodes", episodes, 1)
-        self.threads = _check_threads(threads)
-        self._library = _require()
-        world_keys = _check_vector("world_keys", world_keys, count)
-        policy_keys = _check_vector("policy_keys", policy_keys, count)
+        self.threads = batch_options._check_threads(threads)
+        self._library = loader._require()
+        world_keys = batch_options._check_vector("world_keys", world_keys, count)
+        policy_keys = batch_options._check_vector("policy_keys", policy_keys, count)
 
         if agent.arbitration:  # the kernel mirrors eqs. 2-3 as the paper writes them
             raise ValueError(
@@ -149,7 +133,7 @@ class ExperimentBatch:
                 f"exploration='uniform'"
             )
         width = world.size + 2
-        pad_of_cell = _pad_of_cell(world.size)  # [N]
+        pad_of_cell = loader._pad_of_cell(world.size)  # [N]
         static_grid = torch.ones(width * width, dtype=torch.uint8)  # [P], the wall ring is 1
         static = bool((periods == 0).any()) and world.num_obstacles
         static_grid[pad_of_cell.long()] = static_layout(world).to(torch.uint8) if static else 0
@@ -198,7 +182,7 @@ class ExperimentBatch:
         }
         padded, strides = {}, {}
         for name, (shape, dtype) in blocks.items():
-            padded[name], strides[f"{name.split('_')[0]}_stride"] = _padded_zeros(
+            padded[name], strides[f"{name.split('_')[0]}_stride"] = batch_options._padded_zeros(
                 count, shape, dtype
             )
 
@@ -228,8 +212,8 @@ class ExperimentBatch:
             for tensors in (self._tensors, self._body, self._learner_tables)
             for name, tensor in tensors.items()
         }
-        self._batch = _Batch(
-            algorithm=_ALGORITHM_CODES[algorithm],
+        self._batch = loader._Batch(
+            algorithm=loader._ALGORITHM_CODES[algorithm],
             num_experiments=count,
             runs=self.runs,
             episodes=self.episodes,
@@ -325,8 +309,9 @@ class ExperimentBatch:
         """The episodes completed, or the kernel's refusal of a state out of range (ValueError)."""
         refused = [result for result in results if result < 0]
         if refused:
-            experiment, code = divmod(-refused[0] - 1, _CHECK_CODES)
-            field = _STATE_FIELDS[code - 1] if 0 < code <= len(_STATE_FIELDS) else f"code {code}"
+            experiment, code = divmod(-refused[0] - 1, loader._CHECK_CODES)
+            names = loader._STATE_FIELDS
+            field = names[code - 1] if 0 < code <= len(names) else f"code {code}"
             raise ValueError(
                 f"the fast kernel refused experiment {experiment}: its {field} is out of range "
                 f"(the state was loaded from a bad checkpoint or edited)"

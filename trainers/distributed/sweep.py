@@ -29,36 +29,17 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from factorq_trainers.distributed.sweep_spec import (
-    CONFIGS_DIRECTORY,
-    DEFAULT_OUT,
-    DEFAULT_SEEDS,
-    SweepError,
-    SweepSpec,
-    _reports_of,
-    check_command,
-    checked_document,
-    config_digest,
-    parse_value,
-    read_spec_file,
-    spec_from_mapping,
-    sweepable_fields,
-)
+from factorq_trainers.distributed import sweep_spec
+from factorq_trainers.distributed.sweep_spec import SweepError, SweepSpec, read_spec_file
 from factorq_trainers.reports import sweep as sweep_report
 from factorq_trainers.runner import cluster, frame, kept, outdir, registry, resources
 from factorq_trainers.runner import results as result_files
-from factorq_trainers.runner.frame import (
-    EXIT_FAILURE,
-    EXIT_INTERRUPTED,
-    EXIT_USAGE,
-    Parser,
-    progress_bar,
-)
+from factorq_trainers.runner.frame import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_USAGE, progress_bar
 
 
 def config_result_path(directory: str | os.PathLike, config: Any) -> Path:
     """``directory/<digest>.json``: where a configuration's results are kept."""
-    return Path(directory) / f"{config_digest(config)}.json"
+    return Path(directory) / f"{sweep_spec.config_digest(config)}.json"
 
 
 #: What ``kept`` calls a kept configuration result in its messages.
@@ -68,9 +49,9 @@ CONFIG_FILE = "configuration file"
 def _read_config_result(path: Path, command: str, config: Any) -> dict[str, Any]:
     """The results of ``command`` for ``config`` kept at ``path``: sealed, kept for this command
     and configuration, values checked (a ValueError naming it otherwise)."""
-    check = getattr(_reports_of(command), "results_problem", None)  # the command's own check
+    check = getattr(sweep_spec._reports_of(command), "results_problem", None)  # its own check
     return kept.read_sealed(
-        path, CONFIG_FILE, kept_for=kept.tie(command, config_digest(config)), check=check
+        path, CONFIG_FILE, kept_for=kept.tie(command, sweep_spec.config_digest(config)), check=check
     )
 
 
@@ -99,8 +80,8 @@ def _gathered(
     """``sweep.json``'s dict: one row per configuration read back from ``OUT/configs/``;
     ``pending``: the configurations run now."""
     computed = time.perf_counter() - started
-    command, reports = spec.command, _reports_of(spec.command)
-    directory = Path(spec.out) / CONFIGS_DIRECTORY
+    command, reports = spec.command, sweep_spec._reports_of(spec.command)
+    directory = Path(spec.out) / sweep_spec.CONFIGS_DIRECTORY
     configs = spec.configurations()
     rows = []
     for config, point in zip(configs, spec.points(), strict=True):
@@ -116,9 +97,9 @@ def _gathered(
         rows.append(
             {
                 "values": point,
-                "digest": config_digest(config),
+                "digest": sweep_spec.config_digest(config),
                 "config": frame.plain(config),
-                "results_file": f"{CONFIGS_DIRECTORY}/{path.name}",
+                "results_file": f"{sweep_spec.CONFIGS_DIRECTORY}/{path.name}",
                 "cells": cells_of,
                 "claims": {  # the paper's claims, where the command has them
                     name: {key: claim[key] for key in ("value", "ci95", "pass")}
@@ -159,17 +140,17 @@ def run_sweep(
     start). A kept file that fails its checks is refused before any work, or with ``force``
     recomputed."""
     started = time.perf_counter()
-    directory = Path(spec.out) / CONFIGS_DIRECTORY
+    directory = Path(spec.out) / sweep_spec.CONFIGS_DIRECTORY
     configs = spec.configurations()
     pending = _pending_configs(directory, configs, force, spec.command)
     done = len(configs) - len(pending)
     progress = progress or (lambda done, total: None)
     progress(done, len(configs))
-    names = [f"{spec.command}-{config_digest(config)}" for config in pending]
+    names = [f"{spec.command}-{sweep_spec.config_digest(config)}" for config in pending]
     task = functools.partial(_units_task, spec.command)
     for index, results in executor.map(task, pending, names):
         directory.mkdir(parents=True, exist_ok=True)
-        kept_for = kept.tie(spec.command, config_digest(pending[index]))
+        kept_for = kept.tie(spec.command, sweep_spec.config_digest(pending[index]))
         kept.write_sealed(config_result_path(directory, pending[index]), results, kept_for)
         done += 1
         progress(done, len(configs))
@@ -181,7 +162,7 @@ def run_sweep(
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = Parser(
+    parser = frame.Parser(
         prog="factorq sweep",
         description="Run a grid of `factorq paper` configurations (or, with --command, of "
         "another command's), each with --seeds seeds; write sweep.json, sweep.md and a figure "
@@ -189,40 +170,26 @@ def build_parser() -> argparse.ArgumentParser:
         "killed sweep resumes).",
     )
     parser.add_argument("spec", nargs="?", metavar="SPEC", help="a .toml (or .yaml) sweep file")
-    parser.add_argument(
-        "--command",
-        metavar="NAME",
-        default=argparse.SUPPRESS,
-        help="Whose configs to sweep: paper, compare or any other command (dependencies, "
-        "minigrid, ...), each configuration one task. "
-        "(default: the file's command, else paper)",
-    )
-    parser.add_argument(
-        "--grid",
-        action="append",
-        metavar="FIELD=V1,V2",
-        default=[],
-        help="A swept axis: a field of the --command's config and its values (repeatable; "
-        "crossed).",
-    )
-    parser.add_argument(
-        "--set",
-        action="append",
-        metavar="FIELD=VALUE",
-        default=[],
-        help="A base value shared by every configuration (repeatable).",
-    )
+    parser.add_argument("--command", metavar="NAME", default=argparse.SUPPRESS,
+                        help="Whose configs to sweep: paper, compare or any other command "
+                        "(dependencies, minigrid, ...), each configuration one task. "
+                        "(default: the file's command, else paper)")  # fmt: skip
+    parser.add_argument("--grid", action="append", metavar="FIELD=V1,V2", default=[],
+                        help="A swept axis: a field of the --command's config and its values "
+                        "(repeatable; crossed).")  # fmt: skip
+    parser.add_argument("--set", action="append", metavar="FIELD=VALUE", default=[],
+                        help="A base value shared by every configuration "
+                        "(repeatable).")  # fmt: skip
     parser.add_argument("--seeds", type=int, metavar="N", default=argparse.SUPPRESS,
-                        help=f"Seeds per configuration. (default: {DEFAULT_SEEDS})")  # fmt: skip
+                        help="Seeds per configuration. "
+                        f"(default: {sweep_spec.DEFAULT_SEEDS})")  # fmt: skip
     parser.add_argument("--out", metavar="DIR", default=argparse.SUPPRESS,
-                        help=f"Output directory. (default: {DEFAULT_OUT})")  # fmt: skip
-    parser.add_argument(
-        "--force",
-        action="store_true",
-        help="Replace the sweep.json and sweep.md of an earlier sweep in --out, and recompute "
-        "any finished configuration whose kept file fails its checks (edited, damaged); "
-        "good ones are reused either way. Without it, an --out holding them is refused.",
-    )
+                        help=f"Output directory. (default: {sweep_spec.DEFAULT_OUT})")  # fmt: skip
+    parser.add_argument("--force", action="store_true",
+                        help="Replace the sweep.json and sweep.md of an earlier sweep in --out, "
+                        "and recompute any finished configuration whose kept file fails its "
+                        "checks (edited, damaged); good ones are reused either way. Without it, "
+                        "an --out holding them is refused.")  # fmt: skip
     cluster.add_options(parser)
     return parser
 
@@ -240,19 +207,21 @@ def _pairs(options: list[str], option: str) -> list[tuple[str, str]]:
 def spec_from_args(args: argparse.Namespace) -> SweepSpec:
     """The sweep of the file (if any) with the options applied over it."""
     source = args.spec or "options"
-    data = dict(checked_document(read_spec_file(args.spec) if args.spec else {}, source))
+    data = dict(sweep_spec.checked_document(read_spec_file(args.spec) if args.spec else {}, source))
     if hasattr(args, "command"):
         data["command"] = args.command
-    command = check_command(data.get("command", "paper"), source)
+    command = sweep_spec.check_command(data.get("command", "paper"), source)
     base, grid = dict(data.get("base", {})), dict(data.get("grid", {}))
     for name, text in _pairs(args.set, "--set"):
-        base[name] = parse_value(name, text, command)
+        base[name] = sweep_spec.parse_value(name, text, command)
     for name, text in _pairs(args.grid, "--grid"):
-        annotation = sweepable_fields(command).get(name)
+        annotation = sweep_spec.sweepable_fields(command).get(name)
         if typing.get_origin(annotation) is tuple:  # one name per value: regimes=static,dynamic
             grid[name] = [[item] for item in text.split(",") if item]
         else:
-            grid[name] = [parse_value(name, item, command) for item in text.split(",") if item]
+            grid[name] = [
+                sweep_spec.parse_value(name, item, command) for item in text.split(",") if item
+            ]
     if base:
         data["base"] = base
     if grid:
@@ -262,7 +231,7 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
             data[key] = getattr(args, key)
     if not data.get("grid") and data.get("configs", [{}]) == [{}]:
         raise SweepError("nothing to sweep: give a sweep file, or --grid FIELD=V1,V2")
-    return spec_from_mapping(data, source)
+    return sweep_spec.spec_from_mapping(data, source)
 
 
 def main(argv: list[str] | None = None) -> int:

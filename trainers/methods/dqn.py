@@ -36,12 +36,8 @@ from factorq_torch.base.rng import STREAM_TASK_NETWORK, STREAM_WORLD
 from factorq_torch.base.validation import INT32_MAX, check_float, check_hidden, check_int
 from factorq_torch.neural import BatchedMLP, TaskQNetwork
 from factorq_trainers.analysis.vocabulary import among
-from factorq_trainers.methods.experiment import (
-    EpisodeRecorder,
-    ExperimentConfig,
-    experiment_keys,
-    make_env,
-)
+from factorq_trainers.methods import experiment
+from factorq_trainers.methods.experiment import EpisodeRecorder, ExperimentConfig
 from factorq_trainers.runner.options import option
 
 with warnings.catch_warnings():
@@ -61,7 +57,7 @@ def batch_keys(
     ``3 i + w`` (as ``factorq paper``'s worlds), or with a ``method`` number
     ``4 (3 i + w) + m`` (``m`` its index in ``METHODS``); see
     ``factorq_trainers.methods.experiment.experiment_keys``."""
-    return experiment_keys(experiments.seed, stream, experiments.labels, METHODS, method)
+    return experiment.experiment_keys(experiments.seed, stream, experiments.labels, METHODS, method)
 
 
 # --------------------------------------------------------------------------------------------
@@ -73,7 +69,7 @@ def batch_env(
 ) -> FactoredGridEnv:
     """The batch's worlds: ``E`` experiments, one obstacle period and world key each."""
     world_keys = batch_keys(experiments, STREAM_WORLD)
-    return make_env(
+    return experiment.make_env(
         experiments.world, experiments.periods, world_keys, device=device, seed=experiments.seed
     )
 
@@ -151,8 +147,7 @@ class ExploratoryEGreedy(TensorDictModuleBase):
     ) -> None:
         super().__init__()
         self.num_actions = num_actions
-        self.in_keys = ["action"]
-        self.out_keys = ["action", "exploratory"]
+        self.in_keys, self.out_keys = ["action"], ["action", "exploratory"]
         self.egreedy = EGreedyModule(
             Categorical(num_actions, dtype=torch.int64),
             eps_init=float(eps_init),

@@ -18,16 +18,10 @@ import torch
 
 from factorq_envs.grid_world import WorldConfig, static_layout
 from factorq_envs.regimes import REGIME_PERIODS, REGIMES
+from factorq_torch.base import validation
 from factorq_torch.base.config import AgentConfig
 from factorq_torch.base.rng import derive_keys
-from factorq_torch.base.validation import (
-    INT32_MAX,
-    INT64_MAX,
-    MAX_SIZE,
-    check_int,
-    check_names,
-    check_table_size,
-)
+from factorq_torch.base.validation import INT32_MAX, INT64_MAX, MAX_SIZE, check_int, check_names
 from factorq_trainers.runner.options import option
 
 if TYPE_CHECKING:  # torchrl and tensordict load only on the paths that step an env
@@ -139,7 +133,7 @@ def check_qlearning_table(world: Any) -> None:
     cell (x heading) x the pattern of all the body's sensors (``world``: a ``WorldConfig`` or a
     ``World``)."""
     world = body_of(world)
-    check_table_size(
+    validation.check_table_size(
         "q-learning",
         f"a Q-table of {world.num_cells} cells x {world.num_headings} headings x "
         f"2**{world.num_sensors} sensor patterns x {world.num_actuators} actions",
@@ -294,6 +288,11 @@ class WorldOptions:
             self.size, self.obstacles, self.max_steps, self.layout_seed, regimes, body_options(self)
         )
 
+    @property
+    def world(self) -> WorldConfig:
+        """The world of every experiment; the obstacle period is set per experiment."""
+        return self.checked_world()
+
 
 @dataclass(frozen=True)
 class ExperimentConfig(WorldOptions):
@@ -314,11 +313,6 @@ class ExperimentConfig(WorldOptions):
         object.__setattr__(self, "regimes", check_names("regimes", self.regimes, REGIMES))
         check_int("steps", self.steps, 1, INT32_MAX)
         self.checked_world(self.regimes)
-
-    @property
-    def world(self) -> WorldConfig:
-        """The world of every experiment; the obstacle period is set per experiment."""
-        return self.checked_world()
 
     @property
     def num_experiments(self) -> int:

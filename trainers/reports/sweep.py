@@ -94,10 +94,9 @@ def write_axis_figure(sweep: dict[str, Any], axis: str, path: Path) -> None:
         for cell in cells:
             entries = [row["cells"].get(cell, {}).get(measure) for row in rows]
             mean = np.array([np.nan if e is None else e["mean"] for e in entries], float)
-            low = np.array([m if e is None or e["ci95"] is None else e["ci95"][0]
-                            for m, e in zip(mean, entries, strict=True)], float)  # fmt: skip
-            high = np.array([m if e is None or e["ci95"] is None else e["ci95"][1]
-                             for m, e in zip(mean, entries, strict=True)], float)  # fmt: skip
+            bounds = [[m, m] if e is None or e["ci95"] is None else e["ci95"]
+                      for m, e in zip(mean, entries, strict=True)]  # fmt: skip
+            low, high = np.array(bounds, float).reshape(-1, 2).T
             errors = np.stack([np.maximum(mean - low, 0), np.maximum(high - mean, 0)])
             panel.errorbar(x, mean, yerr=errors, marker="o", capsize=3, label=cell)
         panel.set_xlabel(axis)

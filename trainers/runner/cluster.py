@@ -165,12 +165,9 @@ class DaskExecutor:
         worker_timeout_s: float = DEFAULT_WORKER_TIMEOUT_S,
         left_as_found: _Traces | None = None,
     ) -> None:
-        self.client = client
-        self.cluster = cluster
+        self.client, self.cluster, self.worker_timeout_s = client, cluster, worker_timeout_s
         self._left_as_found = left_as_found
-        self.worker_timeout_s = worker_timeout_s
-        distributed = _import_distributed()
-        self._as_completed = distributed.as_completed
+        self._as_completed = _import_distributed().as_completed
 
     @property
     def workers(self) -> int:

@@ -203,8 +203,7 @@ def run_in_process(
     instead of ``module.run_unit(config, unit, progress)`` (``paper.run``'s other world)."""
     started = time.perf_counter()
     units, _ = prepared(module, config)
-    if run_unit is None:
-        run_unit = functools.partial(module.run_unit, config)
+    run_unit = run_unit or functools.partial(module.run_unit, config)
     outcomes = [unit_result(module, config, unit, run_unit(unit, progress)) for unit in units]
     summary = module.summarise(config, outcomes)
     return envelope(module, config, summary, wall_s=time.perf_counter() - started, units=len(units))

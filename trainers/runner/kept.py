@@ -297,15 +297,6 @@ def schema_problem(value: Any, schema: Any, where: str = "result") -> str | None
     return None if problem is None else f"{where} holds {short(value)}, {problem}"
 
 
-def _finite(value: int | float) -> bool:
-    """Whether ``value`` is a finite float, or an int within a float's range (JSON reads any
-    number of digits: ``math.isfinite`` raises OverflowError past it)."""
-    try:
-        return math.isfinite(value)
-    except OverflowError:
-        return False
-
-
 def _plain_numbers(values: list[Any], kind: str) -> bool:
     """Whether every item of ``values`` is a plain number that fits ``kind`` (ints for a count;
     ints or floats, finite, in range, for the others): a quick yes, or no to look closer."""
@@ -331,7 +322,11 @@ def _leaf_problem(value: Any, kind: str) -> str | None:
         return None  # a missing number (a non-finite one is written as null)
     if isinstance(value, bool) or not isinstance(value, int | float):
         return "not a number"
-    if not _finite(value):
+    try:  # an int past a float's range (JSON reads any number of digits) is not finite either
+        finite = math.isfinite(value)
+    except OverflowError:
+        finite = False
+    if not finite:
         return "not a finite number"
     if kind not in (NUMBER, FINITE) and value < 0:
         return "negative"

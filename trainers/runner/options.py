@@ -78,11 +78,6 @@ def check_choices(config: Any) -> None:
             )
 
 
-def field_docs(cls: type) -> dict[str, str]:
-    """The doc of every field of dataclass ``cls`` that has one."""
-    return {f.name: f.metadata["doc"] for f in dataclasses.fields(cls) if "doc" in f.metadata}
-
-
 def option_name(name: str) -> str:
     """``max_steps`` -> ``--max-steps``."""
     return "--" + name.replace("_", "-")

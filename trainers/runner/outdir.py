@@ -95,10 +95,8 @@ def _open_lock(lock_path: Path) -> int:
     """The lock file's descriptor (read-write), created new where missing; a link there is
     refused (following it would truncate its target), and so is anything but a regular
     file."""
-    try:
+    with contextlib.suppress(FileExistsError):
         return os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_EXCL | _OWN, 0o644)
-    except FileExistsError:
-        pass
     if lock_path.is_symlink():
         raise LinkRefused(lock_path)
     try:
@@ -214,8 +212,7 @@ def claim(
                 f"out='{path}' is not writable: {error.strerror or type(error).__name__}"
             ) from None
         outputs = tuple(outputs)
-        names = (*outputs, *OWN_DIRECTORIES)
-        links = [name for name in names if (path / name).is_symlink()]
+        links = [name for name in (*outputs, *OWN_DIRECTORIES) if (path / name).is_symlink()]
         if links:  # renaming over a link would not follow it, but it is not ours to remove
             raise LinkRefused(path / links[0])
         for name in outputs:  # --force replaces files, never a directory in a file's place

@@ -56,10 +56,6 @@ def _name(path: Path, what: str) -> str:
     return f"{what} {path}" if what else str(path)
 
 
-def _kind(mode: int) -> str:
-    return next((name for test, name in _KINDS if test(mode)), "not a regular file")
-
-
 @contextlib.contextmanager
 def open_regular(path: str | os.PathLike, what: str, max_bytes: int) -> Iterator[BinaryIO]:
     """``path`` opened for reading as a binary file, once it is proven a regular file (not a
@@ -82,7 +78,8 @@ def open_regular(path: str | os.PathLike, what: str, max_bytes: int) -> Iterator
     try:
         status = os.fstat(descriptor)
         if not stat.S_ISREG(status.st_mode):
-            raise ReadError(f"{name} is not a regular file ({_kind(status.st_mode)})")
+            kind = next((n for test, n in _KINDS if test(status.st_mode)), "not a regular file")
+            raise ReadError(f"{name} is not a regular file ({kind})")
         if status.st_size > max_bytes:
             raise ReadError(f"{name} is {status.st_size} bytes, more than the {max_bytes} allowed")
         os.set_blocking(descriptor, True)  # a regular file: blocking reads, as usual
@@ -156,8 +153,7 @@ def toml_depth(text: str) -> int:
         token = match.group()
         if token[0] == "#" or token[:3] in ('"""', "'''"):
             continue
-        parts = len(re.findall(_TOML_KEY_PART, token))
-        longest = max(longest, parts)
+        longest = max(longest, len(re.findall(_TOML_KEY_PART, token)))
     return nesting_depth(text, TOML_TOKENS) + longest
 
 

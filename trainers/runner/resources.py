@@ -16,6 +16,7 @@ True
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 from typing import NamedTuple
@@ -78,12 +79,10 @@ def available_memory() -> tuple[int | None, str]:
                 f"{LIMIT_VARIABLE}={override!r} must be a number of bytes (e.g. 8000000000)"
             )
         limits.append((int(override), LIMIT_VARIABLE))
-    try:
+    with contextlib.suppress(OSError, ValueError, IndexError):
         for line in Path("/proc/meminfo").read_text().splitlines():
             if line.startswith("MemAvailable:"):
                 limits.append((int(line.split()[1]) * 1024, "MemAvailable in /proc/meminfo"))
-    except (OSError, ValueError, IndexError):
-        pass
     cgroup = Path("/sys/fs/cgroup")
     for limit_file, usage_file in (
         ("memory.max", "memory.current"),  # cgroup v2

@@ -55,12 +55,6 @@ from factorq_trainers.commands.compare.config import CompareConfig
 from factorq_trainers.commands.compare.report import LOGS_DIRECTORY, THRESHOLD_FACTOR
 from factorq_trainers.methods import dqn, experiment
 from factorq_trainers.methods.dqn import batch_keys
-from factorq_trainers.methods.experiment import (
-    EPISODE_FIELDS,
-    FLOAT_FIELDS,
-    EpisodeRecorder,
-    ExperimentConfig,
-)
 from factorq_trainers.methods.units import torch_threads
 from factorq_trainers.runner import frame, outdir, resources
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, NUMBER, TEXT
@@ -184,11 +178,10 @@ def run_online(
     collector = OnlineCollector(env, policy, loss, runs=1, episodes=episodes, optimizer=optimizer)
     captured: dict[str, torch.Tensor] = {}
     hook = loss.register_forward_hook(lambda module, inputs, output: captured.update(output))
-    recorder = EpisodeRecorder(experiments.labels)
+    recorder = experiment.EpisodeRecorder(experiments.labels)
     report_every = max(1, steps // 100)
     for step in range(1, steps + 1):
-        td = collector.step()
-        recorder.update(td, epsilon, 0.5 * captured["td_error"].pow(2))
+        recorder.update(collector.step(), epsilon, 0.5 * captured["td_error"].pow(2))
         if progress is not None and (step % report_every == 0 or step == steps):
             progress(step, steps)
     hook.remove()
@@ -199,7 +192,7 @@ def run_online(
 # Summaries
 
 
-def shortest_path_length(experiments: ExperimentConfig, world: str) -> int:
+def shortest_path_length(experiments: experiment.ExperimentConfig, world: str) -> int:
     """BFS distance start -> goal in the static layout; ``2 (size - 1)`` in a moving world."""
     size = experiments.size
     if world != "static":
@@ -290,12 +283,14 @@ def _arrays(trace: dict[str, Any]) -> dict[str, Any]:
     """A trace with its per-episode fields as numpy arrays (a kept unit holds lists; a missing
     float, written as null, is NaN again)."""
     arrays = dict(trace)
-    fields = [name for name in EPISODE_FIELDS if name in trace]
+    fields = [name for name in experiment.EPISODE_FIELDS if name in trace]
     for name in fields:
         values = trace[name]
         if not isinstance(values, np.ndarray):
             values = [math.nan if value is None else value for value in values]
-        arrays[name] = np.asarray(values, dtype=np.float64 if name in FLOAT_FIELDS else np.int64)
+        arrays[name] = np.asarray(
+            values, dtype=np.float64 if name in experiment.FLOAT_FIELDS else np.int64
+        )
     return arrays
 
 
@@ -309,7 +304,7 @@ def check_unit(config: CompareConfig, unit: dict[str, Any], result: dict[str, An
             f"its traces are of the experiments {labels}, not this run's {list(experiments.labels)}"
         )
     for trace in result["traces"]:
-        lengths = {len(trace[name]) for name in EPISODE_FIELDS if name in trace}
+        lengths = {len(trace[name]) for name in experiment.EPISODE_FIELDS if name in trace}
         if len(lengths) > 1:
             return (
                 f"a trace of {trace['world']}, seed {trace['seed_index']}, has per-episode "

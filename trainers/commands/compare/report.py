@@ -75,9 +75,7 @@ def figure(results: dict[str, Any], path: str | os.PathLike) -> None:
 
 
 def _number(value: float | None, digits: int = 0) -> str:
-    if value is None:
-        return "never"
-    return f"{value:,.{digits}f}"
+    return "never" if value is None else f"{value:,.{digits}f}"
 
 
 def markdown(results: dict[str, Any]) -> str:

@@ -37,19 +37,12 @@ import torch
 from factorq_torch.base.validation import MAX_PARENTS
 from factorq_trainers.analysis.stats import bootstrap_indices, interval, quantiles, wilson_ci
 from factorq_trainers.analysis.vocabulary import label
+from factorq_trainers.commands.dependencies import methods
 from factorq_trainers.commands.dependencies.config import (
     METHODS,
     SAMPLES_TARGET,
     SAMPLES_TARGET_CHANGE,
     DependenciesConfig,
-)
-from factorq_trainers.commands.dependencies.methods import (
-    _budget,
-    run_compiled,
-    run_dqn,
-    run_gated,
-    run_learned,
-    skipped_reason,
 )
 from factorq_trainers.runner import frame, resources
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, TEXT
@@ -203,7 +196,7 @@ def summarise_setting(
 
 
 def _against_oracle(
-    methods: dict[str, Any], totals: dict[str, Any], method: str, seed: int
+    summaries: dict[str, Any], totals: dict[str, Any], method: str, seed: int
 ) -> dict[str, Any]:
     """``method`` against the oracle: ratios, and both sides' task measures (issue 39)."""
     mine, oracle = totals[method], totals["factor-q"]
@@ -213,7 +206,7 @@ def _against_oracle(
         # learning speed = 1 / steps per run: its speed / the oracle's
         "learning_speed": _ratio(oracle["steps"], mine["steps"], seed),
         "absolute": {  # steps per episode and episodes truncated: a failure both share shows
-            name: {side: methods[side][name] for side in (method, "factor-q")}
+            name: {side: summaries[side][name] for side in (method, "factor-q")}
             for name in ("steps_per_episode", "fraction_truncated")
         },
     }
@@ -251,18 +244,18 @@ def run_unit(
     runs: dict[str, dict[str, Any]] = {}
     skipped = {}
     for method in (method for method in METHODS if method in config.methods):
-        reason = skipped_reason(config, setting, method)
+        reason = methods.skipped_reason(config, setting, method)
         if reason is not None:
             skipped[method] = reason
             continue
         if method == "factor-q-learned":
-            runs[method] = run_learned(config, setting)
+            runs[method] = methods.run_learned(config, setting)
         elif method == "dqn":
-            runs[method] = run_dqn(config, setting, _budget(config, setting, runs))
+            runs[method] = methods.run_dqn(config, setting, methods._budget(config, setting, runs))
         elif method == "factor-q-gated":
-            runs[method] = run_gated(config, setting)
+            runs[method] = methods.run_gated(config, setting)
         else:
-            runs[method] = run_compiled(config, setting, method)
+            runs[method] = methods.run_compiled(config, setting, method)
     return {"summary": summarise_setting(config, setting, runs), "skipped": skipped}
 
 

@@ -12,14 +12,9 @@ from typing import Any
 
 from factorq_envs.grid_world import WorldConfig
 from factorq_envs.regimes import REGIMES
+from factorq_torch.base import validation
 from factorq_torch.base.config import EXPLORATIONS, AgentConfig
-from factorq_torch.base.validation import (
-    INT32_MAX,
-    check_float,
-    check_int,
-    check_names,
-    check_threads,
-)
+from factorq_torch.base.validation import INT32_MAX, check_float, check_int, check_names
 from factorq_trainers.analysis.vocabulary import among
 from factorq_trainers.methods.experiment import MAX_SEED, PAPER_WORLD, check_world_options
 from factorq_trainers.runner.options import check_choices, option
@@ -37,19 +32,13 @@ SETTINGS: dict[str, dict[str, Any]] = {
     "noise-10": {"body": "translate", "sensors": "cross", "sensor_noise": 0.10},
     "change": {"body": "translate", "sensors": "cross"},
     # noise with many sensors (8 ring sensors and 12 distractors: 20)
-    "ring-12-noise-5": {
-        "body": "translate",
-        "sensors": "ring",
-        "num_distractors": 12,
-        "sensor_noise": 0.05,
+    **{
+        f"ring-12-noise-{percent}": {
+            "body": "translate", "sensors": "ring", "num_distractors": 12, "sensor_noise": noise
+        }
+        for percent, noise in ((5, 0.05), (10, 0.10))
     },
-    "ring-12-noise-10": {
-        "body": "translate",
-        "sensors": "ring",
-        "num_distractors": 12,
-        "sensor_noise": 0.10,
-    },
-}
+}  # fmt: skip
 #: The setting that ``--body``, ``--sensors``, ``--distractors`` and ``--sensor-noise`` declare.
 CUSTOM = "custom"
 #: A setting's content: its body options with the defaults filled in, and whether the sensor
@@ -233,7 +222,7 @@ class DependenciesConfig:
         check_int("episodes", self.episodes, 1, INT32_MAX)
         check_int("max_parents", self.max_parents, 0)
         check_int("window", self.window, 1, INT32_MAX)
-        check_threads("threads", self.threads)
+        validation.check_threads("threads", self.threads)
         check_choices(self)
         if not isinstance(self.bayes_factor, (int, float)) or not self.bayes_factor > 1:
             raise ValueError(
@@ -307,10 +296,13 @@ class DependenciesConfig:
             raise ValueError(f"regimes: a unit runs one regime, not {', '.join(self.regimes)}")
         return self.regimes[0]
 
-    def world_of(self, setting: str) -> WorldConfig:
+    def body_of(self, setting: str) -> dict[str, Any]:
+        """``setting_options`` as a config names them (``distractors``: ``WorldOptions``')."""
         options = self.setting_options(setting)
-        renamed = {"num_distractors": "distractors"}
-        body = {renamed.get(name, name): value for name, value in options.items()}
+        return {"distractors" if k == "num_distractors" else k: v for k, v in options.items()}
+
+    def world_of(self, setting: str) -> WorldConfig:
+        body = self.body_of(setting)
         return check_world_options(
             self.size, self.obstacles, self.max_steps, self.layout_seed, self.regimes, body
         )

@@ -55,8 +55,7 @@ def _orders_after(config: DependenciesConfig, setting: str) -> torch.Tensor | No
 def _keys(config: DependenciesConfig, method: str) -> tuple[torch.Tensor, torch.Tensor]:
     labels = [(config.regime, index) for index in range(config.seeds)]
     world_keys = experiment_keys(config.seed, STREAM_WORLD, labels)
-    policy_keys = experiment_keys(config.seed, STREAM_POLICY, labels, KEYED_METHODS, method)
-    return world_keys, policy_keys
+    return world_keys, experiment_keys(config.seed, STREAM_POLICY, labels, KEYED_METHODS, method)
 
 
 def _periods(config: DependenciesConfig) -> torch.Tensor:
@@ -339,16 +338,12 @@ def run_dqn(config: DependenciesConfig, setting: str, budget: int) -> dict[str, 
     from factorq_trainers.methods import dqn
     from factorq_trainers.methods.experiment import ExperimentConfig
 
-    options = config.setting_options(setting)
     shared = ("seed", "seeds", "size", "obstacles", "max_steps", "layout_seed")
     experiments = ExperimentConfig(
         **{name: getattr(config, name) for name in shared},
         regimes=(config.regime,),
         steps=budget,
-        body=options["body"],
-        sensors=options["sensors"],
-        distractors=options["num_distractors"],
-        sensor_noise=options["sensor_noise"],
+        **config.body_of(setting),
     )
     traces = dqn.run(dqn.DQNConfig(), experiments)["traces"]
     episodes = min(len(trace["steps"]) for trace in traces)

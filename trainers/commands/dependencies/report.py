@@ -21,8 +21,7 @@ def _percent_interval(bounds: list[float | None] | None) -> str:
 def _against_cells(against: dict[str, Any]) -> str:
     """The learned / oracle cells of a row: the three ratios (collisions, greedy, learning
     speed), then the absolute task measures of both (steps per episode, episodes truncated)."""
-    names = ("collisions", "greedy_collisions", "learning_speed")
-    entries = [against.get(name) for name in names]
+    entries = [against.get(name) for name in ("collisions", "greedy_collisions", "learning_speed")]
     cells = ["n/a" if e is None else with_ci(e["ratio"], e.get("ci")) for e in entries]
     absolute = against.get("absolute")  # none where the oracle did not run
     if absolute is None:

@@ -131,7 +131,6 @@ def _env_and_task_network(
 def _run_dqn(
     config: GymConfig, unit: dict[str, Any], progress: Callable[[int], None]
 ) -> dict[str, Any]:
-
     from factorq_torch.base.rng import STREAM_POLICY
     from factorq_trainers.methods.dqn import DQNConfig, train_stepwise
 

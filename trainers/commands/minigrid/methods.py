@@ -158,9 +158,7 @@ def run_tabular(
         record(tallies, td)
         if learner is not None:
             right = (learner.structure()[:, FORWARD] == truth).all(dim=-1).tolist()
-            for i, ok in enumerate(right):
-                if ok and found[i] is None:
-                    found[i] = step
+            found = [step if ok and at is None else at for at, ok in zip(found, right, strict=True)]
         units.tick(tick, step, budget)
         if step >= budget:
             break

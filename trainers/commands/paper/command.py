@@ -33,16 +33,9 @@ from factorq_envs.regimes import REGIME_PERIODS
 from factorq_trainers.analysis import stats
 from factorq_trainers.analysis.claims import compute_claims
 from factorq_trainers.analysis.stats import interval, mean_ci
+from factorq_trainers.commands.paper import drivers
 from factorq_trainers.commands.paper.config import PaperConfig
-from factorq_trainers.commands.paper.drivers import (
-    experiment_keys,
-    fallback_notice,
-    resolve_backend,
-    run_fast,
-    run_modular,
-    threads_for,
-    threads_used,
-)
+from factorq_trainers.commands.paper.drivers import resolve_backend
 from factorq_trainers.commands.paper.schema import CURVE_NAMES
 from factorq_trainers.runner import frame, resources
 from factorq_trainers.runner.kept import COUNT, NUMBER, TEXT
@@ -157,7 +150,8 @@ def describe(config: PaperConfig) -> str:
     """What runs (printed once the run is accepted), after why not on the fast path where
     ``auto`` fell back."""
     backend = resolve_backend(config)
-    notice = fallback_notice(config, backend, threads_for(config, len(config.methods)))
+    workers = drivers.threads_for(config, len(config.methods))
+    notice = drivers.fallback_notice(config, backend, workers)
     told = (
         f"{len(config.cells) * config.seeds} experiments ({config.seeds} seeds x "
         f"{len(config.regimes)} worlds x {len(config.methods)} algorithms), "
@@ -172,7 +166,7 @@ def processes(config: PaperConfig, units_: list[dict[str, Any]]) -> tuple[int, s
     uses every thread itself); ``units_``: ``units(config)``."""
     if resolve_backend(config) == "fast":
         return 1, "the compiled path uses every thread itself"
-    return threads_for(config, len(units_)), "the modular path steps one batch per core"
+    return drivers.threads_for(config, len(units_)), "the modular path steps one batch per core"
 
 
 def run_unit(
@@ -192,16 +186,16 @@ def run_unit(
         config, first_seed=unit["first_seed"], seeds=unit["seeds"], methods=(algorithm,)
     )
     backend = "modular" if world is not None else resolve_backend(shard)
-    keys = experiment_keys(shard, algorithm)
+    keys = drivers.experiment_keys(shard, algorithm)
 
     def report(episodes: int, experiments: int) -> None:
         if progress is not None:
             progress(episodes)
 
     if backend == "fast":
-        batch = run_fast(shard, algorithm, keys, report)
+        batch = drivers.run_fast(shard, algorithm, keys, report)
     else:
-        batch = run_modular(shard, algorithm, keys, report, world)
+        batch = drivers.run_modular(shard, algorithm, keys, report, world)
     return reduced(config, unit, backend, {name: v.cpu().numpy() for name, v in batch.items()})
 
 
@@ -290,31 +284,24 @@ def summarise(config: PaperConfig, outcomes: list[dict[str, Any]]) -> dict[str, 
             name: np.asarray(rows, dtype=np.float64) / runs
             for name, rows in episodes[world, algorithm].items()
         }
-        summary = {}
-        for name in TOTALS:
-            mean, low, high = mean_ci(cell[name])
-            summary[name] = {"mean": float(mean), "ci95": interval(low, high)}
-        curves, lows, highs = {}, {}, {}
-        for name in CURVE_NAMES:
-            mean, low, high = mean_ci(curve_rows[name])
-            curves[name] = mean.tolist()
-            lows[name] = None if low is None else low.tolist()
-            highs[name] = None if high is None else high.tolist()
+        totals_ci = {name: mean_ci(cell[name]) for name in TOTALS}  # (mean, low, high) each
+        summary = {k: {"mean": float(v[0]), "ci95": interval(*v[1:])} for k, v in totals_ci.items()}
+        ci = {name: mean_ci(curve_rows[name]) for name in CURVE_NAMES}  # (mean, low, high) each
         cells[f"{world}/{algorithm}"] = {
             "world": world,
             "algorithm": algorithm,
             "obstacle_period": REGIME_PERIODS[world],
             "per_seed": {name: cell[name].tolist() for name in TOTALS},
             "summary": summary,
-            "curves": curves,
-            "curves_ci_low": lows,
-            "curves_ci_high": highs,
+            "curves": {name: mean.tolist() for name, (mean, _, _) in ci.items()},
+            "curves_ci_low": {k: None if v[1] is None else v[1].tolist() for k, v in ci.items()},
+            "curves_ci_high": {k: None if v[2] is None else v[2].tolist() for k, v in ci.items()},
         }
     backends = sorted({outcome["backend"] for outcome in outcomes})
     backend = backends[0] if len(backends) == 1 else "+".join(backends)
     timing: dict[str, Any] = {
         "backend": backend,
-        "threads": threads_used(config, backends[0]) if backends else 1,
+        "threads": drivers.threads_used(config, backends[0]) if backends else 1,
         "env_steps": sum(outcome["env_steps"] for outcome in outcomes),
     }
     if "modular" in backends and config.backend == "auto":
@@ -346,7 +333,7 @@ def run(
     if world is not None:
         _check_foreign_world(world, config)
     # why not on the fast path, once (the units run here one after another)
-    notice = fallback_notice(config, resolve_backend(config, world), 1, world)
+    notice = drivers.fallback_notice(config, resolve_backend(config, world), 1, world)
     if notice is not None:
         print(notice, file=sys.stderr)
     if world is None:

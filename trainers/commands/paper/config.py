@@ -6,16 +6,10 @@ from dataclasses import dataclass
 
 import torch
 
-from factorq_envs.grid_world import WorldConfig
 from factorq_envs.regimes import REGIMES
+from factorq_torch.base import validation
 from factorq_torch.base.config import ALGORITHMS, AgentConfig
-from factorq_torch.base.validation import (
-    INT32_MAX,
-    check_device,
-    check_int,
-    check_names,
-    check_threads,
-)
+from factorq_torch.base.validation import INT32_MAX, check_int, check_names, check_threads
 from factorq_trainers.methods import experiment
 from factorq_trainers.methods.experiment import MAX_SEED, check_qlearning_table
 from factorq_trainers.runner.options import check_choices, option
@@ -76,10 +70,8 @@ class PaperConfig(experiment.WorldOptions):
 
     def __post_init__(self) -> None:
         check_int("seed", self.seed, 0, MAX_SEED)
-        check_int("seeds", self.seeds, 1, INT32_MAX)
-        check_int("first_seed", self.first_seed, 0, INT32_MAX)
-        check_int("shard_seeds", self.shard_seeds, 1, INT32_MAX)
-        check_int("runs", self.runs, 1, INT32_MAX)
+        for name, low in (("seeds", 1), ("first_seed", 0), ("shard_seeds", 1), ("runs", 1)):
+            check_int(name, getattr(self, name), low, INT32_MAX)
         check_int("episodes", self.episodes, 1, INT32_MAX)
         object.__setattr__(self, "regimes", check_names("regimes", self.regimes, REGIMES))
         world = self.checked_world(self.regimes)
@@ -97,7 +89,7 @@ class PaperConfig(experiment.WorldOptions):
         if self.backend == "fast" and kind not in (None, "cpu"):
             raise ValueError(f"device={self.device!r} is not supported by backend 'fast' (cpu)")
         # The device must exist here: refused now, not once the run began.
-        check_device("device", self.device, allow_meta=False, optional=False)
+        validation.check_device("device", self.device, allow_meta=False, optional=False)
         object.__setattr__(self, "out", checked_out(self.out))
 
     @property
@@ -106,11 +98,6 @@ class PaperConfig(experiment.WorldOptions):
         return AgentConfig(
             epsilon=self.epsilon, gamma=self.gamma, alpha=self.alpha, eta=self.eta, g_min=self.g_min
         )
-
-    @property
-    def world(self) -> WorldConfig:
-        """The world of every experiment; the obstacle period is set per experiment."""
-        return self.checked_world()
 
     @property
     def cells(self) -> list[tuple[str, str]]:

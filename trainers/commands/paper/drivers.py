@@ -35,8 +35,7 @@ def resolve_backend(config: PaperConfig, world: Any = None) -> str:
     if config.backend == "fast" and unsupported is not None:
         raise ValueError(f"backend='fast' cannot run this config: {unsupported}")
     if config.backend == "auto":
-        usable = on_cpu and fast.is_available() and unsupported is None
-        return "fast" if usable else "modular"
+        return "fast" if on_cpu and fast.is_available() and unsupported is None else "modular"
     return config.backend
 
 

@@ -159,10 +159,10 @@ def draw(
         for algorithm in algorithms:
             cell = results["cells"][f"{world}/{algorithm}"]
             colour = COLOURS[algorithm]
-            _curve(steps_axis, cell, "steps", colour, "-", 1.6, band_alpha=0.25)
-            _curve(collisions_axis, cell, "collisions", colour, "-", 1.6, band_alpha=0.25)
+            _curve(steps_axis, cell, "steps", colour, "-", 1.6, alpha=0.25)
+            _curve(collisions_axis, cell, "collisions", colour, "-", 1.6, alpha=0.25)
             greedy = GREEDY_COLOURS[algorithm]
-            _curve(collisions_axis, cell, "greedy_collisions", greedy, "--", 1.1, band_alpha=0.12)
+            _curve(collisions_axis, cell, "greedy_collisions", greedy, "--", 1.1, alpha=0.12)
             highest = max(highest, max(cell["curves"]["collisions"]))
     axes[1, 0].set_ylim(0, max(highest, resolution) * 1.5)  # the row shares its y axis
     # zlib level 1: a slightly larger file, encoded several times faster.
@@ -170,13 +170,7 @@ def draw(
 
 
 def _curve(
-    axis: Any,
-    cell: dict[str, Any],
-    name: str,
-    colour: str,
-    style: str,
-    width: float,
-    band_alpha: float,
+    axis: Any, cell: dict[str, Any], name: str, colour: str, style: str, width: float, alpha: float
 ) -> None:
     mean = np.asarray(cell["curves"][name], dtype=np.float64)
     episodes = np.arange(1, mean.size + 1)
@@ -184,7 +178,7 @@ def _curve(
     low, high = cell["curves_ci_low"][name], cell["curves_ci_high"][name]
     if low is not None:
         low = np.maximum(np.asarray(low, dtype=np.float64), 0.0)  # counts are never negative
-        axis.fill_between(episodes, low, high, color=colour, alpha=band_alpha, lw=0)
+        axis.fill_between(episodes, low, high, color=colour, alpha=alpha, lw=0)
 
 
 #: The entries of a cell that ``draw`` reads.

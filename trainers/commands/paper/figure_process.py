@@ -18,6 +18,7 @@ imports torch.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import os
 import pickle
@@ -76,11 +77,6 @@ class FigureProcess:
             errors.close()
             return None
         return cls(process, errors)
-
-    @property
-    def sent(self) -> bool:
-        """Whether ``send`` was called."""
-        return self._sender is not None
 
     def send(
         self,
@@ -146,18 +142,14 @@ class FigureProcess:
         """End the helper if it still runs, wait for it, release its pipe and error file."""
         if self.process.poll() is None:
             self.process.kill()  # it writes nothing but its temporary, which the caller removes
-        try:
+        with contextlib.suppress(subprocess.TimeoutExpired):
             self.process.wait(timeout=_REAP_SECONDS)
-        except subprocess.TimeoutExpired:
-            pass
         if self._sender is not None:
             self._sender.join(timeout=_REAP_SECONDS)
         for stream in (self.process.stdin, self._errors):
-            try:
+            with contextlib.suppress(OSError):
                 if stream is not None:
                     stream.close()
-            except OSError:
-                pass
 
     def __enter__(self) -> FigureProcess:
         return self

@@ -19,12 +19,8 @@ from factorq_trainers.analysis.claims import ALGORITHM_LABELS, MEASURE_LABELS, M
 from factorq_trainers.analysis.stats import with_ci
 from factorq_trainers.commands.paper import figure as paper_figure
 from factorq_trainers.commands.paper.figure_process import FigureProcess, FigureProcessError
-from factorq_trainers.commands.paper.schema import (
-    ResultsFileError,
-    check_results,
-    escape_markdown,
-    markdown_code,
-)
+from factorq_trainers.commands.paper.schema import escape_markdown, markdown_code
+from factorq_trainers.commands.paper.schema import results_problem as results_problem
 from factorq_trainers.runner.results import body_label, temporary_path
 
 FIGURE_FILE = "figure3.png"
@@ -179,17 +175,6 @@ def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
         }
         for name, cell in results["cells"].items()
     }
-
-
-def results_problem(results: dict[str, Any]) -> str | None:
-    """What is wrong with a ``results.json`` dict against the paper's schema (``schema.
-    check_results``: every field the report reads), or None: ``factorq report`` refuses the file
-    with it before drawing (``reports.check_results``)."""
-    try:
-        check_results(results)
-    except ResultsFileError as error:
-        return str(error)
-    return None
 
 
 def send_figure(

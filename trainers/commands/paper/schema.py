@@ -85,8 +85,10 @@ def results_schema(config: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def _problem(results: Any) -> str | None:
-    """What is wrong with ``results`` (one line), or None."""
+def results_problem(results: Any) -> str | None:
+    """What is wrong with a ``results.json`` dict against the paper's schema (every field the
+    report reads), in one line, or None: ``factorq report`` refuses the file with it before
+    drawing (``reports.check_results``), as it does with any command's ``results_problem``."""
     if not isinstance(results, dict):
         return "the file holds no JSON object"
     missing = [key for key in ("config", "cells", "claims") if key not in results]
@@ -128,7 +130,7 @@ def _problem(results: Any) -> str | None:
 
 def check_results(results: Any) -> dict[str, Any]:
     """Check every field the report reads; return ``results`` or raise a ResultsFileError."""
-    problem = _problem(results)
+    problem = results_problem(results)
     if problem is not None:
         raise ResultsFileError(problem)
     return results

@@ -110,11 +110,9 @@ def run_unit(
 ) -> dict[str, Any]:
     """Train and evaluate one (world, method, seed), without torchrl's INFO lines
     (``quiet_torchrl``)."""
+    run_method = run_sb3 if unit["method"].startswith("sb3") else run_torchrl
     with quiet_torchrl():
-        if unit["method"].startswith("sb3"):
-            result = run_sb3(config, unit, progress)
-        else:
-            result = run_torchrl(config, unit, progress)
+        result = run_method(config, unit, progress)
     return {**{key: unit[key] for key in ("world", "method", "seed")}, **result}
 
 
@@ -156,8 +154,7 @@ def summarise(config: RiskConfig, unit_results: list[dict[str, Any]]) -> dict[st
     rows = []
     for (world, method), found in sorted(groups.items()):
         row: dict[str, Any] = {"world": world, "method": method, "seeds": len(found)}
-        for metric in METRICS:
-            row[metric] = _mean([r[metric] for r in found])
+        row.update({metric: _mean([r[metric] for r in found]) for metric in METRICS})
         row["reached"] = sum(r["steps_to_threshold"] is not None for r in found)
         rows.append(row)
     by = {(row["world"], row["method"]): row for row in rows}
@@ -167,15 +164,10 @@ def summarise(config: RiskConfig, unit_results: list[dict[str, Any]]) -> dict[st
             one, other = by[world, first], by[world, second]
             gains, base = (other, one) if gain == "second" else (one, other)
             gained = (gains["final_return"], base["final_return"])  # None: no finished episode
+            ratio = count_ratio(one["train_collisions"], other["train_collisions"])
+            difference = None if None in gained else gained[0] - gained[1]
             ratios.append(
-                {
-                    "world": world,
-                    "pair": pair,
-                    "collision_ratio": count_ratio(
-                        one["train_collisions"], other["train_collisions"]
-                    ),
-                    "return_gain": None if None in gained else gained[0] - gained[1],
-                }
+                {"world": world, "pair": pair, "collision_ratio": ratio, "return_gain": difference}
             )
     structures = {
         f"{r['world']}/{r['method']}/{r['seed']}": r["structure"]

@@ -17,13 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from factorq_envs.worlds import resolve_world
 from factorq_trainers.commands.risk.config import OWN_WORLDS, Progress, RiskConfig
-from factorq_trainers.methods.units import (
-    SB3_DQN_NAMES,
-    Tally,
-    greedy_rollouts,
-    sb3_dqn,
-    sb3_greedy,
-)
+from factorq_trainers.methods import units
 
 if TYPE_CHECKING:
     import torch
@@ -218,7 +212,7 @@ def run_torchrl(
         total_frames=config.steps,
         auto_register_policy_transforms=False,  # no recurrent state
     )
-    tally = Tally(10, config.success_threshold)
+    tally = units.Tally(10, config.success_threshold)
     started = time.perf_counter()
     for data in collector:  # [1, T]
         data = data.reshape(-1)
@@ -235,8 +229,7 @@ def run_torchrl(
             local_loss(data)  # eq. 5 on every transition once (the running means)
         buffer.extend(data)
         if tally.step >= config.learning_starts:
-            sample = buffer.sample()
-            value = loss(sample)["loss"]
+            value = loss(buffer.sample())["loss"]
             optimizer.zero_grad()
             value.backward()
             optimizer.step()
@@ -245,8 +238,7 @@ def run_torchrl(
             progress(data.shape[0])
     collector.shutdown()
     wall = time.perf_counter() - started
-    greedy = evaluate(config, unit, acting)
-    result = _result(tally, greedy, wall)
+    result = _result(tally, evaluate(config, unit, acting), wall)
     if summary is not None:
         result["risk_log"] = risk_log
     if isinstance(local, StructureLearner):  # what it found, beside the env's declared oracle
@@ -286,7 +278,7 @@ def evaluate(config: RiskConfig, unit: dict[str, Any], acting: Any) -> dict[str,
         limit = resolve_world(unit["world"]).max_steps  # the env's own time limit ends sooner
     else:
         limit = 4 * (config.grid_size if unit["world"] == "grid" else config.minigrid_size) ** 2
-    for rollout in greedy_rollouts(acting, [env] * config.eval_episodes, limit):
+    for rollout in units.greedy_rollouts(acting, [env] * config.eval_episodes, limit):
         collided = (rollout["next", "collision"] < 0).any(-1)
         collisions += int(collided.sum())
         if survive:  # survived: ran to the time limit, no crash
@@ -296,7 +288,7 @@ def evaluate(config: RiskConfig, unit: dict[str, Any], acting: Any) -> dict[str,
     return {"collisions": collisions, "successes": successes, "episodes": config.eval_episodes}
 
 
-def _result(tally: Tally, greedy: dict[str, int], wall: float) -> dict[str, Any]:
+def _result(tally: units.Tally, greedy: dict[str, int], wall: float) -> dict[str, Any]:
     """A unit's result; ``final_return``: the mean return of the last 20% of training episodes,
     ``steps_to_threshold``: the env step at which the success rate of the last 10 first reached
     ``success_threshold``."""
@@ -337,7 +329,7 @@ def run_sb3(
 
     if unit["world"] != "grid":
         raise ValueError("the sb3 methods run on the grid world only (sb3_worlds)")
-    tally = Tally(10, config.success_threshold)
+    tally = units.Tally(10, config.success_threshold)
 
     def collided(info: dict) -> bool:
         return bool((info["local_reward"] < 0).any())
@@ -365,7 +357,9 @@ def run_sb3(
     env = grid_env(unit["seed"])
     # the torchrl recipe's settings; target update every gradient step (with tau: SoftUpdate's)
     settings = {
-        name: getattr(config, name) for name in SB3_DQN_NAMES if name != "target_update_interval"
+        name: getattr(config, name)
+        for name in units.SB3_DQN_NAMES
+        if name != "target_update_interval"
     }
     settings.update(hidden=(config.hidden,) * 2, target_update_interval=1)
     extra: dict[str, Any] = {"seed": unit["seed"]}
@@ -375,13 +369,12 @@ def run_sb3(
         extra.update(
             model=LocalRiskDQN, provider=LocalRewardTable(1, dependency=grid.config.dependency)
         )
-    model = sb3_dqn(settings, env, "MultiInputPolicy", **extra)
+    model = units.sb3_dqn(settings, env, "MultiInputPolicy", **extra)
     started = time.perf_counter()
     model.learn(config.steps, callback=Record())
     wall = time.perf_counter() - started
-    evaluation = grid_env(10_000 + unit["seed"])
-    episodes = [evaluation] * config.eval_episodes
-    greedy = sb3_greedy(model, episodes, collided, 4 * config.grid_size**2)
+    evaluation = [grid_env(10_000 + unit["seed"])] * config.eval_episodes
+    greedy = units.sb3_greedy(model, evaluation, collided, 4 * config.grid_size**2)
     collisions, successes = sum(e[1] for e in greedy), sum(e[2] for e in greedy)
     result = {"collisions": collisions, "successes": successes, "episodes": config.eval_episodes}
     return _result(tally, result, wall)

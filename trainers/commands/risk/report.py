@@ -27,9 +27,7 @@ def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
 
 
 def _cell(value: float | None, digits: int = 1) -> str:
-    if value is None:
-        return "-"
-    return f"{value:,.{digits}f}"
+    return "-" if value is None else f"{value:,.{digits}f}"
 
 
 def markdown(results: dict[str, Any]) -> str:

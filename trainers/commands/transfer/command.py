@@ -37,14 +37,8 @@ from factorq_torch.base.validation import INT32_MAX, check_int, check_names, che
 from factorq_trainers.analysis.stats import bootstrap_mean_ci, count_ratio, scalar_ci
 from factorq_trainers.analysis.vocabulary import among
 from factorq_trainers.commands.transfer.report import PAIRS
-from factorq_trainers.methods.experiment import (
-    MAX_SEED,
-    PAPER_WORLD,
-    WorldOptions,
-    body_options,
-    check_world_options,
-    experiment_keys,
-)
+from factorq_trainers.methods import experiment
+from factorq_trainers.methods.experiment import MAX_SEED, PAPER_WORLD, experiment_keys
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, TEXT
 from factorq_trainers.runner.options import check_choices, option
 
@@ -84,7 +78,7 @@ TARGET_WORLD = WorldConfig(size=14, num_obstacles=20, layout_seed=1)
 
 
 @dataclass(frozen=True)
-class TransferConfig(WorldOptions):
+class TransferConfig(experiment.WorldOptions):
     """The target task is the world options (``size``, ``obstacles``, ``layout_seed``, the body)
     in each of ``regimes``; the source task shares the body and ``max_steps``."""
 
@@ -150,13 +144,13 @@ class TransferConfig(WorldOptions):
     @property
     def source_world(self) -> WorldConfig:
         try:
-            return check_world_options(
+            return experiment.check_world_options(
                 self.source_size,
                 self.source_obstacles,
                 self.max_steps,
                 self.source_layout_seed,
                 (self.source_regime,),
-                body_options(self),
+                experiment.body_options(self),
             )
         except (ValueError, TypeError) as error:
             message = str(error)
@@ -220,21 +214,12 @@ def run_batch(
         local = None if tables is None else {name: tables[name] for name in ("rho", "kappa")}
         return metrics, local, "fast"
     from factorq_torch.collectors import OnlineCollector
-    from factorq_trainers.methods.experiment import make_env, online_agent, tabular_values
 
-    task, table = tabular_values(algorithm, config.seeds, world)
-    if learned:
-        from factorq_torch.structure import StructureLearner
-
-        table = StructureLearner(
-            config.seeds, num_actions=world.num_actuators, num_sensors=world.num_sensors
-        )
-        if body is not None:
-            table.load_state_dict(body)
-    elif table is not None and body is not None:
-        table.load_state_dict({**table.state_dict(), **body})
-    env, policy, loss = online_agent(
-        make_env(world, periods, world_keys), task, table, agent, policy_keys
+    task, table = experiment.tabular_values(algorithm, config.seeds, world)
+    if table is not None:  # Factor-Q: the oracle's table or the learner, from ``body`` if given
+        table = _local_model(config, world, learned, body)
+    env, policy, loss = experiment.online_agent(
+        experiment.make_env(world, periods, world_keys), task, table, agent, policy_keys
     )
     on_episodes = None if progress is None else (lambda done, _experiments: progress(done))
     collector = OnlineCollector(env, policy, loss, runs=1, episodes=episodes, progress=on_episodes)
@@ -246,23 +231,29 @@ def run_batch(
     return metrics, {name: value.clone() for name, value in kept.items()}, "modular"
 
 
-def train_body_model(config: TransferConfig, learned: bool = False) -> Any:
-    """The body model of every seed, learned by Factor-Q in the source task: a
-    ``LocalRewardTable`` ``[seeds]`` on the oracle pairing, or with ``learned`` a
-    ``StructureLearner`` told nothing of it (``save_agent`` writes either)."""
+def _local_model(
+    config: TransferConfig, world: WorldConfig, learned: bool, state: dict | None = None
+) -> Any:
+    """Factor-Q's local model of every seed in ``world``'s body, loaded with ``state`` (a
+    ``run_batch`` local model) when given: a ``LocalRewardTable`` ``[seeds]`` on the oracle
+    pairing, or with ``learned`` a ``StructureLearner`` told nothing of it."""
     from factorq_torch.structure import StructureLearner
     from factorq_torch.tables import LocalRewardTable
 
-    world, local = config.source_world, _source_body(config, learned)
     if learned:
-        learner = StructureLearner(
-            config.seeds, num_actions=world.num_actuators, num_sensors=world.num_sensors
-        )
-        learner.load_state_dict(local)
-        return learner
-    table = LocalRewardTable(config.seeds, dependency=world.dependency)
-    table.load_state_dict({**table.state_dict(), **local})
-    return table
+        actuators, sensors = world.num_actuators, world.num_sensors
+        local = StructureLearner(config.seeds, num_actions=actuators, num_sensors=sensors)
+    else:
+        local = LocalRewardTable(config.seeds, dependency=world.dependency)
+    if state is not None:  # the learner's whole state, or the table's rho and kappa
+        local.load_state_dict({**local.state_dict(), **state})
+    return local
+
+
+def train_body_model(config: TransferConfig, learned: bool = False) -> Any:
+    """The body model of every seed, learned by Factor-Q in the source task: the oracle's table or,
+    with ``learned``, a ``StructureLearner`` (``_local_model``; ``save_agent`` writes either)."""
+    return _local_model(config, config.source_world, learned, _source_body(config, learned))
 
 
 def _source_body(config: TransferConfig, learned: bool) -> dict[str, torch.Tensor]:
@@ -280,10 +271,9 @@ def load_body_model(config: TransferConfig) -> dict[str, torch.Tensor]:
     ``AgentFileError`` line naming the file and both bodies otherwise)."""
     from factorq_torch.artifacts import AgentFileError, load_agent
     from factorq_torch.tables import LocalRewardTable
-    from factorq_trainers.methods.experiment import make_env
 
     world = config.target_world
-    probe = make_env(world, [0], torch.zeros(1, dtype=torch.int64))
+    probe = experiment.make_env(world, [0], torch.zeros(1, dtype=torch.int64))
     module = load_agent(str(config.body_model), env=probe)
     if not isinstance(module, LocalRewardTable):
         raise AgentFileError(
