@@ -56,6 +56,7 @@ import math
 import numpy as np
 import torch
 
+from factorq_envs.permutation import permuted_dependency
 from factorq_torch.functional import (
     beta_bernoulli_log_marginal,
     candidate_log_prior,
@@ -135,7 +136,7 @@ def streams(setting: str, seed: int) -> None:
     world = config.world_of(setting)
     sensors, actuators = world.num_sensors, world.num_actuators
     orders = methods.sensor_orders(seed, config.setting_stream(setting), config.seeds, sensors, 0)
-    truth = methods._permuted(world, orders)  # [S, A, K]
+    truth = permuted_dependency(world.dependency, orders)  # [S, A, K]
     sets = candidate_sets(sensors)
     competitors = competitor_mask(sets)
     threshold = math.log(config.bayes_factor)
@@ -227,7 +228,7 @@ def body_flip(distractors: int, noise: float, seed: int) -> None:
     world = config.world_of("custom")
     sensors, actuators = world.num_sensors, world.num_actuators
     orders = methods.sensor_orders(seed, config.setting_stream("custom"), config.seeds, sensors, 0)
-    truth = methods._permuted(world, orders)
+    truth = permuted_dependency(world.dependency, orders)
     sets = candidate_sets(sensors)
     prior = candidate_log_prior(sets, "sparse")
     competitors = competitor_mask(sets)
@@ -332,7 +333,7 @@ def misses(setting: str, seed: int) -> None:
     orders = methods.sensor_orders(
         seed, config.setting_stream(setting), config.seeds, world.num_sensors, 0
     )
-    truth = methods._permuted(world, orders)  # [S, A, K], the agent's order
+    truth = permuted_dependency(world.dependency, orders)  # [S, A, K], the agent's order
     sets = candidate_sets(world.num_sensors)
     committed = state["committed"]
     for i, until in enumerate(result["samples_until_right"]):
