@@ -32,11 +32,11 @@ SETTINGS: dict[str, dict[str, Any]] = {
     "noise-10": {"body": "translate", "sensors": "cross", "sensor_noise": 0.10},
     "change": {"body": "translate", "sensors": "cross"},
     # noise with many sensors (8 ring sensors and 12 distractors: 20)
-    **{
-        f"ring-12-noise-{percent}": {
-            "body": "translate", "sensors": "ring", "num_distractors": 12, "sensor_noise": noise
-        }
-        for percent, noise in ((5, 0.05), (10, 0.10))
+    "ring-12-noise-5": {
+        "body": "translate", "sensors": "ring", "num_distractors": 12, "sensor_noise": 0.05
+    },
+    "ring-12-noise-10": {
+        "body": "translate", "sensors": "ring", "num_distractors": 12, "sensor_noise": 0.10
     },
 }  # fmt: skip
 #: The setting that ``--body``, ``--sensors``, ``--distractors`` and ``--sensor-noise`` declare.
