@@ -21,6 +21,25 @@ from factorq_torch.structure import StructureLearner  # noqa: E402
 from factorq_torch.tables import LocalRewardTable  # noqa: E402
 
 
+@pytest.fixture(autouse=True)
+def sb3_logs_in_tmp(tmp_path, monkeypatch):
+    """SB3's default logger makes a ``SB3-<time>`` folder per model in the temp dir: the models
+    these tests build directly (as a user would) log under pytest's ``tmp_path`` instead."""
+    monkeypatch.setenv("SB3_LOGDIR", str(tmp_path / "sb3-logs"))
+
+
+def test_the_commands_sb3_models_leave_no_log_folder(tmp_path, monkeypatch):
+    from factorq_trainers.methods.units import sb3_dqn
+
+    monkeypatch.delenv("SB3_LOGDIR")
+    monkeypatch.setattr("tempfile.tempdir", str(tmp_path))
+    settings = dict(hidden=(8,), learning_starts=8, batch_size=4, buffer_size=64, train_every=1)
+    sb3_dqn(settings, grid(), "MultiInputPolicy", seed=0).learn(16)
+    assert list(tmp_path.iterdir()) == []
+    DQN("MultiInputPolicy", grid(), learning_starts=8).learn(16)  # SB3's own default: a folder
+    assert [path.name[:4] for path in tmp_path.iterdir()] == ["SB3-"]
+
+
 def grid(**kwargs):
     settings = dict(size=4, num_obstacles=2, obstacle_period=1)
     return gymnasium.make("FactoredGrid-v0", **{**settings, **kwargs})

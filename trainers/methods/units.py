@@ -159,12 +159,16 @@ def sb3_dqn(
     settings: dict[str, Any], env: Any, policy: str, model: Any = None, **extra: Any
 ) -> Any:
     """SB3's ``DQN`` (or ``model``, a subclass) on ``env`` with ``settings`` in ``DQNConfig``'s
-    names (``hidden``: the widths of ``policy``'s hidden layers) and SB3's own ``extra``."""
+    names (``hidden``: the widths of ``policy``'s hidden layers) and SB3's own ``extra``. Its
+    logger writes nowhere: SB3's default makes a ``SB3-<time>`` folder in the temp dir per run."""
     from stable_baselines3 import DQN
+    from stable_baselines3.common.logger import Logger
 
     arguments = {SB3_DQN_NAMES[name]: value for name, value in settings.items() if name != "hidden"}
     net = {"net_arch": list(settings["hidden"])}
-    return (model or DQN)(policy, env, policy_kwargs=net, **arguments, **extra)
+    built = (model or DQN)(policy, env, policy_kwargs=net, **arguments, **extra)
+    built.set_logger(Logger(folder=None, output_formats=[]))
+    return built
 
 
 def sb3_greedy(
