@@ -33,6 +33,7 @@ Not a package on purpose (the torchrl wheel installs a top-level ``benchmarks``)
 from __future__ import annotations
 
 import argparse
+import atexit
 import importlib
 import logging
 import re
@@ -90,6 +91,7 @@ def load_baseline(root: str) -> tuple:
     if not (source / "risk.py").is_file():
         raise SystemExit(f"--baseline {root}: no factorq_torch/risk.py there")
     folder = Path(tempfile.mkdtemp(prefix="bench-risk-baseline-"))
+    atexit.register(shutil.rmtree, folder, True)  # the copy is imported once; gone at exit
     target = folder / "factorq_torch_baseline"
     shutil.copytree(source, target, ignore=shutil.ignore_patterns("__pycache__"))
     for path in target.rglob("*.py"):
