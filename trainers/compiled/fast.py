@@ -266,11 +266,6 @@ class ExperimentBatch:
         return bool((self._tensors["run"] >= self.runs).all())
 
     @property
-    def experiments_finished(self) -> int:
-        """Experiments that have finished all their runs x episodes."""
-        return int((self._tensors["run"] >= self.runs).sum())
-
-    @property
     def total_steps(self) -> int:
         """Env steps taken so far, summed over the experiments (one policy decision per step)."""
         return int(self._tensors["policy_counter"].sum())

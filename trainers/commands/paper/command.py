@@ -187,11 +187,7 @@ def run_unit(
     )
     backend = "modular" if world is not None else resolve_backend(shard)
     keys = drivers.experiment_keys(shard, algorithm)
-
-    def report(episodes: int, experiments: int) -> None:
-        if progress is not None:
-            progress(episodes)
-
+    report = progress or (lambda episodes: None)
     if backend == "fast":
         batch = drivers.run_fast(shard, algorithm, keys, report)
     else:

@@ -17,8 +17,8 @@ from factorq_trainers.commands.paper.config import PaperConfig
 from factorq_trainers.methods import experiment
 from factorq_trainers.methods.units import torch_threads
 
-#: ``report(episodes, experiments)``: episodes and experiments completed since its last call.
-Report = Callable[[int, int], None]
+#: ``report(episodes)``: episodes completed since its last call.
+Report = Callable[[int], None]
 
 
 def resolve_backend(config: PaperConfig, world: Any = None) -> str:
@@ -134,14 +134,11 @@ def run_fast(
         keys.policy_keys,
         threads=config.threads,
     )
-    finished, chunk = 0, 1_000
+    chunk = 1_000
     while not batch.done:
         started = time.perf_counter()
-        completed = batch.advance(chunk)
+        report(batch.advance(chunk))
         elapsed = time.perf_counter() - started
-        now_finished = batch.experiments_finished
-        report(completed, now_finished - finished)
-        finished = now_finished
         chunk = int(min(max(chunk * 0.25 / max(elapsed, 1e-3), 100), 1_000_000))
     return batch.metrics()
 
@@ -163,8 +160,9 @@ def run_modular(
         grid, task, local, config.agent, keys.policy_keys, device=device
     )
     collector = OnlineCollector(
-        env, policy, loss, runs=config.runs, episodes=config.episodes, progress=report
-    )
+        env, policy, loss, runs=config.runs, episodes=config.episodes,
+        progress=lambda episodes, _experiments: report(episodes),
+    )  # fmt: skip
     # The per-step tensors are small: intra-op threads only add synchronisation (2 threads were
     # measured 2x slower than 1 here), so the modular path uses one unless --threads says more.
     with torch_threads(config.threads or 1):
