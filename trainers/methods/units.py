@@ -56,10 +56,11 @@ def world_processes(worlds: Iterable[Any], steps: int, units: int) -> tuple[int,
     return default_workers(slowest, steps, units), why
 
 
-def tick(progress: Callable[[int], None], step: int, total: int) -> None:
-    """Report env steps to ``progress`` every 100 steps of ``total``, and the rest at the end."""
-    if step % 100 == 0 or step == total:
-        progress(100 if step % 100 == 0 else step % 100)
+def tick(progress: Callable[[int], None], step: int, total: int, every: int = 100) -> None:
+    """Report env steps to ``progress`` every ``every`` steps of ``total``, and the rest at the
+    end."""
+    if step % every == 0 or step == total:
+        progress(every if step % every == 0 else step % every)
 
 
 def seed_stat(values: list[float | None], seed: int, proportion: bool = False) -> dict[str, Any]:
