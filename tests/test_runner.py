@@ -216,7 +216,7 @@ def test_every_registered_command_can_be_swept_and_one_without_cells_is_refused(
 
     for name in registry.commands():
         assert sweep_spec.check_command(name) == name
-    monkeypatch.setattr(sweep_spec, "commands", lambda: ("paper", "toy"))
+    monkeypatch.setattr(registry, "commands", lambda: dict.fromkeys(("paper", "toy")))
     monkeypatch.setattr(sweep_spec, "_reports_of", lambda command: types.ModuleType("toy_report"))
     with pytest.raises(
         sweep_spec.SweepError, match="'toy' cannot be swept: toy_report declares no"

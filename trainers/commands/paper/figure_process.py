@@ -151,12 +151,6 @@ class FigureProcess:
                 if stream is not None:
                     stream.close()
 
-    def __enter__(self) -> FigureProcess:
-        return self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
-
 
 def main() -> int:
     """The helper: load matplotlib, warm it up, draw the one figure it is sent, exit."""
