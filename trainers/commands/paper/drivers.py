@@ -14,6 +14,7 @@ from factorq_envs.regimes import REGIME_PERIODS
 from factorq_torch.base.config import ALGORITHMS
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
 from factorq_trainers.commands.paper.config import PaperConfig
+from factorq_trainers.compiled import fast
 from factorq_trainers.methods import experiment
 from factorq_trainers.methods.units import torch_threads
 
@@ -26,8 +27,6 @@ def resolve_backend(config: PaperConfig, world: Any = None) -> str:
     ``auto`` takes the compiled path where it is available, the device is the cpu and the kernel
     can run the world (``fast.unsupported_reason``: a body past its limits, or ``world``, another
     ``factorq_envs.protocol.World`` than the grid), else the modular torchrl path."""
-    from factorq_trainers.compiled import fast
-
     on_cpu = torch.device(config.device).type == "cpu"
     if config.backend == "fast" and not fast.is_available():
         raise ValueError(f"backend='fast' is unavailable here: {fast.unavailable_reason()}")
@@ -51,8 +50,6 @@ def fallback_notice(
     """The one-line notice of ``auto`` falling back to the modular path: why (``world``: another
     world than the grid, ``paper.run``'s), about how long the run will take (its units on
     ``workers`` processes), how to get the fast path (None when nothing fell back)."""
-    from factorq_trainers.compiled import fast
-
     if backend != "modular" or config.backend != "auto":
         return None
     unsupported = fast.unsupported_reason(config.world if world is None else world)
@@ -121,9 +118,7 @@ def run_fast(
 ) -> dict[str, torch.Tensor]:
     """One algorithm's experiments on the compiled fast path, in chunks of about a quarter of a
     second (progress, Ctrl-C; the numbers do not depend on the chunking)."""
-    from factorq_trainers.compiled.fast import ExperimentBatch
-
-    batch = ExperimentBatch(
+    batch = fast.ExperimentBatch(
         algorithm,
         keys.periods,
         config.world,
