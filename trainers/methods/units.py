@@ -124,11 +124,6 @@ class Tally:
             recent = [episode[1] for episode in self.episodes[-window:]]
             self.curves["curve_return"].append(_mean(recent) if recent else None)
 
-    @property
-    def returns(self) -> list[float]:
-        """The finished episodes' returns, in order."""
-        return [episode[1] for episode in self.episodes]
-
 
 def _mean(values: list[Any]) -> float:
     return float(sum(values) / len(values))

@@ -86,7 +86,7 @@ def _measures(
     return {
         "crashes": tally.collisions,
         "crashes_per_1000": 1000.0 * tally.collisions / max(1, tally.step),
-        "episodes": len(tally.returns),
+        "episodes": len(tally.episodes),
         "steps_to_threshold": tally.reached,
         **tally.curves,
         "greedy_crash_rate": sum(crashed for _, crashed in greedy) / config.eval_episodes,
