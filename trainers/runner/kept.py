@@ -164,21 +164,13 @@ def check_values(
             continue  # a label, a verdict (a claim's threshold is its statement's words)
         if not isinstance(value, int | float) or isinstance(value, bool):
             raise ValueError(f"{what} {path}: {where} holds {short(value)}, not a number: {remedy}")
-        problem = _leaf_problem(value, _kind_of(measure))
+        kind = next((kind for pattern, kind in _KINDS if pattern.fullmatch(measure)), NUMBER)
+        problem = _leaf_problem(value, kind)
         if problem is not None:
             raise ValueError(f"{what} {path}: {where} holds {value!r}, {problem}: {remedy}")
     problem = None if check is None else check(results)  # the command's own (its report's)
     if problem is not None:
         raise ValueError(f"{what} {path}: {problem}: {remedy}")
-
-
-def _kind_of(measure: str) -> str:
-    """The schema kind of a number named ``measure`` (``check_values``: by its name alone)."""
-    if _FRACTION.fullmatch(measure):
-        return FRACTION
-    if _WHOLE.fullmatch(measure):
-        return COUNT
-    return NON_NEGATIVE if _NON_NEGATIVE.fullmatch(measure) else NUMBER
 
 
 def read_sealed(
@@ -246,6 +238,9 @@ POSITIVE = "positive count"  # whole and >= 1
 TEXT = "text"
 FLAG = "flag"  # true or false
 _NUMBER_KINDS = (NUMBER, NON_NEGATIVE, FRACTION, FINITE, COUNT, POSITIVE)
+#: The kind of a number ``check_values`` meets, by its name alone: the first that matches, else
+#: ``NUMBER``.
+_KINDS = ((_FRACTION, FRACTION), (_WHOLE, COUNT), (_NON_NEGATIVE, NON_NEGATIVE))
 
 
 def schema_problem(value: Any, schema: Any, where: str = "result") -> str | None:
