@@ -228,9 +228,11 @@ def _curve(traces: list[dict[str, Any]], name: str, grid: np.ndarray, seed: int)
     return seed_bands(values, seed, every_seed=True)
 
 
-def comparison(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """``comparison.json``'s own entries (``thresholds``, ``results``, ``curves``) from every
-    method's ``{"traces", "wall_s"}`` (the traces' arrays as numpy arrays or lists)."""
+def summarise(config: CompareConfig, outcomes: Sequence[Any]) -> dict[str, Any]:
+    """``comparison.json``'s own entries (``thresholds``, ``results``, ``curves``; the frame's
+    envelope goes around them) from the units' results, in ``units`` order: every method's
+    ``{"traces", "wall_s"}`` (the traces' arrays as numpy arrays or lists)."""
+    runs = {unit["method"]: outcome for unit, outcome in zip(units(config), outcomes, strict=True)}
     experiments = config.experiments
     grid = np.linspace(experiments.steps / CURVE_POINTS, experiments.steps, CURVE_POINTS)
     thresholds = {}
@@ -311,13 +313,6 @@ def check_unit(config: CompareConfig, unit: dict[str, Any], result: dict[str, An
                 f"fields of different lengths {sorted(lengths)}"
             )
     return None
-
-
-def summarise(config: CompareConfig, outcomes: Sequence[Any]) -> dict[str, Any]:
-    """``comparison.json``'s entries (the frame's envelope goes around them) from the units'
-    results, in ``units`` order."""
-    runs = {unit["method"]: outcome for unit, outcome in zip(units(config), outcomes, strict=True)}
-    return comparison(config, runs)
 
 
 # --------------------------------------------------------------------------------------------
