@@ -84,7 +84,7 @@ def main() -> None:
 
     def fast(algorithm: str) -> dict:
         keys = experiment_keys(config, algorithm)
-        metrics = run_fast(config, algorithm, keys, lambda episodes, experiments: None)
+        metrics = run_fast(config, algorithm, keys, lambda episodes: None)
         return {name: value.cpu().numpy() for name, value in metrics.items()}
 
     started = time.perf_counter()

@@ -165,7 +165,7 @@ def batched_steps() -> None:
     print("\nbatched steps of the default paper batch (the slowest experiment's total steps)")
     for algorithm in config.methods:
         keys = paper_drivers.experiment_keys(config, algorithm)
-        metrics = paper_drivers.run_fast(config, algorithm, keys, lambda e, x: None)
+        metrics = paper_drivers.run_fast(config, algorithm, keys, lambda e: None)
         steps = metrics["steps"].sum(dim=(1, 2)).double().view(len(config.regimes), -1)
         worst = [
             f"{world} {int(row.max()):,}" for world, row in zip(config.regimes, steps, strict=True)

@@ -3,6 +3,7 @@ the helper, and a failing or interrupted helper leaves one clear line and no hal
 
 from __future__ import annotations
 
+import contextlib
 import json
 import subprocess
 import sys
@@ -43,7 +44,7 @@ def test_the_helper_draws_the_bytes_drawn_in_process(results, shape, tmp_path):
     if shape == "defaults":  # the figure the helper prepared before it was sent the curves
         results = synthetic_results(seeds=100, runs=10, episodes=200)
     report.figure3(results, tmp_path / "here.png")
-    with FigureProcess.start() as helper:
+    with contextlib.closing(FigureProcess.start()) as helper:
         report.send_figure(helper, results, tmp_path)
         temporary = temporary_path(tmp_path / report.FIGURE_FILE)
         helper.finish(temporary)
@@ -88,7 +89,7 @@ def test_a_helper_that_is_not_sent_anything_is_ended_by_close():
 
 def test_finish_names_why_the_helper_failed(results, tmp_path, monkeypatch):
     failing_helper(monkeypatch, "import sys; sys.stderr.write('boom\\n'); sys.exit(3)")
-    with FigureProcess.start() as helper:
+    with contextlib.closing(FigureProcess.start()) as helper:
         report.send_figure(helper, results, tmp_path)
         with pytest.raises(FigureProcessError, match=r"exit 3: boom"):
             helper.finish(temporary_path(tmp_path / report.FIGURE_FILE))
@@ -96,7 +97,7 @@ def test_finish_names_why_the_helper_failed(results, tmp_path, monkeypatch):
 
 def test_finish_refuses_a_helper_that_exits_0_without_the_file(results, tmp_path, monkeypatch):
     failing_helper(monkeypatch, "import sys; sys.stdin.buffer.read()")
-    with FigureProcess.start() as helper:
+    with contextlib.closing(FigureProcess.start()) as helper:
         report.send_figure(helper, results, tmp_path)
         with pytest.raises(FigureProcessError, match="exited without writing"):
             helper.finish(temporary_path(tmp_path / report.FIGURE_FILE))

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from timing import patience  # tests/timing.py: bounds that stretch with the load
 
 from factorq_trainers.distributed import sweep_spec
-from factorq_trainers.runner import results
+from factorq_trainers.runner import registry, results
 
 FUZZ = settings(
     max_examples=150,
@@ -50,7 +50,7 @@ fields = st.sampled_from(FIELDS)
 specs = st.fixed_dictionaries(
     {},
     optional={
-        "command": st.sampled_from([*sweep_spec.commands(), "nope"]) | scalars,
+        "command": st.sampled_from([*registry.commands(), "nope"]) | scalars,
         "seeds": scalars,
         "shard_seeds": scalars,
         "out": st.sampled_from(["sweep-out", "", "/dev/null"]) | scalars,

@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         from factorq_trainers.distributed import sweep
 
         return sweep.main(argv[1:])
-    command = argv[0] if argv and argv[0] in commands() else None
+    command = argv[0] if argv and argv[0] in (*registry.commands(), *registry.BUILT_IN) else None
     figure_process = None
     # (``report`` is built in: no entry, no figure process)
     entry = registry.commands().get(command) if command is not None else None
@@ -106,11 +106,6 @@ def main(argv: list[str] | None = None) -> int:
     if command_line and command is not None:
         _exit(code)
     return code
-
-
-def commands() -> tuple[str, ...]:
-    """The commands ``main`` knows (``sweep`` is handed to ``distributed.sweep``)."""
-    return (*registry.commands(), *registry.BUILT_IN)
 
 
 def _main(

@@ -157,8 +157,9 @@ def scalar_ci(samples: Any, method: Any = mean_ci) -> tuple[float, float | None,
 
 
 def interval(low: Any, high: Any) -> list[float | None] | None:
-    """``[low, high]`` for JSON (non-finite bounds as ``None``), or ``None`` without an interval."""
-    return None if low is None else [finite_or_none(low), finite_or_none(high)]
+    """``[low, high]`` for JSON (non-finite bounds as ``None``), or ``None`` without an interval
+    (either bound missing)."""
+    return None if low is None or high is None else [finite_or_none(low), finite_or_none(high)]
 
 
 def _generator(seed: int) -> np.random.Generator:

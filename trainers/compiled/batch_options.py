@@ -103,10 +103,6 @@ def _check_orders(name: str, orders: Any, count: int, num_sensors: int) -> torch
     return orders.detach().cpu().contiguous().clone()
 
 
-def _check_threads(threads: object) -> int:
-    return torch.get_num_threads() if threads is None else check_int("threads", threads, 1)
-
-
 def learner_setup(
     structure: StructureOptions | None,
     sensor_orders: SensorOrders | None,

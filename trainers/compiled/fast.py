@@ -116,7 +116,9 @@ class ExperimentBatch:
         self.algorithm, self.world, self.agent = algorithm, world, agent
         self.runs = check_int("runs", runs, 1)
         self.episodes = check_int("episodes", episodes, 1)
-        self.threads = batch_options._check_threads(threads)
+        self.threads = (
+            torch.get_num_threads() if threads is None else check_int("threads", threads, 1)
+        )
         self._library = loader._require()
         world_keys = batch_options._check_vector("world_keys", world_keys, count)
         policy_keys = batch_options._check_vector("policy_keys", policy_keys, count)
@@ -262,17 +264,6 @@ class ExperimentBatch:
     def done(self) -> bool:
         """All experiments have finished their runs x episodes."""
         return bool((self._tensors["run"] >= self.runs).all())
-
-    @property
-    def experiments_finished(self) -> int:
-        """Experiments that have finished all their runs x episodes."""
-        return int((self._tensors["run"] >= self.runs).sum())
-
-    @property
-    def episodes_completed(self) -> int:
-        """Episodes finished so far, summed over the experiments."""
-        run, episode = self._tensors["run"], self._tensors["episode"]
-        return int((run * self.episodes + episode).sum())
 
     @property
     def total_steps(self) -> int:

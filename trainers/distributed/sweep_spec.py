@@ -53,15 +53,11 @@ class SweepError(ValueError):
     """A sweep spec or value that cannot be used; the message says which and why."""
 
 
-def commands() -> tuple[str, ...]:
-    """Every command a sweep can run: each registered command."""
-    return tuple(registry.commands())
-
-
 def check_command(command: Any, source: str = "sweep file") -> str:
     """``command`` if a sweep can run its configs, else a ``SweepError`` saying which can."""
-    if command not in commands():
-        raise SweepError(f"{source}: command={command!r} is not one of {', '.join(commands())}")
+    names = tuple(registry.commands())  # a tuple: an unhashable command is simply not in it
+    if command not in names:
+        raise SweepError(f"{source}: command={command!r} is not one of {', '.join(names)}")
     reports = _reports_of(command)
     if not (hasattr(reports, "sweep_cells") and hasattr(reports, "SWEEP_MEASURES")):
         raise SweepError(

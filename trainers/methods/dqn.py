@@ -19,7 +19,7 @@ import math
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -229,21 +229,18 @@ def dqn_agent(
     )
 
 
-ProgressCallback = Callable[[int, int], None]
-
-
 def run(
     config: DQNConfig,
     experiments: ExperimentConfig,
     *,
-    progress: ProgressCallback | None = None,
+    progress: Callable[[int], None] | None = None,
     device: torch.device | str | None = None,
 ) -> dict[str, Any]:
     """Train DQN on every experiment of ``experiments`` for its step budget.
 
-    Returns ``{"config", "experiments", "traces", "wall_s", "env_steps"}``: ``traces`` holds one
-    ``EpisodeRecorder`` trace per experiment (world-major, seed-minor). ``progress(done, total)``
-    is called with env steps per experiment after every collector batch.
+    Returns ``{"traces", "wall_s"}``: ``traces`` holds one ``EpisodeRecorder`` trace per
+    experiment (world-major, seed-minor). ``progress(n)`` is called after every collector batch
+    with the env steps per experiment done since its last call.
     """
     started = time.perf_counter()
     device = torch.device("cpu" if device is None else device)
@@ -276,6 +273,7 @@ def run(
     loss_per_experiment = torch.full((count,), math.nan)
     done_steps, gradient_steps = 0, 0
     for data in collector:  # [E, T]
+        before = done_steps
         data = data.select(
             *_STORED, "exploratory", ("next", "bump"), ("next", "collision"), strict=False
         )
@@ -294,17 +292,11 @@ def run(
         else:
             gradient_steps += due
         if progress is not None:
-            progress(done_steps, steps)
+            progress(done_steps - before)
         if done_steps >= steps:
             break
     collector.shutdown()
-    return {
-        "config": asdict(config),
-        "experiments": asdict(experiments),
-        "traces": recorder.traces(),
-        "wall_s": time.perf_counter() - started,
-        "env_steps": done_steps * count,
-    }
+    return {"traces": recorder.traces(), "wall_s": time.perf_counter() - started}
 
 
 def train_stepwise(

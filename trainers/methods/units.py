@@ -1,7 +1,8 @@
 """What several commands' units share around their methods, torch loaded only when a unit runs:
 ``torch_threads`` (a unit's torch threads, restored after), ``tick`` (progress every 100 env
 steps), ``seed_stat`` (a measure's mean over seeds with its 95% interval), ``Tally`` (one
-experiment's training record: ``gym``, ``risk``, ``minigrid``), and for the commands on declared
+experiment's training record: ``gym``, ``risk``, ``minigrid``) and ``record`` (a collected step
+into tallies), and for the commands on declared
 worlds their extras (``require_extras``) and processes (``world_processes``)."""
 
 from __future__ import annotations
@@ -55,10 +56,11 @@ def world_processes(worlds: Iterable[Any], steps: int, units: int) -> tuple[int,
     return default_workers(slowest, steps, units), why
 
 
-def tick(progress: Callable[[int], None], step: int, total: int) -> None:
-    """Report env steps to ``progress`` every 100 steps of ``total``, and the rest at the end."""
-    if step % 100 == 0 or step == total:
-        progress(100 if step % 100 == 0 else step % 100)
+def tick(progress: Callable[[int], None], step: int, total: int, every: int = 100) -> None:
+    """Report env steps to ``progress`` every ``every`` steps of ``total``, and the rest at the
+    end."""
+    if step % every == 0 or step == total:
+        progress(every if step % every == 0 else step % every)
 
 
 def seed_stat(values: list[float | None], seed: int, proportion: bool = False) -> dict[str, Any]:
@@ -122,14 +124,27 @@ class Tally:
             recent = [episode[1] for episode in self.episodes[-window:]]
             self.curves["curve_return"].append(_mean(recent) if recent else None)
 
-    @property
-    def returns(self) -> list[float]:
-        """The finished episodes' returns, in order."""
-        return [episode[1] for episode in self.episodes]
-
 
 def _mean(values: list[Any]) -> float:
     return float(sum(values) / len(values))
+
+
+def record(tallies: list[Tally], td: Any) -> None:
+    """One collected step of the ``S`` experiments ``td`` into their tallies: ``td``'s
+    ``exploratory`` and ``("next", reward | bump | done)``, the reward the world's conventional
+    one (a split one with its collisions put back, in float64; a success: a positive one that
+    ends the episode)."""
+    nxt = td.get("next")
+    rewards = nxt.get("reward").reshape(-1).tolist()
+    local = nxt.get("local_reward", None)
+    if local is not None:  # the reward was split: put the collisions back
+        collisions = local.sum(dim=-1).reshape(-1).tolist()
+        rewards = [reward + back for reward, back in zip(rewards, collisions, strict=True)]
+    bumps = nxt.get("bump").any(dim=-1).reshape(-1).tolist()
+    exploratory = td.get("exploratory").reshape(-1).tolist()
+    done = nxt.get("done").reshape(-1).tolist()
+    for i, r in enumerate(rewards):
+        tallies[i].update(r, bumps[i], done[i], r > 0, not exploratory[i])
 
 
 def greedy_rollouts(policy: Any, envs: Iterable[Any], limit: int | None = None) -> list[Any]:

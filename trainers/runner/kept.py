@@ -3,10 +3,10 @@
 module alone. A kept file may have been edited, cut short, resealed or copied from elsewhere, so
 each carries a SHA-256 of its content (``DIGEST_KEY``) and what it was kept for (``TIE_KEY``: the
 command, the configuration's digest, the unit), both checked on reuse, and has its values
-checked (``check_result`` against the command's ``UNIT_RESULT``, or ``check_values`` by the names
-of a results dict's measures): a digest proves integrity, not origin. A file that fails is refused
-in one line naming it (``reusable``: or, with ``--force``, recomputed). Why and what each check
-catches: docs/decisions.md, "Finished units are kept, tied to their run and checked".
+checked (``UnitStore.finished`` against the command's ``UNIT_RESULT``, or ``check_values`` by the
+names of a results dict's measures): a digest proves integrity, not origin. A file that fails is
+refused in one line naming it (``reusable``: or, with ``--force``, recomputed). Why and what each
+check catches: docs/decisions.md, "Finished units are kept, tied to their run and checked".
 """
 
 from __future__ import annotations
@@ -164,21 +164,13 @@ def check_values(
             continue  # a label, a verdict (a claim's threshold is its statement's words)
         if not isinstance(value, int | float) or isinstance(value, bool):
             raise ValueError(f"{what} {path}: {where} holds {short(value)}, not a number: {remedy}")
-        problem = _leaf_problem(value, _kind_of(measure))
+        kind = next((kind for pattern, kind in _KINDS if pattern.fullmatch(measure)), NUMBER)
+        problem = _leaf_problem(value, kind)
         if problem is not None:
             raise ValueError(f"{what} {path}: {where} holds {value!r}, {problem}: {remedy}")
     problem = None if check is None else check(results)  # the command's own (its report's)
     if problem is not None:
         raise ValueError(f"{what} {path}: {problem}: {remedy}")
-
-
-def _kind_of(measure: str) -> str:
-    """The schema kind of a number named ``measure`` (``check_values``: by its name alone)."""
-    if _FRACTION.fullmatch(measure):
-        return FRACTION
-    if _WHOLE.fullmatch(measure):
-        return COUNT
-    return NON_NEGATIVE if _NON_NEGATIVE.fullmatch(measure) else NUMBER
 
 
 def read_sealed(
@@ -246,6 +238,9 @@ POSITIVE = "positive count"  # whole and >= 1
 TEXT = "text"
 FLAG = "flag"  # true or false
 _NUMBER_KINDS = (NUMBER, NON_NEGATIVE, FRACTION, FINITE, COUNT, POSITIVE)
+#: The kind of a number ``check_values`` meets, by its name alone: the first that matches, else
+#: ``NUMBER``.
+_KINDS = ((_FRACTION, FRACTION), (_WHOLE, COUNT), (_NON_NEGATIVE, NON_NEGATIVE))
 
 
 def schema_problem(value: Any, schema: Any, where: str = "result") -> str | None:
@@ -339,23 +334,6 @@ def _leaf_problem(value: Any, kind: str) -> str | None:
     return None
 
 
-def check_result(
-    path: Path, what: str, unit: dict[str, Any], result: Any, schema: Any, remedy: str = REMEDY
-) -> None:
-    """A ValueError naming ``path`` and ``remedy`` unless ``result`` fits its command's
-    ``schema`` and the labels it repeats from its ``unit`` (``"method"``, ``"seed"``, ...)
-    are the unit's."""
-    problem = schema_problem(result, schema)
-    if problem is not None:
-        raise ValueError(f"{what} {path}: {problem}: {remedy}")
-    for key, label in unit.items():
-        if key != "id" and key in result and result[key] != label:
-            raise ValueError(
-                f"{what} {path}: its result's {key} is {short(result[key])}, but it is kept for "
-                f"unit {unit['id']!r}, whose {key} is {label!r}: {remedy}"
-            )
-
-
 # --------------------------------------------------------------------------------------------
 # The units of one run, kept in OUT/units/
 
@@ -436,11 +414,19 @@ class UnitStore:
                     f"{UNIT_FILE} {path} holds {short(sorted(record))}, not a unit's result: "
                     f"{remedy}"
                 )
-            check_result(path, UNIT_FILE, unit, record["result"], schema, remedy)
-            problem = None if check is None else check(unit, record["result"])
+            result = record["result"]
+            problem = schema_problem(result, schema)
+            for key, label in unit.items():  # the labels it repeats must be the unit's
+                if problem is None and key != "id" and key in result and result[key] != label:
+                    problem = (
+                        f"its result's {key} is {short(result[key])}, but it is kept for unit "
+                        f"{unit['id']!r}, whose {key} is {label!r}"
+                    )
+            if problem is None and check is not None:
+                problem = check(unit, result)
             if problem is not None:
                 raise ValueError(f"{UNIT_FILE} {path}: {problem}: {remedy}")
-            found[unit["id"]] = record["result"]
+            found[unit["id"]] = result
 
         for unit in units:
             reusable(unit_path(self.directory, unit["id"]), functools.partial(read, unit), force)

@@ -166,12 +166,6 @@ def read_json(path: Path, required: Iterable[str], missing_hint: str) -> dict[st
     return results
 
 
-def interval_or_none(interval: Iterable[Any]) -> list[float] | None:
-    """``[low, high]`` as floats, or None when either end is missing."""
-    values = list(interval)
-    return None if any(value is None for value in values) else [float(v) for v in values]
-
-
 def software_versions() -> dict[str, str]:
     """Versions of python, the libraries that computed the results, and the platform."""
     versions = {"python": platform.python_version()}

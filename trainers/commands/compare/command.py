@@ -55,7 +55,7 @@ from factorq_trainers.commands.compare.config import CompareConfig
 from factorq_trainers.commands.compare.report import LOGS_DIRECTORY, THRESHOLD_FACTOR
 from factorq_trainers.methods import dqn, experiment
 from factorq_trainers.methods.dqn import batch_keys
-from factorq_trainers.methods.units import torch_threads
+from factorq_trainers.methods.units import tick, torch_threads
 from factorq_trainers.runner import frame, outdir, resources
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, NUMBER, TEXT
 
@@ -150,12 +150,13 @@ def value_providers(
 def run_online(
     method: str,
     config: CompareConfig,
-    progress: Callable[[int, int], None] | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> dict[str, Any]:
     """Tabular Factor-Q, tabular Q-learning or Factor-DQN for the step budget (OnlineCollector).
 
     Returns ``{"traces", "wall_s"}`` like ``factorq_trainers.methods.dqn.run``;
-    ``progress(done, total)``: env steps per experiment, every 1% of the budget.
+    ``progress(n)``: the env steps per experiment done since its last call, every 1% of the
+    budget.
     """
     started = time.perf_counter()
     experiments, agent = config.experiments, config.agent
@@ -179,11 +180,10 @@ def run_online(
     captured: dict[str, torch.Tensor] = {}
     hook = loss.register_forward_hook(lambda module, inputs, output: captured.update(output))
     recorder = experiment.EpisodeRecorder(experiments.labels)
-    report_every = max(1, steps // 100)
     for step in range(1, steps + 1):
         recorder.update(collector.step(), epsilon, 0.5 * captured["td_error"].pow(2))
-        if progress is not None and (step % report_every == 0 or step == steps):
-            progress(step, steps)
+        if progress is not None:
+            tick(progress, step, steps, max(1, steps // 100))
     hook.remove()
     return {"traces": recorder.traces(), "wall_s": time.perf_counter() - started}
 
@@ -228,9 +228,11 @@ def _curve(traces: list[dict[str, Any]], name: str, grid: np.ndarray, seed: int)
     return seed_bands(values, seed, every_seed=True)
 
 
-def comparison(config: CompareConfig, runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """``comparison.json``'s own entries (``thresholds``, ``results``, ``curves``) from every
-    method's ``{"traces", "wall_s"}`` (the traces' arrays as numpy arrays or lists)."""
+def summarise(config: CompareConfig, outcomes: Sequence[Any]) -> dict[str, Any]:
+    """``comparison.json``'s own entries (``thresholds``, ``results``, ``curves``; the frame's
+    envelope goes around them) from the units' results, in ``units`` order: every method's
+    ``{"traces", "wall_s"}`` (the traces' arrays as numpy arrays or lists)."""
+    runs = {unit["method"]: outcome for unit, outcome in zip(units(config), outcomes, strict=True)}
     experiments = config.experiments
     grid = np.linspace(experiments.steps / CURVE_POINTS, experiments.steps, CURVE_POINTS)
     thresholds = {}
@@ -311,13 +313,6 @@ def check_unit(config: CompareConfig, unit: dict[str, Any], result: dict[str, An
                 f"fields of different lengths {sorted(lengths)}"
             )
     return None
-
-
-def summarise(config: CompareConfig, outcomes: Sequence[Any]) -> dict[str, Any]:
-    """``comparison.json``'s entries (the frame's envelope goes around them) from the units'
-    results, in ``units`` order."""
-    runs = {unit["method"]: outcome for unit, outcome in zip(units(config), outcomes, strict=True)}
-    return comparison(config, runs)
 
 
 # --------------------------------------------------------------------------------------------
@@ -404,21 +399,12 @@ def run_unit(
     Args:
         progress: called with the env steps per experiment done since its last call.
     """
-    report = None
-    if progress is not None:
-        done = 0
-
-        def report(now: int, total: int) -> None:
-            nonlocal done
-            progress(now - done)
-            done = now
-
     method = unit["method"]
     with torch_threads(config.threads):
         if method == "dqn":
-            run = dqn.run(config.dqn, config.experiments, progress=report)
+            run = dqn.run(config.dqn, config.experiments, progress=progress)
         else:
-            run = run_online(method, config, progress=report)
+            run = run_online(method, config, progress=progress)
     return {"method": method, "traces": run["traces"], "wall_s": run["wall_s"]}
 
 

@@ -15,7 +15,7 @@ import numpy as np
 from factorq_trainers.analysis import stats
 from factorq_trainers.analysis.vocabulary import label
 from factorq_trainers.methods.units import sweep_cell
-from factorq_trainers.runner.results import body_label, interval_or_none, new_figure
+from factorq_trainers.runner.results import body_label, new_figure
 
 #: A method reached the threshold when an episode took at most this many times the shortest path.
 THRESHOLD_FACTOR = 1.5
@@ -142,11 +142,11 @@ def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
             if entry["steps_to_threshold"] is not None:
                 seed = results["config"].get("seed", 0)  # compare's bootstrap, its seed
                 bounded = functools.partial(stats.bootstrap_mean_ci, seed=seed)
-                steps["ci95"] = interval_or_none(stats.scalar_ci(reached, bounded)[1:])
+                steps["ci95"] = stats.interval(*stats.scalar_ci(reached, bounded)[1:])
             measures = {
                 "steps_to_threshold": steps,
                 **{
-                    name: {"mean": entry[name], "ci95": interval_or_none(entry[f"{name}_ci95"])}
+                    name: {"mean": entry[name], "ci95": stats.interval(*entry[f"{name}_ci95"])}
                     for name in counted
                 },
             }

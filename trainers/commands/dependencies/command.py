@@ -216,17 +216,13 @@ def _against_oracle(
 # The experiment
 
 
-def setting_key(config: DependenciesConfig, setting: str, regime: str) -> str:
-    """The key of ``setting`` run in ``regime`` (a unit's id, a ``dependencies.json`` entry): the
-    setting's name when one regime runs, ``setting/regime`` when several do."""
-    return setting if len(config.regimes) == 1 else f"{setting}/{regime}"
-
-
 def units(config: DependenciesConfig) -> list[dict[str, Any]]:
     """One unit per setting x regime (its methods share worlds, and DQN's budget is the
-    oracle's)."""
+    oracle's); its id, the key of its ``dependencies.json`` entry: the setting's name when one
+    regime runs, ``setting/regime`` when several do."""
+    several = len(config.regimes) > 1
     return [
-        {"id": setting_key(config, setting, regime), "setting": setting, "regime": regime}
+        {"id": f"{setting}/{regime}" if several else setting, "setting": setting, "regime": regime}
         for setting in config.settings
         for regime in config.regimes
     ]
@@ -260,8 +256,8 @@ def run_unit(
 
 
 def summarise(config: DependenciesConfig, outcomes: list[dict[str, Any]]) -> dict[str, Any]:
-    """``dependencies.json``'s entries from the units (in ``units`` order), keyed by
-    ``setting_key``."""
+    """``dependencies.json``'s entries from the units (in ``units`` order), keyed by their
+    ids."""
     results: dict[str, Any] = {
         "settings": {},
         "skipped": {},

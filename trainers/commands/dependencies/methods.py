@@ -14,6 +14,7 @@ import torch
 
 from factorq_envs.regimes import REGIME_PERIODS
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
+from factorq_torch.base.validation import MAX_PARENTS, MAX_TABLE_ENTRIES
 from factorq_trainers.commands.dependencies.config import (
     CURVE_EVERY,
     GATED_L1,
@@ -22,7 +23,8 @@ from factorq_trainers.commands.dependencies.config import (
     STREAM_ORDER,
     DependenciesConfig,
 )
-from factorq_trainers.methods.experiment import experiment_keys
+from factorq_trainers.compiled import fast
+from factorq_trainers.methods.experiment import experiment_keys, make_env, online_agent
 
 
 def sensor_orders(
@@ -79,8 +81,6 @@ def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     """The learned structure with its structure metrics: on the compiled path where it runs
     (``fast.StructureOptions``), else on the modular torchrl path (``run_learned_modular``);
     both give the same numbers bit for bit (``tests/test_fast_structure.py``)."""
-    from factorq_trainers.compiled import fast
-
     world = config.world_of(setting)
     if (
         config.path == "modular"
@@ -95,7 +95,6 @@ def run_learned(config: DependenciesConfig, setting: str) -> dict[str, Any]:
 def run_learned_fast(config: DependenciesConfig, setting: str) -> dict[str, Any]:
     """``run_learned`` on the compiled path."""
     from factorq_envs.permutation import permuted_dependency
-    from factorq_trainers.compiled import fast
 
     world = config.world_of(setting)
     world_keys, policy_keys = _keys(config, "factor-q-learned")
@@ -185,7 +184,6 @@ def _permuted_collector(
     from factorq_envs.permutation import PermuteSensors, permuted_dependency
     from factorq_torch.collectors import OnlineCollector
     from factorq_torch.tables import TaskQTable
-    from factorq_trainers.methods.experiment import make_env, online_agent
 
     world, count = config.world_of(setting), config.seeds
     world_keys, policy_keys = _keys(config, "factor-q-learned")
@@ -273,8 +271,6 @@ def run_learned_modular(config: DependenciesConfig, setting: str) -> dict[str, A
 def run_compiled(config: DependenciesConfig, setting: str, method: str) -> dict[str, Any]:
     """The oracle, the joint table or Q-learning on the compiled path (a method that does not
     fit or cannot run the setting never gets here: ``skipped_reason``)."""
-    from factorq_trainers.compiled import fast
-
     world = config.world_of(setting)
     world_keys, policy_keys = _keys(config, method)
     dependency, orders = None, None
@@ -363,9 +359,6 @@ def run_dqn(config: DependenciesConfig, setting: str, budget: int) -> dict[str, 
 
 def skipped_reason(config: DependenciesConfig, setting: str, method: str) -> str | None:
     """Why ``method`` does not run in ``setting`` (``None``: it runs)."""
-    from factorq_torch.base.validation import MAX_PARENTS, MAX_TABLE_ENTRIES
-    from factorq_trainers.compiled import fast
-
     world = config.world_of(setting)
     if method in ("factor-q-learned", "factor-q-gated"):
         return None

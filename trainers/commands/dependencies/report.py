@@ -5,10 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from factorq_trainers.analysis.stats import format_number, with_ci
+from factorq_trainers.analysis.stats import format_number, interval, with_ci
 from factorq_trainers.analysis.vocabulary import recorded_label
 from factorq_trainers.methods.units import sweep_cell
-from factorq_trainers.runner.results import interval_or_none, new_figure
+from factorq_trainers.runner.results import new_figure
 
 
 def _percent_interval(bounds: list[float | None] | None) -> str:
@@ -203,9 +203,7 @@ def sweep_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
                 else None,
                 "collisions_vs_oracle": {
                     "mean": ratio["ratio"] if learned and ratio else None,
-                    "ci95": interval_or_none(ratio["ci"])
-                    if learned and ratio and ratio["ci"]
-                    else None,
+                    "ci95": interval(*ratio["ci"]) if learned and ratio and ratio["ci"] else None,
                 },
             }
             cells[f"{setting}/{method}"] = sweep_cell(setting, method, measures, SWEEP_MEASURES)

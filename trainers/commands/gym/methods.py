@@ -10,7 +10,7 @@ from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
 from factorq_trainers.commands.gym.config import METHODS, GymConfig
-from factorq_trainers.methods.units import Tally, greedy_rollouts, sb3_dqn, sb3_greedy, tick
+from factorq_trainers.methods.units import Tally, greedy_rollouts, record, sb3_dqn, sb3_greedy, tick
 
 if TYPE_CHECKING:
     import torch
@@ -86,7 +86,7 @@ def _measures(
     return {
         "crashes": tally.collisions,
         "crashes_per_1000": 1000.0 * tally.collisions / max(1, tally.step),
-        "episodes": len(tally.returns),
+        "episodes": len(tally.episodes),
         "steps_to_threshold": tally.reached,
         **tally.curves,
         "greedy_crash_rate": sum(crashed for _, crashed in greedy) / config.eval_episodes,
@@ -94,16 +94,6 @@ def _measures(
         "wall_s": wall,
         "steps_per_s": config.steps / wall,
     }
-
-
-def _transition(td: Any) -> tuple[float, bool, bool]:
-    """(conventional reward, crashed, done) of a ``[1]`` transition (split or not)."""
-    nxt = td.get("next")
-    reward = float(nxt.get("reward").sum())
-    local = nxt.get("local_reward", None)
-    if local is not None:  # the reward was split: put the collision back
-        reward += float(local.sum())
-    return reward, bool(nxt.get("bump").any()), bool(nxt.get("done").any())
 
 
 def _env_and_task_network(
@@ -138,13 +128,13 @@ def _run_dqn(
     env, q_network = _env_and_task_network(config, unit, zero_output=False)
     tally = _tally(config)
 
-    def record(td: Any, step: int) -> None:
-        tally.update(*_transition(td))
+    def on_step(td: Any, step: int) -> None:
+        record([tally], td)
         tick(progress, step, config.steps)
 
     seed = int(_keys(config, unit, STREAM_POLICY)[0]) & 0x7FFFFFFF
     observed = [config.spec.observation]
-    agent, wall = train_stepwise(env, q_network, settings, config.steps, observed, record, seed)
+    agent, wall = train_stepwise(env, q_network, settings, config.steps, observed, on_step, seed)
     env.close()
     return _measures(config, tally, _evaluate(config, unit, agent.value_network), wall)
 
@@ -186,7 +176,7 @@ def _run_factor_q(
     tally = _tally(config)
     started = time.perf_counter()
     for step, td in enumerate(collector, start=1):
-        tally.update(*_transition(td))
+        record([tally], td)
         tick(progress, step, config.steps)
         if step >= config.steps:
             break

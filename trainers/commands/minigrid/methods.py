@@ -54,23 +54,7 @@ def method_keys(config: MiniGridConfig, size: int, method: str, stream: int) -> 
 
 
 # --------------------------------------------------------------------------------------------
-# Recording
-
-
-def record(tallies: list[Tally], td: Any) -> None:
-    """One step of the ``S`` experiments into their tallies: ``td``'s ``exploratory`` and
-    ``("next", reward | bump | done)``, the reward MiniGrid's own (a split one with its
-    collisions put back; a success: a positive one that ends the episode)."""
-    nxt = td.get("next")
-    reward = nxt.get("reward").reshape(-1)
-    local = nxt.get("local_reward", None)
-    if local is not None:  # the reward was split: put the collisions back
-        reward = reward + local.sum(dim=-1).reshape(-1)
-    bumps = nxt.get("bump").any(dim=-1).reshape(-1).tolist()
-    exploratory = td.get("exploratory").reshape(-1).tolist()
-    done = nxt.get("done").reshape(-1).tolist()
-    for i, r in enumerate(reward.tolist()):
-        tallies[i].update(r, bumps[i], done[i], r > 0, not exploratory[i])
+# The summary
 
 
 def summary(
@@ -155,7 +139,7 @@ def run_tabular(
     found: list[int | None] = [None] * count
     started = time.perf_counter()
     for step, td in enumerate(collector, start=1):
-        record(tallies, td)
+        units.record(tallies, td)
         if learner is not None:
             right = (learner.structure()[:, FORWARD] == truth).all(dim=-1).tolist()
             found = [step if ok and at is None else at for at, ok in zip(found, right, strict=True)]
@@ -211,7 +195,7 @@ def run_dqn(
     tallies = [Tally(config.window, SUCCESS_THRESHOLD) for _ in range(count)]
 
     def on_step(td: Any, step: int) -> None:
-        record(tallies, td)
+        units.record(tallies, td)
         units.tick(tick, step, budget)
 
     seed = int(method_keys(config, size, method, STREAM_POLICY)[0]) & 0x7FFFFFFF

@@ -37,6 +37,7 @@ from factorq_trainers.commands.paper import drivers
 from factorq_trainers.commands.paper.config import PaperConfig
 from factorq_trainers.commands.paper.drivers import resolve_backend
 from factorq_trainers.commands.paper.schema import CURVE_NAMES
+from factorq_trainers.compiled import fast
 from factorq_trainers.runner import frame, resources
 from factorq_trainers.runner.kept import COUNT, NUMBER, TEXT
 
@@ -187,11 +188,7 @@ def run_unit(
     )
     backend = "modular" if world is not None else resolve_backend(shard)
     keys = drivers.experiment_keys(shard, algorithm)
-
-    def report(episodes: int, experiments: int) -> None:
-        if progress is not None:
-            progress(episodes)
-
+    report = progress or (lambda episodes: None)
     if backend == "fast":
         batch = drivers.run_fast(shard, algorithm, keys, report)
     else:
@@ -305,8 +302,6 @@ def summarise(config: PaperConfig, outcomes: list[dict[str, Any]]) -> dict[str, 
         "env_steps": sum(outcome["env_steps"] for outcome in outcomes),
     }
     if "modular" in backends and config.backend == "auto":
-        from factorq_trainers.compiled import fast
-
         # Why the compiled path did not run (a missing compiler, an unsupported body).
         reason = fast.unsupported_reason(config.world) or fast.unavailable_reason()
         if reason is not None:

@@ -14,11 +14,12 @@ from factorq_envs.regimes import REGIME_PERIODS
 from factorq_torch.base.config import ALGORITHMS
 from factorq_torch.base.rng import STREAM_POLICY, STREAM_WORLD
 from factorq_trainers.commands.paper.config import PaperConfig
+from factorq_trainers.compiled import fast
 from factorq_trainers.methods import experiment
 from factorq_trainers.methods.units import torch_threads
 
-#: ``report(episodes, experiments)``: episodes and experiments completed since its last call.
-Report = Callable[[int, int], None]
+#: ``report(episodes)``: episodes completed since its last call.
+Report = Callable[[int], None]
 
 
 def resolve_backend(config: PaperConfig, world: Any = None) -> str:
@@ -26,8 +27,6 @@ def resolve_backend(config: PaperConfig, world: Any = None) -> str:
     ``auto`` takes the compiled path where it is available, the device is the cpu and the kernel
     can run the world (``fast.unsupported_reason``: a body past its limits, or ``world``, another
     ``factorq_envs.protocol.World`` than the grid), else the modular torchrl path."""
-    from factorq_trainers.compiled import fast
-
     on_cpu = torch.device(config.device).type == "cpu"
     if config.backend == "fast" and not fast.is_available():
         raise ValueError(f"backend='fast' is unavailable here: {fast.unavailable_reason()}")
@@ -51,8 +50,6 @@ def fallback_notice(
     """The one-line notice of ``auto`` falling back to the modular path: why (``world``: another
     world than the grid, ``paper.run``'s), about how long the run will take (its units on
     ``workers`` processes), how to get the fast path (None when nothing fell back)."""
-    from factorq_trainers.compiled import fast
-
     if backend != "modular" or config.backend != "auto":
         return None
     unsupported = fast.unsupported_reason(config.world if world is None else world)
@@ -121,9 +118,7 @@ def run_fast(
 ) -> dict[str, torch.Tensor]:
     """One algorithm's experiments on the compiled fast path, in chunks of about a quarter of a
     second (progress, Ctrl-C; the numbers do not depend on the chunking)."""
-    from factorq_trainers.compiled.fast import ExperimentBatch
-
-    batch = ExperimentBatch(
+    batch = fast.ExperimentBatch(
         algorithm,
         keys.periods,
         config.world,
@@ -134,14 +129,11 @@ def run_fast(
         keys.policy_keys,
         threads=config.threads,
     )
-    finished, chunk = 0, 1_000
+    chunk = 1_000
     while not batch.done:
         started = time.perf_counter()
-        completed = batch.advance(chunk)
+        report(batch.advance(chunk))
         elapsed = time.perf_counter() - started
-        now_finished = batch.experiments_finished
-        report(completed, now_finished - finished)
-        finished = now_finished
         chunk = int(min(max(chunk * 0.25 / max(elapsed, 1e-3), 100), 1_000_000))
     return batch.metrics()
 
@@ -163,8 +155,9 @@ def run_modular(
         grid, task, local, config.agent, keys.policy_keys, device=device
     )
     collector = OnlineCollector(
-        env, policy, loss, runs=config.runs, episodes=config.episodes, progress=report
-    )
+        env, policy, loss, runs=config.runs, episodes=config.episodes,
+        progress=lambda episodes, _experiments: report(episodes),
+    )  # fmt: skip
     # The per-step tensors are small: intra-op threads only add synchronisation (2 threads were
     # measured 2x slower than 1 here), so the modular path uses one unless --threads says more.
     with torch_threads(config.threads or 1):

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import io
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -45,12 +45,7 @@ class Frame(NamedTuple):
     resolution: float
 
 
-def frame_spec(
-    results: dict[str, Any],
-    worlds: Sequence[str],
-    algorithms: Sequence[str],
-    labels: Mapping[str, str],
-) -> tuple:
+def frame_spec(results: dict[str, Any], worlds: Sequence[str], algorithms: Sequence[str]) -> tuple:
     """What the frame of ``draw(results, ...)`` depends on (not the cells): equal specs, equal
     frames."""
     config = results["config"]
@@ -65,7 +60,7 @@ def frame_spec(
         f"mean of {config['seeds']} seeds \u00d7 {config['runs']} runs per episode, "
         "95% confidence bands across seeds"
     )
-    legend = tuple((name, labels[name]) for name in algorithms)
+    legend = tuple((name, label(name)) for name in algorithms)
     return (tuple(worlds), legend, config["seeds"], config["runs"], config["episodes"], title)
 
 
@@ -137,21 +132,20 @@ def draw(
     path: str | os.PathLike | io.BytesIO,
     worlds: Sequence[str],
     algorithms: Sequence[str],
-    labels: Mapping[str, str],
     *,
     prepared: Frame | None = None,
 ) -> None:
     """Draw the paper's Figure 3 from ``results`` and save it as a PNG at ``path``.
 
-    ``worlds`` and ``algorithms`` are the cells present, in the order drawn; ``labels`` names the
-    algorithms in the legend. Columns are worlds; the top row shows steps per episode, the bottom
-    row collisions per episode (solid: all, dashed: greedy) on a log scale, each the mean over
-    seeds and runs with its 95% confidence band across seeds. Reads ``results["config"]``,
-    ``results.get("world")`` and each cell's ``curves``, ``curves_ci_low`` and ``curves_ci_high``.
-    ``prepared``: a ``frame`` made (and drawn) beforehand, used if its spec is this figure's
-    (the same bytes, less work now).
+    ``worlds`` and ``algorithms`` are the cells present, in the order drawn (the legend names the
+    algorithms by their labels, ``analysis.vocabulary``'s). Columns are worlds; the top row shows
+    steps per episode, the bottom row collisions per episode (solid: all, dashed: greedy) on a log
+    scale, each the mean over seeds and runs with its 95% confidence band across seeds. Reads
+    ``results["config"]``, ``results.get("world")`` and each cell's ``curves``, ``curves_ci_low``
+    and ``curves_ci_high``. ``prepared``: a ``frame`` made (and drawn) beforehand, used if its spec
+    is this figure's (the same bytes, less work now).
     """
-    spec = frame_spec(results, worlds, algorithms, labels)
+    spec = frame_spec(results, worlds, algorithms)
     figure, axes, resolution = (prepared if prepared and prepared.spec == spec else frame(spec))[1:]
     highest = 0.0
     for column, world in enumerate(worlds):
@@ -201,13 +195,12 @@ def drawn_part(results: dict[str, Any]) -> dict[str, Any]:
 #: ``factorq paper``'s defaults as ``draw`` reads them (``tests/test_figure_process.py`` checks
 #: them against ``PaperConfig``): the figure the helper process prepares before it is sent one.
 DEFAULT_CONFIG = {"seeds": 100, "runs": 10, "episodes": 200, "size": 10, "obstacles": 10}
-DEFAULT_CELLS = (tuple(WORLD_TITLES), ("q-learning", "factor-q"))
-DEFAULT_LABELS = {name: label(name) for name in among("q-learning", "factor-q")}
+DEFAULT_CELLS = (tuple(WORLD_TITLES), among("q-learning", "factor-q"))
 
 
 def default_spec() -> tuple:
     """The ``frame_spec`` of ``factorq paper`` with its defaults."""
-    return frame_spec({"config": DEFAULT_CONFIG}, *DEFAULT_CELLS, DEFAULT_LABELS)
+    return frame_spec({"config": DEFAULT_CONFIG}, *DEFAULT_CELLS)
 
 
 def prepare(spec: tuple) -> Frame:
@@ -238,4 +231,4 @@ def warm_up() -> None:
                 "curves_ci_high": {k: (np.asarray(v) * 1.1).tolist() for k, v in curves.items()},
             }
     results = {"config": DEFAULT_CONFIG, "cells": cells}
-    draw(results, io.BytesIO(), *DEFAULT_CELLS, DEFAULT_LABELS, prepared=prepare(default_spec()))
+    draw(results, io.BytesIO(), *DEFAULT_CELLS, prepared=prepare(default_spec()))

@@ -28,7 +28,7 @@ import subprocess
 import sys
 import tempfile
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -84,14 +84,13 @@ class FigureProcess:
         path: str | os.PathLike,
         worlds: Sequence[str],
         algorithms: Sequence[str],
-        labels: Mapping[str, str],
     ) -> None:
-        """Have the helper draw ``paper_figure.draw(results, path, worlds, algorithms, labels)``;
+        """Have the helper draw ``paper_figure.draw(results, path, worlds, algorithms)``;
         returns at once (a thread feeds the pipe, which may be smaller than the message)."""
         if self._sender is not None:
             raise RuntimeError("a FigureProcess draws one figure")
         self._path = os.path.abspath(path)
-        message = (results, self._path, list(worlds), list(algorithms), dict(labels))
+        message = (results, self._path, list(worlds), list(algorithms))
         data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
         self._sender = threading.Thread(
             target=self._write, args=(data,), name="factorq-figure", daemon=True
@@ -151,12 +150,6 @@ class FigureProcess:
                 if stream is not None:
                     stream.close()
 
-    def __enter__(self) -> FigureProcess:
-        return self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
-
 
 def main() -> int:
     """The helper: load matplotlib, warm it up, draw the one figure it is sent, exit."""
@@ -176,8 +169,8 @@ def main() -> int:
     data = stdin.read()
     if not data:  # the parent ended without a figure to draw (an error, Ctrl-C, --help)
         return 0
-    results, path, worlds, algorithms, labels = pickle.loads(data)
-    paper_figure.draw(results, path, worlds, algorithms, labels, prepared=prepared)
+    results, path, worlds, algorithms = pickle.loads(data)
+    paper_figure.draw(results, path, worlds, algorithms, prepared=prepared)
     return 0
 
 

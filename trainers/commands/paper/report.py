@@ -31,13 +31,13 @@ def figure3(results: dict[str, Any], path: str | os.PathLike) -> None:
     paper_figure.draw(results, path, *figure_arguments(results))
 
 
-def figure_arguments(results: dict[str, Any]) -> tuple[list[str], list[str], dict[str, str]]:
+def figure_arguments(results: dict[str, Any]) -> tuple[list[str], list[str]]:
     """``paper_figure.draw``'s arguments after the path: the worlds and algorithms present, in
-    canonical order, and the algorithms' names for people."""
+    canonical order."""
     config = results["config"]
     worlds = [world for world in REGIMES if world in config["regimes"]]
     algorithms = [name for name in ALGORITHM_LABELS if name in config["methods"]]
-    return worlds, algorithms, dict(ALGORITHM_LABELS)
+    return worlds, algorithms
 
 
 def claim_value(claim: dict[str, Any]) -> str:
@@ -61,7 +61,7 @@ def verdict(claim: dict[str, Any]) -> str:
 def markdown(results: dict[str, Any]) -> str:
     """The report: claims, per-cell measures, the configuration, software and wall time."""
     config, claims = results["config"], results["claims"]
-    worlds, algorithms, _ = figure_arguments(results)
+    worlds, algorithms = figure_arguments(results)
     passed = sum(claim["pass"] is True for claim in claims.values())
     evaluated = sum(claim["pass"] is not None for claim in claims.values())
     body = body_label(results)

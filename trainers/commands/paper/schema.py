@@ -2,7 +2,7 @@
 
 A ``results.json`` handed to ``factorq report`` is untrusted (hand-edited, truncated, of another
 version or shape): read with size and nesting limits (``runner.results.read_json``), then
-``check_results`` checks every field the report reads (type, range, lengths that must agree), so
+``results_problem`` checks every field the report reads (type, range, lengths that must agree), so
 that the figure and the Markdown cannot fail on it; a problem is one line naming the file, the
 field's path and what was expected. A file without ``SCHEMA_VERSION`` or of a newer one is refused.
 """
@@ -24,10 +24,6 @@ CURVE_NAMES = EPISODE_METRICS[:3]
 CLAIM_NAMES = tuple(CLAIM_STATEMENTS)
 
 SUMMARY_MEASURES = (*MEASURES, "task_return")
-
-
-class ResultsFileError(ValueError):
-    """A results file that cannot be read, with the field and what was expected."""
 
 
 _SCALAR = (None, NUMBER, TEXT, FLAG)
@@ -126,14 +122,6 @@ def results_problem(results: Any) -> str | None:
         if isinstance(ci, dict) != isinstance(value, dict) and ci is not None:
             return f"results/claims/{name}/ci95 does not fit its value"
     return None
-
-
-def check_results(results: Any) -> dict[str, Any]:
-    """Check every field the report reads; return ``results`` or raise a ResultsFileError."""
-    problem = results_problem(results)
-    if problem is not None:
-        raise ResultsFileError(problem)
-    return results
 
 
 _MARKDOWN_SPECIAL = str.maketrans({char: "\\" + char for char in "\\`*_|"})

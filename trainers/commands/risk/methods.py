@@ -292,10 +292,11 @@ def _result(tally: units.Tally, greedy: dict[str, int], wall: float) -> dict[str
     """A unit's result; ``final_return``: the mean return of the last 20% of training episodes,
     ``steps_to_threshold``: the env step at which the success rate of the last 10 first reached
     ``success_threshold``."""
-    tail = tally.returns[-max(1, len(tally.returns) // 5) :] if tally.returns else [math.nan]
+    returns = [episode[1] for episode in tally.episodes]
+    tail = returns[-max(1, len(returns) // 5) :] if returns else [math.nan]
     return {
         "train_collisions": tally.collisions,
-        "episodes": len(tally.returns),
+        "episodes": len(returns),
         "final_return": statistics.fmean(tail),
         "steps_to_threshold": tally.reached,
         "greedy_collisions": greedy["collisions"],

@@ -37,6 +37,7 @@ from factorq_torch.base.validation import INT32_MAX, check_int, check_names, che
 from factorq_trainers.analysis.stats import bootstrap_mean_ci, count_ratio, scalar_ci
 from factorq_trainers.analysis.vocabulary import among
 from factorq_trainers.commands.transfer.report import PAIRS
+from factorq_trainers.compiled import fast
 from factorq_trainers.methods import experiment
 from factorq_trainers.methods.experiment import MAX_SEED, PAPER_WORLD, experiment_keys
 from factorq_trainers.runner.kept import COUNT, FRACTION, NON_NEGATIVE, TEXT
@@ -197,8 +198,6 @@ def run_batch(
     world_keys, policy_keys = keys
     periods = torch.full((config.seeds,), REGIME_PERIODS[regime], dtype=torch.int64)
     agent = config.agent(algorithm)
-    from factorq_trainers.compiled import fast
-
     fast_path = config.path == "fast" and fast.is_available()
     if fast_path and not learned and fast.unsupported_reason(world) is None:
         batch = fast.ExperimentBatch(
