@@ -43,8 +43,10 @@ setup: $(STAMP)
 # torch through pip, which reads pip's own configuration (where the local CPU wheel is found);
 # the rest through uv (pinned), which resolves and installs the ~150 packages in seconds and
 # compiles them in parallel, so that no interpreter of the suite compiles what it imports
-# (docs/decisions.md, "CI time"). torch, installed by pip uncompiled, is compiled with the
-# project's own modules. The torch pin is pyproject.toml's (tests/test_docs.py holds them equal).
+# (docs/decisions.md, "CI time"). What pip installs (torch and its requirements: sympy, imported
+# by torch._dynamo whenever tensordict is, ~2 s to compile in every process) is left uncompiled
+# by pip and compiled in parallel before uv adds the rest (once: skipped where torch and sympy
+# are compiled already). The torch pin is pyproject.toml's (tests/test_docs.py holds them equal).
 # Where uv cannot reach an index that pip can (a private mirror named only in pip.conf), pip
 # installs the same things: slower, the same result.
 #
@@ -62,13 +64,15 @@ $(shell mkdir -p $(VENV) && find envs trainers factorq_torch -type f -not -path 
 $(STAMP): pyproject.toml Makefile $(FILES)
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/python -m pip install --quiet --no-compile torch==2.13.0 uv==0.13.9
+	site="$$($(VENV)/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["platlib"])')"; \
+	ls "$$site"/torch/__pycache__/__init__.*.pyc "$$site"/sympy/__pycache__/__init__.*.pyc \
+	  > /dev/null 2>&1 \
+	  || $(VENV)/bin/python -m compileall -q -j 0 -x '/torch/testing/_internal/' "$$site"
 	$(VENV)/bin/uv pip install --quiet --python $(VENV)/bin/python --compile-bytecode \
 	  --config-setting editable_mode=strict --reinstall-package factorq-torch -e '$(EXTRAS)' \
 	  || $(VENV)/bin/python -m pip install --quiet --config-settings editable_mode=strict \
 	     -e '$(EXTRAS)'
 	$(VENV)/bin/python -m compileall -q -j 0 envs trainers factorq_torch build/__editable__.*
-	$(VENV)/bin/python -m compileall -q -j 0 -x '/torch/testing/_internal/' \
-	  "$$($(VENV)/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["platlib"])')/torch"
 	touch $(STAMP)
 
 lint: $(STAMP)

@@ -184,7 +184,7 @@ def test_factorq_compare_on_the_cluster_repeats_every_method_in_process(
 ):
     """One unit (a method's batch) per task on the runner's frame: every method, DQN included,
     repeats its in-process numbers."""
-    options = ["--seeds", "2", "--steps", "300", "--size", "4", "--obstacles", "2"]
+    options = ["--seeds", "2", "--steps", "100", "--size", "4", "--obstacles", "2"]
     options += ["--regimes", "static,dynamic", "--threads", "1"]
     assert cli.main(["compare", *options, "--out", str(tmp_path / "here")]) == 0
     address = local_cluster.scheduler_address

@@ -23,6 +23,7 @@ from timing import patience  # tests/timing.py: bounds that stretch with the loa
 
 from factorq_trainers import cli
 from factorq_trainers.commands.compare import command as compare
+from factorq_trainers.methods.dqn import DQNConfig
 from factorq_trainers.runner import kept
 
 #: A comparison on the command line that runs in seconds: factor-q, then DQN (the one cut).
@@ -111,36 +112,59 @@ def test_an_interrupted_comparison_resumes_to_the_numbers_and_logs_of_a_whole_ru
     assert _files(cut) == _files(whole)
 
 
-def test_sigkill_during_dqn_then_resume_equals_an_uninterrupted_run(whole, tmp_path):
-    cut = tmp_path / "cut"
-    # DQN's budget is the last thing the child does: long enough to be killed during it (seconds
-    # of work against a poll of 10 ms), in one regime (a unit is a method's batch of regimes)
-    longer = [{"300": "2000", "static,dynamic": "static"}.get(arg, arg) for arg in ARGS]
-    argv = [sys.executable, "-m", "factorq_trainers.cli", "compare", *longer]
+#: ``factorq compare ARGV...`` in a child whose DQN unit (factor-q kept), once it has taken its
+#: first gradient steps, touches the file ``argv[1]`` and stalls there: a SIGKILL then lands
+#: mid-method, whatever the load (no race against a poll).
+STALL_IN_DQN = """
+import pathlib, sys, time
+from factorq_trainers import cli
+from factorq_trainers.commands.compare import command as compare
+from factorq_trainers.methods.dqn import DQNConfig
+real, trained = compare.run_unit, pathlib.Path(sys.argv[1])
+stepped = []
+def stall(steps):
+    stepped.append(steps)
+    if sum(stepped) > DQNConfig().learning_starts:
+        trained.touch()
+        time.sleep(3600)
+def run_unit(config, unit, progress=None):
+    return real(config, unit, stall if unit["method"] == "dqn" else progress)
+compare.run_unit = run_unit
+sys.exit(cli.main(sys.argv[2:]))
+"""
+
+
+def test_sigkill_during_dqn_then_resume_equals_an_uninterrupted_run(tmp_path):
+    cut, trained = tmp_path / "cut", tmp_path / "dqn-trained"
+    # DQN trains (100 steps past its learning start), in one regime (a unit is a method's batch
+    # of regimes)
+    steps = str(DQNConfig().learning_starts + 100)
+    trains = [{"300": steps, "static,dynamic": "static"}.get(arg, arg) for arg in ARGS]
     child = subprocess.Popen(
-        [*argv, "--out", str(cut)],
+        [sys.executable, "-c", STALL_IN_DQN, str(trained), "compare", *trains, "--out", str(cut)],
         cwd=Path(__file__).parents[1],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
-    first = kept.unit_path(cut / "units", "factor-q")
     deadline = time.monotonic() + patience(300)
     try:
-        while time.monotonic() < deadline and child.poll() is None and not first.exists():
+        while time.monotonic() < deadline and child.poll() is None and not trained.exists():
             time.sleep(0.01)
-        assert child.poll() is None, "the run ended before it was killed during DQN"
+        assert trained.exists() and child.poll() is None, "the child never trained DQN"
         os.kill(child.pid, signal.SIGKILL)  # mid-method: no chance to clean up
     finally:
         child.kill()
         child.wait()
     assert child.returncode == -signal.SIGKILL
+    assert kept.unit_path(cut / "units", "factor-q").is_file()
+    assert not kept.unit_path(cut / "units", "dqn").exists()
     assert not (cut / "comparison.json").exists()
     code, err = _cli_quiet("compare", "--resume", str(cut))
     assert code == 0, err
     assert "1 of 2 units done" in err
     assert not (cut / "units").exists()  # removed once the outputs are written
     reference = tmp_path / "whole"
-    code, err = _cli_quiet("compare", *longer, "--out", str(reference))
+    code, err = _cli_quiet("compare", *trains, "--out", str(reference))
     assert code == 0, err
     assert _files(cut) == _files(reference)
 

@@ -230,29 +230,47 @@ def test_paper_shard_seeds_in_process_writes_the_same_results_as_a_plain_run(tmp
     assert not (tmp_path / "cut" / "units").exists()  # the kept units go with the results
 
 
+#: ``factorq sweep ARGV...`` in a child that, once its first configuration is kept, touches the
+#: file ``argv[1]`` and stalls before the next: a SIGKILL then lands between two configurations,
+#: whatever the load (no race against a poll).
+STALL_AFTER_ONE = """
+import pathlib, sys, time
+from factorq_trainers import cli
+from factorq_trainers.distributed import sweep
+real, kept, ran = sweep._units_task, pathlib.Path(sys.argv[1]), []
+def units_task(command, config):
+    if ran:
+        kept.touch()
+        time.sleep(3600)
+    ran.append(config)
+    return real(command, config)
+sweep._units_task = units_task
+sys.exit(cli.main(sys.argv[2:]))
+"""
+
+
 @needs_fast
 def test_a_sweep_killed_with_sigkill_resumes_from_its_kept_configurations_with_the_same_numbers(
     tmp_path,
 ):
-    out = tmp_path / "killed"
-    # configurations of about a second each: the kill lands between two of them
-    argv = ["--grid", "eta=0.05,0.1,0.2", "--seeds", "40", "--out", str(out)]
-    command = [sys.executable, "-m", "factorq_trainers.cli", "sweep", *argv]
+    out, one_kept = tmp_path / "killed", tmp_path / "one-kept"
+    argv = ["--grid", "eta=0.05,0.1,0.2", "--seeds", "4", "--out", str(out)]
+    command = [sys.executable, "-c", STALL_AFTER_ONE, str(one_kept), "sweep", *argv]
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + patience(120)
-        while not list(out.glob("configs/*.json")) and time.monotonic() < deadline:
+        while not one_kept.exists() and time.monotonic() < deadline:
             assert process.poll() is None, "the sweep ended before any configuration was kept"
             time.sleep(0.05)
         process.send_signal(signal.SIGKILL)
     finally:
         process.wait(timeout=patience(60))
-    finished = list(out.glob("configs/*.json"))
-    assert 1 <= len(finished) < 3 and not (out / "sweep.json").exists()
+    assert process.returncode == -signal.SIGKILL
+    assert len(list(out.glob("configs/*.json"))) == 1 and not (out / "sweep.json").exists()
     assert cli.main(["sweep", *argv]) == 0  # the same command again resumes
     resumed = json.loads((out / "sweep.json").read_text())
-    assert resumed["timing"]["configurations_run_now"] == 3 - len(finished)
-    spec = sweep_spec.SweepSpec(grid=(("eta", (0.05, 0.1, 0.2)),), seeds=40, out=str(out))
+    assert resumed["timing"]["configurations_run_now"] == 2
+    spec = sweep_spec.SweepSpec(grid=(("eta", (0.05, 0.1, 0.2)),), seeds=4, out=str(out))
     fresh = sweep.run_sweep(replace(spec, out=str(tmp_path / "fresh")), cluster.InProcess())
     for row in (*resumed["configurations"], *fresh["configurations"]):
         row["config"].pop("out")
