@@ -56,11 +56,12 @@ setup: $(STAMP)
 # from a user's script; the default mode's import hook hides them from mypy. The tree holds one link
 # per file, so the list of source files ($(FILES), rewritten only when it changes) is a
 # prerequisite: a file added or removed re-runs the set-up (everything else already there: seconds).
+# The list is written to a file of this make's own (its shell's PID): CI runs two makes at once.
 EXTRAS := .[dev,distributed,minigrid,highway,sb3,docs]
 FILES := $(VENV)/.factorq-files
 $(shell mkdir -p $(VENV) && find envs trainers factorq_torch -type f -not -path '*/__pycache__/*' \
-  | LC_ALL=C sort > $(FILES).new && { cmp -s $(FILES).new $(FILES) || mv $(FILES).new $(FILES); }; \
-  rm -f $(FILES).new)
+  | LC_ALL=C sort > $(FILES).$$$$ && { cmp -s $(FILES).$$$$ $(FILES) || mv $(FILES).$$$$ $(FILES); }; \
+  rm -f $(FILES).$$$$)
 $(STAMP): pyproject.toml Makefile $(FILES)
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/python -m pip install --quiet --no-compile torch==2.13.0 uv==0.13.9
