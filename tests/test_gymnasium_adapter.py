@@ -9,6 +9,7 @@ declared collision is falling into a hole, the sensors are the holes around the 
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import gymnasium
 import numpy as np
@@ -581,6 +582,21 @@ def test_bad_declared_numbers_are_refused_where_they_are_written():
         Declaration(num_sensors=1, sensors=sensors, collision="hit", actions=(1.9, 0))
     with pytest.raises(TypeError, match="Declaration.features must be a bool"):
         Declaration(num_sensors=1, sensors=sensors, collision="hit", features="yes")
+
+
+@pytest.mark.parametrize("field", ["sensors", "collision", "charge", "task_state", "task_reward"])
+def test_a_function_of_the_old_positional_form_is_refused_where_it_is_declared(field):
+    fields = {"num_sensors": 1, "sensors": _pole().sensors, "collision": "hit"}
+    fields[field] = lambda observation, info, env: 0
+    with pytest.raises(
+        TypeError,
+        match=rf"Declaration.{field} must take one argument, the step .* \(observation, info, env\)",
+    ):
+        Declaration(**fields)
+    # one argument, a partial of one and a default after it are all callable with the step
+    for function in (lambda step, extra=1: 0, functools.partial(lambda size, step: 0, 3)):
+        fields[field] = function
+        Declaration(**fields)
 
 
 def test_a_float_action_is_refused_naming_the_env():
