@@ -76,127 +76,176 @@ def stall(masters: list[int], seeds: int, noises: list[float]) -> None:
         print(noise, name, "per master:", [round(v, 1) for v in row["steps"]])
 
 
-def _cliff_falls(exploration: str | None, master: int, seeds: int, steps: int) -> tuple:
-    """Falls and goals of ``seeds`` CliffWalking experiments of ``steps`` env steps (Factor-Q
-    with the oracle and ``exploration``, or Q-learning for None), as the tutorial runs them."""
-    import gymnasium
-
+def _declared_falls(
+    make, declaration, num_states: tuple[int, int, int], exploration, master, seeds, steps, penalty
+) -> tuple:
+    """Falls and goals of ``seeds`` experiments of ``steps`` env steps on the declared env
+    ``make(seed)``: Factor-Q with the oracle and ``exploration``, or Q-learning for None (its
+    state the cell, the heading and every sensor, as in the paper). ``num_states`` is (cells,
+    headings, sensors); a goal is an episode that ends without a collision. "Risky": a fall more
+    likely than not, half of the fall's ``penalty``."""
     from factorq_envs.declared_env import declared_torchrl_env
-    from factorq_envs.gymnasium_adapter import Declaration, FactorQEnv
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import STREAM_POLICY, derive_keys
     from factorq_torch.collectors import OnlineCollector
     from factorq_torch.tables import LocalRewardTable, TaskQTable
     from factorq_trainers.methods.experiment import online_agent
 
-    moves = ((-1, 0), (0, 1), (1, 0), (0, -1))  # up, right, down, left
-
-    def cliff_ahead(observation, info, env):
-        row, col = divmod(int(observation), 12)
-        return np.array([row + dr == 3 and 0 < col + dc < 11 for dr, dc in moves])
-
-    cliff = Declaration(
-        num_sensors=4,
-        sensors=cliff_ahead,
-        collision=lambda reward, info: reward == -100,
-        penalty=100.0,
-        actuator_names=("up", "right", "down", "left"),
-        task_state=lambda observation, info, env: int(observation),
-        num_cells=48,
-        dependency=tuple(tuple(a == k for k in range(4)) for a in range(4)),
-    )
-    world_seeds = [master * 1000 + index for index in range(seeds)]
     base = declared_torchrl_env(
-        lambda seed: FactorQEnv(gymnasium.make("CliffWalking-v1"), cliff, seed=seed),
-        seeds=world_seeds,
+        lambda seed: make(seed), seeds=[master * 1000 + index for index in range(seeds)]
     )
-    task = TaskQTable(seeds, base.config.num_cells, num_actions=base.config.num_actuators)
-    local = None
-    agent = AgentConfig()
+    cells, headings, sensors = num_states
+    task = TaskQTable(
+        seeds,
+        cells,
+        with_sensors=exploration is None,
+        num_sensors=sensors,
+        num_headings=headings,
+        num_actions=base.config.num_actuators,
+    )
+    local, agent = None, AgentConfig()
     if exploration is not None:
         local = LocalRewardTable(seeds, dependency=base.dependency)
-        # "risky": a fall more likely than not, half of the fall's penalty of 100
-        agent = AgentConfig(exploration=exploration, risk_threshold=50.0)
+        agent = AgentConfig(exploration=exploration, risk_threshold=penalty / 2)
     keys = derive_keys(master, STREAM_POLICY, seeds)
     collector = OnlineCollector(
         *online_agent(base, task, local, agent, keys), runs=1, episodes=10**6
     )
     falls = goals = 0
     for step, td in enumerate(collector, start=1):
-        falls += int(td["next", "bump"].sum())
-        goals += int(td["next", "terminated"].sum())
+        bump = td["next", "bump"].any(-1)
+        falls += int(bump.sum())
+        goals += int((td["next", "terminated"].squeeze(-1) & ~bump).sum())
         if step == steps:
             break
     return falls / seeds, goals / seeds
 
 
-def _lake_falls(exploration: str | None, master: int, seeds: int, steps: int) -> tuple:
-    """Falls into holes and goals of ``seeds`` FrozenLake 8x8 experiments (not slippery) of
-    ``steps`` env steps, declared as ``tests/test_gymnasium_adapter.py`` declares the 4x4 lake:
-    one sensor per move (a hole that way), a fall the collision (-1, charged to the move)."""
+def _cliff_falls(exploration: str | None, master: int, seeds: int, steps: int) -> tuple:
+    """CliffWalking as ``docs/tutorials/own-env.md`` declares it: one sensor per move (the
+    cliff that way), a fall the collision (-100); the cell is the env's state."""
     import gymnasium
 
-    from factorq_envs.declared_env import declared_torchrl_env
     from factorq_envs.gymnasium_adapter import Declaration, FactorQEnv
-    from factorq_torch.base.config import AgentConfig
-    from factorq_torch.base.rng import STREAM_POLICY, derive_keys
-    from factorq_torch.collectors import OnlineCollector
-    from factorq_torch.tables import LocalRewardTable, TaskQTable
-    from factorq_trainers.methods.experiment import online_agent
+
+    moves = ((-1, 0), (0, 1), (1, 0), (0, -1))  # up, right, down, left
+
+    def cliff_ahead(step):
+        row, col = divmod(int(step.observation), 12)
+        return np.array([row + dr == 3 and 0 < col + dc < 11 for dr, dc in moves])
+
+    cliff = Declaration(
+        num_sensors=4,
+        sensors=cliff_ahead,
+        collision=lambda step: step.reward == -100,
+        penalty=100.0,
+        actuator_names=("up", "right", "down", "left"),
+        task_state=lambda step: int(step.observation),
+        num_cells=48,
+        dependency=tuple(tuple(a == k for k in range(4)) for a in range(4)),
+    )
+    return _declared_falls(
+        lambda seed: FactorQEnv(gymnasium.make("CliffWalking-v1"), cliff, seed=seed),
+        cliff,
+        (48, 1, 4),
+        exploration,
+        master,
+        seeds,
+        steps,
+        100.0,
+    )
+
+
+def _lake_falls(exploration: str | None, master: int, seeds: int, steps: int) -> tuple:
+    """FrozenLake 8x8 (not slippery), declared as ``docs/tutorials/own-env.md`` declares the
+    lake: one sensor per move (a hole that way), a fall the collision (terminated, reward 0)."""
+    import gymnasium
+
+    from factorq_envs.gymnasium_adapter import Declaration, FactorQEnv
 
     lake = gymnasium.make("FrozenLake-v1", map_name="8x8", is_slippery=False)
-    desc = [row.decode() if isinstance(row, bytes) else row for row in lake.unwrapped.desc.tolist()]
-    desc = ["".join(c.decode() if isinstance(c, bytes) else c for c in row) for row in desc]
+    desc = ["".join(c.decode() for c in row) for row in lake.unwrapped.desc.tolist()]
     moves = ((0, -1), (1, 0), (0, 1), (-1, 0))  # left, down, right, up
 
     def hole(row: int, col: int) -> bool:
         return 0 <= row < 8 and 0 <= col < 8 and desc[row][col] == "H"
 
-    class MarkHoles(gymnasium.Wrapper, gymnasium.utils.RecordConstructorArgs):
-        def __init__(self, env):
-            gymnasium.utils.RecordConstructorArgs.__init__(self)
-            gymnasium.Wrapper.__init__(self, env)
-
-        def step(self, action):
-            observation, reward, terminated, truncated, info = self.env.step(action)
-            row, col = divmod(int(observation), 8)
-            return observation, reward, terminated, truncated, dict(info, fell=hole(row, col))
-
     declaration = Declaration(
         num_sensors=4,
-        sensors=lambda o, info, env: np.array(
-            [hole(int(o) // 8 + dr, int(o) % 8 + dc) for dr, dc in moves]
+        sensors=lambda step: np.array(
+            [
+                hole(int(step.observation) // 8 + dr, int(step.observation) % 8 + dc)
+                for dr, dc in moves
+            ]
         ),
-        collision=lambda reward, info: bool(info.get("fell", False)),
+        collision=lambda step: step.terminated and step.reward == 0,
+        task_reward=lambda step: step.reward,  # a hole costs the task nothing
         actuator_names=("left", "down", "right", "up"),
-        task_state=lambda observation, info, env: int(observation),
+        task_state=lambda step: int(step.observation),
         num_cells=64,
         dependency=tuple(tuple(a == k for k in range(4)) for a in range(4)),
     )
-    base = declared_torchrl_env(
+    return _declared_falls(
         lambda seed: FactorQEnv(
-            MarkHoles(gymnasium.make("FrozenLake-v1", map_name="8x8", is_slippery=False)),
+            gymnasium.make("FrozenLake-v1", map_name="8x8", is_slippery=False),
             declaration,
             seed=seed,
         ),
-        seeds=[master * 1000 + index for index in range(seeds)],
+        declaration,
+        (64, 1, 4),
+        exploration,
+        master,
+        seeds,
+        steps,
+        1.0,
     )
-    task = TaskQTable(seeds, 64, num_actions=4)
-    local, agent = None, AgentConfig()
-    if exploration is not None:
-        local = LocalRewardTable(seeds, dependency=base.dependency)
-        agent = AgentConfig(exploration=exploration)  # a fall is -1: threshold 0.5
-    keys = derive_keys(master, STREAM_POLICY, seeds)
-    collector = OnlineCollector(
-        *online_agent(base, task, local, agent, keys), runs=1, episodes=steps
+
+
+LAVA_ENV = "MiniGrid-LavaGapS6-v0"
+
+
+def _lava_falls(exploration: str | None, master: int, seeds: int, steps: int) -> tuple:
+    """MiniGrid's lava (``LAVA_ENV``: the gap moves every episode), declared as
+    ``docs/tutorials/declared-envs.md`` declares it (the view's cells ahead, left and right;
+    forward's fall decided by the cell ahead), with the agent's cell and heading the task state."""
+    import gymnasium
+    import minigrid  # noqa: F401  (registers the envs)
+    from minigrid.core.constants import OBJECT_TO_IDX
+
+    from factorq_envs.gymnasium_adapter import Declaration, FactorQEnv
+
+    view = np.array([[3, 5], [2, 6], [4, 6]])  # the view cells ahead, left, right
+    size = gymnasium.make(LAVA_ENV).unwrapped.width
+
+    def cell_and_heading(step):
+        x, y = step.env.unwrapped.agent_pos
+        return int(y) * size + int(x), int(step.env.unwrapped.agent_dir)
+
+    lava = Declaration(
+        num_sensors=3,
+        sensors=lambda step: (
+            step.observation["image"][view[:, 0], view[:, 1], 0] == OBJECT_TO_IDX["lava"]
+        ),
+        collision=lambda step: step.terminated and step.reward == 0,  # lava, not the goal
+        task_reward=lambda step: step.reward,
+        actions=(2, 0, 1),  # MiniGrid's forward, left, right
+        actuator_names=("forward", "left", "right"),
+        task_state=cell_and_heading,
+        num_cells=size * size,
+        num_headings=4,
+        dependency=((True, False, False), (False,) * 3, (False,) * 3),
+        spaces={"mission": None},
     )
-    falls = goals = 0
-    for step, td in enumerate(collector, start=1):
-        falls += int(td["next", "bump"].sum())
-        goals += int((td["next", "terminated"].squeeze(-1) & ~td["next", "bump"].any(-1)).sum())
-        if step == steps:
-            break
-    return falls / seeds, goals / seeds
+    return _declared_falls(
+        lambda seed: FactorQEnv(gymnasium.make(LAVA_ENV), lava, seed=seed),
+        lava,
+        (size * size, 4, 3),
+        exploration,
+        master,
+        seeds,
+        steps,
+        1.0,
+    )
 
 
 def _grid(exploration: str | None, master: int, seeds: int, runs: int, regime: str) -> tuple:
@@ -236,7 +285,13 @@ def exploration(
         "Factor-Q, risk-aware": "risk-aware",
         "Q-learning": None,
     }
-    names = {"grid": f"grid ({regime})", "cliff": "CliffWalking", "lake": "FrozenLake 8x8"}
+    names = {
+        "grid": f"grid ({regime})",
+        "cliff": "CliffWalking",
+        "lake": "FrozenLake 8x8",
+        "lava": LAVA_ENV,
+    }
+    declared = {"cliff": _cliff_falls, "lake": _lake_falls, "lava": _lava_falls}
     for measure in worlds:
         world = names[measure]
         results: dict[str, dict[str, list[float]]] = {}
@@ -245,10 +300,8 @@ def exploration(
                 started = time.perf_counter()
                 if measure == "grid":
                     collisions, success = _grid(kind, master, seeds, runs, regime)
-                elif measure == "lake":
-                    collisions, success = _lake_falls(kind, master, seeds, steps)
                 else:
-                    collisions, success = _cliff_falls(kind, master, seeds, steps)
+                    collisions, success = declared[measure](kind, master, seeds, steps)
                 entry = results.setdefault(name, {"collisions": [], "success": []})
                 entry["collisions"].append(collisions)
                 entry["success"].append(success)
@@ -279,12 +332,12 @@ def main() -> None:
     parser.add_argument("--masters", type=int, default=5, help="master seeds 0 .. N-1")
     parser.add_argument("--seeds", type=int, default=48, help="experiments per master seed")
     parser.add_argument("--noises", default="0,0.01,0.05,0.1")
-    parser.add_argument("--steps", type=int, default=1000, help="CliffWalking env steps")
+    parser.add_argument("--steps", type=int, default=1000, help="env steps of a declared env")
     parser.add_argument(
-        "--worlds", default="grid,cliff", help="grid, cliff, lake (comma-separated)"
+        "--worlds", default="grid,cliff", help="grid, cliff, lake, lava (comma-separated)"
     )
     parser.add_argument("--regime", default="dynamic", help="the grid's obstacle regime")
-    parser.add_argument("--cliff-seeds", type=int, default=10, help="CliffWalking experiments")
+    parser.add_argument("--cliff-seeds", type=int, default=10, help="experiments on a declared env")
     parser.add_argument("--runs", type=int, default=10, help="grid runs of 200 episodes")
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -294,7 +347,7 @@ def main() -> None:
     if args.exploration:
         worlds = args.worlds.split(",")
         for world in worlds:
-            seeds = args.cliff_seeds if world in ("cliff", "lake") else args.seeds
+            seeds = args.seeds if world == "grid" else args.cliff_seeds
             exploration(masters, seeds, args.steps, args.runs, [world], args.regime)
 
 

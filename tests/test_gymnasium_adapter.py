@@ -588,9 +588,9 @@ def test_bad_declared_numbers_are_refused_where_they_are_written():
 def test_a_function_of_the_old_positional_form_is_refused_where_it_is_declared(field):
     fields = {"num_sensors": 1, "sensors": _pole().sensors, "collision": "hit"}
     fields[field] = lambda observation, info, env: 0
+    signature = r"\(observation, info, env\)"
     with pytest.raises(
-        TypeError,
-        match=rf"Declaration.{field} must take one argument, the step .* \(observation, info, env\)",
+        TypeError, match=rf"Declaration.{field} must take one argument, the step .* {signature}"
     ):
         Declaration(**fields)
     # one argument, a partial of one and a default after it are all callable with the step
