@@ -8,15 +8,18 @@ truncated, per master seed (each the mean of ``--seeds`` experiments), then the 
 over the master seeds.
 
 ``--exploration``: tabular Factor-Q with the oracle dependency, uniform against risk-aware
-exploration (``AgentConfig.exploration``), and Q-learning, on the paper's grid (dynamic world,
-``factorq paper``'s defaults but ``--runs`` runs) and on Gymnasium's CliffWalking declared as in
-``docs/tutorials/own-env.md`` (``--steps`` env steps per experiment, ``--cliff-seeds``
-experiments): collisions (falls) and the task measure (grid: steps per episode, every episode
-reaching the goal; CliffWalking: goals reached per experiment) per master seed, the median and
-range over them.
+exploration (``AgentConfig.exploration``), and Q-learning, on the paper's grid (``--regime``,
+``factorq paper``'s defaults but ``--runs`` runs) and on declared third-party envs
+(``--steps`` env steps per experiment, ``--cliff-seeds`` experiments): Gymnasium's CliffWalking
+and FrozenLake 8x8 declared as in ``docs/tutorials/own-env.md``, MiniGrid's ``LavaGapS6`` as in
+``docs/tutorials/declared-envs.md``. Collisions (falls) and the task measure (grid: steps per
+episode, every episode reaching the goal; the others: goals reached per experiment) per master
+seed, the median and range over them (``docs/tutorials/risk-options.md`` holds the tables).
 
     .venv/bin/python benchmarks/bench_risk_options.py --stall --masters 5 --seeds 48
     .venv/bin/python benchmarks/bench_risk_options.py --exploration --masters 5 --seeds 20
+    .venv/bin/python benchmarks/bench_risk_options.py --exploration --worlds cliff,lake,lava \
+        --masters 5 --cliff-seeds 10 --steps 1000
 
 Not a package on purpose (the torchrl wheel installs a top-level ``benchmarks``).
 """
