@@ -153,12 +153,12 @@ def make_registered(env_id: str, **kwargs: Any) -> gymnasium.Env:
 def _callable_or_none(name: str, value: object) -> None:
     if value is not None and not callable(value):
         raise TypeError(f"Declaration.{name} must be callable or None, got {value!r}")
-    _takes_the_step(name, value)
 
 
 def _takes_the_step(name: str, function: object) -> None:
     """Refuse a declared function that cannot be called with one argument, the step (a function
-    of the old ``(observation, info, env)`` form), here rather than at the env's first step."""
+    of the old ``(observation, info, env)`` form), here rather than at the env's first step; an
+    info key or ``None`` passes."""
     if not callable(function):
         return
     try:
@@ -256,15 +256,15 @@ class Declaration:
         check_int("Declaration.num_headings", self.num_headings, 1)
         if not callable(self.sensors):
             raise TypeError(f"Declaration.sensors must be callable, got {self.sensors!r}")
-        _takes_the_step("sensors", self.sensors)
         if not (callable(self.collision) or isinstance(self.collision, str)):
             raise TypeError(
                 f"Declaration.collision must be callable (step) -> bool or an info key, "
                 f"got {self.collision!r}"
             )
-        _takes_the_step("collision", self.collision)
         for name in ("charge", "task_state", "task_reward"):
             _callable_or_none(name, getattr(self, name))
+        for name in ("sensors", "collision", "charge", "task_state", "task_reward"):
+            _takes_the_step(name, getattr(self, name))
         object.__setattr__(
             self,
             "actions",
