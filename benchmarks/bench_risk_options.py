@@ -79,14 +79,12 @@ def stall(masters: list[int], seeds: int, noises: list[float]) -> None:
         print(noise, name, "per master:", [round(v, 1) for v in row["steps"]])
 
 
-def _declared_falls(
-    make, declaration, num_states: tuple[int, int, int], exploration, master, seeds, steps, penalty
-) -> tuple:
+def _declared_falls(make, exploration, master, seeds, steps, penalty) -> tuple:
     """Falls and goals of ``seeds`` experiments of ``steps`` env steps on the declared env
     ``make(seed)``: Factor-Q with the oracle and ``exploration``, or Q-learning for None (its
-    state the cell, the heading and every sensor, as in the paper). ``num_states`` is (cells,
-    headings, sensors); a goal is an episode that ends without a collision. "Risky": a fall more
-    likely than not, half of the fall's ``penalty``."""
+    state the cell, the heading and every sensor, as in the paper); a goal is an episode that
+    ends without a collision. "Risky": a fall more likely than not, half of the fall's
+    ``penalty``."""
     from factorq_envs.declared_env import declared_torchrl_env
     from factorq_torch.base.config import AgentConfig
     from factorq_torch.base.rng import STREAM_POLICY, derive_keys
@@ -94,17 +92,15 @@ def _declared_falls(
     from factorq_torch.tables import LocalRewardTable, TaskQTable
     from factorq_trainers.methods.experiment import online_agent
 
-    base = declared_torchrl_env(
-        lambda seed: make(seed), seeds=[master * 1000 + index for index in range(seeds)]
-    )
-    cells, headings, sensors = num_states
+    base = declared_torchrl_env(make, seeds=[master * 1000 + index for index in range(seeds)])
+    config = base.config
     task = TaskQTable(
         seeds,
-        cells,
+        config.num_cells,
         with_sensors=exploration is None,
-        num_sensors=sensors,
-        num_headings=headings,
-        num_actions=base.config.num_actuators,
+        num_sensors=config.num_sensors,
+        num_headings=config.num_headings,
+        num_actions=config.num_actuators,
     )
     local, agent = None, AgentConfig()
     if exploration is not None:
@@ -149,8 +145,6 @@ def _cliff_falls(exploration: str | None, master: int, seeds: int, steps: int) -
     )
     return _declared_falls(
         lambda seed: FactorQEnv(gymnasium.make("CliffWalking-v1"), cliff, seed=seed),
-        cliff,
-        (48, 1, 4),
         exploration,
         master,
         seeds,
@@ -194,8 +188,6 @@ def _lake_falls(exploration: str | None, master: int, seeds: int, steps: int) ->
             declaration,
             seed=seed,
         ),
-        declaration,
-        (64, 1, 4),
         exploration,
         master,
         seeds,
@@ -208,41 +200,30 @@ LAVA_ENV = "MiniGrid-LavaGapS6-v0"
 
 
 def _lava_falls(exploration: str | None, master: int, seeds: int, steps: int) -> tuple:
-    """MiniGrid's lava (``LAVA_ENV``: the gap moves every episode), declared as
-    ``docs/tutorials/declared-envs.md`` declares it (the view's cells ahead, left and right;
-    forward's fall decided by the cell ahead), with the agent's cell and heading the task state."""
+    """MiniGrid's lava (``LAVA_ENV``: the gap moves every episode) with the body of
+    ``factorq minigrid`` (``minigrid_adapter.declaration``: forward, left, right; the view's cells
+    ahead, left and right; the cell and heading the task state), its sensors reading lava and a
+    fall the collision, as ``docs/tutorials/declared-envs.md`` declares it."""
+    import dataclasses
+
     import gymnasium
-    import minigrid  # noqa: F401  (registers the envs)
     from minigrid.core.constants import OBJECT_TO_IDX
 
-    from factorq_envs.gymnasium_adapter import Declaration, FactorQEnv
+    from factorq_envs import minigrid_adapter
+    from factorq_envs.gymnasium_adapter import FactorQEnv
 
-    view = np.array([[3, 5], [2, 6], [4, 6]])  # the view cells ahead, left, right
-    size = gymnasium.make(LAVA_ENV).unwrapped.width
-
-    def cell_and_heading(step):
-        x, y = step.env.unwrapped.agent_pos
-        return int(y) * size + int(x), int(step.env.unwrapped.agent_dir)
-
-    lava = Declaration(
-        num_sensors=3,
+    minigrid_adapter.require_minigrid()  # registers the envs
+    cells = np.array(minigrid_adapter.view_cells(minigrid_adapter.check_layout("front3")))
+    lava = dataclasses.replace(
+        minigrid_adapter.declaration(gymnasium.make(LAVA_ENV).unwrapped.width),
         sensors=lambda step: (
-            step.observation["image"][view[:, 0], view[:, 1], 0] == OBJECT_TO_IDX["lava"]
+            step.observation["image"][cells[:, 0], cells[:, 1], 0] == OBJECT_TO_IDX["lava"]
         ),
         collision=lambda step: step.terminated and step.reward == 0,  # lava, not the goal
         task_reward=lambda step: step.reward,
-        actions=(2, 0, 1),  # MiniGrid's forward, left, right
-        actuator_names=("forward", "left", "right"),
-        task_state=cell_and_heading,
-        num_cells=size * size,
-        num_headings=4,
-        dependency=((True, False, False), (False,) * 3, (False,) * 3),
-        spaces={"mission": None},
     )
     return _declared_falls(
         lambda seed: FactorQEnv(gymnasium.make(LAVA_ENV), lava, seed=seed),
-        lava,
-        (size * size, 4, 3),
         exploration,
         master,
         seeds,
